@@ -1,0 +1,4 @@
+"""Companion computer of an aerial skeleton: SCKF constraint application and its tools.
+
+``companion.estimation`` is the pure estimation core (numpy/scipy only).
+"""

@@ -1,0 +1,127 @@
+"""Kinematic chain constraint (paper eq. 3) and its error-state Jacobian (eq. 4).
+
+Links ``i`` and ``i+1`` share a ball joint: the right tip of link ``i`` (``+d_i`` from its
+centre, body frame) coincides with the left tip of link ``i+1`` (``-d_{i+1}``) in position
+and in velocity::
+
+    c_i = [p_i + R_i d_i - (p_{i+1} - R_{i+1} d_{i+1});
+           v_i + R_i S(w_i) d_i - (v_{i+1} - R_{i+1} S(w_{i+1}) d_{i+1})]        (eq. 3)
+
+With the world-frame attitude error ``R = (I + S(dtheta)) R_hat`` (see :mod:`.so3`) the
+linearisation is (eq. 4)::
+
+    c~_i = [dp_i - S(R_i d_i) dth_i;  dv_i - S(R_i S(w_i) d_i) dth_i]
+         - [dp_{i+1} + S(R_{i+1} d_{i+1}) dth_{i+1};  dv_{i+1} + S(R_{i+1} S(w_{i+1}) d_{i+1}) dth_{i+1}]
+
+so the Jacobian only couples neighbours: row block ``i`` has a 6x9 block ``L_i`` in column
+block ``i`` and ``R_i`` in column block ``i+1``. The angular velocity ``w`` is an input
+(not estimated by the constraint application).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .chain import CON_DIM, CON_POS, CON_VEL, ERR_DIM, ERR_P, ERR_TH, ERR_V
+from .so3 import quat_to_rotmat, skew
+
+__all__ = [
+    "tip_offsets",
+    "constraint_residual",
+    "constraint_norm",
+    "constraint_jacobian_blocks",
+    "constraint_jacobian",
+    "residual_from_tips",
+    "jacobian_blocks_from_tips",
+    "left_tip",
+    "right_tip",
+]
+
+
+def tip_offsets(q: np.ndarray, w: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame right-tip offset ``a = R d`` and its velocity ``b = R S(w) d`` per link."""
+    R = quat_to_rotmat(q)
+    wxd = np.empty_like(d)
+    wxd[:, 0] = w[:, 1] * d[:, 2] - w[:, 2] * d[:, 1]
+    wxd[:, 1] = w[:, 2] * d[:, 0] - w[:, 0] * d[:, 2]
+    wxd[:, 2] = w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]
+    a = (R @ d[:, :, None])[:, :, 0]
+    b = (R @ wxd[:, :, None])[:, :, 0]
+    return a, b
+
+
+def right_tip(p, v, q, w, d) -> np.ndarray:
+    """(n, 6) right-tip [position; velocity] of every link."""
+    a, b = tip_offsets(q, w, d)
+    return np.concatenate((p + a, v + b), axis=1)
+
+
+def left_tip(p, v, q, w, d) -> np.ndarray:
+    """(n, 6) left-tip [position; velocity] of every link (offset ``-d``)."""
+    a, b = tip_offsets(q, w, d)
+    return np.concatenate((p - a, v - b), axis=1)
+
+
+def constraint_residual(p, v, q, w, d) -> np.ndarray:
+    """Stacked constraint error ``c`` of eq. 3, shape ``(6 (n-1),)`` (empty for one link)."""
+    return residual_from_tips(p, v, *tip_offsets(q, w, d))
+
+
+def residual_from_tips(p, v, a, b) -> np.ndarray:
+    """Eq. 3 from precomputed :func:`tip_offsets` ``(a, b)``."""
+    c = np.empty((p.shape[0] - 1, CON_DIM))
+    c[:, CON_POS] = (p[:-1] + a[:-1]) - (p[1:] - a[1:])
+    c[:, CON_VEL] = (v[:-1] + b[:-1]) - (v[1:] - b[1:])
+    return c.reshape(-1)
+
+
+def constraint_norm(p, v, q, w, d) -> float:
+    """``||c||_2`` of the stacked residual, the stop criterion of Alg. 1."""
+    return float(np.linalg.norm(constraint_residual(p, v, q, w, d)))
+
+
+def constraint_jacobian_blocks(q, w, d) -> tuple[np.ndarray, np.ndarray]:
+    """Non-zero blocks of the eq. 4 Jacobian.
+
+    Returns ``(L, R)``, each ``(n-1, 6, 9)``: ``L[i] = dc_i/dx~_i`` and
+    ``R[i] = dc_i/dx~_{i+1}``.
+    """
+    return jacobian_blocks_from_tips(*tip_offsets(q, w, d))
+
+
+def _block_template(sign: float) -> np.ndarray:
+    T = np.zeros((CON_DIM, ERR_DIM))
+    T[CON_POS, ERR_P] = sign * np.eye(3)
+    T[CON_VEL, ERR_V] = sign * np.eye(3)
+    return T
+
+
+_L_TEMPLATE = _block_template(1.0)
+_R_TEMPLATE = _block_template(-1.0)
+
+
+def jacobian_blocks_from_tips(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 4 blocks from precomputed :func:`tip_offsets` ``(a, b)``."""
+    m = a.shape[0] - 1
+    Sa = skew(a)
+    Sb = skew(b)
+    L = np.repeat(_L_TEMPLATE[None], m, axis=0)
+    R = np.repeat(_R_TEMPLATE[None], m, axis=0)
+    L[:, CON_POS, ERR_TH] = -Sa[:-1]
+    L[:, CON_VEL, ERR_TH] = -Sb[:-1]
+    R[:, CON_POS, ERR_TH] = -Sa[1:]
+    R[:, CON_VEL, ERR_TH] = -Sb[1:]
+    return L, R
+
+
+def constraint_jacobian(q, w, d) -> np.ndarray:
+    """Dense ``(6 (n-1), 9 n)`` Jacobian of eq. 4 (for the reference solver and tests)."""
+    L, R = constraint_jacobian_blocks(q, w, d)
+    m = L.shape[0]
+    n = m + 1
+    C = np.zeros((CON_DIM * m, ERR_DIM * n))
+    for i in range(m):
+        rows = slice(CON_DIM * i, CON_DIM * (i + 1))
+        C[rows, ERR_DIM * i : ERR_DIM * (i + 1)] = L[i]
+        C[rows, ERR_DIM * (i + 1) : ERR_DIM * (i + 2)] = R[i]
+    return C

@@ -1,0 +1,363 @@
+"""Constraint application CA of the smoothly constrained Kalman filter (paper Alg. 1).
+
+Starting from the EKF estimates ``x^E`` and their block-diagonal covariance ``P^E``, every
+iteration ``j`` linearises the chain constraint (eq. 3, Jacobian ``C_j`` of eq. 4) at the
+current estimate and applies it as a pseudo-measurement ``0 = c(x) `` with the weakening
+covariance (Alg. 1)::
+
+    P^w_j   = alpha e^{-j} C_j P^E C_j^T
+    K_j     = P^C_j C_j^T (C_j P^C_j C_j^T + P^w_j)^{-1}
+    x~_j+1  = -K_j c(x^C_j)
+    P^C_j+1 = (I - K_j C_j) P^C_j (I - K_j C_j)^T + K_j P^w_j K_j^T      (Joseph form)
+
+then injects ``x~`` (positions and velocities added, attitude by the normalised error
+quaternion on the left: see :mod:`.so3`), until ``||c||_2 <= eps`` or ``max_iter``.
+
+Two exact implementations are provided:
+
+* :func:`constraint_apply_dense` is Alg. 1 written out on the full ``9n x 9n`` covariance.
+  It is the reference, and the fastest for short chains.
+* :func:`constraint_apply_structured` evaluates the same iterates without ever forming the
+  dense covariance. The ``j`` pseudo-measurements are independent, so after ``J`` of them
+  ``P^C_J = P^E - P^E Cs^T A^-1 Cs P^E`` with ``Cs = [C_0; ...; C_{J-1}]`` and
+  ``A = blkdiag(P^w_a) + Cs P^E Cs^T`` (the Joseph recursion with the optimal gain equals
+  this batch form), and by block elimination ``K_j c_j = P^E Cs^T A^-1 [0; ...; 0; c_j]``.
+  Because ``C`` only couples neighbouring links and ``P^E`` is block diagonal, ``A``
+  ordered constraint-major/iteration-minor is block tridiagonal with ``6J x 6J`` blocks:
+  each iteration is one banded Cholesky solve, ``O(n J^3)``, and the per-link blocks of
+  ``P^C`` come from a selected inversion of ``A``. It returns only the per-link diagonal
+  blocks of ``P^C``, which is all the companion, the global step (eq. 6) and the replay
+  tool use.
+
+:func:`constraint_apply` picks one by chain length (``method="auto"``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.linalg.lapack import dpbtrf as _dpbtrf
+from scipy.linalg.lapack import dpbtrs as _dpbtrs
+
+from .chain import CON_DIM, ERR_DIM, ERR_P, ERR_TH, ERR_V
+from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offsets
+from .so3 import retract
+
+__all__ = [
+    "CAParams",
+    "CAResult",
+    "constraint_apply",
+    "constraint_apply_dense",
+    "constraint_apply_structured",
+    "block_diag_covariance",
+    "diagonal_blocks",
+    "DENSE_MAX_LINKS",
+]
+
+#: Chains up to this many links use the dense reference in ``method="auto"`` (measured with
+#: ``python -m sitl.bench scaling``: the dense form wins for short chains, where its
+#: few large BLAS calls beat the structured solver's per-block overhead).
+DENSE_MAX_LINKS = 3
+
+
+@dataclass(frozen=True)
+class CAParams:
+    """Parameters of Alg. 1.
+
+    Attributes:
+        alpha: weakening factor of ``P^w`` (paper: 0.01, after De Geeter et al.).
+        eps: stop when ``||c||_2 <= eps`` (stacked position [m] and velocity [m/s] error;
+            paper: 0.01 in simulation, 0.05 in the outdoor experiment).
+        max_iter: iteration cap; the result reports ``converged=False`` if it is hit.
+    """
+
+    alpha: float = 0.01
+    eps: float = 0.01
+    max_iter: int = 20
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.alpha) and self.alpha > 0.0):
+            raise ValueError(f"alpha must be a positive number, got {self.alpha!r}")
+        if not (math.isfinite(self.eps) and self.eps >= 0.0):
+            raise ValueError(f"eps must be a non-negative number, got {self.eps!r}")
+        if int(self.max_iter) != self.max_iter or self.max_iter < 1:
+            raise ValueError(f"max_iter must be a positive integer, got {self.max_iter!r}")
+
+
+@dataclass(frozen=True)
+class CAResult:
+    """Output of the constraint application.
+
+    Attributes:
+        p, v, q: corrected positions (n, 3), velocities (n, 3), attitudes (n, 4).
+        P: (n, 9, 9) per-link diagonal blocks of the corrected covariance ``P^C``.
+        iterations: number of CA iterations run (0 if the chain was already consistent).
+        residual_history: ``||c||_2`` before the first iteration and after each one.
+        converged: whether ``||c||_2 <= eps`` at the end.
+        P_full: the full ``9n x 9n`` ``P^C`` (dense method only, else ``None``).
+    """
+
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    P: np.ndarray
+    iterations: int
+    residual_history: np.ndarray
+    converged: bool
+    P_full: np.ndarray | None = None
+
+
+def block_diag_covariance(P_blocks: np.ndarray) -> np.ndarray:
+    """Stacked block-diagonal ``9n x 9n`` covariance from (n, 9, 9) per-link blocks."""
+    n = P_blocks.shape[0]
+    out = np.zeros((ERR_DIM * n, ERR_DIM * n))
+    for i in range(n):
+        s = slice(ERR_DIM * i, ERR_DIM * (i + 1))
+        out[s, s] = P_blocks[i]
+    return out
+
+
+def diagonal_blocks(P_full: np.ndarray) -> np.ndarray:
+    """(n, 9, 9) per-link diagonal blocks of a stacked ``9n x 9n`` covariance."""
+    n = P_full.shape[0] // ERR_DIM
+    return np.stack([P_full[ERR_DIM * i : ERR_DIM * (i + 1), ERR_DIM * i : ERR_DIM * (i + 1)] for i in range(n)])
+
+
+def _inject(p, v, q, dx_links):
+    """Apply per-link error states ``(n, 9)`` to the nominal state (Alg. 1 state update)."""
+    return p + dx_links[:, ERR_P], v + dx_links[:, ERR_V], retract(q, dx_links[:, ERR_TH])
+
+
+def _dense_jacobian(L: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Dense eq. 4 Jacobian ``(6m, 9(m+1))`` scattered from its neighbour blocks."""
+    m = L.shape[0]
+    C = np.zeros((m, CON_DIM, m + 1, ERR_DIM))
+    idx = np.arange(m)
+    C[idx, :, idx, :] = L
+    C[idx, :, idx + 1, :] = R
+    return C.reshape(CON_DIM * m, ERR_DIM * (m + 1))
+
+
+def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams()) -> CAResult:
+    """Alg. 1 verbatim on the full covariance (reference implementation).
+
+    Args:
+        p, v, q, w, d: (n, 3), (n, 3), (n, 4), (n, 3), (n, 3) EKF positions, velocities,
+            attitudes, body angular velocities and centre-to-right-tip vectors.
+        P: (n, 9, 9) EKF covariance blocks (the block-diagonal ``P^E``).
+        params: :class:`CAParams`.
+    """
+    n = p.shape[0]
+    PE = block_diag_covariance(P)
+    Pc = PE
+    eye = np.eye(ERR_DIM * n)
+    a, b = tip_offsets(q, w, d)
+    c = residual_from_tips(p, v, a, b)
+    history = [math.sqrt(float(c @ c))]
+    j = 0
+    while history[-1] > params.eps and j < params.max_iter:
+        C = _dense_jacobian(*jacobian_blocks_from_tips(a, b))
+        Pw = (params.alpha * math.exp(-j)) * (C @ PE @ C.T)
+        PCt = Pc @ C.T
+        S = C @ PCt + Pw
+        K = np.linalg.solve(S, PCt.T).T  # S is symmetric: K = P C^T S^-1
+        dx = -(K @ c)
+        A = eye - K @ C
+        Pc = A @ Pc @ A.T + K @ Pw @ K.T
+        Pc = 0.5 * (Pc + Pc.T)
+        p, v, q = _inject(p, v, q, dx.reshape(n, ERR_DIM))
+        a, b = tip_offsets(q, w, d)
+        c = residual_from_tips(p, v, a, b)
+        history.append(math.sqrt(float(c @ c)))
+        j += 1
+    return CAResult(
+        p=p,
+        v=v,
+        q=q,
+        P=diagonal_blocks(Pc),
+        iterations=j,
+        residual_history=np.asarray(history),
+        converged=history[-1] <= params.eps,
+        P_full=Pc,
+    )
+
+
+@lru_cache(maxsize=128)
+def _band_layout(m: int, bs: int):
+    """Index maps between block-tridiagonal blocks and LAPACK upper band storage.
+
+    Returns ``(u, M, d_src, d_dst, e_dst, u_diag, u_off)``: ``u`` super-diagonals, size
+    ``M``; flat indices scattering the upper triangles of the diagonal blocks and the
+    super-diagonal blocks into the band; and gather indices that read the diagonal and
+    super-diagonal blocks of the band Cholesky factor ``U`` (``A = U^T U``) back out.
+    """
+    M = m * bs
+    u = (2 * bs - 1) if m > 1 else (bs - 1)
+    shape = (u + 1, M)
+    i, x, y = np.meshgrid(np.arange(m), np.arange(bs), np.arange(bs), indexing="ij")
+    upper = x <= y
+    rows = (i * bs + x)[upper]
+    cols = (i * bs + y)[upper]
+    d_src = np.ravel_multi_index((i[upper], x[upper], y[upper]), (m, bs, bs))
+    d_dst = np.ravel_multi_index((u + rows - cols, cols), shape)
+    # Diagonal blocks of U: upper triangle from the band, zeros below (gather index of a
+    # guaranteed-zero slot: the unused top-left corner of band storage).
+    zero_slot = 0
+    u_diag = np.full((m, bs, bs), zero_slot, dtype=np.intp)
+    u_diag[i[upper], x[upper], y[upper]] = d_dst
+    if m > 1:
+        ie, xe, ye = np.meshgrid(np.arange(m - 1), np.arange(bs), np.arange(bs), indexing="ij")
+        erows = (ie * bs + xe).ravel()
+        ecols = ((ie + 1) * bs + ye).ravel()
+        e_dst = np.ravel_multi_index((u + erows - ecols, ecols), shape)
+        u_off = e_dst.reshape(m - 1, bs, bs)
+    else:
+        e_dst = np.zeros(0, dtype=np.intp)
+        u_off = np.zeros((0, bs, bs), dtype=np.intp)
+    return u, M, d_src, d_dst, e_dst, u_diag, u_off
+
+
+class _BandedSPD:
+    """Cholesky factorisation of an SPD block-tridiagonal matrix in band storage."""
+
+    def __init__(self, D: np.ndarray, E: np.ndarray):
+        m, bs, _ = D.shape
+        self.m, self.bs = m, bs
+        u, M, d_src, d_dst, e_dst, self._u_diag, self._u_off = _band_layout(m, bs)
+        ab = np.zeros((u + 1) * M)
+        ab[d_dst] = D.reshape(-1)[d_src]
+        if m > 1:
+            ab[e_dst] = E.reshape(-1)
+        cb, info = _dpbtrf(ab.reshape(u + 1, M), lower=0, overwrite_ab=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"constraint system is not positive definite (LAPACK pbtrf info={info})")
+        self._cb = cb
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        x, info = _dpbtrs(self._cb, rhs.reshape(self.m * self.bs, -1), lower=0)
+        if info != 0:  # pragma: no cover - only on invalid arguments
+            raise np.linalg.LinAlgError(f"LAPACK pbtrs failed (info={info})")
+        return x
+
+    def selected_inverse(self) -> tuple[np.ndarray, np.ndarray]:
+        """Diagonal blocks ``G_ii`` and super-diagonal blocks ``G_i,i+1`` of ``A^-1``.
+
+        Takahashi recursion on ``A = U^T U`` (``U`` block upper bidiagonal):
+        ``G_i,i+1 = -W_i G_i+1,i+1`` and ``G_ii = U_ii^-1 U_ii^-T + W_i G_i+1,i+1 W_i^T``
+        with ``W_i = U_ii^-1 U_i,i+1``.
+        """
+        flat = self._cb.reshape(-1)
+        Uinv = np.linalg.inv(flat[self._u_diag])
+        UUt = Uinv @ np.swapaxes(Uinv, 1, 2)
+        G = np.empty_like(UUt)
+        G[-1] = UUt[-1]
+        if self.m == 1:
+            return G, np.zeros((0, self.bs, self.bs))
+        Wm = Uinv[:-1] @ flat[self._u_off]
+        Go = np.empty_like(Wm)
+        for i in range(self.m - 2, -1, -1):
+            Go[i] = -Wm[i] @ G[i + 1]
+            G[i] = UUt[i] - Go[i] @ Wm[i].T
+        return G, Go
+
+
+def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams()) -> CAResult:
+    """Alg. 1 evaluated through the block-tridiagonal structure (same iterates as dense).
+
+    Arguments as :func:`constraint_apply_dense`. Returns per-link covariance blocks only.
+    """
+    n = p.shape[0]
+    m = n - 1
+    a, b = tip_offsets(q, w, d)
+    c = residual_from_tips(p, v, a, b)
+    history = [math.sqrt(float(c @ c))]
+    if m == 0 or history[-1] <= params.eps:
+        return CAResult(p, v, q, P.copy(), 0, np.asarray(history), history[-1] <= params.eps)
+    Pl, Pr = P[:-1], P[1:]
+    # Rows of C_a and C_a P^E for every iteration a, constraint-major: buffer[i, 6a:6a+6].
+    cap = CON_DIM * params.max_iter
+    Lb, Rb, LPb, RPb = (np.empty((m, cap, ERR_DIM)) for _ in range(4))
+    scale = []
+    j = 0
+    while history[-1] > params.eps and j < params.max_iter:
+        rows = slice(CON_DIM * j, CON_DIM * (j + 1))
+        L, R = jacobian_blocks_from_tips(a, b)
+        Lb[:, rows] = L
+        Rb[:, rows] = R
+        LPb[:, rows] = L @ Pl
+        RPb[:, rows] = R @ Pr
+        scale.append(1.0 + params.alpha * math.exp(-j))
+        J = j + 1
+        used = slice(0, CON_DIM * J)
+        Lf, Rf, LPf, RPf = Lb[:, used], Rb[:, used], LPb[:, used], RPb[:, used]
+        D, E = _assemble(Lf, Rf, LPf, RPf, scale)
+        system = _BandedSPD(D, E)
+        rhs = np.zeros((m, J, CON_DIM))
+        rhs[:, j, :] = c.reshape(m, CON_DIM)
+        y = system.solve(rhs).reshape(m, CON_DIM * J, 1)
+        # g = Cs^T y per link; the correction is -P^E g.
+        g = np.zeros((n, ERR_DIM, 1))
+        g[:-1] += np.swapaxes(Lf, 1, 2) @ y
+        g[1:] += np.swapaxes(Rf, 1, 2) @ y
+        dx = -(P @ g)[:, :, 0]
+        p, v, q = _inject(p, v, q, dx)
+        a, b = tip_offsets(q, w, d)
+        c = residual_from_tips(p, v, a, b)
+        history.append(math.sqrt(float(c @ c)))
+        j += 1
+    PC = _posterior_blocks(P, system, LPf, RPf)
+    return CAResult(p, v, q, PC, j, np.asarray(history), history[-1] <= params.eps)
+
+
+def _assemble(Lf, Rf, LPf, RPf, scale):
+    """Blocks of ``A = blkdiag(P^w_a) + Cs P^E Cs^T`` in constraint-major order.
+
+    ``Lf[i]``/``Rf[i]`` stack ``C_a``'s blocks of constraint ``i`` over iterations ``a``
+    (``(6J, 9)``), ``LPf``/``RPf`` the same rows of ``C_a P^E``.
+    """
+    J = len(scale)
+    D = LPf @ np.swapaxes(Lf, 1, 2) + RPf @ np.swapaxes(Rf, 1, 2)
+    E = RPf[:-1] @ np.swapaxes(Lf[1:], 1, 2)
+    # Weakening P^w_a = alpha e^-a C_a P^E C_a^T: same-iteration blocks scale by (1 + alpha e^-a).
+    factor = _weakening_factor(tuple(scale), J)
+    return D * factor, E * factor
+
+
+@lru_cache(maxsize=256)
+def _weakening_factor(scale: tuple, J: int) -> np.ndarray:
+    it = np.repeat(np.arange(J), CON_DIM)
+    s = np.repeat(np.asarray(scale), CON_DIM)
+    return np.where(np.equal.outer(it, it), s[:, None], 1.0)
+
+
+def _posterior_blocks(P, system: _BandedSPD, LPf, RPf):
+    """Per-link blocks of ``P^C = P^E - P^E Cs^T A^-1 Cs P^E`` (selected inversion)."""
+    m = LPf.shape[0]
+    G, Go = system.selected_inverse()
+    corr = np.zeros_like(P)
+    corr[:-1] += np.swapaxes(LPf, 1, 2) @ G @ LPf
+    corr[1:] += np.swapaxes(RPf, 1, 2) @ G @ RPf
+    if m > 1:
+        X = np.swapaxes(RPf[:-1], 1, 2) @ Go @ LPf[1:]
+        corr[1:-1] += X + np.swapaxes(X, 1, 2)
+    PC = P - corr
+    return 0.5 * (PC + np.swapaxes(PC, 1, 2))
+
+
+def constraint_apply(p, v, q, w, d, P, params: CAParams = CAParams(), method: str = "auto") -> CAResult:
+    """Constraint application (Alg. 1) on one chain or group.
+
+    ``method`` is ``"dense"``, ``"structured"`` or ``"auto"`` (dense up to
+    :data:`DENSE_MAX_LINKS` links). Both give the same iterates; inputs are assumed
+    validated (see :func:`companion.estimation.chain.check_chain`).
+    """
+    if method == "auto":
+        method = "dense" if p.shape[0] <= DENSE_MAX_LINKS else "structured"
+    if method == "dense":
+        return constraint_apply_dense(p, v, q, w, d, P, params)
+    if method == "structured":
+        return constraint_apply_structured(p, v, q, w, d, P, params)
+    raise ValueError(f"unknown method {method!r}; expected 'auto', 'dense' or 'structured'")

@@ -1,0 +1,393 @@
+"""Per-link SE(3) error-state EKF of the simulated Pixhawk (paper eq. 2).
+
+Nominal state ``x = [p; v; q; b_a; b_g]`` (16 numbers): world-frame position [m] and
+velocity [m/s] of the link centre, body-to-world attitude (Hamilton, w first), accelerometer
+bias [m/s^2] and gyro bias [rad/s] (body frame). Error state
+``dx = [dp; dv; dtheta; db_a; db_g]`` (15 numbers) with the world-frame attitude error of
+DESIGN.md sec. 4 (``q = dq(dtheta) (x) q_hat``), the convention of the SCKF (paper sec. III-A)
+and of Sola, "Quaternion kinematics for the error-state Kalman filter" (2017), sec. 7
+("global angular error"). The first 9 error states are the paper's ``[p~; v~; dtheta]``;
+:func:`sckf_view` exposes them with their 9x9 covariance block.
+
+World frame z-up, gravity ``[0, 0, -g]``; accelerometers measure specific force
+``f = R^T (a - g)`` in the body frame.
+
+Functional core (``ekf_predict``, ``ekf_update_*``: ``(x, P, ...) -> (x, P[, info])``, no
+state, no clocks) and a thin stateful :class:`LinkEkf` on top. Covariance updates use the
+Joseph form and keep ``P`` symmetric.
+
+Biases are estimated only if their process noise / initial variance is non-zero; with both
+zero the filter reduces exactly to the paper's 9-state EKF.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.estimation.so3 import (
+    attitude_error,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_to_rotmat,
+    retract,
+    skew,
+)
+
+__all__ = [
+    "X_P",
+    "X_V",
+    "X_Q",
+    "X_BA",
+    "X_BG",
+    "NX",
+    "E_P",
+    "E_V",
+    "E_TH",
+    "E_BA",
+    "E_BG",
+    "E_SCKF",
+    "NE",
+    "GRAVITY_W_M_S2",
+    "EkfNoise",
+    "EkfConfig",
+    "UpdateInfo",
+    "ekf_init",
+    "ekf_predict",
+    "error_transition",
+    "ekf_update_position",
+    "ekf_update_velocity",
+    "ekf_update_attitude",
+    "ekf_update_heading",
+    "heading_jacobian",
+    "sckf_view",
+    "LinkEkf",
+]
+
+# Nominal state slices.
+X_P = slice(0, 3)
+X_V = slice(3, 6)
+X_Q = slice(6, 10)
+X_BA = slice(10, 13)
+X_BG = slice(13, 16)
+NX = 16
+# Error state slices.
+E_P = slice(0, 3)
+E_V = slice(3, 6)
+E_TH = slice(6, 9)
+E_BA = slice(9, 12)
+E_BG = slice(12, 15)
+#: The paper's error state [p~; v~; dtheta] (what the SCKF consumes).
+E_SCKF = slice(0, 9)
+NE = 15
+
+GRAVITY_W_M_S2 = np.array([0.0, 0.0, -9.80665])
+
+
+@dataclass(frozen=True)
+class EkfNoise:
+    """Continuous-time process noise densities (variance growth per second).
+
+    Defaults are the paper's Table I process noise ``diag[0.1 I3, 0.1 I3, 0.01 I3]`` on
+    ``[p; v; theta]``, read as densities (m^2/s, (m/s)^2/s, rad^2/s), and no bias walk.
+    """
+
+    pos_m2_s: float = 0.1
+    vel_m2_s3: float = 0.1
+    att_rad2_s: float = 0.01
+    accel_bias_m2_s5: float = 0.0
+    gyro_bias_rad2_s3: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("pos_m2_s", "vel_m2_s3", "att_rad2_s", "accel_bias_m2_s5", "gyro_bias_rad2_s3"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0.0):
+                raise ValueError(f"EkfNoise.{name} must be a finite non-negative number, got {val!r}")
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """EKF tuning: process noise, measurement variances, gates and initial uncertainty.
+
+    Measurement variances default to the paper's Table I (0.1 m^2 position, 0.1 (m/s)^2
+    velocity, 0.01 per quaternion component = 0.04 rad^2 per attitude axis because
+    ``dq ~ [1; dtheta/2]``). ``gate_sigma`` rejects a measurement when any axis of its
+    innovation exceeds that many standard deviations (as PX4 EKF2's ``*_GATE`` parameters).
+    """
+
+    noise: EkfNoise = field(default_factory=EkfNoise)
+    gps_pos_var_m2: float = 0.1
+    gps_vel_var_m2_s2: float = 0.1
+    att_var_rad2: float = 0.04
+    heading_var_rad2: float = 0.01
+    gate_sigma: float = 5.0
+    init_pos_var_m2: float = 1.0
+    init_vel_var_m2_s2: float = 0.25
+    init_att_var_rad2: float = 0.05
+    init_accel_bias_var: float = 0.0
+    init_gyro_bias_var: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "gps_pos_var_m2",
+            "gps_vel_var_m2_s2",
+            "att_var_rad2",
+            "heading_var_rad2",
+            "gate_sigma",
+            "init_pos_var_m2",
+            "init_vel_var_m2_s2",
+            "init_att_var_rad2",
+        ):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val > 0.0):
+                raise ValueError(f"EkfConfig.{name} must be a positive number, got {val!r}")
+        for name in ("init_accel_bias_var", "init_gyro_bias_var"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0.0):
+                raise ValueError(f"EkfConfig.{name} must be a finite non-negative number, got {val!r}")
+
+
+@dataclass(frozen=True)
+class UpdateInfo:
+    """Outcome of one measurement update.
+
+    ``test_ratio`` is the largest ``innov_k^2 / (gate^2 S_kk)`` over the measurement's axes
+    (PX4's innovation test ratio): the update is rejected when it exceeds 1.
+    """
+
+    accepted: bool
+    innovation: np.ndarray
+    test_ratio: float
+
+
+def ekf_init(p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Initial state (zero biases) and diagonal covariance from ``config``."""
+    x = np.zeros(NX)
+    x[X_P] = p_w_m
+    x[X_V] = v_w_m_s
+    x[X_Q] = quat_normalize(np.asarray(q_wxyz, dtype=float))
+    P = np.zeros((NE, NE))
+    P[E_P, E_P] = config.init_pos_var_m2 * np.eye(3)
+    P[E_V, E_V] = config.init_vel_var_m2_s2 * np.eye(3)
+    P[E_TH, E_TH] = config.init_att_var_rad2 * np.eye(3)
+    P[E_BA, E_BA] = config.init_accel_bias_var * np.eye(3)
+    P[E_BG, E_BG] = config.init_gyro_bias_var * np.eye(3)
+    return x, P
+
+
+def error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> np.ndarray:
+    """Error-state transition of :func:`ekf_predict`.
+
+    World-frame attitude error (Sola 2017, sec. 7): ``dp' = dv``,
+    ``dv' = -S(R f) dtheta - R db_a``, ``dtheta' = -R db_g``, biases constant; discretised
+    like the nominal state (the position picks up the ``dt^2/2`` acceleration terms).
+    """
+    f_b = np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]
+    R = quat_to_rotmat(x[X_Q])
+    dv_dth = -skew(R @ f_b)
+    half_dt2 = 0.5 * dt_s * dt_s
+    F = np.eye(NE)
+    F[E_P, E_V] = dt_s * np.eye(3)
+    F[E_P, E_TH] = half_dt2 * dv_dth
+    F[E_P, E_BA] = -half_dt2 * R
+    F[E_V, E_TH] = dt_s * dv_dth
+    F[E_V, E_BA] = -dt_s * R
+    F[E_TH, E_BG] = -dt_s * R
+    return F
+
+
+def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) -> tuple[np.ndarray, np.ndarray]:
+    """IMU propagation over ``dt_s`` (gyro rate and specific force in the body frame).
+
+    Nominal: ``p += v dt + a dt^2/2``, ``v += a dt`` with ``a = R (f - b_a) + g``, and
+    ``q <- q (x) Exp((w - b_g) dt)``. Covariance ``F P F^T + Q dt`` with
+    :func:`error_transition` and the process noise densities.
+    """
+    if not dt_s > 0.0:
+        raise ValueError(f"dt_s must be positive, got {dt_s!r}")
+    omega = np.asarray(gyro_b_rad_s, dtype=float) - x[X_BG]
+    f_b = np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]
+    acc = quat_to_rotmat(x[X_Q]) @ f_b + GRAVITY_W_M_S2
+    xn = x.copy()
+    xn[X_P] = x[X_P] + x[X_V] * dt_s + 0.5 * acc * dt_s * dt_s
+    xn[X_V] = x[X_V] + acc * dt_s
+    xn[X_Q] = quat_normalize(quat_mul(x[X_Q], quat_from_rotvec(omega * dt_s)))
+    F = error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s)
+    q_diag = np.repeat(
+        [noise.pos_m2_s, noise.vel_m2_s3, noise.att_rad2_s, noise.accel_bias_m2_s5, noise.gyro_bias_rad2_s3], 3
+    )
+    Pn = F @ P @ F.T
+    Pn[np.diag_indices(NE)] += q_diag * dt_s
+    return xn, 0.5 * (Pn + Pn.T)
+
+
+def _inject(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    xn = x.copy()
+    xn[X_P] += dx[E_P]
+    xn[X_V] += dx[E_V]
+    xn[X_Q] = retract(x[X_Q], dx[E_TH])
+    xn[X_BA] += dx[E_BA]
+    xn[X_BG] += dx[E_BG]
+    return xn
+
+
+def _update(x, P, r, H, Rm, gate_sigma: float):
+    """Gated Kalman update with residual ``r = z - h(x)`` and Joseph-form covariance."""
+    PHt = P @ H.T
+    S = H @ PHt + Rm
+    test = float(np.max(r * r / (gate_sigma * gate_sigma * np.diag(S))))
+    if not math.isfinite(test) or test > 1.0:
+        return x, P, UpdateInfo(False, r, test)
+    K = np.linalg.solve(S, PHt.T).T
+    IKH = np.eye(NE) - K @ H
+    Pn = IKH @ P @ IKH.T + K @ Rm @ K.T
+    return _inject(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
+
+
+def _as_cov(var, dim: int) -> np.ndarray:
+    """Scalar, per-axis vector or full matrix variance as a (dim, dim) matrix."""
+    a = np.asarray(var, dtype=float)
+    if a.ndim == 0:
+        return float(a) * np.eye(dim)
+    if a.ndim == 1:
+        return np.diag(a)
+    return a
+
+
+def _selector(sl: slice) -> np.ndarray:
+    H = np.zeros((3, NE))
+    H[:, sl] = np.eye(3)
+    return H
+
+
+_H_POS = _selector(E_P)
+_H_VEL = _selector(E_V)
+_H_ATT = _selector(E_TH)
+
+
+def _check_meas(z, name: str, size: int) -> np.ndarray:
+    a = np.asarray(z, dtype=float)
+    if a.shape != (size,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected {size} finite numbers, got {a!r}")
+    return a
+
+
+def ekf_update_position(x, P, pos_w_m, var_m2, gate_sigma: float = 5.0):
+    """GPS position update (world frame, metres)."""
+    z = _check_meas(pos_w_m, "position", 3)
+    return _update(x, P, z - x[X_P], _H_POS, _as_cov(var_m2, 3), gate_sigma)
+
+
+def ekf_update_velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma: float = 5.0):
+    """GPS velocity update (world frame, m/s)."""
+    z = _check_meas(vel_w_m_s, "velocity", 3)
+    return _update(x, P, z - x[X_V], _H_VEL, _as_cov(var_m2_s2, 3), gate_sigma)
+
+
+def ekf_update_attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma: float = 5.0):
+    """Attitude reference update from a measured quaternion (AHRS-like).
+
+    Residual is the world-frame rotation vector from the estimate to the measurement,
+    so ``H = [0 0 I 0 0]``; ``var_rad2`` is per axis.
+    """
+    z = quat_normalize(_check_meas(q_meas_wxyz, "attitude quaternion", 4))
+    return _update(x, P, attitude_error(z, x[X_Q]), _H_ATT, _as_cov(var_rad2, 3), gate_sigma)
+
+
+def heading_jacobian(q_wxyz) -> np.ndarray:
+    """``d yaw / d dtheta`` (1x3) for yaw = atan2(R10, R00) and world-frame errors.
+
+    With ``R <- (I + S(dtheta)) R``: ``dR00 = -R10 dth_z + R20 dth_y`` and
+    ``dR10 = R00 dth_z - R20 dth_x``, so
+    ``d yaw = (-R20 R00 dth_x - R20 R10 dth_y + (R00^2 + R10^2) dth_z) / (R00^2 + R10^2)``.
+    """
+    R = quat_to_rotmat(q_wxyz)
+    h = R[0, 0] ** 2 + R[1, 0] ** 2
+    return np.array([-R[2, 0] * R[0, 0] / h, -R[2, 0] * R[1, 0] / h, 1.0])
+
+
+def ekf_update_heading(x, P, yaw_rad: float, var_rad2: float, gate_sigma: float = 5.0):
+    """Heading (magnetometer-like) update: yaw of the body x axis about world z."""
+    if not math.isfinite(yaw_rad):
+        raise ValueError(f"heading: expected a finite angle, got {yaw_rad!r}")
+    R = quat_to_rotmat(x[X_Q])
+    if R[0, 0] ** 2 + R[1, 0] ** 2 < 1e-6:
+        # Body x axis vertical: heading undefined, skip rather than divide by zero.
+        return x, P, UpdateInfo(False, np.array([0.0]), math.inf)
+    yaw_hat = math.atan2(R[1, 0], R[0, 0])
+    r = np.array([(yaw_rad - yaw_hat + math.pi) % (2.0 * math.pi) - math.pi])
+    H = np.zeros((1, NE))
+    H[0, E_TH] = heading_jacobian(x[X_Q])
+    return _update(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
+
+
+def sckf_view(x, P, gyro_b_rad_s):
+    """What the link reports to the companion: ``(p, v, q, omega_b, P9)``.
+
+    ``omega_b`` is the bias-corrected body rate (input of eq. 3), ``P9`` the covariance of
+    ``[p~; v~; dtheta]``.
+    """
+    omega = np.asarray(gyro_b_rad_s, dtype=float) - x[X_BG]
+    return x[X_P].copy(), x[X_V].copy(), x[X_Q].copy(), omega, P[E_SCKF, E_SCKF].copy()
+
+
+class LinkEkf:
+    """Stateful wrapper around the functional EKF, as run on one simulated Pixhawk.
+
+    Counts accepted and rejected (gated) measurements per kind.
+    """
+
+    def __init__(self, p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig()):
+        self.config = config
+        self.x, self.P = ekf_init(p_w_m, v_w_m_s, q_wxyz, config)
+        self.last_gyro_b_rad_s = np.zeros(3)
+        self.accepted: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
+        self.rejected: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
+
+    def predict(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> None:
+        self.x, self.P = ekf_predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config.noise)
+        self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
+
+    def _record(self, kind: str, result) -> UpdateInfo:
+        self.x, self.P, info = result
+        (self.accepted if info.accepted else self.rejected)[kind] += 1
+        return info
+
+    def update_position(self, pos_w_m) -> UpdateInfo:
+        cfg = self.config
+        return self._record("pos", ekf_update_position(self.x, self.P, pos_w_m, cfg.gps_pos_var_m2, cfg.gate_sigma))
+
+    def update_velocity(self, vel_w_m_s) -> UpdateInfo:
+        cfg = self.config
+        return self._record(
+            "vel", ekf_update_velocity(self.x, self.P, vel_w_m_s, cfg.gps_vel_var_m2_s2, cfg.gate_sigma)
+        )
+
+    def update_attitude(self, q_meas_wxyz) -> UpdateInfo:
+        cfg = self.config
+        return self._record("att", ekf_update_attitude(self.x, self.P, q_meas_wxyz, cfg.att_var_rad2, cfg.gate_sigma))
+
+    def update_heading(self, yaw_rad: float) -> UpdateInfo:
+        cfg = self.config
+        return self._record(
+            "heading", ekf_update_heading(self.x, self.P, yaw_rad, cfg.heading_var_rad2, cfg.gate_sigma)
+        )
+
+    @property
+    def p_w_m(self) -> np.ndarray:
+        return self.x[X_P].copy()
+
+    @property
+    def v_w_m_s(self) -> np.ndarray:
+        return self.x[X_V].copy()
+
+    @property
+    def q_wxyz(self) -> np.ndarray:
+        return self.x[X_Q].copy()
+
+    def sckf_view(self):
+        """``(p, v, q, omega_b, P9)`` for the companion (see :func:`sckf_view`)."""
+        return sckf_view(self.x, self.P, self.last_gyro_b_rad_s)

@@ -1,0 +1,109 @@
+"""Benchmarks that print figures and write JSON.
+
+    python -m sitl.bench table2 [--json PATH] [--seed S] [--duration S] [--out DIR]
+    python -m sitl.bench scaling [--json PATH] [--seed S] [--out DIR]
+
+Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
+result (or ``--json PATH`` instead) and, for table2, the EKF stream in the
+``companion replay`` input format (``ekf_stream.npz``) with the truth (``truth.npz``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from companion.estimation.sckf import CAParams
+from companion.runtime import make_run_dir, setup_logging, single_thread_blas
+
+from .ekf_chain import ChainRun
+from .scaling import LINK_COUNTS, format_scaling, run_scaling
+from .table2 import GROUP_SIZES, format_table2, run_table2
+
+log = logging.getLogger("sitl.bench")
+
+
+def _write_json(result: dict, json_path: str | None, run_dir: Path, name: str) -> Path:
+    path = Path(json_path) if json_path else run_dir / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    return path
+
+
+def _cmd_table2(args) -> int:
+    run = ChainRun(duration_s=args.duration)
+    params = CAParams(eps=args.eps, alpha=args.alpha)
+    run_dir = make_run_dir("table2", args.out)
+    n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
+    with tqdm(total=n_ticks, desc="EKF (12 links)", unit="tick", disable=args.quiet, file=sys.stderr) as bar:
+        result, stream = run_table2(args.seed, run, GROUP_SIZES, params, progress=bar.update)
+    np.savez_compressed(run_dir / "ekf_stream.npz", **stream.replay_arrays())
+    np.savez_compressed(run_dir / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true)
+    path = _write_json(result, args.json, run_dir, "table2.json")
+    print(format_table2(result))
+    print(f"\nwrote {path} and {run_dir / 'ekf_stream.npz'} (replay input)")
+    return 0
+
+
+def _cmd_scaling(args) -> int:
+    params = CAParams(eps=args.eps, alpha=args.alpha)
+    run_dir = make_run_dir("scaling", args.out)
+    with tqdm(total=len(LINK_COUNTS), desc="chain lengths", unit="n", disable=args.quiet, file=sys.stderr) as bar:
+        result = run_scaling(args.seed, LINK_COUNTS, params=params, progress=bar.update)
+    path = _write_json(result, args.json, run_dir, "scaling.json")
+    print(format_scaling(result))
+    print(f"\nwrote {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m sitl.bench", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    common.add_argument("--out", metavar="DIR", help="run folder (default: runs/<bench>-<UTC time>)")
+    common.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    common.add_argument("--eps", type=float, default=CAParams.eps, help="CA stop threshold ||c|| [m] (default 0.01)")
+    common.add_argument("--alpha", type=float, default=CAParams.alpha, help="weakening factor (default 0.01)")
+    common.add_argument("--quiet", action="store_true", help="no progress bar")
+    t2 = sub.add_parser(
+        "table2",
+        parents=[common],
+        help="paper Table II: 12 links, 20 s, group sizes 2/3/4/6/12",
+        description="The paper's sec. IV protocol: compute time and accuracy per group size.",
+    )
+    t2.add_argument("--duration", type=float, default=ChainRun.duration_s, help="simulated seconds (default 20)")
+    t2.set_defaults(func=_cmd_table2)
+    sc = sub.add_parser(
+        "scaling",
+        parents=[common],
+        help="per-step time of full and semi-distributed SCKF for n = 3..96",
+        description="Per-step time of Alg. 1 (full chain) and Alg. 2 + eq. 6 (groups of 2) vs. chain length.",
+    )
+    sc.set_defaults(func=_cmd_scaling)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging()
+    try:
+        CAParams(eps=args.eps, alpha=args.alpha)
+        if getattr(args, "duration", 1.0) <= 0:
+            raise ValueError(f"--duration must be positive, got {args.duration}")
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with single_thread_blas():
+        return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

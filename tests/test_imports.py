@@ -1,0 +1,26 @@
+import subprocess
+import sys
+
+BLOCKER = """
+import importlib.abc, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in {'pymavlink', 'zenoh', 'mujoco', 'mavsdk', 'pinocchio', 'cv2'}:
+            raise ImportError('blocked: ' + name)
+sys.meta_path.insert(0, Block())
+"""
+
+
+def test_estimation_core_imports_without_wire_or_sim_packages():
+    code = BLOCKER + (
+        "import companion.estimation, link_firmware_sim.ekf, sitl.synthetic, sitl.bench.table2, companion.replay\n"
+        "print('ok')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ok"
+
+
+def test_blocker_really_blocks():
+    proc = subprocess.run([sys.executable, "-c", BLOCKER + "import mujoco"], capture_output=True, text=True)
+    assert proc.returncode != 0 and "blocked" in proc.stderr

@@ -1,0 +1,154 @@
+import numpy as np
+import pytest
+
+from companion.estimation.chain import ERR_PV
+from companion.estimation.constraints import constraint_residual, left_tip, right_tip
+from companion.estimation.sckf import CAParams, constraint_apply
+from companion.estimation.semi import (
+    GroupBoundary,
+    format_groups,
+    global_step,
+    group_boundary,
+    make_groups,
+    parse_groups,
+    semi_distributed_apply,
+    validate_groups,
+)
+
+from .chains import perturbed_chain
+
+LAYOUTS = {
+    "paper-7": ("1,2/3,4,5/6,7", 7),
+    "pairs-6": ("1,2/3,4/5,6", 6),
+    "singletons-4": ("1/2/3/4", 4),
+    "uneven-9": ("1/2,3,4,5/6,7/8,9", 9),
+    "one-group-5": ("1,2,3,4,5", 5),
+}
+
+
+def _brute_force_shifts(p, v, q, w, d, P, groups):
+    """Eq. 6 solved as a KKT system over per-link shifts tied within groups."""
+    n = p.shape[0]
+    info = np.linalg.inv(P[:, ERR_PV, ERR_PV])
+    H = np.zeros((6 * n, 6 * n))
+    for i in range(n):
+        H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = 2.0 * info[i]
+    rows, rhs = [], []
+    rt, lt = right_tip(p, v, q, w, d), left_tip(p, v, q, w, d)
+    group_of = {i: k for k, g in enumerate(groups) for i in g}
+    for i in range(n - 1):
+        A = np.zeros((6, 6 * n))
+        A[:, 6 * i : 6 * i + 6] = np.eye(6)
+        A[:, 6 * i + 6 : 6 * i + 12] = -np.eye(6)
+        rows.append(A)
+        # Same group: equal shifts. Across groups: the shifted tips coincide.
+        rhs.append(np.zeros(6) if group_of[i] == group_of[i + 1] else -(rt[i] - lt[i + 1]))
+    A = np.vstack(rows)
+    kkt = np.block([[H, A.T], [A, np.zeros((A.shape[0], A.shape[0]))]])
+    sol = np.linalg.solve(kkt, np.concatenate((np.zeros(6 * n), np.concatenate(rhs))))
+    per_link = sol[: 6 * n].reshape(n, 6)
+    return np.array([per_link[g[0]] for g in groups])
+
+
+@pytest.mark.parametrize("layout", LAYOUTS.values(), ids=LAYOUTS.keys())
+@pytest.mark.parametrize("seed", range(3))
+def test_global_step_closes_group_joints_and_equals_kkt(layout, seed):
+    spec, n = layout
+    groups = parse_groups(spec, n)
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(seed), n)
+    boundaries = [
+        group_boundary(p[g[0] : g[-1] + 1], v[g[0] : g[-1] + 1], q[g[0] : g[-1] + 1], w[g[0] : g[-1] + 1],
+                       d[g[0] : g[-1] + 1], P[g[0] : g[-1] + 1])
+        for g in groups
+    ]
+    shifts = global_step(boundaries)
+    np.testing.assert_allclose(shifts, _brute_force_shifts(p, v, q, w, d, P, groups), atol=1e-9)
+    # Apply and check every inter-group joint closes to 1e-9.
+    p2, v2 = p.copy(), v.copy()
+    for k, g in enumerate(groups):
+        p2[list(g)] += shifts[k, :3]
+        v2[list(g)] += shifts[k, 3:]
+    c = constraint_residual(p2, v2, q, w, d).reshape(n - 1, 6)
+    for k in range(len(groups) - 1):
+        joint = groups[k][-1]
+        np.testing.assert_allclose(c[joint], 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS.values(), ids=LAYOUTS.keys())
+def test_semi_distributed_satisfies_all_joints(layout):
+    spec, n = layout
+    groups = parse_groups(spec, n)
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(21), n)
+    params = CAParams(eps=0.01)
+    res = semi_distributed_apply(p, v, q, w, d, P, groups, params)
+    c = constraint_residual(res.p, res.v, res.q, w, d).reshape(n - 1, 6)
+    for k, g in enumerate(groups):
+        inner = c[g[0] : g[-1]]
+        assert np.linalg.norm(inner) <= params.eps + 1e-12  # local CA (Alg. 2); shifts keep it
+        if k < len(groups) - 1:
+            np.testing.assert_allclose(c[g[-1]], 0.0, atol=1e-9)  # global step (eq. 6)
+    assert res.shifts.shape == (len(groups), 6)
+    np.testing.assert_allclose(np.linalg.norm(res.q, axis=1), 1.0, atol=1e-12)
+
+
+def test_single_group_is_alg1():
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(22), 6)
+    semi = semi_distributed_apply(p, v, q, w, d, P, make_groups(6, 6))
+    full = constraint_apply(p, v, q, w, d, P)
+    np.testing.assert_array_equal(semi.shifts, 0.0)
+    np.testing.assert_allclose(semi.p, full.p, atol=1e-15)
+    np.testing.assert_allclose(semi.q, full.q, atol=1e-15)
+    np.testing.assert_allclose(semi.P, full.P, atol=1e-15)
+
+
+def test_translation_does_not_change_semi_corrections():
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(23), 7)
+    groups = parse_groups("1,2/3,4,5/6,7", 7)
+    shift = np.array([-300.0, 12.0, 55.0])
+    a = semi_distributed_apply(p, v, q, w, d, P, groups)
+    b = semi_distributed_apply(p + shift, v, q, w, d, P, groups)
+    np.testing.assert_allclose(b.p - (p + shift), a.p - p, atol=1e-9)
+    np.testing.assert_allclose(b.v, a.v, atol=1e-10)
+    np.testing.assert_allclose(b.q, a.q, atol=1e-12)
+    np.testing.assert_allclose(b.shifts, a.shifts, atol=1e-9)
+
+
+def test_global_step_only_needs_boundaries():
+    """Eq. 6 depends on the groups only through end tips and summed information."""
+    rng = np.random.default_rng(24)
+    bounds = [
+        GroupBoundary(rng.normal(size=6), rng.normal(size=6), np.eye(6) * (k + 1.0) + 0.1 * np.ones((6, 6)))
+        for k in range(4)
+    ]
+    shifts = global_step(bounds)
+    for k in range(3):
+        closed = (bounds[k].right_tip + shifts[k]) - (bounds[k + 1].left_tip + shifts[k + 1])
+        np.testing.assert_allclose(closed, 0.0, atol=1e-12)
+    # Stationarity: the information-weighted shifts sum to zero (Lagrangian of eq. 6).
+    np.testing.assert_allclose(sum(b.info_pv @ s for b, s in zip(bounds, shifts)), 0.0, atol=1e-10)
+
+
+def test_make_groups_and_format():
+    assert make_groups(7, 3) == ((0, 1, 2), (3, 4, 5), (6,))
+    assert format_groups(parse_groups("1,2/3,4,5/6,7", 7)) == "1,2/3,4,5/6,7"
+
+
+@pytest.mark.parametrize(
+    "spec, n, match",
+    [
+        ("1,2/4,5", 5, "group 2"),
+        ("1,2/3", 5, "chain has 5 links"),
+        ("2,1/3", 3, "group 1"),
+        ("0,1/2", 3, "1-based"),
+        ("1,a/3", 3, "cannot read group 1"),
+        ("1,2//3", 3, "group 2 is empty"),
+    ],
+)
+def test_bad_group_layouts_are_rejected(spec, n, match):
+    with pytest.raises(ValueError, match=match):
+        parse_groups(spec, n)
+
+
+def test_validate_groups_rejects_empty():
+    with pytest.raises(ValueError, match="at least one group"):
+        validate_groups([], 3)
