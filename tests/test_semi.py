@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from companion.estimation.chain import ERR_PV
+from companion.estimation.chain import CON_POS, CON_VEL, ERR_PV
 from companion.estimation.constraints import constraint_residual, left_tip, right_tip
 from companion.estimation.sckf import CAParams, constraint_apply
 from companion.estimation.semi import (
@@ -66,8 +66,8 @@ def test_global_step_closes_group_joints_and_equals_kkt(layout, seed):
     # Apply and check every inter-group joint closes to 1e-9.
     p2, v2 = p.copy(), v.copy()
     for k, g in enumerate(groups):
-        p2[list(g)] += shifts[k, :3]
-        v2[list(g)] += shifts[k, 3:]
+        p2[list(g)] += shifts[k, CON_POS]
+        v2[list(g)] += shifts[k, CON_VEL]
     c = constraint_residual(p2, v2, q, w, d).reshape(n - 1, 6)
     for k in range(len(groups) - 1):
         joint = groups[k][-1]
@@ -152,3 +152,21 @@ def test_bad_group_layouts_are_rejected(spec, n, match):
 def test_validate_groups_rejects_empty():
     with pytest.raises(ValueError, match="at least one group"):
         validate_groups([], 3)
+
+
+@pytest.mark.parametrize("spec, n", [("1,2/3,4/5,6/7,8", 8), ("1,2,3/4,5,6/7,8/9", 9), ("1/2/3", 3)])
+def test_batched_local_step_equals_one_call_per_group(spec, n):
+    from companion.estimation.semi import local_constraint_apply
+
+    groups = parse_groups(spec, n)
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(31), n)
+    params = CAParams(eps=1e-4)
+    batched = local_constraint_apply(p, v, q, w, d, P, groups, params, "auto")
+    for g, res in zip(groups, batched):
+        sl = slice(g[0], g[-1] + 1)
+        ref = constraint_apply(p[sl], v[sl], q[sl], w[sl], d[sl], P[sl], params, "structured")
+        assert res.iterations == ref.iterations
+        np.testing.assert_allclose(res.residual_history, ref.residual_history, rtol=1e-9, atol=1e-13)
+        np.testing.assert_allclose(res.p, ref.p, atol=1e-11)
+        np.testing.assert_allclose(res.q, ref.q, atol=1e-11)
+        np.testing.assert_allclose(res.P, ref.P, atol=1e-9)

@@ -27,52 +27,68 @@ from .so3 import quat_to_rotmat, skew
 
 __all__ = [
     "tip_offsets",
+    "body_tip_vectors",
+    "tips_from_body",
     "constraint_residual",
     "constraint_norm",
     "constraint_jacobian_blocks",
     "constraint_jacobian",
     "residual_from_tips",
     "jacobian_blocks_from_tips",
+    "dense_jacobian_from_blocks",
     "left_tip",
     "right_tip",
 ]
 
 
+def body_tip_vectors(w: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Body-frame ``[d, w x d]`` per link as ``(..., n, 3, 2)`` (constant during one CA call)."""
+    w, d = np.broadcast_arrays(w, d)
+    wxd = np.empty(w.shape)
+    wxd[..., 0] = w[..., 1] * d[..., 2] - w[..., 2] * d[..., 1]
+    wxd[..., 1] = w[..., 2] * d[..., 0] - w[..., 0] * d[..., 2]
+    wxd[..., 2] = w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]
+    return np.stack((d, wxd), axis=-1)
+
+
+def tips_from_body(q: np.ndarray, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, b) = (R d, R S(w) d)`` from :func:`body_tip_vectors`."""
+    ab = quat_to_rotmat(q) @ body
+    return ab[..., 0], ab[..., 1]
+
+
 def tip_offsets(q: np.ndarray, w: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-frame right-tip offset ``a = R d`` and its velocity ``b = R S(w) d`` per link."""
-    R = quat_to_rotmat(q)
-    wxd = np.empty_like(d)
-    wxd[:, 0] = w[:, 1] * d[:, 2] - w[:, 2] * d[:, 1]
-    wxd[:, 1] = w[:, 2] * d[:, 0] - w[:, 0] * d[:, 2]
-    wxd[:, 2] = w[:, 0] * d[:, 1] - w[:, 1] * d[:, 0]
-    a = (R @ d[:, :, None])[:, :, 0]
-    b = (R @ wxd[:, :, None])[:, :, 0]
-    return a, b
+    """World-frame right-tip offset ``a = R d`` and its velocity ``b = R S(w) d`` per link.
+
+    Shapes ``(..., n, 4)``, ``(..., n, 3)``, ``(..., n, 3)`` -> two ``(..., n, 3)``; leading
+    dimensions batch independent chains of equal length.
+    """
+    return tips_from_body(q, body_tip_vectors(w, d))
 
 
 def right_tip(p, v, q, w, d) -> np.ndarray:
-    """(n, 6) right-tip [position; velocity] of every link."""
+    """(..., n, 6) right-tip [position; velocity] of every link."""
     a, b = tip_offsets(q, w, d)
-    return np.concatenate((p + a, v + b), axis=1)
+    return np.concatenate((p + a, v + b), axis=-1)
 
 
 def left_tip(p, v, q, w, d) -> np.ndarray:
-    """(n, 6) left-tip [position; velocity] of every link (offset ``-d``)."""
+    """(..., n, 6) left-tip [position; velocity] of every link (offset ``-d``)."""
     a, b = tip_offsets(q, w, d)
-    return np.concatenate((p - a, v - b), axis=1)
+    return np.concatenate((p - a, v - b), axis=-1)
 
 
 def constraint_residual(p, v, q, w, d) -> np.ndarray:
-    """Stacked constraint error ``c`` of eq. 3, shape ``(6 (n-1),)`` (empty for one link)."""
+    """Stacked constraint error ``c`` of eq. 3, shape ``(..., 6 (n-1))`` (empty for one link)."""
     return residual_from_tips(p, v, *tip_offsets(q, w, d))
 
 
 def residual_from_tips(p, v, a, b) -> np.ndarray:
     """Eq. 3 from precomputed :func:`tip_offsets` ``(a, b)``."""
-    c = np.empty((p.shape[0] - 1, CON_DIM))
-    c[:, CON_POS] = (p[:-1] + a[:-1]) - (p[1:] - a[1:])
-    c[:, CON_VEL] = (v[:-1] + b[:-1]) - (v[1:] - b[1:])
-    return c.reshape(-1)
+    c = np.empty(p.shape[:-2] + (p.shape[-2] - 1, CON_DIM))
+    c[..., CON_POS] = (p[..., :-1, :] + a[..., :-1, :]) - (p[..., 1:, :] - a[..., 1:, :])
+    c[..., CON_VEL] = (v[..., :-1, :] + b[..., :-1, :]) - (v[..., 1:, :] - b[..., 1:, :])
+    return c.reshape(p.shape[:-2] + (-1,))
 
 
 def constraint_norm(p, v, q, w, d) -> float:
@@ -83,7 +99,7 @@ def constraint_norm(p, v, q, w, d) -> float:
 def constraint_jacobian_blocks(q, w, d) -> tuple[np.ndarray, np.ndarray]:
     """Non-zero blocks of the eq. 4 Jacobian.
 
-    Returns ``(L, R)``, each ``(n-1, 6, 9)``: ``L[i] = dc_i/dx~_i`` and
+    Returns ``(L, R)``, each ``(..., n-1, 6, 9)``: ``L[i] = dc_i/dx~_i`` and
     ``R[i] = dc_i/dx~_{i+1}``.
     """
     return jacobian_blocks_from_tips(*tip_offsets(q, w, d))
@@ -102,26 +118,27 @@ _R_TEMPLATE = _block_template(-1.0)
 
 def jacobian_blocks_from_tips(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 blocks from precomputed :func:`tip_offsets` ``(a, b)``."""
-    m = a.shape[0] - 1
+    shape = a.shape[:-2] + (a.shape[-2] - 1, CON_DIM, ERR_DIM)
     Sa = skew(a)
     Sb = skew(b)
-    L = np.repeat(_L_TEMPLATE[None], m, axis=0)
-    R = np.repeat(_R_TEMPLATE[None], m, axis=0)
-    L[:, CON_POS, ERR_TH] = -Sa[:-1]
-    L[:, CON_VEL, ERR_TH] = -Sb[:-1]
-    R[:, CON_POS, ERR_TH] = -Sa[1:]
-    R[:, CON_VEL, ERR_TH] = -Sb[1:]
+    L = np.broadcast_to(_L_TEMPLATE, shape).copy()
+    R = np.broadcast_to(_R_TEMPLATE, shape).copy()
+    L[..., CON_POS, ERR_TH] = -Sa[..., :-1, :, :]
+    L[..., CON_VEL, ERR_TH] = -Sb[..., :-1, :, :]
+    R[..., CON_POS, ERR_TH] = -Sa[..., 1:, :, :]
+    R[..., CON_VEL, ERR_TH] = -Sb[..., 1:, :, :]
     return L, R
 
 
+def dense_jacobian_from_blocks(L: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Dense ``(..., 6m, 9(m+1))`` eq. 4 Jacobian scattered from its neighbour blocks."""
+    m = L.shape[-3]
+    left = np.eye(m, m + 1)  # constraint i -> link i
+    right = np.eye(m, m + 1, k=1)  # constraint i -> link i+1
+    C = np.einsum("...ixk,ij->...ixjk", L, left) + np.einsum("...ixk,ij->...ixjk", R, right)
+    return C.reshape(L.shape[:-3] + (CON_DIM * m, ERR_DIM * (m + 1)))
+
+
 def constraint_jacobian(q, w, d) -> np.ndarray:
-    """Dense ``(6 (n-1), 9 n)`` Jacobian of eq. 4 (for the reference solver and tests)."""
-    L, R = constraint_jacobian_blocks(q, w, d)
-    m = L.shape[0]
-    n = m + 1
-    C = np.zeros((CON_DIM * m, ERR_DIM * n))
-    for i in range(m):
-        rows = slice(CON_DIM * i, CON_DIM * (i + 1))
-        C[rows, ERR_DIM * i : ERR_DIM * (i + 1)] = L[i]
-        C[rows, ERR_DIM * (i + 1) : ERR_DIM * (i + 2)] = R[i]
-    return C
+    """Dense ``(..., 6 (n-1), 9 n)`` Jacobian of eq. 4 (for the reference solver and tests)."""
+    return dense_jacobian_from_blocks(*constraint_jacobian_blocks(q, w, d))

@@ -43,7 +43,13 @@ from scipy.linalg.lapack import dpbtrf as _dpbtrf
 from scipy.linalg.lapack import dpbtrs as _dpbtrs
 
 from .chain import CON_DIM, ERR_DIM, ERR_P, ERR_TH, ERR_V
-from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offsets
+from .constraints import (
+    body_tip_vectors,
+    dense_jacobian_from_blocks,
+    jacobian_blocks_from_tips,
+    residual_from_tips,
+    tips_from_body,
+)
 from .so3 import retract
 
 __all__ = [
@@ -51,6 +57,7 @@ __all__ = [
     "CAResult",
     "constraint_apply",
     "constraint_apply_dense",
+    "constraint_apply_dense_batched",
     "constraint_apply_structured",
     "block_diag_covariance",
     "diagonal_blocks",
@@ -111,34 +118,22 @@ class CAResult:
 
 
 def block_diag_covariance(P_blocks: np.ndarray) -> np.ndarray:
-    """Stacked block-diagonal ``9n x 9n`` covariance from (n, 9, 9) per-link blocks."""
-    n = P_blocks.shape[0]
-    out = np.zeros((ERR_DIM * n, ERR_DIM * n))
-    for i in range(n):
-        s = slice(ERR_DIM * i, ERR_DIM * (i + 1))
-        out[s, s] = P_blocks[i]
-    return out
+    """Stacked block-diagonal ``(..., 9n, 9n)`` covariance from ``(..., n, 9, 9)`` blocks."""
+    n = P_blocks.shape[-3]
+    full = np.einsum("...ikl,ij->...ikjl", P_blocks, np.eye(n))
+    return full.reshape(P_blocks.shape[:-3] + (ERR_DIM * n, ERR_DIM * n))
 
 
 def diagonal_blocks(P_full: np.ndarray) -> np.ndarray:
-    """(n, 9, 9) per-link diagonal blocks of a stacked ``9n x 9n`` covariance."""
-    n = P_full.shape[0] // ERR_DIM
-    return np.stack([P_full[ERR_DIM * i : ERR_DIM * (i + 1), ERR_DIM * i : ERR_DIM * (i + 1)] for i in range(n)])
+    """``(..., n, 9, 9)`` per-link diagonal blocks of a stacked ``(..., 9n, 9n)`` covariance."""
+    n = P_full.shape[-1] // ERR_DIM
+    P4 = P_full.reshape(P_full.shape[:-2] + (n, ERR_DIM, n, ERR_DIM))
+    return np.einsum("...ikil->...ikl", P4).copy()
 
 
 def _inject(p, v, q, dx_links):
-    """Apply per-link error states ``(n, 9)`` to the nominal state (Alg. 1 state update)."""
-    return p + dx_links[:, ERR_P], v + dx_links[:, ERR_V], retract(q, dx_links[:, ERR_TH])
-
-
-def _dense_jacobian(L: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Dense eq. 4 Jacobian ``(6m, 9(m+1))`` scattered from its neighbour blocks."""
-    m = L.shape[0]
-    C = np.zeros((m, CON_DIM, m + 1, ERR_DIM))
-    idx = np.arange(m)
-    C[idx, :, idx, :] = L
-    C[idx, :, idx + 1, :] = R
-    return C.reshape(CON_DIM * m, ERR_DIM * (m + 1))
+    """Apply per-link error states ``(..., n, 9)`` to the nominal state (Alg. 1 state update)."""
+    return p + dx_links[..., ERR_P], v + dx_links[..., ERR_V], retract(q, dx_links[..., ERR_TH])
 
 
 def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams()) -> CAResult:
@@ -150,39 +145,64 @@ def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams()) -> C
         P: (n, 9, 9) EKF covariance blocks (the block-diagonal ``P^E``).
         params: :class:`CAParams`.
     """
-    n = p.shape[0]
+    batch = [a[None] for a in (p, v, q, w, d, P)]
+    return constraint_apply_dense_batched(*batch, params=params)[0]
+
+
+def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams()) -> list[CAResult]:
+    """Alg. 1 on ``G`` independent chains of equal length at once (leading axis ``G``).
+
+    Each chain keeps its own iteration counter ``j`` (in ``P^w_j``) and stops on its own
+    ``||c|| <= eps``; the results equal running :func:`constraint_apply_dense` per chain. Used
+    for the many small groups of the semi-distributed step, where per-call overhead dominates.
+    """
+    G, n = p.shape[:2]
     PE = block_diag_covariance(P)
     Pc = PE
     eye = np.eye(ERR_DIM * n)
-    a, b = tip_offsets(q, w, d)
+    body = body_tip_vectors(w, d)
+    a, b = tips_from_body(q, body)
     c = residual_from_tips(p, v, a, b)
-    history = [math.sqrt(float(c @ c))]
-    j = 0
-    while history[-1] > params.eps and j < params.max_iter:
-        C = _dense_jacobian(*jacobian_blocks_from_tips(a, b))
-        Pw = (params.alpha * math.exp(-j)) * (C @ PE @ C.T)
-        PCt = Pc @ C.T
+    norms = np.sqrt(np.einsum("gi,gi->g", c, c))
+    history = [[float(x)] for x in norms]
+    j = np.zeros(G, dtype=int)
+    active = norms > params.eps
+    while active.any():
+        C = dense_jacobian_from_blocks(*jacobian_blocks_from_tips(a, b))
+        Ct = np.swapaxes(C, 1, 2)
+        Pw = (params.alpha * np.exp(-j))[:, None, None] * (C @ PE @ Ct)
+        PCt = Pc @ Ct
         S = C @ PCt + Pw
-        K = np.linalg.solve(S, PCt.T).T  # S is symmetric: K = P C^T S^-1
-        dx = -(K @ c)
+        K = np.swapaxes(np.linalg.solve(S, np.swapaxes(PCt, 1, 2)), 1, 2)  # K = P C^T S^-1
         A = eye - K @ C
-        Pc = A @ Pc @ A.T + K @ Pw @ K.T
-        Pc = 0.5 * (Pc + Pc.T)
-        p, v, q = _inject(p, v, q, dx.reshape(n, ERR_DIM))
-        a, b = tip_offsets(q, w, d)
+        Pn = A @ Pc @ np.swapaxes(A, 1, 2) + K @ Pw @ np.swapaxes(K, 1, 2)  # Joseph form
+        Pn = 0.5 * (Pn + np.swapaxes(Pn, 1, 2))
+        dx = -(K @ c[:, :, None])[:, :, 0]
+        sel = active[:, None, None]
+        Pc = np.where(sel, Pn, Pc)
+        pn, vn, qn = _inject(p, v, q, dx.reshape(G, n, ERR_DIM))
+        p, v, q = np.where(sel, pn, p), np.where(sel, vn, v), np.where(sel, qn, q)
+        a, b = tips_from_body(q, body)
         c = residual_from_tips(p, v, a, b)
-        history.append(math.sqrt(float(c @ c)))
-        j += 1
-    return CAResult(
-        p=p,
-        v=v,
-        q=q,
-        P=diagonal_blocks(Pc),
-        iterations=j,
-        residual_history=np.asarray(history),
-        converged=history[-1] <= params.eps,
-        P_full=Pc,
-    )
+        norms = np.sqrt(np.einsum("gi,gi->g", c, c))
+        j += active
+        for g in np.flatnonzero(active):
+            history[g].append(float(norms[g]))
+        active = active & (norms > params.eps) & (j < params.max_iter)
+    blocks = diagonal_blocks(Pc)
+    return [
+        CAResult(
+            p=p[g],
+            v=v[g],
+            q=q[g],
+            P=blocks[g],
+            iterations=int(j[g]),
+            residual_history=np.asarray(history[g]),
+            converged=history[g][-1] <= params.eps,
+            P_full=Pc[g],
+        )
+        for g in range(G)
+    ]
 
 
 @lru_cache(maxsize=128)
@@ -257,10 +277,13 @@ class _BandedSPD:
         if self.m == 1:
             return G, np.zeros((0, self.bs, self.bs))
         Wm = Uinv[:-1] @ flat[self._u_off]
+        WmT = np.swapaxes(Wm, 1, 2).copy()
         Go = np.empty_like(Wm)
+        matmul = np.matmul
         for i in range(self.m - 2, -1, -1):
-            Go[i] = -Wm[i] @ G[i + 1]
-            G[i] = UUt[i] - Go[i] @ Wm[i].T
+            g_next = matmul(Wm[i], G[i + 1])
+            Go[i] = -g_next
+            G[i] = UUt[i] + matmul(g_next, WmT[i])
         return G, Go
 
 
@@ -271,7 +294,8 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
     """
     n = p.shape[0]
     m = n - 1
-    a, b = tip_offsets(q, w, d)
+    body = body_tip_vectors(w, d)
+    a, b = tips_from_body(q, body)
     c = residual_from_tips(p, v, a, b)
     history = [math.sqrt(float(c @ c))]
     if m == 0 or history[-1] <= params.eps:
@@ -304,7 +328,7 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
         g[1:] += np.swapaxes(Rf, 1, 2) @ y
         dx = -(P @ g)[:, :, 0]
         p, v, q = _inject(p, v, q, dx)
-        a, b = tip_offsets(q, w, d)
+        a, b = tips_from_body(q, body)
         c = residual_from_tips(p, v, a, b)
         history.append(math.sqrt(float(c @ c)))
         j += 1

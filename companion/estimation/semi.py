@@ -30,7 +30,7 @@ import numpy as np
 
 from .chain import CON_POS, CON_VEL, ERR_PV, ChainInputError
 from .constraints import left_tip, right_tip
-from .sckf import CAParams, CAResult, constraint_apply
+from .sckf import CAParams, CAResult, constraint_apply, constraint_apply_dense_batched
 
 __all__ = [
     "Groups",
@@ -40,6 +40,9 @@ __all__ = [
     "format_groups",
     "GroupBoundary",
     "group_boundary",
+    "group_boundaries",
+    "local_constraint_apply",
+    "BATCH_DENSE_MAX_LINKS",
     "boundary_residuals",
     "global_step",
     "SemiResult",
@@ -48,6 +51,10 @@ __all__ = [
 
 #: Groups as tuples of 0-based link indices, contiguous and in chain order.
 Groups = tuple[tuple[int, ...], ...]
+
+#: Groups up to this size run through the batched dense CA in ``method="auto"`` (measured:
+#: 48 groups of 2 take 2.2 ms batched vs 12.3 ms one call each; break-even near 6 links).
+BATCH_DENSE_MAX_LINKS = 5
 
 
 def validate_groups(groups: Sequence[Sequence[int]], n: int) -> Groups:
@@ -111,14 +118,20 @@ class GroupBoundary:
     info_pv: np.ndarray
 
 
+def group_boundaries(p, v, q, w, d, P, groups: Groups) -> tuple[GroupBoundary, ...]:
+    """Boundaries of all ``groups`` of one chain (arrays indexed by link, groups 0-based)."""
+    first = [g[0] for g in groups]
+    last = [g[-1] for g in groups]
+    lt = left_tip(p[first], v[first], q[first], w[first], d[first])
+    rt = right_tip(p[last], v[last], q[last], w[last], d[last])
+    info = np.add.reduceat(np.linalg.inv(P[:, ERR_PV, ERR_PV]), first, axis=0)
+    info = 0.5 * (info + np.swapaxes(info, 1, 2))
+    return tuple(GroupBoundary(left_tip=lt[k], right_tip=rt[k], info_pv=info[k]) for k in range(len(groups)))
+
+
 def group_boundary(p, v, q, w, d, P) -> GroupBoundary:
-    """Boundary of one group from its links' (locally corrected) states and covariances."""
-    first = slice(0, 1)
-    last = slice(p.shape[0] - 1, p.shape[0])
-    lt = left_tip(p[first], v[first], q[first], w[first], d[first])[0]
-    rt = right_tip(p[last], v[last], q[last], w[last], d[last])[0]
-    info = np.linalg.inv(P[:, ERR_PV, ERR_PV]).sum(axis=0)
-    return GroupBoundary(left_tip=lt, right_tip=rt, info_pv=0.5 * (info + info.T))
+    """Boundary of one group from its own links' (locally corrected) states and covariances."""
+    return group_boundaries(p, v, q, w, d, P, (tuple(range(p.shape[0])),))[0]
 
 
 def boundary_residuals(boundaries: Sequence[GroupBoundary]) -> np.ndarray:
@@ -166,6 +179,32 @@ class SemiResult:
         return np.array([r.iterations for r in self.local], dtype=int)
 
 
+def local_constraint_apply(
+    p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto"
+) -> tuple[CAResult, ...]:
+    """Alg. 2: Alg. 1 inside every group, independently.
+
+    Groups of the same size up to :data:`BATCH_DENSE_MAX_LINKS` links go through one batched
+    dense CA (same iterates as one call per group, without the per-call overhead); larger
+    groups use :func:`constraint_apply` (``method`` as there).
+    """
+    results: list[CAResult | None] = [None] * len(groups)
+    by_size: dict[int, list[int]] = {}
+    for k, g in enumerate(groups):
+        by_size.setdefault(len(g), []).append(k)
+    for size, members in by_size.items():
+        if method == "dense" or (method == "auto" and size <= BATCH_DENSE_MAX_LINKS):
+            idx = np.array([groups[k] for k in members])  # (groups of this size, size)
+            batch = constraint_apply_dense_batched(p[idx], v[idx], q[idx], w[idx], d[idx], P[idx], params)
+            for k, res in zip(members, batch):
+                results[k] = res
+        else:
+            for k in members:
+                sl = slice(groups[k][0], groups[k][-1] + 1)
+                results[k] = constraint_apply(p[sl], v[sl], q[sl], w[sl], d[sl], P[sl], params, method)
+    return tuple(results)
+
+
 def semi_distributed_apply(
     p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto"
 ) -> SemiResult:
@@ -176,21 +215,14 @@ def semi_distributed_apply(
     n = p.shape[0]
     if sum(len(g) for g in groups) != n:
         raise ChainInputError(f"groups cover {sum(len(g) for g in groups)} links, chain has {n}", "groups")
-    p_out = np.empty_like(p)
-    v_out = np.empty_like(v)
-    q_out = np.empty_like(q)
-    P_out = np.empty_like(P)
-    local = []
-    boundaries = []
-    for g in groups:
-        sl = slice(g[0], g[-1] + 1)
-        res = constraint_apply(p[sl], v[sl], q[sl], w[sl], d[sl], P[sl], params, method)
-        local.append(res)
-        p_out[sl], v_out[sl], q_out[sl], P_out[sl] = res.p, res.v, res.q, res.P
-        boundaries.append(group_boundary(res.p, res.v, res.q, w[sl], d[sl], res.P))
+    local = local_constraint_apply(p, v, q, w, d, P, groups, params, method)
+    p_out = np.concatenate([r.p for r in local])
+    v_out = np.concatenate([r.v for r in local])
+    q_out = np.concatenate([r.q for r in local])
+    P_out = np.concatenate([r.P for r in local])
+    boundaries = group_boundaries(p_out, v_out, q_out, w, d, P_out, groups)
     shifts = global_step(boundaries)
-    for k, g in enumerate(groups):
-        sl = slice(g[0], g[-1] + 1)
-        p_out[sl] += shifts[k, CON_POS]
-        v_out[sl] += shifts[k, CON_VEL]
-    return SemiResult(p_out, v_out, q_out, P_out, shifts, tuple(local), tuple(boundaries))
+    sizes = [len(g) for g in groups]
+    p_out += np.repeat(shifts[:, CON_POS], sizes, axis=0)
+    v_out += np.repeat(shifts[:, CON_VEL], sizes, axis=0)
+    return SemiResult(p_out, v_out, q_out, P_out, shifts, local, boundaries)

@@ -59,21 +59,31 @@ def skew(v: np.ndarray) -> np.ndarray:
     return (v @ _SKEW_BASIS).reshape(v.shape[:-1] + (3, 3))
 
 
+def _product_tensor() -> np.ndarray:
+    """(16, 4) map from the outer product a b^T (flattened) to the Hamilton product a (x) b."""
+    T = np.zeros((4, 4, 4))
+    # (w, x, y, z) components of a (x) b as sums of sign * a_i b_j.
+    terms = {
+        0: [(0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)],
+        1: [(0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)],
+        2: [(0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)],
+        3: [(0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1)],
+    }
+    for k, entries in terms.items():
+        for i, j, sign in entries:
+            T[i, j, k] = sign
+    return T.reshape(16, 4)
+
+
+_PRODUCT = _product_tensor()
+
+
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a (x) b`` (scalar first), broadcast over leading dims."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        axis=-1,
-    )
+    outer = a[..., :, None] * b[..., None, :]
+    return (outer.reshape(outer.shape[:-2] + (16,))) @ _PRODUCT
 
 
 def quat_conj(q: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Benchmarks that print figures and write JSON.
 
-    python -m sitl.bench table2 [--json PATH] [--seed S] [--duration S] [--out DIR]
+    python -m sitl.bench table2 [--json PATH] [--seed S] [--seeds N] [--duration S] [--out DIR]
     python -m sitl.bench scaling [--json PATH] [--seed S] [--out DIR]
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
@@ -25,7 +25,7 @@ from companion.runtime import make_run_dir, setup_logging, single_thread_blas
 
 from .ekf_chain import ChainRun
 from .scaling import LINK_COUNTS, format_scaling, run_scaling
-from .table2 import GROUP_SIZES, format_table2, run_table2
+from .table2 import GROUP_SIZES, aggregate_seeds, format_table2, run_table2
 
 log = logging.getLogger("sitl.bench")
 
@@ -42,13 +42,22 @@ def _cmd_table2(args) -> int:
     params = CAParams(eps=args.eps, alpha=args.alpha)
     run_dir = make_run_dir("table2", args.out)
     n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
-    with tqdm(total=n_ticks, desc="EKF (12 links)", unit="tick", disable=args.quiet, file=sys.stderr) as bar:
-        result, stream = run_table2(args.seed, run, GROUP_SIZES, params, progress=bar.update)
-    np.savez_compressed(run_dir / "ekf_stream.npz", **stream.replay_arrays())
-    np.savez_compressed(run_dir / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true)
+    results = []
+    with tqdm(
+        total=n_ticks * args.seeds, desc=f"EKF x {args.seeds} seed(s)", unit="tick", disable=args.quiet, file=sys.stderr
+    ) as bar:
+        for seed in range(args.seed, args.seed + args.seeds):
+            result, stream = run_table2(seed, run, GROUP_SIZES, params, progress=bar.update)
+            results.append(result)
+            if seed == args.seed:
+                np.savez_compressed(run_dir / "ekf_stream.npz", **stream.replay_arrays())
+                np.savez_compressed(
+                    run_dir / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true
+                )
+    result = aggregate_seeds(results)
     path = _write_json(result, args.json, run_dir, "table2.json")
     print(format_table2(result))
-    print(f"\nwrote {path} and {run_dir / 'ekf_stream.npz'} (replay input)")
+    print(f"\nwrote {path} and {run_dir / 'ekf_stream.npz'} (replay input, seed {args.seed})")
     return 0
 
 
@@ -80,6 +89,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="The paper's sec. IV protocol: compute time and accuracy per group size.",
     )
     t2.add_argument("--duration", type=float, default=ChainRun.duration_s, help="simulated seconds (default 20)")
+    t2.add_argument(
+        "--seeds",
+        type=int,
+        default=5,
+        metavar="N",
+        help="repeat with seeds S..S+N-1 and report mean +- std and the noise check (default 5)",
+    )
     t2.set_defaults(func=_cmd_table2)
     sc = sub.add_parser(
         "scaling",
@@ -98,6 +114,8 @@ def main(argv=None) -> int:
         CAParams(eps=args.eps, alpha=args.alpha)
         if getattr(args, "duration", 1.0) <= 0:
             raise ValueError(f"--duration must be positive, got {args.duration}")
+        if getattr(args, "seeds", 1) < 1:
+            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -24,7 +24,7 @@ from companion.estimation.so3 import quat_distance
 
 from .ekf_chain import ChainRun, EkfStream, simulate_ekf_chain
 
-__all__ = ["PAPER_TABLE2", "GROUP_SIZES", "evaluate_group_size", "run_table2", "format_table2"]
+__all__ = ["PAPER_TABLE2", "GROUP_SIZES", "evaluate_group_size", "run_table2", "aggregate_seeds", "format_table2"]
 
 #: The paper's Table II: group size -> (computing time s, position error m, quaternion error).
 PAPER_TABLE2 = {
@@ -114,21 +114,73 @@ def run_table2(
     return result, stream
 
 
+def aggregate_seeds(results: list[dict]) -> dict:
+    """Mean over seeds in the single-run layout, with spreads and the protocol checks.
+
+    Every number of the single-run layout becomes its mean over the seeds; ``*_std`` fields
+    give the spread. ``checks`` holds the two accuracy claims of the protocol:
+    ``sckf_beats_ekf`` (every group size has a lower mean position error than the EKF
+    alone, in every seed) and ``larger_groups_not_worse`` (for each pair of consecutive group
+    sizes, the paired per-seed difference of position error is not positive beyond two
+    standard errors; needs >= 2 seeds).
+    """
+    first = results[0]
+    out = {"ekf_only": {}, "groups": {}, "protocol": dict(first["protocol"]), "paper": first["paper"]}
+    out["protocol"]["seeds"] = [r["protocol"]["seed"] for r in results]
+    for key in first["ekf_only"]:
+        vals = np.array([r["ekf_only"][key] for r in results])
+        out["ekf_only"][key] = float(vals.mean())
+        out["ekf_only"][f"{key}_std"] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+    sizes = list(first["groups"])
+    for size in sizes:
+        row = {}
+        for key in first["groups"][size]:
+            vals = np.array([r["groups"][size][key] for r in results], dtype=float)
+            row[key] = float(vals.mean())
+            if key in ("time_s", "pos_err_m", "quat_err"):
+                row[f"{key}_std"] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+        out["groups"][size] = row
+    beats = all(r["groups"][g]["pos_err_m"] < r["ekf_only"]["pos_err_m"] for r in results for g in sizes)
+    pairs = {}
+    not_worse = None
+    if len(results) > 1:
+        not_worse = True
+        for small, large in zip(sizes[:-1], sizes[1:]):
+            diff = np.array([r["groups"][large]["pos_err_m"] - r["groups"][small]["pos_err_m"] for r in results])
+            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+            worse = bool(diff.mean() > 2.0 * se)
+            pairs[f"{small}->{large}"] = {"mean_diff_m": float(diff.mean()), "std_err_m": se, "worse": worse}
+            not_worse = not_worse and not worse
+    out["checks"] = {"sckf_beats_ekf": beats, "larger_groups_not_worse": not_worse, "pairs": pairs}
+    out["per_seed"] = results
+    return out
+
+
 def format_table2(result: dict) -> str:
     proto = result["protocol"]
+    seeds = proto.get("seeds", [proto["seed"]])
+    spread = len(seeds) > 1
+
+    def val(row, key, fmt):
+        text = format(row[key], fmt)
+        return f"{text}+-{format(row[key + '_std'], fmt)}" if spread and key + "_std" in row else text
+
+    width = 17 if spread else 11
     lines = [
         f"Table II protocol: {proto['n_links']} links x {proto['link_length_m']:g} m, {proto['duration_s']:g} s, "
         f"EKF {proto['ekf_rate_hz']:g} Hz, SCKF {proto['sckf_rate_hz']:g} Hz ({proto['sckf_steps']} steps), "
-        f"eps {proto['eps']:g}, alpha {proto['alpha']:g}, seed {proto['seed']}",
+        f"eps {proto['eps']:g}, alpha {proto['alpha']:g}, seed(s) {', '.join(str(s) for s in seeds)}"
+        + (" (mean +- std over seeds)" if spread else ""),
         "",
-        f"{'group size':>10} | {'CA time [s]':>11} | {'pos err [m]':>11} | {'quat err':>9} | {'iters':>5} | "
-        f"{'|c| after':>9} || {'paper time':>10} | {'paper pos':>9} | {'paper quat':>10}",
-        "-" * 112,
+        f"{'group size':>10} | {'CA time [s]':>{width}} | {'pos err [m]':>{width}} | {'quat err':>{width}} | "
+        f"{'iters':>5} | {'|c| after':>9} || {'paper time':>10} | {'paper pos':>9} | {'paper quat':>10}",
+        "-" * (88 + 3 * width),
     ]
     ekf = result["ekf_only"]
     lines.append(
-        f"{'EKF only':>10} | {'-':>11} | {ekf['pos_err_m']:11.4f} | {ekf['quat_err']:9.4f} | {'-':>5} | "
-        f"{ekf['residual_mean']:9.4f} || {'-':>10} | {'-':>9} | {'-':>10}"
+        f"{'EKF only':>10} | {'-':>{width}} | {val(ekf, 'pos_err_m', '.4f'):>{width}} | "
+        f"{val(ekf, 'quat_err', '.4f'):>{width}} | {'-':>5} | {ekf['residual_mean']:9.4f} || "
+        f"{'-':>10} | {'-':>9} | {'-':>10}"
     )
     for size, row in result["groups"].items():
         paper = result["paper"].get(size)
@@ -138,7 +190,20 @@ def format_table2(result: dict) -> str:
             else f"{'-':>10} | {'-':>9} | {'-':>10}"
         )
         lines.append(
-            f"{size:>10} | {row['time_s']:11.4f} | {row['pos_err_m']:11.4f} | {row['quat_err']:9.4f} | "
-            f"{row['mean_iterations_per_group']:5.2f} | {row['residual_after_mean']:9.4f} || {ptxt}"
+            f"{size:>10} | {val(row, 'time_s', '.4f'):>{width}} | {val(row, 'pos_err_m', '.4f'):>{width}} | "
+            f"{val(row, 'quat_err', '.4f'):>{width}} | {row['mean_iterations_per_group']:5.2f} | "
+            f"{row['residual_after_mean']:9.4f} || {ptxt}"
         )
+    checks = result.get("checks")
+    if checks:
+        lines.append("")
+        lines.append(f"SCKF cuts the EKF-only position error at every group size: {'yes' if checks['sckf_beats_ekf'] else 'NO'}")
+        if checks["larger_groups_not_worse"] is None:
+            lines.append("Larger groups not less accurate beyond noise: run with --seeds N (N >= 2) to check")
+        else:
+            detail = ", ".join(
+                f"{k}: {v['mean_diff_m']:+.4f}+-{v['std_err_m']:.4f} m" for k, v in checks["pairs"].items()
+            )
+            verdict = "yes" if checks["larger_groups_not_worse"] else "NO"
+            lines.append(f"Larger groups not less accurate beyond noise (paired, 2 s.e.): {verdict} ({detail})")
     return "\n".join(lines)
