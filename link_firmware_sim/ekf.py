@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import (
     attitude_error,
     quat_from_rotvec,
@@ -58,6 +59,7 @@ __all__ = [
     "ekf_init",
     "ekf_predict",
     "error_transition",
+    "inject_error",
     "ekf_update_position",
     "ekf_update_velocity",
     "ekf_update_attitude",
@@ -74,14 +76,14 @@ X_Q = slice(6, 10)
 X_BA = slice(10, 13)
 X_BG = slice(13, 16)
 NX = 16
-# Error state slices.
-E_P = slice(0, 3)
-E_V = slice(3, 6)
-E_TH = slice(6, 9)
+# Error state slices. The first nine are, by contract, the SCKF's per-link error state.
+E_P = ERR_P
+E_V = ERR_V
+E_TH = ERR_TH
 E_BA = slice(9, 12)
 E_BG = slice(12, 15)
 #: The paper's error state [p~; v~; dtheta] (what the SCKF consumes).
-E_SCKF = slice(0, 9)
+E_SCKF = slice(0, ERR_DIM)
 NE = 15
 
 GRAVITY_W_M_S2 = np.array([0.0, 0.0, -9.80665])
@@ -224,7 +226,8 @@ def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) 
     return xn, 0.5 * (Pn + Pn.T)
 
 
-def _inject(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+def inject_error(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """Nominal state corrected by an error state ``dx`` (attitude on the left, world frame)."""
     xn = x.copy()
     xn[X_P] += dx[E_P]
     xn[X_V] += dx[E_V]
@@ -244,7 +247,7 @@ def _update(x, P, r, H, Rm, gate_sigma: float):
     K = np.linalg.solve(S, PHt.T).T
     IKH = np.eye(NE) - K @ H
     Pn = IKH @ P @ IKH.T + K @ Rm @ K.T
-    return _inject(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
+    return inject_error(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
 
 
 def _as_cov(var, dim: int) -> np.ndarray:

@@ -25,6 +25,7 @@ from link_firmware_sim.ekf import (
     ekf_update_velocity,
     error_transition,
     heading_jacobian,
+    inject_error,
 )
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
 
@@ -37,16 +38,6 @@ def _error(x_true, x_hat):
     e[E_BA] = x_true[X_BA] - x_hat[X_BA]
     e[E_BG] = x_true[X_BG] - x_hat[X_BG]
     return e
-
-
-def _inject(x, dx):
-    y = x.copy()
-    y[X_P] += dx[E_P]
-    y[X_V] += dx[E_V]
-    y[X_Q] = retract(x[X_Q], dx[E_TH])
-    y[X_BA] += dx[E_BA]
-    y[X_BG] += dx[E_BG]
-    return y
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -64,7 +55,7 @@ def test_error_state_transition_matches_nominal_propagation(seed):
     for k in range(NE):
         dx0 = np.zeros(NE)
         dx0[k] = 1e-5
-        x_true1, _ = ekf_predict(_inject(x, dx0), zero, gyro, accel, dt, noise)
+        x_true1, _ = ekf_predict(inject_error(x, dx0), zero, gyro, accel, dt, noise)
         # Agreement up to terms of second order in dt (rotation of the bias errors over one
         # step) and in the error size.
         np.testing.assert_allclose(_error(x_true1, x_hat1), F @ dx0, atol=1e-5 * dt**2 * 5 + 1e-12)

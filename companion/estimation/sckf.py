@@ -223,10 +223,9 @@ def _band_layout(m: int, bs: int):
     cols = (i * bs + y)[upper]
     d_src = np.ravel_multi_index((i[upper], x[upper], y[upper]), (m, bs, bs))
     d_dst = np.ravel_multi_index((u + rows - cols, cols), shape)
-    # Diagonal blocks of U: upper triangle from the band, zeros below (gather index of a
-    # guaranteed-zero slot: the unused top-left corner of band storage).
-    zero_slot = 0
-    u_diag = np.full((m, bs, bs), zero_slot, dtype=np.intp)
+    # Diagonal blocks of U: gather the upper triangle (the lower part is masked off by the
+    # reader with triu).
+    u_diag = np.zeros((m, bs, bs), dtype=np.intp)
     u_diag[i[upper], x[upper], y[upper]] = d_dst
     if m > 1:
         ie, xe, ye = np.meshgrid(np.arange(m - 1), np.arange(bs), np.arange(bs), indexing="ij")
@@ -270,7 +269,7 @@ class _BandedSPD:
         with ``W_i = U_ii^-1 U_i,i+1``.
         """
         flat = self._cb.reshape(-1)
-        Uinv = np.linalg.inv(flat[self._u_diag])
+        Uinv = np.linalg.inv(np.triu(flat[self._u_diag]))
         UUt = Uinv @ np.swapaxes(Uinv, 1, 2)
         G = np.empty_like(UUt)
         G[-1] = UUt[-1]
@@ -304,7 +303,6 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
     # Rows of C_a and C_a P^E for every iteration a, constraint-major: buffer[i, 6a:6a+6].
     cap = CON_DIM * params.max_iter
     Lb, Rb, LPb, RPb = (np.empty((m, cap, ERR_DIM)) for _ in range(4))
-    scale = []
     j = 0
     while history[-1] > params.eps and j < params.max_iter:
         rows = slice(CON_DIM * j, CON_DIM * (j + 1))
@@ -313,11 +311,10 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
         Rb[:, rows] = R
         LPb[:, rows] = L @ Pl
         RPb[:, rows] = R @ Pr
-        scale.append(1.0 + params.alpha * math.exp(-j))
         J = j + 1
         used = slice(0, CON_DIM * J)
         Lf, Rf, LPf, RPf = Lb[:, used], Rb[:, used], LPb[:, used], RPb[:, used]
-        D, E = _assemble(Lf, Rf, LPf, RPf, scale)
+        D, E = _assemble(Lf, Rf, LPf, RPf, params.alpha)
         system = _BandedSPD(D, E)
         rhs = np.zeros((m, J, CON_DIM))
         rhs[:, j, :] = c.reshape(m, CON_DIM)
@@ -336,25 +333,25 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
     return CAResult(p, v, q, PC, j, np.asarray(history), history[-1] <= params.eps)
 
 
-def _assemble(Lf, Rf, LPf, RPf, scale):
+def _assemble(Lf, Rf, LPf, RPf, alpha: float):
     """Blocks of ``A = blkdiag(P^w_a) + Cs P^E Cs^T`` in constraint-major order.
 
     ``Lf[i]``/``Rf[i]`` stack ``C_a``'s blocks of constraint ``i`` over iterations ``a``
     (``(6J, 9)``), ``LPf``/``RPf`` the same rows of ``C_a P^E``.
     """
-    J = len(scale)
     D = LPf @ np.swapaxes(Lf, 1, 2) + RPf @ np.swapaxes(Rf, 1, 2)
     E = RPf[:-1] @ np.swapaxes(Lf[1:], 1, 2)
-    # Weakening P^w_a = alpha e^-a C_a P^E C_a^T: same-iteration blocks scale by (1 + alpha e^-a).
-    factor = _weakening_factor(tuple(scale), J)
+    factor = _weakening_factor(alpha, Lf.shape[1] // CON_DIM)
     return D * factor, E * factor
 
 
 @lru_cache(maxsize=256)
-def _weakening_factor(scale: tuple, J: int) -> np.ndarray:
+def _weakening_factor(alpha: float, J: int) -> np.ndarray:
+    """``P^w_a = alpha e^-a C_a P^E C_a^T`` adds to the same-iteration blocks of ``Cs P^E Cs^T``:
+    those scale by ``1 + alpha e^-a``, all others by 1."""
     it = np.repeat(np.arange(J), CON_DIM)
-    s = np.repeat(np.asarray(scale), CON_DIM)
-    return np.where(np.equal.outer(it, it), s[:, None], 1.0)
+    scale = 1.0 + alpha * np.exp(-it.astype(float))
+    return np.where(np.equal.outer(it, it), scale[:, None], 1.0)
 
 
 def _posterior_blocks(P, system: _BandedSPD, LPf, RPf):

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .chain import CON_POS, CON_VEL, ERR_PV, ChainInputError
+from .chain import CON_POS, CON_VEL, ERR_PV
 from .constraints import left_tip, right_tip
 from .sckf import CAParams, CAResult, constraint_apply, constraint_apply_dense_batched
 
@@ -212,9 +212,7 @@ def semi_distributed_apply(
 
     With a single group this is exactly Alg. 1 on the whole chain.
     """
-    n = p.shape[0]
-    if sum(len(g) for g in groups) != n:
-        raise ChainInputError(f"groups cover {sum(len(g) for g in groups)} links, chain has {n}", "groups")
+    groups = validate_groups(groups, p.shape[0])
     local = local_constraint_apply(p, v, q, w, d, P, groups, params, method)
     p_out = np.concatenate([r.p for r in local])
     v_out = np.concatenate([r.v for r in local])

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.replay import REPLAY_KEYS, ReplayData
 from link_firmware_sim.ekf import EkfConfig, LinkEkf
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
 
@@ -50,27 +51,20 @@ class ChainRun:
 
 
 @dataclass(frozen=True)
-class EkfStream:
-    """EKF outputs and truth at the SCKF ticks (K ticks, n links).
+class EkfStream(ReplayData):
+    """EKF outputs at the SCKF ticks (the ``companion replay`` input) with the ground truth.
 
-    ``t`` (K,), ``p``/``v`` (K, n, 3), ``q`` (K, n, 4), ``w`` (K, n, 3) body rate,
-    ``P`` (K, n, 9, 9), ``d`` (n, 3); ``p_true``, ``v_true``, ``q_true`` likewise.
+    Replay fields: ``t`` (K,), ``p``/``v`` (K, n, 3), ``q`` (K, n, 4), ``w`` (K, n, 3) body
+    rate, ``P`` (K, n, 9, 9), ``d`` (n, 3); truth: ``p_true``, ``v_true``, ``q_true``.
     """
 
-    t: np.ndarray
-    p: np.ndarray
-    v: np.ndarray
-    q: np.ndarray
-    w: np.ndarray
-    P: np.ndarray
-    d: np.ndarray
     p_true: np.ndarray
     v_true: np.ndarray
     q_true: np.ndarray
 
     def replay_arrays(self) -> dict[str, np.ndarray]:
         """The keys of the ``companion replay`` input format."""
-        return {"t": self.t, "p": self.p, "v": self.v, "q": self.q, "w": self.w, "P": self.P, "d": self.d}
+        return {key: getattr(self, key) for key in REPLAY_KEYS}
 
 
 def simulate_ekf_chain(run: ChainRun, seed: int, progress=None) -> EkfStream:
