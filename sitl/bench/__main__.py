@@ -39,7 +39,7 @@ def _write_json(result: dict, json_path: str | None, run_dir: Path, name: str) -
 
 def _cmd_table2(args) -> int:
     run = ChainRun(duration_s=args.duration)
-    params = CAParams(eps=args.eps, alpha=args.alpha)
+    params = args.params
     run_dir = make_run_dir("table2", args.out)
     n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
     results = []
@@ -62,7 +62,7 @@ def _cmd_table2(args) -> int:
 
 
 def _cmd_scaling(args) -> int:
-    params = CAParams(eps=args.eps, alpha=args.alpha)
+    params = args.params
     run_dir = make_run_dir("scaling", args.out)
     with tqdm(total=len(LINK_COUNTS), desc="chain lengths", unit="n", disable=args.quiet, file=sys.stderr) as bar:
         result = run_scaling(args.seed, LINK_COUNTS, params=params, progress=bar.update)
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging()
     try:
-        CAParams(eps=args.eps, alpha=args.alpha)
+        args.params = CAParams(eps=args.eps, alpha=args.alpha)
         if getattr(args, "duration", 1.0) <= 0:
             raise ValueError(f"--duration must be positive, got {args.duration}")
         if getattr(args, "seeds", 1) < 1:
