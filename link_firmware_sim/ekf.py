@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -87,6 +88,7 @@ E_SCKF = slice(0, ERR_DIM)
 NE = 15
 
 GRAVITY_W_M_S2 = np.array([0.0, 0.0, -9.80665])
+_DIAG = np.diag_indices(NE)
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,13 @@ class EkfNoise:
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0.0):
                 raise ValueError(f"EkfNoise.{name} must be a finite non-negative number, got {val!r}")
+
+    @cached_property
+    def densities(self) -> np.ndarray:
+        """(15,) diagonal of the continuous process noise over the error state."""
+        return np.repeat(
+            [self.pos_m2_s, self.vel_m2_s3, self.att_rad2_s, self.accel_bias_m2_s5, self.gyro_bias_rad2_s3], 3
+        )
 
 
 @dataclass(frozen=True)
@@ -180,6 +189,30 @@ def ekf_init(p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig()) -> tuple[n
     return x, P
 
 
+_EYE = np.eye(NE)
+_I3 = np.eye(3)
+
+
+@lru_cache(maxsize=16)
+def _transition_base(dt_s: float) -> np.ndarray:
+    F = _EYE.copy()
+    F[E_P, E_V] = dt_s * _I3
+    return F
+
+
+def _transition(R: np.ndarray, f_w: np.ndarray, dt_s: float) -> np.ndarray:
+    """``F`` from the attitude matrix and the world-frame specific force (see below)."""
+    dv_dth = -skew(f_w)
+    half_dt2 = 0.5 * dt_s * dt_s
+    F = _transition_base(dt_s).copy()
+    F[E_P, E_TH] = half_dt2 * dv_dth
+    F[E_P, E_BA] = -half_dt2 * R
+    F[E_V, E_TH] = dt_s * dv_dth
+    F[E_V, E_BA] = -dt_s * R
+    F[E_TH, E_BG] = -dt_s * R
+    return F
+
+
 def error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> np.ndarray:
     """Error-state transition of :func:`ekf_predict`.
 
@@ -187,18 +220,17 @@ def error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> np.ndarray:
     ``dv' = -S(R f) dtheta - R db_a``, ``dtheta' = -R db_g``, biases constant; discretised
     like the nominal state (the position picks up the ``dt^2/2`` acceleration terms).
     """
-    f_b = np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]
     R = quat_to_rotmat(x[X_Q])
-    dv_dth = -skew(R @ f_b)
-    half_dt2 = 0.5 * dt_s * dt_s
-    F = np.eye(NE)
-    F[E_P, E_V] = dt_s * np.eye(3)
-    F[E_P, E_TH] = half_dt2 * dv_dth
-    F[E_P, E_BA] = -half_dt2 * R
-    F[E_V, E_TH] = dt_s * dv_dth
-    F[E_V, E_BA] = -dt_s * R
-    F[E_TH, E_BG] = -dt_s * R
-    return F
+    return _transition(R, R @ (np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]), dt_s)
+
+
+def _exp_quat(rv: np.ndarray) -> np.ndarray:
+    """Exponential map of one rotation vector (the per-sample gyro increment)."""
+    angle = math.sqrt(float(rv @ rv))
+    if angle < 1e-8:
+        return np.array([1.0, 0.5 * rv[0], 0.5 * rv[1], 0.5 * rv[2]])
+    k = math.sin(0.5 * angle) / angle
+    return np.array([math.cos(0.5 * angle), k * rv[0], k * rv[1], k * rv[2]])
 
 
 def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) -> tuple[np.ndarray, np.ndarray]:
@@ -211,18 +243,17 @@ def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) 
     if not dt_s > 0.0:
         raise ValueError(f"dt_s must be positive, got {dt_s!r}")
     omega = np.asarray(gyro_b_rad_s, dtype=float) - x[X_BG]
-    f_b = np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]
-    acc = quat_to_rotmat(x[X_Q]) @ f_b + GRAVITY_W_M_S2
+    R = quat_to_rotmat(x[X_Q])
+    f_w = R @ (np.asarray(accel_b_m_s2, dtype=float) - x[X_BA])
+    acc = f_w + GRAVITY_W_M_S2
     xn = x.copy()
-    xn[X_P] = x[X_P] + x[X_V] * dt_s + 0.5 * acc * dt_s * dt_s
-    xn[X_V] = x[X_V] + acc * dt_s
-    xn[X_Q] = quat_normalize(quat_mul(x[X_Q], quat_from_rotvec(omega * dt_s)))
-    F = error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s)
-    q_diag = np.repeat(
-        [noise.pos_m2_s, noise.vel_m2_s3, noise.att_rad2_s, noise.accel_bias_m2_s5, noise.gyro_bias_rad2_s3], 3
-    )
+    xn[X_P] += x[X_V] * dt_s + (0.5 * dt_s * dt_s) * acc
+    xn[X_V] += acc * dt_s
+    qn = quat_mul(x[X_Q], _exp_quat(omega * dt_s))
+    xn[X_Q] = qn / math.sqrt(float(qn @ qn))
+    F = _transition(R, f_w, dt_s)
     Pn = F @ P @ F.T
-    Pn[np.diag_indices(NE)] += q_diag * dt_s
+    Pn[_DIAG] += noise.densities * dt_s
     return xn, 0.5 * (Pn + Pn.T)
 
 

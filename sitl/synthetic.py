@@ -150,21 +150,31 @@ class SensorModel:
 
 @dataclass(frozen=True)
 class Drift:
-    """Per-link sinusoidal drift: amplitude along a unit axis, frequency, phase."""
+    """Per-link slow drift: a sum of ``K`` sinusoids, each along its own unit axis.
 
-    axis: np.ndarray  # (n, 3) unit vectors
-    freq_hz: np.ndarray  # (n,)
-    phase_rad: np.ndarray  # (n,)
+    Component amplitudes are ``amplitude / sqrt(K)`` so the drift's RMS magnitude equals that
+    of one sinusoid of amplitude ``amplitude`` (``amplitude / sqrt(2)``) for any ``K``.
+    """
+
+    axis: np.ndarray  # (n, K, 3) unit vectors
+    freq_hz: np.ndarray  # (n, K)
+    phase_rad: np.ndarray  # (n, K)
 
     def at(self, t: float, amplitude: float) -> np.ndarray:
-        return amplitude * self.axis * np.sin(_TWO_PI * self.freq_hz * t + self.phase_rad)[:, None]
+        """(n, 3) drift at time ``t``."""
+        k = self.freq_hz.shape[1]
+        waves = np.sin(_TWO_PI * self.freq_hz * t + self.phase_rad)[:, :, None]
+        return (amplitude / math.sqrt(k)) * np.sum(self.axis * waves, axis=1)
 
 
-def draw_drifts(rng: np.random.Generator, n: int, model: SensorModel) -> Drift:
-    axis = rng.normal(size=(n, 3))
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    freq = rng.uniform(model.drift_freq_min_hz, model.drift_freq_max_hz, size=n)
-    phase = rng.uniform(0.0, _TWO_PI, size=n)
+def draw_drifts(rng: np.random.Generator, n: int, model: SensorModel, components: int = 1) -> Drift:
+    """Random axes, frequencies (uniform in the model's band) and phases for ``n`` links."""
+    if components < 1:
+        raise ValueError(f"components must be >= 1, got {components}")
+    axis = rng.normal(size=(n, components, 3))
+    axis /= np.linalg.norm(axis, axis=2, keepdims=True)
+    freq = rng.uniform(model.drift_freq_min_hz, model.drift_freq_max_hz, size=(n, components))
+    phase = rng.uniform(0.0, _TWO_PI, size=(n, components))
     return Drift(axis, freq, phase)
 
 

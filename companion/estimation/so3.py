@@ -20,6 +20,8 @@ gives a ``(..., 3, 3)`` array of rotation matrices, and so on. No I/O, no state.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -56,6 +58,9 @@ _SKEW_BASIS = _skew_basis()
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix S(v) with S(v) u = v x u; ``(..., 3) -> (..., 3, 3)``."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:
+        x, y, z = v.tolist()
+        return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
     return (v @ _SKEW_BASIS).reshape(v.shape[:-1] + (3, 3))
 
 
@@ -82,6 +87,17 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a (x) b`` (scalar first), broadcast over leading dims."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if a.ndim == 1 and b.ndim == 1:  # one product: plain floats beat numpy's per-call overhead
+        aw, ax, ay, az = a.tolist()
+        bw, bx, by, bz = b.tolist()
+        return np.array(
+            (
+                aw * bw - ax * bx - ay * by - az * bz,
+                aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx,
+                aw * bz + ax * by - ay * bx + az * bw,
+            )
+        )
     outer = a[..., :, None] * b[..., None, :]
     return (outer.reshape(outer.shape[:-2] + (16,))) @ _PRODUCT
 
@@ -95,8 +111,8 @@ def quat_conj(q: np.ndarray) -> np.ndarray:
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternion with the same direction; raises ``ValueError`` on a zero quaternion."""
     q = np.asarray(q, dtype=float)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(norm < 1e-12):
+    norm = np.sqrt(np.einsum("...i,...i->...", q, q))[..., None]
+    if norm.min() < 1e-12:
         raise ValueError("cannot normalise a zero quaternion")
     return q / norm
 
@@ -124,6 +140,15 @@ _ROTMAT_FORM = _rotmat_quadratic_form()
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix R(q) (body to world) of unit quaternions; ``(..., 4) -> (..., 3, 3)``."""
     q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+        return np.array(
+            (
+                (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
+                (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
+                (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
+            )
+        )
     outer = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
     return (outer @ _ROTMAT_FORM).reshape(q.shape[:-1] + (3, 3))
 
@@ -173,6 +198,13 @@ def quat_from_rotvec(rv: np.ndarray) -> np.ndarray:
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     """Logarithm map of unit quaternions to rotation vectors with angle in [0, pi]."""
     q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+        if w < 0.0:
+            w, x, y, z = -w, -x, -y, -z
+        s = math.sqrt(x * x + y * y + z * z)
+        k = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / max(w, 1e-300)
+        return np.array((k * x, k * y, k * z))
     q = q * np.where(q[..., :1] < 0.0, -1.0, 1.0)
     vec = q[..., 1:]
     s = np.linalg.norm(vec, axis=-1, keepdims=True)
@@ -185,12 +217,26 @@ def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
 def small_angle_quat(dtheta: np.ndarray) -> np.ndarray:
     """The paper's error quaternion ``dq ~ [1; dtheta/2]``, normalised (Alg. 1 update)."""
     dtheta = np.asarray(dtheta, dtype=float)
-    dq = np.concatenate((np.ones(dtheta.shape[:-1] + (1,)), 0.5 * dtheta), axis=-1)
-    return dq / np.linalg.norm(dq, axis=-1, keepdims=True)
+    dq = np.empty(dtheta.shape[:-1] + (4,))
+    dq[..., 0] = 1.0
+    dq[..., 1:] = 0.5 * dtheta
+    return dq / np.sqrt(np.einsum("...i,...i->...", dq, dq))[..., None]
 
 
 def retract(q: np.ndarray, dtheta: np.ndarray) -> np.ndarray:
     """Inject a world-frame attitude error: ``q <- normalise(dq(dtheta)) (x) q``."""
+    q = np.asarray(q, dtype=float)
+    dtheta = np.asarray(dtheta, dtype=float)
+    if q.ndim == 1 and dtheta.ndim == 1:
+        hx, hy, hz = (0.5 * dtheta).tolist()
+        w, x, y, z = q.tolist()
+        # (1, h) (x) q, then one normalisation (dq's own normalisation cancels in it).
+        rw = w - hx * x - hy * y - hz * z
+        rx = x + hx * w + hy * z - hz * y
+        ry = y - hx * z + hy * w + hz * x
+        rz = z + hx * y - hy * x + hz * w
+        inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+        return np.array((rw * inv, rx * inv, ry * inv, rz * inv))
     return quat_normalize(quat_mul(small_angle_quat(dtheta), q))
 
 

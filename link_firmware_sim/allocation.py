@@ -1,0 +1,707 @@
+"""Control allocation of one 8-rotor ODAR link with selective mapping (thesis ch. 2, sec. 2.4).
+
+The link produces the body-frame wrench ``U = [R_OB^T f; tau] = B lambda`` (eq. 2.8) from
+the eight bidirectional rotor thrusts ``lambda`` [N]. Column ``i`` of the mapping matrix
+``B = [B_f; B_tau]`` (6x8) is ``[u_i; t_i]`` with the torque per unit thrust
+``t_i = r_i x u_i + gamma sigma_i u_i`` (eq. 2.1).
+
+Rotors 1-4 (0-based indices 0..3, :data:`R_SIDE`) form the r-side and rotors 5-8 (4..7,
+:data:`L_SIDE`) the l-side, with ``u_{j+4} = u_j``, ``r_{j+4} = -r_j``,
+``sigma_{j+4} = -sigma_j`` (sec. 2.2.2). With the modified design of sec. 2.4.1
+(``sigma_1 = -1``) the null-vector structure (2.11) holds with ``nu = [1, -1, -1, 1]`` and
+the kernel of ``B`` is ``N_B = blkdiag(nu, nu)`` (2.13).
+
+The allocation pipeline, per call (all ``(8,)`` vectors are ordered ``[r-side; l-side]``):
+
+1. ``lambda_o = B^+ U`` with ``B^+ = B^T (B B^T)^-1`` (sec. 2.4.1);
+2. ``lambda_alpha = lambda_o + N_B xi'``, the closed-form infinity-norm minimiser of
+   Prop. 1 (eq. 2.10, 2.12, 2.14);
+3. ``lambda_beta = lambda_o + N_B (xi' + xi'')``, the null-space modulation (2.15) that keeps
+   at least three rotors per side at ``|lambda| >= eps1``, staying as close as possible to the
+   previous ``xi''`` (state of :class:`Allocator`);
+4. ``lambda_gamma`` of the gradually switching selective mapping (2.17), which fades the
+   (at most one per side) near-zero rotor out of the mapping between ``eps1`` and ``eps0``,
+   using the decoupled reduced pseudo-inverses (2.18)-(2.19); exact by Prop. 2.
+
+The command sent to the ESCs is ``lambda_gamma`` (or ``lambda_alpha`` with selective mapping
+off) clipped to ``+-thrust_max``.
+
+Units: thrusts in N, forces in N, torques in Nm, lengths in m; everything in the body frame.
+Rotor indices in code are 0-based (thesis rotor ``i`` is index ``i - 1``).
+
+Functional core (:func:`pseudo_inverse`, :func:`reduced_pseudo_inverse`,
+:func:`infinity_norm_allocation`, :func:`selective_modulation`,
+:func:`selective_mapping_weights`, :func:`gradual_selective_mapping`; pure, numpy only) and a
+thin stateful :class:`Allocator` on top that precomputes every matrix once and runs the whole
+pipeline in a few vectorised numpy operations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "N_ROTORS",
+    "N_SIDE",
+    "R_SIDE",
+    "L_SIDE",
+    "SIDES",
+    "WRENCH_DIM",
+    "W_FORCE",
+    "W_TORQUE",
+    "NU",
+    "MARGIN_TOL_N",
+    "RotorGeometry",
+    "AllocationParams",
+    "AllocationResult",
+    "pseudo_inverse",
+    "reduced_pseudo_inverse",
+    "reduced_pseudo_inverses",
+    "infinity_norm_allocation",
+    "selective_modulation",
+    "selective_mapping_weights",
+    "gradual_selective_mapping",
+    "Allocator",
+]
+
+N_ROTORS = 8
+"""Number of rotors of one ODAR link."""
+N_SIDE = 4
+"""Rotors per side."""
+R_SIDE = slice(0, 4)
+"""r-side rotors 1-4 (0-based 0..3) in ``lambda`` and in the columns of ``B``."""
+L_SIDE = slice(4, 8)
+"""l-side rotors 5-8 (0-based 4..7)."""
+SIDES = (R_SIDE, L_SIDE)
+"""Both sides, in the order of ``xi = [xi_r; xi_l]`` and ``e = (e_r, e_l)``."""
+WRENCH_DIM = 6
+W_FORCE = slice(0, 3)
+"""Force rows of ``U`` and ``B`` (``B_f``), body frame."""
+W_TORQUE = slice(3, 6)
+"""Torque rows of ``U`` and ``B`` (``B_tau``), body frame."""
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+NU = _frozen([1.0, -1.0, -1.0, 1.0])
+"""Null vector ``nu`` of each side (2.11), (2.13); read-only."""
+
+_NU_LIST = tuple(NU.tolist())
+
+MARGIN_TOL_N = 1e-9
+"""Slack [N] in the thrust-margin test of (2.15): a rotor with ``|lambda| >= eps1 - MARGIN_TOL_N``
+counts as clear of ``eps1`` (absorbs rounding at the endpoints of the forbidden intervals)."""
+
+# Table 2.1 (rotors 1-4; rotors 5-8 follow by the pair symmetry of sec. 2.2.2).
+_TABLE_2_1_U = ((0.68, 0.28, 0.68), (0.68, 0.28, -0.68), (0.68, -0.28, 0.68), (0.68, -0.28, -0.68))
+_TABLE_2_1_R_M = ((0.40, -0.17, 0.17), (0.40, 0.17, 0.17), (0.40, -0.17, -0.17), (0.40, 0.17, -0.17))
+_TABLE_2_1_SIGMA_2_4 = (-1, -1, -1)
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class RotorGeometry:
+    """Rotor directions, positions and spin types of one 8-rotor link (sec. 2.2, Table 2.1).
+
+    Attributes
+    ----------
+    directions : ndarray, shape (8, 3)
+        Unit thrust directions ``u_i`` in the body frame (columns of ``B_f``, eq. 2.8).
+    positions_m : ndarray, shape (8, 3)
+        Rotor positions ``r_i`` from the link centre, body frame [m].
+    spin : ndarray, shape (8,)
+        Rotor types ``sigma_i`` in ``{+1, -1}`` (sec. 2.2.2).
+    drag_ratio : float
+        Thrust-to-drag-torque ratio ``gamma`` [m] of eq. (2.1); ``>= 0``.
+
+    Arrays are copied and made read-only on construction.
+    """
+
+    directions: np.ndarray
+    positions_m: np.ndarray
+    spin: np.ndarray
+    drag_ratio: float
+
+    def __post_init__(self) -> None:
+        u = np.array(self.directions, dtype=float)
+        r = np.array(self.positions_m, dtype=float)
+        s = np.array(self.spin, dtype=float)
+        if u.shape != (N_ROTORS, 3) or r.shape != (N_ROTORS, 3) or s.shape != (N_ROTORS,):
+            raise ValueError(
+                f"RotorGeometry needs directions (8, 3), positions_m (8, 3), spin (8,); "
+                f"got {u.shape}, {r.shape}, {s.shape}"
+            )
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(r))):
+            raise ValueError("RotorGeometry directions and positions must be finite")
+        norms = np.linalg.norm(u, axis=1)
+        if np.any(np.abs(norms - 1.0) > 1e-9):
+            raise ValueError(f"RotorGeometry directions must be unit vectors; norms {norms}")
+        if not np.all(np.abs(s) == 1.0):
+            raise ValueError(f"RotorGeometry spin must be +1 or -1 for every rotor; got {s}")
+        gamma = float(self.drag_ratio)
+        if not (np.isfinite(gamma) and gamma >= 0.0):
+            raise ValueError(f"drag_ratio gamma must be finite and >= 0; got {self.drag_ratio}")
+        for name, val in (("directions", u), ("positions_m", r), ("spin", s)):
+            val.setflags(write=False)
+            object.__setattr__(self, name, val)
+        object.__setattr__(self, "drag_ratio", gamma)
+
+    @classmethod
+    def odar(cls, drag_ratio: float = 0.02, sigma1: int = -1, x_scale: float = 1.0) -> RotorGeometry:
+        """Optimised ODAR design of Table 2.1, extended to 8 rotors by the pair symmetry.
+
+        Parameters
+        ----------
+        drag_ratio : float
+            ``gamma`` [m] of eq. (2.1) (``~0.02`` from experiments, sec. 2.2.2).
+        sigma1 : {-1, +1}
+            Type of rotor 1. ``-1`` (default) is the modified design of sec. 2.4.1, which
+            satisfies (2.11); ``+1`` is Table 2.1 as printed, which does not.
+        x_scale : float
+            Factor on the x coordinates of the rotor positions (to fit links longer than the
+            thesis's bar, ``|r_x| = 0.40 m``). Keeps (2.11): the x-offset contributes
+            ``r_x e_1 x sum_j nu_j u_j = 0`` to ``B_tau nu``.
+
+        Notes
+        -----
+        Directions of Table 2.1 are rounded to two digits and normalised here. Rotors 5-8:
+        ``u_{j+4} = u_j``, ``r_{j+4} = -r_j``, ``sigma_{j+4} = -sigma_j`` (sec. 2.2.2).
+        """
+        if sigma1 not in (-1, 1):
+            raise ValueError(f"sigma1 must be -1 (modified design, sec. 2.4.1) or +1 (Table 2.1); got {sigma1}")
+        if not (np.isfinite(x_scale) and x_scale > 0.0):
+            raise ValueError(f"x_scale must be finite and > 0; got {x_scale}")
+        u = np.array(_TABLE_2_1_U, dtype=float)
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        r = np.array(_TABLE_2_1_R_M, dtype=float)
+        r[:, 0] *= x_scale
+        s = np.array((sigma1, *_TABLE_2_1_SIGMA_2_4), dtype=float)
+        return cls(
+            directions=np.vstack((u, u)),
+            positions_m=np.vstack((r, -r)),
+            spin=np.concatenate((s, -s)),
+            drag_ratio=drag_ratio,
+        )
+
+    def torque_per_thrust(self) -> np.ndarray:
+        """``t_i = r_i x u_i + gamma sigma_i u_i`` (eq. 2.1), shape (8, 3), body frame [m]."""
+        return np.cross(self.positions_m, self.directions) + self.drag_ratio * self.spin[:, None] * self.directions
+
+    def mapping_matrix(self) -> np.ndarray:
+        """Mapping matrix ``B = [B_f; B_tau]`` of eq. (2.8), shape (6, 8): column ``i`` is ``[u_i; t_i]``."""
+        return np.vstack((self.directions.T, self.torque_per_thrust().T))
+
+    def has_null_structure(self, tol: float = 1e-9) -> bool:
+        """Whether (2.11) holds with ``nu = [1, -1, -1, 1]``, to absolute tolerance ``tol``.
+
+        Checks ``B_{f,s} nu = 0`` and ``B_{tau,s} nu = 0`` for both sides, ``B_{f,r} = B_{f,l}``
+        and ``B_{tau,r} = -B_{tau,l}``.
+        """
+        B = self.mapping_matrix()
+        Bf, Bt = B[W_FORCE], B[W_TORQUE]
+        residuals = (
+            Bf[:, R_SIDE] @ NU,
+            Bf[:, L_SIDE] @ NU,
+            Bt[:, R_SIDE] @ NU,
+            Bt[:, L_SIDE] @ NU,
+            Bf[:, R_SIDE] - Bf[:, L_SIDE],
+            Bt[:, R_SIDE] + Bt[:, L_SIDE],
+        )
+        return all(float(np.max(np.abs(x))) <= tol for x in residuals)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters and result
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AllocationParams:
+    """Thrust limit and selective-mapping thresholds (sec. 2.4.2, Fig. 2-5).
+
+    Attributes
+    ----------
+    thrust_max_n : float
+        Bidirectional thrust limit: commands are clipped to ``[-thrust_max_n, thrust_max_n]`` [N].
+    eps0_n : float
+        Below this ``|lambda_beta|`` the near-zero rotor is fully removed from the mapping
+        (``e = 0`` in (2.17)) [N].
+    eps1_n : float
+        Thrust margin of (2.15) and the threshold above which a rotor is fully used (``e = 1``) [N].
+    selective_mapping : bool
+        ``False``: command ``lambda_alpha`` (Prop. 1 only), skipping (2.15) and (2.17).
+
+    Requires ``0 < eps0_n < eps1_n < thrust_max_n`` (all finite).
+    """
+
+    thrust_max_n: float = 8.0
+    eps0_n: float = 0.3
+    eps1_n: float = 0.8
+    selective_mapping: bool = True
+
+    def __post_init__(self) -> None:
+        vals = (self.thrust_max_n, self.eps0_n, self.eps1_n)
+        if not all(np.isfinite(v) for v in vals):
+            raise ValueError(f"AllocationParams thresholds must be finite; got thrust_max_n, eps0_n, eps1_n = {vals}")
+        if not self.eps0_n > 0.0:
+            raise ValueError(f"eps0_n must be > 0 (thesis: 0 < eps0 < eps1); got {self.eps0_n}")
+        if not self.eps0_n < self.eps1_n:
+            raise ValueError(f"eps0_n must be < eps1_n (thesis: 0 < eps0 < eps1); got eps0_n={self.eps0_n}, eps1_n={self.eps1_n}")
+        if not self.thrust_max_n > self.eps1_n:
+            raise ValueError(
+                f"thrust_max_n must be > eps1_n (the margin must be reachable); got thrust_max_n={self.thrust_max_n}, "
+                f"eps1_n={self.eps1_n}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class AllocationResult:
+    """Outcome of one :meth:`Allocator.allocate` call (all thrusts in N, rotor order 1..8).
+
+    Attributes
+    ----------
+    command_n : ndarray, shape (8,)
+        Thrust commands sent to the ESCs: ``lambda_gamma`` (or ``lambda_alpha`` with selective
+        mapping off) clipped to ``+-thrust_max_n``.
+    lambda_o : ndarray, shape (8,)
+        Minimum two-norm allocation ``B^+ U`` (sec. 2.4.1).
+    lambda_alpha : ndarray, shape (8,)
+        Minimum infinity-norm allocation of Prop. 1 (2.12).
+    lambda_beta : ndarray, shape (8,)
+        After the null-space modulation (2.15); ``lambda_alpha`` if selective mapping is off.
+    lambda_gamma : ndarray, shape (8,)
+        Gradually switching selective mapping (2.17), unclipped; ``lambda_alpha`` if off.
+    e : tuple of float
+        ``(e_r, e_l)`` of (2.17); ``(1.0, 1.0)`` if off.
+    near_zero : tuple of int
+        0-based index of the near-zero rotor of each side (``0..3``, ``4..7``), ``-1`` if no
+        rotor of that side is below ``eps1`` (or selective mapping is off).
+    saturated : bool
+        Whether any unclipped thrust exceeded ``thrust_max_n`` in magnitude (the command was clipped).
+    """
+
+    command_n: np.ndarray
+    lambda_o: np.ndarray
+    lambda_alpha: np.ndarray
+    lambda_beta: np.ndarray
+    lambda_gamma: np.ndarray
+    e: tuple[float, float]
+    near_zero: tuple[int, int]
+    saturated: bool
+
+
+# --------------------------------------------------------------------------------------------
+# Functional core
+# --------------------------------------------------------------------------------------------
+
+
+def pseudo_inverse(B: np.ndarray) -> np.ndarray:
+    """Right pseudo-inverse ``B^+ = B^T (B B^T)^-1`` (sec. 2.4.1), shape (n, 6).
+
+    Raises
+    ------
+    ValueError
+        If ``B`` is not full row rank.
+    """
+    B = np.asarray(B, dtype=float)
+    if np.linalg.matrix_rank(B) < B.shape[0]:
+        raise ValueError(f"mapping matrix must be full row rank ({B.shape[0]}); got rank {np.linalg.matrix_rank(B)}")
+    # B^T (B B^T)^-1 = ((B B^T)^-1 B)^T since B B^T is symmetric.
+    return np.linalg.solve(B @ B.T, B).T
+
+
+def reduced_pseudo_inverse(B: np.ndarray, excluded: Sequence[int]) -> np.ndarray:
+    """Reduced pseudo-inverse ``B^+_{\\S} = I_{\\S} B^T (B I_{\\S} B^T)^-1`` (sec. 2.4.2), shape (n, 6).
+
+    ``I_{\\S}`` is the identity with the diagonal entries of the 0-based rotor indices in
+    ``excluded`` set to zero, so the rows of the excluded rotors are zero and
+    ``B B^+_{\\S} = I``.
+
+    Raises
+    ------
+    ValueError
+        If the mapping without the excluded rotors is not full row rank.
+    """
+    B = np.asarray(B, dtype=float)
+    keep = np.ones(B.shape[1])
+    keep[list(excluded)] = 0.0
+    Bk = B * keep  # B I_{\S}
+    if np.linalg.matrix_rank(Bk) < B.shape[0]:
+        raise ValueError(f"mapping without rotors {list(excluded)} is not full row rank; cannot exclude them")
+    return np.linalg.solve(Bk @ B.T, Bk).T
+
+
+def reduced_pseudo_inverses(B: np.ndarray) -> np.ndarray:
+    """All single-rotor reduced pseudo-inverses ``B^+_{\\i}``, ``i = 0..7``: shape (8, 8, 6), ``[i]`` is ``B^+_{\\i}``."""
+    B = np.asarray(B, dtype=float)
+    return np.stack([reduced_pseudo_inverse(B, (i,)) for i in range(B.shape[1])])
+
+
+def infinity_norm_allocation(
+    B_pinv: np.ndarray, U: np.ndarray, nu: np.ndarray = NU
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-form minimum infinity-norm allocation of Prop. 1 (eq. 2.10, 2.12-2.14).
+
+    Valid when ``B`` satisfies (2.11), so that ``N_B = blkdiag(nu, nu)`` (2.13).
+
+    Parameters
+    ----------
+    B_pinv : ndarray, shape (8, 6)
+        ``B^+`` from :func:`pseudo_inverse`.
+    U : ndarray, shape (6,)
+        Body-frame wrench ``[R^T f; tau]`` (eq. 2.8).
+    nu : ndarray, shape (4,)
+        Null vector of each side (2.11).
+
+    Returns
+    -------
+    lambda_o : ndarray, shape (8,)
+        ``B^+ U``.
+    xi_prime : ndarray, shape (2,)
+        ``[xi'_r; xi'_l]`` with ``xi'_s = -(max(lambda^nu_s) + min(lambda^nu_s)) / 2`` and
+        ``lambda^nu_s = diag(nu) lambda_{o,s}`` (2.12).
+    lambda_alpha : ndarray, shape (8,)
+        ``lambda_o + N_B xi'`` (2.12), the minimiser of ``||lambda||_inf`` over ``B lambda = U``.
+    """
+    nu = np.asarray(nu, dtype=float)
+    lambda_o = np.asarray(B_pinv, dtype=float) @ np.asarray(U, dtype=float)
+    lam_nu = lambda_o.reshape(2, N_SIDE) * nu  # rows: r-side, l-side
+    xi_prime = -0.5 * (lam_nu.max(axis=1) + lam_nu.min(axis=1))
+    lambda_alpha = lambda_o + (nu * xi_prime[:, None]).ravel()
+    return lambda_o, xi_prime, lambda_alpha
+
+
+def _modulate_side(b: Sequence[float], xi_pre: float, eps1: float) -> float:
+    """Exact solution of (2.15) for one side; see :func:`selective_modulation`.
+
+    ``b[i] = nu_i lambda_{o,i} + xi'`` (the nu-scaled ``lambda_alpha`` of the side, 2.14), so
+    rotor ``i`` is clear of the margin iff ``|b_i + xi''| >= eps1``: it forbids the open
+    interval of ``xi''`` of half-width ``eps1`` centred at ``-b_i``.
+    """
+    thr = eps1 - MARGIN_TOL_N
+    if sum(abs(bi + xi_pre) < thr for bi in b) <= 1:
+        return xi_pre  # feasible: no needless motion
+    # Otherwise the closest feasible point is an endpoint of a forbidden interval (the
+    # infeasible set is a union of pairwise intersections of open intervals); the largest
+    # endpoint is always feasible. Exact ties go to the smaller xi''.
+    best = best_d = math.inf
+    for bi in b:
+        for x in (-bi - eps1, -bi + eps1):
+            d = abs(x - xi_pre)
+            if (d < best_d or (d == best_d and x < best)) and sum(abs(bk + x) < thr for bk in b) <= 1:
+                best, best_d = x, d
+    return best
+
+
+def _side_weight(mags: Sequence[float], eps0: float, eps1: float) -> tuple[float, int]:
+    """``(e_s, j)`` of (2.17) for one side from ``|lambda_{beta,s,i}|``; ``j`` local, ``-1`` if clear.
+
+    A side whose minimum is within :data:`MARGIN_TOL_N` of ``eps1`` counts as clear
+    (``e_s = 1`` exactly), consistently with the margin test of (2.15).
+    """
+    m = min(mags)
+    if m >= eps1 - MARGIN_TOL_N:
+        return 1.0, -1
+    e = (m - eps0) / (eps1 - eps0)
+    return (e if e > 0.0 else 0.0), mags.index(m)  # type: ignore[attr-defined]
+
+
+def selective_modulation(
+    lambda_o: np.ndarray, xi_prime: np.ndarray, xi_pre: np.ndarray, nu: np.ndarray, eps1: float
+) -> np.ndarray:
+    """Null-space modulation ``xi''`` of (2.15), solved exactly (pure function).
+
+    Per side ``s``: ``xi''_s = argmin |xi''_s - xi''_{s,pre}|`` subject to at least three of
+    the four rotors having ``|lambda_{o,s,i} + nu_i (xi'_s + xi''_s)| >= eps1``.
+
+    By (2.14) each rotor forbids the open interval ``|xi'' - c_i| < eps1``,
+    ``c_i = -(nu_i lambda_{o,s,i} + xi'_s)``; the feasible set is where at most one interval
+    covers ``xi''``. The minimiser is ``xi''_pre`` if feasible, otherwise the feasible interval
+    endpoint closest to it (exact ties: the smaller value). The feasible set is never empty
+    (``max_i c_i + eps1`` is feasible), matching the thesis's always-feasible remark.
+
+    Parameters
+    ----------
+    lambda_o : ndarray, shape (8,)
+        ``B^+ U``.
+    xi_prime : ndarray, shape (2,)
+        ``[xi'_r; xi'_l]`` of Prop. 1 (2.12).
+    xi_pre : ndarray, shape (2,)
+        Previous solution ``[xi''_{r,pre}; xi''_{l,pre}]``.
+    nu : ndarray, shape (4,)
+        Null vector (2.11); entries must be ``+-1``.
+    eps1 : float
+        Thrust margin [N] (> 0).
+
+    Returns
+    -------
+    ndarray, shape (2,)
+        ``[xi''_r; xi''_l]``. The margin is enforced up to :data:`MARGIN_TOL_N`.
+
+    Notes
+    -----
+    * The thesis writes the constraint as ``sum_i sgn(|.| - eps1) >= 3``; read literally (three
+      ``+1`` and one ``-1`` sum to 2) it would demand all four rotors clear, contradicting the
+      text ("at least three", "at most one rotor with its thrust magnitude less than eps1").
+      It is implemented as "at least three of four clear".
+    * Continuity: while ``xi''_pre`` stays feasible it is kept; otherwise it is pushed to the
+      nearest endpoint, which moves with ``lambda_o`` (``|d xi''| <= 2 ||d lambda_o||_inf``). But
+      when a rotor inside the margin is squeezed between two neighbours whose margins meet,
+      the feasible component holding ``xi''_pre`` vanishes and every solution of (2.15) must
+      jump (by up to about ``2 eps1``); the near-zero rotor then changes.
+    * Nothing pulls ``xi''`` back to 0: after a modulation, ``lambda_beta`` stays off the
+      infinity-norm optimum ``lambda_alpha`` until the constraint pushes it again (this follows
+      (2.15) literally).
+    """
+    b = np.asarray(lambda_o, dtype=float).reshape(2, N_SIDE) * np.asarray(nu, dtype=float)
+    b = b + np.asarray(xi_prime, dtype=float).reshape(2, 1)
+    xi_pre = np.asarray(xi_pre, dtype=float).reshape(2)
+    return np.array([_modulate_side(b[s].tolist(), float(xi_pre[s]), float(eps1)) for s in range(2)])
+
+
+def selective_mapping_weights(
+    lambda_beta: np.ndarray, eps0: float, eps1: float
+) -> tuple[tuple[float, float], tuple[int, int]]:
+    """Gradual switching weights ``(e_r, e_l)`` of (2.17) and the near-zero rotors.
+
+    Per side, with ``m_s = min_i |lambda_{beta,s,i}|``: ``e_s = 1`` if ``m_s > eps1``,
+    ``(m_s - eps0) / (eps1 - eps0)`` if ``eps0 < m_s <= eps1``, ``0`` if ``m_s <= eps0``
+    (continuous in ``m_s``).
+
+    Returns
+    -------
+    e : tuple of float
+        ``(e_r, e_l)``.
+    near_zero : tuple of int
+        0-based index (``0..3`` r-side, ``4..7`` l-side) of ``argmin_i |lambda_{beta,s,i}|``
+        if that minimum is below ``eps1``, else ``-1``.
+
+    Notes
+    -----
+    A minimum within :data:`MARGIN_TOL_N` below ``eps1`` counts as clear (``e_s = 1``,
+    index ``-1``), consistently with the margin test of (2.15) (a rotor pushed exactly onto
+    the margin by (2.15) may land a rounding error below it).
+    """
+    mag = np.abs(np.asarray(lambda_beta, dtype=float)).reshape(2, N_SIDE)
+    (e_r, j), (e_l, k) = (_side_weight(mag[s].tolist(), float(eps0), float(eps1)) for s in range(2))
+    return (e_r, e_l), (j, k + N_SIDE if k >= 0 else -1)
+
+
+def gradual_selective_mapping(
+    B_pinv: np.ndarray,
+    B_pinv_reduced: np.ndarray,
+    U: np.ndarray,
+    nu: np.ndarray,
+    xi: np.ndarray,
+    e: tuple[float, float],
+    near_zero: tuple[int, int],
+) -> np.ndarray:
+    """``lambda_gamma = Bbar^+ U + Nbar_B xi`` of the gradually switching selective mapping (2.17).
+
+    Side ``s`` rows of ``Bbar^+`` are ``e_s B^+_s + (1 - e_s) B^+_{s\\j}`` and
+    ``Nbar_B = blkdiag(e_r nu, e_l nu)``, where by the decoupling property (2.18)-(2.19) the
+    side rows of the reduced pseudo-inverse excluding ``j`` (r-side) and ``k`` (l-side) are the
+    side rows of ``B^+_{\\j}`` and ``B^+_{\\k}``. Exact (``B lambda_gamma = U``) for every
+    ``e_r, e_l`` by Prop. 2 when (2.11) holds.
+
+    Parameters
+    ----------
+    B_pinv : ndarray, shape (8, 6)
+        ``B^+``.
+    B_pinv_reduced : ndarray, shape (8, 8, 6)
+        ``[i] = B^+_{\\i}``, from :func:`reduced_pseudo_inverses`.
+    U : ndarray, shape (6,)
+        Body-frame wrench.
+    nu : ndarray, shape (4,)
+        Null vector (2.11).
+    xi : ndarray, shape (2,)
+        Total null-space coordinate ``xi' + xi''``.
+    e : tuple of float
+        ``(e_r, e_l)`` in ``[0, 1]``.
+    near_zero : tuple of int
+        ``(j, k)``, ``j`` in ``0..3`` and ``k`` in ``4..7``, or ``-1`` for none (then that
+        side uses ``B^+_s``, i.e. ``e_s`` is immaterial for the ``B^+`` rows).
+
+    Returns
+    -------
+    ndarray, shape (8,)
+    """
+    U = np.asarray(U, dtype=float)
+    nu = np.asarray(nu, dtype=float)
+    B_pinv = np.asarray(B_pinv, dtype=float)
+    B_pinv_reduced = np.asarray(B_pinv_reduced, dtype=float)
+    out = np.empty(N_ROTORS)
+    for s, side in enumerate(SIDES):
+        idx = near_zero[s]
+        if idx == -1:
+            reduced = B_pinv[side]
+        else:
+            if not side.start <= idx < side.stop:
+                raise ValueError(f"near_zero[{s}] = {idx} is not a rotor of side {side.start}..{side.stop - 1}")
+            reduced = B_pinv_reduced[idx][side]
+        rows = e[s] * B_pinv[side] + (1.0 - e[s]) * reduced
+        out[side] = rows @ U + e[s] * nu * xi[s]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Stateful allocator
+# --------------------------------------------------------------------------------------------
+
+
+class Allocator:
+    """Stateful allocation of one link: keeps ``xi''_pre`` of (2.15) between calls.
+
+    Parameters
+    ----------
+    geometry : RotorGeometry
+        Must satisfy (2.11) (:meth:`RotorGeometry.has_null_structure`): Prop. 1's closed form
+        and the selective mapping both rely on it.
+    params : AllocationParams
+
+    Raises
+    ------
+    ValueError
+        If (2.11) does not hold (with selective mapping requested or not: Prop. 1 needs it
+        too), or ``B`` or any single-rotor reduction of it is not full row rank.
+    """
+
+    def __init__(self, geometry: RotorGeometry, params: AllocationParams = AllocationParams()) -> None:
+        if not geometry.has_null_structure():
+            if params.selective_mapping:
+                raise ValueError(
+                    "selective mapping (2.15)-(2.17) requires the null structure (2.11) with nu = [1, -1, -1, 1]; "
+                    "this geometry does not have it (Table 2.1 as printed, sigma1=+1? use the modified sigma1=-1)"
+                )
+            raise ValueError(
+                "the closed-form infinity-norm allocation (Prop. 1) requires the null structure (2.11) with "
+                "nu = [1, -1, -1, 1]; this geometry does not have it (use the modified design sigma1=-1)"
+            )
+        self.geometry = geometry
+        self.params = params
+        B = geometry.mapping_matrix()
+        self._B = _frozen(B)
+        self._B_pinv = _frozen(pseudo_inverse(B))
+        self._B_pinv_reduced = _frozen(reduced_pseudo_inverses(B))
+        # _reduced_by_side[s, jl] = side-s rows of B^+_{\(s*4 + jl)} (4x6), by (2.18)-(2.19).
+        red = np.empty((2, N_SIDE, N_SIDE, WRENCH_DIM))
+        for s, side in enumerate(SIDES):
+            for jl in range(N_SIDE):
+                red[s, jl] = self._B_pinv_reduced[side.start + jl][side]
+        self._reduced_by_side = _frozen(red)
+        self._selective = bool(params.selective_mapping)
+        self._eps0 = float(params.eps0_n)
+        self._eps1 = float(params.eps1_n)
+        self._tmax = float(params.thrust_max_n)
+        self._xi_pre = [0.0, 0.0]
+
+    @property
+    def mapping_matrix(self) -> np.ndarray:
+        """``B`` (6, 8), read-only."""
+        return self._B
+
+    @property
+    def pinv(self) -> np.ndarray:
+        """``B^+`` (8, 6), read-only."""
+        return self._B_pinv
+
+    @property
+    def reduced_pinvs(self) -> np.ndarray:
+        """``B^+_{\\i}`` stacked (8, 8, 6), read-only."""
+        return self._B_pinv_reduced
+
+    @property
+    def xi_pre(self) -> np.ndarray:
+        """Copy of the stored ``[xi''_{r,pre}; xi''_{l,pre}]`` of (2.15)."""
+        return np.array(self._xi_pre)
+
+    def reset(self) -> None:
+        """Clear the modulation state: ``xi''_pre = 0``."""
+        self._xi_pre = [0.0, 0.0]
+
+    def allocate(self, U: np.ndarray) -> AllocationResult:
+        """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
+
+        Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15) (updating ``xi''_pre``)
+        and the gradual selective mapping (2.17); clips to ``+-thrust_max_n``.
+
+        Raises
+        ------
+        ValueError
+            If ``U`` is not 6 finite numbers (the state is left untouched).
+        """
+        U = np.asarray(U, dtype=float)
+        if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
+        lam_o = self._B_pinv @ U
+        lo = lam_o.tolist()
+        tmax = self._tmax
+        # Per side, b_i = nu_i lambda_{o,i} + xi' is the nu-scaled lambda_alpha (2.12), (2.14):
+        # lambda_alpha_i = nu_i b_i, and lambda_beta_i = nu_i (b_i + xi'') (2.15).
+        nu = _NU_LIST
+        alpha: list[float] = []
+        b_sides = []
+        for side in SIDES:
+            lam_nu = [n * x for n, x in zip(nu, lo[side])]
+            xi1 = -0.5 * (max(lam_nu) + min(lam_nu))  # (2.12)
+            b = [x + xi1 for x in lam_nu]
+            b_sides.append(b)
+            alpha += [n * x for n, x in zip(nu, b)]
+        if not self._selective:
+            lam_alpha = np.array(alpha)
+            return AllocationResult(
+                command_n=np.array([min(max(x, -tmax), tmax) for x in alpha]),
+                lambda_o=lam_o,
+                lambda_alpha=lam_alpha,
+                lambda_beta=lam_alpha,
+                lambda_gamma=lam_alpha,
+                e=(1.0, 1.0),
+                near_zero=(-1, -1),
+                saturated=max(map(abs, alpha)) > tmax,
+            )
+        beta: list[float] = []
+        gamma: list[float] = []
+        e_out = []
+        near = []
+        xi_pre = self._xi_pre
+        for s, b in enumerate(b_sides):
+            xi2 = _modulate_side(b, xi_pre[s], self._eps1)  # (2.15)
+            xi_pre[s] = xi2
+            bb = [x + xi2 for x in b]
+            beta_s = [n * x for n, x in zip(nu, bb)]
+            e, j = _side_weight([abs(x) for x in bb], self._eps0, self._eps1)  # (2.17)
+            if j < 0:
+                gamma_s = beta_s
+                near.append(-1)
+            else:
+                # Side rows of Bbar^+ U + Nbar_B xi = P_j U + e_s (lambda_beta_s - P_j U), with
+                # P_j the side rows of B^+_{\j}, by the decoupling (2.18)-(2.19).
+                red = (self._reduced_by_side[s, j] @ U).tolist()
+                gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
+                near.append(j + s * N_SIDE)
+            beta += beta_s
+            gamma += gamma_s
+            e_out.append(e)
+        lam_gamma = np.array(gamma)
+        return AllocationResult(
+            command_n=np.array([min(max(x, -tmax), tmax) for x in gamma]),
+            lambda_o=lam_o,
+            lambda_alpha=np.array(alpha),
+            lambda_beta=np.array(beta),
+            lambda_gamma=lam_gamma,
+            e=(e_out[0], e_out[1]),
+            near_zero=(near[0], near[1]),
+            saturated=max(map(abs, gamma)) > tmax,
+        )

@@ -1,0 +1,240 @@
+"""The simulated Pixhawk of one link: EKF, impedance control and allocation, on one clock.
+
+:class:`LinkFirmware` is driven by events carrying the flight-controller time (no sockets,
+no wall clock; the SITL harness or, later, the MAVLink shell calls it):
+
+* ``on_imu`` (the IMU rate, 500 Hz): EKF propagation to the sample time, then the measurement
+  updates queued since the last sample, then control and allocation; returns the eight rotor
+  thrust commands;
+* ``on_gps``, ``on_attitude``: queue a measurement (applied at the next ``on_imu``, once the
+  EKF has been propagated to its time);
+* ``on_correction``: the companion's :class:`~companion.messages.Correction`;
+* ``set_target``: a :class:`~link_firmware_sim.control.PoseTarget`;
+* ``arm`` / ``disarm``.
+
+Control runs on the EKF output plus the latest correction delta, never feeding the delta into
+the EKF (paper sec. III-A). The delta is held at full weight for ``correction_hold_s`` after it
+arrives and then fades linearly to zero at ``correction_stale_s`` (control on the raw EKF, like
+a lost companion). A target older than ``target_stale_s`` is replaced by holding the current
+estimated position at the last target attitude (PX4's offboard-loss hold).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.estimation.so3 import quat_to_rotmat, retract
+from companion.messages import Correction, LinkState
+
+from .allocation import AllocationParams, AllocationResult, Allocator, RotorGeometry
+from .control import GRAVITY_M_S2, ControlIntegrals, ImpedanceGains, LinkInertia, PoseTarget, impedance_control
+from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
+
+__all__ = ["FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
+
+log = logging.getLogger(__name__)
+
+
+def outdoor_ekf_config() -> EkfConfig:
+    """EKF tuning for the SITL ``outdoor`` sensor profile (MEMS IMU, M8-class GPS, AHRS).
+
+    Process noise from the IMU (accelerometer 0.05 m/s^2 and gyro 0.005 rad/s per 500 Hz
+    sample, inflated for model error), bias random walks estimated; GPS variance covers the
+    white noise and part of the slow drift.
+    """
+    return EkfConfig(
+        noise=EkfNoise(
+            pos_m2_s=1e-4, vel_m2_s3=2e-3, att_rad2_s=1e-5, accel_bias_m2_s5=1e-6, gyro_bias_rad2_s3=1e-8
+        ),
+        gps_pos_var_m2=0.25,
+        gps_vel_var_m2_s2=0.01,
+        att_var_rad2=1e-3,
+        heading_var_rad2=3e-3,
+        init_pos_var_m2=1.0,
+        init_vel_var_m2_s2=0.1,
+        init_att_var_rad2=3e-3,
+        init_accel_bias_var=2.5e-3,
+        init_gyro_bias_var=1e-5,
+    )
+
+
+@dataclass(frozen=True)
+class FirmwareConfig:
+    """Parameters of one simulated Pixhawk."""
+
+    rate_hz: float = 500.0
+    ekf: EkfConfig = field(default_factory=outdoor_ekf_config)
+    gains: ImpedanceGains = field(default_factory=ImpedanceGains)
+    allocation: AllocationParams = field(default_factory=AllocationParams)
+    correction_hold_s: float = 0.1
+    correction_stale_s: float = 0.5
+    target_stale_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
+        if not 0 <= self.correction_hold_s < self.correction_stale_s:
+            raise ValueError(
+                f"correction_hold_s must be in [0, correction_stale_s), got {self.correction_hold_s} "
+                f"(stale {self.correction_stale_s})"
+            )
+        if not self.target_stale_s > 0:
+            raise ValueError(f"target_stale_s must be positive, got {self.target_stale_s}")
+
+
+class LinkFirmware:
+    """One link's flight controller (see the module docstring for the event interface)."""
+
+    def __init__(
+        self, link: int, config: FirmwareConfig, inertia: LinkInertia, geometry: RotorGeometry
+    ):
+        self.link = link
+        self.config = config
+        self.inertia = inertia
+        self.allocator = Allocator(geometry, config.allocation)
+        self.ekf: LinkEkf | None = None
+        self.armed = False
+        self.integrals = ControlIntegrals()
+        self.target: PoseTarget | None = None
+        self._target_time_s = -math.inf
+        self._hold: PoseTarget | None = None
+        self.correction: Correction | None = None
+        self._correction_time_s = -math.inf
+        self.last_allocation: AllocationResult | None = None
+        self.last_command_n = np.zeros(8)
+        self.time_s = 0.0
+        self._zero = np.zeros(8)
+        self._pending: list[tuple[str, tuple]] = []
+
+    # -- estimator -------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        return self.ekf is not None
+
+    def initialize(self, t_s: float, p_w_m, v_w_m_s, q_wxyz) -> None:
+        """Start the EKF (from the first GPS fix and attitude reference)."""
+        self.ekf = LinkEkf(p_w_m, v_w_m_s, q_wxyz, self.config.ekf)
+        self.time_s = t_s
+
+    def on_gps(self, t_s: float, pos_w_m, vel_w_m_s) -> None:
+        if self.ekf is not None:
+            self._pending.append(("gps", (pos_w_m, vel_w_m_s)))
+
+    def on_attitude(self, t_s: float, q_wxyz) -> None:
+        if self.ekf is not None:
+            self._pending.append(("att", (q_wxyz,)))
+
+    def _apply_pending(self) -> None:
+        ekf = self.ekf
+        for kind, args in self._pending:
+            if kind == "gps":
+                ekf.update_position(args[0])
+                ekf.update_velocity(args[1])
+            else:
+                ekf.update_attitude(args[0])
+        self._pending.clear()
+
+    # -- companion and targets ---------------------------------------------------------
+    def on_correction(self, t_s: float, correction: Correction) -> None:
+        self.correction = correction
+        self._correction_time_s = t_s
+
+    def set_target(self, t_s: float, target: PoseTarget) -> None:
+        self.target = target
+        self._target_time_s = t_s
+        self._hold = None
+
+    def correction_weight(self, t_s: float) -> float:
+        """1 while fresh, linear fade after ``correction_hold_s``, 0 once stale."""
+        if self.correction is None:
+            return 0.0
+        age = t_s - self._correction_time_s
+        cfg = self.config
+        if age <= cfg.correction_hold_s:
+            return 1.0
+        if age >= cfg.correction_stale_s:
+            return 0.0
+        return (cfg.correction_stale_s - age) / (cfg.correction_stale_s - cfg.correction_hold_s)
+
+    def control_estimate(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(p, v, q)`` used by the controller: EKF output plus the weighted correction."""
+        ekf = self.ekf
+        p, v, q = ekf.p_w_m, ekf.v_w_m_s, ekf.q_wxyz
+        wgt = self.correction_weight(t_s)
+        if wgt > 0.0:
+            c = self.correction
+            p = p + wgt * c.dp_w_m
+            v = v + wgt * c.dv_w_m_s
+            q = retract(q, wgt * c.dtheta_w_rad)
+        return p, v, q
+
+    def state_report(self) -> LinkState:
+        """The EKF state and covariance sent to the companion."""
+        p, v, q, w, P9 = self.ekf.sckf_view()
+        return LinkState(self.link, self.time_s, p, v, q, w, P9)
+
+    # -- arming --------------------------------------------------------------------------
+    def arm(self, t_s: float) -> bool:
+        """Arm (requires an initialised EKF). Without a target the link holds its pose."""
+        if self.ekf is None:
+            log.warning("link %d: arming refused, EKF not initialised", self.link)
+            return False
+        self.armed = True
+        self.integrals = ControlIntegrals()
+        self.allocator.reset()
+        return True
+
+    def hover_command(self, q_wxyz) -> np.ndarray:
+        """Thrusts that carry the link's weight at attitude ``q_wxyz`` (no torque).
+
+        Used to start a simulation in the air with the rotors already spinning; the
+        allocator's state is left as it was before the call.
+        """
+        R = quat_to_rotmat(q_wxyz)
+        U = np.concatenate((R.T @ np.array([0.0, 0.0, self.inertia.mass_kg * GRAVITY_M_S2]), np.zeros(3)))
+        command = self.allocator.allocate(U).command_n
+        self.allocator.reset()
+        return command
+
+    def disarm(self) -> None:
+        self.armed = False
+        self.last_command_n = self._zero
+
+    def _active_target(self, t_s: float, p_w_m) -> PoseTarget:
+        if self.target is not None and t_s - self._target_time_s <= self.config.target_stale_s:
+            return self.target
+        if self._hold is None:
+            q = self.target.q_wxyz if self.target is not None else self.ekf.q_wxyz
+            self._hold = PoseTarget.hold(p_w_m, q)
+            if self.target is not None:
+                log.warning("link %d: target stale (%.2f s), holding position", self.link, t_s - self._target_time_s)
+        return self._hold
+
+    # -- the fast loop ---------------------------------------------------------------------
+    def on_imu(self, t_s: float, gyro_b_rad_s, accel_b_m_s2) -> np.ndarray:
+        """EKF propagation, then (armed) control and allocation; returns thrust commands [N]."""
+        if self.ekf is None:
+            return self._zero
+        dt = t_s - self.time_s
+        if dt <= 0.0:
+            dt = 1.0 / self.config.rate_hz
+        self.ekf.predict(gyro_b_rad_s, accel_b_m_s2, dt)
+        self.time_s = t_s
+        if self._pending:
+            self._apply_pending()
+        if not self.armed:
+            self.last_command_n = self._zero
+            return self._zero
+        p, v, q = self.control_estimate(t_s)
+        omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
+        target = self._active_target(t_s, p)
+        U, self.integrals = impedance_control(
+            p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
+        )
+        self.last_allocation = self.allocator.allocate(U)
+        self.last_command_n = self.last_allocation.command_n
+        return self.last_command_n

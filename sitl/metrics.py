@@ -1,0 +1,95 @@
+"""Flight metrics from a run log (pure numpy over the recorded arrays).
+
+All figures are taken over the flight window (after the take-off, ``t >= flight_start_s``):
+
+* ``rms_track_est_m`` per link: RMS of ``|p_target - p_estimate|`` where the estimate is what
+  the controller used (EKF plus the held correction): the paper's Fig. 5 figure;
+* ``rms_track_true_m`` per link: the same against the true position;
+* ``rms_att_track_true_deg`` per link: RMS attitude angle between target and truth;
+* ``rms_est_err_m``: per link, RMS of ``|p_estimate - p_true|`` at the companion ticks, for the
+  EKF alone (``ekf``) and for the SCKF-corrected estimate (``sckf``, absent without SCKF);
+* ``constraint_pos_p95_m`` / ``constraint_vel_p95_m_s``: 95th percentile over joints and
+  companion ticks of the eq. 3 tip position / velocity error, ``before`` (EKF states) and
+  ``after`` the constraint application;
+* ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
+* ``min_altitude_m``: lowest true link-centre altitude; ``crashed``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.estimation.so3 import attitude_error
+
+__all__ = ["PAPER_THREE_LINK", "compute_metrics"]
+
+#: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
+#: the constraint error after SCKF ("under 5 cm and 2 cm/s").
+PAPER_THREE_LINK = {
+    "rms_track_est_m": [0.1161, 0.1340, 0.1257],
+    "constraint_pos_after_max_m": 0.05,
+    "constraint_vel_after_max_m_s": 0.02,
+}
+
+
+def _rms(x: np.ndarray, axis=0) -> np.ndarray:
+    return np.sqrt(np.mean(x * x, axis=axis))
+
+
+def _p95(values: list | np.ndarray) -> float | None:
+    a = np.asarray(values)
+    return float(np.percentile(a, 95)) if a.size else None
+
+
+def compute_metrics(
+    log: dict[str, np.ndarray],
+    flight_start_s: float,
+    zero_crossings: np.ndarray,
+    crashed: bool,
+    crash_reason: str,
+    realtime_factor: float,
+    sckf_enabled: bool,
+) -> dict:
+    t = log["t"]
+    win = t >= flight_start_s
+    if not np.any(win):
+        raise ValueError(f"the run ended before the flight window (t >= {flight_start_s} s)")
+    n = log["p_true"].shape[1]
+    err_est = np.linalg.norm(log["p_target"][win] - log["p_ctrl"][win], axis=-1)
+    err_true = np.linalg.norm(log["p_target"][win] - log["p_true"][win], axis=-1)
+    att_err = np.degrees(
+        np.linalg.norm(attitude_error(log["q_true"][win], log["q_target"][win]), axis=-1)
+    )
+    ts = log["t_sckf"]
+    wins = ts >= flight_start_s
+    ekf_err = np.linalg.norm(log["p_ekf_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
+    metrics = {
+        "n_links": n,
+        "flight_window_s": [float(flight_start_s), float(t[-1])],
+        "rms_track_est_m": _rms(err_est).tolist(),
+        "rms_track_true_m": _rms(err_true).tolist(),
+        "rms_att_track_true_deg": _rms(att_err).tolist(),
+        "rms_est_err_m": {"ekf": _rms(ekf_err).tolist()},
+        "constraint_pos_p95_m": {},
+        "constraint_vel_p95_m_s": {},
+        "rotor_zero_crossings": int(np.sum(zero_crossings)),
+        "rotor_zero_crossings_per_link": np.asarray(zero_crossings).reshape(n, -1).sum(axis=1).tolist(),
+        "min_altitude_m": float(log["p_true"][win][..., 2].min()),
+        "crashed": bool(crashed),
+        "crash_reason": crash_reason,
+        "realtime_factor": float(realtime_factor),
+        "sckf": bool(sckf_enabled),
+    }
+    if n > 1:
+        metrics["constraint_pos_p95_m"]["before"] = _p95(log["con_pos_before"][wins])
+        metrics["constraint_vel_p95_m_s"]["before"] = _p95(log["con_vel_before"][wins])
+    if sckf_enabled:
+        corr_err = np.linalg.norm(log["p_corr_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
+        metrics["rms_est_err_m"]["sckf"] = _rms(corr_err).tolist()
+        metrics["sckf_iterations_mean"] = float(np.mean(log["iterations"][wins]))
+        if n > 1:
+            metrics["constraint_pos_p95_m"]["after"] = _p95(log["con_pos_after"][wins])
+            metrics["constraint_vel_p95_m_s"]["after"] = _p95(log["con_vel_after"][wins])
+            metrics["constraint_pos_max_m"] = {"after": float(np.max(log["con_pos_after"][wins]))}
+            metrics["constraint_vel_max_m_s"] = {"after": float(np.max(log["con_vel_after"][wins]))}
+    return metrics

@@ -1,0 +1,170 @@
+"""SITL scenario configuration: one validated TOML file per scenario (``configs/sitl/``).
+
+The schema is the dataclass tree below; :func:`load_scenario` reads a file through
+:mod:`companion.configfile`, so an unknown key, a wrong type or an invalid value is reported
+as ``<file>: <section.key>: <reason>``. Every rate must be a whole divisor of the physics rate
+(and the sensor rates of the firmware rate), else the file is rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Literal
+
+from companion.configfile import ConfigError, build, load_toml
+from companion.estimation.sckf import CAParams
+from companion.estimation.semi import Groups, make_groups, validate_groups
+from link_firmware_sim.firmware import FirmwareConfig
+from sitl.bench.ekf_chain import rate_divisor
+
+from .model import SkeletonConfig, StartPose
+from .rotor import RotorParams
+from .sensors import PROFILES, SensorSuite
+from .trajectory import TrajectoryConfig
+
+__all__ = [
+    "SensorConfig",
+    "CompanionConfig",
+    "WindConfig",
+    "SimConfig",
+    "Scenario",
+    "load_scenario",
+]
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """A named sensor profile with optional per-field overrides and the sensor rates.
+
+    ``[sensors.imu]``, ``[sensors.gps]``, ``[sensors.attitude]`` override single fields of the
+    profile's :class:`~sitl.sensors.ImuNoise`, :class:`~sitl.sensors.GpsNoise`,
+    :class:`~sitl.sensors.AttitudeRefNoise`.
+    """
+
+    profile: Literal["outdoor", "paper", "ideal"] = "outdoor"
+    gps_rate_hz: float = 10.0
+    attitude_rate_hz: float = 50.0
+    imu: dict[str, float] = field(default_factory=dict)
+    gps: dict[str, float] = field(default_factory=dict)
+    attitude: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        base = PROFILES[self.profile]
+        for section in ("imu", "gps", "attitude"):
+            known = {f.name for f in fields(getattr(base, section))}
+            for key in getattr(self, section):
+                if key not in known:
+                    raise ValueError(f"{section}: unknown field {key!r} (expected one of: {', '.join(sorted(known))})")
+
+    def suite(self) -> SensorSuite:
+        base = PROFILES[self.profile]
+        return SensorSuite(
+            imu=replace(base.imu, **self.imu),
+            gps=replace(base.gps, **self.gps),
+            attitude=replace(base.attitude, **self.attitude),
+        )
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """The companion's SCKF in batch mode (direct calls).
+
+    ``groups`` uses 1-based link numbers, e.g. ``[[1, 2], [3, 4, 5], [6, 7]]``; empty means
+    one group of all links.
+    """
+
+    enabled: bool = True
+    rate_hz: float = 20.0
+    groups: tuple[tuple[int, ...], ...] = ()
+    eps_m: float = 0.01
+    alpha: float = 0.01
+    max_iter: int = 20
+
+    def __post_init__(self) -> None:
+        CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+
+    @property
+    def params(self) -> CAParams:
+        return CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+
+    def group_layout(self, n_links: int) -> Groups:
+        if not self.groups:
+            return make_groups(n_links, n_links)
+        return validate_groups([[i - 1 for i in g] for g in self.groups], n_links)
+
+
+@dataclass(frozen=True)
+class WindConfig:
+    """Steady wind plus gusts (first-order Gauss-Markov per world axis), drag at link centres."""
+
+    mean_w_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_std_m_s: float = 0.0
+    gust_time_constant_s: float = 2.0
+    air_density_kg_m3: float = 1.225
+
+    def __post_init__(self) -> None:
+        if not self.gust_std_m_s >= 0:
+            raise ValueError(f"gust_std_m_s must be >= 0, got {self.gust_std_m_s}")
+        if not self.gust_time_constant_s > 0:
+            raise ValueError(f"gust_time_constant_s must be positive, got {self.gust_time_constant_s}")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    physics_rate_hz: float = 1000.0
+    log_rate_hz: float = 50.0
+    target_rate_hz: float = 50.0
+
+    def __post_init__(self) -> None:
+        for name in ("log_rate_hz", "target_rate_hz"):
+            rate_divisor(self.physics_rate_hz, getattr(self, name), name)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str = ""
+    duration_s: float = 30.0
+    seed: int = 0
+    skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
+    start: StartPose = field(default_factory=StartPose)
+    rotors: RotorParams = field(default_factory=RotorParams)
+    firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    companion: CompanionConfig = field(default_factory=CompanionConfig)
+    wind: WindConfig = field(default_factory=WindConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        if not self.duration_s > 0:
+            raise ValueError(f"duration_s must be positive, got {self.duration_s}")
+        physics = self.sim.physics_rate_hz
+        rate_divisor(physics, self.firmware.rate_hz, "firmware.rate_hz")
+        rate_divisor(physics, self.companion.rate_hz, "companion.rate_hz")
+        rate_divisor(self.firmware.rate_hz, self.sensors.gps_rate_hz, "sensors.gps_rate_hz")
+        rate_divisor(self.firmware.rate_hz, self.sensors.attitude_rate_hz, "sensors.attitude_rate_hz")
+        self.companion.group_layout(self.skeleton.n_links)
+        if self.rotors.thrust_max_n != self.firmware.allocation.thrust_max_n:
+            raise ValueError(
+                f"firmware.allocation.thrust_max_n ({self.firmware.allocation.thrust_max_n}) must equal "
+                f"rotors.thrust_max_n ({self.rotors.thrust_max_n})"
+            )
+
+    @property
+    def flight_start_s(self) -> float:
+        """Start of the metrics window: the end of the take-off."""
+        return self.trajectory.takeoff_end_s
+
+
+def load_scenario(path: str | Path, **overrides) -> Scenario:
+    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``)."""
+    data = load_toml(path)
+    scenario = build(Scenario, data, file=str(path))
+    if overrides:
+        try:
+            scenario = replace(scenario, **overrides)
+        except ValueError as exc:
+            raise ConfigError(str(path), "(command line)", str(exc)) from None
+    return scenario

@@ -1,0 +1,121 @@
+"""Target poses for every link of the chain: take-off, hover, and the paper's bending motion.
+
+A chain posture is a set of link attitudes plus the position of the chain's middle point;
+link centres follow from the joints (``p_{i+1} = p_i + R_i d + R_{i+1} d``), so the targets
+themselves satisfy the constraint of eq. 3. Phases:
+
+* before ``takeoff_start_s``: hold the start pose;
+* take-off: the middle point rises to ``takeoff_altitude_m`` along a quintic (continuous
+  acceleration) over ``takeoff_duration_s``;
+* ``kind = "hover"``: hold; ``kind = "bend"``: from ``bend_start_s`` the chain bends forwards
+  and backwards (paper sec. V): link ``i`` pitches by ``theta(t) * s_i`` with ``s_i`` running
+  linearly from -1 (first link) to +1 (last link), ``theta(t) = A r(t) sin(2 pi (t - t_b) / T)``
+  with a quintic amplitude ramp ``r``. Positive ``theta`` lowers both ends.
+
+All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
+accelerations and body rates are central differences of the smooth pose function.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat
+from link_firmware_sim.control import PoseTarget, vee
+
+__all__ = ["TrajectoryConfig", "ChainTrajectory", "smoothstep5"]
+
+
+def smoothstep5(s: float) -> float:
+    """Quintic 0 -> 1 on [0, 1] with zero first and second derivatives at both ends."""
+    s = min(max(s, 0.0), 1.0)
+    return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    kind: Literal["hover", "bend"] = "hover"
+    takeoff_start_s: float = 1.0
+    takeoff_duration_s: float = 5.0
+    takeoff_altitude_m: float = 2.0
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    bend_start_s: float = 15.0
+    bend_amplitude_deg: float = 25.0
+    bend_period_s: float = 10.0
+    bend_ramp_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not self.bend_period_s > 0:
+            raise ValueError(f"bend_period_s must be positive, got {self.bend_period_s}")
+        if not 0 <= self.bend_amplitude_deg < 90:
+            raise ValueError(f"bend_amplitude_deg must be in [0, 90), got {self.bend_amplitude_deg}")
+
+    @property
+    def takeoff_end_s(self) -> float:
+        return self.takeoff_start_s + self.takeoff_duration_s
+
+
+class ChainTrajectory:
+    """Per-link :class:`PoseTarget` of an ``n``-link chain as a function of time."""
+
+    def __init__(self, cfg: TrajectoryConfig, n_links: int, link_length_m: float, start_center_w_m, h_s: float = 1e-3):
+        self.cfg = cfg
+        self.n = n_links
+        self.half = 0.5 * link_length_m
+        self.start = np.asarray(start_center_w_m, dtype=float)
+        self.h = h_s
+        self._base_q = quat_from_euler_zyx(math.radians(cfg.yaw_deg), math.radians(cfg.pitch_deg), 0.0)
+        self._share = np.linspace(-1.0, 1.0, n_links) if n_links > 1 else np.zeros(1)
+
+    def bend_angle_rad(self, t: float) -> float:
+        c = self.cfg
+        if c.kind != "bend" or t <= c.bend_start_s:
+            return 0.0
+        ramp = smoothstep5((t - c.bend_start_s) / c.bend_ramp_s) if c.bend_ramp_s > 0 else 1.0
+        return math.radians(c.bend_amplitude_deg) * ramp * math.sin(2.0 * math.pi * (t - c.bend_start_s) / c.bend_period_s)
+
+    def center_w_m(self, t: float) -> np.ndarray:
+        c = self.cfg
+        s = smoothstep5((t - c.takeoff_start_s) / c.takeoff_duration_s) if c.takeoff_duration_s > 0 else float(t >= c.takeoff_start_s)
+        target = self.start.copy()
+        target[2] = self.start[2] + s * (c.takeoff_altitude_m - self.start[2])
+        return target
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Link centres (n, 3) and attitudes (n, 4) at ``t``."""
+        theta = self.bend_angle_rad(t)
+        bends = quat_from_euler_zyx(np.zeros(self.n), theta * self._share, np.zeros(self.n))
+        q = quat_mul(self._base_q, bends)
+        axis = quat_to_rotmat(q)[:, :, 0] * self.half
+        steps = axis[:-1] + axis[1:]
+        p = np.concatenate((np.zeros((1, 3)), np.cumsum(steps, axis=0)), axis=0)
+        # Anchor the chain's middle point (middle link centre, or middle joint) at the centre.
+        mid = self.n // 2
+        anchor = p[mid] if self.n % 2 else p[mid] - axis[mid]
+        return p + (self.center_w_m(t) - anchor), q
+
+    def targets(self, t: float) -> list[PoseTarget]:
+        """Targets with velocity, acceleration, body rate and its derivative."""
+        h = self.h
+        poses = [self.pose(t + k * h) for k in (-2, -1, 0, 1, 2)]
+        p = [pp for pp, _ in poses]
+        R = [quat_to_rotmat(qq) for _, qq in poses]
+        v = (p[3] - p[1]) / (2 * h)
+        a = (p[3] - 2 * p[2] + p[1]) / (h * h)
+
+        def body_rate(k: int) -> np.ndarray:  # (R^T dR/dt)^v at offset k (in -1, 0, 1)
+            dR = (R[k + 3] - R[k + 1]) / (2 * h)
+            return np.array([vee(R[k + 2][i].T @ dR[i]) for i in range(self.n)])
+
+        w = body_rate(0)
+        w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
+        q = poses[2][1]
+        return [PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)]

@@ -1,0 +1,99 @@
+import math
+
+import numpy as np
+import pytest
+
+from sitl.rotor import RotorBank, RotorParams
+
+DT = 0.001
+
+
+def _run(bank, command, seconds):
+    bank.set_command(np.atleast_1d(command))
+    out = []
+    for _ in range(int(round(seconds / DT))):
+        out.append(bank.step(DT).copy())
+    return np.array(out)
+
+
+def test_first_order_tracking_matches_exponential():
+    p = RotorParams(time_constant_s=0.05)
+    bank = RotorBank(1, p)
+    thrust = _run(bank, 2.0, 0.1)[:, 0]
+    t = DT * np.arange(1, thrust.size + 1)
+    np.testing.assert_allclose(thrust, 2.0 * (1 - np.exp(-t / 0.05)), rtol=1e-9)
+
+
+def test_commands_are_clipped_to_the_thrust_limit():
+    bank = RotorBank(2, RotorParams(thrust_max_n=8.0))
+    thrust = _run(bank, [20.0, -20.0], 1.0)
+    assert np.all(np.abs(thrust) <= 8.0 + 1e-12)
+    np.testing.assert_allclose(thrust[-1], [8.0, -8.0], rtol=1e-6)
+
+
+def test_reversal_first_decays_to_zero_then_spins_up():
+    """Thesis sec. 2.4.2: a reversing rotor goes to zero thrust first (ESC singularity)."""
+    p = RotorParams(time_constant_s=0.05, esc_epsilon_n=0.05)
+    bank = RotorBank(1, p)
+    _run(bank, 3.0, 0.5)
+    thrust = _run(bank, -3.0, 1.0)[:, 0]
+    assert bank.zero_crossings[0] == 1
+    k_zero = int(np.argmax(np.abs(thrust) <= p.esc_epsilon_n))
+    # Until it reaches the dead band it only decays (never pushed through zero) ...
+    assert np.all(thrust[:k_zero] > 0) and np.all(np.diff(thrust[:k_zero]) < 0)
+    # ... at the thesis rate k (no faster than the plain first-order response) ...
+    assert k_zero * DT == pytest.approx(0.05 * math.log(3.0 / 0.05), abs=0.003)
+    # ... then spins up the other way.
+    assert thrust[-1] == pytest.approx(-3.0, rel=1e-3)
+
+
+def test_restart_dwell_holds_a_reversing_rotor_at_zero():
+    p = RotorParams(time_constant_s=0.05, esc_epsilon_n=0.05, restart_dwell_s=0.2)
+    bank = RotorBank(1, p)
+    bank.prime(np.array([-0.8]))
+    thrust = _run(bank, 1.3, 1.5)[:, 0]
+    k_zero = int(np.argmax(np.abs(thrust) <= p.esc_epsilon_n))
+    held = thrust[k_zero : k_zero + 190]
+    assert np.all(np.abs(held) <= p.esc_epsilon_n)  # restart dwell
+    assert thrust[-1] == pytest.approx(1.3, rel=1e-3)  # and the restart completes
+    assert bank.zero_crossings[0] == 1
+
+
+@pytest.mark.parametrize("dwell", [0.0, 0.001, 0.05, 0.2])
+def test_restart_completes_for_any_dwell(dwell):
+    """Regression: a countdown landing a rounding error below zero must not restart the wait."""
+    bank = RotorBank(1, RotorParams(restart_dwell_s=dwell))
+    bank.prime(np.array([-0.8]))
+    thrust = _run(bank, 1.3, 1.0 + dwell)[:, 0]
+    assert thrust[-1] == pytest.approx(1.3, rel=1e-2)
+
+
+def test_minimum_thrust_stops_the_motor():
+    p = RotorParams(min_thrust_n=0.3, restart_dwell_s=0.1)
+    bank = RotorBank(1, p)
+    _run(bank, 1.0, 0.5)
+    thrust = _run(bank, 0.2, 0.5)[:, 0]  # below the sustainable minimum
+    assert abs(thrust[-1]) <= p.esc_epsilon_n
+    thrust = _run(bank, 1.0, 0.09)[:, 0]  # asked to spin again: restart dwell first
+    assert np.all(np.abs(thrust) <= p.esc_epsilon_n)
+    thrust = _run(bank, 1.0, 0.5)[:, 0]
+    assert thrust[-1] == pytest.approx(1.0, rel=1e-2)
+
+
+def test_thesis_law_is_the_default():
+    assert RotorParams().min_thrust_n == 0.0 and RotorParams().restart_dwell_s == 0.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"thrust_max_n": 0.0}, "thrust_max_n"),
+        ({"time_constant_s": -1.0}, "time_constant_s"),
+        ({"esc_epsilon_n": 10.0}, "esc_epsilon_n"),
+        ({"min_thrust_n": 9.0}, "min_thrust_n"),
+        ({"restart_dwell_s": -0.1}, "restart_dwell_s"),
+    ],
+)
+def test_params_are_validated(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        RotorParams(**kwargs)

@@ -1,0 +1,235 @@
+import json
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.corrections import align_states, compute_corrections
+from companion.estimation.constraints import constraint_residual
+from companion.estimation.semi import make_groups
+from companion.estimation.so3 import attitude_error, quat_from_euler_zyx
+from companion.messages import Correction, LinkState
+from link_firmware_sim.allocation import RotorGeometry
+from link_firmware_sim.control import LinkInertia, PoseTarget
+from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+from sitl.fly import fly
+from sitl.model import SkeletonConfig, StartPose
+from sitl.runner import BatchRunner
+from sitl.scenario import CompanionConfig, Scenario, SensorConfig, load_scenario
+from sitl.sensors import PROFILES, LinkSensors
+from sitl.trajectory import ChainTrajectory, TrajectoryConfig
+
+from .chains import consistent_chain, random_covariances
+
+CONFIG = "configs/sitl/three_link.toml"
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+@pytest.mark.parametrize("t", [0.0, 3.0, 21.0, 27.5])
+def test_targets_satisfy_the_chain_constraint_and_are_differentiated(n, t):
+    cfg = TrajectoryConfig(kind="bend", takeoff_start_s=1.0, takeoff_duration_s=5.0, bend_start_s=20.0)
+    traj = ChainTrajectory(cfg, n, 1.0, [0.0, 0.0, 0.05])
+    targets = traj.targets(t)
+    p = np.stack([x.p_w_m for x in targets])
+    v = np.stack([x.v_w_m_s for x in targets])
+    q = np.stack([x.q_wxyz for x in targets])
+    w = np.stack([x.omega_d_rad_s for x in targets])
+    d = np.tile([0.5, 0.0, 0.0], (n, 1))
+    np.testing.assert_allclose(constraint_residual(p, v, q, w, d), 0.0, atol=1e-6)
+    h = 1e-4
+    p1, _ = traj.pose(t + h)
+    p0, _ = traj.pose(t - h)
+    np.testing.assert_allclose(v, (p1 - p0) / (2 * h), atol=1e-5)
+
+
+def test_bend_moves_the_ends_and_keeps_the_middle():
+    cfg = TrajectoryConfig(kind="bend", bend_start_s=0.0, bend_ramp_s=0.0, bend_amplitude_deg=20.0, bend_period_s=4.0,
+                           takeoff_start_s=0.0, takeoff_duration_s=0.0, takeoff_altitude_m=2.0)
+    traj = ChainTrajectory(cfg, 3, 1.0, [0.0, 0.0, 0.05])
+    p_down, _ = traj.pose(1.0)  # theta = +20 deg: ends below the middle
+    p_up, _ = traj.pose(3.0)
+    np.testing.assert_allclose(p_down[1], [0.0, 0.0, 2.0], atol=1e-12)
+    drop = 0.5 * np.sin(np.radians(20.0))  # an end link's centre sits half a link along its axis
+    np.testing.assert_allclose(p_down[[0, 2], 2], 2.0 - drop, atol=1e-9)
+    np.testing.assert_allclose(p_up[[0, 2], 2], 2.0 + drop, atol=1e-9)
+
+
+def _firmware():
+    fw = LinkFirmware(0, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
+    return fw
+
+
+def test_firmware_refuses_to_arm_before_the_ekf_starts():
+    fw = _firmware()
+    assert not fw.arm(0.0)
+    np.testing.assert_array_equal(fw.on_imu(0.002, np.zeros(3), [0, 0, 9.8]), 0.0)
+
+
+def test_correction_is_held_then_fades_and_never_enters_the_ekf():
+    fw = _firmware()
+    fw.initialize(0.0, np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]))
+    fw.on_correction(1.0, Correction(0, 1.0, np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3)))
+    assert fw.correction_weight(1.05) == 1.0
+    assert fw.correction_weight(1.3) == pytest.approx(0.5)
+    assert fw.correction_weight(1.6) == 0.0
+    p_ekf = fw.ekf.p_w_m
+    p_ctrl, _, _ = fw.control_estimate(1.05)
+    np.testing.assert_allclose(p_ctrl - p_ekf, [1.0, 0, 0])
+    np.testing.assert_array_equal(fw.ekf.p_w_m, p_ekf)
+
+
+def test_stale_target_holds_position():
+    fw = _firmware()
+    fw.initialize(0.0, np.array([1.0, 2.0, 3.0]), np.zeros(3), np.array([1.0, 0, 0, 0]))
+    fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget(np.array([5.0, 5.0, 5.0]), np.array([1.0, 0, 0, 0]), v_w_m_s=np.ones(3)))
+    t = 0.0
+    for _ in range(700):  # 1.4 s > target_stale_s
+        t += 0.002
+        fw.on_imu(t, np.zeros(3), [0.0, 0.0, 9.80665])
+    hold = fw._active_target(t, fw.ekf.p_w_m)
+    assert hold is not fw.target
+    np.testing.assert_allclose(hold.v_w_m_s, 0.0)
+    assert np.linalg.norm(hold.p_w_m - np.array([1.0, 2.0, 3.0])) < 0.5
+
+
+def test_companion_corrections_are_zero_on_a_consistent_chain_and_close_it_otherwise():
+    rng = np.random.default_rng(5)
+    p, v, q, w, d = consistent_chain(rng, 4)
+    P = random_covariances(rng, 4)
+    states = [LinkState(i, 2.0, p[i], v[i], q[i], w[i], P[i]) for i in range(4)]
+    _, corr = compute_corrections(states, d, make_groups(4, 4))
+    for c in corr:
+        np.testing.assert_allclose(c.dp_w_m, 0.0, atol=1e-12)
+        np.testing.assert_allclose(c.dtheta_w_rad, 0.0, atol=1e-12)
+    bumped = [LinkState(i, 2.0, p[i] + rng.normal(scale=0.3, size=3), v[i], q[i], w[i], P[i]) for i in range(4)]
+    result, corr = compute_corrections(bumped, d, make_groups(4, 2))
+    fixed_p = np.stack([s.p_w_m + c.dp_w_m for s, c in zip(bumped, corr)])
+    fixed_v = np.stack([s.v_w_m_s + c.dv_w_m_s for s, c in zip(bumped, corr)])
+    np.testing.assert_allclose(fixed_p, result.p, atol=1e-12)
+    assert np.linalg.norm(constraint_residual(fixed_p, fixed_v, result.q, w, d)) < 0.02
+
+
+def test_states_are_aligned_to_the_newest_stamp():
+    q0 = quat_from_euler_zyx(0.0, 0.0, 0.0)
+    w = np.array([0.0, 0.0, 1.0])
+    states = [
+        LinkState(0, 1.00, np.zeros(3), np.array([1.0, 0, 0]), q0, w, np.eye(9)),
+        LinkState(1, 1.01, np.zeros(3), np.array([1.0, 0, 0]), q0, w, np.eye(9)),
+    ]
+    t, p, v, q = align_states(states)
+    assert t == 1.01
+    np.testing.assert_allclose(p[0], [0.01, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(attitude_error(q[0], q0), [0, 0, 0.01], atol=1e-12)
+    np.testing.assert_allclose(p[1], 0.0)
+
+
+def test_sensor_profiles_are_seeded_and_ideal_is_exact():
+    def sample(seed, profile):
+        s = LinkSensors(PROFILES[profile], 3, np.random.default_rng(seed))
+        return s.gps(1.0, np.ones((3, 3)), np.zeros((3, 3)))[0]
+
+    np.testing.assert_array_equal(sample(1, "outdoor"), sample(1, "outdoor"))
+    assert not np.array_equal(sample(1, "outdoor"), sample(2, "outdoor"))
+    np.testing.assert_array_equal(sample(1, "ideal"), np.ones((3, 3)))
+
+
+def _single_link_scenario(**kw) -> Scenario:
+    return Scenario(
+        name="hold",
+        duration_s=8.0,
+        skeleton=SkeletonConfig(n_links=1),
+        start=StartPose(center_w_m=(0.0, 0.0, 2.0), on_ground=False),
+        sensors=SensorConfig(profile="ideal"),
+        companion=CompanionConfig(enabled=False),
+        trajectory=TrajectoryConfig(kind="hover", takeoff_start_s=0.0, takeoff_duration_s=3.0, takeoff_altitude_m=2.5,
+                                    yaw_deg=30.0),
+        **kw,
+    )
+
+
+def test_controller_holds_a_single_link_at_a_setpoint_in_mujoco():
+    runner = BatchRunner(_single_link_scenario())
+    runner.run(8.0)
+    runner.model.begin_step()
+    truth = runner.model.truth()
+    np.testing.assert_allclose(truth.p_w_m[0], [0.0, 0.0, 2.5], atol=0.05)
+    target_q = quat_from_euler_zyx(np.radians(30.0), 0.0, 0.0)
+    assert np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[0], target_q))) < 2.0
+    assert np.linalg.norm(truth.v_w_m_s[0]) < 0.05
+    assert not runner.crashed
+
+
+def _strip(metrics):
+    return {k: v for k, v in metrics.items() if k != "realtime_factor"}
+
+
+def test_same_seed_same_metrics():
+    scenario = load_scenario(CONFIG, duration_s=8.5)
+    a = fly(scenario, None, plots=False)
+    b = fly(scenario, None, plots=False)
+    assert _strip(a) == _strip(b)
+    c = fly(replace(scenario, seed=scenario.seed + 1), None, plots=False)
+    assert c["rms_est_err_m"] != a["rms_est_err_m"]
+
+
+def test_smoke_flight_of_the_three_link_config(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "sitl", "fly", "--config", CONFIG, "--duration", "10", "--out", str(out), "--quiet"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    for name in ("metrics.json", "log.npz", "scenario.toml", "constraint_error.png", "tracking.png", "thrust.png"):
+        assert (out / name).exists(), name
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
+                "constraint_vel_p95_m_s", "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor"):
+        assert key in m
+    assert not m["crashed"] and m["min_altitude_m"] > 1.5
+    assert len(m["rms_track_est_m"]) == 3
+    assert m["constraint_pos_p95_m"]["after"] < 0.1 * m["constraint_pos_p95_m"]["before"]
+    assert m["constraint_vel_p95_m_s"]["after"] < 0.1 * m["constraint_vel_p95_m_s"]["before"]
+    # the resolved config written to the run folder loads back
+    assert load_scenario(out / "scenario.toml").name == "three_link"
+    log = np.load(out / "log.npz")
+    assert log["p_true"].shape[1:] == (3, 3) and log["p_ekf"].shape == log["p_true"].shape
+
+
+def test_no_sckf_flag_flies_on_the_ekf(tmp_path):
+    scenario = load_scenario(CONFIG, duration_s=8.0)
+    m = fly(scenario, None, sckf=False, plots=False)
+    assert not m["sckf"] and "sckf" not in m["rms_est_err_m"] and "after" not in m["constraint_pos_p95_m"]
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ('name = "x"\n[skeleton]\nn_link = 3\n', "skeleton.n_link: unknown key (did you mean 'n_links'?)"),
+        ('name = "x"\n[sensors]\ngps_rate_hz = 30.0\n', "not a whole divisor"),
+        ('name = "x"\n[companion]\ngroups = [[1, 2], [4]]\n', "group"),
+        ('name = "x"\n[sensors]\nprofile = "indoor"\n', "sensors.profile: must be one of"),
+        ('name = "x"\n[sensors.gps]\ndrift_hz = 1.0\n', "unknown field 'drift_hz'"),
+    ],
+)
+def test_config_errors_name_file_key_and_reason(tmp_path, text, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    proc = subprocess.run([sys.executable, "-m", "sitl", "fly", "--config", str(path), "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert str(path) in proc.stderr and fragment in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_selective_mapping_holds_the_45_degree_hover():
+    """Thesis Fig. 2-7: without selective mapping the ESC singularity ruins the hover."""
+    scenario = load_scenario("configs/sitl/single_odar_pitch45.toml")
+    with_sm = fly(scenario, None, plots=False)
+    without = fly(scenario, None, selective_mapping=False, plots=False)
+    assert not with_sm["crashed"]
+    assert without["rotor_zero_crossings"] > 3 * with_sm["rotor_zero_crossings"]
+    assert without["rms_att_track_true_deg"][0] > 3 * with_sm["rms_att_track_true_deg"][0]
