@@ -29,15 +29,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 
 from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ERR_V
-from companion.estimation.so3 import (
-    attitude_error,
-    quat_from_rotvec,
-    quat_mul,
-    quat_normalize,
-    quat_to_rotmat,
-    retract,
-    skew,
-)
+from companion.estimation.so3 import attitude_error, quat_normalize, quat_to_rotmat, retract, rotmat_tuple
 
 __all__ = [
     "X_P",
@@ -87,7 +79,7 @@ E_BG = slice(12, 15)
 E_SCKF = slice(0, ERR_DIM)
 NE = 15
 
-GRAVITY_W_M_S2 = np.array([0.0, 0.0, -9.80665])
+GRAVITY_W_M_S2 = (0.0, 0.0, -9.80665)
 _DIAG = np.diag_indices(NE)
 
 
@@ -189,27 +181,40 @@ def ekf_init(p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig()) -> tuple[n
     return x, P
 
 
-_EYE = np.eye(NE)
-_I3 = np.eye(3)
+def _block_index(rows: slice, cols: slice) -> np.ndarray:
+    """Flat indices of a 3x3 block of a 15x15 matrix, row-major."""
+    r = np.arange(rows.start, rows.stop)
+    c = np.arange(cols.start, cols.stop)
+    return (r[:, None] * NE + c[None, :]).ravel()
+
+
+# The entries of F that depend on the state, in the order _transition fills them.
+_F_VARYING = np.concatenate(
+    [_block_index(*b) for b in ((E_P, E_TH), (E_P, E_BA), (E_V, E_TH), (E_V, E_BA), (E_TH, E_BG))]
+)
 
 
 @lru_cache(maxsize=16)
 def _transition_base(dt_s: float) -> np.ndarray:
-    F = _EYE.copy()
-    F[E_P, E_V] = dt_s * _I3
+    F = np.eye(NE)
+    F[E_P, E_V] = dt_s * np.eye(3)
     return F
 
 
-def _transition(R: np.ndarray, f_w: np.ndarray, dt_s: float) -> np.ndarray:
-    """``F`` from the attitude matrix and the world-frame specific force (see below)."""
-    dv_dth = -skew(f_w)
-    half_dt2 = 0.5 * dt_s * dt_s
+def _transition(R: tuple, f_w: tuple, dt_s: float) -> np.ndarray:
+    """``F`` from ``R`` (row-major 9-tuple) and the world specific force ``f_w`` (3-tuple).
+
+    Blocks: ``F[p, th] = -dt^2/2 S(f_w)``, ``F[p, ba] = -dt^2/2 R``, ``F[v, th] = -dt S(f_w)``,
+    ``F[v, ba] = -dt R``, ``F[th, bg] = -dt R`` (see :func:`error_transition`).
+    """
+    fx, fy, fz = f_w
+    ms = (0.0, fz, -fy, -fz, 0.0, fx, fy, -fx, 0.0)  # -S(f_w), row-major
+    h = 0.5 * dt_s * dt_s
+    values = (
+        [h * v for v in ms] + [-h * v for v in R] + [dt_s * v for v in ms] + [-dt_s * v for v in R] * 2
+    )
     F = _transition_base(dt_s).copy()
-    F[E_P, E_TH] = half_dt2 * dv_dth
-    F[E_P, E_BA] = -half_dt2 * R
-    F[E_V, E_TH] = dt_s * dv_dth
-    F[E_V, E_BA] = -dt_s * R
-    F[E_TH, E_BG] = -dt_s * R
+    F.flat[_F_VARYING] = values
     return F
 
 
@@ -220,17 +225,10 @@ def error_transition(x, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> np.ndarray:
     ``dv' = -S(R f) dtheta - R db_a``, ``dtheta' = -R db_g``, biases constant; discretised
     like the nominal state (the position picks up the ``dt^2/2`` acceleration terms).
     """
-    R = quat_to_rotmat(x[X_Q])
-    return _transition(R, R @ (np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]), dt_s)
-
-
-def _exp_quat(rv: np.ndarray) -> np.ndarray:
-    """Exponential map of one rotation vector (the per-sample gyro increment)."""
-    angle = math.sqrt(float(rv @ rv))
-    if angle < 1e-8:
-        return np.array([1.0, 0.5 * rv[0], 0.5 * rv[1], 0.5 * rv[2]])
-    k = math.sin(0.5 * angle) / angle
-    return np.array([math.cos(0.5 * angle), k * rv[0], k * rv[1], k * rv[2]])
+    R = rotmat_tuple(x[X_Q].tolist())
+    f = (np.asarray(accel_b_m_s2, dtype=float) - x[X_BA]).tolist()
+    f_w = tuple(R[3 * i] * f[0] + R[3 * i + 1] * f[1] + R[3 * i + 2] * f[2] for i in range(3))
+    return _transition(R, f_w, dt_s)
 
 
 def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) -> tuple[np.ndarray, np.ndarray]:
@@ -239,18 +237,42 @@ def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) 
     Nominal: ``p += v dt + a dt^2/2``, ``v += a dt`` with ``a = R (f - b_a) + g``, and
     ``q <- q (x) Exp((w - b_g) dt)``. Covariance ``F P F^T + Q dt`` with
     :func:`error_transition` and the process noise densities.
+
+    The nominal part is a few dozen scalar operations; it runs on plain floats (numpy's
+    per-call overhead would dominate at 500 Hz per link) and the covariance on numpy.
     """
     if not dt_s > 0.0:
         raise ValueError(f"dt_s must be positive, got {dt_s!r}")
-    omega = np.asarray(gyro_b_rad_s, dtype=float) - x[X_BG]
-    R = quat_to_rotmat(x[X_Q])
-    f_w = R @ (np.asarray(accel_b_m_s2, dtype=float) - x[X_BA])
-    acc = f_w + GRAVITY_W_M_S2
-    xn = x.copy()
-    xn[X_P] += x[X_V] * dt_s + (0.5 * dt_s * dt_s) * acc
-    xn[X_V] += acc * dt_s
-    qn = quat_mul(x[X_Q], _exp_quat(omega * dt_s))
-    xn[X_Q] = qn / math.sqrt(float(qn @ qn))
+    px, py, pz, vx, vy, vz, qw, qx, qy, qz, bax, bay, baz, bgx, bgy, bgz = x.tolist()
+    gx, gy, gz = np.asarray(gyro_b_rad_s, dtype=float).tolist()
+    ax_, ay_, az_ = np.asarray(accel_b_m_s2, dtype=float).tolist()
+    R = rotmat_tuple((qw, qx, qy, qz))
+    fb = (ax_ - bax, ay_ - bay, az_ - baz)
+    f_w = tuple(R[3 * i] * fb[0] + R[3 * i + 1] * fb[1] + R[3 * i + 2] * fb[2] for i in range(3))
+    g = GRAVITY_W_M_S2
+    acc = (f_w[0] + g[0], f_w[1] + g[1], f_w[2] + g[2])
+    h = 0.5 * dt_s * dt_s
+    # q <- q (x) Exp(w dt)
+    rx, ry, rz = (gx - bgx) * dt_s, (gy - bgy) * dt_s, (gz - bgz) * dt_s
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if angle < 1e-8:
+        ew, k = 1.0, 0.5
+    else:
+        ew, k = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+    ex, ey, ez = k * rx, k * ry, k * rz
+    nw = qw * ew - qx * ex - qy * ey - qz * ez
+    nx = qw * ex + qx * ew + qy * ez - qz * ey
+    ny = qw * ey - qx * ez + qy * ew + qz * ex
+    nz = qw * ez + qx * ey - qy * ex + qz * ew
+    inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    xn = np.array(
+        (
+            px + vx * dt_s + h * acc[0], py + vy * dt_s + h * acc[1], pz + vz * dt_s + h * acc[2],
+            vx + acc[0] * dt_s, vy + acc[1] * dt_s, vz + acc[2] * dt_s,
+            nw * inv, nx * inv, ny * inv, nz * inv,
+            bax, bay, baz, bgx, bgy, bgz,
+        )
+    )
     F = _transition(R, f_w, dt_s)
     Pn = F @ P @ F.T
     Pn[_DIAG] += noise.densities * dt_s
@@ -268,16 +290,38 @@ def inject_error(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
     return xn
 
 
+def _gate(r: np.ndarray, S_diag: np.ndarray, gate_sigma: float) -> float:
+    """PX4-style innovation test ratio: the largest ``r_k^2 / (gate^2 S_kk)``."""
+    return float(np.max(r * r / (gate_sigma * gate_sigma * S_diag)))
+
+
 def _update(x, P, r, H, Rm, gate_sigma: float):
     """Gated Kalman update with residual ``r = z - h(x)`` and Joseph-form covariance."""
     PHt = P @ H.T
     S = H @ PHt + Rm
-    test = float(np.max(r * r / (gate_sigma * gate_sigma * np.diag(S))))
+    test = _gate(r, np.diag(S), gate_sigma)
     if not math.isfinite(test) or test > 1.0:
         return x, P, UpdateInfo(False, r, test)
     K = np.linalg.solve(S, PHt.T).T
     IKH = np.eye(NE) - K @ H
     Pn = IKH @ P @ IKH.T + K @ Rm @ K.T
+    return inject_error(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
+
+
+def _update_block(x, P, r, block: slice, Rm, gate_sigma: float):
+    """:func:`_update` for ``H`` selecting the error-state ``block`` (GPS, attitude).
+
+    Same Joseph form without forming ``H``: ``P H^T = P[:, b]``, ``S = P[b, b] + R``,
+    ``A = (I - K H) P = P - K P[b, :]`` and ``A (I - K H)^T = A - A[:, b] K^T``.
+    """
+    PHt = P[:, block]
+    S = PHt[block] + Rm
+    test = _gate(r, np.diag(S), gate_sigma)
+    if not math.isfinite(test) or test > 1.0:
+        return x, P, UpdateInfo(False, r, test)
+    K = np.linalg.solve(S, PHt.T).T
+    A = P - K @ P[block]
+    Pn = A - A[:, block] @ K.T + K @ Rm @ K.T
     return inject_error(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
 
 
@@ -291,17 +335,6 @@ def _as_cov(var, dim: int) -> np.ndarray:
     return a
 
 
-def _selector(sl: slice) -> np.ndarray:
-    H = np.zeros((3, NE))
-    H[:, sl] = np.eye(3)
-    return H
-
-
-_H_POS = _selector(E_P)
-_H_VEL = _selector(E_V)
-_H_ATT = _selector(E_TH)
-
-
 def _check_meas(z, name: str, size: int) -> np.ndarray:
     a = np.asarray(z, dtype=float)
     if a.shape != (size,) or not np.all(np.isfinite(a)):
@@ -312,13 +345,13 @@ def _check_meas(z, name: str, size: int) -> np.ndarray:
 def ekf_update_position(x, P, pos_w_m, var_m2, gate_sigma: float = 5.0):
     """GPS position update (world frame, metres)."""
     z = _check_meas(pos_w_m, "position", 3)
-    return _update(x, P, z - x[X_P], _H_POS, _as_cov(var_m2, 3), gate_sigma)
+    return _update_block(x, P, z - x[X_P], E_P, _as_cov(var_m2, 3), gate_sigma)
 
 
 def ekf_update_velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma: float = 5.0):
     """GPS velocity update (world frame, m/s)."""
     z = _check_meas(vel_w_m_s, "velocity", 3)
-    return _update(x, P, z - x[X_V], _H_VEL, _as_cov(var_m2_s2, 3), gate_sigma)
+    return _update_block(x, P, z - x[X_V], E_V, _as_cov(var_m2_s2, 3), gate_sigma)
 
 
 def ekf_update_attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma: float = 5.0):
@@ -328,7 +361,7 @@ def ekf_update_attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma: float = 5.0):
     so ``H = [0 0 I 0 0]``; ``var_rad2`` is per axis.
     """
     z = quat_normalize(_check_meas(q_meas_wxyz, "attitude quaternion", 4))
-    return _update(x, P, attitude_error(z, x[X_Q]), _H_ATT, _as_cov(var_rad2, 3), gate_sigma)
+    return _update_block(x, P, attitude_error(z, x[X_Q]), E_TH, _as_cov(var_rad2, 3), gate_sigma)
 
 
 def heading_jacobian(q_wxyz) -> np.ndarray:

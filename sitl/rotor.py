@@ -85,11 +85,20 @@ class RotorBank:
         self._restart_left_s = np.zeros(n_rotors)
         self._out_sign = np.zeros(n_rotors)  # sign of the last thrust outside the dead band
         self._decay = {}
+        self._steady = False
 
     def set_command(self, command_n: np.ndarray) -> None:
         """Commanded thrusts [N]; clipped to the thrust limit."""
         limit = self.params.thrust_max_n
         np.clip(np.asarray(command_n, dtype=float), -limit, limit, out=self.command_n)
+        # Steady: every rotor spins and tracks a sustainable command of its own sign, so a
+        # step is pure first-order relaxation (no stop, restart or sign change can happen).
+        cmd = self.command_n
+        self._steady = bool(
+            self._spinning.all()
+            and np.all(cmd * self._direction >= max(self.params.min_thrust_n, 1e-12))
+            and np.array_equal(self._out_sign, self._direction)
+        )
 
     def prime(self, thrust_n: np.ndarray) -> None:
         """Start with every rotor already spinning at ``thrust_n`` (an in-air start)."""
@@ -99,8 +108,18 @@ class RotorBank:
         self._direction = np.where(self._spinning, np.sign(self.thrust_n), 0.0)
         self._out_sign = self._direction.copy()
 
+    def _decay_factor(self, dt_s: float) -> float:
+        decay = self._decay.get(dt_s)
+        if decay is None:
+            decay = self._decay[dt_s] = math.exp(-dt_s / self.params.time_constant_s)
+        return decay
+
     def step(self, dt_s: float) -> np.ndarray:
         """Advance every rotor by ``dt_s`` and return the thrusts [N]."""
+        if self._steady:
+            cmd = self.command_n
+            self.thrust_n = cmd + (self.thrust_n - cmd) * self._decay_factor(dt_s)
+            return self.thrust_n
         p = self.params
         lam = self.thrust_n
         cmd = self.command_n
@@ -122,10 +141,7 @@ class RotorBank:
             spinning[ready] = True
             self._direction[ready] = np.sign(cmd[ready])
             target = np.where(ready, cmd, target)
-        decay = self._decay.get(dt_s)
-        if decay is None:
-            decay = self._decay[dt_s] = math.exp(-dt_s / p.time_constant_s)
-        new = target + (lam - target) * decay
+        new = target + (lam - target) * self._decay_factor(dt_s)
         eps = p.esc_epsilon_n
         outside = np.abs(new) > eps
         # A rotor spinning down that reaches the dead band has stopped.

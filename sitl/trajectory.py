@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat
-from link_firmware_sim.control import PoseTarget, vee
+from link_firmware_sim.control import PoseTarget
 
 __all__ = ["TrajectoryConfig", "ChainTrajectory", "smoothstep5"]
 
@@ -111,9 +111,9 @@ class ChainTrajectory:
         v = (p[3] - p[1]) / (2 * h)
         a = (p[3] - 2 * p[2] + p[1]) / (h * h)
 
-        def body_rate(k: int) -> np.ndarray:  # (R^T dR/dt)^v at offset k (in -1, 0, 1)
-            dR = (R[k + 3] - R[k + 1]) / (2 * h)
-            return np.array([vee(R[k + 2][i].T @ dR[i]) for i in range(self.n)])
+        def body_rate(k: int) -> np.ndarray:  # (R^T dR/dt)^v of every link at offset k (in -1, 0, 1)
+            W = np.einsum("nji,njk->nik", R[k + 2], (R[k + 3] - R[k + 1]) / (2 * h))
+            return np.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), axis=1)
 
         w = body_rate(0)
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)

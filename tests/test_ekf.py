@@ -196,3 +196,22 @@ def test_config_is_validated():
         EkfConfig(gps_pos_var_m2=-1.0)
     with pytest.raises(ValueError, match="att_rad2_s"):
         EkfNoise(att_rad2_s=np.nan)
+
+
+@pytest.mark.parametrize("block", [E_P, E_V, E_TH])
+def test_block_update_equals_the_general_joseph_update(block):
+    from link_firmware_sim.ekf import _update, _update_block
+
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(NE, NE))
+    P = A @ A.T * 0.01 + 0.01 * np.eye(NE)
+    x, _ = ekf_init(rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)))
+    H = np.zeros((3, NE))
+    H[:, block] = np.eye(3)
+    Rm = np.diag([0.1, 0.2, 0.3])
+    r = rng.normal(scale=0.1, size=3)
+    xa, Pa, ia = _update(x, P, r, H, Rm, 5.0)
+    xb, Pb, ib = _update_block(x, P, r, block, Rm, 5.0)
+    assert ia.accepted and ib.accepted and ia.test_ratio == pytest.approx(ib.test_ratio)
+    np.testing.assert_allclose(xb, xa, atol=1e-14)
+    np.testing.assert_allclose(Pb, Pa, atol=1e-14)

@@ -30,6 +30,7 @@ __all__ = [
     "quat_conj",
     "quat_normalize",
     "quat_to_rotmat",
+    "rotmat_tuple",
     "rotmat_to_quat",
     "quat_from_rotvec",
     "quat_to_rotvec",
@@ -141,16 +142,22 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix R(q) (body to world) of unit quaternions; ``(..., 4) -> (..., 3, 3)``."""
     q = np.asarray(q, dtype=float)
     if q.ndim == 1:
-        w, x, y, z = q.tolist()
-        return np.array(
-            (
-                (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-                (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-                (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
-            )
-        )
+        return np.array(rotmat_tuple(q.tolist())).reshape(3, 3)
     outer = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
     return (outer @ _ROTMAT_FORM).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_tuple(q) -> tuple:
+    """R(q) of one unit quaternion ``(w, x, y, z)`` as a row-major 9-tuple of floats.
+
+    For the 500 Hz firmware paths, where numpy's per-call overhead dominates 3x3 arithmetic.
+    """
+    w, x, y, z = q
+    return (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
