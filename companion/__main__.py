@@ -8,7 +8,6 @@ Exit codes: 0 success, 2 bad input (the message names the file, key and index).
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 from tqdm import tqdm
@@ -16,9 +15,8 @@ from tqdm import tqdm
 from .estimation.sckf import CAParams
 from .estimation.semi import parse_groups, validate_groups
 from .replay import ReplayInputError, load_replay_input, replay, save_replay_output
-from .runtime import setup_logging, single_thread_blas
+from .runtime import run_subcommand
 
-log = logging.getLogger("companion")
 
 EXIT_BAD_INPUT = 2
 
@@ -81,14 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help(sys.stderr)
-        return EXIT_BAD_INPUT
-    setup_logging()
-    with single_thread_blas():
-        return args.func(args)
+    return run_subcommand(build_parser(), argv, usage_exit=EXIT_BAD_INPUT)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,15 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["single_thread_blas", "make_run_dir", "setup_logging"]
+__all__ = ["single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand"]
 
 
 def single_thread_blas():
@@ -44,3 +46,18 @@ def setup_logging(verbose: bool = False) -> None:
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+
+
+def run_subcommand(parser: argparse.ArgumentParser, argv=None, usage_exit: int = 2) -> int:
+    """Parse ``argv`` and run the chosen subcommand's ``func(args)`` the way every CLI here does.
+
+    Without a subcommand: the help on stderr and ``usage_exit``. Otherwise logging is set up
+    and the command runs with single-threaded BLAS; its return value is the exit code.
+    """
+    args = parser.parse_args(argv)
+    if getattr(args, "command", None) is None:
+        parser.print_help(sys.stderr)
+        return usage_exit
+    setup_logging()
+    with single_thread_blas():
+        return args.func(args)

@@ -30,7 +30,7 @@ import numpy as np
 from companion.estimation.so3 import quat_to_rotmat, retract
 from companion.messages import Correction, LinkState
 
-from .allocation import AllocationParams, AllocationResult, Allocator, RotorGeometry
+from .allocation import AllocationParams, Allocator, RotorGeometry
 from .control import GRAVITY_M_S2, ControlIntegrals, ImpedanceGains, LinkInertia, PoseTarget, impedance_control
 from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
 
@@ -104,8 +104,6 @@ class LinkFirmware:
         self._hold: PoseTarget | None = None
         self.correction: Correction | None = None
         self._correction_time_s = -math.inf
-        self.last_allocation: AllocationResult | None = None
-        self.last_command_n = np.zeros(8)
         self.time_s = 0.0
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
@@ -202,7 +200,6 @@ class LinkFirmware:
 
     def disarm(self) -> None:
         self.armed = False
-        self.last_command_n = self._zero
 
     def _active_target(self, t_s: float, p_w_m) -> PoseTarget:
         if self.target is not None and t_s - self._target_time_s <= self.config.target_stale_s:
@@ -227,7 +224,6 @@ class LinkFirmware:
         if self._pending:
             self._apply_pending()
         if not self.armed:
-            self.last_command_n = self._zero
             return self._zero
         p, v, q = self.control_estimate(t_s)
         omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
@@ -235,6 +231,4 @@ class LinkFirmware:
         U, self.integrals = impedance_control(
             p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
         )
-        self.last_allocation = self.allocator.allocate(U)
-        self.last_command_n = self.last_allocation.command_n
-        return self.last_command_n
+        return self.allocator.allocate(U).command_n

@@ -16,7 +16,7 @@ import sys
 from tqdm import tqdm
 
 from companion.configfile import ConfigError
-from companion.runtime import make_run_dir, setup_logging, single_thread_blas
+from companion.runtime import make_run_dir, run_subcommand
 
 from .fly import fly
 from .scenario import load_scenario
@@ -73,14 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help(sys.stderr)
-        return EXIT_BAD_CONFIG
-    setup_logging()
-    with single_thread_blas():
-        return args.func(args)
+    return run_subcommand(build_parser(), argv, usage_exit=EXIT_BAD_CONFIG)
 
 
 if __name__ == "__main__":

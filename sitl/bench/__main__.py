@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -21,13 +20,12 @@ import numpy as np
 from tqdm import tqdm
 
 from companion.estimation.sckf import CAParams
-from companion.runtime import make_run_dir, setup_logging, single_thread_blas
+from companion.runtime import make_run_dir, run_subcommand
 
 from .ekf_chain import ChainRun
 from .scaling import LINK_COUNTS, format_scaling, run_scaling
 from .table2 import GROUP_SIZES, aggregate_seeds, format_table2, run_table2
 
-log = logging.getLogger("sitl.bench")
 
 
 def _write_json(result: dict, json_path: str | None, run_dir: Path, name: str) -> Path:
@@ -37,9 +35,23 @@ def _write_json(result: dict, json_path: str | None, run_dir: Path, name: str) -
     return path
 
 
+def _params(args) -> CAParams | None:
+    """The CA parameters from the options, or ``None`` after printing what is wrong."""
+    try:
+        return CAParams(eps=args.eps, alpha=args.alpha)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
 def _cmd_table2(args) -> int:
+    params = _params(args)
+    if params is None:
+        return 2
+    if args.duration <= 0 or args.seeds < 1:
+        print(f"error: --duration must be positive and --seeds >= 1 (got {args.duration}, {args.seeds})", file=sys.stderr)
+        return 2
     run = ChainRun(duration_s=args.duration)
-    params = args.params
     run_dir = make_run_dir("table2", args.out)
     n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
     results = []
@@ -62,7 +74,9 @@ def _cmd_table2(args) -> int:
 
 
 def _cmd_scaling(args) -> int:
-    params = args.params
+    params = _params(args)
+    if params is None:
+        return 2
     run_dir = make_run_dir("scaling", args.out)
     with tqdm(total=len(LINK_COUNTS), desc="chain lengths", unit="n", disable=args.quiet, file=sys.stderr) as bar:
         result = run_scaling(args.seed, LINK_COUNTS, params=params, progress=bar.update)
@@ -108,19 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging()
-    try:
-        args.params = CAParams(eps=args.eps, alpha=args.alpha)
-        if getattr(args, "duration", 1.0) <= 0:
-            raise ValueError(f"--duration must be positive, got {args.duration}")
-        if getattr(args, "seeds", 1) < 1:
-            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    with single_thread_blas():
-        return args.func(args)
+    return run_subcommand(build_parser(), argv)
 
 
 if __name__ == "__main__":
