@@ -233,3 +233,32 @@ def test_selective_mapping_holds_the_45_degree_hover():
     assert not with_sm["crashed"]
     assert without["rotor_zero_crossings"] > 3 * with_sm["rotor_zero_crossings"]
     assert without["rms_att_track_true_deg"][0] > 3 * with_sm["rms_att_track_true_deg"][0]
+
+
+def test_wind_drag_and_seeded_gusts():
+    from sitl.runner import Wind
+    from sitl.scenario import WindConfig
+
+    steady = Wind(WindConfig(mean_w_m_s=(4.0, 0.0, 0.0)), 2, 0.1, 1.0, np.random.default_rng(0))
+    f = steady.force(np.zeros((2, 3)), 0.001)
+    np.testing.assert_allclose(f, [[0.5 * 1.225 * 0.1 * 16.0, 0, 0]] * 2)
+    # moving with the wind: no drag
+    np.testing.assert_allclose(steady.force(np.tile([4.0, 0, 0], (2, 1)), 0.001), 0.0)
+    gusty = Wind(WindConfig(gust_std_m_s=1.5, gust_time_constant_s=0.5), 1, 0.1, 1.0, np.random.default_rng(1))
+    samples = []
+    for _ in range(60000):
+        gusty.force(np.zeros((1, 3)), 0.001)
+        samples.append(gusty.gust.copy())
+    assert np.std(np.array(samples)[10000:], axis=0) == pytest.approx([1.5, 1.5, 1.5], rel=0.25)
+    assert Wind(WindConfig(), 1, 0.1, 1.0, np.random.default_rng(0)).force(np.zeros((1, 3)), 0.001) is None
+
+
+def test_single_link_holds_position_in_steady_wind():
+    from sitl.scenario import WindConfig
+
+    runner = BatchRunner(_single_link_scenario(wind=WindConfig(mean_w_m_s=(5.0, 0.0, 0.0), gust_std_m_s=1.0)))
+    runner.run(8.0)
+    runner.model.begin_step()
+    truth = runner.model.truth()
+    assert not runner.crashed
+    assert np.linalg.norm(truth.p_w_m[0] - [0.0, 0.0, 2.5]) < 0.3
