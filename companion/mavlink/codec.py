@@ -1,0 +1,129 @@
+"""MAVLink codec of the typed messages (:mod:`companion.messages`) and the HIL sensor set.
+
+Typed messages use the stack's frames (world ENU, body FLU, seconds); MAVLink messages use local
+NED, body FRD and microseconds. Every conversion goes through :mod:`.frames`. Decoding validates:
+non-finite numbers, a non-unit quaternion or a covariance that is not positive definite raise
+:class:`MessageError` (the caller counts and drops the message).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.messages import Correction, LinkState
+
+from .dialect import load_dialect
+from .frames import enu_ned, error_cov_enu_ned, flu_frd, pack_upper, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu, unpack_upper
+
+__all__ = [
+    "MessageError",
+    "STATE_FLAG_EKF_OK",
+    "STATE_FLAG_ARMED",
+    "STATE_FLAG_CORRECTION_ACTIVE",
+    "usec",
+    "seconds",
+    "encode_link_state",
+    "decode_link_state",
+    "encode_correction",
+    "decode_correction",
+]
+
+_D = load_dialect()
+STATE_FLAG_EKF_OK = _D.SKELETON_STATE_FLAGS_EKF_OK
+STATE_FLAG_ARMED = _D.SKELETON_STATE_FLAGS_ARMED
+STATE_FLAG_CORRECTION_ACTIVE = _D.SKELETON_STATE_FLAGS_CORRECTION_ACTIVE
+
+
+class MessageError(ValueError):
+    """A MAVLink message whose content cannot be used (the message names the field)."""
+
+
+def usec(t_s: float) -> int:
+    return int(round(t_s * 1e6))
+
+
+def seconds(t_us: int) -> float:
+    return t_us * 1e-6
+
+
+def _finite(name: str, values) -> np.ndarray:
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise MessageError(f"{name}: non-finite value")
+    return a
+
+
+def _unit_quat(name: str, values) -> np.ndarray:
+    q = _finite(name, values)
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > 1e-3:
+        raise MessageError(f"{name}: quaternion norm {n:.6g} is not 1")
+    return q / n
+
+
+def encode_link_state(state: LinkState, flags: int = STATE_FLAG_EKF_OK, reset_counter: int = 0,
+                      correction_seq: int = 0, correction_latency_us: int = 0):
+    """SKELETON_LINK_STATE of a :class:`LinkState`."""
+    return _D.MAVLink_skeleton_link_state_message(
+        time_usec=usec(state.time_s),
+        p_ned=enu_ned(state.p_w_m).tolist(),
+        v_ned=enu_ned(state.v_w_m_s).tolist(),
+        q=quat_enu_flu_to_ned_frd(state.q_wxyz).tolist(),
+        rates_frd=flu_frd(state.omega_b_rad_s).tolist(),
+        covariance=pack_upper(error_cov_enu_ned(state.P)),
+        reset_counter=reset_counter & 0xFF,
+        flags=flags,
+        correction_seq=correction_seq & 0xFFFF,
+        correction_latency_us=min(max(int(correction_latency_us), 0), 0xFFFFFFFF),
+    )
+
+
+def decode_link_state(msg, link: int) -> LinkState:
+    """:class:`LinkState` of a SKELETON_LINK_STATE; :class:`MessageError` if unusable."""
+    P = error_cov_enu_ned(unpack_upper(_finite("covariance", msg.covariance)))
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise MessageError("covariance: not positive definite") from None
+    return LinkState(
+        link=link,
+        time_s=seconds(msg.time_usec),
+        p_w_m=enu_ned(_finite("p_ned", msg.p_ned)),
+        v_w_m_s=enu_ned(_finite("v_ned", msg.v_ned)),
+        q_wxyz=quat_ned_frd_to_enu_flu(_unit_quat("q", msg.q)),
+        omega_b_rad_s=flu_frd(_finite("rates_frd", msg.rates_frd)),
+        P=P,
+    )
+
+
+def encode_correction(corr: Correction, target_system: int, target_component: int = 1, valid: bool = True):
+    """SKELETON_CORRECTION of a :class:`Correction`."""
+    return _D.MAVLink_skeleton_correction_message(
+        target_system=target_system,
+        target_component=target_component,
+        ekf_time_usec=usec(corr.ekf_time_s),
+        dp_ned=enu_ned(corr.dp_w_m).tolist(),
+        dv_ned=enu_ned(corr.dv_w_m_s).tolist(),
+        dtheta_ned=enu_ned(corr.dtheta_w_rad).tolist(),
+        seq=corr.seq & 0xFFFF,
+        valid=1 if valid else 0,
+    )
+
+
+def decode_correction(msg, link: int) -> Correction | None:
+    """:class:`Correction` of a SKELETON_CORRECTION (``None`` for ``valid = 0``: withdraw)."""
+    if not msg.valid:
+        return None
+    dtheta = _finite("dtheta_ned", msg.dtheta_ned)
+    if float(np.linalg.norm(dtheta)) > math.pi:
+        raise MessageError(f"dtheta_ned: {np.linalg.norm(dtheta):.3g} rad is not a small-angle correction")
+    return Correction(
+        link=link,
+        ekf_time_s=seconds(msg.ekf_time_usec),
+        dp_w_m=enu_ned(_finite("dp_ned", msg.dp_ned)),
+        dv_w_m_s=enu_ned(_finite("dv_ned", msg.dv_ned)),
+        dtheta_w_rad=enu_ned(dtheta),
+        seq=int(msg.seq),
+    )

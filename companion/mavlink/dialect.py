@@ -1,0 +1,96 @@
+"""The project's MAVLink dialect, generated from ``aerial_skeleton.xml`` with pymavlink's mavgen.
+
+Generated code is never edited or committed: :func:`load_dialect` runs mavgen at first use
+(MAVLink 2, Python 3) and caches the module under ``$AERIAL_SKELETON_CACHE`` (default
+``$XDG_CACHE_HOME/aerial-skeleton`` or ``~/.cache/aerial-skeleton``), keyed by a fingerprint of
+the XML, the included common definitions and the pymavlink version, so editing the XML or
+upgrading pymavlink regenerates it. Generation writes to a temporary file and renames it into
+place, so processes starting together (a SITL fleet) never import a half-written module.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.util
+import io
+import logging
+import os
+import shutil
+import sys
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+from types import ModuleType
+
+__all__ = ["DIALECT_XML", "cache_root", "dialect_fingerprint", "load_dialect"]
+
+log = logging.getLogger(__name__)
+
+DIALECT_XML = Path(__file__).with_name("aerial_skeleton.xml")
+_INCLUDES = ("common.xml", "standard.xml", "minimal.xml")
+
+
+def _pymavlink_definitions() -> Path:
+    import pymavlink
+
+    return Path(pymavlink.__file__).parent / "dialects" / "v20"
+
+
+def cache_root() -> Path:
+    env = os.environ.get("AERIAL_SKELETON_CACHE")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "aerial-skeleton"
+
+
+def dialect_fingerprint() -> str:
+    """Hash of everything the generated module depends on."""
+    import pymavlink
+
+    h = hashlib.sha256()
+    h.update(DIALECT_XML.read_bytes())
+    defs = _pymavlink_definitions()
+    for name in _INCLUDES:
+        h.update((defs / name).read_bytes())
+    h.update(getattr(pymavlink, "__version__", "unknown").encode())
+    return h.hexdigest()[:16]
+
+
+def _generate(target: Path) -> None:
+    from pymavlink.generator import mavgen
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="skeleton-mavgen-") as tmp:
+        tmp = Path(tmp)
+        shutil.copy(DIALECT_XML, tmp / DIALECT_XML.name)
+        for name in _INCLUDES:
+            shutil.copy(_pymavlink_definitions() / name, tmp / name)
+        out = tmp / "aerial_skeleton.py"
+        opts = mavgen.Opts(str(out), wire_protocol="2.0", language="Python3", validate=False)
+        chatter = io.StringIO()
+        with contextlib.redirect_stdout(chatter):  # mavgen prints its progress
+            ok = mavgen.mavgen(opts, [str(tmp / DIALECT_XML.name)])
+        log.debug("mavgen: %s", chatter.getvalue())
+        if not ok:
+            raise RuntimeError(f"mavgen failed on {DIALECT_XML}: {chatter.getvalue()[-500:]}")
+        staged = target.with_suffix(f".{os.getpid()}.tmp")
+        shutil.copy(out, staged)
+        os.replace(staged, target)
+    log.info("generated MAVLink dialect %s", target)
+
+
+@lru_cache(maxsize=1)
+def load_dialect() -> ModuleType:
+    """The generated pymavlink module of the dialect (generated on first use, then cached)."""
+    fingerprint = dialect_fingerprint()
+    target = cache_root() / "mavlink" / fingerprint / "aerial_skeleton.py"
+    if not target.exists():
+        _generate(target)
+    name = f"aerial_skeleton_mavlink_{fingerprint}"
+    spec = importlib.util.spec_from_file_location(name, target)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

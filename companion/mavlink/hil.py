@@ -1,0 +1,149 @@
+"""The simulator link (PX4's simulator MAVLink API): HIL sensor messages in, actuators out.
+
+Harness -> flight controller, each in MAVLink units and frames (body FRD, local NED, WGS84):
+
+* ``HIL_SENSOR``: accelerometer (specific force) and gyro, plus magnetometer;
+* ``HIL_GPS``: position as latitude/longitude/altitude and NED velocity;
+* ``SKELETON_AHRS_REFERENCE`` (dialect): the attitude reference measurement.
+
+Flight controller -> harness: ``HIL_ACTUATOR_CONTROLS`` with the rotor thrusts normalised by
+the thrust limit (-1..1), echoing the ``time_usec`` of the ``HIL_SENSOR`` it answers (lockstep).
+
+Geodetic positions use a local tangent plane at a shared :class:`GeoOrigin` on a spherical
+earth (centimetre-exact over the few hundred metres of a flight); every link and the harness use
+the same origin so that all local positions share one frame, as the constraints require.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.estimation.so3 import quat_to_rotmat
+
+from .codec import MessageError, seconds, usec
+from .dialect import load_dialect
+from .frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+
+__all__ = [
+    "EARTH_RADIUS_M",
+    "GeoOrigin",
+    "MAG_FIELD_NED_GAUSS",
+    "ROTORS_PER_LINK",
+    "encode_hil_sensor",
+    "decode_hil_sensor",
+    "encode_hil_gps",
+    "decode_hil_gps",
+    "encode_ahrs",
+    "decode_ahrs",
+    "encode_actuators",
+    "decode_actuators",
+]
+
+_D = load_dialect()
+EARTH_RADIUS_M = 6_371_000.0
+#: Earth magnetic field used for the simulated magnetometer (NED, gauss; mid-latitude).
+MAG_FIELD_NED_GAUSS = np.array([0.21, 0.01, 0.42])
+ROTORS_PER_LINK = 8
+_HIL_SENSOR_ACCEL_GYRO_MAG = 0x1FF  # fields_updated bits 0..8
+_GPS_FIX_3D = 3
+
+
+@dataclass(frozen=True)
+class GeoOrigin:
+    """WGS84 point at the origin of the local ENU / NED frames."""
+
+    lat_deg: float = 47.397742
+    lon_deg: float = 8.545594
+    alt_m: float = 488.0
+
+    def __post_init__(self) -> None:
+        if not -89.0 <= self.lat_deg <= 89.0:
+            raise ValueError(f"lat_deg must be within +-89 deg, got {self.lat_deg}")
+        if not -180.0 <= self.lon_deg <= 180.0:
+            raise ValueError(f"lon_deg must be within +-180 deg, got {self.lon_deg}")
+
+    def to_geodetic(self, p_enu_m: np.ndarray) -> tuple[float, float, float]:
+        east, north, up = (float(x) for x in p_enu_m)
+        lat = self.lat_deg + math.degrees(north / EARTH_RADIUS_M)
+        lon = self.lon_deg + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))))
+        return lat, lon, self.alt_m + up
+
+    def to_enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
+        north = math.radians(lat_deg - self.lat_deg) * EARTH_RADIUS_M
+        east = math.radians(lon_deg - self.lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))
+        return np.array([east, north, alt_m - self.alt_m])
+
+
+def _check(name: str, values) -> np.ndarray:
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise MessageError(f"{name}: non-finite value")
+    return a
+
+
+def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, q_enu_flu):
+    """HIL_SENSOR from body-frame specific force and rate (and the attitude, for the magnetometer)."""
+    acc = flu_frd(accel_flu_m_s2)
+    gyr = flu_frd(gyro_flu_rad_s)
+    R_ned_frd = quat_to_rotmat(quat_enu_flu_to_ned_frd(q_enu_flu))
+    mag = R_ned_frd.T @ MAG_FIELD_NED_GAUSS
+    return _D.MAVLink_hil_sensor_message(
+        usec(t_s), *acc.tolist(), *gyr.tolist(), *mag.tolist(),
+        1013.25, 0.0, 0.0, 20.0, _HIL_SENSOR_ACCEL_GYRO_MAG, 0,
+    )
+
+
+def decode_hil_sensor(msg) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(t_s, gyro_flu, accel_flu)``."""
+    acc = _check("HIL_SENSOR.acc", (msg.xacc, msg.yacc, msg.zacc))
+    gyr = _check("HIL_SENSOR.gyro", (msg.xgyro, msg.ygyro, msg.zgyro))
+    return seconds(msg.time_usec), flu_frd(gyr), flu_frd(acc)
+
+
+def encode_hil_gps(t_s: float, p_enu_m, v_enu_m_s, origin: GeoOrigin):
+    lat, lon, alt = origin.to_geodetic(p_enu_m)
+    vn, ve, vd = enu_ned(v_enu_m_s).tolist()
+    speed = math.hypot(vn, ve)
+    cog = (math.degrees(math.atan2(ve, vn)) % 360.0) if speed > 0.05 else 0.0
+    return _D.MAVLink_hil_gps_message(
+        usec(t_s), _GPS_FIX_3D, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+        30, 50, int(round(speed * 100)), int(round(vn * 100)), int(round(ve * 100)), int(round(vd * 100)),
+        int(round(cog * 100)), 12,
+    )
+
+
+def decode_hil_gps(msg, origin: GeoOrigin) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(t_s, p_enu, v_enu)``; :class:`MessageError` without a 3D fix."""
+    if msg.fix_type < _GPS_FIX_3D:
+        raise MessageError(f"HIL_GPS.fix_type: {msg.fix_type} (no 3D fix)")
+    p = origin.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+    v = enu_ned(np.array([msg.vn, msg.ve, msg.vd], dtype=float) * 0.01)
+    return seconds(msg.time_usec), p, v
+
+
+def encode_ahrs(t_s: float, q_enu_flu):
+    return _D.MAVLink_skeleton_ahrs_reference_message(usec(t_s), quat_enu_flu_to_ned_frd(q_enu_flu).tolist())
+
+
+def decode_ahrs(msg) -> tuple[float, np.ndarray]:
+    q = _check("SKELETON_AHRS_REFERENCE.q", msg.q)
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > 1e-3:
+        raise MessageError(f"SKELETON_AHRS_REFERENCE.q: norm {n:.6g} is not 1")
+    return seconds(msg.time_usec), quat_ned_frd_to_enu_flu(q / n)
+
+
+def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool):
+    controls = [0.0] * 16
+    controls[:ROTORS_PER_LINK] = (np.clip(np.asarray(thrust_n, dtype=float) / thrust_max_n, -1.0, 1.0)).tolist()
+    mode = _D.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
+    return _D.MAVLink_hil_actuator_controls_message(usec(t_s), controls, mode, 0)
+
+
+def decode_actuators(msg, thrust_max_n: float) -> tuple[int, np.ndarray]:
+    """``(time_usec, thrust (8,) [N])``."""
+    u = _check("HIL_ACTUATOR_CONTROLS.controls", msg.controls[:ROTORS_PER_LINK])
+    return int(msg.time_usec), np.clip(u, -1.0, 1.0) * thrust_max_n
