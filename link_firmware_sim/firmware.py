@@ -108,6 +108,12 @@ class LinkFirmware:
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
 
+    def reconfigure(self, config: FirmwareConfig) -> None:
+        """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
+        if config.allocation != self.config.allocation:
+            self.allocator = Allocator(self.allocator.geometry, config.allocation)
+        self.config = config
+
     # -- estimator -------------------------------------------------------------------
     @property
     def initialized(self) -> bool:

@@ -38,7 +38,7 @@ from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors
 from .trajectory import ChainTrajectory
 
-__all__ = ["Wind", "BatchRunner", "RunLog"]
+__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog"]
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +105,104 @@ def _joint_norms(p, v, q, w, d) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.norm(c[:, CON_POS], axis=1), np.linalg.norm(c[:, CON_VEL], axis=1)
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """Every rate of a scenario as a whole number of physics ticks."""
+
+    dt: float
+    fw: int
+    gps: int
+    att: int
+    sckf: int
+    target: int
+    log: int
+
+    @classmethod
+    def of(cls, sc: Scenario) -> Schedule:
+        physics = sc.sim.physics_rate_hz
+        fw = rate_divisor(physics, sc.firmware.rate_hz, "firmware.rate_hz")
+        return cls(
+            dt=1.0 / physics,
+            fw=fw,
+            gps=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.gps_rate_hz, "gps"),
+            att=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.attitude_rate_hz, "attitude"),
+            sckf=rate_divisor(physics, sc.companion.rate_hz, "companion.rate_hz"),
+            target=rate_divisor(physics, sc.sim.target_rate_hz, "target_rate_hz"),
+            log=rate_divisor(physics, sc.sim.log_rate_hz, "log_rate_hz"),
+        )
+
+
+class Plant:
+    """The physical side of a run: MuJoCo skeleton, rotors and ESCs, sensors and wind.
+
+    Shared by batch mode (firmware called in-process) and fleet mode (firmware behind the HIL
+    link). One ``numpy.random.Generator`` seeded from the scenario drives every sensor and gust.
+    A physics tick is :meth:`begin_tick` (kinematics, truth) then :meth:`end_tick` (rotor
+    dynamics, wind, integration).
+    """
+
+    def __init__(self, sc: Scenario):
+        self.scenario = sc
+        self.n = sc.skeleton.n_links
+        self.dt = 1.0 / sc.sim.physics_rate_hz
+        self.geometry = RotorGeometry.odar(drag_ratio=sc.rotors.drag_ratio_m, x_scale=sc.skeleton.rotor_x_scale)
+        self.inertia = link_inertia(sc.skeleton, self.geometry)
+        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt)
+        self.model.reset(sc.start)
+        self.d = sc.skeleton.d_b_m
+        self.rng = np.random.default_rng(sc.seed)
+        self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
+        self.rotors = RotorBank(8 * self.n, sc.rotors)
+        self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
+        self.model.begin_step()
+        self._fresh = True  # begin_step already done for the current instant
+        self.crashed = False
+        self.crash_reason = ""
+
+    @property
+    def time_s(self) -> float:
+        return self.model.time_s
+
+    def start_center(self) -> np.ndarray:
+        """Middle point of the chain (middle link centre or middle joint) at the start."""
+        p = self.model.truth().p_w_m
+        mid = self.n // 2
+        return p[mid].copy() if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
+
+    def begin_tick(self):
+        """Kinematics of the current instant; returns the truth."""
+        if not self._fresh:
+            self.model.begin_step()
+        self._fresh = False
+        return self.model.truth()
+
+    def end_tick(self) -> None:
+        thrust = self.rotors.step(self.dt)
+        wind = self.wind.force(self.model.link_velocities(), self.dt) if self.wind.active else None
+        self.model.end_step(thrust.reshape(self.n, -1), wind)
+
+    def check_crash(self, t: float, truth, target_q: np.ndarray | None) -> None:
+        """Flag a crash: a diverged simulation, or (after the take-off) a link on the ground or far
+        off its target attitude (``target_q``: (n, 4))."""
+        if self.crashed:
+            return
+        if not np.all(np.isfinite(truth.p_w_m)):
+            self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
+            return
+        if t < self.scenario.flight_start_s:
+            return
+        floor = self.scenario.skeleton.bar_radius_m + 0.05
+        if truth.p_w_m[:, 2].min() < floor:
+            self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
+            return
+        tilt = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz, target_q), axis=1))
+        if tilt.max() > CRASH_TILT_DEG:
+            self.crashed = True
+            self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
+
+
 class BatchRunner:
-    """Builds a scenario's physics, sensors, firmware and companion, and runs it."""
+    """Batch mode: a :class:`Plant`, every link's firmware and the companion, in one process."""
 
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None):
         sc = scenario
@@ -116,37 +212,21 @@ class BatchRunner:
         if sckf is not None:
             sc = replace(sc, companion=replace(sc.companion, enabled=sckf))
         self.scenario = sc
-        n = sc.skeleton.n_links
-        self.n = n
-        physics = sc.sim.physics_rate_hz
-        self.dt = 1.0 / physics
-        self.fw_div = rate_divisor(physics, sc.firmware.rate_hz, "firmware.rate_hz")
-        self.gps_div = self.fw_div * rate_divisor(sc.firmware.rate_hz, sc.sensors.gps_rate_hz, "gps")
-        self.att_div = self.fw_div * rate_divisor(sc.firmware.rate_hz, sc.sensors.attitude_rate_hz, "attitude")
-        self.sckf_div = rate_divisor(physics, sc.companion.rate_hz, "companion.rate_hz")
-        self.target_div = rate_divisor(physics, sc.sim.target_rate_hz, "target_rate_hz")
-        self.log_div = rate_divisor(physics, sc.sim.log_rate_hz, "log_rate_hz")
-
-        self.geometry = RotorGeometry.odar(drag_ratio=sc.rotors.drag_ratio_m, x_scale=sc.skeleton.rotor_x_scale)
-        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt)
-        self.model.reset(sc.start)
-        self.d = sc.skeleton.d_b_m
-        self.rng = np.random.default_rng(sc.seed)
-        self.sensors = LinkSensors(sc.sensors.suite(), n, self.rng)
-        self.rotors = RotorBank(8 * n, sc.rotors)
-        self.wind = Wind(sc.wind, n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
-        inertia = link_inertia(sc.skeleton, self.geometry)
-        self.firmware = [LinkFirmware(i, sc.firmware, inertia, self.geometry) for i in range(n)]
-        self.groups = sc.companion.group_layout(n)
-        self.model.begin_step()
-        self._kinematics_fresh = True  # begin_step done for the current instant
-        truth = self.model.truth()
-        mid = n // 2
-        start_center = truth.p_w_m[mid] if n % 2 else 0.5 * (truth.p_w_m[mid - 1] + truth.p_w_m[mid])
-        self.trajectory = ChainTrajectory(sc.trajectory, n, sc.skeleton.link_length_m, start_center)
+        self.plant = Plant(sc)
+        plant = self.plant
+        self.n = plant.n
+        self.dt = plant.dt
+        self.schedule = Schedule.of(sc)
+        self.d = plant.d
+        self.rotors = plant.rotors
+        self.model = plant.model
+        self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
+        self.groups = sc.companion.group_layout(self.n)
+        truth = plant.model.truth()
+        self.trajectory = ChainTrajectory(sc.trajectory, self.n, sc.skeleton.link_length_m, plant.start_center())
         # Firmware start-up: EKF from the first GPS fix and attitude reference, then arm.
-        pos, vel = self.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
-        att = self.sensors.attitude(0.0, truth.q_wxyz)
+        pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
+        att = plant.sensors.attitude(0.0, truth.q_wxyz)
         for i, fw in enumerate(self.firmware):
             fw.initialize(0.0, pos[i], vel[i], att[i])
             fw.arm(0.0)
@@ -154,11 +234,17 @@ class BatchRunner:
             # In-air start: rotors already spinning at the thrusts that carry each link.
             self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
         self.log = RunLog()
-        self.crashed = False
-        self.crash_reason = ""
         self._seq = 0
         self.wall_s = 0.0
         self.sim_s = 0.0
+
+    @property
+    def crashed(self) -> bool:
+        return self.plant.crashed
+
+    @property
+    def crash_reason(self) -> str:
+        return self.plant.crash_reason
 
     def _companion_tick(self, t: float, truth) -> None:
         sc = self.scenario
@@ -203,48 +289,30 @@ class BatchRunner:
         lg.q_target.append(np.stack([fw.target.q_wxyz for fw in self.firmware]))
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
 
-    def _check_crash(self, t: float, truth) -> None:
-        if t < self.scenario.flight_start_s or self.crashed:
-            return
-        floor = self.scenario.skeleton.bar_radius_m + 0.05
-        low = truth.p_w_m[:, 2].min()
-        if low < floor:
-            self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
-            return
-        targets = np.stack([fw.target.q_wxyz for fw in self.firmware])
-        tilt = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz, targets), axis=1))
-        if tilt.max() > CRASH_TILT_DEG:
-            self.crashed = True
-            self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
-
     def run(self, duration_s: float, progress=None) -> RunLog:
-        """Advance the simulation by ``duration_s``; ``progress(k)`` is called every 100 ms."""
+        """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""
+        plant, sch = self.plant, self.schedule
+        sensors, rotors = plant.sensors, plant.rotors
         n_ticks = int(round(duration_s / self.dt))
-        model, rotors, sensors = self.model, self.rotors, self.sensors
-        fw_dt = self.fw_div * self.dt
+        fw_dt = sch.fw * self.dt
         commands = np.zeros((self.n, 8))
         wall0 = time.perf_counter()
-        tick0 = int(round(model.time_s / self.dt))
+        tick0 = int(round(plant.time_s / self.dt))
         for k in range(tick0, tick0 + n_ticks):
             t = k * self.dt
-            if not self._kinematics_fresh:
-                model.begin_step()
-            self._kinematics_fresh = False
-            fw_tick = k % self.fw_div == 0
-            if fw_tick or k % self.log_div == 0 or k % self.sckf_div == 0:
-                truth = model.truth()
-            if fw_tick:
+            truth = plant.begin_tick()
+            if k % sch.fw == 0:
                 if not np.all(np.isfinite(truth.p_w_m)):
-                    self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
+                    plant.check_crash(t, truth, None)
                     break
-                if k % self.target_div == 0:
+                if k % sch.target == 0:
                     for fw, target in zip(self.firmware, self.trajectory.targets(t)):
                         fw.set_target(t, target)
-                if k % self.gps_div == 0:
+                if k % sch.gps == 0:
                     pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
                     for i, fw in enumerate(self.firmware):
                         fw.on_gps(t, pos[i], vel[i])
-                if k % self.att_div == 0:
+                if k % sch.att == 0:
                     att = sensors.attitude(t, truth.q_wxyz)
                     for i, fw in enumerate(self.firmware):
                         fw.on_attitude(t, att[i])
@@ -252,14 +320,12 @@ class BatchRunner:
                 for i, fw in enumerate(self.firmware):
                     commands[i] = fw.on_imu(t, gyro[i], accel[i])
                 rotors.set_command(commands.reshape(-1))
-            if k % self.sckf_div == 0:
+            if k % sch.sckf == 0:
                 self._companion_tick(t, truth)
-            if k % self.log_div == 0:
+            if k % sch.log == 0:
                 self._log_tick(t, truth)
-                self._check_crash(t, truth)
-            thrust = rotors.step(self.dt)
-            wind = self.wind.force(model.link_velocities(), self.dt) if self.wind.active else None
-            model.end_step(thrust.reshape(self.n, -1), wind)
+                plant.check_crash(t, truth, np.stack([fw.target.q_wxyz for fw in self.firmware]))
+            plant.end_tick()
             if progress is not None and (k - tick0) % 100 == 99:
                 progress(100 * self.dt)
         self.wall_s += time.perf_counter() - wall0

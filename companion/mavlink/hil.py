@@ -17,11 +17,10 @@ the same origin so that all local positions share one frame, as the constraints 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from companion.estimation.so3 import quat_to_rotmat
+from companion.geo import EARTH_RADIUS_M, GeoOrigin
 
 from .codec import MessageError, seconds, usec
 from .dialect import load_dialect
@@ -43,38 +42,11 @@ __all__ = [
 ]
 
 _D = load_dialect()
-EARTH_RADIUS_M = 6_371_000.0
 #: Earth magnetic field used for the simulated magnetometer (NED, gauss; mid-latitude).
 MAG_FIELD_NED_GAUSS = np.array([0.21, 0.01, 0.42])
 ROTORS_PER_LINK = 8
 _HIL_SENSOR_ACCEL_GYRO_MAG = 0x1FF  # fields_updated bits 0..8
 _GPS_FIX_3D = 3
-
-
-@dataclass(frozen=True)
-class GeoOrigin:
-    """WGS84 point at the origin of the local ENU / NED frames."""
-
-    lat_deg: float = 47.397742
-    lon_deg: float = 8.545594
-    alt_m: float = 488.0
-
-    def __post_init__(self) -> None:
-        if not -89.0 <= self.lat_deg <= 89.0:
-            raise ValueError(f"lat_deg must be within +-89 deg, got {self.lat_deg}")
-        if not -180.0 <= self.lon_deg <= 180.0:
-            raise ValueError(f"lon_deg must be within +-180 deg, got {self.lon_deg}")
-
-    def to_geodetic(self, p_enu_m: np.ndarray) -> tuple[float, float, float]:
-        east, north, up = (float(x) for x in p_enu_m)
-        lat = self.lat_deg + math.degrees(north / EARTH_RADIUS_M)
-        lon = self.lon_deg + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))))
-        return lat, lon, self.alt_m + up
-
-    def to_enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
-        north = math.radians(lat_deg - self.lat_deg) * EARTH_RADIUS_M
-        east = math.radians(lon_deg - self.lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))
-        return np.array([east, north, alt_m - self.alt_m])
 
 
 def _check(name: str, values) -> np.ndarray:

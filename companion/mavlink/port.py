@@ -1,0 +1,407 @@
+"""MAVLink ports: a transport (UDP, TCP or serial) plus parsing, accounting and a .tlog.
+
+A :class:`MavlinkPort` owns its socket or serial device, so it sees every byte: frames that fail
+to parse (bad CRC, truncated, random bytes) are counted as dropped bytes, frames with a message
+id the dialect does not know are counted as unknown, and well-formed messages not in the port's
+whitelist are counted as ignored; only whitelisted messages reach the caller. Reads never block
+(the caller waits with :func:`wait_readable` or its own ``select``).
+
+Transports (URL syntax as MAVSDK / MAVProxy users expect):
+
+* ``udpin://HOST:PORT``: bind and listen; replies go to the last sender;
+* ``udpout://HOST:PORT`` (optionally ``?bind=PORT``): send to ``HOST:PORT`` from a local port
+  (fixed with ``bind``, like PX4 SITL's local ports 14580+i);
+* ``tcpin://HOST:PORT`` (a server: the first client is the peer) / ``tcpout://HOST:PORT``;
+* ``serial:///dev/serial/by-id/...:BAUD``.
+
+A tlog (``.tlog``: 8-byte big-endian UNIX time in microseconds, then the raw frame, per message;
+readable by pymavlink and MAVExplorer) records what the port sends and accepts.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import select
+import socket
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import parse_qs, urlparse
+
+from .dialect import load_dialect
+
+__all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWriter", "wait_readable", "PortError"]
+
+log = logging.getLogger(__name__)
+
+_READ_CHUNK = 65536
+
+
+class PortError(ValueError):
+    """A port URL that cannot be opened (bad syntax, missing device, port in use)."""
+
+
+@dataclass
+class PortStats:
+    rx_bytes: int = 0
+    rx_messages: int = 0  # accepted (whitelisted) messages
+    dropped_bytes: int = 0  # bytes of frames that failed to parse (bad CRC, truncated, noise)
+    dropped_frames: int = 0  # runs of such bytes
+    dropped_unknown: int = 0  # well-formed frames with an unknown message id
+    ignored: int = 0  # known messages not acted on (not whitelisted)
+    tx_messages: int = 0
+    tx_errors: int = 0
+    last_rx_wall_s: float = 0.0
+    per_type: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def dropped(self) -> int:
+        """Frames that never reached the application: unparseable runs and unknown ids."""
+        return self.dropped_frames + self.dropped_unknown
+
+
+class Transport:
+    """Byte transport; subclasses implement ``recv_all`` (non-blocking) and ``send``."""
+
+    def fileno(self) -> int:
+        raise NotImplementedError
+
+    def recv_all(self) -> bytes:
+        raise NotImplementedError
+
+    def send(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    @property
+    def connected(self) -> bool:
+        return True
+
+
+class _Udp(Transport):
+    def __init__(self, bind: tuple[str, int] | None, remote: tuple[str, int] | None):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        try:
+            self.sock.bind(bind or ("0.0.0.0", 0))
+        except OSError as exc:
+            self.sock.close()
+            raise PortError(f"cannot bind UDP {bind[0]}:{bind[1]}: {exc.strerror}") from None
+        self.sock.setblocking(False)
+        self.remote = remote
+        self._fixed_remote = remote is not None
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def recv_all(self) -> bytes:
+        chunks = []
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(_READ_CHUNK)
+            except BlockingIOError:
+                break
+            except ConnectionRefusedError:  # ICMP from an earlier send to a closed port
+                continue
+            chunks.append(data)
+            if not self._fixed_remote:
+                self.remote = addr
+        return b"".join(chunks)
+
+    def send(self, data: bytes) -> None:
+        if self.remote is None:
+            return  # udpin before the first datagram: nobody to talk to yet
+        try:
+            self.sock.sendto(data, self.remote)
+        except (ConnectionRefusedError, BlockingIOError):
+            pass  # nobody listening (yet), or a full buffer: UDP semantics
+
+    def close(self) -> None:
+        self.sock.close()
+
+    @property
+    def connected(self) -> bool:
+        return self.remote is not None
+
+
+class _TcpServer(Transport):
+    def __init__(self, bind: tuple[str, int]):
+        self.server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self.server.bind(bind)
+        except OSError as exc:
+            self.server.close()
+            raise PortError(f"cannot bind TCP {bind[0]}:{bind[1]}: {exc.strerror}") from None
+        self.server.listen(1)
+        self.server.setblocking(False)
+        self.conn: socket.socket | None = None
+
+    def fileno(self) -> int:
+        return (self.conn or self.server).fileno()
+
+    def _accept(self) -> None:
+        try:
+            conn, _ = self.server.accept()
+        except BlockingIOError:
+            return
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setblocking(False)
+        self.conn = conn
+
+    def recv_all(self) -> bytes:
+        if self.conn is None:
+            self._accept()
+            return b""
+        chunks = []
+        while True:
+            try:
+                data = self.conn.recv(_READ_CHUNK)
+            except BlockingIOError:
+                break
+            if not data:  # peer closed: wait for the next one
+                self.conn.close()
+                self.conn = None
+                break
+            chunks.append(data)
+        return b"".join(chunks)
+
+    def send(self, data: bytes) -> None:
+        if self.conn is not None:
+            _send_all(self.conn, data)
+
+    def close(self) -> None:
+        if self.conn is not None:
+            self.conn.close()
+        self.server.close()
+
+    @property
+    def connected(self) -> bool:
+        return self.conn is not None
+
+
+def _send_all(sock: socket.socket, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        try:
+            n = sock.send(view)
+        except BlockingIOError:
+            select.select([], [sock], [], 1.0)
+            continue
+        view = view[n:]
+
+
+class _TcpClient(Transport):
+    def __init__(self, remote: tuple[str, int], timeout_s: float):
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self.sock = socket.create_connection(remote, timeout=1.0)
+                break
+            except OSError as exc:
+                if time.monotonic() > deadline:
+                    raise PortError(f"cannot connect to TCP {remote[0]}:{remote[1]}: {exc.strerror or exc}") from None
+                time.sleep(0.05)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.sock.setblocking(False)
+        self.closed = False
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def recv_all(self) -> bytes:
+        chunks = []
+        while not self.closed:
+            try:
+                data = self.sock.recv(_READ_CHUNK)
+            except BlockingIOError:
+                break
+            if not data:
+                self.closed = True
+                break
+            chunks.append(data)
+        return b"".join(chunks)
+
+    def send(self, data: bytes) -> None:
+        if not self.closed:
+            try:
+                _send_all(self.sock, data)
+            except (BrokenPipeError, ConnectionResetError):
+                self.closed = True
+
+    def close(self) -> None:
+        self.sock.close()
+
+    @property
+    def connected(self) -> bool:
+        return not self.closed
+
+
+class _Serial(Transport):
+    def __init__(self, device: str, baud: int):
+        import serial  # pyserial
+
+        if not os.path.exists(device):
+            raise PortError(f"serial device {device} does not exist")
+        try:
+            self.port = serial.Serial(device, baudrate=baud, timeout=0, write_timeout=0.1)
+        except serial.SerialException as exc:
+            raise PortError(f"cannot open serial device {device} at {baud} baud: {exc}") from None
+
+    def fileno(self) -> int:
+        return self.port.fileno()
+
+    def recv_all(self) -> bytes:
+        n = self.port.in_waiting
+        return self.port.read(n) if n else b""
+
+    def send(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+        except Exception:  # write timeout on a congested link: drop, like UDP
+            pass
+
+    def close(self) -> None:
+        self.port.close()
+
+
+def _host_port(netloc: str, url: str) -> tuple[str, int]:
+    host, sep, port = netloc.rpartition(":")
+    if not sep or not port.isdigit():
+        raise PortError(f"{url}: expected HOST:PORT")
+    return host or "0.0.0.0", int(port)
+
+
+def open_transport(url: str, connect_timeout_s: float = 10.0) -> Transport:
+    """Open a transport from a URL (see the module docstring)."""
+    parsed = urlparse(url)
+    scheme = parsed.scheme
+    if scheme == "serial":
+        path, sep, baud = (parsed.netloc + parsed.path).rpartition(":")
+        if not sep or not baud.isdigit():
+            raise PortError(f"{url}: expected serial:///dev/...:BAUD")
+        return _Serial(path, int(baud))
+    if scheme not in ("udpin", "udpout", "tcpin", "tcpout"):
+        raise PortError(f"{url}: unknown scheme {scheme!r} (udpin, udpout, tcpin, tcpout, serial)")
+    host, port = _host_port(parsed.netloc, url)
+    if scheme == "udpin":
+        return _Udp((host, port), None)
+    if scheme == "udpout":
+        bind = parse_qs(parsed.query).get("bind")
+        local = ("0.0.0.0", int(bind[0])) if bind else None
+        return _Udp(local, (host, port))
+    if scheme == "tcpin":
+        return _TcpServer((host, port))
+    return _TcpClient((host, port), connect_timeout_s)
+
+
+class TlogWriter:
+    """Append MAVLink frames to a .tlog file (MAVProxy / MAVExplorer format)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = open(self.path, "ab", buffering=1 << 16)
+
+    def write(self, frame: bytes) -> None:
+        self._fh.write(struct.pack(">Q", int(time.time() * 1e6)) + frame)
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+class MavlinkPort:
+    """A MAVLink link with a whitelist of message types it acts on.
+
+    Args:
+        url: transport URL (see :func:`open_transport`).
+        system_id, component_id: our identity on this link (for sending).
+        accept: message type names delivered to the caller; ``None`` delivers every known one.
+        tlog: optional :class:`TlogWriter`.
+    """
+
+    def __init__(self, url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
+                 tlog: TlogWriter | None = None, transport: Transport | None = None):
+        D = load_dialect()
+        self.url = url
+        self.transport = transport or open_transport(url)
+        self.mav = D.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+        self.parser = D.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.accept = accept
+        self.tlog = tlog
+        self.stats = PortStats()
+
+    @property
+    def system_id(self) -> int:
+        return self.mav.srcSystem
+
+    def fileno(self) -> int:
+        return self.transport.fileno()
+
+    def read(self) -> list:
+        """Messages received since the last call that are whitelisted (never blocks)."""
+        data = self.transport.recv_all()
+        if not data:
+            return []
+        st = self.stats
+        st.rx_bytes += len(data)
+        st.last_rx_wall_s = time.monotonic()
+        try:
+            msgs = self.parser.parse_buffer(bytearray(data)) or []
+        except Exception as exc:  # the parser should not raise with robust parsing; never crash
+            log.warning("%s: parser error %s", self.url, exc)
+            st.dropped_bytes += len(data)
+            st.dropped_frames += 1
+            return []
+        out = []
+        for m in msgs:
+            kind = m.get_type()
+            if kind == "BAD_DATA":
+                st.dropped_bytes += len(m.get_msgbuf())
+                st.dropped_frames += 1
+                continue
+            if kind.startswith("UNKNOWN_"):
+                st.dropped_unknown += 1
+                continue
+            if self.accept is not None and kind not in self.accept:
+                st.ignored += 1
+                continue
+            st.rx_messages += 1
+            st.per_type[kind] = st.per_type.get(kind, 0) + 1
+            if self.tlog is not None:
+                self.tlog.write(bytes(m.get_msgbuf()))
+            out.append(m)
+        return out
+
+    def send(self, msg) -> None:
+        frame = msg.pack(self.mav)
+        try:
+            self.transport.send(frame)
+        except OSError as exc:
+            self.stats.tx_errors += 1
+            if exc.errno not in (errno.ENOBUFS, errno.EAGAIN):
+                log.debug("%s: send failed: %s", self.url, exc)
+            return
+        self.stats.tx_messages += 1
+        if self.tlog is not None:
+            self.tlog.write(frame)
+
+    def close(self) -> None:
+        self.transport.close()
+        if self.tlog is not None:
+            self.tlog.close()
+
+
+def wait_readable(ports, timeout_s: float) -> list:
+    """The ports (objects with ``fileno``) that have data, waiting at most ``timeout_s``."""
+    if not ports:
+        time.sleep(max(timeout_s, 0.0))
+        return []
+    ready, _, _ = select.select(ports, [], [], max(timeout_s, 0.0))
+    return ready

@@ -1,0 +1,197 @@
+"""Parameters of a simulated Pixhawk (the MAVLink parameter protocol's table).
+
+Names follow PX4's style (at most 16 characters). Controller gains, failsafe timeouts,
+allocation settings and stream rates are parameters; changing one through PARAM_SET applies it
+at once and persists it in the instance's parameter file (JSON), which is read back at start.
+The shared local origin is stored as integer degE7 (a float32 latitude would lose ~0.4 m).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from companion.geo import GeoOrigin
+
+from .firmware import FirmwareConfig
+
+__all__ = ["ParamSpec", "PARAMS", "ParamTable", "StreamRates"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    kind: str  # "float" | "int"
+    minimum: float
+    maximum: float
+    description: str
+    read_only: bool = False
+
+
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("MAV_SYS_ID", "int", 1, 250, "MAVLink system id (set by the instance number)", read_only=True),
+    ParamSpec("IMP_KP_XY", "float", 0.0, 200.0, "Position stiffness, horizontal [N/m] (eq. 1 k_p)"),
+    ParamSpec("IMP_KP_Z", "float", 0.0, 200.0, "Position stiffness, vertical [N/m]"),
+    ParamSpec("IMP_KD_XY", "float", 0.0, 200.0, "Position damping, horizontal [N s/m] (eq. 1 k_d)"),
+    ParamSpec("IMP_KD_Z", "float", 0.0, 200.0, "Position damping, vertical [N s/m]"),
+    ParamSpec("IMP_KI_XY", "float", 0.0, 50.0, "Position integral, horizontal [N/(m s)]"),
+    ParamSpec("IMP_KI_Z", "float", 0.0, 50.0, "Position integral, vertical [N/(m s)]"),
+    ParamSpec("IMP_KR", "float", 0.0, 100.0, "Attitude stiffness [N m] (eq. 1 k_R)"),
+    ParamSpec("IMP_KW", "float", 0.0, 50.0, "Angular rate damping [N m s] (eq. 1 k_omega)"),
+    ParamSpec("IMP_KI_ATT", "float", 0.0, 50.0, "Attitude integral [N m] (eq. 1 k_I)"),
+    ParamSpec("IMP_GAMMA_I", "float", 0.0, 10.0, "Attitude integral mixing (eq. 1 gamma_I)"),
+    ParamSpec("SKL_CORR_HOLD", "float", 0.0, 10.0, "Correction held at full weight [s]"),
+    ParamSpec("SKL_CORR_STALE", "float", 0.01, 60.0, "Correction stale after [s]: control on the raw EKF"),
+    ParamSpec("COM_OF_LOSS_T", "float", 0.05, 60.0, "Target stale after [s]: hold position"),
+    ParamSpec("SKL_SM_EN", "int", 0, 1, "Selective mapping (thesis sec. 2.4.2) enabled"),
+    ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
+    ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
+    ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
+    ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
+    ParamSpec("SKL_ORIG_LAT", "int", -890000000, 890000000, "Shared local origin latitude [degE7]"),
+    ParamSpec("SKL_ORIG_LON", "int", -1800000000, 1800000000, "Shared local origin longitude [degE7]"),
+    ParamSpec("SKL_ORIG_ALT", "float", -1000.0, 10000.0, "Shared local origin altitude AMSL [m]"),
+)
+_SPEC = {p.name: p for p in PARAMS}
+
+
+@dataclass(frozen=True)
+class StreamRates:
+    """Default telemetry rates [Hz] of the onboard (companion) link; 0 disables a stream."""
+
+    state_hz: float = 50.0
+    odometry_hz: float = 50.0
+
+
+def _defaults(system_id: int, config: FirmwareConfig, origin: GeoOrigin, rates: StreamRates) -> dict[str, float]:
+    g = config.gains
+    a = config.allocation
+    return {
+        "MAV_SYS_ID": system_id,
+        "IMP_KP_XY": g.kp_n_m[0],
+        "IMP_KP_Z": g.kp_n_m[2],
+        "IMP_KD_XY": g.kd_ns_m[0],
+        "IMP_KD_Z": g.kd_ns_m[2],
+        "IMP_KI_XY": g.ki_n_ms[0],
+        "IMP_KI_Z": g.ki_n_ms[2],
+        "IMP_KR": g.kR_nm,
+        "IMP_KW": g.kw_nms,
+        "IMP_KI_ATT": g.kI_nm_s,
+        "IMP_GAMMA_I": g.gamma_I,
+        "SKL_CORR_HOLD": config.correction_hold_s,
+        "SKL_CORR_STALE": config.correction_stale_s,
+        "COM_OF_LOSS_T": config.target_stale_s,
+        "SKL_SM_EN": int(a.selective_mapping),
+        "SKL_SM_EPS0": a.eps0_n,
+        "SKL_SM_EPS1": a.eps1_n,
+        "SKL_STATE_HZ": rates.state_hz,
+        "SKL_ODOM_HZ": rates.odometry_hz,
+        "SKL_ORIG_LAT": int(round(origin.lat_deg * 1e7)),
+        "SKL_ORIG_LON": int(round(origin.lon_deg * 1e7)),
+        "SKL_ORIG_ALT": origin.alt_m,
+    }
+
+
+class ParamTable:
+    """Current parameter values, their persistence, and their effect on the firmware config."""
+
+    def __init__(self, system_id: int, config: FirmwareConfig, origin: GeoOrigin, rates: StreamRates,
+                 path: Path | None = None):
+        self.values = _defaults(system_id, config, origin, rates)
+        self.path = path
+        self._base = config
+        if path is not None and path.exists():
+            try:
+                stored = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                log.warning("%s: ignoring unreadable parameter file (%s)", path, exc)
+                stored = {}
+            for name, value in stored.items():
+                try:
+                    self._validate(name, value)
+                except ValueError as exc:
+                    log.warning("%s: ignoring %s", path, exc)
+                    continue
+                if not _SPEC[name].read_only:
+                    self.values[name] = value
+        self.values["MAV_SYS_ID"] = system_id
+        # The table must describe a valid firmware configuration.
+        self.firmware_config()
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in PARAMS]
+
+    def spec(self, name: str) -> ParamSpec | None:
+        return _SPEC.get(name)
+
+    def _validate(self, name: str, value) -> float:
+        spec = _SPEC.get(name)
+        if spec is None:
+            raise ValueError(f"{name}: unknown parameter")
+        if not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{name}: not a finite number ({value!r})")
+        if spec.kind == "int" and float(value) != int(value):
+            raise ValueError(f"{name}: integer parameter, got {value!r}")
+        if not spec.minimum <= value <= spec.maximum:
+            raise ValueError(f"{name}: {value} outside [{spec.minimum}, {spec.maximum}]")
+        return int(value) if spec.kind == "int" else float(value)
+
+    def set(self, name: str, value) -> None:
+        """Validate, apply and persist; raises ``ValueError`` with the reason (nothing changes)."""
+        spec = _SPEC.get(name)
+        if spec is not None and spec.read_only:
+            raise ValueError(f"{name}: read-only")
+        value = self._validate(name, value)
+        old = self.values[name]
+        self.values[name] = value
+        try:
+            self.firmware_config()
+        except ValueError:
+            self.values[name] = old
+            raise
+        self.save()
+
+    def save(self) -> None:
+        if self.path is None:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps({k: v for k, v in self.values.items() if not _SPEC[k].read_only}, indent=1))
+        tmp.replace(self.path)
+
+    def firmware_config(self) -> FirmwareConfig:
+        v = self.values
+        gains = replace(
+            self._base.gains,
+            kp_n_m=(v["IMP_KP_XY"], v["IMP_KP_XY"], v["IMP_KP_Z"]),
+            kd_ns_m=(v["IMP_KD_XY"], v["IMP_KD_XY"], v["IMP_KD_Z"]),
+            ki_n_ms=(v["IMP_KI_XY"], v["IMP_KI_XY"], v["IMP_KI_Z"]),
+            kR_nm=v["IMP_KR"],
+            kw_nms=v["IMP_KW"],
+            kI_nm_s=v["IMP_KI_ATT"],
+            gamma_I=v["IMP_GAMMA_I"],
+        )
+        allocation = replace(
+            self._base.allocation, selective_mapping=bool(v["SKL_SM_EN"]), eps0_n=v["SKL_SM_EPS0"], eps1_n=v["SKL_SM_EPS1"]
+        )
+        return replace(
+            self._base,
+            gains=gains,
+            allocation=allocation,
+            correction_hold_s=v["SKL_CORR_HOLD"],
+            correction_stale_s=v["SKL_CORR_STALE"],
+            target_stale_s=v["COM_OF_LOSS_T"],
+        )
+
+    def origin(self) -> GeoOrigin:
+        v = self.values
+        return GeoOrigin(v["SKL_ORIG_LAT"] * 1e-7, v["SKL_ORIG_LON"] * 1e-7, v["SKL_ORIG_ALT"])
+
+    def rates(self) -> StreamRates:
+        return StreamRates(state_hz=self.values["SKL_STATE_HZ"], odometry_hz=self.values["SKL_ODOM_HZ"])

@@ -1,0 +1,566 @@
+"""A simulated Pixhawk as a MAVLink 2 vehicle: one OS process per link.
+
+Ports (PX4 SITL habits; all configurable):
+
+* simulator: ``tcpin://127.0.0.1:4560+i`` (PX4's simulator MAVLink API, lockstep): HIL_SENSOR,
+  HIL_GPS and SKELETON_AHRS_REFERENCE in, HIL_ACTUATOR_CONTROLS out, one answer per HIL_SENSOR;
+* onboard (companion): ``udpout://127.0.0.1:14540+i`` from local port 14580+i;
+* GCS: ``udpout://127.0.0.1:14550`` from local port 18570+i.
+
+MAVLink services implemented here with pymavlink (see the README for why not MAVSDK's server
+components): HEARTBEAT and SYS_STATUS (1 Hz), the parameter protocol (PARAM_REQUEST_LIST /
+READ, PARAM_SET with PARAM_VALUE replies; persisted), COMMAND_LONG / COMMAND_INT with COMMAND_ACK
+(arm/disarm, SET_MESSAGE_INTERVAL, REQUEST_MESSAGE incl. AUTOPILOT_VERSION, REQUEST_AUTOPILOT_
+CAPABILITIES; anything else: UNSUPPORTED), telemetry streams on flight-controller time
+(ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ODOMETRY with covariance,
+SKELETON_LINK_STATE), and inputs: SKELETON_CORRECTION, ODOMETRY as external-vision correction
+(standard-messages mode), SET_POSITION_TARGET_LOCAL_NED and SET_ATTITUDE_TARGET. Only those
+message types are acted on; everything else is counted (see :class:`MavlinkPort`).
+
+Failsafes are the firmware's: a correction older than ``SKL_CORR_STALE`` fades to the raw EKF, a
+target older than ``COM_OF_LOSS_T`` becomes a position hold.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from companion.estimation.so3 import attitude_error, quat_to_rotmat
+from companion.mavlink.codec import (
+    STATE_FLAG_ARMED,
+    STATE_FLAG_CORRECTION_ACTIVE,
+    STATE_FLAG_EKF_OK,
+    MessageError,
+    decode_correction,
+    encode_link_state,
+    usec,
+)
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+from companion.mavlink.hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators
+from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
+from companion.messages import Correction
+
+from .control import PoseTarget
+from .firmware import LinkFirmware
+from .params import ParamTable
+
+__all__ = ["VehiclePorts", "Vehicle", "odometry_pose_covariance", "ODOMETRY_UPPER_6"]
+
+log = logging.getLogger(__name__)
+D = load_dialect()
+
+HIL_ACCEPT = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
+MAVLINK_ACCEPT = frozenset({
+    "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_LONG", "COMMAND_INT",
+    "SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET", "SKELETON_CORRECTION", "ODOMETRY",
+})
+#: Row-major upper triangle of a 6x6 matrix: the order of ODOMETRY's 21 covariance floats.
+ODOMETRY_UPPER_6 = np.triu_indices(6)
+_FLIGHT_SW_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | 255  # 0.1.0 (release)
+_CAPABILITIES = (
+    D.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | D.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    | D.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | D.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | D.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+)
+
+
+@dataclass(frozen=True)
+class VehiclePorts:
+    sim: str
+    onboard: str
+    gcs: str | None
+
+    @classmethod
+    def px4_sitl(cls, instance: int, host: str = "127.0.0.1") -> VehiclePorts:
+        return cls(
+            sim=f"tcpin://{host}:{4560 + instance}",
+            onboard=f"udpout://{host}:{14540 + instance}?bind={14580 + instance}",
+            gcs=f"udpout://{host}:14550?bind={18570 + instance}",
+        )
+
+
+def odometry_pose_covariance(P9: np.ndarray) -> list[float]:
+    """ODOMETRY pose_covariance (x, y, z, roll, pitch, yaw; 21 floats) from a NED 9x9 error covariance.
+
+    The attitude block is the world-frame small-angle error covariance, used as the
+    roll/pitch/yaw covariance (exact for small errors near level).
+    """
+    idx = [0, 1, 2, 6, 7, 8]
+    return P9[np.ix_(idx, idx)][ODOMETRY_UPPER_6].tolist()
+
+
+@dataclass
+class _Stream:
+    interval_s: float
+    next_s: float = 0.0
+
+
+@dataclass
+class _Endpoint:
+    port: MavlinkPort
+    streams: dict[int, _Stream] = field(default_factory=dict)
+
+
+class Vehicle:
+    """One link's firmware behind its MAVLink ports."""
+
+    def __init__(self, instance: int, firmware: LinkFirmware, params: ParamTable, ports: VehiclePorts,
+                 out_dir: Path | None = None, log_rate_hz: float = 50.0, thrust_max_n: float = 8.0):
+        self.instance = instance
+        self.system_id = instance + 1
+        self.fw = firmware
+        self.params = params
+        self.origin = params.origin()
+        self.out_dir = out_dir
+        self.thrust_max_n = thrust_max_n
+        self.fw.reconfigure(params.firmware_config())
+        tlog = TlogWriter(out_dir / f"link{instance + 1}.tlog") if out_dir is not None else None
+        self.sim = MavlinkPort(ports.sim, self.system_id, accept=HIL_ACCEPT)
+        onboard = MavlinkPort(ports.onboard, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog)
+        self.endpoints = [_Endpoint(onboard)]
+        if ports.gcs:
+            self.endpoints.append(_Endpoint(MavlinkPort(ports.gcs, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog)))
+        self._set_default_streams()
+        self.fc_time_s = 0.0
+        self.boot_wall_s = time.monotonic()
+        self._next_heartbeat_wall = 0.0
+        self._pos_target: tuple | None = None  # (p, v, a) ENU
+        self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
+        self._correction_seq = 0
+        self._correction_latency_us = 0
+        self._latency_log: list[tuple[float, float]] = []
+        self._log_every_s = 1.0 / log_rate_hz
+        self._next_log_s = 0.0
+        self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
+        self.errors = {"hil": 0, "mavlink": 0}
+        self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
+        self._last_ahrs: tuple | None = None  # (t, q)
+        self._stop = False
+
+    # -- streams -------------------------------------------------------------------------
+    def _set_default_streams(self) -> None:
+        rates = self.params.rates()
+        onboard = {
+            D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: rates.state_hz,
+            D.MAVLINK_MSG_ID_ODOMETRY: rates.odometry_hz,
+            D.MAVLINK_MSG_ID_ATTITUDE: 50.0,
+            D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
+            D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+        }
+        gcs = {
+            D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
+            D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 5.0,
+            D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+        }
+        for ep, table in zip(self.endpoints, (onboard, gcs)):
+            ep.streams = {mid: _Stream(1.0 / hz) for mid, hz in table.items() if hz > 0}
+
+    def _builders(self):
+        return {
+            D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: self._msg_link_state,
+            D.MAVLINK_MSG_ID_ODOMETRY: self._msg_odometry,
+            D.MAVLINK_MSG_ID_ATTITUDE: self._msg_attitude,
+            D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._msg_local_position,
+            D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._msg_global_position,
+            D.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._msg_autopilot_version,
+            D.MAVLINK_MSG_ID_SYS_STATUS: self._msg_sys_status,
+            D.MAVLINK_MSG_ID_HEARTBEAT: self._msg_heartbeat,
+        }
+
+    # -- messages out --------------------------------------------------------------------------
+    @property
+    def time_boot_ms(self) -> int:
+        return int(self.fc_time_s * 1000) & 0xFFFFFFFF
+
+    def _flags(self) -> int:
+        flags = STATE_FLAG_EKF_OK if self.fw.initialized else 0
+        if self.fw.armed:
+            flags |= STATE_FLAG_ARMED
+        if self.fw.correction_weight(self.fc_time_s) > 0:
+            flags |= STATE_FLAG_CORRECTION_ACTIVE
+        return flags
+
+    def _msg_heartbeat(self):
+        base = D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (D.MAV_MODE_FLAG_SAFETY_ARMED if self.fw.armed else 0)
+        status = D.MAV_STATE_ACTIVE if self.fw.armed else D.MAV_STATE_STANDBY
+        return D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_GENERIC, base, 0, status, 3)
+
+    def _msg_sys_status(self):
+        sensors = (D.MAV_SYS_STATUS_SENSOR_3D_GYRO | D.MAV_SYS_STATUS_SENSOR_3D_ACCEL | D.MAV_SYS_STATUS_SENSOR_3D_MAG
+                   | D.MAV_SYS_STATUS_SENSOR_GPS | D.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+                   | D.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | D.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+                   | D.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | D.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+        health = sensors if self.fw.initialized else sensors & ~D.MAV_SYS_STATUS_SENSOR_GPS
+        dropped = sum(ep.port.stats.dropped for ep in self.endpoints)
+        return D.MAVLink_sys_status_message(sensors, sensors, health, 0, 16200, -1, 100, 0, min(dropped, 65535),
+                                            0, 0, 0, 0)
+
+    def _msg_autopilot_version(self):
+        return D.MAVLink_autopilot_version_message(
+            _CAPABILITIES, _FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x1209, 0x5A4B, self.system_id,
+        )
+
+    def _estimate(self):
+        return self.fw.control_estimate(self.fc_time_s)
+
+    def _msg_attitude(self):
+        _, _, q = self._estimate()
+        R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
+        roll = math.atan2(R[2, 1], R[2, 2])
+        pitch = -math.asin(max(-1.0, min(1.0, R[2, 0])))
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        w = flu_frd(self.fw.state_report().omega_b_rad_s)
+        return D.MAVLink_attitude_message(self.time_boot_ms, roll, pitch, yaw, *w.tolist())
+
+    def _msg_local_position(self):
+        p, v, _ = self._estimate()
+        return D.MAVLink_local_position_ned_message(self.time_boot_ms, *enu_ned(p).tolist(), *enu_ned(v).tolist())
+
+    def _msg_global_position(self):
+        p, v, q = self._estimate()
+        lat, lon, alt = self.origin.to_geodetic(p)
+        vn, ve, vd = enu_ned(v).tolist()
+        R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
+        hdg = int(round((math.degrees(math.atan2(R[1, 0], R[0, 0])) % 360.0) * 100))
+        return D.MAVLink_global_position_int_message(
+            self.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+            int(round(p[2] * 1000)), int(round(vn * 100)), int(round(ve * 100)), int(round(vd * 100)), hdg,
+        )
+
+    def _msg_link_state(self):
+        return encode_link_state(self.fw.state_report(), self._flags(), 0, self._correction_seq,
+                                 self._correction_latency_us)
+
+    def _msg_odometry(self):
+        """Raw EKF output with covariance (standard messages: what a stock PX4 publishes)."""
+        st = self.fw.state_report()
+        msg = encode_link_state(st)
+        P9 = np.zeros((9, 9))
+        P9[np.triu_indices(9)] = msg.covariance
+        P9 = P9 + np.triu(P9, 1).T
+        q_ned = quat_enu_flu_to_ned_frd(st.q_wxyz)
+        R = quat_to_rotmat(q_ned)
+        v_body = R.T @ enu_ned(st.v_w_m_s)
+        Pv = R.T @ P9[3:6, 3:6] @ R
+        vel_cov = np.zeros((6, 6))
+        vel_cov[:3, :3] = Pv
+        vel_cov[3:, 3:] = np.eye(3) * 1e-4
+        return D.MAVLink_odometry_message(
+            usec(st.time_s), D.MAV_FRAME_LOCAL_NED, D.MAV_FRAME_BODY_FRD, *enu_ned(st.p_w_m).tolist(),
+            q_ned.tolist(), *v_body.tolist(), *flu_frd(st.omega_b_rad_s).tolist(),
+            odometry_pose_covariance(P9), vel_cov[ODOMETRY_UPPER_6].tolist(), 0, D.MAV_ESTIMATOR_TYPE_NAIVE, 100,
+        )
+
+    def _send_due_streams(self) -> None:
+        builders = None
+        t = self.fc_time_s
+        for ep in self.endpoints:
+            for mid, stream in ep.streams.items():
+                if t + 1e-9 >= stream.next_s:
+                    if builders is None:
+                        builders = self._builders()
+                    ep.port.send(builders[mid]())
+                    stream.next_s = max(stream.next_s + stream.interval_s, t)
+
+    def _heartbeats(self) -> None:
+        now = time.monotonic()
+        if now < self._next_heartbeat_wall:
+            return
+        self._next_heartbeat_wall = now + 1.0
+        for ep in self.endpoints:
+            ep.port.send(self._msg_heartbeat())
+            ep.port.send(self._msg_sys_status())
+
+    # -- simulator link ----------------------------------------------------------------------------
+    def _on_hil(self, msg) -> None:
+        kind = msg.get_type()
+        try:
+            if kind == "HIL_SENSOR":
+                t, gyro, accel = decode_hil_sensor(msg)
+                self.fc_time_s = t
+                if not self.fw.initialized:
+                    return  # the EKF starts at the first GPS fix with an attitude reference
+                thrust = self.fw.on_imu(t, gyro, accel)
+                self.sim.send(encode_actuators(t, thrust, self.thrust_max_n, self.fw.armed))
+                self._after_tick()
+            elif kind == "HIL_GPS":
+                t, p, v = decode_hil_gps(msg, self.origin)
+                self._last_gps = (t, p, v)
+                if self.fw.initialized:
+                    self.fw.on_gps(t, p, v)
+                elif self._last_ahrs is not None:
+                    self.fw.initialize(t, p, v, self._last_ahrs[1])
+            elif kind == "SKELETON_AHRS_REFERENCE":
+                t, q = decode_ahrs(msg)
+                self._last_ahrs = (t, q)
+                if self.fw.initialized:
+                    self.fw.on_attitude(t, q)
+                elif self._last_gps is not None:
+                    _, p, v = self._last_gps
+                    self.fw.initialize(t, p, v, q)
+        except MessageError as exc:
+            self.errors["hil"] += 1
+            log.warning("link %d: rejected %s: %s", self.system_id, kind, exc)
+        if kind == "HIL_SENSOR" and not self.fw.initialized:
+            # Still answer, so the lockstep never waits on an uninitialised link.
+            self.sim.send(encode_actuators(self.fc_time_s, np.zeros(8), self.thrust_max_n, False))
+
+    def _after_tick(self) -> None:
+        self._send_due_streams()
+        if self.out_dir is not None and self.fc_time_s + 1e-9 >= self._next_log_s:
+            self._next_log_s += self._log_every_s
+            self._log_row()
+
+    def _log_row(self) -> None:
+        fw = self.fw
+        p, _, q = fw.control_estimate(self.fc_time_s)
+        target = fw._active_target(self.fc_time_s, p) if fw.armed else PoseTarget.hold(p, q)
+        r = self._rows
+        r["t"].append(self.fc_time_s)
+        r["p_ekf"].append(fw.ekf.p_w_m)
+        r["q_ekf"].append(fw.ekf.q_wxyz)
+        r["p_ctrl"].append(p)
+        r["q_ctrl"].append(q)
+        r["p_target"].append(target.p_w_m)
+        r["q_target"].append(target.q_wxyz)
+
+    # -- MAVLink in ------------------------------------------------------------------------------
+    def _for_us(self, msg) -> bool:
+        target = getattr(msg, "target_system", 0)
+        return target in (0, self.system_id)
+
+    def _on_mavlink(self, ep: _Endpoint, msg) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            return
+        if not self._for_us(msg):
+            ep.port.stats.ignored += 1
+            return
+        try:
+            if kind == "SKELETON_CORRECTION":
+                self._on_correction(decode_correction(msg, self.instance))
+            elif kind == "ODOMETRY":
+                self._on_external_vision(msg)
+            elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+                self._on_position_target(msg)
+            elif kind == "SET_ATTITUDE_TARGET":
+                self._on_attitude_target(msg)
+            elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+                self._on_command(ep, msg)
+            elif kind.startswith("PARAM_"):
+                self._on_param(ep, msg)
+        except MessageError as exc:
+            self.errors["mavlink"] += 1
+            log.warning("link %d: rejected %s: %s", self.system_id, kind, exc)
+
+    def _on_correction(self, corr: Correction | None) -> None:
+        if corr is None:
+            self.fw.correction = None  # withdrawn: control on the raw EKF
+            return
+        self.fw.on_correction(self.fc_time_s, corr)
+        self._correction_seq = corr.seq
+        self._correction_latency_us = usec(self.fc_time_s - corr.ekf_time_s)
+        self._latency_log.append((self.fc_time_s, self.fc_time_s - corr.ekf_time_s))
+
+    def _on_external_vision(self, msg) -> None:
+        """Standard-messages mode: ODOMETRY from the companion is the corrected pose; the delta
+        against the raw EKF becomes the correction (it never enters the EKF)."""
+        if msg.frame_id not in (D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_LOCAL_NED):
+            raise MessageError(f"ODOMETRY.frame_id: {msg.frame_id} (expected LOCAL_FRD or LOCAL_NED)")
+        vals = [msg.x, msg.y, msg.z, *msg.q, msg.vx, msg.vy, msg.vz]
+        if not all(math.isfinite(x) for x in vals):
+            raise MessageError("ODOMETRY: non-finite value")
+        st = self.fw.state_report()
+        q = quat_ned_frd_to_enu_flu(np.asarray(msg.q, dtype=float) / np.linalg.norm(msg.q))
+        p = enu_ned(np.array([msg.x, msg.y, msg.z]))
+        R = quat_to_rotmat(np.asarray(msg.q, dtype=float))
+        v = enu_ned(R @ np.array([msg.vx, msg.vy, msg.vz]))  # body-frame velocity (child frame)
+        corr = Correction(self.instance, st.time_s, p - st.p_w_m, v - st.v_w_m_s, attitude_error(q, st.q_wxyz),
+                          seq=(self._correction_seq + 1) & 0xFFFF)
+        self._on_correction(corr)
+
+    def _on_position_target(self, msg) -> None:
+        if msg.coordinate_frame != D.MAV_FRAME_LOCAL_NED:
+            raise MessageError(f"SET_POSITION_TARGET_LOCAL_NED.coordinate_frame: {msg.coordinate_frame} (LOCAL_NED only)")
+        vals = [msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz, msg.afx, msg.afy, msg.afz]
+        if not all(math.isfinite(x) for x in vals):
+            raise MessageError("SET_POSITION_TARGET_LOCAL_NED: non-finite value")
+        mask = msg.type_mask
+        p = enu_ned(np.array([msg.x, msg.y, msg.z]))
+        v = enu_ned(np.array([msg.vx, msg.vy, msg.vz])) if not mask & 0b111000 else np.zeros(3)
+        a = enu_ned(np.array([msg.afx, msg.afy, msg.afz])) if not mask & 0b111000000 else np.zeros(3)
+        self._pos_target = (p, v, a)
+        self._update_target()
+
+    def _on_attitude_target(self, msg) -> None:
+        q = np.asarray(msg.q, dtype=float)
+        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise MessageError("SET_ATTITUDE_TARGET.q: not a unit quaternion")
+        rates = np.array([msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate])
+        if not np.all(np.isfinite(rates)):
+            raise MessageError("SET_ATTITUDE_TARGET: non-finite body rates")
+        if msg.type_mask & 0b111:
+            rates = np.zeros(3)
+        self._att_target = (quat_ned_frd_to_enu_flu(q / np.linalg.norm(q)), flu_frd(rates))
+        self._update_target()
+
+    def _update_target(self) -> None:
+        if self._pos_target is None and self._att_target is None:
+            return
+        if self.fw.initialized:
+            p_now, _, q_now = self.fw.control_estimate(self.fc_time_s)
+        else:
+            p_now, q_now = np.zeros(3), np.array([1.0, 0, 0, 0])
+        p, v, a = self._pos_target if self._pos_target is not None else (p_now, np.zeros(3), np.zeros(3))
+        q, w = self._att_target if self._att_target is not None else (q_now, np.zeros(3))
+        # The target rate is in the desired body frame (eq. 1): FLU rates of the target attitude.
+        self.fw.set_target(self.fc_time_s, PoseTarget(p, q, v, a, w, np.zeros(3)))
+
+    def _ack(self, ep: _Endpoint, msg, result: int) -> None:
+        ep.port.send(D.MAVLink_command_ack_message(msg.command, result, 255, 0, msg.get_srcSystem(),
+                                                   msg.get_srcComponent()))
+
+    def _on_command(self, ep: _Endpoint, msg) -> None:
+        cmd = msg.command
+        if cmd == D.MAV_CMD_COMPONENT_ARM_DISARM:
+            if msg.param1 >= 0.5:
+                result = D.MAV_RESULT_ACCEPTED if self.fw.arm(self.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
+            else:
+                self.fw.disarm()
+                result = D.MAV_RESULT_ACCEPTED
+            self._ack(ep, msg, result)
+        elif cmd == D.MAV_CMD_SET_MESSAGE_INTERVAL:
+            mid, interval_us = int(msg.param1), msg.param2
+            builders = self._builders()
+            if mid not in builders or mid in (D.MAVLINK_MSG_ID_HEARTBEAT, D.MAVLINK_MSG_ID_AUTOPILOT_VERSION):
+                self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
+                return
+            if interval_us < 0:
+                ep.streams.pop(mid, None)
+            elif interval_us > 0:
+                ep.streams[mid] = _Stream(interval_us * 1e-6, self.fc_time_s)
+            self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+        elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            mid = int(msg.param1) if cmd == D.MAV_CMD_REQUEST_MESSAGE else D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+            builder = self._builders().get(mid)
+            if builder is None or (mid != D.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not self.fw.initialized):
+                self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED if builder is None else D.MAV_RESULT_TEMPORARILY_REJECTED)
+                return
+            self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+            ep.port.send(builder())
+        else:
+            self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
+
+    def _param_value(self, name: str):
+        spec = self.params.spec(name)
+        value = self.params.values[name]
+        index = self.params.names.index(name)
+        if spec.kind == "int":
+            raw = struct.unpack("<f", struct.pack("<i", int(value)))[0]  # bytewise int encoding (PX4)
+            ptype = D.MAV_PARAM_TYPE_INT32
+        else:
+            raw, ptype = float(value), D.MAV_PARAM_TYPE_REAL32
+        return D.MAVLink_param_value_message(name.encode(), raw, ptype, len(self.params.names), index)
+
+    def _on_param(self, ep: _Endpoint, msg) -> None:
+        kind = msg.get_type()
+        names = self.params.names
+        if kind == "PARAM_REQUEST_LIST":
+            for name in names:
+                ep.port.send(self._param_value(name))
+            return
+        if kind == "PARAM_REQUEST_READ":
+            if msg.param_index >= 0:
+                if msg.param_index < len(names):
+                    ep.port.send(self._param_value(names[msg.param_index]))
+                return
+            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
+            if name in self.params.values:
+                ep.port.send(self._param_value(name))
+            return
+        if kind == "PARAM_SET":
+            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
+            spec = self.params.spec(name)
+            if spec is None:
+                log.warning("link %d: PARAM_SET of unknown parameter %r", self.system_id, name)
+                return
+            if spec.kind == "int":
+                value = struct.unpack("<i", struct.pack("<f", msg.param_value))[0]
+            else:
+                value = msg.param_value
+            try:
+                self.params.set(name, value)
+            except ValueError as exc:
+                log.warning("link %d: PARAM_SET refused: %s", self.system_id, exc)
+            else:
+                self._apply_params(name)
+            ep.port.send(self._param_value(name))  # the current value either way (PX4 behaviour)
+
+    def _apply_params(self, name: str) -> None:
+        self.fw.reconfigure(self.params.firmware_config())
+        if name in ("SKL_STATE_HZ", "SKL_ODOM_HZ"):
+            rates = self.params.rates()
+            streams = self.endpoints[0].streams
+            for mid, hz in ((D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, rates.state_hz),
+                            (D.MAVLINK_MSG_ID_ODOMETRY, rates.odometry_hz)):
+                if hz > 0:
+                    streams[mid] = _Stream(1.0 / hz, self.fc_time_s)
+                else:
+                    streams.pop(mid, None)
+        if name.startswith("SKL_ORIG"):
+            self.origin = self.params.origin()
+
+    # -- main loop -----------------------------------------------------------------------------
+    def stop(self, *_args) -> None:
+        self._stop = True
+
+    def poll(self, timeout_s: float) -> None:
+        """Wait for input at most ``timeout_s`` and handle everything that arrived."""
+        ports = [self.sim] + [ep.port for ep in self.endpoints]
+        wait_readable(ports, timeout_s)
+        for msg in self.sim.read():
+            self._on_hil(msg)
+        for ep in self.endpoints:
+            for msg in ep.port.read():
+                self._on_mavlink(ep, msg)
+        self._heartbeats()
+
+    def run(self) -> None:
+        signal.signal(signal.SIGTERM, self.stop)
+        signal.signal(signal.SIGINT, self.stop)
+        log.info("link %d up (sysid %d): sim %s, onboard %s", self.instance + 1, self.system_id, self.sim.url,
+                 self.endpoints[0].port.url)
+        try:
+            while not self._stop:
+                self.poll(0.2)
+        finally:
+            self.close()
+
+    def flight_log(self) -> dict[str, np.ndarray]:
+        out = {k: np.asarray(v) for k, v in self._rows.items()}
+        out["correction_latency"] = np.asarray(self._latency_log).reshape(-1, 2)
+        return out
+
+    def close(self) -> None:
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(self.out_dir / f"link{self.instance + 1}_firmware.npz", **self.flight_log())
+            stats = {ep.port.url: vars(ep.port.stats) for ep in self.endpoints}
+            stats[self.sim.url] = vars(self.sim.stats)
+            (self.out_dir / f"link{self.instance + 1}_ports.json").write_text(json.dumps(stats, indent=1, default=str))
+        self.sim.close()
+        for ep in self.endpoints:
+            ep.port.close()
+
