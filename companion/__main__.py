@@ -1,14 +1,19 @@
 """Companion command line.
 
+    python -m companion --config FILE [--out DIR] [--start-center X,Y,Z] [--duration S]
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
 
-Exit codes: 0 success, 2 bad input (the message names the file, key and index).
+The first form runs the daemon: it connects to the links of the config's ``[companion]``
+section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
+20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. Exit codes: 0 success,
+2 bad input (the message names the file, key and reason).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -48,11 +53,38 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+def _cmd_daemon(args) -> int:
+    from sitl.scenario import load_scenario
+
+    from .configfile import ConfigError
+    from .daemon import CompanionDaemon
+    from .mavlink.port import PortError
+
+    try:
+        scenario = load_scenario(args.config)
+        center = None
+        if args.start_center:
+            center = [float(x) for x in args.start_center.split(",")]
+            if len(center) != 3:
+                raise ValueError("--start-center: expected X,Y,Z")
+        daemon = CompanionDaemon(scenario, Path(args.out) if args.out else None, center)
+    except (ConfigError, PortError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    daemon.run(args.duration)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m companion",
         description="Companion computer of an aerial skeleton: SCKF constraint application and tools.",
     )
+    parser.add_argument("--config", metavar="FILE", help="run the daemon with this config (SITL or hardware)")
+    parser.add_argument("--out", metavar="DIR", help="daemon: folder for its tlog, log and summary")
+    parser.add_argument("--start-center", metavar="X,Y,Z", help="daemon: anchor of the target trajectory [m, ENU]")
+    parser.add_argument("--duration", type=float, metavar="S", help="daemon: stop after S seconds of wall time")
+    parser.set_defaults(func=_cmd_daemon)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     rp = sub.add_parser(
         "replay",
@@ -79,7 +111,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    return run_subcommand(build_parser(), argv, usage_exit=EXIT_BAD_INPUT)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None and args.config:
+        args.command = "daemon"  # the daemon is the top-level form
+    return run_subcommand(parser, argv, usage_exit=EXIT_BAD_INPUT, args=args)
 
 
 if __name__ == "__main__":

@@ -48,13 +48,15 @@ def setup_logging(verbose: bool = False) -> None:
     )
 
 
-def run_subcommand(parser: argparse.ArgumentParser, argv=None, usage_exit: int = 2) -> int:
+def run_subcommand(parser: argparse.ArgumentParser, argv=None, usage_exit: int = 2, args=None) -> int:
     """Parse ``argv`` and run the chosen subcommand's ``func(args)`` the way every CLI here does.
 
-    Without a subcommand: the help on stderr and ``usage_exit``. Otherwise logging is set up
+    Without a subcommand: the help on stderr and ``usage_exit``. ``args`` may be given already
+    parsed (a CLI that picks a default command). Otherwise logging is set up
     and the command runs with single-threaded BLAS; its return value is the exit code.
     """
-    args = parser.parse_args(argv)
+    if args is None:
+        args = parser.parse_args(argv)
     if getattr(args, "command", None) is None:
         parser.print_help(sys.stderr)
         return usage_exit

@@ -42,6 +42,7 @@ __all__ = [
     "PoseTarget",
     "ControlIntegrals",
     "vee",
+    "weight_wrench",
     "impedance_control",
 ]
 
@@ -135,6 +136,12 @@ class ControlIntegrals:
 
     pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     att: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def weight_wrench(inertia: LinkInertia, q_wxyz: np.ndarray) -> np.ndarray:
+    """Body-frame wrench ``U = [R^T m g e3; 0]`` that carries the link's weight at attitude ``q``."""
+    R = quat_to_rotmat(q_wxyz)
+    return np.concatenate((R.T @ np.array([0.0, 0.0, inertia.mass_kg * GRAVITY_M_S2]), np.zeros(3)))
 
 
 def vee(S: np.ndarray) -> np.ndarray:

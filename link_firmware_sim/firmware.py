@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.estimation.so3 import quat_to_rotmat, retract
+from companion.estimation.so3 import retract
 from companion.messages import Correction, LinkState
 
 from .allocation import AllocationParams, Allocator, RotorGeometry
-from .control import GRAVITY_M_S2, ControlIntegrals, ImpedanceGains, LinkInertia, PoseTarget, impedance_control
+from .control import ControlIntegrals, ImpedanceGains, LinkInertia, PoseTarget, impedance_control, weight_wrench
 from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
 
 __all__ = ["FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
@@ -198,9 +198,7 @@ class LinkFirmware:
         Used to start a simulation in the air with the rotors already spinning; the
         allocator's state is left as it was before the call.
         """
-        R = quat_to_rotmat(q_wxyz)
-        U = np.concatenate((R.T @ np.array([0.0, 0.0, self.inertia.mass_kg * GRAVITY_M_S2]), np.zeros(3)))
-        command = self.allocator.allocate(U).command_n
+        command = self.allocator.allocate(weight_wrench(self.inertia, q_wxyz)).command_n
         self.allocator.reset()
         return command
 

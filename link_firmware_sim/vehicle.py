@@ -45,7 +45,7 @@ from companion.mavlink.codec import (
     usec,
 )
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+from companion.mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 from companion.mavlink.hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators
 from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
 from companion.messages import Correction
@@ -103,8 +103,15 @@ def odometry_pose_covariance(P9: np.ndarray) -> list[float]:
 
 @dataclass
 class _Stream:
-    interval_s: float
-    next_s: float = 0.0
+    """A periodic message on flight-controller time, in integer microseconds (no drift off the
+    simulator's tick grid)."""
+
+    interval_us: int
+    next_us: int = 0
+
+    @classmethod
+    def at_rate(cls, hz: float, start_us: int = 0) -> _Stream:
+        return cls(int(round(1e6 / hz)), start_us)
 
 
 @dataclass
@@ -134,6 +141,7 @@ class Vehicle:
             self.endpoints.append(_Endpoint(MavlinkPort(ports.gcs, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog)))
         self._set_default_streams()
         self.fc_time_s = 0.0
+        self.fc_time_us = 0
         self.boot_wall_s = time.monotonic()
         self._next_heartbeat_wall = 0.0
         self._pos_target: tuple | None = None  # (p, v, a) ENU
@@ -141,10 +149,12 @@ class Vehicle:
         self._correction_seq = 0
         self._correction_latency_us = 0
         self._latency_log: list[tuple[float, float]] = []
-        self._log_every_s = 1.0 / log_rate_hz
-        self._next_log_s = 0.0
+        self._log = _Stream.at_rate(log_rate_hz)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
         self.errors = {"hil": 0, "mavlink": 0}
+        self._cache_tick_us = -1
+        self._cached_estimate = None
+        self._cached_report = None
         self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
         self._last_ahrs: tuple | None = None  # (t, q)
         self._stop = False
@@ -155,9 +165,9 @@ class Vehicle:
         onboard = {
             D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: rates.state_hz,
             D.MAVLINK_MSG_ID_ODOMETRY: rates.odometry_hz,
-            D.MAVLINK_MSG_ID_ATTITUDE: 50.0,
-            D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
-            D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+            D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
+            D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 10.0,
+            D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
         }
         gcs = {
             D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
@@ -165,7 +175,7 @@ class Vehicle:
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
         }
         for ep, table in zip(self.endpoints, (onboard, gcs)):
-            ep.streams = {mid: _Stream(1.0 / hz) for mid, hz in table.items() if hz > 0}
+            ep.streams = {mid: _Stream.at_rate(hz) for mid, hz in table.items() if hz > 0}
 
     def _builders(self):
         return {
@@ -182,7 +192,7 @@ class Vehicle:
     # -- messages out --------------------------------------------------------------------------
     @property
     def time_boot_ms(self) -> int:
-        return int(self.fc_time_s * 1000) & 0xFFFFFFFF
+        return (self.fc_time_us // 1000) & 0xFFFFFFFF
 
     def _flags(self) -> int:
         flags = STATE_FLAG_EKF_OK if self.fw.initialized else 0
@@ -213,7 +223,20 @@ class Vehicle:
         )
 
     def _estimate(self):
-        return self.fw.control_estimate(self.fc_time_s)
+        """Control estimate at the current tick (computed once per tick for all streams)."""
+        if self._cache_tick_us != self.fc_time_us or self._cached_estimate is None:
+            self._refresh_cache()
+        return self._cached_estimate
+
+    def _report(self):
+        if self._cache_tick_us != self.fc_time_us or self._cached_report is None:
+            self._refresh_cache()
+        return self._cached_report
+
+    def _refresh_cache(self) -> None:
+        self._cache_tick_us = self.fc_time_us
+        self._cached_estimate = self.fw.control_estimate(self.fc_time_s)
+        self._cached_report = self.fw.state_report()
 
     def _msg_attitude(self):
         _, _, q = self._estimate()
@@ -221,7 +244,7 @@ class Vehicle:
         roll = math.atan2(R[2, 1], R[2, 2])
         pitch = -math.asin(max(-1.0, min(1.0, R[2, 0])))
         yaw = math.atan2(R[1, 0], R[0, 0])
-        w = flu_frd(self.fw.state_report().omega_b_rad_s)
+        w = flu_frd(self._report().omega_b_rad_s)
         return D.MAVLink_attitude_message(self.time_boot_ms, roll, pitch, yaw, *w.tolist())
 
     def _msg_local_position(self):
@@ -240,16 +263,13 @@ class Vehicle:
         )
 
     def _msg_link_state(self):
-        return encode_link_state(self.fw.state_report(), self._flags(), 0, self._correction_seq,
+        return encode_link_state(self._report(), self._flags(), 0, self._correction_seq,
                                  self._correction_latency_us)
 
     def _msg_odometry(self):
         """Raw EKF output with covariance (standard messages: what a stock PX4 publishes)."""
-        st = self.fw.state_report()
-        msg = encode_link_state(st)
-        P9 = np.zeros((9, 9))
-        P9[np.triu_indices(9)] = msg.covariance
-        P9 = P9 + np.triu(P9, 1).T
+        st = self._report()
+        P9 = error_cov_enu_ned(st.P)
         q_ned = quat_enu_flu_to_ned_frd(st.q_wxyz)
         R = quat_to_rotmat(q_ned)
         v_body = R.T @ enu_ned(st.v_w_m_s)
@@ -265,14 +285,14 @@ class Vehicle:
 
     def _send_due_streams(self) -> None:
         builders = None
-        t = self.fc_time_s
+        t = self.fc_time_us
         for ep in self.endpoints:
             for mid, stream in ep.streams.items():
-                if t + 1e-9 >= stream.next_s:
+                if t >= stream.next_us:
                     if builders is None:
                         builders = self._builders()
                     ep.port.send(builders[mid]())
-                    stream.next_s = max(stream.next_s + stream.interval_s, t)
+                    stream.next_us = max(stream.next_us + stream.interval_us, t)
 
     def _heartbeats(self) -> None:
         now = time.monotonic()
@@ -288,13 +308,7 @@ class Vehicle:
         kind = msg.get_type()
         try:
             if kind == "HIL_SENSOR":
-                t, gyro, accel = decode_hil_sensor(msg)
-                self.fc_time_s = t
-                if not self.fw.initialized:
-                    return  # the EKF starts at the first GPS fix with an attitude reference
-                thrust = self.fw.on_imu(t, gyro, accel)
-                self.sim.send(encode_actuators(t, thrust, self.thrust_max_n, self.fw.armed))
-                self._after_tick()
+                self._on_hil_sensor(msg)
             elif kind == "HIL_GPS":
                 t, p, v = decode_hil_gps(msg, self.origin)
                 self._last_gps = (t, p, v)
@@ -313,14 +327,31 @@ class Vehicle:
         except MessageError as exc:
             self.errors["hil"] += 1
             log.warning("link %d: rejected %s: %s", self.system_id, kind, exc)
-        if kind == "HIL_SENSOR" and not self.fw.initialized:
-            # Still answer, so the lockstep never waits on an uninitialised link.
-            self.sim.send(encode_actuators(self.fc_time_s, np.zeros(8), self.thrust_max_n, False))
+
+    def _on_hil_sensor(self, msg) -> None:
+        """One lockstep tick: every HIL_SENSOR gets exactly one HIL_ACTUATOR_CONTROLS answer."""
+        self.fc_time_us = int(msg.time_usec)
+        self.fc_time_s = self.fc_time_us * 1e-6
+        try:
+            t, gyro, accel = decode_hil_sensor(msg)
+        except MessageError:
+            self._answer(np.zeros(8))  # keep the lockstep going; the caller logs the rejection
+            raise
+        if not self.fw.initialized:
+            # The EKF starts at the first GPS fix with an attitude reference; until then the
+            # rotors stay off, but the simulator still gets its answer.
+            self._answer(np.zeros(8))
+            return
+        self._answer(self.fw.on_imu(t, gyro, accel))
+        self._after_tick()
+
+    def _answer(self, thrust: np.ndarray) -> None:
+        self.sim.send(encode_actuators(self.fc_time_s, thrust, self.thrust_max_n, self.fw.armed))
 
     def _after_tick(self) -> None:
         self._send_due_streams()
-        if self.out_dir is not None and self.fc_time_s + 1e-9 >= self._next_log_s:
-            self._next_log_s += self._log_every_s
+        if self.out_dir is not None and self.fc_time_us >= self._log.next_us:
+            self._log.next_us += self._log.interval_us
             self._log_row()
 
     def _log_row(self) -> None:
@@ -450,7 +481,7 @@ class Vehicle:
             if interval_us < 0:
                 ep.streams.pop(mid, None)
             elif interval_us > 0:
-                ep.streams[mid] = _Stream(interval_us * 1e-6, self.fc_time_s)
+                ep.streams[mid] = _Stream(int(interval_us), self.fc_time_us)
             self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
         elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             mid = int(msg.param1) if cmd == D.MAV_CMD_REQUEST_MESSAGE else D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
@@ -516,7 +547,7 @@ class Vehicle:
             for mid, hz in ((D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, rates.state_hz),
                             (D.MAVLINK_MSG_ID_ODOMETRY, rates.odometry_hz)):
                 if hz > 0:
-                    streams[mid] = _Stream(1.0 / hz, self.fc_time_s)
+                    streams[mid] = _Stream.at_rate(hz, self.fc_time_us)
                 else:
                     streams.pop(mid, None)
         if name.startswith("SKL_ORIG"):
@@ -528,13 +559,14 @@ class Vehicle:
 
     def poll(self, timeout_s: float) -> None:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
-        ports = [self.sim] + [ep.port for ep in self.endpoints]
-        wait_readable(ports, timeout_s)
-        for msg in self.sim.read():
-            self._on_hil(msg)
+        ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
+        if self.sim in ready or not self.sim.transport.connected:  # (a listener accepts on readable too)
+            for msg in self.sim.read():
+                self._on_hil(msg)
         for ep in self.endpoints:
-            for msg in ep.port.read():
-                self._on_mavlink(ep, msg)
+            if ep.port in ready:
+                for msg in ep.port.read():
+                    self._on_mavlink(ep, msg)
         self._heartbeats()
 
     def run(self) -> None:

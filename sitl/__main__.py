@@ -1,10 +1,13 @@
 """SITL command line.
 
     python -m sitl fly --config configs/sitl/three_link.toml [--duration S] [--no-sckf] [--out DIR]
+    python -m sitl launch --config configs/sitl/three_link.toml [--duration S] [--speed F] [--out DIR]
 
-Batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
-20 Hz, in one process on one clock. Exit codes: 0 success, 1 the skeleton crashed,
-2 bad configuration (the message names the file, key and reason).
+``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
+20 Hz, in one process on one clock. ``launch`` is fleet mode: one MAVLink vehicle process per
+link and the companion daemon, the harness in lockstep with them over PX4-style simulator links.
+Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
+key and reason), 3 the fleet failed (a process died).
 """
 
 from __future__ import annotations
@@ -18,11 +21,13 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.runtime import make_run_dir, run_subcommand
 
+from .fleet import FleetError, launch
 from .fly import fly
 from .scenario import load_scenario
 
 EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
+EXIT_FLEET = 3
 
 
 def _cmd_fly(args) -> int:
@@ -51,6 +56,33 @@ def _cmd_fly(args) -> int:
     return EXIT_CRASH if metrics["crashed"] else 0
 
 
+def _cmd_launch(args) -> int:
+    overrides = {}
+    if args.duration is not None:
+        overrides["duration_s"] = args.duration
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    try:
+        scenario = load_scenario(args.config, **overrides)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
+    try:
+        with tqdm(total=scenario.duration_s, desc=f"{scenario.name} (fleet)", unit="sim s", disable=args.quiet,
+                  file=sys.stderr, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
+            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update)
+    except FleetError as exc:
+        print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
+        return EXIT_FLEET
+    summary = {k: metrics.get(k) for k in (
+        "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m", "constraint_vel_p95_m_s",
+        "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor")}
+    print(json.dumps(summary, indent=2))
+    print(f"wrote {out_dir}")
+    return EXIT_CRASH if metrics["crashed"] else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m sitl", description="MuJoCo SITL of aerial skeletons.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -69,6 +101,19 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     fl.add_argument("--quiet", action="store_true", help="no progress bar")
     fl.set_defaults(func=_cmd_fly)
+    la = sub.add_parser(
+        "launch",
+        help="fly a scenario in fleet mode (vehicle processes, companion, MAVLink over sockets)",
+        description="Fleet mode: n MAVLink vehicle processes, the companion daemon and the MuJoCo harness in lockstep.",
+    )
+    la.add_argument("--config", required=True, metavar="FILE", help="scenario file")
+    la.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
+    la.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    la.add_argument("--speed", type=float, default=1.0, metavar="F",
+                    help="pace at F times real time; 0 = as fast as the lockstep allows (default 1)")
+    la.add_argument("--out", metavar="DIR", help="run folder (default: runs/launch-<scenario>-<UTC time>)")
+    la.add_argument("--quiet", action="store_true", help="no progress bar")
+    la.set_defaults(func=_cmd_launch)
     return parser
 
 

@@ -32,7 +32,8 @@ from link_firmware_sim.allocation import RotorGeometry
 from link_firmware_sim.firmware import LinkFirmware
 from sitl.bench.ekf_chain import rate_divisor
 
-from .model import SkeletonModel, link_inertia
+from .model import SkeletonModel
+from .skeleton import link_inertia
 from .rotor import RotorBank
 from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors
@@ -194,6 +195,8 @@ class Plant:
         floor = self.scenario.skeleton.bar_radius_m + 0.05
         if truth.p_w_m[:, 2].min() < floor:
             self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
+            return
+        if target_q is None:
             return
         tilt = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz, target_q), axis=1))
         if tilt.max() > CRASH_TILT_DEG:

@@ -13,18 +13,20 @@ from pathlib import Path
 from typing import Literal
 
 from companion.configfile import ConfigError, build, load_toml
+from companion.geo import GeoOrigin
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import Groups, make_groups, validate_groups
 from link_firmware_sim.firmware import FirmwareConfig
 from sitl.bench.ekf_chain import rate_divisor
 
-from .model import SkeletonConfig, StartPose
+from .skeleton import SkeletonConfig, StartPose
 from .rotor import RotorParams
 from .sensors import PROFILES, SensorSuite
 from .trajectory import TrajectoryConfig
 
 __all__ = [
     "SensorConfig",
+    "LinkEndpoint",
     "CompanionConfig",
     "WindConfig",
     "SimConfig",
@@ -67,11 +69,35 @@ class SensorConfig:
 
 
 @dataclass(frozen=True)
+class LinkEndpoint:
+    """How the companion reaches one link's flight controller.
+
+    ``url``: ``udpin://0.0.0.0:14540`` (SITL, PX4 habits), or on hardware a serial device by id
+    with its baud rate, e.g. ``serial:///dev/serial/by-id/usb-ArduPilot_fmuv3_...-if00:921600``.
+    """
+
+    system_id: int
+    url: str
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.system_id <= 250:
+            raise ValueError(f"system_id must be in 1..250, got {self.system_id}")
+        scheme = self.url.split("://", 1)[0]
+        if scheme not in ("udpin", "udpout", "tcpin", "tcpout", "serial") or "://" not in self.url:
+            raise ValueError(f"url must be udpin://, udpout://, tcpin://, tcpout:// or serial://, got {self.url!r}")
+
+
+@dataclass(frozen=True)
 class CompanionConfig:
-    """The companion's SCKF in batch mode (direct calls).
+    """The companion: SCKF step, its links and what it sends them.
 
     ``groups`` uses 1-based link numbers, e.g. ``[[1, 2], [3, 4, 5], [6, 7]]``; empty means
-    one group of all links.
+    one group of all links. ``links`` lists the flight controllers in chain order; empty means
+    the SITL defaults (link ``i`` has system id ``i + 1`` on ``udpin://0.0.0.0:14540+i``).
+    ``mode``: ``dialect`` (SKELETON_LINK_STATE in, SKELETON_CORRECTION out) or ``standard``
+    (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_FRD).
+    ``targets``: ``trajectory`` forwards the scenario's ``[trajectory]`` as pose targets,
+    ``none`` sends none. ``arm``: arm every link once all report a usable EKF.
     """
 
     enabled: bool = True
@@ -80,9 +106,28 @@ class CompanionConfig:
     eps_m: float = 0.01
     alpha: float = 0.01
     max_iter: int = 20
+    links: tuple[LinkEndpoint, ...] = ()
+    mode: Literal["dialect", "standard"] = "dialect"
+    targets: Literal["trajectory", "none"] = "trajectory"
+    target_rate_hz: float = 50.0
+    state_rate_hz: float = 50.0
+    arm: bool = True
+    health_period_s: float = 5.0
 
     def __post_init__(self) -> None:
         CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+        for name in ("rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        ids = [link.system_id for link in self.links]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"links: system ids must be distinct, got {ids}")
+
+    def endpoints(self, n_links: int, host: str = "0.0.0.0") -> tuple[LinkEndpoint, ...]:
+        """The configured links, or the SITL defaults for ``n_links`` links."""
+        if self.links:
+            return self.links
+        return tuple(LinkEndpoint(i + 1, f"udpin://{host}:{14540 + i}") for i in range(n_links))
 
     @property
     def params(self) -> CAParams:
@@ -136,6 +181,7 @@ class Scenario:
     wind: WindConfig = field(default_factory=WindConfig)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    origin: GeoOrigin = field(default_factory=GeoOrigin)
 
     def __post_init__(self) -> None:
         if not self.duration_s > 0:
@@ -146,6 +192,10 @@ class Scenario:
         rate_divisor(self.firmware.rate_hz, self.sensors.gps_rate_hz, "sensors.gps_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.attitude_rate_hz, "sensors.attitude_rate_hz")
         self.companion.group_layout(self.skeleton.n_links)
+        if self.companion.links and len(self.companion.links) != self.skeleton.n_links:
+            raise ValueError(
+                f"companion.links lists {len(self.companion.links)} links, the skeleton has {self.skeleton.n_links}"
+            )
         if self.rotors.thrust_max_n != self.firmware.allocation.thrust_max_n:
             raise ValueError(
                 f"firmware.allocation.thrust_max_n ({self.firmware.allocation.thrust_max_n}) must equal "

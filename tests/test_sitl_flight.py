@@ -15,7 +15,7 @@ from link_firmware_sim.allocation import RotorGeometry
 from link_firmware_sim.control import LinkInertia, PoseTarget
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from sitl.fly import fly
-from sitl.model import SkeletonConfig, StartPose
+from sitl.skeleton import SkeletonConfig, StartPose
 from sitl.runner import BatchRunner
 from sitl.scenario import CompanionConfig, Scenario, SensorConfig, load_scenario
 from sitl.sensors import PROFILES, LinkSensors

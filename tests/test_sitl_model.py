@@ -4,7 +4,8 @@ import pytest
 
 from companion.estimation.so3 import quat_to_rotmat
 from link_firmware_sim.allocation import Allocator, RotorGeometry
-from sitl.model import SkeletonConfig, SkeletonModel, StartPose, link_inertia
+from sitl.model import SkeletonModel
+from sitl.skeleton import SkeletonConfig, StartPose, link_inertia
 from sitl.rotor import RotorParams
 
 

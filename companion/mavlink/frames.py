@@ -47,12 +47,18 @@ UPPER_9 = np.triu_indices(9)
 def enu_ned(v: np.ndarray) -> np.ndarray:
     """World vector ENU -> NED, or NED -> ENU (the map is its own inverse)."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector (the per-message case): avoid numpy's per-call overhead
+        x, y, z = v.tolist()
+        return np.array((y, x, -z))
     return np.stack((v[..., 1], v[..., 0], -v[..., 2]), axis=-1)
 
 
 def flu_frd(v: np.ndarray) -> np.ndarray:
     """Body vector FLU -> FRD, or FRD -> FLU."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:
+        x, y, z = v.tolist()
+        return np.array((x, -y, -z))
     return np.stack((v[..., 0], -v[..., 1], -v[..., 2]), axis=-1)
 
 

@@ -56,14 +56,16 @@ def _check(name: str, values) -> np.ndarray:
     return a
 
 
+_MAG_FIELD_ENU = enu_ned(MAG_FIELD_NED_GAUSS)
+
+
 def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, q_enu_flu):
     """HIL_SENSOR from body-frame specific force and rate (and the attitude, for the magnetometer)."""
-    acc = flu_frd(accel_flu_m_s2)
-    gyr = flu_frd(gyro_flu_rad_s)
-    R_ned_frd = quat_to_rotmat(quat_enu_flu_to_ned_frd(q_enu_flu))
-    mag = R_ned_frd.T @ MAG_FIELD_NED_GAUSS
+    ax, ay, az = np.asarray(accel_flu_m_s2, dtype=float).tolist()
+    gx, gy, gz = np.asarray(gyro_flu_rad_s, dtype=float).tolist()
+    mx, my, mz = (quat_to_rotmat(q_enu_flu).T @ _MAG_FIELD_ENU).tolist()  # body FLU
     return _D.MAVLink_hil_sensor_message(
-        usec(t_s), *acc.tolist(), *gyr.tolist(), *mag.tolist(),
+        usec(t_s), ax, -ay, -az, gx, -gy, -gz, mx, -my, -mz,  # FLU -> FRD
         1013.25, 0.0, 0.0, 20.0, _HIL_SENSOR_ACCEL_GYRO_MAG, 0,
     )
 
@@ -116,6 +118,8 @@ def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool):
 
 
 def decode_actuators(msg, thrust_max_n: float) -> tuple[int, np.ndarray]:
-    """``(time_usec, thrust (8,) [N])``."""
-    u = _check("HIL_ACTUATOR_CONTROLS.controls", msg.controls[:ROTORS_PER_LINK])
-    return int(msg.time_usec), np.clip(u, -1.0, 1.0) * thrust_max_n
+    """``(time_usec, thrust (8,) [N])``; non-finite controls are rejected."""
+    u = msg.controls[:ROTORS_PER_LINK]
+    if not all(math.isfinite(x) for x in u):
+        raise MessageError("HIL_ACTUATOR_CONTROLS.controls: non-finite value")
+    return int(msg.time_usec), np.array([min(max(x, -1.0), 1.0) * thrust_max_n for x in u])

@@ -64,13 +64,30 @@ class PortStats:
 
 
 class Transport:
-    """Byte transport; subclasses implement ``recv_all`` (non-blocking) and ``send``."""
+    """Byte transport; subclasses implement ``recv_all`` (non-blocking) and ``send``.
+
+    ``recv_chunks`` returns what arrived as ``(bytes, sender)`` pieces: one per datagram on UDP
+    (frames never span datagrams there), one piece with sender ``None`` on streams.
+    """
+
+    datagram = False
 
     def fileno(self) -> int:
         raise NotImplementedError
 
     def recv_all(self) -> bytes:
         raise NotImplementedError
+
+    def recv_chunks(self) -> list[tuple[bytes, tuple | None]]:
+        data = self.recv_all()
+        return [(data, None)] if data else []
+
+    def learn_peer(self, addr) -> None:
+        """Reply to ``addr`` from now on (UDP listeners only)."""
+
+    def local_port(self) -> int | None:
+        """The bound local port (sockets), for URLs given with port 0."""
+        return None
 
     def send(self, data: bytes) -> None:
         raise NotImplementedError
@@ -84,6 +101,8 @@ class Transport:
 
 
 class _Udp(Transport):
+    datagram = True
+
     def __init__(self, bind: tuple[str, int] | None, remote: tuple[str, int] | None):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -99,7 +118,7 @@ class _Udp(Transport):
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def recv_all(self) -> bytes:
+    def recv_chunks(self) -> list[tuple[bytes, tuple | None]]:
         chunks = []
         while True:
             try:
@@ -108,10 +127,18 @@ class _Udp(Transport):
                 break
             except ConnectionRefusedError:  # ICMP from an earlier send to a closed port
                 continue
-            chunks.append(data)
-            if not self._fixed_remote:
-                self.remote = addr
-        return b"".join(chunks)
+            chunks.append((data, addr))
+        return chunks
+
+    def recv_all(self) -> bytes:
+        return b"".join(data for data, _ in self.recv_chunks())
+
+    def learn_peer(self, addr) -> None:
+        if not self._fixed_remote:
+            self.remote = addr
+
+    def local_port(self) -> int:
+        return self.sock.getsockname()[1]
 
     def send(self, data: bytes) -> None:
         if self.remote is None:
@@ -144,6 +171,9 @@ class _TcpServer(Transport):
 
     def fileno(self) -> int:
         return (self.conn or self.server).fileno()
+
+    def local_port(self) -> int:
+        return self.server.getsockname()[1]
 
     def _accept(self) -> None:
         try:
@@ -326,7 +356,7 @@ class MavlinkPort:
     """
 
     def __init__(self, url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
-                 tlog: TlogWriter | None = None, transport: Transport | None = None):
+                 tlog: TlogWriter | None = None, transport: Transport | None = None, peer_system_id: int | None = None):
         D = load_dialect()
         self.url = url
         self.transport = transport or open_transport(url)
@@ -335,7 +365,9 @@ class MavlinkPort:
         self.parser.robust_parsing = True
         self.accept = accept
         self.tlog = tlog
+        self.peer_system_id = peer_system_id
         self.stats = PortStats()
+        self._header_len = D.HEADER_LEN_V1
 
     @property
     def system_id(self) -> int:
@@ -345,10 +377,34 @@ class MavlinkPort:
         return self.transport.fileno()
 
     def read(self) -> list:
-        """Messages received since the last call that are whitelisted (never blocks)."""
-        data = self.transport.recv_all()
-        if not data:
-            return []
+        """Messages received since the last call that are whitelisted (never blocks).
+
+        A UDP listener learns where to reply only from a datagram that carried a valid frame
+        (from ``peer_system_id`` when set), so stray datagrams cannot redirect its replies.
+        """
+        out = []
+        for data, sender in self.transport.recv_chunks():
+            valid_from_peer = self._parse(data, out)
+            if self.transport.datagram:
+                self._drop_partial_frame()
+                if sender is not None and valid_from_peer:
+                    self.transport.learn_peer(sender)
+        return out
+
+    def _drop_partial_frame(self) -> None:
+        """Discard a frame left incomplete at the end of a datagram (frames never span datagrams)."""
+        p = self.parser
+        left = p.buf_len()
+        if left:
+            self.stats.dropped_bytes += left
+            self.stats.dropped_frames += 1
+        # Reset the parser's buffer state (the attributes MAVLink.__init__ sets).
+        p.buf = bytearray()
+        p.buf_index = 0
+        p.expected_length = self._header_len + 2
+        p.have_prefix_error = False
+
+    def _parse(self, data: bytes, out: list) -> bool:
         st = self.stats
         st.rx_bytes += len(data)
         st.last_rx_wall_s = time.monotonic()
@@ -358,8 +414,9 @@ class MavlinkPort:
             log.warning("%s: parser error %s", self.url, exc)
             st.dropped_bytes += len(data)
             st.dropped_frames += 1
-            return []
-        out = []
+            self._drop_partial_frame()
+            return False
+        valid_from_peer = False
         for m in msgs:
             kind = m.get_type()
             if kind == "BAD_DATA":
@@ -369,6 +426,8 @@ class MavlinkPort:
             if kind.startswith("UNKNOWN_"):
                 st.dropped_unknown += 1
                 continue
+            if self.peer_system_id is None or m.get_srcSystem() == self.peer_system_id:
+                valid_from_peer = True
             if self.accept is not None and kind not in self.accept:
                 st.ignored += 1
                 continue
@@ -377,7 +436,7 @@ class MavlinkPort:
             if self.tlog is not None:
                 self.tlog.write(bytes(m.get_msgbuf()))
             out.append(m)
-        return out
+        return valid_from_peer
 
     def send(self, msg) -> None:
         frame = msg.pack(self.mav)
@@ -391,6 +450,19 @@ class MavlinkPort:
         self.stats.tx_messages += 1
         if self.tlog is not None:
             self.tlog.write(frame)
+
+    def send_many(self, msgs) -> None:
+        """Send several messages in one write (a stream transport sees one segment)."""
+        frames = [m.pack(self.mav) for m in msgs]
+        try:
+            self.transport.send(b"".join(frames))
+        except OSError:
+            self.stats.tx_errors += 1
+            return
+        self.stats.tx_messages += len(frames)
+        if self.tlog is not None:
+            for frame in frames:
+                self.tlog.write(frame)
 
     def close(self) -> None:
         self.transport.close()

@@ -1,0 +1,363 @@
+"""The companion daemon: collects link states over MAVLink, applies the constraints, sends corrections.
+
+One daemon serves the links of its chain (or group): for each it holds a :class:`MavlinkPort`
+(UDP in SITL, serial on hardware). Everything runs on flight-controller time, the newest EKF
+stamp received:
+
+* every 1/``rate_hz`` s: the newest state of every link is time-aligned
+  (:func:`companion.corrections.align_states`), the semi-distributed constraint application runs,
+  and each link gets its correction (SKELETON_CORRECTION; in ``standard`` mode an external-vision
+  ODOMETRY with the corrected pose);
+* every 1/``target_rate_hz`` s: pose targets (SET_POSITION_TARGET_LOCAL_NED + SET_ATTITUDE_TARGET)
+  from the configured source;
+* once every link reports a usable EKF: ARM (COMMAND_LONG, retried until acknowledged) if enabled;
+* every ``health_period_s`` of wall time: a health table (per-link state rate, age, dropped
+  frames, correction latency) in the log.
+
+Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
+states that fail validation (non-finite, non-unit quaternion, covariance not positive definite)
+are counted per link and dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .corrections import compute_corrections
+from .estimation.chain import CON_DIM, CON_POS, CON_VEL
+from .estimation.constraints import constraint_residual
+from .estimation.so3 import quat_to_rotmat
+from .mavlink.codec import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, MessageError, decode_link_state, encode_correction, usec
+from .mavlink.dialect import load_dialect
+from .mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+from .mavlink.port import MavlinkPort, TlogWriter, wait_readable
+from .messages import LinkState
+
+# The target source and the configuration schema are shared with the SITL (pure modules, no simulator).
+from sitl.trajectory import ChainTrajectory  # noqa: E402
+
+__all__ = ["CompanionDaemon", "COMPANION_SYSTEM_ID", "odometry_to_link_state"]
+
+log = logging.getLogger(__name__)
+D = load_dialect()
+
+COMPANION_SYSTEM_ID = 190
+COMPANION_COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+#: A link whose newest state is this far behind the newest of the chain is not waited for.
+LAG_LIMIT_US = 100_000
+_ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT"})
+_UPPER_6 = np.triu_indices(6)
+
+
+def odometry_to_link_state(msg, link: int) -> LinkState:
+    """Standard-messages mode: a stock autopilot's ODOMETRY as a :class:`LinkState`.
+
+    The 9x9 covariance is assembled from ODOMETRY's pose covariance (position and attitude, the
+    attitude block read as a world small-angle covariance) and its body-frame velocity
+    covariance rotated to the local frame; the position-velocity cross terms are not carried by
+    ODOMETRY and are zero.
+    """
+    if msg.frame_id != D.MAV_FRAME_LOCAL_NED:
+        raise MessageError(f"ODOMETRY.frame_id: {msg.frame_id} (expected MAV_FRAME_LOCAL_NED)")
+    values = [msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz, *msg.q, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
+    if not all(math.isfinite(v) for v in values):
+        raise MessageError("ODOMETRY: non-finite value")
+    q = np.asarray(msg.q, dtype=float)
+    if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+        raise MessageError("ODOMETRY.q: not a unit quaternion")
+    pose = np.zeros((6, 6))
+    vel = np.zeros((6, 6))
+    pose[_UPPER_6] = msg.pose_covariance
+    vel[_UPPER_6] = msg.velocity_covariance
+    pose = pose + np.triu(pose, 1).T
+    vel = vel + np.triu(vel, 1).T
+    if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(vel))):
+        raise MessageError("ODOMETRY: covariance unknown (NaN)")
+    R = quat_to_rotmat(q)
+    P = np.zeros((9, 9))
+    idx = [0, 1, 2, 6, 7, 8]
+    P[np.ix_(idx, idx)] = pose
+    P[3:6, 3:6] = R @ vel[:3, :3] @ R.T
+    P = error_cov_enu_ned(P)
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise MessageError("ODOMETRY: covariance not positive definite") from None
+    v_ned = R @ np.array([msg.vx, msg.vy, msg.vz])
+    return LinkState(link, msg.time_usec * 1e-6, enu_ned([msg.x, msg.y, msg.z]), enu_ned(v_ned),
+                     quat_ned_frd_to_enu_flu(q / np.linalg.norm(q)),
+                     flu_frd([msg.rollspeed, msg.pitchspeed, msg.yawspeed]), P)
+
+
+@dataclass
+class _Link:
+    index: int
+    system_id: int
+    port: MavlinkPort
+    state: LinkState | None = None
+    flags: int = 0
+    rejected: int = 0
+    states: int = 0
+    states_at_report: int = 0
+    last_state_wall: float = 0.0
+    arm_sent_wall: float = -1e9
+    armed_ack: bool = False
+    correction_seq: int = -1
+    latencies_ms: list = field(default_factory=list)
+    latency_window_ms: list = field(default_factory=list)
+
+
+class CompanionDaemon:
+    """See the module docstring. ``scenario`` is a :class:`sitl.scenario.Scenario` (one schema
+    for SITL and hardware); ``start_center`` anchors the trajectory (default: the chain's
+    estimated middle when the links first report)."""
+
+    def __init__(self, scenario, out_dir: Path | None = None, start_center=None):
+        self.sc = scenario
+        cfg = scenario.companion
+        self.cfg = cfg
+        n = scenario.skeleton.n_links
+        self.n = n
+        self.d = scenario.skeleton.d_b_m
+        self.groups = cfg.group_layout(n)
+        self.params = cfg.params
+        self.out_dir = out_dir
+        tlog = TlogWriter(out_dir / "companion.tlog") if out_dir is not None else None
+        self.links = [
+            _Link(i, ep.system_id, MavlinkPort(ep.url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID, _ACCEPT, tlog,
+                                               peer_system_id=ep.system_id))
+            for i, ep in enumerate(cfg.endpoints(n))
+        ]
+        self._by_sysid = {lk.system_id: lk for lk in self.links}
+        self.period_us = int(round(1e6 / cfg.rate_hz))
+        self.target_period_us = int(round(1e6 / cfg.target_rate_hz))
+        self.fc_time_us = 0
+        self.next_step_us: int | None = None
+        self.next_target_us: int | None = None
+        self.seq = 0
+        self.trajectory = None
+        self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
+        self._next_health_wall = time.monotonic() + cfg.health_period_s
+        self._rows: dict[str, list] = {k: [] for k in (
+            "t_sckf", "con_pos_before", "con_vel_before", "con_pos_after", "con_vel_after", "p_ekf_sckf",
+            "p_corr_sckf", "iterations")}
+        self.step_times_ms: list[float] = []
+        self._stop = False
+
+    # -- input ---------------------------------------------------------------------------------------
+    def _on_message(self, link: _Link, msg) -> None:
+        kind = msg.get_type()
+        if msg.get_srcSystem() != link.system_id:
+            link.port.stats.ignored += 1
+            return
+        if kind == "HEARTBEAT":
+            return
+        if kind == "COMMAND_ACK":
+            if msg.command == D.MAV_CMD_COMPONENT_ARM_DISARM and msg.result == D.MAV_RESULT_ACCEPTED:
+                link.armed_ack = True
+            return
+        if kind == "STATUSTEXT":
+            log.info("link %d: %s", link.index + 1, msg.text)
+            return
+        try:
+            if kind == "SKELETON_LINK_STATE" and self.cfg.mode == "dialect":
+                state = decode_link_state(msg, link.index)
+                link.flags = msg.flags
+                if msg.correction_seq != link.correction_seq and msg.correction_seq > 0:
+                    link.correction_seq = msg.correction_seq
+                    link.latencies_ms.append(msg.correction_latency_us * 1e-3)
+                    link.latency_window_ms.append(msg.correction_latency_us * 1e-3)
+            elif kind == "ODOMETRY" and self.cfg.mode == "standard":
+                state = odometry_to_link_state(msg, link.index)
+                link.flags = STATE_FLAG_EKF_OK
+            else:
+                link.port.stats.ignored += 1
+                return
+        except MessageError as exc:
+            link.rejected += 1
+            log.warning("link %d: rejected %s: %s", link.index + 1, kind, exc)
+            return
+        link.state = state
+        link.states += 1
+        link.last_state_wall = time.monotonic()
+        self.fc_time_us = max(self.fc_time_us, usec(state.time_s))
+
+    # -- the 20 Hz step ---------------------------------------------------------------------------------
+    def _all_states(self) -> bool:
+        return all(lk.state is not None for lk in self.links)
+
+    def _step(self) -> None:
+        states = [lk.state for lk in self.links]
+        t0 = time.perf_counter()
+        try:
+            result, corrections = compute_corrections(states, self.d, self.groups, self.params, self.seq)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("constraint application failed at t = %.3f s: %s", self.fc_time_us * 1e-6, exc)
+            return
+        self.step_times_ms.append((time.perf_counter() - t0) * 1e3)
+        self.seq = (self.seq + 1) & 0xFFFF or 1
+        for lk, corr in zip(self.links, corrections):
+            if self.cfg.mode == "dialect":
+                lk.port.send(encode_correction(corr, lk.system_id, 1))
+            else:
+                lk.port.send(self._vision_odometry(lk, result, corr.link))
+        self._record(states, result)
+
+    def _vision_odometry(self, lk: _Link, result, i: int):
+        """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD)."""
+        q = quat_enu_flu_to_ned_frd(result.q[i])
+        R = quat_to_rotmat(q)
+        v_body = R.T @ enu_ned(result.v[i])
+        P = result.P[i]
+        cov = np.full(21, 0.0)
+        idx = [0, 1, 2, 6, 7, 8]
+        cov[:] = error_cov_enu_ned(P)[np.ix_(idx, idx)][_UPPER_6]
+        vcov = np.zeros((6, 6))
+        vcov[:3, :3] = R.T @ error_cov_enu_ned(P)[3:6, 3:6] @ R
+        vcov[3:, 3:] = np.eye(3) * 1e-4
+        return D.MAVLink_odometry_message(
+            usec(lk.state.time_s), D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_BODY_FRD, *enu_ned(result.p[i]).tolist(),
+            q.tolist(), *v_body.tolist(), math.nan, math.nan, math.nan, cov.tolist(), vcov[_UPPER_6].tolist(),
+            0, D.MAV_ESTIMATOR_TYPE_VISION, 100,
+        )
+
+    def _record(self, states, result) -> None:
+        p = np.stack([s.p_w_m for s in states])
+        v = np.stack([s.v_w_m_s for s in states])
+        q = np.stack([s.q_wxyz for s in states])
+        w = np.stack([s.omega_b_rad_s for s in states])
+        r = self._rows
+        r["t_sckf"].append(self.fc_time_us * 1e-6)
+        r["p_ekf_sckf"].append(p)
+        r["p_corr_sckf"].append(result.p)
+        r["iterations"].append(int(result.iterations.max()))
+        if self.n > 1:
+            for tag, (pp, vv, qq) in (("before", (p, v, q)), ("after", (result.p, result.v, result.q))):
+                c = constraint_residual(pp, vv, qq, w, self.d).reshape(-1, CON_DIM)
+                r[f"con_pos_{tag}"].append(np.linalg.norm(c[:, CON_POS], axis=1))
+                r[f"con_vel_{tag}"].append(np.linalg.norm(c[:, CON_VEL], axis=1))
+
+    # -- targets and arming --------------------------------------------------------------------------------
+    def _send_targets(self) -> None:
+        if self.trajectory is None:
+            center = self._start_center
+            if center is None:
+                p = np.stack([lk.state.p_w_m for lk in self.links])
+                mid = self.n // 2
+                center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
+            self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
+        t = self.fc_time_us * 1e-6
+        boot_ms = int(t * 1000) & 0xFFFFFFFF
+        for lk, target in zip(self.links, self.trajectory.targets(t)):
+            p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
+            lk.port.send(D.MAVLink_set_position_target_local_ned_message(
+                boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
+                *a.tolist(), 0.0, 0.0))
+            rates = flu_frd(target.omega_d_rad_s).tolist()
+            lk.port.send(D.MAVLink_set_attitude_target_message(
+                time_boot_ms=boot_ms, target_system=lk.system_id, target_component=1, type_mask=0,
+                q=quat_enu_flu_to_ned_frd(target.q_wxyz).tolist(), body_roll_rate=rates[0],
+                body_pitch_rate=rates[1], body_yaw_rate=rates[2], thrust=0.0))
+
+    def _arm(self) -> None:
+        if not self.cfg.arm or not self._all_states():
+            return
+        now = time.monotonic()
+        for lk in self.links:
+            if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK or now - lk.arm_sent_wall < 1.0:
+                continue
+            lk.port.send(D.MAVLink_command_long_message(lk.system_id, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                                        1, 0, 0, 0, 0, 0, 0))
+            lk.arm_sent_wall = now
+
+    # -- health -------------------------------------------------------------------------------------------
+    def health_table(self, period_s: float) -> str:
+        rows = [f"{'link':>4} {'sysid':>5} {'state Hz':>8} {'age ms':>7} {'dropped':>7} {'rejected':>8} "
+                f"{'lat p50 ms':>10} {'lat p99 ms':>10}"]
+        now = time.monotonic()
+        for lk in self.links:
+            rate = (lk.states - lk.states_at_report) / period_s
+            lk.states_at_report = lk.states
+            age = (now - lk.last_state_wall) * 1e3 if lk.last_state_wall else float("nan")
+            lat = np.asarray(lk.latency_window_ms)
+            lk.latency_window_ms = []
+            p50 = f"{np.percentile(lat, 50):10.1f}" if lat.size else f"{'-':>10}"
+            p99 = f"{np.percentile(lat, 99):10.1f}" if lat.size else f"{'-':>10}"
+            rows.append(f"{lk.index + 1:>4} {lk.system_id:>5} {rate:8.1f} {age:7.0f} {lk.port.stats.dropped:7d} "
+                        f"{lk.rejected:8d} {p50} {p99}")
+        return "\n".join(rows)
+
+    # -- main loop ---------------------------------------------------------------------------------------
+    def poll(self, timeout_s: float) -> None:
+        ready = wait_readable([lk.port for lk in self.links], timeout_s)
+        for lk in self.links:
+            if lk.port in ready:
+                for msg in lk.port.read():
+                    self._on_message(lk, msg)
+        if not self._all_states():
+            return
+        t = self.fc_time_us
+        if self.next_step_us is None:
+            self.next_step_us = t
+            self.next_target_us = t
+        if self.cfg.targets == "trajectory" and t >= self.next_target_us:
+            self._send_targets()
+            self.next_target_us += self.target_period_us * max(1, (t - self.next_target_us) // self.target_period_us + 1)
+        if self.sc.companion.enabled and t >= self.next_step_us:
+            newest = [usec(lk.state.time_s) for lk in self.links]
+            # Step once every link has reported for this step time (a coherent snapshot); a link
+            # lagging more than LAG_LIMIT behind the others is not waited for (its state is
+            # propagated by the time alignment), so one silent link degrades the step, never stalls it.
+            if min(newest) >= self.next_step_us or max(newest) - min(newest) > LAG_LIMIT_US:
+                self._step()
+                self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
+        self._arm()
+        now = time.monotonic()
+        if now >= self._next_health_wall:
+            log.info("health (last %.0f s):\n%s", self.cfg.health_period_s, self.health_table(self.cfg.health_period_s))
+            self._next_health_wall = now + self.cfg.health_period_s
+
+    def stop(self, *_args) -> None:
+        self._stop = True
+
+    def run(self, duration_s: float | None = None) -> None:
+        signal.signal(signal.SIGTERM, self.stop)
+        signal.signal(signal.SIGINT, self.stop)
+        end = None if duration_s is None else time.monotonic() + duration_s
+        log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s", self.n,
+                 ", ".join(lk.port.url for lk in self.links), self.cfg.mode, self.cfg.rate_hz, self.groups)
+        try:
+            while not self._stop and (end is None or time.monotonic() < end):
+                self.poll(0.05)
+        finally:
+            self.close()
+
+    def summary(self) -> dict:
+        lat = np.concatenate([np.asarray(lk.latencies_ms) for lk in self.links]) if self.links else np.zeros(0)
+        steps = np.asarray(self.step_times_ms)
+        return {
+            "steps": int(steps.size),
+            "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
+            "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+                                      "samples": int(lat.size)} if lat.size else None,
+            "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, **vars(lk.port.stats)}
+                      for lk in self.links},
+        }
+
+    def close(self) -> None:
+        summary = self.summary()
+        log.info("companion summary: %s", json.dumps({k: summary[k] for k in ("steps", "step_ms", "correction_latency_ms")}))
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(self.out_dir / "companion_log.npz", **{k: np.asarray(v) for k, v in self._rows.items() if v})
+            (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
+        for lk in self.links:
+            lk.port.close()

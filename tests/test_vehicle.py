@@ -1,0 +1,227 @@
+"""The vehicle's MAVLink services, driven in-process over real loopback sockets."""
+
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from companion.estimation.so3 import quat_from_euler_zyx
+from companion.geo import GeoOrigin
+from companion.mavlink.codec import encode_correction
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
+from companion.mavlink.port import MavlinkPort
+from companion.messages import Correction
+from link_firmware_sim.allocation import RotorGeometry
+from link_firmware_sim.control import LinkInertia
+from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+from link_firmware_sim.params import ParamTable, StreamRates
+from link_firmware_sim.vehicle import Vehicle, VehiclePorts
+
+D = load_dialect()
+ORIGIN = GeoOrigin()
+LEVEL = quat_from_euler_zyx(0.0, 0.0, 0.0)
+
+
+class Rig:
+    """A vehicle (sysid 2) plus a fake simulator (TCP) and a fake GCS (UDP)."""
+
+    def __init__(self, tmp_path, params_file=None):
+        self.gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190)
+        gcs_port = self.gcs.transport.local_port()
+        fw = LinkFirmware(1, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
+        params = ParamTable(2, FirmwareConfig(), ORIGIN, StreamRates(50.0, 0.0), params_file or tmp_path / "p.json")
+        ports = VehiclePorts(sim="tcpin://127.0.0.1:0", onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
+        self.vehicle = Vehicle(1, fw, params, ports, tmp_path / "out")
+        sim_port = self.vehicle.sim.transport.local_port()
+        self.sim = MavlinkPort(f"tcpout://127.0.0.1:{sim_port}", system_id=250, component_id=1)
+        self.t = 0.0
+        self.vehicle.poll(0.01)  # accept the simulator connection
+
+    def tick(self, gps=False, ahrs=False):
+        """One lockstep tick: sensors in, actuators out (returns the thrusts)."""
+        self.t = round(self.t + 0.002, 6)
+        msgs = []
+        if gps:
+            msgs.append(encode_hil_gps(self.t, np.array([0.0, 0.0, 2.0]), np.zeros(3), ORIGIN))
+        if ahrs:
+            msgs.append(encode_ahrs(self.t, LEVEL))
+        msgs.append(encode_hil_sensor(self.t, np.array([0.0, 0.0, 9.80665]), np.zeros(3), LEVEL))
+        self.sim.send_many(msgs)
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            self.vehicle.poll(0.01)
+            for msg in self.sim.read():
+                t_us, thrust = decode_actuators(msg, 8.0)
+                assert t_us == int(round(self.t * 1e6))
+                return thrust
+        raise AssertionError("no actuator answer")
+
+    def start(self, seconds=0.2):
+        self.tick(gps=True, ahrs=True)
+        for k in range(int(seconds / 0.002)):
+            self.tick(gps=k % 50 == 0, ahrs=k % 10 == 0)
+
+    def gcs_send(self, msg):
+        # udpin learns its peer from the vehicle's first valid datagram (a heartbeat)
+        deadline = time.monotonic() + 2.0
+        while not self.gcs.transport.connected:
+            assert time.monotonic() < deadline, "no heartbeat reached the GCS port"
+            self.tick()
+            self.gcs.read()
+        self.gcs.send(msg)
+
+    def gcs_collect(self, seconds=0.3):
+        """Run ``seconds`` of simulated time, returning what reached the GCS."""
+        out = []
+        for _ in range(int(round(seconds / 0.002))):
+            self.tick()
+            out += self.gcs.read()
+        end = time.monotonic() + 0.05
+        while time.monotonic() < end:  # drain what is still in flight
+            self.vehicle.poll(0.005)
+            out += self.gcs.read()
+        return out
+
+    def close(self):
+        self.vehicle.close()
+        self.sim.close()
+        self.gcs.close()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    yield r
+    r.close()
+
+
+def _types(msgs):
+    return [m.get_type() for m in msgs]
+
+
+def test_heartbeat_and_answer_before_ekf_start(rig):
+    thrust = rig.tick()  # no GPS yet: the EKF waits, the lockstep still gets an answer
+    np.testing.assert_array_equal(thrust, 0.0)
+    msgs = rig.gcs_collect(0.2)
+    hb = [m for m in msgs if m.get_type() == "HEARTBEAT"]
+    assert hb and hb[0].get_srcSystem() == 2 and hb[0].autopilot == D.MAV_AUTOPILOT_GENERIC
+    assert hb[0].type == D.MAV_TYPE_OCTOROTOR
+
+
+def test_arming_is_refused_until_the_ekf_runs_then_accepted(rig):
+    rig.gcs_collect(0.05)  # let the GCS port learn the vehicle's address
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    acks = [m for m in rig.gcs_collect(0.1) if m.get_type() == "COMMAND_ACK"]
+    assert acks[0].result == D.MAV_RESULT_TEMPORARILY_REJECTED
+    rig.start()
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    acks = [m for m in rig.gcs_collect(0.1) if m.get_type() == "COMMAND_ACK"]
+    assert acks[0].result == D.MAV_RESULT_ACCEPTED and rig.vehicle.fw.armed
+    thrust = rig.tick()
+    assert np.abs(thrust).sum() > 10.0  # armed: carrying its weight
+
+
+def test_parameter_protocol_and_persistence(tmp_path):
+    rig = Rig(tmp_path)
+    try:
+        rig.start()
+        rig.gcs_send(D.MAVLink_param_request_list_message(2, 1))
+        values = [m for m in rig.gcs_collect(0.2) if m.get_type() == "PARAM_VALUE"]
+        names = {m.param_id for m in values}
+        assert {"IMP_KP_Z", "COM_OF_LOSS_T", "SKL_STATE_HZ", "MAV_SYS_ID"} <= names
+        assert all(m.param_count == len(rig.vehicle.params.names) for m in values)
+        sysid = next(m for m in values if m.param_id == "MAV_SYS_ID")
+        assert sysid.param_type == D.MAV_PARAM_TYPE_INT32
+        assert struct.unpack("<i", struct.pack("<f", sysid.param_value))[0] == 2  # bytewise int encoding
+        rig.gcs_send(D.MAVLink_param_set_message(2, 1, b"IMP_KP_Z", 14.5, D.MAV_PARAM_TYPE_REAL32))
+        reply = [m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE"]
+        assert reply[0].param_id == "IMP_KP_Z" and reply[0].param_value == pytest.approx(14.5)
+        assert rig.vehicle.fw.config.gains.kp_n_m[2] == pytest.approx(14.5)
+        # out of range: refused, the old value is reported back
+        rig.gcs_send(D.MAVLink_param_set_message(2, 1, b"IMP_KP_Z", -3.0, D.MAV_PARAM_TYPE_REAL32))
+        reply = [m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE"]
+        assert reply[0].param_value == pytest.approx(14.5)
+        rig.gcs_send(D.MAVLink_param_request_read_message(2, 1, b"COM_OF_LOSS_T", -1))
+        reply = [m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE"]
+        assert reply[0].param_id == "COM_OF_LOSS_T"
+    finally:
+        rig.close()
+    again = Rig(tmp_path)  # same parameter file: the change persisted
+    try:
+        assert again.vehicle.params.values["IMP_KP_Z"] == pytest.approx(14.5)
+        assert again.vehicle.fw.config.gains.kp_n_m[2] == pytest.approx(14.5)
+    finally:
+        again.close()
+
+
+def test_message_interval_request_message_and_unsupported_commands(rig):
+    rig.start()
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                D.MAVLINK_MSG_ID_ATTITUDE, 20000, 0, 0, 0, 0, 0))
+    msgs = rig.gcs_collect(0.4)
+    ack = [m for m in msgs if m.get_type() == "COMMAND_ACK"][0]
+    assert ack.command == D.MAV_CMD_SET_MESSAGE_INTERVAL and ack.result == D.MAV_RESULT_ACCEPTED
+    att = [m for m in rig.gcs_collect(0.3) if m.get_type() == "ATTITUDE"]
+    times = np.diff([m.time_boot_ms for m in att])
+    assert np.all(times == 20)  # 50 Hz on flight-controller time
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                D.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
+    msgs = rig.gcs_collect(0.1)
+    assert "AUTOPILOT_VERSION" in _types(msgs)
+    assert [m for m in msgs if m.get_type() == "AUTOPILOT_VERSION"][0].capabilities & D.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 5))
+    ack = [m for m in rig.gcs_collect(0.1) if m.get_type() == "COMMAND_ACK"][0]
+    assert ack.result == D.MAV_RESULT_UNSUPPORTED
+
+
+def test_link_state_stream_and_correction_latency(rig):
+    rig.start()
+    states = [m for m in rig.gcs_collect(0.2) if m.get_type() == "SKELETON_LINK_STATE"]
+    assert len(states) >= 5 and states[-1].flags & D.SKELETON_STATE_FLAGS_EKF_OK
+    t_state = states[-1].time_usec * 1e-6
+    corr = Correction(1, t_state, np.array([0.1, 0.0, 0.0]), np.zeros(3), np.zeros(3), seq=7)
+    rig.gcs_send(encode_correction(corr, target_system=2))
+    after = [m for m in rig.gcs_collect(0.1) if m.get_type() == "SKELETON_LINK_STATE"]
+    assert after[-1].correction_seq == 7
+    first = next(m for m in after if m.correction_seq == 7)
+    assert 0 < first.correction_latency_us < 20_000
+    assert first.flags & D.SKELETON_STATE_FLAGS_CORRECTION_ACTIVE
+    # a correction for another system is not acted on
+    rig.gcs_send(encode_correction(Correction(1, t_state, np.ones(3), np.zeros(3), np.zeros(3), seq=9), target_system=3))
+    after = [m for m in rig.gcs_collect(0.1) if m.get_type() == "SKELETON_LINK_STATE"]
+    assert after[-1].correction_seq == 7
+
+
+def test_targets_from_mavlink_and_stale_target_hold(rig):
+    rig.start()
+    rig.vehicle.fw.arm(rig.t)
+    rig.gcs_send(D.MAVLink_set_position_target_local_ned_message(0, 2, 1, D.MAV_FRAME_LOCAL_NED, 0b110000000000,
+                                                                  1.0, 2.0, -3.0, 0, 0, 0, 0, 0, 0, 0, 0))
+    rig.gcs_collect(0.05)
+    target = rig.vehicle.fw.target
+    np.testing.assert_allclose(target.p_w_m, [2.0, 1.0, 3.0])  # NED -> ENU
+    # 1.1 s of simulated time without new targets: position hold at the current estimate
+    for _ in range(600):
+        rig.tick()
+    hold = rig.vehicle.fw._active_target(rig.t, rig.vehicle.fw.ekf.p_w_m)
+    assert hold is not target and np.linalg.norm(hold.p_w_m - [2.0, 1.0, 3.0]) > 0.5
+
+
+def test_garbage_is_counted_and_dropped(rig):
+    rig.start()
+    rng = np.random.default_rng(0)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    onboard = rig.vehicle.endpoints[0].port.transport.local_port()
+    good = encode_correction(Correction(1, 0.0, np.zeros(3), np.zeros(3), np.zeros(3), seq=1), 2).pack(
+        D.MAVLink(None, srcSystem=255, srcComponent=1))
+    for k in range(200):
+        raw.sendto(rng.bytes(1000), ("127.0.0.1", onboard))
+        raw.sendto(good[: 5 + k % 20], ("127.0.0.1", onboard))  # truncated frames
+    raw.close()
+    rig.gcs_collect(0.3)
+    stats = rig.vehicle.endpoints[0].port.stats
+    assert stats.dropped_bytes > 100_000 and stats.dropped > 100
+    assert rig.vehicle.fw.initialized and np.all(np.isfinite(rig.tick()))
