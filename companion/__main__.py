@@ -2,16 +2,19 @@
 
     python -m companion --config FILE [--out DIR] [--start-center X,Y,Z] [--duration S]
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
+    python -m companion dialect
 
 The first form runs the daemon: it connects to the links of the config's ``[companion]``
 section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
-20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. Exit codes: 0 success,
-2 bad input (the message names the file, key and reason).
+20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. ``dialect`` prints the
+environment that lets MAVProxy, MAVExplorer and mavlogdump decode the project's messages.
+Exit codes: 0 success, 2 bad input (the message names the file, key and reason).
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -20,7 +23,7 @@ from tqdm import tqdm
 from .estimation.sckf import CAParams
 from .estimation.semi import parse_groups, validate_groups
 from .replay import ReplayInputError, load_replay_input, replay, save_replay_output
-from .runtime import run_subcommand
+from .runtime import LOG_FORMAT, make_run_dir, run_subcommand
 
 
 EXIT_BAD_INPUT = 2
@@ -67,11 +70,24 @@ def _cmd_daemon(args) -> int:
             center = [float(x) for x in args.start_center.split(",")]
             if len(center) != 3:
                 raise ValueError("--start-center: expected X,Y,Z")
-        daemon = CompanionDaemon(scenario, Path(args.out) if args.out else None, center)
+        out_dir = make_run_dir(f"companion-{scenario.name}", args.out)
+        daemon = CompanionDaemon(scenario, out_dir, center)
     except (ConfigError, PortError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    handler = logging.FileHandler(out_dir / "companion.log")
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    logging.getLogger().addHandler(handler)
+    logging.getLogger(__name__).info("run folder %s (tlog, log, companion_summary.json)", out_dir)
     daemon.run(args.duration)
+    return 0
+
+
+def _cmd_dialect(args) -> int:
+    from .mavlink.dialect import tool_environment  # imports pymavlink, which the other commands may not need
+
+    for key, value in tool_environment().items():
+        print(f"export {key}={value}")
     return 0
 
 
@@ -81,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Companion computer of an aerial skeleton: SCKF constraint application and tools.",
     )
     parser.add_argument("--config", metavar="FILE", help="run the daemon with this config (SITL or hardware)")
-    parser.add_argument("--out", metavar="DIR", help="daemon: folder for its tlog, log and summary")
+    parser.add_argument("--out", metavar="DIR",
+                        help="daemon: run folder for its tlog, log and summary (default: runs/companion-<name>-<UTC time>)")
     parser.add_argument("--start-center", metavar="X,Y,Z", help="daemon: anchor of the target trajectory [m, ENU]")
     parser.add_argument("--duration", type=float, metavar="S", help="daemon: stop after S seconds of wall time")
     parser.set_defaults(func=_cmd_daemon)
@@ -107,6 +124,16 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--max-iter", type=int, default=CAParams.max_iter, metavar="N", help="CA iteration cap (default 20)")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.set_defaults(func=_cmd_replay)
+    dp = sub.add_parser(
+        "dialect",
+        help="print the environment for pymavlink tools (MAVProxy, MAVExplorer, mavlogdump) to decode the dialect",
+        description=(
+            "Prints export lines: eval \"$(python -m companion dialect)\" then e.g. "
+            "mavlogdump.py --dialect aerial_skeleton --types SKELETON_LINK_STATE run/link2/link2.tlog "
+            "(MAVExplorer and MAVProxy: the same environment)"
+        ),
+    )
+    dp.set_defaults(func=_cmd_dialect)
     return parser
 
 

@@ -10,6 +10,9 @@ stamp received:
   ODOMETRY with the corrected pose);
 * every 1/``target_rate_hz`` s: pose targets (SET_POSITION_TARGET_LOCAL_NED + SET_ATTITUDE_TARGET)
   from the configured source;
+* on each link's first heartbeat: SET_MESSAGE_INTERVAL for the state message it reads
+  (SKELETON_LINK_STATE, or ODOMETRY in ``standard`` mode) at ``state_rate_hz``, retried each
+  second until acknowledged;
 * once every link reports a usable EKF: ARM (COMMAND_LONG, retried until acknowledged) if enabled;
 * every ``health_period_s`` of wall time: a health table (per-link state rate, age, dropped
   frames, correction latency) in the log.
@@ -110,6 +113,8 @@ class _Link:
     last_state_wall: float = 0.0
     arm_sent_wall: float = -1e9
     armed_ack: bool = False
+    stream_sent_wall: float = -1e9
+    stream_acked: bool = False
     correction_seq: int = -1
     latencies_ms: list = field(default_factory=list)
     latency_window_ms: list = field(default_factory=list)
@@ -144,8 +149,10 @@ class CompanionDaemon:
         self.next_target_us: int | None = None
         self.seq = 0
         self.trajectory = None
+        self._trajectory_t0_us = 0
         self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
         self._next_health_wall = time.monotonic() + cfg.health_period_s
+        self._next_heartbeat_wall = 0.0
         self._rows: dict[str, list] = {k: [] for k in (
             "t_sckf", "con_pos_before", "con_vel_before", "con_pos_after", "con_vel_after", "p_ekf_sckf",
             "p_corr_sckf", "iterations")}
@@ -159,10 +166,16 @@ class CompanionDaemon:
             link.port.stats.ignored += 1
             return
         if kind == "HEARTBEAT":
+            self._request_stream(link)
             return
         if kind == "COMMAND_ACK":
             if msg.command == D.MAV_CMD_COMPONENT_ARM_DISARM and msg.result == D.MAV_RESULT_ACCEPTED:
                 link.armed_ack = True
+            elif msg.command == D.MAV_CMD_SET_MESSAGE_INTERVAL and not link.stream_acked:
+                link.stream_acked = True
+                if msg.result != D.MAV_RESULT_ACCEPTED:
+                    log.warning("link %d refused the state stream rate (MAV_RESULT %d): using its own rate",
+                                link.index + 1, msg.result)
             return
         if kind == "STATUSTEXT":
             log.info("link %d: %s", link.index + 1, msg.text)
@@ -254,9 +267,13 @@ class CompanionDaemon:
                 mid = self.n // 2
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
             self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
+            self._trajectory_t0_us = self.fc_time_us
         t = self.fc_time_us * 1e-6
         boot_ms = int(t * 1000) & 0xFFFFFFFF
-        for lk, target in zip(self.links, self.trajectory.targets(t)):
+        # Trajectory time starts when every link has first reported (on hardware the flight
+        # controllers have been up for a while; in SITL this is within a tick of t = 0).
+        t_traj = (self.fc_time_us - self._trajectory_t0_us) * 1e-6
+        for lk, target in zip(self.links, self.trajectory.targets(t_traj)):
             p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
             lk.port.send(D.MAVLink_set_position_target_local_ned_message(
                 boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
@@ -266,6 +283,15 @@ class CompanionDaemon:
                 time_boot_ms=boot_ms, target_system=lk.system_id, target_component=1, type_mask=0,
                 q=quat_enu_flu_to_ned_frd(target.q_wxyz).tolist(), body_roll_rate=rates[0],
                 body_pitch_rate=rates[1], body_yaw_rate=rates[2], thrust=0.0))
+
+    def _request_stream(self, lk: _Link) -> None:
+        now = time.monotonic()
+        if lk.stream_acked or now - lk.stream_sent_wall < 1.0:
+            return
+        mid = D.MAVLINK_MSG_ID_SKELETON_LINK_STATE if self.cfg.mode == "dialect" else D.MAVLINK_MSG_ID_ODOMETRY
+        lk.port.send(D.MAVLink_command_long_message(lk.system_id, 1, D.MAV_CMD_SET_MESSAGE_INTERVAL, 0, mid,
+                                                    1e6 / self.cfg.state_rate_hz, 0, 0, 0, 0, 0))
+        lk.stream_sent_wall = now
 
     def _arm(self) -> None:
         if not self.cfg.arm or not self._all_states():
@@ -280,7 +306,7 @@ class CompanionDaemon:
 
     # -- health -------------------------------------------------------------------------------------------
     def health_table(self, period_s: float) -> str:
-        rows = [f"{'link':>4} {'sysid':>5} {'state Hz':>8} {'age ms':>7} {'dropped':>7} {'rejected':>8} "
+        rows = [f"{'link':>4} {'sysid':>5} {'port':>4} {'state Hz':>8} {'age ms':>7} {'dropped':>7} {'rejected':>8} "
                 f"{'lat p50 ms':>10} {'lat p99 ms':>10}"]
         now = time.monotonic()
         for lk in self.links:
@@ -291,7 +317,8 @@ class CompanionDaemon:
             lk.latency_window_ms = []
             p50 = f"{np.percentile(lat, 50):10.1f}" if lat.size else f"{'-':>10}"
             p99 = f"{np.percentile(lat, 99):10.1f}" if lat.size else f"{'-':>10}"
-            rows.append(f"{lk.index + 1:>4} {lk.system_id:>5} {rate:8.1f} {age:7.0f} {lk.port.stats.dropped:7d} "
+            up = "up" if lk.port.transport.connected else "down"
+            rows.append(f"{lk.index + 1:>4} {lk.system_id:>5} {up:>4} {rate:8.1f} {age:7.0f} {lk.port.stats.dropped:7d} "
                         f"{lk.rejected:8d} {p50} {p99}")
         return "\n".join(rows)
 
@@ -302,6 +329,7 @@ class CompanionDaemon:
             if lk.port in ready:
                 for msg in lk.port.read():
                     self._on_message(lk, msg)
+        self._wall_clock_duties()
         if not self._all_states():
             return
         t = self.fc_time_us
@@ -320,7 +348,15 @@ class CompanionDaemon:
                 self._step()
                 self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
         self._arm()
+
+    def _wall_clock_duties(self) -> None:
+        """1 Hz heartbeat on every link (a MAVLink component) and the periodic health table."""
         now = time.monotonic()
+        if now >= self._next_heartbeat_wall:
+            for lk in self.links:
+                lk.port.send(D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
+                                                         0, 0, D.MAV_STATE_ACTIVE, 3))
+            self._next_heartbeat_wall = now + 1.0
         if now >= self._next_health_wall:
             log.info("health (last %.0f s):\n%s", self.cfg.health_period_s, self.health_table(self.cfg.health_period_s))
             self._next_health_wall = now + self.cfg.health_period_s

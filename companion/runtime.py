@@ -18,7 +18,7 @@ from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand"]
+__all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand"]
 
 
 def single_thread_blas():
@@ -41,11 +41,11 @@ def make_run_dir(kind: str, out: str | Path | None = None, root: str | Path = "r
     return path
 
 
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
 def setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
 
 
 def run_subcommand(parser: argparse.ArgumentParser, argv=None, usage_exit: int = 2, args=None) -> int:

@@ -160,7 +160,8 @@ class Vehicle:
         self._stop = False
 
     # -- streams -------------------------------------------------------------------------
-    def _set_default_streams(self) -> None:
+    def _default_rates(self, endpoint: int) -> dict[int, float]:
+        """Message id -> default rate [Hz] of endpoint 0 (onboard) or 1 (GCS)."""
         rates = self.params.rates()
         onboard = {
             D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: rates.state_hz,
@@ -174,8 +175,11 @@ class Vehicle:
             D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 5.0,
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
         }
-        for ep, table in zip(self.endpoints, (onboard, gcs)):
-            ep.streams = {mid: _Stream.at_rate(hz) for mid, hz in table.items() if hz > 0}
+        return onboard if endpoint == 0 else gcs
+
+    def _set_default_streams(self) -> None:
+        for k, ep in enumerate(self.endpoints):
+            ep.streams = {mid: _Stream.at_rate(hz) for mid, hz in self._default_rates(k).items() if hz > 0}
 
     def _builders(self):
         return {
@@ -478,10 +482,13 @@ class Vehicle:
             if mid not in builders or mid in (D.MAVLINK_MSG_ID_HEARTBEAT, D.MAVLINK_MSG_ID_AUTOPILOT_VERSION):
                 self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
                 return
+            if interval_us == 0:  # the default rate (MAVLink semantics)
+                hz = self._default_rates(self.endpoints.index(ep)).get(mid, 0.0)
+                interval_us = 1e6 / hz if hz > 0 else -1
             if interval_us < 0:
                 ep.streams.pop(mid, None)
-            elif interval_us > 0:
-                ep.streams[mid] = _Stream(int(interval_us), self.fc_time_us)
+            else:
+                ep.streams[mid] = _Stream(int(round(interval_us)), self.fc_time_us)
             self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
         elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             mid = int(msg.param1) if cmd == D.MAV_CMD_REQUEST_MESSAGE else D.MAVLINK_MSG_ID_AUTOPILOT_VERSION

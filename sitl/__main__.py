@@ -1,7 +1,7 @@
 """SITL command line.
 
     python -m sitl fly --config configs/sitl/three_link.toml [--duration S] [--no-sckf] [--out DIR]
-    python -m sitl launch --config configs/sitl/three_link.toml [--duration S] [--speed F] [--out DIR]
+    python -m sitl launch --config configs/sitl/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
 
 ``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
 20 Hz, in one process on one clock. ``launch`` is fleet mode: one MAVLink vehicle process per
@@ -21,7 +21,7 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.runtime import make_run_dir, run_subcommand
 
-from .fleet import FleetError, launch
+from .fleet import FleetError, check_fleet_scenario, launch
 from .fly import fly
 from .scenario import load_scenario
 
@@ -64,14 +64,15 @@ def _cmd_launch(args) -> int:
         overrides["seed"] = args.seed
     try:
         scenario = load_scenario(args.config, **overrides)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        check_fleet_scenario(scenario)
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {args.config}: {exc}" if isinstance(exc, ValueError) else f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
     try:
         with tqdm(total=scenario.duration_s, desc=f"{scenario.name} (fleet)", unit="sim s", disable=args.quiet,
                   file=sys.stderr, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
-            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update)
+            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -111,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
     la.add_argument("--speed", type=float, default=1.0, metavar="F",
                     help="pace at F times real time; 0 = as fast as the lockstep allows (default 1)")
+    la.add_argument("--no-companion", action="store_true",
+                    help="do not start the companion daemon: UDP 14540+i is free for your own (MAVSDK, MAVProxy)")
     la.add_argument("--out", metavar="DIR", help="run folder (default: runs/launch-<scenario>-<UTC time>)")
     la.add_argument("--quiet", action="store_true", help="no progress bar")
     la.set_defaults(func=_cmd_launch)

@@ -42,12 +42,13 @@ from .plots import write_plots
 from .runner import Plant, Schedule
 from .scenario import Scenario
 
-__all__ = ["FleetError", "FleetHarness", "endpoint_table", "launch"]
+__all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "endpoint_table", "launch"]
 
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
 STOP_GRACE_S = 10.0
+STARTUP_TIMEOUT_S = 30.0
 
 
 class FleetError(RuntimeError):
@@ -60,7 +61,7 @@ def endpoint_table(sc: Scenario, host: str = "127.0.0.1") -> str:
     for i in range(sc.skeleton.n_links):
         rows.append(f"{i + 1:>4} | {i + 1:>5} | {host}:{4560 + i:>5}    | {host}:{14540 + i} <- :{14580 + i}"
                     f"{'':>6} | {host}:14550 <- :{18570 + i}")
-    rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://0.0.0.0:14540+i (stop the companion first).")
+    rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://0.0.0.0:14540+i (launch with --no-companion).")
     return "\n".join(rows)
 
 
@@ -205,6 +206,29 @@ class _Processes:
                 proc.wait()
 
 
+def _udp_listening() -> set[int]:
+    """Local UDP ports with a bound socket (Linux: /proc/net/udp and udp6)."""
+    ports = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local = line.split()[1]  # "0100007F:38B4"
+            ports.add(int(local.rsplit(":", 1)[1], 16))
+    return ports
+
+
+def _wait_udp_listening(ports: list[int], procs: _Processes) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while not set(ports) <= _udp_listening():
+        procs.check()
+        if time.monotonic() > deadline:
+            raise FleetError(f"the companion did not open UDP {ports} within {STARTUP_TIMEOUT_S:.0f} s")
+        time.sleep(0.05)
+
+
 def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Align the vehicles', the companion's and the harness's logs on flight-controller time."""
     n = sc.skeleton.n_links
@@ -243,9 +267,18 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
     return merged, latency
 
 
+def check_fleet_scenario(sc: Scenario) -> None:
+    """``ValueError`` for a scenario that names its own companion links (a hardware config):
+    fleet mode wires the simulated links itself (PX4 SITL ports)."""
+    if sc.companion.links:
+        raise ValueError(f"companion.links names hardware endpoints ({sc.companion.links[0].url}, ...); "
+                         "fleet mode wires the simulated links itself: use a SITL config")
+
+
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
            companion: bool = True) -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``)."""
+    check_fleet_scenario(sc)
     out_dir.mkdir(parents=True, exist_ok=True)
     config = out_dir / "scenario.toml"
     config.write_text(dump_toml(sc))
@@ -264,17 +297,18 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             procs.start("companion", [python, "-m", "companion", "--config", str(config), "--out",
                                       str(out_dir / "companion"), "--start-center", center],
                         out_dir / "companion" / "console.log")
+            # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
+            _wait_udp_listening([14540 + i for i in range(n)], procs)
         print(endpoint_table(sc), flush=True)
         try:
             harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + i}" for i in range(n)], plant)
         except PortError as exc:
             procs.check()
             raise FleetError(str(exc)) from None
-        stop_flag = {"stop": False}
 
         def stop_check() -> bool:
-            procs.check()
-            return stop_flag["stop"]
+            procs.check()  # raises FleetError if a process died
+            return False
 
         try:
             harness.run(sc.duration_s, speed, progress, stop_check)
@@ -294,8 +328,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                               sc.companion.enabled and "t_sckf" in merged)
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
-        {"p50": float(np.percentile(lat, 50) * 1e3), "p99": float(np.percentile(lat, 99) * 1e3),
-         "max": float(lat.max() * 1e3), "samples": int(lat.size)} if lat.size else None
+        {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),
+         "max": round(float(lat.max() * 1e3), 3), "samples": int(lat.size)} if lat.size else None
     )
     metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed,
                    interrupted=interrupted)

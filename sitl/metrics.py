@@ -60,9 +60,12 @@ def compute_metrics(
     att_err = np.degrees(
         np.linalg.norm(attitude_error(log["q_true"][win], log["q_target"][win]), axis=-1)
     )
-    ts = log["t_sckf"]
-    wins = ts >= flight_start_s
-    ekf_err = np.linalg.norm(log["p_ekf_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
+    has_steps = "t_sckf" in log  # fleet mode without a companion has no constraint-step log
+    if has_steps:
+        wins = log["t_sckf"] >= flight_start_s
+        ekf_err = np.linalg.norm(log["p_ekf_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
+    else:
+        ekf_err = np.linalg.norm(log["p_ekf"][win] - log["p_true"][win], axis=-1)
     metrics = {
         "n_links": n,
         "flight_window_s": [float(flight_start_s), float(t[-1])],
@@ -80,10 +83,10 @@ def compute_metrics(
         "realtime_factor": float(realtime_factor),
         "sckf": bool(sckf_enabled),
     }
-    if n > 1:
+    if n > 1 and has_steps:
         metrics["constraint_pos_p95_m"]["before"] = _p95(log["con_pos_before"][wins])
         metrics["constraint_vel_p95_m_s"]["before"] = _p95(log["con_vel_before"][wins])
-    if sckf_enabled:
+    if sckf_enabled and has_steps:
         corr_err = np.linalg.norm(log["p_corr_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
         metrics["rms_est_err_m"]["sckf"] = _rms(corr_err).tolist()
         metrics["sckf_iterations_mean"] = float(np.mean(log["iterations"][wins]))

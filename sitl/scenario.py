@@ -82,9 +82,15 @@ class LinkEndpoint:
     def __post_init__(self) -> None:
         if not 1 <= self.system_id <= 250:
             raise ValueError(f"system_id must be in 1..250, got {self.system_id}")
-        scheme = self.url.split("://", 1)[0]
-        if scheme not in ("udpin", "udpout", "tcpin", "tcpout", "serial") or "://" not in self.url:
+        scheme, sep, rest = self.url.partition("://")
+        if not sep or scheme not in ("udpin", "udpout", "tcpin", "tcpout", "serial"):
             raise ValueError(f"url must be udpin://, udpout://, tcpin://, tcpout:// or serial://, got {self.url!r}")
+        where, _, number = rest.split("?", 1)[0].rpartition(":")
+        if scheme == "serial":
+            if not where.startswith("/") or not number.isdigit() or int(number) <= 0:
+                raise ValueError(f"url must be serial:///dev/...:BAUD, e.g. serial:///dev/ttyACM0:921600, got {self.url!r}")
+        elif not number.isdigit() or not 0 <= int(number) <= 65535:
+            raise ValueError(f"url must be {scheme}://HOST:PORT with a port in 0..65535, got {self.url!r}")
 
 
 @dataclass(frozen=True)
@@ -184,8 +190,9 @@ class Scenario:
     origin: GeoOrigin = field(default_factory=GeoOrigin)
 
     def __post_init__(self) -> None:
-        if not self.duration_s > 0:
-            raise ValueError(f"duration_s must be positive, got {self.duration_s}")
+        if not self.duration_s > self.flight_start_s:
+            raise ValueError(f"duration_s must be longer than the take-off, which ends at {self.flight_start_s:g} s "
+                             f"(the metrics window starts there), got {self.duration_s:g}")
         physics = self.sim.physics_rate_hz
         rate_divisor(physics, self.firmware.rate_hz, "firmware.rate_hz")
         rate_divisor(physics, self.companion.rate_hz, "companion.rate_hz")

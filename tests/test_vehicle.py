@@ -167,6 +167,15 @@ def test_message_interval_request_message_and_unsupported_commands(rig):
     att = [m for m in rig.gcs_collect(0.3) if m.get_type() == "ATTITUDE"]
     times = np.diff([m.time_boot_ms for m in att])
     assert np.all(times == 20)  # 50 Hz on flight-controller time
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                D.MAVLINK_MSG_ID_ATTITUDE, 0, 0, 0, 0, 0, 0))  # 0: the default
+    rig.gcs_collect(0.1)
+    att = [m for m in rig.gcs_collect(0.4) if m.get_type() == "ATTITUDE"]
+    assert np.all(np.diff([m.time_boot_ms for m in att]) == 100)  # the onboard default, 10 Hz
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                D.MAVLINK_MSG_ID_ATTITUDE, -1, 0, 0, 0, 0, 0))  # -1: off
+    rig.gcs_collect(0.05)
+    assert "ATTITUDE" not in _types(rig.gcs_collect(0.3))
     rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_REQUEST_MESSAGE, 0,
                                                 D.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
     msgs = rig.gcs_collect(0.1)

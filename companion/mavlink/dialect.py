@@ -23,7 +23,7 @@ from functools import lru_cache
 from pathlib import Path
 from types import ModuleType
 
-__all__ = ["DIALECT_XML", "cache_root", "dialect_fingerprint", "load_dialect"]
+__all__ = ["DIALECT_XML", "cache_root", "dialect_fingerprint", "export_definitions", "load_dialect", "tool_environment"]
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +79,30 @@ def _generate(target: Path) -> None:
         shutil.copy(out, staged)
         os.replace(staged, target)
     log.info("generated MAVLink dialect %s", target)
+
+
+def export_definitions() -> Path:
+    """A message-definitions folder (``v1.0/aerial_skeleton.xml`` and its includes) for pymavlink tools.
+
+    MAVProxy, MAVExplorer and ``mavlogdump.py`` decode the dialect's messages when run with
+    ``MDEF`` pointing here and ``MAVLINK_DIALECT=aerial_skeleton`` (see :func:`tool_environment`);
+    pymavlink then generates its own copy of the module on first use.
+    """
+    root = cache_root() / "mavlink" / dialect_fingerprint() / "message_definitions"
+    v1 = root / "v1.0"
+    if not (v1 / DIALECT_XML.name).exists():
+        v1.mkdir(parents=True, exist_ok=True)
+        for name in _INCLUDES:
+            shutil.copy(_pymavlink_definitions() / name, v1 / name)
+        staged = v1 / f"{DIALECT_XML.name}.{os.getpid()}.tmp"
+        shutil.copy(DIALECT_XML, staged)
+        os.replace(staged, v1 / DIALECT_XML.name)  # last: its presence marks a complete folder
+    return root
+
+
+def tool_environment() -> dict[str, str]:
+    """Environment for pymavlink's tools to decode this dialect (tlogs, live links)."""
+    return {"MAVLINK20": "1", "MAVLINK_DIALECT": DIALECT_XML.stem, "MDEF": str(export_definitions())}
 
 
 @lru_cache(maxsize=1)

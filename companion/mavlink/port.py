@@ -48,7 +48,7 @@ class PortError(ValueError):
 class PortStats:
     rx_bytes: int = 0
     rx_messages: int = 0  # accepted (whitelisted) messages
-    dropped_bytes: int = 0  # bytes of frames that failed to parse (bad CRC, truncated, noise)
+    dropped_bytes: int = 0  # bytes that never reached the application (noise, bad CRC, truncated, unknown id)
     dropped_frames: int = 0  # runs of such bytes
     dropped_unknown: int = 0  # well-formed frames with an unknown message id
     ignored: int = 0  # known messages not acted on (not whitelisted)
@@ -273,31 +273,92 @@ class _TcpClient(Transport):
 
 
 class _Serial(Transport):
-    def __init__(self, device: str, baud: int):
-        import serial  # pyserial
+    """A serial device, e.g. a Pixhawk's USB or TELEM2 port by id.
 
-        if not os.path.exists(device):
-            raise PortError(f"serial device {device} does not exist")
+    A missing device, one that fails to open, or one that errors (a USB autopilot rebooting) is
+    not fatal: the port logs what and where, stays disconnected (reads return nothing, writes
+    are dropped) and tries to reopen the device every ``retry_s`` seconds.
+    """
+
+    def __init__(self, device: str, baud: int, retry_s: float = 1.0):
+        import serial  # pyserial: only hardware links need it
+
+        self._serial = serial
+        self.device = device
+        self.baud = baud
+        self.retry_s = retry_s
+        self.port = None
+        self._next_try = 0.0
+        self._reported = False
+        self._open()
+
+    def _open(self) -> None:
+        now = time.monotonic()
+        if now < self._next_try:
+            return
+        self._next_try = now + self.retry_s
         try:
-            self.port = serial.Serial(device, baudrate=baud, timeout=0, write_timeout=0.1)
-        except serial.SerialException as exc:
-            raise PortError(f"cannot open serial device {device} at {baud} baud: {exc}") from None
+            if not os.path.exists(self.device):
+                raise OSError(errno.ENOENT, "no such device")
+            self.port = self._serial.Serial(self.device, baudrate=self.baud, timeout=0, write_timeout=0.1)
+        except (self._serial.SerialException, OSError) as exc:
+            if not self._reported:
+                log.warning("serial %s (%d baud): cannot open: %s; retrying every %.0f s", self.device, self.baud,
+                            getattr(exc, "strerror", None) or exc, self.retry_s)
+                self._reported = True
+            return
+        log.info("serial %s open at %d baud", self.device, self.baud)
+        self._reported = False
+
+    def _lost(self, exc: Exception) -> None:
+        log.warning("serial %s: %s; reopening", self.device, exc)
+        try:
+            self.port.close()
+        except (self._serial.SerialException, OSError):
+            pass
+        self.port = None
+        self._next_try = time.monotonic() + self.retry_s
 
     def fileno(self) -> int:
-        return self.port.fileno()
+        return self.port.fileno() if self.port is not None else -1
 
     def recv_all(self) -> bytes:
-        n = self.port.in_waiting
-        return self.port.read(n) if n else b""
+        if self.port is None:
+            self._open()
+            return b""
+        try:
+            n = self.port.in_waiting
+            data = self.port.read(n) if n else b""
+        except (self._serial.SerialException, OSError) as exc:
+            self._lost(exc)
+            return b""
+        if not n and not data and self._hung_up():
+            self._lost(OSError(errno.EIO, "device hung up"))
+        return data
+
+    def _hung_up(self) -> bool:
+        """select() said readable but nothing is waiting: the device went away."""
+        ready, _, _ = select.select([self.port.fileno()], [], [], 0)
+        return bool(ready)
 
     def send(self, data: bytes) -> None:
+        if self.port is None:
+            return
         try:
             self.port.write(data)
-        except Exception:  # write timeout on a congested link: drop, like UDP
-            pass
+        except self._serial.SerialTimeoutException:
+            pass  # a congested link: drop, like UDP
+        except (self._serial.SerialException, OSError) as exc:
+            self._lost(exc)
 
     def close(self) -> None:
-        self.port.close()
+        if self.port is not None:
+            self.port.close()
+            self.port = None
+
+    @property
+    def connected(self) -> bool:
+        return self.port is not None
 
 
 def _host_port(netloc: str, url: str) -> tuple[str, int]:
@@ -379,8 +440,8 @@ class MavlinkPort:
     def read(self) -> list:
         """Messages received since the last call that are whitelisted (never blocks).
 
-        A UDP listener learns where to reply only from a datagram that carried a valid frame
-        (from ``peer_system_id`` when set), so stray datagrams cannot redirect its replies.
+        A UDP listener learns where to reply only from a datagram that carried a whitelisted
+        message (from ``peer_system_id`` when set), so stray datagrams cannot redirect its replies.
         """
         out = []
         for data, sender in self.transport.recv_chunks():
@@ -424,13 +485,14 @@ class MavlinkPort:
                 st.dropped_frames += 1
                 continue
             if kind.startswith("UNKNOWN_"):
+                st.dropped_bytes += len(m.get_msgbuf())
                 st.dropped_unknown += 1
                 continue
-            if self.peer_system_id is None or m.get_srcSystem() == self.peer_system_id:
-                valid_from_peer = True
             if self.accept is not None and kind not in self.accept:
                 st.ignored += 1
                 continue
+            if self.peer_system_id is None or m.get_srcSystem() == self.peer_system_id:
+                valid_from_peer = True
             st.rx_messages += 1
             st.per_type[kind] = st.per_type.get(kind, 0) + 1
             if self.tlog is not None:
@@ -471,9 +533,15 @@ class MavlinkPort:
 
 
 def wait_readable(ports, timeout_s: float) -> list:
-    """The ports (objects with ``fileno``) that have data, waiting at most ``timeout_s``."""
-    if not ports:
+    """The ports (objects with ``fileno``) that have data, waiting at most ``timeout_s``.
+
+    Ports without a file descriptor (``fileno() < 0``: a serial device waiting to reappear) are
+    always returned, so that reading them gives them their chance to reopen.
+    """
+    live = [p for p in ports if p.fileno() >= 0]
+    idle = [p for p in ports if p.fileno() < 0]
+    if not live:
         time.sleep(max(timeout_s, 0.0))
-        return []
-    ready, _, _ = select.select(ports, [], [], max(timeout_s, 0.0))
-    return ready
+        return idle
+    ready, _, _ = select.select(live, [], [], max(timeout_s, 0.0))
+    return ready + idle

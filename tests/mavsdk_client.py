@@ -1,0 +1,81 @@
+"""A MAVSDK ground-station client, run as its own process by the fleet tests.
+
+    python tests/mavsdk_client.py URL SYSID [--timeout S]
+
+Connects to ``URL`` (e.g. ``udpin://127.0.0.1:14541``), waits for the autopilot ``SYSID``, reads
+two parameters (a float and an int), subscribes to position, attitude and odometry telemetry
+for two seconds and prints one JSON object with what it got. Exit code 0 when the system was
+discovered, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from collections import Counter
+
+from mavsdk import ComponentType, Configuration, Mavsdk
+from mavsdk.plugins.param import Param, ParamError
+from mavsdk.plugins.telemetry import Telemetry
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("url")
+    ap.add_argument("sysid", type=int)
+    ap.add_argument("--timeout", type=float, default=20.0)
+    args = ap.parse_args()
+
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    mav = Mavsdk(cfg)
+    cfg.destroy()
+    out: dict = {"discovered": False}
+    try:
+        mav.add_any_connection(args.url)
+        deadline = time.monotonic() + args.timeout
+        system = None
+        while system is None and time.monotonic() < deadline:
+            system = mav.first_autopilot(1.0)
+        if system is None or system.get_system_id() != args.sysid:
+            out["seen_sysid"] = None if system is None else system.get_system_id()
+            return 1
+        out["discovered"] = True
+        out["sysid"] = system.get_system_id()
+        param = Param(system)
+        try:
+            out["IMP_KP_Z"] = param.get_param_float("IMP_KP_Z")
+            out["MAV_SYS_ID"] = param.get_param_int("MAV_SYS_ID")
+        except ParamError as exc:
+            out["param_error"] = exc.result.name
+        telemetry = Telemetry(system)
+        counts: Counter = Counter()
+        last: dict = {}
+        lock = threading.Lock()
+
+        def record(name):
+            def callback(data, _user_data):  # runs on a MAVSDK thread: store only
+                with lock:
+                    counts[name] += 1
+                    last[name] = data
+            return callback
+
+        telemetry.subscribe_position(record("position"))
+        telemetry.subscribe_attitude_euler(record("attitude_euler"))
+        telemetry.subscribe_odometry(record("odometry"))
+        time.sleep(2.0)
+        with lock:
+            out["telemetry_counts"] = dict(counts)
+            if "position" in last:
+                pos = last["position"]
+                out["position"] = [pos.latitude_deg, pos.longitude_deg, pos.relative_altitude_m]
+        return 0
+    finally:
+        mav.destroy()
+        print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

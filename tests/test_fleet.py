@@ -1,0 +1,227 @@
+"""Fleet mode end to end: vehicle processes, the companion daemon and the harness over loopback sockets.
+
+Each test launches a real fleet (``sitl.fleet.launch``: one OS process per link plus the
+companion) on the PX4-style ports (TCP 4560+i, UDP 14540+i, 14550), so the tests run one at a
+time and check that every port is free again afterwards.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+
+from companion.mavlink.dialect import load_dialect, tool_environment
+from sitl.fleet import launch
+from sitl.fly import fly
+from sitl.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+THREE_LINK = ROOT / "configs" / "sitl" / "three_link.toml"
+D = load_dialect()
+
+
+def _udp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
+
+
+def _tcp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _assert_ports_released(n: int) -> None:
+    for i in range(n):
+        assert _tcp_free(4560 + i), f"TCP {4560 + i} still bound"
+        for port in (14540 + i, 14580 + i, 18570 + i):
+            assert _udp_free(port), f"UDP {port} still bound"
+
+
+def _children_of(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:  # the field after the state is the ppid
+                out.append(int(entry.name))
+    return out
+
+
+class HeartbeatListener(threading.Thread):
+    """A plain pymavlink GCS on UDP 14550 (what QGroundControl or MAVProxy would listen on)."""
+
+    def __init__(self):
+        super().__init__(daemon=True)
+        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=254, dialect="common")
+        self.sysids: set[int] = set()
+        self.types: set[str] = set()
+        self.stop = threading.Event()
+
+    def run(self):
+        while not self.stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.2)
+            if msg is None:
+                continue
+            self.types.add(msg.get_type())
+            if msg.get_type() == "HEARTBEAT":
+                self.sysids.add(msg.get_srcSystem())
+
+    def close(self):
+        self.stop.set()
+        self.join(2.0)
+        self.conn.close()
+
+
+def _garbage(port: int, rng: np.random.Generator) -> int:
+    """1 MB of random datagrams and 400 truncated MAVLink 2 frames, paced so the kernel keeps them."""
+    frame = D.MAVLink_heartbeat_message(2, 0, 0, 0, 4, 3).pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
+    sent = 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for k in range(1024):
+            s.sendto(rng.bytes(1024), ("127.0.0.1", port))
+            s.sendto(frame[: 3 + k % (len(frame) - 4)], ("127.0.0.1", port))
+            sent += 1024
+            if k % 64 == 63:
+                time.sleep(0.02)
+    return sent
+
+
+@pytest.fixture(scope="module")
+def batch_reference():
+    sc = load_scenario(THREE_LINK, duration_s=16.0)
+    return fly(sc, None, plots=False)
+
+
+def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
+    """Three links end to end through sockets, a GCS listening, 1 MB of noise at a link and the companion."""
+    sc = load_scenario(THREE_LINK, duration_s=16.0)
+    listener = HeartbeatListener()
+    listener.start()
+    flooded = {}
+
+    def flood():
+        deadline = time.monotonic() + 60
+        while listener.sysids != {1, 2, 3} and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(2.0)  # the links are up and the companion is stepping
+        rng = np.random.default_rng(7)
+        flooded["link2"] = _garbage(14581, rng)  # link 2's onboard port
+        flooded["companion"] = _garbage(14541, rng)  # the companion's port for link 2
+
+    attacker = threading.Thread(target=flood, daemon=True)
+    attacker.start()
+    try:
+        m = launch(sc, tmp_path, speed=0.0)
+    finally:
+        attacker.join(30)
+        listener.close()
+    assert not _children_of(os.getpid()), "vehicle or companion processes left behind"
+    _assert_ports_released(3)
+
+    assert flooded == {"link2": 1 << 20, "companion": 1 << 20}
+    assert listener.sysids == {1, 2, 3}
+    assert {"ATTITUDE", "GLOBAL_POSITION_INT", "SYS_STATUS"} <= listener.types
+
+    # the garbage was counted and dropped where it arrived
+    link2 = json.loads((tmp_path / "link2" / "link2_ports.json").read_text())
+    onboard = next(v for k, v in link2.items() if k.startswith("udpout://127.0.0.1:14541"))
+    assert onboard["dropped_bytes"] > 900_000 and onboard["dropped_frames"] >= 1024
+    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
+    assert comp["links"]["2"]["dropped_bytes"] > 900_000 and comp["links"]["2"]["dropped_frames"] >= 1024
+    assert comp["links"]["1"]["dropped_bytes"] == 0
+    assert comp["links"]["2"]["rejected"] == 0 and comp["links"]["2"]["states"] > 600
+
+    # the flight: unaffected, and within 20 % of batch mode on tracking and constraint error
+    assert not m["crashed"] and m["mode"] == "fleet" and not m["interrupted"]
+    ref = batch_reference
+    for key in ("rms_track_est_m", "rms_track_true_m"):
+        np.testing.assert_allclose(m[key], ref[key], rtol=0.2, err_msg=key)
+    for key in ("constraint_pos_p95_m", "constraint_vel_p95_m_s"):
+        assert m[key]["after"] == pytest.approx(ref[key]["after"], rel=0.2), key
+        assert m[key]["after"] < 0.05 * m[key]["before"], key
+    assert m["correction_latency_ms"]["p99"] <= 30.0 and m["correction_latency_ms"]["samples"] > 300
+    assert comp["correction_latency_ms"]["p99"] <= 30.0
+
+    # artefacts: metrics, plots and a tlog per link that pymavlink reads back
+    assert json.loads((tmp_path / "metrics.json").read_text())["rms_track_true_m"] == m["rms_track_true_m"]
+    assert (tmp_path / "tracking.png").stat().st_size > 0
+    tlog = tmp_path / "link2" / "link2.tlog"
+    plain = mavutil.mavlink_connection(str(tlog), dialect="common")  # any pymavlink: the standard messages
+    kinds = set()
+    while (msg := plain.recv_match()) is not None:
+        kinds.add(msg.get_type())
+    plain.close()
+    assert {"HEARTBEAT", "ATTITUDE", "LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED", "COMMAND_ACK"} <= kinds
+    env = dict(os.environ, **tool_environment())  # `python -m companion dialect`: the custom messages too
+    dump = subprocess.run([sys.executable, str(Path(sys.executable).parent / "mavlogdump.py"), "--dialect",
+                           "aerial_skeleton", "--types", "SKELETON_LINK_STATE,SKELETON_CORRECTION", str(tlog)],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert dump.returncode == 0, dump.stderr[-2000:]
+    lines = dump.stdout.splitlines()
+    assert sum("SKELETON_LINK_STATE {" in x for x in lines) > 600
+    assert sum("SKELETON_CORRECTION {" in x for x in lines) > 200
+
+
+def test_mavsdk_client_discovers_reads_a_parameter_and_gets_telemetry(tmp_path):
+    """MAVSDK in its own process on link 2's onboard port (the companion is not started)."""
+    sc = load_scenario(THREE_LINK, duration_s=12.0)
+    result = {}
+
+    def fleet():
+        result["metrics"] = launch(sc, tmp_path, speed=1.0, companion=False)
+
+    runner = threading.Thread(target=fleet, daemon=True)
+    runner.start()
+    client = subprocess.run([sys.executable, str(ROOT / "tests" / "mavsdk_client.py"), "udpin://127.0.0.1:14541", "2",
+                             "--timeout", "15"], capture_output=True, text=True, timeout=60)
+    runner.join(60)
+    assert not runner.is_alive()
+    out = json.loads(client.stdout.strip().splitlines()[-1])
+    assert client.returncode == 0 and out["discovered"] and out["sysid"] == 2, client.stderr[-2000:]
+    assert out["IMP_KP_Z"] == pytest.approx(sc.firmware.gains.kp_n_m[2], rel=1e-6)
+    assert out["MAV_SYS_ID"] == 2
+    counts = out["telemetry_counts"]
+    assert counts.get("position", 0) >= 5 and counts.get("attitude_euler", 0) >= 10
+    lat, lon, _ = out["position"]
+    assert lat == pytest.approx(sc.origin.lat_deg, abs=1e-3) and lon == pytest.approx(sc.origin.lon_deg, abs=1e-3)
+    assert "metrics" in result  # the fleet ran to its end (the links stayed on the ground, unarmed)
+    _assert_ports_released(3)
+
+
+def test_standard_messages_mode_corrects_through_odometry(tmp_path):
+    """Stock-PX4 mode: ODOMETRY in, corrections as external-vision ODOMETRY (MAV_FRAME_LOCAL_FRD)."""
+    sc = load_scenario(THREE_LINK, duration_s=12.0)
+    sc = replace(sc, companion=replace(sc.companion, mode="standard"))
+    m = launch(sc, tmp_path, speed=0.0)
+    assert not m["crashed"]
+    assert m["constraint_pos_p95_m"]["after"] < 0.05 * m["constraint_pos_p95_m"]["before"]
+    assert m["correction_latency_ms"]["samples"] > 100 and m["correction_latency_ms"]["p99"] <= 30.0
+    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
+    assert comp["links"]["1"]["per_type"].get("ODOMETRY", 0) > 300
+    assert "SKELETON_LINK_STATE" not in comp["links"]["1"]["per_type"]
+    link1 = json.loads((tmp_path / "link1" / "link1_ports.json").read_text())
+    onboard = next(v for k, v in link1.items() if k.startswith("udpout://127.0.0.1:14540"))
+    assert onboard["per_type"].get("ODOMETRY", 0) > 100 and "SKELETON_CORRECTION" not in onboard["per_type"]

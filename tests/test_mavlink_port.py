@@ -1,0 +1,177 @@
+"""MAVLink ports: transports, accounting of bad input, peer learning, tlogs, serial reconnection."""
+
+from __future__ import annotations
+
+import os
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.port import MavlinkPort, PortError, TlogWriter, open_transport, wait_readable
+
+D = load_dialect()
+
+
+def _heartbeat():
+    return D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_GENERIC, 0, 0, 3, 3)
+
+
+def _read_until(port, n, timeout=2.0):
+    out = []
+    deadline = time.monotonic() + timeout
+    while len(out) < n and time.monotonic() < deadline:
+        wait_readable([port], 0.05)
+        out += port.read()
+    return out
+
+
+def _unknown_id_frame() -> bytes:
+    """A well-formed MAVLink 2 frame of message id 60123, which the dialect does not define."""
+    payload = b"\x01\x02\x03"
+    header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, 0, 7, 1, 60123 & 0xFFFF, 60123 >> 16)
+    return header + payload + b"\x00\x00"
+
+
+@pytest.fixture
+def udp_pair():
+    server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, accept=frozenset({"HEARTBEAT"}), peer_system_id=7)
+    client = MavlinkPort(f"udpout://127.0.0.1:{server.transport.local_port()}", system_id=7)
+    yield server, client
+    server.close()
+    client.close()
+
+
+def test_udp_round_trip_and_reply_to_the_learned_peer(udp_pair):
+    server, client = udp_pair
+    assert not server.transport.connected
+    server.send(_heartbeat())  # nobody to talk to yet: nothing is sent, nothing breaks
+    client.send(_heartbeat())
+    got = _read_until(server, 1)
+    assert [m.get_srcSystem() for m in got] == [7]
+    server.send(_heartbeat())
+    back = _read_until(client, 1)
+    assert back and back[0].get_srcSystem() == 190
+    assert server.stats.rx_messages == 1 and server.stats.per_type == {"HEARTBEAT": 1}
+
+
+def test_bad_input_is_counted_never_delivered_and_cannot_steal_the_peer(udp_pair):
+    server, client = udp_pair
+    client.send(_heartbeat())
+    _read_until(server, 1)
+    rng = np.random.default_rng(3)
+    intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    frame = _heartbeat().pack(D.MAVLink(None, srcSystem=7, srcComponent=1))
+    addr = ("127.0.0.1", server.transport.local_port())
+    for k in range(50):
+        intruder.sendto(rng.bytes(700), addr)
+        intruder.sendto(frame[: 2 + k % (len(frame) - 3)], addr)  # truncated
+    intruder.sendto(_unknown_id_frame(), addr)
+    other = D.MAVLink_heartbeat_message(0, 0, 0, 0, 0, 3).pack(D.MAVLink(None, srcSystem=99, srcComponent=1))
+    intruder.sendto(other, addr)  # valid, but not from the peer system
+    ping = D.MAVLink_system_time_message(0, 0).pack(D.MAVLink(None, srcSystem=7, srcComponent=1))
+    intruder.sendto(ping, addr)  # from "the peer", but not whitelisted: not a reason to re-aim either
+    time.sleep(0.1)
+    got = server.read()
+    st = server.stats
+    assert [m.get_srcSystem() for m in got] == [99]  # the caller decides what to do with a stranger
+    assert st.dropped_bytes >= 50 * 700 and st.dropped_frames >= 100
+    assert st.dropped_unknown >= 1 and st.ignored == 1
+    # replies still go to the real peer
+    server.send(_heartbeat())
+    assert _read_until(client, 1)
+    intruder.settimeout(0.2)
+    with pytest.raises(socket.timeout):
+        intruder.recvfrom(1000)
+    intruder.close()
+
+
+def test_tcp_server_client_and_reconnect():
+    server = MavlinkPort("tcpin://127.0.0.1:0", system_id=1)
+    port = server.transport.local_port()
+    for attempt in range(2):  # a second client after the first went away
+        client = MavlinkPort(f"tcpout://127.0.0.1:{port}", system_id=250)
+        server.read()  # accept
+        client.send_many([_heartbeat(), _heartbeat()])
+        got = _read_until(server, 2)
+        assert len(got) == 2 and got[0].get_srcSystem() == 250
+        server.send(_heartbeat())
+        assert _read_until(client, 1)[0].get_srcSystem() == 1
+        client.close()
+        deadline = time.monotonic() + 2.0
+        while server.transport.connected and time.monotonic() < deadline:
+            wait_readable([server], 0.05)
+            server.read()
+        assert not server.transport.connected
+    server.close()
+
+
+@pytest.mark.parametrize("url, what", [
+    ("udp://127.0.0.1:14550", "unknown scheme"),
+    ("udpin://127.0.0.1", "expected HOST:PORT"),
+    ("serial:///dev/ttyACM0", "expected serial:///dev/...:BAUD"),
+])
+def test_bad_urls_are_rejected_with_the_reason(url, what):
+    with pytest.raises(PortError, match=what):
+        open_transport(url)
+
+
+def test_port_in_use_is_a_clear_error():
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("127.0.0.1", 0))
+    with pytest.raises(PortError, match=rf"cannot bind UDP 127.0.0.1:{holder.getsockname()[1]}"):
+        open_transport(f"udpin://127.0.0.1:{holder.getsockname()[1]}")
+    holder.close()
+
+
+def test_tlog_is_readable_by_pymavlink(tmp_path):
+    tlog = TlogWriter(tmp_path / "x.tlog")
+    server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, tlog=tlog)
+    client = MavlinkPort(f"udpout://127.0.0.1:{server.transport.local_port()}", system_id=7)
+    client.send(_heartbeat())
+    _read_until(server, 1)
+    server.send(D.MAVLink_system_time_message(123, 456))
+    server.close()
+    client.close()
+    log = mavutil.mavlink_connection(str(tmp_path / "x.tlog"), dialect="common")
+    msgs = []
+    while (m := log.recv_match()) is not None:
+        msgs.append((m.get_type(), m.get_srcSystem()))
+    log.close()
+    assert msgs == [("HEARTBEAT", 7), ("SYSTEM_TIME", 190)]
+
+
+def test_serial_device_missing_then_plugged_in_then_unplugged(tmp_path, caplog):
+    """A by-id path that appears later (autopilot powered after the daemon), then goes away."""
+    link = tmp_path / "usb-Hex_ProfiCNC_CubeOrange-if00"
+    port = MavlinkPort(f"serial://{link}:921600", system_id=190)  # retries once a second
+    assert not port.transport.connected and port.read() == [] and port.fileno() < 0
+    assert wait_readable([port], 0.01) == [port]  # a port waiting to reopen is polled
+    port.send(_heartbeat())  # dropped, not raised
+    assert str(link) in caplog.text and "cannot open" in caplog.text
+    master, slave = os.openpty()
+    os.symlink(os.ttyname(slave), link)
+    time.sleep(1.05)
+    port.read()
+    assert port.transport.connected
+    os.write(master, _heartbeat().pack(D.MAVLink(None, srcSystem=3, srcComponent=1)))
+    got = _read_until(port, 1)
+    assert got and got[0].get_srcSystem() == 3
+    port.send(_heartbeat())
+    parser = D.MAVLink(None)
+    time.sleep(0.05)
+    echoed = parser.parse_buffer(bytearray(os.read(master, 4096)))
+    assert echoed and echoed[0].get_srcSystem() == 190
+    os.close(slave)
+    os.close(master)  # unplugged: the next read notices, the port reopens later
+    os.unlink(link)
+    deadline = time.monotonic() + 2.0
+    while port.transport.connected and time.monotonic() < deadline:
+        wait_readable([port], 0.05)
+        port.read()
+    assert not port.transport.connected
+    port.close()
