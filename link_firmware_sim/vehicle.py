@@ -110,8 +110,15 @@ class _Stream:
     next_us: int = 0
 
     @classmethod
-    def at_rate(cls, hz: float, start_us: int = 0) -> _Stream:
-        return cls(int(round(1e6 / hz)), start_us)
+    def at_rate(cls, hz: float, now_us: int = 0) -> _Stream:
+        return cls.every(int(round(1e6 / hz)), now_us)
+
+    @classmethod
+    def every(cls, interval_us: int, now_us: int = 0) -> _Stream:
+        """First message at the next multiple of the interval: every link's stream of one rate has
+        the same phase whenever it was requested, so the companion gets coherent snapshots."""
+        interval_us = max(int(interval_us), 1)
+        return cls(interval_us, -(-now_us // interval_us) * interval_us)
 
 
 @dataclass
@@ -488,7 +495,7 @@ class Vehicle:
             if interval_us < 0:
                 ep.streams.pop(mid, None)
             else:
-                ep.streams[mid] = _Stream(int(round(interval_us)), self.fc_time_us)
+                ep.streams[mid] = _Stream.every(int(round(interval_us)), self.fc_time_us)
             self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
         elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             mid = int(msg.param1) if cmd == D.MAV_CMD_REQUEST_MESSAGE else D.MAVLINK_MSG_ID_AUTOPILOT_VERSION

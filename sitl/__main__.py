@@ -7,13 +7,15 @@
 20 Hz, in one process on one clock. ``launch`` is fleet mode: one MAVLink vehicle process per
 link and the companion daemon, the harness in lockstep with them over PX4-style simulator links.
 Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
-key and reason), 3 the fleet failed (a process died).
+key and reason), 3 the fleet failed (a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet
+mode still writes the metrics when the run got past the take-off).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 
 from tqdm import tqdm
@@ -28,6 +30,7 @@ from .scenario import load_scenario
 EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FLEET = 3
+EXIT_INTERRUPTED = 130
 
 
 def _cmd_fly(args) -> int:
@@ -44,16 +47,24 @@ def _cmd_fly(args) -> int:
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
     sckf = False if args.no_sckf else None
     selective = False if args.no_selective_mapping else None
-    with tqdm(total=scenario.duration_s, desc=scenario.name, unit="sim s", disable=args.quiet, file=sys.stderr,
-              bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
-        metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
-                      plots=not args.no_plots)
+    try:
+        with tqdm(total=scenario.duration_s, desc=scenario.name, unit="sim s", disable=args.quiet, file=sys.stderr,
+                  bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
+            metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
+                          plots=not args.no_plots)
+    except KeyboardInterrupt:
+        print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
+        return EXIT_INTERRUPTED
     summary = {k: metrics[k] for k in (
         "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m", "constraint_vel_p95_m_s",
         "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor")}
     print(json.dumps(summary, indent=2))
     print(f"wrote {out_dir}")
     return EXIT_CRASH if metrics["crashed"] else 0
+
+
+def _raise_interrupt(_signum, _frame):
+    raise KeyboardInterrupt
 
 
 def _cmd_launch(args) -> int:
@@ -69,6 +80,7 @@ def _cmd_launch(args) -> int:
         print(f"error: {args.config}: {exc}" if isinstance(exc, ValueError) else f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
+    signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
     try:
         with tqdm(total=scenario.duration_s, desc=f"{scenario.name} (fleet)", unit="sim s", disable=args.quiet,
                   file=sys.stderr, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
@@ -76,12 +88,17 @@ def _cmd_launch(args) -> int:
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
+    except KeyboardInterrupt:  # during start-up: the fleet is already stopped
+        print(f"interrupted (logs in {out_dir})", file=sys.stderr)
+        return EXIT_INTERRUPTED
     summary = {k: metrics.get(k) for k in (
         "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m", "constraint_vel_p95_m_s",
         "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor")}
     print(json.dumps(summary, indent=2))
     print(f"wrote {out_dir}")
-    return EXIT_CRASH if metrics["crashed"] else 0
+    if metrics["crashed"]:
+        return EXIT_CRASH
+    return EXIT_INTERRUPTED if metrics["interrupted"] else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

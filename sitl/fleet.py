@@ -183,7 +183,9 @@ class _Processes:
     def start(self, name: str, argv: list[str], log_path: Path) -> None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         fh = open(log_path, "wb")
-        proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+        # Own session: a Ctrl-C in the terminal reaches the launcher only, which stops the fleet in order.
+        proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent,
+                                start_new_session=True)
         fh.close()
         self.procs.append((name, proc))
 
@@ -258,11 +260,14 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
     comp_path = out_dir / "companion" / "companion_log.npz"
     if comp_path.exists():
         comp = dict(np.load(comp_path))
+        # each step against the truth row nearest its state time (the log grid is 1 / log_rate_hz)
         ct = np.round(comp["t_sckf"] * 1e6).astype(np.int64)
-        keep = np.array([int(x) in index for x in ct], dtype=bool)
+        row = np.clip(np.searchsorted(t_us, ct), 1, len(t_us) - 1)
+        row = np.where(np.abs(t_us[row - 1] - ct) <= np.abs(t_us[row] - ct), row - 1, row)
+        keep = np.abs(t_us[row] - ct) <= 0.5e6 / sc.sim.log_rate_hz
         for key, value in comp.items():
             merged[key] = value[keep]
-        merged["p_true_sckf"] = truth["p_true"][[index[int(x)] for x in ct[keep]]]
+        merged["p_true_sckf"] = truth["p_true"][row[keep]]
     latency = np.concatenate([f["correction_latency"] for f in fw]) if fw else np.zeros((0, 2))
     return merged, latency
 
@@ -321,6 +326,9 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         procs.stop()
     if harness is None:
         raise FleetError("the simulator never connected to the vehicles")
+    if harness.sim_s <= sc.flight_start_s:
+        raise FleetError(f"stopped at t = {harness.sim_s:.1f} s, before the metrics window (from "
+                         f"{sc.flight_start_s:g} s): no metrics, the vehicles' logs and tlogs are kept")
     truth = harness.truth_log()
     merged, latency = _merge_logs(sc, truth, out_dir)
     metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,

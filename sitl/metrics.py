@@ -60,7 +60,8 @@ def compute_metrics(
     att_err = np.degrees(
         np.linalg.norm(attitude_error(log["q_true"][win], log["q_target"][win]), axis=-1)
     )
-    has_steps = "t_sckf" in log  # fleet mode without a companion has no constraint-step log
+    # fleet mode without a companion (or one that never stepped in the window) has no step log
+    has_steps = "t_sckf" in log and bool(np.any(log["t_sckf"] >= flight_start_s))
     if has_steps:
         wins = log["t_sckf"] >= flight_start_s
         ekf_err = np.linalg.norm(log["p_ekf_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import socket
 import subprocess
 import sys
@@ -225,3 +227,47 @@ def test_standard_messages_mode_corrects_through_odometry(tmp_path):
     link1 = json.loads((tmp_path / "link1" / "link1_ports.json").read_text())
     onboard = next(v for k, v in link1.items() if k.startswith("udpout://127.0.0.1:14540"))
     assert onboard["per_type"].get("ODOMETRY", 0) > 100 and "SKELETON_CORRECTION" not in onboard["per_type"]
+
+
+def _launch_cli(out: Path, until_sim_s: float):
+    """Start ``python -m sitl launch`` (SIGINT as in a terminal) and wait until it has flown ``until_sim_s``."""
+    proc = subprocess.Popen([sys.executable, "-m", "sitl", "launch", "--config", str(THREE_LINK), "--duration", "120",
+                             "--speed", "1", "--out", str(out)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    progress = b""
+    deadline = time.monotonic() + 90
+    sim_s = 0.0
+    while sim_s < until_sim_s and time.monotonic() < deadline and proc.poll() is None:
+        progress += os.read(proc.stderr.fileno(), 4096)
+        done = re.findall(rb"\| (\d+\.\d)/120\.0 sim s", progress)
+        sim_s = float(done[-1]) if done else 0.0
+    return proc, progress
+
+
+def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path):
+    """``python -m sitl launch`` interrupted mid-flight: children stopped, ports free, metrics written."""
+    out = tmp_path / "run"
+    proc, progress = _launch_cli(out, 8.0)  # past the take-off (7 s)
+    children = _children_of(proc.pid)
+    assert len(children) == 4  # three vehicles and the companion
+    proc.send_signal(signal.SIGINT)
+    _, rest = proc.communicate(timeout=60)
+    assert proc.returncode == 130, (progress + rest).decode(errors="replace")[-3000:]
+    assert all(not Path(f"/proc/{pid}").exists() for pid in children)
+    _assert_ports_released(3)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["interrupted"] and 8.0 <= m["duration_s"] < 60.0 and not m["crashed"]
+    assert (out / "link1" / "link1.tlog").stat().st_size > 0
+
+
+def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error(tmp_path):
+    proc, progress = _launch_cli(tmp_path / "run", 2.0)
+    children = _children_of(proc.pid)
+    link2 = next(pid for pid in children if "--instance\x001\x00" in Path(f"/proc/{pid}/cmdline").read_text())
+    os.kill(link2, signal.SIGKILL)
+    _, rest = proc.communicate(timeout=60)
+    text = (progress + rest).decode(errors="replace")
+    assert proc.returncode == 3, text[-3000:]
+    assert "link 2" in text and "Traceback" not in text
+    assert all(not Path(f"/proc/{pid}").exists() for pid in children)
+    _assert_ports_released(3)

@@ -194,6 +194,8 @@ class _TcpServer(Transport):
                 data = self.conn.recv(_READ_CHUNK)
             except BlockingIOError:
                 break
+            except OSError:
+                data = b""  # reset by the peer
             if not data:  # peer closed: wait for the next one
                 self.conn.close()
                 self.conn = None
@@ -251,6 +253,8 @@ class _TcpClient(Transport):
                 data = self.sock.recv(_READ_CHUNK)
             except BlockingIOError:
                 break
+            except (ConnectionResetError, OSError):
+                data = b""  # reset by the peer: closed
             if not data:
                 self.closed = True
                 break
