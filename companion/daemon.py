@@ -45,7 +45,7 @@ from .mavlink.port import MavlinkPort, TlogWriter, wait_readable
 from .messages import LinkState
 
 # The target source and the configuration schema are shared with the SITL (pure modules, no simulator).
-from sitl.trajectory import ChainTrajectory  # noqa: E402
+from sitl.trajectory import ChainTrajectory
 
 __all__ = ["CompanionDaemon", "COMPANION_SYSTEM_ID", "odometry_to_link_state"]
 
@@ -268,8 +268,7 @@ class CompanionDaemon:
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
             self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
             self._trajectory_t0_us = self.fc_time_us
-        t = self.fc_time_us * 1e-6
-        boot_ms = int(t * 1000) & 0xFFFFFFFF
+        boot_ms = (self.fc_time_us // 1000) & 0xFFFFFFFF
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         t_traj = (self.fc_time_us - self._trajectory_t0_us) * 1e-6

@@ -159,9 +159,8 @@ class Vehicle:
         self._log = _Stream.at_rate(log_rate_hz)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
         self.errors = {"hil": 0, "mavlink": 0}
-        self._cache_tick_us = -1
-        self._cached_estimate = None
-        self._cached_report = None
+        self._cache_tick_us = -1  # no tick yet: _tick_values computes on first use
+        self._cached = None
         self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
         self._last_ahrs: tuple | None = None  # (t, q)
         self._stop = False
@@ -233,21 +232,18 @@ class Vehicle:
             _CAPABILITIES, _FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0x1209, 0x5A4B, self.system_id,
         )
 
+    def _tick_values(self):
+        """(control estimate, state report) of the current tick, computed once for all streams."""
+        if self._cache_tick_us != self.fc_time_us:
+            self._cache_tick_us = self.fc_time_us
+            self._cached = (self.fw.control_estimate(self.fc_time_s), self.fw.state_report())
+        return self._cached
+
     def _estimate(self):
-        """Control estimate at the current tick (computed once per tick for all streams)."""
-        if self._cache_tick_us != self.fc_time_us or self._cached_estimate is None:
-            self._refresh_cache()
-        return self._cached_estimate
+        return self._tick_values()[0]
 
     def _report(self):
-        if self._cache_tick_us != self.fc_time_us or self._cached_report is None:
-            self._refresh_cache()
-        return self._cached_report
-
-    def _refresh_cache(self) -> None:
-        self._cache_tick_us = self.fc_time_us
-        self._cached_estimate = self.fw.control_estimate(self.fc_time_s)
-        self._cached_report = self.fw.state_report()
+        return self._tick_values()[1]
 
     def _msg_attitude(self):
         _, _, q = self._estimate()
@@ -556,10 +552,10 @@ class Vehicle:
     def _apply_params(self, name: str) -> None:
         self.fw.reconfigure(self.params.firmware_config())
         if name in ("SKL_STATE_HZ", "SKL_ODOM_HZ"):
-            rates = self.params.rates()
+            defaults = self._default_rates(0)
             streams = self.endpoints[0].streams
-            for mid, hz in ((D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, rates.state_hz),
-                            (D.MAVLINK_MSG_ID_ODOMETRY, rates.odometry_hz)):
+            for mid in (D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, D.MAVLINK_MSG_ID_ODOMETRY):
+                hz = defaults[mid]
                 if hz > 0:
                     streams[mid] = _Stream.at_rate(hz, self.fc_time_us)
                 else:

@@ -33,14 +33,37 @@ EXIT_FLEET = 3
 EXIT_INTERRUPTED = 130
 
 
-def _cmd_fly(args) -> int:
+_SUMMARY_KEYS = ("rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
+                 "constraint_vel_p95_m_s", "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m",
+                 "crashed", "realtime_factor")
+
+
+def _scenario(args):
+    """The scenario file with ``--duration`` / ``--seed`` applied (``ConfigError`` if invalid)."""
     overrides = {}
     if args.duration is not None:
         overrides["duration_s"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
+    return load_scenario(args.config, **overrides)
+
+
+def _progress(scenario, args, desc: str) -> tqdm:
+    return tqdm(total=scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
+
+
+def _report(metrics: dict, out_dir) -> int:
+    print(json.dumps({k: metrics[k] for k in _SUMMARY_KEYS if k in metrics}, indent=2))
+    print(f"wrote {out_dir}")
+    if metrics["crashed"]:
+        return EXIT_CRASH
+    return EXIT_INTERRUPTED if metrics.get("interrupted") else 0
+
+
+def _cmd_fly(args) -> int:
     try:
-        scenario = load_scenario(args.config, **overrides)
+        scenario = _scenario(args)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
@@ -48,19 +71,13 @@ def _cmd_fly(args) -> int:
     sckf = False if args.no_sckf else None
     selective = False if args.no_selective_mapping else None
     try:
-        with tqdm(total=scenario.duration_s, desc=scenario.name, unit="sim s", disable=args.quiet, file=sys.stderr,
-                  bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
+        with _progress(scenario, args, scenario.name) as bar:
             metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
                           plots=not args.no_plots)
     except KeyboardInterrupt:
         print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    summary = {k: metrics[k] for k in (
-        "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m", "constraint_vel_p95_m_s",
-        "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor")}
-    print(json.dumps(summary, indent=2))
-    print(f"wrote {out_dir}")
-    return EXIT_CRASH if metrics["crashed"] else 0
+    return _report(metrics, out_dir)
 
 
 def _raise_interrupt(_signum, _frame):
@@ -68,22 +85,19 @@ def _raise_interrupt(_signum, _frame):
 
 
 def _cmd_launch(args) -> int:
-    overrides = {}
-    if args.duration is not None:
-        overrides["duration_s"] = args.duration
-    if args.seed is not None:
-        overrides["seed"] = args.seed
     try:
-        scenario = load_scenario(args.config, **overrides)
+        scenario = _scenario(args)
         check_fleet_scenario(scenario)
-    except (ConfigError, ValueError) as exc:
-        print(f"error: {args.config}: {exc}" if isinstance(exc, ValueError) else f"error: {exc}", file=sys.stderr)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    except ValueError as exc:
+        print(f"error: {args.config}: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
     signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
     try:
-        with tqdm(total=scenario.duration_s, desc=f"{scenario.name} (fleet)", unit="sim s", disable=args.quiet,
-                  file=sys.stderr, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
+        with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
             metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
@@ -91,14 +105,7 @@ def _cmd_launch(args) -> int:
     except KeyboardInterrupt:  # during start-up: the fleet is already stopped
         print(f"interrupted (logs in {out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    summary = {k: metrics.get(k) for k in (
-        "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m", "constraint_vel_p95_m_s",
-        "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m", "crashed", "realtime_factor")}
-    print(json.dumps(summary, indent=2))
-    print(f"wrote {out_dir}")
-    if metrics["crashed"]:
-        return EXIT_CRASH
-    return EXIT_INTERRUPTED if metrics["interrupted"] else 0
+    return _report(metrics, out_dir)
 
 
 def build_parser() -> argparse.ArgumentParser:
