@@ -72,7 +72,7 @@ class SensorConfig:
 class LinkEndpoint:
     """How the companion reaches one link's flight controller.
 
-    ``url``: ``udpin://0.0.0.0:14540`` (SITL, PX4 habits), or on hardware a serial device by id
+    ``url``: ``udpin://127.0.0.1:14540`` (SITL, PX4 habits), or on hardware a serial device by id
     with its baud rate, e.g. ``serial:///dev/serial/by-id/usb-ArduPilot_fmuv3_...-if00:921600``.
     """
 
@@ -99,7 +99,8 @@ class CompanionConfig:
 
     ``groups`` uses 1-based link numbers, e.g. ``[[1, 2], [3, 4, 5], [6, 7]]``; empty means
     one group of all links. ``links`` lists the flight controllers in chain order; empty means
-    the SITL defaults (link ``i`` has system id ``i + 1`` on ``udpin://0.0.0.0:14540+i``).
+    the SITL defaults (link ``i`` has system id ``i + 1`` on ``udpin://127.0.0.1:14540+i``: the
+    simulated vehicles are on this machine, so nothing off it can reach the companion).
     ``mode``: ``dialect`` (SKELETON_LINK_STATE in, SKELETON_CORRECTION out) or ``standard``
     (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_FRD).
     ``targets``: ``trajectory`` forwards the scenario's ``[trajectory]`` as pose targets,
@@ -129,7 +130,7 @@ class CompanionConfig:
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")
 
-    def endpoints(self, n_links: int, host: str = "0.0.0.0") -> tuple[LinkEndpoint, ...]:
+    def endpoints(self, n_links: int, host: str = "127.0.0.1") -> tuple[LinkEndpoint, ...]:
         """The configured links, or the SITL defaults for ``n_links`` links."""
         if self.links:
             return self.links
