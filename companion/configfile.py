@@ -51,7 +51,24 @@ from collections.abc import Mapping
 from os import PathLike
 from typing import Any
 
-__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "to_dict"]
+__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "require_nonnegative", "require_positive",
+           "to_dict"]
+
+
+def require_positive(obj: Any, *names: str) -> None:
+    """``ValueError`` naming the first field of ``obj`` in ``names`` that is not > 0 (NaN included)."""
+    for name in names:
+        value = getattr(obj, name)
+        if not value > 0:
+            raise ValueError(f"{name} must be positive, got {value}")
+
+
+def require_nonnegative(obj: Any, *names: str) -> None:
+    """``ValueError`` naming the first field of ``obj`` in ``names`` that is not >= 0 (NaN included)."""
+    for name in names:
+        value = getattr(obj, name)
+        if not value >= 0:
+            raise ValueError(f"{name} must be >= 0, got {value}")
 
 _TOP_LEVEL = "(top level)"
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")

@@ -33,6 +33,7 @@ from functools import cached_property
 
 import numpy as np
 
+from companion.configfile import require_positive
 from companion.estimation.so3 import quat_to_rotmat, rotmat_tuple
 
 __all__ = [
@@ -89,8 +90,7 @@ class LinkInertia:
     inertia_kgm2: tuple[float, float, float]
 
     def __post_init__(self) -> None:
-        if not self.mass_kg > 0:
-            raise ValueError(f"mass_kg must be positive, got {self.mass_kg}")
+        require_positive(self, "mass_kg")
         if len(self.inertia_kgm2) != 3 or not all(x > 0 for x in self.inertia_kgm2):
             raise ValueError(f"inertia_kgm2 must be three positive numbers, got {self.inertia_kgm2!r}")
 

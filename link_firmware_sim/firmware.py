@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.configfile import require_positive
 from companion.estimation.so3 import retract
 from companion.messages import Correction, LinkState
 
@@ -75,15 +76,13 @@ class FirmwareConfig:
     target_stale_s: float = 1.0
 
     def __post_init__(self) -> None:
-        if not self.rate_hz > 0:
-            raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
+        require_positive(self, "rate_hz")
         if not 0 <= self.correction_hold_s < self.correction_stale_s:
             raise ValueError(
                 f"correction_hold_s must be in [0, correction_stale_s), got {self.correction_hold_s} "
                 f"(stale {self.correction_stale_s})"
             )
-        if not self.target_stale_s > 0:
-            raise ValueError(f"target_stale_s must be positive, got {self.target_stale_s}")
+        require_positive(self, "target_stale_s")
 
 
 class LinkFirmware:

@@ -108,6 +108,15 @@ def _cmd_launch(args) -> int:
     return _report(metrics, out_dir)
 
 
+def _run_args(p: argparse.ArgumentParser, kind: str) -> None:
+    """The options ``fly`` and ``launch`` share (read by :func:`_scenario`, :func:`_progress`)."""
+    p.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/three_link.toml")
+    p.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
+    p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{kind}-<scenario>-<UTC time>)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m sitl", description="MuJoCo SITL of aerial skeletons.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -116,30 +125,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="fly a scenario in batch mode (one process, deterministic)",
         description="Fly a scenario in batch mode: physics 1 kHz, firmware 500 Hz, companion SCKF 20 Hz, one clock.",
     )
-    fl.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/three_link.toml")
-    fl.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
-    fl.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    _run_args(fl, "fly")
     fl.add_argument("--no-sckf", action="store_true", help="fly on the EKF alone (no companion corrections)")
     fl.add_argument("--no-selective-mapping", action="store_true",
                     help="allocate with the infinity-norm solution only (Prop. 1), without selective mapping")
-    fl.add_argument("--out", metavar="DIR", help="run folder (default: runs/fly-<scenario>-<UTC time>)")
     fl.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    fl.add_argument("--quiet", action="store_true", help="no progress bar")
     fl.set_defaults(func=_cmd_fly)
     la = sub.add_parser(
         "launch",
         help="fly a scenario in fleet mode (vehicle processes, companion, MAVLink over sockets)",
         description="Fleet mode: n MAVLink vehicle processes, the companion daemon and the MuJoCo harness in lockstep.",
     )
-    la.add_argument("--config", required=True, metavar="FILE", help="scenario file")
-    la.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
-    la.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    _run_args(la, "launch")
     la.add_argument("--speed", type=float, default=1.0, metavar="F",
                     help="pace at F times real time; 0 = as fast as the lockstep allows (default 1)")
     la.add_argument("--no-companion", action="store_true",
                     help="do not start the companion daemon: UDP 14540+i is free for your own (MAVSDK, MAVProxy)")
-    la.add_argument("--out", metavar="DIR", help="run folder (default: runs/launch-<scenario>-<UTC time>)")
-    la.add_argument("--quiet", action="store_true", help="no progress bar")
     la.set_defaults(func=_cmd_launch)
     return parser
 

@@ -251,12 +251,12 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         "q_true": truth["q_true"][rows],
         "thrust": truth["thrust"][rows],
     }
+    fw_rows = []  # per link: the rows of its log at the common times
+    for f in fw:
+        ft = {int(x): i for i, x in enumerate(np.round(f["t"] * 1e6).astype(np.int64))}
+        fw_rows.append([ft[int(x)] for x in times])
     for key in ("p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target"):
-        per_link = []
-        for f in fw:
-            ft = {int(x): i for i, x in enumerate(np.round(f["t"] * 1e6).astype(np.int64))}
-            per_link.append(f[key][[ft[int(x)] for x in times]])
-        merged[key] = np.stack(per_link, axis=1)
+        merged[key] = np.stack([f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
     comp_path = out_dir / "companion" / "companion_log.npz"
     if comp_path.exists():
         comp = dict(np.load(comp_path))

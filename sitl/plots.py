@@ -13,6 +13,13 @@ import numpy as np  # noqa: E402
 __all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "write_plots"]
 
 
+def _save(fig, title: str, path: Path) -> None:
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot_constraint_error(log: dict[str, np.ndarray], path: Path) -> None:
     """Tip position and velocity error per joint, before and after SCKF (thesis Figs. 3-6, 3-7)."""
     if "con_pos_before" not in log:
@@ -32,10 +39,7 @@ def plot_constraint_error(log: dict[str, np.ndarray], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2)
     axes[1].set_xlabel("time [s]")
-    fig.suptitle("Constraint error between neighbouring link tips (eq. 3)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, "Constraint error between neighbouring link tips (eq. 3)", path)
 
 
 def plot_tracking(log: dict[str, np.ndarray], path: Path) -> None:
@@ -54,10 +58,7 @@ def plot_tracking(log: dict[str, np.ndarray], path: Path) -> None:
     axes[0, 0].legend(fontsize=7)
     for a in range(3):
         axes[-1, a].set_xlabel("time [s]")
-    fig.suptitle("Position tracking per link")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, "Position tracking per link", path)
 
 
 def plot_thrust(log: dict[str, np.ndarray], path: Path) -> None:
@@ -75,10 +76,7 @@ def plot_thrust(log: dict[str, np.ndarray], path: Path) -> None:
         ax.grid(True, alpha=0.3)
     axes[0, 0].legend(fontsize=6, ncol=4)
     axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Rotor thrust")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, "Rotor thrust", path)
 
 
 def write_plots(log: dict[str, np.ndarray], out_dir: Path) -> list[Path]:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.configfile import require_nonnegative, require_positive
 __all__ = ["RotorParams", "RotorBank"]
 
 
@@ -57,18 +58,12 @@ class RotorParams:
     drag_ratio_m: float = 0.02
 
     def __post_init__(self) -> None:
-        if not self.thrust_max_n > 0:
-            raise ValueError(f"thrust_max_n must be positive, got {self.thrust_max_n}")
-        if not self.time_constant_s > 0:
-            raise ValueError(f"time_constant_s must be positive, got {self.time_constant_s}")
+        require_positive(self, "thrust_max_n", "time_constant_s")
         if not 0 < self.esc_epsilon_n < self.thrust_max_n:
             raise ValueError(f"esc_epsilon_n must be in (0, thrust_max_n), got {self.esc_epsilon_n}")
         if not 0 <= self.min_thrust_n < self.thrust_max_n:
             raise ValueError(f"min_thrust_n must be in [0, thrust_max_n), got {self.min_thrust_n}")
-        if self.restart_dwell_s < 0:
-            raise ValueError(f"restart_dwell_s must be >= 0, got {self.restart_dwell_s}")
-        if self.drag_ratio_m < 0:
-            raise ValueError(f"drag_ratio_m must be >= 0, got {self.drag_ratio_m}")
+        require_nonnegative(self, "restart_dwell_s", "drag_ratio_m")
 
 
 class RotorBank:

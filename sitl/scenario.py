@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
-from companion.configfile import ConfigError, build, load_toml
+from companion.configfile import ConfigError, build, load_toml, require_nonnegative, require_positive
 from companion.geo import GeoOrigin
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import Groups, make_groups, validate_groups
@@ -123,9 +123,7 @@ class CompanionConfig:
 
     def __post_init__(self) -> None:
         CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
-        for name in ("rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s")
         ids = [link.system_id for link in self.links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")
@@ -156,10 +154,8 @@ class WindConfig:
     air_density_kg_m3: float = 1.225
 
     def __post_init__(self) -> None:
-        if not self.gust_std_m_s >= 0:
-            raise ValueError(f"gust_std_m_s must be >= 0, got {self.gust_std_m_s}")
-        if not self.gust_time_constant_s > 0:
-            raise ValueError(f"gust_time_constant_s must be positive, got {self.gust_time_constant_s}")
+        require_nonnegative(self, "gust_std_m_s")
+        require_positive(self, "gust_time_constant_s")
 
 
 @dataclass(frozen=True)

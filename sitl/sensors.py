@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from companion.configfile import require_nonnegative
 from companion.estimation.so3 import quat_from_rotvec, quat_mul
 from sitl.synthetic import SensorModel, draw_drifts
 
@@ -42,9 +43,7 @@ class ImuNoise:
     gyro_bias_init_std_rad_s: float = 0.003
 
     def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_nonnegative(self, *self.__dataclass_fields__)
 
 
 @dataclass(frozen=True)
@@ -60,9 +59,7 @@ class GpsNoise:
     drift_components: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("pos_horizontal_std_m", "pos_vertical_std_m", "vel_std_m_s", "drift_amp_m"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_nonnegative(self, "pos_horizontal_std_m", "pos_vertical_std_m", "vel_std_m_s", "drift_amp_m")
         if self.drift_components < 1:
             raise ValueError(f"drift_components must be >= 1, got {self.drift_components}")
         if not 0 < self.drift_freq_min_hz <= self.drift_freq_max_hz < 1.0:
@@ -81,9 +78,7 @@ class AttitudeRefNoise:
     drift_amp_rad: float = math.radians(2.0)
 
     def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_nonnegative(self, *self.__dataclass_fields__)
 
 
 @dataclass(frozen=True)

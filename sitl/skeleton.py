@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.allocation import RotorGeometry
 from link_firmware_sim.control import LinkInertia
 
@@ -40,19 +41,15 @@ class SkeletonConfig:
     def __post_init__(self) -> None:
         if self.n_links < 1:
             raise ValueError(f"n_links must be >= 1, got {self.n_links}")
-        for name in ("link_length_m", "link_mass_kg", "rotor_x_scale", "bar_radius_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        require_positive(self, "link_length_m", "link_mass_kg", "rotor_x_scale", "bar_radius_m")
         if not (0 <= self.rotor_mass_fraction and 0 <= self.bar_mass_fraction
                 and self.rotor_mass_fraction + self.bar_mass_fraction <= 1):
             raise ValueError(
                 f"rotor_mass_fraction and bar_mass_fraction must be >= 0 and sum to at most 1, "
                 f"got {self.rotor_mass_fraction} + {self.bar_mass_fraction}"
             )
-        for name in ("joint_stiffness_nm_rad", "joint_damping_nms_rad", "drag_area_m2", "drag_coefficient",
-                     "ground_friction"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_nonnegative(self, "joint_stiffness_nm_rad", "joint_damping_nms_rad", "drag_area_m2", "drag_coefficient",
+                            "ground_friction")
         if not 0 < self.joint_limit_deg <= 180:
             raise ValueError(f"joint_limit_deg must be in (0, 180], got {self.joint_limit_deg}")
         if 0.4 * self.rotor_x_scale >= 0.5 * self.link_length_m:

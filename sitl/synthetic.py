@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.configfile import require_positive
 from companion.estimation.so3 import quat_from_euler_zyx, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat
 
 __all__ = ["ChainMotion", "ChainTruth", "chain_truth", "SensorModel", "Drift", "draw_drifts", "Sensors"]
@@ -48,8 +49,7 @@ class ChainMotion:
     def __post_init__(self) -> None:
         if self.n_links < 1:
             raise ValueError(f"n_links must be >= 1, got {self.n_links}")
-        if not self.link_length_m > 0.0:
-            raise ValueError(f"link_length_m must be positive, got {self.link_length_m}")
+        require_positive(self, "link_length_m")
 
     @property
     def d(self) -> np.ndarray:

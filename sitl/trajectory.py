@@ -24,6 +24,7 @@ from typing import Literal
 
 import numpy as np
 
+from companion.configfile import require_nonnegative, require_positive
 from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat
 from link_firmware_sim.control import PoseTarget
 
@@ -50,11 +51,8 @@ class TrajectoryConfig:
     bend_ramp_s: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.bend_period_s > 0:
-            raise ValueError(f"bend_period_s must be positive, got {self.bend_period_s}")
+        require_nonnegative(self, "takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s")
+        require_positive(self, "bend_period_s")
         if not 0 <= self.bend_amplitude_deg < 90:
             raise ValueError(f"bend_amplitude_deg must be in [0, 90), got {self.bend_amplitude_deg}")
 

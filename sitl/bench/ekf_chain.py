@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.configfile import require_positive
 from companion.replay import REPLAY_KEYS, ReplayData
 from link_firmware_sim.ekf import EkfConfig, LinkEkf
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
@@ -44,8 +45,7 @@ class ChainRun:
     sckf_rate_hz: float = 20.0
 
     def __post_init__(self) -> None:
-        if not self.duration_s > 0:
-            raise ValueError(f"duration_s must be positive, got {self.duration_s}")
+        require_positive(self, "duration_s")
         for name in ("gps", "att", "sckf"):
             rate_divisor(self.ekf_rate_hz, getattr(self, f"{name}_rate_hz"), name)
 
