@@ -1,12 +1,14 @@
 """Companion command line.
 
-    python -m companion --config FILE [--out DIR] [--start-center X,Y,Z] [--duration S]
+    python -m companion --config FILE [--group G] [--out DIR] [--start-center X,Y,Z] [--duration S]
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
     python -m companion dialect
 
 The first form runs the daemon: it connects to the links of the config's ``[companion]``
 section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
-20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. ``dialect`` prints the
+20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. With ``companion.distributed``
+one daemon runs per group (``--group G``, 1-based) and the groups meet over Zenoh for the global
+step (``[zenoh]``), the first live group of ``zenoh.leader_order`` leading. ``dialect`` prints the
 environment that lets MAVProxy, MAVExplorer and mavlogdump decode the project's messages.
 Exit codes: 0 success, 2 bad input (the message names the file, key and reason).
 """
@@ -70,8 +72,11 @@ def _cmd_daemon(args) -> int:
             center = [float(x) for x in args.start_center.split(",")]
             if len(center) != 3:
                 raise ValueError("--start-center: expected X,Y,Z")
-        out_dir = make_run_dir(f"companion-{scenario.name}", args.out)
-        daemon = CompanionDaemon(scenario, out_dir, center)
+        group = None
+        if args.group is not None:
+            group = args.group - 1
+        out_dir = make_run_dir(f"companion-{scenario.name}" + (f"-group{args.group}" if args.group else ""), args.out)
+        daemon = CompanionDaemon(scenario, out_dir, center, group=group, config_file=str(args.config))
     except (ConfigError, PortError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -99,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", metavar="FILE", help="run the daemon with this config (SITL or hardware)")
     parser.add_argument("--out", metavar="DIR",
                         help="daemon: run folder for its tlog, log and summary (default: runs/companion-<name>-<UTC time>)")
+    parser.add_argument("--group", type=int, metavar="G",
+                        help="daemon, distributed configs: the group (1-based) this companion serves")
     parser.add_argument("--start-center", metavar="X,Y,Z", help="daemon: anchor of the target trajectory [m, ENU]")
     parser.add_argument("--duration", type=float, metavar="S", help="daemon: stop after S seconds of wall time")
     parser.set_defaults(func=_cmd_daemon)

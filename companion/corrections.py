@@ -8,25 +8,35 @@ Time alignment: the constraint holds between states of the same instant. Links s
 different EKF times are first propagated to the newest stamp with their own velocity and body
 rate (``p + v dt``, ``q (x) Exp(w dt)``; the covariance is left as reported, the offsets being
 a few milliseconds at most in lockstep). In batch mode all stamps are equal and nothing moves.
+A group companion of the semi-distributed fleet aligns to the cycle time instead (the step
+time on the flight-controller clock, the same for every group), so that the boundaries the
+leader joins describe one instant.
+
+:func:`compute_corrections` is the whole step in one process (Alg. 2 + eq. 6).
+:func:`local_step` and :func:`finish_step` are the two halves a group companion runs around
+the network: its own links' Alg. 1 and boundary, then the leader's shift (or none).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from .estimation.sckf import CAParams
-from .estimation.semi import Groups, SemiResult, semi_distributed_apply
+from .estimation.chain import CON_POS, CON_VEL
+from .estimation.sckf import CAParams, CAResult, constraint_apply
+from .estimation.semi import GroupBoundary, Groups, SemiResult, group_boundary, semi_distributed_apply
 from .estimation.so3 import attitude_error, quat_from_rotvec, quat_mul
 from .messages import Correction, LinkState
 
-__all__ = ["align_states", "compute_corrections"]
+__all__ = ["align_states", "compute_corrections", "LocalStep", "local_step", "finish_step"]
 
 
-def align_states(states: Sequence[LinkState]) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Propagate every state to the newest stamp: ``(t, p (n,3), v (n,3), q (n,4))``."""
-    t = max(s.time_s for s in states)
+def align_states(states: Sequence[LinkState], t: float | None = None) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Propagate every state to time ``t`` (default: the newest stamp): ``(t, p (n,3), v (n,3), q (n,4))``."""
+    if t is None:
+        t = max(s.time_s for s in states)
     dt = np.array([t - s.time_s for s in states])[:, None]
     p = np.stack([s.p_w_m for s in states]) + np.stack([s.v_w_m_s for s in states]) * dt
     v = np.stack([s.v_w_m_s for s in states])
@@ -49,17 +59,53 @@ def compute_corrections(
     w = np.stack([s.omega_b_rad_s for s in states])
     P = np.stack([s.P for s in states])
     result = semi_distributed_apply(p, v, q, w, d_b_m, P, groups, params)
-    # Deltas against the aligned states: the link adds them to its EKF output.
-    dtheta = attitude_error(result.q, q)
-    corrections = [
-        Correction(
-            link=s.link,
-            ekf_time_s=s.time_s,
-            dp_w_m=result.p[i] - p[i],
-            dv_w_m_s=result.v[i] - v[i],
-            dtheta_w_rad=dtheta[i],
-            seq=seq,
-        )
+    return result, _deltas(states, p, v, q, result.p, result.v, result.q, seq)
+
+
+def _deltas(states, p, v, q, p_out, v_out, q_out, seq: int) -> list[Correction]:
+    """Corrections against the aligned states: the link adds them to its EKF output."""
+    dtheta = attitude_error(q_out, q)
+    return [
+        Correction(link=s.link, ekf_time_s=s.time_s, dp_w_m=p_out[i] - p[i], dv_w_m_s=v_out[i] - v[i],
+                   dtheta_w_rad=dtheta[i], seq=seq)
         for i, s in enumerate(states)
     ]
-    return result, corrections
+
+
+@dataclass(frozen=True)
+class LocalStep:
+    """A group's half of the semi-distributed step: its links aligned to ``time_s``, the local
+    constraint application (Alg. 2 for this group, i.e. Alg. 1 on its links) and its boundary."""
+
+    time_s: float
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    w: np.ndarray
+    result: CAResult
+    boundary: GroupBoundary
+
+
+def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams = CAParams(),
+               t: float | None = None) -> LocalStep:
+    """Align a group's link states (consecutive links of the chain, in order) to ``t`` and apply
+    the constraints among them; ``d_b_m`` is (len(states), 3)."""
+    links = [s.link for s in states]
+    if links != list(range(links[0], links[0] + len(links))):
+        raise ValueError(f"a group's states must be consecutive links in chain order, got {links}")
+    t, p, v, q = align_states(states, t)
+    w = np.stack([s.omega_b_rad_s for s in states])
+    P = np.stack([s.P for s in states])
+    result = constraint_apply(p, v, q, w, d_b_m, P, params)
+    return LocalStep(t, p, v, q, w, result, group_boundary(result.p, result.v, result.q, w, d_b_m, result.P))
+
+
+def finish_step(states: Sequence[LinkState], step: LocalStep, shift_pv: np.ndarray | None,
+                seq: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Correction]]:
+    """The group's final estimate (local result shifted by the global step's ``[dp; dv]``, eq. 6;
+    ``None``: local only) and its links' corrections: ``(p, v, q, corrections)``."""
+    p_out, v_out = step.result.p.copy(), step.result.v.copy()
+    if shift_pv is not None:
+        p_out += shift_pv[CON_POS]
+        v_out += shift_pv[CON_VEL]
+    return p_out, v_out, step.result.q, _deltas(states, step.p, step.v, step.q, p_out, v_out, step.result.q, seq)

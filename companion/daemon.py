@@ -20,6 +20,16 @@ stamp received:
 Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
 states that fail validation (non-finite, non-unit quaternion, covariance not positive definite)
 are counted per link and dropped.
+
+Distributed mode (``companion.distributed``, one daemon per group, ``group`` given): the daemon
+serves its group's links only. Its step is the local half (:func:`companion.corrections.local_step`
+at the cycle time, a multiple of the step period on flight-controller time, so every group's
+boundary describes the same instant); the boundary goes out over Zenoh
+(:class:`companion.fleetnet.bus.FleetBus`), and the corrections go to the links when the
+leader's shift arrives or its deadline passes (:class:`companion.fleetnet.leader.GlobalStepNode`
+decides; this module only carries out its actions). Malformed Zenoh payloads are counted per
+key and logged. In this mode the target trajectory runs on flight-controller time from 0 (SITL:
+simulation time) around ``start_center`` (default ``[start] center_w_m``), identical in every group.
 """
 
 from __future__ import annotations
@@ -34,15 +44,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .corrections import compute_corrections
+from .corrections import compute_corrections, finish_step, local_step
 from .estimation.chain import CON_DIM, CON_POS, CON_VEL
 from .estimation.constraints import constraint_residual
 from .estimation.so3 import quat_to_rotmat
-from .mavlink.codec import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, MessageError, decode_link_state, encode_correction, usec
+from .fleetnet.bus import FleetBus
+from .fleetnet.leader import Actions, GlobalStepNode
+from .mavlink.codec import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, decode_link_state, encode_correction, usec
 from .mavlink.dialect import load_dialect
 from .mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 from .mavlink.port import MavlinkPort, TlogWriter, wait_readable
-from .messages import LinkState
+from .messages import LinkState, MessageError, check_pd
 
 # The target source and the configuration schema are shared with the SITL (pure modules, no simulator).
 from sitl.trajectory import ChainTrajectory
@@ -89,11 +101,7 @@ def odometry_to_link_state(msg, link: int) -> LinkState:
     idx = [0, 1, 2, 6, 7, 8]
     P[np.ix_(idx, idx)] = pose
     P[3:6, 3:6] = R @ vel[:3, :3] @ R.T
-    P = error_cov_enu_ned(P)
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        raise MessageError("ODOMETRY: covariance not positive definite") from None
+    P = check_pd("ODOMETRY covariance", error_cov_enu_ned(P))
     v_ned = R @ np.array([msg.vx, msg.vy, msg.vz])
     return LinkState(link, msg.time_usec * 1e-6, enu_ned([msg.x, msg.y, msg.z]), enu_ned(v_ned),
                      quat_ned_frd_to_enu_flu(q / np.linalg.norm(q)),
@@ -123,24 +131,55 @@ class _Link:
 class CompanionDaemon:
     """See the module docstring. ``scenario`` is a :class:`sitl.scenario.Scenario` (one schema
     for SITL and hardware); ``start_center`` anchors the trajectory (default: the chain's
-    estimated middle when the links first report)."""
+    estimated middle when the links first report). ``group`` (0-based) selects distributed
+    mode's group; ``bus`` replaces the Zenoh session it would open (tests)."""
 
-    def __init__(self, scenario, out_dir: Path | None = None, start_center=None):
+    def __init__(self, scenario, out_dir: Path | None = None, start_center=None, group: int | None = None,
+                 bus=None, config_file: str = "<config>"):
         self.sc = scenario
         cfg = scenario.companion
         self.cfg = cfg
         n = scenario.skeleton.n_links
         self.n = n
-        self.d = scenario.skeleton.d_b_m
         self.groups = cfg.group_layout(n)
+        if cfg.distributed != (group is not None):
+            raise ValueError(f"companion.distributed is {str(cfg.distributed).lower()}: "
+                             + ("give the group this companion serves (--group 1.." + str(len(self.groups)) + ")"
+                                if cfg.distributed else "--group only applies to distributed companions"))
+        if group is not None and not 0 <= group < len(self.groups):
+            raise ValueError(f"--group {group + 1}: the config has groups 1..{len(self.groups)}")
+        self.group = group
+        members = self.groups[group] if group is not None else tuple(range(n))
+        self.d = scenario.skeleton.d_b_m[list(members)]
         self.params = cfg.params
         self.out_dir = out_dir
         tlog = TlogWriter(out_dir / "companion.tlog") if out_dir is not None else None
+        endpoints = cfg.endpoints(n)
         self.links = [
-            _Link(i, ep.system_id, MavlinkPort(ep.url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID, _ACCEPT, tlog,
-                                               peer_system_id=ep.system_id))
-            for i, ep in enumerate(cfg.endpoints(n))
+            _Link(i, endpoints[i].system_id, MavlinkPort(endpoints[i].url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID,
+                                                         _ACCEPT, tlog, peer_system_id=endpoints[i].system_id))
+            for i in members
         ]
+        self.node: GlobalStepNode | None = None
+        self.bus = None
+        self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep) awaiting the shift
+        self.bus_errors: dict[str, int] = {}
+        self._failover: dict | None = None
+        self.failovers: list[dict] = []
+        if group is not None:
+            zc = scenario.zenoh
+            self.node = GlobalStepNode(group, len(self.groups), zc.order(len(self.groups)),
+                                       int(round(1e6 / cfg.rate_hz)), shift_deadline_s=zc.shift_deadline_ms * 1e-3,
+                                       leader_wait_s=zc.leader_wait_ms * 1e-3, handover_cycles=zc.handover_cycles)
+            try:
+                self.bus = bus if bus is not None else FleetBus(zc, scenario.zenoh_prefix, group, len(self.groups),
+                                                                config_file)
+            except Exception:
+                for lk in self.links:
+                    lk.port.close()
+                raise
+            if start_center is None:
+                start_center = scenario.start.center_w_m
         self._by_sysid = {lk.system_id: lk for lk in self.links}
         self.period_us = int(round(1e6 / cfg.rate_hz))
         self.target_period_us = int(round(1e6 / cfg.target_rate_hz))
@@ -155,8 +194,11 @@ class CompanionDaemon:
         self._next_heartbeat_wall = 0.0
         self._rows: dict[str, list] = {k: [] for k in (
             "t_sckf", "con_pos_before", "con_vel_before", "con_pos_after", "con_vel_after", "p_ekf_sckf",
-            "p_corr_sckf", "iterations")}
+            "p_corr_sckf", "iterations", "cycle_us", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
+            "v_corr_sckf", "q_corr_sckf", "global_applied", "leader")}
         self.step_times_ms: list[float] = []
+        self._round_trips_ms: list[float] = []
+        self._network_round_trips_ms: list[float] = []
         self._stop = False
 
     # -- input ---------------------------------------------------------------------------------------
@@ -208,6 +250,9 @@ class CompanionDaemon:
         return all(lk.state is not None for lk in self.links)
 
     def _step(self) -> None:
+        if self.node is not None:
+            self._local_half()
+            return
         states = [lk.state for lk in self.links]
         t0 = time.perf_counter()
         try:
@@ -221,15 +266,98 @@ class CompanionDaemon:
             if self.cfg.mode == "dialect":
                 lk.port.send(encode_correction(corr, lk.system_id, 1))
             else:
-                lk.port.send(self._vision_odometry(lk, result, corr.link))
+                lk.port.send(self._vision_odometry(lk, (result.p, result.v, result.q, result.P), corr.link))
         self._record(states, result)
 
+    def _local_half(self) -> None:
+        """Distributed mode: local constraint application at the cycle time, boundary out."""
+        states = [lk.state for lk in self.links]
+        cycle = self.next_step_us
+        t0 = time.perf_counter()
+        try:
+            step = local_step(states, self.d, self.params, t=cycle * 1e-6)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
+            return
+        self.step_times_ms.append((time.perf_counter() - t0) * 1e3)
+        self._local[cycle] = (states, step)
+        b = step.boundary
+        self._perform(self.node.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, time.monotonic()))
+
+    def _perform(self, actions: Actions) -> None:
+        """Carry out what the global-step node decided."""
+        if actions.boundary is not None:
+            self.bus.publish_boundary(actions.boundary)
+        for shift in actions.shifts:
+            self.bus.publish_shift(shift)
+        for res in actions.resolved:
+            entry = self._local.pop(res.cycle_us, None)
+            for old in [c for c in self._local if c < res.cycle_us]:
+                del self._local[old]
+            if entry is None:
+                continue
+            states, step = entry
+            if res.shift is None and res.reason:
+                log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
+            if self._failover is not None and res.shift is not None and res.leader_group != self._failover["from"]:
+                fo = self._failover
+                fo.update(to=res.leader_group + 1, first_global_after_s=round(time.monotonic() - fo["gone_at"], 4))
+                log.warning("leader failover: group %d -> group %d, global step back %.0f ms after the leader left, "
+                            "%d cycle(s) without it", fo["from"] + 1, fo["to"], fo["first_global_after_s"] * 1e3,
+                            fo["cycles_without_global"])
+                self.failovers.append({**fo, "from": fo["from"] + 1})
+                self._failover = None
+            elif self._failover is not None and res.shift is None:
+                self._failover["cycles_without_global"] += 1
+            p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
+            self.seq = (self.seq + 1) & 0xFFFF or 1
+            for lk, corr in zip(self.links, corrections):
+                if self.cfg.mode == "dialect":
+                    lk.port.send(encode_correction(corr, lk.system_id, 1))
+                else:
+                    lk.port.send(self._vision_odometry(lk, (p, v, q, step.result.P), corr.link - self.links[0].index))
+            r = self._rows
+            r["t_sckf"].append(res.cycle_us * 1e-6)
+            r["cycle_us"].append(res.cycle_us)
+            r["p_ekf_sckf"].append(step.p)
+            r["v_ekf_sckf"].append(step.v)
+            r["q_ekf_sckf"].append(step.q)
+            r["w_sckf"].append(step.w)
+            r["p_local_sckf"].append(step.result.p)
+            r["p_corr_sckf"].append(p)
+            r["v_corr_sckf"].append(v)
+            r["q_corr_sckf"].append(q)
+            r["global_applied"].append(res.shift is not None)
+            r["leader"].append(-1 if res.leader_group is None else res.leader_group + 1)
+            r["iterations"].append(int(step.result.iterations))
+
+    def _on_bus(self, now: float) -> None:
+        for ev in self.bus.drain():
+            if ev.kind == "boundary":
+                self._perform(self.node.on_boundary(ev.value, ev.time_s))
+            elif ev.kind == "shift":
+                self._perform(self.node.on_shift(ev.value, ev.time_s))
+            elif ev.kind in ("alive", "gone"):
+                alive = ev.kind == "alive"
+                if ev.value != self.group:
+                    log.info("group %d %s", ev.value + 1, "is up" if alive else "left")
+                if not alive and ev.value == self.node.acting and ev.value != self.group:
+                    self._failover = {"from": ev.value, "gone_at": ev.time_s, "cycles_without_global": 0}
+                self.node.on_liveliness(ev.value, alive, ev.time_s)
+            else:
+                n = self.bus_errors[ev.key] = self.bus_errors.get(ev.key, 0) + 1
+                if n <= 5 or n % 100 == 0:
+                    log.warning("zenoh %s: dropped payload #%d: %s", ev.key, n, ev.value)
+        self._perform(self.node.tick(now))
+
     def _vision_odometry(self, lk: _Link, result, i: int):
-        """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD)."""
-        q = quat_enu_flu_to_ned_frd(result.q[i])
+        """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD);
+        ``result`` is ``(p, v, q, P)`` of the daemon's links, ``i`` the row of this link."""
+        p_all, v_all, q_all, P_all = result
+        q = quat_enu_flu_to_ned_frd(q_all[i])
         R = quat_to_rotmat(q)
-        v_body = R.T @ enu_ned(result.v[i])
-        P = result.P[i]
+        v_body = R.T @ enu_ned(v_all[i])
+        P = P_all[i]
         cov = np.full(21, 0.0)
         idx = [0, 1, 2, 6, 7, 8]
         cov[:] = error_cov_enu_ned(P)[np.ix_(idx, idx)][_UPPER_6]
@@ -237,7 +365,7 @@ class CompanionDaemon:
         vcov[:3, :3] = R.T @ error_cov_enu_ned(P)[3:6, 3:6] @ R
         vcov[3:, 3:] = np.eye(3) * 1e-4
         return D.MAVLink_odometry_message(
-            usec(lk.state.time_s), D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_BODY_FRD, *enu_ned(result.p[i]).tolist(),
+            usec(lk.state.time_s), D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_BODY_FRD, *enu_ned(p_all[i]).tolist(),
             q.tolist(), *v_body.tolist(), math.nan, math.nan, math.nan, cov.tolist(), vcov[_UPPER_6].tolist(),
             0, D.MAV_ESTIMATOR_TYPE_VISION, 100,
         )
@@ -267,12 +395,15 @@ class CompanionDaemon:
                 mid = self.n // 2
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
             self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
-            self._trajectory_t0_us = self.fc_time_us
+            # distributed: every group on the same clock (flight-controller time, SITL: simulation time)
+            self._trajectory_t0_us = 0 if self.node is not None else self.fc_time_us
         boot_ms = (self.fc_time_us // 1000) & 0xFFFFFFFF
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         t_traj = (self.fc_time_us - self._trajectory_t0_us) * 1e-6
-        for lk, target in zip(self.links, self.trajectory.targets(t_traj)):
+        targets = self.trajectory.targets(t_traj)
+        for lk in self.links:
+            target = targets[lk.index]
             p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
             lk.port.send(D.MAVLink_set_position_target_local_ned_message(
                 boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
@@ -323,17 +454,26 @@ class CompanionDaemon:
 
     # -- main loop ---------------------------------------------------------------------------------------
     def poll(self, timeout_s: float) -> None:
-        ready = wait_readable([lk.port for lk in self.links], timeout_s)
+        waitables = [lk.port for lk in self.links]
+        if self.node is not None:
+            waitables.append(self.bus)
+            due = self.node.next_deadline_s()
+            if due is not None:
+                timeout_s = min(timeout_s, max(due - time.monotonic(), 0.0))
+        ready = wait_readable(waitables, timeout_s)
         for lk in self.links:
             if lk.port in ready:
                 for msg in lk.port.read():
                     self._on_message(lk, msg)
+        if self.node is not None:
+            self._on_bus(time.monotonic())
         self._wall_clock_duties()
         if not self._all_states():
             return
         t = self.fc_time_us
         if self.next_step_us is None:
-            self.next_step_us = t
+            # steps on the period grid of flight-controller time: the groups' cycles coincide
+            self.next_step_us = -(-t // self.period_us) * self.period_us
             self.next_target_us = t
         if self.cfg.targets == "trajectory" and t >= self.next_target_us:
             self._send_targets()
@@ -358,7 +498,29 @@ class CompanionDaemon:
             self._next_heartbeat_wall = now + 1.0
         if now >= self._next_health_wall:
             log.info("health (last %.0f s):\n%s", self.cfg.health_period_s, self.health_table(self.cfg.health_period_s))
+            if self.node is not None:
+                log.info("%s", self.global_step_line())
+            self.write_log()
             self._next_health_wall = now + self.cfg.health_period_s
+
+    def global_step_line(self) -> str:
+        """Distributed mode: leader, cycles with / without the global step, round trip (when leading)."""
+        node = self.node
+        rt = np.asarray(node.round_trips_us, dtype=float) * 1e-3
+        net = np.asarray(node.network_round_trips_us, dtype=float) * 1e-3
+        node.round_trips_us, node.network_round_trips_us = [], []
+        self._round_trips_ms.extend(rt.tolist())
+        self._network_round_trips_ms.extend(net.tolist())
+        leader = node.leader_log[-1][1] + 1 if node.leader_log else None
+        text = (f"group {self.group + 1}: leader {leader if leader is not None else '-'}, cycles with global step "
+                f"{node.counts['global']}, local-only {node.counts['local_only']}, malformed payloads "
+                f"{sum(self.bus_errors.values())}")
+        if rt.size and net.size:
+            text += (f"; as leader: Zenoh global-step round trip (boundary published -> shift received, less the "
+                     f"leader's wait for the other groups) p50 {np.percentile(net, 50):.2f} ms, p99 "
+                     f"{np.percentile(net, 99):.2f} ms; end to end p50 {np.percentile(rt, 50):.2f} ms, p99 "
+                     f"{np.percentile(rt, 99):.2f} ms ({rt.size} boundaries)")
+        return text
 
     def stop(self, *_args) -> None:
         self._stop = True
@@ -367,8 +529,9 @@ class CompanionDaemon:
         signal.signal(signal.SIGTERM, self.stop)
         signal.signal(signal.SIGINT, self.stop)
         end = None if duration_s is None else time.monotonic() + duration_s
-        log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s", self.n,
-                 ", ".join(lk.port.url for lk in self.links), self.cfg.mode, self.cfg.rate_hz, self.groups)
+        log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s", len(self.links),
+                 ", ".join(lk.port.url for lk in self.links), self.cfg.mode, self.cfg.rate_hz, self.groups,
+                 f", serving group {self.group + 1} (Zenoh prefix {self.sc.zenoh_prefix!r})" if self.node else "")
         try:
             while not self._stop and (end is None or time.monotonic() < end):
                 self.poll(0.05)
@@ -385,14 +548,46 @@ class CompanionDaemon:
                                       "samples": int(lat.size)} if lat.size else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, **vars(lk.port.stats)}
                       for lk in self.links},
+            **(self._distributed_summary() if self.node is not None else {}),
         }
+
+    def _distributed_summary(self) -> dict:
+        node = self.node
+        rt = np.asarray(self._round_trips_ms + [x * 1e-3 for x in node.round_trips_us])
+        net = np.asarray(self._network_round_trips_ms + [x * 1e-3 for x in node.network_round_trips_us])
+
+        def stats(a: np.ndarray) -> dict | None:
+            return ({"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
+                     "samples": int(a.size)} if a.size else None)
+
+        return {
+            "group": self.group + 1,
+            "global_step": {**node.counts, "leaders": [[c * 1e-6, g + 1] for c, g in node.leader_log]},
+            "round_trip_ms_as_leader": {"network": stats(net), "end_to_end": stats(rt)} if rt.size else None,
+            "failovers": self.failovers,
+            "malformed_payloads": dict(self.bus_errors),
+        }
+
+    def write_log(self) -> None:
+        """The step log so far (``companion_log.npz``, rewritten whole: it survives a crash up to
+        the last checkpoint)."""
+        if self.out_dir is None:
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.out_dir / "companion_log.tmp.npz"
+        np.savez(tmp, **{k: np.asarray(v) for k, v in self._rows.items() if v})
+        tmp.replace(self.out_dir / "companion_log.npz")
 
     def close(self) -> None:
         summary = self.summary()
-        log.info("companion summary: %s", json.dumps({k: summary[k] for k in ("steps", "step_ms", "correction_latency_ms")}))
+        log.info("companion summary: %s", json.dumps({k: summary[k] for k in (
+            "steps", "step_ms", "correction_latency_ms", "global_step", "round_trip_ms_as_leader", "failovers")
+            if k in summary}))
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(self.out_dir / "companion_log.npz", **{k: np.asarray(v) for k, v in self._rows.items() if v})
+            self.write_log()
             (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
         for lk in self.links:
             lk.port.close()
+        if self.bus is not None:
+            self.bus.close()

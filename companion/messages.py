@@ -1,8 +1,15 @@
-"""Typed messages between the link firmware and the companion (one schema for every wire).
+"""Typed messages of the stack (one schema for every wire) and the checks every decoder applies.
 
 Frames and units are in the field names: ``_w`` is the world frame of the estimation core
 (z-up; MAVLink's NED appears only in the MAVLink codec), ``_b`` the link body frame (x along
-the link towards its right tip). Times are the link's flight-controller clock [s].
+the link towards its right tip). Times are the link's flight-controller clock [s], or [us] in
+``*_us`` fields.
+
+The same dataclasses cross both wires: :mod:`companion.mavlink.codec` carries
+:class:`LinkState` and :class:`Correction` between links and companions;
+:mod:`companion.fleetnet.codec` carries all four between companions over Zenoh. Both decoders
+validate with :func:`check_finite`, :func:`check_unit_quat` and :func:`check_pd` and raise
+:class:`MessageError` naming the field.
 """
 
 from __future__ import annotations
@@ -11,7 +18,48 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LinkState", "Correction"]
+__all__ = [
+    "MessageError",
+    "check_finite",
+    "check_unit_quat",
+    "check_pd",
+    "LinkState",
+    "Correction",
+    "GroupBoundaryReport",
+    "GlobalShift",
+]
+
+
+class MessageError(ValueError):
+    """A received message whose content cannot be used (the message names the field)."""
+
+
+def check_finite(name: str, values) -> np.ndarray:
+    """``values`` as a float array; :class:`MessageError` on NaN or infinity."""
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise MessageError(f"{name}: non-finite value")
+    return a
+
+
+def check_unit_quat(name: str, values) -> np.ndarray:
+    """A quaternion within 1e-3 of unit norm, renormalised."""
+    q = check_finite(name, values)
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > 1e-3:
+        raise MessageError(f"{name}: quaternion norm {n:.6g} is not 1")
+    return q / n
+
+
+def check_pd(name: str, matrix) -> np.ndarray:
+    """A finite symmetric positive-definite matrix (symmetrised)."""
+    m = check_finite(name, matrix)
+    m = 0.5 * (m + m.T)
+    try:
+        np.linalg.cholesky(m)
+    except np.linalg.LinAlgError:
+        raise MessageError(f"{name}: not positive definite") from None
+    return m
 
 
 @dataclass(frozen=True)
@@ -57,3 +105,69 @@ class Correction:
     dv_w_m_s: np.ndarray
     dtheta_w_rad: np.ndarray
     seq: int = 0
+
+
+@dataclass(frozen=True)
+class GroupBoundaryReport:
+    """What a group companion publishes after its local step (Alg. 2) for the global step (eq. 6).
+
+    Attributes:
+        group: 0-based group index in chain order.
+        cycle_us: the step time on the flight-controller clock (a multiple of the step period):
+            the cycle this boundary belongs to.
+        left_tip_pv_w: (6,) [position m; velocity m/s] of the left tip of the group's first link.
+        right_tip_pv_w: (6,) the same for the right tip of its last link.
+        info_pv: (6, 6) ``Lambda_g = sum_i Pbar_i^-1``, the summed inverse [p; v] covariance.
+        round_trip_us: this group's round trip (boundary published -> shift received, wall
+            clock) of its previous cycle with a shift, -1 if it had none; the leader reports them.
+        network_round_trip_us: the same less the leader's hold time (waiting for the other
+            groups, solving): what the wire and the two Zenoh stacks took; -1 if none.
+    """
+
+    group: int
+    cycle_us: int
+    left_tip_pv_w: np.ndarray
+    right_tip_pv_w: np.ndarray
+    info_pv: np.ndarray
+    round_trip_us: int = -1
+    network_round_trip_us: int = -1
+
+
+@dataclass(frozen=True)
+class GlobalShift:
+    """The leader's solution of eq. 6 for one cycle: one [dp; dv] shift per group.
+
+    Attributes:
+        leader_group: 0-based group index of the companion that solved it.
+        cycle_us: the cycle (see :class:`GroupBoundaryReport`).
+        groups: the 0-based groups solved, in chain order (groups that did not report in time
+            are absent; each run of consecutive groups is solved on its own).
+        shift_pv_w: (len(groups), 6) [dp m; dv m/s] per listed group.
+        handover_group: a group the leader hands leadership to (a returning preferred leader),
+            -1 for none; it leads from ``handover_cycle_us`` on.
+        handover_cycle_us: first cycle of the new leader.
+        hold_us: per listed group, how long the leader held its boundary (arrival to this
+            shift's publication) [us]; the group subtracts it from its round trip.
+    """
+
+    leader_group: int
+    cycle_us: int
+    groups: tuple[int, ...]
+    shift_pv_w: np.ndarray
+    handover_group: int = -1
+    handover_cycle_us: int = 0
+    hold_us: tuple[int, ...] = ()
+
+    def shift_for(self, group: int) -> np.ndarray | None:
+        """The shift of ``group``, or ``None`` if it was not solved this cycle."""
+        try:
+            return self.shift_pv_w[self.groups.index(group)]
+        except ValueError:
+            return None
+
+    def hold_for(self, group: int) -> int | None:
+        """The leader's hold time of ``group``'s boundary [us], if listed."""
+        try:
+            return self.hold_us[self.groups.index(group)]
+        except (ValueError, IndexError):
+            return None

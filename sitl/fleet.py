@@ -4,7 +4,10 @@
 
 * n vehicle processes (``python -m link_firmware_sim``): link ``i`` is MAVLink system ``i + 1``,
   simulator TCP 4560+i, onboard UDP 14540+i (from 14580+i), GCS UDP 14550 (from 18570+i);
-* the companion daemon (``python -m companion``), listening on UDP 14540+i;
+* the companion daemon (``python -m companion``), listening on UDP 14540+i; with
+  ``companion.distributed`` one per group (``--group G``, run folder ``companion-gG``), joined
+  over Zenoh on loopback (``tcp/127.0.0.1:7447+G-1``); ``[faults]`` can SIGKILL one of them
+  mid-flight and start a new one later (folder ``companion-gG-restart``);
 * the harness (this process): the same :class:`~sitl.runner.Plant` as batch mode, talking to each
   vehicle over its simulator link. Lockstep: at every firmware tick the harness sends HIL_GPS /
   SKELETON_AHRS_REFERENCE (when due) and HIL_SENSOR to every vehicle, waits until every vehicle
@@ -39,7 +42,7 @@ from link_firmware_sim.control import weight_wrench
 
 from .metrics import PAPER_THREE_LINK, compute_metrics
 from .plots import write_plots
-from .runner import Plant, Schedule
+from .runner import Plant, Schedule, joint_norms
 from .scenario import Scenario
 
 __all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "endpoint_table", "launch"]
@@ -179,6 +182,7 @@ def _die_with_parent() -> None:  # runs in the child before exec (Linux)
 class _Processes:
     def __init__(self):
         self.procs: list[tuple[str, subprocess.Popen]] = []
+        self.killed: set[str] = set()
 
     def start(self, name: str, argv: list[str], log_path: Path) -> None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -189,9 +193,17 @@ class _Processes:
         fh.close()
         self.procs.append((name, proc))
 
+    def kill(self, name: str) -> None:
+        """SIGKILL a process on purpose (a scripted fault): it is no longer checked."""
+        for pname, proc in self.procs:
+            if pname == name and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        self.killed.add(name)
+
     def check(self) -> None:
         for name, proc in self.procs:
-            if proc.poll() is not None:
+            if name not in self.killed and proc.poll() is not None:
                 raise FleetError(f"{name} exited with code {proc.returncode} (see its console log)")
 
     def stop(self) -> None:
@@ -206,6 +218,44 @@ class _Processes:
                 log.warning("%s did not stop in %.0f s: killing it", name, STOP_GRACE_S)
                 proc.kill()
                 proc.wait()
+
+
+def _companion_name(group: int | None) -> str:
+    return "companion" if group is None else f"companion of group {group + 1}"
+
+
+def _distributed_metrics(sc: Scenario, merged: dict, summaries: dict[str, dict], faults: dict) -> dict:
+    """Global-step figures of a distributed fleet run: per companion its counts, leaders and
+    round trips; the leader failover after a scripted kill, measured by the surviving groups."""
+    out: dict = {"companions": {}}
+    rts = []
+    for name, summ in summaries.items():
+        out["companions"][name] = {k: summ.get(k) for k in ("global_step", "round_trip_ms_as_leader", "failovers",
+                                                             "malformed_payloads")}
+        if summ.get("round_trip_ms_as_leader"):
+            rts.append(summ["round_trip_ms_as_leader"])
+    for part in ("network", "end_to_end"):
+        values = [r[part]["p99"] for r in rts if r.get(part)]
+        if values:
+            out[f"round_trip_{part}_ms_p99"] = max(values)
+    win = merged.get("t_sckf", np.zeros(0)) >= sc.flight_start_s
+    if "global_applied" in merged and np.any(win):
+        out["cycles_with_global_step_fraction"] = float(np.mean(np.all(merged["global_applied"][win], axis=1)))
+    if faults:
+        out["fault"] = {k: v for k, v in faults.items() if not k.endswith("_monotonic")}
+        takeovers = []
+        for name, summ in summaries.items():
+            for fo in summ.get("failovers") or []:
+                if fo.get("from") == faults["group"] and "gone_at" in fo:
+                    takeovers.append({"observed_by": name, "to_group": fo.get("to"),
+                                      "leader_gone_after_kill_s": round(fo["gone_at"] - faults["killed_at_monotonic"], 4),
+                                      "global_step_back_after_kill_s": round(
+                                          fo["gone_at"] + fo["first_global_after_s"] - faults["killed_at_monotonic"], 4),
+                                      "cycles_without_global_step": fo["cycles_without_global"]})
+        out["fault"]["failover"] = takeovers
+        if takeovers:
+            out["fault"]["failover_s_max"] = max(t["global_step_back_after_kill_s"] for t in takeovers)
+    return out
 
 
 def _udp_listening() -> set[int]:
@@ -257,9 +307,8 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         fw_rows.append([ft[int(x)] for x in times])
     for key in ("p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target"):
         merged[key] = np.stack([f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
-    comp_path = out_dir / "companion" / "companion_log.npz"
-    if comp_path.exists():
-        comp = dict(np.load(comp_path))
+    comp = _companion_log(sc, out_dir)
+    if comp is not None:
         # each step against the truth row nearest its state time (the log grid is 1 / log_rate_hz)
         ct = np.round(comp["t_sckf"] * 1e6).astype(np.int64)
         row = np.clip(np.searchsorted(t_us, ct), 1, len(t_us) - 1)
@@ -270,6 +319,53 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         merged["p_true_sckf"] = truth["p_true"][row[keep]]
     latency = np.concatenate([f["correction_latency"] for f in fw]) if fw else np.zeros((0, 2))
     return merged, latency
+
+
+def _companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
+    """The companion's step log; distributed: the groups' logs joined on their cycles (a group's
+    restarted companion continues its log), constraint errors recomputed over the whole chain."""
+    if not sc.companion.distributed:
+        path = out_dir / "companion" / "companion_log.npz"
+        return dict(np.load(path)) if path.exists() else None
+    groups = sc.companion.group_layout(sc.skeleton.n_links)
+    per_group = []
+    for g in range(len(groups)):
+        parts = [dict(np.load(p)) for p in sorted(out_dir.glob(f"companion-g{g + 1}*/companion_log.npz"))]
+        parts = [p for p in parts if "cycle_us" in p]
+        if not parts:
+            return None
+        log_g = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        _, first = np.unique(log_g["cycle_us"], return_index=True)
+        per_group.append({k: v[first] for k, v in log_g.items()})
+    cycles = per_group[0]["cycle_us"]
+    for lg in per_group[1:]:
+        cycles = np.intersect1d(cycles, lg["cycle_us"])
+    rows = [np.searchsorted(lg["cycle_us"], cycles) for lg in per_group]
+    merged = {"t_sckf": cycles * 1e-6, "cycle_us": cycles}
+    for key in ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf", "v_corr_sckf",
+                "q_corr_sckf"):
+        merged[key] = np.concatenate([lg[key][r] for lg, r in zip(per_group, rows)], axis=1)
+    merged["global_applied"] = np.stack([lg["global_applied"][r] for lg, r in zip(per_group, rows)], axis=1)
+    merged["iterations"] = np.max(np.stack([lg["iterations"][r] for lg, r in zip(per_group, rows)]), axis=0)
+    d = sc.skeleton.d_b_m
+    if sc.skeleton.n_links > 1 and cycles.size:
+        for tag, (p, v, q) in (("before", ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf")),
+                               ("after", ("p_corr_sckf", "v_corr_sckf", "q_corr_sckf"))):
+            norms = [joint_norms(merged[p][k], merged[v][k], merged[q][k], merged["w_sckf"][k], d)
+                     for k in range(cycles.size)]
+            merged[f"con_pos_{tag}"] = np.array([a for a, _ in norms])
+            merged[f"con_vel_{tag}"] = np.array([b for _, b in norms])
+    return merged
+
+
+def _companion_summaries(out_dir: Path) -> dict[str, dict]:
+    out = {}
+    for path in sorted(out_dir.glob("companion*/companion_summary.json")):
+        try:
+            out[path.parent.name] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+    return out
 
 
 def check_fleet_scenario(sc: Scenario) -> None:
@@ -298,10 +394,18 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(config), "--instance",
                                           str(i), "--out", str(out_dir / f"link{i + 1}")],
                         out_dir / f"link{i + 1}" / "console.log")
+        def start_companion(group: int | None, folder: str) -> None:
+            argv = [python, "-m", "companion", "--config", str(config), "--out", str(out_dir / folder),
+                    "--start-center", center]
+            procs.start(_companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
+                        out_dir / folder / "console.log")
+
         if companion and sc.companion.enabled:
-            procs.start("companion", [python, "-m", "companion", "--config", str(config), "--out",
-                                      str(out_dir / "companion"), "--start-center", center],
-                        out_dir / "companion" / "console.log")
+            if sc.companion.distributed:
+                for g in range(len(sc.companion.group_layout(n))):
+                    start_companion(g, f"companion-g{g + 1}")
+            else:
+                start_companion(None, "companion")
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
             _wait_udp_listening([14540 + i for i in range(n)], procs)
         print(endpoint_table(sc), flush=True)
@@ -311,7 +415,22 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             procs.check()
             raise FleetError(str(exc)) from None
 
+        faults = sc.faults
+        fault_log: dict = {}
+
         def stop_check() -> bool:
+            t = plant.time_s
+            if faults.kill_companion_group and companion and sc.companion.enabled:
+                g = faults.kill_companion_group - 1
+                if "killed_at_s" not in fault_log and t >= faults.kill_at_s:
+                    procs.kill(_companion_name(g))
+                    fault_log.update(group=g + 1, killed_at_s=round(t, 3), killed_at_monotonic=time.monotonic())
+                    log.warning("fault: killed the companion of group %d at t = %.2f s", g + 1, t)
+                if (faults.restart_after_s and "killed_at_s" in fault_log and "restarted_at_s" not in fault_log
+                        and t >= faults.kill_at_s + faults.restart_after_s):
+                    start_companion(g, f"companion-g{g + 1}-restart")
+                    fault_log.update(restarted_at_s=round(t, 3), restarted_at_monotonic=time.monotonic())
+                    log.warning("fault: restarted the companion of group %d at t = %.2f s", g + 1, t)
             procs.check()  # raises FleetError if a process died
             return False
 
@@ -333,7 +452,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     merged, latency = _merge_logs(sc, truth, out_dir)
     metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,
                               plant.crash_reason, harness.sim_s / max(harness.wall_s, 1e-9),
-                              sc.companion.enabled and "t_sckf" in merged)
+                              sc.companion.enabled and "p_corr_sckf" in merged,
+                              groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest")
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),
@@ -341,6 +461,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     )
     metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed,
                    interrupted=interrupted)
+    if sc.companion.distributed and companion and sc.companion.enabled:
+        metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
     if n == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")

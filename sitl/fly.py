@@ -48,6 +48,8 @@ def fly(
         runner.crash_reason,
         runner.sim_s / runner.wall_s if runner.wall_s > 0 else float("inf"),
         sc.companion.enabled,
+        groups=runner.groups,
+        resting=sc.trajectory.kind == "rest",
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed

@@ -11,6 +11,13 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``constraint_pos_p95_m`` / ``constraint_vel_p95_m_s``: 95th percentile over joints and
   companion ticks of the eq. 3 tip position / velocity error, ``before`` (EKF states) and
   ``after`` the constraint application;
+* with several groups, ``constraint_pos_p95_m`` / ``constraint_vel_p95_m_s`` also split the
+  ``after`` figure into ``after_within_groups`` and ``after_between_groups`` (the joints the
+  global step of eq. 6 closes);
+* ``link4_std_m`` (a resting chain, thesis sec. 3.5.2): standard deviation over the window of
+  link 4's estimated position per axis, for the EKF alone (``ekf``), after the local constraint
+  application (``local``) and after the global step (``semi_distributed``), with the thesis's
+  figures beside them (``thesis``) and the true position's own deviation (``truth``);
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``.
 """
@@ -21,7 +28,7 @@ import numpy as np
 
 from companion.estimation.so3 import attitude_error
 
-__all__ = ["PAPER_THREE_LINK", "compute_metrics"]
+__all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "compute_metrics"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
 #: the constraint error after SCKF ("under 5 cm and 2 cm/s").
@@ -29,6 +36,14 @@ PAPER_THREE_LINK = {
     "rms_track_est_m": [0.1161, 0.1340, 0.1257],
     "constraint_pos_after_max_m": 0.05,
     "constraint_vel_after_max_m_s": 0.02,
+}
+
+
+#: Thesis sec. 3.5.2: std of link 4's position [x, y, z] in the 7-link static test.
+THESIS_STATIC_LINK4_STD_M = {
+    "ekf": [0.558, 0.542, 0.098],
+    "local": [0.194, 0.311, 0.052],
+    "semi_distributed": [0.081, 0.125, 0.046],
 }
 
 
@@ -49,6 +64,8 @@ def compute_metrics(
     crash_reason: str,
     realtime_factor: float,
     sckf_enabled: bool,
+    groups=None,
+    resting: bool = False,
 ) -> dict:
     t = log["t"]
     win = t >= flight_start_s
@@ -96,4 +113,19 @@ def compute_metrics(
             metrics["constraint_vel_p95_m_s"]["after"] = _p95(log["con_vel_after"][wins])
             metrics["constraint_pos_max_m"] = {"after": float(np.max(log["con_pos_after"][wins]))}
             metrics["constraint_vel_max_m_s"] = {"after": float(np.max(log["con_vel_after"][wins]))}
+            if groups is not None and len(groups) > 1:
+                between = np.zeros(n - 1, dtype=bool)
+                between[[g[-1] for g in groups[:-1]]] = True
+                for key, name in (("constraint_pos_p95_m", "con_pos_after"), ("constraint_vel_p95_m_s", "con_vel_after")):
+                    values = log[name][wins]
+                    metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
+                    metrics[key]["after_between_groups"] = _p95(values[:, between])
+    if resting and n >= 4 and has_steps:
+        stds = {"ekf": np.std(log["p_ekf_sckf"][wins][:, 3], axis=0).tolist()}
+        if sckf_enabled and "p_local_sckf" in log:
+            stds["local"] = np.std(log["p_local_sckf"][wins][:, 3], axis=0).tolist()
+            stds["semi_distributed"] = np.std(log["p_corr_sckf"][wins][:, 3], axis=0).tolist()
+        stds["truth"] = np.std(log["p_true_sckf"][wins][:, 3], axis=0).tolist()
+        stds["thesis"] = THESIS_STATIC_LINK4_STD_M
+        metrics["link4_std_m"] = stds
     return metrics

@@ -39,7 +39,7 @@ from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors
 from .trajectory import ChainTrajectory
 
-__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog"]
+__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog", "joint_norms"]
 
 log = logging.getLogger(__name__)
 
@@ -94,13 +94,14 @@ class RunLog:
     p_true_sckf: list = field(default_factory=list)
     p_ekf_sckf: list = field(default_factory=list)
     p_corr_sckf: list = field(default_factory=list)
+    p_local_sckf: list = field(default_factory=list)
     iterations: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
 
 
-def _joint_norms(p, v, q, w, d) -> tuple[np.ndarray, np.ndarray]:
+def joint_norms(p, v, q, w, d) -> tuple[np.ndarray, np.ndarray]:
     """Per-joint norms of the eq. 3 position and velocity errors."""
     c = constraint_residual(p, v, q, w, d).reshape(-1, CON_DIM)
     return np.linalg.norm(c[:, CON_POS], axis=1), np.linalg.norm(c[:, CON_VEL], axis=1)
@@ -190,7 +191,7 @@ class Plant:
         if not np.all(np.isfinite(truth.p_w_m)):
             self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
             return
-        if t < self.scenario.flight_start_s:
+        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest":
             return
         floor = self.scenario.skeleton.bar_radius_m + 0.05
         if truth.p_w_m[:, 2].min() < floor:
@@ -227,12 +228,14 @@ class BatchRunner:
         self.groups = sc.companion.group_layout(self.n)
         truth = plant.model.truth()
         self.trajectory = ChainTrajectory(sc.trajectory, self.n, sc.skeleton.link_length_m, plant.start_center())
-        # Firmware start-up: EKF from the first GPS fix and attitude reference, then arm.
+        # Firmware start-up: EKF from the first GPS fix and attitude reference, then arm (a
+        # resting chain stays disarmed).
         pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
         att = plant.sensors.attitude(0.0, truth.q_wxyz)
         for i, fw in enumerate(self.firmware):
             fw.initialize(0.0, pos[i], vel[i], att[i])
-            fw.arm(0.0)
+            if sc.trajectory.kind != "rest":
+                fw.arm(0.0)
         if not sc.start.on_ground:
             # In-air start: rotors already spinning at the thrusts that carry each link.
             self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
@@ -261,7 +264,7 @@ class BatchRunner:
         lg.p_true_sckf.append(truth.p_w_m.copy())
         lg.p_ekf_sckf.append(p)
         if self.n > 1:
-            pos, vel = _joint_norms(p, v, q, w, self.d)
+            pos, vel = joint_norms(p, v, q, w, self.d)
             lg.con_pos_before.append(pos)
             lg.con_vel_before.append(vel)
         if not sc.companion.enabled:
@@ -271,9 +274,10 @@ class BatchRunner:
         for fw, corr in zip(self.firmware, corrections):
             fw.on_correction(t, corr)
         lg.p_corr_sckf.append(result.p)
+        lg.p_local_sckf.append(np.concatenate([r.p for r in result.local]))
         lg.iterations.append(result.iterations.max())
         if self.n > 1:
-            pos, vel = _joint_norms(result.p, result.v, result.q, w, self.d)
+            pos, vel = joint_norms(result.p, result.v, result.q, w, self.d)
             lg.con_pos_after.append(pos)
             lg.con_vel_after.append(vel)
 

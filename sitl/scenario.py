@@ -16,6 +16,7 @@ from companion.configfile import ConfigError, build, load_toml, require_nonnegat
 from companion.geo import GeoOrigin
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import Groups, make_groups, validate_groups
+from companion.fleetnet.config import PREFIX_RE, ZenohConfig
 from link_firmware_sim.firmware import FirmwareConfig
 from sitl.bench.ekf_chain import rate_divisor
 
@@ -30,6 +31,7 @@ __all__ = [
     "CompanionConfig",
     "WindConfig",
     "SimConfig",
+    "FaultConfig",
     "Scenario",
     "load_scenario",
 ]
@@ -105,6 +107,9 @@ class CompanionConfig:
     (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_FRD).
     ``targets``: ``trajectory`` forwards the scenario's ``[trajectory]`` as pose targets,
     ``none`` sends none. ``arm``: arm every link once all report a usable EKF.
+    ``distributed``: one companion per group (``python -m companion --config F --group G``),
+    joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
+    whole chain and runs the global step in-process.
     """
 
     enabled: bool = True
@@ -120,6 +125,7 @@ class CompanionConfig:
     state_rate_hz: float = 50.0
     arm: bool = True
     health_period_s: float = 5.0
+    distributed: bool = False
 
     def __post_init__(self) -> None:
         CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
@@ -170,6 +176,23 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class FaultConfig:
+    """Scripted faults for fleet mode (times in simulation seconds).
+
+    ``kill_companion_group``: SIGKILL the companion of this group (1-based; 0: none) at
+    ``kill_at_s``, as if its onboard computer lost power; ``restart_after_s`` later a new one
+    starts (0: never). Needs ``companion.distributed``.
+    """
+
+    kill_companion_group: int = 0
+    kill_at_s: float = 0.0
+    restart_after_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "kill_companion_group", "kill_at_s", "restart_after_s")
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str = ""
@@ -185,6 +208,8 @@ class Scenario:
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     origin: GeoOrigin = field(default_factory=GeoOrigin)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    faults: FaultConfig = field(default_factory=FaultConfig)
 
     def __post_init__(self) -> None:
         if not self.duration_s > self.flight_start_s:
@@ -195,7 +220,20 @@ class Scenario:
         rate_divisor(physics, self.companion.rate_hz, "companion.rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.gps_rate_hz, "sensors.gps_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.attitude_rate_hz, "sensors.attitude_rate_hz")
-        self.companion.group_layout(self.skeleton.n_links)
+        n_groups = len(self.companion.group_layout(self.skeleton.n_links))
+        try:
+            self.zenoh.check_groups(n_groups, 1e3 / self.companion.rate_hz)
+        except ValueError as exc:
+            raise ValueError(f"zenoh.{exc}") from None
+        if self.trajectory.kind == "rest" and self.companion.arm:
+            raise ValueError("trajectory.kind 'rest' keeps the links on the ground: set companion.arm = false")
+        if self.faults.kill_companion_group:
+            if not self.companion.distributed:
+                raise ValueError("faults.kill_companion_group needs companion.distributed = true")
+            if self.faults.kill_companion_group > n_groups:
+                raise ValueError(f"faults.kill_companion_group: the config has groups 1..{n_groups}")
+        if not self.zenoh.prefix and not PREFIX_RE.match(self.name):
+            raise ValueError(f"name {self.name!r} cannot be the Zenoh prefix: set zenoh.prefix")
         if self.companion.links and len(self.companion.links) != self.skeleton.n_links:
             raise ValueError(
                 f"companion.links lists {len(self.companion.links)} links, the skeleton has {self.skeleton.n_links}"
@@ -205,6 +243,11 @@ class Scenario:
                 f"firmware.allocation.thrust_max_n ({self.firmware.allocation.thrust_max_n}) must equal "
                 f"rotors.thrust_max_n ({self.rotors.thrust_max_n})"
             )
+
+    @property
+    def zenoh_prefix(self) -> str:
+        """Key-expression prefix of this fleet: ``zenoh.prefix``, else the scenario name."""
+        return self.zenoh.prefix or self.name
 
     @property
     def flight_start_s(self) -> float:

@@ -12,6 +12,9 @@ themselves satisfy the constraint of eq. 3. Phases:
   linearly from -1 (first link) to +1 (last link), ``theta(t) = A r(t) sin(2 pi (t - t_b) / T)``
   with a quintic amplitude ramp ``r``. Positive ``theta`` lowers both ends.
 
+``kind = "rest"``: the chain lies where it starts and is never armed (thesis sec. 3.5.2, the
+static estimation test); the metrics window opens at ``takeoff_start_s`` (EKF settling).
+
 All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
 accelerations and body rates are central differences of the smooth pose function.
 """
@@ -39,7 +42,7 @@ def smoothstep5(s: float) -> float:
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "bend"] = "hover"
+    kind: Literal["hover", "bend", "rest"] = "hover"
     takeoff_start_s: float = 1.0
     takeoff_duration_s: float = 5.0
     takeoff_altitude_m: float = 2.0
@@ -58,7 +61,7 @@ class TrajectoryConfig:
 
     @property
     def takeoff_end_s(self) -> float:
-        return self.takeoff_start_s + self.takeoff_duration_s
+        return self.takeoff_start_s + (0.0 if self.kind == "rest" else self.takeoff_duration_s)
 
 
 class ChainTrajectory:
@@ -82,6 +85,8 @@ class ChainTrajectory:
 
     def center_w_m(self, t: float) -> np.ndarray:
         c = self.cfg
+        if c.kind == "rest":
+            return self.start.copy()
         s = smoothstep5((t - c.takeoff_start_s) / c.takeoff_duration_s) if c.takeoff_duration_s > 0 else float(t >= c.takeoff_start_s)
         target = self.start.copy()
         target[2] = self.start[2] + s * (c.takeoff_altitude_m - self.start[2])

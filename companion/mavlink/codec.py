@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from companion.messages import Correction, LinkState
+from companion.messages import Correction, LinkState, MessageError, check_finite, check_pd, check_unit_quat
 
 from .dialect import load_dialect
 from .frames import enu_ned, error_cov_enu_ned, flu_frd, pack_upper, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu, unpack_upper
@@ -36,31 +36,12 @@ STATE_FLAG_ARMED = _D.SKELETON_STATE_FLAGS_ARMED
 STATE_FLAG_CORRECTION_ACTIVE = _D.SKELETON_STATE_FLAGS_CORRECTION_ACTIVE
 
 
-class MessageError(ValueError):
-    """A MAVLink message whose content cannot be used (the message names the field)."""
-
-
 def usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
 
 
 def seconds(t_us: int) -> float:
     return t_us * 1e-6
-
-
-def _finite(name: str, values) -> np.ndarray:
-    a = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(a)):
-        raise MessageError(f"{name}: non-finite value")
-    return a
-
-
-def _unit_quat(name: str, values) -> np.ndarray:
-    q = _finite(name, values)
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > 1e-3:
-        raise MessageError(f"{name}: quaternion norm {n:.6g} is not 1")
-    return q / n
 
 
 def encode_link_state(state: LinkState, flags: int = STATE_FLAG_EKF_OK, reset_counter: int = 0,
@@ -82,18 +63,14 @@ def encode_link_state(state: LinkState, flags: int = STATE_FLAG_EKF_OK, reset_co
 
 def decode_link_state(msg, link: int) -> LinkState:
     """:class:`LinkState` of a SKELETON_LINK_STATE; :class:`MessageError` if unusable."""
-    P = error_cov_enu_ned(unpack_upper(_finite("covariance", msg.covariance)))
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        raise MessageError("covariance: not positive definite") from None
+    P = check_pd("covariance", error_cov_enu_ned(unpack_upper(check_finite("covariance", msg.covariance))))
     return LinkState(
         link=link,
         time_s=seconds(msg.time_usec),
-        p_w_m=enu_ned(_finite("p_ned", msg.p_ned)),
-        v_w_m_s=enu_ned(_finite("v_ned", msg.v_ned)),
-        q_wxyz=quat_ned_frd_to_enu_flu(_unit_quat("q", msg.q)),
-        omega_b_rad_s=flu_frd(_finite("rates_frd", msg.rates_frd)),
+        p_w_m=enu_ned(check_finite("p_ned", msg.p_ned)),
+        v_w_m_s=enu_ned(check_finite("v_ned", msg.v_ned)),
+        q_wxyz=quat_ned_frd_to_enu_flu(check_unit_quat("q", msg.q)),
+        omega_b_rad_s=flu_frd(check_finite("rates_frd", msg.rates_frd)),
         P=P,
     )
 
@@ -116,14 +93,14 @@ def decode_correction(msg, link: int) -> Correction | None:
     """:class:`Correction` of a SKELETON_CORRECTION (``None`` for ``valid = 0``: withdraw)."""
     if not msg.valid:
         return None
-    dtheta = _finite("dtheta_ned", msg.dtheta_ned)
+    dtheta = check_finite("dtheta_ned", msg.dtheta_ned)
     if float(np.linalg.norm(dtheta)) > math.pi:
         raise MessageError(f"dtheta_ned: {np.linalg.norm(dtheta):.3g} rad is not a small-angle correction")
     return Correction(
         link=link,
         ekf_time_s=seconds(msg.ekf_time_usec),
-        dp_w_m=enu_ned(_finite("dp_ned", msg.dp_ned)),
-        dv_w_m_s=enu_ned(_finite("dv_ned", msg.dv_ned)),
+        dp_w_m=enu_ned(check_finite("dp_ned", msg.dp_ned)),
+        dv_w_m_s=enu_ned(check_finite("dv_ned", msg.dv_ned)),
         dtheta_w_rad=enu_ned(dtheta),
         seq=int(msg.seq),
     )

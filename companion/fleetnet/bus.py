@@ -1,0 +1,186 @@
+"""The Zenoh session of one group companion (the only module of the stack that imports ``zenoh``).
+
+:class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
+declares this group's liveliness token, subscribes to the other groups' boundaries, the
+leader's shifts and the liveliness of every group, and publishes this group's boundary and
+(when it leads) the shifts. Zenoh calls back on its own threads; the callbacks only decode and
+queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`), so all the estimation
+state lives in the daemon's thread. A payload that fails :func:`~companion.fleetnet.codec.decode`
+is queued as an error event: the daemon counts it per key and logs it; nothing else happens.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from companion.configfile import ConfigError
+from companion.messages import GlobalShift, GroupBoundaryReport, MessageError
+
+from . import codec
+from .config import ZenohConfig
+from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key
+
+__all__ = ["BusEvent", "FleetBus", "zenoh_config"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BusEvent:
+    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``alive``, ``gone`` or ``error``;
+    ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
+    monotonic arrival time; ``key`` the key expression it came on."""
+
+    kind: str
+    value: Any
+    time_s: float
+    key: str
+
+
+def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>") -> zenoh.Config:
+    """The Zenoh configuration of 0-based ``group``'s companion (errors name the config key)."""
+    zc = zenoh.Config()
+
+    def put(key: str, value: Any, where: str, json5_text: bool = False) -> None:
+        try:
+            zc.insert_json5(key, value if json5_text else json.dumps(value))
+        except Exception as exc:  # zenoh raises ZError with the parser's message
+            raise ConfigError(file, where, f"Zenoh rejected {key}: {exc}") from None
+
+    put("mode", cfg.mode, "zenoh.mode")
+    put("scouting/multicast/enabled", cfg.multicast_scouting, "zenoh.multicast_scouting")
+    put("transport/link/tx/lease", int(cfg.lease_ms), "zenoh.lease_ms")
+    others = [cfg.group_endpoint(g) for g in range(n_groups) if g != group]
+    if cfg.mode == "peer":
+        put("listen/endpoints", [cfg.group_endpoint(group)], "zenoh.endpoints")
+        put("connect/endpoints", others + list(cfg.connect), "zenoh.connect")
+    else:
+        put("connect/endpoints", list(cfg.connect), "zenoh.connect")
+    tls = cfg.tls
+    for name in ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
+                 "connect_private_key"):
+        path = getattr(tls, name)
+        if path:
+            if not Path(path).is_file():
+                raise ConfigError(file, f"zenoh.tls.{name}", f"no such file: {path}")
+            put(f"transport/link/tls/{name}", path, f"zenoh.tls.{name}")
+    if tls.configured:
+        put("transport/link/tls/enable_mtls", tls.enable_mtls, "zenoh.tls.enable_mtls")
+    if cfg.access_control:
+        try:
+            text = Path(cfg.access_control).read_text()
+        except OSError as exc:
+            raise ConfigError(file, "zenoh.access_control", f"cannot read {cfg.access_control}: {exc.strerror}") from None
+        put("access_control", text, "zenoh.access_control", json5_text=True)
+    return zc
+
+
+class FleetBus:
+    """Zenoh wires of one group companion; see the module docstring."""
+
+    def __init__(self, cfg: ZenohConfig, prefix: str, group: int, n_groups: int, file: str = "<config>"):
+        self.prefix = prefix
+        self.group = group
+        self._events: queue.SimpleQueue[BusEvent] = queue.SimpleQueue()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        zc = zenoh_config(cfg, group, n_groups, file)
+        try:
+            self.session = zenoh.open(zc)
+        except Exception as exc:
+            self._close_pipe()
+            raise ConfigError(file, "zenoh", f"cannot open the Zenoh session: {exc}") from None
+        s = self.session
+        self._token = s.liveliness().declare_token(alive_key(prefix, group))
+        self._subs = [
+            s.liveliness().declare_subscriber(alive_pattern(prefix), self._on_liveliness, history=True),
+            s.declare_subscriber(boundary_pattern(prefix), self._on_data),
+            s.declare_subscriber(shift_key(prefix), self._on_data),
+        ]
+        opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
+                    express=True)
+        self._boundary_pub = s.declare_publisher(boundary_key(prefix, group), **opts)
+        self._shift_pub = s.declare_publisher(shift_key(prefix), **opts)
+        self.closed = False
+        log.info("zenoh %s session %s: group %d, listening %s", cfg.mode, s.zid(), group + 1,
+                 cfg.group_endpoint(group) if cfg.mode == "peer" else "-")
+
+    # -- callbacks (Zenoh threads) --------------------------------------------------------------------
+    def _push(self, event: BusEvent) -> None:
+        self._events.put(event)
+        try:
+            os.write(self._wake_w, b"\0")
+        except (BlockingIOError, OSError):
+            pass  # the pipe is full (the daemon will drain everything) or closed
+
+    def _on_data(self, sample) -> None:
+        now = time.monotonic()
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(sample.payload.to_bytes())
+        except MessageError as exc:
+            self._push(BusEvent("error", str(exc), now, key))
+            return
+        kind = "boundary" if isinstance(msg, GroupBoundaryReport) else "shift" if isinstance(msg, GlobalShift) else None
+        if kind is None or (kind == "boundary" and group_of_key(self.prefix, key) != msg.group):
+            self._push(BusEvent("error", f"{type(msg).__name__} does not belong on this key", now, key))
+            return
+        self._push(BusEvent(kind, msg, now, key))
+
+    def _on_liveliness(self, sample) -> None:
+        now = time.monotonic()
+        key = str(sample.key_expr)
+        g = group_of_key(self.prefix, key)
+        if g is None:
+            self._push(BusEvent("error", "liveliness token outside the group keys", now, key))
+            return
+        self._push(BusEvent("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", g, now, key))
+
+    # -- daemon side ----------------------------------------------------------------------------------
+    def fileno(self) -> int:
+        return self._wake_r
+
+    def drain(self) -> list[BusEvent]:
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+        out = []
+        while True:
+            try:
+                out.append(self._events.get_nowait())
+            except queue.Empty:
+                return out
+
+    def publish_boundary(self, report: GroupBoundaryReport) -> None:
+        self._boundary_pub.put(codec.encode(report))
+
+    def publish_shift(self, shift: GlobalShift) -> None:
+        self._shift_pub.put(codec.encode(shift))
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.session.close()  # drops the liveliness token: the others see this group leave
+        finally:
+            self._close_pipe()
+
+    def _close_pipe(self) -> None:
+        for fd in (self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass

@@ -1,0 +1,171 @@
+"""Typed, versioned binary payloads for the Zenoh wire (pure: struct and numpy).
+
+Every payload is ``header | body``. The header is ``b"ASKZ"``, the format version
+(:data:`VERSION`, one byte) and the message type (one byte). The body is the message's fields
+in the order of its schema (:data:`SCHEMAS`), little-endian, floats as float64 so that the
+leader's eq. 6 solution crosses the wire bit for bit. Symmetric matrices travel as their upper
+triangle (row-major, the order of the MAVLink dialect's covariance).
+
+:func:`decode` checks the magic, the version, the type, the exact length, and the content
+(finite numbers, unit quaternions, positive-definite covariance and information matrices,
+valid group lists) with the same checks as the MAVLink codec; anything else raises
+:class:`~companion.messages.MessageError` naming the field. Frames and units are those of
+:mod:`companion.messages` (world z-up, SI): no frame conversion happens on this wire.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+import numpy as np
+
+from companion.messages import (
+    Correction,
+    GlobalShift,
+    GroupBoundaryReport,
+    LinkState,
+    MessageError,
+    check_finite,
+    check_pd,
+    check_unit_quat,
+)
+
+__all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
+
+MAGIC = b"ASKZ"
+VERSION = 1
+_HEADER = struct.Struct("<4sBB")
+
+#: Field kinds: integer scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
+#: symmetric n x n matrices (upper triangle), ``"ids"`` a u8 count and that many u8 ids,
+#: ``("rows", m)`` float64 rows of width m, one per entry of the preceding ``ids`` field,
+#: ``"per_id"`` one int32 per entry of the preceding ``ids`` field.
+_INT = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "i64": "q", "f64": "d"}
+
+#: message type -> (type id, [(field, kind)]): the one schema of every Zenoh payload.
+SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
+    LinkState: (1, (("link", "u16"), ("time_s", "f64"), ("p_w_m", ("vec", 3)), ("v_w_m_s", ("vec", 3)),
+                     ("q_wxyz", ("vec", 4)), ("omega_b_rad_s", ("vec", 3)), ("P", ("sym", 9)))),
+    Correction: (2, (("link", "u16"), ("ekf_time_s", "f64"), ("dp_w_m", ("vec", 3)), ("dv_w_m_s", ("vec", 3)),
+                      ("dtheta_w_rad", ("vec", 3)), ("seq", "u16"))),
+    GroupBoundaryReport: (3, (("group", "u8"), ("cycle_us", "i64"), ("left_tip_pv_w", ("vec", 6)),
+                              ("right_tip_pv_w", ("vec", 6)), ("info_pv", ("sym", 6)), ("round_trip_us", "i32"),
+                              ("network_round_trip_us", "i32"))),
+    GlobalShift: (4, (("leader_group", "u8"), ("cycle_us", "i64"), ("groups", "ids"), ("shift_pv_w", ("rows", 6)),
+                      ("handover_group", "i8"), ("handover_cycle_us", "i64"), ("hold_us", "per_id"))),
+}
+_BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
+
+
+def encode(msg) -> bytes:
+    """The payload of one message of a type in :data:`SCHEMAS`."""
+    try:
+        type_id, fields = SCHEMAS[type(msg)]
+    except KeyError:
+        raise TypeError(f"no Zenoh schema for {type(msg).__name__}") from None
+    out = [_HEADER.pack(MAGIC, VERSION, type_id)]
+    count = 0
+    for name, kind in fields:
+        value = getattr(msg, name)
+        if kind == "ids":
+            count = len(value)
+            out.append(struct.pack(f"<B{count}B", count, *value))
+        elif kind == "per_id":
+            if len(value) != count:
+                raise ValueError(f"{type(msg).__name__}.{name}: {len(value)} values for {count} ids")
+            out.append(struct.pack(f"<{count}i", *value))
+        elif isinstance(kind, str):
+            out.append(struct.pack("<" + _INT[kind], value))
+        elif kind[0] == "vec" or kind[0] == "rows":
+            out.append(np.ascontiguousarray(value, dtype="<f8").tobytes())
+        else:  # sym
+            out.append(np.asarray(value, dtype="<f8")[np.triu_indices(kind[1])].tobytes())
+    return b"".join(out)
+
+
+def decode(payload: bytes):
+    """The message of a payload; :class:`MessageError` if it is malformed or unusable."""
+    data = bytes(payload)
+    if len(data) < _HEADER.size:
+        raise MessageError(f"payload: {len(data)} bytes, shorter than the {_HEADER.size}-byte header")
+    magic, version, type_id = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise MessageError(f"payload: magic {magic!r}, expected {MAGIC!r} (not an aerial-skeleton payload)")
+    if version != VERSION:
+        raise MessageError(f"payload: format version {version}, this companion speaks version {VERSION}")
+    if type_id not in _BY_ID:
+        raise MessageError(f"payload: unknown message type {type_id}")
+    cls, fields = _BY_ID[type_id]
+    values: dict[str, Any] = {}
+    offset = _HEADER.size
+    count = 0
+    for name, kind in fields:
+        try:
+            if kind == "ids":
+                (count,) = struct.unpack_from("<B", data, offset)
+                values[name] = tuple(struct.unpack_from(f"<{count}B", data, offset + 1))
+                offset += 1 + count
+            elif kind == "per_id":
+                values[name] = tuple(struct.unpack_from(f"<{count}i", data, offset))
+                offset += 4 * count
+            elif isinstance(kind, str):
+                fmt = "<" + _INT[kind]
+                (values[name],) = struct.unpack_from(fmt, data, offset)
+                offset += struct.calcsize(fmt)
+            else:
+                size = {"vec": kind[1], "rows": count * kind[1], "sym": kind[1] * (kind[1] + 1) // 2}[kind[0]]
+                flat = np.frombuffer(data, dtype="<f8", count=size, offset=offset).astype(float)
+                offset += 8 * size
+                check_finite(f"{cls.__name__}.{name}", flat)
+                values[name] = flat if kind[0] == "vec" else flat.reshape(count, kind[1]) if kind[0] == "rows" else _sym(flat, kind[1])
+        except MessageError:
+            raise
+        except (struct.error, ValueError):
+            raise MessageError(f"{cls.__name__}.{name}: payload truncated ({len(data)} bytes)") from None
+    if offset != len(data):
+        raise MessageError(f"{cls.__name__}: {len(data) - offset} trailing bytes (payload of {len(data)} bytes)")
+    return _VALIDATE[cls](values)
+
+
+def _sym(upper: np.ndarray, n: int) -> np.ndarray:
+    m = np.zeros((n, n))
+    m[np.triu_indices(n)] = upper
+    return m + np.triu(m, 1).T
+
+
+def _finite_all(cls: type, values: dict[str, Any]) -> None:
+    for name, value in values.items():
+        if isinstance(value, (float, np.ndarray)):
+            check_finite(f"{cls.__name__}.{name}", value)
+
+
+def _link_state(v: dict[str, Any]) -> LinkState:
+    _finite_all(LinkState, v)
+    v["q_wxyz"] = check_unit_quat("LinkState.q_wxyz", v["q_wxyz"])
+    v["P"] = check_pd("LinkState.P", v["P"])
+    return LinkState(**v)
+
+
+def _correction(v: dict[str, Any]) -> Correction:
+    _finite_all(Correction, v)
+    return Correction(**v)
+
+
+def _boundary(v: dict[str, Any]) -> GroupBoundaryReport:
+    _finite_all(GroupBoundaryReport, v)
+    v["info_pv"] = check_pd("GroupBoundaryReport.info_pv", v["info_pv"])
+    return GroupBoundaryReport(**v)
+
+
+def _shift(v: dict[str, Any]) -> GlobalShift:
+    _finite_all(GlobalShift, v)
+    groups = v["groups"]
+    if not groups or list(groups) != sorted(set(groups)):
+        raise MessageError(f"GlobalShift.groups: {list(groups)} is not a non-empty increasing list of groups")
+    if v["handover_group"] < -1:
+        raise MessageError(f"GlobalShift.handover_group: {v['handover_group']}")
+    return GlobalShift(**v)
+
+
+_VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift}

@@ -1,0 +1,126 @@
+"""The ``[zenoh]`` section of a scenario: how group companions reach each other (pure, validated).
+
+One file serves every companion of a chain: group ``g`` (1-based) listens on ``endpoints[g-1]``
+and connects to the other groups' endpoints (a full mesh, peer mode: the thesis's three
+Raspberry Pis on one bridged network). Empty ``endpoints`` are the SITL defaults,
+``tcp/127.0.0.1:<base_port + g - 1>``. Multicast scouting is off unless enabled, so nothing
+leaves the configured endpoints. ``lease_ms`` is the Zenoh transport lease: a companion whose
+link goes silent (cable pulled, process frozen) is declared gone after it, which bounds the
+leader failover time; a process that exits or is killed closes its TCP links and is gone at once.
+
+TLS (``[zenoh.tls]``) and access control (``access_control``: a JSON5 file holding Zenoh's
+``access_control`` object) are for hardware; file paths are checked when the session opens.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Literal
+
+from companion.configfile import require_positive
+
+__all__ = ["ZenohTls", "ZenohConfig", "PREFIX_RE"]
+
+#: A fleet prefix: one or more key chunks of letters, digits, ``_`` and ``-``, joined by ``/``.
+PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+_ENDPOINT_RE = re.compile(r"^(tcp|tls|udp|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+
+
+@dataclass(frozen=True)
+class ZenohTls:
+    """Zenoh TLS files (PEM). ``enable_mtls`` also authenticates the connecting side."""
+
+    root_ca_certificate: str = ""
+    listen_certificate: str = ""
+    listen_private_key: str = ""
+    connect_certificate: str = ""
+    connect_private_key: str = ""
+    enable_mtls: bool = False
+
+    def __post_init__(self) -> None:
+        if bool(self.listen_certificate) != bool(self.listen_private_key):
+            raise ValueError("listen_certificate and listen_private_key go together")
+        if bool(self.connect_certificate) != bool(self.connect_private_key):
+            raise ValueError("connect_certificate and connect_private_key go together")
+        if self.enable_mtls and not self.connect_certificate:
+            raise ValueError("enable_mtls needs connect_certificate and connect_private_key")
+
+    @property
+    def configured(self) -> bool:
+        return bool(self.root_ca_certificate or self.listen_certificate)
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """See the module docstring.
+
+    ``prefix``: key-expression prefix of this fleet (default: the scenario name).
+    ``mode``: ``peer`` (default; companions connect to each other) or ``client`` (through the
+    routers in ``connect``). ``leader_order``: groups (1-based) in order of preference for the
+    leader; default: the middle group first, then outwards (thesis sec. 5.1: the central
+    computer leads). ``shift_deadline_ms``: how long a group waits for the leader's shift
+    before it sends its local-only corrections. ``leader_wait_ms``: how long the leader waits
+    for missing boundaries after the first one of a cycle before it solves without them.
+    ``handover_cycles``: cycles of notice a leader gives a returning preferred group.
+    """
+
+    prefix: str = ""
+    mode: Literal["peer", "client"] = "peer"
+    endpoints: tuple[str, ...] = ()
+    base_port: int = 7447
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    lease_ms: int = 1000
+    tls: ZenohTls = field(default_factory=ZenohTls)
+    access_control: str = ""
+    leader_order: tuple[int, ...] = ()
+    shift_deadline_ms: float = 35.0
+    leader_wait_ms: float = 25.0
+    handover_cycles: int = 3
+
+    def __post_init__(self) -> None:
+        if self.prefix and not PREFIX_RE.match(self.prefix):
+            raise ValueError(f"prefix {self.prefix!r}: use letters, digits, '_' and '-' in '/'-separated chunks "
+                             "(no wildcards '*', '$', no leading or trailing '/')")
+        for key in ("endpoints", "connect"):
+            for ep in getattr(self, key):
+                m = _ENDPOINT_RE.match(ep)
+                if not m or not 0 < int(m.group(3)) <= 65535:
+                    raise ValueError(f"{key}: {ep!r} is not a Zenoh endpoint like tcp/10.0.0.2:7447 "
+                                     "(tcp, tls, udp or quic; port 1..65535)")
+                if self.tls.configured != ep.startswith(("tls/", "quic/")):
+                    raise ValueError(f"{key}: {ep!r}: " + ("[zenoh.tls] is set, use tls/ or quic/ endpoints"
+                                                           if self.tls.configured else "tls/ and quic/ need [zenoh.tls]"))
+        if len(set(self.endpoints)) != len(self.endpoints):
+            raise ValueError(f"endpoints: every group needs its own endpoint, got {list(self.endpoints)}")
+        if not 1 <= self.base_port <= 65535:
+            raise ValueError(f"base_port must be in 1..65535, got {self.base_port}")
+        if self.mode == "client" and not self.connect:
+            raise ValueError("connect: client mode needs at least one router here")
+        if self.tls.configured and not self.endpoints:
+            raise ValueError("endpoints: [zenoh.tls] needs explicit tls/ endpoints (the SITL defaults are plain tcp "
+                             "on loopback)")
+        require_positive(self, "lease_ms", "shift_deadline_ms", "leader_wait_ms", "handover_cycles")
+
+    def check_groups(self, n_groups: int, period_ms: float) -> None:
+        """``ValueError`` if ``endpoints`` or ``leader_order`` do not fit ``n_groups`` groups, or
+        the deadlines do not fit one step period."""
+        if not self.leader_wait_ms < self.shift_deadline_ms < period_ms:
+            raise ValueError(f"leader_wait_ms ({self.leader_wait_ms:g}) < shift_deadline_ms ({self.shift_deadline_ms:g}) "
+                             f"< the step period ({period_ms:g} ms) must hold")
+        if self.endpoints and len(self.endpoints) != n_groups:
+            raise ValueError(f"endpoints lists {len(self.endpoints)} endpoints for {n_groups} groups (one per group)")
+        if self.leader_order and sorted(self.leader_order) != list(range(1, n_groups + 1)):
+            raise ValueError(f"leader_order {list(self.leader_order)} must list each of the groups 1..{n_groups} once")
+
+    def group_endpoint(self, group: int) -> str:
+        """Listen endpoint of 0-based ``group``."""
+        return self.endpoints[group] if self.endpoints else f"tcp/127.0.0.1:{self.base_port + group}"
+
+    def order(self, n_groups: int) -> tuple[int, ...]:
+        """0-based groups in leader preference order."""
+        if self.leader_order:
+            return tuple(g - 1 for g in self.leader_order)
+        mid = (n_groups - 1) / 2
+        return tuple(sorted(range(n_groups), key=lambda g: (abs(g - mid), g)))

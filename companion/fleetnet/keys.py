@@ -1,0 +1,37 @@
+"""Zenoh key expressions of a fleet (DESIGN.md sec. 3), all under one prefix; groups are 1-based in keys."""
+
+from __future__ import annotations
+
+__all__ = ["boundary_key", "boundary_pattern", "shift_key", "alive_key", "alive_pattern", "group_of_key"]
+
+
+def boundary_key(prefix: str, group: int) -> str:
+    """Where 0-based ``group`` publishes its boundary (:class:`~companion.messages.GroupBoundaryReport`)."""
+    return f"{prefix}/group/{group + 1}/boundary"
+
+
+def boundary_pattern(prefix: str) -> str:
+    return f"{prefix}/group/*/boundary"
+
+
+def shift_key(prefix: str) -> str:
+    """Where the leader publishes :class:`~companion.messages.GlobalShift`."""
+    return f"{prefix}/global/shift"
+
+
+def alive_key(prefix: str, group: int) -> str:
+    """Liveliness token of 0-based ``group``'s companion."""
+    return f"{prefix}/group/{group + 1}/alive"
+
+
+def alive_pattern(prefix: str) -> str:
+    return f"{prefix}/group/*/alive"
+
+
+def group_of_key(prefix: str, key: str) -> int | None:
+    """0-based group of a ``<prefix>/group/<g>/...`` key, ``None`` if it is not one."""
+    head = f"{prefix}/group/"
+    if not key.startswith(head):
+        return None
+    chunk = key[len(head):].split("/", 1)[0]
+    return int(chunk) - 1 if chunk.isdigit() and int(chunk) >= 1 else None

@@ -1,0 +1,301 @@
+"""One companion's part in the networked global step: leader election and eq. 6 (pure).
+
+:class:`GlobalStepNode` is a state machine with no clock, sockets or threads: the daemon feeds
+it what arrives (boundaries, shifts, liveliness changes) and the monotonic time, and carries
+out the :class:`Actions` it returns. Per cycle (one 20 Hz step, identified by its step time on
+the flight-controller clock):
+
+1. every group, after its local constraint application (Alg. 2), publishes its
+   :class:`~companion.messages.GroupBoundaryReport` (:meth:`GlobalStepNode.local_step`);
+2. the leader solves eq. 6 (:func:`solve_cycle`) once every live group has reported, or
+   ``leader_wait_s`` after the first report of the cycle with the groups it has (each run of
+   consecutive groups is solved on its own: a missing group splits the chain), and publishes
+   one :class:`~companion.messages.GlobalShift`;
+3. each group applies its shift; if none has arrived ``shift_deadline_s`` after it published
+   its boundary, it sends its local-only corrections for that cycle (degrades, never stalls).
+
+Leadership. Groups are ranked by a configured preference order; each companion holds a
+liveliness token. The *acting* leader is the one whose shifts are being received. When the
+acting leader's token disappears, the first live group in the order leads from the next cycle
+(failover takes the token's disappearance plus at most one cycle). A companion that (re)joins
+first listens for ``startup_s``: if shifts are flowing it follows the acting leader, even if
+it ranks higher; the acting leader then names it in its shifts as ``handover_group`` with a
+``handover_cycle_us`` ``handover_cycles`` cycles ahead, and leads up to the cycle before.
+Leadership thus only changes at a cycle both sides agreed on, so a returning leader never
+makes two leaders in one cycle. Should two leaders still meet (a partition that heals), the
+one ranked lower yields on seeing the other's shift, and every group applies only the first
+shift of a cycle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.estimation.semi import GroupBoundary, global_step
+from companion.messages import GlobalShift, GroupBoundaryReport
+
+__all__ = ["solve_cycle", "Resolution", "Actions", "GlobalStepNode"]
+
+#: Cycles of history kept for late boundaries and duplicate shifts.
+_KEEP_CYCLES = 8
+
+
+def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...], np.ndarray]:
+    """Eq. 6 over the groups that reported: ``(groups, shifts (len(groups), 6))``.
+
+    Groups are sorted; each run of consecutive group indices is one chain segment solved by
+    :func:`~companion.estimation.semi.global_step` (a segment of one group gets a zero shift).
+    """
+    by_group = {r.group: r for r in reports}
+    groups = tuple(sorted(by_group))
+    shifts = np.zeros((len(groups), 6))
+    start = 0
+    for k in range(1, len(groups) + 1):
+        if k == len(groups) or groups[k] != groups[k - 1] + 1:
+            run = [by_group[g] for g in groups[start:k]]
+            bounds = [GroupBoundary(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv) for r in run]
+            shifts[start:k] = global_step(bounds)
+            start = k
+    return groups, shifts
+
+
+@dataclass(frozen=True)
+class Resolution:
+    """How this group's pending cycle ended: ``shift`` (6,) from the leader, or ``None``
+    (local-only: ``reason`` says why)."""
+
+    cycle_us: int
+    shift: np.ndarray | None
+    leader_group: int | None
+    reason: str = ""
+
+
+@dataclass
+class Actions:
+    """What the daemon must do: publish ``boundary`` / ``shifts``, finish ``resolved`` cycles."""
+
+    boundary: GroupBoundaryReport | None = None
+    shifts: list[GlobalShift] = field(default_factory=list)
+    resolved: list[Resolution] = field(default_factory=list)
+
+    def merge(self, other: Actions) -> Actions:
+        self.boundary = other.boundary or self.boundary
+        self.shifts += other.shifts
+        self.resolved += other.resolved
+        return self
+
+
+@dataclass
+class _Pending:
+    cycle_us: int
+    published_s: float
+
+
+class GlobalStepNode:
+    """See the module docstring. ``group`` and ``order`` are 0-based group indices."""
+
+    def __init__(self, group: int, n_groups: int, order: Sequence[int], period_us: int, *,
+                 shift_deadline_s: float = 0.02, leader_wait_s: float = 0.012, handover_cycles: int = 3,
+                 startup_s: float = 0.5):
+        if sorted(order) != list(range(n_groups)):
+            raise ValueError(f"order {list(order)} must list each of the groups 0..{n_groups - 1} once")
+        if not 0 <= group < n_groups:
+            raise ValueError(f"group {group} is not one of 0..{n_groups - 1}")
+        if period_us <= 0:
+            raise ValueError(f"period_us must be positive, got {period_us}")
+        self.group = group
+        self.n_groups = n_groups
+        self.order = tuple(order)
+        self.rank = {g: k for k, g in enumerate(self.order)}
+        self.period_us = int(period_us)
+        self.shift_deadline_s = shift_deadline_s
+        self.leader_wait_s = leader_wait_s
+        self.handover_cycles = int(handover_cycles)
+        self.startup_s = startup_s
+        self.started_s: float | None = None
+        self.live: set[int] = {group}
+        self.reporting: set[int] = set()  # groups whose boundaries have arrived
+        self.acting: int | None = None
+        self.handover: tuple[int, int] | None = None  # (group, first cycle)
+        self.pending: _Pending | None = None
+        self.reports: dict[int, dict[int, GroupBoundaryReport]] = {}
+        self.first_report_s: dict[int, float] = {}
+        self.settled: dict[int, int] = {}  # cycle -> leader whose shift was applied / published
+        self.last_round_trip_us = -1
+        self.last_network_round_trip_us = -1
+        self.received_s: dict[int, dict[int, float]] = {}  # cycle -> group -> arrival of its boundary
+        #: round trips reported by the groups while this node led [us]: end to end (incl. the
+        #: leader's wait for the other groups) and network only (less the leader's hold time)
+        self.round_trips_us: list[int] = []
+        self.network_round_trips_us: list[int] = []
+        self.counts = {"global": 0, "local_only": 0, "led": 0, "late_shift": 0, "duplicate_shift": 0,
+                       "yielded": 0, "partial": 0}
+        #: (cycle_us, leader group) at every change of the leader whose shifts were applied
+        self.leader_log: list[tuple[int, int]] = []
+
+    # -- leadership ---------------------------------------------------------------------------------
+    def start(self, now_s: float) -> None:
+        if self.started_s is None:
+            self.started_s = now_s
+
+    def on_liveliness(self, group: int, alive: bool, now_s: float) -> None:
+        self.start(now_s)
+        if group == self.group or not 0 <= group < self.n_groups:
+            return
+        if alive:
+            self.live.add(group)
+            return
+        self.live.discard(group)
+        self.reporting.discard(group)
+        if self.acting == group:
+            self.acting = None
+        if self.handover is not None and self.handover[0] == group:
+            self.handover = None
+
+    def leader_for(self, cycle_us: int, now_s: float) -> int | None:
+        """The group that leads ``cycle_us`` as far as this node knows (``None``: nobody yet)."""
+        self.start(now_s)
+        if self.handover is not None and cycle_us >= self.handover[1]:
+            self.acting, self.handover = self.handover[0], None
+        if self.acting is not None and (self.acting in self.live or self.acting == self.group):
+            return self.acting
+        if now_s - self.started_s < self.startup_s:
+            return None  # still listening for an acting leader
+        return next(g for g in self.order if g in self.live)
+
+    def _leads(self, cycle_us: int, now_s: float) -> bool:
+        return self.leader_for(cycle_us, now_s) == self.group
+
+    # -- inputs -----------------------------------------------------------------------------------------
+    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float) -> Actions:
+        """This group's boundary for ``cycle_us`` is ready: publish it and wait for the shift."""
+        out = Actions()
+        if self.pending is not None:  # a new cycle overtook the old one: the old one ends local-only
+            out.resolved.append(self._resolve(None, None, "overtaken by the next cycle"))
+        report = GroupBoundaryReport(self.group, int(cycle_us), np.asarray(left_tip_pv_w, float),
+                                     np.asarray(right_tip_pv_w, float), np.asarray(info_pv, float),
+                                     self.last_round_trip_us, self.last_network_round_trip_us)
+        out.boundary = report
+        self.pending = _Pending(int(cycle_us), now_s)
+        settled = self.settled.get(int(cycle_us))
+        if settled is not None:  # the leader solved this cycle without us
+            out.resolved.append(self._resolve(None, settled, "the leader solved this cycle without this group"))
+            return out
+        return out.merge(self._add_report(report, now_s))
+
+    def on_boundary(self, report: GroupBoundaryReport, now_s: float) -> Actions:
+        if report.group == self.group or not 0 <= report.group < self.n_groups:
+            return Actions()
+        self.reporting.add(report.group)
+        return self._add_report(report, now_s)
+
+    def on_shift(self, shift: GlobalShift, now_s: float) -> Actions:
+        out = Actions()
+        if shift.leader_group == self.group:
+            return out  # our own, echoed
+        cycle = shift.cycle_us
+        settled = self.settled.get(cycle)
+        if settled is not None:
+            self.counts["duplicate_shift"] += 1
+            if settled == self.group and self.rank.get(shift.leader_group, 1 << 30) < self.rank[self.group]:
+                self.counts["yielded"] += 1  # two leaders met: the lower-ranked one yields
+                self.acting = shift.leader_group
+            return out
+        self._settle(cycle, shift.leader_group)
+        if self.acting is None or shift.leader_group != self.acting:
+            self.acting = shift.leader_group
+        if shift.handover_group >= 0:
+            self.handover = (shift.handover_group, shift.handover_cycle_us)
+        if self.pending is not None and self.pending.cycle_us == cycle:
+            rt = int(round((now_s - self.pending.published_s) * 1e6))
+            hold = shift.hold_for(self.group)
+            self.last_round_trip_us = rt
+            self.last_network_round_trip_us = rt - hold if hold is not None else -1
+            out.resolved.append(self._resolve(shift.shift_for(self.group), shift.leader_group,
+                                              "" if self.group in shift.groups else "not in the leader's solution"))
+        elif self.pending is None or cycle > self.pending.cycle_us:
+            pass  # a cycle this group has not reached (or skipped): nothing to apply
+        else:
+            self.counts["late_shift"] += 1
+        return out
+
+    def tick(self, now_s: float) -> Actions:
+        """Deadlines: the leader solves cycles that waited ``leader_wait_s``; a group that waited
+        ``shift_deadline_s`` for its shift sends local-only corrections."""
+        out = Actions()
+        for cycle, first in sorted(self.first_report_s.items()):
+            if cycle not in self.settled and now_s - first >= self.leader_wait_s and self._leads(cycle, now_s):
+                out.merge(self._solve(cycle, now_s))
+        if self.pending is not None and now_s - self.pending.published_s >= self.shift_deadline_s:
+            out.resolved.append(self._resolve(None, None, "no shift before the deadline"))
+        return out
+
+    def next_deadline_s(self) -> float | None:
+        """The earliest time :meth:`tick` has something to do (``None``: nothing pending)."""
+        times = [first + self.leader_wait_s for c, first in self.first_report_s.items() if c not in self.settled]
+        if self.pending is not None:
+            times.append(self.pending.published_s + self.shift_deadline_s)
+        return min(times) if times else None
+
+    # -- internals ----------------------------------------------------------------------------------------
+    def _add_report(self, report: GroupBoundaryReport, now_s: float) -> Actions:
+        cycle = report.cycle_us
+        if cycle in self.settled:
+            return Actions()
+        self.reports.setdefault(cycle, {})[report.group] = report
+        self.received_s.setdefault(cycle, {})[report.group] = now_s
+        self.first_report_s.setdefault(cycle, now_s)
+        self._prune(cycle)
+        if self._leads(cycle, now_s) and self.live <= set(self.reports[cycle]):
+            return self._solve(cycle, now_s)
+        return Actions()
+
+    def _solve(self, cycle: int, now_s: float) -> Actions:
+        reports = list(self.reports.get(cycle, {}).values())
+        out = Actions()
+        if not reports:
+            return out
+        groups, shifts = solve_cycle(reports)
+        if len(groups) < len(self.live):
+            self.counts["partial"] += 1
+        self.counts["led"] += 1
+        self.acting = self.group
+        others = [r for r in reports if r.group != self.group]
+        self.round_trips_us += [r.round_trip_us for r in others if r.round_trip_us >= 0]
+        self.network_round_trips_us += [r.network_round_trip_us for r in others if r.network_round_trip_us >= 0]
+        received = self.received_s.get(cycle, {})
+        hold = tuple(int(round((now_s - received.get(g, now_s)) * 1e6)) for g in groups)
+        if self.handover is None:
+            preferred = next(g for g in self.order if g in self.live and (g in self.reporting or g == self.group))
+            if self.rank[preferred] < self.rank[self.group]:
+                self.handover = (preferred, cycle + self.handover_cycles * self.period_us)
+        hg, hc = self.handover if self.handover is not None else (-1, 0)
+        msg = GlobalShift(self.group, cycle, groups, shifts, hg, hc, hold)
+        out.shifts.append(msg)
+        self._settle(cycle, self.group)
+        if self.pending is not None and self.pending.cycle_us == cycle:
+            out.resolved.append(self._resolve(msg.shift_for(self.group), self.group, ""))
+        return out
+
+    def _settle(self, cycle: int, leader: int) -> None:
+        if not self.leader_log or self.leader_log[-1][1] != leader:
+            self.leader_log.append((cycle, leader))
+        self.settled[cycle] = leader
+        self.reports.pop(cycle, None)
+        self.received_s.pop(cycle, None)
+        self.first_report_s.pop(cycle, None)
+        self._prune(cycle)
+
+    def _prune(self, cycle: int) -> None:
+        horizon = cycle - _KEEP_CYCLES * self.period_us
+        for table in (self.reports, self.received_s, self.first_report_s, self.settled):
+            for old in [c for c in table if c < horizon]:
+                del table[old]
+
+    def _resolve(self, shift: np.ndarray | None, leader: int | None, reason: str) -> Resolution:
+        pending, self.pending = self.pending, None
+        self.counts["global" if shift is not None else "local_only"] += 1
+        return Resolution(pending.cycle_us, None if shift is None else np.asarray(shift, float), leader, reason)

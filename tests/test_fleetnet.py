@@ -1,0 +1,366 @@
+"""Zenoh layer of the semi-distributed companions: codec, config, leader election, global step over
+real Zenoh sessions on loopback (eq. 6 equal to the in-process result), failover, malformed payloads."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import zenoh
+
+from companion.configfile import ConfigError, build
+from companion.estimation.semi import group_boundaries, semi_distributed_apply
+from companion.fleetnet import codec
+from companion.fleetnet.bus import FleetBus
+from companion.fleetnet.config import ZenohConfig
+from companion.fleetnet.keys import boundary_key, shift_key
+from companion.fleetnet.leader import GlobalStepNode, solve_cycle
+from companion.messages import Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
+from sitl.scenario import Scenario
+
+from .chains import perturbed_chain, random_covariances
+
+PERIOD_US = 50_000
+LAYOUTS = [((0, 1), (2, 3, 4), (5, 6)), ((0, 1), (2, 3)), ((0,), (1, 2), (3,), (4, 5, 6, 7))]
+
+
+# -- codec --------------------------------------------------------------------------------------------------
+def _messages(rng):
+    P = random_covariances(rng, 1)[0]
+    info = np.linalg.inv(random_covariances(rng, 1)[0][:6, :6])
+    q = rng.normal(size=4)
+    return [
+        LinkState(5, 12.345678, rng.normal(size=3), rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3), P),
+        Correction(2, 3.25, rng.normal(size=3), rng.normal(size=3), 0.01 * rng.normal(size=3), 4242),
+        GroupBoundaryReport(1, 1_250_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567),
+        GlobalShift(1, 1_250_000, (0, 1, 3), rng.normal(size=(3, 6)), 0, 1_400_000, (10, 20, 30)),
+        GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
+    ]
+
+
+def _equal(a, b) -> bool:
+    for name in a.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            if not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_codec_round_trip_is_exact(seed):
+    for msg in _messages(np.random.default_rng(seed)):
+        out = codec.decode(codec.encode(msg))
+        assert type(out) is type(msg)
+        if isinstance(msg, LinkState):  # unit quaternion is renormalised, covariance symmetrised
+            np.testing.assert_allclose(out.q_wxyz, msg.q_wxyz, atol=1e-15)
+            np.testing.assert_allclose(out.P, 0.5 * (msg.P + msg.P.T), atol=0)
+            assert out.link == msg.link and out.time_s == msg.time_s
+        else:
+            assert _equal(out, msg), msg
+
+
+def test_codec_rejects_malformed_payloads_with_the_reason():
+    good = codec.encode(_messages(np.random.default_rng(0))[2])
+    bad_info = GroupBoundaryReport(0, 0, np.zeros(6), np.zeros(6), -np.eye(6))
+    nan_tip = GroupBoundaryReport(0, 0, np.full(6, np.nan), np.zeros(6), np.eye(6))
+    cases = {
+        b"": "shorter than",
+        b"XXXX" + good[4:]: "magic",
+        good[:4] + bytes([9]) + good[5:]: "version 9",
+        good[:5] + bytes([77]) + good[6:]: "unknown message type 77",
+        good[:-3]: "truncated",
+        good + b"\0": "trailing",
+        codec.encode(bad_info): "info_pv: not positive definite",
+        codec.encode(nan_tip): "left_tip_pv_w: non-finite",
+        codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
+    }
+    for payload, reason in cases.items():
+        with pytest.raises(MessageError, match=reason):
+            codec.decode(payload)
+    rng = np.random.default_rng(1)
+    for _ in range(300):  # random bytes behind a valid header never raise anything else
+        body = rng.integers(0, 256, size=int(rng.integers(0, 400)), dtype=np.uint8).tobytes()
+        try:
+            codec.decode(good[:6] + body)
+        except MessageError:
+            pass
+
+
+# -- config ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("zenoh_section, key, reason", [
+    ({"prefix": "fleet/*"}, "zenoh.prefix", "wildcards"),
+    ({"endpoints": ["tcp/10.0.0.1:7447", "tcp/10.0.0.2"]}, "zenoh.endpoints", "not a Zenoh endpoint"),
+    ({"endpoints": ["tcp/10.0.0.1:7447"] * 3}, "zenoh.endpoints", "its own endpoint"),
+    ({"endpoints": ["tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"]}, "zenoh", "2 endpoints for 3 groups"),
+    ({"leader_order": [2, 2, 1]}, "zenoh", "leader_order"),
+    ({"shift_deadline_ms": 60.0}, "zenoh", "step period"),
+    ({"mode": "client"}, "zenoh.connect", "router"),
+    ({"tls": {"root_ca_certificate": "/etc/ca.pem"}, "endpoints": ["tls/a:1", "tls/b:1", "tls/c:1"],
+      "leaderorder": [1, 2, 3]}, "zenoh.leaderorder", "unknown key"),
+    ({"endpoints": ["tls/a:1", "tls/b:1", "tls/c:1"]}, "zenoh.endpoints", r"need \[zenoh.tls\]"),
+])
+def test_zenoh_config_errors_name_the_key(zenoh_section, key, reason):
+    data = {"name": "t", "skeleton": {"n_links": 7}, "companion": {"groups": [[1, 2], [3, 4, 5], [6, 7]]},
+            "zenoh": zenoh_section}
+    with pytest.raises(ConfigError, match=reason) as err:
+        build(Scenario, data, file="t.toml")
+    assert f"t.toml: {key}" in str(err.value)
+
+
+def test_default_leader_order_is_middle_out_and_tls_files_are_checked_at_open(tmp_path):
+    assert ZenohConfig().order(3) == (1, 0, 2)
+    assert ZenohConfig().order(4) == (1, 2, 0, 3)
+    assert ZenohConfig(leader_order=(3, 1, 2)).order(3) == (2, 0, 1)
+    cfg = ZenohConfig(endpoints=("tls/127.0.0.1:1", "tls/127.0.0.1:2"),
+                      tls=build(type(ZenohConfig().tls), {"root_ca_certificate": str(tmp_path / "missing.pem")}, file="x"))
+    with pytest.raises(ConfigError, match="zenoh.tls.root_ca_certificate: no such file"):
+        FleetBus(cfg, "t", 0, 2)
+
+
+# -- eq. 6 over groups, pure ----------------------------------------------------------------------------
+def _chain_boundaries(seed: int, groups):
+    n = groups[-1][-1] + 1
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(seed), n)
+    ref = semi_distributed_apply(p, v, q, w, d, P, groups)
+    reports = [GroupBoundaryReport(g, PERIOD_US, b.left_tip, b.right_tip, b.info_pv) for g, b in enumerate(ref.boundaries)]
+    return ref, reports
+
+
+@pytest.mark.parametrize("groups", LAYOUTS)
+def test_solve_cycle_is_eq6_and_a_missing_group_splits_the_chain(groups):
+    ref, reports = _chain_boundaries(3, groups)
+    got_groups, shifts = solve_cycle(reports[::-1])
+    assert got_groups == tuple(range(len(groups)))
+    np.testing.assert_allclose(shifts, ref.shifts, atol=1e-12)
+    if len(groups) >= 3:
+        present = [r for r in reports if r.group != 1]
+        got_groups, shifts = solve_cycle(present)
+        assert 1 not in got_groups
+        np.testing.assert_allclose(shifts[0], 0.0, atol=1e-12)  # group 0 alone: nothing to close
+        rest = solve_cycle(reports[2:])[1]
+        np.testing.assert_allclose(shifts[1:], rest, atol=1e-12)
+
+
+# -- leader election, pure ------------------------------------------------------------------------------
+def _drive(nodes, cycles, t0=0.0, alive=None):
+    """Run ``cycles`` cycles on pure nodes with instant delivery; returns the leaders per cycle."""
+    leaders = []
+    now = t0
+    live = [n for n in nodes if alive is None or n.group in alive]
+
+    def deliver(shifts, at):
+        for s in shifts:
+            for node in live:
+                node.on_shift(s, at)
+
+    for k in cycles:
+        cycle = k * PERIOD_US
+        now += 0.05
+        shifts, published = [], []
+        for node in live:
+            act = node.local_step(np.zeros(6), np.ones(6) * node.group, np.eye(6), cycle, now)
+            published.append(act.boundary)
+            shifts += act.shifts
+        for report in published:
+            for node in live:
+                shifts += node.on_boundary(report, now + 0.001).shifts
+        deliver(shifts, now + 0.002)
+        late = [s for node in live for s in node.tick(now + 0.03).shifts]
+        deliver(late, now + 0.031)
+        leaders.append(sorted({s.leader_group for s in shifts + late}))
+    return leaders, now
+
+
+def test_election_failover_and_return_without_two_leaders_in_a_cycle():
+    order = (1, 0, 2)
+    nodes = [GlobalStepNode(g, 3, order, PERIOD_US, startup_s=0.1) for g in range(3)]
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, 0.0)
+    leaders, now = _drive(nodes, range(1, 20))
+    assert leaders[0] == []  # listening for an acting leader first
+    assert all(ld == [1] for ld in leaders[1:])
+    assert nodes[0].counts["global"] >= 15
+    # the leader (group 2, index 1) disappears: group 1 (index 0) takes over at the next cycle
+    for node in nodes:
+        node.on_liveliness(1, False, now)
+    leaders, now = _drive(nodes, range(20, 30), now, alive={0, 2})
+    assert leaders[0] == [0] and all(ld == [0] for ld in leaders)
+    # group 2 comes back as a new process: it follows, then gets leadership handed over at one cycle
+    nodes[1] = GlobalStepNode(1, 3, order, PERIOD_US, startup_s=0.1)
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, now)
+    leaders, now = _drive(nodes, range(30, 45), now)
+    assert all(len(ld) <= 1 for ld in leaders), leaders
+    assert leaders[-1] == [1]
+    flat = [ld[0] for ld in leaders if ld]
+    switch = flat.index(1)
+    assert all(g == 0 for g in flat[:switch]) and all(g == 1 for g in flat[switch:])
+
+
+def test_deadline_gives_local_only_and_two_leaders_resolve_to_the_preferred():
+    node = GlobalStepNode(0, 2, (1, 0), PERIOD_US, shift_deadline_s=0.02, startup_s=0.0)
+    node.on_liveliness(1, True, 0.0)
+    act = node.local_step(np.zeros(6), np.zeros(6), np.eye(6), PERIOD_US, 0.0)
+    assert not act.resolved and act.boundary is not None
+    assert node.tick(0.01).resolved == []
+    res = node.tick(0.021).resolved
+    assert len(res) == 1 and res[0].shift is None and "deadline" in res[0].reason
+    # both think they lead (a healed partition): the lower-ranked one yields on seeing the other's shift
+    lower = GlobalStepNode(0, 2, (1, 0), PERIOD_US, startup_s=0.0)
+    lower.acting = 0
+    lower.on_liveliness(1, True, 1.0)
+    lower.local_step(np.zeros(6), np.zeros(6), np.eye(6), 2 * PERIOD_US, 1.0)
+    own = lower.tick(1.1).shifts
+    assert own and own[0].leader_group == 0
+    lower.on_shift(GlobalShift(1, 2 * PERIOD_US, (0,), np.zeros((1, 6)), hold_us=(0,)), 1.11)
+    assert lower.counts["yielded"] == 1 and lower.leader_for(3 * PERIOD_US, 1.2) == 1
+
+
+# -- over Zenoh on loopback -------------------------------------------------------------------------------
+def _free_ports(k: int) -> list[int]:
+    socks = [socket.socket() for _ in range(k)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _buses(n_groups: int, prefix: str):
+    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in _free_ports(n_groups)))
+    buses = [FleetBus(cfg, prefix, g, n_groups) for g in range(n_groups)]
+    return cfg, buses
+
+
+def _pump(nodes, buses, until, timeout_s=3.0):
+    """Deliver bus events to the nodes (and publish what they decide) until ``until()``."""
+    deadline = time.monotonic() + timeout_s
+    resolved = {n.group: [] for n in nodes}
+    while time.monotonic() < deadline:
+        for node, bus in zip(nodes, buses):
+            if bus.closed:
+                continue
+            acts = []
+            for ev in bus.drain():
+                if ev.kind == "boundary":
+                    acts.append(node.on_boundary(ev.value, ev.time_s))
+                elif ev.kind == "shift":
+                    acts.append(node.on_shift(ev.value, ev.time_s))
+                elif ev.kind in ("alive", "gone"):
+                    node.on_liveliness(ev.value, ev.kind == "alive", ev.time_s)
+            acts.append(node.tick(time.monotonic()))
+            for act in acts:
+                for s in act.shifts:
+                    bus.publish_shift(s)
+                resolved[node.group] += act.resolved
+        if until(resolved):
+            return resolved
+        time.sleep(0.001)
+    return resolved
+
+
+def _wait_live(nodes, buses, n):
+    _pump(nodes, buses, lambda r: all(len(node.live) == n for node, b in zip(nodes, buses) if not b.closed))
+
+
+@pytest.mark.parametrize("groups", LAYOUTS[:2])
+def test_global_step_over_zenoh_equals_in_process_eq6(groups):
+    s = len(groups)
+    ref, reports = _chain_boundaries(11, groups)
+    cfg, buses = _buses(s, f"test_eq6_{s}")
+    try:
+        nodes = [GlobalStepNode(g, s, cfg.order(s), PERIOD_US, startup_s=0.0, shift_deadline_s=2.0,
+                                leader_wait_s=1.5) for g in range(s)]
+        _wait_live(nodes, buses, s)
+        now = time.monotonic()
+        for node, bus, r in zip(nodes, buses, reports):
+            act = node.local_step(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv, PERIOD_US, now)
+            bus.publish_boundary(act.boundary)
+            for sh in act.shifts:
+                bus.publish_shift(sh)
+        resolved = _pump(nodes, buses, lambda r: all(r[g] for g in range(s)))
+        for g in range(s):
+            (res,) = resolved[g]
+            assert res.shift is not None, res.reason
+            np.testing.assert_allclose(res.shift, ref.shifts[g], rtol=0, atol=1e-9)
+            assert res.leader_group == cfg.order(s)[0]
+    finally:
+        for bus in buses:
+            bus.close()
+
+
+def test_leader_failover_over_zenoh_within_two_cycles():
+    groups = LAYOUTS[0]
+    ref, reports = _chain_boundaries(5, groups)
+    cfg, buses = _buses(3, "test_failover")
+    nodes = [GlobalStepNode(g, 3, cfg.order(3), PERIOD_US, startup_s=0.0, shift_deadline_s=0.2, leader_wait_s=0.15)
+             for g in range(3)]
+    try:
+        _wait_live(nodes, buses, 3)
+        outcome = []  # per cycle: did every live group get the global step?
+        for k in range(1, 13):
+            if k == 6:
+                buses[1].close()  # the leader's computer goes away mid-run
+            cycle = k * PERIOD_US
+            alive = [g for g in range(3) if not buses[g].closed]
+            now = time.monotonic()
+            for g in alive:
+                r = reports[g]
+                act = nodes[g].local_step(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv, cycle, now)
+                buses[g].publish_boundary(act.boundary)
+                for sh in act.shifts:
+                    buses[g].publish_shift(sh)
+            resolved = _pump([nodes[g] for g in alive], [buses[g] for g in alive],
+                             lambda r: all(any(x.cycle_us == cycle for x in r[g]) for g in alive))
+            outcome.append(all(any(x.cycle_us == cycle and x.shift is not None for x in resolved[g]) for g in alive))
+        assert all(outcome[:5])
+        missed = [k for k, ok in enumerate(outcome[5:]) if not ok]
+        assert len(missed) <= 2 and all(outcome[8:]), outcome
+        assert nodes[0].leader_log[-1][1] == 0  # group 1 is next in the order (2, 1, 3)
+        assert nodes[2].leader_log[-1][1] == 0
+    finally:
+        for bus in buses:
+            bus.close()
+
+
+def test_malformed_zenoh_payloads_are_counted_not_applied():
+    cfg, buses = _buses(2, "test_garbage")
+    raw_cfg = zenoh.Config()
+    raw_cfg.insert_json5("mode", '"peer"')
+    raw_cfg.insert_json5("scouting/multicast/enabled", "false")
+    raw_cfg.insert_json5("connect/endpoints", f'["{cfg.endpoints[0]}"]')
+    raw = zenoh.open(raw_cfg)
+    try:
+        nodes = [GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0) for g in range(2)]
+        _wait_live(nodes, buses, 2)
+        time.sleep(0.3)
+        good = codec.encode(GroupBoundaryReport(1, PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)))
+        payloads = [b"", b"garbage", good[:-1], good[:4] + bytes([2]) + good[5:],
+                    struct.pack("<4sBB", b"ASKZ", 1, 4) + b"\xff" * 10]
+        for p in payloads:
+            raw.put(boundary_key("test_garbage", 1), p)
+            raw.put(shift_key("test_garbage"), p)
+        raw.put(boundary_key("test_garbage", 0), good)  # a valid report on the wrong group's key
+        deadline = time.monotonic() + 3.0
+        events = []
+        while time.monotonic() < deadline and sum(e.kind == "error" for e in events) < 2 * len(payloads) + 1:
+            events += buses[0].drain()
+            time.sleep(0.01)
+        errors = [e for e in events if e.kind == "error"]
+        assert len(errors) == 2 * len(payloads) + 1
+        assert any("version 2" in e.value for e in errors) and any("does not belong" in e.value for e in errors)
+        assert not [e for e in events if e.kind in ("boundary", "shift")]
+    finally:
+        raw.close()
+        for bus in buses:
+            bus.close()
