@@ -49,7 +49,8 @@ from .estimation.chain import CON_DIM, CON_POS, CON_VEL
 from .estimation.constraints import constraint_residual
 from .estimation.so3 import quat_to_rotmat
 from .fleetnet.bus import FleetBus
-from .fleetnet.leader import Actions, GlobalStepNode
+from .fleetnet.group import GroupLink
+from .fleetnet.leader import GlobalStepNode, Resolution
 from .mavlink.codec import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, decode_link_state, encode_correction, usec
 from .mavlink.dialect import load_dialect
 from .mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
@@ -160,24 +161,20 @@ class CompanionDaemon:
                                                          _ACCEPT, tlog, peer_system_id=endpoints[i].system_id))
             for i in members
         ]
-        self.node: GlobalStepNode | None = None
-        self.bus = None
+        self.net: GroupLink | None = None
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep) awaiting the shift
-        self.bus_errors: dict[str, int] = {}
-        self._failover: dict | None = None
-        self.failovers: list[dict] = []
         if group is not None:
             zc = scenario.zenoh
-            self.node = GlobalStepNode(group, len(self.groups), zc.order(len(self.groups)),
-                                       int(round(1e6 / cfg.rate_hz)), shift_deadline_s=zc.shift_deadline_ms * 1e-3,
-                                       leader_wait_s=zc.leader_wait_ms * 1e-3, handover_cycles=zc.handover_cycles)
+            node = GlobalStepNode(group, len(self.groups), zc.order(len(self.groups)), int(round(1e6 / cfg.rate_hz)),
+                                  shift_deadline_s=zc.shift_deadline_ms * 1e-3, leader_wait_s=zc.leader_wait_ms * 1e-3,
+                                  handover_cycles=zc.handover_cycles)
             try:
-                self.bus = bus if bus is not None else FleetBus(zc, scenario.zenoh_prefix, group, len(self.groups),
-                                                                config_file)
+                bus = bus if bus is not None else FleetBus(zc, scenario.zenoh_prefix, group, len(self.groups), config_file)
             except Exception:
                 for lk in self.links:
                     lk.port.close()
                 raise
+            self.net = GroupLink(node, bus)
             if start_center is None:
                 start_center = scenario.start.center_w_m
         self._by_sysid = {lk.system_id: lk for lk in self.links}
@@ -197,8 +194,6 @@ class CompanionDaemon:
             "p_corr_sckf", "iterations", "cycle_us", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
             "v_corr_sckf", "q_corr_sckf", "global_applied", "leader")}
         self.step_times_ms: list[float] = []
-        self._round_trips_ms: list[float] = []
-        self._network_round_trips_ms: list[float] = []
         self._stop = False
 
     # -- input ---------------------------------------------------------------------------------------
@@ -250,7 +245,7 @@ class CompanionDaemon:
         return all(lk.state is not None for lk in self.links)
 
     def _step(self) -> None:
-        if self.node is not None:
+        if self.net is not None:
             self._local_half()
             return
         states = [lk.state for lk in self.links]
@@ -282,15 +277,11 @@ class CompanionDaemon:
         self.step_times_ms.append((time.perf_counter() - t0) * 1e3)
         self._local[cycle] = (states, step)
         b = step.boundary
-        self._perform(self.node.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, time.monotonic()))
+        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, time.monotonic()))
 
-    def _perform(self, actions: Actions) -> None:
-        """Carry out what the global-step node decided."""
-        if actions.boundary is not None:
-            self.bus.publish_boundary(actions.boundary)
-        for shift in actions.shifts:
-            self.bus.publish_shift(shift)
-        for res in actions.resolved:
+    def _finish(self, resolved: list[Resolution]) -> None:
+        """Corrections for the cycles that ended (with the leader's shift, or local-only)."""
+        for res in resolved:
             entry = self._local.pop(res.cycle_us, None)
             for old in [c for c in self._local if c < res.cycle_us]:
                 del self._local[old]
@@ -299,16 +290,6 @@ class CompanionDaemon:
             states, step = entry
             if res.shift is None and res.reason:
                 log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
-            if self._failover is not None and res.shift is not None and res.leader_group != self._failover["from"]:
-                fo = self._failover
-                fo.update(to=res.leader_group + 1, first_global_after_s=round(time.monotonic() - fo["gone_at"], 4))
-                log.warning("leader failover: group %d -> group %d, global step back %.0f ms after the leader left, "
-                            "%d cycle(s) without it", fo["from"] + 1, fo["to"], fo["first_global_after_s"] * 1e3,
-                            fo["cycles_without_global"])
-                self.failovers.append({**fo, "from": fo["from"] + 1})
-                self._failover = None
-            elif self._failover is not None and res.shift is None:
-                self._failover["cycles_without_global"] += 1
             p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
             self.seq = (self.seq + 1) & 0xFFFF or 1
             for lk, corr in zip(self.links, corrections):
@@ -330,25 +311,6 @@ class CompanionDaemon:
             r["global_applied"].append(res.shift is not None)
             r["leader"].append(-1 if res.leader_group is None else res.leader_group + 1)
             r["iterations"].append(int(step.result.iterations))
-
-    def _on_bus(self, now: float) -> None:
-        for ev in self.bus.drain():
-            if ev.kind == "boundary":
-                self._perform(self.node.on_boundary(ev.value, ev.time_s))
-            elif ev.kind == "shift":
-                self._perform(self.node.on_shift(ev.value, ev.time_s))
-            elif ev.kind in ("alive", "gone"):
-                alive = ev.kind == "alive"
-                if ev.value != self.group:
-                    log.info("group %d %s", ev.value + 1, "is up" if alive else "left")
-                if not alive and ev.value == self.node.acting and ev.value != self.group:
-                    self._failover = {"from": ev.value, "gone_at": ev.time_s, "cycles_without_global": 0}
-                self.node.on_liveliness(ev.value, alive, ev.time_s)
-            else:
-                n = self.bus_errors[ev.key] = self.bus_errors.get(ev.key, 0) + 1
-                if n <= 5 or n % 100 == 0:
-                    log.warning("zenoh %s: dropped payload #%d: %s", ev.key, n, ev.value)
-        self._perform(self.node.tick(now))
 
     def _vision_odometry(self, lk: _Link, result, i: int):
         """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD);
@@ -396,7 +358,7 @@ class CompanionDaemon:
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
             self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
             # distributed: every group on the same clock (flight-controller time, SITL: simulation time)
-            self._trajectory_t0_us = 0 if self.node is not None else self.fc_time_us
+            self._trajectory_t0_us = 0 if self.net is not None else self.fc_time_us
         boot_ms = (self.fc_time_us // 1000) & 0xFFFFFFFF
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
@@ -455,9 +417,9 @@ class CompanionDaemon:
     # -- main loop ---------------------------------------------------------------------------------------
     def poll(self, timeout_s: float) -> None:
         waitables = [lk.port for lk in self.links]
-        if self.node is not None:
-            waitables.append(self.bus)
-            due = self.node.next_deadline_s()
+        if self.net is not None:
+            waitables.append(self.net)
+            due = self.net.next_deadline_s()
             if due is not None:
                 timeout_s = min(timeout_s, max(due - time.monotonic(), 0.0))
         ready = wait_readable(waitables, timeout_s)
@@ -465,8 +427,8 @@ class CompanionDaemon:
             if lk.port in ready:
                 for msg in lk.port.read():
                     self._on_message(lk, msg)
-        if self.node is not None:
-            self._on_bus(time.monotonic())
+        if self.net is not None:
+            self._finish(self.net.pump(time.monotonic()))
         self._wall_clock_duties()
         if not self._all_states():
             return
@@ -498,29 +460,10 @@ class CompanionDaemon:
             self._next_heartbeat_wall = now + 1.0
         if now >= self._next_health_wall:
             log.info("health (last %.0f s):\n%s", self.cfg.health_period_s, self.health_table(self.cfg.health_period_s))
-            if self.node is not None:
-                log.info("%s", self.global_step_line())
+            if self.net is not None:
+                log.info("%s", self.net.status_line())
             self.write_log()
             self._next_health_wall = now + self.cfg.health_period_s
-
-    def global_step_line(self) -> str:
-        """Distributed mode: leader, cycles with / without the global step, round trip (when leading)."""
-        node = self.node
-        rt = np.asarray(node.round_trips_us, dtype=float) * 1e-3
-        net = np.asarray(node.network_round_trips_us, dtype=float) * 1e-3
-        node.round_trips_us, node.network_round_trips_us = [], []
-        self._round_trips_ms.extend(rt.tolist())
-        self._network_round_trips_ms.extend(net.tolist())
-        leader = node.leader_log[-1][1] + 1 if node.leader_log else None
-        text = (f"group {self.group + 1}: leader {leader if leader is not None else '-'}, cycles with global step "
-                f"{node.counts['global']}, local-only {node.counts['local_only']}, malformed payloads "
-                f"{sum(self.bus_errors.values())}")
-        if rt.size and net.size:
-            text += (f"; as leader: Zenoh global-step round trip (boundary published -> shift received, less the "
-                     f"leader's wait for the other groups) p50 {np.percentile(net, 50):.2f} ms, p99 "
-                     f"{np.percentile(net, 99):.2f} ms; end to end p50 {np.percentile(rt, 50):.2f} ms, p99 "
-                     f"{np.percentile(rt, 99):.2f} ms ({rt.size} boundaries)")
-        return text
 
     def stop(self, *_args) -> None:
         self._stop = True
@@ -531,7 +474,7 @@ class CompanionDaemon:
         end = None if duration_s is None else time.monotonic() + duration_s
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s", len(self.links),
                  ", ".join(lk.port.url for lk in self.links), self.cfg.mode, self.cfg.rate_hz, self.groups,
-                 f", serving group {self.group + 1} (Zenoh prefix {self.sc.zenoh_prefix!r})" if self.node else "")
+                 f", serving group {self.group + 1} (Zenoh prefix {self.sc.zenoh_prefix!r})" if self.net else "")
         try:
             while not self._stop and (end is None or time.monotonic() < end):
                 self.poll(0.05)
@@ -548,24 +491,7 @@ class CompanionDaemon:
                                       "samples": int(lat.size)} if lat.size else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, **vars(lk.port.stats)}
                       for lk in self.links},
-            **(self._distributed_summary() if self.node is not None else {}),
-        }
-
-    def _distributed_summary(self) -> dict:
-        node = self.node
-        rt = np.asarray(self._round_trips_ms + [x * 1e-3 for x in node.round_trips_us])
-        net = np.asarray(self._network_round_trips_ms + [x * 1e-3 for x in node.network_round_trips_us])
-
-        def stats(a: np.ndarray) -> dict | None:
-            return ({"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
-                     "samples": int(a.size)} if a.size else None)
-
-        return {
-            "group": self.group + 1,
-            "global_step": {**node.counts, "leaders": [[c * 1e-6, g + 1] for c, g in node.leader_log]},
-            "round_trip_ms_as_leader": {"network": stats(net), "end_to_end": stats(rt)} if rt.size else None,
-            "failovers": self.failovers,
-            "malformed_payloads": dict(self.bus_errors),
+            **(self.net.summary() if self.net is not None else {}),
         }
 
     def write_log(self) -> None:
@@ -589,5 +515,5 @@ class CompanionDaemon:
             (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
         for lk in self.links:
             lk.port.close()
-        if self.bus is not None:
-            self.bus.close()
+        if self.net is not None:
+            self.net.close()

@@ -271,3 +271,27 @@ def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error(tmp_path):
     assert "link 2" in text and "Traceback" not in text
     assert all(not Path(f"/proc/{pid}").exists() for pid in children)
     _assert_ports_released(3)
+
+
+def test_distributed_companions_fail_over_and_hand_back(tmp_path):
+    """One companion per group over Zenoh; the leader's companion is killed and comes back."""
+    sc = load_scenario(THREE_LINK, duration_s=15.0)
+    sc = replace(sc, companion=replace(sc.companion, groups=((1,), (2, 3)), distributed=True),
+                 faults=replace(sc.faults, kill_companion_group=1, kill_at_s=8.5, restart_after_s=2.5))
+    m = launch(sc, tmp_path, speed=1.0)
+    assert not m["crashed"]
+    d = m["distributed"]
+    fault = d["fault"]
+    assert [f["to_group"] for f in fault["failover"]] == [2]  # group 2 noticed and took over
+    assert fault["failover_s_max"] < 1.0 and fault["failover"][0]["cycles_without_global_step"] <= 2
+    comps = d["companions"]
+    assert set(comps) == {"companion-g1-restart", "companion-g2"}  # SIGKILLed: the first g1 left no summary
+    leaders = [g for _, g in comps["companion-g2"]["global_step"]["leaders"]]
+    assert leaders == [1, 2, 1]  # group 1 leads, group 2 takes over, hands back to the returning group 1
+    for c in comps.values():
+        assert c["global_step"]["duplicate_shift"] == 0 and c["global_step"]["yielded"] == 0
+    cp = m["constraint_pos_p95_m"]
+    assert cp["after_between_groups"] <= max(cp["after_within_groups"], 0.01)
+    assert d["cycles_with_global_step_fraction"] > 0.8
+    _assert_ports_released(3)
+    assert _tcp_free(7447) and _tcp_free(7448)

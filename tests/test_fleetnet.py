@@ -17,6 +17,7 @@ from companion.estimation.semi import group_boundaries, semi_distributed_apply
 from companion.fleetnet import codec
 from companion.fleetnet.bus import FleetBus
 from companion.fleetnet.config import ZenohConfig
+from companion.fleetnet.group import GroupLink
 from companion.fleetnet.keys import boundary_key, shift_key
 from companion.fleetnet.leader import GlobalStepNode, solve_cycle
 from companion.messages import Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
@@ -242,35 +243,22 @@ def _buses(n_groups: int, prefix: str):
     return cfg, buses
 
 
-def _pump(nodes, buses, until, timeout_s=3.0):
-    """Deliver bus events to the nodes (and publish what they decide) until ``until()``."""
+def _pump(links, until, timeout_s=3.0):
+    """Pump every open :class:`GroupLink` (the daemon's shell) until ``until(resolved)``."""
     deadline = time.monotonic() + timeout_s
-    resolved = {n.group: [] for n in nodes}
+    resolved = {lk.group: [] for lk in links}
     while time.monotonic() < deadline:
-        for node, bus in zip(nodes, buses):
-            if bus.closed:
-                continue
-            acts = []
-            for ev in bus.drain():
-                if ev.kind == "boundary":
-                    acts.append(node.on_boundary(ev.value, ev.time_s))
-                elif ev.kind == "shift":
-                    acts.append(node.on_shift(ev.value, ev.time_s))
-                elif ev.kind in ("alive", "gone"):
-                    node.on_liveliness(ev.value, ev.kind == "alive", ev.time_s)
-            acts.append(node.tick(time.monotonic()))
-            for act in acts:
-                for s in act.shifts:
-                    bus.publish_shift(s)
-                resolved[node.group] += act.resolved
+        for lk in links:
+            if not lk.bus.closed:
+                resolved[lk.group] += lk.pump(time.monotonic())
         if until(resolved):
             return resolved
         time.sleep(0.001)
     return resolved
 
 
-def _wait_live(nodes, buses, n):
-    _pump(nodes, buses, lambda r: all(len(node.live) == n for node, b in zip(nodes, buses) if not b.closed))
+def _wait_live(links, n):
+    _pump(links, lambda r: all(len(lk.node.live) == n for lk in links if not lk.bus.closed))
 
 
 @pytest.mark.parametrize("groups", LAYOUTS[:2])
@@ -278,17 +266,15 @@ def test_global_step_over_zenoh_equals_in_process_eq6(groups):
     s = len(groups)
     ref, reports = _chain_boundaries(11, groups)
     cfg, buses = _buses(s, f"test_eq6_{s}")
+    links = [GroupLink(GlobalStepNode(g, s, cfg.order(s), PERIOD_US, startup_s=0.0, shift_deadline_s=2.0,
+                                      leader_wait_s=1.5), bus) for g, bus in enumerate(buses)]
     try:
-        nodes = [GlobalStepNode(g, s, cfg.order(s), PERIOD_US, startup_s=0.0, shift_deadline_s=2.0,
-                                leader_wait_s=1.5) for g in range(s)]
-        _wait_live(nodes, buses, s)
+        _wait_live(links, s)
         now = time.monotonic()
-        for node, bus, r in zip(nodes, buses, reports):
-            act = node.local_step(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv, PERIOD_US, now)
-            bus.publish_boundary(act.boundary)
-            for sh in act.shifts:
-                bus.publish_shift(sh)
-        resolved = _pump(nodes, buses, lambda r: all(r[g] for g in range(s)))
+        early = {lk.group: lk.local_step(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv, PERIOD_US, now)
+                 for lk, r in zip(links, reports)}
+        resolved = _pump(links, lambda r: all(r[g] or early[g] for g in range(s)))
+        resolved = {g: early[g] + resolved[g] for g in range(s)}
         for g in range(s):
             (res,) = resolved[g]
             assert res.shift is not None, res.reason
@@ -303,34 +289,32 @@ def test_leader_failover_over_zenoh_within_two_cycles():
     groups = LAYOUTS[0]
     ref, reports = _chain_boundaries(5, groups)
     cfg, buses = _buses(3, "test_failover")
-    nodes = [GlobalStepNode(g, 3, cfg.order(3), PERIOD_US, startup_s=0.0, shift_deadline_s=0.2, leader_wait_s=0.15)
-             for g in range(3)]
+    links = [GroupLink(GlobalStepNode(g, 3, cfg.order(3), PERIOD_US, startup_s=0.0, shift_deadline_s=0.2,
+                                      leader_wait_s=0.15), bus) for g, bus in enumerate(buses)]
     try:
-        _wait_live(nodes, buses, 3)
+        _wait_live(links, 3)
         outcome = []  # per cycle: did every live group get the global step?
         for k in range(1, 13):
             if k == 6:
-                buses[1].close()  # the leader's computer goes away mid-run
+                links[1].close()  # the leader's computer goes away mid-run
             cycle = k * PERIOD_US
-            alive = [g for g in range(3) if not buses[g].closed]
+            alive = [lk for lk in links if not lk.bus.closed]
             now = time.monotonic()
-            for g in alive:
-                r = reports[g]
-                act = nodes[g].local_step(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv, cycle, now)
-                buses[g].publish_boundary(act.boundary)
-                for sh in act.shifts:
-                    buses[g].publish_shift(sh)
-            resolved = _pump([nodes[g] for g in alive], [buses[g] for g in alive],
-                             lambda r: all(any(x.cycle_us == cycle for x in r[g]) for g in alive))
-            outcome.append(all(any(x.cycle_us == cycle and x.shift is not None for x in resolved[g]) for g in alive))
+            early = {lk.group: lk.local_step(reports[lk.group].left_tip_pv_w, reports[lk.group].right_tip_pv_w,
+                                             reports[lk.group].info_pv, cycle, now) for lk in alive}
+            resolved = _pump(alive, lambda r: all(any(x.cycle_us == cycle for x in r[g] + early[g]) for g in r))
+            outcome.append(all(any(x.cycle_us == cycle and x.shift is not None for x in resolved[g] + early[g])
+                               for g in resolved))
         assert all(outcome[:5])
         missed = [k for k, ok in enumerate(outcome[5:]) if not ok]
         assert len(missed) <= 2 and all(outcome[8:]), outcome
-        assert nodes[0].leader_log[-1][1] == 0  # group 1 is next in the order (2, 1, 3)
-        assert nodes[2].leader_log[-1][1] == 0
+        for lk in (links[0], links[2]):  # group 1 is next in the order (2, 1, 3)
+            assert lk.node.leader_log[-1][1] == 0
+            (fo,) = lk.failovers
+            assert fo["from"] == 2 and fo["to"] == 1 and fo["first_global_after_s"] < 1.0
     finally:
-        for bus in buses:
-            bus.close()
+        for lk in links:
+            lk.close()
 
 
 def test_malformed_zenoh_payloads_are_counted_not_applied():
@@ -341,8 +325,9 @@ def test_malformed_zenoh_payloads_are_counted_not_applied():
     raw_cfg.insert_json5("connect/endpoints", f'["{cfg.endpoints[0]}"]')
     raw = zenoh.open(raw_cfg)
     try:
-        nodes = [GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0) for g in range(2)]
-        _wait_live(nodes, buses, 2)
+        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
+                 for g, bus in enumerate(buses)]
+        _wait_live(links, 2)
         time.sleep(0.3)
         good = codec.encode(GroupBoundaryReport(1, PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)))
         payloads = [b"", b"garbage", good[:-1], good[:4] + bytes([2]) + good[5:],

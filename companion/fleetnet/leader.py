@@ -184,16 +184,21 @@ class GlobalStepNode:
         if settled is not None:  # the leader solved this cycle without us
             out.resolved.append(self._resolve(None, settled, "the leader solved this cycle without this group"))
             return out
-        return out.merge(self._add_report(report, now_s))
+        return out.merge(self._add_report(report, now_s, now_s))
 
-    def on_boundary(self, report: GroupBoundaryReport, now_s: float) -> Actions:
+    def on_boundary(self, report: GroupBoundaryReport, now_s: float, arrived_s: float | None = None) -> Actions:
+        """Another group's boundary, handled at ``now_s``; ``arrived_s``: when it came off the wire
+        (default ``now_s``), the start of the leader's hold time."""
         if report.group == self.group or not 0 <= report.group < self.n_groups:
             return Actions()
         self.reporting.add(report.group)
-        return self._add_report(report, now_s)
+        return self._add_report(report, now_s, now_s if arrived_s is None else arrived_s)
 
-    def on_shift(self, shift: GlobalShift, now_s: float) -> Actions:
+    def on_shift(self, shift: GlobalShift, now_s: float, arrived_s: float | None = None) -> Actions:
+        """A leader's shift, handled at ``now_s``; ``arrived_s``: when it came off the wire (the
+        end of this group's round trip; default ``now_s``)."""
         out = Actions()
+        arrived = now_s if arrived_s is None else arrived_s
         if shift.leader_group == self.group:
             return out  # our own, echoed
         cycle = shift.cycle_us
@@ -210,7 +215,7 @@ class GlobalStepNode:
         if shift.handover_group >= 0:
             self.handover = (shift.handover_group, shift.handover_cycle_us)
         if self.pending is not None and self.pending.cycle_us == cycle:
-            rt = int(round((now_s - self.pending.published_s) * 1e6))
+            rt = int(round((arrived - self.pending.published_s) * 1e6))
             hold = shift.hold_for(self.group)
             self.last_round_trip_us = rt
             self.last_network_round_trip_us = rt - hold if hold is not None else -1
@@ -241,12 +246,12 @@ class GlobalStepNode:
         return min(times) if times else None
 
     # -- internals ----------------------------------------------------------------------------------------
-    def _add_report(self, report: GroupBoundaryReport, now_s: float) -> Actions:
+    def _add_report(self, report: GroupBoundaryReport, now_s: float, arrived_s: float) -> Actions:
         cycle = report.cycle_us
         if cycle in self.settled:
             return Actions()
         self.reports.setdefault(cycle, {})[report.group] = report
-        self.received_s.setdefault(cycle, {})[report.group] = now_s
+        self.received_s.setdefault(cycle, {})[report.group] = arrived_s
         self.first_report_s.setdefault(cycle, now_s)
         self._prune(cycle)
         if self._leads(cycle, now_s) and self.live <= set(self.reports[cycle]):

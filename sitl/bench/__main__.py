@@ -2,6 +2,7 @@
 
     python -m sitl.bench table2 [--json PATH] [--seed S] [--seeds N] [--duration S] [--out DIR]
     python -m sitl.bench scaling [--json PATH] [--seed S] [--out DIR]
+    python -m sitl.bench zenoh [--duration S] [--groups 1,2/3,4,5/6,7] [--json PATH] [--out DIR]
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
 result (or ``--json PATH`` instead) and, for table2, the EKF stream in the
@@ -20,11 +21,13 @@ import numpy as np
 from tqdm import tqdm
 
 from companion.estimation.sckf import CAParams
+from companion.estimation.semi import parse_groups
 from companion.runtime import make_run_dir, run_subcommand
 
 from .ekf_chain import ChainRun
 from .scaling import LINK_COUNTS, format_scaling, run_scaling
 from .table2 import GROUP_SIZES, aggregate_seeds, format_table2, run_table2
+from .zenoh_rtt import format_zenoh_rtt, run_zenoh_rtt
 
 
 
@@ -86,6 +89,25 @@ def _cmd_scaling(args) -> int:
     return 0
 
 
+def _cmd_zenoh(args) -> int:
+    try:
+        links = [int(x) for part in args.groups.split("/") for x in part.split(",") if x.strip()]
+        groups = parse_groups(args.groups, max(links))
+    except ValueError as exc:
+        print(f"error: --groups: {exc}", file=sys.stderr)
+        return 2
+    if args.duration <= 0 or len(groups) < 2:
+        print("error: --duration must be positive and --groups name at least two groups", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("zenoh", args.out)
+    print(f"{args.duration:g} s of global steps over Zenoh on loopback ...", file=sys.stderr)
+    result = run_zenoh_rtt(groups, args.duration, seed=args.seed, base_port=args.base_port)
+    path = _write_json(result, args.json, run_dir, "zenoh.json")
+    print(format_zenoh_rtt(result))
+    print(f"\nwrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m sitl.bench", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -118,6 +140,19 @@ def build_parser() -> argparse.ArgumentParser:
         description="Per-step time of Alg. 1 (full chain) and Alg. 2 + eq. 6 (groups of 2) vs. chain length.",
     )
     sc.set_defaults(func=_cmd_scaling)
+    zb = sub.add_parser(
+        "zenoh",
+        parents=[common],
+        help="global step over Zenoh on loopback: round trip printed by the leader",
+        description=("One process and Zenoh peer session per group on 127.0.0.1; every 50 ms each publishes its "
+                     "boundary, the leader solves eq. 6 and publishes the shifts. Prints the round trip "
+                     "(boundary published -> shift received) the groups report to the leader."),
+    )
+    zb.add_argument("--duration", type=float, default=20.0, help="seconds of cycles (default 20)")
+    zb.add_argument("--groups", default="1,2/3,4,5/6,7", metavar="LAYOUT",
+                    help="group layout, 1-based links (default 1,2/3,4,5/6,7: the thesis's seven links)")
+    zb.add_argument("--base-port", type=int, default=17447, help="group g listens on TCP base+g-1 (default 17447)")
+    zb.set_defaults(func=_cmd_zenoh)
     return parser
 
 

@@ -1,0 +1,131 @@
+"""A group companion's global-step wiring: a :class:`~.leader.GlobalStepNode` on a :class:`~.bus.FleetBus`.
+
+:class:`GroupLink` is the thin shell around the pure node that both the companion daemon and
+the Zenoh benchmark run: it hands what arrives on the bus to the node, publishes what the node
+decides, and returns the cycles that ended (:class:`~.leader.Resolution`) for the caller to turn
+into corrections. It also keeps the operational record: malformed payloads per key, leader
+failovers (from the moment the acting leader's token went to the first cycle with a global
+step again, and the cycles without one in between) and the round trips reported while leading.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .bus import FleetBus
+from .leader import Actions, GlobalStepNode, Resolution
+
+__all__ = ["GroupLink", "percentiles"]
+
+log = logging.getLogger(__name__)
+
+
+def percentiles(values_ms) -> dict | None:
+    a = np.asarray(values_ms, dtype=float)
+    if not a.size:
+        return None
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
+            "samples": int(a.size)}
+
+
+class GroupLink:
+    """See the module docstring."""
+
+    def __init__(self, node: GlobalStepNode, bus: FleetBus):
+        self.node = node
+        self.bus = bus
+        self.errors: dict[str, int] = {}
+        self.failovers: list[dict] = []
+        self._failover: dict | None = None
+        self.round_trips_ms: list[float] = []
+        self.network_round_trips_ms: list[float] = []
+
+    @property
+    def group(self) -> int:
+        return self.node.group
+
+    def fileno(self) -> int:
+        return self.bus.fileno()
+
+    def next_deadline_s(self) -> float | None:
+        return self.node.next_deadline_s()
+
+    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float) -> list[Resolution]:
+        """This group's boundary for ``cycle_us``: publish it (and solve, if leading)."""
+        return self._carry_out(self.node.local_step(left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us, now_s), now_s)
+
+    def pump(self, now_s: float) -> list[Resolution]:
+        """Everything that arrived, then the deadlines; the cycles that ended."""
+        resolved = []
+        for ev in self.bus.drain():
+            if ev.kind == "boundary":
+                resolved += self._carry_out(self.node.on_boundary(ev.value, now_s, ev.time_s), now_s)
+            elif ev.kind == "shift":
+                resolved += self._carry_out(self.node.on_shift(ev.value, now_s, ev.time_s), now_s)
+            elif ev.kind in ("alive", "gone"):
+                alive = ev.kind == "alive"
+                if ev.value != self.group:
+                    log.info("group %d %s", ev.value + 1, "is up" if alive else "left")
+                if not alive and ev.value == self.node.acting and ev.value != self.group:
+                    self._failover = {"from": ev.value + 1, "gone_at": ev.time_s, "cycles_without_global": 0}
+                self.node.on_liveliness(ev.value, alive, ev.time_s)
+            else:
+                n = self.errors[ev.key] = self.errors.get(ev.key, 0) + 1
+                if n <= 5 or n % 100 == 0:
+                    log.warning("zenoh %s: dropped payload #%d: %s", ev.key, n, ev.value)
+        return resolved + self._carry_out(self.node.tick(now_s), now_s)
+
+    def _carry_out(self, actions: Actions, now_s: float) -> list[Resolution]:
+        if actions.boundary is not None:
+            self.bus.publish_boundary(actions.boundary)
+        for shift in actions.shifts:
+            self.bus.publish_shift(shift)
+        for res in actions.resolved:
+            fo = self._failover
+            if fo is None:
+                continue
+            if res.shift is None:
+                fo["cycles_without_global"] += 1
+            elif res.leader_group is not None and res.leader_group + 1 != fo["from"]:
+                fo.update(to=res.leader_group + 1, cycle_us=res.cycle_us,
+                          first_global_after_s=round(now_s - fo["gone_at"], 4))
+                self._failover = None
+                self.failovers.append(fo)
+                log.warning("leader failover: group %d -> group %d, global step back %.0f ms after the leader left, "
+                            "%d cycle(s) without it", fo["from"], fo["to"], fo["first_global_after_s"] * 1e3,
+                            fo["cycles_without_global"])
+        node = self.node
+        self.round_trips_ms += [x * 1e-3 for x in node.round_trips_us]
+        self.network_round_trips_ms += [x * 1e-3 for x in node.network_round_trips_us]
+        node.round_trips_us, node.network_round_trips_us = [], []
+        return actions.resolved
+
+    def status_line(self) -> str:
+        node = self.node
+        leader = node.leader_log[-1][1] + 1 if node.leader_log else None
+        text = (f"group {self.group + 1}: leader {leader if leader is not None else '-'}, cycles with global step "
+                f"{node.counts['global']}, local-only {node.counts['local_only']}, malformed payloads "
+                f"{sum(self.errors.values())}")
+        net, e2e = percentiles(self.network_round_trips_ms), percentiles(self.round_trips_ms)
+        if net and e2e:
+            text += (f"; as leader: Zenoh global-step round trip (boundary published -> shift received, less the "
+                     f"leader's wait for the other groups) p50 {net['p50']:.2f} ms, p99 {net['p99']:.2f} ms; end to "
+                     f"end p50 {e2e['p50']:.2f} ms, p99 {e2e['p99']:.2f} ms ({e2e['samples']} boundaries)")
+        return text
+
+    def summary(self) -> dict:
+        node = self.node
+        e2e = percentiles(self.round_trips_ms)
+        return {
+            "group": self.group + 1,
+            "global_step": {**node.counts, "leaders": [[c * 1e-6, g + 1] for c, g in node.leader_log]},
+            "round_trip_ms_as_leader": ({"network": percentiles(self.network_round_trips_ms), "end_to_end": e2e}
+                                        if e2e else None),
+            "failovers": self.failovers,
+            "malformed_payloads": dict(self.errors),
+        }
+
+    def close(self) -> None:
+        self.bus.close()
