@@ -21,6 +21,14 @@ Bad input never stops the daemon: unparseable bytes and unknown ids are counted 
 states that fail validation (non-finite, non-unit quaternion, covariance not positive definite)
 are counted per link and dropped.
 
+Time base (``companion.time_base``): ``flight_controller`` takes every link's EKF stamps as one
+clock (SITL: every simulated Pixhawk keeps simulation time). ``gps`` is for real Pixhawks, whose
+clocks count from their own boot: each link's SYSTEM_TIME (PX4 sends it at 1 Hz; ``time_unix_usec``
+is GPS time once it has a fix) gives the offset from its boot clock to GPS time (the median of its
+last 5 reports, so crystal drift is followed), every stamp is moved onto GPS time on arrival and
+back onto the link's own clock in what is sent to it; a link is not used until its offset is known.
+GPS time is also what lets the group companions of a distributed chain agree on their cycles.
+
 Distributed mode (``companion.distributed``, one daemon per group, ``group`` given): the daemon
 serves its group's links only. Its step is the local half (:func:`companion.corrections.local_step`
 at the cycle time, a multiple of the step period on flight-controller time, so every group's
@@ -39,7 +47,7 @@ import logging
 import math
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +77,13 @@ COMPANION_SYSTEM_ID = 190
 COMPANION_COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 #: A link whose newest state is this far behind the newest of the chain is not waited for.
 LAG_LIMIT_US = 100_000
-_ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT"})
+#: Beyond this spread of the links' newest stamps no step runs: the time alignment would
+#: extrapolate a state over it (a link that stopped streaming, or flight-controller clocks that
+#: do not share a time base, e.g. Pixhawks booted at different times).
+SPREAD_LIMIT_US = 500_000
+_ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME"})
+#: SYSTEM_TIME reports whose median is a link's boot-to-GPS clock offset.
+CLOCK_SAMPLES = 5
 _UPPER_6 = np.triu_indices(6)
 
 
@@ -127,6 +141,12 @@ class _Link:
     correction_seq: int = -1
     latencies_ms: list = field(default_factory=list)
     latency_window_ms: list = field(default_factory=list)
+    clock_samples_us: list = field(default_factory=list)
+    #: the link's clock + offset = the daemon's time base (0 with ``time_base = "flight_controller"``)
+    offset_us: int | None = None
+
+    def to_link_clock_us(self, t_us: int) -> int:
+        return t_us - (self.offset_us or 0)
 
 
 class CompanionDaemon:
@@ -194,6 +214,8 @@ class CompanionDaemon:
             "p_corr_sckf", "iterations", "cycle_us", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
             "v_corr_sckf", "q_corr_sckf", "global_applied", "leader")}
         self.step_times_ms: list[float] = []
+        self.withheld = 0
+        self._withheld_logged_wall = -1e9
         self._stop = False
 
     # -- input ---------------------------------------------------------------------------------------
@@ -217,6 +239,9 @@ class CompanionDaemon:
         if kind == "STATUSTEXT":
             log.info("link %d: %s", link.index + 1, msg.text)
             return
+        if kind == "SYSTEM_TIME":
+            self._on_system_time(link, msg)
+            return
         try:
             if kind == "SKELETON_LINK_STATE" and self.cfg.mode == "dialect":
                 state = decode_link_state(msg, link.index)
@@ -235,10 +260,32 @@ class CompanionDaemon:
             link.rejected += 1
             log.warning("link %d: rejected %s: %s", link.index + 1, kind, exc)
             return
+        if self.cfg.time_base == "gps":
+            if link.offset_us is None:
+                link.port.stats.ignored += 1  # no GPS time from this link yet
+                return
+            state = replace(state, time_s=(usec(state.time_s) + link.offset_us) * 1e-6)
         link.state = state
         link.states += 1
         link.last_state_wall = time.monotonic()
         self.fc_time_us = max(self.fc_time_us, usec(state.time_s))
+
+    def _on_system_time(self, link: _Link, msg) -> None:
+        """``gps`` time base: the link's boot-to-GPS offset from SYSTEM_TIME."""
+        if self.cfg.time_base != "gps":
+            return
+        if msg.time_unix_usec <= 0:
+            if link.offset_us is None and not link.clock_samples_us:
+                log.info("link %d: no GPS time yet (SYSTEM_TIME.time_unix_usec = 0): waiting", link.index + 1)
+                link.clock_samples_us.append(None)
+            return
+        samples = [x for x in link.clock_samples_us if x is not None]
+        samples.append(int(msg.time_unix_usec) - int(msg.time_boot_ms) * 1000)
+        link.clock_samples_us = samples[-CLOCK_SAMPLES:]
+        first = link.offset_us is None
+        link.offset_us = int(np.median(link.clock_samples_us))
+        if first:
+            log.info("link %d: boot clock + %.3f s = GPS time", link.index + 1, link.offset_us * 1e-6)
 
     # -- the 20 Hz step ---------------------------------------------------------------------------------
     def _all_states(self) -> bool:
@@ -259,10 +306,21 @@ class CompanionDaemon:
         self.seq = (self.seq + 1) & 0xFFFF or 1
         for lk, corr in zip(self.links, corrections):
             if self.cfg.mode == "dialect":
-                lk.port.send(encode_correction(corr, lk.system_id, 1))
+                lk.port.send(encode_correction(self._on_link_clock(lk, corr), lk.system_id, 1))
             else:
                 lk.port.send(self._vision_odometry(lk, (result.p, result.v, result.q, result.P), corr.link))
         self._record(states, result)
+
+    def _withhold(self, newest: list[int]) -> None:
+        """No step: the links' stamps are too far apart to be aligned (logged every 5 s)."""
+        self.withheld += 1
+        now = time.monotonic()
+        if now - self._withheld_logged_wall >= 5.0:
+            self._withheld_logged_wall = now
+            lag = self.links[int(np.argmin(newest))]
+            log.error("link %d's newest state is %.3f s behind the newest of the chain: it stopped streaming, or the "
+                      "flight controllers' clocks do not share a time base; no corrections until they agree "
+                      "(%d cycles so far)", lag.index + 1, (max(newest) - min(newest)) * 1e-6, self.withheld)
 
     def _local_half(self) -> None:
         """Distributed mode: local constraint application at the cycle time, boundary out."""
@@ -294,7 +352,7 @@ class CompanionDaemon:
             self.seq = (self.seq + 1) & 0xFFFF or 1
             for lk, corr in zip(self.links, corrections):
                 if self.cfg.mode == "dialect":
-                    lk.port.send(encode_correction(corr, lk.system_id, 1))
+                    lk.port.send(encode_correction(self._on_link_clock(lk, corr), lk.system_id, 1))
                 else:
                     lk.port.send(self._vision_odometry(lk, (p, v, q, step.result.P), corr.link - self.links[0].index))
             r = self._rows
@@ -312,6 +370,11 @@ class CompanionDaemon:
             r["leader"].append(-1 if res.leader_group is None else res.leader_group + 1)
             r["iterations"].append(int(step.result.iterations))
 
+    @staticmethod
+    def _on_link_clock(lk: _Link, corr):
+        """A correction stamped on the link's own clock (what its EKF time means to it)."""
+        return replace(corr, ekf_time_s=lk.to_link_clock_us(usec(corr.ekf_time_s)) * 1e-6)
+
     def _vision_odometry(self, lk: _Link, result, i: int):
         """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD);
         ``result`` is ``(p, v, q, P)`` of the daemon's links, ``i`` the row of this link."""
@@ -327,7 +390,8 @@ class CompanionDaemon:
         vcov[:3, :3] = R.T @ error_cov_enu_ned(P)[3:6, 3:6] @ R
         vcov[3:, 3:] = np.eye(3) * 1e-4
         return D.MAVLink_odometry_message(
-            usec(lk.state.time_s), D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_BODY_FRD, *enu_ned(p_all[i]).tolist(),
+            lk.to_link_clock_us(usec(lk.state.time_s)), D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_BODY_FRD,
+            *enu_ned(p_all[i]).tolist(),
             q.tolist(), *v_body.tolist(), math.nan, math.nan, math.nan, cov.tolist(), vcov[_UPPER_6].tolist(),
             0, D.MAV_ESTIMATOR_TYPE_VISION, 100,
         )
@@ -357,15 +421,16 @@ class CompanionDaemon:
                 mid = self.n // 2
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
             self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
-            # distributed: every group on the same clock (flight-controller time, SITL: simulation time)
-            self._trajectory_t0_us = 0 if self.net is not None else self.fc_time_us
-        boot_ms = (self.fc_time_us // 1000) & 0xFFFFFFFF
+            # distributed in SITL: every group on the same clock from 0 (simulation time)
+            shared = self.net is not None and self.cfg.time_base == "flight_controller"
+            self._trajectory_t0_us = 0 if shared else self.fc_time_us
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         t_traj = (self.fc_time_us - self._trajectory_t0_us) * 1e-6
         targets = self.trajectory.targets(t_traj)
         for lk in self.links:
             target = targets[lk.index]
+            boot_ms = (lk.to_link_clock_us(self.fc_time_us) // 1000) & 0xFFFFFFFF
             p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
             lk.port.send(D.MAVLink_set_position_target_local_ned_message(
                 boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
@@ -445,7 +510,11 @@ class CompanionDaemon:
             # Step once every link has reported for this step time (a coherent snapshot); a link
             # lagging more than LAG_LIMIT behind the others is not waited for (its state is
             # propagated by the time alignment), so one silent link degrades the step, never stalls it.
-            if min(newest) >= self.next_step_us or max(newest) - min(newest) > LAG_LIMIT_US:
+            spread = max(newest) - min(newest)
+            if spread > SPREAD_LIMIT_US:
+                self._withhold(newest)
+                self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
+            elif min(newest) >= self.next_step_us or spread > LAG_LIMIT_US:
                 self._step()
                 self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
         self._arm()
@@ -486,6 +555,7 @@ class CompanionDaemon:
         steps = np.asarray(self.step_times_ms)
         return {
             "steps": int(steps.size),
+            "withheld_steps": self.withheld,
             "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
             "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                       "samples": int(lat.size)} if lat.size else None,

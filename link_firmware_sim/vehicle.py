@@ -59,6 +59,8 @@ __all__ = ["VehiclePorts", "Vehicle", "odometry_pose_covariance", "ODOMETRY_UPPE
 log = logging.getLogger(__name__)
 D = load_dialect()
 
+#: GPS time at simulation time 0 (2026-01-01T00:00:00Z) [us since the Unix epoch].
+SITL_GPS_EPOCH_US = 1_767_225_600_000_000
 HIL_ACCEPT = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
 MAVLINK_ACCEPT = frozenset({
     "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_LONG", "COMMAND_INT",
@@ -175,6 +177,7 @@ class Vehicle:
             D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
             D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 10.0,
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+            D.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
         }
         gcs = {
             D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
@@ -197,6 +200,7 @@ class Vehicle:
             D.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._msg_autopilot_version,
             D.MAVLINK_MSG_ID_SYS_STATUS: self._msg_sys_status,
             D.MAVLINK_MSG_ID_HEARTBEAT: self._msg_heartbeat,
+            D.MAVLINK_MSG_ID_SYSTEM_TIME: self._msg_system_time,
         }
 
     # -- messages out --------------------------------------------------------------------------
@@ -211,6 +215,12 @@ class Vehicle:
         if self.fw.correction_weight(self.fc_time_s) > 0:
             flags |= STATE_FLAG_CORRECTION_ACTIVE
         return flags
+
+    def _msg_system_time(self):
+        """GPS time (0 until the EKF has its first fix) against boot time, as PX4 sends it; in SITL
+        the simulated GPS's clock is :data:`SITL_GPS_EPOCH_US` plus simulation time."""
+        unix_us = SITL_GPS_EPOCH_US + self.fc_time_us if self.fw.initialized else 0
+        return D.MAVLink_system_time_message(unix_us, self.time_boot_ms)
 
     def _msg_heartbeat(self):
         base = D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (D.MAV_MODE_FLAG_SAFETY_ARMED if self.fw.armed else 0)

@@ -39,6 +39,7 @@ from companion.mavlink.hil import decode_actuators, encode_ahrs, encode_hil_gps,
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
+from link_firmware_sim.vehicle import SITL_GPS_EPOCH_US
 
 from .metrics import PAPER_THREE_LINK, compute_metrics
 from .plots import write_plots
@@ -309,8 +310,12 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         merged[key] = np.stack([f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
     comp = _companion_log(sc, out_dir)
     if comp is not None:
-        # each step against the truth row nearest its state time (the log grid is 1 / log_rate_hz)
+        # each step against the truth row nearest its state time (the log grid is 1 / log_rate_hz);
+        # a companion on GPS time: the simulated GPS clock is the epoch plus simulation time
         ct = np.round(comp["t_sckf"] * 1e6).astype(np.int64)
+        if sc.companion.time_base == "gps":
+            ct -= SITL_GPS_EPOCH_US
+            comp["t_sckf"] = ct * 1e-6
         row = np.clip(np.searchsorted(t_us, ct), 1, len(t_us) - 1)
         row = np.where(np.abs(t_us[row - 1] - ct) <= np.abs(t_us[row] - ct), row - 1, row)
         keep = np.abs(t_us[row] - ct) <= 0.5e6 / sc.sim.log_rate_hz

@@ -107,6 +107,8 @@ class CompanionConfig:
     (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_FRD).
     ``targets``: ``trajectory`` forwards the scenario's ``[trajectory]`` as pose targets,
     ``none`` sends none. ``arm``: arm every link once all report a usable EKF.
+    ``time_base``: ``flight_controller`` (the links' EKF stamps share one clock: SITL) or ``gps``
+    (real Pixhawks: each link's boot clock is mapped to GPS time through its SYSTEM_TIME).
     ``distributed``: one companion per group (``python -m companion --config F --group G``),
     joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
     whole chain and runs the global step in-process.
@@ -126,6 +128,7 @@ class CompanionConfig:
     arm: bool = True
     health_period_s: float = 5.0
     distributed: bool = False
+    time_base: Literal["flight_controller", "gps"] = "flight_controller"
 
     def __post_init__(self) -> None:
         CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)

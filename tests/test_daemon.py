@@ -123,6 +123,48 @@ def test_step_on_flight_controller_time_sends_corrections_targets_and_arm(fleet)
     assert nxt.ekf_time_s == pytest.approx(0.06) and nxt.seq == deltas[0].seq + 1
 
 
+def test_links_on_different_clocks_get_no_corrections(fleet, caplog):
+    """Pixhawks booted at different times (or a link that stopped): no extrapolation over seconds."""
+    for k in range(3):
+        for i, fc in enumerate(fleet.fcs):
+            fc.send(encode_link_state(fleet.state(i, 0.02 * k + (12.5 if i == 2 else 0.0)), STATE_FLAG_EKF_OK))
+        fleet.pump()
+    assert not any(fleet.take(i, "SKELETON_CORRECTION") for i in range(3))
+    assert fleet.daemon.withheld >= 1 and fleet.daemon.summary()["withheld_steps"] == fleet.daemon.withheld
+    assert "link 1's newest state is 12.500 s behind" in caplog.text and "time base" in caplog.text
+
+
+def test_gps_time_base_aligns_pixhawks_booted_at_different_times(tmp_path, caplog):
+    """Real Pixhawks count from their own boot; SYSTEM_TIME maps each onto GPS time."""
+    caplog.set_level("INFO", logger="companion.daemon")
+    f = Fleet(tmp_path, time_base="gps")
+    boot = [0.0, 7.25, 31.5]  # link i's clock reads t + boot[i] at GPS time t (since 1.8e9 s)
+    unix0 = 1_800_000_000.0
+    try:
+        for k in range(3):  # states alone are not used until the link's offset is known
+            for i, fc in enumerate(f.fcs):
+                fc.send(encode_link_state(f.state(i, 0.02 * k + boot[i], dx=0.2 * (i == 1)), STATE_FLAG_EKF_OK))
+            f.pump()
+        assert not any(f.take(i, "SKELETON_CORRECTION") for i in range(3))
+        for i, fc in enumerate(f.fcs):
+            fc.send(D.MAVLink_system_time_message(0, int((boot[i] + 0.04) * 1000)))  # no fix yet: ignored
+            fc.send(D.MAVLink_system_time_message(int((unix0 + 0.05) * 1e6), int((boot[i] + 0.05) * 1000)))
+        f.pump()
+        assert [lk.offset_us for lk in f.daemon.links] == [int((unix0 - b) * 1e6) for b in boot]
+        for k in range(3, 6):
+            for i, fc in enumerate(f.fcs):
+                fc.send(encode_link_state(f.state(i, 0.02 * k + boot[i], dx=0.2 * (i == 1)), STATE_FLAG_EKF_OK))
+            f.pump()
+        corr = [[decode_correction(m, i) for m in f.take(i, "SKELETON_CORRECTION")] for i in range(3)]
+        assert all(len(c) == 1 for c in corr)
+        for i in range(3):  # stamped on each link's own clock, the step at GPS time unix0 + 0.1 s
+            assert corr[i][0].ekf_time_s == pytest.approx(0.10 + boot[i], abs=1e-6)
+        assert corr[1][0].dp_w_m[0] < -0.05  # the same correction as with one clock
+        assert f.daemon.withheld == 0 and "boot clock + " in caplog.text
+    finally:
+        f.close()
+
+
 @pytest.mark.parametrize("bad", ["nan", "not_pd", "not_unit", "wrong_sysid"])
 def test_bad_states_are_rejected_and_the_daemon_keeps_going(fleet, bad):
     fleet.send_states(0.0)
@@ -192,6 +234,7 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
     assert [lk.system_id for lk in links] == list(range(1, n + 1))
     assert all(lk.url.startswith("serial:///dev/serial/by-id/") and lk.url.endswith(":921600") for lk in links)
     assert not sc.companion.arm and sc.companion.targets == "none"  # never arms or steers real vehicles
+    assert sc.companion.time_base == "gps"  # Pixhawks booted at different times
     group = None
     if sc.companion.distributed:  # the Pi of group 2; its Zenoh session config is valid as written
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")

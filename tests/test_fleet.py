@@ -214,9 +214,11 @@ def test_mavsdk_client_discovers_reads_a_parameter_and_gets_telemetry(tmp_path):
 
 
 def test_standard_messages_mode_corrects_through_odometry(tmp_path):
-    """Stock-PX4 mode: ODOMETRY in, corrections as external-vision ODOMETRY (MAV_FRAME_LOCAL_FRD)."""
+    """Stock-PX4 mode: ODOMETRY in, corrections as external-vision ODOMETRY (MAV_FRAME_LOCAL_FRD),
+    on GPS time."""
     sc = load_scenario(THREE_LINK, duration_s=12.0)
-    sc = replace(sc, companion=replace(sc.companion, mode="standard"))
+    # as next to real Pixhawks: every link's clock mapped onto GPS time through SYSTEM_TIME
+    sc = replace(sc, companion=replace(sc.companion, mode="standard", time_base="gps"))
     m = launch(sc, tmp_path, speed=0.0)
     assert not m["crashed"]
     assert m["constraint_pos_p95_m"]["after"] < 0.05 * m["constraint_pos_p95_m"]["before"]
@@ -224,6 +226,7 @@ def test_standard_messages_mode_corrects_through_odometry(tmp_path):
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     assert comp["links"]["1"]["per_type"].get("ODOMETRY", 0) > 300
     assert "SKELETON_LINK_STATE" not in comp["links"]["1"]["per_type"]
+    assert comp["links"]["1"]["per_type"].get("SYSTEM_TIME", 0) >= 10 and comp["withheld_steps"] == 0
     link1 = json.loads((tmp_path / "link1" / "link1_ports.json").read_text())
     onboard = next(v for k, v in link1.items() if k.startswith("udpout://127.0.0.1:14540"))
     assert onboard["per_type"].get("ODOMETRY", 0) > 100 and "SKELETON_CORRECTION" not in onboard["per_type"]

@@ -58,7 +58,7 @@ def _group_main(group: int, endpoints: tuple[str, ...], prefix: str, period_us: 
             now = time.monotonic()
             resolved = link.pump(now)
             if now * 1e6 >= next_cycle:
-                resolved += link.local_step(b.left_tip, b.right_tip, b.info_pv, next_cycle, now)
+                resolved += link.local_step(b.left_tip, b.right_tip, b.info_pv, next_cycle, time.monotonic())
                 next_cycle += period_us * max(1, int((now * 1e6 - next_cycle) // period_us) + 1)
             for res in resolved:
                 if res.shift is not None:
