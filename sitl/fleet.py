@@ -6,7 +6,7 @@
   simulator TCP 4560+i, onboard UDP 14540+i (from 14580+i), GCS UDP 14550 (from 18570+i);
 * the companion daemon (``python -m companion``), listening on UDP 14540+i; with
   ``companion.distributed`` one per group (``--group G``, run folder ``companion-gG``), joined
-  over Zenoh on loopback (``tcp/127.0.0.1:7447+G-1``); ``[faults]`` can SIGKILL one of them
+  over Zenoh on loopback (``tcp/127.0.0.1:7460+G-1``, clear of a local zenohd on 7447); ``[faults]`` can SIGKILL one of them
   mid-flight and start a new one later (folder ``companion-gG-restart``);
 * the harness (this process): the same :class:`~sitl.runner.Plant` as batch mode, talking to each
   vehicle over its simulator link. Lockstep: at every firmware tick the harness sends HIL_GPS /
@@ -65,6 +65,10 @@ def endpoint_table(sc: Scenario, host: str = "127.0.0.1") -> str:
     for i in range(sc.skeleton.n_links):
         rows.append(f"{i + 1:>4} | {i + 1:>5} | {host}:{4560 + i:>5}    | {host}:{14540 + i} <- :{14580 + i}"
                     f"{'':>6} | {host}:14550 <- :{18570 + i}")
+    if sc.companion.distributed:
+        for g, links in enumerate(sc.companion.group_layout(sc.skeleton.n_links)):
+            rows.append(f"companion of group {g + 1} (links {links[0] + 1}-{links[-1] + 1}): Zenoh "
+                        f"{sc.zenoh.group_endpoint(g)}, keys {sc.zenoh_prefix}/...")
     rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://0.0.0.0:14540+i (launch with --no-companion).")
     return "\n".join(rows)
 

@@ -297,4 +297,4 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     assert cp["after_between_groups"] <= max(cp["after_within_groups"], 0.01)
     assert d["cycles_with_global_step_fraction"] > 0.8
     _assert_ports_released(3)
-    assert _tcp_free(7447) and _tcp_free(7448)
+    assert _tcp_free(7460) and _tcp_free(7461)

@@ -11,11 +11,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from companion.configfile import ConfigError, build
 from companion.estimation.semi import group_boundaries, semi_distributed_apply
 from companion.fleetnet import codec
-from companion.fleetnet.bus import FleetBus
+from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.keys import boundary_key, shift_key
@@ -113,6 +115,20 @@ def test_zenoh_config_errors_name_the_key(zenoh_section, key, reason):
     with pytest.raises(ConfigError, match=reason) as err:
         build(Scenario, data, file="t.toml")
     assert f"t.toml: {key}" in str(err.value)
+
+
+def test_access_control_file_is_read_and_checked_at_open(tmp_path):
+    missing = ZenohConfig(endpoints=("tcp/127.0.0.1:1", "tcp/127.0.0.1:2"), access_control=str(tmp_path / "acl.json5"))
+    with pytest.raises(ConfigError, match="zenoh.access_control: cannot read"):
+        FleetBus(missing, "t", 0, 2)
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ enabled: true, rules: [ }")
+    with pytest.raises(ConfigError, match="zenoh.access_control: Zenoh rejected access_control"):
+        FleetBus(replace(missing, access_control=str(bad)), "t", 0, 2)
+    good = tmp_path / "acl.json5"
+    good.write_text('{ enabled: false, default_permission: "deny" }')
+    zc = zenoh_config(replace(missing, access_control=str(good)), 0, 2)
+    assert '"deny"' in zc.get_json("access_control/default_permission")
 
 
 def test_default_leader_order_is_middle_out_and_tls_files_are_checked_at_open(tmp_path):
@@ -349,3 +365,21 @@ def test_malformed_zenoh_payloads_are_counted_not_applied():
         raw.close()
         for bus in buses:
             bus.close()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(1, 4), min_size=2, max_size=6))
+def test_networked_shifts_close_every_group_joint(seed, sizes):
+    """Property: for any layout, the shifts solved from the reports (as the leader does) make the
+    right tip of each group meet the left tip of the next, in position and velocity."""
+    groups, start = [], 0
+    for k in sizes:
+        groups.append(tuple(range(start, start + k)))
+        start += k
+    ref, reports = _chain_boundaries(seed, tuple(groups))
+    decoded = [codec.decode(codec.encode(r)) for r in reports]
+    got_groups, shifts = solve_cycle(decoded)
+    np.testing.assert_allclose(shifts, ref.shifts, atol=1e-9)
+    for g in range(len(groups) - 1):
+        gap = (decoded[g].right_tip_pv_w + shifts[g]) - (decoded[g + 1].left_tip_pv_w + shifts[g + 1])
+        np.testing.assert_allclose(gap, 0.0, atol=1e-9)

@@ -68,7 +68,7 @@ class ZenohConfig:
     prefix: str = ""
     mode: Literal["peer", "client"] = "peer"
     endpoints: tuple[str, ...] = ()
-    base_port: int = 7447
+    base_port: int = 7460
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
     lease_ms: int = 1000
