@@ -72,9 +72,7 @@ def _cmd_daemon(args) -> int:
             center = [float(x) for x in args.start_center.split(",")]
             if len(center) != 3:
                 raise ValueError("--start-center: expected X,Y,Z")
-        group = None
-        if args.group is not None:
-            group = args.group - 1
+        group = None if args.group is None else args.group - 1
         out_dir = make_run_dir(f"companion-{scenario.name}" + (f"-group{args.group}" if args.group else ""), args.out)
         daemon = CompanionDaemon(scenario, out_dir, center, group=group, config_file=str(args.config))
     except (ConfigError, PortError, ValueError) as exc:

@@ -142,6 +142,7 @@ class _Link:
     latencies_ms: list = field(default_factory=list)
     latency_window_ms: list = field(default_factory=list)
     clock_samples_us: list = field(default_factory=list)
+    gps_wait_logged: bool = False
     #: the link's clock + offset = the daemon's time base (0 with ``time_base = "flight_controller"``)
     offset_us: int | None = None
 
@@ -163,10 +164,10 @@ class CompanionDaemon:
         n = scenario.skeleton.n_links
         self.n = n
         self.groups = cfg.group_layout(n)
-        if cfg.distributed != (group is not None):
-            raise ValueError(f"companion.distributed is {str(cfg.distributed).lower()}: "
-                             + ("give the group this companion serves (--group 1.." + str(len(self.groups)) + ")"
-                                if cfg.distributed else "--group only applies to distributed companions"))
+        if cfg.distributed and group is None:
+            raise ValueError(f"companion.distributed: give the group this companion serves (--group 1..{len(self.groups)})")
+        if group is not None and not cfg.distributed:
+            raise ValueError("--group: only for distributed companions (companion.distributed = true)")
         if group is not None and not 0 <= group < len(self.groups):
             raise ValueError(f"--group {group + 1}: the config has groups 1..{len(self.groups)}")
         self.group = group
@@ -275,13 +276,12 @@ class CompanionDaemon:
         if self.cfg.time_base != "gps":
             return
         if msg.time_unix_usec <= 0:
-            if link.offset_us is None and not link.clock_samples_us:
+            if link.offset_us is None and not link.gps_wait_logged:
                 log.info("link %d: no GPS time yet (SYSTEM_TIME.time_unix_usec = 0): waiting", link.index + 1)
-                link.clock_samples_us.append(None)
+                link.gps_wait_logged = True
             return
-        samples = [x for x in link.clock_samples_us if x is not None]
-        samples.append(int(msg.time_unix_usec) - int(msg.time_boot_ms) * 1000)
-        link.clock_samples_us = samples[-CLOCK_SAMPLES:]
+        link.clock_samples_us = (link.clock_samples_us + [int(msg.time_unix_usec) - int(msg.time_boot_ms) * 1000])[
+            -CLOCK_SAMPLES:]
         first = link.offset_us is None
         link.offset_us = int(np.median(link.clock_samples_us))
         if first:
@@ -304,11 +304,7 @@ class CompanionDaemon:
             return
         self.step_times_ms.append((time.perf_counter() - t0) * 1e3)
         self.seq = (self.seq + 1) & 0xFFFF or 1
-        for lk, corr in zip(self.links, corrections):
-            if self.cfg.mode == "dialect":
-                lk.port.send(encode_correction(self._on_link_clock(lk, corr), lk.system_id, 1))
-            else:
-                lk.port.send(self._vision_odometry(lk, (result.p, result.v, result.q, result.P), corr.link))
+        self._send_corrections(corrections, (result.p, result.v, result.q, result.P))
         self._record(states, result)
 
     def _withhold(self, newest: list[int]) -> None:
@@ -350,11 +346,7 @@ class CompanionDaemon:
                 log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
             p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
             self.seq = (self.seq + 1) & 0xFFFF or 1
-            for lk, corr in zip(self.links, corrections):
-                if self.cfg.mode == "dialect":
-                    lk.port.send(encode_correction(self._on_link_clock(lk, corr), lk.system_id, 1))
-                else:
-                    lk.port.send(self._vision_odometry(lk, (p, v, q, step.result.P), corr.link - self.links[0].index))
+            self._send_corrections(corrections, (p, v, q, step.result.P))
             r = self._rows
             r["t_sckf"].append(res.cycle_us * 1e-6)
             r["cycle_us"].append(res.cycle_us)
@@ -370,10 +362,15 @@ class CompanionDaemon:
             r["leader"].append(-1 if res.leader_group is None else res.leader_group + 1)
             r["iterations"].append(int(step.result.iterations))
 
-    @staticmethod
-    def _on_link_clock(lk: _Link, corr):
-        """A correction stamped on the link's own clock (what its EKF time means to it)."""
-        return replace(corr, ekf_time_s=lk.to_link_clock_us(usec(corr.ekf_time_s)) * 1e-6)
+    def _send_corrections(self, corrections, result) -> None:
+        """Each link its correction (dialect) or its corrected pose (standard mode), stamped on the
+        link's own clock; ``result`` is ``(p, v, q, P)`` of the daemon's links, in their order."""
+        for row, (lk, corr) in enumerate(zip(self.links, corrections)):
+            if self.cfg.mode == "dialect":
+                own = replace(corr, ekf_time_s=lk.to_link_clock_us(usec(corr.ekf_time_s)) * 1e-6)
+                lk.port.send(encode_correction(own, lk.system_id, 1))
+            else:
+                lk.port.send(self._vision_odometry(lk, result, row))
 
     def _vision_odometry(self, lk: _Link, result, i: int):
         """Standard mode: the corrected pose as external vision (ODOMETRY, MAV_FRAME_LOCAL_FRD);

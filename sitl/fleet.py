@@ -339,7 +339,8 @@ def _companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
     groups = sc.companion.group_layout(sc.skeleton.n_links)
     per_group = []
     for g in range(len(groups)):
-        parts = [dict(np.load(p)) for p in sorted(out_dir.glob(f"companion-g{g + 1}*/companion_log.npz"))]
+        folders = (f"companion-g{g + 1}", f"companion-g{g + 1}-restart")  # the first, then a restarted one
+        parts = [dict(np.load(p)) for p in (out_dir / f / "companion_log.npz" for f in folders) if p.exists()]
         parts = [p for p in parts if "cycle_us" in p]
         if not parts:
             return None
@@ -403,10 +404,10 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(config), "--instance",
                                           str(i), "--out", str(out_dir / f"link{i + 1}")],
                         out_dir / f"link{i + 1}" / "console.log")
-        def start_companion(group: int | None, folder: str) -> None:
+        def start_companion(group: int | None, folder: str, name: str | None = None) -> None:
             argv = [python, "-m", "companion", "--config", str(config), "--out", str(out_dir / folder),
                     "--start-center", center]
-            procs.start(_companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
+            procs.start(name or _companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
                         out_dir / folder / "console.log")
 
         if companion and sc.companion.enabled:
@@ -437,7 +438,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                     log.warning("fault: killed the companion of group %d at t = %.2f s", g + 1, t)
                 if (faults.restart_after_s and "killed_at_s" in fault_log and "restarted_at_s" not in fault_log
                         and t >= faults.kill_at_s + faults.restart_after_s):
-                    start_companion(g, f"companion-g{g + 1}-restart")
+                    start_companion(g, f"companion-g{g + 1}-restart", f"{_companion_name(g)} (restarted)")
                     fault_log.update(restarted_at_s=round(t, 3), restarted_at_monotonic=time.monotonic())
                     log.warning("fault: restarted the companion of group %d at t = %.2f s", g + 1, t)
             procs.check()  # raises FleetError if a process died

@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.configfile import ConfigError, build
-from companion.estimation.semi import group_boundaries, semi_distributed_apply
+from companion.corrections import compute_corrections, finish_step, local_step
+from companion.estimation.semi import semi_distributed_apply
 from companion.fleetnet import codec
 from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
@@ -383,3 +384,24 @@ def test_networked_shifts_close_every_group_joint(seed, sizes):
     for g in range(len(groups) - 1):
         gap = (decoded[g].right_tip_pv_w + shifts[g]) - (decoded[g + 1].left_tip_pv_w + shifts[g + 1])
         np.testing.assert_allclose(gap, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("groups", LAYOUTS)
+def test_group_halves_equal_the_in_process_step(groups):
+    """local_step per group, eq. 6 from the reports, finish_step == compute_corrections (one process)."""
+    n = groups[-1][-1] + 1
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(21), n)
+    states = [LinkState(i, 3.0, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]
+    ref, ref_corr = compute_corrections(states, d, groups)
+    steps = [local_step([states[i] for i in g], d[list(g)], t=3.0) for g in groups]
+    reports = [GroupBoundaryReport(k, 3_000_000, s.boundary.left_tip, s.boundary.right_tip, s.boundary.info_pv)
+               for k, s in enumerate(steps)]
+    _, shifts = solve_cycle(reports)
+    for k, g in enumerate(groups):
+        p_out, v_out, q_out, corr = finish_step([states[i] for i in g], steps[k], shifts[k], seq=0)
+        np.testing.assert_allclose(p_out, ref.p[list(g)], atol=1e-9)
+        np.testing.assert_allclose(v_out, ref.v[list(g)], atol=1e-9)
+        np.testing.assert_allclose(q_out, ref.q[list(g)], atol=1e-9)
+        for c, rc in zip(corr, [ref_corr[i] for i in g]):
+            np.testing.assert_allclose(c.dp_w_m, rc.dp_w_m, atol=1e-9)
+            np.testing.assert_allclose(c.dtheta_w_rad, rc.dtheta_w_rad, atol=1e-9)

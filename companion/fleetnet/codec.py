@@ -37,11 +37,11 @@ MAGIC = b"ASKZ"
 VERSION = 1
 _HEADER = struct.Struct("<4sBB")
 
-#: Field kinds: integer scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
+#: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
 #: symmetric n x n matrices (upper triangle), ``"ids"`` a u8 count and that many u8 ids,
 #: ``("rows", m)`` float64 rows of width m, one per entry of the preceding ``ids`` field,
 #: ``"per_id"`` one int32 per entry of the preceding ``ids`` field.
-_INT = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "i64": "q", "f64": "d"}
+_SCALAR = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "i64": "q", "f64": "d"}
 
 #: message type -> (type id, [(field, kind)]): the one schema of every Zenoh payload.
 SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
@@ -76,7 +76,7 @@ def encode(msg) -> bytes:
                 raise ValueError(f"{type(msg).__name__}.{name}: {len(value)} values for {count} ids")
             out.append(struct.pack(f"<{count}i", *value))
         elif isinstance(kind, str):
-            out.append(struct.pack("<" + _INT[kind], value))
+            out.append(struct.pack("<" + _SCALAR[kind], value))
         elif kind[0] == "vec" or kind[0] == "rows":
             out.append(np.ascontiguousarray(value, dtype="<f8").tobytes())
         else:  # sym
@@ -110,7 +110,7 @@ def decode(payload: bytes):
                 values[name] = tuple(struct.unpack_from(f"<{count}i", data, offset))
                 offset += 4 * count
             elif isinstance(kind, str):
-                fmt = "<" + _INT[kind]
+                fmt = "<" + _SCALAR[kind]
                 (values[name],) = struct.unpack_from(fmt, data, offset)
                 offset += struct.calcsize(fmt)
             else:
