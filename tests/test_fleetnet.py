@@ -3,7 +3,10 @@ real Zenoh sessions on loopback (eq. 6 equal to the in-process result), failover
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
 import struct
 import time
 from dataclasses import replace
@@ -130,6 +133,19 @@ def test_access_control_file_is_read_and_checked_at_open(tmp_path):
     good.write_text('{ enabled: false, default_permission: "deny" }')
     zc = zenoh_config(replace(missing, access_control=str(good)), 0, 2)
     assert '"deny"' in zc.get_json("access_control/default_permission")
+
+
+def test_runtime_threads_give_a_zenoh_runtime_setting_zenoh_accepts():
+    assert ZenohConfig(runtime_threads=0).runtime_env() is None
+    env = ZenohConfig(runtime_threads=2).runtime_env()
+    assert "rx: (worker_threads: 2)" in env and "tx: (worker_threads: 2)" in env
+    with pytest.raises(ValueError, match="runtime_threads"):
+        ZenohConfig(runtime_threads=99)
+    code = ("import zenoh; c = zenoh.Config(); c.insert_json5('scouting/multicast/enabled', 'false'); "
+            "c.insert_json5('listen/endpoints', '[]'); zenoh.open(c).close(); print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "ZENOH_RUNTIME": env},
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-500:]
 
 
 def test_default_leader_order_is_middle_out_and_tls_files_are_checked_at_open(tmp_path):

@@ -3,10 +3,11 @@
 :class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
 declares this group's liveliness token, subscribes to the other groups' boundaries, the
 leader's shifts and the liveliness of every group, and publishes this group's boundary and
-(when it leads) the shifts. Zenoh calls back on its own threads; the callbacks only decode and
-queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`), so all the estimation
-state lives in the daemon's thread. A payload that fails :func:`~companion.fleetnet.codec.decode`
-is queued as an error event: the daemon counts it per key and logs it; nothing else happens.
+(when it leads) the shifts. Zenoh calls back on its own threads; the callbacks only stamp the
+arrival time and queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`);
+:meth:`drain` decodes in the daemon's thread, where all the estimation state lives. A payload
+that fails :func:`~companion.fleetnet.codec.decode` becomes an error event: the daemon counts
+it per key and logs it; nothing else happens.
 """
 
 from __future__ import annotations
@@ -95,6 +96,10 @@ class FleetBus:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         zc = zenoh_config(cfg, group, n_groups, file)
+        runtime = cfg.runtime_env()
+        if runtime is not None:
+            # read when Zenoh starts its runtime, at the first session of the process
+            os.environ.setdefault("ZENOH_RUNTIME", runtime)
         try:
             self.session = zenoh.open(zc)
         except Exception as exc:
@@ -104,8 +109,9 @@ class FleetBus:
         self._token = s.liveliness().declare_token(alive_key(prefix, group))
         self._subs = [
             s.liveliness().declare_subscriber(alive_pattern(prefix), self._on_liveliness, history=True),
-            s.declare_subscriber(boundary_pattern(prefix), self._on_data),
-            s.declare_subscriber(shift_key(prefix), self._on_data),
+            # this session's own publications are handled in-process, not echoed back
+            s.declare_subscriber(boundary_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
+            s.declare_subscriber(shift_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
         ]
         opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
                     express=True)
@@ -124,18 +130,19 @@ class FleetBus:
             pass  # the pipe is full (the daemon will drain everything) or closed
 
     def _on_data(self, sample) -> None:
-        now = time.monotonic()
-        key = str(sample.key_expr)
+        # stamp and queue only: decoding happens in the daemon's thread (:meth:`drain`), so the
+        # callback holds the GIL for microseconds and the next sample is not held up behind it
+        self._push(BusEvent("payload", sample.payload.to_bytes(), time.monotonic(), str(sample.key_expr)))
+
+    def _decoded(self, ev: BusEvent) -> BusEvent:
         try:
-            msg = codec.decode(sample.payload.to_bytes())
+            msg = codec.decode(ev.value)
         except MessageError as exc:
-            self._push(BusEvent("error", str(exc), now, key))
-            return
+            return BusEvent("error", str(exc), ev.time_s, ev.key)
         kind = "boundary" if isinstance(msg, GroupBoundaryReport) else "shift" if isinstance(msg, GlobalShift) else None
-        if kind is None or (kind == "boundary" and group_of_key(self.prefix, key) != msg.group):
-            self._push(BusEvent("error", f"{type(msg).__name__} does not belong on this key", now, key))
-            return
-        self._push(BusEvent(kind, msg, now, key))
+        if kind is None or (kind == "boundary" and group_of_key(self.prefix, ev.key) != msg.group):
+            return BusEvent("error", f"{type(msg).__name__} does not belong on this key", ev.time_s, ev.key)
+        return BusEvent(kind, msg, ev.time_s, ev.key)
 
     def _on_liveliness(self, sample) -> None:
         now = time.monotonic()
@@ -159,9 +166,10 @@ class FleetBus:
         out = []
         while True:
             try:
-                out.append(self._events.get_nowait())
+                ev = self._events.get_nowait()
             except queue.Empty:
                 return out
+            out.append(self._decoded(ev) if ev.kind == "payload" else ev)
 
     def publish_boundary(self, report: GroupBoundaryReport) -> None:
         self._boundary_pub.put(codec.encode(report))

@@ -63,6 +63,10 @@ class ZenohConfig:
     before it sends its local-only corrections. ``leader_wait_ms``: how long the leader waits
     for missing boundaries after the first one of a cycle before it solves without them.
     ``handover_cycles``: cycles of notice a leader gives a returning preferred group.
+    ``runtime_threads``: worker threads per Zenoh runtime pool in a companion (sets
+    ``ZENOH_RUNTIME`` unless it is set already; 0 keeps Zenoh's defaults). A companion sends a
+    few small messages per cycle; on the 2-core development VM one thread per pool cut the
+    loopback round trip's p99 from 4-6 ms to 2.5 ms.
     """
 
     prefix: str = ""
@@ -78,6 +82,7 @@ class ZenohConfig:
     shift_deadline_ms: float = 35.0
     leader_wait_ms: float = 25.0
     handover_cycles: int = 3
+    runtime_threads: int = 1
 
     def __post_init__(self) -> None:
         if self.prefix and not PREFIX_RE.match(self.prefix):
@@ -102,6 +107,15 @@ class ZenohConfig:
             raise ValueError("endpoints: [zenoh.tls] needs explicit tls/ endpoints (the SITL defaults are plain tcp "
                              "on loopback)")
         require_positive(self, "lease_ms", "shift_deadline_ms", "leader_wait_ms", "handover_cycles")
+        if not 0 <= self.runtime_threads <= 64:
+            raise ValueError(f"runtime_threads must be in 0..64, got {self.runtime_threads}")
+
+    def runtime_env(self) -> str | None:
+        """The ``ZENOH_RUNTIME`` value for ``runtime_threads`` (``None``: Zenoh's defaults)."""
+        if not self.runtime_threads:
+            return None
+        pools = ", ".join(f"{p}: (worker_threads: {self.runtime_threads})" for p in ("app", "acc", "tx", "rx", "net"))
+        return f"({pools})"
 
     def check_groups(self, n_groups: int, period_ms: float) -> None:
         """``ValueError`` if ``endpoints`` or ``leader_order`` do not fit ``n_groups`` groups, or

@@ -11,6 +11,8 @@ step again, and the cycles without one in between) and the round trips reported 
 from __future__ import annotations
 
 import logging
+import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -81,7 +83,9 @@ class GroupLink:
         if actions.boundary is not None:
             self.bus.publish_boundary(actions.boundary)
         for shift in actions.shifts:
-            self.bus.publish_shift(shift)
+            # the node measured its hold up to ``now_s``; the groups subtract it up to the put
+            extra_us = int(round((time.monotonic() - now_s) * 1e6))
+            self.bus.publish_shift(replace(shift, hold_us=tuple(h + extra_us for h in shift.hold_us)))
         for res in actions.resolved:
             fo = self._failover
             if fo is None:
