@@ -14,6 +14,8 @@ sys.meta_path.insert(0, Block())
 def test_estimation_core_imports_without_wire_or_sim_packages():
     code = BLOCKER + (
         "import companion.estimation, link_firmware_sim.ekf, sitl.synthetic, sitl.bench.table2, companion.replay\n"
+        "import companion.messages, companion.corrections, companion.fleetnet.codec, companion.fleetnet.leader\n"
+        "import companion.fleetnet.config, companion.motion.cpg\n"
         "print('ok')"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -1,0 +1,217 @@
+"""Eel-like central pattern generator of the flying skeleton (thesis sec. 4.3.1), pure numpy.
+
+Per link ``i`` (thesis sec. 4.3.1, the four CPG equations)::
+
+    a_i'' = k_a (k_a/4 (sigma_a,i A - a_i) - a_i')         amplitude, a_i in R^2
+    b_i'' = k_b (k_b/4 (sigma_b,i B - b_i) - b_i')         bias, b_i in R^2
+    phi_i' = 2 pi f + sum_j k_phi sin(phi_j - phi_i - phi_ij)   coupled phase oscillators
+    w_i = S(e_1) [0; b_i + a_i sin(phi_i)],   R_BLi = exp(S(w_i))
+
+``A, B in R^2`` are the commanded amplitude and bias: the first component undulates and bends
+the chain horizontally (rotation about the body z axis), the second vertically (about -y). The
+amplitude and bias dynamics are critically damped second-order filters, so a step in ``A`` or
+``B`` moves the link attitudes with continuous angle and rate: gaits change smoothly (a
+horizontal-to-vertical transition is a change of ``A`` from ``[A, 0]`` to ``[0, A]``). The
+frequency ``f`` is a constant (the thesis keeps it fixed: it is redundant with ``A`` for the
+forward speed). Neighbours are coupled with the desired phase difference ``phi_j - phi_i =
+phi_ij``: ``-lag`` towards the tail and ``+lag`` towards the head, a travelling wave from head
+(link 1) to tail.
+
+Shaping (``sigma_a``, ``sigma_b``, ``lag``) follows eel (anguilliform) swimming: the amplitude
+grows from head to tail and the body holds about one wavelength (thesis refs. [52], [53]).
+
+The output is the body-frame attitude of every link ``R_BLi`` and its body rate
+``omega_BLi^Li = (R^T R')^v = J_r(w_i) w_i'`` (the right Jacobian of SO(3)), as sec. 4.4 needs.
+
+Functional API: :func:`cpg_derivative`, :func:`cpg_step` (classical RK4), :func:`cpg_output`;
+:class:`Cpg` is a thin stateful wrapper with the same numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.configfile import require_positive
+from companion.estimation.so3 import skew
+
+__all__ = ["CpgParams", "CpgState", "eel_shaping", "cpg_initial_state", "cpg_derivative", "cpg_step",
+           "cpg_output", "so3_exp", "so3_right_jacobian", "Cpg"]
+
+_E1 = np.array([1.0, 0.0, 0.0])
+
+
+def eel_shaping(n_links: int, growth: float = 1.5) -> tuple[tuple[float, ...], tuple[float, ...], float]:
+    """Anguilliform shaping: amplitude weights growing exponentially from head to tail (tail = 1),
+    uniform bias weights and a per-link phase lag holding one wavelength over the body."""
+    x = np.linspace(0.0, 1.0, n_links)
+    sigma_a = np.exp(growth * (x - 1.0))
+    return tuple(float(s) for s in sigma_a), tuple(1.0 for _ in range(n_links)), 2.0 * math.pi / max(n_links, 1)
+
+
+@dataclass(frozen=True)
+class CpgParams:
+    """Gains and shaping of the CPG (thesis sec. 4.3.1).
+
+    ``frequency_hz``: the constant undulation frequency ``f``; ``k_a``, ``k_b`` [1/s]: amplitude
+    and bias convergence gains (critically damped); ``k_phi`` [1/s]: phase coupling;
+    ``sigma_a``, ``sigma_b``: per-link shaping weights (empty: :func:`eel_shaping`); ``lag_rad``:
+    phase lag between neighbours (0: :func:`eel_shaping`'s one wavelength over the body).
+    """
+
+    n_links: int
+    frequency_hz: float = 0.5
+    k_a: float = 2.0
+    k_b: float = 2.0
+    k_phi: float = 2.0
+    sigma_a: tuple[float, ...] = ()
+    sigma_b: tuple[float, ...] = ()
+    lag_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.n_links < 2:
+            raise ValueError(f"n_links must be >= 2, got {self.n_links}")
+        require_positive(self, "frequency_hz", "k_a", "k_b", "k_phi")
+        for name in ("sigma_a", "sigma_b"):
+            value = getattr(self, name)
+            if value and len(value) != self.n_links:
+                raise ValueError(f"{name} has {len(value)} weights for {self.n_links} links")
+            if not all(math.isfinite(v) for v in value):
+                raise ValueError(f"{name} must be finite")
+        if not math.isfinite(self.lag_rad):
+            raise ValueError(f"lag_rad must be finite, got {self.lag_rad}")
+
+    @property
+    def shaping(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(sigma_a (n,), sigma_b (n,), lag)`` with the eel defaults filled in."""
+        sa, sb, lag = eel_shaping(self.n_links)
+        return (np.asarray(self.sigma_a or sa, dtype=float), np.asarray(self.sigma_b or sb, dtype=float),
+                self.lag_rad or lag)
+
+    @property
+    def coupling(self) -> np.ndarray:
+        """(n, n) desired phase differences ``phi_ij`` (``nan`` where not coupled): nearest neighbours."""
+        lag = self.shaping[2]
+        n = self.n_links
+        phi = np.full((n, n), np.nan)
+        idx = np.arange(n - 1)
+        phi[idx, idx + 1] = -lag  # link i + 1 (towards the tail) lags link i
+        phi[idx + 1, idx] = lag
+        return phi
+
+
+@dataclass(frozen=True)
+class CpgState:
+    """CPG state: amplitudes ``a``, ``a_dot`` and biases ``b``, ``b_dot`` (n, 2), phases ``phi`` (n,)."""
+
+    a: np.ndarray
+    a_dot: np.ndarray
+    b: np.ndarray
+    b_dot: np.ndarray
+    phi: np.ndarray
+
+    def vector(self) -> np.ndarray:
+        return np.concatenate([self.a.ravel(), self.a_dot.ravel(), self.b.ravel(), self.b_dot.ravel(), self.phi])
+
+    @classmethod
+    def from_vector(cls, x: np.ndarray, n: int) -> CpgState:
+        k = 2 * n
+        return cls(x[:k].reshape(n, 2), x[k:2 * k].reshape(n, 2), x[2 * k:3 * k].reshape(n, 2),
+                   x[3 * k:4 * k].reshape(n, 2), x[4 * k:4 * k + n].copy())
+
+
+def cpg_initial_state(params: CpgParams, phi0: np.ndarray | None = None) -> CpgState:
+    """At rest (zero amplitude and bias); phases ``phi0`` (default: already locked to the lag)."""
+    n = params.n_links
+    phi = -params.shaping[2] * np.arange(n) if phi0 is None else np.asarray(phi0, dtype=float).copy()
+    z = np.zeros((n, 2))
+    return CpgState(z, z.copy(), z.copy(), z.copy(), phi)
+
+
+def cpg_derivative(state: CpgState, params: CpgParams, A, B) -> CpgState:
+    """Time derivative of the state (the first three equations of sec. 4.3.1)."""
+    sigma_a, sigma_b, _ = params.shaping
+    A = np.asarray(A, dtype=float)
+    B = np.asarray(B, dtype=float)
+    a_dd = params.k_a * (params.k_a / 4.0 * (sigma_a[:, None] * A[None, :] - state.a) - state.a_dot)
+    b_dd = params.k_b * (params.k_b / 4.0 * (sigma_b[:, None] * B[None, :] - state.b) - state.b_dot)
+    phi_ij = params.coupling
+    coupled = ~np.isnan(phi_ij)
+    diff = state.phi[None, :] - state.phi[:, None] - np.where(coupled, phi_ij, 0.0)  # [i, j] = phi_j - phi_i - phi_ij
+    coupling = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=1)
+    phi_dot = 2.0 * math.pi * params.frequency_hz + params.k_phi * coupling
+    return CpgState(state.a_dot, a_dd, state.b_dot, b_dd, phi_dot)
+
+
+def cpg_step(state: CpgState, params: CpgParams, A, B, dt_s: float) -> CpgState:
+    """One classical Runge-Kutta step of ``dt_s`` with ``A``, ``B`` held over the step."""
+    n = params.n_links
+
+    def f(x: np.ndarray) -> np.ndarray:
+        return cpg_derivative(CpgState.from_vector(x, n), params, A, B).vector()
+
+    x = state.vector()
+    k1 = f(x)
+    k2 = f(x + 0.5 * dt_s * k1)
+    k3 = f(x + 0.5 * dt_s * k2)
+    k4 = f(x + dt_s * k3)
+    return CpgState.from_vector(x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4), n)
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: (..., 3) rotation vectors -> (..., 3, 3) rotation matrices."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    s = np.where(small, 1.0 - theta ** 2 / 6.0, np.sin(safe) / safe)
+    c = np.where(small, 0.5 - theta ** 2 / 24.0, (1.0 - np.cos(safe)) / safe ** 2)
+    return np.eye(3) + s * K + c * (K @ K)
+
+
+def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) right Jacobian: ``(exp(S(w))^T d/dt exp(S(w)))^v = J_r(w) w'``."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    c1 = np.where(small, 0.5 - theta ** 2 / 24.0, (1.0 - np.cos(safe)) / safe ** 2)
+    c2 = np.where(small, 1.0 / 6.0 - theta ** 2 / 120.0, (safe - np.sin(safe)) / safe ** 3)
+    return np.eye(3) - c1 * K + c2 * (K @ K)
+
+
+def cpg_output(state: CpgState, params: CpgParams, A, B) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(w (n,3), R_BL (n,3,3), omega_BL_L (n,3))``: the axis-angle of every link in the body
+    frame, its attitude ``R_BLi = exp(S(w_i))`` and its body rate ``J_r(w_i) w_i'``."""
+    d = cpg_derivative(state, params, A, B)
+    u = state.b + state.a * np.sin(state.phi)[:, None]
+    u_dot = d.b + d.a * np.sin(state.phi)[:, None] + state.a * (np.cos(state.phi) * d.phi)[:, None]
+    w = np.cross(_E1, np.concatenate([np.zeros((params.n_links, 1)), u], axis=1))  # S(e1) [0; u]
+    w_dot = np.cross(_E1, np.concatenate([np.zeros((params.n_links, 1)), u_dot], axis=1))
+    omega = np.einsum("nij,nj->ni", so3_right_jacobian(w), w_dot)
+    return w, so3_exp(w), omega
+
+
+@dataclass
+class Cpg:
+    """Stateful wrapper: ``step(A, B, dt)`` then ``output()``; the same numbers as the functions."""
+
+    params: CpgParams
+    state: CpgState = field(default=None)  # type: ignore[assignment]
+    A: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    B: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+    def __post_init__(self) -> None:
+        if self.state is None:
+            self.state = cpg_initial_state(self.params)
+
+    def step(self, A, B, dt_s: float) -> None:
+        self.A, self.B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+        self.state = cpg_step(self.state, self.params, self.A, self.B, dt_s)
+
+    def output(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return cpg_output(self.state, self.params, self.A, self.B)
