@@ -52,6 +52,7 @@ def test_amplitude_and_bias_converge_to_the_shaped_commands():
     np.testing.assert_allclose(state.a, sigma_a[:, None] * [0.4, 0.1], atol=1e-4)
     np.testing.assert_allclose(state.b, sigma_b[:, None] * [0.2, -0.05], atol=1e-4)
     assert sigma_a[0] < sigma_a[-1] == pytest.approx(1.0)  # eel: the tail swings most
+    np.testing.assert_allclose(sigma_b, np.linspace(-1, 1, 7))  # the bias bends into an arc
 
 
 def _trace(params, state, schedule, seconds):

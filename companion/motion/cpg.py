@@ -18,7 +18,8 @@ phi_ij``: ``-lag`` towards the tail and ``+lag`` towards the head, a travelling 
 (link 1) to tail.
 
 Shaping (``sigma_a``, ``sigma_b``, ``lag``) follows eel (anguilliform) swimming: the amplitude
-grows from head to tail and the body holds about one wavelength (thesis refs. [52], [53]).
+grows from head to tail and the body holds about one wavelength (thesis refs. [52], [53]); the
+bias bends the chain into an arc (weights -1 at the head to +1 at the tail).
 
 The output is the body-frame attitude of every link ``R_BLi`` and its body rate
 ``omega_BLi^Li = (R^T R')^v = J_r(w_i) w_i'`` (the right Jacobian of SO(3)), as sec. 4.4 needs.
@@ -45,10 +46,13 @@ _E1 = np.array([1.0, 0.0, 0.0])
 
 def eel_shaping(n_links: int, growth: float = 1.5) -> tuple[tuple[float, ...], tuple[float, ...], float]:
     """Anguilliform shaping: amplitude weights growing exponentially from head to tail (tail = 1),
-    uniform bias weights and a per-link phase lag holding one wavelength over the body."""
+    bias weights running linearly from -1 (head) to +1 (tail), so that ``B`` bends the chain into
+    an arc (a bias equal on every link would only turn the straight chain inside ``{B}``), and a
+    per-link phase lag holding one wavelength over the body."""
     x = np.linspace(0.0, 1.0, n_links)
     sigma_a = np.exp(growth * (x - 1.0))
-    return tuple(float(s) for s in sigma_a), tuple(1.0 for _ in range(n_links)), 2.0 * math.pi / max(n_links, 1)
+    sigma_b = 2.0 * x - 1.0
+    return tuple(float(s) for s in sigma_a), tuple(float(s) for s in sigma_b), 2.0 * math.pi / max(n_links, 1)
 
 
 @dataclass(frozen=True)
