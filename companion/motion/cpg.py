@@ -41,9 +41,6 @@ from companion.estimation.so3 import skew
 __all__ = ["CpgParams", "CpgState", "eel_shaping", "cpg_initial_state", "cpg_derivative", "cpg_step",
            "cpg_output", "so3_exp", "so3_right_jacobian", "Cpg"]
 
-_E1 = np.array([1.0, 0.0, 0.0])
-
-
 def eel_shaping(n_links: int, growth: float = 1.5) -> tuple[tuple[float, ...], tuple[float, ...], float]:
     """Anguilliform shaping: amplitude weights growing exponentially from head to tail (tail = 1),
     bias weights running linearly from -1 (head) to +1 (tail), so that ``B`` bends the chain into
@@ -108,7 +105,8 @@ class CpgParams:
 
 @dataclass(frozen=True)
 class CpgState:
-    """CPG state: amplitudes ``a``, ``a_dot`` and biases ``b``, ``b_dot`` (n, 2), phases ``phi`` (n,)."""
+    """CPG state: amplitudes ``a``, ``a_dot`` and biases ``b``, ``b_dot`` (..., n, 2), phases
+    ``phi`` (..., n). Leading dimensions batch independent CPGs (one per parameter set)."""
 
     a: np.ndarray
     a_dot: np.ndarray
@@ -117,51 +115,50 @@ class CpgState:
     phi: np.ndarray
 
     def vector(self) -> np.ndarray:
-        return np.concatenate([self.a.ravel(), self.a_dot.ravel(), self.b.ravel(), self.b_dot.ravel(), self.phi])
+        """All fields flattened (for comparisons)."""
+        return np.concatenate([x.ravel() for x in (self.a, self.a_dot, self.b, self.b_dot, self.phi)])
 
-    @classmethod
-    def from_vector(cls, x: np.ndarray, n: int) -> CpgState:
-        k = 2 * n
-        return cls(x[:k].reshape(n, 2), x[k:2 * k].reshape(n, 2), x[2 * k:3 * k].reshape(n, 2),
-                   x[3 * k:4 * k].reshape(n, 2), x[4 * k:4 * k + n].copy())
+    def plus(self, h: float, d: CpgState) -> CpgState:
+        """``self + h d`` field by field."""
+        return CpgState(self.a + h * d.a, self.a_dot + h * d.a_dot, self.b + h * d.b, self.b_dot + h * d.b_dot,
+                        self.phi + h * d.phi)
 
 
-def cpg_initial_state(params: CpgParams, phi0: np.ndarray | None = None) -> CpgState:
-    """At rest (zero amplitude and bias); phases ``phi0`` (default: already locked to the lag)."""
+def cpg_initial_state(params: CpgParams, phi0: np.ndarray | None = None, batch: tuple[int, ...] = ()) -> CpgState:
+    """At rest (zero amplitude and bias); phases ``phi0`` (default: already locked to the lag);
+    ``batch``: leading dimensions for that many independent CPGs."""
     n = params.n_links
-    phi = -params.shaping[2] * np.arange(n) if phi0 is None else np.asarray(phi0, dtype=float).copy()
-    z = np.zeros((n, 2))
+    phi = -params.shaping[2] * np.arange(n) if phi0 is None else np.asarray(phi0, dtype=float)
+    phi = np.broadcast_to(phi, batch + (n,)).copy()
+    z = np.zeros(batch + (n, 2))
     return CpgState(z, z.copy(), z.copy(), z.copy(), phi)
 
 
 def cpg_derivative(state: CpgState, params: CpgParams, A, B) -> CpgState:
-    """Time derivative of the state (the first three equations of sec. 4.3.1)."""
+    """Time derivative of the state (the first three equations of sec. 4.3.1); ``A``, ``B``:
+    (..., 2), broadcast against the state's batch dimensions."""
     sigma_a, sigma_b, _ = params.shaping
-    A = np.asarray(A, dtype=float)
-    B = np.asarray(B, dtype=float)
-    a_dd = params.k_a * (params.k_a / 4.0 * (sigma_a[:, None] * A[None, :] - state.a) - state.a_dot)
-    b_dd = params.k_b * (params.k_b / 4.0 * (sigma_b[:, None] * B[None, :] - state.b) - state.b_dot)
+    A = np.asarray(A, dtype=float)[..., None, :]
+    B = np.asarray(B, dtype=float)[..., None, :]
+    a_dd = params.k_a * (params.k_a / 4.0 * (sigma_a[:, None] * A - state.a) - state.a_dot)
+    b_dd = params.k_b * (params.k_b / 4.0 * (sigma_b[:, None] * B - state.b) - state.b_dot)
     phi_ij = params.coupling
     coupled = ~np.isnan(phi_ij)
-    diff = state.phi[None, :] - state.phi[:, None] - np.where(coupled, phi_ij, 0.0)  # [i, j] = phi_j - phi_i - phi_ij
-    coupling = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=1)
+    # [..., i, j] = phi_j - phi_i - phi_ij
+    diff = state.phi[..., None, :] - state.phi[..., :, None] - np.where(coupled, phi_ij, 0.0)
+    coupling = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=-1)
     phi_dot = 2.0 * math.pi * params.frequency_hz + params.k_phi * coupling
     return CpgState(state.a_dot, a_dd, state.b_dot, b_dd, phi_dot)
 
 
 def cpg_step(state: CpgState, params: CpgParams, A, B, dt_s: float) -> CpgState:
     """One classical Runge-Kutta step of ``dt_s`` with ``A``, ``B`` held over the step."""
-    n = params.n_links
-
-    def f(x: np.ndarray) -> np.ndarray:
-        return cpg_derivative(CpgState.from_vector(x, n), params, A, B).vector()
-
-    x = state.vector()
-    k1 = f(x)
-    k2 = f(x + 0.5 * dt_s * k1)
-    k3 = f(x + 0.5 * dt_s * k2)
-    k4 = f(x + dt_s * k3)
-    return CpgState.from_vector(x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4), n)
+    k1 = cpg_derivative(state, params, A, B)
+    k2 = cpg_derivative(state.plus(0.5 * dt_s, k1), params, A, B)
+    k3 = cpg_derivative(state.plus(0.5 * dt_s, k2), params, A, B)
+    k4 = cpg_derivative(state.plus(dt_s, k3), params, A, B)
+    h = dt_s / 6.0
+    return state.plus(h, k1).plus(2 * h, k2).plus(2 * h, k3).plus(h, k4)
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
@@ -189,14 +186,16 @@ def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
 
 
 def cpg_output(state: CpgState, params: CpgParams, A, B) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(w (n,3), R_BL (n,3,3), omega_BL_L (n,3))``: the axis-angle of every link in the body
-    frame, its attitude ``R_BLi = exp(S(w_i))`` and its body rate ``J_r(w_i) w_i'``."""
+    """``(w (...,n,3), R_BL (...,n,3,3), omega_BL_L (...,n,3))``: the axis-angle of every link
+    in the body frame, its attitude ``R_BLi = exp(S(w_i))`` and its body rate ``J_r(w_i) w_i'``."""
     d = cpg_derivative(state, params, A, B)
-    u = state.b + state.a * np.sin(state.phi)[:, None]
-    u_dot = d.b + d.a * np.sin(state.phi)[:, None] + state.a * (np.cos(state.phi) * d.phi)[:, None]
-    w = np.cross(_E1, np.concatenate([np.zeros((params.n_links, 1)), u], axis=1))  # S(e1) [0; u]
-    w_dot = np.cross(_E1, np.concatenate([np.zeros((params.n_links, 1)), u_dot], axis=1))
-    omega = np.einsum("nij,nj->ni", so3_right_jacobian(w), w_dot)
+    s, c = np.sin(state.phi)[..., None], np.cos(state.phi)[..., None]
+    u = state.b + state.a * s
+    u_dot = d.b + d.a * s + state.a * c * d.phi[..., None]
+    # S(e1) [0; u] = [0, -u_2, u_1]
+    w = np.stack([np.zeros_like(u[..., 0]), -u[..., 1], u[..., 0]], axis=-1)
+    w_dot = np.stack([np.zeros_like(u_dot[..., 0]), -u_dot[..., 1], u_dot[..., 0]], axis=-1)
+    omega = np.einsum("...ij,...j->...i", so3_right_jacobian(w), w_dot)
     return w, so3_exp(w), omega
 
 

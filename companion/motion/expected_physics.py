@@ -21,7 +21,8 @@ body motion comes from simulating that shape in water:
   + omega_BLi^Li``, ``p_OLi = p_OB + R_OB r_i``, ``v_OLi = v_OB + R_OB (omega_OB^B x r_i + r_i')``.
 
 By construction the targets satisfy the chain constraint of eq. 3 exactly (tested with the
-estimation core's residual).
+estimation core's residual). Every function takes leading batch dimensions (one body per CPG
+parameter set), which is how a dataset of steady motions is simulated at once.
 """
 
 from __future__ import annotations
@@ -70,45 +71,47 @@ class BodyState:
     omega_b_rad_s: np.ndarray
 
     @classmethod
-    def at_rest(cls, p_w_m=(0.0, 0.0, 0.0), yaw_rad: float = 0.0) -> BodyState:
-        return cls(np.asarray(p_w_m, dtype=float), np.zeros(3), so3_exp(np.array([0.0, 0.0, yaw_rad])), np.zeros(3))
+    def at_rest(cls, p_w_m=(0.0, 0.0, 0.0), yaw_rad: float = 0.0, batch: tuple[int, ...] = ()) -> BodyState:
+        """At rest; ``batch``: leading dimensions for independent bodies."""
+        p = np.broadcast_to(np.asarray(p_w_m, dtype=float), batch + (3,)).copy()
+        R = np.broadcast_to(so3_exp(np.array([0.0, 0.0, yaw_rad])), batch + (3, 3)).copy()
+        return cls(p, np.zeros(batch + (3,)), R, np.zeros(batch + (3,)))
 
 
 def chain_shape(R_bl: np.ndarray, omega_bl_l: np.ndarray, half_length_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Link centres ``r_i`` (n, 3) and their rates ``r_i'`` (n, 3) in ``{B}`` (centroid at 0)."""
+    """Link centres ``r_i`` (..., n, 3) and their rates ``r_i'`` in ``{B}`` (centroid at 0)."""
     lh = np.array([half_length_m, 0.0, 0.0])
     tips = R_bl @ lh  # R_BLi l_h
-    tip_rates = np.einsum("nij,nj->ni", R_bl, np.cross(omega_bl_l, lh))  # R_BLi S(omega_i) l_h
-    steps = tips[:-1] + tips[1:]
-    step_rates = tip_rates[:-1] + tip_rates[1:]
-    r = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-    rd = np.concatenate([np.zeros((1, 3)), np.cumsum(step_rates, axis=0)])
-    return r - r.mean(axis=0), rd - rd.mean(axis=0)
+    tip_rates = np.einsum("...ij,...j->...i", R_bl, np.cross(omega_bl_l, lh))  # R_BLi S(omega_i) l_h
+    zero = np.zeros(tips.shape[:-2] + (1, 3))
+    r = np.concatenate([zero, np.cumsum(tips[..., :-1, :] + tips[..., 1:, :], axis=-2)], axis=-2)
+    rd = np.concatenate([zero, np.cumsum(tip_rates[..., :-1, :] + tip_rates[..., 1:, :], axis=-2)], axis=-2)
+    return r - r.mean(axis=-2, keepdims=True), rd - rd.mean(axis=-2, keepdims=True)
 
 
 def link_drag(v_l: np.ndarray, water: WaterParams) -> np.ndarray:
-    """(n, 3) drag force on each link in its own frame, for its velocity ``v_l`` through the water."""
+    """(..., 3) drag force on each link in its own frame, for its velocity ``v_l`` through the water."""
     v_ax = v_l * np.array([1.0, 0.0, 0.0])
     v_n = v_l - v_ax
     k_ax = 0.5 * water.density_kg_m3 * water.area_axial_m2 * water.cd_axial
     k_n = 0.5 * water.density_kg_m3 * water.area_normal_m2 * water.cd_normal
-    return -(k_ax * np.linalg.norm(v_ax, axis=1, keepdims=True) * v_ax
-             + k_n * np.linalg.norm(v_n, axis=1, keepdims=True) * v_n)
+    return -(k_ax * np.linalg.norm(v_ax, axis=-1, keepdims=True) * v_ax
+             + k_n * np.linalg.norm(v_n, axis=-1, keepdims=True) * v_n)
 
 
 def _link_velocities_b(body: BodyState, r: np.ndarray, rd: np.ndarray) -> np.ndarray:
-    """(n, 3) link-centre velocities in ``{B}``."""
-    v_b = body.R_wb.T @ body.v_w_m_s
-    return v_b + np.cross(body.omega_b_rad_s, r) + rd
+    """(..., n, 3) link-centre velocities in ``{B}``."""
+    v_b = np.einsum("...ji,...j->...i", body.R_wb, body.v_w_m_s)[..., None, :]
+    return v_b + np.cross(body.omega_b_rad_s[..., None, :], r) + rd
 
 
 def body_wrench(body: BodyState, R_bl: np.ndarray, omega_bl_l: np.ndarray, half_length_m: float,
                 water: WaterParams) -> tuple[np.ndarray, np.ndarray]:
     """``(f^B, tau^B)``: the drag on every link summed about the centre of mass, in ``{B}``."""
     r, rd = chain_shape(R_bl, omega_bl_l, half_length_m)
-    v_l = np.einsum("nji,nj->ni", R_bl, _link_velocities_b(body, r, rd))  # R_BLi^T v
-    f_b = np.einsum("nij,nj->ni", R_bl, link_drag(v_l, water))
-    return f_b.sum(axis=0), np.cross(r, f_b).sum(axis=0)
+    v_l = np.einsum("...ji,...j->...i", R_bl, _link_velocities_b(body, r, rd))  # R_BLi^T v
+    f_b = np.einsum("...ij,...j->...i", R_bl, link_drag(v_l, water))
+    return f_b.sum(axis=-2), np.cross(r, f_b).sum(axis=-2)
 
 
 def body_step(body: BodyState, f_b: np.ndarray, tau_b: np.ndarray, water: WaterParams, dt_s: float,
@@ -124,7 +127,7 @@ def body_step(body: BodyState, f_b: np.ndarray, tau_b: np.ndarray, water: WaterP
     wm = 0.5 * (w0 + w1)
     R1 = body.R_wb @ so3_exp(dt_s * wm)
     Rm = body.R_wb @ so3_exp(0.5 * dt_s * wm)
-    v1 = body.v_w_m_s + dt_s * (Rm @ f_b) / water.mass_kg
+    v1 = body.v_w_m_s + dt_s * np.einsum("...ij,...j->...i", Rm, f_b) / water.mass_kg
     p1 = body.p_w_m + 0.5 * dt_s * (body.v_w_m_s + v1)
     return BodyState(p1, v1, R1, w1)
 
@@ -132,8 +135,10 @@ def body_step(body: BodyState, f_b: np.ndarray, tau_b: np.ndarray, water: WaterP
 def link_targets(body: BodyState, R_bl: np.ndarray, omega_bl_l: np.ndarray, half_length_m: float):
     """Every link's target: ``(p_w (n,3), v_w (n,3), R_wl (n,3,3), omega_l (n,3))`` (sec. 4.4)."""
     r, rd = chain_shape(R_bl, omega_bl_l, half_length_m)
-    R_wl = body.R_wb[None] @ R_bl
-    omega_l = np.einsum("nji,j->ni", R_bl, body.omega_b_rad_s) + omega_bl_l
-    p_w = body.p_w_m + r @ body.R_wb.T
-    v_w = body.v_w_m_s + (np.cross(body.omega_b_rad_s, r) + rd) @ body.R_wb.T
+    R_wb = body.R_wb[..., None, :, :]
+    R_wl = R_wb @ R_bl
+    omega_l = np.einsum("...ji,...j->...i", R_bl, body.omega_b_rad_s[..., None, :]) + omega_bl_l
+    p_w = body.p_w_m[..., None, :] + np.einsum("...ij,...j->...i", R_wb, r)
+    v_w = body.v_w_m_s[..., None, :] + np.einsum("...ij,...j->...i", R_wb, _link_velocities_b(
+        BodyState(body.p_w_m, np.zeros_like(body.v_w_m_s), body.R_wb, body.omega_b_rad_s), r, rd))
     return p_w, v_w, R_wl, omega_l
