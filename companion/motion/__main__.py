@@ -1,11 +1,15 @@
 """Motion-generation tools.
 
     python -m companion.motion dataset [--samples N] [--seed S] [--links N] [--out DIR]
+    python -m companion.motion train --dataset FILE [--seed S] [--holdout F] [--model FILE] [--out DIR]
 
 ``dataset`` simulates ``N`` seeded CPG parameter sets ``eta = [A_x, A_y, B_x, B_y]`` in the
 expected physics (thesis sec. 4.4) to their steady body motion ``xi = [v; omega; theta]``
 (sec. 4.5.1) and writes ``cpg_dataset.npz`` (``eta``, ``xi``, names, the settings) to the run
-folder. The same seed gives the same file.
+folder. The same seed gives the same file. ``train`` fits the inverse model (autoencoder with a
+4-d hidden layer, tanh MLP to the parameters; thesis sec. 4.5.1) on a dataset, reports the
+recovery error on the held-out part (the thesis's Fig. 4-8 check) and writes the model file
+(versioned; it records the command that made it).
 """
 
 from __future__ import annotations
@@ -13,13 +17,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from companion.runtime import make_run_dir, run_subcommand
 
+from .inverse import train_inverse_model
 from .steady import ETA_NAMES, XI_NAMES, SteadyConfig, sample_parameters, steady_motion
 
 
@@ -48,6 +54,37 @@ def _cmd_dataset(args) -> int:
     return 0
 
 
+def _cmd_train(args) -> int:
+    try:
+        data = np.load(args.dataset)
+        eta, xi = data["eta"], data["xi"]
+    except (OSError, KeyError, ValueError) as exc:
+        print(f"error: {args.dataset}: not a cpg_dataset.npz ({exc})", file=sys.stderr)
+        return 2
+    if not 0.0 <= args.holdout < 0.9 or len(eta) < 20:
+        print("error: --holdout must be in [0, 0.9) and the dataset needs at least 20 samples", file=sys.stderr)
+        return 2
+    n_train = len(eta) - int(round(args.holdout * len(eta)))
+    model = train_inverse_model(eta[:n_train], xi[:n_train], seed=args.seed)
+    out = make_run_dir("cpg-inverse", args.out)
+    path = Path(args.model) if args.model else out / "inverse_model.npz"
+    report = {"dataset": str(args.dataset), "train": n_train, "holdout": len(eta) - n_train, **model.info}
+    if n_train < len(eta):
+        recovered = model(xi[n_train:])
+        span = eta.max(axis=0) - eta.min(axis=0)
+        err = np.abs(recovered - eta[n_train:]).mean(axis=0)
+        report["holdout_mean_abs_error"] = dict(zip(ETA_NAMES, err.round(5).tolist()))
+        report["holdout_error_of_range"] = dict(zip(ETA_NAMES, (err / span).round(4).tolist()))
+    report["command"] = ("python -m companion.motion train --dataset " + str(args.dataset) + f" --seed {args.seed}"
+                         + f" --holdout {args.holdout}")
+    model = replace(model, info={**model.info, **report})
+    model.save(path)
+    (out / "inverse_model.json").write_text(json.dumps(report, indent=2) + "\n")
+    print(json.dumps(report, indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m companion.motion", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -63,6 +100,14 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--out", metavar="DIR", help="run folder (default runs/cpg-dataset-<UTC time>)")
     ds.add_argument("--quiet", action="store_true", help="no progress bar")
     ds.set_defaults(func=_cmd_dataset)
+    tr = sub.add_parser("train", help="fit the inverse CPG model (autoencoder + tanh MLP) on a dataset",
+                        description="Fit the inverse model on cpg_dataset.npz and report the held-out recovery error.")
+    tr.add_argument("--dataset", required=True, metavar="FILE", help="cpg_dataset.npz from the dataset command")
+    tr.add_argument("--seed", type=int, default=0, help="seed of the initial weights (default 0)")
+    tr.add_argument("--holdout", type=float, default=0.2, help="fraction kept out of training (default 0.2)")
+    tr.add_argument("--model", metavar="FILE", help="where to write the model (default: the run folder)")
+    tr.add_argument("--out", metavar="DIR", help="run folder (default runs/cpg-inverse-<UTC time>)")
+    tr.set_defaults(func=_cmd_train)
     return parser
 
 

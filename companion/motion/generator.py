@@ -1,0 +1,88 @@
+"""The leader's motion generator (thesis Fig. 4-3): desired body motion -> CPG -> expected physics -> link targets.
+
+Each step: the CPG (sec. 4.3.1) runs with the current parameters ``eta = [A; B]``, the expected
+physics (sec. 4.4) moves the body, and every link gets its target pose and twist. The desired
+motion ``xi_d = [v; omega; theta]`` goes through the inverse model (sec. 4.5.1) to the raw
+parameters; once per undulation period the body motion measured over that period feeds the
+adaptation of eq. 4.3. Pure: time is the caller's ``dt``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cpg import CpgParams, cpg_initial_state, cpg_output, cpg_step
+from .expected_physics import BodyState, WaterParams, body_step, body_wrench, link_targets
+from .inverse import Adaptation, InverseModel
+
+__all__ = ["LinkTargets", "MotionGenerator"]
+
+
+@dataclass(frozen=True)
+class LinkTargets:
+    """Every link's target: ``p_w_m``, ``v_w_m_s`` (n, 3), ``R_wl`` (n, 3, 3), ``omega_l_rad_s`` (n, 3)."""
+
+    p_w_m: np.ndarray
+    v_w_m_s: np.ndarray
+    R_wl: np.ndarray
+    omega_l_rad_s: np.ndarray
+
+
+class MotionGenerator:
+    """See the module docstring. ``adapt = False`` uses the inverse model alone."""
+
+    def __init__(self, model: InverseModel, cpg: CpgParams, water: WaterParams = WaterParams(),
+                 half_length_m: float = 0.5, body: BodyState | None = None, adapt: bool = True,
+                 k_p: float = 0.5, k_i: float = 0.2, settle_periods: int = 2, steady_tol: float = 0.02):
+        self.model = model
+        self.cpg = cpg
+        self.water = water
+        self.half = half_length_m
+        self.body = body if body is not None else BodyState.at_rest()
+        self.state = cpg_initial_state(cpg)
+        self.adaptation = Adaptation(model, k_p, k_i) if adapt else None
+        self.eta = np.zeros(4)
+        self.period_s = 1.0 / cpg.frequency_hz
+        self._acc_t = 0.0
+        self._acc = np.zeros(6)
+        self.measured: np.ndarray | None = None  # xi over the last whole period
+        self._xi_d: np.ndarray | None = None
+        #: the adaptation runs on steady motion only (what the inverse model maps): at least
+        #: ``settle_periods`` periods after a new command, and once the period-averaged velocity
+        #: changes by less than ``steady_tol`` (relative) from one period to the next; adapting on
+        #: the acceleration transient would wind the integral up
+        self.settle_periods = settle_periods
+        self.steady_tol = steady_tol
+        self._periods_since_command = 0
+
+    def step(self, xi_desired: np.ndarray, dt_s: float) -> LinkTargets:
+        xi_desired = np.asarray(xi_desired, dtype=float)
+        if self._xi_d is None or not np.array_equal(xi_desired, self._xi_d):
+            self._periods_since_command = 0
+            if self.adaptation is None or self.measured is None:
+                self.eta = self.model(xi_desired)[0]  # the raw parameters of a new command
+        self._xi_d = xi_desired
+        self.state = cpg_step(self.state, self.cpg, self.eta[:2], self.eta[2:], dt_s)
+        _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
+        f, tau = body_wrench(self.body, R_bl, om, self.half, self.water)
+        self.body = body_step(self.body, f, tau, self.water, dt_s)
+        self._acc += dt_s * np.concatenate([self.body.R_wb.T @ self.body.v_w_m_s, self.body.omega_b_rad_s])
+        self._acc_t += dt_s
+        if self._acc_t >= self.period_s - 1e-9:
+            theta = np.arctan2(self.eta[1], self.eta[0])
+            previous = self.measured
+            self.measured = np.concatenate([self._acc / self._acc_t, [theta]])
+            self._periods_since_command += 1
+            if self.adaptation is not None:
+                change = (np.inf if previous is None else np.linalg.norm(self.measured[:3] - previous[:3])
+                          / max(np.linalg.norm(self.measured[:3]), 1e-3))
+                if self._periods_since_command > self.settle_periods and change < self.steady_tol:
+                    self.eta = self.adaptation.update(xi_desired, self.measured, self._acc_t)
+                else:  # raw parameters plus the correction learnt so far
+                    self.eta = self.adaptation.update(xi_desired, xi_desired, 0.0)
+            self._acc[:] = 0.0
+            self._acc_t = 0.0
+        p, v, R, w = link_targets(self.body, R_bl, om, self.half)
+        return LinkTargets(p, v, R, w)
