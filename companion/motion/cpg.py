@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.configfile import require_positive
-from companion.estimation.so3 import skew
+from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat, skew
 
 __all__ = ["CpgParams", "CpgState", "eel_shaping", "cpg_initial_state", "cpg_derivative", "cpg_step",
            "cpg_output", "so3_exp", "so3_right_jacobian", "Cpg"]
@@ -162,15 +162,8 @@ def cpg_step(state: CpgState, params: CpgParams, A, B, dt_s: float) -> CpgState:
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: (..., 3) rotation vectors -> (..., 3, 3) rotation matrices."""
-    w = np.asarray(w, dtype=float)
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = skew(w)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    s = np.where(small, 1.0 - theta ** 2 / 6.0, np.sin(safe) / safe)
-    c = np.where(small, 0.5 - theta ** 2 / 24.0, (1.0 - np.cos(safe)) / safe ** 2)
-    return np.eye(3) + s * K + c * (K @ K)
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (the estimation core's exponential map)."""
+    return quat_to_rotmat(quat_from_rotvec(w))
 
 
 def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
