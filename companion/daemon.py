@@ -38,6 +38,13 @@ leader's shift arrives or its deadline passes (:class:`companion.fleetnet.leader
 decides; this module only carries out its actions). Malformed Zenoh payloads are counted per
 key and logged. In this mode the target trajectory runs on flight-controller time from 0 (SITL:
 simulation time) around ``start_center`` (default ``[start] center_w_m``), identical in every group.
+
+CPG motion (``trajectory.kind = "cpg"``, thesis ch. 4-5) in distributed mode: the leader generates
+every link's target and publishes them over Zenoh (:class:`~companion.messages.ChainTargets`, at
+the target rate); every other group forwards its links' share as they arrive. Each companion also
+steps its own copy of the generator on the same grid (the schedule is in the config and the
+generator is deterministic), so that a group that takes over the leadership continues the motion
+where it was; while no targets arrive from a leader (start-up, a failover), a group sends its own.
 """
 
 from __future__ import annotations
@@ -63,10 +70,11 @@ from .mavlink.codec import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, decode_link_stat
 from .mavlink.dialect import load_dialect
 from .mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 from .mavlink.port import MavlinkPort, TlogWriter, wait_readable
-from .messages import LinkState, MessageError, check_pd
+from .messages import ChainTargets, LinkState, MessageError, check_pd
 
 # The target source and the configuration schema are shared with the SITL (pure modules, no simulator).
-from sitl.trajectory import ChainTrajectory
+from link_firmware_sim.control import PoseTarget
+from sitl.trajectory import make_trajectory
 
 __all__ = ["CompanionDaemon", "COMPANION_SYSTEM_ID", "odometry_to_link_state"]
 
@@ -207,6 +215,11 @@ class CompanionDaemon:
         self.seq = 0
         self.trajectory = None
         self._trajectory_t0_us = 0
+        #: CPG targets travel over Zenoh from the leader (distributed mode)
+        self._zenoh_targets = self.net is not None and scenario.trajectory.kind == "cpg"
+        self.target_counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
+        self._leader_targets_wall = -1e9
+        self._forwarded_time_us = -1
         self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
         self._next_health_wall = time.monotonic() + cfg.health_period_s
         self._next_heartbeat_wall = 0.0
@@ -417,7 +430,8 @@ class CompanionDaemon:
                 p = np.stack([lk.state.p_w_m for lk in self.links])
                 mid = self.n // 2
                 center = p[mid] if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
-            self.trajectory = ChainTrajectory(self.sc.trajectory, self.n, self.sc.skeleton.link_length_m, center)
+            self.trajectory = make_trajectory(self.sc.trajectory, self.sc.motion, self.n, self.sc.skeleton.link_length_m,
+                                              center)
             # distributed in SITL: every group on the same clock from 0 (simulation time)
             shared = self.net is not None and self.cfg.time_base == "flight_controller"
             self._trajectory_t0_us = 0 if shared else self.fc_time_us
@@ -425,18 +439,49 @@ class CompanionDaemon:
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         t_traj = (self.fc_time_us - self._trajectory_t0_us) * 1e-6
         targets = self.trajectory.targets(t_traj)
+        if self._zenoh_targets:
+            now = time.monotonic()
+            if self.net.leads(self.next_step_us, now):
+                self.net.publish_targets(ChainTargets(
+                    self.group, self.fc_time_us, self.target_counts["published"] & 0xFFFFFFFF, tuple(range(self.n)),
+                    np.stack([x.p_w_m for x in targets]), np.stack([x.q_wxyz for x in targets]),
+                    np.stack([x.v_w_m_s for x in targets]), np.stack([x.a_w_m_s2 for x in targets]),
+                    np.stack([x.omega_d_rad_s for x in targets]), np.stack([x.omega_dot_d_rad_s2 for x in targets])))
+                self.target_counts["published"] += 1
+            elif now - self._leader_targets_wall < 3e-6 * self.target_period_us:
+                return  # the leader's targets are being forwarded (:meth:`_forward_targets`)
+            self.target_counts["own"] += 1
         for lk in self.links:
-            target = targets[lk.index]
-            boot_ms = (lk.to_link_clock_us(self.fc_time_us) // 1000) & 0xFFFFFFFF
-            p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
-            lk.port.send(D.MAVLink_set_position_target_local_ned_message(
-                boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
-                *a.tolist(), 0.0, 0.0))
-            rates = flu_frd(target.omega_d_rad_s).tolist()
-            lk.port.send(D.MAVLink_set_attitude_target_message(
-                time_boot_ms=boot_ms, target_system=lk.system_id, target_component=1, type_mask=0,
-                q=quat_enu_flu_to_ned_frd(target.q_wxyz).tolist(), body_roll_rate=rates[0],
-                body_pitch_rate=rates[1], body_yaw_rate=rates[2], thrust=0.0))
+            self._send_target(lk, self.fc_time_us, targets[lk.index])
+
+    def _forward_targets(self, msg: ChainTargets) -> None:
+        """Send this group's links their share of the leader's CPG targets."""
+        self.target_counts["received"] += 1
+        if msg.time_us <= self._forwarded_time_us:
+            self.target_counts["stale"] += 1  # out of order, or a second leader during a hand-over
+            return
+        self._forwarded_time_us = msg.time_us
+        self._leader_targets_wall = time.monotonic()
+        rows = {link: k for k, link in enumerate(msg.links)}
+        for lk in self.links:
+            k = rows.get(lk.index)
+            if k is not None:
+                self._send_target(lk, msg.time_us, PoseTarget(msg.p_w_m[k], msg.q_wxyz[k], msg.v_w_m_s[k], msg.a_w_m_s2[k],
+                                                              msg.omega_b_rad_s[k], msg.omega_dot_b_rad_s2[k]))
+        self.target_counts["forwarded"] += 1
+
+    def _send_target(self, lk: _Link, time_us: int, target: PoseTarget) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED + SET_ATTITUDE_TARGET (NED/FRD: converted here)."""
+        boot_ms = (lk.to_link_clock_us(time_us) // 1000) & 0xFFFFFFFF
+        p, v, a = enu_ned(target.p_w_m), enu_ned(target.v_w_m_s), enu_ned(target.a_w_m_s2)
+        lk.port.send(D.MAVLink_set_position_target_local_ned_message(
+            boot_ms, lk.system_id, 1, D.MAV_FRAME_LOCAL_NED, 0b0000_1100_0000_0000, *p.tolist(), *v.tolist(),
+            *a.tolist(), 0.0, 0.0))
+        rates = flu_frd(target.omega_d_rad_s).tolist()
+        lk.port.send(D.MAVLink_set_attitude_target_message(
+            time_boot_ms=boot_ms, target_system=lk.system_id, target_component=1, type_mask=0,
+            q=quat_enu_flu_to_ned_frd(target.q_wxyz).tolist(), body_roll_rate=rates[0],
+            body_pitch_rate=rates[1], body_yaw_rate=rates[2], thrust=0.0))
 
     def _request_stream(self, lk: _Link) -> None:
         now = time.monotonic()
@@ -491,6 +536,9 @@ class CompanionDaemon:
                     self._on_message(lk, msg)
         if self.net is not None:
             self._finish(self.net.pump(time.monotonic()))
+            for msg in self.net.take_targets():
+                if self._zenoh_targets:
+                    self._forward_targets(msg)
         self._wall_clock_duties()
         if not self._all_states():
             return
@@ -559,6 +607,7 @@ class CompanionDaemon:
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, **vars(lk.port.stats)}
                       for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
+            **({"cpg_targets": dict(self.target_counts)} if self._zenoh_targets else {}),
         }
 
     def write_log(self) -> None:

@@ -171,3 +171,31 @@ class GlobalShift:
             return self.hold_us[self.groups.index(group)]
         except (ValueError, IndexError):
             return None
+
+
+@dataclass(frozen=True)
+class ChainTargets:
+    """The leader's CPG targets of a cycle (thesis ch. 4): every listed link's desired motion.
+
+    Attributes:
+        leader_group: 0-based group index of the companion that generated them.
+        time_us: the time they are for, on the companions' common time base [us].
+        seq: the leader's counter of target messages.
+        links: 0-based link indices, increasing.
+        p_w_m, v_w_m_s, a_w_m_s2: (len(links), 3) position, velocity and acceleration of each
+            link centre (world, z up).
+        q_wxyz: (len(links), 4) body-to-world attitudes.
+        omega_b_rad_s, omega_dot_b_rad_s2: (len(links), 3) body rates in the desired body frame
+            and their derivatives (``w_d``, ``wdot_d`` of the impedance controller, eq. 1).
+    """
+
+    leader_group: int
+    time_us: int
+    seq: int
+    links: tuple[int, ...]
+    p_w_m: np.ndarray
+    q_wxyz: np.ndarray
+    v_w_m_s: np.ndarray
+    a_w_m_s2: np.ndarray
+    omega_b_rad_s: np.ndarray
+    omega_dot_b_rad_s2: np.ndarray

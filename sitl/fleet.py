@@ -39,6 +39,7 @@ from companion.mavlink.hil import decode_actuators, encode_ahrs, encode_hil_gps,
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
+from companion.motion.inverse import InverseModel
 from link_firmware_sim.vehicle import SITL_GPS_EPOCH_US
 
 from .metrics import PAPER_THREE_LINK, compute_metrics
@@ -236,7 +237,7 @@ def _distributed_metrics(sc: Scenario, merged: dict, summaries: dict[str, dict],
     rts = []
     for name, summ in summaries.items():
         out["companions"][name] = {k: summ.get(k) for k in ("global_step", "round_trip_ms_as_leader", "failovers",
-                                                             "malformed_payloads")}
+                                                             "malformed_payloads", "cpg_targets")}
         if summ.get("round_trip_ms_as_leader"):
             rts.append(summ["round_trip_ms_as_leader"])
     for part in ("network", "end_to_end"):
@@ -463,7 +464,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,
                               plant.crash_reason, harness.sim_s / max(harness.wall_s, 1e-9),
                               sc.companion.enabled and "p_corr_sckf" in merged,
-                              groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest")
+                              groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
+                              motion=sc.motion if sc.trajectory.kind == "cpg" else None)
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),
@@ -477,7 +479,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         metrics["paper_reference"] = PAPER_THREE_LINK
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     np.savez_compressed(out_dir / "log.npz", **merged)
-    write_plots(merged, out_dir)
+    if sc.trajectory.kind == "cpg":
+        period_s = 1.0 / InverseModel.load(sc.motion.model).steady.cpg_params.frequency_hz
+        write_plots(merged, out_dir, motion=sc.motion, period_s=period_s)
+    else:
+        write_plots(merged, out_dir)
     (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=harness.sim_s)))
     return metrics
 

@@ -20,6 +20,7 @@ from .metrics import PAPER_THREE_LINK, compute_metrics
 from .plots import write_plots
 from .runner import BatchRunner
 from .scenario import Scenario
+from .trajectory import CpgChainTrajectory
 
 __all__ = ["fly"]
 
@@ -50,6 +51,7 @@ def fly(
         sc.companion.enabled,
         groups=runner.groups,
         resting=sc.trajectory.kind == "rest",
+        motion=sc.motion if sc.trajectory.kind == "cpg" else None,
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed
@@ -66,5 +68,7 @@ def fly(
         np.savez_compressed(out_dir / "log.npz", **arrays)
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
-            write_plots(arrays, out_dir)
+            cpg = isinstance(runner.trajectory, CpgChainTrajectory)
+            write_plots(arrays, out_dir, motion=sc.motion if cpg else None,
+                        period_s=runner.trajectory.generator.period_s if cpg else 4.0)
     return metrics

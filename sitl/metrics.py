@@ -18,6 +18,13 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   link 4's estimated position per axis, for the EKF alone (``ekf``), after the local constraint
   application (``local``) and after the global step (``semi_distributed``), with the thesis's
   figures beside them (``thesis``) and the true position's own deviation (``truth``);
+* ``rms_pose_track_pos_m`` / ``rms_pose_track_att_deg``: per link the RMS position / attitude
+  error between target and estimate (what the controller used: the thesis's sec. 5.2 figure),
+  averaged over the links; ``rms_pose_track_true_*`` the same against the true pose. Window: from
+  the CPG motion's start (``pose_track_window_s``) if there is one, else the flight window;
+* ``motion`` (CPG runs): per command, the commanded forward speed, the expected physics' speed
+  (the targets' centroid) and the achieved speed (the true centroid), horizontal and averaged
+  over the second half of the command, and the direction of travel at its end;
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``.
 """
@@ -28,7 +35,8 @@ import numpy as np
 
 from companion.estimation.so3 import attitude_error
 
-__all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "compute_metrics"]
+__all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
+           "motion_segments"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
 #: the constraint error after SCKF ("under 5 cm and 2 cm/s").
@@ -45,6 +53,34 @@ THESIS_STATIC_LINK4_STD_M = {
     "local": [0.194, 0.311, 0.052],
     "semi_distributed": [0.081, 0.125, 0.046],
 }
+
+
+#: Thesis sec. 5.2: RMS pose tracking (position m, attitude deg) averaged over the seven links.
+THESIS_CPG_POSE_TRACK = {
+    "forward_speed_horizontal_fig_5_4": [0.1579, 7.74],
+    "yaw_vertical_fig_5_5": [0.2042, 9.01],
+    "gait_transition_fig_5_6": [0.1857, 7.64],
+}
+
+
+def motion_segments(log: dict[str, np.ndarray], motion, end_s: float) -> list[dict]:
+    """Commanded, expected and achieved forward speed per command of ``motion`` (MotionConfig)."""
+    t = log["t"]
+    out = []
+    starts = [motion.start_s + c.at_s for c in motion.commands] + [end_s]
+    for command, a, b in zip(motion.commands, starts[:-1], starts[1:]):
+        half = (t >= 0.5 * (a + b)) & (t <= b)
+        if half.sum() < 2:
+            continue
+        entry = {"start_s": a, "end_s": min(b, float(t[-1])), "gait": command.gait,
+                 "speed_cmd_m_s": command.speed_m_s, "yaw_deg_cmd": command.yaw_deg}
+        for name, key in (("expected", "p_target"), ("achieved", "p_true")):
+            c = log[key][half].mean(axis=1)
+            v = (c[-1] - c[0]) / (t[half][-1] - t[half][0])
+            entry[f"speed_{name}_m_s"] = float(np.linalg.norm(v[:2]))
+            entry[f"travel_heading_{name}_deg"] = float(np.degrees(np.arctan2(-v[1], -v[0])))
+        out.append(entry)
+    return out
 
 
 def _rms(x: np.ndarray, axis=0) -> np.ndarray:
@@ -66,6 +102,7 @@ def compute_metrics(
     sckf_enabled: bool,
     groups=None,
     resting: bool = False,
+    motion=None,
 ) -> dict:
     t = log["t"]
     win = t >= flight_start_s
@@ -84,8 +121,19 @@ def compute_metrics(
         ekf_err = np.linalg.norm(log["p_ekf_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
     else:
         ekf_err = np.linalg.norm(log["p_ekf"][win] - log["p_true"][win], axis=-1)
+    pose_start = motion.start_s if motion is not None else flight_start_s
+    pw = t >= pose_start
+    pose = {}
+    if np.any(pw):
+        for tag, (pk, qk) in (("", ("p_ctrl", "q_ctrl")), ("true_", ("p_true", "q_true"))):
+            pos = _rms(np.linalg.norm(log["p_target"][pw] - log[pk][pw], axis=-1))
+            att = _rms(np.degrees(np.linalg.norm(attitude_error(log[qk][pw], log["q_target"][pw]), axis=-1)))
+            pose[f"rms_pose_track_{tag}pos_m"] = float(pos.mean())
+            pose[f"rms_pose_track_{tag}att_deg"] = float(att.mean())
+        pose["pose_track_window_s"] = [float(pose_start), float(t[-1])]
     metrics = {
         "n_links": n,
+        **pose,
         "flight_window_s": [float(flight_start_s), float(t[-1])],
         "rms_track_est_m": _rms(err_est).tolist(),
         "rms_track_true_m": _rms(err_true).tolist(),
@@ -120,6 +168,9 @@ def compute_metrics(
                     values = log[name][wins]
                     metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
                     metrics[key]["after_between_groups"] = _p95(values[:, between])
+    if motion is not None:
+        metrics["motion"] = motion_segments(log, motion, float(t[-1]))
+        metrics["thesis_pose_track"] = THESIS_CPG_POSE_TRACK
     if resting and n >= 4 and has_steps:
         stds = {"ekf": np.std(log["p_ekf_sckf"][wins][:, 3], axis=0).tolist()}
         if sckf_enabled and "p_local_sckf" in log:

@@ -10,7 +10,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "write_plots"]
+from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
+
+__all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_body_motion", "plot_attitude_tracking",
+           "write_plots"]
 
 
 def _save(fig, title: str, path: Path) -> None:
@@ -79,9 +82,74 @@ def plot_thrust(log: dict[str, np.ndarray], path: Path) -> None:
     _save(fig, "Rotor thrust", path)
 
 
-def write_plots(log: dict[str, np.ndarray], out_dir: Path) -> list[Path]:
+def _moving_mean(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+    """Centred moving mean over ``window_s`` (one undulation period) along the first axis."""
+    k = max(1, int(round(window_s / max(np.median(np.diff(t)), 1e-9))))
+    kernel = np.ones(k) / k
+    return np.stack([np.convolve(x[:, j], kernel, mode="same") for j in range(x.shape[1])], axis=1)
+
+
+def plot_body_motion(log: dict[str, np.ndarray], motion, path: Path, period_s: float) -> None:
+    """Commanded vs expected (targets' centroid) vs achieved (true centroid) forward speed and
+    direction of travel, averaged over one undulation period (thesis Figs. 5-4 to 5-6, bottom)."""
+    t = log["t"]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    cmd_t, cmd_v, cmd_yaw = [], [], []
+    for c in motion.commands:
+        cmd_t.append(motion.start_s + c.at_s)
+        cmd_v.append(c.speed_m_s)
+        cmd_yaw.append(np.nan if c.yaw_deg is None else c.yaw_deg)
+    cmd_t.append(t[-1])
+    for name, key, style in (("expected (targets)", "p_target", "--"), ("achieved (true)", "p_true", "-")):
+        c = log[key].mean(axis=1)
+        v = _moving_mean(t, np.gradient(c, t, axis=0), period_s)
+        axes[0].plot(t, np.linalg.norm(v[:, :2], axis=1), style, lw=1.2, label=name)
+        axes[1].plot(t, np.degrees(np.unwrap(np.arctan2(-v[:, 1], -v[:, 0]))), style, lw=1.2, label=name)
+        axes[2].plot(t, c[:, 2], style, lw=1.2, label=name)
+    axes[0].step(cmd_t, cmd_v + cmd_v[-1:], where="post", color="k", lw=1.0, label="commanded")
+    axes[1].step(cmd_t, cmd_yaw + cmd_yaw[-1:], where="post", color="k", lw=1.0, label="commanded heading")
+    axes[0].set_ylabel("forward speed [m/s]")
+    axes[1].set_ylabel("direction of travel [deg]")
+    axes[2].set_ylabel("centroid altitude [m]")
+    axes[2].set_xlabel("time [s]")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        ax.axvline(motion.start_s, color="grey", lw=0.8)
+        ax.legend(fontsize=7)
+    _save(fig, f"CPG body motion (period-averaged, {period_s:g} s)", path)
+
+
+def plot_attitude_tracking(log: dict[str, np.ndarray], path: Path) -> None:
+    """Per link: target vs true yaw and pitch (thesis Figs. 5-4 to 5-6, top)."""
+    t = log["t"]
+    n = log["q_true"].shape[1]
+    fig, axes = plt.subplots(n, 2, figsize=(12, 1.8 * n + 1), sharex=True, squeeze=False)
+    for key, style, label in (("q_target", "k--", "target"), ("q_true", "-", "true")):
+        R = quat_to_rotmat(log[key])
+        yaw = np.degrees(np.unwrap(np.arctan2(R[..., 1, 0], R[..., 0, 0]), axis=0))
+        pitch = np.degrees(np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0)))
+        for i in range(n):
+            axes[i, 0].plot(t, yaw[:, i], style, lw=0.9, label=label)
+            axes[i, 1].plot(t, pitch[:, i], style, lw=0.9, label=label)
+    for i in range(n):
+        axes[i, 0].set_ylabel(f"link {i + 1} yaw [deg]")
+        axes[i, 1].set_ylabel("pitch [deg]")
+        for ax in axes[i]:
+            ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[-1, 1].set_xlabel("time [s]")
+    _save(fig, "Attitude tracking per link", path)
+
+
+def write_plots(log: dict[str, np.ndarray], out_dir: Path, motion=None, period_s: float = 4.0) -> list[Path]:
+    """The run's PNGs; with ``motion`` (a CPG run) also the body motion and attitude tracking."""
     paths = [out_dir / "constraint_error.png", out_dir / "tracking.png", out_dir / "thrust.png"]
     plot_constraint_error(log, paths[0])
     plot_tracking(log, paths[1])
     plot_thrust(log, paths[2])
+    if motion is not None:
+        paths += [out_dir / "body_motion.png", out_dir / "attitude_tracking.png"]
+        plot_body_motion(log, motion, paths[-2], period_s)
+        plot_attitude_tracking(log, paths[-1])
     return [p for p in paths if p.exists()]

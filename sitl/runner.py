@@ -37,7 +37,7 @@ from .skeleton import link_inertia
 from .rotor import RotorBank
 from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors
-from .trajectory import ChainTrajectory
+from .trajectory import CpgChainTrajectory, make_trajectory
 
 __all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog", "joint_norms"]
 
@@ -96,6 +96,9 @@ class RunLog:
     p_corr_sckf: list = field(default_factory=list)
     p_local_sckf: list = field(default_factory=list)
     iterations: list = field(default_factory=list)
+    # CPG motion (log ticks): the parameters in use and the desired motion
+    eta: list = field(default_factory=list)
+    xi_desired: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
@@ -227,7 +230,8 @@ class BatchRunner:
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.groups = sc.companion.group_layout(self.n)
         truth = plant.model.truth()
-        self.trajectory = ChainTrajectory(sc.trajectory, self.n, sc.skeleton.link_length_m, plant.start_center())
+        self.trajectory = make_trajectory(sc.trajectory, sc.motion, self.n, sc.skeleton.link_length_m,
+                                          plant.start_center())
         # Firmware start-up: EKF from the first GPS fix and attitude reference, then arm (a
         # resting chain stays disarmed).
         pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
@@ -295,6 +299,9 @@ class BatchRunner:
         lg.p_target.append(np.stack([fw.target.p_w_m for fw in self.firmware]))
         lg.q_target.append(np.stack([fw.target.q_wxyz for fw in self.firmware]))
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
+        if isinstance(self.trajectory, CpgChainTrajectory):
+            lg.eta.append(self.trajectory.eta.copy())
+            lg.xi_desired.append(self.trajectory.xi_desired.copy())
 
     def run(self, duration_s: float, progress=None) -> RunLog:
         """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""

@@ -17,6 +17,8 @@ from companion.geo import GeoOrigin
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import Groups, make_groups, validate_groups
 from companion.fleetnet.config import PREFIX_RE, ZenohConfig
+from companion.motion.inverse import InverseModel
+from companion.motion.schedule import MotionConfig
 from link_firmware_sim.firmware import FirmwareConfig
 from sitl.bench.ekf_chain import rate_divisor
 
@@ -213,6 +215,7 @@ class Scenario:
     origin: GeoOrigin = field(default_factory=GeoOrigin)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
 
     def __post_init__(self) -> None:
         if not self.duration_s > self.flight_start_s:
@@ -228,6 +231,14 @@ class Scenario:
             self.zenoh.check_groups(n_groups, 1e3 / self.companion.rate_hz)
         except ValueError as exc:
             raise ValueError(f"zenoh.{exc}") from None
+        if self.trajectory.kind == "cpg":
+            if not self.motion.commands:
+                raise ValueError("trajectory.kind 'cpg' needs [[motion.commands]]")
+            if self.motion.start_s < self.trajectory.takeoff_end_s:
+                raise ValueError(f"motion.start_s ({self.motion.start_s:g}) must not be before the end of the "
+                                 f"take-off ({self.trajectory.takeoff_end_s:g} s)")
+            if self.trajectory.pitch_deg != 0.0:
+                raise ValueError("trajectory.pitch_deg must be 0 with kind 'cpg' (the CPG body starts level)")
         if self.trajectory.kind == "rest" and self.companion.arm:
             raise ValueError("trajectory.kind 'rest' keeps the links on the ground: set companion.arm = false")
         if self.faults.kill_companion_group:
@@ -259,9 +270,24 @@ class Scenario:
 
 
 def load_scenario(path: str | Path, **overrides) -> Scenario:
-    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``)."""
+    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``).
+
+    ``motion.model`` is resolved against the file's folder; with ``trajectory.kind = "cpg"``
+    the model is loaded and must fit the skeleton."""
     data = load_toml(path)
     scenario = build(Scenario, data, file=str(path))
+    model_path = Path(path).resolve().parent / scenario.motion.model
+    scenario = replace(scenario, motion=replace(scenario.motion, model=str(model_path)))
+    if scenario.trajectory.kind == "cpg":
+        try:
+            model = InverseModel.load(model_path)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(str(path), "motion.model", f"cannot load the inverse CPG model: {exc}") from None
+        sk = scenario.skeleton
+        if model.steady.n_links != sk.n_links or abs(2 * model.steady.half_length_m - sk.link_length_m) > 1e-9:
+            raise ConfigError(str(path), "motion.model",
+                              f"{model_path} is for {model.steady.n_links} links of {2 * model.steady.half_length_m:g} m, "
+                              f"the skeleton has {sk.n_links} of {sk.link_length_m:g} m")
     if overrides:
         try:
             scenario = replace(scenario, **overrides)

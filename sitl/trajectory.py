@@ -15,6 +15,11 @@ themselves satisfy the constraint of eq. 3. Phases:
 ``kind = "rest"``: the chain lies where it starts and is never armed (thesis sec. 3.5.2, the
 static estimation test); the metrics window opens at ``takeoff_start_s`` (EKF settling).
 
+``kind = "cpg"``: take-off and hover as above, then from ``motion.start_s`` the leader's CPG
+motion generation (thesis ch. 4, :class:`CpgChainTrajectory`): the commands of the scenario's
+``[motion]`` section through the inverse model, the CPG and the expected physics, whose body
+starts at the hovering chain's centre with its yaw.
+
 All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
 accelerations and body rates are central differences of the smooth pose function.
 """
@@ -22,16 +27,20 @@ accelerations and body rates are central differences of the smooth pose function
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from companion.configfile import require_nonnegative, require_positive
-from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat
+from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
+from companion.motion.expected_physics import BodyState
+from companion.motion.generator import LinkTargets, MotionGenerator
+from companion.motion.inverse import InverseModel
+from companion.motion.schedule import MotionCommand, MotionConfig, desired_motion
 from link_firmware_sim.control import PoseTarget
 
-__all__ = ["TrajectoryConfig", "ChainTrajectory", "smoothstep5"]
+__all__ = ["TrajectoryConfig", "ChainTrajectory", "CpgChainTrajectory", "make_trajectory", "smoothstep5"]
 
 
 def smoothstep5(s: float) -> float:
@@ -42,7 +51,7 @@ def smoothstep5(s: float) -> float:
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "bend", "rest"] = "hover"
+    kind: Literal["hover", "bend", "rest", "cpg"] = "hover"
     takeoff_start_s: float = 1.0
     takeoff_duration_s: float = 5.0
     takeoff_altitude_m: float = 2.0
@@ -122,3 +131,84 @@ class ChainTrajectory:
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
         q = poses[2][1]
         return [PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)]
+
+
+class CpgChainTrajectory:
+    """``kind = "cpg"``: hover (:class:`ChainTrajectory`) until ``motion.start_s``, then the
+    :class:`~companion.motion.generator.MotionGenerator` of the scenario's ``[motion]`` commands.
+
+    The generator steps on its own grid ``start_s + k dt`` (``motion.dt_s``), always one step
+    ahead of the latest query, so a target at ``t`` takes sample ``k = round((t - start_s)/dt)``
+    with its acceleration and angular acceleration as central differences of the generator's
+    exact velocities. Queries must not go back more than one step. The heading and altitude
+    controllers (:func:`~companion.motion.schedule.desired_motion`) are sampled when the command
+    changes and once per undulation period; ``altitude_m`` is the hover altitude they hold.
+    """
+
+    def __init__(self, cfg: TrajectoryConfig, motion: MotionConfig, model: InverseModel, n_links: int,
+                 link_length_m: float, start_center_w_m):
+        if model.steady.n_links != n_links or abs(2 * model.steady.half_length_m - link_length_m) > 1e-9:
+            raise ValueError(f"the inverse model is for {model.steady.n_links} links of "
+                             f"{2 * model.steady.half_length_m:g} m, the skeleton has {n_links} of {link_length_m:g} m")
+        self.cfg = cfg
+        self.motion = motion
+        self.n = n_links
+        self.hover = ChainTrajectory(replace(cfg, kind="hover"), n_links, link_length_m, start_center_w_m)
+        self.start_s = motion.start_s
+        self.dt = motion.dt_s
+        center = self.hover.center_w_m(self.start_s)
+        self.altitude_m = float(center[2])
+        body = BodyState.at_rest(center, math.radians(cfg.yaw_deg))
+        self.generator = MotionGenerator(model, body=body, adapt=motion.adapt)
+        self._period_steps = max(1, int(round(self.generator.period_s / self.dt)))
+        self._samples: dict[int, LinkTargets] = {0: self.generator.targets()}
+        self._k = 0  # the generator's step
+        self._command: MotionCommand | None = None
+        self._since_control = 0
+        self.xi_desired = np.zeros(7)
+
+    def _advance(self) -> None:
+        gen = self.generator
+        command = self.motion.active(self._k * self.dt)
+        new = command is not self._command
+        if new or self._since_control >= self._period_steps:
+            self.xi_desired = desired_motion(self.motion, command, gen.body.R_wb,
+                                             float(gen.body.p_w_m[2]) - self.altitude_m)
+            self._since_control = 0
+        self._command = command
+        self._since_control += 1
+        self._k += 1
+        self._samples[self._k] = gen.step(self.xi_desired, self.dt, new_command=new)
+        self._samples.pop(self._k - 3, None)
+
+    @property
+    def eta(self) -> np.ndarray:
+        """The CPG parameters ``[A_x, A_y, B_x, B_y]`` in use."""
+        return self.generator.eta
+
+    def targets(self, t: float) -> list[PoseTarget]:
+        if t < self.start_s:
+            return self.hover.targets(t)
+        k = int(round((t - self.start_s) / self.dt))
+        if k < self._k - 1:
+            raise ValueError(f"targets at {t:.3f} s: the generator is already at {self.start_s + self._k * self.dt:.3f} s")
+        while self._k < k + 1:
+            self._advance()
+        now, after = self._samples[k], self._samples[k + 1]
+        before = self._samples.get(k - 1, now)
+        span = (2 if k - 1 in self._samples else 1) * self.dt
+        a = (after.v_w_m_s - before.v_w_m_s) / span
+        w_dot = (after.omega_l_rad_s - before.omega_l_rad_s) / span
+        q = rotmat_to_quat(now.R_wl)
+        return [PoseTarget(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i])
+                for i in range(self.n)]
+
+
+def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, n_links: int, link_length_m: float,
+                    start_center_w_m) -> ChainTrajectory | CpgChainTrajectory:
+    """The target source of a scenario: :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its
+    inverse model loaded from ``motion.model``), else :class:`ChainTrajectory`."""
+    if cfg.kind == "cpg":
+        model = InverseModel.load(motion.model)
+        return CpgChainTrajectory(cfg, motion, model, n_links, link_length_m, start_center_w_m)
+    return ChainTrajectory(cfg, n_links, link_length_m, start_center_w_m)

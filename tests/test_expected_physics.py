@@ -24,6 +24,10 @@ from companion.motion.steady import SteadyConfig, sample_parameters, steady_moti
 HALF = 0.5
 
 
+#: steps of two whole undulation periods at the default frequency (dt 0.01 s)
+WHOLE = int(round(2.0 / (CpgParams(7).frequency_hz * 0.01)))
+
+
 def _swim(A, B, seconds, n=7, dt=0.01):
     cpg, water, body = Cpg(CpgParams(n)), WaterParams(), BodyState.at_rest()
     vel, rate = [], []
@@ -81,14 +85,14 @@ def test_undulation_swims_head_first_faster_with_amplitude_and_bias_turns():
     speeds = []
     for A in (0.3, 0.5):
         _, _, vel, rate = _swim([A, 0.0], [0.0, 0.0], 30.0)
-        last = slice(-1000, None)  # five undulation periods at steady state
+        last = slice(-WHOLE, None)  # whole undulation periods at steady state
         speeds.append(-vel[last, 0].mean())  # head (link 1) first: along -x of {B}
         assert abs(rate[last, 2].mean()) < 0.02 * speeds[-1]  # no bias: no net turn
     assert 0 < speeds[0] < speeds[1]
     _, _, _, rate_left = _swim([0.5, 0.0], [0.15, 0.0], 30.0)
     _, _, _, rate_right = _swim([0.5, 0.0], [-0.15, 0.0], 30.0)
-    turn = rate_left[-1000:, 2].mean()
-    assert abs(turn) > 0.02 and rate_right[-1000:, 2].mean() == pytest.approx(-turn, rel=1e-3)  # mirror image
+    turn = rate_left[-WHOLE:, 2].mean()
+    assert abs(turn) > 0.02 and rate_right[-WHOLE:, 2].mean() == pytest.approx(-turn, rel=1e-3)  # mirror image
 
 
 def test_a_straight_chain_at_rest_stays_at_rest():

@@ -24,9 +24,9 @@ from companion.fleetnet import codec
 from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
-from companion.fleetnet.keys import boundary_key, shift_key
+from companion.fleetnet.keys import boundary_key, shift_key, target_key
 from companion.fleetnet.leader import GlobalStepNode, solve_cycle
-from companion.messages import Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
+from companion.messages import ChainTargets, Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
 from sitl.scenario import Scenario
 
 from .chains import perturbed_chain, random_covariances
@@ -46,7 +46,16 @@ def _messages(rng):
         GroupBoundaryReport(1, 1_250_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567),
         GlobalShift(1, 1_250_000, (0, 1, 3), rng.normal(size=(3, 6)), 0, 1_400_000, (10, 20, 30)),
         GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
+        _targets(rng, (0, 1, 2, 3, 4, 5, 6)),
+        _targets(rng, (2, 5)),
     ]
+
+
+def _targets(rng, links, time_us=12_340_000, seq=7) -> ChainTargets:
+    k = len(links)
+    q = rng.normal(size=(k, 4))
+    return ChainTargets(1, time_us, seq, tuple(links), rng.normal(size=(k, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                        rng.normal(size=(k, 3)), rng.normal(size=(k, 3)), rng.normal(size=(k, 3)), rng.normal(size=(k, 3)))
 
 
 def _equal(a, b) -> bool:
@@ -87,6 +96,10 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         codec.encode(bad_info): "info_pv: not positive definite",
         codec.encode(nan_tip): "left_tip_pv_w: non-finite",
         codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
+        codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), links=(1, 1))): "ChainTargets.links",
+        codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
+        codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), a_w_m_s2=np.full((2, 3), np.inf))):
+            "a_w_m_s2: non-finite",
     }
     for payload, reason in cases.items():
         with pytest.raises(MessageError, match=reason):
@@ -98,6 +111,40 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
             codec.decode(good[:6] + body)
         except MessageError:
             pass
+
+
+def test_cpg_targets_cross_zenoh_bit_for_bit_and_misplaced_ones_are_errors():
+    """The leader's ChainTargets reach another group's companion unchanged; a target payload on
+    the shift key (or a shift on the target key) is an error, never applied."""
+    cfg, buses = _buses(2, "test_targets")
+    try:
+        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
+                 for g, bus in enumerate(buses)]
+        _wait_live(links, 2)
+        time.sleep(0.3)
+        rng = np.random.default_rng(5)
+        sent = [_targets(rng, tuple(range(7)), time_us=20_000 * k, seq=k) for k in range(50)]
+        for msg in sent:
+            links[1].publish_targets(msg)
+        buses[1]._shift_pub.put(codec.encode(sent[0]))
+        buses[1]._target_pub.put(codec.encode(GlobalShift(1, 0, (0,), np.zeros((1, 6)), hold_us=(0,))))
+        got = []
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and len(got) < len(sent):
+            links[0].pump(time.monotonic())
+            got += links[0].take_targets()
+            time.sleep(0.005)
+        assert len(got) == len(sent)
+        assert all(_equal(a, b) for a, b in zip(got, sent))
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and sum(links[0].errors.values()) < 2:
+            links[0].pump(time.monotonic())
+            time.sleep(0.005)
+        assert links[0].errors == {shift_key("test_targets"): 1, target_key("test_targets"): 1}
+        assert links[0].take_targets() == []
+    finally:
+        for bus in buses:
+            bus.close()
 
 
 # -- config ------------------------------------------------------------------------------------------------

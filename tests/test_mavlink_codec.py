@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.estimation.so3 import quat_normalize, quat_to_rotmat, retract
+from companion.estimation.so3 import quat_normalize, quat_to_rotmat
 from companion.messages import Correction, LinkState
 from companion.mavlink import frames
 from companion.mavlink.codec import (

@@ -2,8 +2,8 @@
 
 :class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
 declares this group's liveliness token, subscribes to the other groups' boundaries, the
-leader's shifts and the liveliness of every group, and publishes this group's boundary and
-(when it leads) the shifts. Zenoh calls back on its own threads; the callbacks only stamp the
+leader's shifts and CPG targets and the liveliness of every group, and publishes this group's
+boundary and (when it leads) the shifts and targets. Zenoh calls back on its own threads; the callbacks only stamp the
 arrival time and queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`);
 :meth:`drain` decodes in the daemon's thread, where all the estimation state lives. A payload
 that fails :func:`~companion.fleetnet.codec.decode` becomes an error event: the daemon counts
@@ -24,11 +24,11 @@ from typing import Any
 import zenoh
 
 from companion.configfile import ConfigError
-from companion.messages import GlobalShift, GroupBoundaryReport, MessageError
+from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, MessageError
 
 from . import codec
 from .config import ZenohConfig
-from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key
+from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key, target_key
 
 __all__ = ["BusEvent", "FleetBus", "zenoh_config"]
 
@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class BusEvent:
-    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``alive``, ``gone`` or ``error``;
+    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``alive``, ``gone`` or ``error``;
     ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
     monotonic arrival time; ``key`` the key expression it came on."""
 
@@ -112,11 +112,13 @@ class FleetBus:
             # this session's own publications are handled in-process, not echoed back
             s.declare_subscriber(boundary_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
             s.declare_subscriber(shift_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
+            s.declare_subscriber(target_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
         ]
         opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
                     express=True)
         self._boundary_pub = s.declare_publisher(boundary_key(prefix, group), **opts)
         self._shift_pub = s.declare_publisher(shift_key(prefix), **opts)
+        self._target_pub = s.declare_publisher(target_key(prefix), **opts)
         self.closed = False
         log.info("zenoh %s session %s: group %d, listening %s", cfg.mode, s.zid(), group + 1,
                  cfg.group_endpoint(group) if cfg.mode == "peer" else "-")
@@ -139,8 +141,11 @@ class FleetBus:
             msg = codec.decode(ev.value)
         except MessageError as exc:
             return BusEvent("error", str(exc), ev.time_s, ev.key)
-        kind = "boundary" if isinstance(msg, GroupBoundaryReport) else "shift" if isinstance(msg, GlobalShift) else None
-        if kind is None or (kind == "boundary" and group_of_key(self.prefix, ev.key) != msg.group):
+        kind = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets"}.get(type(msg))
+        expected = {"boundary": None, "shift": shift_key(self.prefix), "targets": target_key(self.prefix)}
+        misplaced = kind is None or (group_of_key(self.prefix, ev.key) != msg.group if kind == "boundary"
+                                     else ev.key != expected[kind])
+        if misplaced:
             return BusEvent("error", f"{type(msg).__name__} does not belong on this key", ev.time_s, ev.key)
         return BusEvent(kind, msg, ev.time_s, ev.key)
 
@@ -176,6 +181,9 @@ class FleetBus:
 
     def publish_shift(self, shift: GlobalShift) -> None:
         self._shift_pub.put(codec.encode(shift))
+
+    def publish_targets(self, targets: ChainTargets) -> None:
+        self._target_pub.put(codec.encode(targets))
 
     def close(self) -> None:
         if self.closed:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from companion.messages import (
+    ChainTargets,
     Correction,
     GlobalShift,
     GroupBoundaryReport,
@@ -41,7 +42,7 @@ _HEADER = struct.Struct("<4sBB")
 #: symmetric n x n matrices (upper triangle), ``"ids"`` a u8 count and that many u8 ids,
 #: ``("rows", m)`` float64 rows of width m, one per entry of the preceding ``ids`` field,
 #: ``"per_id"`` one int32 per entry of the preceding ``ids`` field.
-_SCALAR = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "i64": "q", "f64": "d"}
+_SCALAR = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "u32": "I", "i64": "q", "f64": "d"}
 
 #: message type -> (type id, [(field, kind)]): the one schema of every Zenoh payload.
 SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
@@ -54,6 +55,9 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                               ("network_round_trip_us", "i32"))),
     GlobalShift: (4, (("leader_group", "u8"), ("cycle_us", "i64"), ("groups", "ids"), ("shift_pv_w", ("rows", 6)),
                       ("handover_group", "i8"), ("handover_cycle_us", "i64"), ("hold_us", "per_id"))),
+    ChainTargets: (5, (("leader_group", "u8"), ("time_us", "i64"), ("seq", "u32"), ("links", "ids"),
+                       ("p_w_m", ("rows", 3)), ("q_wxyz", ("rows", 4)), ("v_w_m_s", ("rows", 3)),
+                       ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)))),
 }
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 
@@ -168,4 +172,15 @@ def _shift(v: dict[str, Any]) -> GlobalShift:
     return GlobalShift(**v)
 
 
-_VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift}
+def _targets(v: dict[str, Any]) -> ChainTargets:
+    _finite_all(ChainTargets, v)
+    links = v["links"]
+    if not links or list(links) != sorted(set(links)):
+        raise MessageError(f"ChainTargets.links: {list(links)} is not a non-empty increasing list of links")
+    for i, q in zip(links, v["q_wxyz"]):  # checked, kept as sent (the targets cross bit for bit)
+        check_unit_quat(f"ChainTargets.q_wxyz[link {i + 1}]", q)
+    return ChainTargets(**v)
+
+
+_VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift,
+             ChainTargets: _targets}

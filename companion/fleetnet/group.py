@@ -16,6 +16,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from companion.messages import ChainTargets
+
 from .bus import FleetBus
 from .leader import Actions, GlobalStepNode, Resolution
 
@@ -43,6 +45,7 @@ class GroupLink:
         self._failover: dict | None = None
         self.round_trips_ms: list[float] = []
         self.network_round_trips_ms: list[float] = []
+        self._targets_in: list[ChainTargets] = []
 
     @property
     def group(self) -> int:
@@ -53,6 +56,18 @@ class GroupLink:
 
     def next_deadline_s(self) -> float | None:
         return self.node.next_deadline_s()
+
+    def leads(self, cycle_us: int, now_s: float) -> bool:
+        """Whether this group leads ``cycle_us`` (and so generates the CPG targets)."""
+        return self.node.leader_for(cycle_us, now_s) == self.group
+
+    def publish_targets(self, targets: ChainTargets) -> None:
+        self.bus.publish_targets(targets)
+
+    def take_targets(self) -> list[ChainTargets]:
+        """The CPG targets that arrived since the last call (oldest first)."""
+        out, self._targets_in = self._targets_in, []
+        return out
 
     def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float) -> list[Resolution]:
         """This group's boundary for ``cycle_us``: publish it (and solve, if leading)."""
@@ -66,6 +81,8 @@ class GroupLink:
                 resolved += self._carry_out(self.node.on_boundary(ev.value, now_s, ev.time_s), now_s)
             elif ev.kind == "shift":
                 resolved += self._carry_out(self.node.on_shift(ev.value, now_s, ev.time_s), now_s)
+            elif ev.kind == "targets":
+                self._targets_in.append(ev.value)
             elif ev.kind in ("alive", "gone"):
                 alive = ev.kind == "alive"
                 if ev.value != self.group:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["boundary_key", "boundary_pattern", "shift_key", "alive_key", "alive_pattern", "group_of_key"]
+__all__ = ["boundary_key", "boundary_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key"]
 
 
 def boundary_key(prefix: str, group: int) -> str:
@@ -17,6 +17,11 @@ def boundary_pattern(prefix: str) -> str:
 def shift_key(prefix: str) -> str:
     """Where the leader publishes :class:`~companion.messages.GlobalShift`."""
     return f"{prefix}/global/shift"
+
+
+def target_key(prefix: str) -> str:
+    """Where the leader publishes the CPG targets (:class:`~companion.messages.ChainTargets`)."""
+    return f"{prefix}/cpg/target"
 
 
 def alive_key(prefix: str, group: int) -> str:

@@ -23,15 +23,18 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from companion.configfile import ConfigError, build
 from companion.runtime import make_run_dir, run_subcommand
 
+from .cpg import CpgParams
 from .inverse import train_inverse_model
 from .steady import ETA_NAMES, XI_NAMES, SteadyConfig, sample_parameters, steady_motion
 
 
 def _cmd_dataset(args) -> int:
     try:
-        cfg = SteadyConfig(n_links=args.links, settle_s=args.settle, periods=args.periods)
+        cpg = CpgParams(args.links, frequency_hz=args.frequency)
+        cfg = SteadyConfig(n_links=args.links, settle_s=args.settle, periods=args.periods, cpg=cpg)
         eta = sample_parameters(args.samples, np.random.default_rng(args.seed), args.a_max, args.b_max)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -58,14 +61,18 @@ def _cmd_train(args) -> int:
     try:
         data = np.load(args.dataset)
         eta, xi = data["eta"], data["xi"]
-    except (OSError, KeyError, ValueError) as exc:
-        print(f"error: {args.dataset}: not a cpg_dataset.npz ({exc})", file=sys.stderr)
+        settings = json.loads(str(data["settings"]))
+        steady = build(SteadyConfig, {k: settings[k] for k in settings if k in SteadyConfig.__dataclass_fields__},
+                       file=str(args.dataset), prefix="settings")
+    except (OSError, KeyError, ValueError) as exc:  # ConfigError is a ValueError
+        reason = exc if isinstance(exc, ConfigError) else f"not a cpg_dataset.npz ({exc})"
+        print(f"error: {args.dataset}: {reason}", file=sys.stderr)
         return 2
     if not 0.0 <= args.holdout < 0.9 or len(eta) < 20:
         print("error: --holdout must be in [0, 0.9) and the dataset needs at least 20 samples", file=sys.stderr)
         return 2
     n_train = len(eta) - int(round(args.holdout * len(eta)))
-    model = train_inverse_model(eta[:n_train], xi[:n_train], seed=args.seed)
+    model = train_inverse_model(eta[:n_train], xi[:n_train], seed=args.seed, steady=steady)
     out = make_run_dir("cpg-inverse", args.out)
     path = Path(args.model) if args.model else out / "inverse_model.npz"
     report = {"dataset": str(args.dataset), "train": n_train, "holdout": len(eta) - n_train, **model.info}
@@ -93,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--samples", type=int, default=400, help="parameter sets (default 400)")
     ds.add_argument("--seed", type=int, default=0, help="seed of the parameter draw (default 0)")
     ds.add_argument("--links", type=int, default=7, help="links of the chain (default 7)")
+    ds.add_argument("--frequency", type=float, default=CpgParams(2).frequency_hz,
+                    help=f"undulation frequency [Hz] (default {CpgParams(2).frequency_hz:g})")
     ds.add_argument("--a-max", type=float, default=0.6, help="largest amplitude A_x, A_y [rad] (default 0.6)")
     ds.add_argument("--b-max", type=float, default=0.3, help="largest bias B_x, B_y [rad] (default 0.3)")
     ds.add_argument("--settle", type=float, default=30.0, help="seconds simulated before averaging (default 30)")

@@ -31,15 +31,17 @@ class LinkTargets:
 
 
 class MotionGenerator:
-    """See the module docstring. ``adapt = False`` uses the inverse model alone."""
+    """See the module docstring. ``adapt = False`` uses the inverse model alone. ``cpg``,
+    ``water`` and ``half_length_m`` default to the physics the model was trained on (pass others
+    only to simulate a model error)."""
 
-    def __init__(self, model: InverseModel, cpg: CpgParams, water: WaterParams = WaterParams(),
-                 half_length_m: float = 0.5, body: BodyState | None = None, adapt: bool = True,
+    def __init__(self, model: InverseModel, cpg: CpgParams | None = None, water: WaterParams | None = None,
+                 half_length_m: float | None = None, body: BodyState | None = None, adapt: bool = True,
                  k_p: float = 0.5, k_i: float = 0.2, settle_periods: int = 2, steady_tol: float = 0.02):
         self.model = model
-        self.cpg = cpg
-        self.water = water
-        self.half = half_length_m
+        self.cpg = cpg = cpg if cpg is not None else model.steady.cpg_params
+        self.water = water if water is not None else model.steady.water
+        self.half = half_length_m if half_length_m is not None else model.steady.half_length_m
         self.body = body if body is not None else BodyState.at_rest()
         self.state = cpg_initial_state(cpg)
         self.adaptation = Adaptation(model, k_p, k_i) if adapt else None
@@ -57,12 +59,18 @@ class MotionGenerator:
         self.steady_tol = steady_tol
         self._periods_since_command = 0
 
-    def step(self, xi_desired: np.ndarray, dt_s: float) -> LinkTargets:
+    def step(self, xi_desired: np.ndarray, dt_s: float, new_command: bool | None = None) -> LinkTargets:
+        """Advance by ``dt_s`` towards ``xi_desired``. ``new_command``: whether the operator's
+        command changed (restarts the settling before adaptation); default: any change of
+        ``xi_desired`` (pass ``False`` when only a feedback loop moved it)."""
         xi_desired = np.asarray(xi_desired, dtype=float)
-        if self._xi_d is None or not np.array_equal(xi_desired, self._xi_d):
+        changed = self._xi_d is None or not np.array_equal(xi_desired, self._xi_d)
+        if changed if new_command is None else new_command:
             self._periods_since_command = 0
+        if changed:
             if self.adaptation is None or self.measured is None:
-                self.eta = self.model(xi_desired)[0]  # the raw parameters of a new command
+                # the raw parameters of a new command, within the model's range
+                self.eta = np.clip(self.model(xi_desired)[0], self.model.eta_low, self.model.eta_high)
         self._xi_d = xi_desired
         self.state = cpg_step(self.state, self.cpg, self.eta[:2], self.eta[2:], dt_s)
         _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
@@ -84,5 +92,10 @@ class MotionGenerator:
                     self.eta = self.adaptation.update(xi_desired, xi_desired, 0.0)
             self._acc[:] = 0.0
             self._acc_t = 0.0
+        return self.targets()
+
+    def targets(self) -> LinkTargets:
+        """Every link's target at the current state (without stepping)."""
+        _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
         p, v, R, w = link_targets(self.body, R_bl, om, self.half)
         return LinkTargets(p, v, R, w)

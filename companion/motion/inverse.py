@@ -13,15 +13,21 @@ MLP's analytic Jacobian (:meth:`InverseModel.eta_jacobian`).
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
 
+from companion.configfile import ConfigError, build, to_dict
+
+from .steady import SteadyConfig
+
 __all__ = ["Mlp", "train_mlp", "InverseModel", "train_inverse_model", "Adaptation", "MODEL_VERSION"]
 
-MODEL_VERSION = 1
+#: 2: the file records the expected physics and CPG the data came from (``steady``)
+MODEL_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -128,7 +134,8 @@ def train_mlp(x: np.ndarray, y: np.ndarray, hidden: int, rng: np.random.Generato
 @dataclass(frozen=True)
 class InverseModel:
     """Encoder ``xi -> h`` (and decoder ``h -> xi``) and the MLP ``h -> eta``, with the
-    standardisation of ``xi`` and ``eta`` they were trained on."""
+    standardisation of ``xi`` and ``eta`` they were trained on, and ``steady``: the chain, CPG
+    and expected physics that made the data (a generator must run the same to be inverted)."""
 
     encoder: Mlp
     decoder: Mlp
@@ -137,6 +144,10 @@ class InverseModel:
     xi_std: np.ndarray
     eta_mean: np.ndarray
     eta_std: np.ndarray
+    steady: SteadyConfig = field(default_factory=SteadyConfig)
+    #: the range of the training parameters: outside it the model extrapolates
+    eta_low: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
+    eta_high: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))
     info: dict = field(default_factory=dict)
 
     def encode(self, xi: np.ndarray) -> np.ndarray:
@@ -164,9 +175,10 @@ class InverseModel:
             for k, (W, b) in enumerate(zip(net.weights, net.biases)):
                 arrays[f"{name}_W{k}"], arrays[f"{name}_b{k}"] = W, b
             arrays[f"{name}_tanh_out"] = np.array(net.tanh_out)
-        for name in ("xi_mean", "xi_std", "eta_mean", "eta_std"):
+        for name in ("xi_mean", "xi_std", "eta_mean", "eta_std", "eta_low", "eta_high"):
             arrays[name] = getattr(self, name)
-        arrays["info"] = np.array(repr(self.info))
+        arrays["steady"] = np.array(json.dumps(to_dict(self.steady)))
+        arrays["info"] = np.array(json.dumps(self.info))
         np.savez_compressed(path, **arrays)
 
     @classmethod
@@ -174,7 +186,14 @@ class InverseModel:
         data = np.load(path)
         version = int(data["version"])
         if version != MODEL_VERSION:
-            raise ValueError(f"{path}: inverse model format version {version}, this code reads {MODEL_VERSION}")
+            raise ValueError(f"{path}: inverse model format version {version}, this code reads {MODEL_VERSION} "
+                             "(regenerate it: configs/models/README.md)")
+        try:
+            steady = build(SteadyConfig, json.loads(str(data["steady"])), file=str(path), prefix="steady")
+        except (KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: no readable physics record ({exc})") from None
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
 
         def net(name: str) -> Mlp:
             k = 0
@@ -186,13 +205,14 @@ class InverseModel:
             return Mlp(tuple(ws), tuple(bs), bool(data[f"{name}_tanh_out"]))
 
         return cls(net("encoder"), net("decoder"), net("to_eta"), data["xi_mean"], data["xi_std"],
-                   data["eta_mean"], data["eta_std"], {"file": str(path)})
+                   data["eta_mean"], data["eta_std"], steady, data["eta_low"], data["eta_high"],
+                   {**json.loads(str(data["info"])), "file": str(path)})
 
 
 def train_inverse_model(eta: np.ndarray, xi: np.ndarray, seed: int = 0, hidden: int = 24, decay: float = 1e-5,
-                        max_iter: int = 3000) -> InverseModel:
+                        max_iter: int = 3000, steady: SteadyConfig = SteadyConfig()) -> InverseModel:
     """Train the autoencoder on ``xi`` (4-d tanh bottleneck), then the MLP from its hidden
-    layer to ``eta`` (thesis sec. 4.5.1)."""
+    layer to ``eta`` (thesis sec. 4.5.1); ``steady``: how the data was simulated (recorded)."""
     rng = np.random.default_rng(seed)
     xi_mean, xi_std = xi.mean(axis=0), xi.std(axis=0) + 1e-9
     eta_mean, eta_std = eta.mean(axis=0), eta.std(axis=0) + 1e-9
@@ -215,7 +235,7 @@ def train_inverse_model(eta: np.ndarray, xi: np.ndarray, seed: int = 0, hidden: 
     to_eta = train_mlp(h, y, hidden, rng, decay, max_iter)
     recon = float(np.sqrt(np.mean((dec(h) - x) ** 2)))
     fit = float(np.sqrt(np.mean((to_eta(h) - y) ** 2)))
-    return InverseModel(enc, dec, to_eta, xi_mean, xi_std, eta_mean, eta_std,
+    return InverseModel(enc, dec, to_eta, xi_mean, xi_std, eta_mean, eta_std, steady, eta.min(axis=0), eta.max(axis=0),
                         {"seed": seed, "hidden": hidden, "samples": len(xi), "ae_rmse_std": recon, "eta_rmse_std": fit})
 
 
@@ -229,9 +249,19 @@ class Adaptation:
     integral: np.ndarray = field(default_factory=lambda: np.zeros(4))
 
     def update(self, xi_desired: np.ndarray, xi_measured: np.ndarray, dt_s: float) -> np.ndarray:
-        """The adapted parameters ``eta = eta_raw + Delta eta`` for this step."""
-        h_d = self.model.encode(xi_desired)[0]
-        h = self.model.encode(xi_measured)[0]
-        self.integral = self.integral + (h - h_d) * dt_s
-        delta = -self.model.eta_jacobian(h_d) @ (self.k_p * (h - h_d) + self.k_i * self.integral)
-        return self.model.eta_of_h(h_d)[0] + delta
+        """The adapted parameters ``eta = eta_raw + Delta eta`` for this step, limited to the
+        model's training range; the integral stops growing while the result is limited (anti
+        wind-up: a motion the CPG cannot make must not drive the parameters ever further)."""
+        m = self.model
+        h_d = m.encode(xi_desired)[0]
+        h = m.encode(xi_measured)[0]
+        raw = m.eta_of_h(h_d)[0]
+        J = m.eta_jacobian(h_d)
+        integral = self.integral + (h - h_d) * dt_s
+        eta = raw - J @ (self.k_p * (h - h_d) + self.k_i * integral)
+        limited = np.clip(eta, m.eta_low, m.eta_high)
+        if np.array_equal(limited, eta):
+            self.integral = integral
+        else:
+            limited = np.clip(raw - J @ (self.k_p * (h - h_d) + self.k_i * self.integral), m.eta_low, m.eta_high)
+        return limited

@@ -6,7 +6,10 @@ linear and angular velocity averaged over whole undulation periods after settlin
 undulating direction ``theta = atan2(A_y, A_x)`` (0: horizontal, pi/2: vertical undulation).
 :func:`steady_motion` simulates a batch of parameter sets at once (the CPG and the physics take
 leading batch dimensions); :func:`sample_parameters` draws them uniformly with a seeded
-generator, biases non-negative only (the thesis uses the mirror symmetry of negative biases).
+generator: amplitudes non-negative (a negative amplitude is the same gait half a period
+later), biases of both signs (turns both ways). The thesis keeps biases non-negative and uses
+the mirror symmetry; that puts "no turn" on the edge of the data, where the inverse model
+extrapolates (a straight vertical undulation then asked for a spurious bias and climbed).
 """
 
 from __future__ import annotations
@@ -81,7 +84,7 @@ def steady_motion(eta: np.ndarray, cfg: SteadyConfig = SteadyConfig(),
 
 
 def sample_parameters(k: int, rng: np.random.Generator, a_max: float = 0.6, b_max: float = 0.3) -> np.ndarray:
-    """(k, 4) parameter sets: amplitudes uniform in [0, a_max], biases in [0, b_max] [rad]."""
+    """(k, 4) parameter sets: amplitudes uniform in [0, a_max], biases in [-b_max, b_max] [rad]."""
     if k < 1 or not (a_max > 0 and b_max >= 0) or not math.isfinite(a_max + b_max):
         raise ValueError(f"need k >= 1, a_max > 0, b_max >= 0; got {k}, {a_max}, {b_max}")
-    return rng.uniform([0.0, 0.0, 0.0, 0.0], [a_max, a_max, b_max, b_max], size=(k, 4))
+    return rng.uniform([0.0, 0.0, -b_max, -b_max], [a_max, a_max, b_max, b_max], size=(k, 4))
