@@ -283,11 +283,10 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
             model = InverseModel.load(model_path)
         except (OSError, ValueError) as exc:
             raise ConfigError(str(path), "motion.model", f"cannot load the inverse CPG model: {exc}") from None
-        sk = scenario.skeleton
-        if model.steady.n_links != sk.n_links or abs(2 * model.steady.half_length_m - sk.link_length_m) > 1e-9:
-            raise ConfigError(str(path), "motion.model",
-                              f"{model_path} is for {model.steady.n_links} links of {2 * model.steady.half_length_m:g} m, "
-                              f"the skeleton has {sk.n_links} of {sk.link_length_m:g} m")
+        try:
+            model.steady.check_chain(scenario.skeleton.n_links, scenario.skeleton.link_length_m)
+        except ValueError as exc:
+            raise ConfigError(str(path), "motion.model", f"{model_path} {exc}") from None
     if overrides:
         try:
             scenario = replace(scenario, **overrides)

@@ -147,9 +147,10 @@ class CpgChainTrajectory:
 
     def __init__(self, cfg: TrajectoryConfig, motion: MotionConfig, model: InverseModel, n_links: int,
                  link_length_m: float, start_center_w_m):
-        if model.steady.n_links != n_links or abs(2 * model.steady.half_length_m - link_length_m) > 1e-9:
-            raise ValueError(f"the inverse model is for {model.steady.n_links} links of "
-                             f"{2 * model.steady.half_length_m:g} m, the skeleton has {n_links} of {link_length_m:g} m")
+        try:
+            model.steady.check_chain(n_links, link_length_m)
+        except ValueError as exc:
+            raise ValueError(f"the inverse model {exc}") from None
         self.cfg = cfg
         self.motion = motion
         self.n = n_links

@@ -144,6 +144,11 @@ def _finite_all(cls: type, values: dict[str, Any]) -> None:
             check_finite(f"{cls.__name__}.{name}", value)
 
 
+def _check_increasing(name: str, ids: tuple[int, ...], what: str) -> None:
+    if not ids or list(ids) != sorted(set(ids)):
+        raise MessageError(f"{name}: {list(ids)} is not a non-empty increasing list of {what}")
+
+
 def _link_state(v: dict[str, Any]) -> LinkState:
     _finite_all(LinkState, v)
     v["q_wxyz"] = check_unit_quat("LinkState.q_wxyz", v["q_wxyz"])
@@ -164,9 +169,7 @@ def _boundary(v: dict[str, Any]) -> GroupBoundaryReport:
 
 def _shift(v: dict[str, Any]) -> GlobalShift:
     _finite_all(GlobalShift, v)
-    groups = v["groups"]
-    if not groups or list(groups) != sorted(set(groups)):
-        raise MessageError(f"GlobalShift.groups: {list(groups)} is not a non-empty increasing list of groups")
+    _check_increasing("GlobalShift.groups", v["groups"], "groups")
     if v["handover_group"] < -1:
         raise MessageError(f"GlobalShift.handover_group: {v['handover_group']}")
     return GlobalShift(**v)
@@ -174,10 +177,8 @@ def _shift(v: dict[str, Any]) -> GlobalShift:
 
 def _targets(v: dict[str, Any]) -> ChainTargets:
     _finite_all(ChainTargets, v)
-    links = v["links"]
-    if not links or list(links) != sorted(set(links)):
-        raise MessageError(f"ChainTargets.links: {list(links)} is not a non-empty increasing list of links")
-    for i, q in zip(links, v["q_wxyz"]):  # checked, kept as sent (the targets cross bit for bit)
+    _check_increasing("ChainTargets.links", v["links"], "links")
+    for i, q in zip(v["links"], v["q_wxyz"]):  # checked, kept as sent (the targets cross bit for bit)
         check_unit_quat(f"ChainTargets.q_wxyz[link {i + 1}]", q)
     return ChainTargets(**v)
 

@@ -54,6 +54,12 @@ class SteadyConfig:
     def cpg_params(self) -> CpgParams:
         return self.cpg if self.cpg is not None else CpgParams(self.n_links)
 
+    def check_chain(self, n_links: int, link_length_m: float) -> None:
+        """``ValueError`` unless this is a chain of ``n_links`` links of ``link_length_m``."""
+        if self.n_links != n_links or abs(2 * self.half_length_m - link_length_m) > 1e-9:
+            raise ValueError(f"is for {self.n_links} links of {2 * self.half_length_m:g} m, "
+                             f"the skeleton has {n_links} of {link_length_m:g} m")
+
 
 def steady_motion(eta: np.ndarray, cfg: SteadyConfig = SteadyConfig(),
                   progress: Callable[[float], None] | None = None) -> np.ndarray:
