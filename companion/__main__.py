@@ -19,12 +19,10 @@ import argparse
 import logging
 import sys
 
-from tqdm import tqdm
-
 from .estimation.sckf import CAParams
 from .estimation.semi import parse_groups, validate_groups
 from .replay import ReplayInputError, load_replay_input, replay, save_replay_output
-from .runtime import LOG_FORMAT, make_run_dir, run_subcommand
+from .cli import LOG_FORMAT, make_run_dir, progress_bar, run_subcommand
 
 
 EXIT_BAD_INPUT = 2
@@ -41,7 +39,7 @@ def _cmd_replay(args) -> int:
     except (ReplayInputError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    with tqdm(total=data.n_steps, desc="replay", unit="step", disable=args.quiet, file=sys.stderr) as bar:
+    with progress_bar(total=data.n_steps, desc="replay", unit="step", disable=args.quiet) as bar:
         out = replay(data, groups, params, progress=bar.update)
     try:
         save_replay_output(args.output, out)
@@ -58,14 +56,13 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_daemon(args) -> int:
-    from sitl.scenario import load_scenario
-
+    from .config import CompanionSetup, load_setup
     from .configfile import ConfigError
     from .daemon import CompanionDaemon
     from .mavlink.port import PortError
 
     try:
-        scenario = load_scenario(args.config)
+        scenario = load_setup(CompanionSetup, args.config)
         center = None
         if args.start_center:
             center = [float(x) for x in args.start_center.split(",")]
@@ -74,7 +71,14 @@ def _cmd_daemon(args) -> int:
         group = None if args.group is None else args.group - 1
         out_dir = make_run_dir(f"companion-{scenario.name}" + (f"-group{args.group}" if args.group else ""), args.out)
         daemon = CompanionDaemon(scenario, out_dir, center, group=group, config_file=str(args.config))
-    except (ConfigError, PortError, ValueError) as exc:
+    except ConfigError as exc:
+        hint = ""
+        if exc.key and "." not in exc.key and exc.reason.startswith("unknown key"):
+            hint = ("\n(a SITL scenario holds the simulator's sections too: `python -m sitl launch` writes the "
+                    "companion's own part to companion.toml in its run folder)")
+        print(f"error: {exc}{hint}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (PortError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     handler = logging.FileHandler(out_dir / "companion.log")

@@ -14,11 +14,17 @@ validate with :func:`check_finite`, :func:`check_unit_quat` and :func:`check_pd`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
+from .estimation.so3 import quat_to_rotmat
+
 __all__ = [
+    "STATE_FLAG_EKF_OK",
+    "STATE_FLAG_ARMED",
+    "STATE_FLAG_CORRECTION_ACTIVE",
     "MessageError",
     "check_finite",
     "check_unit_quat",
@@ -27,7 +33,15 @@ __all__ = [
     "Correction",
     "GroupBoundaryReport",
     "GlobalShift",
+    "ChainTargets",
+    "PoseTarget",
 ]
+
+
+#: Bits of the flags a link reports with its state (the dialect's SKELETON_STATE_FLAGS).
+STATE_FLAG_EKF_OK = 1  # the EKF is initialised and its estimate is usable
+STATE_FLAG_ARMED = 2
+STATE_FLAG_CORRECTION_ACTIVE = 4  # a companion correction is applied to the control estimate
 
 
 class MessageError(ValueError):
@@ -105,6 +119,42 @@ class Correction:
     dv_w_m_s: np.ndarray
     dtheta_w_rad: np.ndarray
     seq: int = 0
+
+
+@dataclass(frozen=True)
+class PoseTarget:
+    """Desired motion of a link (world frame z-up; body rates in the desired body frame).
+
+    ``omega_d_rad_s`` and ``omega_dot_d_rad_s2`` are ``w_d`` and ``wdot_d`` of eq. 1:
+    ``w_d = (R_d^T dR_d/dt)^v``. ``force_ff_w_n`` (world) and ``torque_ff_b_nm`` (desired body
+    frame) are the whole-chain feed-forward: what this link's rotors add to its own rigid-body
+    wrench for the cable forces and the joints' passive torques
+    (:meth:`companion.skeleton.dynamics.ChainModel.inverse_dynamics`); zero without it.
+    """
+
+    p_w_m: np.ndarray
+    q_wxyz: np.ndarray
+    v_w_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    a_w_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega_d_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega_dot_d_rad_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    force_ff_w_n: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    torque_ff_b_nm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def hold(cls, p_w_m, q_wxyz) -> PoseTarget:
+        """Hold a pose: zero velocity, acceleration and rates."""
+        return cls(np.array(p_w_m, dtype=float), np.array(q_wxyz, dtype=float))
+
+    @cached_property
+    def R_d(self) -> np.ndarray:
+        """Desired rotation matrix (computed once per target)."""
+        return quat_to_rotmat(self.q_wxyz)
+
+    @cached_property
+    def R_tuple(self) -> tuple:
+        """``R_d`` as a row-major 9-tuple (the controller's form)."""
+        return tuple(self.R_d.ravel().tolist())
 
 
 @dataclass(frozen=True)
@@ -187,6 +237,8 @@ class ChainTargets:
         q_wxyz: (len(links), 4) body-to-world attitudes.
         omega_b_rad_s, omega_dot_b_rad_s2: (len(links), 3) body rates in the desired body frame
             and their derivatives (``w_d``, ``wdot_d`` of the impedance controller, eq. 1).
+        force_ff_w_n, torque_ff_b_nm: (len(links), 3) the whole-chain feed-forward of
+            :class:`PoseTarget` (zero without it).
     """
 
     leader_group: int
@@ -199,3 +251,20 @@ class ChainTargets:
     a_w_m_s2: np.ndarray
     omega_b_rad_s: np.ndarray
     omega_dot_b_rad_s2: np.ndarray
+    force_ff_w_n: np.ndarray
+    torque_ff_b_nm: np.ndarray
+
+    @classmethod
+    def of(cls, leader_group: int, time_us: int, seq: int, links, targets: list[PoseTarget]) -> ChainTargets:
+        """The targets of ``links`` (one :class:`PoseTarget` each, in that order)."""
+        def rows(name: str) -> np.ndarray:
+            return np.stack([np.asarray(getattr(t, name), dtype=float) for t in targets])
+
+        return cls(leader_group, time_us, seq, tuple(links), rows("p_w_m"), rows("q_wxyz"), rows("v_w_m_s"),
+                   rows("a_w_m_s2"), rows("omega_d_rad_s"), rows("omega_dot_d_rad_s2"), rows("force_ff_w_n"),
+                   rows("torque_ff_b_nm"))
+
+    def target(self, k: int) -> PoseTarget:
+        """The :class:`PoseTarget` of the ``k``-th listed link."""
+        return PoseTarget(self.p_w_m[k], self.q_wxyz[k], self.v_w_m_s[k], self.a_w_m_s2[k], self.omega_b_rad_s[k],
+                          self.omega_dot_b_rad_s2[k], self.force_ff_w_n[k], self.torque_ff_b_nm[k])

@@ -21,6 +21,11 @@ Two readings of the printed equation, stated here because they matter:
 
 ``e_R`` is eq. 1's, without a 1/2 factor: for small errors ``e_R ~ 2 dtheta``.
 
+The target's whole-chain feed-forward (``force_ff_w_n`` added to ``f_w``, ``torque_ff_b_nm``
+mapped from the desired to the current body frame, ``R^T R_d tau_ff``, added to ``tau``) carries
+what the cables and the joints' passive torques need of this link's rotors (thesis sec. 3.2's
+Newton-Euler chain); it is zero unless the companion computes it.
+
 Pure functions of numpy arrays: no clocks (``dt`` is an argument), no state except the
 integrals the caller passes in and gets back.
 """
@@ -29,25 +34,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
 
 import numpy as np
 
-from companion.configfile import require_positive
 from companion.estimation.so3 import quat_to_rotmat, rotmat_tuple
+from companion.messages import PoseTarget
+from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
 __all__ = [
-    "GRAVITY_M_S2",
     "ImpedanceGains",
-    "LinkInertia",
-    "PoseTarget",
     "ControlIntegrals",
     "vee",
     "weight_wrench",
     "impedance_control",
 ]
-
-GRAVITY_M_S2 = 9.80665
 
 
 def _triple(name: str, value) -> None:
@@ -80,54 +80,6 @@ class ImpedanceGains:
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {val!r}")
-
-
-@dataclass(frozen=True)
-class LinkInertia:
-    """Mass [kg] and principal inertia [kg m^2] of a link (body frame at the centre of mass)."""
-
-    mass_kg: float
-    inertia_kgm2: tuple[float, float, float]
-
-    def __post_init__(self) -> None:
-        require_positive(self, "mass_kg")
-        if len(self.inertia_kgm2) != 3 or not all(x > 0 for x in self.inertia_kgm2):
-            raise ValueError(f"inertia_kgm2 must be three positive numbers, got {self.inertia_kgm2!r}")
-
-    @cached_property
-    def J(self) -> np.ndarray:
-        return np.diag(self.inertia_kgm2)
-
-
-@dataclass(frozen=True)
-class PoseTarget:
-    """Desired motion of a link (world frame z-up; body rates in the desired body frame).
-
-    ``omega_d_rad_s`` and ``omega_dot_d_rad_s2`` are ``w_d`` and ``wdot_d`` of eq. 1:
-    ``w_d = (R_d^T dR_d/dt)^v``.
-    """
-
-    p_w_m: np.ndarray
-    q_wxyz: np.ndarray
-    v_w_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    a_w_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    omega_d_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    omega_dot_d_rad_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    @classmethod
-    def hold(cls, p_w_m, q_wxyz) -> PoseTarget:
-        """Hold a pose: zero velocity, acceleration and rates."""
-        return cls(np.array(p_w_m, dtype=float), np.array(q_wxyz, dtype=float))
-
-    @cached_property
-    def R_d(self) -> np.ndarray:
-        """Desired rotation matrix (computed once per target)."""
-        return quat_to_rotmat(self.q_wxyz)
-
-    @cached_property
-    def R_tuple(self) -> tuple:
-        """``R_d`` as a row-major 9-tuple (the controller's form)."""
-        return tuple(self.R_d.ravel().tolist())
 
 
 @dataclass(frozen=True)
@@ -208,13 +160,14 @@ def impedance_control(
     m = inertia.mass_kg
     Jx, Jy, Jz = inertia.inertia_kgm2
     kp, kd, ki = gains.kp_n_m, gains.kd_ns_m, gains.ki_n_ms
-    # Translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p (p - p_d) - k_i int(p - p_d).
+    # Translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p (p - p_d) - k_i int(p - p_d) (+ f_ff).
     e_p = (p[0] - pd[0], p[1] - pd[1], p[2] - pd[2])
     pos = integrals.pos
     pos_int = _clamp([pos[i] + e_p[i] * dt_s for i in range(3)], gains.pos_integral_limit_ms)
     gz = GRAVITY_M_S2
+    f_ff = target.force_ff_w_n.tolist()
     f_w = tuple(
-        m * (ad[i] + (gz if i == 2 else 0.0)) - kd[i] * (v[i] - vd[i]) - kp[i] * e_p[i] - ki[i] * pos_int[i]
+        m * (ad[i] + (gz if i == 2 else 0.0)) - kd[i] * (v[i] - vd[i]) - kp[i] * e_p[i] - ki[i] * pos_int[i] + f_ff[i]
         for i in range(3)
     )
     u = _mtv(R, f_w)
@@ -232,6 +185,7 @@ def impedance_control(
     wxwd = _cross(w, w_db)
     rd = _mv(RtRd, wdd)
     ff = (Jx * (wxwd[0] - rd[0]), Jy * (wxwd[1] - rd[1]), Jz * (wxwd[2] - rd[2]))
+    tau_ff = _mv(RtRd, target.torque_ff_b_nm.tolist())  # whole-chain feed-forward, desired -> body frame
     kR, kw, kI = gains.kR_nm, gains.kw_nms, gains.kI_nm_s
-    tau = [gyro[i] - kR * e_R[i] - kw * e_w[i] - kI * att_int[i] - ff[i] for i in range(3)]
+    tau = [gyro[i] - kR * e_R[i] - kw * e_w[i] - kI * att_int[i] - ff[i] + tau_ff[i] for i in range(3)]
     return np.array((*u, *tau)), ControlIntegrals(pos_int, att_int)

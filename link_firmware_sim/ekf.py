@@ -30,6 +30,7 @@ import numpy as np
 
 from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import attitude_error, quat_normalize, quat_to_rotmat, retract, rotmat_tuple
+from companion.skeleton.body import GRAVITY_W_M_S2
 
 __all__ = [
     "X_P",
@@ -79,7 +80,6 @@ E_BG = slice(12, 15)
 E_SCKF = slice(0, ERR_DIM)
 NE = 15
 
-GRAVITY_W_M_S2 = (0.0, 0.0, -9.80665)
 _DIAG = np.diag_indices(NE)
 
 

@@ -9,7 +9,9 @@ no wall clock; the SITL harness or, later, the MAVLink shell calls it):
 * ``on_gps``, ``on_attitude``: queue a measurement (applied at the next ``on_imu``, once the
   EKF has been propagated to its time);
 * ``on_correction``: the companion's :class:`~companion.messages.Correction`;
-* ``set_target``: a :class:`~link_firmware_sim.control.PoseTarget`;
+* ``on_external_pose``: an external-vision pose (standard-messages mode: the companion's
+  corrected estimate), turned into the same correction against the current EKF output;
+* ``set_target``: a :class:`~companion.messages.PoseTarget`;
 * ``arm`` / ``disarm``.
 
 Control runs on the EKF output plus the latest correction delta, never feeding the delta into
@@ -28,11 +30,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.configfile import require_positive
-from companion.estimation.so3 import retract
-from companion.messages import Correction, LinkState
+from companion.estimation.so3 import attitude_error, retract
+from companion.messages import (
+    STATE_FLAG_ARMED,
+    STATE_FLAG_CORRECTION_ACTIVE,
+    STATE_FLAG_EKF_OK,
+    Correction,
+    LinkState,
+    PoseTarget,
+)
 
-from .allocation import AllocationParams, Allocator, RotorGeometry
-from .control import ControlIntegrals, ImpedanceGains, LinkInertia, PoseTarget, impedance_control, weight_wrench
+from companion.skeleton.body import LinkInertia
+from companion.skeleton.rotors import RotorGeometry
+
+from .allocation import AllocationParams, Allocator
+from .control import ControlIntegrals, ImpedanceGains, impedance_control, weight_wrench
 from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
 
 __all__ = ["FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
@@ -103,6 +115,12 @@ class LinkFirmware:
         self._hold: PoseTarget | None = None
         self.correction: Correction | None = None
         self._correction_time_s = -math.inf
+        #: seq of the last correction applied and its latency (arrival minus the EKF time it was
+        #: computed against) [us]: reported back in the link state
+        self.correction_seq = 0
+        self.correction_latency_us = 0
+        #: (arrival time, latency) of every correction [s]
+        self.latency_log: list[tuple[float, float]] = []
         self.time_s = 0.0
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
@@ -142,9 +160,37 @@ class LinkFirmware:
         self._pending.clear()
 
     # -- companion and targets ---------------------------------------------------------
-    def on_correction(self, t_s: float, correction: Correction) -> None:
+    def on_correction(self, t_s: float, correction: Correction | None) -> None:
+        """Apply the companion's correction (``None``: withdrawn, control on the raw EKF)."""
+        if correction is None:
+            self.correction = None
+            return
         self.correction = correction
         self._correction_time_s = t_s
+        self.correction_seq = correction.seq
+        self.correction_latency_us = int(round((t_s - correction.ekf_time_s) * 1e6))
+        self.latency_log.append((t_s, t_s - correction.ekf_time_s))
+
+    def on_external_pose(self, t_s: float, p_w_m, v_w_m_s, q_wxyz) -> None:
+        """Standard-messages mode: an external pose (the companion's corrected estimate) becomes
+        the correction against the current EKF output (it never enters the EKF); without a
+        velocity (``None``) the velocity is not corrected."""
+        if self.ekf is None:
+            return
+        st = self.state_report()
+        dv = np.zeros(3) if v_w_m_s is None else np.asarray(v_w_m_s, dtype=float) - st.v_w_m_s
+        self.on_correction(t_s, Correction(self.link, st.time_s, np.asarray(p_w_m, dtype=float) - st.p_w_m, dv,
+                                           attitude_error(np.asarray(q_wxyz, dtype=float), st.q_wxyz),
+                                           seq=(self.correction_seq + 1) & 0xFFFF))
+
+    def flags(self, t_s: float) -> int:
+        """The state flags reported with every link state."""
+        flags = STATE_FLAG_EKF_OK if self.initialized else 0
+        if self.armed:
+            flags |= STATE_FLAG_ARMED
+        if self.correction_weight(t_s) > 0:
+            flags |= STATE_FLAG_CORRECTION_ACTIVE
+        return flags
 
     def set_target(self, t_s: float, target: PoseTarget) -> None:
         self.target = target
@@ -203,6 +249,11 @@ class LinkFirmware:
 
     def disarm(self) -> None:
         self.armed = False
+
+    def active_target(self, t_s: float) -> PoseTarget:
+        """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate)."""
+        p, _, q = self.control_estimate(t_s)
+        return self._active_target(t_s, p) if self.armed else PoseTarget.hold(p, q)
 
     def _active_target(self, t_s: float, p_w_m) -> PoseTarget:
         if self.target is not None and t_s - self._target_time_s <= self.config.target_stale_s:

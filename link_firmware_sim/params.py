@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from companion.geo import GeoOrigin
+from .geo import GeoOrigin
 
 from .firmware import FirmwareConfig
 

@@ -34,40 +34,34 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.estimation.so3 import attitude_error, quat_to_rotmat
-from companion.mavlink.codec import (
-    STATE_FLAG_ARMED,
-    STATE_FLAG_CORRECTION_ACTIVE,
-    STATE_FLAG_EKF_OK,
-    MessageError,
-    decode_correction,
-    encode_link_state,
-    usec,
-)
+from companion.mavlink.codec import MessageError, decode_correction, decode_target_feedforward, encode_link_state, usec
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
-from companion.mavlink.hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators
+from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd
+from companion.mavlink.standard import (
+    decode_attitude_target,
+    decode_external_pose,
+    decode_position_target,
+    encode_odometry,
+    euler_zyx,
+)
 from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
-from companion.messages import Correction
+from companion.messages import Correction, PoseTarget
 
-from .control import PoseTarget
 from .firmware import LinkFirmware
+from .hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators, sitl_gps_time_us
 from .params import ParamTable
 
-__all__ = ["VehiclePorts", "Vehicle", "odometry_pose_covariance", "ODOMETRY_UPPER_6"]
+__all__ = ["VehiclePorts", "Vehicle"]
 
 log = logging.getLogger(__name__)
 D = load_dialect()
 
-#: GPS time at simulation time 0 (2026-01-01T00:00:00Z) [us since the Unix epoch].
-SITL_GPS_EPOCH_US = 1_767_225_600_000_000
 HIL_ACCEPT = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
 MAVLINK_ACCEPT = frozenset({
     "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_LONG", "COMMAND_INT",
-    "SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET", "SKELETON_CORRECTION", "ODOMETRY",
+    "SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET", "SKELETON_TARGET_FEEDFORWARD", "SKELETON_CORRECTION",
+    "ODOMETRY", "VISION_POSITION_ESTIMATE",
 })
-#: Row-major upper triangle of a 6x6 matrix: the order of ODOMETRY's 21 covariance floats.
-ODOMETRY_UPPER_6 = np.triu_indices(6)
 _FLIGHT_SW_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | 255  # 0.1.0 (release)
 _CAPABILITIES = (
     D.MAV_PROTOCOL_CAPABILITY_MAVLINK2
@@ -91,16 +85,6 @@ class VehiclePorts:
             onboard=f"udpout://{host}:{14540 + instance}?bind={14580 + instance}",
             gcs=f"udpout://{host}:14550?bind={18570 + instance}",
         )
-
-
-def odometry_pose_covariance(P9: np.ndarray) -> list[float]:
-    """ODOMETRY pose_covariance (x, y, z, roll, pitch, yaw; 21 floats) from a NED 9x9 error covariance.
-
-    The attitude block is the world-frame small-angle error covariance, used as the
-    roll/pitch/yaw covariance (exact for small errors near level).
-    """
-    idx = [0, 1, 2, 6, 7, 8]
-    return P9[np.ix_(idx, idx)][ODOMETRY_UPPER_6].tolist()
 
 
 @dataclass
@@ -154,10 +138,9 @@ class Vehicle:
         self.boot_wall_s = time.monotonic()
         self._next_heartbeat_wall = 0.0
         self._pos_target: tuple | None = None  # (p, v, a) ENU
+        self._pos_target_ms = -1  # its time_boot_ms
+        self._ff_target: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
-        self._correction_seq = 0
-        self._correction_latency_us = 0
-        self._latency_log: list[tuple[float, float]] = []
         self._log = _Stream.at_rate(log_rate_hz)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
         self.errors = {"hil": 0, "mavlink": 0}
@@ -208,18 +191,10 @@ class Vehicle:
     def time_boot_ms(self) -> int:
         return (self.fc_time_us // 1000) & 0xFFFFFFFF
 
-    def _flags(self) -> int:
-        flags = STATE_FLAG_EKF_OK if self.fw.initialized else 0
-        if self.fw.armed:
-            flags |= STATE_FLAG_ARMED
-        if self.fw.correction_weight(self.fc_time_s) > 0:
-            flags |= STATE_FLAG_CORRECTION_ACTIVE
-        return flags
-
     def _msg_system_time(self):
         """GPS time (0 until the EKF has its first fix) against boot time, as PX4 sends it; in SITL
-        the simulated GPS's clock is :data:`SITL_GPS_EPOCH_US` plus simulation time."""
-        unix_us = SITL_GPS_EPOCH_US + self.fc_time_us if self.fw.initialized else 0
+        the simulated GPS's clock is :func:`~link_firmware_sim.hil.sitl_gps_time_us` of simulation time."""
+        unix_us = sitl_gps_time_us(self.fc_time_us) if self.fw.initialized else 0
         return D.MAVLink_system_time_message(unix_us, self.time_boot_ms)
 
     def _msg_heartbeat(self):
@@ -257,10 +232,7 @@ class Vehicle:
 
     def _msg_attitude(self):
         _, _, q = self._estimate()
-        R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
-        roll = math.atan2(R[2, 1], R[2, 2])
-        pitch = -math.asin(max(-1.0, min(1.0, R[2, 0])))
-        yaw = math.atan2(R[1, 0], R[0, 0])
+        roll, pitch, yaw = euler_zyx(quat_enu_flu_to_ned_frd(q))
         w = flu_frd(self._report().omega_b_rad_s)
         return D.MAVLink_attitude_message(self.time_boot_ms, roll, pitch, yaw, *w.tolist())
 
@@ -272,33 +244,21 @@ class Vehicle:
         p, v, q = self._estimate()
         lat, lon, alt = self.origin.to_geodetic(p)
         vn, ve, vd = enu_ned(v).tolist()
-        R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
-        hdg = int(round((math.degrees(math.atan2(R[1, 0], R[0, 0])) % 360.0) * 100))
+        hdg = int(round((math.degrees(euler_zyx(quat_enu_flu_to_ned_frd(q))[2]) % 360.0) * 100))
         return D.MAVLink_global_position_int_message(
             self.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
             int(round(p[2] * 1000)), int(round(vn * 100)), int(round(ve * 100)), int(round(vd * 100)), hdg,
         )
 
     def _msg_link_state(self):
-        return encode_link_state(self._report(), self._flags(), 0, self._correction_seq,
-                                 self._correction_latency_us)
+        fw = self.fw
+        return encode_link_state(self._report(), fw.flags(self.fc_time_s), 0, fw.correction_seq,
+                                 fw.correction_latency_us)
 
     def _msg_odometry(self):
         """Raw EKF output with covariance (standard messages: what a stock PX4 publishes)."""
         st = self._report()
-        P9 = error_cov_enu_ned(st.P)
-        q_ned = quat_enu_flu_to_ned_frd(st.q_wxyz)
-        R = quat_to_rotmat(q_ned)
-        v_body = R.T @ enu_ned(st.v_w_m_s)
-        Pv = R.T @ P9[3:6, 3:6] @ R
-        vel_cov = np.zeros((6, 6))
-        vel_cov[:3, :3] = Pv
-        vel_cov[3:, 3:] = np.eye(3) * 1e-4
-        return D.MAVLink_odometry_message(
-            usec(st.time_s), D.MAV_FRAME_LOCAL_NED, D.MAV_FRAME_BODY_FRD, *enu_ned(st.p_w_m).tolist(),
-            q_ned.tolist(), *v_body.tolist(), *flu_frd(st.omega_b_rad_s).tolist(),
-            odometry_pose_covariance(P9), vel_cov[ODOMETRY_UPPER_6].tolist(), 0, D.MAV_ESTIMATOR_TYPE_NAIVE, 100,
-        )
+        return encode_odometry(st, usec(st.time_s), estimator_type=D.MAV_ESTIMATOR_TYPE_NAIVE)
 
     def _send_due_streams(self) -> None:
         builders = None
@@ -374,7 +334,7 @@ class Vehicle:
     def _log_row(self) -> None:
         fw = self.fw
         p, _, q = fw.control_estimate(self.fc_time_s)
-        target = fw._active_target(self.fc_time_s, p) if fw.armed else PoseTarget.hold(p, q)
+        target = fw.active_target(self.fc_time_s)
         r = self._rows
         r["t"].append(self.fc_time_s)
         r["p_ekf"].append(fw.ekf.p_w_m)
@@ -399,12 +359,16 @@ class Vehicle:
         try:
             if kind == "SKELETON_CORRECTION":
                 self._on_correction(decode_correction(msg, self.instance))
-            elif kind == "ODOMETRY":
-                self._on_external_vision(msg)
+            elif kind in ("ODOMETRY", "VISION_POSITION_ESTIMATE"):
+                pose = decode_external_pose(msg)  # standard-messages mode: the companion's corrected pose
+                self.fw.on_external_pose(self.fc_time_s, pose.p_w_m, pose.v_w_m_s, pose.q_wxyz)
             elif kind == "SET_POSITION_TARGET_LOCAL_NED":
                 self._on_position_target(msg)
             elif kind == "SET_ATTITUDE_TARGET":
                 self._on_attitude_target(msg)
+            elif kind == "SKELETON_TARGET_FEEDFORWARD":
+                self._ff_target = (msg.time_boot_ms, *decode_target_feedforward(msg))
+                self._update_target()
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
                 self._on_command(ep, msg)
             elif kind.startswith("PARAM_"):
@@ -414,54 +378,15 @@ class Vehicle:
             log.warning("link %d: rejected %s: %s", self.system_id, kind, exc)
 
     def _on_correction(self, corr: Correction | None) -> None:
-        if corr is None:
-            self.fw.correction = None  # withdrawn: control on the raw EKF
-            return
         self.fw.on_correction(self.fc_time_s, corr)
-        self._correction_seq = corr.seq
-        self._correction_latency_us = usec(self.fc_time_s - corr.ekf_time_s)
-        self._latency_log.append((self.fc_time_s, self.fc_time_s - corr.ekf_time_s))
-
-    def _on_external_vision(self, msg) -> None:
-        """Standard-messages mode: ODOMETRY from the companion is the corrected pose; the delta
-        against the raw EKF becomes the correction (it never enters the EKF)."""
-        if msg.frame_id not in (D.MAV_FRAME_LOCAL_FRD, D.MAV_FRAME_LOCAL_NED):
-            raise MessageError(f"ODOMETRY.frame_id: {msg.frame_id} (expected LOCAL_FRD or LOCAL_NED)")
-        vals = [msg.x, msg.y, msg.z, *msg.q, msg.vx, msg.vy, msg.vz]
-        if not all(math.isfinite(x) for x in vals):
-            raise MessageError("ODOMETRY: non-finite value")
-        st = self.fw.state_report()
-        q = quat_ned_frd_to_enu_flu(np.asarray(msg.q, dtype=float) / np.linalg.norm(msg.q))
-        p = enu_ned(np.array([msg.x, msg.y, msg.z]))
-        R = quat_to_rotmat(np.asarray(msg.q, dtype=float))
-        v = enu_ned(R @ np.array([msg.vx, msg.vy, msg.vz]))  # body-frame velocity (child frame)
-        corr = Correction(self.instance, st.time_s, p - st.p_w_m, v - st.v_w_m_s, attitude_error(q, st.q_wxyz),
-                          seq=(self._correction_seq + 1) & 0xFFFF)
-        self._on_correction(corr)
 
     def _on_position_target(self, msg) -> None:
-        if msg.coordinate_frame != D.MAV_FRAME_LOCAL_NED:
-            raise MessageError(f"SET_POSITION_TARGET_LOCAL_NED.coordinate_frame: {msg.coordinate_frame} (LOCAL_NED only)")
-        vals = [msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz, msg.afx, msg.afy, msg.afz]
-        if not all(math.isfinite(x) for x in vals):
-            raise MessageError("SET_POSITION_TARGET_LOCAL_NED: non-finite value")
-        mask = msg.type_mask
-        p = enu_ned(np.array([msg.x, msg.y, msg.z]))
-        v = enu_ned(np.array([msg.vx, msg.vy, msg.vz])) if not mask & 0b111000 else np.zeros(3)
-        a = enu_ned(np.array([msg.afx, msg.afy, msg.afz])) if not mask & 0b111000000 else np.zeros(3)
-        self._pos_target = (p, v, a)
+        self._pos_target = decode_position_target(msg)
+        self._pos_target_ms = msg.time_boot_ms
         self._update_target()
 
     def _on_attitude_target(self, msg) -> None:
-        q = np.asarray(msg.q, dtype=float)
-        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise MessageError("SET_ATTITUDE_TARGET.q: not a unit quaternion")
-        rates = np.array([msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate])
-        if not np.all(np.isfinite(rates)):
-            raise MessageError("SET_ATTITUDE_TARGET: non-finite body rates")
-        if msg.type_mask & 0b111:
-            rates = np.zeros(3)
-        self._att_target = (quat_ned_frd_to_enu_flu(q / np.linalg.norm(q)), flu_frd(rates))
+        self._att_target = decode_attitude_target(msg)
         self._update_target()
 
     def _update_target(self) -> None:
@@ -473,8 +398,13 @@ class Vehicle:
             p_now, q_now = np.zeros(3), np.array([1.0, 0, 0, 0])
         p, v, a = self._pos_target if self._pos_target is not None else (p_now, np.zeros(3), np.zeros(3))
         q, w = self._att_target if self._att_target is not None else (q_now, np.zeros(3))
+        # The rest of the target (angular acceleration, whole-chain feed-forward) applies to the
+        # position target of the same time_boot_ms only.
+        zero = np.zeros(3)
+        ff = self._ff_target
+        wd, f_ff, tau_ff = ff[1:] if ff is not None and ff[0] == self._pos_target_ms else (zero, zero, zero)
         # The target rate is in the desired body frame (eq. 1): FLU rates of the target attitude.
-        self.fw.set_target(self.fc_time_s, PoseTarget(p, q, v, a, w, np.zeros(3)))
+        self.fw.set_target(self.fc_time_s, PoseTarget(p, q, v, a, w, wd, f_ff, tau_ff))
 
     def _ack(self, ep: _Endpoint, msg, result: int) -> None:
         ep.port.send(D.MAVLink_command_ack_message(msg.command, result, 255, 0, msg.get_srcSystem(),
@@ -602,7 +532,7 @@ class Vehicle:
 
     def flight_log(self) -> dict[str, np.ndarray]:
         out = {k: np.asarray(v) for k, v in self._rows.items()}
-        out["correction_latency"] = np.asarray(self._latency_log).reshape(-1, 2)
+        out["correction_latency"] = np.asarray(self.fw.latency_log).reshape(-1, 2)
         return out
 
     def close(self) -> None:

@@ -21,7 +21,7 @@ import sys
 from tqdm import tqdm
 
 from companion.configfile import ConfigError
-from companion.runtime import make_run_dir, run_subcommand
+from companion.cli import make_run_dir, run_subcommand
 
 from .fleet import FleetError, check_fleet_scenario, launch
 from .fly import fly

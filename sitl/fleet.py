@@ -35,17 +35,19 @@ import numpy as np
 
 from companion.configfile import dump_toml
 from companion.mavlink.codec import usec
-from companion.mavlink.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
+from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
+from companion.skeleton.kinematics import tension
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
-from link_firmware_sim.vehicle import SITL_GPS_EPOCH_US
+from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 
 from .metrics import PAPER_THREE_LINK, compute_metrics
 from .plots import write_plots
-from .runner import Plant, Schedule, joint_norms
+from .runner import Plant, Schedule
 from .scenario import Scenario
+from .steplog import attach_truth, merge_step_logs
 
 __all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "endpoint_table", "launch"]
 
@@ -86,7 +88,8 @@ class FleetHarness:
                       for url in sim_urls]
         if not sc.start.on_ground:
             self._prime_hover()
-        self.rows: dict[str, list] = {k: [] for k in ("t", "p_true", "v_true", "q_true", "thrust")}
+        self.rows: dict[str, list] = {k: [] for k in ("t", "p_true", "v_true", "q_true", "thrust", "joint_force_true",
+                                                      "tension_true")}
         self.wall_s = 0.0
         self.sim_s = 0.0
 
@@ -162,6 +165,8 @@ class FleetHarness:
                     r["v_true"].append(truth.v_w_m_s.copy())
                     r["q_true"].append(truth.q_wxyz.copy())
                     r["thrust"].append(plant.rotors.thrust_n.reshape(self.n, -1).copy())
+                    r["joint_force_true"].append(truth.joint_force_w_n)
+                    r["tension_true"].append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
                     plant.check_crash(t, truth, None)
                 plant.end_tick()
                 self.sim_s += dt
@@ -306,6 +311,8 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         "v_true": truth["v_true"][rows],
         "q_true": truth["q_true"][rows],
         "thrust": truth["thrust"][rows],
+        "joint_force_true": truth["joint_force_true"][rows],
+        "tension_true": truth["tension_true"][rows],
     }
     fw_rows = []  # per link: the rows of its log at the common times
     for f in fw:
@@ -315,58 +322,26 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         merged[key] = np.stack([f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
     comp = _companion_log(sc, out_dir)
     if comp is not None:
-        # each step against the truth row nearest its state time (the log grid is 1 / log_rate_hz);
-        # a companion on GPS time: the simulated GPS clock is the epoch plus simulation time
-        ct = np.round(comp["t_sckf"] * 1e6).astype(np.int64)
-        if sc.companion.time_base == "gps":
-            ct -= SITL_GPS_EPOCH_US
-            comp["t_sckf"] = ct * 1e-6
-        row = np.clip(np.searchsorted(t_us, ct), 1, len(t_us) - 1)
-        row = np.where(np.abs(t_us[row - 1] - ct) <= np.abs(t_us[row] - ct), row - 1, row)
-        keep = np.abs(t_us[row] - ct) <= 0.5e6 / sc.sim.log_rate_hz
-        for key, value in comp.items():
-            merged[key] = value[keep]
-        merged["p_true_sckf"] = truth["p_true"][row[keep]]
+        if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
+            comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
+        merged.update(attach_truth(comp, truth["t"], truth["p_true"]))
     latency = np.concatenate([f["correction_latency"] for f in fw]) if fw else np.zeros((0, 2))
     return merged, latency
 
 
 def _companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
-    """The companion's step log; distributed: the groups' logs joined on their cycles (a group's
-    restarted companion continues its log), constraint errors recomputed over the whole chain."""
+    """The companions' step logs over the whole chain (a group's restarted companion continues
+    its group's log; :func:`~sitl.steplog.merge_step_logs`)."""
+
+    def parts(*folders: str) -> list[dict]:
+        return [dict(np.load(p)) for p in (out_dir / f / "companion_log.npz" for f in folders) if p.exists()]
+
     if not sc.companion.distributed:
-        path = out_dir / "companion" / "companion_log.npz"
-        return dict(np.load(path)) if path.exists() else None
-    groups = sc.companion.group_layout(sc.skeleton.n_links)
-    per_group = []
-    for g in range(len(groups)):
-        folders = (f"companion-g{g + 1}", f"companion-g{g + 1}-restart")  # the first, then a restarted one
-        parts = [dict(np.load(p)) for p in (out_dir / f / "companion_log.npz" for f in folders) if p.exists()]
-        parts = [p for p in parts if "cycle_us" in p]
-        if not parts:
-            return None
-        log_g = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        _, first = np.unique(log_g["cycle_us"], return_index=True)
-        per_group.append({k: v[first] for k, v in log_g.items()})
-    cycles = per_group[0]["cycle_us"]
-    for lg in per_group[1:]:
-        cycles = np.intersect1d(cycles, lg["cycle_us"])
-    rows = [np.searchsorted(lg["cycle_us"], cycles) for lg in per_group]
-    merged = {"t_sckf": cycles * 1e-6, "cycle_us": cycles}
-    for key in ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf", "v_corr_sckf",
-                "q_corr_sckf"):
-        merged[key] = np.concatenate([lg[key][r] for lg, r in zip(per_group, rows)], axis=1)
-    merged["global_applied"] = np.stack([lg["global_applied"][r] for lg, r in zip(per_group, rows)], axis=1)
-    merged["iterations"] = np.max(np.stack([lg["iterations"][r] for lg, r in zip(per_group, rows)]), axis=0)
-    d = sc.skeleton.d_b_m
-    if sc.skeleton.n_links > 1 and cycles.size:
-        for tag, (p, v, q) in (("before", ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf")),
-                               ("after", ("p_corr_sckf", "v_corr_sckf", "q_corr_sckf"))):
-            norms = [joint_norms(merged[p][k], merged[v][k], merged[q][k], merged["w_sckf"][k], d)
-                     for k in range(cycles.size)]
-            merged[f"con_pos_{tag}"] = np.array([a for a, _ in norms])
-            merged[f"con_vel_{tag}"] = np.array([b for _, b in norms])
-    return merged
+        logs = [parts("companion")]
+    else:
+        logs = [parts(f"companion-g{g + 1}", f"companion-g{g + 1}-restart")
+                for g in range(len(sc.companion.group_layout(sc.skeleton.n_links)))]
+    return merge_step_logs(logs, sc.skeleton.d_b_m, sc.companion.distributed)
 
 
 def _companion_summaries(out_dir: Path) -> dict[str, dict]:
@@ -392,22 +367,29 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``)."""
     check_fleet_scenario(sc)
     out_dir.mkdir(parents=True, exist_ok=True)
-    config = out_dir / "scenario.toml"
-    config.write_text(dump_toml(sc))
-    n = sc.skeleton.n_links
+    (out_dir / "scenario.toml").write_text(dump_toml(sc))
     plant = Plant(sc)
-    center = ",".join(f"{x:.6f}" for x in plant.start_center())
+    # Each process validates its own part of the scenario: the vehicles their link.toml, the
+    # companions their companion.toml (the trajectory anchored where the simulated chain starts).
+    link_config = out_dir / "link.toml"
+    link_config.write_text(dump_toml(sc.vehicle_setup()))
+    anchor = tuple(float(x) for x in plant.start_center())
+    companion_setup = sc.companion_setup()
+    companion_config = out_dir / "companion.toml"
+    companion_config.write_text(dump_toml(replace(companion_setup,
+                                                  trajectory=replace(sc.trajectory, anchor_w_m=anchor))))
+    n = sc.skeleton.n_links
     procs = _Processes()
     harness = None
     interrupted = False
     try:
         for i in range(n):
-            procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(config), "--instance",
-                                          str(i), "--out", str(out_dir / f"link{i + 1}")],
+            procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance",
+                                          str(i), "--out", str(out_dir / f"link{i + 1}"),
+                                          "--log-rate", f"{sc.sim.log_rate_hz:g}"],
                         out_dir / f"link{i + 1}" / "console.log")
         def start_companion(group: int | None, folder: str, name: str | None = None) -> None:
-            argv = [python, "-m", "companion", "--config", str(config), "--out", str(out_dir / folder),
-                    "--start-center", center]
+            argv = [python, "-m", "companion", "--config", str(companion_config), "--out", str(out_dir / folder)]
             procs.start(name or _companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
                         out_dir / folder / "console.log")
 

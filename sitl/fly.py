@@ -1,7 +1,9 @@
-"""One batch-mode flight: run a scenario, compute its metrics, write its artefacts.
+"""Batch mode (``python -m sitl fly``): one flight of a scenario in one process, its metrics and artefacts.
 
-The run folder receives ``metrics.json``, ``log.npz`` (truth, EKF, control estimate,
-targets, thrusts at the log rate; constraint errors and estimates at the companion rate),
+:func:`fly` runs a :class:`~sitl.runner.BatchRunner` (physics, every link's firmware and the
+companion engine on one clock) for the scenario's duration. The run folder receives
+``metrics.json``, ``log.npz`` (truth, EKF, control estimate, targets, thrusts and cable forces
+at the log rate; the companion's step log with constraint errors and estimates at its steps),
 ``scenario.toml`` (the resolved configuration) and PNG plots.
 """
 
@@ -15,12 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from companion.configfile import dump_toml
+from companion.trajectory import CpgChainTrajectory
 
 from .metrics import PAPER_THREE_LINK, compute_metrics
 from .plots import write_plots
 from .runner import BatchRunner
 from .scenario import Scenario
-from .trajectory import CpgChainTrajectory
 
 __all__ = ["fly"]
 
@@ -39,8 +41,8 @@ def fly(
     """Run ``scenario`` for its ``duration_s``; returns the metrics (and writes them to ``out_dir``)."""
     runner = BatchRunner(scenario, sckf=sckf, selective_mapping=selective_mapping)
     sc = runner.scenario
-    run_log = runner.run(sc.duration_s, progress=progress)
-    arrays = run_log.arrays()
+    runner.run(sc.duration_s, progress=progress)
+    arrays = runner.arrays()
     metrics = compute_metrics(
         arrays,
         sc.flight_start_s,

@@ -25,6 +25,11 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``motion`` (CPG runs): per command, the commanded forward speed, the expected physics' speed
   (the targets' centroid) and the achieved speed (the true centroid), horizontal and averaged
   over the second half of the command, and the direction of travel at its end;
+* ``cable`` (two links or more): per joint the cable tension over the window (the simulator's
+  force on the child link against the chain direction; positive: the cable pulls) as ``min``,
+  ``p5``, ``mean``, ``max`` [N], the overall ``min_tension_n`` and the fraction of samples
+  ``compression_fraction`` in which a cable would have to push (a real cable goes slack there);
+  with the whole-chain feed-forward also the model's predicted tension (``model_*``);
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``.
 """
@@ -36,7 +41,7 @@ import numpy as np
 from companion.estimation.so3 import attitude_error
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
-           "motion_segments"]
+           "motion_segments", "cable_metrics"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
 #: the constraint error after SCKF ("under 5 cm and 2 cm/s").
@@ -80,6 +85,24 @@ def motion_segments(log: dict[str, np.ndarray], motion, end_s: float) -> list[di
             entry[f"speed_{name}_m_s"] = float(np.linalg.norm(v[:2]))
             entry[f"travel_heading_{name}_deg"] = float(np.degrees(np.arctan2(-v[1], -v[0])))
         out.append(entry)
+    return out
+
+
+def cable_metrics(tension_true: np.ndarray, tension_model: np.ndarray | None = None) -> dict:
+    """Cable tension figures over a window (rows: samples, columns: joints) [N]."""
+    out = {
+        "tension_n": {"min": tension_true.min(axis=0).tolist(), "p5": np.percentile(tension_true, 5, axis=0).tolist(),
+                      "mean": tension_true.mean(axis=0).tolist(), "max": tension_true.max(axis=0).tolist()},
+        "min_tension_n": float(tension_true.min()),
+        "compression_fraction": float(np.mean(tension_true < 0.0)),
+    }
+    if tension_model is not None and np.any(np.isfinite(tension_model)):
+        out["model_tension_n"] = {"min": np.nanmin(tension_model, axis=0).tolist(),
+                                  "mean": np.nanmean(tension_model, axis=0).tolist(),
+                                  "max": np.nanmax(tension_model, axis=0).tolist()}
+        out["model_min_tension_n"] = float(np.nanmin(tension_model))
+        err = tension_model - tension_true
+        out["model_error_rms_n"] = float(np.sqrt(np.nanmean(err * err)))
     return out
 
 
@@ -168,6 +191,9 @@ def compute_metrics(
                     values = log[name][wins]
                     metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
                     metrics[key]["after_between_groups"] = _p95(values[:, between])
+    if n > 1 and "tension_true" in log:
+        metrics["cable"] = cable_metrics(log["tension_true"][win],
+                                         log["tension_model"][win] if "tension_model" in log else None)
     if motion is not None:
         metrics["motion"] = motion_segments(log, motion, float(t[-1]))
         metrics["thesis_pose_track"] = THESIS_CPG_POSE_TRACK

@@ -14,7 +14,9 @@ by :mod:`sitl.rotor`.
 
 Sensors per link (site ``link{i}_imu`` at the centre): ``link{i}_acc`` (accelerometer: the
 specific force an IMU measures, contacts included), ``link{i}_gyro``, and truth
-``link{i}_pos``, ``link{i}_quat``, ``link{i}_linvel`` (world frame). Sites
+``link{i}_pos``, ``link{i}_quat``, ``link{i}_linvel`` (world frame). The cable force at every
+joint is MuJoCo's ``cfrc_int`` of the child link (the same tree as
+:class:`companion.skeleton.dynamics.ChainModel`; ``tests/test_chain_model.py`` checks both agree). Sites
 ``link{i}_tip_left`` / ``link{i}_tip_right`` mark the joints.
 
 Links collide with the ground plane only. A physics step is split: :meth:`SkeletonModel.begin_step`
@@ -32,11 +34,10 @@ import mujoco
 import numpy as np
 
 from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
-from link_firmware_sim.allocation import RotorGeometry
-from link_firmware_sim.control import GRAVITY_M_S2
+from companion.skeleton.body import GRAVITY_M_S2, SkeletonConfig, link_inertia
+from companion.skeleton.rotors import RotorGeometry, RotorParams
 
-from .rotor import RotorParams
-from .skeleton import SkeletonConfig, StartPose, link_inertia
+from .skeleton import StartPose
 
 __all__ = ["build_mjcf", "SkeletonModel", "Truth"]
 
@@ -125,13 +126,15 @@ def build_mjcf(cfg: SkeletonConfig, geometry: RotorGeometry, rotors: RotorParams
 
 @dataclass(frozen=True)
 class Truth:
-    """Ground truth of every link: p/v world (n, 3), q (n, 4), body rate and specific force (n, 3)."""
+    """Ground truth of every link: p/v world (n, 3), q (n, 4), body rate and specific force (n, 3),
+    and the force on link ``j+1`` from link ``j`` at every joint (the cable), world (n-1, 3)."""
 
     p_w_m: np.ndarray
     v_w_m_s: np.ndarray
     q_wxyz: np.ndarray
     omega_b_rad_s: np.ndarray
     specific_force_b_m_s2: np.ndarray
+    joint_force_w_n: np.ndarray
 
 
 class SkeletonModel:
@@ -200,6 +203,9 @@ class SkeletonModel:
             q_wxyz=s[self._quat],
             omega_b_rad_s=s[self._gyro],
             specific_force_b_m_s2=s[self._acc],
+            # MuJoCo's interaction force of each child link with its parent (the accelerometers make
+            # every step compute it); its force part is the cable force at the joint
+            joint_force_w_n=self.data.cfrc_int[self.body_ids[1:], 3:6].copy(),
         )
 
     def link_velocities(self) -> np.ndarray:

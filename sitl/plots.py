@@ -12,8 +12,8 @@ import numpy as np  # noqa: E402
 
 from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
 
-__all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_body_motion", "plot_attitude_tracking",
-           "write_plots"]
+__all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_cable_tension", "plot_body_motion",
+           "plot_attitude_tracking", "write_plots"]
 
 
 def _save(fig, title: str, path: Path) -> None:
@@ -142,12 +142,34 @@ def plot_attitude_tracking(log: dict[str, np.ndarray], path: Path) -> None:
     _save(fig, "Attitude tracking per link", path)
 
 
+def plot_cable_tension(log: dict[str, np.ndarray], path: Path) -> None:
+    """Cable tension per joint over the flight (the simulator's truth; the model's prediction when the
+    targets carry the whole-chain feed-forward). Below zero a cable would have to push."""
+    if "tension_true" not in log or log["tension_true"].shape[1] == 0:
+        return
+    t = log["t"]
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for j in range(log["tension_true"].shape[1]):
+        line, = ax.plot(t, log["tension_true"][:, j], lw=0.9, label=f"joint {j + 1}-{j + 2}")
+        if "tension_model" in log:
+            ax.plot(t, log["tension_model"][:, j], "--", lw=0.9, color=line.get_color(), alpha=0.8,
+                    label=f"joint {j + 1}-{j + 2} model")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("cable tension [N]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    _save(fig, "Cable tension at every joint (positive: the cable pulls)", path)
+
+
 def write_plots(log: dict[str, np.ndarray], out_dir: Path, motion=None, period_s: float = 4.0) -> list[Path]:
     """The run's PNGs; with ``motion`` (a CPG run) also the body motion and attitude tracking."""
-    paths = [out_dir / "constraint_error.png", out_dir / "tracking.png", out_dir / "thrust.png"]
+    paths = [out_dir / "constraint_error.png", out_dir / "tracking.png", out_dir / "thrust.png",
+             out_dir / "cable_tension.png"]
     plot_constraint_error(log, paths[0])
     plot_tracking(log, paths[1])
     plot_thrust(log, paths[2])
+    plot_cable_tension(log, paths[3])
     if motion is not None:
         paths += [out_dir / "body_motion.png", out_dir / "attitude_tracking.png"]
         plot_body_motion(log, motion, paths[-2], period_s)

@@ -29,41 +29,11 @@ relaxes exponentially towards its current target). Commands are clipped to
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
-from companion.configfile import require_nonnegative, require_positive
+from companion.skeleton.rotors import RotorParams
+
 __all__ = ["RotorParams", "RotorBank"]
-
-
-@dataclass(frozen=True)
-class RotorParams:
-    """Rotor/ESC parameters.
-
-    Attributes:
-        thrust_max_n: bidirectional thrust limit per rotor [N] (LASDRA: about 8 N).
-        time_constant_s: first-order spin-up/down time constant ``1/k`` [s].
-        esc_epsilon_n: below this thrust magnitude the ESC may reverse [N].
-        min_thrust_n: smallest sustainable thrust magnitude (0: the thesis law) [N].
-        restart_dwell_s: time a stopped rotor stays at zero before spinning up [s].
-        drag_ratio_m: drag torque per unit thrust ``gamma`` [m] (thesis: 0.02).
-    """
-
-    thrust_max_n: float = 8.0
-    time_constant_s: float = 0.05
-    esc_epsilon_n: float = 0.05
-    min_thrust_n: float = 0.0
-    restart_dwell_s: float = 0.0
-    drag_ratio_m: float = 0.02
-
-    def __post_init__(self) -> None:
-        require_positive(self, "thrust_max_n", "time_constant_s")
-        if not 0 < self.esc_epsilon_n < self.thrust_max_n:
-            raise ValueError(f"esc_epsilon_n must be in (0, thrust_max_n), got {self.esc_epsilon_n}")
-        if not 0 <= self.min_thrust_n < self.thrust_max_n:
-            raise ValueError(f"min_thrust_n must be in [0, thrust_max_n), got {self.min_thrust_n}")
-        require_nonnegative(self, "restart_dwell_s", "drag_ratio_m")
 
 
 class RotorBank:

@@ -3,16 +3,18 @@
 One physics tick (1 kHz by default) is::
 
     kinematics (mj_step1) -> truth
-    every firmware tick (500 Hz): targets (target rate), IMU sample, GPS / attitude samples
-        queued (their rates), each link's firmware: EKF predict + updates + control + allocation
-    every companion tick (20 Hz): link states -> SCKF (Alg. 2 + eq. 6) -> corrections
+    every firmware tick (500 Hz): IMU sample, GPS / attitude samples queued (their rates), each
+        link's firmware: EKF predict + updates + control + allocation; then the companion
+        engine(s): link states at the stream rate (50 Hz), its 20 Hz step, corrections, targets
+        (50 Hz) and arming, carried out on the firmware at once
     rotor/ESC dynamics -> thrusts, wind -> forces -> dynamics and integration (mj_step2)
 
 Everything random comes from ``numpy.random.default_rng(scenario.seed)``; MuJoCo is
 deterministic, so the same scenario and seed give the same numbers.
 
-The companion in batch mode sees the states of the current tick and its corrections arrive
-in the same tick (no transport latency; the MAVLink fleet adds the wires).
+The companion is the daemon's engine (:class:`~companion.engine.CompanionEngine`): batch flights
+exercise its time alignment, withholding, time base, targets and distributed halves. Its outputs
+reach the firmware in the same tick (no transport latency; the MAVLink fleet adds the wires).
 """
 
 from __future__ import annotations
@@ -24,22 +26,26 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from companion.corrections import compute_corrections
-from companion.estimation.chain import CON_DIM, CON_POS, CON_VEL
-from companion.estimation.constraints import constraint_residual
-from companion.estimation.so3 import attitude_error
-from link_firmware_sim.allocation import RotorGeometry
+from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
+from companion.estimation.so3 import attitude_error, quat_to_rotmat
+from companion.fleetnet.group import GroupLink
+from companion.fleetnet.hub import LocalHub
+from companion.fleetnet.leader import GlobalStepNode
+from companion.skeleton.body import link_inertia
+from companion.skeleton.kinematics import chain_middle, tension
+from companion.trajectory import CpgChainTrajectory
 from link_firmware_sim.firmware import LinkFirmware
-from sitl.bench.ekf_chain import rate_divisor
+from link_firmware_sim.hil import sitl_gps_time_us
+
+from .bench.ekf_chain import rate_divisor
 
 from .model import SkeletonModel
-from .skeleton import link_inertia
 from .rotor import RotorBank
 from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors
-from .trajectory import CpgChainTrajectory, make_trajectory
+from .steplog import attach_truth, merge_step_logs
 
-__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog", "joint_norms"]
+__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog"]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +78,7 @@ class Wind:
 
 @dataclass
 class RunLog:
-    """Time series recorded during a run (filled at the log rate and the companion rate)."""
+    """Time series recorded at the log rate (the companions' steps are in their step logs)."""
 
     t: list = field(default_factory=list)
     p_true: list = field(default_factory=list)
@@ -85,29 +91,17 @@ class RunLog:
     p_target: list = field(default_factory=list)
     q_target: list = field(default_factory=list)
     thrust: list = field(default_factory=list)
-    # companion ticks
-    t_sckf: list = field(default_factory=list)
-    con_pos_before: list = field(default_factory=list)
-    con_vel_before: list = field(default_factory=list)
-    con_pos_after: list = field(default_factory=list)
-    con_vel_after: list = field(default_factory=list)
-    p_true_sckf: list = field(default_factory=list)
-    p_ekf_sckf: list = field(default_factory=list)
-    p_corr_sckf: list = field(default_factory=list)
-    p_local_sckf: list = field(default_factory=list)
-    iterations: list = field(default_factory=list)
+    # the cable at every joint: the simulator's force (world) and its tension; the model's
+    # predicted tension when the targets carry the whole-chain feed-forward
+    joint_force_true: list = field(default_factory=list)
+    tension_true: list = field(default_factory=list)
+    tension_model: list = field(default_factory=list)
     # CPG motion (log ticks): the parameters in use and the desired motion
     eta: list = field(default_factory=list)
     xi_desired: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
-
-
-def joint_norms(p, v, q, w, d) -> tuple[np.ndarray, np.ndarray]:
-    """Per-joint norms of the eq. 3 position and velocity errors."""
-    c = constraint_residual(p, v, q, w, d).reshape(-1, CON_DIM)
-    return np.linalg.norm(c[:, CON_POS], axis=1), np.linalg.norm(c[:, CON_VEL], axis=1)
 
 
 @dataclass(frozen=True)
@@ -118,8 +112,6 @@ class Schedule:
     fw: int
     gps: int
     att: int
-    sckf: int
-    target: int
     log: int
 
     @classmethod
@@ -131,8 +123,6 @@ class Schedule:
             fw=fw,
             gps=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.gps_rate_hz, "gps"),
             att=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.attitude_rate_hz, "attitude"),
-            sckf=rate_divisor(physics, sc.companion.rate_hz, "companion.rate_hz"),
-            target=rate_divisor(physics, sc.sim.target_rate_hz, "target_rate_hz"),
             log=rate_divisor(physics, sc.sim.log_rate_hz, "log_rate_hz"),
         )
 
@@ -150,7 +140,7 @@ class Plant:
         self.scenario = sc
         self.n = sc.skeleton.n_links
         self.dt = 1.0 / sc.sim.physics_rate_hz
-        self.geometry = RotorGeometry.odar(drag_ratio=sc.rotors.drag_ratio_m, x_scale=sc.skeleton.rotor_x_scale)
+        self.geometry = sc.geometry()
         self.inertia = link_inertia(sc.skeleton, self.geometry)
         self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt)
         self.model.reset(sc.start)
@@ -170,9 +160,8 @@ class Plant:
 
     def start_center(self) -> np.ndarray:
         """Middle point of the chain (middle link centre or middle joint) at the start."""
-        p = self.model.truth().p_w_m
-        mid = self.n // 2
-        return p[mid].copy() if self.n % 2 else 0.5 * (p[mid - 1] + p[mid])
+        truth = self.model.truth()
+        return chain_middle(truth.p_w_m, truth.q_wxyz, self.d).copy()
 
     def begin_tick(self):
         """Kinematics of the current instant; returns the truth."""
@@ -209,7 +198,16 @@ class Plant:
 
 
 class BatchRunner:
-    """Batch mode: a :class:`Plant`, every link's firmware and the companion, in one process."""
+    """Batch mode: a :class:`Plant`, every link's firmware and the companion engine(s), in one process.
+
+    The companion is :class:`~companion.engine.CompanionEngine`, the daemon's own logic: each link's
+    state reaches it at the state stream's rate on the flight-controller clock (as the vehicles
+    stream SKELETON_LINK_STATE in fleet mode), with heartbeats and SYSTEM_TIME at 1 Hz; its
+    corrections, targets and arm commands go to the firmware in the same tick (no transport
+    latency). A distributed scenario runs one engine per group, joined by an in-process bus
+    (:class:`~companion.fleetnet.hub.LocalHub`) on the simulation clock: the same election,
+    boundaries and eq. 6 shifts as over Zenoh, deterministic.
+    """
 
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None):
         sc = scenario
@@ -229,24 +227,41 @@ class BatchRunner:
         self.model = plant.model
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.groups = sc.companion.group_layout(self.n)
+        self.now_s = 0.0  # the companions' clock: simulation time
+        self.engines, self.hub = self._engines(sc, plant.start_center())
         truth = plant.model.truth()
-        self.trajectory = make_trajectory(sc.trajectory, sc.motion, self.n, sc.skeleton.link_length_m,
-                                          plant.start_center())
-        # Firmware start-up: EKF from the first GPS fix and attitude reference, then arm (a
-        # resting chain stays disarmed).
+        # Firmware start-up: EKF from the first GPS fix and attitude reference (the companion arms).
         pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
         att = plant.sensors.attitude(0.0, truth.q_wxyz)
         for i, fw in enumerate(self.firmware):
             fw.initialize(0.0, pos[i], vel[i], att[i])
-            if sc.trajectory.kind != "rest":
-                fw.arm(0.0)
         if not sc.start.on_ground:
             # In-air start: rotors already spinning at the thrusts that carry each link.
             self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
         self.log = RunLog()
-        self._seq = 0
+        self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
         self.sim_s = 0.0
+
+    def _engines(self, sc: Scenario, center: np.ndarray):
+        clock = lambda: self.now_s  # noqa: E731 - the engines' and the hub's clock
+        if not sc.companion.distributed:
+            return [CompanionEngine(sc, start_center=center)], None
+        zc = sc.zenoh
+        n_groups = len(self.groups)
+        hub = LocalHub(n_groups, clock, sc.zenoh_prefix)
+        engines = []
+        for g in range(n_groups):
+            node = GlobalStepNode(g, n_groups, zc.order(n_groups), int(round(1e6 / sc.companion.rate_hz)),
+                                  shift_deadline_s=zc.shift_deadline_ms * 1e-3, leader_wait_s=zc.leader_wait_ms * 1e-3,
+                                  handover_cycles=zc.handover_cycles)
+            engines.append(CompanionEngine(sc, group=g, start_center=center, net=GroupLink(node, hub.join(g), clock)))
+        return engines, hub
+
+    @property
+    def trajectory(self):
+        """The target source of the (first) companion engine (``None`` before its first target)."""
+        return self.engines[0].trajectory
 
     @property
     def crashed(self) -> bool:
@@ -256,34 +271,54 @@ class BatchRunner:
     def crash_reason(self) -> str:
         return self.plant.crash_reason
 
-    def _companion_tick(self, t: float, truth) -> None:
-        sc = self.scenario
-        reports = [fw.state_report() for fw in self.firmware]
-        p = np.stack([r.p_w_m for r in reports])
-        v = np.stack([r.v_w_m_s for r in reports])
-        q = np.stack([r.q_wxyz for r in reports])
-        w = np.stack([r.omega_b_rad_s for r in reports])
-        lg = self.log
-        lg.t_sckf.append(t)
-        lg.p_true_sckf.append(truth.p_w_m.copy())
-        lg.p_ekf_sckf.append(p)
-        if self.n > 1:
-            pos, vel = joint_norms(p, v, q, w, self.d)
-            lg.con_pos_before.append(pos)
-            lg.con_vel_before.append(vel)
-        if not sc.companion.enabled:
-            return
-        result, corrections = compute_corrections(reports, self.d, self.groups, sc.companion.params, self._seq)
-        self._seq += 1
-        for fw, corr in zip(self.firmware, corrections):
-            fw.on_correction(t, corr)
-        lg.p_corr_sckf.append(result.p)
-        lg.p_local_sckf.append(np.concatenate([r.p for r in result.local]))
-        lg.iterations.append(result.iterations.max())
-        if self.n > 1:
-            pos, vel = joint_norms(result.p, result.v, result.q, w, self.d)
-            lg.con_pos_after.append(pos)
-            lg.con_vel_after.append(vel)
+    def _companion_exchange(self, t: float, t_us: int) -> None:
+        """Link states (at the stream rate), heartbeats and SYSTEM_TIME (1 Hz) to the engines; their
+        outputs to the firmware; repeated while the in-process bus carries messages."""
+        self.now_s = t
+        second = t_us % 1_000_000 == 0
+        states = t_us % self.state_interval_us == 0
+        for engine in self.engines:
+            for lk in engine.links:
+                fw = self.firmware[lk.index]
+                if second:
+                    engine.on_heartbeat(lk.row, t)
+                    engine.on_system_time(lk.row, sitl_gps_time_us(t_us) if fw.initialized else 0, t_us // 1000)
+                if states and fw.initialized:
+                    engine.on_state(lk.row, fw.state_report(), fw.flags(t), t, fw.correction_seq,
+                                    fw.correction_latency_us)
+        for _ in range(4 * len(self.engines) + 4):
+            for engine in self.engines:
+                self._apply(engine, engine.poll(t), t)
+            if self.hub is None or not self.hub.pending():
+                break
+
+    def _apply(self, engine: CompanionEngine, outputs, t: float) -> None:
+        standard = self.scenario.companion.mode == "standard"
+        for out in outputs:
+            if isinstance(out, CorrectionOut):
+                fw = self.firmware[engine.links[out.row].index]
+                if standard:
+                    c = out.corrected
+                    fw.on_external_pose(t, c.p_w_m, c.v_w_m_s, c.q_wxyz)
+                else:
+                    fw.on_correction(t, out.correction)
+            elif isinstance(out, TargetOut):
+                self.firmware[engine.links[out.row].index].set_target(t, out.target)
+            elif isinstance(out, CommandOut):
+                ok = out.command is not Command.ARM or self.firmware[engine.links[out.row].index].arm(t)
+                engine.on_command_ack(out.row, out.command, ok)
+
+    def step_log(self) -> dict[str, np.ndarray] | None:
+        """The companions' steps over the whole chain (:func:`~sitl.steplog.merge_step_logs`)."""
+        return merge_step_logs([[e.log_arrays()] for e in self.engines], self.d, self.hub is not None)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The run's log: the log-rate series plus the companions' step log with the truth at every step."""
+        out = self.log.arrays()
+        steps = self.step_log()
+        if steps is not None and "t" in out:
+            out.update(attach_truth(steps, out["t"], out["p_true"]))
+        return out
 
     def _log_tick(self, t: float, truth) -> None:
         lg = self.log
@@ -296,9 +331,17 @@ class BatchRunner:
         lg.q_ctrl.append(np.stack([c[2] for c in ctrl]))
         lg.p_ekf.append(np.stack([fw.ekf.p_w_m for fw in self.firmware]))
         lg.q_ekf.append(np.stack([fw.ekf.q_wxyz for fw in self.firmware]))
-        lg.p_target.append(np.stack([fw.target.p_w_m for fw in self.firmware]))
-        lg.q_target.append(np.stack([fw.target.q_wxyz for fw in self.firmware]))
+        targets = [fw.active_target(t) for fw in self.firmware]
+        lg.p_target.append(np.stack([x.p_w_m for x in targets]))
+        lg.q_target.append(np.stack([x.q_wxyz for x in targets]))
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
+        lg.joint_force_true.append(truth.joint_force_w_n)
+        lg.tension_true.append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
+        dynamics = getattr(self.trajectory, "dynamics", None)
+        if dynamics is not None:
+            last = dynamics.last
+            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None else tension(
+                last.joint_force_w_n, quat_to_rotmat(np.stack([x.q_wxyz for x in targets]))))
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
             lg.xi_desired.append(self.trajectory.xi_desired.copy())
@@ -319,9 +362,6 @@ class BatchRunner:
                 if not np.all(np.isfinite(truth.p_w_m)):
                     plant.check_crash(t, truth, None)
                     break
-                if k % sch.target == 0:
-                    for fw, target in zip(self.firmware, self.trajectory.targets(t)):
-                        fw.set_target(t, target)
                 if k % sch.gps == 0:
                     pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
                     for i, fw in enumerate(self.firmware):
@@ -334,11 +374,10 @@ class BatchRunner:
                 for i, fw in enumerate(self.firmware):
                     commands[i] = fw.on_imu(t, gyro[i], accel[i])
                 rotors.set_command(commands.reshape(-1))
-            if k % sch.sckf == 0:
-                self._companion_tick(t, truth)
+                self._companion_exchange(t, int(round(k * self.dt * 1e6)))
             if k % sch.log == 0:
                 self._log_tick(t, truth)
-                plant.check_crash(t, truth, np.stack([fw.target.q_wxyz for fw in self.firmware]))
+                plant.check_crash(t, truth, np.stack([fw.active_target(t).q_wxyz for fw in self.firmware]))
             plant.end_tick()
             if progress is not None and (k - tick0) % 100 == 99:
                 progress(100 * self.dt)

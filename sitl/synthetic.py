@@ -20,11 +20,13 @@ import numpy as np
 
 from companion.configfile import require_positive
 from companion.estimation.so3 import quat_from_euler_zyx, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat
+from companion.skeleton.body import GRAVITY_W_M_S2
+from companion.skeleton.kinematics import chain_offsets
 
 __all__ = ["ChainMotion", "ChainTruth", "chain_truth", "SensorModel", "Drift", "draw_drifts", "Sensors"]
 
 _TWO_PI = 2.0 * math.pi
-_GRAVITY_W = np.array([0.0, 0.0, -9.80665])
+_GRAVITY_W = np.array(GRAVITY_W_M_S2)
 
 
 @dataclass(frozen=True)
@@ -96,20 +98,14 @@ def _pose_velocity(motion: ChainMotion, t: np.ndarray):
         ),
         axis=-1,
     )
-    R = quat_to_rotmat(q)
-    d = motion.d
-    a_tip = np.einsum("knij,nj->kni", R, d)
-    b_tip = np.einsum("knij,knj->kni", R, np.cross(w_b, d[None]))
+    r, rd = chain_offsets(quat_to_rotmat(q), w_b, motion.d)
     tt = np.asarray(t, dtype=float)[:, None]
     amp = np.asarray(motion.base_amp_m)
     om = _TWO_PI * np.asarray(motion.base_freq_hz)
     base_p = amp * np.sin(om * tt) + np.array([0.0, 0.0, motion.base_height_m])
     base_v = amp * om * np.cos(om * tt)
-    # p_{i+1} = p_i + a_i + a_{i+1}: cumulative sums of the joint offsets.
-    steps_p = a_tip[:, :-1] + a_tip[:, 1:]
-    steps_v = b_tip[:, :-1] + b_tip[:, 1:]
-    p = np.concatenate((base_p[:, None], base_p[:, None] + np.cumsum(steps_p, axis=1)), axis=1)
-    v = np.concatenate((base_v[:, None], base_v[:, None] + np.cumsum(steps_v, axis=1)), axis=1)
+    p = base_p[:, None] + r
+    v = base_v[:, None] + rd
     return p, v, q, w_b
 
 

@@ -1,6 +1,6 @@
 import pytest
 
-from companion.runtime import single_thread_blas
+from companion.cli import single_thread_blas
 
 
 @pytest.fixture(autouse=True, scope="session")

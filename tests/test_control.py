@@ -2,15 +2,9 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_normalize, quat_to_rotmat
-from link_firmware_sim.control import (
-    GRAVITY_M_S2,
-    ControlIntegrals,
-    ImpedanceGains,
-    LinkInertia,
-    PoseTarget,
-    impedance_control,
-    vee,
-)
+from companion.messages import PoseTarget
+from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
+from link_firmware_sim.control import ControlIntegrals, ImpedanceGains, impedance_control, vee
 
 
 def _eq1_reference(p, v, q, w, target, gains, inertia, integrals, dt):
@@ -22,14 +16,14 @@ def _eq1_reference(p, v, q, w, target, gains, inertia, integrals, dt):
     pos_int = np.clip(integrals.pos + e_p * dt, -gains.pos_integral_limit_ms, gains.pos_integral_limit_ms)
     f = (m * GRAVITY_M_S2 * np.array([0, 0, 1.0]) + m * target.a_w_m_s2
          - np.array(gains.kd_ns_m) * (v - target.v_w_m_s) - np.array(gains.kp_n_m) * e_p
-         - np.array(gains.ki_n_ms) * pos_int)
+         - np.array(gains.ki_n_ms) * pos_int + target.force_ff_w_n)
     e_R = vee(Rd.T @ R - R.T @ Rd)
     w_db = R.T @ Rd @ target.omega_d_rad_s
     e_w = w - w_db
     att_int = np.clip(integrals.att + (e_w + gains.gamma_I * e_R) * dt,
                       -gains.att_integral_limit_rad, gains.att_integral_limit_rad)
     tau = (np.cross(w, J @ w) - gains.kR_nm * e_R - gains.kw_nms * e_w - gains.kI_nm_s * att_int
-           - J @ (np.cross(w, w_db) - R.T @ Rd @ target.omega_dot_d_rad_s2))
+           - J @ (np.cross(w, w_db) - R.T @ Rd @ target.omega_dot_d_rad_s2) + R.T @ Rd @ target.torque_ff_b_nm)
     return np.concatenate((R.T @ f, tau)), pos_int, att_int
 
 
@@ -40,7 +34,8 @@ def test_controller_equals_eq1(seed):
                            pos_integral_limit_ms=0.05, att_integral_limit_rad=0.02)
     inertia = LinkInertia(1.8, (0.04, 0.16, 0.17))
     target = PoseTarget(rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3),
-                        rng.normal(size=3), rng.normal(size=3), rng.normal(size=3))
+                        rng.normal(size=3), rng.normal(size=3), rng.normal(size=3),
+                        *(rng.normal(size=3) if seed % 2 else np.zeros(3) for _ in range(2)))
     integrals = ControlIntegrals(rng.normal(scale=0.03, size=3), rng.normal(scale=0.01, size=3))
     args = (rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3))
     U, ints = impedance_control(*args, target, gains, inertia, integrals, 0.01)

@@ -18,7 +18,7 @@ from companion.motion.inverse import InverseModel
 from companion.motion.schedule import MotionCommand, MotionConfig, desired_motion
 from sitl.fly import fly
 from sitl.scenario import load_scenario
-from sitl.trajectory import CpgChainTrajectory, TrajectoryConfig
+from companion.trajectory import CpgChainTrajectory, TrajectoryConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "sitl" / "seven_link_cpg.toml"

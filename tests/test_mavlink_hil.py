@@ -4,8 +4,8 @@ import pytest
 from companion.estimation.so3 import quat_normalize, quat_to_rotmat
 from companion.mavlink.codec import MessageError
 from companion.mavlink.dialect import load_dialect
-from companion.geo import GeoOrigin
-from companion.mavlink.hil import (
+from link_firmware_sim.geo import GeoOrigin
+from link_firmware_sim.hil import (
     decode_actuators,
     decode_ahrs,
     decode_hil_gps,

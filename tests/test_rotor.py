@@ -3,7 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from sitl.rotor import RotorBank, RotorParams
+from companion.skeleton.rotors import RotorParams
+from sitl.rotor import RotorBank
 
 DT = 0.001
 

@@ -11,15 +11,17 @@ from companion.estimation.constraints import constraint_residual
 from companion.estimation.semi import make_groups
 from companion.estimation.so3 import attitude_error, quat_from_euler_zyx
 from companion.messages import Correction, LinkState
-from link_firmware_sim.allocation import RotorGeometry
-from link_firmware_sim.control import LinkInertia, PoseTarget
+from companion.messages import PoseTarget
+from companion.skeleton.body import LinkInertia, SkeletonConfig
+from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from sitl.fly import fly
-from sitl.skeleton import SkeletonConfig, StartPose
+from sitl.skeleton import StartPose
 from sitl.runner import BatchRunner
-from sitl.scenario import CompanionConfig, Scenario, SensorConfig, load_scenario
+from companion.config import CompanionConfig
+from sitl.scenario import Scenario, SensorConfig, load_scenario
 from sitl.sensors import PROFILES, LinkSensors
-from sitl.trajectory import ChainTrajectory, TrajectoryConfig
+from companion.trajectory import ChainTrajectory, TrajectoryConfig
 
 from .chains import consistent_chain, random_covariances
 

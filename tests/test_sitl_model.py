@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_to_rotmat
-from link_firmware_sim.allocation import Allocator, RotorGeometry
+from companion.skeleton.body import SkeletonConfig, link_inertia
+from companion.skeleton.rotors import RotorGeometry, RotorParams
+from link_firmware_sim.allocation import Allocator
 from sitl.model import SkeletonModel
-from sitl.skeleton import SkeletonConfig, StartPose, link_inertia
-from sitl.rotor import RotorParams
+from sitl.skeleton import StartPose
 
 
 def _model(n=3, **kw):

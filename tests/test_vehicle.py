@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_from_euler_zyx
-from companion.geo import GeoOrigin
 from companion.mavlink.codec import encode_correction
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from companion.mavlink.port import MavlinkPort
 from companion.messages import Correction
-from link_firmware_sim.allocation import RotorGeometry
-from link_firmware_sim.control import LinkInertia
+from companion.skeleton.body import LinkInertia
+from companion.skeleton.rotors import RotorGeometry
+from link_firmware_sim.geo import GeoOrigin
+from link_firmware_sim.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from link_firmware_sim.params import ParamTable, StreamRates
 from link_firmware_sim.vehicle import Vehicle, VehiclePorts

@@ -31,6 +31,7 @@ __all__ = [
     "tips_from_body",
     "constraint_residual",
     "constraint_norm",
+    "joint_error_norms",
     "constraint_jacobian_blocks",
     "constraint_jacobian",
     "residual_from_tips",
@@ -89,6 +90,12 @@ def residual_from_tips(p, v, a, b) -> np.ndarray:
     c[..., CON_POS] = (p[..., :-1, :] + a[..., :-1, :]) - (p[..., 1:, :] - a[..., 1:, :])
     c[..., CON_VEL] = (v[..., :-1, :] + b[..., :-1, :]) - (v[..., 1:, :] - b[..., 1:, :])
     return c.reshape(p.shape[:-2] + (-1,))
+
+
+def joint_error_norms(p, v, q, w, d) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint, the norms of the eq. 3 tip position and velocity errors: two ``(..., n-1)`` arrays."""
+    c = constraint_residual(p, v, q, w, d).reshape(np.shape(p)[:-2] + (-1, CON_DIM))
+    return np.linalg.norm(c[..., CON_POS], axis=-1), np.linalg.norm(c[..., CON_VEL], axis=-1)
 
 
 def constraint_norm(p, v, q, w, d) -> float:

@@ -17,7 +17,6 @@ import logging
 import os
 import queue
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,23 +27,12 @@ from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, M
 
 from . import codec
 from .config import ZenohConfig
+from .hub import BusEvent
 from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key, target_key
 
 __all__ = ["BusEvent", "FleetBus", "zenoh_config"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class BusEvent:
-    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``alive``, ``gone`` or ``error``;
-    ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
-    monotonic arrival time; ``key`` the key expression it came on."""
-
-    kind: str
-    value: Any
-    time_s: float
-    key: str
 
 
 def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>") -> zenoh.Config:

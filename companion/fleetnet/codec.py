@@ -35,7 +35,7 @@ from companion.messages import (
 __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
 
 MAGIC = b"ASKZ"
-VERSION = 1
+VERSION = 2  # 2: ChainTargets carry the whole-chain feed-forward wrench
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -57,7 +57,8 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                       ("handover_group", "i8"), ("handover_cycle_us", "i64"), ("hold_us", "per_id"))),
     ChainTargets: (5, (("leader_group", "u8"), ("time_us", "i64"), ("seq", "u32"), ("links", "ids"),
                        ("p_w_m", ("rows", 3)), ("q_wxyz", ("rows", 4)), ("v_w_m_s", ("rows", 3)),
-                       ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)))),
+                       ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)),
+                       ("force_ff_w_n", ("rows", 3)), ("torque_ff_b_nm", ("rows", 3)))),
 }
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 

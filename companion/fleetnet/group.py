@@ -1,8 +1,9 @@
-"""A group companion's global-step wiring: a :class:`~.leader.GlobalStepNode` on a :class:`~.bus.FleetBus`.
+"""A group companion's global-step wiring: a :class:`~.leader.GlobalStepNode` on a bus.
 
-:class:`GroupLink` is the thin shell around the pure node that both the companion daemon and
-the Zenoh benchmark run: it hands what arrives on the bus to the node, publishes what the node
-decides, and returns the cycles that ended (:class:`~.leader.Resolution`) for the caller to turn
+:class:`GroupLink` is the thin shell around the pure node that the companion engine, the Zenoh
+benchmark and batch mode run; the bus (:class:`~.bus.FleetBus` over Zenoh, or
+:class:`~.hub.LocalBus` in one process) and the clock are passed in. It hands what arrives on the bus to the node, publishes what
+the node decides, and returns the cycles that ended (:class:`~.leader.Resolution`) for the caller to turn
 into corrections. It also keeps the operational record: malformed payloads per key, leader
 failovers (from the moment the acting leader's token went to the first cycle with a global
 step again, and the cycles without one in between) and the round trips reported while leading.
@@ -18,7 +19,6 @@ import numpy as np
 
 from companion.messages import ChainTargets
 
-from .bus import FleetBus
 from .leader import Actions, GlobalStepNode, Resolution
 
 __all__ = ["GroupLink", "percentiles"]
@@ -37,9 +37,10 @@ def percentiles(values_ms) -> dict | None:
 class GroupLink:
     """See the module docstring."""
 
-    def __init__(self, node: GlobalStepNode, bus: FleetBus):
+    def __init__(self, node: GlobalStepNode, bus, clock=time.monotonic):
         self.node = node
         self.bus = bus
+        self.clock = clock
         self.errors: dict[str, int] = {}
         self.failovers: list[dict] = []
         self._failover: dict | None = None
@@ -101,7 +102,7 @@ class GroupLink:
             self.bus.publish_boundary(actions.boundary)
         for shift in actions.shifts:
             # the node measured its hold up to ``now_s``; the groups subtract it up to the put
-            extra_us = int(round((time.monotonic() - now_s) * 1e6))
+            extra_us = int(round((self.clock() - now_s) * 1e6))
             self.bus.publish_shift(replace(shift, hold_us=tuple(h + extra_us for h in shift.hold_us)))
         for res in actions.resolved:
             fo = self._failover

@@ -12,7 +12,18 @@ import math
 
 import numpy as np
 
-from companion.messages import Correction, LinkState, MessageError, check_finite, check_pd, check_unit_quat
+from companion.messages import (
+    STATE_FLAG_ARMED,
+    STATE_FLAG_CORRECTION_ACTIVE,
+    STATE_FLAG_EKF_OK,
+    Correction,
+    LinkState,
+    MessageError,
+    PoseTarget,
+    check_finite,
+    check_pd,
+    check_unit_quat,
+)
 
 from .dialect import load_dialect
 from .frames import enu_ned, error_cov_enu_ned, flu_frd, pack_upper, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu, unpack_upper
@@ -28,12 +39,14 @@ __all__ = [
     "decode_link_state",
     "encode_correction",
     "decode_correction",
+    "encode_target_feedforward",
+    "decode_target_feedforward",
 ]
 
 _D = load_dialect()
-STATE_FLAG_EKF_OK = _D.SKELETON_STATE_FLAGS_EKF_OK
-STATE_FLAG_ARMED = _D.SKELETON_STATE_FLAGS_ARMED
-STATE_FLAG_CORRECTION_ACTIVE = _D.SKELETON_STATE_FLAGS_CORRECTION_ACTIVE
+if (STATE_FLAG_EKF_OK, STATE_FLAG_ARMED, STATE_FLAG_CORRECTION_ACTIVE) != (
+        _D.SKELETON_STATE_FLAGS_EKF_OK, _D.SKELETON_STATE_FLAGS_ARMED, _D.SKELETON_STATE_FLAGS_CORRECTION_ACTIVE):
+    raise RuntimeError("companion.messages STATE_FLAG_* differ from the dialect's SKELETON_STATE_FLAGS")
 
 
 def usec(t_s: float) -> int:
@@ -104,3 +117,17 @@ def decode_correction(msg, link: int) -> Correction | None:
         dtheta_w_rad=enu_ned(dtheta),
         seq=int(msg.seq),
     )
+
+
+def encode_target_feedforward(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):
+    """SKELETON_TARGET_FEEDFORWARD: ``target``'s angular acceleration and feed-forward wrench."""
+    return _D.MAVLink_skeleton_target_feedforward_message(
+        time_boot_ms=time_boot_ms & 0xFFFFFFFF, target_system=target_system, target_component=target_component,
+        ang_accel_frd=flu_frd(target.omega_dot_d_rad_s2).tolist(), force_ned=enu_ned(target.force_ff_w_n).tolist(),
+        torque_frd=flu_frd(target.torque_ff_b_nm).tolist())
+
+
+def decode_target_feedforward(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(omega_dot_d FLU, force_ff world ENU, torque_ff FLU)`` of a SKELETON_TARGET_FEEDFORWARD."""
+    return (flu_frd(check_finite("ang_accel_frd", msg.ang_accel_frd)), enu_ned(check_finite("force_ned", msg.force_ned)),
+            flu_frd(check_finite("torque_frd", msg.torque_frd)))

@@ -21,10 +21,9 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from companion.cli import make_run_dir, progress_bar, run_subcommand
 from companion.configfile import ConfigError, build
-from companion.runtime import make_run_dir, run_subcommand
 
 from .cpg import CpgParams
 from .inverse import train_inverse_model
@@ -42,8 +41,8 @@ def _cmd_dataset(args) -> int:
     out = make_run_dir("cpg-dataset", args.out)
     period_s = 1.0 / cfg.cpg_params.frequency_hz
     total = cfg.settle_s + cfg.periods * period_s
-    with tqdm(total=round(total, 2), desc=f"{args.samples} parameter sets", unit="sim s", disable=args.quiet,
-              file=sys.stderr) as bar:
+    with progress_bar(total=round(total, 2), desc=f"{args.samples} parameter sets", unit="sim s",
+                      disable=args.quiet) as bar:
         xi = steady_motion(eta, cfg, progress=bar.update)
     settings = {"seed": args.seed, "a_max": args.a_max, "b_max": args.b_max, **{k: v for k, v in asdict(cfg).items()
                                                                                 if k not in ("cpg", "water")},

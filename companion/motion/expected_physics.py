@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.configfile import require_positive
+from companion.skeleton.kinematics import chain_offsets
 
 from .cpg import so3_exp
 
@@ -83,12 +84,7 @@ class BodyState:
 
 def chain_shape(R_bl: np.ndarray, omega_bl_l: np.ndarray, half_length_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Link centres ``r_i`` (..., n, 3) and their rates ``r_i'`` in ``{B}`` (centroid at 0)."""
-    lh = np.array([half_length_m, 0.0, 0.0])
-    tips = R_bl @ lh  # R_BLi l_h
-    tip_rates = np.einsum("...ij,...j->...i", R_bl, np.cross(omega_bl_l, lh))  # R_BLi S(omega_i) l_h
-    zero = np.zeros(tips.shape[:-2] + (1, 3))
-    r = np.concatenate([zero, np.cumsum(tips[..., :-1, :] + tips[..., 1:, :], axis=-2)], axis=-2)
-    rd = np.concatenate([zero, np.cumsum(tip_rates[..., :-1, :] + tip_rates[..., 1:, :], axis=-2)], axis=-2)
+    r, rd = chain_offsets(R_bl, omega_bl_l, np.array([half_length_m, 0.0, 0.0]))
     return r - r.mean(axis=-2, keepdims=True), rd - rd.mean(axis=-2, keepdims=True)
 
 

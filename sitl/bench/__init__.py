@@ -1,1 +1,1 @@
-"""Benchmarks that print figures: ``python -m sitl.bench table2|scaling``."""
+"""Benchmarks that print figures: ``python -m sitl.bench table2|scaling|zenoh`` (see ``--help``)."""

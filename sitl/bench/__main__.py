@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import parse_groups
-from companion.runtime import make_run_dir, run_subcommand
+from companion.cli import make_run_dir, run_subcommand
 
 from .ekf_chain import ChainRun
 from .scaling import LINK_COUNTS, format_scaling, run_scaling

@@ -1,4 +1,4 @@
-"""Target poses for every link of the chain: take-off, hover, and the paper's bending motion.
+"""The companion's target source: every link's pose target for take-off, hover, the paper's bending motion and CPG motion.
 
 A chain posture is a set of link attitudes plus the position of the chain's middle point;
 link centres follow from the joints (``p_{i+1} = p_i + R_i d + R_{i+1} d``), so the targets
@@ -20,8 +20,17 @@ motion generation (thesis ch. 4, :class:`CpgChainTrajectory`): the commands of t
 ``[motion]`` section through the inverse model, the CPG and the expected physics, whose body
 starts at the hovering chain's centre with its yaw.
 
+``anchor_w_m``: where the chain's middle point starts (the trajectory's origin). Without it the
+companion anchors the trajectory where the chain is when every link first reports; distributed
+companions need one anchor they all share (``python -m sitl launch`` sets it to the start pose).
+
 All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
 accelerations and body rates are central differences of the smooth pose function.
+
+``feedforward = true``: every target also carries the whole-chain feed-forward wrench of the
+chain's multibody model (:meth:`companion.skeleton.dynamics.ChainModel.inverse_dynamics`:
+cable forces shared for the smallest rotor wrenches, the joints' passive torques); it needs
+pinocchio (``pip install .[dynamics]``).
 """
 
 from __future__ import annotations
@@ -32,13 +41,15 @@ from typing import Literal
 
 import numpy as np
 
-from companion.configfile import require_nonnegative, require_positive
-from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
-from companion.motion.expected_physics import BodyState
-from companion.motion.generator import LinkTargets, MotionGenerator
-from companion.motion.inverse import InverseModel
-from companion.motion.schedule import MotionCommand, MotionConfig, desired_motion
-from link_firmware_sim.control import PoseTarget
+from .configfile import require_nonnegative, require_positive
+from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
+from .messages import PoseTarget
+from .motion.expected_physics import BodyState
+from .motion.generator import LinkTargets, MotionGenerator
+from .motion.inverse import InverseModel
+from .motion.schedule import MotionCommand, MotionConfig, desired_motion
+from .skeleton.body import SkeletonConfig
+from .skeleton.kinematics import chain_offsets, middle_offset
 
 __all__ = ["TrajectoryConfig", "ChainTrajectory", "CpgChainTrajectory", "make_trajectory", "smoothstep5"]
 
@@ -61,6 +72,8 @@ class TrajectoryConfig:
     bend_amplitude_deg: float = 25.0
     bend_period_s: float = 10.0
     bend_ramp_s: float = 5.0
+    anchor_w_m: tuple[float, float, float] | None = None
+    feedforward: bool = False
 
     def __post_init__(self) -> None:
         require_nonnegative(self, "takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s")
@@ -73,15 +86,28 @@ class TrajectoryConfig:
         return self.takeoff_start_s + (0.0 if self.kind == "rest" else self.takeoff_duration_s)
 
 
-class ChainTrajectory:
-    """Per-link :class:`PoseTarget` of an ``n``-link chain as a function of time."""
+def with_feedforward(targets: list[PoseTarget], model) -> list[PoseTarget]:
+    """``targets`` with the whole-chain feed-forward of ``model`` (a
+    :class:`~companion.skeleton.dynamics.ChainModel`; ``None``: unchanged)."""
+    if model is None:
+        return targets
+    dyn = model.inverse_dynamics(targets)
+    return [replace(t, force_ff_w_n=dyn.force_ff_w_n[i], torque_ff_b_nm=t.R_d.T @ dyn.torque_ff_w_nm[i])
+            for i, t in enumerate(targets)]
 
-    def __init__(self, cfg: TrajectoryConfig, n_links: int, link_length_m: float, start_center_w_m, h_s: float = 1e-3):
+
+class ChainTrajectory:
+    """Per-link :class:`PoseTarget` of an ``n``-link chain as a function of time (``dynamics``: the
+    chain model whose feed-forward the targets carry, or ``None``)."""
+
+    def __init__(self, cfg: TrajectoryConfig, n_links: int, link_length_m: float, start_center_w_m, h_s: float = 1e-3,
+                 dynamics=None):
         self.cfg = cfg
         self.n = n_links
-        self.half = 0.5 * link_length_m
+        self.d = np.array([0.5 * link_length_m, 0.0, 0.0])
         self.start = np.asarray(start_center_w_m, dtype=float)
         self.h = h_s
+        self.dynamics = dynamics
         self._base_q = quat_from_euler_zyx(math.radians(cfg.yaw_deg), math.radians(cfg.pitch_deg), 0.0)
         self._share = np.linspace(-1.0, 1.0, n_links) if n_links > 1 else np.zeros(1)
 
@@ -106,13 +132,10 @@ class ChainTrajectory:
         theta = self.bend_angle_rad(t)
         bends = quat_from_euler_zyx(np.zeros(self.n), theta * self._share, np.zeros(self.n))
         q = quat_mul(self._base_q, bends)
-        axis = quat_to_rotmat(q)[:, :, 0] * self.half
-        steps = axis[:-1] + axis[1:]
-        p = np.concatenate((np.zeros((1, 3)), np.cumsum(steps, axis=0)), axis=0)
+        R = quat_to_rotmat(q)
+        r, _ = chain_offsets(R, None, self.d)
         # Anchor the chain's middle point (middle link centre, or middle joint) at the centre.
-        mid = self.n // 2
-        anchor = p[mid] if self.n % 2 else p[mid] - axis[mid]
-        return p + (self.center_w_m(t) - anchor), q
+        return r + (self.center_w_m(t) - middle_offset(r, R, self.d)), q
 
     def targets(self, t: float) -> list[PoseTarget]:
         """Targets with velocity, acceleration, body rate and its derivative."""
@@ -130,7 +153,8 @@ class ChainTrajectory:
         w = body_rate(0)
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
         q = poses[2][1]
-        return [PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)]
+        return with_feedforward([PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
+                                self.dynamics)
 
 
 class CpgChainTrajectory:
@@ -146,7 +170,7 @@ class CpgChainTrajectory:
     """
 
     def __init__(self, cfg: TrajectoryConfig, motion: MotionConfig, model: InverseModel, n_links: int,
-                 link_length_m: float, start_center_w_m):
+                 link_length_m: float, start_center_w_m, dynamics=None):
         try:
             model.steady.check_chain(n_links, link_length_m)
         except ValueError as exc:
@@ -154,7 +178,9 @@ class CpgChainTrajectory:
         self.cfg = cfg
         self.motion = motion
         self.n = n_links
-        self.hover = ChainTrajectory(replace(cfg, kind="hover"), n_links, link_length_m, start_center_w_m)
+        self.hover = ChainTrajectory(replace(cfg, kind="hover"), n_links, link_length_m, start_center_w_m,
+                                     dynamics=dynamics)
+        self.dynamics = dynamics
         self.start_s = motion.start_s
         self.dt = motion.dt_s
         center = self.hover.center_w_m(self.start_s)
@@ -201,15 +227,22 @@ class CpgChainTrajectory:
         a = (after.v_w_m_s - before.v_w_m_s) / span
         w_dot = (after.omega_l_rad_s - before.omega_l_rad_s) / span
         q = rotmat_to_quat(now.R_wl)
-        return [PoseTarget(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i])
-                for i in range(self.n)]
+        return with_feedforward([PoseTarget(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i])
+                                 for i in range(self.n)], self.dynamics)
 
 
-def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, n_links: int, link_length_m: float,
+def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, skeleton: SkeletonConfig,
                     start_center_w_m) -> ChainTrajectory | CpgChainTrajectory:
-    """The target source of a scenario: :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its
-    inverse model loaded from ``motion.model``), else :class:`ChainTrajectory`."""
+    """The target source of a configuration: :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its
+    inverse model loaded from ``motion.model``), else :class:`ChainTrajectory`; with
+    ``feedforward`` the chain model of ``skeleton`` computes the targets' feed-forward."""
+    dynamics = None
+    if cfg.feedforward:
+        from .skeleton.dynamics import ChainModel  # pinocchio: only the feed-forward needs it
+
+        dynamics = ChainModel(skeleton)
+    n, L = skeleton.n_links, skeleton.link_length_m
     if cfg.kind == "cpg":
         model = InverseModel.load(motion.model)
-        return CpgChainTrajectory(cfg, motion, model, n_links, link_length_m, start_center_w_m)
-    return ChainTrajectory(cfg, n_links, link_length_m, start_center_w_m)
+        return CpgChainTrajectory(cfg, motion, model, n, L, start_center_w_m, dynamics)
+    return ChainTrajectory(cfg, n, L, start_center_w_m, dynamics=dynamics)

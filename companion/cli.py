@@ -1,4 +1,4 @@
-"""Process-level helpers shared by the command-line tools (not used by the pure core).
+"""Helpers every command-line tool of the stack uses (never the pure core): BLAS threads, run folders, logging.
 
 * BLAS threading: the estimator works on many small matrices (9x9 blocks, banded systems
   of a few hundred rows). On a 2-core machine OpenBLAS's threads make those calls up to 20x
@@ -18,7 +18,29 @@ from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand"]
+__all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand", "progress_bar"]
+
+
+class _NoBar:
+    """Stands in for a progress bar where tqdm is not installed (the onboard base install)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def update(self, n=1) -> None:
+        return None
+
+
+def progress_bar(**kwargs):
+    """A tqdm progress bar (``kwargs`` as tqdm's) on stderr, or a silent stand-in without tqdm."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoBar()
+    return tqdm(file=sys.stderr, **kwargs)
 
 
 def single_thread_blas():

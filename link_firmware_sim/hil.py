@@ -1,4 +1,4 @@
-"""The simulator link (PX4's simulator MAVLink API): HIL sensor messages in, actuators out.
+"""The simulator link of a simulated Pixhawk (PX4's simulator MAVLink API): HIL sensor messages in, actuators out.
 
 Harness -> flight controller, each in MAVLink units and frames (body FRD, local NED, WGS84):
 
@@ -20,13 +20,15 @@ import math
 import numpy as np
 
 from companion.estimation.so3 import quat_to_rotmat
-from companion.geo import EARTH_RADIUS_M, GeoOrigin
+from companion.mavlink.codec import MessageError, seconds, usec
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 
-from .codec import MessageError, seconds, usec
-from .dialect import load_dialect
-from .frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+from .geo import EARTH_RADIUS_M, GeoOrigin
 
 __all__ = [
+    "SITL_GPS_EPOCH_US",
+    "sitl_gps_time_us",
     "EARTH_RADIUS_M",
     "GeoOrigin",
     "MAG_FIELD_NED_GAUSS",
@@ -42,11 +44,19 @@ __all__ = [
 ]
 
 _D = load_dialect()
+#: GPS time at simulation time 0 (2026-01-01T00:00:00Z) [us since the Unix epoch]: the clock of the
+#: simulated GPS receivers (SYSTEM_TIME of the simulated Pixhawks, the companion's ``gps`` time base).
+SITL_GPS_EPOCH_US = 1_767_225_600_000_000
 #: Earth magnetic field used for the simulated magnetometer (NED, gauss; mid-latitude).
 MAG_FIELD_NED_GAUSS = np.array([0.21, 0.01, 0.42])
 ROTORS_PER_LINK = 8
 _HIL_SENSOR_ACCEL_GYRO_MAG = 0x1FF  # fields_updated bits 0..8
 _GPS_FIX_3D = 3
+
+
+def sitl_gps_time_us(sim_time_us: int) -> int:
+    """GPS time [us since the Unix epoch] of the simulated receivers at simulation time ``sim_time_us``."""
+    return SITL_GPS_EPOCH_US + int(sim_time_us)
 
 
 def _check(name: str, values) -> np.ndarray:

@@ -1,0 +1,219 @@
+"""The companion's configuration file: its schema, validation and loader (pure; no simulator).
+
+A companion config (``configs/hardware/*.toml``, or the ``companion.toml`` a SITL launch writes in
+its run folder) has these sections, each a frozen dataclass validated by
+:mod:`companion.configfile` (errors name the file, the key and the reason)::
+
+    name, description            the chain's name (the default Zenoh prefix)
+    [skeleton]                   the physical chain (companion.skeleton.body.SkeletonConfig)
+    [companion]                  the daemon: SCKF rate and groups, its links, mode, targets, arming
+    [[companion.links]]          one flight controller per link (system id and URL)
+    [zenoh]                      the companions' network (distributed mode)
+    [trajectory]                 the target source (take-off, hover, bending, CPG)
+    [motion]                     the CPG motion commands (trajectory.kind = "cpg")
+
+:class:`ChainSetup` holds what every layer shares (name, skeleton); :class:`CompanionSetup`
+adds the companion's sections. The link firmware (:mod:`link_firmware_sim.config`) and a SITL
+scenario (:mod:`sitl.scenario`) extend :class:`ChainSetup` with their own sections; a scenario
+is both a companion setup and a vehicle setup, so its file holds every section and each
+process validates what it runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Literal
+
+from .configfile import ConfigError, build, load_toml, require_positive
+from .estimation.sckf import CAParams
+from .estimation.semi import Groups, make_groups, validate_groups
+from .fleetnet.config import PREFIX_RE, ZenohConfig
+from .motion.inverse import InverseModel
+from .motion.schedule import MotionConfig
+from .skeleton.body import SkeletonConfig
+from .trajectory import TrajectoryConfig
+
+__all__ = [
+    "LinkEndpoint",
+    "CompanionConfig",
+    "ChainSetup",
+    "CompanionSetup",
+    "load_setup",
+    "project",
+    "SITL_STATE_PORT",
+]
+
+#: SITL defaults (PX4 habits): link ``i`` (0-based) streams to the companion on UDP 14540+i.
+SITL_STATE_PORT = 14540
+
+
+@dataclass(frozen=True)
+class LinkEndpoint:
+    """How the companion reaches one link's flight controller.
+
+    ``url``: ``udpin://127.0.0.1:14540`` (SITL, PX4 habits), or on hardware a serial device by id
+    with its baud rate, e.g. ``serial:///dev/serial/by-id/usb-ArduPilot_fmuv3_...-if00:921600``.
+    """
+
+    system_id: int
+    url: str
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.system_id <= 250:
+            raise ValueError(f"system_id must be in 1..250, got {self.system_id}")
+        scheme, sep, rest = self.url.partition("://")
+        if not sep or scheme not in ("udpin", "udpout", "tcpin", "tcpout", "serial"):
+            raise ValueError(f"url must be udpin://, udpout://, tcpin://, tcpout:// or serial://, got {self.url!r}")
+        where, _, number = rest.split("?", 1)[0].rpartition(":")
+        if scheme == "serial":
+            if not where.startswith("/") or not number.isdigit() or int(number) <= 0:
+                raise ValueError(f"url must be serial:///dev/...:BAUD, e.g. serial:///dev/ttyACM0:921600, got {self.url!r}")
+        elif not number.isdigit() or not 0 <= int(number) <= 65535:
+            raise ValueError(f"url must be {scheme}://HOST:PORT with a port in 0..65535, got {self.url!r}")
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """The companion: SCKF step, its links and what it sends them.
+
+    ``groups`` uses 1-based link numbers, e.g. ``[[1, 2], [3, 4, 5], [6, 7]]``; empty means
+    one group of all links. ``links`` lists the flight controllers in chain order; empty means
+    the SITL defaults (link ``i`` has system id ``i + 1`` on ``udpin://127.0.0.1:14540+i``: the
+    simulated vehicles are on this machine, so nothing off it can reach the companion).
+    ``mode``: ``dialect`` (SKELETON_LINK_STATE in, SKELETON_CORRECTION out) or ``standard``
+    (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_NED).
+    ``targets``: ``trajectory`` forwards the ``[trajectory]`` as pose targets, ``none`` sends
+    none. ``arm``: arm every link once all report a usable EKF.
+    ``time_base``: ``flight_controller`` (the links' EKF stamps share one clock: SITL) or ``gps``
+    (real Pixhawks: each link's boot clock is mapped to GPS time through its SYSTEM_TIME).
+    ``distributed``: one companion per group (``python -m companion --config F --group G``),
+    joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
+    whole chain and runs the global step in-process. ``enabled = false`` runs no constraint
+    application (the links fly on their EKFs; targets and arming go on).
+    """
+
+    enabled: bool = True
+    rate_hz: float = 20.0
+    groups: tuple[tuple[int, ...], ...] = ()
+    eps_m: float = 0.01
+    alpha: float = 0.01
+    max_iter: int = 20
+    links: tuple[LinkEndpoint, ...] = ()
+    mode: Literal["dialect", "standard"] = "dialect"
+    targets: Literal["trajectory", "none"] = "trajectory"
+    target_rate_hz: float = 50.0
+    state_rate_hz: float = 50.0
+    arm: bool = True
+    health_period_s: float = 5.0
+    distributed: bool = False
+    time_base: Literal["flight_controller", "gps"] = "flight_controller"
+
+    def __post_init__(self) -> None:
+        CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+        require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s")
+        ids = [link.system_id for link in self.links]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"links: system ids must be distinct, got {ids}")
+
+    def endpoints(self, n_links: int, host: str = "127.0.0.1") -> tuple[LinkEndpoint, ...]:
+        """The configured links, or the SITL defaults for ``n_links`` links."""
+        if self.links:
+            return self.links
+        return tuple(LinkEndpoint(i + 1, f"udpin://{host}:{SITL_STATE_PORT + i}") for i in range(n_links))
+
+    @property
+    def params(self) -> CAParams:
+        return CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+
+    def group_layout(self, n_links: int) -> Groups:
+        if not self.groups:
+            return make_groups(n_links, n_links)
+        return validate_groups([[i - 1 for i in g] for g in self.groups], n_links)
+
+
+@dataclass(frozen=True)
+class ChainSetup:
+    """What every layer's configuration shares: the chain's name and its physical skeleton."""
+
+    name: str
+    description: str = ""
+    skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
+
+
+@dataclass(frozen=True)
+class CompanionSetup(ChainSetup):
+    """The companion's whole configuration file (see the module docstring)."""
+
+    companion: CompanionConfig = field(default_factory=CompanionConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+
+    def __post_init__(self) -> None:
+        n_groups = len(self.companion.group_layout(self.skeleton.n_links))
+        try:
+            self.zenoh.check_groups(n_groups, 1e3 / self.companion.rate_hz)
+        except ValueError as exc:
+            raise ValueError(f"zenoh.{exc}") from None
+        if self.trajectory.kind == "cpg":
+            if not self.motion.commands:
+                raise ValueError("trajectory.kind 'cpg' needs [[motion.commands]]")
+            if self.motion.start_s < self.trajectory.takeoff_end_s:
+                raise ValueError(f"motion.start_s ({self.motion.start_s:g}) must not be before the end of the "
+                                 f"take-off ({self.trajectory.takeoff_end_s:g} s)")
+            if self.trajectory.pitch_deg != 0.0:
+                raise ValueError("trajectory.pitch_deg must be 0 with kind 'cpg' (the CPG body starts level)")
+        if self.trajectory.kind == "rest" and self.companion.arm:
+            raise ValueError("trajectory.kind 'rest' keeps the links on the ground: set companion.arm = false")
+        if not self.zenoh.prefix and not PREFIX_RE.match(self.name):
+            raise ValueError(f"name {self.name!r} cannot be the Zenoh prefix: set zenoh.prefix")
+        if self.companion.links and len(self.companion.links) != self.skeleton.n_links:
+            raise ValueError(
+                f"companion.links lists {len(self.companion.links)} links, the skeleton has {self.skeleton.n_links}"
+            )
+
+    @property
+    def zenoh_prefix(self) -> str:
+        """Key-expression prefix of this fleet: ``zenoh.prefix``, else the name."""
+        return self.zenoh.prefix or self.name
+
+    @property
+    def flight_start_s(self) -> float:
+        """End of the take-off (trajectory time): where flight metrics start."""
+        return self.trajectory.takeoff_end_s
+
+
+def project(setup, cls: type):
+    """The ``cls`` part of ``setup`` (an instance of a subclass of ``cls``, e.g. a scenario's
+    companion setup): the same field values, validated by ``cls`` alone."""
+    return cls(**{f.name: getattr(setup, f.name) for f in fields(cls) if f.init})
+
+
+def load_setup(cls: type, path: str | Path, **overrides):
+    """Read the config file at ``path`` as ``cls`` (a :class:`ChainSetup` subclass).
+
+    ``overrides`` replace top-level fields (e.g. ``duration_s``). A ``[motion]`` section's
+    ``model`` is resolved against the file's folder; with ``trajectory.kind = "cpg"`` the model
+    is loaded and must fit the skeleton. Raises :class:`~companion.configfile.ConfigError`.
+    """
+    setup = build(cls, load_toml(path), file=str(path))
+    motion = getattr(setup, "motion", None)
+    if motion is not None:
+        model_path = Path(path).resolve().parent / motion.model
+        setup = replace(setup, motion=replace(motion, model=str(model_path)))
+        if setup.trajectory.kind == "cpg":
+            try:
+                model = InverseModel.load(model_path)
+            except (OSError, ValueError) as exc:
+                raise ConfigError(str(path), "motion.model", f"cannot load the inverse CPG model: {exc}") from None
+            try:
+                model.steady.check_chain(setup.skeleton.n_links, setup.skeleton.link_length_m)
+            except ValueError as exc:
+                raise ConfigError(str(path), "motion.model", f"{model_path} {exc}") from None
+    if overrides:
+        try:
+            setup = replace(setup, **overrides)
+        except ValueError as exc:
+            raise ConfigError(str(path), "(command line)", str(exc)) from None
+    return setup

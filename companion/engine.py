@@ -1,0 +1,543 @@
+"""The companion engine: everything the companion decides, with no sockets, clocks or threads.
+
+:class:`CompanionEngine` is what the daemon (:mod:`companion.daemon`) and the SITL batch runner
+both run. Typed inputs go in, each with the time it happened on the caller's monotonic clock
+(``now_s``: wall time in the daemon, simulation time in batch mode):
+
+* :meth:`~CompanionEngine.on_state`: a link's :class:`~companion.messages.LinkState` (decoded by the
+  caller from SKELETON_LINK_STATE, or ODOMETRY in ``standard`` mode) with its flags and the
+  correction it reports applied;
+* :meth:`~CompanionEngine.on_heartbeat`, :meth:`~CompanionEngine.on_command_ack`,
+  :meth:`~CompanionEngine.on_system_time`, :meth:`~CompanionEngine.on_rejected`;
+* :meth:`~CompanionEngine.poll` runs what is due and returns the outputs, in order:
+  :class:`CorrectionOut`, :class:`TargetOut`, :class:`CommandOut` (arm, stream rate),
+  :class:`Heartbeat` and :class:`HealthDue`, each for the caller to carry out (encode and send, or
+  hand to an in-process firmware).
+
+What it decides, on the links' flight-controller time (the newest EKF stamp received):
+
+* every 1/``rate_hz``: once every link has reported for the step time (or a link lags more
+  than :data:`LAG_LIMIT_US`), the newest states are time-aligned
+  (:func:`companion.corrections.align_states`), the constraints are applied (Alg. 1, or Alg. 2 +
+  eq. 6 with several groups) and every link gets its correction. If the links' newest stamps are
+  more than :data:`SPREAD_LIMIT_US` apart the step is withheld (counted and logged). With
+  ``enabled = false`` the step only logs the links' EKF states;
+* every 1/``target_rate_hz``: every link's pose target from the trajectory (``[trajectory]``),
+  anchored at ``trajectory.anchor_w_m`` or where the chain is when every link first reports;
+* arming (``arm = true``) once every link reports a usable EKF, retried each second until armed;
+* the state stream (SET_MESSAGE_INTERVAL) on a link's heartbeat, retried each second until
+  acknowledged; a 1 Hz heartbeat; the health report every ``health_period_s``.
+
+Time base ``gps`` (real Pixhawks count from their own boot): each link's SYSTEM_TIME gives the
+offset of its boot clock to GPS time (median of its last :data:`CLOCK_SAMPLES` reports, which
+follows crystal drift); stamps are moved onto GPS time on arrival and back onto the link's clock
+in what is sent to it; a link is not used before its offset is known.
+
+Distributed mode (one engine per group, ``group`` given, ``net`` a
+:class:`~companion.fleetnet.group.GroupLink` on whatever bus the caller passes: Zenoh in the
+daemon, an in-process hub in batch mode): the step is the group's local half at the cycle time
+(a multiple of the step period, the same instant in every group); the boundary goes to the
+leader and the corrections go out when the leader's shift arrives or its deadline passes. With
+``trajectory.kind = "cpg"`` the leader publishes every link's targets and the others forward
+their links' share; each engine also steps its own copy of the generator so that a new leader
+continues the motion, and sends its own targets while no leader's arrive.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from enum import Enum
+
+import numpy as np
+
+from .config import CompanionSetup
+from .corrections import compute_corrections, finish_step, local_step
+from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, ChainTargets, Correction, LinkState, PoseTarget
+from .skeleton.kinematics import chain_middle
+from .trajectory import make_trajectory
+
+__all__ = [
+    "LAG_LIMIT_US",
+    "SPREAD_LIMIT_US",
+    "CLOCK_SAMPLES",
+    "Command",
+    "CorrectionOut",
+    "TargetOut",
+    "CommandOut",
+    "Heartbeat",
+    "HealthDue",
+    "LinkTrack",
+    "CompanionEngine",
+    "STEP_LOG_KEYS",
+]
+
+log = logging.getLogger(__name__)
+
+#: A link whose newest state is this far behind the newest of the chain is not waited for.
+LAG_LIMIT_US = 100_000
+#: Beyond this spread of the links' newest stamps no step runs: the time alignment would
+#: extrapolate a state over it (a link that stopped streaming, or flight-controller clocks that
+#: do not share a time base, e.g. Pixhawks booted at different times).
+SPREAD_LIMIT_US = 500_000
+#: SYSTEM_TIME reports whose median is a link's boot-to-GPS clock offset.
+CLOCK_SAMPLES = 5
+#: Retry period of unacknowledged commands, the heartbeat period [s].
+RETRY_S = 1.0
+#: The step log, one row per step (per cycle in distributed mode), every array on the time base.
+STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
+                 "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader")
+
+
+class Command(Enum):
+    """What a :class:`CommandOut` asks a link: arm, or stream its state at a rate."""
+
+    ARM = "arm"
+    STREAM = "stream"
+
+
+@dataclass(frozen=True)
+class CorrectionOut:
+    """Send link ``row`` its correction (dialect mode) or its corrected estimate (standard mode:
+    external vision). Both are stamped on the link's own clock."""
+
+    row: int
+    system_id: int
+    correction: Correction
+    corrected: LinkState
+
+
+@dataclass(frozen=True)
+class TargetOut:
+    """Send link ``row`` its pose target for ``time_us`` on the link's own clock."""
+
+    row: int
+    system_id: int
+    time_us: int
+    target: PoseTarget
+
+
+@dataclass(frozen=True)
+class CommandOut:
+    """Send link ``row`` a command: arm, or stream its state message every ``interval_us``."""
+
+    row: int
+    system_id: int
+    command: Command
+    interval_us: float = 0.0
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """The companion's 1 Hz heartbeat is due (on every link)."""
+
+
+@dataclass(frozen=True)
+class HealthDue:
+    """The periodic health report is due (:meth:`CompanionEngine.health_rows` over ``period_s``)."""
+
+    period_s: float
+
+
+@dataclass
+class LinkTrack:
+    """What the engine knows of one link (``index`` in the chain, ``row`` in this engine)."""
+
+    index: int
+    row: int
+    system_id: int
+    state: LinkState | None = None
+    flags: int = 0
+    rejected: int = 0
+    states: int = 0
+    states_at_report: int = 0
+    last_state_s: float | None = None
+    arm_sent_s: float = -np.inf
+    armed_ack: bool = False
+    stream_sent_s: float = -np.inf
+    stream_acked: bool = False
+    correction_seq: int = -1
+    latencies_ms: list = field(default_factory=list)
+    latency_window_ms: list = field(default_factory=list)
+    clock_samples_us: list = field(default_factory=list)
+    gps_wait_logged: bool = False
+    #: the link's clock + offset = the engine's time base (0 with ``time_base = "flight_controller"``)
+    offset_us: int | None = None
+
+    def to_link_clock_us(self, t_us: int) -> int:
+        return t_us - (self.offset_us or 0)
+
+
+def _usec(t_s: float) -> int:
+    return int(round(t_s * 1e6))
+
+
+class CompanionEngine:
+    """See the module docstring.
+
+    Args:
+        setup: the companion's configuration (a SITL scenario is one too).
+        group: 0-based group this engine serves (distributed mode), else ``None`` (every link).
+        start_center: anchor of the trajectory [m] (default ``trajectory.anchor_w_m``, else the
+            chain's estimated middle when every link first reports).
+        net: the distributed mode's :class:`~companion.fleetnet.group.GroupLink`.
+        timer: measures the step's compute time only (never drives a decision).
+    """
+
+    def __init__(self, setup: CompanionSetup, *, group: int | None = None, start_center=None, net=None,
+                 timer=time.perf_counter):
+        cfg = setup.companion
+        self.setup = setup
+        self.cfg = cfg
+        n = setup.skeleton.n_links
+        self.n = n
+        self.groups = cfg.group_layout(n)
+        if cfg.distributed and group is None:
+            raise ValueError(f"companion.distributed: give the group this companion serves (--group 1..{len(self.groups)})")
+        if group is not None and not cfg.distributed:
+            raise ValueError("--group: only for distributed companions (companion.distributed = true)")
+        if group is not None and not 0 <= group < len(self.groups):
+            raise ValueError(f"--group {group + 1}: the config has groups 1..{len(self.groups)}")
+        if (group is None) != (net is None):
+            raise ValueError("a distributed engine needs its group's network (net), and only it")
+        if start_center is None:
+            start_center = setup.trajectory.anchor_w_m
+        if group is not None and start_center is None and cfg.targets == "trajectory":
+            raise ValueError("distributed companions must share the trajectory's anchor: set trajectory.anchor_w_m "
+                             "or give --start-center")
+        self.group = group
+        self.net = net
+        members = self.groups[group] if group is not None else tuple(range(n))
+        self.d = setup.skeleton.d_b_m[list(members)]
+        self.params = cfg.params
+        endpoints = cfg.endpoints(n)
+        self.links = [LinkTrack(i, row, endpoints[i].system_id) for row, i in enumerate(members)]
+        self.period_us = int(round(1e6 / cfg.rate_hz))
+        self.target_period_us = int(round(1e6 / cfg.target_rate_hz))
+        self.fc_time_us = 0
+        self.next_step_us: int | None = None
+        self.next_target_us: int | None = None
+        self.seq = 0
+        self.trajectory = None
+        self._trajectory_t0_us = 0
+        self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
+        #: CPG targets travel over the network from the leader (distributed mode)
+        self._net_targets = net is not None and setup.trajectory.kind == "cpg"
+        self.target_counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
+        self._leader_targets_s = -np.inf
+        self._forwarded_time_us = -1
+        self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep) awaiting the shift
+        self._next_heartbeat_s = -np.inf
+        self._next_health_s: float | None = None
+        self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
+        self.step_times_ms: list[float] = []
+        self.withheld = 0
+        self._withheld_logged_s = -np.inf
+        self._timer = timer
+        self._out: list = []
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def row_of(self, system_id: int) -> int | None:
+        """This engine's row of the link with ``system_id`` (``None``: not one of its links)."""
+        for lk in self.links:
+            if lk.system_id == system_id:
+                return lk.row
+        return None
+
+    def on_heartbeat(self, row: int, now_s: float) -> None:
+        """A link's heartbeat: ask for its state stream until it acknowledges."""
+        lk = self.links[row]
+        if lk.stream_acked or now_s - lk.stream_sent_s < RETRY_S:
+            return
+        self._out.append(CommandOut(row, lk.system_id, Command.STREAM, 1e6 / self.cfg.state_rate_hz))
+        lk.stream_sent_s = now_s
+
+    def on_command_ack(self, row: int, command: Command, accepted: bool, result: int = 0) -> None:
+        lk = self.links[row]
+        if command is Command.ARM and accepted:
+            lk.armed_ack = True
+        elif command is Command.STREAM and not lk.stream_acked:
+            lk.stream_acked = True
+            if not accepted:
+                log.warning("link %d refused the state stream rate (MAV_RESULT %d): using its own rate", lk.index + 1,
+                            result)
+
+    def on_system_time(self, row: int, time_unix_us: int, time_boot_ms: int) -> None:
+        """``gps`` time base: the link's boot-to-GPS offset from SYSTEM_TIME."""
+        if self.cfg.time_base != "gps":
+            return
+        lk = self.links[row]
+        if time_unix_us <= 0:
+            if lk.offset_us is None and not lk.gps_wait_logged:
+                log.info("link %d: no GPS time yet (SYSTEM_TIME.time_unix_usec = 0): waiting", lk.index + 1)
+                lk.gps_wait_logged = True
+            return
+        lk.clock_samples_us = (lk.clock_samples_us + [int(time_unix_us) - int(time_boot_ms) * 1000])[-CLOCK_SAMPLES:]
+        first = lk.offset_us is None
+        lk.offset_us = int(np.median(lk.clock_samples_us))
+        if first:
+            log.info("link %d: boot clock + %.3f s = GPS time", lk.index + 1, lk.offset_us * 1e-6)
+
+    def on_rejected(self, row: int, kind: str, reason: str) -> None:
+        """A state message from the link that failed validation (counted and logged)."""
+        self.links[row].rejected += 1
+        log.warning("link %d: rejected %s: %s", self.links[row].index + 1, kind, reason)
+
+    def on_state(self, row: int, state: LinkState, flags: int, now_s: float, correction_seq: int = 0,
+                 correction_latency_us: int = 0) -> bool:
+        """A validated state of link ``row`` (``state.link`` its chain index, stamped on the link's
+        clock), with the flags and the correction it reports. ``False``: not usable yet (no GPS
+        time offset for this link)."""
+        lk = self.links[row]
+        if correction_seq != lk.correction_seq and correction_seq > 0:
+            lk.correction_seq = correction_seq
+            lk.latencies_ms.append(correction_latency_us * 1e-3)
+            lk.latency_window_ms.append(correction_latency_us * 1e-3)
+        lk.flags = flags
+        if self.cfg.time_base == "gps":
+            if lk.offset_us is None:
+                return False
+            state = replace(state, time_s=(_usec(state.time_s) + lk.offset_us) * 1e-6)
+        lk.state = state
+        lk.states += 1
+        lk.last_state_s = now_s
+        self.fc_time_us = max(self.fc_time_us, _usec(state.time_s))
+        return True
+
+    # -- the loop ----------------------------------------------------------------------------------
+    def next_deadline_s(self) -> float | None:
+        """When :meth:`poll` next has something to do without new input (the network's deadlines)."""
+        return self.net.next_deadline_s() if self.net is not None else None
+
+    def poll(self, now_s: float) -> list:
+        """Run what is due at ``now_s``; returns the outputs (see the module docstring)."""
+        if self.net is not None:
+            self._finish(self.net.pump(now_s))
+            for msg in self.net.take_targets():
+                if self._net_targets:
+                    self._forward_targets(msg, now_s)
+        self._duties(now_s)
+        if self._all_states():
+            t = self.fc_time_us
+            if self.next_step_us is None:
+                # steps on the period grid of flight-controller time: the groups' cycles coincide
+                self.next_step_us = -(-t // self.period_us) * self.period_us
+                self.next_target_us = t
+            if self.cfg.targets == "trajectory" and t >= self.next_target_us:
+                self._send_targets(now_s)
+                self.next_target_us += self.target_period_us * max(1, (t - self.next_target_us) // self.target_period_us + 1)
+            if t >= self.next_step_us:
+                newest = [_usec(lk.state.time_s) for lk in self.links]
+                # Step once every link has reported for this step time (a coherent snapshot); a link
+                # lagging more than LAG_LIMIT behind the others is not waited for (its state is
+                # propagated by the time alignment), so one silent link degrades the step, never stalls it.
+                spread = max(newest) - min(newest)
+                if spread > SPREAD_LIMIT_US:
+                    self._withhold(newest, now_s)
+                    self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
+                elif min(newest) >= self.next_step_us or spread > LAG_LIMIT_US:
+                    self._step(now_s)
+                    self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
+            self._arm(now_s)
+        out, self._out = self._out, []
+        return out
+
+    def _duties(self, now_s: float) -> None:
+        if now_s >= self._next_heartbeat_s:
+            self._out.append(Heartbeat())
+            self._next_heartbeat_s = now_s + RETRY_S
+        if self._next_health_s is None:
+            self._next_health_s = now_s + self.cfg.health_period_s
+        elif now_s >= self._next_health_s:
+            self._out.append(HealthDue(self.cfg.health_period_s))
+            self._next_health_s = now_s + self.cfg.health_period_s
+
+    def _all_states(self) -> bool:
+        return all(lk.state is not None for lk in self.links)
+
+    # -- the 20 Hz step --------------------------------------------------------------------------------
+    def _step(self, now_s: float) -> None:
+        if not self.cfg.enabled:
+            self._observe()
+            return
+        if self.net is not None:
+            self._local_half(now_s)
+            return
+        states = [lk.state for lk in self.links]
+        t0 = self._timer()
+        try:
+            result, corrections = compute_corrections(states, self.d, self.groups, self.params, self.seq)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("constraint application failed at t = %.3f s: %s", self.fc_time_us * 1e-6, exc)
+            return
+        self.step_times_ms.append((self._timer() - t0) * 1e3)
+        self.seq = (self.seq + 1) & 0xFFFF or 1
+        self._send_corrections(corrections, (result.p, result.v, result.q, result.P))
+        p_local = np.concatenate([r.p for r in result.local])
+        self._record(self.fc_time_us, -1, states, result.p, result.v, result.q, p_local, int(result.iterations.max()),
+                     True, -1)
+
+    def _observe(self) -> None:
+        """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
+        states = [lk.state for lk in self.links]
+        cycle = self.next_step_us if self.net is not None else -1
+        p = np.stack([s.p_w_m for s in states])
+        v, q = np.stack([s.v_w_m_s for s in states]), np.stack([s.q_wxyz for s in states])
+        self._record(self.fc_time_us if cycle < 0 else cycle, cycle, states, p, v, q, p, 0, False, -1)
+
+    def _withhold(self, newest: list[int], now_s: float) -> None:
+        """No step: the links' stamps are too far apart to be aligned (logged every 5 s)."""
+        self.withheld += 1
+        if now_s - self._withheld_logged_s >= 5.0:
+            self._withheld_logged_s = now_s
+            lag = self.links[int(np.argmin(newest))]
+            log.error("link %d's newest state is %.3f s behind the newest of the chain: it stopped streaming, or the "
+                      "flight controllers' clocks do not share a time base; no corrections until they agree "
+                      "(%d cycles so far)", lag.index + 1, (max(newest) - min(newest)) * 1e-6, self.withheld)
+
+    def _local_half(self, now_s: float) -> None:
+        """Distributed mode: local constraint application at the cycle time, boundary out."""
+        states = [lk.state for lk in self.links]
+        cycle = self.next_step_us
+        t0 = self._timer()
+        try:
+            step = local_step(states, self.d, self.params, t=cycle * 1e-6)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
+            return
+        self.step_times_ms.append((self._timer() - t0) * 1e3)
+        self._local[cycle] = (states, step)
+        b = step.boundary
+        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, now_s))
+
+    def _finish(self, resolved) -> None:
+        """Corrections for the cycles that ended (with the leader's shift, or local-only)."""
+        for res in resolved:
+            entry = self._local.pop(res.cycle_us, None)
+            for old in [c for c in self._local if c < res.cycle_us]:
+                del self._local[old]
+            if entry is None:
+                continue
+            states, step = entry
+            if res.shift is None and res.reason:
+                log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
+            p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
+            self.seq = (self.seq + 1) & 0xFFFF or 1
+            self._send_corrections(corrections, (p, v, q, step.result.P))
+            self._record(res.cycle_us, res.cycle_us, step, p, v, q, step.result.p, int(step.result.iterations),
+                         res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1)
+
+    def _record(self, t_us: int, cycle_us: int, before, p, v, q, p_local, iterations: int, global_applied: bool,
+                leader: int) -> None:
+        """One step log row; ``before`` is the states (aligned in the local step) the step started from."""
+        if isinstance(before, list):
+            pe, ve = np.stack([s.p_w_m for s in before]), np.stack([s.v_w_m_s for s in before])
+            qe, we = np.stack([s.q_wxyz for s in before]), np.stack([s.omega_b_rad_s for s in before])
+        else:
+            pe, ve, qe, we = before.p, before.v, before.q, before.w
+        row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
+               "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
+               "iterations": iterations, "global_applied": global_applied, "leader": leader}
+        for key, value in row.items():
+            self.log[key].append(value)
+
+    def _send_corrections(self, corrections, result) -> None:
+        """Each link its correction and corrected estimate, stamped on the link's own clock;
+        ``result`` is ``(p, v, q, P)`` of this engine's links, in their order."""
+        p, v, q, P = result
+        for lk, corr in zip(self.links, corrections):
+            t_link = lk.to_link_clock_us(_usec(corr.ekf_time_s)) * 1e-6
+            r = lk.row
+            self._out.append(CorrectionOut(lk.row, lk.system_id, replace(corr, ekf_time_s=t_link),
+                                           LinkState(lk.index, t_link, p[r], v[r], q[r], lk.state.omega_b_rad_s, P[r])))
+
+    # -- targets and arming ----------------------------------------------------------------------------
+    def _send_targets(self, now_s: float) -> None:
+        if self.trajectory is None:
+            center = self._start_center
+            if center is None:
+                center = chain_middle(np.stack([lk.state.p_w_m for lk in self.links]),
+                                      np.stack([lk.state.q_wxyz for lk in self.links]), self.d)
+            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
+            # distributed in SITL: every group on the same clock from 0 (simulation time)
+            shared = self.net is not None and self.cfg.time_base == "flight_controller"
+            self._trajectory_t0_us = 0 if shared else self.fc_time_us
+        # Trajectory time starts when every link has first reported (on hardware the flight
+        # controllers have been up for a while; in SITL this is within a tick of t = 0).
+        targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6)
+        if self._net_targets:
+            if self.net.leads(self.next_step_us, now_s):
+                self.net.publish_targets(ChainTargets.of(self.group, self.fc_time_us,
+                                                         self.target_counts["published"] & 0xFFFFFFFF, range(self.n),
+                                                         targets))
+                self.target_counts["published"] += 1
+            elif now_s - self._leader_targets_s < 3e-6 * self.target_period_us:
+                return  # the leader's targets are being forwarded (:meth:`_forward_targets`)
+            self.target_counts["own"] += 1
+        for lk in self.links:
+            self._target_out(lk, self.fc_time_us, targets[lk.index])
+
+    def _forward_targets(self, msg: ChainTargets, now_s: float) -> None:
+        """Send this group's links their share of the leader's CPG targets."""
+        self.target_counts["received"] += 1
+        if msg.time_us <= self._forwarded_time_us:
+            self.target_counts["stale"] += 1  # out of order, or a second leader during a hand-over
+            return
+        self._forwarded_time_us = msg.time_us
+        self._leader_targets_s = now_s
+        rows = {link: k for k, link in enumerate(msg.links)}
+        for lk in self.links:
+            k = rows.get(lk.index)
+            if k is not None:
+                self._target_out(lk, msg.time_us, msg.target(k))
+        self.target_counts["forwarded"] += 1
+
+    def _target_out(self, lk: LinkTrack, time_us: int, target: PoseTarget) -> None:
+        self._out.append(TargetOut(lk.row, lk.system_id, lk.to_link_clock_us(time_us), target))
+
+    def _arm(self, now_s: float) -> None:
+        if not self.cfg.arm:
+            return
+        for lk in self.links:
+            if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK or now_s - lk.arm_sent_s < RETRY_S:
+                continue
+            self._out.append(CommandOut(lk.row, lk.system_id, Command.ARM))
+            lk.arm_sent_s = now_s
+
+    # -- reports ---------------------------------------------------------------------------------------
+    def health_rows(self, period_s: float, now_s: float) -> list[dict]:
+        """Per link, since the last call: state rate [Hz], age of the newest state [ms], rejected
+        states, correction latency p50 / p99 [ms] (``None`` without samples)."""
+        rows = []
+        for lk in self.links:
+            lat = np.asarray(lk.latency_window_ms)
+            rows.append({
+                "link": lk.index + 1, "system_id": lk.system_id,
+                "state_hz": (lk.states - lk.states_at_report) / period_s,
+                "age_ms": (now_s - lk.last_state_s) * 1e3 if lk.last_state_s is not None else float("nan"),
+                "rejected": lk.rejected,
+                "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
+                "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
+            })
+            lk.states_at_report = lk.states
+            lk.latency_window_ms = []
+        return rows
+
+    def summary(self) -> dict:
+        lat = np.concatenate([np.asarray(lk.latencies_ms) for lk in self.links]) if self.links else np.zeros(0)
+        steps = np.asarray(self.step_times_ms)
+        return {
+            "steps": int(steps.size),
+            "withheld_steps": self.withheld,
+            "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
+            "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+                                      "samples": int(lat.size)} if lat.size else None,
+            "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected} for lk in self.links},
+            **(self.net.summary() if self.net is not None else {}),
+            **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),
+        }
+
+    def log_arrays(self) -> dict[str, np.ndarray]:
+        """The step log as arrays (keys with at least one row)."""
+        return {k: np.asarray(v) for k, v in self.log.items() if v}

@@ -1,0 +1,99 @@
+"""Bus events, and an in-process bus for group companions that run in one process (pure).
+
+:class:`BusEvent` is what a bus hands a :class:`~.group.GroupLink`: a decoded message, a
+liveliness change or an error. :class:`LocalHub` connects the group engines of a batch-mode
+flight the way Zenoh connects the daemons of a fleet: every message goes through the binary codec
+(:mod:`.codec`), so the shifts and targets a group receives are the wire's, bit for bit; every
+group sees the others come alive when it joins and leave when they close. Delivery is immediate
+and in publication order, so a batch flight stays deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport
+
+from . import codec
+
+__all__ = ["BusEvent", "LocalHub", "LocalBus"]
+
+_KINDS = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets"}
+
+
+@dataclass(frozen=True)
+class BusEvent:
+    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``alive``, ``gone`` or ``error``;
+    ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
+    arrival time on the receiver's clock; ``key`` the key expression it came on."""
+
+    kind: str
+    value: Any
+    time_s: float
+    key: str
+
+
+class LocalHub:
+    """The in-process network of ``n_groups`` group companions; ``clock()`` stamps arrivals."""
+
+    def __init__(self, n_groups: int, clock, prefix: str = "local"):
+        self.clock = clock
+        self.prefix = prefix
+        self.buses: dict[int, LocalBus] = {}
+        self.n_groups = n_groups
+
+    def join(self, group: int) -> LocalBus:
+        """The bus of 0-based ``group`` (it and the groups already there see each other come alive)."""
+        if group in self.buses or not 0 <= group < self.n_groups:
+            raise ValueError(f"group {group} cannot join (joined: {sorted(self.buses)}, groups 0..{self.n_groups - 1})")
+        bus = LocalBus(self, group)
+        now = self.clock()
+        for other in self.buses.values():
+            other.events.append(BusEvent("alive", group, now, f"{self.prefix}/group/{group + 1}/alive"))
+            bus.events.append(BusEvent("alive", other.group, now, f"{self.prefix}/group/{other.group + 1}/alive"))
+        self.buses[group] = bus
+        return bus
+
+    def pending(self) -> bool:
+        """Whether any bus has undelivered events."""
+        return any(bus.events for bus in self.buses.values())
+
+    def _send(self, sender: int, message, key: str) -> None:
+        payload = codec.encode(message)
+        now = self.clock()
+        for group, bus in self.buses.items():
+            if group != sender:
+                msg = codec.decode(payload)
+                bus.events.append(BusEvent(_KINDS[type(msg)], msg, now, key))
+
+    def _leave(self, group: int) -> None:
+        self.buses.pop(group, None)
+        now = self.clock()
+        for bus in self.buses.values():
+            bus.events.append(BusEvent("gone", group, now, f"{self.prefix}/group/{group + 1}/alive"))
+
+
+class LocalBus:
+    """One group's end of a :class:`LocalHub` (the interface of :class:`~.bus.FleetBus`)."""
+
+    def __init__(self, hub: LocalHub, group: int):
+        self.hub = hub
+        self.group = group
+        self.events: list[BusEvent] = []
+
+    def drain(self) -> list[BusEvent]:
+        out, self.events = self.events, []
+        return out
+
+    def publish_boundary(self, report: GroupBoundaryReport) -> None:
+        self.hub._send(self.group, report, f"{self.hub.prefix}/group/{self.group + 1}/boundary")
+
+    def publish_shift(self, shift: GlobalShift) -> None:
+        self.hub._send(self.group, shift, f"{self.hub.prefix}/global/shift")
+
+    def publish_targets(self, targets: ChainTargets) -> None:
+        self.hub._send(self.group, targets, f"{self.hub.prefix}/cpg/target")
+
+    def close(self) -> None:
+        self.hub._leave(self.group)

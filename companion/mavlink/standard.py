@@ -1,0 +1,212 @@
+"""Codec of the standard (common.xml) messages the stack exchanges, in one place, both ways.
+
+* ``ODOMETRY``: a link's EKF output with covariance (what a stock PX4 publishes; the companion
+  reads it in ``standard`` mode) and the companion's corrected pose as external vision (what
+  PX4's EKF2 fuses with ``EKF2_EV_CTRL``). Frame ``MAV_FRAME_LOCAL_NED`` (the values are
+  north-east-down in the shared local frame), child frame ``MAV_FRAME_BODY_FRD`` (velocity and
+  rates in the body frame); ``pose_covariance`` is x, y, z, roll, pitch, yaw (21 floats, row-major
+  upper triangle), ``velocity_covariance`` vx, vy, vz, rates.
+* ``VISION_POSITION_ESTIMATE``: the external-vision pose in its older form (local NED position,
+  roll/pitch/yaw of body FRD in NED).
+* ``SET_POSITION_TARGET_LOCAL_NED`` and ``SET_ATTITUDE_TARGET``: a link's pose target
+  (:class:`~companion.messages.PoseTarget`).
+
+Inside the stack the frames are world ENU and body FLU (:mod:`.frames` converts). Decoders
+validate and raise :class:`~companion.messages.MessageError` naming the field; the caller counts
+and drops the message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.estimation.chain import ERR_P, ERR_TH, ERR_V
+from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
+from companion.messages import LinkState, MessageError, PoseTarget, check_finite, check_pd, check_unit_quat
+
+from .dialect import load_dialect
+from .frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
+
+__all__ = [
+    "UPPER_6",
+    "POSE_ROWS",
+    "ExternalPose",
+    "encode_odometry",
+    "decode_odometry",
+    "decode_external_pose",
+    "encode_vision_position_estimate",
+    "euler_zyx",
+    "encode_position_target",
+    "decode_position_target",
+    "encode_attitude_target",
+    "decode_attitude_target",
+    "POSITION_TARGET_MASK",
+]
+
+_D = load_dialect()
+#: Row-major upper triangle of a 6x6 matrix: the order of ODOMETRY's 21 covariance floats.
+UPPER_6 = np.triu_indices(6)
+#: Rows of the 9x9 ``[dp; dv; dtheta]`` covariance that form ODOMETRY's pose (x, y, z, attitude).
+POSE_ROWS = np.r_[ERR_P, ERR_TH]
+#: Variance sent for the body rates (the EKF does not estimate them as states) [rad^2/s^2].
+RATE_VARIANCE = 1e-4
+#: SET_POSITION_TARGET_LOCAL_NED type_mask: position, velocity and acceleration used; yaw and
+#: yaw rate ignored (the attitude comes with SET_ATTITUDE_TARGET).
+POSITION_TARGET_MASK = 0b0000_1100_0000_0000
+_MASK_VEL = 0b0000_0011_1000
+_MASK_ACC = 0b0001_1100_0000
+_MASK_RATES = 0b0000_0111
+_MASK_ATTITUDE = 0b1000_0000
+
+
+def _upper6(M: np.ndarray) -> list[float]:
+    return np.asarray(M, dtype=float)[UPPER_6].tolist()
+
+
+def _full6(values, name: str) -> np.ndarray:
+    M = np.zeros((6, 6))
+    M[UPPER_6] = np.asarray(values, dtype=float)
+    M = M + np.triu(M, 1).T
+    if not np.all(np.isfinite(M)):
+        raise MessageError(f"{name}: covariance unknown (NaN)")
+    return M
+
+
+def encode_odometry(state: LinkState, time_usec: int, *, estimator_type: int, rates_known: bool = True):
+    """ODOMETRY of a :class:`LinkState` (world ENU / body FLU inside, LOCAL_NED / BODY_FRD out).
+
+    The attitude block of the 9x9 covariance is the world-frame small-angle error covariance,
+    sent as the roll/pitch/yaw covariance (exact for small errors near level). ``rates_known =
+    False`` sends NaN body rates (external vision has none)."""
+    P = error_cov_enu_ned(state.P)
+    q = quat_enu_flu_to_ned_frd(state.q_wxyz)
+    R = quat_to_rotmat(q)
+    v_body = R.T @ enu_ned(state.v_w_m_s)
+    vel_cov = np.zeros((6, 6))
+    vel_cov[:3, :3] = R.T @ P[ERR_V, ERR_V] @ R
+    vel_cov[3:, 3:] = np.eye(3) * RATE_VARIANCE
+    rates = flu_frd(state.omega_b_rad_s).tolist() if rates_known else [math.nan] * 3
+    return _D.MAVLink_odometry_message(
+        time_usec, _D.MAV_FRAME_LOCAL_NED, _D.MAV_FRAME_BODY_FRD, *enu_ned(state.p_w_m).tolist(), q.tolist(),
+        *v_body.tolist(), *rates, _upper6(P[np.ix_(POSE_ROWS, POSE_ROWS)]), _upper6(vel_cov), 0, estimator_type, 100,
+    )
+
+
+@dataclass(frozen=True)
+class ExternalPose:
+    """The pose of an external-vision message (world ENU, body FLU); ``v_w_m_s`` is ``None`` when
+    the message carries no velocity (VISION_POSITION_ESTIMATE)."""
+
+    time_s: float
+    p_w_m: np.ndarray
+    v_w_m_s: np.ndarray | None
+    q_wxyz: np.ndarray
+
+
+def _odometry_kinematics(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(p, v, q, omega)`` in ENU / FLU, validated (frame ids, finite values, unit quaternion)."""
+    if msg.frame_id != _D.MAV_FRAME_LOCAL_NED:
+        raise MessageError(f"ODOMETRY.frame_id: {msg.frame_id} (expected MAV_FRAME_LOCAL_NED, {_D.MAV_FRAME_LOCAL_NED})")
+    if msg.child_frame_id != _D.MAV_FRAME_BODY_FRD:
+        raise MessageError(f"ODOMETRY.child_frame_id: {msg.child_frame_id} (expected MAV_FRAME_BODY_FRD, "
+                           f"{_D.MAV_FRAME_BODY_FRD})")
+    p = check_finite("ODOMETRY.x/y/z", (msg.x, msg.y, msg.z))
+    v_body = check_finite("ODOMETRY.vx/vy/vz", (msg.vx, msg.vy, msg.vz))
+    q = check_unit_quat("ODOMETRY.q", msg.q)
+    rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
+    R = quat_to_rotmat(q)
+    return enu_ned(p), enu_ned(R @ v_body), quat_ned_frd_to_enu_flu(q), flu_frd(rates)
+
+
+def decode_odometry(msg, link: int) -> LinkState:
+    """A stock autopilot's ODOMETRY as a :class:`LinkState` of 0-based ``link``.
+
+    The 9x9 covariance is assembled from the pose covariance (position and attitude) and the
+    body-frame velocity covariance rotated to the local frame; ODOMETRY does not carry the
+    position-velocity cross terms, so they are zero."""
+    p, v, q, w = _odometry_kinematics(msg)
+    if not np.all(np.isfinite(w)):
+        raise MessageError("ODOMETRY.rollspeed/pitchspeed/yawspeed: non-finite value")
+    pose = _full6(msg.pose_covariance, "ODOMETRY.pose_covariance")
+    vel = _full6(msg.velocity_covariance, "ODOMETRY.velocity_covariance")
+    R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
+    P = np.zeros((9, 9))
+    P[np.ix_(POSE_ROWS, POSE_ROWS)] = pose
+    P[ERR_V, ERR_V] = R @ vel[:3, :3] @ R.T
+    P = check_pd("ODOMETRY covariance", error_cov_enu_ned(P))
+    return LinkState(link, msg.time_usec * 1e-6, p, v, q, w, P)
+
+
+def decode_external_pose(msg) -> ExternalPose:
+    """The pose of an external-vision ODOMETRY or VISION_POSITION_ESTIMATE (no covariance needed;
+    VISION_POSITION_ESTIMATE has no velocity: ``v`` is ``None``)."""
+    if msg.get_type() == "ODOMETRY":
+        p, v, q, _ = _odometry_kinematics(msg)
+        return ExternalPose(msg.time_usec * 1e-6, p, v, q)
+    if msg.get_type() == "VISION_POSITION_ESTIMATE":
+        p = check_finite("VISION_POSITION_ESTIMATE.x/y/z", (msg.x, msg.y, msg.z))
+        rpy = check_finite("VISION_POSITION_ESTIMATE.roll/pitch/yaw", (msg.roll, msg.pitch, msg.yaw))
+        q_ned = quat_from_euler_zyx(rpy[2], rpy[1], rpy[0])
+        return ExternalPose(msg.usec * 1e-6, enu_ned(p), None, quat_ned_frd_to_enu_flu(q_ned))
+    raise MessageError(f"{msg.get_type()}: not an external-vision message")
+
+
+def euler_zyx(q_wxyz) -> tuple[float, float, float]:
+    """``(roll, pitch, yaw)`` of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (MAVLink's Euler angles when
+    ``q`` is a body-FRD-to-NED quaternion)."""
+    R = quat_to_rotmat(np.asarray(q_wxyz, dtype=float))
+    return (math.atan2(R[2, 1], R[2, 2]), -math.asin(max(-1.0, min(1.0, R[2, 0]))), math.atan2(R[1, 0], R[0, 0]))
+
+
+def encode_vision_position_estimate(state: LinkState, time_usec: int):
+    """VISION_POSITION_ESTIMATE of a corrected pose (its 9x9 covariance's pose block)."""
+    q = quat_enu_flu_to_ned_frd(state.q_wxyz)
+    P = error_cov_enu_ned(state.P)
+    return _D.MAVLink_vision_position_estimate_message(time_usec, *enu_ned(state.p_w_m).tolist(), *euler_zyx(q),
+                                                       _upper6(P[np.ix_(POSE_ROWS, POSE_ROWS)]), 0)
+
+
+def encode_position_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):
+    """SET_POSITION_TARGET_LOCAL_NED: position, velocity and acceleration of ``target``."""
+    return _D.MAVLink_set_position_target_local_ned_message(
+        time_boot_ms & 0xFFFFFFFF, target_system, target_component, _D.MAV_FRAME_LOCAL_NED, POSITION_TARGET_MASK,
+        *enu_ned(target.p_w_m).tolist(), *enu_ned(target.v_w_m_s).tolist(), *enu_ned(target.a_w_m_s2).tolist(),
+        0.0, 0.0)
+
+
+def decode_position_target(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(p, v, a)`` ENU of a SET_POSITION_TARGET_LOCAL_NED (masked-out velocity or acceleration: 0)."""
+    if msg.coordinate_frame != _D.MAV_FRAME_LOCAL_NED:
+        raise MessageError(f"SET_POSITION_TARGET_LOCAL_NED.coordinate_frame: {msg.coordinate_frame} (LOCAL_NED only)")
+    vals = check_finite("SET_POSITION_TARGET_LOCAL_NED", (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz,
+                                                          msg.afx, msg.afy, msg.afz))
+    mask = msg.type_mask
+    p = enu_ned(vals[0:3])
+    v = enu_ned(vals[3:6]) if not mask & _MASK_VEL else np.zeros(3)
+    a = enu_ned(vals[6:9]) if not mask & _MASK_ACC else np.zeros(3)
+    return p, v, a
+
+
+def encode_attitude_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):
+    """SET_ATTITUDE_TARGET: attitude and body rates (FRD) of ``target``; thrust unused."""
+    rates = flu_frd(target.omega_d_rad_s).tolist()
+    return _D.MAVLink_set_attitude_target_message(
+        time_boot_ms=time_boot_ms & 0xFFFFFFFF, target_system=target_system, target_component=target_component,
+        type_mask=0, q=quat_enu_flu_to_ned_frd(target.q_wxyz).tolist(), body_roll_rate=rates[0],
+        body_pitch_rate=rates[1], body_yaw_rate=rates[2], thrust=0.0)
+
+
+def decode_attitude_target(msg) -> tuple[np.ndarray, np.ndarray]:
+    """``(q, omega)`` ENU/FLU of a SET_ATTITUDE_TARGET (rates masked out: 0)."""
+    if msg.type_mask & _MASK_ATTITUDE:
+        raise MessageError("SET_ATTITUDE_TARGET.type_mask: the attitude is masked out (rate-only targets are not "
+                           "supported)")
+    q = check_unit_quat("SET_ATTITUDE_TARGET.q", msg.q)
+    rates = check_finite("SET_ATTITUDE_TARGET body rates", (msg.body_roll_rate, msg.body_pitch_rate,
+                                                             msg.body_yaw_rate))
+    if msg.type_mask & _MASK_RATES:
+        rates = np.zeros(3)
+    return quat_ned_frd_to_enu_flu(q), flu_frd(rates)

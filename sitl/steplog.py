@@ -1,0 +1,80 @@
+"""The companions' step logs joined over the whole chain and matched to the simulator's truth.
+
+Batch and fleet mode both end here: each companion engine (one, or one per group in
+distributed mode) logs its steps (:data:`companion.engine.STEP_LOG_KEYS`); :func:`merge_step_logs`
+joins the groups' logs on their common cycles and computes the eq. 3 joint errors over the whole
+chain before and after the constraint application; :func:`attach_truth` adds the true link
+positions at every step time (linear interpolation of the truth log).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.estimation.constraints import joint_error_norms
+
+__all__ = ["merge_step_logs", "attach_truth"]
+
+_CHAIN_KEYS = ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf", "v_corr_sckf",
+               "q_corr_sckf")
+
+
+def _unique_cycles(log: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    _, first = np.unique(log["cycle_us"], return_index=True)
+    return {k: v[first] for k, v in log.items()}
+
+
+def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, distributed: bool) -> dict | None:
+    """One step log of the whole chain, or ``None`` when a companion has logged no step.
+
+    ``logs``: per companion (per group in distributed mode, in group order) the parts of its log
+    in time order (a companion restarted after a fault continues its log in a second part).
+    Distributed logs are joined on the cycles every group logged; ``global_applied`` becomes
+    (steps, groups). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
+    ``con_vel_after`` (steps, n - 1): the eq. 3 tip position and velocity errors per joint.
+    """
+    per = []
+    for parts in logs:
+        parts = [p for p in parts if p and "t_sckf" in p and len(p["t_sckf"])]
+        if not parts:
+            return None
+        joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        per.append(_unique_cycles(joined) if distributed else joined)
+    if not distributed:
+        merged = dict(per[0])
+        merged["global_applied"] = merged["global_applied"][:, None]
+    else:
+        cycles = per[0]["cycle_us"]
+        for lg in per[1:]:
+            cycles = np.intersect1d(cycles, lg["cycle_us"])
+        rows = [np.searchsorted(lg["cycle_us"], cycles) for lg in per]
+        merged = {"t_sckf": cycles * 1e-6, "cycle_us": cycles}
+        for key in _CHAIN_KEYS:
+            merged[key] = np.concatenate([lg[key][r] for lg, r in zip(per, rows)], axis=1)
+        merged["global_applied"] = np.stack([lg["global_applied"][r] for lg, r in zip(per, rows)], axis=1)
+        merged["leader"] = np.stack([lg["leader"][r] for lg, r in zip(per, rows)], axis=1)
+        merged["iterations"] = np.max(np.stack([lg["iterations"][r] for lg, r in zip(per, rows)]), axis=0)
+    n = merged["p_ekf_sckf"].shape[1] if merged["t_sckf"].size else 0
+    if n > 1:
+        for tag, (p, v, q) in (("before", ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf")),
+                               ("after", ("p_corr_sckf", "v_corr_sckf", "q_corr_sckf"))):
+            pos, vel = joint_error_norms(merged[p], merged[v], merged[q], merged["w_sckf"], d)
+            merged[f"con_pos_{tag}"] = pos
+            merged[f"con_vel_{tag}"] = vel
+    return merged
+
+
+def attach_truth(step_log: dict[str, np.ndarray], t_truth: np.ndarray, p_truth: np.ndarray) -> dict[str, np.ndarray]:
+    """``step_log`` restricted to the truth log's time span, with ``p_true_sckf`` (steps, n, 3):
+    the true link positions at the step times, linearly interpolated between truth samples."""
+    t = step_log["t_sckf"]
+    keep = (t >= t_truth[0]) & (t <= t_truth[-1])
+    out = {k: v[keep] for k, v in step_log.items()}
+    ts = out["t_sckf"]
+    k = np.clip(np.searchsorted(t_truth, ts, side="right") - 1, 0, max(len(t_truth) - 2, 0))
+    if len(t_truth) > 1:
+        w = ((ts - t_truth[k]) / (t_truth[k + 1] - t_truth[k]))[:, None, None]
+        out["p_true_sckf"] = (1.0 - w) * p_truth[k] + w * p_truth[k + 1]
+    else:
+        out["p_true_sckf"] = p_truth[k]
+    return out

@@ -1,0 +1,100 @@
+"""The layers run one way: companion <- link_firmware_sim <- sitl (docs/architecture.md).
+
+Every import statement of every module is read from its source (module level or inside a
+function, absolute or relative), so an import added anywhere fails here.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: package -> the top-level packages of this repo it must never import
+FORBIDDEN = {
+    "companion": {"link_firmware_sim", "sitl"},
+    "link_firmware_sim": {"sitl"},
+}
+#: third-party packages the onboard companion must not need (simulator, plotting, vision)
+ONBOARD_ABSENT = ("mujoco", "matplotlib", "cv2")
+
+
+def imported_modules(path: Path, package_root: Path) -> list[tuple[int, str]]:
+    """``(line, dotted module)`` of every import in ``path``; relative imports resolved."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    module_parts = list(path.relative_to(package_root).with_suffix("").parts)
+    if module_parts[-1] == "__init__":
+        module_parts = module_parts[:-1]
+        here = module_parts
+    else:
+        here = module_parts[:-1]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here[: len(here) - (node.level - 1)] if node.level > 1 else here
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module
+            out.append((node.lineno, name))
+    return out
+
+
+def violations(package: str, forbidden: set[str]) -> list[str]:
+    bad = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for line, name in imported_modules(path, ROOT):
+            if name.split(".")[0] in forbidden:
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {name}")
+    return bad
+
+
+@pytest.mark.parametrize("package", sorted(FORBIDDEN))
+def test_no_import_runs_upward(package):
+    assert violations(package, FORBIDDEN[package]) == []
+
+
+def test_the_check_sees_relative_and_function_level_imports(tmp_path):
+    pkg = tmp_path / "companion" / "sub"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "m.py").write_text("def f():\n    from ...sitl import runner\n    import link_firmware_sim.ekf\n")
+    found = imported_modules(pkg / "m.py", tmp_path)
+    assert (2, "sitl") in found and (3, "link_firmware_sim.ekf") in found
+
+
+BLOCKER = """
+import importlib.abc, sys
+BLOCKED = set(sys.argv[1].split(','))
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in BLOCKED:
+            raise ImportError('blocked: ' + name)
+sys.meta_path.insert(0, Block())
+"""
+
+
+def run_blocked(code: str, blocked) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", BLOCKER + code, ",".join(blocked)], capture_output=True, text=True,
+                          cwd=ROOT)
+
+
+def test_the_onboard_daemon_imports_without_simulator_plotting_vision_or_zenoh():
+    code = ("import companion.daemon, companion.__main__, companion.engine, companion.trajectory\n"
+            "assert not any(m.split('.')[0] in ('sitl', 'link_firmware_sim') for m in sys.modules), sorted(sys.modules)\n"
+            "print('ok')")
+    proc = run_blocked(code, ONBOARD_ABSENT + ("zenoh",))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ok"
+
+
+def test_the_blocker_really_blocks():
+    proc = run_blocked("import matplotlib", ONBOARD_ABSENT)
+    assert proc.returncode != 0 and "blocked: matplotlib" in proc.stderr
