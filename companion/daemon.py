@@ -118,8 +118,11 @@ class CompanionDaemon:
                               shift_deadline_s=zc.shift_deadline_ms * 1e-3, leader_wait_s=zc.leader_wait_ms * 1e-3,
                               handover_cycles=zc.handover_cycles)
         if bus is None:
-            from .fleetnet.bus import FleetBus  # Zenoh: only distributed companions need it
-
+            try:
+                from .fleetnet.bus import FleetBus  # Zenoh: only distributed companions need it
+            except ImportError as exc:
+                raise ValueError(f"companion.distributed needs Eclipse Zenoh ({exc}): pip install "
+                                 "'aerial-skeleton-stack[distributed]'") from None
             bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file)
         return GroupLink(node, bus, self.clock)
 

@@ -56,7 +56,7 @@ from .config import CompanionSetup
 from .corrections import compute_corrections, finish_step, local_step
 from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, ChainTargets, Correction, LinkState, PoseTarget
 from .skeleton.kinematics import chain_middle
-from .trajectory import make_trajectory
+from .trajectory import chain_model, make_trajectory
 
 __all__ = [
     "LAG_LIMIT_US",
@@ -206,6 +206,8 @@ class CompanionEngine:
         if group is not None and start_center is None and cfg.targets == "trajectory":
             raise ValueError("distributed companions must share the trajectory's anchor: set trajectory.anchor_w_m "
                              "or give --start-center")
+        if setup.trajectory.feedforward and cfg.targets == "trajectory":
+            chain_model(setup.skeleton)  # fail at start, not at the first target, without pinocchio
         self.group = group
         self.net = net
         members = self.groups[group] if group is not None else tuple(range(n))

@@ -231,16 +231,22 @@ class CpgChainTrajectory:
                                  for i in range(self.n)], self.dynamics)
 
 
+def chain_model(skeleton: SkeletonConfig):
+    """The chain's multibody model for the feed-forward (``ValueError`` without pinocchio)."""
+    try:
+        from .skeleton.dynamics import ChainModel  # pinocchio: only the feed-forward needs it
+    except ImportError as exc:
+        raise ValueError(f"trajectory.feedforward needs pinocchio ({exc}): pip install "
+                         "'aerial-skeleton-stack[dynamics]'") from None
+    return ChainModel(skeleton)
+
+
 def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, skeleton: SkeletonConfig,
                     start_center_w_m) -> ChainTrajectory | CpgChainTrajectory:
     """The target source of a configuration: :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its
     inverse model loaded from ``motion.model``), else :class:`ChainTrajectory`; with
     ``feedforward`` the chain model of ``skeleton`` computes the targets' feed-forward."""
-    dynamics = None
-    if cfg.feedforward:
-        from .skeleton.dynamics import ChainModel  # pinocchio: only the feed-forward needs it
-
-        dynamics = ChainModel(skeleton)
+    dynamics = chain_model(skeleton) if cfg.feedforward else None
     n, L = skeleton.n_links, skeleton.link_length_m
     if cfg.kind == "cpg":
         model = InverseModel.load(motion.model)

@@ -47,30 +47,16 @@ import numpy as np
 
 from companion.skeleton.rotors import (
     _frozen,
-    L_SIDE,
     N_ROTORS,
     N_SIDE,
     NU,
-    R_SIDE,
     SIDES,
-    W_FORCE,
-    W_TORQUE,
     WRENCH_DIM,
     RotorGeometry,
 )
 
 __all__ = [
-    "N_ROTORS",
-    "N_SIDE",
-    "R_SIDE",
-    "L_SIDE",
-    "SIDES",
-    "WRENCH_DIM",
-    "W_FORCE",
-    "W_TORQUE",
-    "NU",
     "MARGIN_TOL_N",
-    "RotorGeometry",
     "AllocationParams",
     "AllocationResult",
     "pseudo_inverse",

@@ -7,18 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import linprog
 
+from companion.skeleton.rotors import L_SIDE, N_ROTORS, NU, R_SIDE, SIDES, W_FORCE, W_TORQUE, RotorGeometry
 from link_firmware_sim.allocation import (
-    L_SIDE,
     MARGIN_TOL_N,
-    N_ROTORS,
-    NU,
-    R_SIDE,
-    SIDES,
-    W_FORCE,
-    W_TORQUE,
     AllocationParams,
     Allocator,
-    RotorGeometry,
     gradual_selective_mapping,
     infinity_norm_allocation,
     pseudo_inverse,
