@@ -182,11 +182,13 @@ class CompanionEngine:
         start_center: anchor of the trajectory [m] (default ``trajectory.anchor_w_m``, else the
             chain's estimated middle when every link first reports).
         net: the distributed mode's :class:`~companion.fleetnet.group.GroupLink`.
+        trajectory: a target source to use instead of the one built from the config at the first
+            targets (batch mode shares one between its group engines: they would compute the same).
         timer: measures the step's compute time only (never drives a decision).
     """
 
     def __init__(self, setup: CompanionSetup, *, group: int | None = None, start_center=None, net=None,
-                 timer=time.perf_counter):
+                 trajectory=None, timer=time.perf_counter):
         cfg = setup.companion
         self.setup = setup
         self.cfg = cfg
@@ -221,8 +223,9 @@ class CompanionEngine:
         self.next_step_us: int | None = None
         self.next_target_us: int | None = None
         self.seq = 0
-        self.trajectory = None
+        self.trajectory = trajectory
         self._trajectory_t0_us = 0
+        self._trajectory_started = False
         self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
         #: CPG targets travel over the network from the leader (distributed mode)
         self._net_targets = net is not None and setup.trajectory.kind == "cpg"
@@ -456,15 +459,15 @@ class CompanionEngine:
 
     # -- targets and arming ----------------------------------------------------------------------------
     def _send_targets(self, now_s: float) -> None:
+        if not self._trajectory_started:
+            self._trajectory_started = True
+            self._trajectory_t0_us = self._trajectory_start_us()
         if self.trajectory is None:
             center = self._start_center
             if center is None:
                 center = chain_middle(np.stack([lk.state.p_w_m for lk in self.links]),
                                       np.stack([lk.state.q_wxyz for lk in self.links]), self.d)
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
-            # distributed in SITL: every group on the same clock from 0 (simulation time)
-            shared = self.net is not None and self.cfg.time_base == "flight_controller"
-            self._trajectory_t0_us = 0 if shared else self.fc_time_us
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6)
@@ -479,6 +482,12 @@ class CompanionEngine:
             self.target_counts["own"] += 1
         for lk in self.links:
             self._target_out(lk, self.fc_time_us, targets[lk.index])
+
+    def _trajectory_start_us(self) -> int:
+        """Where trajectory time starts on the time base: 0 for distributed companions on the links'
+        shared clock (SITL: simulation time, the same in every group), else the first targets."""
+        shared = self.net is not None and self.cfg.time_base == "flight_controller"
+        return 0 if shared else self.fc_time_us
 
     def _forward_targets(self, msg: ChainTargets, now_s: float) -> None:
         """Send this group's links their share of the leader's CPG targets."""

@@ -33,7 +33,7 @@ from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
-from companion.trajectory import CpgChainTrajectory
+from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim.firmware import LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
@@ -197,6 +197,23 @@ class Plant:
             self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
 
 
+class _SharedTargets:
+    """A target source shared by a batch flight's group engines: the targets of the last time asked,
+    computed once (every other attribute is the wrapped source's)."""
+
+    def __init__(self, source):
+        self.source = source
+        self._last: tuple[float, list] | None = None
+
+    def targets(self, t: float):
+        if self._last is None or self._last[0] != t:
+            self._last = (t, self.source.targets(t))
+        return self._last[1]
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+
 class BatchRunner:
     """Batch mode: a :class:`Plant`, every link's firmware and the companion engine(s), in one process.
 
@@ -250,18 +267,23 @@ class BatchRunner:
         zc = sc.zenoh
         n_groups = len(self.groups)
         hub = LocalHub(n_groups, clock, sc.zenoh_prefix)
+        # The group engines would each compute the same targets from the same deterministic source
+        # (fleet companions do, in their own processes): here they share one, computed once per time.
+        shared = _SharedTargets(make_trajectory(sc.trajectory, sc.motion, sc.skeleton, center))
         engines = []
         for g in range(n_groups):
             node = GlobalStepNode(g, n_groups, zc.order(n_groups), int(round(1e6 / sc.companion.rate_hz)),
                                   shift_deadline_s=zc.shift_deadline_ms * 1e-3, leader_wait_s=zc.leader_wait_ms * 1e-3,
                                   handover_cycles=zc.handover_cycles)
-            engines.append(CompanionEngine(sc, group=g, start_center=center, net=GroupLink(node, hub.join(g), clock)))
+            engines.append(CompanionEngine(sc, group=g, start_center=center, net=GroupLink(node, hub.join(g), clock),
+                                           trajectory=shared))
         return engines, hub
 
     @property
     def trajectory(self):
-        """The target source of the (first) companion engine (``None`` before its first target)."""
-        return self.engines[0].trajectory
+        """The companion's target source (``None`` before its first target)."""
+        source = self.engines[0].trajectory
+        return source.source if isinstance(source, _SharedTargets) else source
 
     @property
     def crashed(self) -> bool:
@@ -337,7 +359,7 @@ class BatchRunner:
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
         lg.joint_force_true.append(truth.joint_force_w_n)
         lg.tension_true.append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
-        dynamics = getattr(self.trajectory, "dynamics", None)
+        dynamics = getattr(self.trajectory, "dynamics", None) if self.trajectory is not None else None
         if dynamics is not None:
             last = dynamics.last
             lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None else tension(
