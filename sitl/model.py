@@ -173,6 +173,7 @@ class SkeletonModel:
         root = m.joint("link1_root")
         self._root_qpos = int(root.qposadr[0])
         self._root_qvel = int(root.dofadr[0])
+        self._thrust_dirs = geometry.directions / np.linalg.norm(geometry.directions, axis=1, keepdims=True)
         self.timestep_s = float(m.opt.timestep)
 
     def reset(self, start: StartPose) -> None:
@@ -203,10 +204,22 @@ class SkeletonModel:
             q_wxyz=s[self._quat],
             omega_b_rad_s=s[self._gyro],
             specific_force_b_m_s2=s[self._acc],
-            # MuJoCo's interaction force of each child link with its parent (the accelerometers make
-            # every step compute it); its force part is the cable force at the joint
-            joint_force_w_n=self.data.cfrc_int[self.body_ids[1:], 3:6].copy(),
+            joint_force_w_n=self.joint_forces(),
         )
+
+    def joint_forces(self) -> np.ndarray:
+        """(n-1, 3) force on link ``j+1`` from link ``j`` at their joint (the cable), world frame.
+
+        MuJoCo's ``cfrc_int`` of a link (computed at every step for the accelerometers) is the
+        force its parent must supply for its subtree's motion, less the external forces it knows
+        as such (``xfrc_applied``, contacts); the rotors act through actuators (joint space), so
+        their thrust along ``u_k`` is subtracted here, summed over the subtree."""
+        d = self.data
+        R = d.xmat[self.body_ids].reshape(-1, 3, 3)
+        rotor_b = d.ctrl[self.actuator_ids] @ self._thrust_dirs  # (n, 3) body-frame rotor force per link
+        rotor_w = np.einsum("nij,nj->ni", R, rotor_b)
+        subtree = np.cumsum(rotor_w[::-1], axis=0)[::-1]  # links i..n
+        return d.cfrc_int[self.body_ids[1:], 3:6] - subtree[1:]
 
     def link_velocities(self) -> np.ndarray:
         """(n, 3) world velocities of the link centres (valid after :meth:`begin_step`)."""

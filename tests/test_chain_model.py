@@ -77,8 +77,8 @@ def test_link_accelerations_are_the_derivatives_of_the_velocities(n):
     np.testing.assert_allclose((states[1][3] - states[0][3]) / (2 * h), WD, atol=1e-5)
 
 
-def _targets(cm, rng, n, scale=1.0, lift=0.0):
-    R, w, wd, p0, v0, a0 = random_chain(rng, n)
+def _targets(cm, rng, n, scale=1.0, lift=0.0, spread=0.4):
+    R, w, wd, p0, v0, a0 = random_chain(rng, n, spread)
     p0 = p0 + [0.0, 0.0, lift]
     w, wd, v0, a0 = scale * w, scale * wd, scale * v0, scale * a0
     r, rd = chain_offsets(R, w, cm.d)
@@ -165,9 +165,11 @@ def test_chain_middle_is_the_middle_link_or_the_middle_joint():
 
 
 @pytest.mark.parametrize("n", [2, 4])
-def test_the_model_is_mujocos_chain(n):
-    """The rotor wrenches of the inverse dynamics applied in MuJoCo give the targets' accelerations and
-    the predicted cable forces (``cfrc_int``): the two models are the same multibody."""
+@pytest.mark.parametrize("through", ["xfrc_applied", "rotors"])
+def test_the_model_is_mujocos_chain(n, through):
+    """The rotor wrenches of the inverse dynamics applied in MuJoCo (as body wrenches, or as the eight
+    rotor thrusts that make them) give the targets' accelerations and the predicted cable forces: the
+    two models are the same multibody, and the simulator's cable force is read right."""
     import mujoco
 
     from sitl.model import SkeletonModel
@@ -175,8 +177,9 @@ def test_the_model_is_mujocos_chain(n):
     rng = np.random.default_rng(30 + n)
     sk = SkeletonConfig(n_links=n)
     cm = ChainModel(sk)
-    sm = SkeletonModel(sk, RotorGeometry.odar(), RotorParams())
-    targets = _targets(cm, rng, n, scale=0.5, lift=10.0)  # clear of the ground
+    geometry = RotorGeometry.odar()
+    sm = SkeletonModel(sk, geometry, RotorParams())
+    targets = _targets(cm, rng, n, scale=0.3, lift=10.0, spread=0.1)  # clear of the ground, within thrust
     R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
     w = np.stack([t.omega_d_rad_s for t in targets])
     qpos = [*targets[0].p_w_m, *targets[0].q_wxyz]
@@ -188,7 +191,15 @@ def test_the_model_is_mujocos_chain(n):
     sm.data.qpos[:] = qpos
     sm.data.qvel[:] = qvel
     dyn = cm.inverse_dynamics(targets)
-    sm.data.xfrc_applied[sm.body_ids] = dyn.rotor_wrench_w
+    if through == "xfrc_applied":
+        sm.data.xfrc_applied[sm.body_ids] = dyn.rotor_wrench_w
+    else:  # each link's wrench in its body frame, made by its rotors (eq. 2.8: U = B lambda)
+        B_pinv = np.linalg.pinv(geometry.mapping_matrix())
+        U = np.concatenate([np.einsum("nji,nj->ni", R, dyn.rotor_wrench_w[:, :3]),
+                            np.einsum("nji,nj->ni", R, dyn.rotor_wrench_w[:, 3:])], axis=1)
+        thrust = U @ B_pinv.T
+        assert np.abs(thrust).max() < RotorParams().thrust_max_n
+        sm.data.ctrl[sm.actuator_ids] = thrust
     mujoco.mj_forward(sm.model, sm.data)
     np.testing.assert_allclose(sm.data.qacc[:3], targets[0].a_w_m_s2, atol=1e-8)
     np.testing.assert_allclose(sm.data.qacc[3:6], targets[0].omega_dot_d_rad_s2, atol=1e-8)
