@@ -143,24 +143,25 @@ class CompanionDaemon:
             log.info("link %d: %s", engine.links[row].index + 1, msg.text)
         elif kind == "SYSTEM_TIME":
             engine.on_system_time(row, msg.time_unix_usec, msg.time_boot_ms)
-        elif kind == "SKELETON_LINK_STATE" and self.cfg.mode == "dialect":
-            try:
-                state = decode_link_state(msg, engine.links[row].index)
-            except MessageError as exc:
-                engine.on_rejected(row, kind, str(exc))
-                return
-            if not engine.on_state(row, state, msg.flags, now_s, msg.correction_seq, msg.correction_latency_us):
-                port.stats.ignored += 1  # no GPS time from this link yet
-        elif kind == "ODOMETRY" and self.cfg.mode == "standard":
-            try:
-                state = decode_odometry(msg, engine.links[row].index)
-            except MessageError as exc:
-                engine.on_rejected(row, kind, str(exc))
-                return
-            if not engine.on_state(row, state, STATE_FLAG_EKF_OK, now_s):
-                port.stats.ignored += 1
+        elif (kind, self.cfg.mode) in (("SKELETON_LINK_STATE", "dialect"), ("ODOMETRY", "standard")):
+            self._on_state(row, msg, now_s)
         else:
             port.stats.ignored += 1
+
+    def _on_state(self, row: int, msg, now_s: float) -> None:
+        """The link's state message (SKELETON_LINK_STATE, or a stock autopilot's ODOMETRY), validated."""
+        engine, index = self.engine, self.engine.links[row].index
+        try:
+            if msg.get_type() == "SKELETON_LINK_STATE":
+                state = decode_link_state(msg, index)
+                reported = (msg.flags, now_s, msg.correction_seq, msg.correction_latency_us)
+            else:
+                state, reported = decode_odometry(msg, index), (STATE_FLAG_EKF_OK, now_s)
+        except MessageError as exc:
+            engine.on_rejected(row, msg.get_type(), str(exc))
+            return
+        if not engine.on_state(row, state, *reported):
+            self.ports[row].stats.ignored += 1  # no GPS time from this link yet
 
     # -- output ------------------------------------------------------------------------------------
     def _carry_out(self, outputs, now_s: float) -> None:

@@ -173,6 +173,12 @@ def _usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
 
 
+def _stacked(states: list[LinkState]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(p, v, q, w)`` of ``states``, stacked (n, 3 or 4)."""
+    return (np.stack([s.p_w_m for s in states]), np.stack([s.v_w_m_s for s in states]),
+            np.stack([s.q_wxyz for s in states]), np.stack([s.omega_b_rad_s for s in states]))
+
+
 class CompanionEngine:
     """See the module docstring.
 
@@ -380,16 +386,16 @@ class CompanionEngine:
         self.seq = (self.seq + 1) & 0xFFFF or 1
         self._send_corrections(corrections, (result.p, result.v, result.q, result.P))
         p_local = np.concatenate([r.p for r in result.local])
-        self._record(self.fc_time_us, -1, states, result.p, result.v, result.q, p_local, int(result.iterations.max()),
+        self._record(self.fc_time_us, -1, _stacked(states), result.p, result.v, result.q, p_local,
+                     int(result.iterations.max()),
                      True, -1)
 
     def _observe(self) -> None:
         """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
-        states = [lk.state for lk in self.links]
+        ekf = _stacked([lk.state for lk in self.links])
         cycle = self.next_step_us if self.net is not None else -1
-        p = np.stack([s.p_w_m for s in states])
-        v, q = np.stack([s.v_w_m_s for s in states]), np.stack([s.q_wxyz for s in states])
-        self._record(self.fc_time_us if cycle < 0 else cycle, cycle, states, p, v, q, p, 0, False, -1)
+        p, v, q, _ = ekf
+        self._record(self.fc_time_us if cycle < 0 else cycle, cycle, ekf, p, v, q, p, 0, False, -1)
 
     def _withhold(self, newest: list[int], now_s: float) -> None:
         """No step: the links' stamps are too far apart to be aligned (logged every 5 s)."""
@@ -430,17 +436,15 @@ class CompanionEngine:
             p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
             self.seq = (self.seq + 1) & 0xFFFF or 1
             self._send_corrections(corrections, (p, v, q, step.result.P))
-            self._record(res.cycle_us, res.cycle_us, step, p, v, q, step.result.p, int(step.result.iterations),
+            self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
+                         int(step.result.iterations),
                          res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1)
 
-    def _record(self, t_us: int, cycle_us: int, before, p, v, q, p_local, iterations: int, global_applied: bool,
+    def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
                 leader: int) -> None:
-        """One step log row; ``before`` is the states (aligned in the local step) the step started from."""
-        if isinstance(before, list):
-            pe, ve = np.stack([s.p_w_m for s in before]), np.stack([s.v_w_m_s for s in before])
-            qe, we = np.stack([s.q_wxyz for s in before]), np.stack([s.omega_b_rad_s for s in before])
-        else:
-            pe, ve, qe, we = before.p, before.v, before.q, before.w
+        """One step log row; ``ekf`` is ``(p, v, q, w)`` of the links' states the step started from
+        (aligned to the cycle in distributed mode), ``p, v, q`` the corrected estimate."""
+        pe, ve, qe, we = ekf
         row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
                "iterations": iterations, "global_applied": global_applied, "leader": leader}
