@@ -59,6 +59,17 @@ def test_udp_round_trip_and_reply_to_the_learned_peer(udp_pair):
     assert server.stats.rx_messages == 1 and server.stats.per_type == {"HEARTBEAT": 1}
 
 
+def test_every_frame_carries_the_next_sequence_number(udp_pair):
+    """One counter per port, wrapping at 256, whether frames go one by one or in one write."""
+    server, client = udp_pair
+    for _ in range(200):
+        client.send(_heartbeat())
+    client.send_many([_heartbeat() for _ in range(100)])
+    got = _read_until(server, 300)
+    seqs = [m.get_seq() for m in got]
+    assert len(seqs) == 300 and seqs == [k % 256 for k in range(300)]
+
+
 def test_bad_input_is_counted_never_delivered_and_cannot_steal_the_peer(udp_pair):
     server, client = udp_pair
     client.send(_heartbeat())

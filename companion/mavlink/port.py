@@ -504,8 +504,15 @@ class MavlinkPort:
             out.append(m)
         return valid_from_peer
 
-    def send(self, msg) -> None:
+    def _pack(self, msg) -> bytes:
+        """The frame of ``msg`` with this link's next sequence number (one counter per port, as
+        pymavlink's ``send`` keeps it: stock tools count the gaps as lost frames)."""
         frame = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return frame
+
+    def send(self, msg) -> None:
+        frame = self._pack(msg)
         try:
             self.transport.send(frame)
         except OSError as exc:
@@ -519,7 +526,7 @@ class MavlinkPort:
 
     def send_many(self, msgs) -> None:
         """Send several messages in one write (a stream transport sees one segment)."""
-        frames = [m.pack(self.mav) for m in msgs]
+        frames = [self._pack(m) for m in msgs]
         try:
             self.transport.send(b"".join(frames))
         except OSError:
