@@ -420,7 +420,8 @@ class CompanionEngine:
         self.step_times_ms.append((self._timer() - t0) * 1e3)
         self._local[cycle] = (states, step)
         b = step.boundary
-        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, now_s))
+        # stamped when it goes out, after the computation (the shift deadline runs from there)
+        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock()))
 
     def _finish(self, resolved) -> None:
         """Corrections for the cycles that ended (with the leader's shift, or local-only)."""
