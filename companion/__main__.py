@@ -3,13 +3,15 @@
     python -m companion --config FILE [--group G] [--out DIR] [--start-center X,Y,Z] [--duration S]
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
     python -m companion dialect
+    python -m companion keys new FILE | keys check FILE
 
 The first form runs the daemon: it connects to the links of the config's ``[companion]``
 section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
 20 Hz and sends corrections and targets until SIGTERM / Ctrl-C. With ``companion.distributed``
 one daemon runs per group (``--group G``, 1-based) and the groups meet over Zenoh for the global
-step (``[zenoh]``), the first live group of ``zenoh.leader_order`` leading. ``dialect`` prints the
-environment that lets MAVProxy, MAVExplorer and mavlogdump decode the project's messages.
+step (``[zenoh]``), the first live group of ``zenoh.leader_order`` leading. ``dialect`` prints what
+MAVProxy, mavlogdump/MAVExplorer and MAVSDK each need to decode the project's messages; ``keys``
+creates and checks MAVLink 2 signing key files (``[signing]``).
 Exit codes: 0 success, 2 bad input (the message names the file, key and reason).
 """
 
@@ -90,10 +92,38 @@ def _cmd_daemon(args) -> int:
 
 
 def _cmd_dialect(args) -> int:
-    from .mavlink.dialect import tool_environment  # imports pymavlink, which the other commands may not need
+    from .mavlink.dialect import DIALECT_XML, export_definitions, tool_environment
 
-    for key, value in tool_environment().items():
+    env = tool_environment()
+    name = env["MAVLINK_DIALECT"]
+    xml = export_definitions() / "v1.0" / DIALECT_XML.name
+    print("# pymavlink tools read the dialect from MDEF; eval \"$(python -m companion dialect)\" sets it:")
+    for key, value in env.items():
         print(f"export {key}={value}")
+    print(f"# MAVProxy:    mavproxy.py --master udpin:127.0.0.1:14550 --dialect {name}")
+    print(f"# mavlogdump:  mavlogdump.py --dialect {name} --types SKELETON_LINK_STATE RUN/link1/link1.tlog")
+    print(f"# MAVExplorer: MAVExplorer.py --dialect {name} RUN/link1/link1.tlog")
+    print(f"# MAVSDK (Python): await drone.mavlink_direct.load_custom_xml(open({str(xml)!r}).read())")
+    return 0
+
+
+def _cmd_keys(args) -> int:
+    import hashlib
+
+    from .mavlink.signing import load_key, new_key_file
+
+    try:
+        if args.action == "new":
+            new_key_file(args.file, overwrite=args.force)
+        key = load_key(args.file)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    fingerprint = hashlib.sha256(key).hexdigest()[:16]
+    print(f"{args.file}: MAVLink 2 signing key, fingerprint {fingerprint} (compare, never share the file)")
+    if args.action == "new":
+        print(f"name it in the config: [signing] mode = \"required\", key_file = \"{args.file}\"")
+        print(f"MAVProxy: signing key $(cat {args.file})   (or a line 'HOST:PORT PASSPHRASE' in ~/.mavproxy/signing.keys)")
     return 0
 
 
@@ -134,14 +164,27 @@ def build_parser() -> argparse.ArgumentParser:
     rp.set_defaults(func=_cmd_replay)
     dp = sub.add_parser(
         "dialect",
-        help="print the environment for pymavlink tools (MAVProxy, MAVExplorer, mavlogdump) to decode the dialect",
+        help="print what MAVProxy, mavlogdump, MAVExplorer and MAVSDK need to decode the dialect",
         description=(
-            "Prints export lines: eval \"$(python -m companion dialect)\" then e.g. "
-            "mavlogdump.py --dialect aerial_skeleton --types SKELETON_LINK_STATE run/link2/link2.tlog "
-            "(MAVExplorer and MAVProxy: the same environment)"
+            "Prints export lines and, as comments, each tool's command: eval \"$(python -m companion dialect)\" "
+            "then e.g. mavproxy.py --dialect aerial_skeleton, or "
+            "mavlogdump.py --dialect aerial_skeleton --types SKELETON_LINK_STATE run/link2/link2.tlog; "
+            "MAVSDK loads the dialect XML with mavlink_direct.load_custom_xml"
         ),
     )
     dp.set_defaults(func=_cmd_dialect)
+    kp = sub.add_parser(
+        "keys",
+        help="create or check a MAVLink 2 signing key file",
+        description=(
+            "new FILE: a random 256-bit passphrase in FILE (mode 600); the key is its SHA-256, as MAVProxy's "
+            "'signing key PASSPHRASE' and QGroundControl derive it. check FILE: load it and print its fingerprint."
+        ),
+    )
+    kp.add_argument("action", choices=("new", "check"), help="new: create FILE; check: validate FILE")
+    kp.add_argument("file", metavar="FILE", help="key file")
+    kp.add_argument("--force", action="store_true", help="new: replace an existing FILE")
+    kp.set_defaults(func=_cmd_keys)
     return parser
 
 

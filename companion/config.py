@@ -8,6 +8,7 @@ its run folder) has these sections, each a frozen dataclass validated by
     [skeleton]                   the physical chain (companion.skeleton.body.SkeletonConfig)
     [companion]                  the daemon: SCKF rate and groups, its links, mode, targets, arming
     [[companion.links]]          one flight controller per link (system id and URL)
+    [signing]                    MAVLink 2 signing: mode per link, key file (companion.mavlink.signing)
     [zenoh]                      the companions' network (distributed mode)
     [trajectory]                 the target source (take-off, hover, bending, CPG)
     [motion]                     the CPG motion commands (trajectory.kind = "cpg")
@@ -29,6 +30,7 @@ from .configfile import ConfigError, build, load_toml, require_positive
 from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
 from .fleetnet.config import PREFIX_RE, ZenohConfig
+from .mavlink.signing import SigningConfig
 from .motion.inverse import InverseModel
 from .motion.schedule import MotionConfig
 from .skeleton.body import SkeletonConfig
@@ -134,11 +136,13 @@ class CompanionConfig:
 
 @dataclass(frozen=True)
 class ChainSetup:
-    """What every layer's configuration shares: the chain's name and its physical skeleton."""
+    """What every layer's configuration shares: the chain's name, its physical skeleton and how
+    its MAVLink links are signed."""
 
     name: str
     description: str = ""
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
+    signing: SigningConfig = field(default_factory=SigningConfig)
 
 
 @dataclass(frozen=True)
@@ -198,6 +202,9 @@ def load_setup(cls: type, path: str | Path, **overrides):
     is loaded and must fit the skeleton. Raises :class:`~companion.configfile.ConfigError`.
     """
     setup = build(cls, load_toml(path), file=str(path))
+    if setup.signing.key_file:
+        key_path = Path(path).resolve().parent / Path(setup.signing.key_file).expanduser()
+        setup = replace(setup, signing=replace(setup.signing, key_file=str(key_path)))
     motion = getattr(setup, "motion", None)
     if motion is not None:
         model_path = Path(path).resolve().parent / motion.model

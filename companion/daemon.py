@@ -4,7 +4,9 @@ The engine decides everything (steps, corrections, targets, arming, time base, t
 halves); this shell owns the I/O and the wall clock. For every link it holds a
 :class:`~companion.mavlink.port.MavlinkPort` (UDP in SITL, serial on hardware):
 
-* frames in: a message from another system id is counted as ignored; HEARTBEAT, COMMAND_ACK,
+* frames in: with ``[signing]`` (``onboard`` link mode) every frame is signed and checked by
+  the port first (unsigned, wrongly signed and replayed frames are counted per link: the
+  health table's ``sig rej`` column); a message from another system id is counted as ignored; HEARTBEAT, COMMAND_ACK,
   SYSTEM_TIME and the state message (SKELETON_LINK_STATE, or ODOMETRY in ``standard`` mode,
   decoded by :mod:`companion.mavlink.codec` / :mod:`companion.mavlink.standard`) go to the
   engine with the arrival time; a state that fails validation (non-finite, non-unit quaternion,
@@ -21,7 +23,8 @@ Distributed mode (``companion.distributed``, one daemon per group, ``--group``):
 are counted per key and logged.
 
 Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
-invalid states by the engine. The run folder gets ``companion.tlog``, ``companion.log`` (by the
+invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog`` (one per link),
+``companion.log`` (by the
 CLI), ``companion_log.npz`` (the engine's step log, rewritten at every health report and at the
 end) and ``companion_summary.json``.
 """
@@ -66,12 +69,12 @@ _ACK_COMMANDS = {D.MAV_CMD_COMPONENT_ARM_DISARM: Command.ARM, D.MAV_CMD_SET_MESS
 def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
     """The health table: the engine's per-link rows beside each port's state and dropped frames."""
     lines = [f"{'link':>4} {'sysid':>5} {'port':>4} {'state Hz':>8} {'age ms':>7} {'dropped':>7} {'rejected':>8} "
-             f"{'lat p50 ms':>10} {'lat p99 ms':>10}"]
+             f"{'sig rej':>7} {'lat p50 ms':>10} {'lat p99 ms':>10}"]
     for row, port in zip(rows, ports):
         up = "up" if port.transport.connected else "down"
         p50, p99 = (f"{row[k]:10.1f}" if row[k] is not None else f"{'-':>10}" for k in ("latency_p50_ms", "latency_p99_ms"))
         lines.append(f"{row['link']:>4} {row['system_id']:>5} {up:>4} {row['state_hz']:8.1f} {row['age_ms']:7.0f} "
-                     f"{port.stats.dropped:7d} {row['rejected']:8d} {p50} {p99}")
+                     f"{port.stats.dropped:7d} {row['rejected']:8d} {port.stats.rejected_signing:7d} {p50} {p99}")
     return "\n".join(lines)
 
 
@@ -90,13 +93,17 @@ class CompanionDaemon:
         groups = cfg.group_layout(n)
         members = groups[group] if group is not None and 0 <= group < len(groups) else tuple(range(n))
         endpoints = cfg.endpoints(n)
-        tlog = TlogWriter(out_dir / "companion.tlog") if out_dir is not None else None
+        mode = setup.signing.link_mode("onboard")
+        key = setup.signing.key() if mode != "off" else None  # ValueError: no or unreadable key file
         self.ports: list[MavlinkPort] = []
         net = None
         try:
             for i in members:
+                sysid = endpoints[i].system_id
+                tlog = TlogWriter(out_dir / f"companion_link{sysid}.tlog") if out_dir is not None else None
                 self.ports.append(MavlinkPort(endpoints[i].url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID, _ACCEPT,
-                                              tlog, peer_system_id=endpoints[i].system_id))
+                                              tlog, peer_system_id=endpoints[i].system_id, signing=mode, key=key,
+                                              link_id=i))
             if group is not None and cfg.distributed and 0 <= group < len(groups):
                 net = self._group_link(setup, group, bus, config_file)
             self.engine = CompanionEngine(setup, group=group, start_center=start_center, net=net)

@@ -8,7 +8,8 @@ Instance ``i`` is MAVLink system ``i + 1``; the default ports follow PX4 SITL (s
 4560+i, onboard UDP 14540+i from 14580+i, GCS UDP 14550 from 18570+i). The physical link
 (mass, inertia, rotors) and the firmware defaults come from a vehicle config
 (:class:`~link_firmware_sim.config.VehicleSetup`: name, [skeleton], [rotors], [firmware], [origin],
-[companion]); ``python -m sitl launch`` writes one, ``link.toml``, in its run folder. Parameters
+[companion], [signing]); ``python -m sitl launch`` writes one, ``link.toml``, in its run folder.
+With ``[signing]`` the onboard and GCS links are signed with the key in ``signing.key_file``. Parameters
 changed over MAVLink persist in the parameter file (default ``DIR/link<i+1>_params.json``).
 Stops cleanly on SIGTERM / Ctrl-C. Exit code 2 on a bad configuration or a busy port.
 """
@@ -63,7 +64,14 @@ def main(argv=None) -> int:
     firmware = sc.firmware_for(args.instance)
     params = ParamTable(args.instance + 1, sc.firmware, sc.origin, sc.stream_rates(), params_path)
     try:
-        vehicle = Vehicle(args.instance, firmware, params, ports, out, args.log_rate, sc.rotors.thrust_max_n)
+        key = sc.signing.key()
+    except ValueError as exc:
+        print(f"error: {args.config}: {exc}", file=sys.stderr)
+        return 2
+    key_path = Path(sc.signing.key_file) if sc.signing.key_file else None
+    try:
+        vehicle = Vehicle(args.instance, firmware, params, ports, out, args.log_rate, sc.rotors.thrust_max_n,
+                          signing=sc.signing, key=key, key_path=key_path)
     except PortError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

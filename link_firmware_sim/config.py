@@ -5,7 +5,8 @@ skeleton) with what one link's flight controller needs::
 
     [rotors]      the rotor/ESC parameters (companion.skeleton.rotors.RotorParams)
     [firmware]    EKF tuning, impedance gains, allocation, failsafe times (FirmwareConfig)
-    [origin]      the shared local frame's geodetic origin (SKL_ORIG_* parameters)
+    [origin]      the shared local frame's default geodetic origin (SET_GPS_GLOBAL_ORIGIN changes it)
+    [signing]     MAVLink 2 signing of the onboard and GCS links (companion.mavlink.signing)
     [companion]   which state stream the companion reads (``mode``) and at what rate: the
                   vehicle's default onboard stream, as a user sets SKL_STATE_HZ / SKL_ODOM_HZ
 

@@ -40,14 +40,14 @@ from companion.messages import (
     PoseTarget,
 )
 
-from companion.skeleton.body import LinkInertia
+from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 
 from .allocation import AllocationParams, Allocator
 from .control import ControlIntegrals, ImpedanceGains, impedance_control, weight_wrench
 from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
 
-__all__ = ["FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
+__all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
 
 log = logging.getLogger(__name__)
 
@@ -86,15 +86,24 @@ class FirmwareConfig:
     correction_hold_s: float = 0.1
     correction_stale_s: float = 0.5
     target_stale_s: float = 1.0
+    #: largest correction accepted (SKL_CORR_MAXP / _MAXV / _MAXR); a larger one is rejected,
+    #: never clamped. The SCKF's largest in the SITL scenarios: 0.78 m, 0.20 m/s, 0.006 rad.
+    correction_max_dp_m: float = 2.0
+    correction_max_dv_m_s: float = 1.0
+    correction_max_dtheta_rad: float = 0.5
 
     def __post_init__(self) -> None:
-        require_positive(self, "rate_hz")
+        require_positive(self, "rate_hz", "correction_max_dp_m", "correction_max_dv_m_s", "correction_max_dtheta_rad")
         if not 0 <= self.correction_hold_s < self.correction_stale_s:
             raise ValueError(
                 f"correction_hold_s must be in [0, correction_stale_s), got {self.correction_hold_s} "
                 f"(stale {self.correction_stale_s})"
             )
         require_positive(self, "target_stale_s")
+
+
+class CorrectionRejected(ValueError):
+    """A correction outside the configured bounds (counted and reported by the shell)."""
 
 
 class LinkFirmware:
@@ -109,6 +118,8 @@ class LinkFirmware:
         self.allocator = Allocator(geometry, config.allocation)
         self.ekf: LinkEkf | None = None
         self.armed = False
+        self._arm_height_m = 0.0
+        self._thrust_total_n = 0.0
         self.integrals = ControlIntegrals()
         self.target: PoseTarget | None = None
         self._target_time_s = -math.inf
@@ -161,10 +172,22 @@ class LinkFirmware:
 
     # -- companion and targets ---------------------------------------------------------
     def on_correction(self, t_s: float, correction: Correction | None) -> None:
-        """Apply the companion's correction (``None``: withdrawn, control on the raw EKF)."""
+        """Apply the companion's correction (``None``: withdrawn, control on the raw EKF).
+
+        Raises :class:`CorrectionRejected` (nothing changes: the previous correction keeps
+        fading) when a component exceeds its bound (``correction_max_*``)."""
         if correction is None:
             self.correction = None
             return
+        cfg = self.config
+        for name, value, bound, unit in (
+            ("dp", correction.dp_w_m, cfg.correction_max_dp_m, "m"),
+            ("dv", correction.dv_w_m_s, cfg.correction_max_dv_m_s, "m/s"),
+            ("dtheta", correction.dtheta_w_rad, cfg.correction_max_dtheta_rad, "rad"),
+        ):
+            norm = float(np.linalg.norm(value))
+            if not norm <= bound:
+                raise CorrectionRejected(f"correction {name} {norm:.3g} {unit} exceeds the bound {bound:g} {unit}")
         self.correction = correction
         self._correction_time_s = t_s
         self.correction_seq = correction.seq
@@ -235,7 +258,17 @@ class LinkFirmware:
         self.armed = True
         self.integrals = ControlIntegrals()
         self.allocator.reset()
+        self._arm_height_m = float(self.control_estimate(t_s)[0][2])
+        self._thrust_total_n = 0.0
         return True
+
+    def landed(self, t_s: float) -> bool:
+        """A land detector for disarm checks: disarmed, or armed with the link not carried by its
+        rotors (commanded force under half its weight) within 0.15 m of where it armed."""
+        if not self.armed:
+            return True
+        height = float(self.control_estimate(t_s)[0][2]) - self._arm_height_m
+        return self._thrust_total_n < 0.5 * self.inertia.mass_kg * GRAVITY_M_S2 and height < 0.15
 
     def hover_command(self, q_wxyz) -> np.ndarray:
         """Thrusts that carry the link's weight at attitude ``q_wxyz`` (no torque).
@@ -285,4 +318,5 @@ class LinkFirmware:
         U, self.integrals = impedance_control(
             p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
         )
+        self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
         return self.allocator.allocate(U).command_n

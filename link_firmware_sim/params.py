@@ -3,11 +3,19 @@
 Names follow PX4's style (at most 16 characters). Controller gains, failsafe timeouts,
 allocation settings and stream rates are parameters; changing one through PARAM_SET applies it
 at once and persists it in the instance's parameter file (JSON), which is read back at start.
-The shared local origin is stored as integer degE7 (a float32 latitude would lose ~0.4 m).
+
+Values travel in PARAM_VALUE's float field as PX4 sends them (bytewise: an integer's 32 bits;
+MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE and MAV_AUTOPILOT_PX4 declare it, which is what
+MAVProxy, QGroundControl and MAVSDK look at). A PARAM_SET of an integer is also understood
+C-cast when the bytewise reading is out of range (integer ranges stay within 2**24, so the two
+readings never both fit). The shared local origin is not a parameter: as on PX4 it is set with
+SET_GPS_GLOBAL_ORIGIN, answered with GPS_GLOBAL_ORIGIN, and persisted in the same file (key
+``origin``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -53,11 +61,15 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
     ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
-    ParamSpec("SKL_ORIG_LAT", "int", -890000000, 890000000, "Shared local origin latitude [degE7]"),
-    ParamSpec("SKL_ORIG_LON", "int", -1800000000, 1800000000, "Shared local origin longitude [degE7]"),
-    ParamSpec("SKL_ORIG_ALT", "float", -1000.0, 10000.0, "Shared local origin altitude AMSL [m]"),
+    ParamSpec("SKL_CORR_MAXP", "float", 0.01, 100.0, "Largest correction accepted, position [m]"),
+    ParamSpec("SKL_CORR_MAXV", "float", 0.01, 100.0, "Largest correction accepted, velocity [m/s]"),
+    ParamSpec("SKL_CORR_MAXR", "float", 0.01, 3.1416, "Largest correction accepted, attitude [rad]"),
 )
+#: Integer parameters stay within this magnitude (a C-cast PARAM_SET is exact and unambiguous).
+FLOAT32_EXACT_INT = 1 << 24
 _SPEC = {p.name: p for p in PARAMS}
+_ORIGIN_KEY = "origin"  # the parameter file's entry for the origin (not a parameter)
+assert all(max(abs(p.minimum), abs(p.maximum)) <= FLOAT32_EXACT_INT for p in PARAMS if p.kind == "int")
 
 
 @dataclass(frozen=True)
@@ -68,7 +80,7 @@ class StreamRates:
     odometry_hz: float = 50.0
 
 
-def _defaults(system_id: int, config: FirmwareConfig, origin: GeoOrigin, rates: StreamRates) -> dict[str, float]:
+def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dict[str, float]:
     g = config.gains
     a = config.allocation
     return {
@@ -91,9 +103,9 @@ def _defaults(system_id: int, config: FirmwareConfig, origin: GeoOrigin, rates: 
         "SKL_SM_EPS1": a.eps1_n,
         "SKL_STATE_HZ": rates.state_hz,
         "SKL_ODOM_HZ": rates.odometry_hz,
-        "SKL_ORIG_LAT": int(round(origin.lat_deg * 1e7)),
-        "SKL_ORIG_LON": int(round(origin.lon_deg * 1e7)),
-        "SKL_ORIG_ALT": origin.alt_m,
+        "SKL_CORR_MAXP": config.correction_max_dp_m,
+        "SKL_CORR_MAXV": config.correction_max_dv_m_s,
+        "SKL_CORR_MAXR": config.correction_max_dtheta_rad,
     }
 
 
@@ -102,16 +114,25 @@ class ParamTable:
 
     def __init__(self, system_id: int, config: FirmwareConfig, origin: GeoOrigin, rates: StreamRates,
                  path: Path | None = None):
-        self.values = _defaults(system_id, config, origin, rates)
+        self.values = _defaults(system_id, config, rates)
+        self._origin = origin
         self.path = path
         self._base = config
         if path is not None and path.exists():
             try:
                 stored = json.loads(path.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
+                if not isinstance(stored, dict):
+                    raise ValueError("not a JSON object")
+            except (OSError, ValueError) as exc:
                 log.warning("%s: ignoring unreadable parameter file (%s)", path, exc)
                 stored = {}
             for name, value in stored.items():
+                if name == _ORIGIN_KEY:
+                    try:
+                        self._origin = GeoOrigin(**value)
+                    except (TypeError, ValueError) as exc:
+                        log.warning("%s: ignoring the stored origin %r (%s)", path, value, exc)
+                    continue
                 try:
                     self._validate(name, value)
                 except ValueError as exc:
@@ -134,7 +155,7 @@ class ParamTable:
         spec = _SPEC.get(name)
         if spec is None:
             raise ValueError(f"{name}: unknown parameter")
-        if not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise ValueError(f"{name}: not a finite number ({value!r})")
         if spec.kind == "int" and float(value) != int(value):
             raise ValueError(f"{name}: integer parameter, got {value!r}")
@@ -162,7 +183,9 @@ class ParamTable:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps({k: v for k, v in self.values.items() if not _SPEC[k].read_only}, indent=1))
+        stored: dict = {k: v for k, v in self.values.items() if not _SPEC[k].read_only}
+        stored[_ORIGIN_KEY] = dataclasses.asdict(self._origin)
+        tmp.write_text(json.dumps(stored, indent=1))
         tmp.replace(self.path)
 
     def firmware_config(self) -> FirmwareConfig:
@@ -187,11 +210,18 @@ class ParamTable:
             correction_hold_s=v["SKL_CORR_HOLD"],
             correction_stale_s=v["SKL_CORR_STALE"],
             target_stale_s=v["COM_OF_LOSS_T"],
+            correction_max_dp_m=v["SKL_CORR_MAXP"],
+            correction_max_dv_m_s=v["SKL_CORR_MAXV"],
+            correction_max_dtheta_rad=v["SKL_CORR_MAXR"],
         )
 
     def origin(self) -> GeoOrigin:
-        v = self.values
-        return GeoOrigin(v["SKL_ORIG_LAT"] * 1e-7, v["SKL_ORIG_LON"] * 1e-7, v["SKL_ORIG_ALT"])
+        return self._origin
+
+    def set_origin(self, origin: GeoOrigin) -> None:
+        """A new shared origin (SET_GPS_GLOBAL_ORIGIN), persisted."""
+        self._origin = origin
+        self.save()
 
     def rates(self) -> StreamRates:
         return StreamRates(state_hz=self.values["SKL_STATE_HZ"], odometry_hz=self.values["SKL_ODOM_HZ"])

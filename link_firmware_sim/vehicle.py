@@ -45,13 +45,15 @@ from companion.mavlink.standard import (
     euler_zyx,
 )
 from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
+from companion.mavlink.signing import KEY_LEN, UNSIGNED_ALLOWED, SigningConfig, write_key_file
 from companion.messages import Correction, PoseTarget
 
-from .firmware import LinkFirmware
+from .firmware import CorrectionRejected, LinkFirmware
+from .geo import GeoOrigin
 from .hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators, sitl_gps_time_us
 from .params import ParamTable
 
-__all__ = ["VehiclePorts", "Vehicle"]
+__all__ = ["VehiclePorts", "Vehicle", "FORCE_DISARM"]
 
 log = logging.getLogger(__name__)
 D = load_dialect()
@@ -60,12 +62,20 @@ HIL_ACCEPT = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
 MAVLINK_ACCEPT = frozenset({
     "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_LONG", "COMMAND_INT",
     "SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET", "SKELETON_TARGET_FEEDFORWARD", "SKELETON_CORRECTION",
-    "ODOMETRY", "VISION_POSITION_ESTIMATE",
+    "ODOMETRY", "VISION_POSITION_ESTIMATE", "SET_GPS_GLOBAL_ORIGIN", "SETUP_SIGNING", "FILE_TRANSFER_PROTOCOL",
 })
+_PX4_OFFBOARD = 6 << 16  # PX4 custom_mode: main mode OFFBOARD
+#: MAV_CMD_COMPONENT_ARM_DISARM param2 that disarms a vehicle in flight (PX4, ArduPilot)
+FORCE_DISARM = 21196
+_LINK_NAMES = ("onboard", "gcs")
+# MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors this vehicle answers
+_FTP_TERMINATE, _FTP_RESET, _FTP_ACK, _FTP_NAK = 1, 2, 128, 129
+_FTP_ERR_UNKNOWN_COMMAND, _FTP_ERR_FILE_NOT_FOUND = 9, 10
+_FTP_OPEN_FILE_RO, _FTP_LIST_DIRECTORY = 4, 3
 _FLIGHT_SW_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | 255  # 0.1.0 (release)
 _CAPABILITIES = (
     D.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-    | D.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    | D.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
     | D.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | D.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | D.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
@@ -110,6 +120,8 @@ class _Stream:
 @dataclass
 class _Endpoint:
     port: MavlinkPort
+    name: str = "onboard"  # "onboard" or "gcs"
+    trusted: bool = False  # SETUP_SIGNING accepted here
     streams: dict[int, _Stream] = field(default_factory=dict)
 
 
@@ -117,7 +129,8 @@ class Vehicle:
     """One link's firmware behind its MAVLink ports."""
 
     def __init__(self, instance: int, firmware: LinkFirmware, params: ParamTable, ports: VehiclePorts,
-                 out_dir: Path | None = None, log_rate_hz: float = 50.0, thrust_max_n: float = 8.0):
+                 out_dir: Path | None = None, log_rate_hz: float = 50.0, thrust_max_n: float = 8.0,
+                 signing: SigningConfig | None = None, key: bytes | None = None, key_path: Path | None = None):
         self.instance = instance
         self.system_id = instance + 1
         self.fw = firmware
@@ -125,13 +138,30 @@ class Vehicle:
         self.origin = params.origin()
         self.out_dir = out_dir
         self.thrust_max_n = thrust_max_n
+        self.signing = signing or SigningConfig()
+        self.key_path = key_path
         self.fw.reconfigure(params.firmware_config())
-        tlog = TlogWriter(out_dir / f"link{instance + 1}.tlog") if out_dir is not None else None
+        # The simulator link is the physics (PX4's simulator API): never signed.
         self.sim = MavlinkPort(ports.sim, self.system_id, accept=HIL_ACCEPT)
-        onboard = MavlinkPort(ports.onboard, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog)
-        self.endpoints = [_Endpoint(onboard)]
-        if ports.gcs:
-            self.endpoints.append(_Endpoint(MavlinkPort(ports.gcs, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog)))
+        self.endpoints = []
+        for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
+            if not url:
+                continue
+            trusted = name in self.signing.trusted
+            # one tlog per link (each has its own sequence numbers): link<i>.tlog, link<i>_gcs.tlog
+            suffix = "" if name == "onboard" else f"_{name}"
+            tlog = TlogWriter(out_dir / f"link{instance + 1}{suffix}.tlog") if out_dir is not None else None
+            allowed = UNSIGNED_ALLOWED | ({"SETUP_SIGNING"} if trusted else set())
+            try:
+                port = MavlinkPort(url, self.system_id, accept=MAVLINK_ACCEPT, tlog=tlog,
+                                   signing=self.signing.link_mode(name), key=key, link_id=link_id,
+                                   unsigned_allowed=allowed)
+            except Exception:
+                self.sim.close()
+                for ep in self.endpoints:
+                    ep.port.close()
+                raise
+            self.endpoints.append(_Endpoint(port, name, trusted))
         self._set_default_streams()
         self.fc_time_s = 0.0
         self.fc_time_us = 0
@@ -143,7 +173,8 @@ class Vehicle:
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
         self._log = _Stream.at_rate(log_rate_hz)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
-        self.errors = {"hil": 0, "mavlink": 0}
+        self.errors = {"hil": 0, "mavlink": 0, "correction_rejected": 0, "disarm_refused": 0, "setup_signing_refused": 0}
+        self._next_status_wall: dict[str, float] = {}
         self._cache_tick_us = -1  # no tick yet: _tick_values computes on first use
         self._cached = None
         self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
@@ -184,6 +215,7 @@ class Vehicle:
             D.MAVLINK_MSG_ID_SYS_STATUS: self._msg_sys_status,
             D.MAVLINK_MSG_ID_HEARTBEAT: self._msg_heartbeat,
             D.MAVLINK_MSG_ID_SYSTEM_TIME: self._msg_system_time,
+            D.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: self._msg_gps_global_origin,
         }
 
     # -- messages out --------------------------------------------------------------------------
@@ -200,7 +232,11 @@ class Vehicle:
     def _msg_heartbeat(self):
         base = D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (D.MAV_MODE_FLAG_SAFETY_ARMED if self.fw.armed else 0)
         status = D.MAV_STATE_ACTIVE if self.fw.armed else D.MAV_STATE_STANDBY
-        return D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_GENERIC, base, 0, status, 3)
+        # A PX4-style autopilot (PX4's parameter encoding, names, ports, failsafes and signing): the
+        # stock tools pick the parameter encoding from this field (MAVProxy and QGroundControl decode
+        # bytewise only for MAV_AUTOPILOT_PX4, MAVSDK casts only for ArduPilot). Custom mode: PX4's
+        # OFFBOARD (main mode 6), what the link flies in: the companion's targets.
+        return D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_PX4, base, _PX4_OFFBOARD, status, 3)
 
     def _msg_sys_status(self):
         sensors = (D.MAV_SYS_STATUS_SENSOR_3D_GYRO | D.MAV_SYS_STATUS_SENSOR_3D_ACCEL | D.MAV_SYS_STATUS_SENSOR_3D_MAG
@@ -373,12 +409,111 @@ class Vehicle:
                 self._on_command(ep, msg)
             elif kind.startswith("PARAM_"):
                 self._on_param(ep, msg)
+            elif kind == "SET_GPS_GLOBAL_ORIGIN":
+                self._on_set_origin(ep, msg)
+            elif kind == "SETUP_SIGNING":
+                self._on_setup_signing(ep, msg)
+            elif kind == "FILE_TRANSFER_PROTOCOL":
+                self._on_ftp(ep, msg)
         except MessageError as exc:
             self.errors["mavlink"] += 1
             log.warning("link %d: rejected %s: %s", self.system_id, kind, exc)
 
     def _on_correction(self, corr: Correction | None) -> None:
-        self.fw.on_correction(self.fc_time_s, corr)
+        try:
+            self.fw.on_correction(self.fc_time_s, corr)
+        except CorrectionRejected as exc:
+            self.errors["correction_rejected"] += 1
+            log.warning("link %d: %s (SKL_CORR_MAX*; rejected so far: %d)", self.system_id, exc,
+                        self.errors["correction_rejected"])
+            self._status_all(D.MAV_SEVERITY_WARNING, "Correction rejected: out of bounds", every_s=5.0)
+
+    # -- operator messages -------------------------------------------------------------------
+    def _status(self, ep: _Endpoint, severity: int, text: str) -> None:
+        """A STATUSTEXT to one link (at most 50 characters, as PX4 sends them)."""
+        ep.port.send(D.MAVLink_statustext_message(severity, text[:50].encode()))
+
+    def _status_all(self, severity: int, text: str, every_s: float = 0.0) -> None:
+        """A STATUSTEXT to every link, at most once per ``every_s`` for the same text."""
+        now = time.monotonic()
+        if now < self._next_status_wall.get(text, 0.0):
+            return
+        self._next_status_wall[text] = now + every_s
+        for ep in self.endpoints:
+            self._status(ep, severity, text)
+
+    def _on_set_origin(self, ep: _Endpoint, msg) -> None:
+        """SET_GPS_GLOBAL_ORIGIN: the shared local origin (refused while armed: the frame would jump)."""
+        if msg.target_system not in (0, self.system_id):
+            return
+        if self.fw.armed:
+            self._status(ep, D.MAV_SEVERITY_WARNING, "Origin not changed: armed")
+        else:
+            try:
+                origin = GeoOrigin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            except ValueError as exc:
+                self._status(ep, D.MAV_SEVERITY_WARNING, f"Origin refused: {exc}")
+            else:
+                self.params.set_origin(origin)
+                self.origin = origin
+                log.info("link %d: origin set to %.7f, %.7f, %.2f m", self.system_id, origin.lat_deg,
+                         origin.lon_deg, origin.alt_m)
+        ep.port.send(self._msg_gps_global_origin())
+
+    def _msg_gps_global_origin(self):
+        o = self.origin
+        return D.MAVLink_gps_global_origin_message(int(round(o.lat_deg * 1e7)), int(round(o.lon_deg * 1e7)),
+                                                   int(round(o.alt_m * 1e3)), self.fc_time_us)
+
+    def _on_setup_signing(self, ep: _Endpoint, msg) -> None:
+        """SETUP_SIGNING: a new key for every link, accepted only on a trusted link (PX4: USB only).
+
+        An all-zero key with timestamp 0 turns signing off (MAVLink semantics). The key is
+        written to the configured key file (hex), so it survives a restart."""
+        if msg.target_system not in (0, self.system_id):
+            return
+        if not ep.trusted:
+            self.errors["setup_signing_refused"] += 1
+            log.warning("link %d: SETUP_SIGNING on the untrusted %s link refused", self.system_id, ep.name)
+            self._status(ep, D.MAV_SEVERITY_WARNING, "Signing setup refused: untrusted link")
+            return
+        key = bytes(msg.secret_key)
+        if len(key) != KEY_LEN:
+            raise MessageError(f"SETUP_SIGNING key of {len(key)} bytes")
+        disable = not any(key) and msg.initial_timestamp == 0
+        for other in self.endpoints:
+            mode = "off" if disable else (self.signing.link_mode(other.name) if self.signing.active else "required")
+            other.port.set_signing(mode, None if disable else key)
+            if not disable:
+                other.port.mav.signing.timestamp = max(other.port.mav.signing.timestamp, int(msg.initial_timestamp))
+        if self.key_path is not None and not disable:
+            write_key_file(self.key_path, key.hex(), overwrite=True)
+        log.warning("link %d: signing %s over the %s link", self.system_id, "disabled" if disable else "key replaced",
+                    ep.name)
+        self._status_all(D.MAV_SEVERITY_NOTICE, "Signing disabled" if disable else "Signing key updated")
+
+    def _on_ftp(self, ep: _Endpoint, msg) -> None:
+        """MAVLink FTP: no file system here. Session resets are acknowledged, everything else is
+        answered at once with a NAK (opening a file: FileNotFound, so a ground station that tries
+        ``@PARAM/param.pck`` first falls back to PARAM_REQUEST_LIST without waiting)."""
+        if msg.target_system not in (0, self.system_id):
+            return
+        payload = bytes(msg.payload)
+        if len(payload) < 12:
+            raise MessageError("FILE_TRANSFER_PROTOCOL payload shorter than its header")
+        seq, session, opcode = struct.unpack_from("<HBB", payload)
+        if opcode in (_FTP_ACK, _FTP_NAK):
+            return
+        if opcode in (_FTP_TERMINATE, _FTP_RESET):
+            reply, data = _FTP_ACK, b""
+        elif opcode in (_FTP_OPEN_FILE_RO, _FTP_LIST_DIRECTORY):
+            reply, data = _FTP_NAK, bytes([_FTP_ERR_FILE_NOT_FOUND])
+        else:
+            reply, data = _FTP_NAK, bytes([_FTP_ERR_UNKNOWN_COMMAND])
+        header = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, reply, len(data), opcode, 0, 0, 0)
+        body = (header + data).ljust(251, b"\0")
+        ep.port.send(D.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(),
+                                                              list(body)))
 
     def _on_position_target(self, msg) -> None:
         self._pos_target = decode_position_target(msg)
@@ -415,6 +550,13 @@ class Vehicle:
         if cmd == D.MAV_CMD_COMPONENT_ARM_DISARM:
             if msg.param1 >= 0.5:
                 result = D.MAV_RESULT_ACCEPTED if self.fw.arm(self.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
+            elif self.fw.armed and not self.fw.landed(self.fc_time_s) and int(round(msg.param2)) != FORCE_DISARM:
+                # PX4: disarming in flight needs the force value (the link would fall)
+                self.errors["disarm_refused"] += 1
+                log.warning("link %d: disarm refused in flight (param2 %g, force is %d)", self.system_id,
+                            msg.param2, FORCE_DISARM)
+                self._status(ep, D.MAV_SEVERITY_CRITICAL, f"Disarm refused: in flight (force {FORCE_DISARM})")
+                result = D.MAV_RESULT_DENIED
             else:
                 self.fw.disarm()
                 result = D.MAV_RESULT_ACCEPTED
@@ -445,15 +587,15 @@ class Vehicle:
             self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
 
     def _param_value(self, name: str):
+        """PARAM_VALUE, PX4's bytewise encoding: an integer's 32 bits in the float field."""
         spec = self.params.spec(name)
         value = self.params.values[name]
-        index = self.params.names.index(name)
         if spec.kind == "int":
-            raw = struct.unpack("<f", struct.pack("<i", int(value)))[0]  # bytewise int encoding (PX4)
-            ptype = D.MAV_PARAM_TYPE_INT32
+            raw, ptype = _int_as_float_bits(int(value)), D.MAV_PARAM_TYPE_INT32
         else:
             raw, ptype = float(value), D.MAV_PARAM_TYPE_REAL32
-        return D.MAVLink_param_value_message(name.encode(), raw, ptype, len(self.params.names), index)
+        return D.MAVLink_param_value_message(name.encode(), raw, ptype, len(self.params.names),
+                                             self.params.names.index(name))
 
     def _on_param(self, ep: _Endpoint, msg) -> None:
         kind = msg.get_type()
@@ -472,19 +614,22 @@ class Vehicle:
                 ep.port.send(self._param_value(name))
             return
         if kind == "PARAM_SET":
+            if msg.target_system not in (0, self.system_id):
+                return
             name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
             spec = self.params.spec(name)
             if spec is None:
                 log.warning("link %d: PARAM_SET of unknown parameter %r", self.system_id, name)
+                self._status(ep, D.MAV_SEVERITY_ERROR, f"Param {name[:16]} unknown")
                 return
+            value = msg.param_value
             if spec.kind == "int":
-                value = struct.unpack("<i", struct.pack("<f", msg.param_value))[0]
-            else:
-                value = msg.param_value
+                value = _decode_int_param(value, spec)
             try:
                 self.params.set(name, value)
             except ValueError as exc:
                 log.warning("link %d: PARAM_SET refused: %s", self.system_id, exc)
+                self._status(ep, D.MAV_SEVERITY_ERROR, _refusal_text(name, spec, value, str(exc)))
             else:
                 self._apply_params(name)
             ep.port.send(self._param_value(name))  # the current value either way (PX4 behaviour)
@@ -500,8 +645,6 @@ class Vehicle:
                     streams[mid] = _Stream.at_rate(hz, self.fc_time_us)
                 else:
                     streams.pop(mid, None)
-        if name.startswith("SKL_ORIG"):
-            self.origin = self.params.origin()
 
     # -- main loop -----------------------------------------------------------------------------
     def stop(self, *_args) -> None:
@@ -541,8 +684,35 @@ class Vehicle:
             np.savez_compressed(self.out_dir / f"link{self.instance + 1}_firmware.npz", **self.flight_log())
             stats = {ep.port.url: vars(ep.port.stats) for ep in self.endpoints}
             stats[self.sim.url] = vars(self.sim.stats)
+            stats["errors"] = self.errors
             (self.out_dir / f"link{self.instance + 1}_ports.json").write_text(json.dumps(stats, indent=1, default=str))
         self.sim.close()
         for ep in self.endpoints:
             ep.port.close()
 
+
+
+def _refusal_text(name: str, spec, value: float, reason: str) -> str:
+    """The STATUSTEXT of a refused PARAM_SET (50 characters, as PX4 words them)."""
+    if spec.read_only:
+        return f"Param {name} is read-only"
+    if not (spec.minimum <= value <= spec.maximum):
+        return f"Param {name}: {value:g} out of [{spec.minimum:g}, {spec.maximum:g}]"
+    return f"Param {name} refused: {reason.split(': ', 1)[-1]}"[:50]
+
+
+def _int_as_float_bits(value: int) -> float:
+    return struct.unpack("<f", struct.pack("<i", value))[0]
+
+
+def _decode_int_param(raw: float, spec) -> float:
+    """An integer PARAM_SET value: PX4's bytewise encoding (what this vehicle declares), or, when
+    that is out of the parameter's range and the float is a whole number in it, a C-cast value (a
+    client that did not know the parameter's type, e.g. MAVProxy before its first download). The
+    two never both fit: integer ranges here stay within 2**24, where bytewise values are denormal."""
+    bits = struct.unpack("<i", struct.pack("<f", raw))[0]
+    if spec.minimum <= bits <= spec.maximum:
+        return bits
+    if math.isfinite(raw) and abs(raw) >= 1.1754944e-38:
+        return raw  # a normal float: sent C-cast (the range and integer checks report what is wrong)
+    return bits

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.configfile import dump_toml
+from companion.mavlink.signing import new_key_file
 from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
@@ -72,7 +73,10 @@ def endpoint_table(sc: Scenario, host: str = "127.0.0.1") -> str:
         for g, links in enumerate(sc.companion.group_layout(sc.skeleton.n_links)):
             rows.append(f"companion of group {g + 1} (links {links[0] + 1}-{links[-1] + 1}): Zenoh "
                         f"{sc.zenoh.group_endpoint(g)}, keys {sc.zenoh_prefix}/...")
-    rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://0.0.0.0:14540+i (launch with --no-companion).")
+    rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://127.0.0.1:14540+i (launch with --no-companion).")
+    if sc.signing.active:
+        rows.append(f"MAVLink 2 signing: onboard {sc.signing.link_mode('onboard')}, GCS {sc.signing.link_mode('gcs')}; "
+                    f"key {sc.signing.key_file} (MAVProxy: signing key $(cat {sc.signing.key_file}))")
     return "\n".join(rows)
 
 
@@ -354,6 +358,30 @@ def _companion_summaries(out_dir: Path) -> dict[str, dict]:
     return out
 
 
+_PORT_COUNTERS = ("signed", "unsigned", "rejected_unsigned", "rejected_signature", "rejected_replay", "peer_kept",
+                  "dropped_frames", "dropped_unknown")
+
+
+def mavlink_counters(out_dir: Path) -> dict:
+    """Per process of a fleet run: its MAVLink ports' signing and rejection counters (from the
+    vehicles' ``link<i>_ports.json`` and the companions' ``companion_summary.json``), and the
+    vehicles' refusals (out-of-bound corrections, disarms in flight, SETUP_SIGNING)."""
+    out: dict = {}
+    for path in sorted(out_dir.glob("link*/link*_ports.json")):
+        try:
+            ports = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url != "errors" and not url.startswith("tcp"))
+                 for k in _PORT_COUNTERS}
+        entry.update(ports.get("errors", {}))
+        out[path.parent.name] = entry
+    for folder, summary in _companion_summaries(out_dir).items():
+        links = summary.get("links", {}).values()
+        out[folder] = {k: sum(lk.get(k, 0) for lk in links) for k in _PORT_COUNTERS}
+    return out
+
+
 def check_fleet_scenario(sc: Scenario) -> None:
     """``ValueError`` for a scenario that names its own companion links (a hardware config):
     fleet mode wires the simulated links itself (PX4 SITL ports)."""
@@ -367,6 +395,13 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``)."""
     check_fleet_scenario(sc)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if sc.signing.active and not sc.signing.key_file:
+        # A throwaway key for this run (never in the repository): the run folder holds it.
+        key_file = out_dir / "signing.key"
+        new_key_file(key_file, overwrite=True)
+        sc = replace(sc, signing=replace(sc.signing, key_file=str(key_file.resolve())))
+        log.info("signing: a new key for this run in %s", key_file)
+    sc.signing.key()  # ValueError now, not in every process, for a missing or unreadable key
     (out_dir / "scenario.toml").write_text(dump_toml(sc))
     plant = Plant(sc)
     # Each process validates its own part of the scenario: the vehicles their link.toml, the
@@ -457,6 +492,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                    interrupted=interrupted)
     if sc.companion.distributed and companion and sc.companion.enabled:
         metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
+    metrics["mavlink"] = mavlink_counters(out_dir)
     if n == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")

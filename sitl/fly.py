@@ -59,6 +59,7 @@ def fly(
     metrics["seed"] = sc.seed
     metrics["duration_s"] = runner.sim_s
     metrics["selective_mapping"] = sc.firmware.allocation.selective_mapping
+    metrics["corrections_rejected"] = runner.corrections_rejected
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     if runner.crashed:

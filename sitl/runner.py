@@ -34,7 +34,7 @@ from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
-from link_firmware_sim.firmware import LinkFirmware
+from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
 from .bench.ekf_chain import rate_divisor
@@ -243,6 +243,7 @@ class BatchRunner:
         self.rotors = plant.rotors
         self.model = plant.model
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
+        self.corrections_rejected = [0] * self.n  # out of the firmware's bounds (SKL_CORR_MAX*)
         self.groups = sc.companion.group_layout(self.n)
         self.now_s = 0.0  # the companions' clock: simulation time
         self.engines, self.hub = self._engines(sc, plant.start_center())
@@ -323,7 +324,11 @@ class BatchRunner:
                     c = out.corrected
                     fw.on_external_pose(t, c.p_w_m, c.v_w_m_s, c.q_wxyz)
                 else:
-                    fw.on_correction(t, out.correction)
+                    try:
+                        fw.on_correction(t, out.correction)
+                    except CorrectionRejected as exc:  # as the vehicle does: counted, not applied
+                        self.corrections_rejected[fw.link] += 1
+                        log.warning("t=%.2f s link %d: %s", t, fw.link + 1, exc)
             elif isinstance(out, TargetOut):
                 self.firmware[engine.links[out.row].index].set_target(t, out.target)
             elif isinstance(out, CommandOut):

@@ -20,6 +20,7 @@ from companion.fleetnet.bus import zenoh_config
 from companion.mavlink.codec import decode_correction, encode_link_state
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
+from companion.mavlink.signing import new_key_file
 from companion.mavlink.standard import encode_odometry
 from companion.messages import STATE_FLAG_EKF_OK, LinkState
 from companion.skeleton.body import SkeletonConfig
@@ -183,6 +184,12 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
     assert all(lk.url.startswith("serial:///dev/serial/by-id/") and lk.url.endswith(":921600") for lk in links)
     assert not sc.companion.arm and sc.companion.targets == "none"  # never arms or steers real vehicles
     assert sc.companion.time_base == "gps"  # Pixhawks booted at different times
+    # signed links, with a key file named by the config (never in the repository)
+    assert sc.signing.mode == "required" and sc.signing.key_file.endswith("keys/skeleton.key")
+    with pytest.raises(ValueError, match="cannot read the signing key"):
+        CompanionDaemon(sc, tmp_path)
+    new_key_file(tmp_path / "skeleton.key")
+    sc = replace(sc, signing=replace(sc.signing, key_file=str(tmp_path / "skeleton.key")))
     group = None
     if sc.companion.distributed:  # the Pi of group 2; its Zenoh session config is valid as written
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")
@@ -196,6 +203,7 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
             daemon.poll(0.01)
         table = daemon.health_table(1.0).splitlines()
         assert len(table) == served + 1 and all(" down " in row for row in table[1:])
+        assert all(port.signing_mode == "required" for port in daemon.ports)
         assert caplog.text.count("cannot open: no such device") == served
     finally:
         daemon.close()

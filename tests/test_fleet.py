@@ -24,6 +24,8 @@ import pytest
 from pymavlink import mavutil
 
 from companion.mavlink.dialect import load_dialect, tool_environment
+from companion.mavlink.port import MavlinkPort, wait_readable
+from companion.mavlink.signing import load_key, new_key_file
 from sitl.fleet import launch
 from sitl.fly import fly
 from sitl.scenario import load_scenario
@@ -186,6 +188,29 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
     assert sum("SKELETON_LINK_STATE {" in x for x in lines) > 600
     assert sum("SKELETON_CORRECTION {" in x for x in lines) > 200
 
+    # sequence numbers: every sender's frames on every link numbered without a gap (a loss-free run)
+    for path, sysid in ((tlog, 2), (tmp_path / "link2" / "link2_gcs.tlog", 2),
+                        (tmp_path / "companion" / "companion_link2.tlog", 190)):
+        assert _sequence_gaps(path, sysid) == 0, path
+
+
+def _sequence_gaps(path: Path, sysid: int) -> int:
+    """Frames of ``sysid`` lost by their sequence numbers in a tlog, as MAVProxy counts them (every
+    frame of the tlog: 8-byte time stamp, then a MAVLink 2 frame, whatever its message)."""
+    data, k = path.read_bytes(), 0
+    last, lost, frames = None, 0, 0
+    while k + 8 + 12 <= len(data):
+        frame = data[k + 8:]
+        assert frame[0] == 0xFD, f"not a MAVLink 2 frame at byte {k + 8}"
+        size = 10 + frame[1] + 2 + (13 if frame[2] & 1 else 0)
+        if frame[5] == sysid:
+            if last is not None:
+                lost += (frame[4] - last - 1) % 256
+            last, frames = frame[4], frames + 1
+        k += 8 + size
+    assert k == len(data) and frames > 100
+    return lost
+
 
 def test_mavsdk_client_discovers_reads_a_parameter_and_gets_telemetry(tmp_path):
     """MAVSDK in its own process on link 2's onboard port (the companion is not started)."""
@@ -298,3 +323,98 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     assert d["cycles_with_global_step_fraction"] > 0.8
     _assert_ports_released(3)
     assert _tcp_free(7460) and _tcp_free(7461)
+
+
+def _unkeyed_attacks(sent: dict, stop: threading.Event) -> None:
+    """The spoofs of an unkeyed process on this host, at link 2 (system 2) during the flight:
+    SKELETON_CORRECTION dp = 5 m at 100 Hz, a (forced) disarm flood at its GCS port, a position
+    target 0.35 m off, and a HEARTBEAT flood with its system id at the companion's port for it."""
+    D = load_dialect()
+    mav = D.MAVLink(None, srcSystem=255, srcComponent=190)
+    as_link2 = D.MAVLink(None, srcSystem=2, srcComponent=1)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    from companion.mavlink.codec import encode_correction
+    from companion.messages import Correction
+
+    def send(frame_msg, packer, port, key):
+        raw.sendto(frame_msg.pack(packer), ("127.0.0.1", port))
+        sent[key] = sent.get(key, 0) + 1
+
+    for k in range(200):  # 2 s at 100 Hz
+        if stop.is_set():
+            break
+        corr = Correction(1, 0.0, np.array([5.0, 0, 0]), np.zeros(3), np.zeros(3), seq=k)
+        send(encode_correction(corr, target_system=2), mav, 14581, "correction")
+        if k % 2 == 0:
+            send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196, 0, 0, 0, 0, 0),
+                 mav, 18571, "disarm")
+            send(D.MAVLink_set_position_target_local_ned_message(0, 2, 1, D.MAV_FRAME_LOCAL_NED, 0b110111111000,
+                                                                  0.35, 0.0, -2.5, 0, 0, 0, 0, 0, 0, 0, 0),
+                 mav, 14581, "target")
+        send(D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_GENERIC, 0, 0, 4, 3), as_link2, 14541,
+             "heartbeat")
+        time.sleep(0.01)
+    raw.close()
+
+
+def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path):
+    """three_link_signed.toml: signing required everywhere; the four spoofs change nothing, a keyed
+    ground station reads and sets a parameter."""
+    sc = load_scenario(ROOT / "configs" / "sitl" / "three_link_signed.toml", duration_s=16.0)
+    key_file = tmp_path / "fleet.key"
+    new_key_file(key_file)
+    sc = replace(sc, signing=replace(sc.signing, key_file=str(key_file)))
+    sent: dict = {}
+    gcs_result: dict = {}
+    stop = threading.Event()
+
+    def gcs_and_attacker():
+        gcs = MavlinkPort("udpin://127.0.0.1:14550", system_id=254, component_id=190, signing="required",
+                          key=load_key(key_file))
+        try:
+            deadline = time.monotonic() + 60
+            seen: set[int] = set()
+            while len(seen) < 3 and time.monotonic() < deadline and not stop.is_set():
+                wait_readable([gcs], 0.2)
+                seen |= {m.get_srcSystem() for m in gcs.read() if m.get_type() == "HEARTBEAT"}
+            time.sleep(6.0)  # hovering (take-off ends at 7 s)
+            t0 = time.monotonic()
+            _unkeyed_attacks(sent, stop)
+            gcs_result["attack_s"] = (t0, time.monotonic())
+            # the keyed ground station sets and reads back a parameter on link 2 (through link 2's GCS port)
+            gcs.transport.learn_peer(("127.0.0.1", 18571))
+            gcs.send(load_dialect().MAVLink_param_set_message(2, 1, b"COM_OF_LOSS_T", 1.5, 9))
+            end = time.monotonic() + 2.0
+            while time.monotonic() < end:
+                wait_readable([gcs], 0.1)
+                for m in gcs.read():
+                    if m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OF_LOSS_T" and m.get_srcSystem() == 2:
+                        gcs_result["value"] = m.param_value
+            gcs_result["stats"] = dict(vars(gcs.stats), rejected_signing=gcs.stats.rejected_signing)
+        finally:
+            gcs.close()
+
+    worker = threading.Thread(target=gcs_and_attacker, daemon=True)
+    worker.start()
+    try:
+        m = launch(sc, tmp_path, speed=1.0)
+    finally:
+        stop.set()
+        worker.join(30)
+    assert sent["correction"] == 200 and sent["heartbeat"] == 200 and sent["disarm"] == 100
+    counters = m["mavlink"]
+    # everything unsigned was rejected where it arrived, and counted
+    assert counters["link2"]["rejected_unsigned"] >= sent["correction"] + sent["target"] + sent["disarm"]
+    assert counters["companion"]["rejected_unsigned"] >= sent["heartbeat"]
+    assert counters["companion"]["peer_kept"] == 0  # nothing to re-aim: no frame passed
+    assert counters["link2"]["correction_rejected"] == 0 and counters["link2"]["signed"] > 500
+    assert not m["crashed"] and m["min_altitude_m"] > 2.0
+    # no link moved: the true tracking error in the attack window is what it is without attack
+    log = np.load(tmp_path / "log.npz")
+    err = np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)
+    hover = (log["t"] > 8.0)
+    print("tracking error after take-off, max per link [m]:", err[hover].max(axis=0))
+    assert err[hover].max() < 0.35  # a 0.35 m target or a 5 m correction would show here
+    assert gcs_result.get("value") == pytest.approx(1.5)
+    assert gcs_result["stats"]["signed"] > 100 and gcs_result["stats"]["rejected_signing"] == 0
+    _assert_ports_released(3)

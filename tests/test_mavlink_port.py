@@ -9,10 +9,13 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink import mavutil
 
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort, PortError, TlogWriter, open_transport, wait_readable
+from companion.mavlink.signing import SignatureChecker, Verdict, signing_timestamp
 
 D = load_dialect()
 
@@ -186,3 +189,124 @@ def test_serial_device_missing_then_plugged_in_then_unplugged(tmp_path, caplog):
         port.read()
     assert not port.transport.connected
     port.close()
+
+
+# -- signing and peer learning ------------------------------------------------------------------------
+
+KEY = bytes(range(32))
+
+
+def _signed_frame(msg, key=KEY, sysid=7, link_id=0, timestamp=None):
+    mav = D.MAVLink(None, srcSystem=sysid, srcComponent=1)
+    mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = key, True, link_id
+    mav.signing.timestamp = signing_timestamp() if timestamp is None else timestamp
+    return bytes(msg.pack(mav))
+
+
+def test_signature_checker_accepts_the_key_and_rejects_replays_wrong_keys_and_old_streams():
+    now = signing_timestamp()
+    checker = SignatureChecker("required", KEY)
+    hb = _heartbeat()
+    first = _signed_frame(hb, timestamp=now)
+    assert checker.check(first, "HEARTBEAT", now) is Verdict.SIGNED
+    assert checker.check(first, "HEARTBEAT", now) is Verdict.REJECTED_REPLAY
+    assert checker.check(_signed_frame(hb, timestamp=now + 1), "HEARTBEAT", now) is Verdict.SIGNED
+    assert checker.check(_signed_frame(hb, key=bytes(32), timestamp=now + 5), "HEARTBEAT", now) is Verdict.REJECTED_SIGNATURE
+    unsigned = bytes(hb.pack(D.MAVLink(None, srcSystem=7, srcComponent=1)))
+    assert checker.check(unsigned, "HEARTBEAT", now) is Verdict.REJECTED_UNSIGNED
+    assert checker.check(unsigned, "RADIO_STATUS", now) is Verdict.UNSIGNED  # PX4's unsigned exception
+    # a new stream (other link id) more than a minute behind: a recorded frame, rejected
+    old = _signed_frame(hb, link_id=3, timestamp=now - 61 * 100_000)
+    assert checker.check(old, "HEARTBEAT", now) is Verdict.REJECTED_REPLAY
+    # permissive: unsigned accepted, a bad signature still rejected; off: nothing checked
+    assert SignatureChecker("permissive", KEY).check(unsigned, "HEARTBEAT", now) is Verdict.UNSIGNED
+    assert (SignatureChecker("permissive", KEY).check(_signed_frame(hb, key=bytes(32)), "HEARTBEAT", now)
+            is Verdict.REJECTED_SIGNATURE)
+    assert SignatureChecker("off", None).check(unsigned, "HEARTBEAT", now) is Verdict.NOT_CHECKED
+
+
+def test_a_forged_frame_with_a_future_timestamp_does_not_lock_out_the_owner():
+    """pymavlink's parser records a stream's timestamp before comparing the signature; the
+    checker compares first (as PX4 does), so a forgery cannot poison the replay state."""
+    now = signing_timestamp()
+    checker = SignatureChecker("required", KEY)
+    forged = bytearray(_signed_frame(_heartbeat(), timestamp=now + 10**9))
+    forged[-1] ^= 0xFF
+    assert checker.check(bytes(forged), "HEARTBEAT", now) is Verdict.REJECTED_SIGNATURE
+    assert checker.check(_signed_frame(_heartbeat(), timestamp=now), "HEARTBEAT", now) is Verdict.SIGNED
+
+
+@settings(max_examples=200, deadline=None)
+@given(position=st.integers(min_value=0), bit=st.integers(min_value=0, max_value=7))
+def test_any_altered_bit_of_a_signed_frame_is_rejected(position, bit):
+    now = signing_timestamp()
+    frame = bytearray(_signed_frame(D.MAVLink_system_time_message(123456789, 42), timestamp=now))
+    frame[2] &= 0xFF  # keep the frame a frame: flip a bit anywhere past the incompat flags
+    k = 3 + position % (len(frame) - 3)
+    frame[k] ^= 1 << bit
+    assert SignatureChecker("required", KEY).check(bytes(frame), "SYSTEM_TIME", now) is not Verdict.SIGNED
+
+
+def test_ports_sign_and_check_end_to_end_and_count_rejections():
+    server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, accept=frozenset({"HEARTBEAT"}), peer_system_id=7,
+                         signing="required", key=KEY)
+    addr = ("127.0.0.1", server.transport.local_port())
+    client = MavlinkPort(f"udpout://127.0.0.1:{addr[1]}", system_id=7, signing="required", key=KEY, link_id=2)
+    stranger = MavlinkPort(f"udpout://127.0.0.1:{addr[1]}", system_id=7)  # same system id, no key
+    wrong = MavlinkPort(f"udpout://127.0.0.1:{addr[1]}", system_id=7, signing="required", key=bytes(32))
+    try:
+        for _ in range(3):
+            stranger.send(_heartbeat())
+            wrong.send(_heartbeat())
+        time.sleep(0.1)
+        assert server.read() == [] and not server.transport.connected  # nothing learnt from them
+        client.send(_heartbeat())
+        got = _read_until(server, 1)
+        assert len(got) == 1 and got[0].get_signed() is False  # (the port checked it; pymavlink has no key)
+        st_ = server.stats
+        assert (st_.signed, st_.rejected_unsigned, st_.rejected_signature) == (1, 3, 3)
+        server.send(_heartbeat())
+        back = _read_until(client, 1)
+        assert back and client.stats.signed == 1  # the server's reply is signed with the key
+    finally:
+        for p in (server, client, stranger, wrong):
+            p.close()
+
+
+def test_a_valid_frame_from_another_address_does_not_re_aim_replies_while_the_peer_lives():
+    server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, accept=frozenset({"HEARTBEAT"}), peer_system_id=7,
+                         peer_hold_s=0.3)
+    port = server.transport.local_port()
+    peer = MavlinkPort(f"udpout://127.0.0.1:{port}", system_id=7)
+    hijacker = MavlinkPort(f"udpout://127.0.0.1:{port}", system_id=7)  # carries the peer's system id
+    try:
+        peer.send(_heartbeat())
+        _read_until(server, 1)
+        for _ in range(5):
+            hijacker.send(_heartbeat())
+            peer.send(_heartbeat())
+            time.sleep(0.02)
+            server.read()
+            server.send(_heartbeat())
+        time.sleep(0.05)
+        assert len(peer.read()) == 5 and hijacker.read() == []
+        assert server.stats.peer_kept == 5
+        time.sleep(0.4)  # the peer goes silent (a rebooted vehicle comes back from elsewhere)
+        hijacker.send(_heartbeat())
+        _read_until(server, 1)
+        server.send(_heartbeat())
+        assert _read_until(hijacker, 1)
+    finally:
+        for p in (server, peer, hijacker):
+            p.close()
+
+
+def test_empty_host_and_udpout_bind_are_loopback():
+    server = MavlinkPort("udpin://:0", system_id=1)
+    out = MavlinkPort("udpout://127.0.0.1:9?bind=0", system_id=1)
+    try:
+        assert server.transport.sock.getsockname()[0] == "127.0.0.1"
+        assert out.transport.sock.getsockname()[0] == "127.0.0.1"
+    finally:
+        server.close()
+        out.close()

@@ -11,6 +11,7 @@ from companion.estimation.so3 import quat_from_euler_zyx
 from companion.mavlink.codec import encode_correction
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
+from companion.mavlink.signing import SigningConfig, load_key, signing_timestamp
 from companion.messages import Correction
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
@@ -28,13 +29,15 @@ LEVEL = quat_from_euler_zyx(0.0, 0.0, 0.0)
 class Rig:
     """A vehicle (sysid 2) plus a fake simulator (TCP) and a fake GCS (UDP)."""
 
-    def __init__(self, tmp_path, params_file=None):
-        self.gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190)
+    def __init__(self, tmp_path, params_file=None, signing=None, key=None, gcs_key=None):
+        self.gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190,
+                               signing="required" if gcs_key else "off", key=gcs_key)
         gcs_port = self.gcs.transport.local_port()
         fw = LinkFirmware(1, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
         params = ParamTable(2, FirmwareConfig(), ORIGIN, StreamRates(50.0, 0.0), params_file or tmp_path / "p.json")
         ports = VehiclePorts(sim="tcpin://127.0.0.1:0", onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
-        self.vehicle = Vehicle(1, fw, params, ports, tmp_path / "out")
+        self.vehicle = Vehicle(1, fw, params, ports, tmp_path / "out", signing=signing, key=key,
+                               key_path=tmp_path / "vehicle.key")
         sim_port = self.vehicle.sim.transport.local_port()
         self.sim = MavlinkPort(f"tcpout://127.0.0.1:{sim_port}", system_id=250, component_id=1)
         self.t = 0.0
@@ -107,7 +110,7 @@ def test_heartbeat_and_answer_before_ekf_start(rig):
     np.testing.assert_array_equal(thrust, 0.0)
     msgs = rig.gcs_collect(0.2)
     hb = [m for m in msgs if m.get_type() == "HEARTBEAT"]
-    assert hb and hb[0].get_srcSystem() == 2 and hb[0].autopilot == D.MAV_AUTOPILOT_GENERIC
+    assert hb and hb[0].get_srcSystem() == 2 and hb[0].autopilot == D.MAV_AUTOPILOT_PX4
     assert hb[0].type == D.MAV_TYPE_OCTOROTOR
 
 
@@ -135,7 +138,7 @@ def test_parameter_protocol_and_persistence(tmp_path):
         assert all(m.param_count == len(rig.vehicle.params.names) for m in values)
         sysid = next(m for m in values if m.param_id == "MAV_SYS_ID")
         assert sysid.param_type == D.MAV_PARAM_TYPE_INT32
-        assert struct.unpack("<i", struct.pack("<f", sysid.param_value))[0] == 2  # bytewise int encoding
+        assert struct.unpack("<i", struct.pack("<f", sysid.param_value))[0] == 2  # bytewise (PX4)
         rig.gcs_send(D.MAVLink_param_set_message(2, 1, b"IMP_KP_Z", 14.5, D.MAV_PARAM_TYPE_REAL32))
         reply = [m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE"]
         assert reply[0].param_id == "IMP_KP_Z" and reply[0].param_value == pytest.approx(14.5)
@@ -234,3 +237,190 @@ def test_garbage_is_counted_and_dropped(rig):
     stats = rig.vehicle.endpoints[0].port.stats
     assert stats.dropped_bytes > 100_000 and stats.dropped > 100
     assert rig.vehicle.fw.initialized and np.all(np.isfinite(rig.tick()))
+
+
+def mavproxy_param_value(m, autopilot: int) -> float:
+    """A PARAM_VALUE as MAVProxy 1.8 decodes it (mavproxy_param.handle_px4_param_value): bytewise
+    only for MAV_AUTOPILOT_PX4, otherwise the float as it is (then shown as an integer for integer types)."""
+    if m.param_type == D.MAV_PARAM_TYPE_REAL32 or autopilot != D.MAV_AUTOPILOT_PX4:
+        return m.param_value
+    return struct.unpack(">i", struct.pack(">f", m.param_value))[0]
+
+
+def _param(rig, name):
+    rig.gcs_send(D.MAVLink_param_request_read_message(2, 1, name.encode(), -1))
+    return next(m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE" and m.param_id == name)
+
+
+def test_integer_and_float_parameters_as_a_stock_ground_station_reads_and_sets_them(rig):
+    rig.start()
+    hb = next(m for m in rig.gcs_collect(0.1) + rig.gcs_collect(1.0) if m.get_type() == "HEARTBEAT")
+    assert mavproxy_param_value(_param(rig, "MAV_SYS_ID"), hb.autopilot) == 2
+    assert mavproxy_param_value(_param(rig, "IMP_KP_Z"), hb.autopilot) == pytest.approx(
+        FirmwareConfig().gains.kp_n_m[2], rel=1e-6)
+    assert hb.autopilot == D.MAV_AUTOPILOT_PX4
+    # MAVProxy's `param set SKL_SM_EN 0`, then 1 (it packs an INT32 bytewise), and once C-cast (a
+    # client that did not know the type)
+    for value, raw in ((0, 0.0), (1, struct.unpack(">f", struct.pack(">i", 1))[0]), (0, 0.0), (1, 1.0)):
+        rig.gcs_send(D.MAVLink_param_set_message(2, 1, b"SKL_SM_EN", raw, D.MAV_PARAM_TYPE_INT32))
+        reply = next(m for m in rig.gcs_collect(0.1) if m.get_type() == "PARAM_VALUE")
+        assert mavproxy_param_value(reply, hb.autopilot) == value
+        assert rig.vehicle.fw.config.allocation.selective_mapping is bool(value)
+
+
+@pytest.mark.parametrize("name, value, text", [
+    ("MAV_SYS_ID", 7.0, "Param MAV_SYS_ID is read-only"),
+    ("SKL_SM_EN", 2.0, "Param SKL_SM_EN: 2 out of [0, 1]"),
+    ("SKL_SM_EN", 0.5, "Param SKL_SM_EN refused: integer parameter, got 0."),  # 50 characters
+    ("IMP_KP_Z", -3.0, "Param IMP_KP_Z: -3 out of [0, 200]"),
+])
+def test_a_refused_parameter_write_answers_statustext_and_the_unchanged_value(rig, name, value, text):
+    rig.start()
+    before = rig.vehicle.params.values[name]
+    rig.gcs_send(D.MAVLink_param_set_message(2, 1, name.encode(), value, D.MAV_PARAM_TYPE_REAL32))
+    msgs = rig.gcs_collect(0.1)
+    status = [m for m in msgs if m.get_type() == "STATUSTEXT"]
+    assert [m.text for m in status] == [text] and status[0].severity == D.MAV_SEVERITY_ERROR
+    reply = next(m for m in msgs if m.get_type() == "PARAM_VALUE")
+    assert reply.param_id == name and mavproxy_param_value(reply, D.MAV_AUTOPILOT_PX4) == before
+    assert rig.vehicle.params.values[name] == before
+
+
+def test_origin_by_set_gps_global_origin_is_answered_and_persisted(tmp_path):
+    rig = Rig(tmp_path)
+    try:
+        rig.start()
+        rig.gcs_send(D.MAVLink_set_gps_global_origin_message(2, 473977420, 85455940, 488000, 0))
+        reply = next(m for m in rig.gcs_collect(0.1) if m.get_type() == "GPS_GLOBAL_ORIGIN")
+        assert (reply.latitude, reply.longitude, reply.altitude) == (473977420, 85455940, 488000)
+        rig.gcs_send(D.MAVLink_set_gps_global_origin_message(2, 473987654, 85461234, 500250, 0))
+        reply = next(m for m in rig.gcs_collect(0.1) if m.get_type() == "GPS_GLOBAL_ORIGIN")
+        assert (reply.latitude, reply.longitude, reply.altitude) == (473987654, 85461234, 500250)  # degE7 exact
+        rig.vehicle.fw.arm(rig.t)
+        rig.gcs_send(D.MAVLink_set_gps_global_origin_message(2, 0, 0, 0, 0))
+        msgs = rig.gcs_collect(0.1)
+        assert [m.text for m in msgs if m.get_type() == "STATUSTEXT"] == ["Origin not changed: armed"]
+        assert next(m for m in msgs if m.get_type() == "GPS_GLOBAL_ORIGIN").latitude == 473987654
+    finally:
+        rig.close()
+    again = Rig(tmp_path)
+    try:
+        o = again.vehicle.origin
+        assert (round(o.lat_deg * 1e7), round(o.lon_deg * 1e7), o.alt_m) == (473987654, 85461234, 500.25)
+    finally:
+        again.close()
+
+
+def test_mavftp_parameter_download_is_refused_at_once(rig):
+    """MAVProxy tries @PARAM/param.pck over MAVLink FTP first: a NAK (file not found) at once lets it
+    fall back to PARAM_REQUEST_LIST without its timeout."""
+    rig.start()
+    name = b"@PARAM/param.pck?withdefaults=1"
+    request = struct.pack("<HBBBBBBI", 41, 0, 4, len(name), 0, 0, 0, 0) + name
+    rig.gcs_send(D.MAVLink_file_transfer_protocol_message(0, 2, 1, list(request.ljust(251, b"\0"))))
+    reply = next(m for m in rig.gcs_collect(0.05) if m.get_type() == "FILE_TRANSFER_PROTOCOL")
+    seq, session, opcode, size, req_opcode = struct.unpack_from("<HBBBB", bytes(reply.payload))
+    assert (seq, opcode, size, req_opcode, reply.payload[12]) == (42, 129, 1, 4, 10)  # NAK, FileNotFound
+
+
+def _flying(rig):
+    rig.start()
+    rig.vehicle.fw.arm(rig.t)
+    for _ in range(20):
+        rig.tick()  # the rotors carry the link
+    assert not rig.vehicle.fw.landed(rig.t)
+
+
+def test_disarm_in_flight_needs_the_force_value(rig):
+    _flying(rig)
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 0, 0, 0, 0, 0, 0))
+    msgs = rig.gcs_collect(0.05)
+    ack = next(m for m in msgs if m.get_type() == "COMMAND_ACK")
+    assert ack.result == D.MAV_RESULT_DENIED and rig.vehicle.fw.armed
+    assert any("Disarm refused" in m.text for m in msgs if m.get_type() == "STATUSTEXT")
+    assert rig.vehicle.errors["disarm_refused"] == 1
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196, 0, 0, 0, 0, 0))
+    ack = next(m for m in rig.gcs_collect(0.05) if m.get_type() == "COMMAND_ACK")
+    assert ack.result == D.MAV_RESULT_ACCEPTED and not rig.vehicle.fw.armed
+
+
+def test_an_out_of_bounds_correction_is_rejected_and_counted(rig):
+    rig.start()
+    t = rig.vehicle.fw.time_s
+    rig.gcs_send(encode_correction(Correction(1, t, np.array([0.3, 0, 0]), np.zeros(3), np.zeros(3), seq=3), 2))
+    rig.gcs_collect(0.02)
+    assert rig.vehicle.fw.correction_seq == 3
+    for dp, dv, dth in (([5.0, 0, 0], [0, 0, 0], [0, 0, 0]), ([0, 0, 0], [0, 3.0, 0], [0, 0, 0]),
+                        ([0, 0, 0], [0, 0, 0], [0, 0, 1.0])):
+        rig.gcs_send(encode_correction(Correction(1, t, np.array(dp), np.array(dv), np.array(dth), seq=4), 2))
+    msgs = rig.gcs_collect(0.05)
+    assert rig.vehicle.fw.correction_seq == 3 and rig.vehicle.errors["correction_rejected"] == 3
+    np.testing.assert_allclose(rig.vehicle.fw.correction.dp_w_m, [0.3, 0, 0])  # the good one stays, never clamped
+    assert any(m.text == "Correction rejected: out of bounds" for m in msgs if m.get_type() == "STATUSTEXT")
+
+
+KEY = bytes(range(32))
+
+
+def _raw_sender(key=None, link_id=0, sysid=255):
+    mav = D.MAVLink(None, srcSystem=sysid, srcComponent=190)
+    if key is not None:
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = key, True, link_id
+        mav.signing.timestamp = signing_timestamp()
+    return mav
+
+
+def test_signing_required_rejects_unsigned_wrong_key_and_replayed_commands(tmp_path):
+    rig = Rig(tmp_path, signing=SigningConfig(mode="required", key_file="k"), key=KEY, gcs_key=KEY)
+    try:
+        _flying(rig)
+        onboard = ("127.0.0.1", rig.vehicle.endpoints[0].port.transport.local_port())
+        raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        force_disarm = D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196, 0, 0, 0, 0, 0)
+        raw.sendto(force_disarm.pack(_raw_sender()), onboard)  # unsigned
+        raw.sendto(force_disarm.pack(_raw_sender(bytes(32))), onboard)  # signed with another key
+        spoof = encode_correction(Correction(1, rig.t, np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), seq=9), 2)
+        raw.sendto(spoof.pack(_raw_sender()), onboard)
+        rig.gcs_collect(0.05)
+        st = rig.vehicle.endpoints[0].port.stats
+        assert rig.vehicle.fw.armed and rig.vehicle.fw.correction_seq != 9
+        assert (st.rejected_unsigned, st.rejected_signature) == (2, 1)
+        # the owner's signed command is accepted; the same frame replayed is not
+        arm = D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        frame = arm.pack(_raw_sender(KEY))
+        raw.sendto(frame, onboard)
+        msgs = rig.gcs_collect(0.05)
+        assert [m.result for m in msgs if m.get_type() == "COMMAND_ACK"] == [D.MAV_RESULT_ACCEPTED]
+        raw.sendto(frame, onboard)
+        msgs = rig.gcs_collect(0.05)
+        assert not [m for m in msgs if m.get_type() == "COMMAND_ACK"] and st.rejected_replay == 1
+        # what the vehicle sends is signed with the key: the keyed GCS port accepted all of it
+        assert rig.gcs.stats.signed > 20 and rig.gcs.stats.unsigned == 0 and rig.gcs.stats.rejected_signing == 0
+        raw.close()
+    finally:
+        rig.close()
+
+
+def test_setup_signing_only_over_a_trusted_link(tmp_path):
+    rig = Rig(tmp_path)  # signing off, no trusted link
+    try:
+        rig.start()
+        new_key = bytes(range(100, 132))
+        rig.gcs_send(D.MAVLink_setup_signing_message(2, 1, list(new_key), signing_timestamp()))
+        msgs = rig.gcs_collect(0.05)
+        assert [m.text for m in msgs if m.get_type() == "STATUSTEXT"] == ["Signing setup refused: untrusted link"]
+        assert rig.vehicle.endpoints[0].port.signing_mode == "off" and not (tmp_path / "vehicle.key").exists()
+    finally:
+        rig.close()
+    rig = Rig(tmp_path, signing=SigningConfig(trusted=("onboard",)))
+    try:
+        rig.start()
+        rig.gcs_send(D.MAVLink_setup_signing_message(2, 1, list(new_key), signing_timestamp()))
+        rig.gcs_collect(0.05)
+        port = rig.vehicle.endpoints[0].port
+        assert port.signing_mode == "required" and load_key(tmp_path / "vehicle.key") == new_key
+        rig.gcs_send(D.MAVLink_param_request_read_message(2, 1, b"MAV_SYS_ID", -1))  # unsigned now: refused
+        assert not [m for m in rig.gcs_collect(0.05) if m.get_type() == "PARAM_VALUE"]
+        assert port.stats.rejected_unsigned >= 1
+    finally:
+        rig.close()

@@ -6,16 +6,24 @@ id the dialect does not know are counted as unknown, and well-formed messages no
 whitelist are counted as ignored; only whitelisted messages reach the caller. Reads never block
 (the caller waits with :func:`wait_readable` or its own ``select``).
 
-Transports (URL syntax as MAVSDK / MAVProxy users expect):
+Transports (URL syntax as MAVSDK / MAVProxy users expect; an empty HOST means 127.0.0.1, so
+nothing is reachable from off the machine unless a URL names an interface or 0.0.0.0):
 
-* ``udpin://HOST:PORT``: bind and listen; replies go to the last sender;
-* ``udpout://HOST:PORT`` (optionally ``?bind=PORT``): send to ``HOST:PORT`` from a local port
-  (fixed with ``bind``, like PX4 SITL's local ports 14580+i);
+* ``udpin://HOST:PORT``: bind and listen; replies go to the sender of the last valid frame
+  from the expected system (see :class:`MavlinkPort`);
+* ``udpout://HOST:PORT`` (optionally ``?bind=PORT`` or ``?bind=HOST:PORT``): send to
+  ``HOST:PORT`` from a local port (fixed with ``bind``, like PX4 SITL's local ports 14580+i;
+  the local address is 127.0.0.1 when HOST is a loopback address, else 0.0.0.0);
 * ``tcpin://HOST:PORT`` (a server: the first client is the peer) / ``tcpout://HOST:PORT``;
 * ``serial:///dev/serial/by-id/...:BAUD``.
 
 A tlog (``.tlog``: 8-byte big-endian UNIX time in microseconds, then the raw frame, per message;
 readable by pymavlink and MAVExplorer) records what the port sends and accepts.
+
+MAVLink 2 signing (:mod:`companion.mavlink.signing`) is per port: with a mode other than
+``off`` every frame sent is signed, and incoming frames are checked before anything else sees
+them; rejected frames (unsigned where signing is required, a bad signature, a replay) are
+counted in :class:`PortStats` and logged (the first of each kind, then at most every 5 s).
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 from .dialect import load_dialect
+from .signing import UNSIGNED_ALLOWED, SignatureChecker, SigningMode, Verdict, signing_timestamp
 
 __all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWriter", "wait_readable", "PortError"]
 
@@ -54,6 +63,12 @@ class PortStats:
     ignored: int = 0  # known messages not acted on (not whitelisted)
     tx_messages: int = 0
     tx_errors: int = 0
+    signed: int = 0  # accepted with a good signature
+    unsigned: int = 0  # accepted unsigned (signing permissive, or an allowed message)
+    rejected_unsigned: int = 0  # unsigned where signing is required
+    rejected_signature: int = 0  # wrong key or altered frame
+    rejected_replay: int = 0  # a signed frame's timestamp not newer than its stream's last
+    peer_kept: int = 0  # valid frames from another address while the peer was alive (not re-aimed)
     last_rx_wall_s: float = 0.0
     per_type: dict[str, int] = field(default_factory=dict)
 
@@ -61,6 +76,11 @@ class PortStats:
     def dropped(self) -> int:
         """Frames that never reached the application: unparseable runs and unknown ids."""
         return self.dropped_frames + self.dropped_unknown
+
+    @property
+    def rejected_signing(self) -> int:
+        """Frames rejected by the signing checks."""
+        return self.rejected_unsigned + self.rejected_signature + self.rejected_replay
 
 
 class Transport:
@@ -107,7 +127,7 @@ class _Udp(Transport):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         try:
-            self.sock.bind(bind or ("0.0.0.0", 0))
+            self.sock.bind(bind or (_local_host(remote), 0))
         except OSError as exc:
             self.sock.close()
             raise PortError(f"cannot bind UDP {bind[0]}:{bind[1]}: {exc.strerror}") from None
@@ -367,9 +387,16 @@ class _Serial(Transport):
 
 def _host_port(netloc: str, url: str) -> tuple[str, int]:
     host, sep, port = netloc.rpartition(":")
-    if not sep or not port.isdigit():
+    if not sep or not port.isdigit() or int(port) > 65535:
         raise PortError(f"{url}: expected HOST:PORT")
-    return host or "0.0.0.0", int(port)
+    return host or "127.0.0.1", int(port)
+
+
+def _local_host(remote: tuple[str, int] | None) -> str:
+    """The local address to send from: loopback for a loopback peer (nothing else can reach us)."""
+    if remote is not None and (remote[0] == "localhost" or remote[0].startswith("127.")):
+        return "127.0.0.1"
+    return "0.0.0.0"
 
 
 def open_transport(url: str, connect_timeout_s: float = 10.0) -> Transport:
@@ -388,7 +415,12 @@ def open_transport(url: str, connect_timeout_s: float = 10.0) -> Transport:
         return _Udp((host, port), None)
     if scheme == "udpout":
         bind = parse_qs(parsed.query).get("bind")
-        local = ("0.0.0.0", int(bind[0])) if bind else None
+        local = None
+        if bind:
+            bind_host, sep, bind_port = bind[0].rpartition(":")
+            if not bind_port.isdigit() or int(bind_port) > 65535:
+                raise PortError(f"{url}: bind must be PORT or HOST:PORT")
+            local = (bind_host if sep and bind_host else _local_host((host, port)), int(bind_port))
         return _Udp(local, (host, port))
     if scheme == "tcpin":
         return _TcpServer((host, port))
@@ -418,12 +450,21 @@ class MavlinkPort:
         system_id, component_id: our identity on this link (for sending).
         accept: message type names delivered to the caller; ``None`` delivers every known one.
         tlog: optional :class:`TlogWriter`.
+        peer_system_id: the system this link talks to: a UDP listener learns where to reply only
+            from its valid frames.
+        signing, key, link_id: MAVLink 2 signing mode, 32-byte key and our link id.
+        unsigned_allowed: message names accepted unsigned when signing is required.
+        peer_hold_s: a learnt peer is kept while its frames keep coming; another address takes
+            over only after this long without a valid frame from it.
     """
 
     def __init__(self, url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
-                 tlog: TlogWriter | None = None, transport: Transport | None = None, peer_system_id: int | None = None):
+                 tlog: TlogWriter | None = None, transport: Transport | None = None, peer_system_id: int | None = None,
+                 signing: SigningMode = "off", key: bytes | None = None, link_id: int = 0,
+                 unsigned_allowed=UNSIGNED_ALLOWED, peer_hold_s: float = 2.0):
         D = load_dialect()
         self.url = url
+        self.checker = SignatureChecker(signing, key, unsigned_allowed)
         self.transport = transport or open_transport(url)
         self.mav = D.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.parser = D.MAVLink(None)
@@ -431,8 +472,25 @@ class MavlinkPort:
         self.accept = accept
         self.tlog = tlog
         self.peer_system_id = peer_system_id
+        self.peer_hold_s = peer_hold_s
+        self._peer_seen_s = -float("inf")
         self.stats = PortStats()
         self._header_len = D.HEADER_LEN_V1
+        self._warned: dict[str, float] = {}
+        self.set_signing(signing, key, link_id)
+
+    def set_signing(self, mode: SigningMode, key: bytes | None, link_id: int | None = None) -> None:
+        """Sign outgoing frames and check incoming ones with ``key`` (``mode = "off"``: neither)."""
+        self.checker.set_key(mode, key)
+        sig = self.mav.signing
+        sig.secret_key = key if mode != "off" else None
+        sig.sign_outgoing = mode != "off"
+        if link_id is not None:
+            sig.link_id = link_id
+
+    @property
+    def signing_mode(self) -> SigningMode:
+        return self.checker.mode
 
     @property
     def system_id(self) -> int:
@@ -453,8 +511,32 @@ class MavlinkPort:
             if self.transport.datagram:
                 self._drop_partial_frame()
                 if sender is not None and valid_from_peer:
-                    self.transport.learn_peer(sender)
+                    self._learn_peer(sender)
         return out
+
+    def _learn_peer(self, sender) -> None:
+        """Reply to ``sender`` (it sent a valid frame from the peer): the first one, the same one, or
+        another once the current peer has been silent ``peer_hold_s`` (a rebooted peer)."""
+        now = time.monotonic()
+        current = getattr(self.transport, "remote", None)
+        if current is None or current == sender or now - self._peer_seen_s > self.peer_hold_s:
+            if current is not None and current != sender:
+                log.info("%s: peer moved from %s:%d to %s:%d", self.url, *current, *sender)
+            self.transport.learn_peer(sender)
+            self._peer_seen_s = now
+        else:
+            self.stats.peer_kept += 1
+            self._warn("peer", f"valid frames from {sender[0]}:{sender[1]} while the peer "
+                               f"{current[0]}:{current[1]} is alive: replies stay with the peer")
+
+    def _warn(self, kind: str, text: str) -> None:
+        """Log a rejection: the first of each kind, then at most one per kind every 5 s."""
+        now = time.monotonic()
+        if now - self._warned.get(kind, -float("inf")) >= 5.0:
+            self._warned[kind] = now
+            st = self.stats
+            log.warning("%s: %s (so far: unsigned %d, bad signature %d, replayed %d, peer kept %d)", self.url, text,
+                        st.rejected_unsigned, st.rejected_signature, st.rejected_replay, st.peer_kept)
 
     def _drop_partial_frame(self) -> None:
         """Discard a frame left incomplete at the end of a datagram (frames never span datagrams)."""
@@ -482,6 +564,7 @@ class MavlinkPort:
             self._drop_partial_frame()
             return False
         valid_from_peer = False
+        stamp = signing_timestamp() if self.checker.mode != "off" else 0
         for m in msgs:
             kind = m.get_type()
             if kind == "BAD_DATA":
@@ -492,6 +575,16 @@ class MavlinkPort:
                 st.dropped_bytes += len(m.get_msgbuf())
                 st.dropped_unknown += 1
                 continue
+            verdict = self.checker.check(bytes(m.get_msgbuf()), kind, stamp)
+            if not verdict.accepted:
+                setattr(st, verdict.value, getattr(st, verdict.value) + 1)
+                self._warn(verdict.value, f"{verdict.value.replace('_', ' ')}: {kind} from system "
+                                          f"{m.get_srcSystem()}")
+                continue
+            if verdict is Verdict.SIGNED:
+                st.signed += 1
+            elif verdict is Verdict.UNSIGNED:
+                st.unsigned += 1
             if self.accept is not None and kind not in self.accept:
                 st.ignored += 1
                 continue
@@ -506,7 +599,11 @@ class MavlinkPort:
 
     def _pack(self, msg) -> bytes:
         """The frame of ``msg`` with this link's next sequence number (one counter per port, as
-        pymavlink's ``send`` keeps it: stock tools count the gaps as lost frames)."""
+        pymavlink's ``send`` keeps it: stock tools count the gaps as lost frames), signed when
+        signing is on (timestamp: the signing clock, strictly increasing)."""
+        sig = self.mav.signing
+        if sig.sign_outgoing:
+            sig.timestamp = max(sig.timestamp, signing_timestamp())
         frame = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         return frame
