@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from .estimation.sckf import CAParams
 from .estimation.semi import parse_groups, validate_groups
@@ -122,7 +123,8 @@ def _cmd_keys(args) -> int:
     fingerprint = hashlib.sha256(key).hexdigest()[:16]
     print(f"{args.file}: MAVLink 2 signing key, fingerprint {fingerprint} (compare, never share the file)")
     if args.action == "new":
-        print(f"name it in the config: [signing] mode = \"required\", key_file = \"{args.file}\"")
+        # key_file is read relative to the config file's folder: the absolute path is right anywhere
+        print(f"name it in the config: [signing] mode = \"required\", key_file = \"{Path(args.file).resolve()}\"")
         print(f"MAVProxy: signing key $(cat {args.file})   (or a line 'HOST:PORT PASSPHRASE' in ~/.mavproxy/signing.keys)")
     return 0
 
