@@ -51,6 +51,9 @@ __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_
 
 log = logging.getLogger(__name__)
 
+TAKEOFF_HEIGHT_M = 0.15  # above the arming height: the land detector's take-off
+TAKEOFF_SPEED_M_S = 0.5  # armed faster than this: already in flight
+
 
 def outdoor_ekf_config() -> EkfConfig:
     """EKF tuning for the SITL ``outdoor`` sensor profile (MEMS IMU, M8-class GPS, AHRS).
@@ -120,6 +123,7 @@ class LinkFirmware:
         self.armed = False
         self._arm_height_m = 0.0
         self._thrust_total_n = 0.0
+        self._airborne = False
         self.integrals = ControlIntegrals()
         self.target: PoseTarget | None = None
         self._target_time_s = -math.inf
@@ -258,17 +262,28 @@ class LinkFirmware:
         self.armed = True
         self.integrals = ControlIntegrals()
         self.allocator.reset()
-        self._arm_height_m = float(self.control_estimate(t_s)[0][2])
+        p, v, _ = self.control_estimate(t_s)
+        self._arm_height_m = float(p[2])
         self._thrust_total_n = 0.0
+        # armed while moving (e.g. re-armed after a forced disarm in the air): in flight from the start
+        self._airborne = float(np.linalg.norm(v)) > TAKEOFF_SPEED_M_S
         return True
 
     def landed(self, t_s: float) -> bool:
-        """A land detector for disarm checks: disarmed, or armed with the link not carried by its
-        rotors (commanded force under half its weight) within 0.15 m of where it armed."""
+        """A land detector for disarm checks (PX4's MC land detector in spirit): disarmed; armed
+        and not yet taken off (never more than 0.15 m above where it armed, armed at rest); or
+        back within 0.15 m of that height, not moving vertically (under 0.5 m/s) and with the
+        rotors no longer carrying the link (commanded force under half its weight)."""
         if not self.armed:
             return True
-        height = float(self.control_estimate(t_s)[0][2]) - self._arm_height_m
-        return self._thrust_total_n < 0.5 * self.inertia.mass_kg * GRAVITY_M_S2 and height < 0.15
+        p, v, _ = self.control_estimate(t_s)
+        height = float(p[2]) - self._arm_height_m
+        if height > TAKEOFF_HEIGHT_M:
+            self._airborne = True
+        if not self._airborne:
+            return True
+        return (self._thrust_total_n < 0.5 * self.inertia.mass_kg * GRAVITY_M_S2 and height < TAKEOFF_HEIGHT_M
+                and abs(float(v[2])) < TAKEOFF_SPEED_M_S)
 
     def hover_command(self, q_wxyz) -> np.ndarray:
         """Thrusts that carry the link's weight at attitude ``q_wxyz`` (no torque).
@@ -319,4 +334,6 @@ class LinkFirmware:
             p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
         )
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
+        if not self._airborne and p[2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
+            self._airborne = True  # take-off detected: a disarm now needs the force value
         return self.allocator.allocate(U).command_n

@@ -1,11 +1,11 @@
 """A MAVSDK ground-station client, run as its own process by the fleet tests.
 
-    python tests/mavsdk_client.py URL SYSID [--timeout S]
+    python tests/mavsdk_client.py URL SYSID [--timeout S] [--set-int NAME=V] [--set-float NAME=V]
 
 Connects to ``URL`` (e.g. ``udpin://127.0.0.1:14541``), waits for the autopilot ``SYSID``, reads
-two parameters (a float and an int), subscribes to position, attitude and odometry telemetry
-for two seconds and prints one JSON object with what it got. Exit code 0 when the system was
-discovered, 1 otherwise.
+two parameters (a float and an int), sets the parameters named by ``--set-int``/``--set-float``
+and reads each back, subscribes to position, attitude and odometry telemetry for two seconds and
+prints one JSON object with what it got. Exit code 0 when the system was discovered, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ def main() -> int:
     ap.add_argument("url")
     ap.add_argument("sysid", type=int)
     ap.add_argument("--timeout", type=float, default=20.0)
+    ap.add_argument("--set-int", action="append", default=[], metavar="NAME=V")
+    ap.add_argument("--set-float", action="append", default=[], metavar="NAME=V")
     args = ap.parse_args()
 
     cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
@@ -50,6 +52,25 @@ def main() -> int:
             out["MAV_SYS_ID"] = param.get_param_int("MAV_SYS_ID")
         except ParamError as exc:
             out["param_error"] = exc.result.name
+        out["set"] = {}
+        for kind, items in (("int", args.set_int), ("float", args.set_float)):
+            for item in items:
+                name, value = item.split("=", 1)
+                entry: dict = {}
+                try:
+                    if kind == "int":
+                        param.set_param_int(name, int(value))
+                    else:
+                        param.set_param_float(name, float(value))
+                    entry["result"] = "SUCCESS"
+                except ParamError as exc:
+                    entry["result"] = exc.result.name
+                try:
+                    entry["read_back"] = (param.get_param_int(name) if kind == "int"
+                                          else param.get_param_float(name))
+                except ParamError as exc:
+                    entry["read_back_error"] = exc.result.name
+                out["set"][name] = entry
         telemetry = Telemetry(system)
         counts: Counter = Counter()
         last: dict = {}

@@ -212,8 +212,10 @@ def _sequence_gaps(path: Path, sysid: int) -> int:
     return lost
 
 
-def test_mavsdk_client_discovers_reads_a_parameter_and_gets_telemetry(tmp_path):
-    """MAVSDK in its own process on link 2's onboard port (the companion is not started)."""
+def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_path):
+    """MAVSDK in its own process on link 2's onboard port (the companion is not started): reads
+    and sets an integer and a float parameter (bytewise, as the vehicle declares), is refused
+    on the read-only MAV_SYS_ID and reads it back unchanged."""
     sc = load_scenario(THREE_LINK, duration_s=12.0)
     result = {}
 
@@ -223,13 +225,18 @@ def test_mavsdk_client_discovers_reads_a_parameter_and_gets_telemetry(tmp_path):
     runner = threading.Thread(target=fleet, daemon=True)
     runner.start()
     client = subprocess.run([sys.executable, str(ROOT / "tests" / "mavsdk_client.py"), "udpin://127.0.0.1:14541", "2",
-                             "--timeout", "15"], capture_output=True, text=True, timeout=60)
+                             "--timeout", "15", "--set-int", "SKL_SM_EN=0", "--set-int", "MAV_SYS_ID=7",
+                             "--set-float", "SKL_CORR_HOLD=0.375"], capture_output=True, text=True, timeout=60)
     runner.join(60)
     assert not runner.is_alive()
     out = json.loads(client.stdout.strip().splitlines()[-1])
     assert client.returncode == 0 and out["discovered"] and out["sysid"] == 2, client.stderr[-2000:]
     assert out["IMP_KP_Z"] == pytest.approx(sc.firmware.gains.kp_n_m[2], rel=1e-6)
     assert out["MAV_SYS_ID"] == 2
+    assert sc.firmware.allocation.selective_mapping  # so that setting 0 is a change
+    assert out["set"]["SKL_SM_EN"] == {"result": "SUCCESS", "read_back": 0}
+    assert out["set"]["SKL_CORR_HOLD"] == {"result": "SUCCESS", "read_back": pytest.approx(0.375)}
+    assert out["set"]["MAV_SYS_ID"]["result"] != "SUCCESS" and out["set"]["MAV_SYS_ID"]["read_back"] == 2
     counts = out["telemetry_counts"]
     assert counts.get("position", 0) >= 5 and counts.get("attitude_euler", 0) >= 10
     lat, lon, _ = out["position"]

@@ -41,6 +41,8 @@ class Rig:
         sim_port = self.vehicle.sim.transport.local_port()
         self.sim = MavlinkPort(f"tcpout://127.0.0.1:{sim_port}", system_id=250, component_id=1)
         self.t = 0.0
+        self.height_m = 2.0  # where the fake GPS puts the link
+        self.vel_m_s = np.zeros(3)  # and its velocity
         self.vehicle.poll(0.01)  # accept the simulator connection
 
     def tick(self, gps=False, ahrs=False):
@@ -48,7 +50,7 @@ class Rig:
         self.t = round(self.t + 0.002, 6)
         msgs = []
         if gps:
-            msgs.append(encode_hil_gps(self.t, np.array([0.0, 0.0, 2.0]), np.zeros(3), ORIGIN))
+            msgs.append(encode_hil_gps(self.t, np.array([0.0, 0.0, self.height_m]), self.vel_m_s, ORIGIN))
         if ahrs:
             msgs.append(encode_ahrs(self.t, LEVEL))
         msgs.append(encode_hil_sensor(self.t, np.array([0.0, 0.0, 9.80665]), np.zeros(3), LEVEL))
@@ -324,11 +326,34 @@ def test_mavftp_parameter_download_is_refused_at_once(rig):
 
 
 def _flying(rig):
+    """Armed at rest, then climbing 1 m (the fake GPS): the land detector sees the take-off."""
     rig.start()
     rig.vehicle.fw.arm(rig.t)
-    for _ in range(20):
-        rig.tick()  # the rotors carry the link
+    assert rig.vehicle.fw.landed(rig.t)  # armed on the ground, not yet taken off
+    rig.height_m += 1.0
+    for k in range(500):
+        rig.tick(gps=k % 50 == 0)
     assert not rig.vehicle.fw.landed(rig.t)
+
+
+def test_a_link_armed_while_moving_is_in_flight_from_the_start(rig):
+    """Re-armed while falling (after a forced disarm in the air): a disarm needs the force value."""
+    rig.vel_m_s = np.array([0.0, 0.0, -2.0])
+    rig.start(0.5)
+    assert abs(rig.vehicle.fw.control_estimate(rig.t)[1][2]) > 1.0
+    rig.vehicle.fw.arm(rig.t)
+    assert not rig.vehicle.fw.landed(rig.t)
+
+
+def test_a_link_armed_on_the_ground_disarms_without_force(rig):
+    """Armed at rest, holding its pose on the ground (the rotors carry its weight): not in flight."""
+    rig.start()
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    rig.gcs_collect(0.2)
+    assert rig.vehicle.fw.armed and rig.vehicle.fw.landed(rig.t)
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 0, 0, 0, 0, 0, 0))
+    ack = next(m for m in rig.gcs_collect(0.05) if m.get_type() == "COMMAND_ACK")
+    assert ack.result == D.MAV_RESULT_ACCEPTED and not rig.vehicle.fw.armed
 
 
 def test_disarm_in_flight_needs_the_force_value(rig):
