@@ -3,7 +3,7 @@
     python -m companion --config FILE [--group G] [--out DIR] [--start-center X,Y,Z] [--duration S]
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
     python -m companion dialect
-    python -m companion keys new FILE | keys check FILE
+    python -m companion keys new FILE | keys check FILE | keys zenoh FILE --groups N
 
 The first form runs the daemon: it connects to the links of the config's ``[companion]``
 section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
@@ -11,7 +11,8 @@ section (SITL UDP ports by default; serial devices on hardware), applies the con
 one daemon runs per group (``--group G``, 1-based) and the groups meet over Zenoh for the global
 step (``[zenoh]``), the first live group of ``zenoh.leader_order`` leading. ``dialect`` prints what
 MAVProxy, mavlogdump/MAVExplorer and MAVSDK each need to decode the project's messages; ``keys``
-creates and checks MAVLink 2 signing key files (``[signing]``).
+creates and checks MAVLink 2 signing key files (``[signing]``) and the companions' Zenoh
+user-password file (``zenoh.users_file``).
 Exit codes: 0 success, 2 bad input (the message names the file, key and reason).
 """
 
@@ -111,8 +112,22 @@ def _cmd_dialect(args) -> int:
 def _cmd_keys(args) -> int:
     import hashlib
 
+    from .fleetnet.config import new_users_file, read_users_file
     from .mavlink.signing import load_key, new_key_file
 
+    if args.action == "zenoh":
+        if not args.groups or args.groups < 1:
+            print("error: keys zenoh needs --groups N (the number of companion groups)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        try:
+            new_users_file(args.file, args.groups, overwrite=args.force)
+            users = read_users_file(args.file)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        print(f"{args.file}: Zenoh users {', '.join(users)} (copy to every companion computer, mode 600)")
+        print(f"name it in the config: [zenoh] users_file = \"{Path(args.file).resolve()}\"")
+        return 0
     try:
         if args.action == "new":
             new_key_file(args.file, overwrite=args.force)
@@ -177,13 +192,17 @@ def build_parser() -> argparse.ArgumentParser:
     dp.set_defaults(func=_cmd_dialect)
     kp = sub.add_parser(
         "keys",
-        help="create or check a MAVLink 2 signing key file",
+        help="create or check a MAVLink 2 signing key file, or create the companions' Zenoh user file",
         description=(
             "new FILE: a random 256-bit passphrase in FILE (mode 600); the key is its SHA-256, as MAVProxy's "
-            "'signing key PASSPHRASE' and QGroundControl derive it. check FILE: load it and print its fingerprint."
+            "'signing key PASSPHRASE' and QGroundControl derive it. check FILE: load it and print its fingerprint. "
+            "zenoh FILE --groups N: a Zenoh user-password file for N group companions (companion-g1..gN, random "
+            "passwords, mode 600) for [zenoh] users_file."
         ),
     )
-    kp.add_argument("action", choices=("new", "check"), help="new: create FILE; check: validate FILE")
+    kp.add_argument("action", choices=("new", "check", "zenoh"),
+                    help="new: create FILE; check: validate FILE; zenoh: create a Zenoh user file")
+    kp.add_argument("--groups", type=int, metavar="N", help="zenoh: the number of companion groups")
     kp.add_argument("file", metavar="FILE", help="key file")
     kp.add_argument("--force", action="store_true", help="new: replace an existing FILE")
     kp.set_defaults(func=_cmd_keys)

@@ -27,12 +27,14 @@ from pathlib import Path
 from typing import Literal
 
 from .configfile import ConfigError, build, load_toml, require_positive
+from .estimation.gate import CHI2_6_1E6, GateParams
 from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
 from .fleetnet.config import PREFIX_RE, ZenohConfig
 from .mavlink.signing import SigningConfig
 from .motion.inverse import InverseModel
 from .motion.schedule import MotionConfig
+from .plausibility import StampWindow
 from .skeleton.body import SkeletonConfig
 from .trajectory import TrajectoryConfig
 
@@ -93,6 +95,13 @@ class CompanionConfig:
     joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
     whole chain and runs the global step in-process. ``enabled = false`` runs no constraint
     application (the links fly on their EKFs; targets and arming go on).
+
+    Plausibility (:mod:`companion.plausibility`, :mod:`companion.estimation.gate`): a link's state
+    stamp must be newer than its last and at most ``clock_rate_max`` times the time elapsed since
+    that one plus ``stamp_margin_s`` ahead of it (a SITL launch sets ``clock_rate_max`` from its
+    pace); a link whose stream went silent for ``reboot_silence_s`` and comes back on a new clock
+    (``reboot_frames`` consistent states) has rebooted. The joint gate cuts a joint whose NIS
+    (6 dof) exceeds ``gate_threshold`` with ``gate_pos_m`` / ``gate_vel_m_s`` of slack.
     """
 
     enabled: bool = True
@@ -110,10 +119,19 @@ class CompanionConfig:
     health_period_s: float = 5.0
     distributed: bool = False
     time_base: Literal["flight_controller", "gps"] = "flight_controller"
+    stamp_margin_s: float = 0.25
+    clock_rate_max: float = 1.1
+    reboot_silence_s: float = 1.0
+    reboot_frames: int = 10
+    gate_threshold: float = CHI2_6_1E6
+    gate_pos_m: float = 0.05
+    gate_vel_m_s: float = 0.25
 
     def __post_init__(self) -> None:
         CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
-        require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s")
+        require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
+                         "clock_rate_max", "reboot_silence_s", "reboot_frames")
+        self.gate
         ids = [link.system_id for link in self.links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")
@@ -127,6 +145,14 @@ class CompanionConfig:
     @property
     def params(self) -> CAParams:
         return CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+
+    @property
+    def gate(self) -> GateParams:
+        return GateParams(self.gate_threshold, self.gate_pos_m, self.gate_vel_m_s)
+
+    @property
+    def stamp_window(self) -> StampWindow:
+        return StampWindow(self.stamp_margin_s, self.clock_rate_max, self.reboot_silence_s, self.reboot_frames)
 
     def group_layout(self, n_links: int) -> Groups:
         if not self.groups:
@@ -205,6 +231,10 @@ def load_setup(cls: type, path: str | Path, **overrides):
     if setup.signing.key_file:
         key_path = Path(path).resolve().parent / Path(setup.signing.key_file).expanduser()
         setup = replace(setup, signing=replace(setup.signing, key_file=str(key_path)))
+    zenoh_cfg = getattr(setup, "zenoh", None)
+    if zenoh_cfg is not None and zenoh_cfg.users_file:
+        users_path = Path(path).resolve().parent / Path(zenoh_cfg.users_file).expanduser()
+        setup = replace(setup, zenoh=replace(zenoh_cfg, users_file=str(users_path)))
     motion = getattr(setup, "motion", None)
     if motion is not None:
         model_path = Path(path).resolve().parent / motion.model

@@ -52,9 +52,11 @@ def compute_corrections(
     params: CAParams = CAParams(),
     seq: int = 0,
 ) -> tuple[SemiResult, list[Correction]]:
-    """Constraint application on one snapshot of the chain; ``states`` ordered by link."""
-    if [s.link for s in states] != list(range(len(states))):
-        raise ValueError(f"states must cover links 0..{len(states) - 1} in order, got {[s.link for s in states]}")
+    """Constraint application on one snapshot of the chain, or of a segment of it: ``states`` of
+    consecutive links in chain order, ``d_b_m`` and ``groups`` (numbered from the first) theirs."""
+    links = [s.link for s in states]
+    if not links or links != list(range(links[0], links[0] + len(links))):
+        raise ValueError(f"states must be consecutive links in chain order, got {links}")
     _, p, v, q = align_states(states)
     w = np.stack([s.omega_b_rad_s for s in states])
     P = np.stack([s.P for s in states])

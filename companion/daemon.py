@@ -67,14 +67,21 @@ _ACK_COMMANDS = {D.MAV_CMD_COMPONENT_ARM_DISARM: Command.ARM, D.MAV_CMD_SET_MESS
 
 
 def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
-    """The health table: the engine's per-link rows beside each port's state and dropped frames."""
-    lines = [f"{'link':>4} {'sysid':>5} {'port':>4} {'state Hz':>8} {'age ms':>7} {'dropped':>7} {'rejected':>8} "
-             f"{'sig rej':>7} {'lat p50 ms':>10} {'lat p99 ms':>10}"]
+    """The health table: the engine's per-link rows beside each port's state and counters.
+
+    ``lost``: gaps in the link's MAVLink sequence numbers (frames lost on the wire, totals);
+    ``dropped``: unparseable frames; ``rejected``: states refused (malformed, replayed, stamped
+    too far ahead); ``sig rej``: frames refused by MAVLink signing; ``out``: steps of the period
+    the link was left out of, and why it is out now (stale, ekf, rebooted, gate, alone)."""
+    lines = [f"{'link':>4} {'sysid':>5} {'port':>4} {'state Hz':>8} {'age ms':>7} {'lost':>6} {'dropped':>7} "
+             f"{'rejected':>8} {'sig rej':>7} {'out':>12} {'lat p50 ms':>10} {'lat p99 ms':>10}"]
     for row, port in zip(rows, ports):
         up = "up" if port.transport.connected else "down"
         p50, p99 = (f"{row[k]:10.1f}" if row[k] is not None else f"{'-':>10}" for k in ("latency_p50_ms", "latency_p99_ms"))
+        out = f"{row['excluded']} {row['status']}".strip() if row["excluded"] or row["status"] else "0"
         lines.append(f"{row['link']:>4} {row['system_id']:>5} {up:>4} {row['state_hz']:8.1f} {row['age_ms']:7.0f} "
-                     f"{port.stats.dropped:7d} {row['rejected']:8d} {port.stats.rejected_signing:7d} {p50} {p99}")
+                     f"{port.stats.seq_lost:6d} {port.stats.dropped:7d} {row['rejected']:8d} "
+                     f"{port.stats.rejected_signing:7d} {out:>12} {p50} {p99}")
     return "\n".join(lines)
 
 

@@ -14,13 +14,23 @@ both run. Typed inputs go in, each with the time it happened on the caller's mon
   :class:`Heartbeat` and :class:`HealthDue`, each for the caller to carry out (encode and send, or
   hand to an in-process firmware).
 
-What it decides, on the links' flight-controller time (the newest EKF stamp received):
+What it decides, on the links' flight-controller time (the newest plausible EKF stamp received):
 
+* plausibility before use: a state whose stamp is not newer than the link's last (a replay) or
+  further ahead than the link's clock can have run (:mod:`companion.plausibility`) is rejected
+  and counted, and never moves the cycle clock; a link silent for a while that comes back on a
+  new clock has rebooted; a link back from a silence (or a reboot) is re-admitted after
+  :data:`READMIT_CYCLES` usable cycles;
 * every 1/``rate_hz``: once every link has reported for the step time (or a link lags more
-  than :data:`LAG_LIMIT_US`), the newest states are time-aligned
-  (:func:`companion.corrections.align_states`), the constraints are applied (Alg. 1, or Alg. 2 +
-  eq. 6 with several groups) and every link gets its correction. If the links' newest stamps are
-  more than :data:`SPREAD_LIMIT_US` apart the step is withheld (counted and logged). With
+  than :data:`LAG_LIMIT_US`), the links that may be used (newest state within
+  :data:`LAG_LIMIT_US` of the step time, EKF usable, not being re-admitted) are time-aligned
+  (:func:`companion.corrections.align_states`) and checked against each other by the joint
+  chi-square gate (:mod:`companion.estimation.gate`), which cuts inconsistent joints and leaves
+  an outlier link out. The chain splits where links are left out or joints cut; every segment
+  of two or more links gets its constraint application (Alg. 1, or Alg. 2 + eq. 6 with several
+  groups) and its links their corrections; a link left out gets none that cycle and flies on
+  its own EKF. Why each link is out is counted (:data:`EXCLUSION_REASONS`, the health table,
+  :meth:`CompanionEngine.summary`) and logged per step (``corrected_sckf``). With
   ``enabled = false`` the step only logs the links' EKF states;
 * every 1/``target_rate_hz``: every link's pose target from the trajectory (``[trajectory]``),
   anchored at ``trajectory.anchor_w_m`` or where the chain is when every link first reports;
@@ -53,14 +63,17 @@ from enum import Enum
 import numpy as np
 
 from .config import CompanionSetup
-from .corrections import compute_corrections, finish_step, local_step
+from .corrections import align_states, compute_corrections, finish_step, local_step
+from .estimation.gate import gate_chain, segments
 from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, ChainTargets, Correction, LinkState, PoseTarget
+from .plausibility import StampGate, StampVerdict
 from .skeleton.kinematics import chain_middle
 from .trajectory import chain_model, make_trajectory
 
 __all__ = [
     "LAG_LIMIT_US",
-    "SPREAD_LIMIT_US",
+    "EXCLUSION_REASONS",
+    "READMIT_CYCLES",
     "CLOCK_SAMPLES",
     "Command",
     "CorrectionOut",
@@ -77,17 +90,22 @@ log = logging.getLogger(__name__)
 
 #: A link whose newest state is this far behind the newest of the chain is not waited for.
 LAG_LIMIT_US = 100_000
-#: Beyond this spread of the links' newest stamps no step runs: the time alignment would
-#: extrapolate a state over it (a link that stopped streaming, or flight-controller clocks that
-#: do not share a time base, e.g. Pixhawks booted at different times).
-SPREAD_LIMIT_US = 500_000
+#: Why a link took no part in a step: its newest state is more than LAG_LIMIT_US from the step
+#: time (silent, or a clock that does not share the time base); its EKF is not usable; it is
+#: back after a silence or a reboot and waits READMIT_CYCLES usable cycles; the joint gate found it inconsistent with its neighbours
+#: (:mod:`companion.estimation.gate`); or it is usable but alone in its segment.
+EXCLUSION_REASONS = ("stale", "ekf", "returning", "gate", "alone")
+#: Usable cycles a link back from a silence of ``reboot_silence_s`` or more (or a reboot) waits
+#: before it is constrained again (its EKF may still be settling).
+READMIT_CYCLES = 10
 #: SYSTEM_TIME reports whose median is a link's boot-to-GPS clock offset.
 CLOCK_SAMPLES = 5
 #: Retry period of unacknowledged commands, the heartbeat period [s].
 RETRY_S = 1.0
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
-                 "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader")
+                 "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
+                 "corrected_sckf", "nis_max_sckf")
 
 
 class Command(Enum):
@@ -164,6 +182,17 @@ class LinkTrack:
     gps_wait_logged: bool = False
     #: the link's clock + offset = the engine's time base (0 with ``time_base = "flight_controller"``)
     offset_us: int | None = None
+    stamps: StampGate | None = None
+    #: states rejected for their stamp: not newer than the last (replays), too far ahead
+    replayed: int = 0
+    future: int = 0
+    reboots: int = 0
+    #: cycles this link took no part in, by reason (see :data:`EXCLUSION_REASONS`)
+    excluded: dict = field(default_factory=dict)
+    excluded_at_report: int = 0
+    #: why it was left out of the last step ("" = used)
+    status: str = ""
+    readmit_cycles: int = 0
 
     def to_link_clock_us(self, t_us: int) -> int:
         return t_us - (self.offset_us or 0)
@@ -222,7 +251,10 @@ class CompanionEngine:
         self.d = setup.skeleton.d_b_m[list(members)]
         self.params = cfg.params
         endpoints = cfg.endpoints(n)
-        self.links = [LinkTrack(i, row, endpoints[i].system_id) for row, i in enumerate(members)]
+        self.links = [LinkTrack(i, row, endpoints[i].system_id, stamps=StampGate(cfg.stamp_window))
+                      for row, i in enumerate(members)]
+        self._cycle_clock = StampGate(cfg.stamp_window)  # what moves fc_time_us
+        self.gate_params = cfg.gate
         self.period_us = int(round(1e6 / cfg.rate_hz))
         self.target_period_us = int(round(1e6 / cfg.target_rate_hz))
         self.fc_time_us = 0
@@ -243,8 +275,9 @@ class CompanionEngine:
         self._next_health_s: float | None = None
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms: list[float] = []
-        self.withheld = 0
-        self._withheld_logged_s = -np.inf
+        self.withheld = 0  # steps in which no link could be corrected
+        self.degraded = 0  # steps in which some link was left out
+        self._reject_logged_s: dict[tuple[int, str], float] = {}
         self._timer = timer
         self._out: list = []
 
@@ -284,7 +317,13 @@ class CompanionEngine:
                 log.info("link %d: no GPS time yet (SYSTEM_TIME.time_unix_usec = 0): waiting", lk.index + 1)
                 lk.gps_wait_logged = True
             return
-        lk.clock_samples_us = (lk.clock_samples_us + [int(time_unix_us) - int(time_boot_ms) * 1000])[-CLOCK_SAMPLES:]
+        sample = int(time_unix_us) - int(time_boot_ms) * 1000
+        if lk.offset_us is not None and abs(sample - lk.offset_us) > 1_000_000:
+            # the boot clock jumped (a reboot): the old samples describe another clock
+            log.warning("link %d: its boot clock moved %.3f s against GPS time (a reboot): offset re-learnt",
+                        lk.index + 1, (lk.offset_us - sample) * 1e-6)
+            lk.clock_samples_us = []
+        lk.clock_samples_us = (lk.clock_samples_us + [sample])[-CLOCK_SAMPLES:]
         first = lk.offset_us is None
         lk.offset_us = int(np.median(lk.clock_samples_us))
         if first:
@@ -310,11 +349,40 @@ class CompanionEngine:
             if lk.offset_us is None:
                 return False
             state = replace(state, time_s=(_usec(state.time_s) + lk.offset_us) * 1e-6)
+        stamp_us = _usec(state.time_s)
+        verdict = lk.stamps.check(stamp_us, now_s)
+        if verdict is StampVerdict.REPLAY:
+            lk.replayed += 1
+            self._log_rejection(lk, "replay", now_s, "state stamped %.3f s, not newer than its last (%.3f s): a "
+                                "replay or a reordered frame", stamp_us * 1e-6, lk.stamps.last_us * 1e-6)
+            return False
+        if verdict is StampVerdict.FUTURE:
+            lk.future += 1
+            self._log_rejection(lk, "future", now_s, "state stamped %.3f s, %.3f s after its last: further than its "
+                                "clock can have run", stamp_us * 1e-6, (stamp_us - lk.stamps.last_us) * 1e-6)
+            return False
+        if verdict is StampVerdict.REBASED:
+            lk.reboots += 1
+            lk.readmit_cycles = READMIT_CYCLES
+            log.warning("link %d: silent, then back on a new clock (%.3f s): rebooted; re-admitted after %d usable "
+                        "cycles", lk.index + 1, stamp_us * 1e-6, READMIT_CYCLES)
+        elif lk.last_state_s is not None and now_s - lk.last_state_s >= self.cfg.reboot_silence_s:
+            lk.readmit_cycles = READMIT_CYCLES
+            log.warning("link %d: back after %.1f s of silence; re-admitted after %d usable cycles", lk.index + 1,
+                        now_s - lk.last_state_s, READMIT_CYCLES)
         lk.state = state
         lk.states += 1
         lk.last_state_s = now_s
-        self.fc_time_us = max(self.fc_time_us, _usec(state.time_s))
+        if self._cycle_clock.check(stamp_us, now_s) in (StampVerdict.ACCEPTED, StampVerdict.REBASED):
+            self.fc_time_us = stamp_us
         return True
+
+    def _log_rejection(self, lk: LinkTrack, kind: str, now_s: float, fmt: str, *args) -> None:
+        """The first rejection of a kind per link, then at most one every 5 s."""
+        key = (lk.row, kind)
+        if now_s - self._reject_logged_s.get(key, -np.inf) >= 5.0:
+            self._reject_logged_s[key] = now_s
+            log.warning("link %d: " + fmt, lk.index + 1, *args)
 
     # -- the loop ----------------------------------------------------------------------------------
     def next_deadline_s(self) -> float | None:
@@ -341,13 +409,10 @@ class CompanionEngine:
             if t >= self.next_step_us:
                 newest = [_usec(lk.state.time_s) for lk in self.links]
                 # Step once every link has reported for this step time (a coherent snapshot); a link
-                # lagging more than LAG_LIMIT behind the others is not waited for (its state is
-                # propagated by the time alignment), so one silent link degrades the step, never stalls it.
+                # lagging more than LAG_LIMIT behind the others is not waited for (and left out of the
+                # step, :meth:`_plan`), so one silent link degrades the step, never stalls it.
                 spread = max(newest) - min(newest)
-                if spread > SPREAD_LIMIT_US:
-                    self._withhold(newest, now_s)
-                    self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
-                elif min(newest) >= self.next_step_us or spread > LAG_LIMIT_US:
+                if min(newest) >= self.next_step_us or spread > LAG_LIMIT_US:
                     self._step(now_s)
                     self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
             self._arm(now_s)
@@ -368,6 +433,67 @@ class CompanionEngine:
         return all(lk.state is not None for lk in self.links)
 
     # -- the 20 Hz step --------------------------------------------------------------------------------
+    def _plan(self, t_us: int, now_s: float) -> tuple[list[tuple[int, ...]], bool, float]:
+        """Which of this engine's links the step at ``t_us`` uses (plausibility before use).
+
+        A link is left out when its newest state is more than :data:`LAG_LIMIT_US` from ``t_us``,
+        its EKF is not usable, it is being re-admitted after a reboot, or the joint gate
+        (:func:`~companion.estimation.gate.gate_chain`) finds it inconsistent with its neighbours;
+        the chain splits there. Returns the segments (rows, at least two consecutive links each),
+        whether every link is usable with no joint cut (``whole``), and the largest joint NIS.
+        Each link's :attr:`LinkTrack.status` says why it is out ("" if it is in)."""
+        usable = []
+        for lk in self.links:
+            off_us = _usec(lk.state.time_s) - t_us
+            if abs(off_us) > LAG_LIMIT_US:
+                why = "stale"
+                self._log_rejection(lk, "stale", now_s, "newest state %.3f s from the step time: it stopped streaming, or "
+                                    "its clock does not share the chain's time base; left out, the others go on",
+                                    off_us * 1e-6)
+            elif not lk.flags & STATE_FLAG_EKF_OK:
+                why = "ekf"
+            elif lk.readmit_cycles > 0:
+                why = "returning"
+                lk.readmit_cycles -= 1
+            else:
+                why = ""
+            lk.status = why
+            usable.append(not why)
+        cut = [False] * (len(self.links) - 1)
+        nis_max = float("nan")
+        for run in segments(usable):
+            rows = list(run)
+            _, p, v, q = align_states([self.links[r].state for r in rows], t_us * 1e-6)
+            w = np.stack([self.links[r].state.omega_b_rad_s for r in rows])
+            P = np.stack([self.links[r].state.P for r in rows])
+            res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
+            for j, c in enumerate(res.cut):
+                cut[run[0] + j] = bool(c)
+            for k in res.excluded:
+                self.links[run[k]].status = "gate"
+                usable[run[k]] = False
+            if res.nis.size:
+                nis_max = float(np.nanmax([nis_max, *res.nis]))
+        whole = all(usable) and not any(cut)
+        segs = segments(usable, cut)
+        in_segment = {r for seg in segs for r in seg}
+        for lk in self.links:
+            if not lk.status and lk.row not in in_segment and not whole:
+                lk.status = "alone"
+            if lk.status:
+                lk.excluded[lk.status] = lk.excluded.get(lk.status, 0) + 1
+        if not whole:
+            self.degraded += 1
+            if not segs:
+                self.withheld += 1
+        return segs, whole, nis_max
+
+    def _segment_groups(self, seg: tuple[int, ...]) -> list[tuple[int, ...]]:
+        """This engine's groups cut to segment ``seg`` (rows), numbered from its first link."""
+        members = set(seg)
+        out = [tuple(r - seg[0] for r in g if r in members) for g in self.groups]
+        return [g for g in out if g]
+
     def _step(self, now_s: float) -> None:
         if not self.cfg.enabled:
             self._observe()
@@ -375,53 +501,91 @@ class CompanionEngine:
         if self.net is not None:
             self._local_half(now_s)
             return
+        segs, whole, nis_max = self._plan(self.fc_time_us, now_s)
         states = [lk.state for lk in self.links]
+        ekf = _stacked(states)
+        p, v, q = (a.copy() for a in ekf[:3])
+        p_local = p.copy()
+        corrected = np.zeros(len(self.links), dtype=bool)
+        iterations = 0
         t0 = self._timer()
-        try:
-            result, corrections = compute_corrections(states, self.d, self.groups, self.params, self.seq)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            log.warning("constraint application failed at t = %.3f s: %s", self.fc_time_us * 1e-6, exc)
-            return
+        done = []
+        for seg in segs:
+            rows = list(seg)
+            try:
+                result, corrections = compute_corrections([states[r] for r in rows], self.d[rows],
+                                                          self._segment_groups(seg), self.params, self.seq)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                log.warning("constraint application failed at t = %.3f s (links %s): %s", self.fc_time_us * 1e-6,
+                            [self.links[r].index + 1 for r in rows], exc)
+                continue
+            p[rows], v[rows], q[rows] = result.p, result.v, result.q
+            p_local[rows] = np.concatenate([r.p for r in result.local])
+            corrected[rows] = True
+            iterations = max(iterations, int(result.iterations.max()))
+            done.append((seg, corrections, (result.p, result.v, result.q, result.P)))
         self.step_times_ms.append((self._timer() - t0) * 1e3)
-        self.seq = (self.seq + 1) & 0xFFFF or 1
-        self._send_corrections(corrections, (result.p, result.v, result.q, result.P))
-        p_local = np.concatenate([r.p for r in result.local])
-        self._record(self.fc_time_us, -1, _stacked(states), result.p, result.v, result.q, p_local,
-                     int(result.iterations.max()),
-                     True, -1)
+        if done:
+            for seg, corrections, result in done:
+                self._send_corrections(seg, corrections, result)
+            self.seq = (self.seq + 1) & 0xFFFF or 1
+        self._record(self.fc_time_us, -1, ekf, p, v, q, p_local, iterations, bool(done), -1, corrected, nis_max)
 
     def _observe(self) -> None:
         """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
         ekf = _stacked([lk.state for lk in self.links])
         cycle = self.next_step_us if self.net is not None else -1
         p, v, q, _ = ekf
-        self._record(self.fc_time_us if cycle < 0 else cycle, cycle, ekf, p, v, q, p, 0, False, -1)
-
-    def _withhold(self, newest: list[int], now_s: float) -> None:
-        """No step: the links' stamps are too far apart to be aligned (logged every 5 s)."""
-        self.withheld += 1
-        if now_s - self._withheld_logged_s >= 5.0:
-            self._withheld_logged_s = now_s
-            lag = self.links[int(np.argmin(newest))]
-            log.error("link %d's newest state is %.3f s behind the newest of the chain: it stopped streaming, or the "
-                      "flight controllers' clocks do not share a time base; no corrections until they agree "
-                      "(%d cycles so far)", lag.index + 1, (max(newest) - min(newest)) * 1e-6, self.withheld)
+        self._record(self.fc_time_us if cycle < 0 else cycle, cycle, ekf, p, v, q, p, 0, False, -1,
+                     np.zeros(len(self.links), dtype=bool), float("nan"))
 
     def _local_half(self, now_s: float) -> None:
-        """Distributed mode: local constraint application at the cycle time, boundary out."""
+        """Distributed mode: local constraint application at the cycle time, boundary out. A group
+        with a link left out publishes no boundary that cycle (its chain is cut anyway): each of
+        its segments gets its local-only corrections at once."""
         states = [lk.state for lk in self.links]
         cycle = self.next_step_us
+        segs, whole, nis_max = self._plan(cycle, now_s)
         t0 = self._timer()
+        if not whole:
+            self._local_segments(states, segs, cycle, nis_max, t0)
+            return
         try:
             step = local_step(states, self.d, self.params, t=cycle * 1e-6)
         except (ValueError, np.linalg.LinAlgError) as exc:
             log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
             return
         self.step_times_ms.append((self._timer() - t0) * 1e3)
-        self._local[cycle] = (states, step)
+        self._local[cycle] = (states, step, nis_max)
         b = step.boundary
         # stamped when it goes out, after the computation (the shift deadline runs from there)
         self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock()))
+
+    def _local_segments(self, states, segs, cycle: int, nis_max: float, t0: float) -> None:
+        ekf = _stacked(states)
+        p, v, q = (a.copy() for a in ekf[:3])
+        corrected = np.zeros(len(self.links), dtype=bool)
+        iterations = 0
+        done = []
+        for seg in segs:
+            rows = list(seg)
+            seg_states = [states[r] for r in rows]
+            try:
+                step = local_step(seg_states, self.d[rows], self.params, t=cycle * 1e-6)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
+                continue
+            ps, vs, qs, corrections = finish_step(seg_states, step, None, self.seq)
+            p[rows], v[rows], q[rows] = ps, vs, qs
+            corrected[rows] = True
+            iterations = max(iterations, int(step.result.iterations))
+            done.append((seg, corrections, (ps, vs, qs, step.result.P)))
+        self.step_times_ms.append((self._timer() - t0) * 1e3)
+        for seg, corrections, result in done:
+            self._send_corrections(seg, corrections, result)
+        if done:
+            self.seq = (self.seq + 1) & 0xFFFF or 1
+        self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max)
 
     def _finish(self, resolved) -> None:
         """Corrections for the cycles that ended (with the leader's shift, or local-only)."""
@@ -431,36 +595,39 @@ class CompanionEngine:
                 del self._local[old]
             if entry is None:
                 continue
-            states, step = entry
+            states, step, nis_max = entry
             if res.shift is None and res.reason:
                 log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
             p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
             self.seq = (self.seq + 1) & 0xFFFF or 1
-            self._send_corrections(corrections, (p, v, q, step.result.P))
+            self._send_corrections(tuple(range(len(self.links))), corrections, (p, v, q, step.result.P))
             self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
                          int(step.result.iterations),
-                         res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1)
+                         res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1,
+                         np.ones(len(self.links), dtype=bool), nis_max)
 
     def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
-                leader: int) -> None:
+                leader: int, corrected: np.ndarray, nis_max: float) -> None:
         """One step log row; ``ekf`` is ``(p, v, q, w)`` of the links' states the step started from
-        (aligned to the cycle in distributed mode), ``p, v, q`` the corrected estimate."""
+        (aligned to the cycle in distributed mode), ``p, v, q`` the corrected estimate (a link's
+        EKF state where ``corrected`` is false), ``nis_max`` the largest joint NIS of the gate."""
         pe, ve, qe, we = ekf
         row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
-               "iterations": iterations, "global_applied": global_applied, "leader": leader}
+               "iterations": iterations, "global_applied": global_applied, "leader": leader,
+               "corrected_sckf": corrected, "nis_max_sckf": nis_max}
         for key, value in row.items():
             self.log[key].append(value)
 
-    def _send_corrections(self, corrections, result) -> None:
-        """Each link its correction and corrected estimate, stamped on the link's own clock;
-        ``result`` is ``(p, v, q, P)`` of this engine's links, in their order."""
+    def _send_corrections(self, rows: tuple[int, ...], corrections, result) -> None:
+        """Links ``rows`` their corrections and corrected estimates, stamped on each link's own
+        clock; ``result`` is ``(p, v, q, P)`` of those links, in their order."""
         p, v, q, P = result
-        for lk, corr in zip(self.links, corrections):
+        for j, (r, corr) in enumerate(zip(rows, corrections)):
+            lk = self.links[r]
             t_link = lk.to_link_clock_us(_usec(corr.ekf_time_s)) * 1e-6
-            r = lk.row
             self._out.append(CorrectionOut(lk.row, lk.system_id, replace(corr, ekf_time_s=t_link),
-                                           LinkState(lk.index, t_link, p[r], v[r], q[r], lk.state.omega_b_rad_s, P[r])))
+                                           LinkState(lk.index, t_link, p[j], v[j], q[j], lk.state.omega_b_rad_s, P[j])))
 
     # -- targets and arming ----------------------------------------------------------------------------
     def _send_targets(self, now_s: float) -> None:
@@ -523,20 +690,26 @@ class CompanionEngine:
 
     # -- reports ---------------------------------------------------------------------------------------
     def health_rows(self, period_s: float, now_s: float) -> list[dict]:
-        """Per link, since the last call: state rate [Hz], age of the newest state [ms], rejected
-        states, correction latency p50 / p99 [ms] (``None`` without samples)."""
+        """Per link, since the last call: state rate [Hz], age of the newest state [ms], states
+        rejected (malformed, replayed, stamped too far ahead: totals), reboots, steps it was left
+        out of in the period and why it is out now (``""``: in), correction latency p50 / p99 [ms]
+        (``None`` without samples)."""
         rows = []
         for lk in self.links:
             lat = np.asarray(lk.latency_window_ms)
+            excluded = sum(lk.excluded.values())
             rows.append({
                 "link": lk.index + 1, "system_id": lk.system_id,
                 "state_hz": (lk.states - lk.states_at_report) / period_s,
                 "age_ms": (now_s - lk.last_state_s) * 1e3 if lk.last_state_s is not None else float("nan"),
-                "rejected": lk.rejected,
+                "rejected": lk.rejected + lk.replayed + lk.future,
+                "replayed": lk.replayed, "future": lk.future, "reboots": lk.reboots,
+                "excluded": excluded - lk.excluded_at_report, "status": lk.status,
                 "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
                 "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
             })
             lk.states_at_report = lk.states
+            lk.excluded_at_report = excluded
             lk.latency_window_ms = []
         return rows
 
@@ -546,10 +719,13 @@ class CompanionEngine:
         return {
             "steps": int(steps.size),
             "withheld_steps": self.withheld,
+            "degraded_steps": self.degraded,
             "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
             "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                       "samples": int(lat.size)} if lat.size else None,
-            "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected} for lk in self.links},
+            "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
+                                          "future": lk.future, "reboots": lk.reboots,
+                                          "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),
         }

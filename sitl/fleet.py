@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.configfile import dump_toml
+from companion.fleetnet.config import new_users_file
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
@@ -410,6 +411,17 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     link_config.write_text(dump_toml(sc.vehicle_setup()))
     anchor = tuple(float(x) for x in plant.start_center())
     companion_setup = sc.companion_setup()
+    if sc.companion.distributed and not sc.zenoh.users_file:
+        # The companions authenticate to each other with throwaway credentials of this run: another
+        # process on this host cannot join their Zenoh session (zenoh.users_file).
+        users_file = out_dir / "zenoh_users.txt"
+        new_users_file(users_file, len(sc.companion.group_layout(sc.skeleton.n_links)), overwrite=True)
+        companion_setup = replace(companion_setup, zenoh=replace(companion_setup.zenoh, users_file=str(users_file.resolve())))
+    # The companion bounds how fast a link's clock (simulated time) can run against its own wall
+    # clock: the pace, with room for the catch-up after a slow tick (as fast as it goes: 20).
+    rate = 20.0 if speed <= 0 else max(2.0, 4.0 * speed)
+    cfg = companion_setup.companion
+    companion_setup = replace(companion_setup, companion=replace(cfg, clock_rate_max=max(cfg.clock_rate_max, rate)))
     companion_config = out_dir / "companion.toml"
     companion_config.write_text(dump_toml(replace(companion_setup,
                                                   trajectory=replace(sc.trajectory, anchor_w_m=anchor))))

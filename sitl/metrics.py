@@ -115,6 +115,32 @@ def _p95(values: list | np.ndarray) -> float | None:
     return float(np.percentile(a, 95)) if a.size else None
 
 
+def uncorrected_metrics(t: np.ndarray, corrected: np.ndarray, nis_max: np.ndarray | None = None) -> dict:
+    """Steps in which links got no correction (left out by the companion's plausibility checks,
+    or alone in their segment): the fraction per link, and every window (start, end, links) in
+    which the set of uncorrected links stayed the same. ``nis_max``: the joint gate's largest NIS
+    per step (its p50 / p99 / max)."""
+    corrected = np.asarray(corrected, dtype=bool)
+    out: dict = {"steps": int(corrected.shape[0]),
+                 "fraction_per_link": (1.0 - corrected.mean(axis=0)).tolist() if corrected.size else [],
+                 "windows": []}
+    start = None
+    for k in range(corrected.shape[0] + 1):
+        links = tuple(int(i) + 1 for i in np.flatnonzero(~corrected[k])) if k < corrected.shape[0] else ()
+        prev = tuple(int(i) + 1 for i in np.flatnonzero(~corrected[k - 1])) if k > 0 else ()
+        if links != prev:
+            if prev:
+                out["windows"].append({"start_s": float(t[start]), "end_s": float(t[k - 1]), "links": list(prev)})
+            start = k
+    if nis_max is not None:
+        finite = np.asarray(nis_max, dtype=float)
+        finite = finite[np.isfinite(finite)]
+        if finite.size:
+            out["gate_nis_max"] = {"p50": float(np.percentile(finite, 50)), "p99": float(np.percentile(finite, 99)),
+                                   "max": float(finite.max())}
+    return out
+
+
 def compute_metrics(
     log: dict[str, np.ndarray],
     flight_start_s: float,
@@ -175,6 +201,9 @@ def compute_metrics(
     if n > 1 and has_steps:
         metrics["constraint_pos_p95_m"]["before"] = _p95(log["con_pos_before"][wins])
         metrics["constraint_vel_p95_m_s"]["before"] = _p95(log["con_vel_before"][wins])
+    if sckf_enabled and has_steps and "corrected_sckf" in log:
+        metrics["uncorrected"] = uncorrected_metrics(log["t_sckf"][wins], log["corrected_sckf"][wins],
+                                                     log["nis_max_sckf"][wins] if "nis_max_sckf" in log else None)
     if sckf_enabled and has_steps:
         corr_err = np.linalg.norm(log["p_corr_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
         metrics["rms_est_err_m"]["sckf"] = _rms(corr_err).tolist()

@@ -16,7 +16,7 @@ from companion.estimation.constraints import joint_error_norms
 __all__ = ["merge_step_logs", "attach_truth"]
 
 _CHAIN_KEYS = ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf", "v_corr_sckf",
-               "q_corr_sckf")
+               "q_corr_sckf", "corrected_sckf")
 
 
 def _unique_cycles(log: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -54,6 +54,7 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
         merged["global_applied"] = np.stack([lg["global_applied"][r] for lg, r in zip(per, rows)], axis=1)
         merged["leader"] = np.stack([lg["leader"][r] for lg, r in zip(per, rows)], axis=1)
         merged["iterations"] = np.max(np.stack([lg["iterations"][r] for lg, r in zip(per, rows)]), axis=0)
+        merged["nis_max_sckf"] = np.fmax.reduce(np.stack([lg["nis_max_sckf"][r] for lg, r in zip(per, rows)]), axis=0)
     n = merged["p_ekf_sckf"].shape[1] if merged["t_sckf"].size else 0
     if n > 1:
         for tag, (p, v, q) in (("before", ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf")),

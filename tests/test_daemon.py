@@ -20,6 +20,7 @@ from companion.fleetnet.bus import zenoh_config
 from companion.mavlink.codec import decode_correction, encode_link_state
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
+from companion.fleetnet.config import new_users_file
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.standard import encode_odometry
 from companion.messages import STATE_FLAG_EKF_OK, LinkState
@@ -192,6 +193,10 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
     sc = replace(sc, signing=replace(sc.signing, key_file=str(tmp_path / "skeleton.key")))
     group = None
     if sc.companion.distributed:  # the Pi of group 2; its Zenoh session config is valid as written
+        assert sc.zenoh.users_file.endswith("keys/zenoh_users.txt")  # the Pis authenticate
+        users = tmp_path / "zenoh_users.txt"
+        new_users_file(users, 3)
+        sc = replace(sc, zenoh=replace(sc.zenoh, users_file=str(users)))
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")
         group = 1
         ports = [_free_tcp_port() for _ in range(3)]

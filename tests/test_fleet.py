@@ -425,3 +425,84 @@ def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path
     assert gcs_result.get("value") == pytest.approx(1.5)
     assert gcs_result["stats"]["signed"] > 100 and gcs_result["stats"]["rejected_signing"] == 0
     _assert_ports_released(3)
+
+
+def _crafted_states(sent: dict, stop: threading.Event, seconds: float = 4.0) -> None:
+    """SKELETON_LINK_STATEs for link 2 with valid CRCs, from another process, at the companion's
+    port for link 2 (14541): NaN position, a covariance that is not positive definite, a stamp
+    1000 s ahead, a replayed (old) stamp, and a plausible state 3 m above link 2 (its time and
+    position read from its telemetry to UDP 14550) with a 1e-6 covariance."""
+    from companion.mavlink.codec import encode_link_state
+    from companion.messages import LinkState
+    as_link2 = D.MAVLink(None, srcSystem=2, srcComponent=1)
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", 14550))
+    gcs.settimeout(0.2)
+    parser = D.MAVLink(None)
+    parser.robust_parsing = True
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    seen = None
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+
+    def send(state, key, P=None):
+        st = state if P is None else replace(state, P=P)
+        raw.sendto(encode_link_state(st).pack(as_link2), ("127.0.0.1", 14541))
+        sent[key] = sent.get(key, 0) + 1
+
+    end = None
+    try:
+        while not stop.is_set() and (end is None or time.monotonic() < end):
+            try:
+                data = gcs.recv(4096)
+            except socket.timeout:
+                continue
+            for m in parser.parse_buffer(data) or []:
+                if m.get_type() == "LOCAL_POSITION_NED" and m.get_srcSystem() == 2:
+                    seen = (m.time_boot_ms * 1e-3, np.array([m.y, m.x, -m.z]))
+            if seen is None or seen[1][2] < 2.0:
+                continue  # wait for the take-off
+            end = end or time.monotonic() + seconds
+            t, p = seen
+            # stamped 0.1 s ahead of the telemetry (a 10 Hz stream): newer than link 2's own states
+            good = LinkState(1, t + 0.1, p + [0.0, 0.0, 3.0], np.zeros(3), q, np.zeros(3), np.eye(9) * 1e-6)
+            send(good, "plausible_3m")
+            send(replace(good, p_w_m=np.array([np.nan, 0.0, 2.5])), "nan")
+            send(good, "non_pd", P=-np.eye(9))
+            send(replace(good, time_s=t + 1000.0), "future")
+            send(replace(good, time_s=max(t - 5.0, 0.5)), "replay")
+            time.sleep(0.02)
+    finally:
+        gcs.close()
+        raw.close()
+
+
+def test_crafted_states_neither_stop_the_companion_nor_move_a_healthy_link(tmp_path, batch_reference):
+    """Issue 13's crafted states at the companion (unsigned three_link.toml): it keeps stepping at
+    20 Hz, rejects or leaves out every one, and the healthy links fly as without them."""
+    sc = load_scenario(THREE_LINK, duration_s=16.0)
+    sent: dict = {}
+    stop = threading.Event()
+    attacker = threading.Thread(target=_crafted_states, args=(sent, stop), daemon=True)
+    attacker.start()
+    try:
+        m = launch(sc, tmp_path, speed=1.0)
+    finally:
+        stop.set()
+        attacker.join(10)
+    assert min(sent.values()) > 100 and len(sent) == 5
+    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
+    link2 = comp["links"]["2"]
+    # NaN and non-PD: malformed; future: stamped too far ahead; replay: older than the last
+    assert link2["rejected"] >= sent["nan"] + sent["non_pd"]
+    assert link2["future"] >= sent["future"] and link2["replayed"] >= sent["replay"]
+    # the plausible +3 m states: those used left link 2 out by the joint gate, never spread
+    print("companion, link 2:", link2, "sent:", sent)
+    assert link2["excluded_steps"].get("gate", 0) > 0
+    # the companion kept stepping at 20 Hz over the whole flight (no stall on a future stamp)
+    assert comp["steps"] >= 0.9 * 20 * 16.0
+    assert not m["crashed"]
+    for i in (0, 2):  # the healthy links: within 2 cm of batch mode's RMS tracking
+        assert m["rms_track_true_m"][i] < batch_reference["rms_track_true_m"][i] + 0.02, m["rms_track_true_m"]
+    windows = m["uncorrected"]["windows"]
+    assert windows and all(w["end_s"] >= w["start_s"] for w in windows)
+    _assert_ports_released(3)

@@ -246,7 +246,7 @@ def _drive(nodes, cycles, t0=0.0, alive=None):
         now += 0.05
         shifts, published = [], []
         for node in live:
-            act = node.local_step(np.zeros(6), np.ones(6) * node.group, np.eye(6), cycle, now)
+            act = node.local_step(np.zeros(6), np.ones(6) * 0.1 * node.group, np.eye(6), cycle, now)
             published.append(act.boundary)
             shifts += act.shifts
         for report in published:
@@ -468,3 +468,174 @@ def test_group_halves_equal_the_in_process_step(groups):
         for c, rc in zip(corr, [ref_corr[i] for i in g]):
             np.testing.assert_allclose(c.dp_w_m, rc.dp_w_m, atol=1e-9)
             np.testing.assert_allclose(c.dtheta_w_rad, rc.dtheta_w_rad, atol=1e-9)
+
+
+# -- trust in the global step: a rogue on the bus ----------------------------------------------------------
+def _cycle(nodes, k, rng, rogue_before=(), rogue_after=()):
+    """One cycle on pure nodes with instant delivery; a rogue's messages are delivered before the
+    groups publish (``rogue_before``) or between their boundaries and the leader's shift
+    (``rogue_after``). Returns per node the Resolution of the cycle and the true eq. 6 shifts."""
+    cycle = k * PERIOD_US
+    now = 1.0 + 0.05 * k
+    resolved = {n.group: [] for n in nodes}
+
+    def deliver(msgs, at):
+        for m in msgs:
+            for node in nodes:
+                act = node.on_shift(m, at) if isinstance(m, GlobalShift) else node.on_boundary(m, at)
+                resolved[node.group] += act.resolved
+                shifts.extend(act.shifts)
+
+    shifts: list = []
+    deliver(rogue_before, now - 0.001)
+    published = []
+    for node in nodes:
+        act = node.local_step(rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6) * (1 + node.group), cycle, now)
+        published.append(act.boundary)
+        resolved[node.group] += act.resolved
+        shifts += act.shifts
+    deliver(rogue_after, now + 0.0005)
+    deliver(published, now + 0.001)
+    real = list(shifts)
+    shifts.clear()
+    deliver(real, now + 0.002)
+    for node in nodes:
+        resolved[node.group] += node.tick(now + 0.03).resolved
+    groups, truth = solve_cycle(published)
+    return resolved, dict(zip(groups, truth))
+
+
+def _fake(leader, cycle, groups, rng, scale=0.3):
+    return GlobalShift(leader, cycle, tuple(groups), rng.normal(0, scale, (len(groups), 6)), hold_us=(0,) * len(groups))
+
+
+def _two_groups():
+    nodes = [GlobalStepNode(g, 2, (0, 1), PERIOD_US, startup_s=0.0) for g in range(2)]
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, 0.0)
+    return nodes
+
+
+def test_next_cycle_shifts_claiming_each_group_as_leader_are_never_applied():
+    """The measured attack: well-formed shifts for the next cycle, one claiming each group as the
+    leader, before every cycle. Before: both groups went local-only for the rest of the flight."""
+    rng = np.random.default_rng(1)
+    nodes = _two_groups()
+    applied = 0
+    for k in range(1, 61):
+        rogue = [_fake(g, (k + 1) * PERIOD_US, (0, 1), rng) for g in (0, 1)] if k > 5 else []
+        resolved, truth = _cycle(nodes, k, rng, rogue_before=rogue)
+        for g, res in resolved.items():
+            assert len(res) == 1
+            if res[0].shift is not None:
+                np.testing.assert_allclose(res[0].shift, truth[g], atol=1e-12)  # only the true eq. 6
+                applied += 1
+    assert applied >= 2 * 59  # every cycle but the first, in both groups: the global step stayed on
+    assert all(n.leader_log[-1][1] == 0 for n in nodes)
+    assert nodes[1].rejections.get("not_pending", 0) + nodes[1].rejections.get("not_leader", 0) >= 55
+
+
+def test_a_same_cycle_fake_shift_is_rejected_as_inconsistent():
+    """A shift for the cycle the groups wait on, claiming the real leader, arriving before it."""
+    rng = np.random.default_rng(2)
+    nodes = _two_groups()
+    _cycle(nodes, 1, rng)
+    for k in range(2, 40):
+        resolved, truth = _cycle(nodes, k, rng, rogue_after=[_fake(0, k * PERIOD_US, (0, 1), rng, 0.05)])
+        res = resolved[1][0]
+        assert res.shift is not None and np.allclose(res.shift, truth[1], atol=1e-12)
+    assert nodes[1].rejections == {"inconsistent": 38}
+
+
+def test_a_forged_boundary_leaves_its_group_out_and_no_fake_shift_gets_through():
+    rng = np.random.default_rng(3)
+    nodes = _two_groups()
+    _cycle(nodes, 1, rng)
+    for k in range(2, 20):
+        forged = GroupBoundaryReport(0, k * PERIOD_US, np.ones(6), np.ones(6), np.eye(6))
+        resolved, _ = _cycle(nodes, k, rng, rogue_before=[forged],
+                             rogue_after=[_fake(0, k * PERIOD_US, (0, 1), rng, 0.05)])
+        assert resolved[1][0].shift is None  # neither the fake nor the (uncheckable) real one
+    assert nodes[1].counts["conflicting_boundary"] == 18
+
+
+def test_shifts_beyond_the_bounds_are_rejected_and_a_silent_leader_is_passed_over():
+    rng = np.random.default_rng(4)
+    nodes = _two_groups()
+    follower = nodes[1]
+    _cycle(nodes, 1, rng)
+    # a shift from the elected leader for the pending cycle, 5 m: rejected (no boundary to check it against)
+    act = follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), 2 * PERIOD_US, 2.0)
+    assert act.boundary is not None
+    big = GlobalShift(0, 2 * PERIOD_US, (1,), np.array([[5.0, 0, 0, 0, 0, 0]]), hold_us=(0,))
+    assert not follower.on_shift(big, 2.001).resolved and follower.rejections == {"bounds": 1}
+    # the leader's token stays but its shifts stop (a hung companion, or a rogue's token): after
+    # three cycles without them the follower leads
+    for k in range(3, 8):
+        follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), k * PERIOD_US, 2.0 + 0.05 * k)
+        follower.tick(2.0 + 0.05 * k + 0.03)
+    assert 0 in follower.muted and follower.leader_for(9 * PERIOD_US, 3.0) == 1
+
+
+def test_a_session_without_the_fleet_credentials_cannot_join(tmp_path):
+    """zenoh.users_file: the group companions authenticate to each other; a rogue session on this
+    host (no credentials, a wrong password, an unknown user) opens no transport to them, so its
+    well-formed shifts and boundaries never arrive, while the fleet's own do."""
+    from companion.fleetnet.config import new_users_file, read_users_file
+
+    users = tmp_path / "zenoh_users.txt"
+    new_users_file(users, 2)
+    assert set(read_users_file(str(users))) == {"companion-g1", "companion-g2"}
+    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in _free_ports(2)), users_file=str(users))
+    buses = [FleetBus(cfg, "test_auth", g, 2) for g in range(2)]
+    rogues = []
+    try:
+        for user, password in ((None, None), ("companion-g2", "x" * 20), ("rogue", "y" * 20)):
+            rc = zenoh.Config()
+            rc.insert_json5("mode", '"peer"')
+            rc.insert_json5("scouting/multicast/enabled", "false")
+            rc.insert_json5("connect/endpoints", f'["{cfg.endpoints[0]}"]')
+            if user:
+                rc.insert_json5("transport/auth/usrpwd/user", f'"{user}"')
+                rc.insert_json5("transport/auth/usrpwd/password", f'"{password}"')
+            rogues.append(zenoh.open(rc))
+        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
+                 for g, bus in enumerate(buses)]
+        _wait_live(links, 2)
+        time.sleep(0.3)
+        fake = codec.encode(GlobalShift(1, PERIOD_US, (0, 1), np.ones((2, 6)), hold_us=(0, 0)))
+        forged = codec.encode(GroupBoundaryReport(1, PERIOD_US, np.ones(6), np.ones(6), np.eye(6)))
+        for r in rogues:
+            for _ in range(5):
+                r.put(shift_key("test_auth"), fake)
+                r.put(boundary_key("test_auth", 1), forged)
+        buses[1].publish_boundary(GroupBoundaryReport(1, 2 * PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)))
+        deadline = time.monotonic() + 3.0
+        events = []
+        while time.monotonic() < deadline and not any(e.kind == "boundary" for e in events):
+            events += buses[0].drain()
+            time.sleep(0.01)
+        time.sleep(0.3)
+        events += buses[0].drain()
+        got = [(e.kind, e.value.cycle_us) for e in events if e.kind in ("boundary", "shift")]
+        assert got == [("boundary", 2 * PERIOD_US)]  # the fleet's own only
+        assert not [e for e in events if e.kind == "error"]
+    finally:
+        for r in rogues:
+            r.close()
+        for bus in buses:
+            bus.close()
+
+
+def test_a_users_file_others_can_read_or_without_the_group_is_refused(tmp_path):
+    from companion.fleetnet.config import new_users_file
+
+    users = tmp_path / "u.txt"
+    new_users_file(users, 2)
+    cfg = ZenohConfig(users_file=str(users))
+    with pytest.raises(ConfigError, match="no user companion-g3"):
+        zenoh_config(cfg, 2, 3)
+    os.chmod(users, 0o644)
+    with pytest.raises(ConfigError, match="readable by others"):
+        zenoh_config(cfg, 0, 2)

@@ -26,7 +26,7 @@ from companion.configfile import ConfigError
 from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, MessageError
 
 from . import codec
-from .config import ZenohConfig
+from .config import ZenohConfig, group_user, read_users_file
 from .hub import BusEvent
 from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key, target_key
 
@@ -64,6 +64,17 @@ def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<conf
             put(f"transport/link/tls/{name}", path, f"zenoh.tls.{name}")
     if tls.configured:
         put("transport/link/tls/enable_mtls", tls.enable_mtls, "zenoh.tls.enable_mtls")
+    if cfg.users_file:
+        try:
+            users = read_users_file(cfg.users_file)
+        except ValueError as exc:
+            raise ConfigError(file, "zenoh.users_file", str(exc)) from None
+        user = group_user(group)
+        if user not in users:
+            raise ConfigError(file, "zenoh.users_file", f"{cfg.users_file} has no user {user} (group {group + 1})")
+        put("transport/auth/usrpwd/user", user, "zenoh.users_file")
+        put("transport/auth/usrpwd/password", users[user], "zenoh.users_file")
+        put("transport/auth/usrpwd/dictionary_file", str(Path(cfg.users_file).resolve()), "zenoh.users_file")
     if cfg.access_control:
         try:
             text = Path(cfg.access_control).read_text()

@@ -8,6 +8,15 @@ leaves the configured endpoints. ``lease_ms`` is the Zenoh transport lease: a co
 link goes silent (cable pulled, process frozen) is declared gone after it, which bounds the
 leader failover time; a process that exits or is killed closes its TCP links and is gone at once.
 
+Authentication (``users_file``): a file of ``user:password`` lines (Zenoh's user-password
+dictionary, mode 600) naming every companion of the fleet, ``companion-g<G>`` for group ``G``.
+Each companion authenticates as its group's user and admits only sessions that present a user
+and password of the file: a session without them (a process on the same host, a laptop on the
+network) cannot open a transport to the fleet, so it can neither publish nor subscribe under the
+fleet's prefix. ``python -m companion keys zenoh FILE --groups N`` writes one; a SITL launch of a
+distributed scenario without one makes a throwaway file in its run folder. User-password
+authentication is checked by the listening side only: on hardware use mutual TLS as well.
+
 TLS (``[zenoh.tls]``) and access control (``access_control``: a JSON5 file holding Zenoh's
 ``access_control`` object) are for hardware; file paths are checked when the session opens.
 """
@@ -15,12 +24,14 @@ TLS (``[zenoh.tls]``) and access control (``access_control``: a JSON5 file holdi
 from __future__ import annotations
 
 import re
+import secrets
 from dataclasses import dataclass, field
 from typing import Literal
 
 from companion.configfile import require_positive
+from companion.keyfiles import read_private_text, write_private_text
 
-__all__ = ["ZenohTls", "ZenohConfig", "PREFIX_RE"]
+__all__ = ["ZenohTls", "ZenohConfig", "PREFIX_RE", "group_user", "new_users_file", "read_users_file"]
 
 #: A fleet prefix: one or more key chunks of letters, digits, ``_`` and ``-``, joined by ``/``.
 PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
@@ -78,6 +89,7 @@ class ZenohConfig:
     lease_ms: int = 1000
     tls: ZenohTls = field(default_factory=ZenohTls)
     access_control: str = ""
+    users_file: str = ""
     leader_order: tuple[int, ...] = ()
     shift_deadline_ms: float = 35.0
     leader_wait_ms: float = 25.0
@@ -138,3 +150,31 @@ class ZenohConfig:
             return tuple(g - 1 for g in self.leader_order)
         mid = (n_groups - 1) / 2
         return tuple(sorted(range(n_groups), key=lambda g: (abs(g - mid), g)))
+
+
+def group_user(group: int) -> str:
+    """The Zenoh user of 0-based ``group``'s companion."""
+    return f"companion-g{group + 1}"
+
+
+def read_users_file(path: str) -> dict[str, str]:
+    """``{user: password}`` of a Zenoh user-password file; ``ValueError`` naming the problem (missing,
+    readable by group or others, a line that is not ``user:password``)."""
+    users: dict[str, str] = {}
+    for k, line in enumerate(read_private_text(path, "Zenoh user-password file").splitlines(), 1):
+        if not line.strip():
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not re.fullmatch(r"[A-Za-z0-9_.-]+", user) or len(password) < 16 or ":" in password:
+            raise ValueError(f"{path}:{k}: not user:password (a password of 16 characters or more, no ':')")
+        users[user] = password
+    if not users:
+        raise ValueError(f"{path}: no users")
+    return users
+
+
+def new_users_file(path, n_groups: int, overwrite: bool = False) -> None:
+    """Write a user-password file for ``n_groups`` companions (random 256-bit passwords, mode 600)."""
+    text = "\n".join(f"{group_user(g)}:{secrets.token_urlsafe(32)}" for g in range(n_groups))
+    write_private_text(path, text, overwrite)
+

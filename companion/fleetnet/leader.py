@@ -25,6 +25,19 @@ Leadership thus only changes at a cycle both sides agreed on, so a returning lea
 makes two leaders in one cycle. Should two leaders still meet (a partition that heals), the
 one ranked lower yields on seeing the other's shift, and every group applies only the first
 shift of a cycle.
+
+Trust (every payload is hostile until checked; a rogue session on the bus can publish
+well-formed messages under any group's name). A shift is applied only if it answers the
+cycle this group is waiting on (a shift for a cycle not reached yet never settles it, unless it
+comes from the elected leader and leaves this group out: the leader solved without it), comes
+from the leader this group elected for that cycle, stays within ``max_shift_p_m`` /
+``max_shift_v_m_s``, and, where this group has every listed group's boundary of that cycle, is
+eq. 6 of those boundaries (each group receives every boundary): anything else is counted
+(``rejected_shift`` with the reason) and dropped. Two different boundaries under one group's
+name for one cycle are a conflict: that group is left out of the cycle. A leader whose shifts
+stop arriving for ``leader_silence_cycles`` cycles is passed over in the election until a shift
+of its own is accepted again, so no message (a fake yield, a liveliness token without a
+companion behind it) can wedge the election.
 """
 
 from __future__ import annotations
@@ -60,6 +73,11 @@ def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...]
             shifts[start:k] = global_step(bounds)
             start = k
     return groups, shifts
+
+
+def _same_report(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
+    return (np.array_equal(a.left_tip_pv_w, b.left_tip_pv_w) and np.array_equal(a.right_tip_pv_w, b.right_tip_pv_w)
+            and np.array_equal(a.info_pv, b.info_pv))
 
 
 @dataclass(frozen=True)
@@ -99,7 +117,8 @@ class GlobalStepNode:
 
     def __init__(self, group: int, n_groups: int, order: Sequence[int], period_us: int, *,
                  shift_deadline_s: float = 0.02, leader_wait_s: float = 0.012, handover_cycles: int = 3,
-                 startup_s: float = 0.5):
+                 startup_s: float = 0.5, max_shift_p_m: float = 2.0, max_shift_v_m_s: float = 1.0,
+                 leader_silence_cycles: int = 3):
         if sorted(order) != list(range(n_groups)):
             raise ValueError(f"order {list(order)} must list each of the groups 0..{n_groups - 1} once")
         if not 0 <= group < n_groups:
@@ -115,7 +134,16 @@ class GlobalStepNode:
         self.leader_wait_s = leader_wait_s
         self.handover_cycles = int(handover_cycles)
         self.startup_s = startup_s
+        self.max_shift_p_m = max_shift_p_m
+        self.max_shift_v_m_s = max_shift_v_m_s
+        self.leader_silence_cycles = int(leader_silence_cycles)
         self.started_s: float | None = None
+        self.muted: set[int] = set()  # leaders passed over: their shifts stopped arriving
+        self._silent_cycles = 0
+        self._last_cycle_us = -1  # the newest cycle this group published a boundary for
+        self._heard_cycle_us = -1  # the newest cycle the elected leader sent a shift for
+        self._held: list[tuple[GlobalShift, float]] = []  # shifts of the pending cycle awaiting a boundary
+        self.conflicted: dict[int, set[int]] = {}  # cycle -> groups with two different boundaries
         self.live: set[int] = {group}
         self.reporting: set[int] = set()  # groups whose boundaries have arrived
         self.acting: int | None = None
@@ -132,7 +160,9 @@ class GlobalStepNode:
         self.round_trips_us: list[int] = []
         self.network_round_trips_us: list[int] = []
         self.counts = {"global": 0, "local_only": 0, "led": 0, "late_shift": 0, "duplicate_shift": 0,
-                       "yielded": 0, "partial": 0}
+                       "yielded": 0, "partial": 0, "rejected_shift": 0, "conflicting_boundary": 0, "muted": 0}
+        #: rejected shifts by reason (not_pending, not_leader, bounds, inconsistent, unknown_group)
+        self.rejections: dict[str, int] = {}
         #: (cycle_us, leader group) at every change of the leader whose shifts were applied
         self.leader_log: list[tuple[int, int]] = []
 
@@ -164,7 +194,7 @@ class GlobalStepNode:
             return self.acting
         if now_s - self.started_s < self.startup_s:
             return None  # still listening for an acting leader
-        return next(g for g in self.order if g in self.live)
+        return next((g for g in self.order if g in self.live and g not in self.muted), self.group)
 
     def _leads(self, cycle_us: int, now_s: float) -> bool:
         return self.leader_for(cycle_us, now_s) == self.group
@@ -180,6 +210,8 @@ class GlobalStepNode:
                                      self.last_round_trip_us, self.last_network_round_trip_us)
         out.boundary = report
         self.pending = _Pending(int(cycle_us), now_s)
+        self._held = []
+        self._last_cycle_us = max(self._last_cycle_us, int(cycle_us))
         settled = self.settled.get(int(cycle_us))
         if settled is not None:  # the leader solved this cycle without us
             out.resolved.append(self._resolve(None, settled, "the leader solved this cycle without this group"))
@@ -196,36 +228,105 @@ class GlobalStepNode:
 
     def on_shift(self, shift: GlobalShift, now_s: float, arrived_s: float | None = None) -> Actions:
         """A leader's shift, handled at ``now_s``; ``arrived_s``: when it came off the wire (the
-        end of this group's round trip; default ``now_s``)."""
+        end of this group's round trip; default ``now_s``). Checked first (module docstring)."""
         out = Actions()
         arrived = now_s if arrived_s is None else arrived_s
         if shift.leader_group == self.group:
-            return out  # our own, echoed
+            return out  # our own, echoed (or someone using our name: never applied)
+        if not 0 <= shift.leader_group < self.n_groups or any(not 0 <= g < self.n_groups for g in shift.groups):
+            return self._reject("unknown_group")
         cycle = shift.cycle_us
         settled = self.settled.get(cycle)
         if settled is not None:
             self.counts["duplicate_shift"] += 1
-            if settled == self.group and self.rank.get(shift.leader_group, 1 << 30) < self.rank[self.group]:
+            if (settled == self.group and self.rank[shift.leader_group] < self.rank[self.group]
+                    and shift.leader_group in self.live and self._verify(shift) is not False):
                 self.counts["yielded"] += 1  # two leaders met: the lower-ranked one yields
                 self.acting = shift.leader_group
+                self.muted.discard(shift.leader_group)
             return out
-        self._settle(cycle, shift.leader_group)
-        if self.acting is None or shift.leader_group != self.acting:
-            self.acting = shift.leader_group
+        pending = self.pending is not None and self.pending.cycle_us == cycle
+        expected = self.leader_for(cycle, now_s)
+        if expected is None:  # still listening: a live group's shift names the acting leader
+            expected = shift.leader_group if shift.leader_group in self.live else -1
+        if shift.leader_group != expected:
+            return self._reject("not_leader")
+        self._heard_cycle_us = max(self._heard_cycle_us, cycle)
+        if not pending:
+            if cycle <= self._last_cycle_us:
+                self.counts["late_shift"] += 1  # a cycle this group already finished (or skipped)
+                return out
+            if self.group in shift.groups:  # the leader cannot have our boundary of a cycle we have not reached
+                return self._reject("not_pending")
+            if self._verify(shift) is False:
+                return self._reject("inconsistent")
+            self._settle(cycle, shift.leader_group)  # solved without us: local-only when we get there
+            return out
+        own = shift.shift_for(self.group)
+        if own is not None and (not np.all(np.isfinite(own)) or np.linalg.norm(own[:3]) > self.max_shift_p_m
+                                or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
+            return self._reject("bounds")
+        verdict = self._verify(shift)
+        if verdict is None:  # a listed group's boundary has not reached us yet: check it when it does
+            self._held.append((shift, arrived))
+            return out
+        if not verdict:
+            return self._reject("inconsistent")
+        return self._apply(shift, arrived)
+
+    def _apply(self, shift: GlobalShift, arrived: float) -> Actions:
+        """Apply a checked shift to the pending cycle."""
+        out = Actions()
+        self._settle(shift.cycle_us, shift.leader_group)
+        self._held = []
+        self._silent_cycles = 0
+        self.acting = shift.leader_group
+        self.muted.discard(shift.leader_group)
         if shift.handover_group >= 0:
             self.handover = (shift.handover_group, shift.handover_cycle_us)
-        if self.pending is not None and self.pending.cycle_us == cycle:
-            rt = int(round((arrived - self.pending.published_s) * 1e6))
-            hold = shift.hold_for(self.group)
-            self.last_round_trip_us = rt
-            self.last_network_round_trip_us = rt - hold if hold is not None else -1
-            out.resolved.append(self._resolve(shift.shift_for(self.group), shift.leader_group,
-                                              "" if self.group in shift.groups else "not in the leader's solution"))
-        elif self.pending is None or cycle > self.pending.cycle_us:
-            pass  # a cycle this group has not reached (or skipped): nothing to apply
-        else:
-            self.counts["late_shift"] += 1
+        rt = int(round((arrived - self.pending.published_s) * 1e6))
+        hold = shift.hold_for(self.group)
+        self.last_round_trip_us = rt
+        self.last_network_round_trip_us = rt - hold if hold is not None else -1
+        out.resolved.append(self._resolve(shift.shift_for(self.group), shift.leader_group,
+                                          "" if self.group in shift.groups else "not in the leader's solution"))
         return out
+
+    def _recheck_held(self, cycle: int) -> Actions:
+        """A boundary of ``cycle`` arrived: the shifts held for it may be checked now."""
+        if not self._held or self.pending is None or self.pending.cycle_us != cycle:
+            return Actions()
+        held, self._held = self._held, []
+        for k, (shift, arrived) in enumerate(held):
+            verdict = self._verify(shift)
+            if verdict is None:
+                self._held.append((shift, arrived))
+            elif not verdict:
+                self._reject("inconsistent")
+            else:
+                return self._apply(shift, arrived)
+        return Actions()
+
+    def _reject(self, reason: str) -> Actions:
+        self.counts["rejected_shift"] += 1
+        self.rejections[reason] = self.rejections.get(reason, 0) + 1
+        return Actions()
+
+    def _verify(self, shift: GlobalShift) -> bool | None:
+        """Is ``shift`` eq. 6 of the boundaries this group holds for its cycle? ``None``: some listed
+        group's boundary is not here (yet); ``False`` also when a listed group's boundary came
+        twice, differently (forged: the shift cannot be checked)."""
+        reports = self.reports.get(shift.cycle_us, {})
+        if self.conflicted.get(shift.cycle_us, set()) & set(shift.groups):
+            return False
+        if (len(shift.groups) != len(set(shift.groups)) or np.shape(shift.shift_pv_w) != (len(shift.groups), 6)
+                or not np.all(np.isfinite(shift.shift_pv_w))):
+            return False
+        if not all(g in reports for g in shift.groups):
+            return None
+        groups, shifts = solve_cycle([reports[g] for g in shift.groups])
+        want = shifts[[groups.index(g) for g in shift.groups]]
+        return bool(np.allclose(want, shift.shift_pv_w, rtol=1e-9, atol=1e-9))
 
     def tick(self, now_s: float) -> Actions:
         """Deadlines: the leader solves cycles that waited ``leader_wait_s``; a group that waited
@@ -235,7 +336,26 @@ class GlobalStepNode:
             if cycle not in self.settled and now_s - first >= self.leader_wait_s and self._leads(cycle, now_s):
                 out.merge(self._solve(cycle, now_s))
         if self.pending is not None and now_s - self.pending.published_s >= self.shift_deadline_s:
+            leader = self.leader_for(self.pending.cycle_us, now_s)
+            heard = self._heard_cycle_us >= self.pending.cycle_us
+            if self._held:
+                self.counts["rejected_shift"] += len(self._held)
+                self.rejections["unverifiable"] = self.rejections.get("unverifiable", 0) + len(self._held)
+                self._held = []
             out.resolved.append(self._resolve(None, None, "no shift before the deadline"))
+            if heard:
+                self._silent_cycles = 0
+            elif leader is not None and leader != self.group:
+                self._silent_cycles += 1
+                if self._silent_cycles >= self.leader_silence_cycles:
+                    # its shifts stopped (gone without its token leaving, or never there): pass it over
+                    self.muted.add(leader)
+                    self.counts["muted"] += 1
+                    self._silent_cycles = 0
+                    if self.acting == leader:
+                        self.acting = None
+                    if self.handover is not None and self.handover[0] == leader:
+                        self.handover = None
         return out
 
     def next_deadline_s(self) -> float | None:
@@ -250,13 +370,23 @@ class GlobalStepNode:
         cycle = report.cycle_us
         if cycle in self.settled:
             return Actions()
-        self.reports.setdefault(cycle, {})[report.group] = report
+        held = self.reports.setdefault(cycle, {})
+        if report.group in self.conflicted.get(cycle, ()):
+            return Actions()
+        old = held.get(report.group)
+        if old is not None and not _same_report(old, report):
+            # two different boundaries under one name: neither can be trusted this cycle
+            self.counts["conflicting_boundary"] += 1
+            self.conflicted.setdefault(cycle, set()).add(report.group)
+            del held[report.group]
+            return Actions()
+        held[report.group] = report
         self.received_s.setdefault(cycle, {})[report.group] = arrived_s
         self.first_report_s.setdefault(cycle, now_s)
         self._prune(cycle)
         if self._leads(cycle, now_s) and self.live <= set(self.reports[cycle]):
             return self._solve(cycle, now_s)
-        return Actions()
+        return self._recheck_held(cycle)
 
     def _solve(self, cycle: int, now_s: float) -> Actions:
         reports = list(self.reports.get(cycle, {}).values())
@@ -274,7 +404,8 @@ class GlobalStepNode:
         received = self.received_s.get(cycle, {})
         hold = tuple(int(round((now_s - received.get(g, now_s)) * 1e6)) for g in groups)
         if self.handover is None:
-            preferred = next(g for g in self.order if g in self.live and (g in self.reporting or g == self.group))
+            preferred = next(g for g in self.order if g in self.live and g not in self.muted
+                             and (g in self.reporting or g == self.group))
             if self.rank[preferred] < self.rank[self.group]:
                 self.handover = (preferred, cycle + self.handover_cycles * self.period_us)
         hg, hc = self.handover if self.handover is not None else (-1, 0)
@@ -296,7 +427,7 @@ class GlobalStepNode:
 
     def _prune(self, cycle: int) -> None:
         horizon = cycle - _KEEP_CYCLES * self.period_us
-        for table in (self.reports, self.received_s, self.first_report_s, self.settled):
+        for table in (self.reports, self.received_s, self.first_report_s, self.settled, self.conflicted):
             for old in [c for c in table if c < horizon]:
                 del table[old]
 

@@ -69,6 +69,7 @@ class PortStats:
     rejected_signature: int = 0  # wrong key or altered frame
     rejected_replay: int = 0  # a signed frame's timestamp not newer than its stream's last
     peer_kept: int = 0  # valid frames from another address while the peer was alive (not re-aimed)
+    seq_lost: int = 0  # gaps in the senders' sequence numbers (frames lost on the way), as MAVProxy counts
     last_rx_wall_s: float = 0.0
     per_type: dict[str, int] = field(default_factory=dict)
 
@@ -475,6 +476,7 @@ class MavlinkPort:
         self.peer_hold_s = peer_hold_s
         self._peer_seen_s = -float("inf")
         self.stats = PortStats()
+        self._last_seq: dict[tuple[int, int], int] = {}  # per sender (system, component)
         self._header_len = D.HEADER_LEN_V1
         self._warned: dict[str, float] = {}
         self.set_signing(signing, key, link_id)
@@ -585,6 +587,13 @@ class MavlinkPort:
                 st.signed += 1
             elif verdict is Verdict.UNSIGNED:
                 st.unsigned += 1
+            src = (m.get_srcSystem(), m.get_srcComponent())
+            last = self._last_seq.get(src)
+            if last is not None:
+                gap = (m.get_seq() - last - 1) % 256
+                if gap < 128:  # larger: a duplicate, reordering or a restarted sender, not loss
+                    st.seq_lost += gap
+            self._last_seq[src] = m.get_seq()
             if self.accept is not None and kind not in self.accept:
                 st.ignored += 1
                 continue

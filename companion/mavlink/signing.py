@@ -31,14 +31,14 @@ key file readable by group or others is refused, as ssh refuses such private key
 from __future__ import annotations
 
 import hashlib
-import os
 import secrets
-import stat
 import time
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Literal
+
+from ..keyfiles import read_private_text, write_private_text
 
 __all__ = [
     "SigningMode",
@@ -202,17 +202,7 @@ def key_from_text(text: str) -> bytes:
 
 def load_key(path: str | Path) -> bytes:
     """The key in the key file ``path``; ``ValueError`` naming the file and the reason."""
-    path = Path(path)
-    try:
-        st = path.stat()
-        if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-            raise ValueError(f"{path}: readable by others (mode {stat.S_IMODE(st.st_mode):o}); "
-                             f"chmod 600 {path}")
-        text = path.read_text(encoding="ascii")
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read the signing key ({exc.strerror or exc})") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: a key file is ASCII text") from None
+    text = read_private_text(path, "signing key")
     try:
         return key_from_text(text)
     except ValueError as exc:
@@ -222,17 +212,10 @@ def load_key(path: str | Path) -> bytes:
 def write_key_file(path: str | Path, text: str, overwrite: bool = False) -> Path:
     """Write ``text`` (a passphrase or hex key) to ``path`` with mode 600, atomically."""
     key_from_text(text)
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise ValueError(f"{path} exists (refusing to overwrite a key)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="ascii") as fh:
-        fh.write(text.strip() + "\n")
-    os.chmod(tmp, 0o600)
-    tmp.replace(path)
-    return path
+    try:
+        return write_private_text(path, text, overwrite)
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("a secret", "a key")) from None
 
 
 def new_key_file(path: str | Path, overwrite: bool = False) -> str:
