@@ -302,10 +302,17 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
     n = sc.skeleton.n_links
     t_us = np.round(truth["t"] * 1e6).astype(np.int64)
     index = {int(x): i for i, x in enumerate(t_us)}
-    fw = [dict(np.load(out_dir / f"link{i + 1}" / f"link{i + 1}_firmware.npz")) for i in range(n)]
+    paths = [out_dir / f"link{i + 1}" / f"link{i + 1}_firmware.npz" for i in range(n)]
+    fw = [dict(np.load(p)) if p.exists() else None for p in paths]  # a killed vehicle wrote none
+    missing = [i + 1 for i, f in enumerate(fw) if f is None]
+    if len(missing) == n:
+        raise FleetError("no vehicle wrote its flight log")
+    if missing:
+        log.warning("no flight log from link(s) %s (killed): their estimates are NaN in the metrics", missing)
     common = set(t_us.tolist())
     for f in fw:
-        common &= set(np.round(f["t"] * 1e6).astype(np.int64).tolist())
+        if f is not None:
+            common &= set(np.round(f["t"] * 1e6).astype(np.int64).tolist())
     times = np.array(sorted(common), dtype=np.int64)
     if times.size == 0:
         raise FleetError("the vehicles' flight logs and the simulator log share no time stamps")
@@ -321,16 +328,24 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
     }
     fw_rows = []  # per link: the rows of its log at the common times
     for f in fw:
+        if f is None:
+            fw_rows.append(None)
+            continue
         ft = {int(x): i for i, x in enumerate(np.round(f["t"] * 1e6).astype(np.int64))}
         fw_rows.append([ft[int(x)] for x in times])
+    present = next(f for f in fw if f is not None)
     for key in ("p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target"):
-        merged[key] = np.stack([f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
+        blank = np.full((times.size,) + present[key].shape[1:], np.nan)
+        merged[key] = np.stack([blank if f is None else f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
+    if missing:
+        merged["missing_links"] = np.array(missing)
     comp = _companion_log(sc, out_dir)
     if comp is not None:
         if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
             comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
         merged.update(attach_truth(comp, truth["t"], truth["p_true"]))
-    latency = np.concatenate([f["correction_latency"] for f in fw]) if fw else np.zeros((0, 2))
+    logs = [f["correction_latency"] for f in fw if f is not None]
+    latency = np.concatenate(logs) if logs else np.zeros((0, 2))
     return merged, latency
 
 
@@ -429,6 +444,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     procs = _Processes()
     harness = None
     interrupted = False
+    aborted = ""
     try:
         for i in range(n):
             procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance",
@@ -479,6 +495,9 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         except KeyboardInterrupt:
             interrupted = True
             log.warning("interrupted: stopping the fleet")
+        except FleetError as exc:  # a process died: what was flown is still measured below
+            aborted = str(exc)
+            log.error("the fleet stopped at t = %.2f s: %s", harness.sim_s, aborted)
     finally:
         if harness is not None:
             harness.close()
@@ -486,8 +505,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     if harness is None:
         raise FleetError("the simulator never connected to the vehicles")
     if harness.sim_s <= sc.flight_start_s:
-        raise FleetError(f"stopped at t = {harness.sim_s:.1f} s, before the metrics window (from "
-                         f"{sc.flight_start_s:g} s): no metrics, the vehicles' logs and tlogs are kept")
+        raise FleetError(f"{aborted + '; ' if aborted else ''}stopped at t = {harness.sim_s:.1f} s, before the metrics "
+                         f"window (from {sc.flight_start_s:g} s): no metrics, the vehicles' logs and tlogs are kept")
     truth = harness.truth_log()
     merged, latency = _merge_logs(sc, truth, out_dir)
     metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,
@@ -501,7 +520,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
          "max": round(float(lat.max() * 1e3), 3), "samples": int(lat.size)} if lat.size else None
     )
     metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed,
-                   interrupted=interrupted)
+                   interrupted=interrupted, aborted=aborted or None,
+                   missing_flight_logs=merged.pop("missing_links", np.zeros(0, int)).tolist())
     if sc.companion.distributed and companion and sc.companion.enabled:
         metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
     metrics["mavlink"] = mavlink_counters(out_dir)
@@ -515,5 +535,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     else:
         write_plots(merged, out_dir)
     (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=harness.sim_s)))
+    if aborted:
+        raise FleetError(f"{aborted}; the {harness.sim_s:.1f} s flown are measured in {out_dir / 'metrics.json'}")
     return metrics
 

@@ -295,16 +295,19 @@ def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path):
     assert (out / "link1" / "link1.tlog").stat().st_size > 0
 
 
-def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error(tmp_path):
-    proc, progress = _launch_cli(tmp_path / "run", 2.0)
+def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metrics(tmp_path):
+    """Killed after the take-off: exit 3 naming the link, and metrics.json for what was flown."""
+    proc, progress = _launch_cli(tmp_path / "run", 8.0)
     children = _children_of(proc.pid)
     link2 = next(pid for pid in children if "--instance\x001\x00" in Path(f"/proc/{pid}/cmdline").read_text())
     os.kill(link2, signal.SIGKILL)
     _, rest = proc.communicate(timeout=60)
     text = (progress + rest).decode(errors="replace")
     assert proc.returncode == 3, text[-3000:]
-    assert "link 2" in text and "Traceback" not in text
+    assert "link 2" in text and "Traceback" not in text and "metrics.json" in text
     assert all(not Path(f"/proc/{pid}").exists() for pid in children)
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert "link 2" in m["aborted"] and m["duration_s"] >= 8.0 and not m["interrupted"]
     _assert_ports_released(3)
 
 

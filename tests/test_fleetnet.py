@@ -383,8 +383,12 @@ def test_leader_failover_over_zenoh_within_two_cycles():
             early = {lk.group: lk.local_step(reports[lk.group].left_tip_pv_w, reports[lk.group].right_tip_pv_w,
                                              reports[lk.group].info_pv, cycle, now) for lk in alive}
             resolved = _pump(alive, lambda r: all(any(x.cycle_us == cycle for x in r[g] + early[g]) for g in r))
-            outcome.append(all(any(x.cycle_us == cycle and x.shift is not None for x in resolved[g] + early[g])
-                               for g in resolved))
+            # did every live group get the leader's answer for this cycle?
+            mine = {g: [x for x in resolved[g] + early[g] if x.cycle_us == cycle] for g in resolved}
+            outcome.append(all(any(x.leader_group is not None for x in xs) for xs in mine.values()))
+            if k >= 9:  # groups 1 and 3 are not neighbours: the leader's answer is no shift, not a zero one
+                assert all(x.shift is None and "no neighbouring group" in x.reason
+                           for xs in mine.values() for x in xs if x.leader_group is not None)
         assert all(outcome[:5])
         missed = [k for k, ok in enumerate(outcome[5:]) if not ok]
         assert len(missed) <= 2 and all(outcome[8:]), outcome

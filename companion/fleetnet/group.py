@@ -108,16 +108,18 @@ class GroupLink:
             fo = self._failover
             if fo is None:
                 continue
-            if res.shift is None:
-                fo["cycles_without_global"] += 1
-            elif res.leader_group is not None and res.leader_group + 1 != fo["from"]:
+            if res.leader_group is not None and res.leader_group + 1 != fo["from"]:
+                # the new leader answered (with a shift, or with none: no neighbouring group left)
                 fo.update(to=res.leader_group + 1, cycle_us=res.cycle_us,
-                          first_global_after_s=round(now_s - fo["gone_at"], 4))
+                          first_global_after_s=round(now_s - fo["gone_at"], 4), global_step=res.shift is not None)
                 self._failover = None
                 self.failovers.append(fo)
-                log.warning("leader failover: group %d -> group %d, global step back %.0f ms after the leader left, "
-                            "%d cycle(s) without it", fo["from"], fo["to"], fo["first_global_after_s"] * 1e3,
-                            fo["cycles_without_global"])
+                log.warning("leader failover: group %d -> group %d, %s %.0f ms after the leader left, "
+                            "%d cycle(s) without it", fo["from"], fo["to"],
+                            "global step back" if res.shift is not None else "the new leader answered (no neighbouring "
+                            "group: local-only)", fo["first_global_after_s"] * 1e3, fo["cycles_without_global"])
+            elif res.shift is None:
+                fo["cycles_without_global"] += 1
         node = self.node
         self.round_trips_ms += [x * 1e-3 for x in node.round_trips_us]
         self.network_round_trips_ms += [x * 1e-3 for x in node.network_round_trips_us]

@@ -288,8 +288,7 @@ class GlobalStepNode:
         hold = shift.hold_for(self.group)
         self.last_round_trip_us = rt
         self.last_network_round_trip_us = rt - hold if hold is not None else -1
-        out.resolved.append(self._resolve(shift.shift_for(self.group), shift.leader_group,
-                                          "" if self.group in shift.groups else "not in the leader's solution"))
+        out.resolved.append(self._resolve_shift(shift))
         return out
 
     def _recheck_held(self, cycle: int) -> Actions:
@@ -413,7 +412,7 @@ class GlobalStepNode:
         out.shifts.append(msg)
         self._settle(cycle, self.group)
         if self.pending is not None and self.pending.cycle_us == cycle:
-            out.resolved.append(self._resolve(msg.shift_for(self.group), self.group, ""))
+            out.resolved.append(self._resolve_shift(msg))
         return out
 
     def _settle(self, cycle: int, leader: int) -> None:
@@ -430,6 +429,19 @@ class GlobalStepNode:
         for table in (self.reports, self.received_s, self.first_report_s, self.settled, self.conflicted):
             for old in [c for c in table if c < horizon]:
                 del table[old]
+
+    def _resolve_shift(self, shift: GlobalShift) -> Resolution:
+        """The pending cycle ends with ``shift``: a global step only if this group was solved
+        together with a neighbour (a group alone in its run of the solution gets a zero shift:
+        that is local-only, and counted so)."""
+        if self.group not in shift.groups:
+            return self._resolve(None, shift.leader_group, "not in the leader's solution")
+        k = shift.groups.index(self.group)
+        joined = (k > 0 and shift.groups[k - 1] == self.group - 1) or (
+            k + 1 < len(shift.groups) and shift.groups[k + 1] == self.group + 1)
+        if not joined:
+            return self._resolve(None, shift.leader_group, "no neighbouring group in the leader's solution")
+        return self._resolve(shift.shift_for(self.group), shift.leader_group, "")
 
     def _resolve(self, shift: np.ndarray | None, leader: int | None, reason: str) -> Resolution:
         pending, self.pending = self.pending, None
