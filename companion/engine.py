@@ -92,8 +92,9 @@ log = logging.getLogger(__name__)
 LAG_LIMIT_US = 100_000
 #: Why a link took no part in a step: its newest state is more than LAG_LIMIT_US from the step
 #: time (silent, or a clock that does not share the time base); its EKF is not usable; it is
-#: back after a silence or a reboot and waits READMIT_CYCLES usable cycles; the joint gate found it inconsistent with its neighbours
-#: (:mod:`companion.estimation.gate`); or it is usable but alone in its segment.
+#: back after a silence or a reboot and waits READMIT_CYCLES usable cycles; the joint gate found
+#: it inconsistent with its neighbours (:mod:`companion.estimation.gate`); or it is usable but
+#: alone in its segment.
 EXCLUSION_REASONS = ("stale", "ekf", "returning", "gate", "alone")
 #: Usable cycles a link back from a silence of ``reboot_silence_s`` or more (or a reboot) waits
 #: before it is constrained again (its EKF may still be settling).
@@ -338,13 +339,9 @@ class CompanionEngine:
                  correction_latency_us: int = 0) -> bool:
         """A validated state of link ``row`` (``state.link`` its chain index, stamped on the link's
         clock), with the flags and the correction it reports. ``False``: not usable yet (no GPS
-        time offset for this link)."""
+        time offset for this link, or its stamp was rejected: then nothing it carries is used,
+        flags and reported latency included)."""
         lk = self.links[row]
-        if correction_seq != lk.correction_seq and correction_seq > 0:
-            lk.correction_seq = correction_seq
-            lk.latencies_ms.append(correction_latency_us * 1e-3)
-            lk.latency_window_ms.append(correction_latency_us * 1e-3)
-        lk.flags = flags
         if self.cfg.time_base == "gps":
             if lk.offset_us is None:
                 return False
@@ -370,6 +367,11 @@ class CompanionEngine:
             lk.readmit_cycles = READMIT_CYCLES
             log.warning("link %d: back after %.1f s of silence; re-admitted after %d usable cycles", lk.index + 1,
                         now_s - lk.last_state_s, READMIT_CYCLES)
+        if correction_seq != lk.correction_seq and correction_seq > 0:
+            lk.correction_seq = correction_seq
+            lk.latencies_ms.append(correction_latency_us * 1e-3)
+            lk.latency_window_ms.append(correction_latency_us * 1e-3)
+        lk.flags = flags
         lk.state = state
         lk.states += 1
         lk.last_state_s = now_s
@@ -437,7 +439,7 @@ class CompanionEngine:
         """Which of this engine's links the step at ``t_us`` uses (plausibility before use).
 
         A link is left out when its newest state is more than :data:`LAG_LIMIT_US` from ``t_us``,
-        its EKF is not usable, it is being re-admitted after a reboot, or the joint gate
+        its EKF is not usable, it is back from a silence or a reboot, or the joint gate
         (:func:`~companion.estimation.gate.gate_chain`) finds it inconsistent with its neighbours;
         the chain splits there. Returns the segments (rows, at least two consecutive links each),
         whether every link is usable with no joint cut (``whole``), and the largest joint NIS.

@@ -345,3 +345,12 @@ def test_a_rebooted_link_on_the_chain_clock_is_readmitted_after_the_wait():
     assert "stale" in statuses[:75] and set(statuses[80:100]) == {"ekf"}  # (statuses change at the 20 Hz steps)
     assert "returning" in statuses and statuses[-1] == ""
     assert engine.summary()["links"]["2"]["excluded_steps"]["returning"] == READMIT_CYCLES
+
+
+def test_a_rejected_state_changes_no_flag_and_no_latency():
+    """A replayed frame claiming the EKF is lost (flags 0) and a huge latency changes nothing."""
+    engine = CompanionEngine(setup_for())
+    feed(engine, 0.0, 0.0)
+    feed(engine, 0.02, 0.02)
+    engine.on_state(1, straight_state(1, 3, 0.0), 0, 0.03, correction_seq=99, correction_latency_us=9_000_000)
+    assert engine.links[1].flags == STATE_FLAG_EKF_OK and engine.links[1].latencies_ms == []

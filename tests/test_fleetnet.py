@@ -643,3 +643,19 @@ def test_a_users_file_others_can_read_or_without_the_group_is_refused(tmp_path):
     os.chmod(users, 0o644)
     with pytest.raises(ConfigError, match="readable by others"):
         zenoh_config(cfg, 0, 2)
+
+
+def test_a_flood_of_uncheckable_shifts_is_bounded():
+    """Shifts for the pending cycle that list a boundary not received yet wait for it, at most
+    four of them; the rest are dropped and counted."""
+    rng = np.random.default_rng(5)
+    nodes = _two_groups()
+    follower = nodes[1]
+    _cycle(nodes, 1, rng)
+    follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), 2 * PERIOD_US, 2.0)
+    for _ in range(1000):
+        follower.on_shift(_fake(0, 2 * PERIOD_US, (0, 1), rng, 0.05), 2.001)
+    assert len(follower._held) == 4 and follower.rejections == {"unverifiable": 996}
+    # the leader's boundary arrives: the held fakes are checked and rejected
+    follower.on_boundary(GroupBoundaryReport(0, 2 * PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)), 2.002)
+    assert not follower._held and follower.rejections["inconsistent"] == 4

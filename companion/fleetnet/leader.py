@@ -54,6 +54,8 @@ __all__ = ["solve_cycle", "Resolution", "Actions", "GlobalStepNode"]
 
 #: Cycles of history kept for late boundaries and duplicate shifts.
 _KEEP_CYCLES = 8
+#: Shifts of the pending cycle held for a boundary still on its way (more are dropped, counted).
+_MAX_HELD = 4
 
 
 def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...], np.ndarray]:
@@ -268,6 +270,8 @@ class GlobalStepNode:
             return self._reject("bounds")
         verdict = self._verify(shift)
         if verdict is None:  # a listed group's boundary has not reached us yet: check it when it does
+            if len(self._held) >= _MAX_HELD:  # a flood of uncheckable shifts: keep the first few only
+                return self._reject("unverifiable")
             self._held.append((shift, arrived))
             return out
         if not verdict:
