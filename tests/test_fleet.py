@@ -462,8 +462,8 @@ def _crafted_states(sent: dict, stop: threading.Event, seconds: float = 4.0) -> 
             for m in parser.parse_buffer(data) or []:
                 if m.get_type() == "LOCAL_POSITION_NED" and m.get_srcSystem() == 2:
                     seen = (m.time_boot_ms * 1e-3, np.array([m.y, m.x, -m.z]))
-            if seen is None or seen[1][2] < 2.0:
-                continue  # wait for the take-off
+            if seen is None or seen[0] < 8.0:
+                continue  # after the take-off (it ends at 7 s): inside the metrics window
             end = end or time.monotonic() + seconds
             t, p = seen
             # stamped 0.1 s ahead of the telemetry (a 10 Hz stream): newer than link 2's own states
