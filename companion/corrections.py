@@ -51,13 +51,15 @@ def compute_corrections(
     groups: Groups,
     params: CAParams = CAParams(),
     seq: int = 0,
+    t: float | None = None,
 ) -> tuple[SemiResult, list[Correction]]:
     """Constraint application on one snapshot of the chain, or of a segment of it: ``states`` of
-    consecutive links in chain order, ``d_b_m`` and ``groups`` (numbered from the first) theirs."""
+    consecutive links in chain order, ``d_b_m`` and ``groups`` (numbered from the first) theirs,
+    aligned to time ``t`` (default: their newest stamp)."""
     links = [s.link for s in states]
     if not links or links != list(range(links[0], links[0] + len(links))):
         raise ValueError(f"states must be consecutive links in chain order, got {links}")
-    _, p, v, q = align_states(states)
+    _, p, v, q = align_states(states, t)
     w = np.stack([s.omega_b_rad_s for s in states])
     P = np.stack([s.P for s in states])
     result = semi_distributed_apply(p, v, q, w, d_b_m, P, groups, params)

@@ -503,7 +503,17 @@ class CompanionEngine:
         if self.net is not None:
             self._local_half(now_s)
             return
-        segs, whole, nis_max = self._plan(self.fc_time_us, now_s)
+        segs, _, nis_max = self._plan(self.fc_time_us, now_s)
+        ekf, p, v, q, p_local, iterations, corrected = self._correct_segments(segs, None, split_groups=True)
+        self._record(self.fc_time_us, -1, ekf, p, v, q, p_local, iterations, bool(corrected.any()), -1, corrected,
+                     nis_max)
+
+    def _correct_segments(self, segs, t_s: float | None, split_groups: bool):
+        """Constraint application on every segment on its own, aligned to ``t_s`` (default: each
+        segment's newest stamp), and its links' corrections out. ``split_groups``: a segment keeps
+        its part of the configured groups (Alg. 2 + eq. 6 inside it); else it is one group (Alg. 1,
+        a group companion's local-only step). Returns the step log's ``(ekf, p, v, q, p_local,
+        iterations, corrected)`` over this engine's links (a link not corrected keeps its EKF state)."""
         states = [lk.state for lk in self.links]
         ekf = _stacked(states)
         p, v, q = (a.copy() for a in ekf[:3])
@@ -514,12 +524,13 @@ class CompanionEngine:
         done = []
         for seg in segs:
             rows = list(seg)
+            groups = self._segment_groups(seg) if split_groups else [tuple(range(len(rows)))]
             try:
-                result, corrections = compute_corrections([states[r] for r in rows], self.d[rows],
-                                                          self._segment_groups(seg), self.params, self.seq)
+                result, corrections = compute_corrections([states[r] for r in rows], self.d[rows], groups,
+                                                          self.params, self.seq, t_s)
             except (ValueError, np.linalg.LinAlgError) as exc:
-                log.warning("constraint application failed at t = %.3f s (links %s): %s", self.fc_time_us * 1e-6,
-                            [self.links[r].index + 1 for r in rows], exc)
+                log.warning("constraint application failed at t = %.3f s (links %s): %s",
+                            self.fc_time_us * 1e-6 if t_s is None else t_s, [self.links[r].index + 1 for r in rows], exc)
                 continue
             p[rows], v[rows], q[rows] = result.p, result.v, result.q
             p_local[rows] = np.concatenate([r.p for r in result.local])
@@ -527,11 +538,11 @@ class CompanionEngine:
             iterations = max(iterations, int(result.iterations.max()))
             done.append((seg, corrections, (result.p, result.v, result.q, result.P)))
         self.step_times_ms.append((self._timer() - t0) * 1e3)
+        for seg, corrections, result in done:
+            self._send_corrections(seg, corrections, result)
         if done:
-            for seg, corrections, result in done:
-                self._send_corrections(seg, corrections, result)
             self.seq = (self.seq + 1) & 0xFFFF or 1
-        self._record(self.fc_time_us, -1, ekf, p, v, q, p_local, iterations, bool(done), -1, corrected, nis_max)
+        return ekf, p, v, q, p_local, iterations, corrected
 
     def _observe(self) -> None:
         """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
@@ -545,13 +556,14 @@ class CompanionEngine:
         """Distributed mode: local constraint application at the cycle time, boundary out. A group
         with a link left out publishes no boundary that cycle (its chain is cut anyway): each of
         its segments gets its local-only corrections at once."""
-        states = [lk.state for lk in self.links]
         cycle = self.next_step_us
         segs, whole, nis_max = self._plan(cycle, now_s)
-        t0 = self._timer()
         if not whole:
-            self._local_segments(states, segs, cycle, nis_max, t0)
+            ekf, p, v, q, _, iterations, corrected = self._correct_segments(segs, cycle * 1e-6, split_groups=False)
+            self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max)
             return
+        states = [lk.state for lk in self.links]
+        t0 = self._timer()
         try:
             step = local_step(states, self.d, self.params, t=cycle * 1e-6)
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -562,32 +574,6 @@ class CompanionEngine:
         b = step.boundary
         # stamped when it goes out, after the computation (the shift deadline runs from there)
         self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock()))
-
-    def _local_segments(self, states, segs, cycle: int, nis_max: float, t0: float) -> None:
-        ekf = _stacked(states)
-        p, v, q = (a.copy() for a in ekf[:3])
-        corrected = np.zeros(len(self.links), dtype=bool)
-        iterations = 0
-        done = []
-        for seg in segs:
-            rows = list(seg)
-            seg_states = [states[r] for r in rows]
-            try:
-                step = local_step(seg_states, self.d[rows], self.params, t=cycle * 1e-6)
-            except (ValueError, np.linalg.LinAlgError) as exc:
-                log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
-                continue
-            ps, vs, qs, corrections = finish_step(seg_states, step, None, self.seq)
-            p[rows], v[rows], q[rows] = ps, vs, qs
-            corrected[rows] = True
-            iterations = max(iterations, int(step.result.iterations))
-            done.append((seg, corrections, (ps, vs, qs, step.result.P)))
-        self.step_times_ms.append((self._timer() - t0) * 1e3)
-        for seg, corrections, result in done:
-            self._send_corrections(seg, corrections, result)
-        if done:
-            self.seq = (self.seq + 1) & 0xFFFF or 1
-        self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max)
 
     def _finish(self, resolved) -> None:
         """Corrections for the cycles that ended (with the leader's shift, or local-only)."""

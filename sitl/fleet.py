@@ -297,8 +297,10 @@ def _wait_udp_listening(ports: list[int], procs: _Processes) -> None:
         time.sleep(0.05)
 
 
-def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Align the vehicles', the companion's and the harness's logs on flight-controller time."""
+def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
+                out_dir: Path) -> tuple[dict[str, np.ndarray], np.ndarray, list[int]]:
+    """Align the vehicles', the companion's and the harness's logs on flight-controller time;
+    returns the merged log, the correction latencies and the links (1-based) without a flight log."""
     n = sc.skeleton.n_links
     t_us = np.round(truth["t"] * 1e6).astype(np.int64)
     index = {int(x): i for i, x in enumerate(t_us)}
@@ -337,8 +339,6 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
     for key in ("p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target"):
         blank = np.full((times.size,) + present[key].shape[1:], np.nan)
         merged[key] = np.stack([blank if f is None else f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
-    if missing:
-        merged["missing_links"] = np.array(missing)
     comp = _companion_log(sc, out_dir)
     if comp is not None:
         if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
@@ -346,7 +346,7 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray], out_dir: Path) -> tu
         merged.update(attach_truth(comp, truth["t"], truth["p_true"]))
     logs = [f["correction_latency"] for f in fw if f is not None]
     latency = np.concatenate(logs) if logs else np.zeros((0, 2))
-    return merged, latency
+    return merged, latency, missing
 
 
 def _companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
@@ -508,7 +508,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         raise FleetError(f"{aborted + '; ' if aborted else ''}stopped at t = {harness.sim_s:.1f} s, before the metrics "
                          f"window (from {sc.flight_start_s:g} s): no metrics, the vehicles' logs and tlogs are kept")
     truth = harness.truth_log()
-    merged, latency = _merge_logs(sc, truth, out_dir)
+    merged, latency, missing = _merge_logs(sc, truth, out_dir)
     metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,
                               plant.crash_reason, harness.sim_s / max(harness.wall_s, 1e-9),
                               sc.companion.enabled and "p_corr_sckf" in merged,
@@ -521,7 +521,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     )
     metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed,
                    interrupted=interrupted, aborted=aborted or None,
-                   missing_flight_logs=merged.pop("missing_links", np.zeros(0, int)).tolist())
+                   missing_flight_logs=missing)
     if sc.companion.distributed and companion and sc.companion.enabled:
         metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
     metrics["mavlink"] = mavlink_counters(out_dir)

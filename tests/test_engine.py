@@ -354,3 +354,27 @@ def test_a_rejected_state_changes_no_flag_and_no_latency():
     feed(engine, 0.02, 0.02)
     engine.on_state(1, straight_state(1, 3, 0.0), 0, 0.03, correction_seq=99, correction_latency_us=9_000_000)
     assert engine.links[1].flags == STATE_FLAG_EKF_OK and engine.links[1].latencies_ms == []
+
+
+def test_a_group_with_a_link_left_out_corrects_its_segments_alone_and_publishes_no_boundary():
+    """Distributed: group 2 (links 3, 4, 5) with link 3 stale: links 4 and 5 get Alg. 1 on the two
+    of them (local-only, no global step), link 3 none, and no boundary of group 2 goes out."""
+    n, groups = 7, ((1, 2), (3, 4, 5), (6, 7))
+    setup = setup_for(n, groups, distributed=True)
+    hub = LocalHub(3, lambda: 1.0)
+    node = GlobalStepNode(1, 3, setup.zenoh.order(3), 50_000, startup_s=0.0)
+    engine = CompanionEngine(setup, group=1, start_center=(0.0, 0.0, 2.0), net=GroupLink(node, hub.join(1), lambda: 1.0))
+    watcher = hub.join(0)
+    dx = {2: 0.0, 3: 0.1, 4: -0.1}
+    for lk in engine.links:  # all three report at 0 s, then link 3 falls silent
+        engine.on_state(lk.row, straight_state(lk.index, n, 0.0, dx[lk.index]), STATE_FLAG_EKF_OK, 0.0)
+    for lk in engine.links[1:]:
+        engine.on_state(lk.row, straight_state(lk.index, n, 0.5, dx[lk.index]), STATE_FLAG_EKF_OK, 0.5)
+    got = {engine.links[c.row].index: c.correction for c in of(CorrectionOut, engine.poll(0.5))}
+    assert set(got) == {3, 4} and engine.links[0].status == "stale"
+    states = [straight_state(i, n, 0.5, dx[i]) for i in (3, 4)]
+    _, want = compute_corrections(states, setup.skeleton.d_b_m[[3, 4]], [(0, 1)], setup.companion.params)
+    for i, w in zip((3, 4), want):
+        np.testing.assert_allclose(got[i].dp_w_m, w.dp_w_m, atol=1e-12)
+    assert not engine.log["global_applied"][-1] and engine.log["corrected_sckf"][-1].tolist() == [False, True, True]
+    assert not [e for e in watcher.drain() if e.kind == "boundary"]

@@ -113,6 +113,19 @@ def _garbage(port: int, rng: np.random.Generator) -> int:
     return sent
 
 
+def _launch_under(sc, tmp_path, attack, speed: float = 1.0, join_s: float = 30.0) -> dict:
+    """Fly ``sc`` in fleet mode while ``attack(stop)`` runs in a thread of this process; ``stop``
+    (a threading.Event) is set when the flight ends. Returns the metrics."""
+    stop = threading.Event()
+    worker = threading.Thread(target=attack, args=(stop,), daemon=True)
+    worker.start()
+    try:
+        return launch(sc, tmp_path, speed=speed)
+    finally:
+        stop.set()
+        worker.join(join_s)
+
+
 @pytest.fixture(scope="module")
 def batch_reference():
     sc = load_scenario(THREE_LINK, duration_s=16.0)
@@ -135,12 +148,9 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
         flooded["link2"] = _garbage(14581, rng)  # link 2's onboard port
         flooded["companion"] = _garbage(14541, rng)  # the companion's port for link 2
 
-    attacker = threading.Thread(target=flood, daemon=True)
-    attacker.start()
     try:
-        m = launch(sc, tmp_path, speed=0.0)
+        m = _launch_under(sc, tmp_path, lambda stop: flood(), speed=0.0)
     finally:
-        attacker.join(30)
         listener.close()
     assert not _children_of(os.getpid()), "vehicle or companion processes left behind"
     _assert_ports_released(3)
@@ -376,9 +386,8 @@ def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path
     sc = replace(sc, signing=replace(sc.signing, key_file=str(key_file)))
     sent: dict = {}
     gcs_result: dict = {}
-    stop = threading.Event()
 
-    def gcs_and_attacker():
+    def gcs_and_attacker(stop):
         gcs = MavlinkPort("udpin://127.0.0.1:14550", system_id=254, component_id=190, signing="required",
                           key=load_key(key_file))
         try:
@@ -404,13 +413,7 @@ def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path
         finally:
             gcs.close()
 
-    worker = threading.Thread(target=gcs_and_attacker, daemon=True)
-    worker.start()
-    try:
-        m = launch(sc, tmp_path, speed=1.0)
-    finally:
-        stop.set()
-        worker.join(30)
+    m = _launch_under(sc, tmp_path, gcs_and_attacker)
     assert sent["correction"] == 200 and sent["heartbeat"] == 200 and sent["disarm"] == 100
     counters = m["mavlink"]
     # everything unsigned was rejected where it arrived, and counted
@@ -484,14 +487,7 @@ def test_crafted_states_neither_stop_the_companion_nor_move_a_healthy_link(tmp_p
     20 Hz, rejects or leaves out every one, and the healthy links fly as without them."""
     sc = load_scenario(THREE_LINK, duration_s=16.0)
     sent: dict = {}
-    stop = threading.Event()
-    attacker = threading.Thread(target=_crafted_states, args=(sent, stop), daemon=True)
-    attacker.start()
-    try:
-        m = launch(sc, tmp_path, speed=1.0)
-    finally:
-        stop.set()
-        attacker.join(10)
+    m = _launch_under(sc, tmp_path, lambda stop: _crafted_states(sent, stop), join_s=10.0)
     assert min(sent.values()) > 100 and len(sent) == 5
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     link2 = comp["links"]["2"]
