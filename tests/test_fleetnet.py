@@ -659,3 +659,21 @@ def test_a_flood_of_uncheckable_shifts_is_bounded():
     # the leader's boundary arrives: the held fakes are checked and rejected
     follower.on_boundary(GroupBoundaryReport(0, 2 * PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)), 2.002)
     assert not follower._held and follower.rejections["inconsistent"] == 4
+
+
+def test_a_leader_still_in_its_start_up_listening_is_not_passed_over():
+    """Group 1 (preferred) joins after group 2 and listens for startup_s before it leads: its
+    silence then is not the silence of a dead leader (group 2 must not take over for good)."""
+    follower = GlobalStepNode(1, 2, (0, 1), PERIOD_US, startup_s=0.5)
+    follower.start(0.0)
+    follower.on_liveliness(0, True, 1.0)  # group 1's companion starts at 1.0 s
+    for k in range(1, 10):  # 1.05 .. 1.45 s: inside its listening
+        now = 1.0 + 0.05 * k
+        follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), k * PERIOD_US, now)
+        follower.tick(now + 0.03)
+    assert not follower.muted and follower.leader_for(11 * PERIOD_US, 1.5) == 0
+    for k in range(10, 16):  # then it stays silent: a dead leader with its token still there
+        now = 1.0 + 0.05 * k
+        follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), k * PERIOD_US, now)
+        follower.tick(now + 0.03)
+    assert 0 in follower.muted

@@ -88,7 +88,10 @@ class GroupLink:
                 alive = ev.kind == "alive"
                 if ev.value != self.group:
                     log.info("group %d %s", ev.value + 1, "is up" if alive else "left")
-                if not alive and ev.value == self.node.acting and ev.value != self.group:
+                # the leader whose shifts were last applied (the node may already have passed over
+                # a silent leader, clearing ``acting``, before its token disappears)
+                last = self.node.leader_log[-1][1] if self.node.leader_log else None
+                if not alive and ev.value in (self.node.acting, last) and ev.value != self.group:
                     self._failover = {"from": ev.value + 1, "gone_at": ev.time_s, "cycles_without_global": 0}
                 self.node.on_liveliness(ev.value, alive, ev.time_s)
             else:

@@ -35,9 +35,10 @@ from the leader this group elected for that cycle, stays within ``max_shift_p_m`
 eq. 6 of those boundaries (each group receives every boundary): anything else is counted
 (``rejected_shift`` with the reason) and dropped. Two different boundaries under one group's
 name for one cycle are a conflict: that group is left out of the cycle. A leader whose shifts
-stop arriving for ``leader_silence_cycles`` cycles is passed over in the election until a shift
-of its own is accepted again, so no message (a fake yield, a liveliness token without a
-companion behind it) can wedge the election.
+stop arriving for ``leader_silence_cycles`` cycles (counted once it has been live longer than
+its own start-up listening) is passed over in the election until a shift of its own is
+accepted again, so no message (a fake yield, a liveliness token without a companion behind it)
+can wedge the election.
 """
 
 from __future__ import annotations
@@ -141,6 +142,7 @@ class GlobalStepNode:
         self.leader_silence_cycles = int(leader_silence_cycles)
         self.started_s: float | None = None
         self.muted: set[int] = set()  # leaders passed over: their shifts stopped arriving
+        self._live_since: dict[int, float] = {}  # when each other group's token appeared
         self._silent_cycles = 0
         self._last_cycle_us = -1  # the newest cycle this group published a boundary for
         self._heard_cycle_us = -1  # the newest cycle the elected leader sent a shift for
@@ -178,6 +180,8 @@ class GlobalStepNode:
         if group == self.group or not 0 <= group < self.n_groups:
             return
         if alive:
+            if group not in self.live:
+                self._live_since[group] = now_s
             self.live.add(group)
             return
         self.live.discard(group)
@@ -348,7 +352,9 @@ class GlobalStepNode:
             out.resolved.append(self._resolve(None, None, "no shift before the deadline"))
             if heard:
                 self._silent_cycles = 0
-            elif leader is not None and leader != self.group:
+            elif (leader is not None and leader != self.group
+                  and now_s - self._live_since.get(leader, -np.inf) > self.startup_s + self.shift_deadline_s):
+                # (a group that just joined listens for startup_s before it leads: not silence)
                 self._silent_cycles += 1
                 if self._silent_cycles >= self.leader_silence_cycles:
                     # its shifts stopped (gone without its token leaving, or never there): pass it over
