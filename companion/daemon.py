@@ -25,7 +25,9 @@ are counted per key and logged.
 Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
 invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog`` (one per link),
 ``companion.log`` (by the
-CLI), ``companion_log.npz`` (the engine's step log, rewritten at every health report and at the
+CLI), ``companion_log.stream`` (the engine's step log, appended every second with the rows since
+the last flush: a companion killed in flight keeps all but its last second; read it with
+:func:`companion.logstream.read_log_stream`), ``companion_log.npz`` (the whole step log, at the
 end) and ``companion_summary.json``.
 """
 
@@ -40,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import CompanionSetup
+from .logstream import LogStream
 from .engine import (
     Command,
     CommandOut,
@@ -121,6 +124,7 @@ class CompanionDaemon:
             raise
         self.net = net
         self._stop = False
+        self._log_stream = LogStream(out_dir / "companion_log.stream") if out_dir is not None else None
 
     def _group_link(self, setup: CompanionSetup, group: int, bus, config_file: str):
         from .fleetnet.group import GroupLink
@@ -199,11 +203,12 @@ class CompanionDaemon:
                 for port in self.ports:
                     port.send(D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
                                                           0, 0, D.MAV_STATE_ACTIVE, 3))
+                if self._log_stream is not None:  # once a second, like the heartbeat
+                    self._log_stream.flush(self.engine.log)
             elif isinstance(out, HealthDue):
                 log.info("health (last %.0f s):\n%s", out.period_s, self.health_table(out.period_s, now_s))
                 if self.net is not None:
                     log.info("%s", self.net.status_line())
-                self.write_log()
 
     def _command(self, out: CommandOut):
         if out.command is Command.ARM:
@@ -257,10 +262,10 @@ class CompanionDaemon:
         return out
 
     def write_log(self) -> None:
-        """The step log so far (``companion_log.npz``, rewritten whole: it survives a crash up to
-        the last checkpoint)."""
+        """The whole step log (``companion_log.npz``; the stream gets its last rows)."""
         if self.out_dir is None:
             return
+        self._log_stream.flush(self.engine.log)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.out_dir / "companion_log.tmp.npz"
         np.savez(tmp, **self.engine.log_arrays())
@@ -278,6 +283,7 @@ class CompanionDaemon:
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self.write_log()
+            self._log_stream.close()
             (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
         self._close_ports()
         if self.net is not None:

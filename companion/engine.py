@@ -30,7 +30,12 @@ What it decides, on the links' flight-controller time (the newest plausible EKF 
   of two or more links gets its constraint application (Alg. 1, or Alg. 2 + eq. 6 with several
   groups) and its links their corrections; a link left out gets none that cycle and flies on
   its own EKF. Why each link is out is counted (:data:`EXCLUSION_REASONS`, the health table,
-  :meth:`CompanionEngine.summary`) and logged per step (``corrected_sckf``). With
+  :meth:`CompanionEngine.summary`) and logged per step (``corrected_sckf``). A link that flags
+  a GPS fault (``STATE_FLAG_GPS_FAULT``: its EKF rejects its fixes, or they stopped) and that
+  the gate finds at odds with its neighbours is not left out but takes part one way: its
+  position variance is raised by :data:`GPS_FAULT_POS_VAR_M2`, so the step puts it where its
+  neighbours say it is and leaves them unmoved (``gps_fault_steps``; while it agrees with them
+  it takes part as usual, its dead-reckoned position still informative). With
   ``enabled = false`` the step only logs the links' EKF states;
 * every 1/``target_rate_hz``: every link's pose target from the trajectory (``[trajectory]``),
   anchored at ``trajectory.anchor_w_m`` or where the chain is when every link first reports;
@@ -64,8 +69,9 @@ import numpy as np
 
 from .config import CompanionSetup
 from .corrections import align_states, compute_corrections, finish_step, local_step
+from .estimation.chain import ERR_P
 from .estimation.gate import gate_chain, segments
-from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, ChainTargets, Correction, LinkState, PoseTarget
+from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, ChainTargets, Correction, LinkState, PoseTarget
 from .plausibility import StampGate, StampVerdict
 from .skeleton.kinematics import chain_middle
 from .trajectory import chain_model, make_trajectory
@@ -99,6 +105,11 @@ EXCLUSION_REASONS = ("stale", "ekf", "returning", "gate", "alone")
 #: Usable cycles a link back from a silence of ``reboot_silence_s`` or more (or a reboot) waits
 #: before it is constrained again (its EKF may still be settling).
 READMIT_CYCLES = 10
+#: Position variance added to the state of a link that flags a GPS fault [m^2] ((10 m)^2): the
+#: constraint application then moves that link onto its neighbours and leaves them where they
+#: are (their corrections change by about their variance over this, under 1e-5), so a glitching
+#: GPS is corrected by the chain instead of pulling it.
+GPS_FAULT_POS_VAR_M2 = 100.0
 #: SYSTEM_TIME reports whose median is a link's boot-to-GPS clock offset.
 CLOCK_SAMPLES = 5
 #: Retry period of unacknowledged commands, the heartbeat period [s].
@@ -188,6 +199,7 @@ class LinkTrack:
     replayed: int = 0
     future: int = 0
     reboots: int = 0
+    gps_fault_steps: int = 0  # steps it took part in one way (its GPS flagged faulty)
     #: cycles this link took no part in, by reason (see :data:`EXCLUSION_REASONS`)
     excluded: dict = field(default_factory=dict)
     excluded_at_report: int = 0
@@ -278,6 +290,7 @@ class CompanionEngine:
         self.step_times_ms: list[float] = []
         self.withheld = 0  # steps in which no link could be corrected
         self.degraded = 0  # steps in which some link was left out
+        self._one_way: set[int] = set()  # rows taking part one way this step (GPS fault; _plan)
         self._reject_logged_s: dict[tuple[int, str], float] = {}
         self._timer = timer
         self._out: list = []
@@ -463,12 +476,21 @@ class CompanionEngine:
             usable.append(not why)
         cut = [False] * (len(self.links) - 1)
         nis_max = float("nan")
+        self._one_way = set()
         for run in segments(usable):
             rows = list(run)
             _, p, v, q = align_states([self.links[r].state for r in rows], t_us * 1e-6)
             w = np.stack([self.links[r].state.omega_b_rad_s for r in rows])
             P = np.stack([self.links[r].state.P for r in rows])
             res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
+            # A link that flags a GPS fault and disagrees with its neighbours is not left out: its
+            # state is the suspect (its own firmware says so), so it takes part one way.
+            suspects = {k for k, r in enumerate(rows) if self.links[r].flags & STATE_FLAG_GPS_FAULT
+                        and (k in res.excluded or (k > 0 and res.cut[k - 1]) or (k < len(rows) - 1 and res.cut[k]))}
+            if suspects:
+                self._one_way.update(rows[k] for k in suspects)
+                P = np.stack([self._step_state(self.links[r]).P for r in rows])
+                res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
             for j, c in enumerate(res.cut):
                 cut[run[0] + j] = bool(c)
             for k in res.excluded:
@@ -476,6 +498,8 @@ class CompanionEngine:
                 usable[run[k]] = False
             if res.nis.size:
                 nis_max = float(np.nanmax([nis_max, *res.nis]))
+        for r in self._one_way:
+            self.links[r].gps_fault_steps += 1
         whole = all(usable) and not any(cut)
         segs = segments(usable, cut)
         in_segment = {r for seg in segs for r in seg}
@@ -489,6 +513,16 @@ class CompanionEngine:
             if not segs:
                 self.withheld += 1
         return segs, whole, nis_max
+
+    def _step_state(self, lk: LinkTrack) -> LinkState:
+        """``lk``'s state as the step uses it: one way (position variance raised by
+        :data:`GPS_FAULT_POS_VAR_M2`) when :meth:`_plan` found its flagged GPS fault at odds with
+        its neighbours, so the step moves it onto them and leaves them unmoved."""
+        if lk.row not in self._one_way:
+            return lk.state
+        P = lk.state.P.copy()
+        P[ERR_P, ERR_P] += GPS_FAULT_POS_VAR_M2 * np.eye(3)
+        return replace(lk.state, P=P)
 
     def _segment_groups(self, seg: tuple[int, ...]) -> list[tuple[int, ...]]:
         """This engine's groups cut to segment ``seg`` (rows), numbered from its first link."""
@@ -513,9 +547,14 @@ class CompanionEngine:
         segment's newest stamp), and its links' corrections out. ``split_groups``: a segment keeps
         its part of the configured groups (Alg. 2 + eq. 6 inside it); else it is one group (Alg. 1,
         a group companion's local-only step). Returns the step log's ``(ekf, p, v, q, p_local,
-        iterations, corrected)`` over this engine's links (a link not corrected keeps its EKF state)."""
-        states = [lk.state for lk in self.links]
+        iterations, corrected)`` over this engine's links (a link not corrected keeps its EKF state;
+        a silent one, whose newest state is too old to say where it is, is NaN)."""
+        states = [self._step_state(lk) for lk in self.links]
         ekf = _stacked(states)
+        for lk in self.links:
+            if lk.status == "stale":
+                for a in ekf:
+                    a[lk.row] = np.nan
         p, v, q = (a.copy() for a in ekf[:3])
         p_local = p.copy()
         corrected = np.zeros(len(self.links), dtype=bool)
@@ -562,7 +601,7 @@ class CompanionEngine:
             ekf, p, v, q, _, iterations, corrected = self._correct_segments(segs, cycle * 1e-6, split_groups=False)
             self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max)
             return
-        states = [lk.state for lk in self.links]
+        states = [self._step_state(lk) for lk in self.links]
         t0 = self._timer()
         try:
             step = local_step(states, self.d, self.params, t=cycle * 1e-6)
@@ -692,7 +731,8 @@ class CompanionEngine:
                 "age_ms": (now_s - lk.last_state_s) * 1e3 if lk.last_state_s is not None else float("nan"),
                 "rejected": lk.rejected + lk.replayed + lk.future,
                 "replayed": lk.replayed, "future": lk.future, "reboots": lk.reboots,
-                "excluded": excluded - lk.excluded_at_report, "status": lk.status,
+                "excluded": excluded - lk.excluded_at_report,
+                "status": lk.status or ("gps" if lk.row in self._one_way else ""),
                 "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
                 "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
             })
@@ -713,6 +753,7 @@ class CompanionEngine:
                                       "samples": int(lat.size)} if lat.size else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
+                                          "gps_fault_steps": lk.gps_fault_steps,
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),

@@ -25,6 +25,7 @@ __all__ = [
     "STATE_FLAG_EKF_OK",
     "STATE_FLAG_ARMED",
     "STATE_FLAG_CORRECTION_ACTIVE",
+    "STATE_FLAG_GPS_FAULT",
     "MessageError",
     "check_finite",
     "check_unit_quat",
@@ -42,6 +43,9 @@ __all__ = [
 STATE_FLAG_EKF_OK = 1  # the EKF is initialised and its estimate is usable
 STATE_FLAG_ARMED = 2
 STATE_FLAG_CORRECTION_ACTIVE = 4  # a companion correction is applied to the control estimate
+#: the link's GPS position is rejected by its EKF's gate or missing (glitch, outage): its estimate
+#: is dead-reckoned; the companion keeps its state out of the chain step (corrected one way)
+STATE_FLAG_GPS_FAULT = 8
 
 
 class MessageError(ValueError):

@@ -55,6 +55,7 @@ __all__ = [
     "error_transition",
     "inject_error",
     "ekf_update_position",
+    "ekf_reset_position",
     "ekf_update_velocity",
     "ekf_update_attitude",
     "ekf_update_heading",
@@ -348,6 +349,18 @@ def ekf_update_position(x, P, pos_w_m, var_m2, gate_sigma: float = 5.0):
     return _update_block(x, P, z - x[X_P], E_P, _as_cov(var_m2, 3), gate_sigma)
 
 
+def ekf_reset_position(x, P, pos_w_m, var_m2):
+    """Reset the position to a fix (a discontinuity, as EKF2's ``resetHorizontalPositionTo``):
+    ``p = pos``, its covariance the fix's, its correlations with the rest of the state zero."""
+    x = np.array(x, dtype=float)
+    P = np.array(P, dtype=float)
+    x[X_P] = np.asarray(pos_w_m, dtype=float)
+    P[E_P, :] = 0.0
+    P[:, E_P] = 0.0
+    P[E_P, E_P] = _as_cov(var_m2, 3)
+    return x, P
+
+
 def ekf_update_velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma: float = 5.0):
     """GPS velocity update (world frame, m/s)."""
     z = _check_meas(vel_w_m_s, "velocity", 3)
@@ -413,6 +426,8 @@ class LinkEkf:
         self.last_gyro_b_rad_s = np.zeros(3)
         self.accepted: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
         self.rejected: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
+        #: state resets (discontinuities), reported as the link state's reset_counter
+        self.resets = 0
 
     def predict(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> None:
         self.x, self.P = ekf_predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config.noise)
@@ -426,6 +441,16 @@ class LinkEkf:
     def update_position(self, pos_w_m) -> UpdateInfo:
         cfg = self.config
         return self._record("pos", ekf_update_position(self.x, self.P, pos_w_m, cfg.gps_pos_var_m2, cfg.gate_sigma))
+
+    def position_test_ratio(self, pos_w_m) -> float:
+        """The gate's test ratio of a position fix (above 1: it would be rejected), no update."""
+        S = self.P[E_P, E_P] + _as_cov(self.config.gps_pos_var_m2, 3)
+        r = np.asarray(pos_w_m, dtype=float) - self.x[X_P]
+        return _gate(r, np.diag(S), self.config.gate_sigma)
+
+    def reset_position(self, pos_w_m) -> None:
+        self.x, self.P = ekf_reset_position(self.x, self.P, pos_w_m, self.config.gps_pos_var_m2)
+        self.resets += 1
 
     def update_velocity(self, vel_w_m_s) -> UpdateInfo:
         cfg = self.config

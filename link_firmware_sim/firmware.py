@@ -35,6 +35,7 @@ from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
     STATE_FLAG_EKF_OK,
+    STATE_FLAG_GPS_FAULT,
     Correction,
     LinkState,
     PoseTarget,
@@ -46,6 +47,7 @@ from companion.skeleton.rotors import RotorGeometry
 from .allocation import AllocationParams, Allocator
 from .control import ControlIntegrals, ImpedanceGains, impedance_control, weight_wrench
 from .ekf import X_BG, EkfConfig, EkfNoise, LinkEkf
+from .gps_health import GpsEvent, GpsHealth, GpsHealthConfig
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
 
@@ -94,6 +96,7 @@ class FirmwareConfig:
     correction_max_dp_m: float = 2.0
     correction_max_dv_m_s: float = 1.0
     correction_max_dtheta_rad: float = 0.5
+    gps: GpsHealthConfig = field(default_factory=GpsHealthConfig)
 
     def __post_init__(self) -> None:
         require_positive(self, "rate_hz", "correction_max_dp_m", "correction_max_dv_m_s", "correction_max_dtheta_rad")
@@ -139,11 +142,15 @@ class LinkFirmware:
         self.time_s = 0.0
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
+        self.gps_health = GpsHealth(config.gps)
+        #: GPS health transitions not yet reported by the shell (STATUSTEXT)
+        self.events: list[GpsEvent] = []
 
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
         if config.allocation != self.config.allocation:
             self.allocator = Allocator(self.allocator.geometry, config.allocation)
+        self.gps_health.config = config.gps
         self.config = config
 
     # -- estimator -------------------------------------------------------------------
@@ -155,6 +162,7 @@ class LinkFirmware:
         """Start the EKF (from the first GPS fix and attitude reference)."""
         self.ekf = LinkEkf(p_w_m, v_w_m_s, q_wxyz, self.config.ekf)
         self.time_s = t_s
+        self.gps_health = GpsHealth(self.config.gps, t_s)
 
     def on_gps(self, t_s: float, pos_w_m, vel_w_m_s) -> None:
         if self.ekf is not None:
@@ -168,11 +176,33 @@ class LinkFirmware:
         ekf = self.ekf
         for kind, args in self._pending:
             if kind == "gps":
-                ekf.update_position(args[0])
-                ekf.update_velocity(args[1])
+                self._fuse_gps(*args)
             else:
                 ekf.update_attitude(args[0])
         self._pending.clear()
+
+    def _fuse_gps(self, pos_w_m, vel_w_m_s) -> None:
+        """A GPS fix through the health checks (:mod:`.gps_health`): its position is fused
+        only while the GPS is healthy and the fix passes the EKF's gate and the consistency
+        test; in a fault it is only tested (the estimate dead-reckons). The velocity is fused."""
+        ekf, health, t = self.ekf, self.gps_health, self.time_s
+        consistent = health.consistent(t, pos_w_m, vel_w_m_s)
+        if not consistent:
+            accepted, why = False, f"drifts {health.drift_m_s:.1f} m/s from its velocity"
+        elif health.fault:
+            accepted, why = ekf.position_test_ratio(pos_w_m) <= 1.0, "position fix rejected"
+        else:
+            accepted, why = ekf.update_position(pos_w_m).accepted, "position fix rejected"
+        was_fault = health.fault
+        for ev in health.on_fix(t, accepted, self.correction_weight(t) > 0, why):
+            if ev.kind == "reset":
+                jump = float(np.linalg.norm(np.asarray(pos_w_m) - ekf.p_w_m))
+                ekf.reset_position(pos_w_m)
+                ev = GpsEvent("reset", f"GPS reset: position jumped {jump:.1f} m")
+            self.events.append(ev)
+        if was_fault and not health.fault:  # recovered: this fix is fused again
+            ekf.update_position(pos_w_m)
+        ekf.update_velocity(vel_w_m_s)
 
     # -- companion and targets ---------------------------------------------------------
     def on_correction(self, t_s: float, correction: Correction | None) -> None:
@@ -213,6 +243,8 @@ class LinkFirmware:
     def flags(self, t_s: float) -> int:
         """The state flags reported with every link state."""
         flags = STATE_FLAG_EKF_OK if self.initialized else 0
+        if self.initialized and self.gps_health.fault:
+            flags |= STATE_FLAG_GPS_FAULT
         if self.armed:
             flags |= STATE_FLAG_ARMED
         if self.correction_weight(t_s) > 0:
@@ -325,6 +357,7 @@ class LinkFirmware:
         self.time_s = t_s
         if self._pending:
             self._apply_pending()
+        self.events.extend(self.gps_health.on_tick(t_s))
         if not self.armed:
             return self._zero
         p, v, q = self.control_estimate(t_s)

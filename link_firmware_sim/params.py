@@ -64,6 +64,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_CORR_MAXP", "float", 0.01, 100.0, "Largest correction accepted, position [m]"),
     ParamSpec("SKL_CORR_MAXV", "float", 0.01, 100.0, "Largest correction accepted, velocity [m/s]"),
     ParamSpec("SKL_CORR_MAXR", "float", 0.01, 3.1416, "Largest correction accepted, attitude [rad]"),
+    ParamSpec("SKL_GPS_TOUT", "float", 0.1, 60.0, "GPS fault when no fix arrived for [s]"),
+    ParamSpec("SKL_GPS_RECOV", "float", 0.0, 60.0, "GPS fault cleared after fixes accepted for [s]"),
+    ParamSpec("SKL_GPS_DRIFT", "float", 0.05, 50.0, "GPS fault when positions drift from velocity by [m/s]"),
+    ParamSpec("SKL_GPS_RST_T", "float", 0.5, 120.0, "Position reset to GPS after rejected for [s] (no aiding)"),
 )
 #: Integer parameters stay within this magnitude (a C-cast PARAM_SET is exact and unambiguous).
 FLOAT32_EXACT_INT = 1 << 24
@@ -106,6 +110,10 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_CORR_MAXP": config.correction_max_dp_m,
         "SKL_CORR_MAXV": config.correction_max_dv_m_s,
         "SKL_CORR_MAXR": config.correction_max_dtheta_rad,
+        "SKL_GPS_TOUT": config.gps.timeout_s,
+        "SKL_GPS_RECOV": config.gps.recover_s,
+        "SKL_GPS_DRIFT": config.gps.drift_max_m_s,
+        "SKL_GPS_RST_T": config.gps.reset_s,
     }
 
 
@@ -213,6 +221,9 @@ class ParamTable:
             correction_max_dp_m=v["SKL_CORR_MAXP"],
             correction_max_dv_m_s=v["SKL_CORR_MAXV"],
             correction_max_dtheta_rad=v["SKL_CORR_MAXR"],
+            gps=replace(self._base.gps, timeout_s=v["SKL_GPS_TOUT"], recover_s=v["SKL_GPS_RECOV"],
+                        drift_max_m_s=v["SKL_GPS_DRIFT"],
+                        reset_s=v["SKL_GPS_RST_T"]),
         )
 
     def origin(self) -> GeoOrigin:

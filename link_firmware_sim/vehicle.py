@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.logstream import LogStream
 from companion.mavlink.codec import MessageError, decode_correction, decode_target_feedforward, encode_link_state, usec
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd
@@ -180,6 +181,8 @@ class Vehicle:
         self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
         self._last_ahrs: tuple | None = None  # (t, q)
         self._stop = False
+        # The flight log streamed to disk every second (a killed vehicle keeps what it flew)
+        self._log_stream = LogStream(out_dir / f"link{instance + 1}_firmware.stream") if out_dir is not None else None
 
     # -- streams -------------------------------------------------------------------------
     def _default_rates(self, endpoint: int) -> dict[int, float]:
@@ -243,7 +246,8 @@ class Vehicle:
                    | D.MAV_SYS_STATUS_SENSOR_GPS | D.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
                    | D.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | D.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
                    | D.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | D.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
-        health = sensors if self.fw.initialized else sensors & ~D.MAV_SYS_STATUS_SENSOR_GPS
+        gps_ok = self.fw.initialized and not self.fw.gps_health.fault
+        health = sensors if gps_ok else sensors & ~D.MAV_SYS_STATUS_SENSOR_GPS
         dropped = sum(ep.port.stats.dropped for ep in self.endpoints)
         return D.MAVLink_sys_status_message(sensors, sensors, health, 0, 16200, -1, 100, 0, min(dropped, 65535),
                                             0, 0, 0, 0)
@@ -288,7 +292,7 @@ class Vehicle:
 
     def _msg_link_state(self):
         fw = self.fw
-        return encode_link_state(self._report(), fw.flags(self.fc_time_s), 0, fw.correction_seq,
+        return encode_link_state(self._report(), fw.flags(self.fc_time_s), fw.ekf.resets, fw.correction_seq,
                                  fw.correction_latency_us)
 
     def _msg_odometry(self):
@@ -315,6 +319,8 @@ class Vehicle:
         for ep in self.endpoints:
             ep.port.send(self._msg_heartbeat())
             ep.port.send(self._msg_sys_status())
+        if self._log_stream is not None:
+            self._log_stream.flush(self._log_lists())
 
     # -- simulator link ----------------------------------------------------------------------------
     def _on_hil(self, msg) -> None:
@@ -362,10 +368,22 @@ class Vehicle:
         self.sim.send(encode_actuators(self.fc_time_s, thrust, self.thrust_max_n, self.fw.armed))
 
     def _after_tick(self) -> None:
+        if self.fw.events:
+            self._report_events()
         self._send_due_streams()
         if self.out_dir is not None and self.fc_time_us >= self._log.next_us:
-            self._log.next_us += self._log.interval_us
+            interval = self._log.interval_us  # the next grid point (a vehicle started in flight skips ahead)
+            self._log.next_us = (self.fc_time_us // interval + 1) * interval
             self._log_row()
+
+    def _report_events(self) -> None:
+        """The firmware's GPS health transitions, as STATUSTEXT to every link and in the log."""
+        severity = {"fault": D.MAV_SEVERITY_WARNING, "reset": D.MAV_SEVERITY_CRITICAL, "recovered": D.MAV_SEVERITY_INFO}
+        for ev in self.fw.events:
+            log.warning("link %d at %.2f s: %s", self.system_id, self.fc_time_s, ev.text)
+            for ep in self.endpoints:
+                self._status(ep, severity[ev.kind], ev.text)
+        self.fw.events.clear()
 
     def _log_row(self) -> None:
         fw = self.fw
@@ -673,6 +691,9 @@ class Vehicle:
         finally:
             self.close()
 
+    def _log_lists(self) -> dict[str, list]:
+        return {**self._rows, "correction_latency": self.fw.latency_log}
+
     def flight_log(self) -> dict[str, np.ndarray]:
         out = {k: np.asarray(v) for k, v in self._rows.items()}
         out["correction_latency"] = np.asarray(self.fw.latency_log).reshape(-1, 2)
@@ -681,10 +702,13 @@ class Vehicle:
     def close(self) -> None:
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
+            self._log_stream.flush(self._log_lists())
+            self._log_stream.close()
             np.savez_compressed(self.out_dir / f"link{self.instance + 1}_firmware.npz", **self.flight_log())
             stats = {ep.port.url: vars(ep.port.stats) for ep in self.endpoints}
             stats[self.sim.url] = vars(self.sim.stats)
             stats["errors"] = self.errors
+            stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
             (self.out_dir / f"link{self.instance + 1}_ports.json").write_text(json.dumps(stats, indent=1, default=str))
         self.sim.close()
         for ep in self.endpoints:

@@ -67,6 +67,10 @@ def _cmd_fly(args) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
+    if scenario.faults.fleet_only:
+        print(f"error: {args.config}: {', '.join(scenario.faults.fleet_only)}: fleet mode only "
+              f"(python -m sitl launch --config {args.config})", file=sys.stderr)
+        return EXIT_BAD_CONFIG
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
     sckf = False if args.no_sckf else None
     selective = False if args.no_selective_mapping else None

@@ -35,6 +35,7 @@ import numpy as np
 
 from companion.configfile import dump_toml
 from companion.fleetnet.config import new_users_file
+from companion.logstream import read_log_stream
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
@@ -55,6 +56,10 @@ __all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "endpoint_table
 
 log = logging.getLogger(__name__)
 
+#: UDP ports of the impaired wire (``[faults.mavlink]``): vehicle i sends to WIRE_VEHICLE_SIDE + i,
+#: the companion sees it from WIRE_COMPANION_SIDE + i
+WIRE_VEHICLE_SIDE = 15540
+WIRE_COMPANION_SIDE = 15580
 ANSWER_TIMEOUT_S = 10.0
 STOP_GRACE_S = 10.0
 STARTUP_TIMEOUT_S = 30.0
@@ -93,6 +98,8 @@ class FleetHarness:
                       for url in sim_urls]
         if not sc.start.on_ground:
             self._prime_hover()
+        self.gps_fault = sc.faults.gps
+        self.down: set[int] = set()  # links whose vehicle process is gone (rotors stopped)
         self.rows: dict[str, list] = {k: [] for k in ("t", "p_true", "v_true", "q_true", "thrust", "joint_force_true",
                                                       "tension_true")}
         self.wall_s = 0.0
@@ -108,25 +115,39 @@ class FleetHarness:
             allocator.reset()
         plant.rotors.prime(np.concatenate(thrust))
 
+    def detach(self, i: int) -> None:
+        """0-based link ``i``'s vehicle is gone: its rotors stop, the lockstep goes on without it."""
+        self.ports[i].close()
+        self.down.add(i)
+
+    def attach(self, i: int, url: str) -> None:
+        """A (restarted) vehicle for link ``i`` re-joins the lockstep at the next tick."""
+        self.ports[i] = MavlinkPort(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}))
+        self.down.discard(i)
+
     def _exchange(self, t: float, k: int, truth) -> np.ndarray:
         """Send this tick's sensor messages to every vehicle; collect every answer."""
         sch, sensors = self.schedule, self.plant.sensors
         outgoing: list[list] = [[] for _ in range(self.n)]
         if k % sch.gps == 0:
             pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
+            pos, has_fix = self.gps_fault.apply(t, pos)
             for i in range(self.n):
-                outgoing[i].append(encode_hil_gps(t, pos[i], vel[i], self.scenario.origin))
+                if has_fix[i]:
+                    outgoing[i].append(encode_hil_gps(t, pos[i], vel[i], self.scenario.origin))
         if k % sch.att == 0:
             att = sensors.attitude(t, truth.q_wxyz)
             for i in range(self.n):
                 outgoing[i].append(encode_ahrs(t, att[i]))
         gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, sch.fw * self.plant.dt)
         for i, port in enumerate(self.ports):
+            if i in self.down:
+                continue
             outgoing[i].append(encode_hil_sensor(t, accel[i], gyro[i], truth.q_wxyz[i]))
             port.send_many(outgoing[i])  # one write per vehicle and tick
         want = usec(t)
         thrust = np.zeros((self.n, 8))
-        pending = set(range(self.n))
+        pending = set(range(self.n)) - self.down
         deadline = time.monotonic() + ANSWER_TIMEOUT_S
         while pending:
             ready = wait_readable([self.ports[i] for i in pending], deadline - time.monotonic())
@@ -274,27 +295,40 @@ def _distributed_metrics(sc: Scenario, merged: dict, summaries: dict[str, dict],
     return out
 
 
-def _udp_listening() -> set[int]:
-    """Local UDP ports with a bound socket (Linux: /proc/net/udp and udp6)."""
+def _bound_ports(kind: str) -> set[int]:
+    """Local ports with a bound UDP socket (``kind = "udp"``) or a listening TCP one (``"tcp"``),
+    from Linux's /proc/net tables (IPv4 and IPv6)."""
     ports = set()
-    for table in ("/proc/net/udp", "/proc/net/udp6"):
+    for table in (f"/proc/net/{kind}", f"/proc/net/{kind}6"):
         try:
             lines = Path(table).read_text().splitlines()[1:]
         except OSError:
             continue
         for line in lines:
-            local = line.split()[1]  # "0100007F:38B4"
-            ports.add(int(local.rsplit(":", 1)[1], 16))
+            cols = line.split()  # local address "0100007F:38B4", state at [3] ("0A": LISTEN)
+            if kind == "udp" or cols[3] == "0A":
+                ports.add(int(cols[1].rsplit(":", 1)[1], 16))
     return ports
 
 
-def _wait_udp_listening(ports: list[int], procs: _Processes) -> None:
+def _wait_udp_listening(ports: list[int], procs: _Processes, who: str = "the companion") -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while not set(ports) <= _udp_listening():
+    while not set(ports) <= _bound_ports("udp"):
         procs.check()
         if time.monotonic() > deadline:
-            raise FleetError(f"the companion did not open UDP {ports} within {STARTUP_TIMEOUT_S:.0f} s")
+            raise FleetError(f"{who} did not open UDP {ports} within {STARTUP_TIMEOUT_S:.0f} s")
         time.sleep(0.05)
+
+
+def load_run_log(folder: Path, stem: str) -> dict[str, np.ndarray] | None:
+    """A process's log in a fleet run folder: ``<stem>.npz`` (written at a clean exit), else what
+    its ``<stem>.stream`` holds (a killed process: up to its last flush), else ``None``."""
+    npz, stream = folder / f"{stem}.npz", folder / f"{stem}.stream"
+    if npz.exists():
+        return dict(np.load(npz))
+    if stream.exists():
+        return read_log_stream(stream) or None
+    return None
 
 
 def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
@@ -304,18 +338,19 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
     n = sc.skeleton.n_links
     t_us = np.round(truth["t"] * 1e6).astype(np.int64)
     index = {int(x): i for i, x in enumerate(t_us)}
-    paths = [out_dir / f"link{i + 1}" / f"link{i + 1}_firmware.npz" for i in range(n)]
-    fw = [dict(np.load(p)) if p.exists() else None for p in paths]  # a killed vehicle wrote none
+    fw = [_vehicle_log(out_dir, i) for i in range(n)]
     missing = [i + 1 for i, f in enumerate(fw) if f is None]
     if len(missing) == n:
         raise FleetError("no vehicle wrote its flight log")
     if missing:
         log.warning("no flight log from link(s) %s (killed): their estimates are NaN in the metrics", missing)
-    common = set(t_us.tolist())
+    # Every simulator row that some vehicle logged: a link that was not flying its firmware then
+    # (not started yet, killed, rebooting) has NaN estimates in that row.
+    logged: set[int] = set()
     for f in fw:
         if f is not None:
-            common &= set(np.round(f["t"] * 1e6).astype(np.int64).tolist())
-    times = np.array(sorted(common), dtype=np.int64)
+            logged |= set(np.round(f["t"] * 1e6).astype(np.int64).tolist())
+    times = np.array(sorted(set(t_us.tolist()) & logged), dtype=np.int64)
     if times.size == 0:
         raise FleetError("the vehicles' flight logs and the simulator log share no time stamps")
     rows = [index[int(x)] for x in times]
@@ -328,17 +363,22 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
         "joint_force_true": truth["joint_force_true"][rows],
         "tension_true": truth["tension_true"][rows],
     }
-    fw_rows = []  # per link: the rows of its log at the common times
+    fw_rows = []  # per link: the row of its log at each merged time (-1: none)
     for f in fw:
         if f is None:
             fw_rows.append(None)
             continue
         ft = {int(x): i for i, x in enumerate(np.round(f["t"] * 1e6).astype(np.int64))}
-        fw_rows.append([ft[int(x)] for x in times])
+        fw_rows.append(np.array([ft.get(int(x), -1) for x in times], dtype=np.int64))
     present = next(f for f in fw if f is not None)
     for key in ("p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target"):
-        blank = np.full((times.size,) + present[key].shape[1:], np.nan)
-        merged[key] = np.stack([blank if f is None else f[key][r] for f, r in zip(fw, fw_rows)], axis=1)
+        columns = []
+        for f, r in zip(fw, fw_rows):
+            col = np.full((times.size,) + present[key].shape[1:], np.nan)
+            if f is not None:
+                col[r >= 0] = f[key][r[r >= 0]]
+            columns.append(col)
+        merged[key] = np.stack(columns, axis=1)
     comp = _companion_log(sc, out_dir)
     if comp is not None:
         if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
@@ -349,12 +389,25 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
     return merged, latency, missing
 
 
+def _vehicle_log(out_dir: Path, i: int) -> dict[str, np.ndarray] | None:
+    """0-based link ``i``'s flight log: its first process's and, after a scripted reboot, its
+    restarted process's (folder ``link<i+1>-restart``), one after the other."""
+    parts = [lg for lg in (load_run_log(out_dir / folder, f"link{i + 1}_firmware")
+                           for folder in (f"link{i + 1}", f"link{i + 1}-restart")) if lg is not None and "t" in lg]
+    if not parts:
+        return None
+    for p in parts:  # a stream holds the latencies only once a correction arrived
+        p["correction_latency"] = np.asarray(p.get("correction_latency", np.zeros((0, 2)))).reshape(-1, 2)
+    keys = set.intersection(*(set(p) for p in parts))
+    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in keys}
+
+
 def _companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
     """The companions' step logs over the whole chain (a group's restarted companion continues
     its group's log; :func:`~sitl.steplog.merge_step_logs`)."""
 
     def parts(*folders: str) -> list[dict]:
-        return [dict(np.load(p)) for p in (out_dir / f / "companion_log.npz" for f in folders) if p.exists()]
+        return [lg for lg in (load_run_log(out_dir / f, "companion_log") for f in folders) if lg is not None]
 
     if not sc.companion.distributed:
         logs = [parts("companion")]
@@ -388,13 +441,73 @@ def mavlink_counters(out_dir: Path) -> dict:
             ports = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url != "errors" and not url.startswith("tcp"))
+        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url not in ("errors", "gps") and not url.startswith("tcp"))
                  for k in _PORT_COUNTERS}
         entry.update(ports.get("errors", {}))
         out[path.parent.name] = entry
     for folder, summary in _companion_summaries(out_dir).items():
         links = summary.get("links", {}).values()
         out[folder] = {k: sum(lk.get(k, 0) for lk in links) for k in _PORT_COUNTERS}
+    return out
+
+
+def _impaired_links(sc: Scenario) -> list[int]:
+    """0-based links whose onboard wire goes through :mod:`sitl.wire` (``[faults.mavlink]``)."""
+    m = sc.faults.mavlink
+    if not m.active:
+        return []
+    return [i - 1 for i in m.links] if m.links else list(range(sc.skeleton.n_links))
+
+
+def _fault_windows(sc: Scenario, fault_log: dict, link_fault: dict, end_s: float) -> list[dict]:
+    """The scripted faults' outage windows: a vehicle down (killed until back in the lockstep),
+    a companion down (killed until restarted, or the end of the run)."""
+    out = []
+    if "killed_at_s" in link_fault:
+        out.append({"kind": "vehicle_down", "start_s": link_fault["killed_at_s"],
+                    "end_s": link_fault.get("rejoined_at_s", end_s), "links": [link_fault["link"]]})
+    if "killed_at_s" in fault_log:
+        group = sc.companion.group_layout(sc.skeleton.n_links)[fault_log["group"] - 1]
+        out.append({"kind": "companion_down", "start_s": fault_log["killed_at_s"],
+                    "end_s": fault_log.get("restarted_at_s", end_s), "links": [i + 1 for i in group]})
+    return out
+
+
+def _fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, wired: list[int]) -> dict:
+    """What the scripted faults did (metrics.json ``faults``): the vehicle reboot's timeline (killed,
+    restarted, back in the lockstep, rotors on, first corrected by the companion), the impaired
+    wires' counters, and the GPS glitch as the firmware reported it."""
+    out: dict = {}
+    if link_fault:
+        i = link_fault["link"] - 1
+        entry = dict(link_fault)
+        if "restarted_at_s" in link_fault and "corrected_sckf" in merged:
+            t, corrected = merged["t_sckf"], merged["corrected_sckf"][:, i]
+            after = np.flatnonzero((t >= link_fault["restarted_at_s"]) & corrected)
+            entry["readmitted_at_s"] = round(float(t[after[0]]), 3) if after.size else None
+            if after.size:
+                entry["readmitted_after_restart_s"] = round(float(t[after[0]]) - link_fault["restarted_at_s"], 3)
+        out["link_reboot"] = entry
+    if wired:
+        path = out_dir / "wire" / "wire_stats.json"
+        try:
+            stats = json.loads(path.read_text())
+        except (OSError, ValueError):
+            stats = {}
+        m = sc.faults.mavlink
+        out["mavlink"] = {"loss": m.loss, "delay_ms": m.delay_ms, "jitter_ms": m.jitter_ms,
+                          "links": [i + 1 for i in wired], "wires": stats}
+    if sc.faults.gps.link:
+        g = sc.faults.gps
+        i = g.link - 1
+        entry = {"link": g.link}
+        for folder in (f"link{i + 1}", f"link{i + 1}-restart"):
+            try:
+                ports = json.loads((out_dir / folder / f"link{i + 1}_ports.json").read_text())
+            except (OSError, ValueError):
+                continue
+            entry.setdefault("firmware", []).append(ports.get("gps", {}))
+        out["gps"] = entry
     return out
 
 
@@ -441,16 +554,35 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     companion_config.write_text(dump_toml(replace(companion_setup,
                                                   trajectory=replace(sc.trajectory, anchor_w_m=anchor))))
     n = sc.skeleton.n_links
+    faults = sc.faults
+    wired = _impaired_links(sc) if companion and sc.companion.enabled else []
     procs = _Processes()
     harness = None
     interrupted = False
     aborted = ""
+    fault_log: dict = {}  # the companion kill
+    link_fault: dict = {}  # the vehicle reboot
+
+    def start_vehicle(i: int, name: str, folder: str) -> None:
+        argv = [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance", str(i),
+                "--out", str(out_dir / folder), "--log-rate", f"{sc.sim.log_rate_hz:g}",
+                # a restarted Pixhawk keeps its parameters (the first process's file)
+                "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json")]
+        if i in wired:  # its onboard traffic goes through the impaired wire
+            argv += ["--onboard-url", f"udpout://127.0.0.1:{WIRE_VEHICLE_SIDE + i}?bind={14580 + i}"]
+        procs.start(name, argv, out_dir / folder / "console.log")
+
     try:
+        if wired:
+            m = faults.mavlink
+            pairs = [f"{WIRE_VEHICLE_SIDE + i}:{14540 + i}:{WIRE_COMPANION_SIDE + i}" for i in wired]
+            procs.start("wire", [python, "-m", "sitl.wire", *(a for p in pairs for a in ("--pair", p)),
+                                 "--loss", f"{m.loss:g}", "--delay-ms", f"{m.delay_ms:g}", "--jitter-ms",
+                                 f"{m.jitter_ms:g}", "--seed", str(sc.seed), "--stats", str(out_dir / "wire" / "wire_stats.json")],
+                        out_dir / "wire" / "console.log")
+            _wait_udp_listening([WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
         for i in range(n):
-            procs.start(f"link {i + 1}", [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance",
-                                          str(i), "--out", str(out_dir / f"link{i + 1}"),
-                                          "--log-rate", f"{sc.sim.log_rate_hz:g}"],
-                        out_dir / f"link{i + 1}" / "console.log")
+            start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         def start_companion(group: int | None, folder: str, name: str | None = None) -> None:
             argv = [python, "-m", "companion", "--config", str(companion_config), "--out", str(out_dir / folder)]
             procs.start(name or _companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
@@ -471,11 +603,32 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             procs.check()
             raise FleetError(str(exc)) from None
 
-        faults = sc.faults
-        fault_log: dict = {}
+        reboot = faults.link
+
+        def link_reboot(t: float) -> None:
+            i = reboot.kill - 1
+            if "killed_at_s" not in link_fault and t >= reboot.kill_at_s:
+                procs.kill(f"link {i + 1}")
+                harness.detach(i)
+                link_fault.update(link=i + 1, killed_at_s=round(t, 3))
+                log.warning("fault: killed link %d's firmware at t = %.2f s (rotors stopped)", i + 1, t)
+            if (reboot.restart_after_s and "killed_at_s" in link_fault and "restarted_at_s" not in link_fault
+                    and t >= reboot.kill_at_s + reboot.restart_after_s):
+                start_vehicle(i, f"link {i + 1} (restarted)", f"link{i + 1}-restart")
+                link_fault.update(restarted_at_s=round(t, 3))
+                log.warning("fault: restarted link %d's firmware at t = %.2f s", i + 1, t)
+            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + i in _bound_ports("tcp"):
+                harness.attach(i, f"tcpout://127.0.0.1:{4560 + i}")
+                link_fault.update(rejoined_at_s=round(t, 3))
+                log.warning("fault: link %d re-joined the lockstep at t = %.2f s", i + 1, t)
+            if "rejoined_at_s" in link_fault and "rotors_on_at_s" not in link_fault and np.any(
+                    plant.rotors.command_n.reshape(n, -1)[i] != 0):
+                link_fault.update(rotors_on_at_s=round(t, 3))
 
         def stop_check() -> bool:
             t = plant.time_s
+            if reboot.kill:
+                link_reboot(t)
             if faults.kill_companion_group and companion and sc.companion.enabled:
                 g = faults.kill_companion_group - 1
                 if "killed_at_s" not in fault_log and t >= faults.kill_at_s:
@@ -513,7 +666,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                               plant.crash_reason, harness.sim_s / max(harness.wall_s, 1e-9),
                               sc.companion.enabled and "p_corr_sckf" in merged,
                               groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
-                              motion=sc.motion if sc.trajectory.kind == "cpg" else None)
+                              motion=sc.motion if sc.trajectory.kind == "cpg" else None,
+                              fault_windows=_fault_windows(sc, fault_log, link_fault, harness.sim_s))
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),
@@ -525,6 +679,9 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     if sc.companion.distributed and companion and sc.companion.enabled:
         metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
     metrics["mavlink"] = mavlink_counters(out_dir)
+    report = _fault_report(sc, merged, out_dir, link_fault, wired)
+    if report:
+        metrics["faults"] = report
     if n == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")

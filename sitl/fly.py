@@ -60,6 +60,9 @@ def fly(
     metrics["duration_s"] = runner.sim_s
     metrics["selective_mapping"] = sc.firmware.allocation.selective_mapping
     metrics["corrections_rejected"] = runner.corrections_rejected
+    if sc.faults.gps.link:  # what each link's firmware made of the glitch (GPS health)
+        metrics["faults"] = {"gps": {"link": sc.faults.gps.link,
+                                     "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}}
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     if runner.crashed:

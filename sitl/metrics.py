@@ -31,10 +31,20 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   ``compression_fraction`` in which a cable would have to push (a real cable goes slack there);
   with the whole-chain feed-forward also the model's predicted tension (``model_*``);
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
-* ``min_altitude_m``: lowest true link-centre altitude; ``crashed``.
+* ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
+* ``estimate_coverage``: per link the fraction of the window in which its firmware logged an
+  estimate (below 1: the vehicle was killed or rebooting; the RMS figures cover the rest);
+* ``outages``: every window in which a link was out, with its ``kind``: ``uncorrected`` (no
+  correction that step: left out by the plausibility checks, silent, rebooting, alone in its
+  segment), ``no_global_step`` (distributed: the leader's shift did not arrive or was refused),
+  and, in fleet mode, the scripted faults (``vehicle_down``, ``companion_down``); with the
+  tracking and constraint figures ``during_outages`` and ``outside_outages`` (the whole-flight
+  figures above include both).
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -107,11 +117,64 @@ def cable_metrics(tension_true: np.ndarray, tension_model: np.ndarray | None = N
 
 
 def _rms(x: np.ndarray, axis=0) -> np.ndarray:
-    return np.sqrt(np.mean(x * x, axis=axis))
+    """RMS over the rows that hold a value (NaN rows: a link not flying its firmware then, a
+    vehicle killed or rebooting; its ``coverage`` says how many)."""
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN column: NaN, reported so
+        return np.sqrt(np.nanmean(x * x, axis=axis))
+
+
+def flag_windows(t: np.ndarray, out: np.ndarray) -> list[dict]:
+    """Every window (start, end, links 1-based) in which the set of links flagged in ``out``
+    (rows: times, columns: links) stayed the same and was not empty."""
+    out = np.asarray(out, dtype=bool)
+    windows, start = [], None
+    for k in range(out.shape[0] + 1):
+        links = tuple(int(i) + 1 for i in np.flatnonzero(out[k])) if k < out.shape[0] else ()
+        prev = tuple(int(i) + 1 for i in np.flatnonzero(out[k - 1])) if k > 0 else ()
+        if links != prev:
+            if prev:
+                windows.append({"start_s": float(t[start]), "end_s": float(t[k - 1]), "links": list(prev)})
+            start = k
+    return windows
+
+
+def outage_split(log: dict[str, np.ndarray], flight_start_s: float, windows: list[dict]) -> dict:
+    """The flight figures inside every outage window (any link out, any kind) and outside them:
+    true and estimated tracking RMS per link, constraint p95 after the SCKF. The windows are
+    those of :func:`flag_windows` and the fleet's scripted faults (``kind`` names which)."""
+    t = log["t"]
+    flight = t >= flight_start_s
+
+    def inside(times: np.ndarray) -> np.ndarray:
+        mask = np.zeros(times.shape, dtype=bool)
+        for w in windows:
+            mask |= (times >= w["start_s"]) & (times <= w["end_s"])
+        return mask
+
+    rows = inside(t)
+    out: dict = {"windows": windows, "time_in_outages_s": float(np.sum(rows & flight) / max(np.sum(flight), 1)
+                                                               * (t[-1] - flight_start_s)) if np.any(flight) else 0.0}
+    steps = None
+    if "t_sckf" in log and "con_pos_after" in log:
+        steps = log["t_sckf"] >= flight_start_s
+        in_steps = inside(log["t_sckf"])
+    for name, sel in (("during_outages", rows), ("outside_outages", ~rows)):
+        w = flight & sel
+        part: dict = {"samples": int(np.sum(w))}
+        if np.any(w):
+            part["rms_track_true_m"] = _rms(np.linalg.norm(log["p_target"][w] - log["p_true"][w], axis=-1)).tolist()
+            part["rms_track_est_m"] = _rms(np.linalg.norm(log["p_target"][w] - log["p_ctrl"][w], axis=-1)).tolist()
+        if steps is not None:
+            ws = steps & (in_steps if name == "during_outages" else ~in_steps)
+            part["constraint_pos_p95_m_after"] = _p95(log["con_pos_after"][ws]) if np.any(ws) else None
+        out[name] = part
+    return out
 
 
 def _p95(values: list | np.ndarray) -> float | None:
-    a = np.asarray(values)
+    a = np.asarray(values, dtype=float)
+    a = a[np.isfinite(a)]  # NaN: a joint of a group whose companion was down (an outage window)
     return float(np.percentile(a, 95)) if a.size else None
 
 
@@ -123,15 +186,7 @@ def uncorrected_metrics(t: np.ndarray, corrected: np.ndarray, nis_max: np.ndarra
     corrected = np.asarray(corrected, dtype=bool)
     out: dict = {"steps": int(corrected.shape[0]),
                  "fraction_per_link": (1.0 - corrected.mean(axis=0)).tolist() if corrected.size else [],
-                 "windows": []}
-    start = None
-    for k in range(corrected.shape[0] + 1):
-        links = tuple(int(i) + 1 for i in np.flatnonzero(~corrected[k])) if k < corrected.shape[0] else ()
-        prev = tuple(int(i) + 1 for i in np.flatnonzero(~corrected[k - 1])) if k > 0 else ()
-        if links != prev:
-            if prev:
-                out["windows"].append({"start_s": float(t[start]), "end_s": float(t[k - 1]), "links": list(prev)})
-            start = k
+                 "windows": flag_windows(t, ~corrected)}
     if nis_max is not None:
         finite = np.asarray(nis_max, dtype=float)
         finite = finite[np.isfinite(finite)]
@@ -152,7 +207,10 @@ def compute_metrics(
     groups=None,
     resting: bool = False,
     motion=None,
+    fault_windows: list[dict] | None = None,
 ) -> dict:
+    """The figures of the module docstring; ``fault_windows``: outage windows the run knows of
+    besides the step log's (fleet mode's scripted faults, each with its ``kind``)."""
     t = log["t"]
     win = t >= flight_start_s
     if not np.any(win):
@@ -193,6 +251,7 @@ def compute_metrics(
         "rotor_zero_crossings": int(np.sum(zero_crossings)),
         "rotor_zero_crossings_per_link": np.asarray(zero_crossings).reshape(n, -1).sum(axis=1).tolist(),
         "min_altitude_m": float(log["p_true"][win][..., 2].min()),
+        "estimate_coverage": np.mean(np.all(np.isfinite(log["p_ctrl"][win]), axis=-1), axis=0).tolist(),
         "crashed": bool(crashed),
         "crash_reason": crash_reason,
         "realtime_factor": float(realtime_factor),
@@ -211,8 +270,8 @@ def compute_metrics(
         if n > 1:
             metrics["constraint_pos_p95_m"]["after"] = _p95(log["con_pos_after"][wins])
             metrics["constraint_vel_p95_m_s"]["after"] = _p95(log["con_vel_after"][wins])
-            metrics["constraint_pos_max_m"] = {"after": float(np.max(log["con_pos_after"][wins]))}
-            metrics["constraint_vel_max_m_s"] = {"after": float(np.max(log["con_vel_after"][wins]))}
+            metrics["constraint_pos_max_m"] = {"after": float(np.nanmax(log["con_pos_after"][wins]))}
+            metrics["constraint_vel_max_m_s"] = {"after": float(np.nanmax(log["con_vel_after"][wins]))}
             if groups is not None and len(groups) > 1:
                 between = np.zeros(n - 1, dtype=bool)
                 between[[g[-1] for g in groups[:-1]]] = True
@@ -220,6 +279,13 @@ def compute_metrics(
                     values = log[name][wins]
                     metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
                     metrics[key]["after_between_groups"] = _p95(values[:, between])
+    windows = [dict(w, kind="uncorrected") for w in metrics.get("uncorrected", {}).get("windows", [])]
+    if has_steps and groups is not None and len(groups) > 1 and np.shape(log.get("global_applied"))[-1] == len(groups):
+        for w in flag_windows(log["t_sckf"][wins], ~np.asarray(log["global_applied"][wins], dtype=bool)):
+            links = sorted(i + 1 for g in w["links"] for i in groups[g - 1])
+            windows.append(dict(w, links=links, groups=w["links"], kind="no_global_step"))
+    windows += list(fault_windows or [])
+    metrics["outages"] = outage_split(log, flight_start_s, sorted(windows, key=lambda w: w["start_s"]))
     if n > 1 and "tension_true" in log:
         metrics["cable"] = cable_metrics(log["tension_true"][win],
                                          log["tension_model"][win] if "tension_model" in log else None)

@@ -256,6 +256,9 @@ class BatchRunner:
         if not sc.start.on_ground:
             # In-air start: rotors already spinning at the thrusts that carry each link.
             self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
+        if sc.faults.fleet_only:
+            raise ValueError(f"{', '.join(sc.faults.fleet_only)}: fleet mode only (python -m sitl launch)")
+        self.gps_fault = sc.faults.gps
         self.log = RunLog()
         self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
@@ -391,8 +394,10 @@ class BatchRunner:
                     break
                 if k % sch.gps == 0:
                     pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
+                    pos, has_fix = self.gps_fault.apply(t, pos)
                     for i, fw in enumerate(self.firmware):
-                        fw.on_gps(t, pos[i], vel[i])
+                        if has_fix[i]:
+                            fw.on_gps(t, pos[i], vel[i])
                 if k % sch.att == 0:
                     att = sensors.attitude(t, truth.q_wxyz)
                     for i, fw in enumerate(self.firmware):
@@ -400,6 +405,10 @@ class BatchRunner:
                 gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
                 for i, fw in enumerate(self.firmware):
                     commands[i] = fw.on_imu(t, gyro[i], accel[i])
+                    if fw.events:  # GPS health transitions (a vehicle sends them as STATUSTEXT)
+                        for ev in fw.events:
+                            log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
+                        fw.events.clear()
                 rotors.set_command(commands.reshape(-1))
                 self._companion_exchange(t, int(round(k * self.dt * 1e6)))
             if k % sch.log == 0:

@@ -10,9 +10,12 @@ as ``<file>: <section.key>: <reason>``. Every rate must be a whole divisor of th
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
+
+import numpy as np
 
 from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
@@ -26,6 +29,9 @@ __all__ = [
     "SensorConfig",
     "WindConfig",
     "SimConfig",
+    "LinkRebootFault",
+    "MavlinkWireFault",
+    "GpsFault",
     "FaultConfig",
     "Scenario",
     "load_scenario",
@@ -91,20 +97,140 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class LinkRebootFault:
+    """``[faults.link]``: SIGKILL link ``kill``'s firmware process (1-based; 0: none) at
+    ``kill_at_s``, as if its Pixhawk lost power, and start a new one ``restart_after_s`` later
+    (0: never). Meanwhile the physics runs on with that link's rotors stopped (the other links
+    carry it on the cables); the new process re-joins the lockstep, initialises its EKF in flight
+    from GPS and the attitude reference, and is re-admitted and re-armed by the companion. Fleet
+    mode only."""
+
+    kill: int = 0
+    kill_at_s: float = 0.0
+    restart_after_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "kill", "kill_at_s", "restart_after_s")
+
+
+@dataclass(frozen=True)
+class MavlinkWireFault:
+    """``[faults.mavlink]``: the wires between the vehicles and the companion(s) lose each
+    datagram with probability ``loss`` and delay it by ``delay_ms`` plus a uniform jitter of up to
+    ``jitter_ms`` (wall-clock ms, as a network would; both ways; datagrams may then arrive out of
+    order). ``links``: the affected links (1-based; empty: all). Fleet mode only: a proxy process
+    (:mod:`sitl.wire`) sits on every affected wire and counts what it dropped."""
+
+    loss: float = 0.0
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    links: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.loss < 1.0:
+            raise ValueError(f"loss must be in [0, 1), got {self.loss}")
+        require_nonnegative(self, "delay_ms", "jitter_ms")
+        if any(i < 1 for i in self.links):
+            raise ValueError(f"links are 1-based, got {list(self.links)}")
+
+    @property
+    def active(self) -> bool:
+        return self.loss > 0 or self.delay_ms > 0 or self.jitter_ms > 0
+
+
+@dataclass(frozen=True)
+class GpsFault:
+    """``[faults.gps]``: glitches of link ``link``'s GPS position (1-based; 0: none), in the
+    world frame (ENU, metres), batch and fleet mode:
+
+    * a step: ``step_m`` added from ``step_at_s`` for ``step_duration_s`` (a multipath jump);
+    * a ramp: an offset growing linearly from zero to ``ramp_m`` over ``ramp_duration_s`` from
+      ``ramp_at_s``, held for ``ramp_hold_s``, then gone (a slow drift, spoofing-like);
+    * an outage: no fix at all from ``outage_at_s`` for ``outage_s``.
+
+    The GPS velocity is not glitched (a position-only fault, as multipath and spoofing of the
+    position solution are)."""
+
+    link: int = 0
+    step_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    step_at_s: float = 0.0
+    step_duration_s: float = 0.0
+    ramp_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ramp_at_s: float = 0.0
+    ramp_duration_s: float = 0.0
+    ramp_hold_s: float = 0.0
+    outage_at_s: float = 0.0
+    outage_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "link", "step_at_s", "step_duration_s", "ramp_at_s", "ramp_duration_s",
+                            "ramp_hold_s", "outage_at_s", "outage_s")
+        if any(not math.isfinite(x) for x in (*self.step_m, *self.ramp_m)):
+            raise ValueError("step_m and ramp_m must be finite")
+
+    def offset_w_m(self, t_s: float) -> np.ndarray:
+        """The glitch added to the position fix at ``t_s`` [m, ENU]."""
+        out = np.zeros(3)
+        if self.step_at_s <= t_s < self.step_at_s + self.step_duration_s:
+            out += self.step_m
+        end = self.ramp_at_s + self.ramp_duration_s
+        if self.ramp_duration_s > 0 and self.ramp_at_s <= t_s < end + self.ramp_hold_s:
+            out += np.asarray(self.ramp_m) * min((t_s - self.ramp_at_s) / self.ramp_duration_s, 1.0)
+        return out
+
+    def in_outage(self, t_s: float) -> bool:
+        return self.outage_at_s <= t_s < self.outage_at_s + self.outage_s
+
+    def apply(self, t_s: float, pos_w_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fixes of every link after the glitches, and which links get a fix at ``t_s``."""
+        has_fix = np.ones(len(pos_w_m), dtype=bool)
+        if not self.link:
+            return pos_w_m, has_fix
+        pos = np.array(pos_w_m, dtype=float)
+        pos[self.link - 1] += self.offset_w_m(t_s)
+        has_fix[self.link - 1] = not self.in_outage(t_s)
+        return pos, has_fix
+
+
+@dataclass(frozen=True)
 class FaultConfig:
-    """Scripted faults for fleet mode (times in simulation seconds).
+    """Scripted faults (times in simulation seconds).
 
     ``kill_companion_group``: SIGKILL the companion of this group (1-based; 0: none) at
     ``kill_at_s``, as if its onboard computer lost power; ``restart_after_s`` later a new one
-    starts (0: never). Needs ``companion.distributed``.
+    starts (0: never). Needs ``companion.distributed``. Fleet mode only. The sub-sections:
+    ``[faults.link]`` (:class:`LinkRebootFault`), ``[faults.mavlink]`` (:class:`MavlinkWireFault`),
+    ``[faults.gps]`` (:class:`GpsFault`).
     """
 
     kill_companion_group: int = 0
     kill_at_s: float = 0.0
     restart_after_s: float = 0.0
+    link: LinkRebootFault = field(default_factory=LinkRebootFault)
+    mavlink: MavlinkWireFault = field(default_factory=MavlinkWireFault)
+    gps: GpsFault = field(default_factory=GpsFault)
 
     def __post_init__(self) -> None:
         require_nonnegative(self, "kill_companion_group", "kill_at_s", "restart_after_s")
+
+    def check_links(self, n_links: int) -> None:
+        """``ValueError`` for a fault on a link the skeleton does not have."""
+        for where, i in (("faults.link.kill", self.link.kill), ("faults.gps.link", self.gps.link),
+                         *(("faults.mavlink.links", i) for i in self.mavlink.links)):
+            if i > n_links:
+                raise ValueError(f"{where}: the skeleton has links 1..{n_links}, got {i}")
+
+    @property
+    def fleet_only(self) -> list[str]:
+        """The sections set here that batch mode cannot play (no processes, no wires)."""
+        out = []
+        if self.kill_companion_group:
+            out.append("faults.kill_companion_group")
+        if self.link.kill:
+            out.append("faults.link")
+        if self.mavlink.active:
+            out.append("faults.mavlink")
+        return out
 
 
 @dataclass(frozen=True)
@@ -134,6 +260,7 @@ class Scenario(CompanionSetup, VehicleSetup):
         CompanionSetup.__post_init__(self)
         VehicleSetup.__post_init__(self)
         n_groups = len(self.companion.group_layout(self.skeleton.n_links))
+        self.faults.check_links(self.skeleton.n_links)
         if self.faults.kill_companion_group:
             if not self.companion.distributed:
                 raise ValueError("faults.kill_companion_group needs companion.distributed = true")

@@ -24,13 +24,34 @@ def _unique_cycles(log: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v[first] for k, v in log.items()}
 
 
+def _at_cycles(log: dict[str, np.ndarray], cycles: np.ndarray) -> dict[str, np.ndarray]:
+    """``log``'s rows at ``cycles``; where it has none: NaN (floats), false (flags), -1 (integers)."""
+    rows = np.clip(np.searchsorted(log["cycle_us"], cycles), 0, len(log["cycle_us"]) - 1)
+    have = log["cycle_us"][rows] == cycles
+    out = {}
+    for key in (*_CHAIN_KEYS, "global_applied", "leader", "iterations", "nis_max_sckf"):
+        v = log[key][rows]
+        if v.dtype.kind == "f":
+            fill = np.nan
+        elif v.dtype.kind == "b":
+            fill = False
+        else:
+            fill = -1 if key == "leader" else 0
+        v = v.copy()
+        v[~have] = fill
+        out[key] = v
+    return out
+
+
 def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, distributed: bool) -> dict | None:
     """One step log of the whole chain, or ``None`` when a companion has logged no step.
 
     ``logs``: per companion (per group in distributed mode, in group order) the parts of its log
     in time order (a companion restarted after a fault continues its log in a second part).
-    Distributed logs are joined on the cycles every group logged; ``global_applied`` becomes
-    (steps, groups). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
+    Distributed logs are joined on the cycles any group logged: a group that logged no step in a
+    cycle (its companion down) has NaN states there, ``corrected_sckf`` and ``global_applied``
+    false and ``leader`` -1, so the window stays in the log as the outage it was;
+    ``global_applied`` becomes (steps, groups). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
     ``con_vel_after`` (steps, n - 1): the eq. 3 tip position and velocity errors per joint.
     """
     per = []
@@ -44,17 +65,18 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
         merged = dict(per[0])
         merged["global_applied"] = merged["global_applied"][:, None]
     else:
-        cycles = per[0]["cycle_us"]
-        for lg in per[1:]:
-            cycles = np.intersect1d(cycles, lg["cycle_us"])
-        rows = [np.searchsorted(lg["cycle_us"], cycles) for lg in per]
+        # from the first cycle every group logged (the start-up), every cycle any group logged
+        first = max(lg["cycle_us"][0] for lg in per)
+        cycles = np.unique(np.concatenate([lg["cycle_us"] for lg in per]))
+        cycles = cycles[cycles >= first]
         merged = {"t_sckf": cycles * 1e-6, "cycle_us": cycles}
+        taken = [_at_cycles(lg, cycles) for lg in per]
         for key in _CHAIN_KEYS:
-            merged[key] = np.concatenate([lg[key][r] for lg, r in zip(per, rows)], axis=1)
-        merged["global_applied"] = np.stack([lg["global_applied"][r] for lg, r in zip(per, rows)], axis=1)
-        merged["leader"] = np.stack([lg["leader"][r] for lg, r in zip(per, rows)], axis=1)
-        merged["iterations"] = np.max(np.stack([lg["iterations"][r] for lg, r in zip(per, rows)]), axis=0)
-        merged["nis_max_sckf"] = np.fmax.reduce(np.stack([lg["nis_max_sckf"][r] for lg, r in zip(per, rows)]), axis=0)
+            merged[key] = np.concatenate([tk[key] for tk in taken], axis=1)
+        merged["global_applied"] = np.stack([tk["global_applied"] for tk in taken], axis=1)
+        merged["leader"] = np.stack([tk["leader"] for tk in taken], axis=1)
+        merged["iterations"] = np.max(np.stack([tk["iterations"] for tk in taken]), axis=0)
+        merged["nis_max_sckf"] = np.fmax.reduce(np.stack([tk["nis_max_sckf"] for tk in taken]), axis=0)
     n = merged["p_ekf_sckf"].shape[1] if merged["t_sckf"].size else 0
     if n > 1:
         for tag, (p, v, q) in (("before", ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf")),

@@ -23,7 +23,7 @@ from companion.estimation.so3 import quat_from_euler_zyx
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
-from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState
+from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
@@ -287,6 +287,44 @@ def test_a_plausible_false_state_is_left_out_not_spread(n, bad):
     assert set(got) == set(healthy) - alone - ({r for r in healthy if n == 3 and bad == 1})
     assert engine.summary()["links"][str(bad + 1)]["excluded_steps"] == {"gate": 1}
     assert engine.log["corrected_sckf"][0].tolist() == [r in got for r in range(n)]
+
+
+@pytest.mark.parametrize("n, bad, groups", [(3, 1, ()), (3, 0, ()), (5, 2, ()), (7, 6, ()), (5, 2, ((1, 2), (3, 4, 5)))])
+def test_a_link_flagging_a_gps_fault_is_corrected_from_its_neighbours_one_way(n, bad, groups):
+    """Its EKF 0.8 m off (a GPS ramp it followed before it could tell), a tight covariance, and
+    the GPS-fault flag: it is not left out but moved onto its neighbours, which stay put."""
+    engine = CompanionEngine(setup_for(n, groups=groups))
+    dx = [0.0] * n
+    dx[bad] = 0.8
+    for r in range(n):
+        st = replace(straight_state(r, n, 0.0, dx[r]), P=np.eye(9) * 1e-4 if r == bad else np.eye(9) * 1e-3)
+        engine.on_state(r, st, STATE_FLAG_EKF_OK | (STATE_FLAG_GPS_FAULT if r == bad else 0), 0.0)
+    got = {c.row: c.correction for c in of(CorrectionOut, engine.poll(0.0))}
+    assert set(got) == set(range(n)) and engine.links[bad].status == ""
+    np.testing.assert_allclose(got[bad].dp_w_m, [-0.8, 0.0, 0.0], atol=0.01)
+    # one group: exact up to the variance ratio; with groups the global step's rigid group shifts
+    # (eq. 6) leak a little (measured 5.3 mm of the 0.8 m)
+    bound = 1e-3 if not groups else 1e-2
+    assert max(np.linalg.norm(c.dp_w_m) for r, c in got.items() if r != bad) < bound
+    assert engine.summary()["links"][str(bad + 1)]["gps_fault_steps"] == 1
+    assert engine.health_rows(1.0, 0.0)[bad]["status"] == "gps"
+    # without the flag the same state is left out (a plausible false state: item 1's case)
+    engine = CompanionEngine(setup_for(n, groups=groups))
+    for r in range(n):
+        st = replace(straight_state(r, n, 0.0, dx[r]), P=np.eye(9) * 1e-4 if r == bad else np.eye(9) * 1e-3)
+        engine.on_state(r, st, STATE_FLAG_EKF_OK, 0.0)
+    got = {c.row: c.correction for c in of(CorrectionOut, engine.poll(0.0))}
+    assert bad not in got and engine.links[bad].status == "gate"
+
+
+def test_a_flagged_link_that_agrees_with_its_neighbours_takes_part_as_usual():
+    engine = CompanionEngine(setup_for(3))
+    for r in range(3):
+        engine.on_state(r, straight_state(r, 3, 0.0, 0.05 if r == 1 else 0.0),
+                        STATE_FLAG_EKF_OK | (STATE_FLAG_GPS_FAULT if r == 1 else 0), 0.0)
+    got = {c.row: c.correction for c in of(CorrectionOut, engine.poll(0.0))}
+    assert set(got) == {0, 1, 2} and engine.summary()["links"]["2"]["gps_fault_steps"] == 0
+    assert np.linalg.norm(got[0].dp_w_m) > 0.005  # its dead-reckoned position still counts
 
 
 def test_a_silent_link_splits_the_chain_and_the_others_keep_their_corrections():

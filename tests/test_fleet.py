@@ -28,7 +28,7 @@ from companion.mavlink.port import MavlinkPort, wait_readable
 from companion.mavlink.signing import load_key, new_key_file
 from sitl.fleet import launch
 from sitl.fly import fly
-from sitl.scenario import load_scenario
+from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 THREE_LINK = ROOT / "configs" / "sitl" / "three_link.toml"
@@ -322,6 +322,49 @@ def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metric
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert "link 2" in m["aborted"] and m["duration_s"] >= 8.0 and not m["interrupted"]
     _assert_ports_released(3)
+
+
+def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_path):
+    """One flight, three faults ([faults]): 10 % loss on every vehicle-companion wire, link 2's
+    firmware killed at 9 s and restarted at 10 s (the physics goes on with its rotors stopped),
+    link 3's GPS out from 12 s to 13.5 s. The run goes on to the end; link 2 re-joins the
+    lockstep, starts its EKF in flight, is re-admitted and re-armed by the companion; every
+    outage is in metrics.json."""
+    sc = load_scenario(THREE_LINK, duration_s=17.0)
+    sc = replace(sc, faults=replace(sc.faults, link=LinkRebootFault(kill=2, kill_at_s=9.0, restart_after_s=1.0),
+                                    mavlink=MavlinkWireFault(loss=0.1),
+                                    gps=GpsFault(link=3, outage_at_s=12.0, outage_s=1.5)))
+    m = launch(sc, tmp_path, speed=0.0)
+    assert not _children_of(os.getpid()), "vehicle, wire or companion processes left behind"
+    _assert_ports_released(3)
+    assert all(_udp_free(15540 + i) and _udp_free(15580 + i) for i in range(3)), "the wire's ports still bound"
+    assert not m["crashed"] and not m["aborted"] and m["duration_s"] == pytest.approx(17.0)
+    reboot = m["faults"]["link_reboot"]
+    assert reboot["killed_at_s"] == pytest.approx(9.0, abs=0.01) and reboot["restarted_at_s"] == pytest.approx(10.0, abs=0.01)
+    assert 10.0 <= reboot["rejoined_at_s"] < 12.0 and reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 14.0
+    assert reboot["readmitted_at_s"] is not None and reboot["readmitted_at_s"] < 15.0
+    # the killed process's flight log up to its last flush, the restarted one's after it
+    assert (tmp_path / "link2" / "link2_firmware.stream").exists()
+    assert not (tmp_path / "link2" / "link2_firmware.npz").exists()
+    assert (tmp_path / "link2-restart" / "link2_firmware.npz").exists()
+    coverage = m["estimate_coverage"]
+    assert coverage[0] == coverage[2] == 1.0 and 0.6 < coverage[1] < 0.95
+    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 0.3  # the chain sags, no crash
+    windows = m["outages"]["windows"]
+    down = [w for w in windows if w["kind"] == "vehicle_down"]
+    assert down == [{"kind": "vehicle_down", "start_s": reboot["killed_at_s"], "end_s": reboot["rejoined_at_s"],
+                     "links": [2]}]
+    assert any(w["kind"] == "uncorrected" and 2 in w["links"] and w["start_s"] <= 9.2 for w in windows)
+    assert m["outages"]["during_outages"]["samples"] > 0 and m["outages"]["outside_outages"]["samples"] > 0
+    # the lossy wires: what the proxy dropped, and the companion's count of the gaps it saw
+    wires = m["faults"]["mavlink"]["wires"]
+    assert len(wires) == 3 and all(w["vehicle_to_companion"]["dropped"] > 20 and w["companion_to_vehicle"]["dropped"] > 20
+                                   for w in wires.values())
+    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
+    assert all(comp["links"][str(i)]["seq_lost"] > 20 for i in (1, 3))
+    # link 3's GPS outage: reported by its firmware, and the flight went on
+    gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
+    assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
 
 
 def test_distributed_companions_fail_over_and_hand_back(tmp_path):

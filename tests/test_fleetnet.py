@@ -4,7 +4,6 @@ real Zenoh sessions on loopback (eq. 6 equal to the in-process result), failover
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import struct
@@ -30,6 +29,7 @@ from companion.messages import ChainTargets, Correction, GlobalShift, GroupBound
 from sitl.scenario import Scenario
 
 from .chains import perturbed_chain, random_covariances
+from .ports import free_ports
 
 PERIOD_US = 50_000
 LAYOUTS = [((0, 1), (2, 3, 4), (5, 6)), ((0, 1), (2, 3)), ((0,), (1, 2), (3,), (4, 5, 6, 7))]
@@ -307,18 +307,8 @@ def test_deadline_gives_local_only_and_two_leaders_resolve_to_the_preferred():
 
 
 # -- over Zenoh on loopback -------------------------------------------------------------------------------
-def _free_ports(k: int) -> list[int]:
-    socks = [socket.socket() for _ in range(k)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
-
-
 def _buses(n_groups: int, prefix: str):
-    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in _free_ports(n_groups)))
+    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in free_ports(n_groups)))
     buses = [FleetBus(cfg, prefix, g, n_groups) for g in range(n_groups)]
     return cfg, buses
 
@@ -591,7 +581,7 @@ def test_a_session_without_the_fleet_credentials_cannot_join(tmp_path):
     users = tmp_path / "zenoh_users.txt"
     new_users_file(users, 2)
     assert set(read_users_file(str(users))) == {"companion-g1", "companion-g2"}
-    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in _free_ports(2)), users_file=str(users))
+    cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in free_ports(2)), users_file=str(users))
     buses = [FleetBus(cfg, "test_auth", g, 2) for g in range(2)]
     rogues = []
     try:

@@ -1,0 +1,80 @@
+"""Append-only flight logs that survive a killed process.
+
+A daemon's log (the companion's step log, a vehicle's flight log) grows by rows. Rewriting it
+whole at every checkpoint costs more as the flight gets longer; a process that is killed (power
+lost, SIGKILL) writes nothing at exit. :class:`LogStream` appends the rows logged since its last
+flush as one chunk: a header (the keys) and one ``.npy`` record per key, written with
+:func:`numpy.save` to one open file and flushed to the OS, so a killed process loses at most the
+rows since its last flush. :func:`read_log_stream` concatenates the chunks per key and stops at
+a truncated last chunk (the process died while writing it). No pickles: keys are a unicode array,
+values numeric arrays, read with ``allow_pickle=False``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["LogStream", "read_log_stream"]
+
+log = logging.getLogger(__name__)
+
+
+class LogStream:
+    """Chunks of rows appended to ``path`` (created, or truncated if it exists).
+
+    ``flush(rows)`` takes the whole log as ``{key: list of rows}`` and writes the rows of every
+    key that were not written yet; the lists are not modified."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = open(self.path, "wb")
+        self._written: dict[str, int] = {}
+        self.chunks = 0
+
+    def flush(self, rows: dict[str, list]) -> int:
+        """Append the new rows as one chunk; returns the number of keys written (0: nothing new)."""
+        if self._fh.closed:
+            raise ValueError(f"{self.path}: log stream closed")
+        fresh = {}
+        for key, values in rows.items():
+            start = self._written.get(key, 0)
+            if len(values) > start:
+                fresh[key] = np.asarray(values[start:])
+        if not fresh:
+            return 0
+        np.save(self._fh, np.array(list(fresh), dtype=np.str_), allow_pickle=False)
+        for key, arr in fresh.items():
+            np.save(self._fh, arr, allow_pickle=False)
+            self._written[key] = self._written.get(key, 0) + len(arr)
+        self._fh.flush()
+        self.chunks += 1
+        return len(fresh)
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+
+def read_log_stream(path: str | Path) -> dict[str, np.ndarray]:
+    """The rows of every key, in the order written (a truncated last chunk is left out, logged)."""
+    parts: dict[str, list[np.ndarray]] = {}
+    with open(path, "rb") as fh:
+        size = Path(path).stat().st_size
+        while fh.tell() < size:
+            start = fh.tell()
+            try:
+                keys = np.load(fh, allow_pickle=False)
+                if keys.dtype.kind != "U" or keys.ndim != 1:
+                    raise ValueError("chunk header is not a list of keys")
+                chunk = [(str(k), np.load(fh, allow_pickle=False)) for k in keys]
+            except (ValueError, EOFError, OSError) as exc:
+                log.warning("%s: chunk at byte %d unreadable (%s): the %d byte(s) after it are left out",
+                            path, start, exc, size - start)
+                break
+            for key, arr in chunk:
+                parts.setdefault(key, []).append(arr)
+    return {k: np.concatenate(v, axis=0) for k, v in parts.items()}

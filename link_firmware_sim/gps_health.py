@@ -1,0 +1,149 @@
+"""GPS health of one link's firmware (pure: times are passed in).
+
+The EKF's innovation gate rejects a position fix that disagrees with the estimate (a multipath
+jump, a drifting or spoofed solution); :class:`GpsHealth` turns the stream of accepted and
+rejected fixes into a fault state, as PX4's EKF2 does with its GNSS checks:
+
+* **fault** when a fix was rejected, when the fixes drift against the GPS's own velocity (the
+  horizontal slope of the positions over the last ``drift_window_s`` differs from the mean
+  reported velocity by more than ``drift_max_m_s``: a slow ramp that the gate would let in,
+  as spoofing and multipath drift do), or when no fix arrived for ``timeout_s`` (an outage).
+  While the fault lasts the EKF fuses no GPS position (the fixes are only tested against it):
+  the estimate rides on the IMU, the GPS velocity and the companion's chain correction;
+* **recovered** once fixes have been accepted again for ``recover_s`` without a rejection;
+* **reset** when the position fixes have been rejected for ``reset_s`` while nothing else aided
+  the estimate (no companion correction active): the EKF's position is reset to the GPS, as
+  EKF2 resets to GNSS after its fusion timeout (``reset_timeout_max``) when GNSS is the only
+  horizontal aiding source. The estimate jumps; the reset is counted and reported.
+
+Each transition is returned as an :class:`GpsEvent` for the shell to report (STATUSTEXT).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.configfile import require_nonnegative, require_positive
+
+__all__ = ["GpsHealthConfig", "GpsEvent", "GpsHealth"]
+
+
+@dataclass(frozen=True)
+class GpsHealthConfig:
+    """``timeout_s``: no fix for this long is a fault (SKL_GPS_TOUT); ``recover_s``: accepted
+    fixes for this long clear it (SKL_GPS_RECOV); ``reset_s``: rejected this long with no other
+    aiding resets the position to GPS (SKL_GPS_RST_T; EKF2's reset_timeout_max is 7 s);
+    ``drift_max_m_s`` / ``drift_window_s``: the position-velocity consistency test
+    (SKL_GPS_DRIFT; the outdoor profile's slow GPS drift moves at most about 0.3 m/s, the
+    window's slope noise is about 0.06 m/s)."""
+
+    timeout_s: float = 1.0
+    recover_s: float = 2.0
+    reset_s: float = 7.0
+    drift_max_m_s: float = 0.5
+    drift_window_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        require_positive(self, "timeout_s", "reset_s", "drift_max_m_s", "drift_window_s")
+        require_nonnegative(self, "recover_s")
+
+
+@dataclass(frozen=True)
+class GpsEvent:
+    kind: str  # "fault", "recovered", "reset"
+    text: str  # a STATUSTEXT (at most 50 characters)
+
+
+class GpsHealth:
+    """See the module docstring; feed it every fix (:meth:`on_fix`) and every tick (:meth:`on_tick`)."""
+
+    def __init__(self, config: GpsHealthConfig = GpsHealthConfig(), t0_s: float = 0.0):
+        self.config = config
+        self.fault = False
+        self.reason = ""
+        self.last_fix_s = t0_s
+        self.rejecting_since_s: float | None = None  # first rejection of the current run
+        self.accepting_since_s: float | None = t0_s
+        self.faults = 0
+        self.resets = 0
+        self.rejected = 0
+        self.fault_time_s = 0.0
+        self._fault_since_s = 0.0
+        self._window: deque = deque()  # (t, horizontal position, horizontal velocity) of recent fixes
+        self.drift_m_s = 0.0  # the last consistency test's figure
+
+    def _raise(self, t_s: float, reason: str, text: str) -> GpsEvent | None:
+        if self.fault:
+            return None
+        self.fault, self.reason = True, reason
+        self.faults += 1
+        self._fault_since_s = t_s
+        return GpsEvent("fault", text)
+
+    def consistent(self, t_s: float, pos_w_m, vel_w_m_s) -> bool:
+        """Record a fix; ``False`` if the horizontal positions of the last ``drift_window_s``
+        move against the reported velocity faster than ``drift_max_m_s`` (least-squares slope of
+        the positions minus the mean velocity)."""
+        win = self._window
+        win.append((t_s, np.asarray(pos_w_m, dtype=float)[:2], np.asarray(vel_w_m_s, dtype=float)[:2]))
+        while win and win[0][0] < t_s - self.config.drift_window_s:
+            win.popleft()
+        if len(win) < 5 or win[-1][0] - win[0][0] < 0.5 * self.config.drift_window_s:
+            return True
+        t = np.array([w[0] for w in win])
+        p = np.stack([w[1] for w in win])
+        v = np.stack([w[2] for w in win])
+        tc = t - t.mean()
+        slope = tc @ (p - p.mean(axis=0)) / (tc @ tc)
+        self.drift_m_s = float(np.linalg.norm(slope - v.mean(axis=0)))
+        return self.drift_m_s <= self.config.drift_max_m_s
+
+    def on_fix(self, t_s: float, accepted: bool, aided: bool, why: str = "position fix rejected") -> list[GpsEvent]:
+        """One position fix, accepted or rejected (by the EKF's gate, or the consistency test:
+        ``why``). ``aided``: a companion correction is active (the estimate has another source).
+        A ``reset`` event asks the caller to reset the EKF's position to this fix."""
+        out: list[GpsEvent] = []
+        self.last_fix_s = t_s
+        if accepted:
+            self.rejecting_since_s = None
+            if self.accepting_since_s is None:
+                self.accepting_since_s = t_s
+            if self.fault and t_s - self.accepting_since_s >= self.config.recover_s:
+                self.fault = False
+                self.fault_time_s += t_s - self._fault_since_s
+                out.append(GpsEvent("recovered", f"GPS ok again after {t_s - self._fault_since_s:.1f} s"))
+            return out
+        self.rejected += 1
+        self.accepting_since_s = None
+        if self.rejecting_since_s is None:
+            self.rejecting_since_s = t_s
+        ev = self._raise(t_s, "rejected", f"GPS glitch: {why}"[:50])
+        if ev is not None:
+            out.append(ev)
+        if not aided and t_s - self.rejecting_since_s >= self.config.reset_s:
+            self.resets += 1
+            self.rejecting_since_s = t_s  # a new run starts from the reset
+            out.append(GpsEvent("reset", f"GPS rejected {self.config.reset_s:g} s: position reset"))
+        return out
+
+    def on_tick(self, t_s: float) -> list[GpsEvent]:
+        """The outage check: no fix for ``timeout_s``."""
+        if not self.fault and t_s - self.last_fix_s >= self.config.timeout_s:
+            self.accepting_since_s = None
+            return [ev for ev in [self._raise(t_s, "lost", f"GPS lost: no fix for {self.config.timeout_s:g} s")] if ev]
+        if self.fault and self.reason == "lost" and t_s - self.last_fix_s >= self.config.timeout_s:
+            self.accepting_since_s = None
+        return []
+
+    def fault_seconds(self, t_s: float) -> float:
+        """Time spent in the fault state so far."""
+        return self.fault_time_s + (t_s - self._fault_since_s if self.fault else 0.0)
+
+    def report(self, t_s: float) -> dict:
+        return {"faults": self.faults, "resets": self.resets, "rejected_fixes": self.rejected,
+                "fault_s": round(self.fault_seconds(t_s), 3), "fault_now": self.fault,
+                "last_fix_age_s": round(t_s - self.last_fix_s, 3) if math.isfinite(self.last_fix_s) else None}

@@ -1,0 +1,228 @@
+"""Scripted SITL faults (sitl.scenario [faults], sitl.wire) and the metrics that report them
+(sitl.metrics outage windows, sitl.steplog with a companion down)."""
+
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.configfile import ConfigError
+from companion.engine import STEP_LOG_KEYS
+from sitl.metrics import flag_windows, outage_split
+from sitl.scenario import GpsFault, MavlinkWireFault, load_scenario
+from sitl.steplog import merge_step_logs
+from sitl.wire import Impairment, WireProxy
+
+from .ports import free_ports
+
+FAULTS = "configs/sitl/faults"
+
+
+@pytest.mark.parametrize("name, fleet_only", [("link_reboot", ["faults.link"]), ("mavlink_loss", ["faults.mavlink"]),
+                                              ("gps_glitch", [])])
+def test_fault_scenarios_load(name, fleet_only):
+    sc = load_scenario(f"{FAULTS}/{name}.toml")
+    assert sc.faults.fleet_only == fleet_only
+    if name == "link_reboot":
+        assert (sc.skeleton.n_links, sc.faults.link.kill, sc.faults.link.kill_at_s, sc.faults.link.restart_after_s) == \
+            (7, 4, 20.0, 3.0)
+    if name == "mavlink_loss":
+        assert sc.skeleton.n_links == 3 and sc.faults.mavlink.loss == 0.2 and sc.faults.mavlink.links == ()
+    if name == "gps_glitch":
+        g = sc.faults.gps
+        assert sc.skeleton.n_links == 3 and g.link == 2 and np.linalg.norm(g.step_m) == 10.0
+        assert np.linalg.norm(g.ramp_m) == 10.0 and g.ramp_duration_s == 10.0
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("[faults.link]\nkill = 5\n", "faults.link.kill: the skeleton has links 1..3"),
+    ("[faults.mavlink]\nloss = 1.0\n", "loss must be in [0, 1)"),
+    ("[faults.mavlink]\nlinks = [0]\n", "1-based"),
+    ("[faults.gps]\nlink = 2\nstep_m = [1.0, 2.0]\n", "faults.gps.step_m"),
+    ("[faults.gps]\nramp_duration_s = -1.0\n", "ramp_duration_s"),
+])
+def test_fault_config_errors(tmp_path, text, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_text('name = "x"\n[skeleton]\nn_links = 3\n' + text)
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    assert fragment in str(err.value)
+
+
+def test_batch_mode_refuses_fleet_only_faults(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "sitl", "fly", "--config", f"{FAULTS}/mavlink_loss.toml", "--quiet",
+                           "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "faults.mavlink: fleet mode only" in proc.stderr and "sitl launch" in proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_gps_fault_step_ramp_and_outage():
+    g = GpsFault(link=2, step_m=(10.0, 0.0, 0.0), step_at_s=5.0, step_duration_s=2.0, ramp_m=(0.0, 4.0, 0.0),
+                 ramp_at_s=10.0, ramp_duration_s=4.0, ramp_hold_s=1.0, outage_at_s=20.0, outage_s=1.5)
+    np.testing.assert_array_equal(g.offset_w_m(4.99), 0.0)
+    np.testing.assert_array_equal(g.offset_w_m(5.0), [10.0, 0, 0])
+    np.testing.assert_array_equal(g.offset_w_m(7.0), 0.0)
+    np.testing.assert_allclose(g.offset_w_m(11.0), [0, 1.0, 0])
+    np.testing.assert_allclose(g.offset_w_m(14.5), [0, 4.0, 0])  # held
+    np.testing.assert_array_equal(g.offset_w_m(15.0), 0.0)  # gone
+    pos = np.zeros((3, 3))
+    out, fix = g.apply(5.5, pos)
+    np.testing.assert_array_equal(out[1], [10.0, 0, 0])
+    np.testing.assert_array_equal(out[[0, 2]], 0.0)
+    assert fix.tolist() == [True, True, True] and not np.shares_memory(out, pos)
+    assert g.apply(20.5, pos)[1].tolist() == [True, False, True]
+    assert GpsFault().apply(5.5, pos)[0] is pos
+
+
+def test_impairment_is_seeded_and_loses_about_p():
+    def run(seed):
+        imp = Impairment(0.2, 0.01, 0.005, np.random.default_rng(seed))
+        out = [imp.decide(float(k)) for k in range(5000)]
+        return imp, out
+
+    a, out_a = run(4)
+    b, out_b = run(4)
+    assert out_a == out_b  # same seed, same losses and delays
+    assert a.dropped + a.forwarded == 5000 and 0.18 < a.dropped / 5000 < 0.22
+    kept = [(k, r) for k, r in enumerate(out_a) if r is not None]
+    assert all(0.01 <= r - k <= 0.015 for k, r in kept)
+    assert MavlinkWireFault().active is False and MavlinkWireFault(jitter_ms=1.0).active
+
+
+def test_wire_proxy_forwards_both_ways_drops_and_counts():
+    vside, comp_port, local = free_ports(3, udp=True)
+    companion = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    companion.bind(("127.0.0.1", comp_port))
+    companion.settimeout(0.5)
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", 0))
+    vehicle.settimeout(0.5)
+    proxy = WireProxy([(vside, comp_port, local)], loss=0.3, delay_ms=5.0, jitter_ms=0.0, seed=1)
+    thread = threading.Thread(target=proxy.run, daemon=True)
+    thread.start()
+    try:
+        for k in range(200):
+            vehicle.sendto(b"up%03d" % k, ("127.0.0.1", vside))
+        got = []
+        while True:
+            try:
+                data, addr = companion.recvfrom(100)
+            except TimeoutError:
+                break
+            got.append(data)
+            assert addr == ("127.0.0.1", local)  # the companion sees the proxy's port
+        up = proxy.pairs[0].up
+        assert len(got) == up.forwarded and up.forwarded + up.dropped == 200 and 40 < up.dropped < 80
+        for k in range(100):  # the companion answers where it heard from: back to the vehicle
+            companion.sendto(b"down%03d" % k, ("127.0.0.1", local))
+        back = []
+        while True:
+            try:
+                back.append(vehicle.recvfrom(100)[0])
+            except TimeoutError:
+                break
+        down = proxy.pairs[0].down
+        assert len(back) == down.forwarded and down.forwarded + down.dropped == 100 and down.dropped > 10
+        stats = proxy.stats()
+        assert stats[f"{vside}<->{comp_port}"]["vehicle_to_companion"]["dropped"] == up.dropped
+    finally:
+        proxy.stop()
+        thread.join(2.0)
+        proxy.close()
+        companion.close()
+        vehicle.close()
+
+
+def test_wire_cli_writes_its_counters_and_stops_on_sigterm(tmp_path):
+    vside, comp_port, local = free_ports(3, udp=True)
+    stats = tmp_path / "wire.json"
+    proc = subprocess.Popen([sys.executable, "-m", "sitl.wire", "--pair", f"{vside}:{comp_port}:{local}", "--loss", "0.5",
+                             "--seed", "3", "--stats", str(stats)], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while not stats.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for _ in range(100):
+            s.sendto(b"x", ("127.0.0.1", vside))
+        s.close()
+        time.sleep(0.3)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert proc.returncode == 0, proc.stderr.read()
+    counts = json.loads(stats.read_text())[f"{vside}<->{comp_port}"]["vehicle_to_companion"]
+    assert counts["forwarded"] + counts["dropped"] == 100 and 30 < counts["dropped"] < 70
+    bad = subprocess.run([sys.executable, "-m", "sitl.wire", "--pair", "1:2", "--loss", "0.1"], capture_output=True,
+                         text=True, timeout=60)
+    assert bad.returncode == 2 and "VEHICLE_SIDE:COMPANION_PORT:LOCAL_PORT" in bad.stderr
+
+
+def test_flag_windows_and_the_outage_split():
+    t = np.arange(10) * 1.0
+    out = np.zeros((10, 3), dtype=bool)
+    out[2:4, 1] = True
+    out[4:6, [1, 2]] = True
+    assert flag_windows(t, out) == [{"start_s": 2.0, "end_s": 3.0, "links": [2]},
+                                    {"start_s": 4.0, "end_s": 5.0, "links": [2, 3]}]
+    n = 3
+    log = {"t": t, "p_true": np.zeros((10, n, 3)), "p_target": np.zeros((10, n, 3)), "p_ctrl": np.zeros((10, n, 3)),
+           "t_sckf": t, "con_pos_after": np.full((10, n - 1), 0.001)}
+    log["p_true"][3:6, :, 0] = 0.5  # off while the outage lasts
+    log["p_ctrl"][3:6, 1] = np.nan  # link 2 down: no estimate
+    log["con_pos_after"][3:6] = 0.2
+    res = outage_split(log, 1.0, [{"kind": "vehicle_down", "start_s": 3.0, "end_s": 5.0, "links": [2]}])
+    assert res["during_outages"]["samples"] == 3 and res["outside_outages"]["samples"] == 6
+    np.testing.assert_allclose(res["during_outages"]["rms_track_true_m"], 0.5)
+    np.testing.assert_allclose(res["outside_outages"]["rms_track_true_m"], 0.0)
+    assert np.isnan(res["during_outages"]["rms_track_est_m"][1])  # no estimate at all in there
+    assert res["during_outages"]["constraint_pos_p95_m_after"] == pytest.approx(0.2)
+    assert res["outside_outages"]["constraint_pos_p95_m_after"] == pytest.approx(0.001)
+
+
+def _group_log(cycles, links, global_applied=True):
+    k, m = len(cycles), len(links)
+    q = np.zeros((k, m, 4))
+    q[..., 0] = 1.0
+    log = {key: np.zeros((k, m, 3)) for key in ("p_ekf_sckf", "v_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf",
+                                                "v_corr_sckf")}
+    for j, i in enumerate(links):
+        log["p_ekf_sckf"][:, j, 0] = log["p_corr_sckf"][:, j, 0] = float(i)  # a straight chain of 1 m links
+    log.update(q_ekf_sckf=q, q_corr_sckf=q.copy(), t_sckf=np.asarray(cycles) * 1e-6, cycle_us=np.asarray(cycles),
+               iterations=np.ones(k, dtype=int), global_applied=np.full(k, global_applied), leader=np.full(k, 2),
+               corrected_sckf=np.ones((k, m), dtype=bool), nis_max_sckf=np.ones(k))
+    assert set(STEP_LOG_KEYS) <= set(log)
+    return log
+
+
+def test_merged_step_log_keeps_a_dead_companions_cycles_as_an_outage():
+    d = np.array([[0.5, 0, 0]] * 3)
+    all_cycles = [k * 50_000 for k in range(10)]
+    alive = [c for c in all_cycles if not 150_000 <= c <= 300_000]  # group 2's companion down
+    merged = merge_step_logs([[_group_log(all_cycles, [0, 1])], [_group_log(alive, [2])]], d, distributed=True)
+    assert merged["t_sckf"].size == 10
+    gone = (merged["cycle_us"] >= 150_000) & (merged["cycle_us"] <= 300_000)
+    assert not merged["corrected_sckf"][gone, 2].any() and merged["corrected_sckf"][~gone].all()
+    assert not merged["global_applied"][gone, 1].any() and np.all(merged["leader"][gone, 1] == -1)
+    assert np.all(np.isnan(merged["p_corr_sckf"][gone, 2])) and np.all(np.isnan(merged["con_pos_after"][gone, 1]))
+    np.testing.assert_allclose(merged["con_pos_after"][~gone], 0.0, atol=1e-12)
+    np.testing.assert_allclose(merged["con_pos_after"][gone, 0], 0.0, atol=1e-12)
+    # before every group has stepped once, the merged log does not start
+    late = merge_step_logs([[_group_log(all_cycles, [0, 1])], [_group_log(all_cycles[4:], [2])]], d, True)
+    assert late["cycle_us"][0] == all_cycles[4]
+
+
+def test_fault_sections_round_trip_through_the_run_folder_copy(tmp_path):
+    from companion.configfile import dump_toml
+    sc = load_scenario(f"{FAULTS}/gps_glitch.toml")
+    sc = replace(sc, faults=replace(sc.faults, mavlink=MavlinkWireFault(loss=0.1, links=(1, 3))))
+    path = tmp_path / "scenario.toml"
+    path.write_text(dump_toml(sc))
+    again = load_scenario(path)
+    assert again.faults == sc.faults

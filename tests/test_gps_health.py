@@ -1,0 +1,170 @@
+"""Firmware GPS health (link_firmware_sim.gps_health) and its use in the firmware: faults on
+rejected, drifting and missing fixes, recovery, the reset after the timeout without aiding, the
+link-state flag, and the EKF's position reset."""
+
+import numpy as np
+import pytest
+
+from companion.messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, Correction
+from companion.skeleton.body import LinkInertia
+from companion.skeleton.rotors import RotorGeometry
+from link_firmware_sim.ekf import E_P, E_V, X_P, EkfConfig, ekf_init, ekf_reset_position
+from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+from link_firmware_sim.gps_health import GpsHealth, GpsHealthConfig
+
+GRAVITY_UP = np.array([0.0, 0.0, 9.80665])
+
+
+def test_rejections_raise_a_fault_that_clears_after_recover_s():
+    h = GpsHealth(GpsHealthConfig(recover_s=2.0))
+    assert [e.kind for e in h.on_fix(0.1, True, aided=False)] == [] and not h.fault
+    events = h.on_fix(0.2, False, aided=False)
+    assert [e.kind for e in events] == ["fault"] and h.fault and "rejected" in events[0].text
+    assert h.on_fix(0.3, False, aided=False) == []  # one fault, not one per fix
+    t = 0.4
+    while t < 2.35:  # accepted again, but not yet for 2 s
+        assert h.on_fix(t, True, aided=False) == [] and h.fault
+        t += 0.1
+    assert [e.kind for e in h.on_fix(2.5, True, aided=False)] == ["recovered"] and not h.fault
+    assert h.faults == 1 and h.rejected == 2 and h.fault_seconds(3.0) == pytest.approx(2.3)
+
+
+def test_a_rejection_during_recovery_restarts_it():
+    h = GpsHealth(GpsHealthConfig(recover_s=1.0))
+    h.on_fix(0.0, False, aided=False)
+    h.on_fix(0.5, True, aided=False)
+    h.on_fix(1.0, False, aided=False)
+    h.on_fix(1.1, True, aided=False)
+    assert h.on_fix(2.0, True, aided=False) == [] and h.fault
+    assert [e.kind for e in h.on_fix(2.1, True, aided=False)] == ["recovered"]
+
+
+def test_no_fix_for_the_timeout_is_a_fault():
+    h = GpsHealth(GpsHealthConfig(timeout_s=1.0, recover_s=0.5), t0_s=0.0)
+    h.on_fix(0.1, True, aided=False)
+    assert h.on_tick(1.0) == [] and not h.fault
+    events = h.on_tick(1.1)
+    assert [e.kind for e in events] == ["fault"] and "lost" in events[0].text and h.reason == "lost"
+    assert h.on_tick(1.5) == []
+    h.on_fix(3.0, True, aided=False)
+    assert [e.kind for e in h.on_fix(3.5, True, aided=False)] == ["recovered"]
+
+
+@pytest.mark.parametrize("aided", [False, True])
+def test_reset_after_reset_s_only_without_other_aiding(aided):
+    h = GpsHealth(GpsHealthConfig(reset_s=3.0))
+    kinds = []
+    for k in range(1, 80):  # 10 Hz fixes, all rejected, for 7.9 s
+        kinds += [e.kind for e in h.on_fix(k * 0.1, False, aided=aided)]
+    if aided:
+        assert kinds == ["fault"] and h.resets == 0
+    else:  # every 3 s of rejection (the run restarts at each reset)
+        assert kinds == ["fault", "reset", "reset"] and h.resets == 2
+
+
+def _fixes(rng, t, p0, ramp_m_s=0.0, std=0.15):
+    pos = p0 + np.array([0.0, ramp_m_s * t, 0.0]) + rng.normal(0.0, std, 3)
+    vel = rng.normal(0.0, 0.05, 3)
+    return pos, vel
+
+
+def test_consistency_catches_a_slow_ramp_and_passes_noise():
+    rng = np.random.default_rng(3)
+    h = GpsHealth(GpsHealthConfig(drift_max_m_s=0.5, drift_window_s=2.0))
+    p0 = np.array([1.0, 2.0, 3.0])
+    # 60 s of fixes with the outdoor profile's white noise and a 0.3 m/s drift: consistent
+    for k in range(600):
+        t = 0.1 * k
+        pos, vel = _fixes(rng, t, p0)
+        pos[0] += 0.5 * np.sin(2 * np.pi * 0.1 * t)  # the profile's fastest drift: 0.31 m/s peak
+        assert h.consistent(t, pos, vel), (t, h.drift_m_s)
+    # a 1 m/s ramp (the velocity says still): caught within 1.5 s
+    h = GpsHealth(GpsHealthConfig(drift_max_m_s=0.5, drift_window_s=2.0))
+    caught = None
+    for k in range(100):
+        t = 0.1 * k
+        pos, vel = _fixes(rng, t, p0, ramp_m_s=1.0 if t >= 5.0 else 0.0)
+        if t >= 5.0:
+            pos[1] -= 5.0
+        if not h.consistent(t, pos, vel):
+            caught = t
+            break
+    assert caught is not None and 5.0 <= caught <= 6.5, caught
+
+
+def test_position_reset_is_a_clean_discontinuity():
+    cfg = EkfConfig()
+    x, P = ekf_init(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), cfg)
+    B = np.random.default_rng(0).normal(size=P.shape)
+    P = P + 0.01 * B @ B.T  # positive definite, correlations everywhere
+    x2, P2 = ekf_reset_position(x, P, [5.0, -1.0, 2.0], 0.04)
+    np.testing.assert_allclose(x2[X_P], [5.0, -1.0, 2.0])
+    np.testing.assert_allclose(P2[E_P, E_P], 0.04 * np.eye(3))
+    assert np.all(P2[E_P, E_V] == 0) and np.all(P2[E_V, E_P] == 0)
+    np.testing.assert_array_equal(P2[E_V, E_V], P[E_V, E_V])
+    np.testing.assert_allclose(P2, P2.T)
+    assert np.all(np.linalg.eigvalsh(P2) > 0)  # the Schur complement of a PD matrix stays PD
+
+
+def _hovering_firmware(config: FirmwareConfig = FirmwareConfig()):
+    fw = LinkFirmware(1, config, LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    fw.initialize(0.0, np.zeros(3), np.zeros(3), q)
+    return fw, q
+
+
+def _fly(fw, q, t0, t1, rng, glitch=lambda t: np.zeros(3), fix=lambda t: True, correction=None):
+    """Still link, 500 Hz IMU, 10 Hz GPS (with ``glitch`` added), 50 Hz attitude."""
+    k0, k1 = int(round(t0 * 500)), int(round(t1 * 500))
+    for k in range(k0, k1):
+        t = k / 500
+        if k % 50 == 0 and fix(t):
+            fw.on_gps(t, rng.normal(0, 0.1, 3) + glitch(t), rng.normal(0, 0.03, 3))
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if correction is not None and k % 25 == 0:
+            fw.on_correction(t, correction(t))
+        fw.on_imu(t, np.zeros(3), GRAVITY_UP)
+
+
+def test_firmware_flags_a_step_glitch_keeps_its_estimate_and_reports_it():
+    rng = np.random.default_rng(0)
+    fw, q = _hovering_firmware()
+    _fly(fw, q, 0.0, 5.0, rng)
+    assert fw.flags(5.0) & STATE_FLAG_GPS_FAULT == 0 and not fw.events
+    step = np.array([10.0, 0.0, 0.0])
+    _fly(fw, q, 5.0, 8.0, rng, glitch=lambda t: step)
+    assert fw.flags(8.0) & STATE_FLAG_GPS_FAULT and fw.flags(8.0) & STATE_FLAG_EKF_OK
+    assert [e.kind for e in fw.events] == ["fault"]
+    assert np.linalg.norm(fw.ekf.p_w_m) < 0.3  # no position fused during the fault
+    fw.events.clear()
+    _fly(fw, q, 8.0, 14.0, rng)  # the glitch is gone: back after the window and recover_s
+    assert [e.kind for e in fw.events] == ["recovered"] and fw.flags(14.0) & STATE_FLAG_GPS_FAULT == 0
+    assert fw.gps_health.resets == 0
+
+
+def test_firmware_resets_to_gps_after_the_timeout_only_when_nothing_else_aids_it():
+    cfg = FirmwareConfig(gps=GpsHealthConfig(reset_s=3.0))
+    step = np.array([0.0, 8.0, 0.0])
+    rng = np.random.default_rng(1)
+    fw, q = _hovering_firmware(cfg)
+    _fly(fw, q, 0.0, 3.0, rng)
+    _fly(fw, q, 3.0, 8.0, rng, glitch=lambda t: step)
+    assert [e.kind for e in fw.events] == ["fault", "reset"] and "jumped 8" in fw.events[1].text
+    assert np.linalg.norm(fw.ekf.p_w_m - step) < 0.5 and fw.ekf.resets == 1
+    # the same with the companion's corrections arriving: no reset
+    rng = np.random.default_rng(1)
+    fw, q = _hovering_firmware(cfg)
+    corr = lambda t: Correction(1, t, np.zeros(3), np.zeros(3), np.zeros(3), seq=1)
+    _fly(fw, q, 0.0, 3.0, rng, correction=corr)
+    _fly(fw, q, 3.0, 8.0, rng, glitch=lambda t: step, correction=corr)
+    assert [e.kind for e in fw.events] == ["fault"] and fw.ekf.resets == 0
+
+
+def test_firmware_outage_is_a_fault():
+    rng = np.random.default_rng(2)
+    fw, q = _hovering_firmware()
+    _fly(fw, q, 0.0, 2.0, rng)
+    _fly(fw, q, 2.0, 4.0, rng, fix=lambda t: False)
+    assert [e.kind for e in fw.events] == ["fault"] and "lost" in fw.events[0].text
+    assert fw.flags(4.0) & STATE_FLAG_GPS_FAULT
