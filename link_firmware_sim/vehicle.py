@@ -181,6 +181,7 @@ class Vehicle:
         self._last_gps: tuple | None = None  # (t, p, v) until the EKF starts
         self._last_ahrs: tuple | None = None  # (t, q)
         self._stop = False
+        self._closed = False
         # The flight log streamed to disk every second (a killed vehicle keeps what it flew)
         self._log_stream = LogStream(out_dir / f"link{instance + 1}_firmware.stream") if out_dir is not None else None
 
@@ -700,6 +701,9 @@ class Vehicle:
         return out
 
     def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self._log_stream.flush(self._log_lists())

@@ -1,5 +1,6 @@
 """The vehicle's MAVLink services, driven in-process over real loopback sockets."""
 
+import json
 import socket
 import struct
 import time
@@ -449,3 +450,27 @@ def test_setup_signing_only_over_a_trusted_link(tmp_path):
         assert port.stats.rejected_unsigned >= 1
     finally:
         rig.close()
+
+
+def test_a_gps_glitch_is_reported_in_statustext_sys_status_and_the_link_state(rig):
+    rig.start(1.0)
+    rig.height_m = 12.0  # a 10 m jump in the fixes: rejected by the EKF's gate
+    msgs = []
+    for k in range(300):  # 0.6 s, GPS at 10 Hz
+        rig.tick(gps=k % 50 == 0, ahrs=k % 10 == 0)
+        msgs += rig.gcs.read()
+    deadline = time.monotonic() + 2.5  # SYS_STATUS goes out once a second (wall clock)
+    while time.monotonic() < deadline and not any(m.get_type() == "SYS_STATUS" for m in msgs[-50:]):
+        rig.tick()
+        msgs += rig.gcs.read()
+    texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+    assert any(t.startswith("GPS glitch") for t in texts), texts
+    status = [m for m in msgs if m.get_type() == "SYS_STATUS"][-1]
+    assert status.onboard_control_sensors_present & D.MAV_SYS_STATUS_SENSOR_GPS
+    assert not status.onboard_control_sensors_health & D.MAV_SYS_STATUS_SENSOR_GPS
+    state = [m for m in msgs if m.get_type() == "SKELETON_LINK_STATE"][-1]
+    assert state.flags & D.SKELETON_STATE_FLAGS_GPS_FAULT and state.flags & D.SKELETON_STATE_FLAGS_EKF_OK
+    assert abs(state.p_ned[2] + 2.0) < 0.3  # the estimate did not follow the jump (NED: up is -z)
+    rig.vehicle.close()
+    report = json.loads((rig.vehicle.out_dir / "link2_ports.json").read_text())["gps"]
+    assert report["faults"] == 1 and report["fault_now"] and report["rejected_fixes"] >= 3
