@@ -667,3 +667,42 @@ def test_a_leader_still_in_its_start_up_listening_is_not_passed_over():
         follower.local_step(np.zeros(6), np.zeros(6), np.eye(6), k * PERIOD_US, now)
         follower.tick(now + 0.03)
     assert 0 in follower.muted
+
+
+def test_a_next_cycle_shift_that_leaves_a_group_out_cannot_make_it_local_only():
+    """A well-formed shift for the next cycle from the expected leader, listing every group but
+    the victim (as if the leader had solved without it): unverifiable before the cycle's
+    boundaries exist, so it settles nothing and the victim keeps its global step."""
+    rng = np.random.default_rng(4)
+    nodes = [GlobalStepNode(g, 3, (1, 0, 2), PERIOD_US, startup_s=0.0) for g in range(3)]
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, 0.0)
+    applied = {g: 0 for g in range(3)}
+    for k in range(1, 41):
+        rogue = [_fake(1, (k + 1) * PERIOD_US, groups, rng) for groups in ((0, 1), (1, 2), (0, 2))] if k > 5 else []
+        resolved, truth = _cycle(nodes, k, rng, rogue_before=rogue)
+        for g, res in resolved.items():
+            if res and res[0].shift is not None:
+                np.testing.assert_allclose(res[0].shift, truth[g], atol=1e-12)
+                applied[g] += 1
+    assert all(n >= 39 for n in applied.values()), applied
+    assert sum(n.rejections.get("unverifiable", 0) for n in nodes) >= 2 * 35  # the leader ignores its own name
+
+
+def test_forged_shifts_do_not_hide_a_silent_leader():
+    """The elected leader's token stays but its shifts stop; a rogue keeps sending shifts in its
+    name. They are not its shifts: the groups still pass it over after the silence cycles."""
+    rng = np.random.default_rng(5)
+    nodes = [GlobalStepNode(g, 2, (0, 1), PERIOD_US, startup_s=0.0) for g in range(2)]
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, 0.0)
+    frozen = nodes[0]
+    for k in range(1, 21):
+        cycle, now = k * PERIOD_US, 1.0 + 0.05 * k
+        act = nodes[1].local_step(rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6), cycle, now)
+        nodes[1].on_shift(_fake(0, cycle, (0, 1), rng), now + 0.001)  # forged in the frozen leader's name
+        nodes[1].tick(now + 0.04)
+        del act
+    assert 0 in nodes[1].muted and frozen.group == 0

@@ -29,16 +29,20 @@ shift of a cycle.
 Trust (every payload is hostile until checked; a rogue session on the bus can publish
 well-formed messages under any group's name). A shift is applied only if it answers the
 cycle this group is waiting on (a shift for a cycle not reached yet never settles it, unless it
-comes from the elected leader and leaves this group out: the leader solved without it), comes
-from the leader this group elected for that cycle, stays within ``max_shift_p_m`` /
-``max_shift_v_m_s``, and, where this group has every listed group's boundary of that cycle, is
-eq. 6 of those boundaries (each group receives every boundary): anything else is counted
-(``rejected_shift`` with the reason) and dropped. Two different boundaries under one group's
+comes from the elected leader, leaves this group out, and checks out against the listed groups'
+boundaries: the leader solved without it), comes from the leader this group elected for that
+cycle, stays within ``max_shift_p_m`` / ``max_shift_v_m_s``, and is eq. 6 of the listed groups'
+boundaries (each group receives every boundary; a shift that arrives before one of them waits
+for it, at most :data:`_MAX_HELD` per cycle, until the deadline): anything else is counted
+(``rejected_shift``, and ``rejections`` by reason: not_leader, not_pending, bounds, inconsistent,
+unverifiable, conflicted, unknown_group) and dropped. Two different boundaries under one group's
 name for one cycle are a conflict: that group is left out of the cycle. A leader whose shifts
 stop arriving for ``leader_silence_cycles`` cycles (counted once it has been live longer than
 its own start-up listening) is passed over in the election until a shift of its own is
-accepted again, so no message (a fake yield, a liveliness token without a companion behind it)
-can wedge the election.
+accepted again; only a shift that checks out counts as hearing from it (or one that cannot be
+checked because of a conflicting boundary), so forged shifts in a silent leader's name do not
+hide its silence, and no message (a fake yield, a liveliness token without a companion behind
+it) can wedge the election.
 """
 
 from __future__ import annotations
@@ -165,7 +169,7 @@ class GlobalStepNode:
         self.network_round_trips_us: list[int] = []
         self.counts = {"global": 0, "local_only": 0, "led": 0, "late_shift": 0, "duplicate_shift": 0,
                        "yielded": 0, "partial": 0, "rejected_shift": 0, "conflicting_boundary": 0, "muted": 0}
-        #: rejected shifts by reason (not_pending, not_leader, bounds, inconsistent, unknown_group)
+        #: rejected shifts by reason (see the module docstring)
         self.rejections: dict[str, int] = {}
         #: (cycle_us, leader group) at every change of the leader whose shifts were applied
         self.leader_log: list[tuple[int, int]] = []
@@ -257,17 +261,29 @@ class GlobalStepNode:
             expected = shift.leader_group if shift.leader_group in self.live else -1
         if shift.leader_group != expected:
             return self._reject("not_leader")
-        self._heard_cycle_us = max(self._heard_cycle_us, cycle)
+        # Only a checked shift is the leader's: only it counts as hearing from the leader (a forged
+        # one in its name must not hide a silent leader) or settles a cycle.
         if not pending:
             if cycle <= self._last_cycle_us:
                 self.counts["late_shift"] += 1  # a cycle this group already finished (or skipped)
+                if self._verify(shift):
+                    self._heard_cycle_us = max(self._heard_cycle_us, cycle)
                 return out
             if self.group in shift.groups:  # the leader cannot have our boundary of a cycle we have not reached
                 return self._reject("not_pending")
-            if self._verify(shift) is False:
+            verdict = self._verify(shift)
+            if verdict is None:  # the cycle's boundaries are not here: it cannot be the leader's yet
+                return self._reject("unverifiable")
+            if not verdict:
                 return self._reject("inconsistent")
+            self._heard_cycle_us = max(self._heard_cycle_us, cycle)
             self._settle(cycle, shift.leader_group)  # solved without us: local-only when we get there
             return out
+        if self.conflicted.get(cycle, set()) & set(shift.groups):
+            # a listed group's boundary came twice, differently: no shift of this cycle can be
+            # checked. It may be the leader's: a forged boundary must not make it look silent.
+            self._heard_cycle_us = max(self._heard_cycle_us, cycle)
+            return self._reject("conflicted")
         own = shift.shift_for(self.group)
         if own is not None and (not np.all(np.isfinite(own)) or np.linalg.norm(own[:3]) > self.max_shift_p_m
                                 or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
@@ -285,6 +301,7 @@ class GlobalStepNode:
     def _apply(self, shift: GlobalShift, arrived: float) -> Actions:
         """Apply a checked shift to the pending cycle."""
         out = Actions()
+        self._heard_cycle_us = max(self._heard_cycle_us, shift.cycle_us)
         self._settle(shift.cycle_us, shift.leader_group)
         self._held = []
         self._silent_cycles = 0
