@@ -4,6 +4,7 @@
     python -m companion replay IN.npz OUT.npz [--groups 1,2/3,4,5/6,7] [--eps M] [--alpha A]
     python -m companion dialect
     python -m companion keys new FILE | keys check FILE | keys zenoh FILE --groups N
+    python -m companion certs DIR --groups N [--hosts H1 .. HN] [--days D] [--overwrite]
 
 The first form runs the daemon: it connects to the links of the config's ``[companion]``
 section (SITL UDP ports by default; serial devices on hardware), applies the constraints at
@@ -12,7 +13,8 @@ one daemon runs per group (``--group G``, 1-based) and the groups meet over Zeno
 step (``[zenoh]``), the first live group of ``zenoh.leader_order`` leading. ``dialect`` prints what
 MAVProxy, mavlogdump/MAVExplorer and MAVSDK each need to decode the project's messages; ``keys``
 creates and checks MAVLink 2 signing key files (``[signing]``) and the companions' Zenoh
-user-password file (``zenoh.users_file``).
+user-password file (``zenoh.users_file``); ``certs`` creates the fleet CA and each group's TLS
+certificate for mutual TLS between the companions (``[zenoh.tls] certs_dir``).
 Exit codes: 0 success, 2 bad input (the message names the file, key and reason).
 """
 
@@ -144,6 +146,29 @@ def _cmd_keys(args) -> int:
     return 0
 
 
+def _cmd_certs(args) -> int:
+    from .fleetnet.certs import CA_KEY, new_fleet_certs
+
+    try:
+        written = new_fleet_certs(args.dir, args.groups, args.hosts, days=args.days, overwrite=args.overwrite)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"error: cannot write to {args.dir}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    hosts = args.hosts or ["127.0.0.1"] * args.groups
+    print(f"{args.dir}: fleet CA ca.pem (its key {CA_KEY}, mode 600: keep it off the companions) and "
+          f"{args.groups} group certificates, valid {args.days} days:")
+    for g, host in enumerate(hosts):
+        print(f"  companion-g{g + 1}.pem / .key  for {host}")
+    print(f"copy ca.pem, companion-g<G>.pem and companion-g<G>.key (mode 600) to group G's computer, into the "
+          f"folder [zenoh.tls] certs_dir names (relative to the config file), e.g. \"{Path(args.dir).resolve()}\"; "
+          "the endpoints must be tls/HOST:PORT with these hosts")
+    logging.getLogger(__name__).debug("wrote %s", ", ".join(map(str, written)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m companion",
@@ -206,6 +231,24 @@ def build_parser() -> argparse.ArgumentParser:
     kp.add_argument("file", metavar="FILE", help="key file")
     kp.add_argument("--force", action="store_true", help="new: replace an existing FILE")
     kp.set_defaults(func=_cmd_keys)
+    cp = sub.add_parser(
+        "certs",
+        help="create the fleet CA and one TLS certificate per group companion (Zenoh mutual TLS)",
+        description=(
+            "Writes to DIR a fleet CA (ca.pem, ca.key) and per group G companion-gG.pem / companion-gG.key, "
+            "signed by the CA, for group G's host (its Zenoh endpoint's IP address or DNS name) and usable as "
+            "server and client certificate; private keys mode 600. [zenoh.tls] certs_dir = DIR picks each "
+            "group's files."
+        ),
+    )
+    cp.add_argument("dir", metavar="DIR", help="folder for the files (created if missing)")
+    cp.add_argument("--groups", type=int, required=True, metavar="N", help="the number of companion groups")
+    cp.add_argument("--hosts", nargs="+", metavar="HOST",
+                    help="each group's host, in group order: an IP address or DNS name, several for one group "
+                         "separated by commas (default: 127.0.0.1 for every group)")
+    cp.add_argument("--days", type=int, default=1095, metavar="D", help="validity in days (default 1095)")
+    cp.add_argument("--overwrite", action="store_true", help="replace existing files (a new CA: recopy every file)")
+    cp.set_defaults(func=_cmd_certs)
     return parser
 
 

@@ -223,8 +223,9 @@ def project(setup, cls: type):
 def load_setup(cls: type, path: str | Path, **overrides):
     """Read the config file at ``path`` as ``cls`` (a :class:`ChainSetup` subclass).
 
-    ``overrides`` replace top-level fields (e.g. ``duration_s``). A ``[motion]`` section's
-    ``model`` is resolved against the file's folder; with ``trajectory.kind = "cpg"`` the model
+    ``overrides`` replace top-level fields (e.g. ``duration_s``). Relative paths of
+    ``signing.key_file``, ``zenoh.users_file``, ``zenoh.tls.certs_dir`` and a ``[motion]`` section's
+    ``model`` are resolved against the file's folder; with ``trajectory.kind = "cpg"`` the model
     is loaded and must fit the skeleton. Raises :class:`~companion.configfile.ConfigError`.
     """
     setup = build(cls, load_toml(path), file=str(path))
@@ -232,9 +233,14 @@ def load_setup(cls: type, path: str | Path, **overrides):
         key_path = Path(path).resolve().parent / Path(setup.signing.key_file).expanduser()
         setup = replace(setup, signing=replace(setup.signing, key_file=str(key_path)))
     zenoh_cfg = getattr(setup, "zenoh", None)
-    if zenoh_cfg is not None and zenoh_cfg.users_file:
-        users_path = Path(path).resolve().parent / Path(zenoh_cfg.users_file).expanduser()
-        setup = replace(setup, zenoh=replace(zenoh_cfg, users_file=str(users_path)))
+    if zenoh_cfg is not None and (zenoh_cfg.users_file or zenoh_cfg.tls.certs_dir):
+        folder = Path(path).resolve().parent
+        if zenoh_cfg.users_file:
+            zenoh_cfg = replace(zenoh_cfg, users_file=str(folder / Path(zenoh_cfg.users_file).expanduser()))
+        if zenoh_cfg.tls.certs_dir:
+            certs_dir = str(folder / Path(zenoh_cfg.tls.certs_dir).expanduser())
+            zenoh_cfg = replace(zenoh_cfg, tls=replace(zenoh_cfg.tls, certs_dir=certs_dir))
+        setup = replace(setup, zenoh=zenoh_cfg)
     motion = getattr(setup, "motion", None)
     if motion is not None:
         model_path = Path(path).resolve().parent / motion.model

@@ -20,6 +20,7 @@ from companion.fleetnet.bus import zenoh_config
 from companion.mavlink.codec import decode_correction, encode_link_state
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
+from companion.fleetnet.certs import new_fleet_certs
 from companion.fleetnet.config import new_users_file
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.standard import encode_odometry
@@ -194,13 +195,17 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
     group = None
     if sc.companion.distributed:  # the Pi of group 2; its Zenoh session config is valid as written
         assert sc.zenoh.users_file.endswith("keys/zenoh_users.txt")  # the Pis authenticate
+        assert sc.zenoh.tls.certs_dir.endswith("keys/certs") and sc.zenoh.tls.mtls  # with mutual TLS
+        assert all(ep.startswith("tls/") for ep in sc.zenoh.endpoints)
         users = tmp_path / "zenoh_users.txt"
         new_users_file(users, 3)
-        sc = replace(sc, zenoh=replace(sc.zenoh, users_file=str(users)))
+        certs = tmp_path / "certs"  # as the config's comment says, plus loopback for this test
+        new_fleet_certs(certs, 3, [f"{ep.split('/')[1].split(':')[0]},127.0.0.1" for ep in sc.zenoh.endpoints])
+        sc = replace(sc, zenoh=replace(sc.zenoh, users_file=str(users), tls=replace(sc.zenoh.tls, certs_dir=str(certs))))
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")
         group = 1
         ports = [_free_tcp_port() for _ in range(3)]
-        sc = replace(sc, zenoh=replace(sc.zenoh, endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in ports)))
+        sc = replace(sc, zenoh=replace(sc.zenoh, endpoints=tuple(f"tls/127.0.0.1:{p}" for p in ports)))
     daemon = CompanionDaemon(sc, tmp_path, group=group)  # the Pixhawks are not plugged in here
     served = n if group is None else len(sc.companion.group_layout(n)[group])
     try:

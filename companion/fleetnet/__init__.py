@@ -6,5 +6,6 @@
 * :mod:`.leader` -- leader election and the global-step collector (pure, no clocks or I/O);
 * :mod:`.group` -- the node on a bus, with its operational record (clock and bus passed in);
 * :mod:`.hub` -- bus events and an in-process bus (batch mode; pure);
+* :mod:`.certs` -- the fleet CA and each group's TLS certificate (``python -m companion certs``);
 * :mod:`.bus` -- the Zenoh session wrapper (the only module that imports ``zenoh``).
 """

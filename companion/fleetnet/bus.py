@@ -23,6 +23,7 @@ from typing import Any
 import zenoh
 
 from companion.configfile import ConfigError
+from companion.keyfiles import read_private_text
 from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, MessageError
 
 from . import codec
@@ -55,15 +56,15 @@ def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<conf
     else:
         put("connect/endpoints", list(cfg.connect), "zenoh.connect")
     tls = cfg.tls
-    for name in ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
-                 "connect_private_key"):
-        path = getattr(tls, name)
-        if path:
-            if not Path(path).is_file():
-                raise ConfigError(file, f"zenoh.tls.{name}", f"no such file: {path}")
-            put(f"transport/link/tls/{name}", path, f"zenoh.tls.{name}")
+    if tls.certs_dir:
+        _check_certs_dir(cfg, group, n_groups, file)
+    for name, path in tls.files(group).items():
+        where = "zenoh.tls.certs_dir" if tls.certs_dir else f"zenoh.tls.{name}"
+        if not Path(path).is_file():
+            raise ConfigError(file, where, f"no such file: {path}")
+        put(f"transport/link/tls/{name}", path, where)
     if tls.configured:
-        put("transport/link/tls/enable_mtls", tls.enable_mtls, "zenoh.tls.enable_mtls")
+        put("transport/link/tls/enable_mtls", tls.mtls, "zenoh.tls.enable_mtls")
     if cfg.users_file:
         try:
             users = read_users_file(cfg.users_file)
@@ -82,6 +83,29 @@ def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<conf
             raise ConfigError(file, "zenoh.access_control", f"cannot read {cfg.access_control}: {exc.strerror}") from None
         put("access_control", text, "zenoh.access_control", json5_text=True)
     return zc
+
+
+def _check_certs_dir(cfg: ZenohConfig, group: int, n_groups: int, file: str) -> None:
+    """``ConfigError`` at ``zenoh.tls.certs_dir`` unless 0-based ``group``'s files are there, its key
+    is private, and its certificate is the fleet CA's, valid now, for the host of its endpoint."""
+    from .certs import check_group_certificate  # cryptography: only companions that use certs_dir
+
+    files = cfg.tls.files(group)
+    make = (f"create them with `python -m companion certs DIR --groups {n_groups} --hosts HOST1 ...` and copy "
+            f"ca.pem, {group_user(group)}.pem and {group_user(group)}.key to this computer")
+    for name, what in (("root_ca_certificate", "the fleet CA certificate"),
+                       ("listen_certificate", f"group {group + 1}'s certificate"),
+                       ("listen_private_key", f"group {group + 1}'s private key")):
+        if not Path(files[name]).is_file():
+            raise ConfigError(file, "zenoh.tls.certs_dir", f"no such file: {files[name]} ({what}); {make}")
+    try:
+        read_private_text(files["listen_private_key"], "TLS private key")
+        host = None
+        if cfg.mode == "peer":
+            host = cfg.group_endpoint(group).split("/", 1)[1].rsplit(":", 1)[0]
+        check_group_certificate(files["listen_certificate"], files["root_ca_certificate"], host)
+    except ValueError as exc:
+        raise ConfigError(file, "zenoh.tls.certs_dir", str(exc)) from None
 
 
 class FleetBus:

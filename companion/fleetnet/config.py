@@ -15,10 +15,29 @@ and password of the file: a session without them (a process on the same host, a 
 network) cannot open a transport to the fleet, so it can neither publish nor subscribe under the
 fleet's prefix. ``python -m companion keys zenoh FILE --groups N`` writes one; a SITL launch of a
 distributed scenario without one makes a throwaway file in its run folder. User-password
-authentication is checked by the listening side only: on hardware use mutual TLS as well.
+authentication is checked by the listening side only and does not encrypt the traffic: on
+hardware use mutual TLS as well.
 
-TLS (``[zenoh.tls]``) and access control (``access_control``: a JSON5 file holding Zenoh's
-``access_control`` object) are for hardware; file paths are checked when the session opens.
+Mutual TLS (``[zenoh.tls]``, hardware): every link between companions is TLS, and both ends
+present a certificate signed by the fleet CA, so a session without one (or with another CA's)
+cannot even complete the handshake, and each side knows the other is a fleet computer. Make the
+files once with ``python -m companion certs DIR --groups N --hosts H1 .. HN``
+(:mod:`.certs`: ``ca.pem``, ``ca.key`` and per group ``companion-g<G>.pem`` / ``.key``, each
+certificate naming its group's endpoint host, which Zenoh checks when it connects) and set
+``certs_dir = DIR`` (relative to the config file's folder): the one config file then serves every
+group, and group ``G`` uses ``ca.pem`` as root CA and ``companion-g<G>.pem`` / ``.key`` as both
+listen (server) and connect (client) certificate, with ``enable_mtls`` on. A group's computer
+needs only ``ca.pem`` and its own pair; ``ca.key`` stays on the computer that made them.
+Before the session opens, the companion checks its files: present, its key private (mode 600), its
+certificate signed by that CA, valid now and made for its endpoint's host (errors at
+``zenoh.tls.certs_dir`` name the file). The endpoints must then be ``tls/`` (or ``quic/``).
+Instead of ``certs_dir``, the explicit keys ``root_ca_certificate``,
+``listen_certificate``/``listen_private_key``, ``connect_certificate``/``connect_private_key``
+and ``enable_mtls`` name one computer's files (used as given, checked to exist when the session
+opens); the two ways do not mix.
+
+Access control (``access_control``: a JSON5 file holding Zenoh's ``access_control`` object) is
+read when the session opens.
 """
 
 from __future__ import annotations
@@ -26,40 +45,73 @@ from __future__ import annotations
 import re
 import secrets
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 from companion.configfile import require_positive
 from companion.keyfiles import read_private_text, write_private_text
 
-__all__ = ["ZenohTls", "ZenohConfig", "PREFIX_RE", "group_user", "new_users_file", "read_users_file"]
+__all__ = ["CA_CERT", "ZenohTls", "ZenohConfig", "PREFIX_RE", "group_user", "new_users_file", "read_users_file"]
 
 #: A fleet prefix: one or more key chunks of letters, digits, ``_`` and ``-``, joined by ``/``.
 PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
 _ENDPOINT_RE = re.compile(r"^(tcp|tls|udp|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+#: The fleet CA's certificate in a ``certs_dir`` (group ``G``'s files are ``companion-g<G>.pem`` / ``.key``).
+CA_CERT = "ca.pem"
+_TLS_FILES = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate",
+              "connect_private_key")
 
 
 @dataclass(frozen=True)
 class ZenohTls:
-    """Zenoh TLS files (PEM). ``enable_mtls`` also authenticates the connecting side."""
+    """Zenoh TLS files (PEM). ``enable_mtls`` also authenticates the connecting side.
+
+    ``certs_dir``: a folder written by ``python -m companion certs`` (relative paths are resolved
+    against the config file's folder): group ``G`` uses ``ca.pem`` as root CA and
+    ``companion-g<G>.pem`` / ``.key`` as listen and connect certificate, with mutual TLS. It
+    replaces the five file keys, which name the same files for one computer.
+    """
 
     root_ca_certificate: str = ""
     listen_certificate: str = ""
     listen_private_key: str = ""
     connect_certificate: str = ""
     connect_private_key: str = ""
-    enable_mtls: bool = False
+    enable_mtls: bool | None = None
+    certs_dir: str = ""
 
     def __post_init__(self) -> None:
+        if self.certs_dir:
+            explicit = [name for name in _TLS_FILES if getattr(self, name)]
+            if explicit:
+                raise ValueError(f"certs_dir names every TLS file by the group: drop {', '.join(explicit)} "
+                                 "(or drop certs_dir and name the files of one computer)")
+            if self.enable_mtls is False:
+                raise ValueError("enable_mtls: certs_dir always uses mutual TLS (every companion has its certificate)")
         if bool(self.listen_certificate) != bool(self.listen_private_key):
             raise ValueError("listen_certificate and listen_private_key go together")
         if bool(self.connect_certificate) != bool(self.connect_private_key):
             raise ValueError("connect_certificate and connect_private_key go together")
-        if self.enable_mtls and not self.connect_certificate:
+        if self.enable_mtls and not (self.connect_certificate or self.certs_dir):
             raise ValueError("enable_mtls needs connect_certificate and connect_private_key")
 
     @property
     def configured(self) -> bool:
-        return bool(self.root_ca_certificate or self.listen_certificate)
+        return bool(self.root_ca_certificate or self.listen_certificate or self.certs_dir)
+
+    @property
+    def mtls(self) -> bool:
+        """Whether both sides of every link present a certificate."""
+        return bool(self.certs_dir) if self.enable_mtls is None else self.enable_mtls
+
+    def files(self, group: int) -> dict[str, str]:
+        """Zenoh's ``transport/link/tls`` file keys for 0-based ``group``'s companion, the set ones only."""
+        if self.certs_dir:
+            base = Path(self.certs_dir)
+            cert, key = str(base / f"{group_user(group)}.pem"), str(base / f"{group_user(group)}.key")
+            return {"root_ca_certificate": str(base / CA_CERT), "listen_certificate": cert,
+                    "listen_private_key": key, "connect_certificate": cert, "connect_private_key": key}
+        return {name: getattr(self, name) for name in _TLS_FILES if getattr(self, name)}
 
 
 @dataclass(frozen=True)
