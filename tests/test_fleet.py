@@ -381,12 +381,24 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     comps = d["companions"]
     assert set(comps) == {"companion-g1-restart", "companion-g2"}  # SIGKILLed: the first g1 left no summary
     leaders = [g for _, g in comps["companion-g2"]["global_step"]["leaders"]]
-    assert leaders == [1, 2, 1]  # group 1 leads, group 2 takes over, hands back to the returning group 1
+    # group 1 leads, group 2 takes over, hands back to the returning group 1 (group 2 may lead the
+    # first cycles too, if group 1's companion came up later: then it hands over at once)
+    assert leaders in ([1, 2, 1], [2, 1, 2, 1])
     for c in comps.values():
         assert c["global_step"]["duplicate_shift"] == 0 and c["global_step"]["yielded"] == 0
     cp = m["constraint_pos_p95_m"]
     assert cp["after_between_groups"] <= max(cp["after_within_groups"], 0.01)
-    assert d["cycles_with_global_step_fraction"] > 0.8
+    # Every cycle of the window counts, those of the outage too (group 2 alone has no global step
+    # to take part in): the global step is off only from the kill (less the killed companion's
+    # last unflushed second of log) until the restarted group 1 is back, 1.5-2 s after its restart.
+    outs = m["outages"]["windows"]
+    down = [w for w in outs if w["kind"] == "companion_down"]
+    assert down == [{"kind": "companion_down", "start_s": fault["killed_at_s"], "end_s": fault["restarted_at_s"],
+                     "links": [1]}]
+    gaps = [w for w in outs if w["kind"] == "no_global_step"]
+    assert gaps and all(fault["killed_at_s"] - 1.1 <= w["start_s"] and w["end_s"] <= fault["restarted_at_s"] + 3.0
+                        for w in gaps), gaps
+    assert d["cycles_with_global_step_fraction"] > 0.35
     _assert_ports_released(3)
     assert _tcp_free(7460) and _tcp_free(7461)
 

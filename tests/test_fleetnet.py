@@ -706,3 +706,24 @@ def test_forged_shifts_do_not_hide_a_silent_leader():
         nodes[1].tick(now + 0.04)
         del act
     assert 0 in nodes[1].muted and frozen.group == 0
+
+
+def test_a_restarted_group_that_has_not_stepped_yet_follows_the_acting_leader():
+    """Group 1 (preferred) comes back while group 2 leads alone; before its first own cycle it
+    sees group 2's checked shifts for cycles it has not reached: after its start-up listening it
+    follows group 2 (which hands over at an agreed cycle) instead of leading at once."""
+    rng = np.random.default_rng(6)
+    g2 = GlobalStepNode(1, 2, (0, 1), PERIOD_US, startup_s=0.0)
+    g2.on_liveliness(1, True, 0.0)
+    g1 = GlobalStepNode(0, 2, (0, 1), PERIOD_US, startup_s=0.5)
+    g1.start(10.0)
+    g1.on_liveliness(0, True, 10.0)
+    g1.on_liveliness(1, True, 10.0)
+    for k in range(1, 12):  # 0.55 s of group 2 alone; group 1 hears every message but does not step
+        cycle, now = (200 + k) * PERIOD_US, 10.0 + 0.05 * k
+        act = g2.local_step(rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6), cycle, now)
+        g1.on_boundary(act.boundary, now + 0.001)
+        act = act.merge(g2.tick(now + 0.03))
+        for shift in act.shifts:
+            g1.on_shift(shift, now + 0.031)
+    assert g1.leader_for(212 * PERIOD_US, 10.6) == 1 and g1.acting == 1

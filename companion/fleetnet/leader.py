@@ -277,6 +277,10 @@ class GlobalStepNode:
             if not verdict:
                 return self._reject("inconsistent")
             self._heard_cycle_us = max(self._heard_cycle_us, cycle)
+            # the leader's own (checked): it is the acting leader, as far as this group knows (a
+            # group that has not stepped yet, just started, must not take the lead from it)
+            self.acting = shift.leader_group
+            self.muted.discard(shift.leader_group)
             self._settle(cycle, shift.leader_group)  # solved without us: local-only when we get there
             return out
         if self.conflicted.get(cycle, set()) & set(shift.groups):
@@ -446,7 +450,8 @@ class GlobalStepNode:
         if not self.leader_log or self.leader_log[-1][1] != leader:
             self.leader_log.append((cycle, leader))
         self.settled[cycle] = leader
-        self.reports.pop(cycle, None)
+        # the cycle's boundaries stay (pruned with the history): a late shift of the leader is
+        # checked against them before it counts as hearing from it
         self.received_s.pop(cycle, None)
         self.first_report_s.pop(cycle, None)
         self._prune(cycle)
