@@ -117,7 +117,7 @@ RETRY_S = 1.0
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
                  "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
-                 "corrected_sckf", "nis_max_sckf")
+                 "corrected_sckf", "nis_max_sckf", "P_ekf_sckf", "P_corr_sckf")
 
 
 class Command(Enum):
@@ -213,6 +213,12 @@ class LinkTrack:
 
 def _usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
+
+
+def _blocks(P: np.ndarray) -> np.ndarray:
+    """(n, 3, 3, 3): the position, velocity and attitude blocks of (n, 9, 9) covariances (what
+    the step log keeps of them: enough for the NEES of each, a third of the size)."""
+    return np.stack([P[:, 3 * b:3 * b + 3, 3 * b:3 * b + 3] for b in range(3)], axis=1)
 
 
 def _stacked(states: list[LinkState]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -538,17 +544,18 @@ class CompanionEngine:
             self._local_half(now_s)
             return
         segs, _, nis_max = self._plan(self.fc_time_us, now_s)
-        ekf, p, v, q, p_local, iterations, corrected = self._correct_segments(segs, None, split_groups=True)
+        ekf, p, v, q, p_local, iterations, corrected, P = self._correct_segments(segs, None, split_groups=True)
         self._record(self.fc_time_us, -1, ekf, p, v, q, p_local, iterations, bool(corrected.any()), -1, corrected,
-                     nis_max)
+                     nis_max, P)
 
     def _correct_segments(self, segs, t_s: float | None, split_groups: bool):
         """Constraint application on every segment on its own, aligned to ``t_s`` (default: each
         segment's newest stamp), and its links' corrections out. ``split_groups``: a segment keeps
         its part of the configured groups (Alg. 2 + eq. 6 inside it); else it is one group (Alg. 1,
         a group companion's local-only step). Returns the step log's ``(ekf, p, v, q, p_local,
-        iterations, corrected)`` over this engine's links (a link not corrected keeps its EKF state;
-        a silent one, whose newest state is too old to say where it is, is NaN)."""
+        iterations, corrected, (P_ekf, P_corr))`` over this engine's links (a link not corrected keeps
+        its EKF state; a silent one, whose newest state is too old to say where it is, is NaN; P_ekf
+        is what the links reported, P_corr the constraint application's covariance)."""
         states = [self._step_state(lk) for lk in self.links]
         ekf = _stacked(states)
         for lk in self.links:
@@ -556,6 +563,8 @@ class CompanionEngine:
                 for a in ekf:
                     a[lk.row] = np.nan
         p, v, q = (a.copy() for a in ekf[:3])
+        P_ekf = np.stack([lk.state.P for lk in self.links])
+        P_corr = P_ekf.copy()
         p_local = p.copy()
         corrected = np.zeros(len(self.links), dtype=bool)
         iterations = 0
@@ -572,6 +581,7 @@ class CompanionEngine:
                             self.fc_time_us * 1e-6 if t_s is None else t_s, [self.links[r].index + 1 for r in rows], exc)
                 continue
             p[rows], v[rows], q[rows] = result.p, result.v, result.q
+            P_corr[rows] = result.P
             p_local[rows] = np.concatenate([r.p for r in result.local])
             corrected[rows] = True
             iterations = max(iterations, int(result.iterations.max()))
@@ -581,15 +591,16 @@ class CompanionEngine:
             self._send_corrections(seg, corrections, result)
         if done:
             self.seq = (self.seq + 1) & 0xFFFF or 1
-        return ekf, p, v, q, p_local, iterations, corrected
+        return ekf, p, v, q, p_local, iterations, corrected, (P_ekf, P_corr)
 
     def _observe(self) -> None:
         """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
         ekf = _stacked([lk.state for lk in self.links])
         cycle = self.next_step_us if self.net is not None else -1
         p, v, q, _ = ekf
+        P = np.stack([lk.state.P for lk in self.links])
         self._record(self.fc_time_us if cycle < 0 else cycle, cycle, ekf, p, v, q, p, 0, False, -1,
-                     np.zeros(len(self.links), dtype=bool), float("nan"))
+                     np.zeros(len(self.links), dtype=bool), float("nan"), (P, P))
 
     def _local_half(self, now_s: float) -> None:
         """Distributed mode: local constraint application at the cycle time, boundary out. A group
@@ -598,8 +609,8 @@ class CompanionEngine:
         cycle = self.next_step_us
         segs, whole, nis_max = self._plan(cycle, now_s)
         if not whole:
-            ekf, p, v, q, _, iterations, corrected = self._correct_segments(segs, cycle * 1e-6, split_groups=False)
-            self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max)
+            ekf, p, v, q, _, iterations, corrected, P = self._correct_segments(segs, cycle * 1e-6, split_groups=False)
+            self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max, P)
             return
         states = [self._step_state(lk) for lk in self.links]
         t0 = self._timer()
@@ -631,18 +642,23 @@ class CompanionEngine:
             self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
                          int(step.result.iterations),
                          res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1,
-                         np.ones(len(self.links), dtype=bool), nis_max)
+                         np.ones(len(self.links), dtype=bool), nis_max,
+                         (np.stack([s.P for s in states]), step.result.P))
 
     def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
-                leader: int, corrected: np.ndarray, nis_max: float) -> None:
+                leader: int, corrected: np.ndarray, nis_max: float, P) -> None:
         """One step log row; ``ekf`` is ``(p, v, q, w)`` of the links' states the step started from
         (aligned to the cycle in distributed mode), ``p, v, q`` the corrected estimate (a link's
-        EKF state where ``corrected`` is false), ``nis_max`` the largest joint NIS of the gate."""
+        EKF state where ``corrected`` is false), ``nis_max`` the largest joint NIS of the gate,
+        ``P`` the ``(n, 9, 9)`` covariances ``(reported by the links, after the constraint
+        application)`` (the local step's: eq. 6 shifts the estimate, its covariance is not
+        recomputed), logged as their 3x3 position, velocity and attitude blocks."""
         pe, ve, qe, we = ekf
         row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
                "iterations": iterations, "global_applied": global_applied, "leader": leader,
-               "corrected_sckf": corrected, "nis_max_sckf": nis_max}
+               "corrected_sckf": corrected, "nis_max_sckf": nis_max,
+               "P_ekf_sckf": _blocks(P[0]), "P_corr_sckf": _blocks(P[1])}
         for key, value in row.items():
             self.log[key].append(value)
 

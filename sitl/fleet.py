@@ -383,7 +383,7 @@ def _merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
     if comp is not None:
         if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
             comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
-        merged.update(attach_truth(comp, truth["t"], truth["p_true"]))
+        merged.update(attach_truth(comp, truth["t"], truth["p_true"], truth["v_true"], truth["q_true"]))
     logs = [f["correction_latency"] for f in fw if f is not None]
     latency = np.concatenate(logs) if logs else np.zeros((0, 2))
     return merged, latency, missing

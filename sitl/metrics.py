@@ -32,6 +32,11 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   with the whole-chain feed-forward also the model's predicted tension (``model_*``);
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
+* ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
+  estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones
+  (``corrected``: the constraint application's covariance), against the truth at the companion's
+  steps, with ``bounds95``, the 95 % bounds of that average for a consistent filter (3 is the
+  expected value; above: over-confident);
 * ``estimate_coverage``: per link the fraction of the window in which its firmware logged an
   estimate (below 1: the vehicle was killed or rebooting; the RMS figures cover the rest);
 * ``outages``: every window in which a link was out, with its ``kind``: ``uncorrected`` (no
@@ -122,6 +127,52 @@ def _rms(x: np.ndarray, axis=0) -> np.ndarray:
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN column: NaN, reported so
         return np.sqrt(np.nanmean(x * x, axis=axis))
+
+
+NEES_BLOCKS = ("pos", "vel", "att")
+
+
+def nees_series(log: dict[str, np.ndarray], which: str) -> np.ndarray | None:
+    """(steps, n, 3) NEES of the ``which`` estimate (``"ekf"``: the links' reports, ``"corr"``:
+    after the constraint application) per 3-dof block (position, velocity, attitude): ``e^T
+    P_bb^-1 e`` with ``e`` the truth minus the estimate (the attitude error world-frame, as the
+    EKF's error state) and ``P_bb`` the block of the covariance logged with it; NaN where the
+    estimate is unknown. ``None`` if the log lacks the covariances or the truth."""
+    need = (f"p_{which}_sckf", f"P_{which}_sckf", "p_true_sckf", "v_true_sckf", "q_true_sckf")
+    if not all(k in log for k in need):
+        return None
+    err = np.stack([log["p_true_sckf"] - log[f"p_{which}_sckf"], log["v_true_sckf"] - log[f"v_{which}_sckf"],
+                    attitude_error(log["q_true_sckf"], log[f"q_{which}_sckf"])], axis=2)  # (k, n, 3, 3)
+    P = log[f"P_{which}_sckf"]  # (k, n, 3 blocks, 3, 3)
+    out = np.full(err.shape[:3], np.nan)
+    ok = np.all(np.isfinite(err), axis=-1) & np.all(np.isfinite(P), axis=(-2, -1))
+    if np.any(ok):
+        e = err[ok]
+        out[ok] = np.einsum("ki,ki->k", e, np.linalg.solve(P[ok], e[..., None])[..., 0])
+    return out
+
+
+def nees_metrics(log: dict[str, np.ndarray], flight_start_s: float) -> dict | None:
+    """The time-averaged NEES per link and 3-dof block over the flight window, for the links'
+    EKF estimates (``ekf``) and the corrected ones (``corrected``), and the two-sided 95 % bounds
+    of such an average for a consistent filter (``K * mean ~ chi2(3K)`` over ``K`` samples, taken
+    as independent: errors that stay correlated over several steps make the true spread wider)."""
+    from scipy.stats import chi2
+
+    out: dict = {}
+    win = log.get("t_sckf", np.zeros(0)) >= flight_start_s
+    for name, which in (("ekf", "ekf"), ("corrected", "corr")):
+        series = nees_series(log, which)
+        if series is None or not np.any(win):
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(series[win], axis=0)  # (n, 3)
+        out[name] = {b: mean[:, j].tolist() for j, b in enumerate(NEES_BLOCKS)}
+    k = int(np.sum(win))
+    out["samples"] = k
+    out["bounds95"] = [float(chi2.ppf(0.025, 3 * k) / k), float(chi2.ppf(0.975, 3 * k) / k)]
+    return out
 
 
 def flag_windows(t: np.ndarray, out: np.ndarray) -> list[dict]:
@@ -279,6 +330,9 @@ def compute_metrics(
                     values = log[name][wins]
                     metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
                     metrics[key]["after_between_groups"] = _p95(values[:, between])
+    nees = nees_metrics(log, flight_start_s) if has_steps else None
+    if nees is not None:
+        metrics["nees"] = nees
     windows = [dict(w, kind="uncorrected") for w in metrics.get("uncorrected", {}).get("windows", [])]
     if has_steps and groups is not None and len(groups) > 1 and np.shape(log.get("global_applied"))[-1] == len(groups):
         for w in flag_windows(log["t_sckf"][wins], ~np.asarray(log["global_applied"][wins], dtype=bool)):

@@ -12,8 +12,10 @@ import numpy as np  # noqa: E402
 
 from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
 
+from .metrics import NEES_BLOCKS, nees_series  # noqa: E402
+
 __all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_cable_tension", "plot_body_motion",
-           "plot_attitude_tracking", "write_plots"]
+           "plot_attitude_tracking", "plot_nees", "write_plots"]
 
 
 def _save(fig, title: str, path: Path) -> None:
@@ -162,14 +164,43 @@ def plot_cable_tension(log: dict[str, np.ndarray], path: Path) -> None:
     _save(fig, "Cable tension at every joint (positive: the cable pulls)", path)
 
 
+def plot_nees(log: dict[str, np.ndarray], path: Path) -> None:
+    """NEES over time per 3-dof block: each link's EKF estimate and corrected estimate (1 s moving
+    mean), with the expected value 3 and the 95 % band of a single chi2(3) sample."""
+    ekf, corr = nees_series(log, "ekf"), nees_series(log, "corr")
+    if ekf is None or corr is None:
+        return
+    t = log["t_sckf"]
+    window = max(int(round(1.0 / max(np.median(np.diff(t)), 1e-3))), 1) if t.size > 1 else 1
+    kernel = np.ones(window) / window
+
+    def smooth(x):
+        return np.convolve(x, kernel, mode="same")  # NaN (a link out) leaves a gap
+
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    for j, (ax, block) in enumerate(zip(axes, NEES_BLOCKS)):
+        for i in range(ekf.shape[1]):
+            ax.plot(t, smooth(ekf[:, i, j]), lw=0.8, alpha=0.7, label=f"link {i + 1} EKF")
+            ax.plot(t, smooth(corr[:, i, j]), lw=1.2, ls="--", label=f"link {i + 1} corrected")
+        ax.axhline(3.0, color="k", lw=1.0)
+        ax.axhspan(0.216, 9.348, color="0.85", alpha=0.5, zorder=0)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"NEES {block}")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=6, ncol=4)
+    axes[-1].set_xlabel("time [s]")
+    _save(fig, "NEES per 3-dof block (1 s mean; 3 expected, band: 95 % of one chi2(3) sample)", path)
+
+
 def write_plots(log: dict[str, np.ndarray], out_dir: Path, motion=None, period_s: float = 4.0) -> list[Path]:
     """The run's PNGs; with ``motion`` (a CPG run) also the body motion and attitude tracking."""
     paths = [out_dir / "constraint_error.png", out_dir / "tracking.png", out_dir / "thrust.png",
-             out_dir / "cable_tension.png"]
+             out_dir / "cable_tension.png", out_dir / "nees.png"]
     plot_constraint_error(log, paths[0])
     plot_tracking(log, paths[1])
     plot_thrust(log, paths[2])
     plot_cable_tension(log, paths[3])
+    plot_nees(log, paths[4])
     if motion is not None:
         paths += [out_dir / "body_motion.png", out_dir / "attitude_tracking.png"]
         plot_body_motion(log, motion, paths[-2], period_s)

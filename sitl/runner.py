@@ -347,7 +347,7 @@ class BatchRunner:
         out = self.log.arrays()
         steps = self.step_log()
         if steps is not None and "t" in out:
-            out.update(attach_truth(steps, out["t"], out["p_true"]))
+            out.update(attach_truth(steps, out["t"], out["p_true"], out["v_true"], out["q_true"]))
         return out
 
     def _log_tick(self, t: float, truth) -> None:

@@ -47,7 +47,7 @@ class SensorConfig:
     :class:`~sitl.sensors.AttitudeRefNoise`.
     """
 
-    profile: Literal["outdoor", "paper", "ideal"] = "outdoor"
+    profile: Literal["outdoor", "paper", "m8", "rtk", "ideal"] = "outdoor"
     gps_rate_hz: float = 10.0
     attitude_rate_hz: float = 50.0
     imu: dict[str, float] = field(default_factory=dict)

@@ -9,7 +9,11 @@ Every link carries the same suite at its centre (the Pixhawk and GPS of the real
   ``drift_components`` sinusoids with random axes, frequencies and phases so that every link's
   drift covers the band (a single sinusoid per link, as in the Table II benchmark, makes each
   link's error depend on the one frequency it drew: the EKF's drift-free GPS velocity removes
-  much of a 0.1 Hz drift but little of a 0.02 Hz one);
+  much of a 0.1 Hz drift but little of a 0.02 Hz one); and/or, as a real receiver errs, first-
+  order Gauss-Markov position biases: one per link (multipath, the receiver's own tracking) and
+  one common to all links (atmosphere, ephemeris, satellite clocks: what receivers a few metres
+  apart share), plus a Gauss-Markov velocity bias that is not the derivative of the position's
+  (profiles ``m8`` and ``rtk`` below);
 * attitude/heading reference (an AHRS: gravity and magnetometer): a measured attitude whose
   world-frame error has tilt and heading white noise and a slow drift.
 
@@ -57,9 +61,25 @@ class GpsNoise:
     drift_freq_min_hz: float = 0.02
     drift_freq_max_hz: float = 0.1
     drift_components: int = 4
+    #: per-link Gauss-Markov position bias: stationary std per axis and time constant
+    bias_horizontal_std_m: float = 0.0
+    bias_vertical_std_m: float = 0.0
+    bias_time_constant_s: float = 60.0
+    #: the same, common to every link
+    common_horizontal_std_m: float = 0.0
+    common_vertical_std_m: float = 0.0
+    common_time_constant_s: float = 300.0
+    #: per-link Gauss-Markov velocity bias
+    vel_bias_std_m_s: float = 0.0
+    vel_bias_time_constant_s: float = 10.0
 
     def __post_init__(self) -> None:
-        require_nonnegative(self, "pos_horizontal_std_m", "pos_vertical_std_m", "vel_std_m_s", "drift_amp_m")
+        require_nonnegative(self, "pos_horizontal_std_m", "pos_vertical_std_m", "vel_std_m_s", "drift_amp_m",
+                            "bias_horizontal_std_m", "bias_vertical_std_m", "common_horizontal_std_m",
+                            "common_vertical_std_m", "vel_bias_std_m_s")
+        for name in ("bias_time_constant_s", "common_time_constant_s", "vel_bias_time_constant_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.drift_components < 1:
             raise ValueError(f"drift_components must be >= 1, got {self.drift_components}")
         if not 0 < self.drift_freq_min_hz <= self.drift_freq_max_hz < 1.0:
@@ -94,6 +114,15 @@ class SensorSuite:
 #: AHRS with 1 deg tilt / 3 deg heading noise. ``paper``: the paper's Table I measurement
 #: noise (variance 0.1 on GPS position and velocity, 0.01 per quaternion component) with its
 #: 0.5 m / 5 deg drifts. ``ideal``: no noise, no drift, no bias (controller tests).
+#: ``m8``: a standalone u-blox M8-class receiver as it errs: the data sheet's 2.5 m CEP
+#: horizontal (NEO-M8N, GPS+GLONASS; CEP 2.5 m is about 2.1 m std per axis) split into a
+#: common-mode bias that nearby receivers share (1.8 m per axis, 5 min: ionosphere,
+#: troposphere, ephemeris and clock errors change over minutes) and a per-receiver bias
+#: (0.8 m per axis, 60 s: multipath and tracking), vertical 1.5x; 0.1 / 0.2 m white noise;
+#: velocity 0.05 m/s (the data sheet's speed accuracy) white plus 0.02 m/s correlated over
+#: 10 s. ``rtk``: an RTK-fixed receiver (u-blox ZED-F9P: 0.01 m + 1 ppm CEP horizontal): 1 cm
+#: per-link bias over 30 s, no common mode left, 5 / 10 mm white, 0.02 m/s velocity.
+#: Both keep ``outdoor``'s IMU and attitude reference.
 PROFILES: dict[str, SensorSuite] = {
     "outdoor": SensorSuite(),
     "paper": SensorSuite(
@@ -101,6 +130,16 @@ PROFILES: dict[str, SensorSuite] = {
             pos_horizontal_std_m=math.sqrt(0.1), pos_vertical_std_m=math.sqrt(0.1), vel_std_m_s=math.sqrt(0.1)
         ),
         attitude=AttitudeRefNoise(tilt_std_rad=0.2, heading_std_rad=0.2, drift_amp_rad=math.radians(5.0)),
+    ),
+    "m8": SensorSuite(
+        gps=GpsNoise(pos_horizontal_std_m=0.1, pos_vertical_std_m=0.2, vel_std_m_s=0.05, drift_amp_m=0.0,
+                     bias_horizontal_std_m=0.8, bias_vertical_std_m=1.2, bias_time_constant_s=60.0,
+                     common_horizontal_std_m=1.8, common_vertical_std_m=2.7, common_time_constant_s=300.0,
+                     vel_bias_std_m_s=0.02, vel_bias_time_constant_s=10.0),
+    ),
+    "rtk": SensorSuite(
+        gps=GpsNoise(pos_horizontal_std_m=0.005, pos_vertical_std_m=0.01, vel_std_m_s=0.02, drift_amp_m=0.0,
+                     bias_horizontal_std_m=0.01, bias_vertical_std_m=0.015, bias_time_constant_s=30.0),
     ),
     "ideal": SensorSuite(
         imu=ImuNoise(0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
@@ -125,6 +164,16 @@ class LinkSensors:
         )
         self.pos_drift = draw_drifts(rng, n_links, drift_model, suite.gps.drift_components)
         self.att_drift = draw_drifts(rng, n_links, drift_model, suite.gps.drift_components)
+        g = suite.gps
+        # Gauss-Markov biases, drawn from their stationary distributions (only when the profile has
+        # them: the other profiles' random sequences stay as they were)
+        self._gm = []  # (state (n or 1, 3), std (3,), time constant)
+        for std, tau, rows in ((np.array([g.bias_horizontal_std_m] * 2 + [g.bias_vertical_std_m]), g.bias_time_constant_s, n_links),
+                               (np.array([g.common_horizontal_std_m] * 2 + [g.common_vertical_std_m]), g.common_time_constant_s, 1)):
+            if np.any(std > 0):
+                self._gm.append((std * rng.normal(size=(rows, 3)), std, tau))
+        self._vel_bias = g.vel_bias_std_m_s * rng.normal(size=(n_links, 3)) if g.vel_bias_std_m_s > 0 else None
+        self._gps_t: float | None = None
 
     def imu(self, specific_force_b: np.ndarray, omega_b: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(gyro, accel), each (n, 3) body frame, from the true specific force and body rate."""
@@ -144,6 +193,19 @@ class LinkSensors:
         noise = self.rng.normal(size=(2, self.n, 3))
         pos = p_w + self.pos_drift.at(t_s, g.drift_amp_m) + std * noise[0]
         vel = v_w + g.vel_std_m_s * noise[1]
+        if self._gm or self._vel_bias is not None:
+            dt = 0.0 if self._gps_t is None else max(t_s - self._gps_t, 0.0)
+            self._gps_t = t_s
+            for k, (state, sd, tau) in enumerate(self._gm):
+                a = math.exp(-dt / tau)
+                state = a * state + math.sqrt(1.0 - a * a) * sd * self.rng.normal(size=state.shape)
+                self._gm[k] = (state, sd, tau)
+                pos = pos + state  # (n, 3) per link, or (1, 3) common to all
+            if self._vel_bias is not None:
+                a = math.exp(-dt / g.vel_bias_time_constant_s)
+                self._vel_bias = a * self._vel_bias + math.sqrt(1.0 - a * a) * g.vel_bias_std_m_s * self.rng.normal(
+                    size=self._vel_bias.shape)
+                vel = vel + self._vel_bias
         return pos, vel
 
     def attitude(self, t_s: float, q_wxyz: np.ndarray) -> np.ndarray:

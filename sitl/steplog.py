@@ -16,7 +16,7 @@ from companion.estimation.constraints import joint_error_norms
 __all__ = ["merge_step_logs", "attach_truth"]
 
 _CHAIN_KEYS = ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf", "p_corr_sckf", "v_corr_sckf",
-               "q_corr_sckf", "corrected_sckf")
+               "q_corr_sckf", "corrected_sckf", "P_ekf_sckf", "P_corr_sckf")
 
 
 def _unique_cycles(log: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -87,9 +87,12 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
     return merged
 
 
-def attach_truth(step_log: dict[str, np.ndarray], t_truth: np.ndarray, p_truth: np.ndarray) -> dict[str, np.ndarray]:
+def attach_truth(step_log: dict[str, np.ndarray], t_truth: np.ndarray, p_truth: np.ndarray,
+                 v_truth: np.ndarray | None = None, q_truth: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """``step_log`` restricted to the truth log's time span, with ``p_true_sckf`` (steps, n, 3):
-    the true link positions at the step times, linearly interpolated between truth samples."""
+    the true link positions at the step times, linearly interpolated between truth samples, and
+    likewise ``v_true_sckf`` and ``q_true_sckf`` (normalised linear interpolation of the
+    quaternions, sign-aligned) when the truth's velocities and attitudes are given."""
     t = step_log["t_sckf"]
     keep = (t >= t_truth[0]) & (t <= t_truth[-1])
     out = {k: v[keep] for k, v in step_log.items()}
@@ -97,7 +100,15 @@ def attach_truth(step_log: dict[str, np.ndarray], t_truth: np.ndarray, p_truth: 
     k = np.clip(np.searchsorted(t_truth, ts, side="right") - 1, 0, max(len(t_truth) - 2, 0))
     if len(t_truth) > 1:
         w = ((ts - t_truth[k]) / (t_truth[k + 1] - t_truth[k]))[:, None, None]
-        out["p_true_sckf"] = (1.0 - w) * p_truth[k] + w * p_truth[k + 1]
     else:
-        out["p_true_sckf"] = p_truth[k]
+        w = np.zeros((len(ts), 1, 1))
+    k1 = np.minimum(k + 1, len(t_truth) - 1)
+    out["p_true_sckf"] = (1.0 - w) * p_truth[k] + w * p_truth[k1]
+    if v_truth is not None:
+        out["v_true_sckf"] = (1.0 - w) * v_truth[k] + w * v_truth[k1]
+    if q_truth is not None:
+        q0, q1 = q_truth[k], q_truth[k1]
+        q1 = np.where(np.sum(q0 * q1, axis=-1, keepdims=True) < 0, -q1, q1)
+        q = (1.0 - w) * q0 + w * q1
+        out["q_true_sckf"] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return out

@@ -1,0 +1,50 @@
+"""The receiver-like GNSS model (sitl.sensors, profiles m8 and rtk): stationary Gauss-Markov
+biases with their stds and time constants, a common mode shared by all links, seeded."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sitl.sensors import PROFILES, LinkSensors
+
+
+def _run(profile, n, seconds, rate_hz=10.0, seed=0):
+    sensors = LinkSensors(PROFILES[profile], n, np.random.default_rng(seed))
+    p = np.zeros((n, 3))
+    out_p, out_v = [], []
+    for k in range(int(seconds * rate_hz)):
+        pos, vel = sensors.gps(k / rate_hz, p, p)
+        out_p.append(pos)
+        out_v.append(vel)
+    return np.array(out_p), np.array(out_v)
+
+
+def test_m8_biases_have_their_stds_time_constants_and_common_mode():
+    g = PROFILES["m8"].gps
+    pos, vel = _run("m8", 300, 120.0)
+    # over links and time: the per-link and common biases add in variance, the white noise too
+    want_h = math.sqrt(g.bias_horizontal_std_m ** 2 + g.pos_horizontal_std_m ** 2)
+    diff = pos - pos.mean(axis=1, keepdims=True)  # the common mode removed
+    assert np.std(diff[..., 0]) == pytest.approx(want_h, rel=0.1)
+    assert np.std(diff[..., 2]) == pytest.approx(math.sqrt(g.bias_vertical_std_m ** 2 + g.pos_vertical_std_m ** 2),
+                                                 rel=0.1)
+    common = pos.mean(axis=1)  # every link shares it: the per-link parts average out over 300 links
+    assert np.std(common[:, 0]) > 0.3 and np.max(np.abs(np.diff(common[:, 0]))) < 0.3  # slow, not white
+    # the per-link bias decorrelates over its time constant (lag of 60 s at 10 Hz)
+    x = diff[..., 0]
+    lag = int(g.bias_time_constant_s * 10)
+    rho = np.mean(x[:-lag] * x[lag:]) / np.mean(x * x)
+    assert rho == pytest.approx(math.exp(-1.0) * g.bias_horizontal_std_m ** 2 / want_h ** 2, abs=0.12)
+    # velocity: white plus its own slow part, never the position bias's derivative
+    assert np.std(vel[..., 0]) == pytest.approx(math.hypot(g.vel_std_m_s, g.vel_bias_std_m_s), rel=0.1)
+
+
+def test_seeded_and_the_older_profiles_draw_as_before():
+    a, _ = _run("m8", 3, 5.0, seed=4)
+    b, _ = _run("m8", 3, 5.0, seed=4)
+    np.testing.assert_array_equal(a, b)
+    s = LinkSensors(PROFILES["outdoor"], 3, np.random.default_rng(0))
+    assert s._gm == [] and s._vel_bias is None  # no extra draws: outdoor flights are unchanged
+    rtk, _ = _run("rtk", 50, 30.0)
+    assert np.std(rtk[..., 0]) < 0.02

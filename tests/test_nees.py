@@ -1,0 +1,67 @@
+"""NEES in the run metrics (sitl.metrics.nees_metrics): a consistent estimate lands in the
+bounds, an over-confident one does not; truth interpolation at the steps (sitl.steplog)."""
+
+import numpy as np
+import pytest
+
+from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize
+from sitl.metrics import nees_metrics, nees_series
+from sitl.steplog import attach_truth
+
+
+def _log(rng, k=800, n=3, scale=1.0):
+    """Steps with the truth and two estimates whose errors are drawn from their covariances
+    times ``scale`` (1: consistent)."""
+    q_true = quat_normalize(rng.normal(size=(k, n, 4)))
+    log = {"t_sckf": np.arange(k) * 0.05, "p_true_sckf": rng.normal(size=(k, n, 3)),
+           "v_true_sckf": rng.normal(size=(k, n, 3)), "q_true_sckf": q_true}
+    for which in ("ekf", "corr"):
+        A = rng.normal(size=(k, n, 3, 3, 3)) * 0.1
+        P = A @ np.swapaxes(A, -1, -2) + 1e-3 * np.eye(3)
+        L = np.linalg.cholesky(P)
+        e = scale * (L @ rng.normal(size=(k, n, 3, 3, 1)))[..., 0]  # truth - estimate per block
+        log[f"P_{which}_sckf"] = P
+        log[f"p_{which}_sckf"] = log["p_true_sckf"] - e[:, :, 0]
+        log[f"v_{which}_sckf"] = log["v_true_sckf"] - e[:, :, 1]
+        # q_true = Exp(e_att) q_est
+        log[f"q_{which}_sckf"] = quat_mul(quat_from_rotvec(-e[:, :, 2]), q_true)
+    return log
+
+
+def test_consistent_errors_land_in_the_bounds_and_overconfidence_does_not():
+    rng = np.random.default_rng(0)
+    m = nees_metrics(_log(rng), 5.0)
+    lo, hi = m["bounds95"]
+    assert m["samples"] == 700 and 2.7 < lo < 3.0 < hi < 3.3
+    for which in ("ekf", "corrected"):
+        for block in ("pos", "vel", "att"):
+            assert all(lo <= x <= hi for x in m[which][block]), (which, block, m[which][block])
+    bad = nees_metrics(_log(np.random.default_rng(1), scale=2.0), 5.0)
+    for block in ("pos", "vel", "att"):
+        assert all(x == pytest.approx(12.0, rel=0.15) for x in bad["ekf"][block])
+
+
+def test_nees_leaves_unknown_estimates_out_and_needs_the_truth():
+    log = _log(np.random.default_rng(2), k=50)
+    for key in ("p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf"):  # link 2 out for half a second
+        log[key][10:20, 1] = np.nan
+    series = nees_series(log, "ekf")
+    assert np.all(np.isnan(series[10:20, 1])) and np.all(np.isfinite(series[10:20, [0, 2]]))
+    assert np.isfinite(nees_metrics(log, 0.0)["ekf"]["pos"][1])
+    del log["v_true_sckf"]
+    assert nees_series(log, "ekf") is None and nees_metrics(log, 0.0) is None
+
+
+def test_truth_is_interpolated_at_the_step_times():
+    t = np.arange(6) * 0.02
+    p = np.stack([t, 2 * t, 0 * t], axis=1)[:, None, :]
+    q = np.stack([quat_from_rotvec(np.array([0.0, 0.0, 0.5 * x])) for x in t])[:, None, :]
+    q[3] *= -1  # the same attitude with the other sign
+    steps = {"t_sckf": np.array([0.03, 0.05, 0.2]), "x": np.arange(3)}
+    out = attach_truth(steps, t, p, 10 * p, q)
+    assert out["x"].tolist() == [0, 1]  # 0.2 s is past the truth's end
+    np.testing.assert_allclose(out["p_true_sckf"][:, 0], [[0.03, 0.06, 0], [0.05, 0.10, 0]], atol=1e-12)
+    np.testing.assert_allclose(out["v_true_sckf"][:, 0], [[0.3, 0.6, 0], [0.5, 1.0, 0]], atol=1e-12)
+    want = quat_from_rotvec(np.array([0.0, 0.0, 0.5 * 0.05]))
+    got = out["q_true_sckf"][1, 0]
+    assert abs(abs(got @ want) - 1.0) < 1e-6
