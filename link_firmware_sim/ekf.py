@@ -18,6 +18,20 @@ Joseph form and keep ``P`` symmetric.
 
 Biases are estimated only if their process noise / initial variance is non-zero; with both
 zero the filter reduces exactly to the paper's 9-state EKF.
+
+Barometer: the first barometric height after start-up (or after a position reset) fixes the
+barometer's offset to the EKF's height, as PX4's baro height reference does, but as a state: the
+nominal state grows by the offset ``b`` (``X_BARO``), the error state by its error (``E_BARO``),
+whose covariance row is that of the height error it was taken against (``b = h_baro - z``, so
+``db = -dz - noise``). The barometer then measures ``z + b`` (:func:`ekf_update_baro`): it tells
+the filter how the height changes, never where it is better than the GNSS height the offset was
+taken against, and the covariance says so; ``b`` walks with the barometer's drift
+(``EkfNoise.baro_bias_m2_s``). Without barometer samples the state stays at 16 / 15 numbers and
+every operation is the one it was.
+
+Magnetometer: :func:`ekf_update_mag_heading` fuses the heading of the measured field, rotated into
+the world with the estimated attitude (tilt compensation), against the known declination, with
+the Jacobian of that heading with respect to the attitude error (:func:`mag_heading_jacobian`).
 """
 
 from __future__ import annotations
@@ -31,6 +45,8 @@ import numpy as np
 from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import attitude_error, quat_normalize, quat_to_rotmat, retract, rotmat_tuple
 from companion.skeleton.body import GRAVITY_W_M_S2
+
+from .geo import MAG_DECLINATION_RAD
 
 __all__ = [
     "X_P",
@@ -46,6 +62,11 @@ __all__ = [
     "E_BG",
     "E_SCKF",
     "NE",
+    "E_PZ",
+    "X_BARO",
+    "E_BARO",
+    "NX_BARO",
+    "NE_BARO",
     "GRAVITY_W_M_S2",
     "EkfNoise",
     "EkfConfig",
@@ -58,8 +79,14 @@ __all__ = [
     "ekf_reset_position",
     "ekf_update_velocity",
     "ekf_update_attitude",
+    "attitude_variance",
     "ekf_update_heading",
     "heading_jacobian",
+    "ekf_add_baro_offset",
+    "ekf_remove_baro_offset",
+    "ekf_update_baro",
+    "ekf_update_mag_heading",
+    "mag_heading_jacobian",
     "sckf_view",
     "LinkEkf",
 ]
@@ -80,6 +107,13 @@ E_BG = slice(12, 15)
 #: The paper's error state [p~; v~; dtheta] (what the SCKF consumes).
 E_SCKF = slice(0, ERR_DIM)
 NE = 15
+#: The vertical position error (the barometer's block).
+E_PZ = slice(E_P.start + 2, E_P.start + 3)
+#: The barometer's offset, appended once a barometer has referenced it (see the module docstring).
+X_BARO = slice(NX, NX + 1)
+E_BARO = slice(NE, NE + 1)
+NX_BARO = NX + 1
+NE_BARO = NE + 1
 
 _DIAG = np.diag_indices(NE)
 
@@ -90,6 +124,9 @@ class EkfNoise:
 
     Defaults are the paper's Table I process noise ``diag[0.1 I3, 0.1 I3, 0.01 I3]`` on
     ``[p; v; theta]``, read as densities (m^2/s, (m/s)^2/s, rad^2/s), and no bias walk.
+    ``att_yaw_rad2_s`` gives the vertical axis of the world-frame attitude error (the heading)
+    its own density (``None``: ``att_rad2_s`` on every axis): the tilt is held by gravity and the
+    GPS velocity, the heading only by the heading reference.
     """
 
     pos_m2_s: float = 0.1
@@ -97,19 +134,29 @@ class EkfNoise:
     att_rad2_s: float = 0.01
     accel_bias_m2_s5: float = 0.0
     gyro_bias_rad2_s3: float = 0.0
+    att_yaw_rad2_s: float | None = None
+    #: random walk of the barometer's offset, once it is a state: its drift (the paper has no
+    #: barometer; default: a MEMS barometer's 0.3 m Gauss-Markov drift over 300 s, ``2 s^2 / tau``)
+    baro_bias_m2_s: float = 6e-4
 
     def __post_init__(self) -> None:
-        for name in ("pos_m2_s", "vel_m2_s3", "att_rad2_s", "accel_bias_m2_s5", "gyro_bias_rad2_s3"):
+        for name in ("pos_m2_s", "vel_m2_s3", "att_rad2_s", "accel_bias_m2_s5", "gyro_bias_rad2_s3", "att_yaw_rad2_s",
+                     "baro_bias_m2_s"):
             val = getattr(self, name)
+            if val is None and name == "att_yaw_rad2_s":
+                continue
             if not (math.isfinite(val) and val >= 0.0):
                 raise ValueError(f"EkfNoise.{name} must be a finite non-negative number, got {val!r}")
 
     @cached_property
     def densities(self) -> np.ndarray:
         """(15,) diagonal of the continuous process noise over the error state."""
-        return np.repeat(
+        out = np.repeat(
             [self.pos_m2_s, self.vel_m2_s3, self.att_rad2_s, self.accel_bias_m2_s5, self.gyro_bias_rad2_s3], 3
         )
+        if self.att_yaw_rad2_s is not None:
+            out[E_TH.start + 2] = self.att_yaw_rad2_s
+        return out
 
 
 @dataclass(frozen=True)
@@ -118,14 +165,28 @@ class EkfConfig:
 
     Measurement variances default to the paper's Table I (0.1 m^2 position, 0.1 (m/s)^2
     velocity, 0.01 per quaternion component = 0.04 rad^2 per attitude axis because
-    ``dq ~ [1; dtheta/2]``). ``gate_sigma`` rejects a measurement when any axis of its
-    innovation exceeds that many standard deviations (as PX4 EKF2's ``*_GATE`` parameters).
+    ``dq ~ [1; dtheta/2]``). ``att_var_rad2`` applies to every axis of the world-frame attitude
+    error unless ``att_yaw_var_rad2`` gives the vertical (heading) axis its own: an AHRS's tilt
+    (from gravity) and heading (from the magnetometer) err differently. ``gate_sigma`` rejects a
+    measurement when any axis of its innovation exceeds that many standard deviations (as PX4
+    EKF2's ``*_GATE`` parameters).
+
+    Barometer and magnetometer (fused when their samples arrive, unless ``fuse_baro`` /
+    ``fuse_mag`` is off; PX4's EKF2_BARO_CTRL / EKF2_MAG_TYPE): ``baro_var_m2`` is the white
+    noise of a barometric height (its drift is the offset state's random walk,
+    ``EkfNoise.baro_bias_m2_s``); while the link is in its rotors' ground effect (armed, less
+    than ``baro_ground_effect_height_m`` above where it armed: PX4's EKF2_GND_MAX_HGT) a
+    barometer reading up to ``baro_ground_effect_deadzone_m`` below the estimate is taken as
+    agreeing with it, a lower one as that much higher (PX4's EKF2_GND_EFF_DZ).
+    ``mag_heading_var_rad2`` is the variance of the magnetometer's heading, ``mag_declination_rad``
+    the declination of the earth's field (east of north; PX4's EKF2_MAG_DECL).
     """
 
     noise: EkfNoise = field(default_factory=EkfNoise)
     gps_pos_var_m2: float = 0.1
     gps_vel_var_m2_s2: float = 0.1
     att_var_rad2: float = 0.04
+    att_yaw_var_rad2: float | None = None
     heading_var_rad2: float = 0.01
     gate_sigma: float = 5.0
     init_pos_var_m2: float = 1.0
@@ -133,6 +194,13 @@ class EkfConfig:
     init_att_var_rad2: float = 0.05
     init_accel_bias_var: float = 0.0
     init_gyro_bias_var: float = 0.0
+    fuse_baro: bool = True
+    baro_var_m2: float = 0.01
+    baro_ground_effect_height_m: float = 1.0
+    baro_ground_effect_deadzone_m: float = 1.0
+    fuse_mag: bool = True
+    mag_heading_var_rad2: float = 0.04
+    mag_declination_rad: float = MAG_DECLINATION_RAD
 
     def __post_init__(self) -> None:
         for name in (
@@ -140,6 +208,8 @@ class EkfConfig:
             "gps_vel_var_m2_s2",
             "att_var_rad2",
             "heading_var_rad2",
+            "baro_var_m2",
+            "mag_heading_var_rad2",
             "gate_sigma",
             "init_pos_var_m2",
             "init_vel_var_m2_s2",
@@ -148,10 +218,15 @@ class EkfConfig:
             val = getattr(self, name)
             if not (math.isfinite(val) and val > 0.0):
                 raise ValueError(f"EkfConfig.{name} must be a positive number, got {val!r}")
-        for name in ("init_accel_bias_var", "init_gyro_bias_var"):
+        if self.att_yaw_var_rad2 is not None and not (math.isfinite(self.att_yaw_var_rad2) and self.att_yaw_var_rad2 > 0):
+            raise ValueError(f"EkfConfig.att_yaw_var_rad2 must be a positive number or None, got {self.att_yaw_var_rad2!r}")
+        for name in ("init_accel_bias_var", "init_gyro_bias_var", "baro_ground_effect_height_m",
+                     "baro_ground_effect_deadzone_m"):
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0.0):
                 raise ValueError(f"EkfConfig.{name} must be a finite non-negative number, got {val!r}")
+        if not (math.isfinite(self.mag_declination_rad) and abs(self.mag_declination_rad) <= math.pi):
+            raise ValueError(f"EkfConfig.mag_declination_rad must be within +-pi, got {self.mag_declination_rad!r}")
 
 
 @dataclass(frozen=True)
@@ -244,7 +319,7 @@ def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) 
     """
     if not dt_s > 0.0:
         raise ValueError(f"dt_s must be positive, got {dt_s!r}")
-    px, py, pz, vx, vy, vz, qw, qx, qy, qz, bax, bay, baz, bgx, bgy, bgz = x.tolist()
+    px, py, pz, vx, vy, vz, qw, qx, qy, qz, bax, bay, baz, bgx, bgy, bgz = x[:NX].tolist()
     gx, gy, gz = np.asarray(gyro_b_rad_s, dtype=float).tolist()
     ax_, ay_, az_ = np.asarray(accel_b_m_s2, dtype=float).tolist()
     R = rotmat_tuple((qw, qx, qy, qz))
@@ -275,8 +350,20 @@ def ekf_predict(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise) 
         )
     )
     F = _transition(R, f_w, dt_s)
-    Pn = F @ P @ F.T
-    Pn[_DIAG] += noise.densities * dt_s
+    if len(P) == NE:
+        Pn = F @ P @ F.T
+        Pn[_DIAG] += noise.densities * dt_s
+    else:  # with the barometer's offset: a random walk appended to the core state
+        xn = np.concatenate((xn, x[NX:]))
+        Pn = np.empty_like(P)
+        core = F @ P[:NE, :NE] @ F.T
+        core[_DIAG] += noise.densities * dt_s
+        cross = F @ P[:NE, NE:]
+        Pn[:NE, :NE] = core
+        Pn[:NE, NE:] = cross
+        Pn[NE:, :NE] = cross.T
+        Pn[NE:, NE:] = P[NE:, NE:]
+        Pn[E_BARO, E_BARO] += noise.baro_bias_m2_s * dt_s
     return xn, 0.5 * (Pn + Pn.T)
 
 
@@ -288,6 +375,8 @@ def inject_error(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
     xn[X_Q] = retract(x[X_Q], dx[E_TH])
     xn[X_BA] += dx[E_BA]
     xn[X_BG] += dx[E_BG]
+    if len(dx) > NE:
+        xn[NX:] += dx[NE:]
     return xn
 
 
@@ -304,7 +393,7 @@ def _update(x, P, r, H, Rm, gate_sigma: float):
     if not math.isfinite(test) or test > 1.0:
         return x, P, UpdateInfo(False, r, test)
     K = np.linalg.solve(S, PHt.T).T
-    IKH = np.eye(NE) - K @ H
+    IKH = np.eye(len(P)) - K @ H
     Pn = IKH @ P @ IKH.T + K @ Rm @ K.T
     return inject_error(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
 
@@ -324,6 +413,14 @@ def _update_block(x, P, r, block: slice, Rm, gate_sigma: float):
     A = P - K @ P[block]
     Pn = A - A[:, block] @ K.T + K @ Rm @ K.T
     return inject_error(x, K @ r), 0.5 * (Pn + Pn.T), UpdateInfo(True, r, test)
+
+
+def attitude_variance(config: EkfConfig) -> float | np.ndarray:
+    """The attitude reference's variance as :func:`ekf_update_attitude` takes it: the scalar
+    ``att_var_rad2``, or per world axis ``[tilt, tilt, yaw]`` when the heading has its own."""
+    if config.att_yaw_var_rad2 is None:
+        return config.att_var_rad2
+    return np.array([config.att_var_rad2, config.att_var_rad2, config.att_yaw_var_rad2])
 
 
 def _as_cov(var, dim: int) -> np.ndarray:
@@ -404,6 +501,84 @@ def ekf_update_heading(x, P, yaw_rad: float, var_rad2: float, gate_sigma: float 
     return _update(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
 
 
+def ekf_add_baro_offset(x, P, baro_height_m: float, var_m2: float):
+    """Reference the barometer: append its offset ``b = h_baro - z`` to the state (PX4's baro height
+    offset, taken against the current height estimate) with the covariance of that choice: the
+    offset's error is minus the height's error (plus the sample's noise ``var_m2``), so the
+    barometer adds no knowledge of the absolute height."""
+    if len(x) != NX:
+        raise ValueError("the barometer is already referenced")
+    if not math.isfinite(baro_height_m):
+        raise ValueError(f"barometric height: expected a finite number, got {baro_height_m!r}")
+    xa = np.concatenate((x, [baro_height_m - x[X_P][2]]))
+    Pa = np.zeros((NE_BARO, NE_BARO))
+    Pa[:NE, :NE] = P
+    row = -P[E_PZ, :]
+    Pa[E_BARO, :NE] = row
+    Pa[:NE, E_BARO] = row.T
+    Pa[E_BARO, E_BARO] = P[E_PZ, E_PZ] + var_m2
+    return xa, Pa
+
+
+def ekf_remove_baro_offset(x, P):
+    """The state without the barometer's offset (it is taken again at the next sample)."""
+    return np.array(x[:NX], dtype=float), np.array(P[:NE, :NE], dtype=float)
+
+
+def ekf_update_baro(x, P, baro_height_m: float, var_m2: float, gate_sigma: float = 5.0,
+                    deadzone_m: float = 0.0):
+    """Barometric height update: ``h_baro = z + b`` (scalar; ``b`` from :func:`ekf_add_baro_offset`).
+
+    ``deadzone_m`` > 0 (in the rotors' ground effect, where the barometer reads low): an
+    innovation between ``-deadzone_m`` and 0 becomes 0, a lower one ``deadzone_m`` less negative
+    (PX4's EKF2_GND_EFF_DZ)."""
+    if len(x) != NX_BARO:
+        raise ValueError("the barometer is not referenced yet (ekf_add_baro_offset)")
+    if not math.isfinite(baro_height_m):
+        raise ValueError(f"barometric height: expected a finite number, got {baro_height_m!r}")
+    r = baro_height_m - x[X_P][2] - x[X_BARO][0]
+    if deadzone_m > 0.0 and r < 0.0:
+        r = min(r + deadzone_m, 0.0)
+    H = np.zeros((1, NE_BARO))
+    H[0, E_PZ] = 1.0
+    H[0, E_BARO] = 1.0
+    return _update(x, P, np.array([r]), H, np.array([[var_m2]]), gate_sigma)
+
+
+def mag_heading_jacobian(q_wxyz, mag_b_gauss) -> np.ndarray:
+    """``d phi / d dtheta`` (3,) of the horizontal direction ``phi = atan2(m_y, m_x)`` of the field
+    ``m = R(q) m_b`` rotated into the world, for world-frame attitude errors.
+
+    With ``R <- (I + S(dtheta)) R``: ``dm = dtheta x m``, so ``dm_x = dth_y m_z - dth_z m_y``,
+    ``dm_y = dth_z m_x - dth_x m_z`` and ``d phi = (m_x dm_y - m_y dm_x) / (m_x^2 + m_y^2)
+    = dth_z - (m_x m_z dth_x + m_y m_z dth_y) / (m_x^2 + m_y^2)``: a tilt error turns the
+    measured heading through the field's inclination (:func:`heading_jacobian`'s form, with the
+    field in place of the body x axis).
+    """
+    m = quat_to_rotmat(q_wxyz) @ np.asarray(mag_b_gauss, dtype=float)
+    h = m[0] ** 2 + m[1] ** 2
+    return np.array([-m[0] * m[2] / h, -m[1] * m[2] / h, 1.0])
+
+
+def ekf_update_mag_heading(x, P, mag_b_gauss, declination_rad: float, var_rad2: float,
+                           gate_sigma: float = 5.0):
+    """Magnetometer heading update: the measured body-frame field (FLU, any unit), rotated into
+    the world with the estimated attitude (tilt compensation), must point along the earth's
+    horizontal field, ``declination_rad`` east of north (in ENU at ``pi/2 - declination`` from
+    east). Residual: that angle minus the rotated field's, wrapped; Jacobian
+    :func:`mag_heading_jacobian`; skipped (not accepted) when the field is nearly vertical."""
+    mb = _check_meas(mag_b_gauss, "magnetic field", 3)
+    m = quat_to_rotmat(x[X_Q]) @ mb
+    h = m[0] ** 2 + m[1] ** 2
+    if not h > 1e-4 * float(mb @ mb):  # within 0.6 deg of vertical (or no field): no heading
+        return x, P, UpdateInfo(False, np.array([0.0]), math.inf)
+    phi_earth = 0.5 * math.pi - declination_rad
+    r = np.array([(phi_earth - math.atan2(m[1], m[0]) + math.pi) % (2.0 * math.pi) - math.pi])
+    H = np.zeros((1, len(P)))
+    H[0, E_TH] = (-m[0] * m[2] / h, -m[1] * m[2] / h, 1.0)
+    return _update(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
+
+
 def sckf_view(x, P, gyro_b_rad_s):
     """What the link reports to the companion: ``(p, v, q, omega_b, P9)``.
 
@@ -424,8 +599,9 @@ class LinkEkf:
         self.config = config
         self.x, self.P = ekf_init(p_w_m, v_w_m_s, q_wxyz, config)
         self.last_gyro_b_rad_s = np.zeros(3)
-        self.accepted: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
-        self.rejected: dict[str, int] = {"pos": 0, "vel": 0, "att": 0, "heading": 0}
+        kinds = ("pos", "vel", "att", "heading", "baro", "mag")
+        self.accepted: dict[str, int] = dict.fromkeys(kinds, 0)
+        self.rejected: dict[str, int] = dict.fromkeys(kinds, 0)
         #: state resets (discontinuities), reported as the link state's reset_counter
         self.resets = 0
 
@@ -449,8 +625,33 @@ class LinkEkf:
         return _gate(r, np.diag(S), self.config.gate_sigma)
 
     def reset_position(self, pos_w_m) -> None:
+        """Reset the position to a fix; the barometer is referenced again at its next sample."""
+        self.x, self.P = ekf_remove_baro_offset(self.x, self.P)
         self.x, self.P = ekf_reset_position(self.x, self.P, pos_w_m, self.config.gps_pos_var_m2)
         self.resets += 1
+
+    @property
+    def baro_referenced(self) -> bool:
+        """The barometer's offset is a state (after its first sample)."""
+        return len(self.x) == NX_BARO
+
+    def update_baro(self, baro_height_m: float, ground_effect: bool = False) -> UpdateInfo:
+        """A barometric height [m]: the first one references the barometer (counted as accepted,
+        innovation 0), the others update ``z + b``; ``ground_effect``: apply the deadzone."""
+        cfg = self.config
+        if not self.baro_referenced:
+            self.x, self.P = ekf_add_baro_offset(self.x, self.P, baro_height_m, cfg.baro_var_m2)
+            self.accepted["baro"] += 1
+            return UpdateInfo(True, np.array([0.0]), 0.0)
+        deadzone = cfg.baro_ground_effect_deadzone_m if ground_effect else 0.0
+        return self._record("baro", ekf_update_baro(self.x, self.P, baro_height_m, cfg.baro_var_m2, cfg.gate_sigma,
+                                                    deadzone))
+
+    def update_mag(self, mag_b_gauss) -> UpdateInfo:
+        """A magnetometer sample (body FLU) as a heading (:func:`ekf_update_mag_heading`)."""
+        cfg = self.config
+        return self._record("mag", ekf_update_mag_heading(self.x, self.P, mag_b_gauss, cfg.mag_declination_rad,
+                                                          cfg.mag_heading_var_rad2, cfg.gate_sigma))
 
     def update_velocity(self, vel_w_m_s) -> UpdateInfo:
         cfg = self.config
@@ -460,7 +661,8 @@ class LinkEkf:
 
     def update_attitude(self, q_meas_wxyz) -> UpdateInfo:
         cfg = self.config
-        return self._record("att", ekf_update_attitude(self.x, self.P, q_meas_wxyz, cfg.att_var_rad2, cfg.gate_sigma))
+        return self._record("att", ekf_update_attitude(self.x, self.P, q_meas_wxyz, attitude_variance(cfg),
+                                                       cfg.gate_sigma))
 
     def update_heading(self, yaw_rad: float) -> UpdateInfo:
         cfg = self.config

@@ -1,4 +1,5 @@
-"""Geodetic origin of the local frames (pure: no MAVLink, no I/O)."""
+"""Geodetic origin of the local frames, the earth's magnetic field and the standard atmosphere
+(pure: no MAVLink, no I/O)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,38 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["EARTH_RADIUS_M", "GeoOrigin"]
+__all__ = [
+    "EARTH_RADIUS_M",
+    "GeoOrigin",
+    "MAG_FIELD_NED_GAUSS",
+    "MAG_DECLINATION_RAD",
+    "ISA_SEA_LEVEL_HPA",
+    "pressure_hpa_at",
+    "pressure_altitude_m",
+]
 
 EARTH_RADIUS_M = 6_371_000.0
+#: Earth magnetic field of the simulated world (NED, gauss; mid-latitude: 0.21 G horizontal,
+#: 63 deg inclination): what the simulated magnetometers measure and the firmware's declination.
+MAG_FIELD_NED_GAUSS = np.array([0.21, 0.01, 0.42])
+#: Its declination (east of true north) [rad]: PX4's EKF2_MAG_DECL for this world, 2.7 deg.
+MAG_DECLINATION_RAD = math.atan2(float(MAG_FIELD_NED_GAUSS[1]), float(MAG_FIELD_NED_GAUSS[0]))
+#: ICAO standard atmosphere: sea-level pressure [hPa] and the troposphere's pressure-altitude law
+#: ``p = p0 (1 - 2.25577e-5 h)^5.25588`` (h [m]), as barometer drivers convert (PX4, ArduPilot).
+ISA_SEA_LEVEL_HPA = 1013.25
+_ISA_K = 2.25577e-5
+_ISA_EXP = 5.25588
+
+
+def pressure_hpa_at(altitude_m: float) -> float:
+    """Static pressure [hPa] of the standard atmosphere at ``altitude_m`` (above mean sea level)."""
+    return ISA_SEA_LEVEL_HPA * (1.0 - _ISA_K * altitude_m) ** _ISA_EXP
+
+
+def pressure_altitude_m(pressure_hpa: float) -> float:
+    """Pressure altitude [m] of ``pressure_hpa`` in the standard atmosphere (inverse of
+    :func:`pressure_hpa_at`)."""
+    return (1.0 - (pressure_hpa / ISA_SEA_LEVEL_HPA) ** (1.0 / _ISA_EXP)) / _ISA_K
 
 
 @dataclass(frozen=True)

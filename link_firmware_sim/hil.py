@@ -2,7 +2,10 @@
 
 Harness -> flight controller, each in MAVLink units and frames (body FRD, local NED, WGS84):
 
-* ``HIL_SENSOR``: accelerometer (specific force) and gyro, plus magnetometer;
+* ``HIL_SENSOR``: accelerometer (specific force) and gyro at every tick; magnetometer (gauss,
+  body FRD) and barometer (``abs_pressure`` [hPa] of the standard atmosphere at the barometer's
+  pressure altitude, that altitude as ``pressure_alt``, and a temperature) only in the ticks that
+  carry a sample of a simulated one, with their ``fields_updated`` bits set then and only then;
 * ``HIL_GPS``: position as latitude/longitude/altitude and NED velocity;
 * ``SKELETON_AHRS_REFERENCE`` (dialect): the attitude reference measurement.
 
@@ -17,14 +20,15 @@ the same origin so that all local positions share one frame, as the constraints 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
 import numpy as np
 
-from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.codec import MessageError, seconds, usec
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 
-from .geo import EARTH_RADIUS_M, GeoOrigin
+from .geo import EARTH_RADIUS_M, MAG_FIELD_NED_GAUSS, GeoOrigin, pressure_altitude_m, pressure_hpa_at
 
 __all__ = [
     "SITL_GPS_EPOCH_US",
@@ -35,6 +39,11 @@ __all__ = [
     "ROTORS_PER_LINK",
     "encode_hil_sensor",
     "decode_hil_sensor",
+    "HilBaroMag",
+    "decode_hil_baro_mag",
+    "HIL_SENSOR_IMU",
+    "HIL_SENSOR_MAG",
+    "HIL_SENSOR_BARO",
     "encode_hil_gps",
     "decode_hil_gps",
     "encode_ahrs",
@@ -47,10 +56,19 @@ _D = load_dialect()
 #: GPS time at simulation time 0 (2026-01-01T00:00:00Z) [us since the Unix epoch]: the clock of the
 #: simulated GPS receivers (SYSTEM_TIME of the simulated Pixhawks, the companion's ``gps`` time base).
 SITL_GPS_EPOCH_US = 1_767_225_600_000_000
-#: Earth magnetic field used for the simulated magnetometer (NED, gauss; mid-latitude).
-MAG_FIELD_NED_GAUSS = np.array([0.21, 0.01, 0.42])
 ROTORS_PER_LINK = 8
-_HIL_SENSOR_ACCEL_GYRO_MAG = 0x1FF  # fields_updated bits 0..8
+#: HIL_SENSOR ``fields_updated`` (HIL_SENSOR_UPDATED_FLAGS): accelerometer and gyro (bits 0-5),
+#: magnetometer (6-8), barometer: abs_pressure (9), pressure_alt (11), temperature (12)
+HIL_SENSOR_IMU = 0x3F
+HIL_SENSOR_MAG = 0x1C0
+HIL_SENSOR_BARO = (1 << 9) | (1 << 11) | (1 << 12)
+_HIL_ABS_PRESSURE = 1 << 9
+_HIL_PRESSURE_ALT = 1 << 11
+#: what a decoded sample may be: a barometer's range (MS5611: 10-1200 mbar) and a magnetometer's
+#: (the earth's field is under 0.7 G; a reading beyond 4 G is a saturated or broken sensor)
+BARO_RANGE_HPA = (10.0, 1200.0)
+MAG_MAX_GAUSS = 4.0
+_BARO_TEMPERATURE_C = 20.0
 _GPS_FIX_3D = 3
 
 
@@ -66,17 +84,25 @@ def _check(name: str, values) -> np.ndarray:
     return a
 
 
-_MAG_FIELD_ENU = enu_ned(MAG_FIELD_NED_GAUSS)
-
-
-def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, q_enu_flu):
-    """HIL_SENSOR from body-frame specific force and rate (and the attitude, for the magnetometer)."""
-    ax, ay, az = np.asarray(accel_flu_m_s2, dtype=float).tolist()
-    gx, gy, gz = np.asarray(gyro_flu_rad_s, dtype=float).tolist()
-    mx, my, mz = (quat_to_rotmat(q_enu_flu).T @ _MAG_FIELD_ENU).tolist()  # body FLU
+def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None,
+                      baro_alt_m: float | None = None):
+    """HIL_SENSOR from body-frame (FLU) specific force and rate, and, when a sample is due, the
+    magnetometer's field (FLU, gauss) and the barometer's pressure altitude ``baro_alt_m`` [m above
+    mean sea level], sent as its standard-atmosphere pressure [hPa] and as ``pressure_alt``."""
+    ax, ay, az = flu_frd(accel_flu_m_s2).tolist()
+    gx, gy, gz = flu_frd(gyro_flu_rad_s).tolist()
+    bits = HIL_SENSOR_IMU
+    mx = my = mz = 0.0
+    if mag_flu_gauss is not None:
+        mx, my, mz = flu_frd(mag_flu_gauss).tolist()
+        bits |= HIL_SENSOR_MAG
+    pressure_hpa = alt = temperature = 0.0
+    if baro_alt_m is not None:
+        alt = float(baro_alt_m)
+        pressure_hpa, temperature = pressure_hpa_at(alt), _BARO_TEMPERATURE_C
+        bits |= HIL_SENSOR_BARO
     return _D.MAVLink_hil_sensor_message(
-        usec(t_s), ax, -ay, -az, gx, -gy, -gz, mx, -my, -mz,  # FLU -> FRD
-        1013.25, 0.0, 0.0, 20.0, _HIL_SENSOR_ACCEL_GYRO_MAG, 0,
+        usec(t_s), ax, ay, az, gx, gy, gz, mx, my, mz, pressure_hpa, 0.0, alt, temperature, bits, 0,
     )
 
 
@@ -85,6 +111,48 @@ def decode_hil_sensor(msg) -> tuple[float, np.ndarray, np.ndarray]:
     acc = _check("HIL_SENSOR.acc", (msg.xacc, msg.yacc, msg.zacc))
     gyr = _check("HIL_SENSOR.gyro", (msg.xgyro, msg.ygyro, msg.zgyro))
     return seconds(msg.time_usec), flu_frd(gyr), flu_frd(acc)
+
+
+@dataclass(frozen=True)
+class HilBaroMag:
+    """The barometer and magnetometer part of a HIL_SENSOR: ``baro_alt_m`` the pressure altitude
+    [m above mean sea level], ``mag_flu_gauss`` the field (body FLU); ``None`` where the message
+    carries no sample; ``rejected`` names the sensors whose sample was invalid (dropped)."""
+
+    baro_alt_m: float | None
+    mag_flu_gauss: np.ndarray | None
+    rejected: tuple[str, ...] = ()
+
+
+def decode_hil_baro_mag(msg) -> HilBaroMag:
+    """The barometer and magnetometer samples of a HIL_SENSOR, by its ``fields_updated`` bits.
+
+    The barometer's altitude comes from ``abs_pressure`` through the standard atmosphere (what a
+    flight controller computes from its sensor), or from ``pressure_alt`` when only that is
+    marked. A non-finite or out-of-range value (pressure outside 10-1200 hPa, a field component
+    beyond 4 G) drops that sensor's sample and names it in ``rejected``; never raises."""
+    bits = int(msg.fields_updated)
+    rejected = []
+    baro = mag = None
+    if bits & _HIL_ABS_PRESSURE:
+        p = float(msg.abs_pressure)
+        if math.isfinite(p) and BARO_RANGE_HPA[0] <= p <= BARO_RANGE_HPA[1]:
+            baro = pressure_altitude_m(p)
+        else:
+            rejected.append("baro")
+    elif bits & _HIL_PRESSURE_ALT:
+        alt = float(msg.pressure_alt)
+        if math.isfinite(alt) and pressure_altitude_m(BARO_RANGE_HPA[1]) <= alt <= pressure_altitude_m(BARO_RANGE_HPA[0]):
+            baro = alt
+        else:
+            rejected.append("baro")
+    if bits & HIL_SENSOR_MAG == HIL_SENSOR_MAG:
+        m = np.array([msg.xmag, msg.ymag, msg.zmag], dtype=float)
+        if np.all(np.isfinite(m)) and np.all(np.abs(m) <= MAG_MAX_GAUSS):
+            mag = flu_frd(m)
+        else:
+            rejected.append("mag")
+    return HilBaroMag(baro, mag, tuple(rejected))
 
 
 def encode_hil_gps(t_s: float, p_enu_m, v_enu_m_s, origin: GeoOrigin):

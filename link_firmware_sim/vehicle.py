@@ -51,7 +51,14 @@ from companion.messages import Correction, PoseTarget
 
 from .firmware import CorrectionRejected, LinkFirmware
 from .geo import GeoOrigin
-from .hil import decode_ahrs, decode_hil_gps, decode_hil_sensor, encode_actuators, sitl_gps_time_us
+from .hil import (
+    decode_ahrs,
+    decode_hil_baro_mag,
+    decode_hil_gps,
+    decode_hil_sensor,
+    encode_actuators,
+    sitl_gps_time_us,
+)
 from .params import ParamTable
 
 __all__ = ["VehiclePorts", "Vehicle", "FORCE_DISARM"]
@@ -174,7 +181,8 @@ class Vehicle:
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
         self._log = _Stream.at_rate(log_rate_hz)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
-        self.errors = {"hil": 0, "mavlink": 0, "correction_rejected": 0, "disarm_refused": 0, "setup_signing_refused": 0}
+        self.errors = {"hil": 0, "mavlink": 0, "correction_rejected": 0, "disarm_refused": 0, "setup_signing_refused": 0,
+                       "hil_baro": 0, "hil_mag": 0}
         self._next_status_wall: dict[str, float] = {}
         self._cache_tick_us = -1  # no tick yet: _tick_values computes on first use
         self._cached = None
@@ -357,6 +365,7 @@ class Vehicle:
         except MessageError:
             self._answer(np.zeros(8))  # keep the lockstep going; the caller logs the rejection
             raise
+        self._on_baro_mag(t, msg)
         if not self.fw.initialized:
             # The EKF starts at the first GPS fix with an attitude reference; until then the
             # rotors stay off, but the simulator still gets its answer.
@@ -364,6 +373,21 @@ class Vehicle:
             return
         self._answer(self.fw.on_imu(t, gyro, accel))
         self._after_tick()
+
+    def _on_baro_mag(self, t: float, msg) -> None:
+        """The HIL_SENSOR's barometer and magnetometer samples (when its bits mark them) to the
+        firmware, queued before this tick's IMU sample; an invalid one is dropped and counted
+        (``errors["hil_baro"]`` / ``["hil_mag"]``), the tick goes on."""
+        sample = decode_hil_baro_mag(msg)
+        for name in sample.rejected:
+            count = self.errors[f"hil_{name}"] = self.errors[f"hil_{name}"] + 1
+            if math.log10(count).is_integer():  # the 1st, 10th, 100th, ...: no flood at 50 Hz
+                log.warning("link %d: dropped an invalid HIL_SENSOR %s sample (%d so far)", self.system_id, name,
+                            count)
+        if sample.baro_alt_m is not None:
+            self.fw.on_baro(t, sample.baro_alt_m - self.origin.alt_m)  # height above the origin
+        if sample.mag_flu_gauss is not None:
+            self.fw.on_mag(t, sample.mag_flu_gauss)
 
     def _answer(self, thrust: np.ndarray) -> None:
         self.sim.send(encode_actuators(self.fc_time_s, thrust, self.thrust_max_n, self.fw.armed))
@@ -713,6 +737,8 @@ class Vehicle:
             stats[self.sim.url] = vars(self.sim.stats)
             stats["errors"] = self.errors
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
+            if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)
+                stats["ekf"] = {"accepted": self.fw.ekf.accepted, "rejected": self.fw.ekf.rejected}
             (self.out_dir / f"link{self.instance + 1}_ports.json").write_text(json.dumps(stats, indent=1, default=str))
         self.sim.close()
         for ep in self.endpoints:

@@ -139,11 +139,15 @@ class FleetHarness:
             att = sensors.attitude(t, truth.q_wxyz)
             for i in range(self.n):
                 outgoing[i].append(encode_ahrs(t, att[i]))
+        baro, mag = self.plant.baro_mag(k, sch, truth)
+        if baro is not None:
+            baro = baro + self.scenario.origin.alt_m  # pressure altitude above mean sea level
         gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, sch.fw * self.plant.dt)
         for i, port in enumerate(self.ports):
             if i in self.down:
                 continue
-            outgoing[i].append(encode_hil_sensor(t, accel[i], gyro[i], truth.q_wxyz[i]))
+            outgoing[i].append(encode_hil_sensor(t, accel[i], gyro[i], mag_flu_gauss=None if mag is None else mag[i],
+                                                 baro_alt_m=None if baro is None else float(baro[i])))
             port.send_many(outgoing[i])  # one write per vehicle and tick
         want = usec(t)
         thrust = np.zeros((self.n, 8))
@@ -441,7 +445,7 @@ def mavlink_counters(out_dir: Path) -> dict:
             ports = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url not in ("errors", "gps") and not url.startswith("tcp"))
+        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url not in ("errors", "gps", "ekf") and not url.startswith("tcp"))
                  for k in _PORT_COUNTERS}
         entry.update(ports.get("errors", {}))
         out[path.parent.name] = entry

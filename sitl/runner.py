@@ -3,7 +3,8 @@
 One physics tick (1 kHz by default) is::
 
     kinematics (mj_step1) -> truth
-    every firmware tick (500 Hz): IMU sample, GPS / attitude samples queued (their rates), each
+    every firmware tick (500 Hz): IMU sample, GPS / attitude (and, when the sensor profile fits
+        them, barometer / magnetometer) samples queued (their rates), each
         link's firmware: EKF predict + updates + control + allocation; then the companion
         engine(s): link states at the stream rate (50 Hz), its 20 Hz step, corrections, targets
         (50 Hz) and arming, carried out on the firmware at once
@@ -42,7 +43,7 @@ from .bench.ekf_chain import rate_divisor
 from .model import SkeletonModel
 from .rotor import RotorBank
 from .scenario import Scenario, WindConfig
-from .sensors import LinkSensors
+from .sensors import LinkSensors, downwash_fraction
 from .steplog import attach_truth, merge_step_logs
 
 __all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog"]
@@ -113,6 +114,8 @@ class Schedule:
     gps: int
     att: int
     log: int
+    baro: int
+    mag: int
 
     @classmethod
     def of(cls, sc: Scenario) -> Schedule:
@@ -124,6 +127,8 @@ class Schedule:
             gps=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.gps_rate_hz, "gps"),
             att=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.attitude_rate_hz, "attitude"),
             log=rate_divisor(physics, sc.sim.log_rate_hz, "log_rate_hz"),
+            baro=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.baro_rate_hz, "baro"),
+            mag=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.mag_rate_hz, "mag"),
         )
 
 
@@ -169,6 +174,19 @@ class Plant:
             self.model.begin_step()
         self._fresh = False
         return self.model.truth()
+
+    def baro_mag(self, k: int, schedule: Schedule, truth) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The barometric heights (n,) and magnetometer fields (n, 3) due at physics tick ``k``
+        (``None``: not due, or the profile has no such sensor); the ground effect scales with
+        each link's rotor thrust."""
+        sensors = self.sensors
+        baro = mag = None
+        if sensors.has_baro and k % schedule.baro == 0:
+            downwash = downwash_fraction(self.rotors.thrust_n.reshape(self.n, -1), self.inertia.mass_kg)
+            baro = sensors.baro(k * self.dt, truth.p_w_m, downwash)
+        if sensors.has_mag and k % schedule.mag == 0:
+            mag = sensors.mag(truth.q_wxyz)
+        return baro, mag
 
     def end_tick(self) -> None:
         thrust = self.rotors.step(self.dt)
@@ -402,6 +420,13 @@ class BatchRunner:
                     att = sensors.attitude(t, truth.q_wxyz)
                     for i, fw in enumerate(self.firmware):
                         fw.on_attitude(t, att[i])
+                baro, mag = plant.baro_mag(k, sch, truth)
+                if baro is not None:
+                    for i, fw in enumerate(self.firmware):
+                        fw.on_baro(t, float(baro[i]))
+                if mag is not None:
+                    for i, fw in enumerate(self.firmware):
+                        fw.on_mag(t, mag[i])
                 gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
                 for i, fw in enumerate(self.firmware):
                     commands[i] = fw.on_imu(t, gyro[i], accel[i])

@@ -22,7 +22,7 @@ from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 
 from .bench.ekf_chain import rate_divisor
-from .sensors import PROFILES, SensorSuite
+from .sensors import PROFILES, BaroNoise, MagNoise, SensorSuite
 from .skeleton import StartPose
 
 __all__ = [
@@ -38,37 +38,59 @@ __all__ = [
 ]
 
 
+#: The sensors a profile may leave out, and the model a ``[sensors.<name>]`` table then fits.
+_OPTIONAL_SENSORS = {"baro": BaroNoise, "mag": MagNoise}
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """A named sensor profile with optional per-field overrides and the sensor rates.
 
-    ``[sensors.imu]``, ``[sensors.gps]``, ``[sensors.attitude]`` override single fields of the
-    profile's :class:`~sitl.sensors.ImuNoise`, :class:`~sitl.sensors.GpsNoise`,
-    :class:`~sitl.sensors.AttitudeRefNoise`.
+    ``[sensors.imu]``, ``[sensors.gps]``, ``[sensors.attitude]``, ``[sensors.baro]``,
+    ``[sensors.mag]`` override single fields of the profile's :class:`~sitl.sensors.ImuNoise`,
+    :class:`~sitl.sensors.GpsNoise`, :class:`~sitl.sensors.AttitudeRefNoise`,
+    :class:`~sitl.sensors.BaroNoise`, :class:`~sitl.sensors.MagNoise`. A ``[sensors.baro]`` or
+    ``[sensors.mag]`` table (even an empty one) on a profile without that sensor fits one (its
+    defaults, overridden);
+    a profile's own barometer or magnetometer is left out by choosing the profile without it
+    (``m8`` for ``m8_baro_mag``). Barometer and magnetometer samples arrive at ``baro_rate_hz``
+    and ``mag_rate_hz``.
     """
 
-    profile: Literal["outdoor", "paper", "m8", "rtk", "ideal"] = "outdoor"
+    profile: Literal["outdoor", "paper", "m8", "rtk", "m8_baro_mag", "ideal"] = "outdoor"
     gps_rate_hz: float = 10.0
     attitude_rate_hz: float = 50.0
+    baro_rate_hz: float = 50.0
+    mag_rate_hz: float = 50.0
     imu: dict[str, float] = field(default_factory=dict)
     gps: dict[str, float] = field(default_factory=dict)
     attitude: dict[str, float] = field(default_factory=dict)
+    baro: dict[str, float] | None = None
+    mag: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         base = PROFILES[self.profile]
-        for section in ("imu", "gps", "attitude"):
-            known = {f.name for f in fields(getattr(base, section))}
-            for key in getattr(self, section):
+        for section in ("imu", "gps", "attitude", "baro", "mag"):
+            model = getattr(base, section)
+            known = {f.name for f in fields(model if model is not None else _OPTIONAL_SENSORS[section])}
+            for key in getattr(self, section) or {}:
                 if key not in known:
                     raise ValueError(f"{section}: unknown field {key!r} (expected one of: {', '.join(sorted(known))})")
+            try:
+                self._section(section)
+            except ValueError as exc:  # an invalid value: reported at sensors.<section>
+                raise ValueError(f"{section}: {exc}") from None
+
+    def _section(self, section: str):
+        """The profile's model of ``section`` with this config's overrides (``None``: not fitted)."""
+        model = getattr(PROFILES[self.profile], section)
+        overrides = getattr(self, section)
+        if model is None:
+            return None if overrides is None else _OPTIONAL_SENSORS[section](**overrides)
+        return replace(model, **(overrides or {}))
 
     def suite(self) -> SensorSuite:
-        base = PROFILES[self.profile]
-        return SensorSuite(
-            imu=replace(base.imu, **self.imu),
-            gps=replace(base.gps, **self.gps),
-            attitude=replace(base.attitude, **self.attitude),
-        )
+        return SensorSuite(**{s: self._section(s) for s in ("imu", "gps", "attitude", "baro", "mag")})
 
 
 @dataclass(frozen=True)
@@ -256,6 +278,8 @@ class Scenario(CompanionSetup, VehicleSetup):
         rate_divisor(physics, self.companion.rate_hz, "companion.rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.gps_rate_hz, "sensors.gps_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.attitude_rate_hz, "sensors.attitude_rate_hz")
+        rate_divisor(self.firmware.rate_hz, self.sensors.baro_rate_hz, "sensors.baro_rate_hz")
+        rate_divisor(self.firmware.rate_hz, self.sensors.mag_rate_hz, "sensors.mag_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.companion.state_rate_hz, "companion.state_rate_hz")
         CompanionSetup.__post_init__(self)
         VehicleSetup.__post_init__(self)

@@ -7,10 +7,29 @@ import numpy as np
 import pytest
 
 from companion.estimation.sckf import CAParams
-from sitl.bench.ekf_chain import ChainRun, rate_divisor, simulate_ekf_chain
+from companion.estimation.so3 import quat_from_rotvec, quat_mul
+from link_firmware_sim.ekf import EkfConfig
+from sitl.bench.ekf_chain import (
+    ChainRun,
+    EkfStream,
+    consistent_ekf_config,
+    drift_seen,
+    ekf_config,
+    honest_noise,
+    rate_divisor,
+    simulate_ekf_chain,
+)
 from sitl.bench.scaling import run_scaling
-from sitl.bench.table2 import evaluate_group_size, run_table2
-from sitl.synthetic import ChainMotion
+from sitl.bench.table2 import (
+    aggregate_seeds,
+    combine_configs,
+    evaluate_group_size,
+    format_table2_configs,
+    nees_summary,
+    run_table2,
+    run_table2_configs,
+)
+from sitl.synthetic import ChainMotion, SensorModel
 
 
 def test_rates_must_be_whole_multiples_of_the_base_tick():
@@ -21,25 +40,129 @@ def test_rates_must_be_whole_multiples_of_the_base_tick():
         ChainRun(sckf_rate_hz=33.0)
 
 
+NEES_FIELDS = {"nees", "nees_std", "nees_effective_samples", "nees_bounds95", "nees_inside95"}
+
+
 def test_table2_short_run_layout_and_sckf_beats_ekf(tmp_path):
     path = tmp_path / "t2.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "sitl.bench", "table2", "--duration", "3", "--json", str(path), "--out",
+        [sys.executable, "-m", "sitl.bench", "table2", "--duration", "1.5", "--seeds", "2", "--json", str(path), "--out",
          str(tmp_path / "run"), "--quiet"],
         capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr
     assert "EKF only" in proc.stdout
+    assert "EKF tuning: paper" in proc.stdout and "EKF tuning: consistent" in proc.stdout
+    assert "NEES per 3-dof block" in proc.stdout
     result = json.loads(path.read_text())
-    assert set(result["ekf_only"]) >= {"pos_err_m", "quat_err"}
-    assert set(result["groups"]) == {"2", "3", "4", "6", "12"}
-    for row in result["groups"].values():
-        assert set(row) >= {"time_s", "pos_err_m", "quat_err"}
-        assert row["time_s"] > 0
-        assert row["pos_err_m"] < result["ekf_only"]["pos_err_m"]
-    assert result["protocol"]["sckf_steps"] == 60
-    replay_in = np.load(tmp_path / "run" / "ekf_stream.npz")
-    assert replay_in["P"].shape == (60, 12, 9, 9)
+    assert result["ekf_configs"] == ["paper", "consistent"]
+    assert result["protocol"]["sckf_steps"] == 30 and result["protocol"]["seeds"] == [0, 1]
+    for name, agg in result["by_ekf"].items():
+        assert agg["protocol"]["ekf_config"] == name
+        assert agg["protocol"]["ekf"]["att_var_rad2"] == ekf_config(name).att_var_rad2
+        assert set(agg["ekf_only"]) >= {"pos_err_m", "quat_err"} | NEES_FIELDS
+        assert set(agg["groups"]) == {"2", "3", "4", "6", "12"}
+        for row in [agg["ekf_only"], *agg["groups"].values()]:
+            assert set(row["nees"]) == {"pos", "vel", "att"}
+            for block, (lo, hi) in row["nees_bounds95"].items():
+                assert 0 < lo < 3 < hi
+                assert row["nees_effective_samples"][block] >= 1
+                assert row["nees_inside95"][block] == (lo <= row["nees"][block] <= hi)
+        for row in agg["groups"].values():
+            assert set(row) >= {"time_s", "pos_err_m", "quat_err"}
+            assert row["time_s"] > 0
+            assert row["pos_err_m"] < agg["ekf_only"]["pos_err_m"]
+    for name in ("ekf_stream.npz", "ekf_stream_consistent.npz"):
+        replay_in = np.load(tmp_path / "run" / name)
+        assert replay_in["P"].shape == (30, 12, 9, 9)
+    p_paper = np.load(tmp_path / "run" / "ekf_stream.npz")["P"]
+    p_cons = np.load(tmp_path / "run" / "ekf_stream_consistent.npz")["P"]
+    assert not np.allclose(p_paper, p_cons)
+
+
+def test_table2_single_tuning_option(tmp_path):
+    path = tmp_path / "t2.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "sitl.bench", "table2", "--duration", "0.5", "--seeds", "1", "--ekf", "consistent", "--json",
+         str(path), "--out", str(tmp_path / "run"), "--quiet"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(path.read_text())
+    assert result["ekf_configs"] == ["consistent"] and list(result["by_ekf"]) == ["consistent"]
+    assert "EKF tuning: paper" not in proc.stdout
+    assert (tmp_path / "run" / "ekf_stream_consistent.npz").exists()
+    assert not (tmp_path / "run" / "ekf_stream.npz").exists()
+
+
+def test_drift_seen_limits():
+    var, f1, f2 = 0.04, 0.02, 0.1
+    assert drift_seen(var, f1, f2, 1e-6) == pytest.approx(var, rel=1e-6)  # short memory: follows the drift
+    tau = 1e4  # long memory: the drift is averaged out as 1 / (2 pi tau)^2 f1 f2
+    assert drift_seen(var, f1, f2, tau) == pytest.approx(var / ((2 * np.pi * tau) ** 2 * f1 * f2), rel=1e-3)
+    # A single frequency: the first-order low-pass gain.
+    assert drift_seen(var, 0.05, 0.05, 3.0) == pytest.approx(var / (1 + (2 * np.pi * 0.05 * 3.0) ** 2))
+
+
+def test_honest_noise_claims_what_the_filter_errs():
+    white, drift, rate, tau = 0.1, 0.03, 10.0, 2.0
+    R, q = honest_noise(white, drift, rate, tau)
+    n = tau * rate
+    assert np.sqrt(R / (q * rate)) == pytest.approx(tau)  # the memory it was built for
+    assert R / n == pytest.approx(white / (2 * n) + drift)  # claimed = white averaged + drift left
+
+
+def test_consistent_config_follows_the_sensor_model():
+    cfg = consistent_ekf_config()
+    # Carries the drift: far above the white noise alone (0.1 m^2, 0.04 rad^2).
+    assert 0.4 < cfg.gps_pos_var_m2 < 0.7 and 0.1 < cfg.att_var_rad2 < 0.25
+    assert cfg.noise.att_rad2_s < 1e-4 < cfg.noise.pos_m2_s < 0.1
+    assert cfg.gps_vel_var_m2_s2 == SensorModel().gps_vel_var_m2_s2  # velocity has no drift
+    no_drift = consistent_ekf_config(SensorModel(pos_drift_amp_m=0.0, att_drift_amp_rad=0.0))
+    assert no_drift.gps_pos_var_m2 == pytest.approx(0.05) and no_drift.att_var_rad2 == pytest.approx(0.02)
+    assert ekf_config("paper") == EkfConfig()
+    with pytest.raises(ValueError, match="unknown EKF config"):
+        ekf_config("tuned")
+
+
+def test_nees_summary_is_three_for_errors_drawn_from_the_covariance():
+    rng = np.random.default_rng(3)
+    K, n = 300, 4
+    A = rng.normal(size=(n, 9, 9))
+    P = np.broadcast_to(A @ np.swapaxes(A, 1, 2) * 0.01 + 0.01 * np.eye(9), (K, n, 9, 9)).copy()
+    err = np.einsum("knij,knj->kni", np.linalg.cholesky(P), rng.normal(size=(K, n, 9)))
+    q = quat_from_rotvec(rng.normal(size=(K, n, 3)) * 0.3)
+    q_true = quat_mul(quat_from_rotvec(err[..., 6:9]), q)  # truth = Exp(dtheta) (x) estimate
+    zeros = np.zeros((K, n, 3))
+    stream = EkfStream(t=np.arange(K) * 0.05, p=zeros, v=zeros, q=q, w=zeros, P=P, d=np.zeros((n, 3)),
+                       p_true=err[..., 0:3], v_true=err[..., 3:6], q_true=q_true)
+    out = nees_summary(stream, stream.p, stream.v, stream.q, stream.P)
+    for block in ("pos", "vel", "att"):
+        lo, hi = out["nees_bounds95"][block]
+        assert lo <= out["nees"][block] <= hi
+        assert out["nees_effective_samples"][block] > 0.7 * K * n  # white errors: nearly every sample counts
+    # Claiming half the variance doubles the NEES, outside the bounds.
+    over = nees_summary(stream, stream.p, stream.v, stream.q, 0.5 * stream.P)
+    assert over["nees"]["pos"] == pytest.approx(2 * out["nees"]["pos"])
+    assert over["nees"]["pos"] > over["nees_bounds95"]["pos"][1]
+
+
+def test_consistent_tuning_is_consistent_where_the_paper_tuning_is_over_confident():
+    """Short seeded runs: the paper's tuning (drift unmodelled) claims too little position error;
+    the consistent one averages a NEES near 3 in every block, and is more accurate in attitude."""
+    run = _short_run(n=6, duration=5.0)
+    per_seed = {"paper": [], "consistent": []}
+    for seed in (0, 1):
+        for name, (result, _) in run_table2_configs(seed, run, group_sizes=(6,)).items():
+            per_seed[name].append(result)
+    agg = {name: aggregate_seeds(res) for name, res in per_seed.items()}
+    paper, cons = agg["paper"]["ekf_only"], agg["consistent"]["ekf_only"]
+    assert paper["nees"]["pos"] > 4.5
+    for block in ("pos", "vel", "att"):
+        assert 1.5 < cons["nees"][block] < 4.5, (block, cons["nees"])
+    assert cons["quat_err"] < 0.8 * paper["quat_err"]
+    text = format_table2_configs(combine_configs(agg))
+    assert "paper" in text and "consistent" in text and "NEES" in text
 
 
 def _short_run(n=6, duration=2.0):
@@ -54,7 +177,7 @@ def test_same_seed_same_numbers():
         np.testing.assert_array_equal(getattr(sa, key), getattr(sb, key))
     assert a["ekf_only"] == b["ekf_only"]
     for g in a["groups"]:
-        for field in ("pos_err_m", "quat_err", "mean_iterations_per_group", "residual_after_mean"):
+        for field in ("pos_err_m", "quat_err", "mean_iterations_per_group", "residual_after_mean", "nees"):
             assert a["groups"][g][field] == b["groups"][g][field]
     c, _ = run_table2(seed=6, run=run, group_sizes=(2,))
     assert c["ekf_only"]["pos_err_m"] != a["ekf_only"]["pos_err_m"]

@@ -215,3 +215,31 @@ def test_block_update_equals_the_general_joseph_update(block):
     assert ia.accepted and ib.accepted and ia.test_ratio == pytest.approx(ib.test_ratio)
     np.testing.assert_allclose(xb, xa, atol=1e-14)
     np.testing.assert_allclose(Pb, Pa, atol=1e-14)
+
+
+def test_tilt_and_heading_take_their_own_noise_and_the_class_agrees_with_the_functions():
+    """``att_yaw_*``: the heading axis of the world-frame attitude error gets its own process
+    density and reference variance; a reference that is off in tilt and heading by the same angle
+    corrects the tilt far more when the heading is the noisier, as the functional update does."""
+    from link_firmware_sim.ekf import E_TH, EkfConfig, EkfNoise, LinkEkf, attitude_variance, ekf_update_attitude
+    from companion.estimation.so3 import quat_from_rotvec
+
+    noise = EkfNoise(att_rad2_s=1e-5, att_yaw_rad2_s=4e-4)
+    d = noise.densities
+    assert d[E_TH].tolist() == [1e-5, 1e-5, 4e-4] and EkfNoise().densities[E_TH].tolist() == [0.01] * 3
+    cfg = EkfConfig(noise=noise, att_var_rad2=0.001, att_yaw_var_rad2=0.1, init_att_var_rad2=0.01)
+    assert attitude_variance(cfg).tolist() == [0.001, 0.001, 0.1] and attitude_variance(EkfConfig()) == 0.04
+    with pytest.raises(ValueError, match="att_yaw_var_rad2"):
+        EkfConfig(att_yaw_var_rad2=-1.0)
+    with pytest.raises(ValueError, match="att_yaw_rad2_s"):
+        EkfNoise(att_yaw_rad2_s=float("nan"))
+    ekf = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), cfg)
+    x0, P0 = ekf.x.copy(), ekf.P.copy()
+    z = quat_from_rotvec(np.array([0.05, 0.0, 0.05]))  # 0.05 rad off in roll and in heading
+    ekf.update_attitude(z)
+    x1, P1, _ = ekf_update_attitude(x0, P0, z, np.array([0.001, 0.001, 0.1]), cfg.gate_sigma)
+    np.testing.assert_allclose(ekf.x, x1, atol=1e-15)
+    np.testing.assert_allclose(ekf.P, P1, atol=1e-15)
+    assert P1[E_TH.start, E_TH.start] < 0.1 * P0[E_TH.start, E_TH.start] < P1[E_TH.start + 2, E_TH.start + 2]
+    dtheta = attitude_error(ekf.q_wxyz, np.array([1.0, 0, 0, 0]))
+    assert dtheta[0] > 0.04 and 0 < dtheta[2] < 0.01  # the tilt follows the reference, the heading barely

@@ -522,13 +522,16 @@ def _crafted_states(sent: dict, stop: threading.Event, seconds: float = 4.0) -> 
                 continue
             for m in parser.parse_buffer(data) or []:
                 if m.get_type() == "LOCAL_POSITION_NED" and m.get_srcSystem() == 2:
-                    seen = (m.time_boot_ms * 1e-3, np.array([m.y, m.x, -m.z]))
+                    seen = (m.time_boot_ms * 1e-3, np.array([m.y, m.x, -m.z]), time.monotonic())
             if seen is None or seen[0] < 8.0:
                 continue  # after the take-off (it ends at 7 s): inside the metrics window
             end = end or time.monotonic() + seconds
-            t, p = seen
-            # stamped 0.1 s ahead of the telemetry (a 10 Hz stream): newer than link 2's own states
-            good = LinkState(1, t + 0.1, p + [0.0, 0.0, 3.0], np.zeros(3), q, np.zeros(3), np.eye(9) * 1e-6)
+            t_seen, p, at = seen
+            # stamped where link 2's clock is now (the 10 Hz telemetry's time plus the wall time
+            # since it came: about simulated time at --speed 0) and 0.08 s ahead: newer than its own
+            # 50 Hz states, within the companion's 0.25 s stamp margin
+            t = t_seen + min(time.monotonic() - at, 0.1)
+            good = LinkState(1, t + 0.08, p + [0.0, 0.0, 3.0], np.zeros(3), q, np.zeros(3), np.eye(9) * 1e-6)
             send(good, "plausible_3m")
             send(replace(good, p_w_m=np.array([np.nan, 0.0, 2.5])), "nan")
             send(good, "non_pd", P=-np.eye(9))

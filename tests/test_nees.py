@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize
-from sitl.metrics import nees_metrics, nees_series
+from sitl.metrics import correlation_time, nees_metrics, nees_series
 from sitl.steplog import attach_truth
 
 
@@ -65,3 +65,48 @@ def test_truth_is_interpolated_at_the_step_times():
     want = quat_from_rotvec(np.array([0.0, 0.0, 0.5 * 0.05]))
     got = out["q_true_sckf"][1, 0]
     assert abs(abs(got @ want) - 1.0) < 1e-6
+
+
+def _ar1(rng, a, k, shape):
+    """Unit-variance AR(1) series with coefficient ``a`` along axis 0."""
+    w = np.empty((k,) + shape)
+    w[0] = rng.normal(size=shape)
+    e = rng.normal(size=(k,) + shape) * np.sqrt(1 - a * a)
+    for i in range(1, k):
+        w[i] = a * w[i - 1] + e[i]
+    return w
+
+
+@pytest.mark.parametrize("a", [0.0, 0.5, 0.9])
+def test_correlation_time_of_the_nees_matches_an_ar1_series(a):
+    """For whitened errors with autocorrelation a^j the NEES' integrated correlation time is
+    (1 + a^2) / (1 - a^2); NaN gaps are left out."""
+    w = _ar1(np.random.default_rng(3), a, 20000, (2, 3))
+    w[100:200, 0] = np.nan
+    tau = correlation_time(w)
+    assert tau.shape == (2,)
+    assert tau == pytest.approx((1 + a * a) / (1 - a * a), rel=0.15)
+
+
+def test_effective_bounds_widen_for_correlated_errors_but_not_for_overconfidence():
+    """A consistent filter whose errors are correlated over ~20 steps lands outside the
+    independent-sample band often but inside the effective one; the same errors with the
+    covariance four times too small (NEES 12) are outside both."""
+    rng = np.random.default_rng(4)
+    k, n = 1200, 3
+    log = {"t_sckf": np.arange(k) * 0.05, "p_true_sckf": np.zeros((k, n, 3)), "v_true_sckf": np.zeros((k, n, 3)),
+           "q_true_sckf": np.tile([1.0, 0, 0, 0], (k, n, 1))}
+    for which, scale in (("ekf", 1.0), ("corr", 2.0)):
+        e = scale * _ar1(rng, 0.95, k, (n, 3, 3))  # (k, n, block, 3), covariance identity
+        log[f"P_{which}_sckf"] = np.broadcast_to(np.eye(3), (k, n, 3, 3, 3)).copy()
+        log[f"p_{which}_sckf"] = -e[:, :, 0]
+        log[f"v_{which}_sckf"] = -e[:, :, 1]
+        log[f"q_{which}_sckf"] = quat_from_rotvec(e[:, :, 2])  # q_true = Exp(-e) q_est = 1
+    m = nees_metrics(log, 0.0)
+    for block in ("pos", "vel", "att"):
+        assert all(20 < x < 90 for x in m["effective_samples"]["ekf"][block])  # 1200 / 39
+        assert all(m["inside95"]["ekf"][block]), (block, m["ekf"][block], m["bounds95_effective"]["ekf"][block])
+        assert not any(m["inside95"]["corrected"][block])
+    means = [x for block in ("pos", "vel", "att") for x in m["ekf"][block]]
+    lo, hi = m["bounds95"]
+    assert any(not lo <= x <= hi for x in means)  # the independent band rejects a consistent filter

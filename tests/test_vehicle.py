@@ -1,6 +1,7 @@
 """The vehicle's MAVLink services, driven in-process over real loopback sockets."""
 
 import json
+import math
 import socket
 import struct
 import time
@@ -8,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from companion.estimation.so3 import quat_from_euler_zyx
+from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
+from companion.mavlink.frames import enu_ned
 from companion.mavlink.codec import encode_correction
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
@@ -16,7 +18,8 @@ from companion.mavlink.signing import SigningConfig, load_key, signing_timestamp
 from companion.messages import Correction
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
-from link_firmware_sim.geo import GeoOrigin
+from link_firmware_sim.ekf import X_BARO
+from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS, GeoOrigin
 from link_firmware_sim.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from link_firmware_sim.params import ParamTable, StreamRates
@@ -46,15 +49,16 @@ class Rig:
         self.vel_m_s = np.zeros(3)  # and its velocity
         self.vehicle.poll(0.01)  # accept the simulator connection
 
-    def tick(self, gps=False, ahrs=False):
-        """One lockstep tick: sensors in, actuators out (returns the thrusts)."""
+    def tick(self, gps=False, ahrs=False, **baro_mag):
+        """One lockstep tick: sensors in, actuators out (returns the thrusts); ``baro_mag``: the
+        HIL_SENSOR's ``mag_flu_gauss`` / ``baro_alt_m``."""
         self.t = round(self.t + 0.002, 6)
         msgs = []
         if gps:
             msgs.append(encode_hil_gps(self.t, np.array([0.0, 0.0, self.height_m]), self.vel_m_s, ORIGIN))
         if ahrs:
             msgs.append(encode_ahrs(self.t, LEVEL))
-        msgs.append(encode_hil_sensor(self.t, np.array([0.0, 0.0, 9.80665]), np.zeros(3), LEVEL))
+        msgs.append(encode_hil_sensor(self.t, np.array([0.0, 0.0, 9.80665]), np.zeros(3), **baro_mag))
         self.sim.send_many(msgs)
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
@@ -474,3 +478,21 @@ def test_a_gps_glitch_is_reported_in_statustext_sys_status_and_the_link_state(ri
     rig.vehicle.close()
     report = json.loads((rig.vehicle.out_dir / "link2_ports.json").read_text())["gps"]
     assert report["faults"] == 1 and report["fault_now"] and report["rejected_fixes"] >= 3
+
+
+def test_hil_barometer_and_magnetometer_reach_the_ekf_and_invalid_samples_are_dropped(rig):
+    rig.start()
+    fw = rig.vehicle.fw
+    assert not fw.ekf.baro_referenced  # no barometer in the HIL_SENSORs yet: nothing fused
+    mag = quat_to_rotmat(LEVEL).T @ enu_ned(MAG_FIELD_NED_GAUSS)  # level: the earth's field in FLU
+    for _ in range(5):
+        rig.tick(baro_alt_m=ORIGIN.alt_m + rig.height_m, mag_flu_gauss=mag)
+    assert fw.ekf.baro_referenced and fw.ekf.accepted["baro"] == 5 and fw.ekf.accepted["mag"] == 5
+    assert fw.ekf.x[X_BARO][0] == pytest.approx(rig.height_m - fw.ekf.x[2], abs=0.01)  # offset: height above origin
+    thrust = rig.tick(baro_alt_m=math.nan, mag_flu_gauss=np.array([math.nan, 0.0, 0.0]))
+    assert np.all(np.isfinite(thrust))  # the tick goes on: the IMU sample was good
+    assert rig.vehicle.errors["hil_baro"] == 1 and rig.vehicle.errors["hil_mag"] == 1
+    assert rig.vehicle.errors["hil"] == 0
+    assert fw.ekf.accepted["baro"] == 5 and fw.ekf.accepted["mag"] == 5
+    rig.tick(baro_alt_m=ORIGIN.alt_m + rig.height_m, mag_flu_gauss=mag)
+    assert fw.ekf.accepted["baro"] == 6 and fw.ekf.accepted["mag"] == 6

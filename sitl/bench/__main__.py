@@ -1,12 +1,16 @@
 """Benchmarks that print figures and write JSON.
 
-    python -m sitl.bench table2 [--json PATH] [--seed S] [--seeds N] [--duration S] [--out DIR]
+    python -m sitl.bench table2 [--json PATH] [--seed S] [--seeds N] [--duration S] [--ekf {paper,consistent,both}]
+                                [--out DIR]
     python -m sitl.bench scaling [--json PATH] [--seed S] [--out DIR]
     python -m sitl.bench zenoh [--duration S] [--groups 1,2/3,4,5/6,7] [--json PATH] [--out DIR]
+    python -m sitl.bench nees [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
+    python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
-result (or ``--json PATH`` instead) and, for table2, the EKF stream in the
-``companion replay`` input format (``ekf_stream.npz``) with the truth (``truth.npz``).
+result (or ``--json PATH`` instead) and, for table2, the EKF stream of the first seed in the
+``companion replay`` input format (``ekf_stream.npz`` for the paper's tuning,
+``ekf_stream_consistent.npz`` for the consistent one) with the truth (``truth.npz``).
 """
 
 from __future__ import annotations
@@ -23,9 +27,9 @@ from companion.estimation.sckf import CAParams
 from companion.estimation.semi import parse_groups
 from companion.cli import make_run_dir, run_subcommand
 
-from .ekf_chain import ChainRun
+from .ekf_chain import EKF_CONFIGS, ChainRun
 from .scaling import LINK_COUNTS, format_scaling, run_scaling
-from .table2 import GROUP_SIZES, aggregate_seeds, format_table2, run_table2
+from .table2 import GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, run_table2_configs
 from .zenoh_rtt import format_zenoh_rtt, run_zenoh_rtt
 
 
@@ -53,25 +57,31 @@ def _cmd_table2(args) -> int:
     if args.duration <= 0 or args.seeds < 1:
         print(f"error: --duration must be positive and --seeds >= 1 (got {args.duration}, {args.seeds})", file=sys.stderr)
         return 2
+    configs = EKF_CONFIGS if args.ekf == "both" else (args.ekf,)
     run = ChainRun(duration_s=args.duration)
     run_dir = make_run_dir("table2", args.out)
     n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
-    results = []
+    results: dict[str, list[dict]] = {name: [] for name in configs}
     with tqdm(
-        total=n_ticks * args.seeds, desc=f"EKF x {args.seeds} seed(s)", unit="tick", disable=args.quiet, file=sys.stderr
+        total=n_ticks * args.seeds * len(configs), desc=f"EKF x {args.seeds} seed(s) x {len(configs)} tuning(s)",
+        unit="tick", disable=args.quiet, file=sys.stderr,
     ) as bar:
         for seed in range(args.seed, args.seed + args.seeds):
-            result, stream = run_table2(seed, run, GROUP_SIZES, params, progress=bar.update)
-            results.append(result)
+            runs = run_table2_configs(seed, run, configs, GROUP_SIZES, params, progress=bar.update)
+            for name, (result, stream) in runs.items():
+                results[name].append(result)
+                if seed == args.seed:
+                    suffix = "" if name == "paper" else f"_{name}"
+                    np.savez_compressed(run_dir / f"ekf_stream{suffix}.npz", **stream.replay_arrays())
             if seed == args.seed:
-                np.savez_compressed(run_dir / "ekf_stream.npz", **stream.replay_arrays())
                 np.savez_compressed(
                     run_dir / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true
                 )
-    result = aggregate_seeds(results)
+    result = combine_configs({name: aggregate_seeds(res) for name, res in results.items()})
     path = _write_json(result, args.json, run_dir, "table2.json")
-    print(format_table2(result))
-    print(f"\nwrote {path} and {run_dir / 'ekf_stream.npz'} (replay input, seed {args.seed})")
+    print(format_table2_configs(result))
+    streams = ", ".join(f"ekf_stream{'' if n == 'paper' else '_' + n}.npz ({n})" for n in configs)
+    print(f"\nwrote {path} and in {run_dir}: {streams}, replay inputs of seed {args.seed}")
     return 0
 
 
@@ -131,6 +141,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="repeat with seeds S..S+N-1 and report mean +- std and the noise check (default 5)",
     )
+    t2.add_argument(
+        "--ekf",
+        choices=(*EKF_CONFIGS, "both"),
+        default="both",
+        help="EKF tuning: paper (Table I, drifts unmodelled), consistent (drifts carried in the noise) or both on "
+        "the same sensor data (default both)",
+    )
     t2.set_defaults(func=_cmd_table2)
     sc = sub.add_parser(
         "scaling",
@@ -152,7 +169,70 @@ def build_parser() -> argparse.ArgumentParser:
                     help="group layout, 1-based links (default 1,2/3,4,5/6,7: the thesis's seven links)")
     zb.add_argument("--base-port", type=int, default=17447, help="group g listens on TCP base+g-1 (default 17447)")
     zb.set_defaults(func=_cmd_zenoh)
+    for name, config, help_text, desc in (
+        ("nees", "configs/sitl/three_link.toml", "Monte Carlo NEES: a flight over N seeds, per link and block",
+         "Fly a batch scenario once per seed and average each link's NEES (position, velocity, attitude; EKF and "
+         "corrected) over the window and the seeds, with the 95 % bounds of that average for a consistent filter."),
+        ("static", "configs/sitl/seven_link_static.toml", "the thesis's static test over N seeds (GNSS receiver model)",
+         "Fly the resting 7-link chain once per seed with a receiver-like GNSS (--profile, default m8) and report "
+         "per link and axis the std and RMS error of the EKF, local and semi-distributed estimates, mean and spread "
+         "over seeds, beside the thesis's sec. 3.5.2 figures."),
+    ):
+        sp = sub.add_parser(name, help=help_text, description=desc)
+        sp.add_argument("--config", default=config, help=f"scenario file (default {config})")
+        sp.add_argument("--seeds", type=int, default=10, metavar="N", help="seeds S..S+N-1 (default 10)")
+        sp.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+        sp.add_argument("--duration", type=float, help="simulated seconds per seed (default: the scenario's)")
+        sp.add_argument("--profile", default="m8" if name == "static" else None,
+                        help="sensor profile instead of the scenario's" + (" (default m8)" if name == "static" else ""))
+        sp.add_argument("--jobs", type=int, default=2, help="flights at once, one process each (default 2)")
+        sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+        sp.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        sp.set_defaults(func=_cmd_seeds, bench=name)
     return parser
+
+
+def _cmd_seeds(args) -> int:
+    from sitl.scenario import load_scenario
+    from sitl.sensors import PROFILES
+
+    from .seeds import aggregate_nees, aggregate_static, fly_seeds, format_nees, format_static
+
+    if args.seeds < 1 or args.jobs < 1 or (args.duration is not None and args.duration <= 0):
+        print("error: --seeds and --jobs must be >= 1 and --duration positive", file=sys.stderr)
+        return 2
+    if args.profile is not None and args.profile not in PROFILES:
+        print(f"error: --profile: unknown profile {args.profile!r} (one of {', '.join(PROFILES)})", file=sys.stderr)
+        return 2
+    overrides = {} if args.duration is None else {"duration_s": args.duration}
+    try:
+        sc = load_scenario(args.config, **overrides)
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.bench == "static" and sc.trajectory.kind != "rest":
+        print(f"error: {args.config}: the static protocol needs a resting chain (trajectory.kind = \"rest\")",
+              file=sys.stderr)
+        return 2
+    if args.profile is not None:
+        overrides["profile"] = args.profile
+    run_dir = make_run_dir(args.bench, args.out)
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    with tqdm(total=len(seeds), desc=f"{sc.name} x {len(seeds)} seed(s)", unit="flight", disable=args.quiet,
+              file=sys.stderr) as bar:
+        runs = fly_seeds(args.config, seeds, run_dir, overrides=overrides, jobs=args.jobs, progress=bar.update)
+    try:
+        result = aggregate_nees(runs) if args.bench == "nees" else aggregate_static(runs)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    result["profile"] = args.profile or sc.sensors.profile
+    result["duration_s"] = sc.duration_s
+    path = _write_json(result, args.json, run_dir, f"{args.bench}.json")
+    print((format_nees if args.bench == "nees" else format_static)(result))
+    print(f"\nwrote {path} and one folder per seed in {run_dir}")
+    return 0
 
 
 def main(argv=None) -> int:

@@ -9,22 +9,54 @@ Reported per group size: estimator compute time (wall time inside the local cons
 applications and the global step only, summed over the 400 steps), mean position error and
 mean quaternion error (2-norm of the error vs. truth, averaged over links and steps; the
 quaternion error is sign-aligned), plus the same errors for the EKF alone.
+
+Consistency (:func:`nees_summary`): the NEES of every link per 3-dof block (position,
+velocity, attitude; ``e^T P_bb^-1 e`` with ``e`` the truth minus the estimate, the attitude error
+world-frame as the EKF's error state), averaged over the steps and links, for the EKF alone and
+for the corrected estimate of every group size (its covariance: the local constraint
+application's per-link blocks, which the global step leaves as they are, paper eq. 6, although
+it moves the estimate: with several groups the corrected NEES is low by construction). A
+consistent filter averages 3. Its 95 % bounds are those of the average of ``K_eff`` independent
+3-dof NEES values (``K_eff mean ~ chi2(3 K_eff)``): ``K_eff`` sums, over links and seeds, the
+steps divided by the NEES' integrated correlation time, estimated from the whitened errors' own
+autocorrelation (``1 + 2 sum_j rho(j)^2``, :func:`sitl.metrics.correlation_time`). Over seeds
+this is the Monte Carlo NEES test (Bar-Shalom, Li & Kirubarajan, sec. 5.4.2). The links count
+as independent: true of the EKFs (each link has its own sensors), not of the corrected
+estimates (the constraints couple neighbours), whose bounds are therefore too narrow.
+
+Two EKF tunings run on the same seeded sensor data (:data:`ekf_chain.EKF_CONFIGS`): ``paper``
+(Table I, drifts unmodelled) and ``consistent`` (:func:`ekf_chain.consistent_ekf_config`).
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import asdict, replace
 
 import numpy as np
 
+from companion.estimation.chain import ERR_P, ERR_TH, ERR_V
 from companion.estimation.constraints import constraint_residual
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import make_groups, semi_distributed_apply
-from companion.estimation.so3 import quat_distance
+from companion.estimation.so3 import attitude_error, quat_distance
+from sitl.metrics import NEES_BLOCKS, correlation_time, nees_bounds95
 
-from .ekf_chain import ChainRun, EkfStream, simulate_ekf_chain
+from .ekf_chain import EKF_CONFIGS, ChainRun, EkfStream, ekf_config, simulate_ekf_chain
 
-__all__ = ["PAPER_TABLE2", "GROUP_SIZES", "evaluate_group_size", "run_table2", "aggregate_seeds", "format_table2"]
+__all__ = [
+    "PAPER_TABLE2",
+    "GROUP_SIZES",
+    "nees_summary",
+    "evaluate_group_size",
+    "run_table2",
+    "run_table2_configs",
+    "aggregate_seeds",
+    "combine_configs",
+    "format_table2",
+    "format_nees_table",
+    "format_table2_configs",
+]
 
 #: The paper's Table II: group size -> (computing time s, position error m, quaternion error).
 PAPER_TABLE2 = {
@@ -36,6 +68,11 @@ PAPER_TABLE2 = {
 }
 GROUP_SIZES = (2, 3, 4, 6, 12)
 
+EKF_CONFIG_TITLES = {
+    "paper": "paper (Table I: white measurement noise only, the drifts unmodelled)",
+    "consistent": "consistent (the drifts carried in the measurement and process noise: consistent_ekf_config)",
+}
+
 
 def _errors(stream: EkfStream, p: np.ndarray, q: np.ndarray) -> tuple[float, float]:
     pos = float(np.mean(np.linalg.norm(p - stream.p_true, axis=-1)))
@@ -43,12 +80,35 @@ def _errors(stream: EkfStream, p: np.ndarray, q: np.ndarray) -> tuple[float, flo
     return pos, quat
 
 
+def nees_summary(stream: EkfStream, p: np.ndarray, v: np.ndarray, q: np.ndarray, P: np.ndarray) -> dict:
+    """NEES per 3-dof block of the estimate ``(p, v, q)`` with per-link covariances ``P`` (K, n, 9, 9).
+
+    ``nees``: the average over steps and links; ``nees_effective_samples``: how many independent
+    3-dof NEES values that average is worth (the steps over the correlation time, summed over the
+    links); ``nees_bounds95``: the two-sided 95 % bounds of such an average for a consistent
+    filter (see the module docstring).
+    """
+    err = np.stack([stream.p_true - p, stream.v_true - v, attitude_error(stream.q_true, q)], axis=2)  # (K, n, 3, 3)
+    cov = np.stack([P[..., b, b] for b in (ERR_P, ERR_V, ERR_TH)], axis=2)  # (K, n, 3, 3, 3)
+    w = np.linalg.solve(np.linalg.cholesky(cov), err[..., None])[..., 0]  # whitened errors
+    nees = np.sum(w * w, axis=-1)  # (K, n, 3)
+    k_eff = np.sum(nees.shape[0] / correlation_time(w), axis=0)  # (3,)
+    bounds = nees_bounds95(k_eff)
+    return {
+        "nees": {b: float(nees[..., j].mean()) for j, b in enumerate(NEES_BLOCKS)},
+        "nees_effective_samples": {b: float(k_eff[j]) for j, b in enumerate(NEES_BLOCKS)},
+        "nees_bounds95": {b: bounds[j].tolist() for j, b in enumerate(NEES_BLOCKS)},
+    }
+
+
 def evaluate_group_size(stream: EkfStream, size: int, params: CAParams = CAParams()) -> dict:
     """Run Alg. 2 + eq. 6 on every tick of ``stream`` with groups of ``size`` links."""
     K, n = stream.p.shape[:2]
     groups = make_groups(n, size)
     p_out = np.empty_like(stream.p)
+    v_out = np.empty_like(stream.v)
     q_out = np.empty_like(stream.q)
+    P_out = np.empty_like(stream.P)
     iterations = np.empty((K, len(groups)), dtype=int)
     residual_after = np.empty(K)
     elapsed = 0.0
@@ -57,7 +117,7 @@ def evaluate_group_size(stream: EkfStream, size: int, params: CAParams = CAParam
         t0 = time.perf_counter()
         res = semi_distributed_apply(*args, groups, params)
         elapsed += time.perf_counter() - t0
-        p_out[k], q_out[k] = res.p, res.q
+        p_out[k], v_out[k], q_out[k], P_out[k] = res.p, res.v, res.q, res.P
         iterations[k] = res.iterations
         residual_after[k] = np.linalg.norm(constraint_residual(res.p, res.v, res.q, stream.w[k], stream.d))
     pos_err, quat_err = _errors(stream, p_out, q_out)
@@ -70,6 +130,7 @@ def evaluate_group_size(stream: EkfStream, size: int, params: CAParams = CAParam
         "max_iterations": int(iterations.max()),
         "residual_after_mean": float(residual_after.mean()),
         "residual_after_max": float(residual_after.max()),
+        **nees_summary(stream, p_out, v_out, q_out, P_out),
     }
 
 
@@ -80,7 +141,7 @@ def run_table2(
     params: CAParams = CAParams(),
     progress=None,
 ) -> tuple[dict, EkfStream]:
-    """Simulate the EKF stream once, then evaluate every group size on it."""
+    """Simulate the EKF stream once (with ``run.ekf``), then evaluate every group size on it."""
     stream = simulate_ekf_chain(run, seed, progress)
     n = run.motion.n_links
     residual_before = np.array(
@@ -89,7 +150,8 @@ def run_table2(
     )
     ekf_pos, ekf_quat = _errors(stream, stream.p, stream.q)
     result = {
-        "ekf_only": {"pos_err_m": ekf_pos, "quat_err": ekf_quat, "residual_mean": float(residual_before.mean())},
+        "ekf_only": {"pos_err_m": ekf_pos, "quat_err": ekf_quat, "residual_mean": float(residual_before.mean()),
+                     **nees_summary(stream, stream.p, stream.v, stream.q, stream.P)},
         "groups": {},
         "protocol": {
             "seed": seed,
@@ -104,6 +166,7 @@ def run_table2(
             "alpha": params.alpha,
             "eps": params.eps,
             "max_iter": params.max_iter,
+            "ekf": asdict(run.ekf),
         },
         "paper": {str(g): dict(zip(("time_s", "pos_err_m", "quat_err"), v)) for g, v in PAPER_TABLE2.items()},
     }
@@ -112,6 +175,44 @@ def run_table2(
             raise ValueError(f"group size {size} exceeds the number of links ({n})")
         result["groups"][str(size)] = evaluate_group_size(stream, size, params)
     return result, stream
+
+
+def run_table2_configs(
+    seed: int = 0,
+    run: ChainRun = ChainRun(),
+    configs=EKF_CONFIGS,
+    group_sizes=GROUP_SIZES,
+    params: CAParams = CAParams(),
+    progress=None,
+) -> dict[str, tuple[dict, EkfStream]]:
+    """:func:`run_table2` once per EKF tuning in ``configs`` (names of :data:`EKF_CONFIGS`), all on
+    the same seeded truth and sensor data (the tuning draws no random numbers)."""
+    out = {}
+    for name in configs:
+        result, stream = run_table2(seed, replace(run, ekf=ekf_config(name, run)), group_sizes, params, progress)
+        result["protocol"]["ekf_config"] = name
+        out[name] = (result, stream)
+    return out
+
+
+_NEES_KEYS = ("nees", "nees_effective_samples", "nees_bounds95")
+
+
+def _aggregate_nees(rows: list[dict]) -> dict:
+    """Monte Carlo NEES over seeds: the mean of the per-seed averages (equal weights: every seed has
+    the same steps and links), their spread, the effective samples summed and the bounds for them."""
+    out: dict = {"nees": {}, "nees_std": {}, "nees_effective_samples": {}, "nees_bounds95": {}, "nees_inside95": {}}
+    for b in NEES_BLOCKS:
+        vals = np.array([r["nees"][b] for r in rows])
+        k_eff = float(sum(r["nees_effective_samples"][b] for r in rows))
+        lo, hi = nees_bounds95(k_eff).tolist()
+        mean = float(vals.mean())
+        out["nees"][b] = mean
+        out["nees_std"][b] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+        out["nees_effective_samples"][b] = k_eff
+        out["nees_bounds95"][b] = [lo, hi]
+        out["nees_inside95"][b] = bool(lo <= mean <= hi)
+    return out
 
 
 def aggregate_seeds(results: list[dict]) -> dict:
@@ -128,17 +229,25 @@ def aggregate_seeds(results: list[dict]) -> dict:
     out = {"ekf_only": {}, "groups": {}, "protocol": dict(first["protocol"]), "paper": first["paper"]}
     out["protocol"]["seeds"] = [r["protocol"]["seed"] for r in results]
     for key in first["ekf_only"]:
+        if key in _NEES_KEYS:
+            continue
         vals = np.array([r["ekf_only"][key] for r in results])
         out["ekf_only"][key] = float(vals.mean())
         out["ekf_only"][f"{key}_std"] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+    if "nees" in first["ekf_only"]:
+        out["ekf_only"].update(_aggregate_nees([r["ekf_only"] for r in results]))
     sizes = list(first["groups"])
     for size in sizes:
         row = {}
         for key in first["groups"][size]:
+            if key in _NEES_KEYS:
+                continue
             vals = np.array([r["groups"][size][key] for r in results], dtype=float)
             row[key] = float(vals.mean())
             if key in ("time_s", "pos_err_m", "quat_err"):
                 row[f"{key}_std"] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+        if "nees" in first["groups"][size]:
+            row.update(_aggregate_nees([r["groups"][size] for r in results]))
         out["groups"][size] = row
     beats = all(r["groups"][g]["pos_err_m"] < r["ekf_only"]["pos_err_m"] for r in results for g in sizes)
     pairs = {}
@@ -171,6 +280,10 @@ def format_table2(result: dict) -> str:
         f"EKF {proto['ekf_rate_hz']:g} Hz, SCKF {proto['sckf_rate_hz']:g} Hz ({proto['sckf_steps']} steps), "
         f"eps {proto['eps']:g}, alpha {proto['alpha']:g}, seed(s) {', '.join(str(s) for s in seeds)}"
         + (" (mean +- std over seeds)" if spread else ""),
+    ]
+    if "ekf_config" in proto:
+        lines.append(f"EKF tuning: {EKF_CONFIG_TITLES.get(proto['ekf_config'], proto['ekf_config'])}")
+    lines += [
         "",
         f"{'group size':>10} | {'CA time [s]':>{width}} | {'pos err [m]':>{width}} | {'quat err':>{width}} | "
         f"{'iters':>5} | {'|c| after':>9} || {'paper time':>10} | {'paper pos':>9} | {'paper quat':>10}",
@@ -207,3 +320,59 @@ def format_table2(result: dict) -> str:
             verdict = "yes" if checks["larger_groups_not_worse"] else "NO"
             lines.append(f"Larger groups not less accurate beyond noise (paired, 2 s.e.): {verdict} ({detail})")
     return "\n".join(lines)
+
+
+def combine_configs(aggregates: dict[str, dict]) -> dict:
+    """One result for several EKF tunings: ``by_ekf`` maps each tuning's name to its
+    :func:`aggregate_seeds` result; ``protocol`` (without the tuning) and ``paper`` are shared."""
+    first = next(iter(aggregates.values()))
+    protocol = {k: v for k, v in first["protocol"].items() if k not in ("ekf", "ekf_config")}
+    return {"protocol": protocol, "paper": first["paper"], "ekf_configs": list(aggregates), "by_ekf": aggregates}
+
+
+def _nees_cell(row: dict, block: str) -> str:
+    lo, hi = row["nees_bounds95"][block]
+    val = row["nees"][block]
+    inside = row.get("nees_inside95", {}).get(block, lo <= val <= hi)
+    return f"{val:6.2f} [{lo:.2f}-{hi:.2f}]{' ' if inside else '!'}"
+
+
+def format_nees_table(combined: dict) -> str:
+    """The NEES per block for the EKF alone and each group size, one column group per tuning."""
+    names = combined["ekf_configs"]
+    runs = [combined["by_ekf"][n] for n in names]
+    cell_w = 19
+    head1 = f"{'':>10} |" + " |".join(f" {n:<{3 * cell_w + 2}}" for n in names)
+    head2 = f"{'':>10} |" + " |".join(" " + " ".join(f"{b:<{cell_w}}" for b in NEES_BLOCKS) for _ in names)
+    lines = [
+        "NEES per 3-dof block, mean over steps, links and seeds (3: consistent; above: the covariance claims less "
+        "error than there is, below: more)",
+        "[95 % bounds of that mean for its effective samples, links taken as independent: too narrow for the "
+        "corrected rows]; !: outside.",
+        "Groups < all links: the covariance is the local step's, which the global step (eq. 6) leaves as it is "
+        "although it corrects the estimate.",
+        "",
+        head1,
+        head2,
+        "-" * len(head2),
+    ]
+    labels = [("EKF only", lambda r: r["ekf_only"])] + [
+        (size, lambda r, size=size: r["groups"][size]) for size in runs[0]["groups"]
+    ]
+    for label, get in labels:
+        cells = [" ".join(_nees_cell(get(r), b) for b in NEES_BLOCKS) for r in runs]
+        lines.append(f"{label:>10} | " + " | ".join(cells))
+    proto = combined["protocol"]
+    steps = len(proto.get("seeds", [proto.get("seed")])) * proto["sckf_steps"] * proto["n_links"]
+    lines.append("")
+    for n, r in zip(names, runs):
+        k = r["ekf_only"]["nees_effective_samples"]
+        lines.append(f"effective samples, EKF only ({n}): " + " / ".join(f"{b} {k[b]:.0f}" for b in NEES_BLOCKS)
+                     + f" of {steps} link-steps")
+    return "\n".join(lines)
+
+
+def format_table2_configs(combined: dict) -> str:
+    """Every tuning's Table II, then the NEES side by side."""
+    parts = [format_table2(combined["by_ekf"][n]) for n in combined["ekf_configs"]]
+    return "\n\n".join(parts + [format_nees_table(combined)])
