@@ -57,7 +57,7 @@ import numpy as np
 from companion.estimation.so3 import attitude_error
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
-           "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_bounds95",
+           "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
            "correlation_time", "static_metrics"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
@@ -134,26 +134,29 @@ def _rms(x: np.ndarray, axis=0) -> np.ndarray:
 NEES_BLOCKS = ("pos", "vel", "att")
 
 
-def _nees_parts(log: dict[str, np.ndarray], which: str):
-    """(errors (k, n, 3 blocks, 3), covariances (k, n, 3 blocks, 3, 3)) of the ``which`` estimate,
-    or ``None`` if the log lacks the covariances or the truth."""
+def nees_whitened(p_true, v_true, q_true, p, v, q, P_blocks) -> np.ndarray:
+    """Whitened errors ``L^-1 e`` (``P_bb = L L^T``) per sample and 3-dof block (position,
+    velocity, attitude), shape ``(..., 3 blocks, 3)``: ``e`` the truth minus the estimate (the
+    attitude error world-frame, as the EKF's error state), ``P_blocks`` (..., 3, 3, 3) the
+    diagonal blocks of its covariance. For a consistent filter three independent unit normals,
+    whose squared norm is the NEES; NaN where the estimate is unknown."""
+    err = np.stack([p_true - p, v_true - v, attitude_error(q_true, q)], axis=-2)  # (..., 3, 3)
+    out = np.full(err.shape, np.nan)
+    ok = np.all(np.isfinite(err), axis=-1) & np.all(np.isfinite(P_blocks), axis=(-2, -1))
+    if np.any(ok):
+        L = np.linalg.cholesky(P_blocks[ok])
+        out[ok] = np.linalg.solve(L, err[ok][..., None])[..., 0]
+    return out
+
+
+def _log_whitened(log: dict[str, np.ndarray], which: str) -> np.ndarray | None:
+    """:func:`nees_whitened` of the ``which`` estimate at the companion's steps, or ``None`` if
+    the log lacks the covariances or the truth."""
     need = (f"p_{which}_sckf", f"P_{which}_sckf", "p_true_sckf", "v_true_sckf", "q_true_sckf")
     if not all(k in log for k in need):
         return None
-    err = np.stack([log["p_true_sckf"] - log[f"p_{which}_sckf"], log["v_true_sckf"] - log[f"v_{which}_sckf"],
-                    attitude_error(log["q_true_sckf"], log[f"q_{which}_sckf"])], axis=2)  # (k, n, 3, 3)
-    return err, log[f"P_{which}_sckf"]
-
-
-def _whitened(err: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """``L^-1 e`` per sample and block (``P = L L^T``): for a consistent filter three independent
-    unit normals, whose squared norm is the NEES; NaN where the estimate is unknown."""
-    out = np.full(err.shape, np.nan)
-    ok = np.all(np.isfinite(err), axis=-1) & np.all(np.isfinite(P), axis=(-2, -1))
-    if np.any(ok):
-        L = np.linalg.cholesky(P[ok])
-        out[ok] = np.linalg.solve(L, err[ok][..., None])[..., 0]
-    return out
+    return nees_whitened(log["p_true_sckf"], log["v_true_sckf"], log["q_true_sckf"], log[f"p_{which}_sckf"],
+                         log[f"v_{which}_sckf"], log[f"q_{which}_sckf"], log[f"P_{which}_sckf"])
 
 
 def nees_series(log: dict[str, np.ndarray], which: str) -> np.ndarray | None:
@@ -162,11 +165,8 @@ def nees_series(log: dict[str, np.ndarray], which: str) -> np.ndarray | None:
     P_bb^-1 e`` with ``e`` the truth minus the estimate (the attitude error world-frame, as the
     EKF's error state) and ``P_bb`` the block of the covariance logged with it; NaN where the
     estimate is unknown. ``None`` if the log lacks the covariances or the truth."""
-    parts = _nees_parts(log, which)
-    if parts is None:
-        return None
-    w = _whitened(*parts)
-    return np.sum(w * w, axis=-1)
+    w = _log_whitened(log, which)
+    return None if w is None else np.sum(w * w, axis=-1)
 
 
 def correlation_time(w: np.ndarray, c: float = 5.0) -> np.ndarray:
@@ -229,10 +229,10 @@ def nees_metrics(log: dict[str, np.ndarray], flight_start_s: float) -> dict | No
     win = log.get("t_sckf", np.zeros(0)) >= flight_start_s
     eff: dict = {}
     for name, which in (("ekf", "ekf"), ("corrected", "corr")):
-        parts = _nees_parts(log, which)
-        if parts is None or not np.any(win):
+        w = _log_whitened(log, which)
+        if w is None or not np.any(win):
             return None
-        w = _whitened(parts[0][win], parts[1][win])  # (k, n, 3 blocks, 3)
+        w = w[win]  # (k, n, 3 blocks, 3)
         series = np.sum(w * w, axis=-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)

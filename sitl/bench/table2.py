@@ -39,8 +39,8 @@ from companion.estimation.chain import ERR_P, ERR_TH, ERR_V
 from companion.estimation.constraints import constraint_residual
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import make_groups, semi_distributed_apply
-from companion.estimation.so3 import attitude_error, quat_distance
-from sitl.metrics import NEES_BLOCKS, correlation_time, nees_bounds95
+from companion.estimation.so3 import quat_distance
+from sitl.metrics import NEES_BLOCKS, correlation_time, nees_bounds95, nees_whitened
 
 from .ekf_chain import EKF_CONFIGS, ChainRun, EkfStream, ekf_config, simulate_ekf_chain
 
@@ -88,9 +88,8 @@ def nees_summary(stream: EkfStream, p: np.ndarray, v: np.ndarray, q: np.ndarray,
     links); ``nees_bounds95``: the two-sided 95 % bounds of such an average for a consistent
     filter (see the module docstring).
     """
-    err = np.stack([stream.p_true - p, stream.v_true - v, attitude_error(stream.q_true, q)], axis=2)  # (K, n, 3, 3)
     cov = np.stack([P[..., b, b] for b in (ERR_P, ERR_V, ERR_TH)], axis=2)  # (K, n, 3, 3, 3)
-    w = np.linalg.solve(np.linalg.cholesky(cov), err[..., None])[..., 0]  # whitened errors
+    w = nees_whitened(stream.p_true, stream.v_true, stream.q_true, p, v, q, cov)  # (K, n, 3, 3)
     nees = np.sum(w * w, axis=-1)  # (K, n, 3)
     k_eff = np.sum(nees.shape[0] / correlation_time(w), axis=0)  # (3,)
     bounds = nees_bounds95(k_eff)
