@@ -42,6 +42,7 @@ import numpy as np
 
 from companion.configfile import require_nonnegative
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_to_rotmat
+from companion.mavlink.frames import enu_ned
 from companion.skeleton.body import GRAVITY_M_S2
 from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS
 from sitl.synthetic import SensorModel, draw_drifts
@@ -50,7 +51,7 @@ __all__ = ["ImuNoise", "GpsNoise", "AttitudeRefNoise", "BaroNoise", "MagNoise", 
            "LinkSensors", "MAG_FIELD_ENU_GAUSS", "downwash_fraction"]
 
 #: The earth's field of the simulated world in the simulator's frame (ENU, gauss).
-MAG_FIELD_ENU_GAUSS = np.array([MAG_FIELD_NED_GAUSS[1], MAG_FIELD_NED_GAUSS[0], -MAG_FIELD_NED_GAUSS[2]])
+MAG_FIELD_ENU_GAUSS = enu_ned(MAG_FIELD_NED_GAUSS)
 
 
 @dataclass(frozen=True)
