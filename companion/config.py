@@ -91,6 +91,12 @@ class CompanionConfig:
     none. ``arm``: arm every link once all report a usable EKF.
     ``time_base``: ``flight_controller`` (the links' EKF stamps share one clock: SITL) or ``gps``
     (real Pixhawks: each link's boot clock is mapped to GPS time through its SYSTEM_TIME).
+    ``omega_std_rad_s``: the noise (std per axis) of the body rates the links report, the
+    velocity input of eq. 3; the corrected covariance then includes its effect
+    (:attr:`~companion.estimation.sckf.CAParams.omega_std_rad_s`). Unset: the rates count as exact
+    (the paper's Alg. 1); a SITL scenario that leaves it unset takes its simulated gyro's white
+    noise (the firmware reports the raw rate less its bias estimate). On hardware: the IMU's rate
+    noise after the flight controller's gyro filter.
     ``distributed``: one companion per group (``python -m companion --config F --group G``),
     joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
     whole chain and runs the global step in-process. ``enabled = false`` runs no constraint
@@ -110,6 +116,7 @@ class CompanionConfig:
     eps_m: float = 0.01
     alpha: float = 0.01
     max_iter: int = 20
+    omega_std_rad_s: float | None = None
     links: tuple[LinkEndpoint, ...] = ()
     mode: Literal["dialect", "standard"] = "dialect"
     targets: Literal["trajectory", "none"] = "trajectory"
@@ -128,7 +135,7 @@ class CompanionConfig:
     gate_vel_m_s: float = 0.25
 
     def __post_init__(self) -> None:
-        CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+        self.params
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
                          "clock_rate_max", "reboot_silence_s", "reboot_frames")
         self.gate
@@ -144,7 +151,8 @@ class CompanionConfig:
 
     @property
     def params(self) -> CAParams:
-        return CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter)
+        return CAParams(alpha=self.alpha, eps=self.eps_m, max_iter=self.max_iter,
+                        omega_std_rad_s=self.omega_std_rad_s or 0.0)
 
     @property
     def gate(self) -> GateParams:

@@ -134,12 +134,16 @@ def load_config(cls: type, path: str | PathLike[str]) -> Any:
     return build(cls, load_toml(path), file=str(path))
 
 
-def build(cls: type, data: Mapping[str, Any], *, file: str, prefix: str = "") -> Any:
+def build(cls: type, data: Mapping[str, Any], *, file: str, prefix: str = "", base: Any = None) -> Any:
     """Construct the dataclass ``cls`` from the parsed TOML table ``data``.
 
     ``file`` and ``prefix`` (the dotted key of ``data`` in the file, ``""`` at the top) only
-    serve the error messages. Raises :class:`ConfigError` for the first problem found, and
-    ``TypeError`` if ``cls`` is not a dataclass or uses an unsupported annotation.
+    serve the error messages. A table given for a field whose type is a dataclass changes only
+    the keys it names: the others keep the field's default (``base``: the instance whose values
+    the absent keys take, e.g. a ``[firmware.ekf]`` with one key keeps the rest of the tuning the
+    firmware's default holds, not the bare class defaults). Raises :class:`ConfigError` for the
+    first problem found, and ``TypeError`` if ``cls`` is not a dataclass or uses an unsupported
+    annotation.
     """
     if not _is_dataclass_type(cls):
         raise TypeError(f"build() needs a dataclass type, got {cls!r}")
@@ -154,10 +158,24 @@ def build(cls: type, data: Mapping[str, Any], *, file: str, prefix: str = "") ->
         _describe(annotation)  # rejects unsupported annotations even when the key is absent
         key = _join(prefix, field.name)
         if field.name in data:
-            kwargs[field.name] = _convert(annotation, data[field.name], file, key)
+            if _is_dataclass_type(annotation):
+                default = getattr(base, field.name) if base is not None else _field_default(field)
+                kwargs[field.name] = build(annotation, data[field.name], file=file, prefix=key,
+                                           base=default if isinstance(default, annotation) else None)
+            else:
+                kwargs[field.name] = _convert(annotation, data[field.name], file, key)
+        elif base is not None:
+            kwargs[field.name] = getattr(base, field.name)
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
             raise ConfigError(file, key, "missing required key")
     return _construct(cls, kwargs, fields, file, prefix)
+
+
+def _field_default(field: dataclasses.Field) -> Any:
+    """The value a field takes when its key is absent (``None`` if it has none)."""
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return None if field.default is dataclasses.MISSING else field.default
 
 
 def _is_dataclass_type(tp: Any) -> bool:

@@ -26,7 +26,15 @@ import numpy as np
 
 from .estimation.chain import CON_POS, CON_VEL
 from .estimation.sckf import CAParams, CAResult, constraint_apply
-from .estimation.semi import GroupBoundary, Groups, SemiResult, group_boundary, semi_distributed_apply
+from .estimation.semi import (
+    GroupBoundary,
+    Groups,
+    SemiResult,
+    group_boundary,
+    semi_distributed_apply,
+    group_tip_terms,
+    shifted_covariance,
+)
 from .estimation.so3 import attitude_error, quat_from_rotvec, quat_mul
 from .messages import Correction, LinkState
 
@@ -79,7 +87,8 @@ def _deltas(states, p, v, q, p_out, v_out, q_out, seq: int) -> list[Correction]:
 @dataclass(frozen=True)
 class LocalStep:
     """A group's half of the semi-distributed step: its links aligned to ``time_s``, the local
-    constraint application (Alg. 2 for this group, i.e. Alg. 1 on its links) and its boundary."""
+    constraint application (Alg. 2 for this group, i.e. Alg. 1 on its links), its boundary and
+    ``tip_cross``, the (n, 12, 9) ``Cov(tau, x~_i)`` that carries the covariance through its shift."""
 
     time_s: float
     p: np.ndarray
@@ -88,6 +97,7 @@ class LocalStep:
     w: np.ndarray
     result: CAResult
     boundary: GroupBoundary
+    tip_cross: np.ndarray
 
 
 def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams = CAParams(),
@@ -101,15 +111,25 @@ def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams 
     w = np.stack([s.omega_b_rad_s for s in states])
     P = np.stack([s.P for s in states])
     result = constraint_apply(p, v, q, w, d_b_m, P, params)
-    return LocalStep(t, p, v, q, w, result, group_boundary(result.p, result.v, result.q, w, d_b_m, result.P))
+    tip_cov, tip_cross = group_tip_terms(result.q, w, np.asarray(d_b_m, float), result)
+    boundary = group_boundary(result.p, result.v, result.q, w, d_b_m, result.P, tip_cov)
+    return LocalStep(t, p, v, q, w, result, boundary, tip_cross)
 
 
-def finish_step(states: Sequence[LinkState], step: LocalStep, shift_pv: np.ndarray | None,
-                seq: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Correction]]:
+def finish_step(states: Sequence[LinkState], step: LocalStep, shift_pv: np.ndarray | None, seq: int,
+                shift_gain: np.ndarray | None = None, shift_cov: np.ndarray | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[Correction]]:
     """The group's final estimate (local result shifted by the global step's ``[dp; dv]``, eq. 6;
-    ``None``: local only) and its links' corrections: ``(p, v, q, corrections)``."""
+    ``None``: local only), its covariance blocks and its links' corrections: ``(p, v, q, P,
+    corrections)``. With the shift's covariance terms (``shift_gain`` (6, 12), ``shift_cov``
+    (6, 6): :class:`~companion.estimation.semi.GlobalSolution`) the covariance is carried through
+    the shift (:func:`~companion.estimation.semi.shifted_covariance`); else it is the local step's."""
     p_out, v_out = step.result.p.copy(), step.result.v.copy()
+    P_out = step.result.P
     if shift_pv is not None:
         p_out += shift_pv[CON_POS]
         v_out += shift_pv[CON_VEL]
-    return p_out, v_out, step.result.q, _deltas(states, step.p, step.v, step.q, p_out, v_out, step.result.q, seq)
+        if shift_gain is not None and shift_cov is not None:
+            P_out = shifted_covariance(P_out, step.tip_cross, shift_gain, shift_cov)
+    return (p_out, v_out, step.result.q, P_out,
+            _deltas(states, step.p, step.v, step.q, p_out, v_out, step.result.q, seq))

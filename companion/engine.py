@@ -623,7 +623,7 @@ class CompanionEngine:
         self._local[cycle] = (states, step, nis_max)
         b = step.boundary
         # stamped when it goes out, after the computation (the shift deadline runs from there)
-        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock()))
+        self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock(), b.tip_cov))
 
     def _finish(self, resolved) -> None:
         """Corrections for the cycles that ended (with the leader's shift, or local-only)."""
@@ -636,14 +636,14 @@ class CompanionEngine:
             states, step, nis_max = entry
             if res.shift is None and res.reason:
                 log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
-            p, v, q, corrections = finish_step(states, step, res.shift, self.seq)
+            p, v, q, P, corrections = finish_step(states, step, res.shift, self.seq, res.shift_gain, res.shift_cov)
             self.seq = (self.seq + 1) & 0xFFFF or 1
-            self._send_corrections(tuple(range(len(self.links))), corrections, (p, v, q, step.result.P))
+            self._send_corrections(tuple(range(len(self.links))), corrections, (p, v, q, P))
             self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
                          int(step.result.iterations),
                          res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1,
                          np.ones(len(self.links), dtype=bool), nis_max,
-                         (np.stack([s.P for s in states]), step.result.P))
+                         (np.stack([s.P for s in states]), P))
 
     def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
                 leader: int, corrected: np.ndarray, nis_max: float, P) -> None:
@@ -651,8 +651,9 @@ class CompanionEngine:
         (aligned to the cycle in distributed mode), ``p, v, q`` the corrected estimate (a link's
         EKF state where ``corrected`` is false), ``nis_max`` the largest joint NIS of the gate,
         ``P`` the ``(n, 9, 9)`` covariances ``(reported by the links, after the constraint
-        application)`` (the local step's: eq. 6 shifts the estimate, its covariance is not
-        recomputed), logged as their 3x3 position, velocity and attitude blocks."""
+        application)`` (carried through the global step of eq. 6 when there was one:
+        :func:`~companion.estimation.semi.shifted_covariance`), logged as their 3x3 position,
+        velocity and attitude blocks."""
         pe, ve, qe, we = ekf
         row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,

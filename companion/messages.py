@@ -30,12 +30,15 @@ __all__ = [
     "check_finite",
     "check_unit_quat",
     "check_pd",
+    "check_psd",
     "LinkState",
     "Correction",
     "GroupBoundaryReport",
     "GlobalShift",
     "ChainTargets",
     "PoseTarget",
+    "ContactTarget",
+    "ExternalWrench",
 ]
 
 
@@ -77,6 +80,17 @@ def check_pd(name: str, matrix) -> np.ndarray:
         np.linalg.cholesky(m)
     except np.linalg.LinAlgError:
         raise MessageError(f"{name}: not positive definite") from None
+    return m
+
+
+def check_psd(name: str, matrix) -> np.ndarray:
+    """A finite symmetric positive-semidefinite matrix (symmetrised; eigenvalues down to
+    ``-1e-9`` times the largest are rounding)."""
+    m = check_finite(name, matrix)
+    m = 0.5 * (m + m.T)
+    eig = np.linalg.eigvalsh(m)
+    if eig[0] < -1e-9 * max(float(np.abs(eig).max()), 1e-300):
+        raise MessageError(f"{name}: not positive semidefinite (eigenvalue {eig[0]:.3g})")
     return m
 
 
@@ -176,6 +190,9 @@ class GroupBoundaryReport:
             clock) of its previous cycle with a shift, -1 if it had none; the leader reports them.
         network_round_trip_us: the same less the leader's hold time (waiting for the other
             groups, solving): what the wire and the two Zenoh stacks took; -1 if none.
+        tip_cov_pv: (12, 12) covariance of the ``[left tip; right tip]`` errors after the local
+            step, or ``None``: with it every group derives the covariance of its shifted estimate
+            (:mod:`companion.estimation.semi`).
     """
 
     group: int
@@ -185,6 +202,7 @@ class GroupBoundaryReport:
     info_pv: np.ndarray
     round_trip_us: int = -1
     network_round_trip_us: int = -1
+    tip_cov_pv: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -272,3 +290,48 @@ class ChainTargets:
         """The :class:`PoseTarget` of the ``k``-th listed link."""
         return PoseTarget(self.p_w_m[k], self.q_wxyz[k], self.v_w_m_s[k], self.a_w_m_s2[k], self.omega_b_rad_s[k],
                           self.omega_dot_b_rad_s2[k], self.force_ff_w_n[k], self.torque_ff_b_nm[k])
+
+
+@dataclass(frozen=True)
+class ContactTarget:
+    """Commanded contact of the hybrid pose/wrench controller (thesis sec. 2.3.3): the body point
+    ``contact_b_m`` pressed along the world unit normal ``normal_w`` (pointing into the surface)
+    with ``force_n`` [N] (>= 0). Sent over MAVLink as MAV_CMD_SKELETON_SET_CONTACT
+    (:func:`companion.mavlink.codec.encode_contact_command`)."""
+
+    normal_w: np.ndarray
+    contact_b_m: np.ndarray
+    force_n: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal_w, dtype=float)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(np.linalg.norm(n) - 1.0) > 1e-6:
+            raise ValueError(f"normal_w must be a unit 3-vector, got {self.normal_w!r}")
+        r = np.asarray(self.contact_b_m, dtype=float)
+        if r.shape != (3,) or not np.all(np.isfinite(r)):
+            raise ValueError(f"contact_b_m must be a finite 3-vector, got {self.contact_b_m!r}")
+        if not (np.isfinite(self.force_n) and self.force_n >= 0):
+            raise ValueError(f"force_n must be finite and non-negative, got {self.force_n!r}")
+
+
+@dataclass(frozen=True)
+class ExternalWrench:
+    """A link's momentum-observer estimate of the external wrench (thesis sec. 2.3.3), as streamed
+    in SKELETON_EXTERNAL_WRENCH.
+
+    Attributes:
+        link: 0-based link index.
+        time_s: flight-controller time of the estimate.
+        force_w_n: external force at the link centre, world frame [N].
+        torque_b_nm: external torque, body frame [N m].
+        contact_force_n: the observer's force along the commanded contact normal ``lambda_c^``
+            [N] (what the link applies to the surface); NaN without a commanded contact.
+        contact_force_cmd_n: the commanded contact force ``lambda_d`` [N]; NaN without one.
+    """
+
+    link: int
+    time_s: float
+    force_w_n: np.ndarray
+    torque_b_nm: np.ndarray
+    contact_force_n: float = float("nan")
+    contact_force_cmd_n: float = float("nan")

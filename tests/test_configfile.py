@@ -537,3 +537,40 @@ leaves = st.builds(Leaf, gain=finite, label=texts, enabled=st.booleans(), mode=s
 def test_dump_build_round_trip(obj):
     text = dump_toml(obj)
     assert build(RoundTrip, tomllib.loads(text), file="x") == obj
+
+
+@dataclass(frozen=True)
+class _Inner:
+    a: float = 1.0
+    b: float = 2.0
+
+
+@dataclass(frozen=True)
+class _Middle:
+    inner: _Inner = field(default_factory=_Inner)
+    c: int = 3
+
+
+def _tuned() -> _Middle:
+    return _Middle(inner=_Inner(a=10.0, b=20.0), c=30)
+
+
+@dataclass(frozen=True)
+class _Outer:
+    middle: _Middle = field(default_factory=_tuned)
+
+
+def test_a_partial_table_keeps_the_fields_default_not_the_class_defaults():
+    """[middle.inner] with one key changes that key of the field's default (here a tuned instance,
+    like the firmware's outdoor EKF tuning), at every depth; an empty table changes nothing."""
+    assert build(_Outer, {}, file="f").middle == _tuned()
+    assert build(_Outer, {"middle": {}}, file="f").middle == _tuned()
+    assert build(_Outer, {"middle": {"c": 4}}, file="f").middle == _Middle(_Inner(10.0, 20.0), 4)
+    assert build(_Outer, {"middle": {"inner": {"b": 5.0}}}, file="f").middle == _Middle(_Inner(10.0, 5.0), 30)
+    # the real case: one EKF key in [firmware.ekf] keeps the rest of outdoor_ekf_config
+    from dataclasses import replace
+
+    from link_firmware_sim.firmware import FirmwareConfig, outdoor_ekf_config
+
+    cfg = build(FirmwareConfig, {"ekf": {"gps_pos_var_m2": 0.7}}, file="f")
+    assert cfg.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)

@@ -24,7 +24,7 @@ from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.keys import boundary_key, shift_key, target_key
-from companion.fleetnet.leader import GlobalStepNode, solve_cycle
+from companion.fleetnet.leader import GlobalStepNode, shift_covariance_terms, solve_cycle
 from companion.messages import ChainTargets, Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
 from sitl.scenario import Scenario
 
@@ -44,11 +44,19 @@ def _messages(rng):
         LinkState(5, 12.345678, rng.normal(size=3), rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3), P),
         Correction(2, 3.25, rng.normal(size=3), rng.normal(size=3), 0.01 * rng.normal(size=3), 4242),
         GroupBoundaryReport(1, 1_250_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567),
+        GroupBoundaryReport(2, 1_300_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567,
+                            _psd12(rng)),
         GlobalShift(1, 1_250_000, (0, 1, 3), rng.normal(size=(3, 6)), 0, 1_400_000, (10, 20, 30)),
         GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
         _targets(rng, (0, 1, 2, 3, 4, 5, 6)),
         _targets(rng, (2, 5)),
     ]
+
+
+def _psd12(rng) -> np.ndarray:
+    """A symmetric PSD 12 x 12 of rank 9 (a single link's tip covariance is singular)."""
+    A = rng.normal(size=(12, 9))
+    return A @ A.T
 
 
 def _targets(rng, links, time_us=12_340_000, seq=7) -> ChainTargets:
@@ -78,6 +86,9 @@ def test_codec_round_trip_is_exact(seed):
             np.testing.assert_allclose(out.q_wxyz, msg.q_wxyz, atol=1e-15)
             np.testing.assert_allclose(out.P, 0.5 * (msg.P + msg.P.T), atol=0)
             assert out.link == msg.link and out.time_s == msg.time_s
+        elif isinstance(msg, GroupBoundaryReport) and msg.tip_cov_pv is not None:  # symmetrised
+            np.testing.assert_allclose(out.tip_cov_pv, msg.tip_cov_pv, atol=1e-12)
+            assert _equal(replace(out, tip_cov_pv=None), replace(msg, tip_cov_pv=None))
         else:
             assert _equal(out, msg), msg
 
@@ -95,6 +106,11 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         good + b"\0": "trailing",
         codec.encode(bad_info): "info_pv: not positive definite",
         codec.encode(nan_tip): "left_tip_pv_w: non-finite",
+        codec.encode(replace(nan_tip, left_tip_pv_w=np.zeros(6), tip_cov_pv=-np.eye(12))):
+            "tip_cov_pv: not positive semidefinite",
+        codec.encode(replace(nan_tip, left_tip_pv_w=np.zeros(6), tip_cov_pv=np.full((12, 12), np.nan))):
+            "tip_cov_pv: non-finite",
+        good[:-1] + bytes([2]): "tip_cov_pv: presence flag 2",  # (good has no tip covariance: flag 0 last)
         codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
         codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), links=(1, 1))): "ChainTargets.links",
         codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
@@ -445,20 +461,26 @@ def test_networked_shifts_close_every_group_joint(seed, sizes):
 
 @pytest.mark.parametrize("groups", LAYOUTS)
 def test_group_halves_equal_the_in_process_step(groups):
-    """local_step per group, eq. 6 from the reports, finish_step == compute_corrections (one process)."""
+    """local_step per group, eq. 6 from the reports (through the wire codec), finish_step ==
+    compute_corrections (one process), covariance carried through the shift included."""
     n = groups[-1][-1] + 1
     p, v, q, w, d, P = perturbed_chain(np.random.default_rng(21), n)
     states = [LinkState(i, 3.0, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]
     ref, ref_corr = compute_corrections(states, d, groups)
     steps = [local_step([states[i] for i in g], d[list(g)], t=3.0) for g in groups]
-    reports = [GroupBoundaryReport(k, 3_000_000, s.boundary.left_tip, s.boundary.right_tip, s.boundary.info_pv)
-               for k, s in enumerate(steps)]
+    reports = [codec.decode(codec.encode(GroupBoundaryReport(
+        k, 3_000_000, s.boundary.left_tip, s.boundary.right_tip, s.boundary.info_pv, tip_cov_pv=s.boundary.tip_cov)))
+        for k, s in enumerate(steps)]
     _, shifts = solve_cycle(reports)
     for k, g in enumerate(groups):
-        p_out, v_out, q_out, corr = finish_step([states[i] for i in g], steps[k], shifts[k], seq=0)
+        gain, cov = shift_covariance_terms(reports, k)
+        p_out, v_out, q_out, P_out, corr = finish_step([states[i] for i in g], steps[k], shifts[k], 0, gain, cov)
         np.testing.assert_allclose(p_out, ref.p[list(g)], atol=1e-9)
         np.testing.assert_allclose(v_out, ref.v[list(g)], atol=1e-9)
         np.testing.assert_allclose(q_out, ref.q[list(g)], atol=1e-9)
+        np.testing.assert_allclose(P_out, ref.P[list(g)], atol=1e-12)
+        if len(groups) > 1:  # the shift moved the covariance away from the local step's
+            assert np.abs(P_out - steps[k].result.P).max() > 1e-4
         for c, rc in zip(corr, [ref_corr[i] for i in g]):
             np.testing.assert_allclose(c.dp_w_m, rc.dp_w_m, atol=1e-9)
             np.testing.assert_allclose(c.dtheta_w_rad, rc.dtheta_w_rad, atol=1e-9)

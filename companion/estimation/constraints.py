@@ -39,6 +39,7 @@ __all__ = [
     "dense_jacobian_from_blocks",
     "left_tip",
     "right_tip",
+    "tip_jacobians",
 ]
 
 
@@ -120,21 +121,35 @@ def _block_template(sign: float) -> np.ndarray:
 
 
 _L_TEMPLATE = _block_template(1.0)
-_R_TEMPLATE = _block_template(-1.0)
 
 
 def jacobian_blocks_from_tips(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 4 blocks from precomputed :func:`tip_offsets` ``(a, b)``."""
-    shape = a.shape[:-2] + (a.shape[-2] - 1, CON_DIM, ERR_DIM)
+    """Eq. 4 blocks from precomputed :func:`tip_offsets` ``(a, b)``: ``L_i`` is link ``i``'s right-tip
+    Jacobian, ``R_i`` minus link ``i+1``'s left-tip Jacobian (:func:`tip_jacobians`)."""
+    left, right = _tip_jacobians(a, b)
+    R = left[..., 1:, :, :]
+    np.negative(R, out=R)
+    return right[..., :-1, :, :], R
+
+
+def _tip_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    shape = a.shape[:-1] + (CON_DIM, ERR_DIM)
     Sa = skew(a)
     Sb = skew(b)
-    L = np.broadcast_to(_L_TEMPLATE, shape).copy()
-    R = np.broadcast_to(_R_TEMPLATE, shape).copy()
-    L[..., CON_POS, ERR_TH] = -Sa[..., :-1, :, :]
-    L[..., CON_VEL, ERR_TH] = -Sb[..., :-1, :, :]
-    R[..., CON_POS, ERR_TH] = -Sa[..., 1:, :, :]
-    R[..., CON_VEL, ERR_TH] = -Sb[..., 1:, :, :]
-    return L, R
+    right = np.broadcast_to(_L_TEMPLATE, shape).copy()
+    left = right.copy()
+    right[..., CON_POS, ERR_TH] = -Sa
+    right[..., CON_VEL, ERR_TH] = -Sb
+    left[..., CON_POS, ERR_TH] = Sa
+    left[..., CON_VEL, ERR_TH] = Sb
+    return left, right
+
+
+def tip_jacobians(q, w, d) -> tuple[np.ndarray, np.ndarray]:
+    """``(J_left, J_right)``, each ``(..., n, 6, 9)``: the derivative of every link's left and
+    right tip [position; velocity] (:func:`left_tip`, :func:`right_tip`) with respect to its error
+    state ``[dp; dv; dtheta]`` (eq. 4's blocks: ``L_i = J_right_i``, ``R_i = -J_left_{i+1}``)."""
+    return _tip_jacobians(*tip_offsets(q, w, d))
 
 
 def dense_jacobian_from_blocks(L: np.ndarray, R: np.ndarray) -> np.ndarray:

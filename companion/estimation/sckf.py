@@ -42,7 +42,7 @@ import numpy as np
 from scipy.linalg.lapack import dpbtrf as _dpbtrf
 from scipy.linalg.lapack import dpbtrs as _dpbtrs
 
-from .chain import CON_DIM, ERR_DIM, ERR_P, ERR_TH, ERR_V
+from .chain import CON_DIM, CON_VEL, ERR_DIM, ERR_P, ERR_TH, ERR_V
 from .constraints import (
     body_tip_vectors,
     dense_jacobian_from_blocks,
@@ -50,7 +50,7 @@ from .constraints import (
     residual_from_tips,
     tips_from_body,
 )
-from .so3 import retract
+from .so3 import quat_to_rotmat, retract, skew
 
 __all__ = [
     "CAParams",
@@ -60,6 +60,7 @@ __all__ = [
     "constraint_apply_dense_batched",
     "constraint_apply_structured",
     "block_diag_covariance",
+    "rate_noise_covariance",
     "diagonal_blocks",
     "DENSE_MAX_LINKS",
 ]
@@ -79,11 +80,16 @@ class CAParams:
         eps: stop when ``||c||_2 <= eps`` (stacked position [m] and velocity [m/s] error;
             paper: 0.01 in simulation, 0.05 in the outdoor experiment).
         max_iter: iteration cap; the result reports ``converged=False`` if it is hit.
+        omega_std_rad_s: standard deviation per axis of the body rates the links report, the
+            velocity input of eq. 3. Alg. 1 takes them as exact (0, the default); with a value
+            the error they put into the corrected estimate is added to its covariance
+            (:func:`rate_noise_covariance`; the estimate itself is unchanged).
     """
 
     alpha: float = 0.01
     eps: float = 0.01
     max_iter: int = 20
+    omega_std_rad_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.alpha) and self.alpha > 0.0):
@@ -92,6 +98,8 @@ class CAParams:
             raise ValueError(f"eps must be a non-negative number, got {self.eps!r}")
         if int(self.max_iter) != self.max_iter or self.max_iter < 1:
             raise ValueError(f"max_iter must be a positive integer, got {self.max_iter!r}")
+        if not (math.isfinite(self.omega_std_rad_s) and self.omega_std_rad_s >= 0.0):
+            raise ValueError(f"omega_std_rad_s must be a non-negative number, got {self.omega_std_rad_s!r}")
 
 
 @dataclass(frozen=True)
@@ -105,6 +113,13 @@ class CAResult:
         residual_history: ``||c||_2`` before the first iteration and after each one.
         converged: whether ``||c||_2 <= eps`` at the end.
         P_full: the full ``9n x 9n`` ``P^C`` (dense method only, else ``None``).
+        P_ends: (2, n, 9, 9) cross-covariances ``P^C[i, 1]`` and ``P^C[i, n]`` of every link ``i``
+            with the first and the last link (both methods): what the covariance of the
+            semi-distributed global step needs (:func:`companion.estimation.semi.shifted_covariance`).
+        W_ends: (2, n, 9, 3) cross-covariances of every link's corrected error with the body-rate
+            error of the first and of the last link (``None`` when the rates count as exact,
+            :attr:`CAParams.omega_std_rad_s` = 0).
+        omega_std_rad_s: the body-rate noise the covariance accounts for.
     """
 
     p: np.ndarray
@@ -115,6 +130,9 @@ class CAResult:
     residual_history: np.ndarray
     converged: bool
     P_full: np.ndarray | None = None
+    P_ends: np.ndarray | None = None
+    W_ends: np.ndarray | None = None
+    omega_std_rad_s: float = 0.0
 
 
 def block_diag_covariance(P_blocks: np.ndarray) -> np.ndarray:
@@ -189,7 +207,13 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
         for g in np.flatnonzero(active):
             history[g].append(float(norms[g]))
         active = active & (norms > params.eps) & (j < params.max_iter)
+    W_ends = None
+    if params.omega_std_rad_s > 0.0 and n > 1:  # (a chain that needed no correction took none)
+        KD = (j > 0)[:, None, None] * _rate_noise_gain(q, w, d, P)
+        Pc = Pc + params.omega_std_rad_s**2 * _outer(KD)
+        W_ends = _rate_end_columns(KD, n, params.omega_std_rad_s)
     blocks = diagonal_blocks(Pc)
+    ends = _end_columns(Pc, n)
     return [
         CAResult(
             p=p[g],
@@ -200,9 +224,66 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
             residual_history=np.asarray(history[g]),
             converged=history[g][-1] <= params.eps,
             P_full=Pc[g],
+            P_ends=ends[g],
+            W_ends=None if W_ends is None else W_ends[g],
+            omega_std_rad_s=params.omega_std_rad_s,
         )
         for g in range(G)
     ]
+
+
+def rate_noise_covariance(q, w, d, P, omega_std_rad_s: float) -> np.ndarray:
+    """The covariance ``(..., 9n, 9n)`` that white noise of std ``omega_std_rad_s`` per axis on
+    the reported body rates ``w`` adds to the constrained estimate (an extension of Alg. 1,
+    which takes the rates as exact).
+
+    The rates enter eq. 3's velocity rows through the tip velocities ``R S(w) d = -R S(d) w``, so
+    a rate error ``dw`` moves the constraint by ``D dw`` (joint ``i``: ``-R_i S(d_i) dw_i -
+    R_{i+1} S(d_{i+1}) dw_{i+1}``), and Alg. 1, converged, removes the residual it sees by the
+    projection ``K = P^E C^T (C P^E C^T)^-1`` (the weakening has faded): the estimate takes
+    ``-K D dw`` with it. Returns ``sigma^2 K D D^T K^T`` at the attitudes ``q`` (the corrected
+    ones), with ``P`` (..., n, 9, 9) the EKF blocks ``P^E``."""
+    return omega_std_rad_s**2 * _outer(_rate_noise_gain(q, w, d, P))
+
+
+def _outer(A: np.ndarray) -> np.ndarray:
+    Q = A @ np.swapaxes(A, -1, -2)
+    return 0.5 * (Q + np.swapaxes(Q, -1, -2))
+
+
+def _rate_noise_gain(q, w, d, P) -> np.ndarray:
+    """``K D`` (..., 9n, 3n) of :func:`rate_noise_covariance`."""
+    n = q.shape[-2]
+    C = dense_jacobian_from_blocks(*jacobian_blocks_from_tips(*tips_from_body(q, body_tip_vectors(w, d))))
+    B = -quat_to_rotmat(q) @ skew(d)  # (..., n, 3, 3): d(tip velocity offset)/d(w)
+    D = np.zeros(q.shape[:-2] + (n - 1, CON_DIM, n, 3))
+    for i in range(n - 1):
+        D[..., i, CON_VEL, i, :] = B[..., i, :, :]
+        D[..., i, CON_VEL, i + 1, :] = B[..., i + 1, :, :]
+    D = D.reshape(q.shape[:-2] + (CON_DIM * (n - 1), 3 * n))
+    PCt = block_diag_covariance(P) @ np.swapaxes(C, -1, -2)
+    return PCt @ np.linalg.solve(C @ PCt, D)
+
+
+def _rate_end_columns(KD: np.ndarray, n: int, omega_std_rad_s: float) -> np.ndarray:
+    """``(..., 2, n, 9, 3)``: ``Cov(x~_i, dw_first)`` and ``Cov(x~_i, dw_last)`` = ``-sigma^2 K D``'s
+    columns of the first and the last link's rate."""
+    cols = -omega_std_rad_s**2 * np.stack([KD[..., :, :3], KD[..., :, 3 * (n - 1):]], axis=-3)
+    return cols.reshape(cols.shape[:-2] + (n, ERR_DIM, 3))
+
+
+def _end_columns(P_full: np.ndarray, n: int) -> np.ndarray:
+    """``(..., 2, n, 9, 9)``: the blocks ``P[i, 0]`` and ``P[i, n-1]`` of stacked ``(..., 9n, 9n)`` covariances."""
+    cols = np.stack([P_full[..., :, :ERR_DIM], P_full[..., :, ERR_DIM * (n - 1):]], axis=-3)  # (..., 2, 9n, 9)
+    return cols.reshape(cols.shape[:-2] + (n, ERR_DIM, ERR_DIM))
+
+
+def _block_diag_ends(P: np.ndarray) -> np.ndarray:
+    """:func:`_end_columns` of the block-diagonal covariance with blocks ``P`` (n, 9, 9)."""
+    ends = np.zeros((2,) + P.shape)
+    ends[0, 0] = P[0]
+    ends[1, -1] = P[-1]
+    return ends
 
 
 @lru_cache(maxsize=128)
@@ -298,7 +379,8 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
     c = residual_from_tips(p, v, a, b)
     history = [math.sqrt(float(c @ c))]
     if m == 0 or history[-1] <= params.eps:
-        return CAResult(p, v, q, P.copy(), 0, np.asarray(history), history[-1] <= params.eps)
+        return CAResult(p, v, q, P.copy(), 0, np.asarray(history), history[-1] <= params.eps,
+                        P_ends=_block_diag_ends(P), omega_std_rad_s=params.omega_std_rad_s)
     Pl, Pr = P[:-1], P[1:]
     # Rows of C_a and C_a P^E for every iteration a, constraint-major: buffer[i, 6a:6a+6].
     cap = CON_DIM * params.max_iter
@@ -330,7 +412,16 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
         history.append(math.sqrt(float(c @ c)))
         j += 1
     PC = _posterior_blocks(P, system, LPf, RPf)
-    return CAResult(p, v, q, PC, j, np.asarray(history), history[-1] <= params.eps)
+    ends = _posterior_end_columns(P, system, Lf, Rf, LPf, RPf)
+    W_ends = None
+    if params.omega_std_rad_s > 0.0:
+        KD = _rate_noise_gain(q, w, d, P)
+        Q = params.omega_std_rad_s**2 * _outer(KD)
+        PC = PC + diagonal_blocks(Q)
+        ends = ends + _end_columns(Q, n)
+        W_ends = _rate_end_columns(KD, n, params.omega_std_rad_s)
+    return CAResult(p, v, q, PC, j, np.asarray(history), history[-1] <= params.eps, P_ends=ends, W_ends=W_ends,
+                    omega_std_rad_s=params.omega_std_rad_s)
 
 
 def _assemble(Lf, Rf, LPf, RPf, alpha: float):
@@ -366,6 +457,26 @@ def _posterior_blocks(P, system: _BandedSPD, LPf, RPf):
         corr[1:-1] += X + np.swapaxes(X, 1, 2)
     PC = P - corr
     return 0.5 * (PC + np.swapaxes(PC, 1, 2))
+
+
+def _posterior_end_columns(P, system: _BandedSPD, Lf, Rf, LPf, RPf):
+    """``P^C[i, 0]`` and ``P^C[i, n-1]`` for every link ``i`` as ``(2, n, 9, 9)``:
+    ``P^C[:, k] = P^E[:, k] - P^E Cs^T A^-1 (Cs P^E)[:, k]``, one banded solve with 18 right-hand
+    sides. ``(Cs P^E)[:, k]`` is non-zero only in the rows of the constraints touching link ``k``
+    (the first constraint's ``L`` rows for ``k = 0``, the last one's ``R`` rows for ``k = n-1``)."""
+    n = P.shape[0]
+    m, rows, _ = LPf.shape
+    Z = np.zeros((m, rows, 2 * ERR_DIM))
+    Z[0, :, :ERR_DIM] = LPf[0]
+    Z[-1, :, ERR_DIM:] += RPf[-1]
+    y = system.solve(Z).reshape(m, rows, 2 * ERR_DIM)
+    g = np.zeros((n, ERR_DIM, 2 * ERR_DIM))
+    g[:-1] += np.swapaxes(Lf, 1, 2) @ y
+    g[1:] += np.swapaxes(Rf, 1, 2) @ y
+    cols = -(P @ g)  # (n, 9, 18)
+    cols[0, :, :ERR_DIM] += P[0]
+    cols[-1, :, ERR_DIM:] += P[-1]
+    return np.stack([cols[:, :, :ERR_DIM], cols[:, :, ERR_DIM:]])
 
 
 def constraint_apply(p, v, q, w, d, P, params: CAParams = CAParams(), method: str = "auto") -> CAResult:

@@ -17,8 +17,21 @@ velocity] difference between the right tip of group ``g`` and the left tip of gr
 
 So each group contributes only its two end tips and ``Lambda_g``
 (:class:`GroupBoundary`, what a group companion publishes to the leader) and the leader's
-work is ``O(s)``. The local covariances are reported unchanged by the shift (the paper
-defines the global step on the mean only).
+work is ``O(s)``.
+
+Covariance. The paper defines the global step on the mean only; reporting the local step's
+covariance after it would overstate the error (a group's common offset is averaged with the
+other groups'). The shifts are linear in the tips, ``Dx = G tau`` with ``tau_g = [left tip;
+right tip]`` of group ``g``, so with every group's tip covariance ``T_g`` (12 x 12, from the
+local step's joint covariance; groups are independent) the leader also returns, per group,
+``Gamma_g = G_gg`` (the shift's dependence on the group's own tips) and ``V_g = Cov(Dx_g) =
+sum_k G_gk T_k G_gk^T``. Link ``i`` of group ``g``, shifted by ``Dx_g``, then has the first-order
+covariance (:func:`shifted_covariance`)::
+
+    P_i' = P_i + E^T Gamma_g Y_i + Y_i^T Gamma_g^T E + E^T V_g E,   Y_i = Cov(tau_g, x~_i)
+
+with ``E`` the [p; v] rows of the 9-dim error state. A group that reports no tip covariance
+(an older peer) makes the leader solve the mean only, and the local covariance stays.
 """
 
 from __future__ import annotations
@@ -28,9 +41,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .chain import CON_POS, CON_VEL, ERR_PV
-from .constraints import left_tip, right_tip
+from .chain import CON_DIM, CON_POS, CON_VEL, ERR_DIM, ERR_PV
+from .constraints import left_tip, right_tip, tip_jacobians
 from .sckf import CAParams, CAResult, constraint_apply, constraint_apply_dense_batched
+from .so3 import quat_to_rotmat, skew
 
 __all__ = [
     "Groups",
@@ -45,6 +59,10 @@ __all__ = [
     "BATCH_DENSE_MAX_LINKS",
     "boundary_residuals",
     "global_step",
+    "GlobalSolution",
+    "global_solution",
+    "group_tip_terms",
+    "shifted_covariance",
     "SemiResult",
     "semi_distributed_apply",
 ]
@@ -111,27 +129,73 @@ class GroupBoundary:
         left_tip: (6,) [position m; velocity m/s] of the left tip of the group's first link.
         right_tip: (6,) the same for the right tip of its last link.
         info_pv: (6, 6) ``Lambda_g = sum_i Pbar_i^-1`` over the group's links.
+        tip_cov: (12, 12) covariance of the ``[left tip; right tip]`` errors after the local
+            step, ``None`` if unknown (then the global step shifts the mean only).
     """
 
     left_tip: np.ndarray
     right_tip: np.ndarray
     info_pv: np.ndarray
+    tip_cov: np.ndarray | None = None
 
 
-def group_boundaries(p, v, q, w, d, P, groups: Groups) -> tuple[GroupBoundary, ...]:
-    """Boundaries of all ``groups`` of one chain (arrays indexed by link, groups 0-based)."""
+def group_boundaries(p, v, q, w, d, P, groups: Groups, tip_covs: Sequence[np.ndarray | None] | None = None,
+                     ) -> tuple[GroupBoundary, ...]:
+    """Boundaries of all ``groups`` of one chain (arrays indexed by link, groups 0-based);
+    ``tip_covs``: each group's tip covariance (:func:`group_tip_terms`), or none."""
     first = [g[0] for g in groups]
     last = [g[-1] for g in groups]
     lt = left_tip(p[first], v[first], q[first], w[first], d[first])
     rt = right_tip(p[last], v[last], q[last], w[last], d[last])
     info = np.add.reduceat(np.linalg.inv(P[:, ERR_PV, ERR_PV]), first, axis=0)
     info = 0.5 * (info + np.swapaxes(info, 1, 2))
-    return tuple(GroupBoundary(left_tip=lt[k], right_tip=rt[k], info_pv=info[k]) for k in range(len(groups)))
+    covs = [None] * len(groups) if tip_covs is None else list(tip_covs)
+    return tuple(GroupBoundary(left_tip=lt[k], right_tip=rt[k], info_pv=info[k], tip_cov=covs[k])
+                 for k in range(len(groups)))
 
 
-def group_boundary(p, v, q, w, d, P) -> GroupBoundary:
+def group_boundary(p, v, q, w, d, P, tip_cov: np.ndarray | None = None) -> GroupBoundary:
     """Boundary of one group from its own links' (locally corrected) states and covariances."""
-    return group_boundaries(p, v, q, w, d, P, (tuple(range(p.shape[0])),))[0]
+    return group_boundaries(p, v, q, w, d, P, (tuple(range(p.shape[0])),), (tip_cov,))[0]
+
+
+def _end_jacobians(q, w, d) -> tuple[np.ndarray, np.ndarray]:
+    """A group's ``tau = [left tip; right tip]`` (12) against the error state of its first link
+    (``J[0]``, (12, 9)) and of its last (``J[1]``), and against their body rates (``B[0]``,
+    ``B[1]``, (12, 3): the tip velocities carry ``+-R S(w) d = -+R S(d) w``)."""
+    ends = [0, q.shape[0] - 1]
+    J_left, J_right = tip_jacobians(q[ends], w[ends], d[ends])
+    rate = -quat_to_rotmat(q[ends]) @ skew(d[ends])
+    J = np.zeros((2, 2 * CON_DIM, ERR_DIM))
+    B = np.zeros((2, 2 * CON_DIM, 3))
+    J[0, :CON_DIM] = J_left[0]
+    J[1, CON_DIM:] = J_right[1]
+    B[0, CON_VEL] = -rate[0]
+    B[1, CON_DIM + CON_VEL.start:CON_DIM + CON_VEL.stop] = rate[1]
+    return J, B
+
+
+def group_tip_terms(q, w, d, local: CAResult) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, Y)`` of one group after its local step (``q``: its final attitudes; ``local``: the
+    step's result, with ``P_ends`` and ``W_ends``): ``T = Cov(tau, tau)`` (12, 12), the tips'
+    covariance it publishes, and ``Y_i = Cov(tau, x~_i)`` (n, 12, 9) per link, what
+    :func:`shifted_covariance` needs; body-rate noise included."""
+    J, B = _end_jacobians(q, w, d)
+    # Cov(tau, x_i) = J_e P^C[e, i] + B_e Cov(dw_e, x_i) over the ends e, with P^C[e, i] = P_ends[e, i]^T
+    Y = J[0] @ np.swapaxes(local.P_ends[0], 1, 2) + J[1] @ np.swapaxes(local.P_ends[1], 1, 2)
+    if local.W_ends is not None:
+        Y = Y + B[0] @ np.swapaxes(local.W_ends[0], 1, 2) + B[1] @ np.swapaxes(local.W_ends[1], 1, 2)
+    T = Y[0] @ J[0].T + Y[-1] @ J[1].T  # Cov(tau, J_first x_first + J_last x_last)
+    var = local.omega_std_rad_s**2
+    if var > 0.0:
+        # Cov(tau, dw_e) = J_first Cov(x_first, dw_e) + J_last Cov(x_last, dw_e) + B_e' Cov(dw_e', dw_e)
+        same = q.shape[0] == 1  # one link: both ends carry the same rate
+        for e in (0, 1):
+            Z = var * (B[0] + B[1] if same else B[e])
+            if local.W_ends is not None:
+                Z = Z + J[0] @ local.W_ends[e][0] + J[1] @ local.W_ends[e][-1]
+            T = T + Z @ B[e].T
+    return 0.5 * (T + T.T), Y
 
 
 def boundary_residuals(boundaries: Sequence[GroupBoundary]) -> np.ndarray:
@@ -155,11 +219,68 @@ def global_step(boundaries: Sequence[GroupBoundary]) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class GlobalSolution:
+    """Eq. 6 solved with its covariance terms (see the module docstring).
+
+    Attributes:
+        shifts: (s, 6) ``[Dp; Dv]`` per group (:func:`global_step`).
+        gains: (s, 6, 12) ``Gamma_g``, the derivative of group ``g``'s shift with respect to its
+            own ``[left tip; right tip]``; ``None`` when a group reported no tip covariance.
+        shift_cov: (s, 6, 6) ``V_g = Cov(Dx_g)``; ``None`` likewise.
+    """
+
+    shifts: np.ndarray
+    gains: np.ndarray | None = None
+    shift_cov: np.ndarray | None = None
+
+
+def global_solution(boundaries: Sequence[GroupBoundary]) -> GlobalSolution:
+    """:func:`global_step` plus, when every group reported its tip covariance, the terms of
+    :func:`shifted_covariance`: ``Dx = G tau`` (the shifts are linear in the tips), ``Gamma_g =
+    G_gg`` and ``V_g = sum_k G_gk T_k G_gk^T``."""
+    shifts = global_step(boundaries)
+    if any(b.tip_cov is None for b in boundaries):
+        return GlobalSolution(shifts)
+    s = len(boundaries)
+    # Dx_g = s_g - sum_j W_j s_j with W_j = Lambda^-1 Lambda_j (sum_j W_j = I), s_g = sum_{h<g} c_h and
+    # c_h = right tip of h - left tip of h+1. So, with Wsuf_k = sum_{j>=k} W_j:
+    #   dDx_g / d(left tip of k)  = Wsuf_k - [g >= k] I      (0 for k = 0: Wsuf_0 = I)
+    #   dDx_g / d(right tip of k) = [g > k] I - Wsuf_{k+1}   (0 for the last group)
+    infos = np.stack([b.info_pv for b in boundaries])
+    W = np.linalg.solve(infos.sum(axis=0)[None], infos)  # (s, 6, 6)
+    Wsuf = np.zeros((s + 1, CON_DIM, CON_DIM))
+    Wsuf[:s] = np.cumsum(W[::-1], axis=0)[::-1]
+    order = np.arange(s)
+    eye = np.eye(CON_DIM)
+    G = np.empty((s, s, CON_DIM, 2 * CON_DIM))  # [g, k]: dDx_g / d tau_k
+    G[:, :, :, :CON_DIM] = Wsuf[None, :s] - (order[:, None] >= order[None, :])[:, :, None, None] * eye
+    G[:, :, :, CON_DIM:] = (order[:, None] > order[None, :])[:, :, None, None] * eye - Wsuf[None, 1:]
+    T = np.stack([b.tip_cov for b in boundaries])
+    gains = G[order, order]  # (s, 6, 12)
+    cov = np.sum(G @ T[None] @ np.swapaxes(G, 2, 3), axis=1)
+    return GlobalSolution(shifts, gains, 0.5 * (cov + np.swapaxes(cov, 1, 2)))
+
+
+def shifted_covariance(P: np.ndarray, Y: np.ndarray, gain: np.ndarray, shift_cov: np.ndarray) -> np.ndarray:
+    """Covariance blocks (n, 9, 9) of a group's links after its global-step shift (module
+    docstring): ``P_i + E^T Gamma Y_i + Y_i^T Gamma^T E + E^T V E`` from the local step's blocks
+    ``P``, ``Y = Cov(tau, x~_i)`` (:func:`group_tip_terms`), the group's ``Gamma`` (6, 12)
+    and ``V`` (6, 6) (:class:`GlobalSolution`)."""
+    out = np.array(P, dtype=float, copy=True)
+    cross = gain @ Y  # (n, 6, 9) = Cov(Dx, x~_i)
+    out[:, ERR_PV, :] += cross
+    out[:, :, ERR_PV] += np.swapaxes(cross, 1, 2)
+    out[:, ERR_PV, ERR_PV] += shift_cov
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+@dataclass(frozen=True)
 class SemiResult:
     """Output of the semi-distributed estimator (Alg. 2 then eq. 6).
 
     Attributes:
-        p, v, q: final estimates; P: (n, 9, 9) local-step covariance blocks.
+        p, v, q: final estimates; P: (n, 9, 9) their covariance blocks (the local step's,
+            carried through the global step: :func:`shifted_covariance`).
         shifts: (s, 6) global-step shifts per group.
         local: the per-group :class:`CAResult` of Alg. 2.
         boundaries: the per-group :class:`GroupBoundary` fed to eq. 6.
@@ -218,9 +339,16 @@ def semi_distributed_apply(
     v_out = np.concatenate([r.v for r in local])
     q_out = np.concatenate([r.q for r in local])
     P_out = np.concatenate([r.P for r in local])
-    boundaries = group_boundaries(p_out, v_out, q_out, w, d, P_out, groups)
-    shifts = global_step(boundaries)
+    terms = [group_tip_terms(q_out[g[0]:g[-1] + 1], w[g[0]:g[-1] + 1], d[g[0]:g[-1] + 1], r)
+             for g, r in zip(groups, local)] if len(groups) > 1 else [(None, None)]
+    boundaries = group_boundaries(p_out, v_out, q_out, w, d, P_out, groups, [T for T, _ in terms])
+    solution = global_solution(boundaries)
+    shifts = solution.shifts
     sizes = [len(g) for g in groups]
+    if len(groups) > 1:
+        for k, g in enumerate(groups):
+            sl = slice(g[0], g[-1] + 1)
+            P_out[sl] = shifted_covariance(P_out[sl], terms[k][1], solution.gains[k], solution.shift_cov[k])
     p_out += np.repeat(shifts[:, CON_POS], sizes, axis=0)
     v_out += np.repeat(shifts[:, CON_VEL], sizes, axis=0)
     return SemiResult(p_out, v_out, q_out, P_out, shifts, local, boundaries)

@@ -29,19 +29,21 @@ from companion.messages import (
     MessageError,
     check_finite,
     check_pd,
+    check_psd,
     check_unit_quat,
 )
 
 __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
 
 MAGIC = b"ASKZ"
-VERSION = 2  # 2: ChainTargets carry the whole-chain feed-forward wrench
+VERSION = 3  # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
 #: symmetric n x n matrices (upper triangle), ``"ids"`` a u8 count and that many u8 ids,
 #: ``("rows", m)`` float64 rows of width m, one per entry of the preceding ``ids`` field,
-#: ``"per_id"`` one int32 per entry of the preceding ``ids`` field.
+#: ``"per_id"`` one int32 per entry of the preceding ``ids`` field, ``("optsym", n)`` a u8 flag
+#: (0: ``None``, 1: present) and, if present, a ``("sym", n)``.
 _SCALAR = {"u8": "B", "i8": "b", "u16": "H", "i32": "i", "u32": "I", "i64": "q", "f64": "d"}
 
 #: message type -> (type id, [(field, kind)]): the one schema of every Zenoh payload.
@@ -52,7 +54,7 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                       ("dtheta_w_rad", ("vec", 3)), ("seq", "u16"))),
     GroupBoundaryReport: (3, (("group", "u8"), ("cycle_us", "i64"), ("left_tip_pv_w", ("vec", 6)),
                               ("right_tip_pv_w", ("vec", 6)), ("info_pv", ("sym", 6)), ("round_trip_us", "i32"),
-                              ("network_round_trip_us", "i32"))),
+                              ("network_round_trip_us", "i32"), ("tip_cov_pv", ("optsym", 12)))),
     GlobalShift: (4, (("leader_group", "u8"), ("cycle_us", "i64"), ("groups", "ids"), ("shift_pv_w", ("rows", 6)),
                       ("handover_group", "i8"), ("handover_cycle_us", "i64"), ("hold_us", "per_id"))),
     ChainTargets: (5, (("leader_group", "u8"), ("time_us", "i64"), ("seq", "u32"), ("links", "ids"),
@@ -84,7 +86,11 @@ def encode(msg) -> bytes:
             out.append(struct.pack("<" + _SCALAR[kind], value))
         elif kind[0] == "vec" or kind[0] == "rows":
             out.append(np.ascontiguousarray(value, dtype="<f8").tobytes())
-        else:  # sym
+        elif kind[0] == "optsym" and value is None:
+            out.append(b"\x00")
+        else:  # sym, optsym
+            if kind[0] == "optsym":
+                out.append(b"\x01")
             out.append(np.asarray(value, dtype="<f8")[np.triu_indices(kind[1])].tobytes())
     return b"".join(out)
 
@@ -118,8 +124,16 @@ def decode(payload: bytes):
                 fmt = "<" + _SCALAR[kind]
                 (values[name],) = struct.unpack_from(fmt, data, offset)
                 offset += struct.calcsize(fmt)
+            elif kind[0] == "optsym" and struct.unpack_from("<B", data, offset)[0] == 0:
+                values[name] = None
+                offset += 1
             else:
-                size = {"vec": kind[1], "rows": count * kind[1], "sym": kind[1] * (kind[1] + 1) // 2}[kind[0]]
+                if kind[0] == "optsym":
+                    (flag,) = struct.unpack_from("<B", data, offset)
+                    if flag != 1:
+                        raise MessageError(f"{cls.__name__}.{name}: presence flag {flag}, expected 0 or 1")
+                    offset += 1
+                size = {"vec": kind[1], "rows": count * kind[1]}.get(kind[0], kind[1] * (kind[1] + 1) // 2)
                 flat = np.frombuffer(data, dtype="<f8", count=size, offset=offset).astype(float)
                 offset += 8 * size
                 check_finite(f"{cls.__name__}.{name}", flat)
@@ -165,6 +179,8 @@ def _correction(v: dict[str, Any]) -> Correction:
 def _boundary(v: dict[str, Any]) -> GroupBoundaryReport:
     _finite_all(GroupBoundaryReport, v)
     v["info_pv"] = check_pd("GroupBoundaryReport.info_pv", v["info_pv"])
+    if v["tip_cov_pv"] is not None:
+        v["tip_cov_pv"] = check_psd("GroupBoundaryReport.tip_cov_pv", v["tip_cov_pv"])
     return GroupBoundaryReport(**v)
 
 

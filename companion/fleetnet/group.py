@@ -70,9 +70,11 @@ class GroupLink:
         out, self._targets_in = self._targets_in, []
         return out
 
-    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float) -> list[Resolution]:
+    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float,
+                   tip_cov_pv=None) -> list[Resolution]:
         """This group's boundary for ``cycle_us``: publish it (and solve, if leading)."""
-        return self._carry_out(self.node.local_step(left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us, now_s), now_s)
+        return self._carry_out(self.node.local_step(left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us, now_s,
+                                                    tip_cov_pv), now_s)
 
     def pump(self, now_s: float) -> list[Resolution]:
         """Everything that arrived, then the deadlines; the cycles that ended."""

@@ -52,10 +52,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.estimation.semi import GroupBoundary, global_step
+from companion.estimation.semi import GroupBoundary, global_solution, global_step
 from companion.messages import GlobalShift, GroupBoundaryReport
 
-__all__ = ["solve_cycle", "Resolution", "Actions", "GlobalStepNode"]
+__all__ = ["solve_cycle", "shift_covariance_terms", "Resolution", "Actions", "GlobalStepNode"]
 
 #: Cycles of history kept for late boundaries and duplicate shifts.
 _KEEP_CYCLES = 8
@@ -76,26 +76,51 @@ def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...]
     for k in range(1, len(groups) + 1):
         if k == len(groups) or groups[k] != groups[k - 1] + 1:
             run = [by_group[g] for g in groups[start:k]]
-            bounds = [GroupBoundary(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv) for r in run]
-            shifts[start:k] = global_step(bounds)
+            shifts[start:k] = global_step([_boundary(r) for r in run])
             start = k
     return groups, shifts
 
 
 def _same_report(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
     return (np.array_equal(a.left_tip_pv_w, b.left_tip_pv_w) and np.array_equal(a.right_tip_pv_w, b.right_tip_pv_w)
-            and np.array_equal(a.info_pv, b.info_pv))
+            and np.array_equal(a.info_pv, b.info_pv)
+            and (a.tip_cov_pv is None) == (b.tip_cov_pv is None)
+            and (a.tip_cov_pv is None or np.array_equal(a.tip_cov_pv, b.tip_cov_pv)))
+
+
+def _boundary(report: GroupBoundaryReport) -> GroupBoundary:
+    return GroupBoundary(report.left_tip_pv_w, report.right_tip_pv_w, report.info_pv, report.tip_cov_pv)
+
+
+def shift_covariance_terms(reports: Sequence[GroupBoundaryReport], group: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(Gamma_g, V_g)`` of ``group`` (:class:`~companion.estimation.semi.GlobalSolution`) from
+    the boundaries of its run of consecutive groups in ``reports`` (the groups solved together);
+    ``None`` if a group of that run sent no tip covariance."""
+    by_group = {r.group: r for r in reports}
+    lo = hi = group
+    while lo - 1 in by_group:
+        lo -= 1
+    while hi + 1 in by_group:
+        hi += 1
+    solution = global_solution([_boundary(by_group[g]) for g in range(lo, hi + 1)])
+    if solution.gains is None:
+        return None
+    return solution.gains[group - lo], solution.shift_cov[group - lo]
 
 
 @dataclass(frozen=True)
 class Resolution:
     """How this group's pending cycle ended: ``shift`` (6,) from the leader, or ``None``
-    (local-only: ``reason`` says why)."""
+    (local-only: ``reason`` says why). ``shift_gain`` (6, 12) and ``shift_cov`` (6, 6): the
+    covariance terms of the shift (:func:`~companion.estimation.semi.shifted_covariance`), derived
+    by this group from the boundaries it checked the shift against; ``None`` without them."""
 
     cycle_us: int
     shift: np.ndarray | None
     leader_group: int | None
     reason: str = ""
+    shift_gain: np.ndarray | None = None
+    shift_cov: np.ndarray | None = None
 
 
 @dataclass
@@ -210,14 +235,16 @@ class GlobalStepNode:
         return self.leader_for(cycle_us, now_s) == self.group
 
     # -- inputs -----------------------------------------------------------------------------------------
-    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float) -> Actions:
+    def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float,
+                   tip_cov_pv=None) -> Actions:
         """This group's boundary for ``cycle_us`` is ready: publish it and wait for the shift."""
         out = Actions()
         if self.pending is not None:  # a new cycle overtook the old one: the old one ends local-only
             out.resolved.append(self._resolve(None, None, "overtaken by the next cycle"))
         report = GroupBoundaryReport(self.group, int(cycle_us), np.asarray(left_tip_pv_w, float),
                                      np.asarray(right_tip_pv_w, float), np.asarray(info_pv, float),
-                                     self.last_round_trip_us, self.last_network_round_trip_us)
+                                     self.last_round_trip_us, self.last_network_round_trip_us,
+                                     None if tip_cov_pv is None else np.asarray(tip_cov_pv, float))
         out.boundary = report
         self.pending = _Pending(int(cycle_us), now_s)
         self._held = []
@@ -473,9 +500,13 @@ class GlobalStepNode:
             k + 1 < len(shift.groups) and shift.groups[k + 1] == self.group + 1)
         if not joined:
             return self._resolve(None, shift.leader_group, "no neighbouring group in the leader's solution")
-        return self._resolve(shift.shift_for(self.group), shift.leader_group, "")
+        reports = self.reports.get(shift.cycle_us, {})
+        terms = shift_covariance_terms([reports[g] for g in shift.groups if g in reports], self.group)
+        return self._resolve(shift.shift_for(self.group), shift.leader_group, "", terms)
 
-    def _resolve(self, shift: np.ndarray | None, leader: int | None, reason: str) -> Resolution:
+    def _resolve(self, shift: np.ndarray | None, leader: int | None, reason: str, terms=None) -> Resolution:
         pending, self.pending = self.pending, None
         self.counts["global" if shift is not None else "local_only"] += 1
-        return Resolution(pending.cycle_us, None if shift is None else np.asarray(shift, float), leader, reason)
+        gain, cov = terms if terms is not None else (None, None)
+        return Resolution(pending.cycle_us, None if shift is None else np.asarray(shift, float), leader, reason,
+                          gain, cov)
