@@ -12,6 +12,12 @@ themselves satisfy the constraint of eq. 3. Phases:
   linearly from -1 (first link) to +1 (last link), ``theta(t) = A r(t) sin(2 pi (t - t_b) / T)``
   with a quintic amplitude ramp ``r``. Positive ``theta`` lowers both ends.
 
+``kind = "figure8"``: hover, then from ``figure8_start_s`` the chain's middle point draws a
+horizontal figure eight (Gerono's lemniscate: ``A [sin(w s), sin(2 w s) / 2, 0]`` in the yaw frame,
+``w = 2 pi / figure8_period_s``, the amplitude ramped in over one period by the quintic) at the
+fixed attitude (``pitch_deg``, ``yaw_deg``): the SE(3) tracking test of thesis sec. 2.5.2 (there a
+circle) with a 45 deg pitch.
+
 ``kind = "rest"``: the chain lies where it starts and is never armed (thesis sec. 3.5.2, the
 static estimation test); the metrics window opens at ``takeoff_start_s`` (EKF settling).
 
@@ -62,7 +68,7 @@ def smoothstep5(s: float) -> float:
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "bend", "rest", "cpg"] = "hover"
+    kind: Literal["hover", "bend", "rest", "cpg", "figure8"] = "hover"
     takeoff_start_s: float = 1.0
     takeoff_duration_s: float = 5.0
     takeoff_altitude_m: float = 2.0
@@ -74,10 +80,14 @@ class TrajectoryConfig:
     bend_ramp_s: float = 5.0
     anchor_w_m: tuple[float, float, float] | None = None
     feedforward: bool = False
+    figure8_start_s: float = 10.0
+    figure8_amplitude_m: float = 0.5
+    figure8_period_s: float = 10.0
 
     def __post_init__(self) -> None:
-        require_nonnegative(self, "takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s")
-        require_positive(self, "bend_period_s")
+        require_nonnegative(self, "takeoff_start_s", "takeoff_duration_s", "bend_start_s", "bend_ramp_s",
+                            "figure8_start_s", "figure8_amplitude_m")
+        require_positive(self, "bend_period_s", "figure8_period_s")
         if not 0 <= self.bend_amplitude_deg < 90:
             raise ValueError(f"bend_amplitude_deg must be in [0, 90), got {self.bend_amplitude_deg}")
 
@@ -125,24 +135,38 @@ class ChainTrajectory:
         s = smoothstep5((t - c.takeoff_start_s) / c.takeoff_duration_s) if c.takeoff_duration_s > 0 else float(t >= c.takeoff_start_s)
         target = self.start.copy()
         target[2] = self.start[2] + s * (c.takeoff_altitude_m - self.start[2])
+        if c.kind == "figure8" and t > c.figure8_start_s:
+            tau = t - c.figure8_start_s
+            w = 2.0 * math.pi / c.figure8_period_s
+            amp = c.figure8_amplitude_m * smoothstep5(tau / c.figure8_period_s)
+            x, y = amp * math.sin(w * tau), 0.5 * amp * math.sin(2.0 * w * tau)
+            cy, sy = math.cos(math.radians(c.yaw_deg)), math.sin(math.radians(c.yaw_deg))
+            target[0] += cy * x - sy * y
+            target[1] += sy * x + cy * y
         return target
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Link centres (n, 3) and attitudes (n, 4) at ``t``."""
-        theta = self.bend_angle_rad(t)
-        bends = quat_from_euler_zyx(np.zeros(self.n), theta * self._share, np.zeros(self.n))
+        p, q, _ = self.poses((t,))
+        return p[0], q[0]
+
+    def poses(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`pose` at several times at once: centres (k, n, 3), attitudes (k, n, 4) and their
+        rotation matrices (k, n, 3, 3) (one vectorised evaluation: :meth:`targets` needs five)."""
+        zeros = np.zeros((len(times), self.n))
+        theta = np.array([self.bend_angle_rad(t) for t in times])
+        bends = quat_from_euler_zyx(zeros, theta[:, None] * self._share, zeros)
         q = quat_mul(self._base_q, bends)
         R = quat_to_rotmat(q)
         r, _ = chain_offsets(R, None, self.d)
         # Anchor the chain's middle point (middle link centre, or middle joint) at the centre.
-        return r + (self.center_w_m(t) - middle_offset(r, R, self.d)), q
+        center = np.stack([self.center_w_m(t) for t in times])
+        return r + (center - middle_offset(r, R, self.d))[:, None, :], q, R
 
     def targets(self, t: float) -> list[PoseTarget]:
         """Targets with velocity, acceleration, body rate and its derivative."""
         h = self.h
-        poses = [self.pose(t + k * h) for k in (-2, -1, 0, 1, 2)]
-        p = [pp for pp, _ in poses]
-        R = [quat_to_rotmat(qq) for _, qq in poses]
+        p, qs, R = self.poses([t + k * h for k in (-2, -1, 0, 1, 2)])
         v = (p[3] - p[1]) / (2 * h)
         a = (p[3] - 2 * p[2] + p[1]) / (h * h)
 
@@ -152,7 +176,7 @@ class ChainTrajectory:
 
         w = body_rate(0)
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
-        q = poses[2][1]
+        q = qs[2]
         return with_feedforward([PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
                                 self.dynamics)
 

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _fast
 from companion.skeleton.rotors import (
     _frozen,
     N_ROTORS,
@@ -424,6 +425,9 @@ class Allocator:
         Must satisfy (2.11) (:meth:`RotorGeometry.has_null_structure`): Prop. 1's closed form
         and the selective mapping both rely on it.
     params : AllocationParams
+    compiled : bool, optional
+        Run :meth:`allocate` with the compiled kernel of :mod:`._fast` (default: when numba is
+        installed); the same numbers to rounding (``tests/test_fast_paths.py``).
 
     Raises
     ------
@@ -432,7 +436,8 @@ class Allocator:
         too), or ``B`` or any single-rotor reduction of it is not full row rank.
     """
 
-    def __init__(self, geometry: RotorGeometry, params: AllocationParams = AllocationParams()) -> None:
+    def __init__(self, geometry: RotorGeometry, params: AllocationParams = AllocationParams(), *,
+                 compiled: bool | None = None) -> None:
         if not geometry.has_null_structure():
             if params.selective_mapping:
                 raise ValueError(
@@ -459,7 +464,8 @@ class Allocator:
         self._eps0 = float(params.eps0_n)
         self._eps1 = float(params.eps1_n)
         self._tmax = float(params.thrust_max_n)
-        self._xi_pre = [0.0, 0.0]
+        self._xi_pre = np.zeros(2)
+        self._compiled = _fast.ENABLED if compiled is None else bool(compiled)
 
     @property
     def mapping_matrix(self) -> np.ndarray:
@@ -483,7 +489,7 @@ class Allocator:
 
     def reset(self) -> None:
         """Clear the modulation state: ``xi''_pre = 0``."""
-        self._xi_pre = [0.0, 0.0]
+        self._xi_pre = np.zeros(2)
 
     def allocate(self, U: np.ndarray) -> AllocationResult:
         """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
@@ -499,6 +505,8 @@ class Allocator:
         U = np.asarray(U, dtype=float)
         if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
+        if self._compiled:
+            return self._allocate_compiled(U)
         lam_o = self._B_pinv @ U
         lo = lam_o.tolist()
         tmax = self._tmax
@@ -529,7 +537,7 @@ class Allocator:
         gamma: list[float] = []
         e_out = []
         near = []
-        xi_pre = self._xi_pre
+        xi_pre = self._xi_pre.tolist()
         for s, b in enumerate(b_sides):
             xi2 = _modulate_side(b, xi_pre[s], self._eps1)  # (2.15)
             xi_pre[s] = xi2
@@ -548,6 +556,7 @@ class Allocator:
             beta += beta_s
             gamma += gamma_s
             e_out.append(e)
+        self._xi_pre = np.array(xi_pre)
         lam_gamma = np.array(gamma)
         return AllocationResult(
             command_n=np.array([min(max(x, -tmax), tmax) for x in gamma]),
@@ -559,3 +568,32 @@ class Allocator:
             near_zero=(near[0], near[1]),
             saturated=max(map(abs, gamma)) > tmax,
         )
+
+    def command(self, U: np.ndarray) -> np.ndarray:
+        """``allocate(U).command_n`` (the thrusts sent to the ESCs) without the intermediate
+        allocations: what the firmware's fast loop needs of it."""
+        if not self._compiled:
+            return self.allocate(U).command_n
+        U = np.asarray(U, dtype=float)
+        if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
+        return _fast.allocate_kernel(U, self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1,
+                                     self._tmax, self._selective, MARGIN_TOL_N, np.empty((5, N_ROTORS)),
+                                     np.empty(5))[0]
+
+    def kernel_args(self) -> tuple:
+        """The arguments after ``U`` with which :meth:`command` calls :func:`._fast.allocate_kernel`
+        (matrices, the modulation state ``xi''_pre``, updated in place by the kernel, and the
+        parameters), for a caller that fuses the allocation into a larger kernel
+        (:func:`._fast.tick_kernel`)."""
+        return (self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1, self._tmax,
+                self._selective, MARGIN_TOL_N)
+
+    def _allocate_compiled(self, U: np.ndarray) -> AllocationResult:
+        """:meth:`allocate` by :func:`._fast.allocate_kernel` (``U`` checked)."""
+        out, meta = np.empty((5, N_ROTORS)), np.empty(5)
+        _fast.allocate_kernel(U, self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1,
+                              self._tmax, self._selective, MARGIN_TOL_N, out, meta)
+        return AllocationResult(command_n=out[0], lambda_o=out[1], lambda_alpha=out[2], lambda_beta=out[3],
+                                lambda_gamma=out[4], e=(float(meta[0]), float(meta[1])),
+                                near_zero=(int(meta[2]), int(meta[3])), saturated=bool(meta[4]))

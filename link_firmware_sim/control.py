@@ -41,12 +41,15 @@ from companion.estimation.so3 import quat_to_rotmat, rotmat_tuple
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
+from . import _fast
+
 __all__ = [
     "ImpedanceGains",
     "ControlIntegrals",
     "vee",
     "weight_wrench",
     "impedance_control",
+    "impedance_control_compiled",
 ]
 
 
@@ -189,3 +192,25 @@ def impedance_control(
     kR, kw, kI = gains.kR_nm, gains.kw_nms, gains.kI_nm_s
     tau = [gyro[i] - kR * e_R[i] - kw * e_w[i] - kI * att_int[i] - ff[i] + tau_ff[i] for i in range(3)]
     return np.array((*u, *tau)), ControlIntegrals(pos_int, att_int)
+
+
+def impedance_control_compiled(
+    p_w_m: np.ndarray,
+    v_w_m_s: np.ndarray,
+    q_wxyz: np.ndarray,
+    omega_b_rad_s: np.ndarray,
+    target: PoseTarget,
+    gains: ImpedanceGains,
+    inertia: LinkInertia,
+    integrals: ControlIntegrals,
+    dt_s: float,
+) -> tuple[np.ndarray, ControlIntegrals]:
+    """:func:`impedance_control` (eq. 1) by the compiled kernel :func:`._fast.impedance_kernel`:
+    the same arguments and numbers (to rounding). The target, gains and inertia are packed into
+    arrays once per object (kept with it, as ``cached_property`` does)."""
+    out = _fast.impedance_kernel(
+        np.asarray(p_w_m, dtype=float), np.asarray(v_w_m_s, dtype=float), np.asarray(q_wxyz, dtype=float),
+        np.asarray(omega_b_rad_s, dtype=float), _fast.packed(target, _fast.pack_target),
+        _fast.packed(gains, _fast.pack_gains), _fast.packed(inertia, _fast.pack_inertia), integrals.pos,
+        integrals.att, float(dt_s), GRAVITY_M_S2, np.empty(12))
+    return out[:6], ControlIntegrals(out[6:9], out[9:12])

@@ -46,6 +46,7 @@ from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import attitude_error, quat_normalize, quat_to_rotmat, retract, rotmat_tuple
 from companion.skeleton.body import GRAVITY_W_M_S2
 
+from . import _fast
 from .geo import MAG_DECLINATION_RAD
 
 __all__ = [
@@ -442,8 +443,12 @@ def _check_meas(z, name: str, size: int) -> np.ndarray:
 
 def ekf_update_position(x, P, pos_w_m, var_m2, gate_sigma: float = 5.0):
     """GPS position update (world frame, metres)."""
+    return _position(x, P, pos_w_m, var_m2, gate_sigma, _NUMPY)
+
+
+def _position(x, P, pos_w_m, var_m2, gate_sigma, la):
     z = _check_meas(pos_w_m, "position", 3)
-    return _update_block(x, P, z - x[X_P], E_P, _as_cov(var_m2, 3), gate_sigma)
+    return la.block(x, P, z - x[X_P], E_P, _as_cov(var_m2, 3), gate_sigma)
 
 
 def ekf_reset_position(x, P, pos_w_m, var_m2):
@@ -460,8 +465,12 @@ def ekf_reset_position(x, P, pos_w_m, var_m2):
 
 def ekf_update_velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma: float = 5.0):
     """GPS velocity update (world frame, m/s)."""
+    return _velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma, _NUMPY)
+
+
+def _velocity(x, P, vel_w_m_s, var_m2_s2, gate_sigma, la):
     z = _check_meas(vel_w_m_s, "velocity", 3)
-    return _update_block(x, P, z - x[X_V], E_V, _as_cov(var_m2_s2, 3), gate_sigma)
+    return la.block(x, P, z - x[X_V], E_V, _as_cov(var_m2_s2, 3), gate_sigma)
 
 
 def ekf_update_attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma: float = 5.0):
@@ -470,8 +479,12 @@ def ekf_update_attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma: float = 5.0):
     Residual is the world-frame rotation vector from the estimate to the measurement,
     so ``H = [0 0 I 0 0]``; ``var_rad2`` is per axis.
     """
+    return _attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma, _NUMPY)
+
+
+def _attitude(x, P, q_meas_wxyz, var_rad2, gate_sigma, la):
     z = quat_normalize(_check_meas(q_meas_wxyz, "attitude quaternion", 4))
-    return _update_block(x, P, attitude_error(z, x[X_Q]), E_TH, _as_cov(var_rad2, 3), gate_sigma)
+    return la.block(x, P, attitude_error(z, x[X_Q]), E_TH, _as_cov(var_rad2, 3), gate_sigma)
 
 
 def heading_jacobian(q_wxyz) -> np.ndarray:
@@ -488,6 +501,10 @@ def heading_jacobian(q_wxyz) -> np.ndarray:
 
 def ekf_update_heading(x, P, yaw_rad: float, var_rad2: float, gate_sigma: float = 5.0):
     """Heading (magnetometer-like) update: yaw of the body x axis about world z."""
+    return _heading(x, P, yaw_rad, var_rad2, gate_sigma, _NUMPY)
+
+
+def _heading(x, P, yaw_rad, var_rad2, gate_sigma, la):
     if not math.isfinite(yaw_rad):
         raise ValueError(f"heading: expected a finite angle, got {yaw_rad!r}")
     R = quat_to_rotmat(x[X_Q])
@@ -498,7 +515,7 @@ def ekf_update_heading(x, P, yaw_rad: float, var_rad2: float, gate_sigma: float 
     r = np.array([(yaw_rad - yaw_hat + math.pi) % (2.0 * math.pi) - math.pi])
     H = np.zeros((1, NE))
     H[0, E_TH] = heading_jacobian(x[X_Q])
-    return _update(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
+    return la.rows(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
 
 
 def ekf_add_baro_offset(x, P, baro_height_m: float, var_m2: float):
@@ -532,6 +549,10 @@ def ekf_update_baro(x, P, baro_height_m: float, var_m2: float, gate_sigma: float
     ``deadzone_m`` > 0 (in the rotors' ground effect, where the barometer reads low): an
     innovation between ``-deadzone_m`` and 0 becomes 0, a lower one ``deadzone_m`` less negative
     (PX4's EKF2_GND_EFF_DZ)."""
+    return _baro(x, P, baro_height_m, var_m2, gate_sigma, deadzone_m, _NUMPY)
+
+
+def _baro(x, P, baro_height_m, var_m2, gate_sigma, deadzone_m, la):
     if len(x) != NX_BARO:
         raise ValueError("the barometer is not referenced yet (ekf_add_baro_offset)")
     if not math.isfinite(baro_height_m):
@@ -542,7 +563,7 @@ def ekf_update_baro(x, P, baro_height_m: float, var_m2: float, gate_sigma: float
     H = np.zeros((1, NE_BARO))
     H[0, E_PZ] = 1.0
     H[0, E_BARO] = 1.0
-    return _update(x, P, np.array([r]), H, np.array([[var_m2]]), gate_sigma)
+    return la.rows(x, P, np.array([r]), H, np.array([[var_m2]]), gate_sigma)
 
 
 def mag_heading_jacobian(q_wxyz, mag_b_gauss) -> np.ndarray:
@@ -567,6 +588,10 @@ def ekf_update_mag_heading(x, P, mag_b_gauss, declination_rad: float, var_rad2: 
     horizontal field, ``declination_rad`` east of north (in ENU at ``pi/2 - declination`` from
     east). Residual: that angle minus the rotated field's, wrapped; Jacobian
     :func:`mag_heading_jacobian`; skipped (not accepted) when the field is nearly vertical."""
+    return _mag_heading(x, P, mag_b_gauss, declination_rad, var_rad2, gate_sigma, _NUMPY)
+
+
+def _mag_heading(x, P, mag_b_gauss, declination_rad, var_rad2, gate_sigma, la):
     mb = _check_meas(mag_b_gauss, "magnetic field", 3)
     m = quat_to_rotmat(x[X_Q]) @ mb
     h = m[0] ** 2 + m[1] ** 2
@@ -576,7 +601,7 @@ def ekf_update_mag_heading(x, P, mag_b_gauss, declination_rad: float, var_rad2: 
     r = np.array([(phi_earth - math.atan2(m[1], m[0]) + math.pi) % (2.0 * math.pi) - math.pi])
     H = np.zeros((1, len(P)))
     H[0, E_TH] = (-m[0] * m[2] / h, -m[1] * m[2] / h, 1.0)
-    return _update(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
+    return la.rows(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
 
 
 def sckf_view(x, P, gyro_b_rad_s):
@@ -589,14 +614,60 @@ def sckf_view(x, P, gyro_b_rad_s):
     return x[X_P].copy(), x[X_V].copy(), x[X_Q].copy(), omega, P[E_SCKF, E_SCKF].copy()
 
 
+class _Linalg:
+    """The linear algebra of an EKF step: the numpy specification (``_NUMPY``: :func:`ekf_predict`,
+    :func:`_update_block`, :func:`_update`) or the compiled kernels beside it (``_COMPILED``,
+    :mod:`._fast`). The measurement models (residuals, Jacobians, gates' inputs) are written once,
+    in the ``ekf_update_*`` functions, and take one of the two."""
+
+    def __init__(self, predict, block, rows):
+        self.predict, self.block, self.rows = predict, block, rows
+
+
+_GRAVITY_W = np.array(GRAVITY_W_M_S2, dtype=float)
+
+
+def _predict_compiled(x, P, gyro_b_rad_s, accel_b_m_s2, dt_s: float, noise: EkfNoise):
+    """:func:`ekf_predict` by :func:`._fast.ekf_predict_kernel`."""
+    if not dt_s > 0.0:
+        raise ValueError(f"dt_s must be positive, got {dt_s!r}")
+    return _fast.ekf_predict_kernel(x, P, np.asarray(gyro_b_rad_s, dtype=float), np.asarray(accel_b_m_s2, dtype=float),
+                                    float(dt_s), noise.densities, noise.baro_bias_m2_s, _GRAVITY_W)
+
+
+def _update_block_compiled(x, P, r, block: slice, Rm, gate_sigma: float):
+    """:func:`_update_block` by :func:`._fast.update_block_kernel`."""
+    xn, Pn, accepted, test = _fast.update_block_kernel(x, P, r, block.start, Rm, float(gate_sigma))
+    return (xn, Pn, UpdateInfo(True, r, test)) if accepted else (x, P, UpdateInfo(False, r, test))
+
+
+def _update_compiled(x, P, r, H, Rm, gate_sigma: float):
+    """:func:`_update` by :func:`._fast.update_rows_kernel`."""
+    xn, Pn, accepted, test = _fast.update_rows_kernel(x, P, r, H, Rm, float(gate_sigma))
+    return (xn, Pn, UpdateInfo(True, r, test)) if accepted else (x, P, UpdateInfo(False, r, test))
+
+
+_NUMPY = _Linalg(ekf_predict, _update_block, _update)
+_COMPILED = _Linalg(_predict_compiled, _update_block_compiled, _update_compiled)
+
+
+@lru_cache(maxsize=32)
+def _covariances(config: EkfConfig) -> dict[str, np.ndarray]:
+    """The measurement covariances of a (frozen) config as the updates take them, made once."""
+    return {"att": _as_cov(attitude_variance(config), 3)}
+
+
 class LinkEkf:
     """Stateful wrapper around the functional EKF, as run on one simulated Pixhawk.
 
-    Counts accepted and rejected (gated) measurements per kind.
+    Counts accepted and rejected (gated) measurements per kind. ``compiled`` (default: when numba
+    is installed, :data:`._fast.ENABLED`) runs the compiled kernels of :mod:`._fast` instead of the
+    numpy functions (same numbers to rounding: ``tests/test_fast_paths.py``).
     """
 
-    def __init__(self, p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig()):
+    def __init__(self, p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig(), compiled: bool | None = None):
         self.config = config
+        self._la = _COMPILED if (_fast.ENABLED if compiled is None else compiled) else _NUMPY
         self.x, self.P = ekf_init(p_w_m, v_w_m_s, q_wxyz, config)
         self.last_gyro_b_rad_s = np.zeros(3)
         kinds = ("pos", "vel", "att", "heading", "baro", "mag")
@@ -606,7 +677,7 @@ class LinkEkf:
         self.resets = 0
 
     def predict(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> None:
-        self.x, self.P = ekf_predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config.noise)
+        self.x, self.P = self._la.predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config.noise)
         self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
 
     def _record(self, kind: str, result) -> UpdateInfo:
@@ -616,7 +687,7 @@ class LinkEkf:
 
     def update_position(self, pos_w_m) -> UpdateInfo:
         cfg = self.config
-        return self._record("pos", ekf_update_position(self.x, self.P, pos_w_m, cfg.gps_pos_var_m2, cfg.gate_sigma))
+        return self._record("pos", _position(self.x, self.P, pos_w_m, cfg.gps_pos_var_m2, cfg.gate_sigma, self._la))
 
     def position_test_ratio(self, pos_w_m) -> float:
         """The gate's test ratio of a position fix (above 1: it would be rejected), no update."""
@@ -644,30 +715,39 @@ class LinkEkf:
             self.accepted["baro"] += 1
             return UpdateInfo(True, np.array([0.0]), 0.0)
         deadzone = cfg.baro_ground_effect_deadzone_m if ground_effect else 0.0
-        return self._record("baro", ekf_update_baro(self.x, self.P, baro_height_m, cfg.baro_var_m2, cfg.gate_sigma,
-                                                    deadzone))
+        return self._record("baro", _baro(self.x, self.P, baro_height_m, cfg.baro_var_m2, cfg.gate_sigma, deadzone,
+                                          self._la))
 
     def update_mag(self, mag_b_gauss) -> UpdateInfo:
         """A magnetometer sample (body FLU) as a heading (:func:`ekf_update_mag_heading`)."""
         cfg = self.config
-        return self._record("mag", ekf_update_mag_heading(self.x, self.P, mag_b_gauss, cfg.mag_declination_rad,
-                                                          cfg.mag_heading_var_rad2, cfg.gate_sigma))
+        return self._record("mag", _mag_heading(self.x, self.P, mag_b_gauss, cfg.mag_declination_rad,
+                                                cfg.mag_heading_var_rad2, cfg.gate_sigma, self._la))
 
     def update_velocity(self, vel_w_m_s) -> UpdateInfo:
         cfg = self.config
         return self._record(
-            "vel", ekf_update_velocity(self.x, self.P, vel_w_m_s, cfg.gps_vel_var_m2_s2, cfg.gate_sigma)
+            "vel", _velocity(self.x, self.P, vel_w_m_s, cfg.gps_vel_var_m2_s2, cfg.gate_sigma, self._la)
         )
 
     def update_attitude(self, q_meas_wxyz) -> UpdateInfo:
         cfg = self.config
-        return self._record("att", ekf_update_attitude(self.x, self.P, q_meas_wxyz, attitude_variance(cfg),
-                                                       cfg.gate_sigma))
+        if self._la is _COMPILED:  # the measurement model too in one kernel (50 Hz per link)
+            q = np.asarray(q_meas_wxyz, dtype=float)
+            if q.shape != (4,):
+                _check_meas(q, "attitude quaternion", 4)
+            x, P, status, test, r = _fast.attitude_update_kernel(self.x, self.P, q, _covariances(cfg)["att"],
+                                                                 float(cfg.gate_sigma), X_Q.start, E_TH.start)
+            if status < 0:
+                quat_normalize(_check_meas(q, "attitude quaternion", 4))  # raises the specification's error
+            return self._record("att", (x, P, UpdateInfo(status == 1, r, test)))
+        return self._record("att", _attitude(self.x, self.P, q_meas_wxyz, attitude_variance(cfg), cfg.gate_sigma,
+                                             self._la))
 
     def update_heading(self, yaw_rad: float) -> UpdateInfo:
         cfg = self.config
         return self._record(
-            "heading", ekf_update_heading(self.x, self.P, yaw_rad, cfg.heading_var_rad2, cfg.gate_sigma)
+            "heading", _heading(self.x, self.P, yaw_rad, cfg.heading_var_rad2, cfg.gate_sigma, self._la)
         )
 
     @property

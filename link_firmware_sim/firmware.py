@@ -14,7 +14,10 @@ no wall clock; the SITL harness or, later, the MAVLink shell calls it):
 * ``on_correction``: the companion's :class:`~companion.messages.Correction`;
 * ``on_external_pose``: an external-vision pose (standard-messages mode: the companion's
   corrected estimate), turned into the same correction against the current EKF output;
-* ``set_target``: a :class:`~companion.messages.PoseTarget`;
+* ``set_target``: a :class:`~companion.messages.PoseTarget` (under PSPM teleoperation,
+  ``pspm_mode = "on"``, an operator set pose that PSPM modulates before the slave law tracks it);
+* ``set_contact``: the hybrid controller's :class:`~companion.messages.ContactTarget` (from the SITL
+  runner, or MAV_CMD_SKELETON_SET_CONTACT on a vehicle), bounded by ``contact_max_force_n``;
 * ``arm`` / ``disarm``.
 
 Control runs on the EKF output plus the latest correction delta, never feeding the delta into
@@ -29,30 +32,41 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from companion.configfile import require_positive
-from companion.estimation.so3 import attitude_error, retract
+from companion.estimation.so3 import attitude_error, quat_to_rotmat, retract
 from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
     STATE_FLAG_EKF_OK,
     STATE_FLAG_GPS_FAULT,
     Correction,
+    ExternalWrench,
     LinkState,
     PoseTarget,
 )
 
-from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
+from companion.skeleton.body import GRAVITY_M_S2, GRAVITY_W_M_S2, LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 
 from .allocation import AllocationParams, Allocator
-from .control import ControlIntegrals, ImpedanceGains, impedance_control, weight_wrench
+from . import _fast
+from .control import ControlIntegrals, ImpedanceGains, impedance_control, impedance_control_compiled, weight_wrench
 from .ekf import X_BG, X_P, EkfConfig, EkfNoise, LinkEkf
 from .gps_health import GpsEvent, GpsHealth, GpsHealthConfig
+from .hybrid import (ContactTarget, HybridController, HybridGains, MomentumObserver, ObserverConfig,
+                     contact_force_estimate, contact_pfaffian)
+from .se3_control import Se3PidController, Se3PidGains
+from .pspm import PspmGains, PspmModulator, PspmSlave
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config"]
+
+#: eq. 1 as the fast loop runs it: compiled (:mod:`._fast`, numba installed) or the numpy specification;
+#: the EKF and the allocator choose the same way
+_IMPEDANCE = impedance_control_compiled if _fast.ENABLED else impedance_control
 
 log = logging.getLogger(__name__)
 
@@ -122,9 +136,27 @@ class FirmwareConfig:
     correction_max_dv_m_s: float = 1.0
     correction_max_dtheta_rad: float = 0.5
     gps: GpsHealthConfig = field(default_factory=GpsHealthConfig)
+    #: the pose controller (SKL_CTRL): eq. 1's impedance control, the SE(3) PID of thesis sec. 2.3.2
+    #: (:mod:`.se3_control`) or the hybrid pose/wrench control of sec. 2.3.3 (:mod:`.hybrid`: pose
+    #: control until a contact is commanded, with the momentum observer running)
+    controller: Literal["impedance", "se3_pid", "hybrid"] = "impedance"
+    se3_pid: Se3PidGains = field(default_factory=Se3PidGains)
+    hybrid: HybridGains = field(default_factory=HybridGains)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    #: largest contact force a command may ask of the hybrid controller (SKL_CT_FMAX) [N]
+    contact_max_force_n: float = 30.0
+    #: PSPM teleoperation (SKL_PSPM_EN; thesis sec. 2.3.4, :mod:`.pspm`): ``"off"``; ``"on"``: every
+    #: pose target is an operator set pose, modulated by PSPM (:meth:`LinkFirmware.set_target`), and
+    #: the slave law of sec. 2.3.4 with ``pspm``'s gains (instead of ``controller``) tracks the
+    #: modulated pose; ``"bypass"``: the same slave law on the raw set poses (the unmodulated comparison)
+    pspm_mode: Literal["off", "on", "bypass"] = "off"
+    #: the reservoirs start full: at rest nothing dissipates, so empty ones would never release a
+    #: step (0.4 J pass 0.27 m of the 11 N/m spring at once, 0.3 J 18 deg of the 6 N m/rad one)
+    pspm: PspmGains = field(default_factory=lambda: PspmGains(e_max_t_j=0.4, e_max_r_j=0.3, e0_t_j=0.4, e0_r_j=0.3))
 
     def __post_init__(self) -> None:
         require_positive(self, "rate_hz", "correction_max_dp_m", "correction_max_dv_m_s", "correction_max_dtheta_rad")
+        require_positive(self, "contact_max_force_n")
         if not 0 <= self.correction_hold_s < self.correction_stale_s:
             raise ValueError(
                 f"correction_hold_s must be in [0, correction_stale_s), got {self.correction_hold_s} "
@@ -170,13 +202,33 @@ class LinkFirmware:
         self.gps_health = GpsHealth(config.gps)
         #: GPS health transitions not yet reported by the shell (STATUSTEXT)
         self.events: list[GpsEvent] = []
+        self._make_controller()
+
+    def _make_controller(self) -> None:
+        """The selected controller other than eq. 1 (``None`` for the impedance controller), the
+        observer (hybrid only) and the commanded contact."""
+        cfg = self.config
+        self._controller = (Se3PidController(cfg.se3_pid, self.inertia) if cfg.controller == "se3_pid" else
+                            HybridController(cfg.hybrid, self.inertia) if cfg.controller == "hybrid" else None)
+        self.observer = MomentumObserver(cfg.observer, self.inertia) if cfg.controller == "hybrid" else None
+        self.contact: ContactTarget | None = None
+        #: PSPM's modulator (``pspm_mode = "on"``) and the last operator set pose it modulated
+        self.pspm = PspmModulator(cfg.pspm) if cfg.pspm_mode == "on" else None
+        self.operator_target: PoseTarget | None = None
+        if cfg.pspm_mode != "off":  # the slave law of sec. 2.3.4 replaces the selected controller
+            self._controller, self.observer = PspmSlave(cfg.pspm, self.inertia.mass_kg, self.pspm), None
 
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
         if config.allocation != self.config.allocation:
             self.allocator = Allocator(self.allocator.geometry, config.allocation)
         self.gps_health.config = config.gps
+        rebuild = (config.controller, config.se3_pid, config.hybrid, config.observer, config.pspm_mode, config.pspm) != (
+            self.config.controller, self.config.se3_pid, self.config.hybrid, self.config.observer,
+            self.config.pspm_mode, self.config.pspm)
         self.config = config
+        if rebuild:
+            self._make_controller()
 
     # -- estimator -------------------------------------------------------------------
     @property
@@ -299,9 +351,51 @@ class LinkFirmware:
         return flags
 
     def set_target(self, t_s: float, target: PoseTarget) -> None:
+        if self.pspm is not None and self.ekf is not None:
+            # an operator set pose (sec. 2.3.4): the controller gets the pose PSPM's reservoirs pay for
+            self.operator_target = target
+            p, _, q = self.control_estimate(t_s)
+            target = PoseTarget.hold(*self.pspm.update(target.p_w_m, target.q_wxyz, p, q, t_s))
         self.target = target
         self._target_time_s = t_s
         self._hold = None
+
+    def set_contact(self, t_s: float, contact: ContactTarget | None) -> None:
+        """Command a contact force (hybrid controller; ``None``: pose control only)."""
+        if self.config.controller != "hybrid":
+            raise ValueError(f"a contact needs controller = 'hybrid' (this link runs {self.config.controller!r})")
+        if self.config.pspm_mode != "off":
+            raise ValueError("no contact under PSPM teleoperation (SKL_PSPM_EN): the slave law runs")
+        if contact is not None and not contact.force_n <= self.config.contact_max_force_n:
+            raise ValueError(f"force {contact.force_n:g} N > bound {self.config.contact_max_force_n:g} N")
+        self.contact = contact
+
+    def external_wrench_report(self) -> ExternalWrench | None:
+        """The observer's estimate as streamed (SKELETON_EXTERNAL_WRENCH); ``None`` without an observer."""
+        est = self.external_wrench()
+        if est is None:
+            return None
+        w_e, lam = est
+        c = self.contact
+        return ExternalWrench(self.link, self.time_s, w_e[:3].copy(), w_e[3:].copy(),
+                              float(lam[0]) if lam.size else math.nan, c.force_n if c is not None else math.nan)
+
+    def external_wrench(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The observer's external wrench ``[f_e,w; tau_e,b]`` and its contact-force estimate
+        (one per contact; empty without one), or ``None`` when no observer runs."""
+        if self.observer is None:
+            return None
+        if self.ekf is None:
+            return self.observer.wrench_e, np.zeros(0)
+        return self.observer.wrench_e, self._contact_estimate(self.ekf.q_wxyz)
+
+    def pspm_report(self) -> tuple[float, float, float] | None:
+        """PSPM's reservoirs ``(E_t, E_r)`` [J] and how far the modulated set position lags the
+        operator's [m]; ``None`` when PSPM is off or before its first operator sample."""
+        st = self.pspm.state if self.pspm is not None else None
+        if st is None or self.operator_target is None:
+            return None
+        return st.energy_t_j, st.energy_r_j, float(np.linalg.norm(self.operator_target.p_w_m - st.p_bar_w_m))
 
     def correction_weight(self, t_s: float) -> float:
         """1 while fresh, linear fade after ``correction_hold_s``, 0 once stale."""
@@ -340,6 +434,10 @@ class LinkFirmware:
             return False
         self.armed = True
         self.integrals = ControlIntegrals()
+        if self._controller is not None:
+            self._controller.reset()
+        if self.observer is not None:
+            self.observer.reset()
         self.allocator.reset()
         p, v, _ = self.control_estimate(t_s)
         self._arm_height_m = float(p[2])
@@ -400,6 +498,9 @@ class LinkFirmware:
         dt = t_s - self.time_s
         if dt <= 0.0:
             dt = 1.0 / self.config.rate_hz
+        command = self._tick_fused(t_s, dt, gyro_b_rad_s, accel_b_m_s2)  # the steps below in one kernel
+        if command is not None:
+            return command
         self.ekf.predict(gyro_b_rad_s, accel_b_m_s2, dt)
         self.time_s = t_s
         if self._pending:
@@ -410,10 +511,76 @@ class LinkFirmware:
         p, v, q = self.control_estimate(t_s)
         omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
         target = self._active_target(t_s, p)
-        U, self.integrals = impedance_control(
-            p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
-        )
+        ctrl = self._controller
+        if ctrl is None:  # the one dispatch point: eq. 1 (default), sec. 2.3.2 or sec. 2.3.3
+            U, self.integrals = _IMPEDANCE(
+                p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
+            )
+        elif self.observer is None:
+            U = ctrl(p, v, q, omega, target, dt)
+        else:
+            U = ctrl(p, v, q, omega, target, self.contact, self._contact_estimate(q), dt)
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
         if not self._airborne and p[2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True  # take-off detected: a disarm now needs the force value
-        return self.allocator.allocate(U).command_n
+        command = self.allocator.command(U)
+        if self.observer is not None:
+            self._observe(v, q, omega, command, dt)
+        return command
+
+    def _contact_estimate(self, q_wxyz) -> np.ndarray:
+        if self.contact is None:
+            return np.zeros(0)
+        return contact_force_estimate(contact_pfaffian(self.contact, quat_to_rotmat(q_wxyz)), self.observer.wrench_e)
+
+    def _observe(self, v, q_wxyz, omega, command_n, dt: float) -> None:
+        """Momentum observer step with the wrench the clipped commands produce, ``[R B_f l; B_tau l]``."""
+        U = self.allocator.mapping_matrix @ command_n
+        self.observer.step(v, omega, np.concatenate((quat_to_rotmat(q_wxyz) @ U[:3], U[3:])), dt)
+
+    #: run :meth:`on_imu`'s common case as one compiled kernel (:meth:`_tick_fused`); ``False`` on an
+    #: instance: every tick through the step-by-step path (the two agree: ``tests/test_fast_paths.py``)
+    fused_tick: bool = _fast.ENABLED
+
+    def _tick_fused(self, t_s: float, dt: float, gyro_b_rad_s, accel_b_m_s2) -> np.ndarray | None:
+        """:meth:`on_imu`'s common case (armed, eq. 1's controller, a fresh target) by
+        :func:`._fast.tick_kernel`: the EKF's propagation, the control estimate, eq. 1 and the
+        allocation in one call (with measurements queued: the propagation and the updates first,
+        as the step-by-step path runs them), with the same state changes as the step-by-step path.
+        ``None`` (nothing changed) in any other case, or without the compiled kernels."""
+        if not (self.fused_tick and self.armed and self._controller is None and self.observer is None
+                and self.target is not None and t_s - self._target_time_s <= self.config.target_stale_s):
+            return None
+        ekf, fk = self.ekf, _fast
+        gyro = np.array(gyro_b_rad_s, dtype=float)
+        accel = np.asarray(accel_b_m_s2, dtype=float)
+        predict = not self._pending
+        if not predict:
+            ekf.predict(gyro, accel, dt)
+            self.time_s = t_s
+            self._apply_pending()
+        noise = ekf.config.noise
+        wgt = self.correction_weight(t_s)
+        corr = fk.packed(self.correction, fk.pack_correction) if wgt > 0.0 else _NO_CORRECTION
+        out = np.empty(fk.TICK_OUT_SIZE)
+        ekf.x, ekf.P = fk.tick_kernel(
+            ekf.x, ekf.P, predict, gyro, accel, dt, noise.densities, noise.baro_bias_m2_s, _GRAVITY_W, wgt, corr,
+            fk.packed(self.target, fk.pack_target), fk.packed(self.config.gains, fk.pack_gains),
+            fk.packed(self.inertia, fk.pack_inertia), self.integrals.pos, self.integrals.att, GRAVITY_M_S2,
+            *self.allocator.kernel_args(), out)
+        ekf.last_gyro_b_rad_s = gyro
+        self.time_s = t_s
+        self.events.extend(self.gps_health.on_tick(t_s))
+        lay = fk.TICK_OUT
+        self.integrals = ControlIntegrals(out[lay["pos_int"]], out[lay["att_int"]])
+        if not out[lay["finite"]]:
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[lay['U']]!r}")
+        self._thrust_total_n = float(out[lay["force_norm"]])
+        if not self._airborne and out[lay["p_ctrl"]][2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
+            self._airborne = True
+        return out[lay["command"]]
+
+
+_NO_CORRECTION = np.zeros(9)
+_NO_CORRECTION.setflags(write=False)  # as a packed correction: one compiled signature
+_GRAVITY_W = np.array(GRAVITY_W_M_S2, dtype=float)

@@ -56,11 +56,15 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_CORR_HOLD", "float", 0.0, 10.0, "Correction held at full weight [s]"),
     ParamSpec("SKL_CORR_STALE", "float", 0.01, 60.0, "Correction stale after [s]: control on the raw EKF"),
     ParamSpec("COM_OF_LOSS_T", "float", 0.05, 60.0, "Target stale after [s]: hold position"),
+    ParamSpec("SKL_CTRL", "int", 0, 2, "Pose controller: 0 impedance (eq. 1), 1 SE(3) PID (2.3.2), 2 hybrid (2.3.3)"),
+    ParamSpec("SKL_PSPM_EN", "int", 0, 2, "PSPM teleoperation (2.3.4): 0 off, 1 on, 2 slave law unmodulated"),
     ParamSpec("SKL_SM_EN", "int", 0, 1, "Selective mapping (thesis sec. 2.4.2) enabled"),
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
     ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
+    ParamSpec("SKL_WRENCH_HZ", "float", 0.0, 500.0, "SKELETON_EXTERNAL_WRENCH rate to the companion [Hz] (hybrid)"),
+    ParamSpec("SKL_CT_FMAX", "float", 0.1, 200.0, "Largest contact force a command may ask [N] (hybrid)"),
     ParamSpec("SKL_CORR_MAXP", "float", 0.01, 100.0, "Largest correction accepted, position [m]"),
     ParamSpec("SKL_CORR_MAXV", "float", 0.01, 100.0, "Largest correction accepted, velocity [m/s]"),
     ParamSpec("SKL_CORR_MAXR", "float", 0.01, 3.1416, "Largest correction accepted, attitude [rad]"),
@@ -69,6 +73,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_GPS_DRIFT", "float", 0.05, 50.0, "GPS fault when positions drift from velocity by [m/s]"),
     ParamSpec("SKL_GPS_RST_T", "float", 0.5, 120.0, "Position reset to GPS after rejected for [s] (no aiding)"),
 )
+#: SKL_CTRL's values, in order (FirmwareConfig.controller)
+CONTROLLERS = ("impedance", "se3_pid", "hybrid")
+#: SKL_PSPM_EN's values, in order (FirmwareConfig.pspm_mode)
+PSPM_MODES = ("off", "on", "bypass")
 #: Integer parameters stay within this magnitude (a C-cast PARAM_SET is exact and unambiguous).
 FLOAT32_EXACT_INT = 1 << 24
 _SPEC = {p.name: p for p in PARAMS}
@@ -82,6 +90,8 @@ class StreamRates:
 
     state_hz: float = 50.0
     odometry_hz: float = 50.0
+    #: the observer's SKELETON_EXTERNAL_WRENCH (hybrid controller only; off by default)
+    wrench_hz: float = 0.0
 
 
 def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dict[str, float]:
@@ -102,11 +112,15 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_CORR_HOLD": config.correction_hold_s,
         "SKL_CORR_STALE": config.correction_stale_s,
         "COM_OF_LOSS_T": config.target_stale_s,
+        "SKL_CTRL": CONTROLLERS.index(config.controller),
+        "SKL_PSPM_EN": PSPM_MODES.index(config.pspm_mode),
         "SKL_SM_EN": int(a.selective_mapping),
         "SKL_SM_EPS0": a.eps0_n,
         "SKL_SM_EPS1": a.eps1_n,
         "SKL_STATE_HZ": rates.state_hz,
         "SKL_ODOM_HZ": rates.odometry_hz,
+        "SKL_WRENCH_HZ": rates.wrench_hz,
+        "SKL_CT_FMAX": config.contact_max_force_n,
         "SKL_CORR_MAXP": config.correction_max_dp_m,
         "SKL_CORR_MAXV": config.correction_max_dv_m_s,
         "SKL_CORR_MAXR": config.correction_max_dtheta_rad,
@@ -221,6 +235,9 @@ class ParamTable:
             correction_max_dp_m=v["SKL_CORR_MAXP"],
             correction_max_dv_m_s=v["SKL_CORR_MAXV"],
             correction_max_dtheta_rad=v["SKL_CORR_MAXR"],
+            controller=CONTROLLERS[int(v["SKL_CTRL"])],
+            contact_max_force_n=v["SKL_CT_FMAX"],
+            pspm_mode=PSPM_MODES[int(v["SKL_PSPM_EN"])],
             gps=replace(self._base.gps, timeout_s=v["SKL_GPS_TOUT"], recover_s=v["SKL_GPS_RECOV"],
                         drift_max_m_s=v["SKL_GPS_DRIFT"],
                         reset_s=v["SKL_GPS_RST_T"]),
@@ -235,4 +252,5 @@ class ParamTable:
         self.save()
 
     def rates(self) -> StreamRates:
-        return StreamRates(state_hz=self.values["SKL_STATE_HZ"], odometry_hz=self.values["SKL_ODOM_HZ"])
+        return StreamRates(state_hz=self.values["SKL_STATE_HZ"], odometry_hz=self.values["SKL_ODOM_HZ"],
+                           wrench_hz=self.values["SKL_WRENCH_HZ"])

@@ -11,10 +11,13 @@ MAVLink services implemented here with pymavlink (see the README for why not MAV
 components): HEARTBEAT and SYS_STATUS (1 Hz), the parameter protocol (PARAM_REQUEST_LIST /
 READ, PARAM_SET with PARAM_VALUE replies; persisted), COMMAND_LONG / COMMAND_INT with COMMAND_ACK
 (arm/disarm, SET_MESSAGE_INTERVAL, REQUEST_MESSAGE incl. AUTOPILOT_VERSION, REQUEST_AUTOPILOT_
-CAPABILITIES; anything else: UNSUPPORTED), telemetry streams on flight-controller time
+CAPABILITIES, the dialect's MAV_CMD_SKELETON_SET_CONTACT for the hybrid controller; anything else:
+UNSUPPORTED), telemetry streams on flight-controller time
 (ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ODOMETRY with covariance,
-SKELETON_LINK_STATE), and inputs: SKELETON_CORRECTION, ODOMETRY as external-vision correction
-(standard-messages mode), SET_POSITION_TARGET_LOCAL_NED and SET_ATTITUDE_TARGET. Only those
+SKELETON_LINK_STATE; SKELETON_EXTERNAL_WRENCH with the hybrid controller, ``SKL_WRENCH_HZ``;
+DEBUG_VECT ``PSPM`` with PSPM's reservoirs under teleoperation, ``SKL_PSPM_EN``), and inputs:
+SKELETON_CORRECTION, ODOMETRY as external-vision correction (standard-messages mode),
+SET_POSITION_TARGET_LOCAL_NED and SET_ATTITUDE_TARGET (operator set poses under PSPM). Only those
 message types are acted on; everything else is counted (see :class:`MavlinkPort`).
 
 Failsafes are the firmware's: a correction older than ``SKL_CORR_STALE`` fades to the raw EKF, a
@@ -35,7 +38,15 @@ from pathlib import Path
 import numpy as np
 
 from companion.logstream import LogStream
-from companion.mavlink.codec import MessageError, decode_correction, decode_target_feedforward, encode_link_state, usec
+from companion.mavlink.codec import (
+    MessageError,
+    decode_contact_command,
+    decode_correction,
+    decode_target_feedforward,
+    encode_external_wrench,
+    encode_link_state,
+    usec,
+)
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd
 from companion.mavlink.standard import (
@@ -72,6 +83,8 @@ MAVLINK_ACCEPT = frozenset({
     "SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET", "SKELETON_TARGET_FEEDFORWARD", "SKELETON_CORRECTION",
     "ODOMETRY", "VISION_POSITION_ESTIMATE", "SET_GPS_GLOBAL_ORIGIN", "SETUP_SIGNING", "FILE_TRANSFER_PROTOCOL",
 })
+#: DEBUG_VECT name of PSPM's reservoirs (x: E_t, y: E_r [J]; z: the set position's lag [m])
+PSPM_DEBUG_NAME = b"PSPM"
 _PX4_OFFBOARD = 6 << 16  # PX4 custom_mode: main mode OFFBOARD
 #: MAV_CMD_COMPONENT_ARM_DISARM param2 that disarms a vehicle in flight (PX4, ArduPilot)
 FORCE_DISARM = 21196
@@ -180,7 +193,9 @@ class Vehicle:
         self._ff_target: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
         self._log = _Stream.at_rate(log_rate_hz)
-        self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target")}
+        # pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m] (pspm_report; NaN while PSPM is off)
+        self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target",
+                                                       "pspm")}
         self.errors = {"hil": 0, "mavlink": 0, "correction_rejected": 0, "disarm_refused": 0, "setup_signing_refused": 0,
                        "hil_baro": 0, "hil_mag": 0}
         self._next_status_wall: dict[str, float] = {}
@@ -204,11 +219,13 @@ class Vehicle:
             D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 10.0,
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
             D.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+            D.MAVLINK_MSG_ID_SKELETON_EXTERNAL_WRENCH: rates.wrench_hz,
         }
         gcs = {
             D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
             D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 5.0,
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+            D.MAVLINK_MSG_ID_DEBUG_VECT: 5.0,  # PSPM's reservoirs (nothing is sent while PSPM is off)
         }
         return onboard if endpoint == 0 else gcs
 
@@ -228,6 +245,8 @@ class Vehicle:
             D.MAVLINK_MSG_ID_HEARTBEAT: self._msg_heartbeat,
             D.MAVLINK_MSG_ID_SYSTEM_TIME: self._msg_system_time,
             D.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: self._msg_gps_global_origin,
+            D.MAVLINK_MSG_ID_SKELETON_EXTERNAL_WRENCH: self._msg_external_wrench,
+            D.MAVLINK_MSG_ID_DEBUG_VECT: self._msg_pspm,
         }
 
     # -- messages out --------------------------------------------------------------------------
@@ -309,6 +328,17 @@ class Vehicle:
         st = self._report()
         return encode_odometry(st, usec(st.time_s), estimator_type=D.MAV_ESTIMATOR_TYPE_NAIVE)
 
+    def _msg_external_wrench(self):
+        """The momentum observer's estimate (``None`` without one: the stream sends nothing)."""
+        report = self.fw.external_wrench_report()
+        return None if report is None else encode_external_wrench(report)
+
+    def _msg_pspm(self):
+        """DEBUG_VECT ``PSPM``: x, y the reservoirs E_t, E_r [J], z how far the modulated set position
+        lags the operator's [m] (``None`` while PSPM is off: the stream sends nothing)."""
+        report = self.fw.pspm_report()
+        return None if report is None else D.MAVLink_debug_vect_message(PSPM_DEBUG_NAME, self.fc_time_us, *report)
+
     def _send_due_streams(self) -> None:
         builders = None
         t = self.fc_time_us
@@ -317,7 +347,9 @@ class Vehicle:
                 if t >= stream.next_us:
                     if builders is None:
                         builders = self._builders()
-                    ep.port.send(builders[mid]())
+                    msg = builders[mid]()
+                    if msg is not None:
+                        ep.port.send(msg)
                     stream.next_us = max(stream.next_us + stream.interval_us, t)
 
     def _heartbeats(self) -> None:
@@ -422,6 +454,7 @@ class Vehicle:
         r["q_ctrl"].append(q)
         r["p_target"].append(target.p_w_m)
         r["q_target"].append(target.q_wxyz)
+        r["pspm"].append(fw.pspm_report() or (math.nan,) * 3)
 
     # -- MAVLink in ------------------------------------------------------------------------------
     def _for_us(self, msg) -> bool:
@@ -624,10 +657,36 @@ class Vehicle:
             if builder is None or (mid != D.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not self.fw.initialized):
                 self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED if builder is None else D.MAV_RESULT_TEMPORARILY_REJECTED)
                 return
-            self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
-            ep.port.send(builder())
+            out = builder()
+            self._ack(ep, msg, D.MAV_RESULT_ACCEPTED if out is not None else D.MAV_RESULT_DENIED)
+            if out is not None:
+                ep.port.send(out)
+        elif cmd == D.MAV_CMD_SKELETON_SET_CONTACT:
+            self._on_contact_command(ep, msg)
         else:
             self._ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
+
+    def _on_contact_command(self, ep: _Endpoint, msg) -> None:
+        """MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact (or its release), validated;
+        refused with MAV_RESULT_DENIED and a STATUSTEXT saying why."""
+        if msg.get_type() != "COMMAND_LONG":
+            reason = "Contact refused: send it as COMMAND_LONG"
+        elif self.fw.config.controller != "hybrid":
+            reason = f"Contact refused: controller {self.fw.config.controller} (SKL_CTRL 2)"
+        else:
+            try:
+                contact = decode_contact_command(msg)
+                self.fw.set_contact(self.fc_time_s, contact)
+            except ValueError as exc:  # MessageError too
+                reason = f"Contact refused: {exc}"
+            else:
+                log.info("link %d: contact %s", self.system_id, "released" if contact is None else
+                         f"{contact.force_n:g} N along {np.round(contact.normal_w, 3).tolist()} (world)")
+                self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+                return
+        log.warning("link %d: %s", self.system_id, reason)
+        self._status(ep, D.MAV_SEVERITY_WARNING, reason)
+        self._ack(ep, msg, D.MAV_RESULT_DENIED)
 
     def _param_value(self, name: str):
         """PARAM_VALUE, PX4's bytewise encoding: an integer's 32 bits in the float field."""
@@ -679,10 +738,11 @@ class Vehicle:
 
     def _apply_params(self, name: str) -> None:
         self.fw.reconfigure(self.params.firmware_config())
-        if name in ("SKL_STATE_HZ", "SKL_ODOM_HZ"):
+        if name in ("SKL_STATE_HZ", "SKL_ODOM_HZ", "SKL_WRENCH_HZ"):
             defaults = self._default_rates(0)
             streams = self.endpoints[0].streams
-            for mid in (D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, D.MAVLINK_MSG_ID_ODOMETRY):
+            for mid in (D.MAVLINK_MSG_ID_SKELETON_LINK_STATE, D.MAVLINK_MSG_ID_ODOMETRY,
+                        D.MAVLINK_MSG_ID_SKELETON_EXTERNAL_WRENCH):
                 hz = defaults[mid]
                 if hz > 0:
                     streams[mid] = _Stream.at_rate(hz, self.fc_time_us)

@@ -10,3 +10,10 @@
 * :mod:`.synthetic` -- constraint-consistent chain motion without physics (the paper's sec. IV);
 * :mod:`.bench` -- benchmarks that print figures.
 """
+
+import os as _os
+
+# Cameras and videos render offscreen (sitl.camera, sitl.video): MuJoCo picks its OpenGL backend
+# when it is first imported, so choose a headless one here, before any sitl module imports it.
+# osmesa renders on the CPU (Debian: libosmesa6); set MUJOCO_GL=egl yourself for a GPU.
+_os.environ.setdefault("MUJOCO_GL", "osmesa")

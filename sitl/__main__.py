@@ -17,6 +17,7 @@ import argparse
 import json
 import signal
 import sys
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -26,6 +27,7 @@ from companion.cli import make_run_dir, run_subcommand
 from .fleet import FleetError, check_fleet_scenario, launch
 from .fly import fly
 from .scenario import load_scenario
+from .slung_load_config import SlungLoadScenario, is_slung_load_file, load_slung_scenario
 
 EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
@@ -33,7 +35,7 @@ EXIT_FLEET = 3
 EXIT_INTERRUPTED = 130
 
 
-_SUMMARY_KEYS = ("rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
+_SUMMARY_KEYS = ("load_pose_err", "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
                  "constraint_vel_p95_m_s", "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m",
                  "crashed", "realtime_factor")
 
@@ -45,6 +47,8 @@ def _scenario(args):
         overrides["duration_s"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if is_slung_load_file(args.config):  # a [load] table: the slung-load scenario (sitl.slung_load)
+        return load_slung_scenario(args.config, **overrides)
     return load_scenario(args.config, **overrides)
 
 
@@ -76,8 +80,14 @@ def _cmd_fly(args) -> int:
     selective = False if args.no_selective_mapping else None
     try:
         with _progress(scenario, args, scenario.name) as bar:
-            metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
-                          plots=not args.no_plots)
+            if isinstance(scenario, SlungLoadScenario):
+                from .slung_load import fly_slung_load  # MuJoCo rendering and OpenCV: only for this scenario
+
+                metrics = fly_slung_load(scenario, out_dir, progress=bar.update, plots=not args.no_plots,
+                                         video=args.video)
+            else:
+                metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
+                              plots=not args.no_plots, video=args.video)
     except KeyboardInterrupt:
         print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -91,6 +101,8 @@ def _raise_interrupt(_signum, _frame):
 def _cmd_launch(args) -> int:
     try:
         scenario = _scenario(args)
+        if isinstance(scenario, SlungLoadScenario):
+            raise ValueError("the slung-load scenario runs in batch mode only (python -m sitl fly)")
         check_fleet_scenario(scenario)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -102,7 +114,8 @@ def _cmd_launch(args) -> int:
     signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
     try:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
-            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion)
+            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
+                             plots=not args.no_plots)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -134,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--no-selective-mapping", action="store_true",
                     help="allocate with the infinity-norm solution only (Prop. 1), without selective mapping")
     fl.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    fl.add_argument("--video", metavar="PATH", type=Path,
+                    help="write an MP4 of the flight (chase camera, 30 fps of simulated time; with the scenario's "
+                         "first onboard camera and the detected markers' axes inset)")
     fl.set_defaults(func=_cmd_fly)
     la = sub.add_parser(
         "launch",
@@ -145,6 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pace at F times real time; 0 = as fast as the lockstep allows (default 1)")
     la.add_argument("--no-companion", action="store_true",
                     help="do not start the companion daemon: UDP 14540+i is free for your own (MAVSDK, MAVProxy)")
+    la.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     la.set_defaults(func=_cmd_launch)
     return parser
 

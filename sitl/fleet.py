@@ -41,6 +41,7 @@ from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
 from companion.skeleton.kinematics import tension
+from link_firmware_sim import _fast
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
@@ -524,8 +525,9 @@ def check_fleet_scenario(sc: Scenario) -> None:
 
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
-           companion: bool = True) -> dict:
-    """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``)."""
+           companion: bool = True, plots: bool = True) -> dict:
+    """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
+    too unless ``plots`` is false)."""
     check_fleet_scenario(sc)
     out_dir.mkdir(parents=True, exist_ok=True)
     if sc.signing.active and not sc.signing.key_file:
@@ -576,6 +578,9 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             argv += ["--onboard-url", f"udpout://127.0.0.1:{WIRE_VEHICLE_SIDE + i}?bind={14580 + i}"]
         procs.start(name, argv, out_dir / folder / "console.log")
 
+    # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
+    # load numba's on-disk cache instead of each compiling them (link_firmware_sim._fast).
+    log.info("firmware kernels ready in %.1f s", _fast.warm_up())
     try:
         if wired:
             m = faults.mavlink
@@ -690,10 +695,10 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         metrics["paper_reference"] = PAPER_THREE_LINK
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     np.savez_compressed(out_dir / "log.npz", **merged)
-    if sc.trajectory.kind == "cpg":
+    if plots and sc.trajectory.kind == "cpg":
         period_s = 1.0 / InverseModel.load(sc.motion.model).steady.cpg_params.frequency_hz
         write_plots(merged, out_dir, motion=sc.motion, period_s=period_s)
-    else:
+    elif plots:
         write_plots(merged, out_dir)
     (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=harness.sim_s)))
     if aborted:

@@ -37,11 +37,17 @@ def fly(
     selective_mapping: bool | None = None,
     progress=None,
     plots: bool = True,
+    video: Path | None = None,
 ) -> dict:
-    """Run ``scenario`` for its ``duration_s``; returns the metrics (and writes them to ``out_dir``)."""
+    """Run ``scenario`` for its ``duration_s``; returns the metrics (and writes them to ``out_dir``).
+
+    ``video``: write an MP4 of the flight there (:mod:`sitl.video`). A scenario with cameras
+    renders them and runs the vision pipeline on their frames (:mod:`sitl.vision_log`):
+    ``metrics["vision"]`` and ``vision.npz``."""
     runner = BatchRunner(scenario, sckf=sckf, selective_mapping=selective_mapping)
     sc = runner.scenario
-    runner.run(sc.duration_s, progress=progress)
+    with _Vision(runner, video) as vision:
+        runner.run(sc.duration_s, progress=progress)
     arrays = runner.arrays()
     metrics = compute_metrics(
         arrays,
@@ -65,6 +71,7 @@ def fly(
                                      "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}}
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
+    metrics.update(vision.metrics())
     if runner.crashed:
         log.warning("crash: %s", runner.crash_reason)
     if out_dir is not None:
@@ -72,9 +79,66 @@ def fly(
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         np.savez_compressed(out_dir / "log.npz", **arrays)
+        if vision.log is not None:
+            np.savez_compressed(out_dir / "vision.npz", **vision.log.arrays())
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
             cpg = isinstance(runner.trajectory, CpgChainTrajectory)
             write_plots(arrays, out_dir, motion=sc.motion if cpg else None,
                         period_s=runner.trajectory.generator.period_s if cpg else 4.0)
     return metrics
+
+
+class _Vision:
+    """The cameras (:class:`~sitl.camera.CameraRig`), the vision log and the video of one flight,
+    as tick hooks of the runner; closes their renderers and the video file on exit."""
+
+    def __init__(self, runner: BatchRunner, video: Path | None):
+        self.runner, self.video_path = runner, video
+        self.rig = self.log = self.video = None
+
+    def __enter__(self) -> _Vision:
+        sc, runner = self.runner.scenario, self.runner
+        if not sc.cameras and self.video_path is None:
+            return self
+        from .camera import CameraRig  # OpenCV and rendering only for these flights
+        from .video import VideoRecorder
+        from .vision_log import VisionLog
+
+        model, data = runner.model.model, runner.model.data
+        try:
+            if sc.cameras:
+                self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed)
+                self.log = VisionLog(sc.markers)
+                runner.tick_hooks.append(self._cameras)
+            if self.video_path is not None:
+                self.video = VideoRecorder(model, data, self.video_path, runner.dt, rig=self.rig, markers=sc.markers,
+                                           title=sc.name)
+                runner.tick_hooks.append(self.video.on_tick)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _cameras(self, k: int, t: float) -> None:
+        self.rig.on_tick(k, t)
+        for frame in self.rig.poll(t):
+            self.log.on_frame(frame)
+
+    def metrics(self) -> dict:
+        out = {}
+        if self.log is not None:
+            out["vision"] = self.log.metrics()
+            out["vision"]["render_ms_per_frame"] = 1e3 * self.rig.render_s / self.rig.renders if self.rig.renders else None
+        if self.video is not None:
+            out["video"] = self.video.stats()
+        return out
+
+    def __exit__(self, *exc) -> None:
+        for hook in (self._cameras, getattr(self.video, "on_tick", None)):
+            if hook in self.runner.tick_hooks:
+                self.runner.tick_hooks.remove(hook)
+        if self.video is not None:
+            self.video.close()
+        if self.rig is not None:
+            self.rig.close()

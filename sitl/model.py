@@ -28,7 +28,9 @@ thrusts and forces applied, accelerations and the accelerometer computed, state 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -127,24 +129,37 @@ def build_mjcf(cfg: SkeletonConfig, geometry: RotorGeometry, rotors: RotorParams
 @dataclass(frozen=True)
 class Truth:
     """Ground truth of every link: p/v world (n, 3), q (n, 4), body rate and specific force (n, 3),
-    and the force on link ``j+1`` from link ``j`` at every joint (the cable), world (n-1, 3)."""
+    and the force on link ``j+1`` from link ``j`` at every joint (the cable), world (n-1, 3).
+
+    The joint forces are computed when first read (the harness reads them at the log rate only,
+    not at every physics tick): read them before the step ends (:meth:`SkeletonModel.end_step`)."""
 
     p_w_m: np.ndarray
     v_w_m_s: np.ndarray
     q_wxyz: np.ndarray
     omega_b_rad_s: np.ndarray
     specific_force_b_m_s2: np.ndarray
-    joint_force_w_n: np.ndarray
+    _joint_forces: Callable[[], np.ndarray] = field(repr=False, compare=False)
+
+    @cached_property
+    def joint_force_w_n(self) -> np.ndarray:
+        return self._joint_forces()
 
 
 class SkeletonModel:
     """A compiled skeleton with every element resolved by name."""
 
-    def __init__(self, cfg: SkeletonConfig, geometry: RotorGeometry, rotors: RotorParams, timestep_s: float = 0.001):
+    def __init__(self, cfg: SkeletonConfig, geometry: RotorGeometry, rotors: RotorParams, timestep_s: float = 0.001,
+                 cameras: tuple = (), markers: tuple = ()):
         self.cfg = cfg
         self.geometry = geometry
         self.xml = build_mjcf(cfg, geometry, rotors, timestep_s)
-        self.model = mujoco.MjModel.from_xml_string(self.xml)
+        assets: dict[str, bytes] = {}
+        if cameras or markers:  # cameras and ArUco markers (sitl.camera; OpenCV only then)
+            from .camera import vision_mjcf
+
+            self.xml, assets = vision_mjcf(self.xml, tuple(cameras), tuple(markers))
+        self.model = mujoco.MjModel.from_xml_string(self.xml, assets)
         self.data = mujoco.MjData(self.model)
         m = self.model
         n = cfg.n_links
@@ -204,7 +219,7 @@ class SkeletonModel:
             q_wxyz=s[self._quat],
             omega_b_rad_s=s[self._gyro],
             specific_force_b_m_s2=s[self._acc],
-            joint_force_w_n=self.joint_forces(),
+            _joint_forces=self.joint_forces,
         )
 
     def joint_forces(self) -> np.ndarray:

@@ -22,8 +22,12 @@ min_thrust_n``) and spins down towards zero for anything else; once below ``esc_
 it is *stopped*; a stopped rotor asked to spin goes through the restart dwell, then spins up
 in the commanded direction. Each step integrates the first-order law exactly (``lambda``
 relaxes exponentially towards its current target). Commands are clipped to
-``+-thrust_max_n``; thrust sign changes are counted. Pure numpy; the MuJoCo harness feeds
-``thrust_n`` to the rotor actuators.
+``+-thrust_max_n``; thrust sign changes are counted. The MuJoCo harness feeds ``thrust_n`` to
+the rotor actuators.
+
+The numpy code of :meth:`RotorBank.step` is the specification; with numba installed the bank steps
+by :func:`_step_kernel`, the same per-rotor logic compiled (``tests/test_fast_paths.py`` checks it
+against the numpy code through reversals, stops and restarts).
 """
 
 from __future__ import annotations
@@ -32,6 +36,8 @@ import math
 import numpy as np
 
 from companion.skeleton.rotors import RotorParams
+from link_firmware_sim._fast import ENABLED as _COMPILED_DEFAULT
+from link_firmware_sim._fast import jit
 
 __all__ = ["RotorParams", "RotorBank"]
 
@@ -39,8 +45,9 @@ __all__ = ["RotorParams", "RotorBank"]
 class RotorBank:
     """All rotors of a skeleton (any count), stepped together at the physics rate."""
 
-    def __init__(self, n_rotors: int, params: RotorParams = RotorParams()):
+    def __init__(self, n_rotors: int, params: RotorParams = RotorParams(), *, compiled: bool | None = None):
         self.params = params
+        self._compiled = _COMPILED_DEFAULT if compiled is None else bool(compiled)
         self.thrust_n = np.zeros(n_rotors)
         self.command_n = np.zeros(n_rotors)
         self.zero_crossings = np.zeros(n_rotors, dtype=np.int64)
@@ -55,6 +62,11 @@ class RotorBank:
     def set_command(self, command_n: np.ndarray) -> None:
         """Commanded thrusts [N]; clipped to the thrust limit."""
         limit = self.params.thrust_max_n
+        if self._compiled:
+            self._steady = _set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
+                                               self._spinning, self._direction, self._out_sign,
+                                               max(self.params.min_thrust_n, 1e-12))
+            return
         np.clip(np.asarray(command_n, dtype=float), -limit, limit, out=self.command_n)
         # Steady: every rotor spins and tracks a sustainable command of its own sign, so a
         # step is pure first-order relaxation (no stop, restart or sign change can happen).
@@ -83,9 +95,18 @@ class RotorBank:
         """Advance every rotor by ``dt_s`` and return the thrusts [N]."""
         if self._steady:
             cmd = self.command_n
-            self.thrust_n = cmd + (self.thrust_n - cmd) * self._decay_factor(dt_s)
+            if self._compiled:
+                self.thrust_n = _relax_kernel(cmd, self.thrust_n, self._decay_factor(dt_s))
+            else:
+                self.thrust_n = cmd + (self.thrust_n - cmd) * self._decay_factor(dt_s)
             return self.thrust_n
         p = self.params
+        if self._compiled:
+            self.thrust_n = _step_kernel(self.thrust_n, self.command_n, self._spinning, self._direction,
+                                         self._restarting, self._restart_left_s, self._out_sign, self.zero_crossings,
+                                         p.min_thrust_n, p.restart_dwell_s, p.esc_epsilon_n,
+                                         self._decay_factor(dt_s), dt_s)
+            return self.thrust_n
         lam = self.thrust_n
         cmd = self.command_n
         if p.min_thrust_n > 0.0:
@@ -118,3 +139,70 @@ class RotorBank:
         self._out_sign = np.where(outside, new_sign, self._out_sign)
         self.thrust_n = new
         return new
+
+
+@jit
+def _step_kernel(thrust, command, spinning, direction, restarting, restart_left, out_sign, zero_crossings,
+                 min_thrust, dwell, eps, decay, dt_s):
+    """:meth:`RotorBank.step` (not steady) rotor by rotor: the state arrays are updated in place,
+    the new thrusts returned as a new array."""
+    new = np.empty_like(thrust)
+    for i in range(len(thrust)):
+        c = command[i]
+        if min_thrust > 0.0 and not abs(c) >= min_thrust:
+            c = 0.0
+        was_spinning = spinning[i]
+        keep = was_spinning and c * direction[i] > 0.0
+        target = c if keep else 0.0
+        wanted = (not was_spinning) and c != 0.0
+        starting = wanted and not restarting[i]
+        if starting:
+            restart_left[i] = dwell
+        now_restarting = wanted and (restarting[i] or starting)
+        ready = now_restarting and restart_left[i] <= 0.0
+        if now_restarting and not ready:
+            restart_left[i] -= dt_s
+        restarting[i] = now_restarting and not ready
+        if ready:
+            spinning[i] = True
+            direction[i] = np.sign(c)
+            target = c
+        lam = target + (thrust[i] - target) * decay
+        outside = abs(lam) > eps
+        if spinning[i] and not keep and not ready and not outside:  # spun down into the dead band: stopped
+            spinning[i] = False
+            direction[i] = 0.0
+        sgn = np.sign(lam)
+        if outside:
+            if out_sign[i] != 0.0 and sgn != out_sign[i]:
+                zero_crossings[i] += 1
+            out_sign[i] = sgn
+        new[i] = lam
+    return new
+
+
+@jit
+def _set_command_kernel(command, limit, out, spinning, direction, out_sign, margin):
+    """:meth:`RotorBank.set_command`: ``out`` <- the command clipped to ``+-limit`` (NaN stays
+    NaN, as ``np.clip``); returns whether the bank is steady (every rotor spinning, tracking a
+    command of its own sign of at least ``margin``, its last thrust sign its direction)."""
+    steady = True
+    for i in range(len(command)):
+        c = command[i]
+        if c < -limit:
+            c = -limit
+        elif c > limit:
+            c = limit
+        out[i] = c
+        if not (spinning[i] and c * direction[i] >= margin and out_sign[i] == direction[i]):
+            steady = False
+    return steady
+
+
+@jit
+def _relax_kernel(command, thrust, decay):
+    """The steady step of :meth:`RotorBank.step`: ``command + (thrust - command) decay``."""
+    new = np.empty_like(thrust)
+    for i in range(len(thrust)):
+        new[i] = command[i] + (thrust[i] - command[i]) * decay
+    return new

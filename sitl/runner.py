@@ -147,7 +147,8 @@ class Plant:
         self.dt = 1.0 / sc.sim.physics_rate_hz
         self.geometry = sc.geometry()
         self.inertia = link_inertia(sc.skeleton, self.geometry)
-        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt)
+        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt, cameras=sc.cameras,
+                                   markers=sc.markers)
         self.model.reset(sc.start)
         self.d = sc.skeleton.d_b_m
         self.rng = np.random.default_rng(sc.seed)
@@ -281,6 +282,8 @@ class BatchRunner:
         self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
         self.sim_s = 0.0
+        # Called as hook(k, t) at every physics tick after the kinematics (cameras, video).
+        self.tick_hooks: list = []
 
     def _engines(self, sc: Scenario, center: np.ndarray):
         clock = lambda: self.now_s  # noqa: E731 - the engines' and the hub's clock
@@ -439,6 +442,8 @@ class BatchRunner:
             if k % sch.log == 0:
                 self._log_tick(t, truth)
                 plant.check_crash(t, truth, np.stack([fw.active_target(t).q_wxyz for fw in self.firmware]))
+            for hook in self.tick_hooks:
+                hook(k, t)
             plant.end_tick()
             if progress is not None and (k - tick0) % 100 == 99:
                 progress(100 * self.dt)

@@ -22,6 +22,7 @@ from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 
 from .bench.ekf_chain import rate_divisor
+from .camera_config import CameraMount, MarkerMount
 from .sensors import PROFILES, BaroNoise, MagNoise, SensorSuite
 from .skeleton import StartPose
 
@@ -268,6 +269,9 @@ class Scenario(CompanionSetup, VehicleSetup):
     wind: WindConfig = field(default_factory=WindConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
+    # [[cameras]] / [[markers]]: cameras rendered offscreen and ArUco markers (sitl.camera)
+    cameras: tuple[CameraMount, ...] = ()
+    markers: tuple[MarkerMount, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.duration_s > self.flight_start_s:
@@ -281,6 +285,12 @@ class Scenario(CompanionSetup, VehicleSetup):
         rate_divisor(self.firmware.rate_hz, self.sensors.baro_rate_hz, "sensors.baro_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.sensors.mag_rate_hz, "sensors.mag_rate_hz")
         rate_divisor(self.firmware.rate_hz, self.companion.state_rate_hz, "companion.state_rate_hz")
+        for i, cam in enumerate(self.cameras):
+            rate_divisor(physics, cam.rate_hz, f"cameras[{i}].rate_hz")
+        if len({c.name for c in self.cameras}) != len(self.cameras):
+            raise ValueError("cameras: names must be unique")
+        if len({m.id for m in self.markers}) != len(self.markers):
+            raise ValueError("markers: ids must be unique")
         CompanionSetup.__post_init__(self)
         VehicleSetup.__post_init__(self)
         n_groups = len(self.companion.group_layout(self.skeleton.n_links))
@@ -301,5 +311,15 @@ class Scenario(CompanionSetup, VehicleSetup):
 
 
 def load_scenario(path: str | Path, **overrides) -> Scenario:
-    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``)."""
-    return load_setup(Scenario, path, **overrides)
+    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``). A
+    ``[companion]`` without ``omega_std_rad_s`` gets the simulated gyro's white noise: the
+    firmware reports the raw body rate less its bias estimate."""
+    return with_rate_noise(load_setup(Scenario, path, **overrides))
+
+
+def with_rate_noise(scenario: Scenario) -> Scenario:
+    """``scenario`` with ``companion.omega_std_rad_s`` set to its gyro's white noise if unset."""
+    if scenario.companion.omega_std_rad_s is not None:
+        return scenario
+    gyro = scenario.sensors.suite().imu.gyro_std_rad_s
+    return replace(scenario, companion=replace(scenario.companion, omega_std_rad_s=gyro))

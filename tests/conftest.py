@@ -1,3 +1,9 @@
+import os
+
+# Offscreen rendering (cameras, videos) on the CPU: set before anything imports MuJoCo (sitl does
+# the same on import; here it also covers tests that import mujoco first).
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
 import pytest
 
 from companion.cli import single_thread_blas

@@ -264,7 +264,7 @@ def test_link_ekf_methods_agree_with_the_functions():
     cfg = EkfConfig(baro_var_m2=0.02, mag_heading_var_rad2=0.03, baro_ground_effect_deadzone_m=0.7)
     rng = np.random.default_rng(9)
     q = quat_normalize(rng.normal(size=4))
-    ekf = LinkEkf(rng.normal(size=3), rng.normal(size=3), q, cfg)
+    ekf = LinkEkf(rng.normal(size=3), rng.normal(size=3), q, cfg, compiled=False)  # the numpy specification
     x, P = ekf.x.copy(), ekf.P.copy()
     assert ekf.update_baro(50.0).accepted and ekf.baro_referenced  # the reference
     x, P = ekf_add_baro_offset(x, P, 50.0, cfg.baro_var_m2)

@@ -99,6 +99,7 @@ def test_forward_speed_commands_are_tracked_within_ten_percent(committed):
     assert np.all(np.abs(achieved - speeds) / speeds < 0.10), achieved
 
 
+@pytest.mark.slow  # 70 s on 2 cores: opt in with -m slow (the default suite keeps its 15 min budget)
 def test_adaptation_reduces_a_deliberate_model_error(committed):
     """Twice the axial drag the model learnt with: the model alone is 20-30% slow; eq. 4.3 fixes it."""
     model = committed

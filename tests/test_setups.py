@@ -22,7 +22,9 @@ HARDWARE = sorted((ROOT / "configs" / "hardware").glob("*.toml"))
 
 @pytest.mark.parametrize("path", SITL, ids=lambda p: p.stem)
 def test_every_scenario_splits_into_parts_that_load_back_strictly(path, tmp_path):
-    sc = load_scenario(path)
+    from sitl.slung_load_config import is_slung_load_file, load_slung_scenario
+
+    sc = load_slung_scenario(path) if is_slung_load_file(path) else load_scenario(path)  # as `sitl fly` does
     assert isinstance(sc, CompanionSetup) and isinstance(sc, VehicleSetup)
     for cls, part in ((CompanionSetup, sc.companion_setup()), (VehicleSetup, sc.vehicle_setup())):
         assert type(part) is cls
@@ -58,3 +60,16 @@ def test_the_scenario_checks_each_parts_rules():
     with pytest.raises(ValueError, match="duration_s"):  # the simulator's rule
         replace(sc, duration_s=2.0)
     assert Scenario.__mro__[1:3] == (CompanionSetup, VehicleSetup)
+
+
+def test_the_wall_push_scenario_loads_as_one():
+    """configs/sitl/odar/wall_push.toml is a wall-push scenario ([contact]); as a plain scenario
+    its extra table is named."""
+    from sitl.contact import load_wall_scenario
+
+    path = ROOT / "configs" / "sitl" / "odar" / "wall_push.toml"
+    sc = load_wall_scenario(path)
+    assert sc.contact.force_n > 0 and sc.firmware.controller == "hybrid"
+    with pytest.raises(ConfigError) as info:
+        load_scenario(path)
+    assert info.value.key == "contact"

@@ -16,7 +16,9 @@ from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
     STATE_FLAG_EKF_OK,
+    ContactTarget,
     Correction,
+    ExternalWrench,
     LinkState,
     MessageError,
     PoseTarget,
@@ -41,6 +43,11 @@ __all__ = [
     "decode_correction",
     "encode_target_feedforward",
     "decode_target_feedforward",
+    "encode_external_wrench",
+    "decode_external_wrench",
+    "CONTACT_RELEASE",
+    "encode_contact_command",
+    "decode_contact_command",
 ]
 
 _D = load_dialect()
@@ -131,3 +138,90 @@ def decode_target_feedforward(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(omega_dot_d FLU, force_ff world ENU, torque_ff FLU)`` of a SKELETON_TARGET_FEEDFORWARD."""
     return (flu_frd(check_finite("ang_accel_frd", msg.ang_accel_frd)), enu_ned(check_finite("force_ned", msg.force_ned)),
             flu_frd(check_finite("torque_frd", msg.torque_frd)))
+
+
+#: Plausibility bounds of the decoders below (a corrupt or mis-scaled field, not a control limit:
+#: the firmware's own bound on a commanded contact force is SKL_CT_FMAX)
+WRENCH_FORCE_LIMIT_N = 1e4
+WRENCH_TORQUE_LIMIT_NM = 1e4
+CONTACT_FORCE_LIMIT_N = 1e3
+CONTACT_POINT_LIMIT_M = 10.0
+#: MAV_CMD_SKELETON_SET_CONTACT param1 that releases the contact (pose control only)
+CONTACT_RELEASE = -1.0
+_UNIT_TOL = 1e-3  # float32 on the wire: a normal within this of unit length is renormalised
+
+
+def _bounded(name: str, values, limit: float) -> np.ndarray:
+    v = check_finite(name, values)
+    norm = float(np.linalg.norm(v))
+    if norm > limit:
+        raise MessageError(f"{name}: magnitude {norm:.4g} exceeds {limit:g}")
+    return v
+
+
+def _contact_pair(force_n: float, setpoint_n: float) -> tuple[float, float]:
+    """Both NaN (no contact) or both finite, the setpoint in [0, CONTACT_FORCE_LIMIT_N]."""
+    force_n, setpoint_n = float(force_n), float(setpoint_n)
+    if math.isnan(setpoint_n) and math.isnan(force_n):
+        return force_n, setpoint_n
+    if not (math.isfinite(force_n) and math.isfinite(setpoint_n)):
+        raise MessageError("contact_force / contact_force_setpoint: both finite or both NaN (no contact)")
+    if not 0.0 <= setpoint_n <= CONTACT_FORCE_LIMIT_N:
+        raise MessageError(f"contact_force_setpoint: {setpoint_n:g} N outside [0, {CONTACT_FORCE_LIMIT_N:g}]")
+    if abs(force_n) > CONTACT_FORCE_LIMIT_N:
+        raise MessageError(f"contact_force: {force_n:g} N exceeds {CONTACT_FORCE_LIMIT_N:g}")
+    return force_n, setpoint_n
+
+
+def encode_external_wrench(wrench: ExternalWrench):
+    """SKELETON_EXTERNAL_WRENCH of an :class:`ExternalWrench` (world ENU / body FLU inside, NED / FRD
+    out); :class:`MessageError` on non-finite or implausible values (nothing is sent)."""
+    f = _bounded("force_w_n", wrench.force_w_n, WRENCH_FORCE_LIMIT_N)
+    tau = _bounded("torque_b_nm", wrench.torque_b_nm, WRENCH_TORQUE_LIMIT_NM)
+    lam, lam_d = _contact_pair(wrench.contact_force_n, wrench.contact_force_cmd_n)
+    return _D.MAVLink_skeleton_external_wrench_message(
+        time_usec=usec(wrench.time_s), force_ned=enu_ned(f).tolist(), torque_frd=flu_frd(tau).tolist(),
+        contact_force=lam, contact_force_setpoint=lam_d)
+
+
+def decode_external_wrench(msg, link: int) -> ExternalWrench:
+    """:class:`ExternalWrench` of a SKELETON_EXTERNAL_WRENCH; :class:`MessageError` if unusable."""
+    lam, lam_d = _contact_pair(msg.contact_force, msg.contact_force_setpoint)
+    return ExternalWrench(
+        link=link, time_s=seconds(msg.time_usec),
+        force_w_n=enu_ned(_bounded("force_ned", msg.force_ned, WRENCH_FORCE_LIMIT_N)),
+        torque_b_nm=flu_frd(_bounded("torque_frd", msg.torque_frd, WRENCH_TORQUE_LIMIT_NM)),
+        contact_force_n=lam, contact_force_cmd_n=lam_d)
+
+
+def encode_contact_command(contact: ContactTarget | None, target_system: int, target_component: int = 1,
+                           confirmation: int = 0):
+    """COMMAND_LONG MAV_CMD_SKELETON_SET_CONTACT commanding ``contact`` (``None``: release it)."""
+    if contact is None:
+        params = [CONTACT_RELEASE] + [0.0] * 6
+    else:
+        params = [float(contact.force_n), *enu_ned(np.asarray(contact.normal_w, dtype=float)).tolist(),
+                  *flu_frd(np.asarray(contact.contact_b_m, dtype=float)).tolist()]
+    return _D.MAVLink_command_long_message(target_system, target_component, _D.MAV_CMD_SKELETON_SET_CONTACT,
+                                           confirmation & 0xFF, *params)
+
+
+def decode_contact_command(msg) -> ContactTarget | None:
+    """The :class:`ContactTarget` of a COMMAND_LONG MAV_CMD_SKELETON_SET_CONTACT (``None``: release).
+
+    :class:`MessageError` naming the parameter when the force is not -1 or in
+    ``[0, CONTACT_FORCE_LIMIT_N]``, the normal is not a unit vector (within 1e-3; renormalised), or
+    the contact point is not finite or farther than ``CONTACT_POINT_LIMIT_M`` from the centre."""
+    if msg.get_type() != "COMMAND_LONG" or msg.command != _D.MAV_CMD_SKELETON_SET_CONTACT:
+        raise MessageError(f"{msg.get_type()} is not a COMMAND_LONG MAV_CMD_SKELETON_SET_CONTACT")
+    force = float(msg.param1)
+    if force == CONTACT_RELEASE:
+        return None
+    if not (math.isfinite(force) and 0.0 <= force <= CONTACT_FORCE_LIMIT_N):
+        raise MessageError(f"param1 (force): {force:g} N is neither -1 (release) nor in [0, {CONTACT_FORCE_LIMIT_N:g}]")
+    n = check_finite("param2-4 (normal)", [msg.param2, msg.param3, msg.param4])
+    norm = float(np.linalg.norm(n))
+    if abs(norm - 1.0) > _UNIT_TOL:
+        raise MessageError(f"param2-4 (normal): length {norm:.4g} is not 1")
+    r = _bounded("param5-7 (contact point)", [msg.param5, msg.param6, msg.param7], CONTACT_POINT_LIMIT_M)
+    return ContactTarget(enu_ned(n / norm), flu_frd(r), force)

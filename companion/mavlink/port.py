@@ -222,6 +222,8 @@ class _TcpServer(Transport):
                 self.conn = None
                 break
             chunks.append(data)
+            if len(data) < _READ_CHUNK:  # drained: no second recv only to hear EAGAIN (one syscall a read)
+                break
         return b"".join(chunks)
 
     def send(self, data: bytes) -> None:
@@ -280,6 +282,8 @@ class _TcpClient(Transport):
                 self.closed = True
                 break
             chunks.append(data)
+            if len(data) < _READ_CHUNK:  # drained (a later arrival makes the socket readable again)
+                break
         return b"".join(chunks)
 
     def send(self, data: bytes) -> None:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from companion.estimation.so3 import quat_to_rotmat, rotmat_to_quat, skew
+from companion.estimation.so3 import cross, quat_to_rotmat, rotmat_to_quat, skew
 from companion.messages import PoseTarget
 
 from .body import GRAVITY_M_S2, SkeletonConfig, link_inertia
@@ -114,17 +114,19 @@ class ChainModel:
         v = np.empty(self.model.nv)
         a = np.empty(self.model.nv)
         q[0:3] = np.asarray(p_w, dtype=float)[0]
-        q[3:7] = _xyzw(rotmat_to_quat(R[0]))
+        R_rel = [R[i - 1].T @ R[i] for i in range(1, n)]
+        quats = rotmat_to_quat(np.stack([R[0], *R_rel]))  # link 1's attitude, then each joint's
+        q[3:7] = _xyzw(quats[0])
         v_local = R[0].T @ v0
         v[0:3], v[3:6] = v_local, w[0]
-        a[0:3], a[3:6] = R[0].T @ a0 - np.cross(w[0], v_local), wd[0]
+        a[0:3], a[3:6] = R[0].T @ a0 - cross(w[0], v_local), wd[0]
         for i in range(1, n):
-            Rrel = R[i - 1].T @ R[i]
+            Rrel = R_rel[i - 1]
             w_rel = w[i] - Rrel.T @ w[i - 1]
             qi, vi = 7 + 4 * (i - 1), 6 + 3 * (i - 1)
-            q[qi:qi + 4] = _xyzw(rotmat_to_quat(Rrel))
+            q[qi:qi + 4] = _xyzw(quats[i])
             v[vi:vi + 3] = w_rel
-            a[vi:vi + 3] = wd[i] + np.cross(w_rel, Rrel.T @ w[i - 1]) - Rrel.T @ wd[i - 1]
+            a[vi:vi + 3] = wd[i] + cross(w_rel, Rrel.T @ w[i - 1]) - Rrel.T @ wd[i - 1]
         return q, v, a
 
     def forward(self, q, v=None, a=None):
@@ -162,7 +164,7 @@ class ChainModel:
         m, J = self.inertia.mass_kg, np.diag(self.inertia.inertia_kgm2)
         # each link's own rigid-body wrench (what eq. 1's feed-forward produces), world, about its centre
         own_f = m * (acc + np.array([0.0, 0.0, GRAVITY_M_S2]))
-        own_m = np.einsum("nij,nj->ni", R, np.einsum("ij,nj->ni", J, wd) + np.cross(w, np.einsum("ij,nj->ni", J, w)))
+        own_m = np.einsum("nij,nj->ni", R, np.einsum("ij,nj->ni", J, wd) + cross(w, np.einsum("ij,nj->ni", J, w)))
         # passive joint torques on the child (compliant cable: stiffness and damping)
         tau_j = np.zeros((max(n - 1, 0), 3))
         for j in range(n - 1):
@@ -187,8 +189,8 @@ class ChainModel:
         for j in range(n - 1):
             f[j + 1] += F[j]
             f[j] -= F[j]
-            mom[j + 1] += np.cross(x[j] - p[j + 1], F[j]) + tau_j[j]
-            mom[j] -= np.cross(x[j] - p[j], F[j]) + tau_j[j]
+            mom[j + 1] += cross(x[j] - p[j + 1], F[j]) + tau_j[j]
+            mom[j] -= cross(x[j] - p[j], F[j]) + tau_j[j]
         return f, mom
 
     def _share(self, own_f, own_m, p, x, tau_j) -> np.ndarray:
@@ -220,7 +222,7 @@ class ChainModel:
             M = data.oMi[jid]
             f_local = M.rotation.T @ rotor_w[i, :3]
             # moment about the joint origin: the force acts at the link centre
-            m_w = rotor_w[i, 3:] + np.cross(p[i] - M.translation, rotor_w[i, :3])
+            m_w = rotor_w[i, 3:] + cross(p[i] - M.translation, rotor_w[i, :3])
             fext.append(pin.Force(f_local, M.rotation.T @ m_w))
         return np.array(pin.rnea(model, data, q, v, a, fext))
 

@@ -29,6 +29,7 @@ __all__ = [
     "W_TORQUE",
     "NU",
     "RotorGeometry",
+    "RotorGeometryConfig",
     "RotorParams",
 ]
 
@@ -148,6 +149,51 @@ class RotorGeometry:
             drag_ratio=drag_ratio,
         )
 
+    @classmethod
+    def from_pairs(
+        cls,
+        directions: np.ndarray,
+        positions_m: np.ndarray,
+        spin: np.ndarray,
+        drag_ratio: float = 0.02,
+        x_scale: float = 1.0,
+    ) -> RotorGeometry:
+        """The 8-rotor geometry from rotors 1-4 by the pair symmetry of sec. 2.2.2.
+
+        ``u_{j+4} = u_j``, ``r_{j+4} = -r_j``, ``sigma_{j+4} = -sigma_j``. ``directions`` (4, 3)
+        are normalised; ``x_scale`` multiplies the x coordinates of the positions (as in
+        :meth:`odar`).
+        """
+        u = np.array(directions, dtype=float)
+        r = np.array(positions_m, dtype=float)
+        s = np.array(spin, dtype=float)
+        if u.shape != (N_SIDE, 3) or r.shape != (N_SIDE, 3) or s.shape != (N_SIDE,):
+            raise ValueError(
+                f"from_pairs needs directions (4, 3), positions_m (4, 3), spin (4,); got {u.shape}, {r.shape}, {s.shape}"
+            )
+        if not (np.isfinite(x_scale) and x_scale > 0.0):
+            raise ValueError(f"x_scale must be finite and > 0; got {x_scale}")
+        norms = np.linalg.norm(u, axis=1, keepdims=True)
+        if not np.all(np.isfinite(norms)) or np.any(norms == 0.0):
+            raise ValueError(f"from_pairs directions must be finite and non-zero; got {u.tolist()}")
+        u = u / norms
+        r[:, 0] *= x_scale
+        return cls(
+            directions=np.vstack((u, u)),
+            positions_m=np.vstack((r, -r)),
+            spin=np.concatenate((s, -s)),
+            drag_ratio=drag_ratio,
+        )
+
+    def rotor_inertia_offdiag_m2(self) -> float:
+        """Largest off-diagonal entry of ``sum_i r_i r_i^T`` [m^2].
+
+        Zero when the rotors' point masses keep the body axes principal, as the link model
+        (:func:`companion.skeleton.body.link_inertia`, which keeps the diagonal) assumes.
+        """
+        S = self.positions_m.T @ self.positions_m
+        return float(max(abs(S[0, 1]), abs(S[0, 2]), abs(S[1, 2])))
+
     def torque_per_thrust(self) -> np.ndarray:
         """``t_i = r_i x u_i + gamma sigma_i u_i`` (eq. 2.1), shape (8, 3), body frame [m]."""
         return np.cross(self.positions_m, self.directions) + self.drag_ratio * self.spin[:, None] * self.directions
@@ -175,6 +221,76 @@ class RotorGeometry:
         return all(float(np.max(np.abs(x))) <= tol for x in residuals)
 
 
+_Vec3 = tuple[float, float, float]
+
+#: How far a configured direction's norm may be from 1 (it is normalised on use): Table 2.1
+#: prints its directions to two digits, ``|[0.68, 0.28, 0.68]| = 1.0016``.
+DIRECTION_NORM_TOL = 0.01
+
+
+@dataclass(frozen=True)
+class RotorGeometryConfig:
+    """The ``[rotors.geometry]`` table: a designed rotor geometry (thesis sec. 2.2.2, Table 2.1 layout).
+
+    One schema for SITL scenarios and firmware configs (both load ``[rotors]`` as
+    :class:`RotorParams`); ``python -m link_firmware_sim.design search`` writes it. Rotors 1-4
+    only: rotors 5-8 follow by the pair symmetry ``u_{j+4} = u_j``, ``r_{j+4} = -r_j``,
+    ``sigma_{j+4} = -sigma_j``. Without the table a config flies Table 2.1 (modified
+    ``sigma_1 = -1`` of sec. 2.4.1), bit-identical to before.
+
+    Attributes:
+        directions: thrust directions ``u_1..u_4`` (body frame, unit; norms within
+            :data:`DIRECTION_NORM_TOL` of 1 are accepted and normalised).
+        positions_m: rotor positions ``r_1..r_4`` from the link centre, body frame [m].
+        spin: rotor types ``sigma_1..sigma_4`` in ``{+1, -1}``.
+        source: free text: where the geometry comes from (e.g. the design run).
+
+    The drag ratio ``gamma`` is :attr:`RotorParams.drag_ratio_m`; the skeleton's
+    ``rotor_x_scale`` multiplies the x coordinates as it does for Table 2.1.
+    """
+
+    directions: tuple[_Vec3, _Vec3, _Vec3, _Vec3]
+    positions_m: tuple[_Vec3, _Vec3, _Vec3, _Vec3]
+    spin: tuple[int, int, int, int]
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        u = np.array(self.directions, dtype=float)
+        r = np.array(self.positions_m, dtype=float)
+        if u.shape != (N_SIDE, 3) or not np.all(np.isfinite(u)):
+            raise ValueError(f"directions must be 4 finite 3-vectors (rotors 1-4), got {self.directions}")
+        norms = np.linalg.norm(u, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > DIRECTION_NORM_TOL)
+        if bad.size:
+            raise ValueError(
+                f"directions must be unit vectors (norm within {DIRECTION_NORM_TOL} of 1); rotor {bad[0] + 1} has "
+                f"norm {norms[bad[0]]:.4g}"
+            )
+        if r.shape != (N_SIDE, 3) or not np.all(np.isfinite(r)):
+            raise ValueError(f"positions_m must be 4 finite 3-vectors (rotors 1-4), got {self.positions_m}")
+        if any(s not in (-1, 1) for s in self.spin):
+            raise ValueError(f"spin must be +1 or -1 for every rotor, got {self.spin}")
+
+    def to_geometry(self, drag_ratio: float = 0.02, x_scale: float = 1.0) -> RotorGeometry:
+        """The 8-rotor :class:`RotorGeometry` (:meth:`RotorGeometry.from_pairs`)."""
+        return RotorGeometry.from_pairs(self.directions, self.positions_m, self.spin, drag_ratio, x_scale)
+
+    @classmethod
+    def from_geometry(cls, geometry: RotorGeometry, source: str = "") -> RotorGeometryConfig:
+        """Rotors 1-4 of ``geometry``; ``ValueError`` if rotors 5-8 do not follow the pair symmetry."""
+        u, r, s = geometry.directions, geometry.positions_m, geometry.spin
+        if not (np.allclose(u[L_SIDE], u[R_SIDE], atol=1e-12) and np.allclose(r[L_SIDE], -r[R_SIDE], atol=1e-12)
+                and np.array_equal(s[L_SIDE], -s[R_SIDE])):
+            raise ValueError("geometry does not have the pair symmetry u_{j+4} = u_j, r_{j+4} = -r_j, "
+                             "sigma_{j+4} = -sigma_j of sec. 2.2.2")
+        return cls(
+            directions=tuple(tuple(float(x) for x in row) for row in u[R_SIDE]),
+            positions_m=tuple(tuple(float(x) for x in row) for row in r[R_SIDE]),
+            spin=tuple(int(x) for x in s[R_SIDE]),
+            source=source,
+        )
+
+
 @dataclass(frozen=True)
 class RotorParams:
     """Rotor/ESC parameters.
@@ -186,6 +302,8 @@ class RotorParams:
         min_thrust_n: smallest sustainable thrust magnitude (0: the thesis law) [N].
         restart_dwell_s: time a stopped rotor stays at zero before spinning up [s].
         drag_ratio_m: drag torque per unit thrust ``gamma`` [m] (thesis: 0.02).
+        geometry: the ``[rotors.geometry]`` table (:class:`RotorGeometryConfig`), a designed
+            rotor geometry; ``None`` (default): thesis Table 2.1 with ``sigma_1 = -1``.
     """
 
     thrust_max_n: float = 8.0
@@ -194,6 +312,7 @@ class RotorParams:
     min_thrust_n: float = 0.0
     restart_dwell_s: float = 0.0
     drag_ratio_m: float = 0.02
+    geometry: RotorGeometryConfig | None = None
 
     def __post_init__(self) -> None:
         require_positive(self, "thrust_max_n", "time_constant_s")

@@ -6,6 +6,8 @@
     python -m sitl.bench zenoh [--duration S] [--groups 1,2/3,4,5/6,7] [--json PATH] [--out DIR]
     python -m sitl.bench nees [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
     python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
+    python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
+    python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
 result (or ``--json PATH`` instead) and, for table2, the EKF stream of the first seed in the
@@ -190,6 +192,22 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
         sp.set_defaults(func=_cmd_seeds, bench=name)
+    _add_sitl_parser(sub)
+    lfb = sub.add_parser(
+        "load_filter",
+        help="slung load pose: EKF vs UKF vs unfiltered on the synthetic scenario, N seeds",
+        description=("Three vehicles fly the report's 2 m circle at 1.5 m/s carrying a box by elastic cables "
+                     "(sitl/load_synthetic.py, no MuJoCo); seeded GNSS and PnP-like images arriving late. Prints "
+                     "the load position/orientation RMS of the EKF, UKF, unfiltered solve and open-loop model."),
+    )
+    lfb.add_argument("--seeds", type=int, default=3, metavar="N", help="seeds S..S+N-1 (default 3)")
+    lfb.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    lfb.add_argument("--duration", type=float, default=12.0, help="simulated seconds per seed (default 12)")
+    lfb.add_argument("--latency", type=float, default=0.08, help="image latency before jitter [s] (default 0.08)")
+    lfb.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    lfb.add_argument("--out", metavar="DIR", help="run folder (default: runs/load_filter-<UTC time>)")
+    lfb.add_argument("--quiet", action="store_true", help="no progress bar")
+    lfb.set_defaults(func=_cmd_load_filter)
     return parser
 
 
@@ -232,6 +250,78 @@ def _cmd_seeds(args) -> int:
     path = _write_json(result, args.json, run_dir, f"{args.bench}.json")
     print((format_nees if args.bench == "nees" else format_static)(result))
     print(f"\nwrote {path} and one folder per seed in {run_dir}")
+    return 0
+
+
+def _cmd_sitl(args) -> int:
+    from .speed import format_speed, run_speed
+
+    batch = tuple(x for x in args.batch.split(",") if x)
+    fleet = tuple(x for x in args.fleet.split(",") if x)
+    if args.duration <= 0 or args.fleet_duration <= 0 or args.ceiling_duration <= 0:
+        print("error: --duration, --fleet-duration and --ceiling-duration must be positive", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("sitl-speed", args.out)
+    with tqdm(total=len(set(batch) | set(fleet)) + len(batch) + len(fleet), desc="speed", unit="run",
+              disable=args.quiet, file=sys.stderr) as bar:
+        try:
+            result = run_speed(run_dir, args.duration, args.fleet_duration, batch, fleet, args.ceiling_duration,
+                               progress=lambda label: (bar.set_postfix_str(label), bar.update()))
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    result.update(batch_duration_s=args.duration, fleet_duration_s=args.fleet_duration)
+    path = _write_json(result, args.json, run_dir, "speed.json")
+    print(format_speed(result))
+    print(f"\nwrote {path}; every flight's folder and console log in {run_dir}")
+    return 0 if all(r["exit_code"] == 0 for r in result["runs"]) else 1
+
+
+def _add_sitl_parser(sub) -> None:
+    from .speed import BATCH_SCENARIOS, FLEET_SCENARIOS
+
+    sp = sub.add_parser(
+        "sitl", help="SITL speed: batch and unpaced fleet real-time factors, CPU and RSS per process, MuJoCo ceiling",
+        description=("Fly each batch scenario (python -m sitl fly) and each fleet scenario unpaced (python -m sitl "
+                     "launch --speed 0) as child processes; report the real-time factor, CPU seconds per simulated "
+                     "second and peak RSS of every process, and MuJoCo alone on the same model as the ceiling."))
+    sp.add_argument("--duration", type=float, default=20.0, help="simulated seconds per batch flight (default 20)")
+    sp.add_argument("--fleet-duration", type=float, default=20.0,
+                    help="simulated seconds per fleet flight (default 20)")
+    sp.add_argument("--ceiling-duration", type=float, default=5.0,
+                    help="simulated seconds of MuJoCo alone per model (default 5)")
+    sp.add_argument("--batch", default=",".join(BATCH_SCENARIOS),
+                    help=f"batch scenarios, comma-separated (default {','.join(BATCH_SCENARIOS)}; empty: none)")
+    sp.add_argument("--fleet", default=",".join(FLEET_SCENARIOS),
+                    help=f"fleet scenarios, comma-separated (default {','.join(FLEET_SCENARIOS)}; empty: none)")
+    sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/sitl-speed-<UTC time>)")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    sp.set_defaults(func=_cmd_sitl)
+
+
+def _cmd_load_filter(args) -> int:
+    from companion.vision.load_filter import LoadFilterConfig
+    from sitl.load_synthetic import SlungLoadSim
+
+    from .load_filter import format_load_filter, plot_load_errors, run_load_filter_bench
+
+    try:
+        if args.seeds < 1:
+            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+        sim = SlungLoadSim(duration_s=args.duration, latency_s=args.latency)
+        cfg = LoadFilterConfig()
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("load_filter", args.out)
+    seeds = range(args.seed, args.seed + args.seeds)
+    with tqdm(total=len(seeds), desc="load filters x seeds", unit="seed", disable=args.quiet, file=sys.stderr) as bar:
+        result, first = run_load_filter_bench(seeds, sim, cfg, progress=bar.update)
+    path = _write_json(result, args.json, run_dir, "load_filter.json")
+    plot_load_errors(first, run_dir / "load_pose_error.png")
+    print(format_load_filter(result))
+    print(f"\nwrote {path} and {run_dir / 'load_pose_error.png'}")
     return 0
 
 

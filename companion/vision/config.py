@@ -1,0 +1,61 @@
+"""Configuration of the vision measurement pipeline (no OpenCV: configs load on any install)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from .dictionaries import check_marker
+
+__all__ = ["PNP_METHOD_NAMES", "PnpMethod", "DetectorConfig", "PipelineConfig"]
+
+PnpMethod = Literal["ippe_square", "p3p", "sqpnp", "iterative"]
+
+#: the PnP methods of :mod:`.pnp`
+PNP_METHOD_NAMES = ("ippe_square", "p3p", "sqpnp", "iterative")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """The detector: dictionary, corner refinement and its window [px]."""
+
+    dictionary: str = "DICT_4X4_50"
+    corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = "subpix"
+    refinement_window_px: int = 5
+
+    def __post_init__(self) -> None:
+        check_marker(self.dictionary)
+        if self.refinement_window_px < 1:
+            raise ValueError(f"refinement_window_px must be >= 1, got {self.refinement_window_px}")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """The measurement pipeline: detector, marker length [m] (the black square's side; per id in
+    ``marker_lengths_m``, keys the ids as strings), PnP method, ambiguity threshold, the
+    covariance's pixel-noise floor [px], LM refinement, and the ids to keep (empty: all)."""
+
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    marker_length_m: float = 0.2
+    marker_lengths_m: dict[str, float] = field(default_factory=dict)
+    method: PnpMethod = "ippe_square"
+    ambiguity_ratio: float = 3.0
+    sigma_floor_px: float = 0.3
+    refine: bool = False
+    ids: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.marker_length_m > 0:
+            raise ValueError(f"marker_length_m must be positive, got {self.marker_length_m}")
+        for k, v in self.marker_lengths_m.items():
+            if not k.isdigit() or not v > 0:
+                raise ValueError(f"marker_lengths_m: keys are marker ids, values positive lengths, got {k!r} = {v}")
+        if self.method not in PNP_METHOD_NAMES:
+            raise ValueError(f"method: one of {', '.join(PNP_METHOD_NAMES)}, got {self.method!r}")
+        if not self.ambiguity_ratio >= 1.0:
+            raise ValueError(f"ambiguity_ratio must be >= 1, got {self.ambiguity_ratio}")
+        if not self.sigma_floor_px > 0:
+            raise ValueError(f"sigma_floor_px must be positive, got {self.sigma_floor_px}")
+
+    def length_m(self, marker_id: int) -> float:
+        return self.marker_lengths_m.get(str(marker_id), self.marker_length_m)

@@ -1,0 +1,718 @@
+"""Compiled kernels of the firmware's per-tick path (numba), beside the numpy specification.
+
+The readable functions stay the specification: :func:`~link_firmware_sim.ekf.ekf_predict` and the
+EKF's measurement updates (paper eq. 2; Joseph form, symmetric ``P``), the impedance controller
+(paper eq. 1, :func:`~link_firmware_sim.control.impedance_control`) and the allocation with
+selective mapping (thesis Prop. 1, (2.12), (2.15), (2.17); :class:`~link_firmware_sim.allocation.
+Allocator`). The kernels here compute the same numbers with plain loops over scalars, compiled by
+numba (``njit(cache=True)``): at 500 Hz per link the interpreter's cost of a few hundred scalar
+operations, not the arithmetic, was the SITL's limit. ``tests/test_fast_paths.py`` checks every
+kernel against its specification on random inputs (agreement to 1e-12).
+
+Fused: :func:`tick_kernel` is one whole tick of the fast loop (propagation, control estimate, eq. 1,
+allocation) in one call, which :meth:`~link_firmware_sim.firmware.LinkFirmware.on_imu` takes in its
+common case (armed, eq. 1, a fresh target): a call's dispatch and the Python between the steps cost
+more than their arithmetic. :func:`attitude_update_kernel` is the 50 Hz attitude reference's whole
+update (measurement model too). ``tests/test_fast_paths.py`` checks both against the step-by-step
+numpy path.
+
+Dispatch: :class:`~link_firmware_sim.ekf.LinkEkf`, :class:`~link_firmware_sim.allocation.Allocator`
+and :class:`~link_firmware_sim.firmware.LinkFirmware` use the kernels when :data:`ENABLED`, else the
+numpy functions. numba is in the ``sim`` extra only: an onboard install without it runs the numpy
+path (one log line says so). ``SKELETON_JIT=0`` in the environment turns the kernels off (the
+reference path, e.g. to compare).
+
+Compilation happens at the first call of each kernel and is cached on disk (numba's cache:
+``__pycache__`` beside this file, or ``NUMBA_CACHE_DIR`` when set, e.g. for a read-only install),
+so later processes load the machine code instead of compiling. :func:`warm_up` compiles (or loads)
+every kernel once; the fleet launcher calls it before it starts the vehicle processes, so that n
+vehicles load one cache instead of compiling n times.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+
+import numpy as np
+
+__all__ = [
+    "ENABLED",
+    "jit",
+    "warm_up",
+    "ekf_predict_kernel",
+    "update_block_kernel",
+    "update_rows_kernel",
+    "attitude_update_kernel",
+    "impedance_kernel",
+    "allocate_kernel",
+    "tick_kernel",
+    "TICK_OUT",
+    "packed",
+    "pack_correction",
+    "pack_target",
+    "pack_gains",
+    "pack_inertia",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _want_jit() -> bool:
+    return os.environ.get("SKELETON_JIT", "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+try:
+    if not _want_jit():
+        raise ImportError("SKELETON_JIT=0")
+    import numba
+
+    #: the kernels are compiled (numba importable and not turned off with ``SKELETON_JIT=0``)
+    ENABLED = True
+
+    def jit(fn):
+        """``numba.njit`` as every kernel here uses it: cached on disk, numpy's float semantics
+        (a division by zero gives inf / nan, as in the numpy specification, instead of raising),
+        no fast-math (IEEE arithmetic, so the kernels reorder no sums within one expression)."""
+        return numba.njit(cache=True, error_model="numpy", nogil=True)(fn)
+
+except ImportError as exc:  # the onboard install (no numba) or turned off
+    ENABLED = False
+    log.info("firmware kernels not compiled (%s): the numpy path runs", exc)
+
+    def jit(fn):
+        return fn
+
+
+# --------------------------------------------------------------------------------------------
+# EKF (link_firmware_sim.ekf)
+# --------------------------------------------------------------------------------------------
+
+
+@jit
+def _retract_into(xn, q0, hx, hy, hz):
+    """so3.retract with ``h = dtheta / 2``: ``xn[q0:q0+4] <- normalise((1, h) (x) q)``."""
+    w, x, y, z = xn[q0], xn[q0 + 1], xn[q0 + 2], xn[q0 + 3]
+    rw = w - hx * x - hy * y - hz * z
+    rx = x + hx * w + hy * z - hz * y
+    ry = y - hx * z + hy * w + hz * x
+    rz = z + hx * y - hy * x + hz * w
+    inv = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    xn[q0] = rw * inv
+    xn[q0 + 1] = rx * inv
+    xn[q0 + 2] = ry * inv
+    xn[q0 + 3] = rz * inv
+
+
+@jit
+def _inject(x, dx):
+    """ekf.inject_error: ``[p v q ba bg (b)]`` corrected by ``[dp dv dtheta dba dbg (db)]``."""
+    xn = x.copy()
+    for i in range(6):
+        xn[i] += dx[i]
+    _retract_into(xn, 6, 0.5 * dx[6], 0.5 * dx[7], 0.5 * dx[8])
+    for i in range(9, len(dx)):
+        xn[i + 1] += dx[i]
+    return xn
+
+
+@jit
+def _sym(A):
+    n = A.shape[0]
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * (A[i, j] + A[j, i])
+    return out
+
+
+@jit
+def ekf_predict_kernel(x, P, gyro, accel, dt_s, densities, baro_density, gravity_w):
+    """ekf.ekf_predict (nominal propagation, ``F P F^T + Q dt``, symmetrised), any state size
+    (16 / 17 with the barometer's offset). ``F`` is sparse: the products skip its zeros."""
+    px, py, pz = x[0], x[1], x[2]
+    vx, vy, vz = x[3], x[4], x[5]
+    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
+    bax, bay, baz = x[10], x[11], x[12]
+    bgx, bgy, bgz = x[13], x[14], x[15]
+    R0 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    R1 = 2.0 * (qx * qy - qw * qz)
+    R2 = 2.0 * (qx * qz + qw * qy)
+    R3 = 2.0 * (qx * qy + qw * qz)
+    R4 = 1.0 - 2.0 * (qx * qx + qz * qz)
+    R5 = 2.0 * (qy * qz - qw * qx)
+    R6 = 2.0 * (qx * qz - qw * qy)
+    R7 = 2.0 * (qy * qz + qw * qx)
+    R8 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    f0, f1, f2 = accel[0] - bax, accel[1] - bay, accel[2] - baz
+    fw0 = R0 * f0 + R1 * f1 + R2 * f2
+    fw1 = R3 * f0 + R4 * f1 + R5 * f2
+    fw2 = R6 * f0 + R7 * f1 + R8 * f2
+    a0, a1, a2 = fw0 + gravity_w[0], fw1 + gravity_w[1], fw2 + gravity_w[2]
+    h = 0.5 * dt_s * dt_s
+    rx, ry, rz = (gyro[0] - bgx) * dt_s, (gyro[1] - bgy) * dt_s, (gyro[2] - bgz) * dt_s
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if angle < 1e-8:
+        ew, k = 1.0, 0.5
+    else:
+        ew, k = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+    ex, ey, ez = k * rx, k * ry, k * rz
+    nw = qw * ew - qx * ex - qy * ey - qz * ez
+    nx = qw * ex + qx * ew + qy * ez - qz * ey
+    ny = qw * ey - qx * ez + qy * ew + qz * ex
+    nz = qw * ez + qx * ey - qy * ex + qz * ew
+    inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    xn = x.copy()
+    xn[0] = px + vx * dt_s + h * a0
+    xn[1] = py + vy * dt_s + h * a1
+    xn[2] = pz + vz * dt_s + h * a2
+    xn[3] = vx + a0 * dt_s
+    xn[4] = vy + a1 * dt_s
+    xn[5] = vz + a2 * dt_s
+    xn[6] = nw * inv
+    xn[7] = nx * inv
+    xn[8] = ny * inv
+    xn[9] = nz * inv
+    # F (ekf._transition): identity, F[p, v] = dt I, F[p, th] = -h S(f_w), F[p, ba] = -h R,
+    # F[v, th] = -dt S(f_w), F[v, ba] = -dt R, F[th, bg] = -dt R; identity on the baro offset.
+    n = P.shape[0]
+    F = np.zeros((n, n))
+    for i in range(n):
+        F[i, i] = 1.0
+    ms = (0.0, fw2, -fw1, -fw2, 0.0, fw0, fw1, -fw0, 0.0)  # -S(f_w), row-major
+    R = (R0, R1, R2, R3, R4, R5, R6, R7, R8)
+    for i in range(3):
+        F[i, 3 + i] = dt_s
+        for j in range(3):
+            F[i, 6 + j] = h * ms[3 * i + j]
+            F[i, 9 + j] = -h * R[3 * i + j]
+            F[3 + i, 6 + j] = dt_s * ms[3 * i + j]
+            F[3 + i, 9 + j] = -dt_s * R[3 * i + j]
+            F[6 + i, 12 + j] = -dt_s * R[3 * i + j]
+    A = np.zeros((n, n))  # F P
+    for i in range(n):
+        for k in range(n):
+            f = F[i, k]
+            if f != 0.0:
+                for j in range(n):
+                    A[i, j] += f * P[k, j]
+    Pn = np.zeros((n, n))  # A F^T
+    for j in range(n):
+        for k in range(n):
+            f = F[j, k]
+            if f != 0.0:
+                for i in range(n):
+                    Pn[i, j] += A[i, k] * f
+    for i in range(15):
+        Pn[i, i] += densities[i] * dt_s
+    if n > 15:
+        Pn[15, 15] += baro_density * dt_s
+    return xn, _sym(Pn)
+
+
+@jit
+def _solve_right(PHt, S):
+    """``K = PHt S^-1`` for a small symmetric ``S`` (m x m): Gaussian elimination with partial
+    pivoting on ``S K^T = PHt^T`` (numpy's ``solve(S, PHt.T).T``)."""
+    m = S.shape[0]
+    n = PHt.shape[0]
+    A = S.copy()
+    B = np.empty((m, n))
+    for i in range(m):
+        for j in range(n):
+            B[i, j] = PHt[j, i]
+    for c in range(m):
+        piv = c
+        for r in range(c + 1, m):
+            if abs(A[r, c]) > abs(A[piv, c]):
+                piv = r
+        if piv != c:
+            for j in range(m):
+                A[c, j], A[piv, j] = A[piv, j], A[c, j]
+            for j in range(n):
+                B[c, j], B[piv, j] = B[piv, j], B[c, j]
+        for r in range(c + 1, m):
+            f = A[r, c] / A[c, c]
+            if f != 0.0:
+                for j in range(c, m):
+                    A[r, j] -= f * A[c, j]
+                for j in range(n):
+                    B[r, j] -= f * B[c, j]
+    for c in range(m - 1, -1, -1):
+        for j in range(n):
+            s = B[c, j]
+            for k in range(c + 1, m):
+                s -= A[c, k] * B[k, j]
+            B[c, j] = s / A[c, c]
+    K = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            K[i, j] = B[j, i]
+    return K
+
+
+@jit
+def _gate(r, S, gate_sigma):
+    """ekf._gate: the largest ``r_k^2 / (gate^2 S_kk)`` (NaN if any is NaN)."""
+    g2 = gate_sigma * gate_sigma
+    test = -np.inf
+    for k in range(len(r)):
+        v = r[k] * r[k] / (g2 * S[k, k])
+        if v != v:
+            return v
+        if v > test:
+            test = v
+    return test
+
+
+@jit
+def _joseph(x, P, K, H, r, Rm):
+    """Accepted update: ``x (+) K r`` and the Joseph form ``(I - K H) P (I - K H)^T + K R K^T``
+    as ``A = P - K (H P)``, ``A - (A H^T) K^T + K R K^T`` (O(n^2 m), as ekf._update_block), symmetrised."""
+    n = P.shape[0]
+    m = len(r)
+    HP = np.zeros((m, n))
+    for k in range(m):
+        for c in range(n):
+            h = H[k, c]
+            if h != 0.0:
+                for j in range(n):
+                    HP[k, j] += h * P[c, j]
+    A = P.copy()
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(m):
+                s += K[i, k] * HP[k, j]
+            A[i, j] -= s
+    AHt = np.zeros((n, m))
+    for k in range(m):
+        for c in range(n):
+            h = H[k, c]
+            if h != 0.0:
+                for i in range(n):
+                    AHt[i, k] += A[i, c] * h
+    KR = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for k in range(m):
+                s += K[i, k] * Rm[k, j]
+            KR[i, j] = s
+    Pn = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            s = A[i, j]
+            for k in range(m):
+                s += KR[i, k] * K[j, k] - AHt[i, k] * K[j, k]
+            Pn[i, j] = s
+    dx = np.zeros(n)
+    for i in range(n):
+        s = 0.0
+        for k in range(m):
+            s += K[i, k] * r[k]
+        dx[i] = s
+    return _inject(x, dx), _sym(Pn)
+
+
+@jit
+def update_block_kernel(x, P, r, b0, Rm, gate_sigma):
+    """ekf._update_block: gated update of the error-state block ``b0 : b0 + len(r)`` (GPS
+    position / velocity, attitude), Joseph form. Returns ``(x, P, accepted, test_ratio)``."""
+    n = P.shape[0]
+    m = len(r)
+    PHt = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            PHt[i, j] = P[i, b0 + j]
+    S = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            S[i, j] = PHt[b0 + i, j] + Rm[i, j]
+    test = _gate(r, S, gate_sigma)
+    if not (math.isfinite(test) and test <= 1.0):
+        return x, P, False, test
+    K = _solve_right(PHt, S)
+    H = np.zeros((m, n))
+    for k in range(m):
+        H[k, b0 + k] = 1.0
+    xn, Pn = _joseph(x, P, K, H, r, Rm)
+    return xn, Pn, True, test
+
+
+@jit
+def update_rows_kernel(x, P, r, H, Rm, gate_sigma):
+    """ekf._update: gated update with a dense ``H`` (m x n; barometer, magnetometer heading),
+    Joseph form. Returns ``(x, P, accepted, test_ratio)``."""
+    n = P.shape[0]
+    m = len(r)
+    PHt = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for k in range(n):
+                s += P[i, k] * H[j, k]
+            PHt[i, j] = s
+    S = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            s = 0.0
+            for k in range(n):
+                s += H[i, k] * PHt[k, j]
+            S[i, j] = s + Rm[i, j]
+    test = _gate(r, S, gate_sigma)
+    if not (math.isfinite(test) and test <= 1.0):
+        return x, P, False, test
+    K = _solve_right(PHt, S)
+    xn, Pn = _joseph(x, P, K, H, r, Rm)
+    return xn, Pn, True, test
+
+
+@jit
+def attitude_update_kernel(x, P, q_meas, Rm, gate_sigma, q0, b0):
+    """ekf.ekf_update_attitude: the measured quaternion normalised (``so3.quat_normalize``), the
+    residual ``so3.attitude_error(q_meas, q_est)`` (the world-frame rotation vector, angle in
+    [0, pi]; ``q_est = x[q0:q0+4]``) and :func:`update_block_kernel` on the error block ``b0:b0+3``
+    (ekf.X_Q, ekf.E_TH). Returns ``(x, P, status,
+    test_ratio, r)``: status 1 accepted, 0 rejected by the gate, -1 invalid (a non-finite or
+    zero quaternion: the caller raises, as the specification does)."""
+    r = np.zeros(3)
+    w, a, b, c = q_meas[0], q_meas[1], q_meas[2], q_meas[3]
+    norm = math.sqrt(w * w + a * a + b * b + c * c)
+    if not (math.isfinite(norm) and norm >= 1e-12):
+        return x, P, -1, math.nan, r
+    w, a, b, c = w / norm, a / norm, b / norm, c / norm
+    # q_meas (x) conj(q_est)
+    ew, ex, ey, ez = x[q0], -x[q0 + 1], -x[q0 + 2], -x[q0 + 3]
+    dw = w * ew - a * ex - b * ey - c * ez
+    dx = w * ex + a * ew + b * ez - c * ey
+    dy = w * ey - a * ez + b * ew + c * ex
+    dz = w * ez + a * ey - b * ex + c * ew
+    if dw < 0.0:
+        dw, dx, dy, dz = -dw, -dx, -dy, -dz
+    sn = math.sqrt(dx * dx + dy * dy + dz * dz)
+    k = 2.0 * math.atan2(sn, dw) / sn if sn > 1e-12 else 2.0 / max(dw, 1e-300)
+    r[0], r[1], r[2] = k * dx, k * dy, k * dz
+    xn, Pn, accepted, test = update_block_kernel(x, P, r, b0, Rm, gate_sigma)
+    return xn, Pn, 1 if accepted else 0, test, r
+
+
+# --------------------------------------------------------------------------------------------
+# Impedance control (link_firmware_sim.control, paper eq. 1)
+# --------------------------------------------------------------------------------------------
+
+#: packed target (:func:`pack_target`): p_d, v_d, a_d, w_d, wdot_d, R_d (row-major), f_ff, tau_ff
+TARGET_SIZE = 30
+
+
+def packed(obj, pack) -> np.ndarray:
+    """``pack(obj)``, computed once per (frozen) object and kept in its ``__dict__`` like a
+    ``functools.cached_property`` (targets change at 50 Hz, the controller runs at 500 Hz)."""
+    d = obj.__dict__
+    key = "_fast_" + pack.__name__
+    a = d.get(key)
+    if a is None:
+        a = d[key] = pack(obj)
+        a.setflags(write=False)
+    return a
+
+
+def pack_target(target) -> np.ndarray:
+    """A :class:`~companion.messages.PoseTarget` as the (30,) array :func:`impedance_kernel` reads."""
+    return np.concatenate((target.p_w_m, target.v_w_m_s, target.a_w_m_s2, target.omega_d_rad_s,
+                           target.omega_dot_d_rad_s2, target.R_tuple, target.force_ff_w_n,
+                           target.torque_ff_b_nm)).astype(float)
+
+
+def pack_gains(gains) -> np.ndarray:
+    """:class:`~link_firmware_sim.control.ImpedanceGains` as (15,): kp, kd, ki (3 each), kR, kw,
+    kI, gamma_I, position and attitude integral limits."""
+    return np.array((*gains.kp_n_m, *gains.kd_ns_m, *gains.ki_n_ms, gains.kR_nm, gains.kw_nms, gains.kI_nm_s,
+                     gains.gamma_I, gains.pos_integral_limit_ms, gains.att_integral_limit_rad), dtype=float)
+
+
+def pack_inertia(inertia) -> np.ndarray:
+    """:class:`~companion.skeleton.body.LinkInertia` as (4,): mass, principal inertia."""
+    return np.array((inertia.mass_kg, *inertia.inertia_kgm2), dtype=float)
+
+
+@jit
+def _clamp(c, limit):
+    return min(max(c, -limit), limit)
+
+
+@jit
+def impedance_kernel(p, v, q, w, tgt, gains, inertia, pos, att, dt_s, gravity, out):
+    """control.impedance_control: ``out[:6] = U = [u; tau]``, ``out[6:9]`` the position integral,
+    ``out[9:12]`` the attitude integral (same operations in the same order)."""
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    R = (
+        1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
+        2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
+        2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy),
+    )
+    m = inertia[0]
+    Jx, Jy, Jz = inertia[1], inertia[2], inertia[3]
+    pos_lim, att_lim = gains[13], gains[14]
+    f_w = np.empty(3)
+    for i in range(3):
+        e_p = p[i] - tgt[i]
+        pi = _clamp(pos[i] + e_p * dt_s, pos_lim)
+        out[6 + i] = pi
+        ag = tgt[6 + i] + (gravity if i == 2 else 0.0)
+        f_w[i] = m * ag - gains[3 + i] * (v[i] - tgt[3 + i]) - gains[i] * e_p - gains[6 + i] * pi + tgt[24 + i]
+    for i in range(3):
+        out[i] = R[i] * f_w[0] + R[3 + i] * f_w[1] + R[6 + i] * f_w[2]
+    Rd = tgt[15:24]
+    RtRd = np.empty(9)
+    for i in range(3):
+        for j in range(3):
+            RtRd[3 * i + j] = R[i] * Rd[j] + R[3 + i] * Rd[3 + j] + R[6 + i] * Rd[6 + j]
+    e_R = (RtRd[5] - RtRd[7], RtRd[6] - RtRd[2], RtRd[1] - RtRd[3])
+    wd = tgt[9:12]
+    wdd = tgt[12:15]
+    tff = tgt[27:30]
+    w_db = np.empty(3)
+    rd = np.empty(3)
+    tau_ff = np.empty(3)
+    for i in range(3):
+        w_db[i] = RtRd[3 * i] * wd[0] + RtRd[3 * i + 1] * wd[1] + RtRd[3 * i + 2] * wd[2]
+        rd[i] = RtRd[3 * i] * wdd[0] + RtRd[3 * i + 1] * wdd[1] + RtRd[3 * i + 2] * wdd[2]
+        tau_ff[i] = RtRd[3 * i] * tff[0] + RtRd[3 * i + 1] * tff[1] + RtRd[3 * i + 2] * tff[2]
+    e_w = (w[0] - w_db[0], w[1] - w_db[1], w[2] - w_db[2])
+    gI = gains[12]
+    for i in range(3):
+        out[9 + i] = _clamp(att[i] + (e_w[i] + gI * e_R[i]) * dt_s, att_lim)
+    Jw = (Jx * w[0], Jy * w[1], Jz * w[2])
+    gyro = (w[1] * Jw[2] - w[2] * Jw[1], w[2] * Jw[0] - w[0] * Jw[2], w[0] * Jw[1] - w[1] * Jw[0])
+    wx = (w[1] * w_db[2] - w[2] * w_db[1], w[2] * w_db[0] - w[0] * w_db[2], w[0] * w_db[1] - w[1] * w_db[0])
+    ff = (Jx * (wx[0] - rd[0]), Jy * (wx[1] - rd[1]), Jz * (wx[2] - rd[2]))
+    kR, kw, kI = gains[9], gains[10], gains[11]
+    for i in range(3):
+        out[3 + i] = gyro[i] - kR * e_R[i] - kw * e_w[i] - kI * out[9 + i] - ff[i] + tau_ff[i]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Allocation with selective mapping (link_firmware_sim.allocation, thesis Prop. 1, (2.15), (2.17))
+# --------------------------------------------------------------------------------------------
+
+
+@jit
+def _modulate_side(b, xi_pre, eps1, tol):
+    """allocation._modulate_side: the exact solution of (2.15) for one side."""
+    thr = eps1 - tol
+    cnt = 0
+    for i in range(4):
+        if abs(b[i] + xi_pre) < thr:
+            cnt += 1
+    if cnt <= 1:
+        return xi_pre
+    best = np.inf
+    best_d = np.inf
+    for i in range(4):
+        for sgn in (-1.0, 1.0):
+            x = -b[i] + sgn * eps1
+            d = abs(x - xi_pre)
+            if d < best_d or (d == best_d and x < best):
+                c = 0
+                for k in range(4):
+                    if abs(b[k] + x) < thr:
+                        c += 1
+                if c <= 1:
+                    best = x
+                    best_d = d
+    return best
+
+
+@jit
+def allocate_kernel(U, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, out, meta):
+    """Allocator.allocate: ``out`` (5, 8) rows command, lambda_o, lambda_alpha, lambda_beta,
+    lambda_gamma; ``meta`` = (e_r, e_l, near_r, near_l, saturated); ``xi_pre`` (2,) is updated."""
+    lo = out[1]
+    for i in range(8):
+        s = 0.0
+        for k in range(6):
+            s += B_pinv[i, k] * U[k]
+        lo[i] = s
+    b = np.empty(8)
+    for side in range(2):
+        o = 4 * side
+        mx = -np.inf
+        mn = np.inf
+        for i in range(4):
+            val = nu[i] * lo[o + i]
+            mx = max(mx, val)
+            mn = min(mn, val)
+        xi1 = -0.5 * (mx + mn)  # (2.12)
+        for i in range(4):
+            b[o + i] = nu[i] * lo[o + i] + xi1
+            out[2, o + i] = nu[i] * b[o + i]
+    if not selective:
+        for i in range(8):
+            out[3, i] = out[2, i]
+            out[4, i] = out[2, i]
+        meta[0] = 1.0
+        meta[1] = 1.0
+        meta[2] = -1.0
+        meta[3] = -1.0
+    else:
+        for side in range(2):
+            o = 4 * side
+            xi2 = _modulate_side(b[o:o + 4], xi_pre[side], eps1, tol)  # (2.15)
+            xi_pre[side] = xi2
+            mags = np.empty(4)
+            for i in range(4):
+                bb = b[o + i] + xi2
+                out[3, o + i] = nu[i] * bb
+                mags[i] = abs(bb)
+            j = 0
+            for i in range(1, 4):
+                if mags[i] < mags[j]:
+                    j = i
+            mmin = mags[j]
+            if mmin >= eps1 - tol:  # (2.17), clear
+                e = 1.0
+                for i in range(4):
+                    out[4, o + i] = out[3, o + i]
+                meta[2 + side] = -1.0
+            else:
+                e = (mmin - eps0) / (eps1 - eps0)
+                if not e > 0.0:
+                    e = 0.0
+                for i in range(4):
+                    s = 0.0
+                    for k in range(6):
+                        s += reduced_by_side[side, j, i, k] * U[k]
+                    out[4, o + i] = s + e * (out[3, o + i] - s)
+                meta[2 + side] = j + o
+            meta[side] = e
+    sat = 0.0
+    for i in range(8):
+        g = out[4, i]
+        out[0, i] = min(max(g, -tmax), tmax)
+        if abs(g) > tmax:
+            sat = 1.0
+    meta[4] = sat
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# One firmware tick (link_firmware_sim.firmware.LinkFirmware.on_imu, armed, eq. 1, no update due)
+# --------------------------------------------------------------------------------------------
+
+#: layout of :func:`tick_kernel`'s ``out``: thrust commands, ``U = [u; tau]``, the position and
+#: attitude integrals, ``|u|``, the control estimate's position, 1 if ``U`` is finite (else 0)
+TICK_OUT = {"command": slice(0, 8), "U": slice(8, 14), "pos_int": slice(14, 17), "att_int": slice(17, 20),
+            "force_norm": 20, "p_ctrl": slice(21, 24), "finite": 24}
+TICK_OUT_SIZE = 25
+
+
+def pack_correction(correction) -> np.ndarray:
+    """A :class:`~companion.messages.Correction` as (9,): ``dp``, ``dv``, ``dtheta``."""
+    return np.concatenate((correction.dp_w_m, correction.dv_w_m_s, correction.dtheta_w_rad)).astype(float)
+
+
+@jit
+def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
+                inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, out):
+    """The fast loop's tick in one call, with the operations of the functions it fuses in their
+    order: if ``predict``, :func:`ekf_predict_kernel` (paper eq. 2's propagation; else ``x, P`` are
+    already propagated and updated), the control estimate (EKF output
+    plus ``wgt`` times the correction ``corr`` = ``[dp; dv; dtheta]``, the attitude by
+    ``so3.retract``: :meth:`LinkFirmware.control_estimate`), the body rate ``gyro - b_g``,
+    :func:`impedance_kernel` (paper eq. 1) and, when ``U`` is finite, :func:`allocate_kernel`
+    (thesis Prop. 1, (2.15), (2.17); ``xi_pre`` updated). Returns the predicted ``(x, P)``;
+    ``out`` (:data:`TICK_OUT`) gets the rest."""
+    if predict:
+        xn, Pn = ekf_predict_kernel(x, P, gyro, accel, dt_s, densities, baro_density, gravity_w)
+    else:
+        xn, Pn = x, P
+    p = np.empty(3)
+    v = np.empty(3)
+    q = np.empty(4)
+    for i in range(4):
+        q[i] = xn[6 + i]
+    if wgt > 0.0:
+        for i in range(3):
+            p[i] = xn[i] + wgt * corr[i]
+            v[i] = xn[3 + i] + wgt * corr[3 + i]
+        _retract_into(q, 0, 0.5 * (wgt * corr[6]), 0.5 * (wgt * corr[7]), 0.5 * (wgt * corr[8]))
+    else:
+        for i in range(3):
+            p[i] = xn[i]
+            v[i] = xn[3 + i]
+    w = np.empty(3)
+    for i in range(3):
+        w[i] = gyro[i] - xn[13 + i]
+    ctrl = np.empty(12)
+    impedance_kernel(p, v, q, w, tgt, gains, inertia, pos, att, dt_s, gravity, ctrl)
+    finite = True
+    for i in range(6):
+        out[8 + i] = ctrl[i]
+        if not math.isfinite(ctrl[i]):
+            finite = False
+    for i in range(6):
+        out[14 + i] = ctrl[6 + i]
+    out[20] = math.sqrt(ctrl[0] * ctrl[0] + ctrl[1] * ctrl[1] + ctrl[2] * ctrl[2])
+    for i in range(3):
+        out[21 + i] = p[i]
+    out[24] = 1.0 if finite else 0.0
+    if finite:
+        alloc = np.empty((5, 8))
+        allocate_kernel(ctrl[:6], B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, alloc,
+                        np.empty(5))
+        for i in range(8):
+            out[i] = alloc[0, i]
+    return xn, Pn
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def warm_up() -> float:
+    """Compile (first run) or load from the cache (later runs) every kernel, through the paths the
+    firmware calls them by (so with the argument types it passes); returns the seconds it took."""
+    if not ENABLED:
+        return 0.0
+    from companion.messages import PoseTarget
+    from companion.skeleton.body import LinkInertia
+    from companion.skeleton.rotors import RotorGeometry
+
+    from .allocation import Allocator
+    from .control import ControlIntegrals, ImpedanceGains, impedance_control_compiled
+    from .ekf import EkfConfig, LinkEkf
+
+    t0 = time.perf_counter()
+    z3 = np.zeros(3)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    ekf = LinkEkf(z3, z3, q, EkfConfig(), compiled=True)
+    for _ in range(2):  # without, then with the barometer's offset
+        ekf.predict(z3, np.array([0.0, 0.0, 9.8]), 0.002)
+        ekf.update_position(z3)
+        ekf.update_velocity(z3)
+        ekf.update_attitude(q)
+        ekf.update_heading(0.0)
+        ekf.update_mag(np.array([0.2, 0.0, -0.4]))
+        ekf.update_baro(0.0)
+    U, _ = impedance_control_compiled(z3, z3, q, z3, PoseTarget.hold(z3, q), ImpedanceGains(),
+                                      LinkInertia(1.8, (0.01, 0.2, 0.2)), ControlIntegrals(), 0.002)
+    Allocator(RotorGeometry.odar(), compiled=True).allocate(U)
+    # the fused tick (tick_kernel) as the firmware calls it: armed, without and with a correction
+    # and a queued measurement
+    from companion.messages import Correction
+
+    from .firmware import FirmwareConfig, LinkFirmware
+
+    fw = LinkFirmware(0, FirmwareConfig(), LinkInertia(1.8, (0.01, 0.2, 0.2)), RotorGeometry.odar())
+    fw.initialize(0.0, z3, z3, q)
+    fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget.hold(z3, q))
+    accel = np.array([0.0, 0.0, 9.8])
+    fw.on_imu(0.002, z3, accel)
+    fw.on_correction(0.002, Correction(0, 0.0, z3 + 0.01, z3, z3))
+    fw.on_attitude(0.004, q)
+    fw.on_imu(0.004, z3, accel)
+    return time.perf_counter() - t0

@@ -1,0 +1,294 @@
+"""How fast the SITL runs: ``python -m sitl.bench sitl`` (issue 15, item 3).
+
+In one run, each figure beside the ceiling (MuJoCo alone stepping the same model):
+
+* batch mode (``python -m sitl fly``, one process) for each scenario: the real-time factor of the
+  flight loop (simulated seconds per wall second, ``metrics.json``), the process's CPU seconds per
+  simulated second and its peak RSS;
+* fleet mode unpaced (``python -m sitl launch --speed 0``) for each scenario: the harness's
+  real-time factor and, per process (harness, each vehicle, each companion), CPU seconds per
+  simulated second and peak RSS, sampled from ``/proc`` while the fleet runs (Linux);
+* the MuJoCo-only real-time factor of each scenario's model (the rotors held at hover, no
+  firmware, no sensors): what the physics alone allows, the ceiling.
+
+Every flight runs as its own process (the ``sitl`` CLIs), its output in a subfolder of the run
+folder; the figures go to ``speed.json`` there. Wall-clock figures depend on the machine's load:
+the CPU figures are the steadier ones on a shared machine.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
+           "run_speed", "format_speed"]
+
+log = logging.getLogger(__name__)
+
+BATCH_SCENARIOS = ("three_link", "seven_link", "seven_link_cpg")
+FLEET_SCENARIOS = ("three_link", "seven_link")
+CONFIG_DIR = Path("configs/sitl")
+_TICK_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def _config(name: str) -> Path:
+    path = CONFIG_DIR / f"{name}.toml"
+    if not path.exists():
+        raise ValueError(f"no scenario {name!r} ({path} does not exist)")
+    return path
+
+
+def mujoco_ceiling(name: str, duration_s: float) -> dict:
+    """MuJoCo alone on the scenario's model (rotors at the hover thrusts, no firmware): its
+    real-time factor and CPU seconds per simulated second, in this process."""
+    from link_firmware_sim.allocation import Allocator
+    from link_firmware_sim.control import weight_wrench
+    from sitl.runner import Plant
+    from sitl.scenario import load_scenario
+
+    sc = load_scenario(_config(name))
+    plant = Plant(sc)
+    model = plant.model
+    allocator = Allocator(plant.geometry, sc.firmware.allocation)
+    thrust = np.stack([allocator.allocate(weight_wrench(plant.inertia, q)).command_n
+                       for q in model.truth().q_wxyz])  # (n, 8): each link's weight, as at an in-air start
+    steps = int(round(duration_s / plant.dt))
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        model.begin_step()
+        model.end_step(thrust)
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    sim = steps * plant.dt
+    return {"scenario": name, "sim_s": sim, "realtime_factor": sim / wall, "cpu_s_per_sim_s": cpu / sim,
+            "physics_step_us": 1e6 * wall / steps}
+
+
+def firmware_tick(n_ticks: int = 5000, seed: int = 0) -> dict:
+    """CPU microseconds per firmware tick of one armed link (``LinkFirmware.on_imu`` at 500 Hz, the
+    outdoor EKF tuning) as in flight: a new target every 10 ticks (50 Hz), an attitude reference
+    every 10 and a GPS fix every 50 (10 Hz), seeded noisy IMU samples; through the one-kernel tick
+    (``fused``) and the step-by-step path (``step_by_step``), each after a warm-up."""
+    from companion.messages import PoseTarget
+    from companion.skeleton.body import link_inertia
+    from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+    from sitl.scenario import load_scenario
+
+    if n_ticks < 1:
+        raise ValueError(f"n_ticks must be at least 1, got {n_ticks}")
+    sc = load_scenario(_config("three_link"))
+    plant_inertia = link_inertia(sc.skeleton, sc.geometry())
+    out = {}
+    for label, fused in (("fused", True), ("step_by_step", False)):
+        rng = np.random.default_rng(seed)
+        fw = LinkFirmware(0, FirmwareConfig(), plant_inertia, sc.geometry())
+        fw.fused_tick = fused
+        q = np.array([1.0, 0.0, 0.0, 0.0])
+        p = np.array([0.0, 0.0, 2.0])
+        fw.initialize(0.0, p, np.zeros(3), q)
+        fw.arm(0.0)
+        gyro = rng.normal(size=(n_ticks + 50, 3)) * 0.01
+        accel = np.array([0.0, 0.0, 9.81]) + rng.normal(size=(n_ticks + 50, 3)) * 0.05
+        cpu = 0.0
+        for k in range(1, n_ticks + 51):
+            t = k * 0.002
+            if k % 10 == 1:
+                fw.set_target(t, PoseTarget.hold(p, q))
+                fw.on_attitude(t, q)
+            if k % 50 == 1:
+                fw.on_gps(t, p + rng.normal(size=3) * 0.1, np.zeros(3))
+            c0 = time.process_time()
+            fw.on_imu(t, gyro[k - 1], accel[k - 1])
+            if k > 50:  # after the warm-up (compiled code loaded)
+                cpu += time.process_time() - c0
+        out[f"{label}_us"] = 1e6 * cpu / n_ticks
+    return out
+
+
+def _wait_child(proc: subprocess.Popen) -> tuple[int, float, int]:
+    """Wait for a child: (return code, CPU seconds, peak RSS [kB])."""
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage.ru_utime + usage.ru_stime, int(usage.ru_maxrss)
+
+
+def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.executable) -> dict:
+    """One batch flight (``python -m sitl fly``) as a child process."""
+    folder = out_dir / f"batch-{name}"
+    argv = [python, "-m", "sitl", "fly", "--config", str(_config(name)), "--duration", f"{duration_s:g}",
+            "--no-plots", "--quiet", "--out", str(folder)]
+    wall0 = time.perf_counter()
+    with open(out_dir / f"batch-{name}.log", "wb") as fh:
+        proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT)
+        code, cpu, rss = _wait_child(proc)
+    wall = time.perf_counter() - wall0
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        metrics = {}
+    sim = float(metrics.get("duration_s", duration_s))
+    return {"scenario": name, "mode": "batch", "exit_code": code, "sim_s": sim,
+            "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
+            "cpu_s_per_sim_s": cpu / sim, "peak_rss_mb": rss / 1024.0, "crashed": metrics.get("crashed")}
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(entry))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def _sample(pid: int) -> tuple[str, float, int] | None:
+    """(command line, CPU seconds, peak RSS [kB]) of a live process."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        cpu = (int(fields[11]) + int(fields[12])) / _TICK_S  # utime, stime
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            cmd = fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        hwm = 0
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    hwm = int(line.split()[1])
+        return cmd, cpu, hwm
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _role(cmd: str) -> str | None:
+    """A fleet process's role from its command line: ``vehicle <i>``, ``companion[ g<G>]``, ``wire``."""
+    parts = cmd.split()
+    if "link_firmware_sim" in parts:
+        return f"vehicle {int(parts[parts.index('--instance') + 1]) + 1}" if "--instance" in parts else "vehicle"
+    if "companion" in parts:
+        return f"companion g{parts[parts.index('--group') + 1]}" if "--group" in parts else "companion"
+    if "sitl.wire" in parts:
+        return "wire"
+    return None
+
+
+def fleet_args(name: str, duration_s: float, folder: Path) -> list[str]:
+    """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
+    the lockstep's, not matplotlib's)."""
+    return ["launch", "--config", str(_config(name)), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
+            "--no-plots", "--out", str(folder)]
+
+
+def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.executable,
+              sample_s: float = 0.25) -> dict:
+    """One unpaced fleet flight (``python -m sitl launch --speed 0``): the launcher is the harness;
+    its children's CPU and peak RSS are sampled from /proc until they exit (the last sample is up
+    to ``sample_s`` before a process's end)."""
+    folder = out_dir / f"fleet-{name}"
+    argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder)]
+    seen: dict[int, tuple[str, float, int]] = {}
+    stop = threading.Event()
+    wall0 = time.perf_counter()
+    with open(out_dir / f"fleet-{name}.log", "wb") as fh:
+        proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT)
+
+        def sampler() -> None:
+            while not stop.is_set():
+                for pid in _descendants(proc.pid):
+                    s = _sample(pid)
+                    if s is not None and _role(s[0]) is not None:
+                        seen[pid] = s
+                stop.wait(sample_s)
+
+        thread = threading.Thread(target=sampler, daemon=True)
+        thread.start()
+        code, cpu, rss = _wait_child(proc)
+        stop.set()
+        thread.join()
+    wall = time.perf_counter() - wall0
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        metrics = {}
+    sim = float(metrics.get("duration_s") or duration_s)
+    processes = {"harness": {"cpu_s_per_sim_s": None, "peak_rss_mb": rss / 1024.0}}
+    # The launcher's own rusage covers it and its waited-for children: its own CPU is what is left.
+    children_cpu = 0.0
+    for cmd, c, hwm in seen.values():
+        role = _role(cmd)
+        processes[role] = {"cpu_s_per_sim_s": c / sim, "peak_rss_mb": hwm / 1024.0}
+        children_cpu += c
+    processes["harness"]["cpu_s_per_sim_s"] = max(cpu - children_cpu, 0.0) / sim
+    return {"scenario": name, "mode": "fleet", "exit_code": code, "sim_s": sim,
+            "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
+            "cpu_s_per_sim_s": cpu / sim, "processes": processes, "crashed": metrics.get("crashed")}
+
+
+def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, ...] = BATCH_SCENARIOS,
+              fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None) -> dict:
+    """Every figure of the bench; ``progress(label)`` after each flight."""
+    from link_firmware_sim import _fast
+
+    for name in {*batch, *fleet}:
+        _config(name)  # a clear error before anything runs
+    compile_s = _fast.warm_up()  # compiled (or loaded) once, before the flights load the cache
+    tick = firmware_tick()
+    ceilings = {}
+    for name in dict.fromkeys((*batch, *fleet)):
+        ceilings[name] = mujoco_ceiling(name, ceiling_s)
+        if progress:
+            progress(f"MuJoCo {name}")
+    runs = []
+    for name in batch:
+        runs.append(run_batch(name, batch_s, out_dir))
+        if progress:
+            progress(f"batch {name}")
+    for name in fleet:
+        runs.append(run_fleet(name, fleet_s, out_dir))
+        if progress:
+            progress(f"fleet {name}")
+    for r in runs:
+        ceiling = ceilings[r["scenario"]]["realtime_factor"]
+        r["ratio_to_ceiling"] = None if r["realtime_factor"] is None else r["realtime_factor"] / ceiling
+    return {"compiled": _fast.ENABLED, "warm_up_s": compile_s, "firmware_tick_us": tick, "cpu_count": os.cpu_count(),
+            "load_average_at_end": os.getloadavg(), "mujoco_ceiling": ceilings, "runs": runs}
+
+
+def format_speed(result: dict) -> str:
+    rows = [f"kernels compiled: {result['compiled']} (warm-up {result['warm_up_s']:.1f} s); "
+            f"load average at the end {', '.join(f'{x:.1f}' for x in result['load_average_at_end'])}",
+            f"{'run':<24} {'RTF':>6} {'/ceiling':>9} {'CPU s/sim s':>12} {'peak RSS MB':>12}"]
+    tick = result.get("firmware_tick_us")
+    if tick:
+        rows.insert(1, f"firmware tick per link (CPU): {tick['fused_us']:.1f} us one-kernel, "
+                       f"{tick['step_by_step_us']:.1f} us step by step")
+    for name, c in result["mujoco_ceiling"].items():
+        rows.append(f"{'MuJoCo only ' + name:<24} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
+                     f" {'':>12}")
+    for r in result["runs"]:
+        rtf = r["realtime_factor"]
+        label = f"{r['mode']} {r['scenario']}" + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})")
+        rtf_s = "-" if rtf is None else f"{rtf:.2f}"
+        ratio = "-" if r["ratio_to_ceiling"] is None else f"{r['ratio_to_ceiling']:.3f}"
+        rss = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
+        rows.append(f"{label:<24} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}")
+        for role, p in sorted(r.get("processes", {}).items()):
+            rows.append(f"{'  ' + role:<24} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {p['peak_rss_mb']:>12.0f}")
+    return "\n".join(rows)

@@ -1,0 +1,301 @@
+"""Cameras and ArUco markers in the MuJoCo SITL (the report ``004_946c2b2ab3d872ae.txt``, sec. III).
+
+Config (a scenario's ``[[cameras]]`` and ``[[markers]]`` arrays of tables):
+
+* :class:`CameraMount` -- a camera fixed to a body (``"world"`` or any body of the model, e.g.
+  ``"link2"``): pose in the body (position, optical axis, image right), resolution, intrinsics
+  from the vertical field of view (:meth:`~companion.vision.geometry.CameraIntrinsics.from_fov`),
+  optional distortion, rate, latency, seeded pixel noise and optional motion blur.
+* :class:`MarkerMount` -- an ArUco marker (dictionary, id, side of the black square) on the face
+  of a body: a thin box whose top face carries the marker, generated with ``cv2.aruco``, and a
+  site ``marker<id>`` at the marker's centre with the marker's axes (the ground truth).
+
+:func:`vision_mjcf` adds both to the generated MJCF (cameras, marker boxes, textures as in-memory
+PNG assets, the offscreen buffer). :class:`CameraRig` renders every camera offscreen on the CPU
+with ``mujoco.Renderer`` at its rate, on the simulation clock: a frame is captured at the physics
+tick of its period (averaged over ``blur_samples`` renders across ``exposure_s`` for motion
+blur; stamped mid-exposure), distorted, given Gaussian pixel noise from its own seeded stream,
+and delivered ``latency_s`` later (:meth:`CameraRig.poll`). Each frame keeps the ground truth
+at capture (camera and marker poses in the world) beside the companion's
+:class:`~companion.vision.frame.CameraFrame`.
+
+Rendering needs an OpenGL context without a display: ``MUJOCO_GL=osmesa`` (Debian's
+``libosmesa6``, installed by ``.ci/run``), which :mod:`sitl` sets when it is unset, before
+MuJoCo is imported (MuJoCo picks its GL backend at import). ``MUJOCO_GL=egl`` uses a GPU
+instead. Renderers hold GL contexts: :meth:`CameraRig.close` (or ``with``) frees them.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import mujoco
+import numpy as np
+
+from companion.estimation.so3 import rotmat_to_quat
+from companion.vision.frame import CameraFrame, CameraFrameHeader
+from companion.vision.geometry import CV_TO_MUJOCO_CAM
+from companion.vision.markers import marker_image
+
+from .camera_config import CameraMount, MarkerMount
+
+__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig",
+           "check_gl_backend", "fast_renderer"]
+
+log = logging.getLogger(__name__)
+
+#: thickness of the box that carries a marker [m]
+MARKER_THICKNESS_M = 0.001
+
+
+def _fmt(v) -> str:
+    return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
+
+
+def _insert_in_body(xml: str, body: str, text: str) -> str:
+    """``text`` inserted as the first children of ``body`` (``"world"``: the worldbody)."""
+    if body == "world":
+        pattern = r"<worldbody>"
+    else:
+        pattern = rf'<body name="{re.escape(body)}"[^>]*>'
+    m = re.search(pattern, xml)
+    if m is None:
+        names = ["world"] + re.findall(r'<body name="([^"]+)"', xml)
+        raise ValueError(f"body: no body {body!r} in the model (bodies: {', '.join(names)})")
+    return xml[: m.end()] + "\n" + text + xml[m.end():]
+
+
+def _ensure_offscreen(xml: str, width: int, height: int) -> str:
+    m = re.search(r'<global offwidth="(\d+)" offheight="(\d+)"/>', xml)
+    if m is None:
+        return xml.replace("<worldbody>", f'<visual><global offwidth="{width}" offheight="{height}"/></visual>\n'
+                                          "<worldbody>", 1)
+    w, h = max(int(m.group(1)), width), max(int(m.group(2)), height)
+    return xml[: m.start()] + f'<global offwidth="{w}" offheight="{h}"/>' + xml[m.end():]
+
+
+def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...],
+                min_offscreen: tuple[int, int] = (640, 480)) -> tuple[str, dict[str, bytes]]:
+    """``xml`` with the cameras (``cam_<name>``), the marker boxes (``marker<id>``, textured) and
+    their sites (``marker<id>``), and an offscreen buffer large enough for every camera; returns
+    the MJCF and the PNG assets it names (pass both to ``MjModel.from_xml_string``)."""
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"cameras: names must be unique, got {names}")
+    ids = [m.id for m in markers]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"markers: ids must be unique, got {ids}")
+    assets: dict[str, bytes] = {}
+    asset_lines = []
+    for m in markers:
+        img, fraction = marker_image(m.dictionary, m.id, bit_px=32, quiet_zone_bits=m.quiet_zone_bits)
+        ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+        assert ok
+        assets[f"marker{m.id}.png"] = png.tobytes()
+        asset_lines += [
+            f'    <texture name="marker{m.id}_tex" type="2d" file="marker{m.id}.png"/>',
+            f'    <material name="marker{m.id}_mat" texture="marker{m.id}_tex" texrepeat="1 1" texuniform="false" '
+            f'specular="0" shininess="0" reflectance="0" emission="0.3"/>',
+        ]
+        half = 0.5 * m.size_m / fraction
+        R = m.R_b_m()
+        q = rotmat_to_quat(R)
+        centre = np.asarray(m.pos_b_m) - R[:, 2] * (0.5 * MARKER_THICKNESS_M)  # the face at pos_b_m
+        xml = _insert_in_body(xml, m.body, (
+            f'<geom name="marker{m.id}" type="box" size="{half:.9g} {half:.9g} {0.5 * MARKER_THICKNESS_M:.9g}" '
+            f'pos="{_fmt(centre)}" quat="{_fmt(q)}" material="marker{m.id}_mat" contype="0" conaffinity="0" '
+            f'mass="0"/>\n'
+            f'<site name="marker{m.id}" pos="{_fmt(m.pos_b_m)}" quat="{_fmt(q)}" size="0.005" rgba="0 0 0 0"/>'))
+    for c in cameras:
+        R = c.R_b_c() @ CV_TO_MUJOCO_CAM  # MuJoCo camera axes in the body
+        xml = _insert_in_body(xml, c.body, (
+            f'<camera name="cam_{c.name}" pos="{_fmt(c.pos_b_m)}" xyaxes="{_fmt(R[:, 0])} {_fmt(R[:, 1])}" '
+            f'fovy="{c.fovy_deg:.9g}"/>'))
+    if asset_lines:
+        xml = xml.replace("<worldbody>", "<asset>\n" + "\n".join(asset_lines) + "\n  </asset>\n  <worldbody>", 1)
+    width = max([c.width_px for c in cameras] + [min_offscreen[0]])
+    height = max([c.height_px for c in cameras] + [min_offscreen[1]])
+    return _ensure_offscreen(xml, width, height), assets
+
+
+def check_gl_backend() -> None:
+    """``RuntimeError`` when MuJoCo was imported with a windowed OpenGL backend (GLFW) and there is
+    no display: ``MUJOCO_GL`` must be ``osmesa`` or ``egl`` before MuJoCo is first imported
+    (importing :mod:`sitl` first sets ``osmesa`` when it is unset)."""
+    backend = getattr(getattr(mujoco, "GLContext", None), "__module__", "")
+    if "glfw" in backend and not os.environ.get("DISPLAY"):
+        raise RuntimeError("offscreen rendering: MuJoCo was imported with the GLFW backend and there is no display; "
+                           "set MUJOCO_GL=osmesa (CPU, libosmesa6) or egl (GPU) before MuJoCo is imported, "
+                           "or import sitl before mujoco")
+    log.debug("MuJoCo offscreen rendering via %s", backend)
+
+
+def fast_renderer(model: mujoco.MjModel, height_px: int, width_px: int, shadows: bool = False) -> mujoco.Renderer:
+    """An offscreen renderer; without shadows and reflections unless asked: on the CPU (osmesa)
+    they cost most of a frame (640x480 three_link: about 290 ms with them, 30-75 ms without)."""
+    renderer = mujoco.Renderer(model, height_px, width_px)
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = shadows
+    return renderer
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """The world at a frame's capture: the camera's pose (OpenCV axes, ``p_w = R_wc p_c + p_wc``)
+    and every marker's (``R_wm``, ``p_wm``) by id."""
+
+    R_wc: np.ndarray
+    p_wc_m: np.ndarray
+    markers: dict[int, tuple[np.ndarray, np.ndarray]]
+
+    def marker_in_camera(self, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(R_cm, t_cm_m)``: the true pose PnP estimates (the report's ``T_L^C``)."""
+        R_wm, p_wm = self.markers[marker_id]
+        return self.R_wc.T @ R_wm, self.R_wc.T @ (p_wm - self.p_wc_m)
+
+
+@dataclass(frozen=True)
+class CapturedFrame:
+    """A frame as the companion receives it, with the SITL's ground truth at its capture."""
+
+    frame: CameraFrame
+    truth: FrameTruth
+    camera_index: int
+
+
+class _Camera:
+    """One camera's renderer and schedule inside :class:`CameraRig`."""
+
+    def __init__(self, model: mujoco.MjModel, mount: CameraMount, index: int, period_ticks: int, dt_s: float,
+                 rng: np.random.Generator):
+        self.mount = mount
+        self.index = index
+        self.intr = mount.intrinsics()
+        self.cam_id = model.camera(f"cam_{mount.name}").id
+        self.renderer = fast_renderer(model, mount.height_px, mount.width_px)
+        self.period = period_ticks
+        n = mount.blur_samples if mount.exposure_s > 0 else 1
+        exposure_ticks = min(int(round(mount.exposure_s / dt_s)), period_ticks - 1)
+        # ticks before the capture tick at which the exposure's renders are taken (last: 0)
+        self.offsets = sorted({int(round(exposure_ticks * (n - 1 - j) / max(n - 1, 1))) for j in range(n)},
+                              reverse=True)
+        self.rng = rng
+        self.acc: np.ndarray | None = None
+        self.first_t = 0.0
+        self.n_acc = 0
+        self.seq = 0
+        self.maps = self._distortion_maps() if self.intr.distorted else None
+        self.R_cv_to_mj = CV_TO_MUJOCO_CAM
+
+    def _distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """For each pixel of the distorted image, where it lies in the rendered pinhole image."""
+        intr = self.intr
+        u, v = np.meshgrid(np.arange(intr.width_px, dtype=np.float64), np.arange(intr.height_px, dtype=np.float64))
+        pts = np.stack((u.ravel(), v.ravel()), axis=1).reshape(-1, 1, 2)
+        und = cv2.undistortPoints(pts, intr.K, intr.dist, P=intr.K).reshape(intr.height_px, intr.width_px, 2)
+        return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
+
+    def render(self, data: mujoco.MjData) -> np.ndarray:
+        self.renderer.update_scene(data, camera=self.cam_id)
+        return self.renderer.render()
+
+    def finish(self) -> np.ndarray:
+        """The captured image: mean of the exposure's renders, distorted, noisy, uint8 RGB."""
+        img = self.acc / self.n_acc if self.n_acc > 1 else self.acc
+        self.acc, self.n_acc = None, 0
+        if self.maps is not None:
+            img = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), self.maps[0], self.maps[1],
+                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        std = self.mount.noise_std_dn
+        if std > 0:
+            img = img + std * self.rng.standard_normal(img.shape, dtype=np.float32)
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+class CameraRig:
+    """Every camera of a scenario on one MuJoCo model (see the module docstring).
+
+    Call :meth:`on_tick` at every physics tick ``k`` once the kinematics of that instant are
+    computed (after ``mj_step1``); :meth:`poll` returns the frames available at a time.
+    ``seed``: the pixel noise's streams (one per camera, independent of the other sensors)."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, cameras: tuple[CameraMount, ...],
+                 markers: tuple[MarkerMount, ...], dt_s: float, seed: int):
+        check_gl_backend()
+        self.model, self.data, self.dt = model, data, dt_s
+        self.marker_sites = {m.id: model.site(f"marker{m.id}").id for m in markers}
+        self.cameras: list[_Camera] = []
+        try:
+            for i, c in enumerate(cameras):
+                period = int(round(1.0 / (c.rate_hz * dt_s)))
+                if period < 1 or abs(period * c.rate_hz * dt_s - 1.0) > 1e-9:
+                    raise ValueError(f"cameras[{i}].rate_hz: {c.rate_hz} Hz is not a whole divisor of the physics "
+                                     f"rate {1.0 / dt_s:g} Hz")
+                self.cameras.append(_Camera(model, c, i, period, dt_s,
+                                            np.random.default_rng([seed, 0xCA3E7A, i])))
+        except BaseException:
+            self.close()
+            raise
+        self.pending: deque[CapturedFrame] = deque()
+        self.latest: dict[int, CapturedFrame] = {}
+        self.render_s = 0.0
+        self.renders = 0
+
+    def truth(self, cam: _Camera) -> FrameTruth:
+        d = self.data
+        R_w_mj = d.cam_xmat[cam.cam_id].reshape(3, 3)
+        markers = {i: (d.site_xmat[s].reshape(3, 3).copy(), d.site_xpos[s].copy()) for i, s in self.marker_sites.items()}
+        return FrameTruth(R_w_mj @ CV_TO_MUJOCO_CAM, d.cam_xpos[cam.cam_id].copy(), markers)
+
+    def on_tick(self, k: int, t_s: float) -> None:
+        for cam in self.cameras:
+            for off in cam.offsets:
+                if (k + off) % cam.period:
+                    continue
+                w0 = time.perf_counter()
+                img = cam.render(self.data)
+                self.render_s += time.perf_counter() - w0
+                self.renders += 1
+                if cam.acc is None:
+                    cam.acc = img.astype(np.float32) if len(cam.offsets) > 1 else img
+                    cam.first_t = t_s
+                else:
+                    cam.acc += img
+                cam.n_acc += 1
+                if off == 0:
+                    self._capture(cam, t_s)
+
+    def _capture(self, cam: _Camera, t_s: float) -> None:
+        m = cam.mount
+        t_capture = 0.5 * (cam.first_t + t_s)  # mid-exposure (of the renders taken)
+        header = CameraFrameHeader(camera=m.name, vehicle=m.vehicle_index(), seq=cam.seq, t_capture_s=t_capture,
+                                   t_available_s=t_capture + m.latency_s, width_px=m.width_px, height_px=m.height_px,
+                                   encoding="rgb8", intrinsics=cam.intr)
+        cam.seq += 1
+        self.pending.append(CapturedFrame(CameraFrame(header, cam.finish()), self.truth(cam), cam.index))
+
+    def poll(self, t_s: float) -> list[CapturedFrame]:
+        """The frames that became available by ``t_s`` (capture time plus latency), oldest first."""
+        out = [f for f in self.pending if f.frame.header.t_available_s <= t_s + 1e-12]
+        if out:
+            self.pending = deque(f for f in self.pending if f.frame.header.t_available_s > t_s + 1e-12)
+            for f in out:
+                self.latest[f.camera_index] = f
+        return sorted(out, key=lambda f: f.frame.header.t_available_s)
+
+    def close(self) -> None:
+        for cam in self.cameras:
+            cam.renderer.close()
+        self.cameras = []
+
+    def __enter__(self) -> CameraRig:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

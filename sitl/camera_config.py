@@ -1,0 +1,97 @@
+"""The ``[[cameras]]`` and ``[[markers]]`` of a scenario (:mod:`sitl.camera` renders them).
+
+No OpenCV and no MuJoCo here: scenarios load, and are validated, on any install.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.configfile import require_nonnegative, require_positive
+from companion.vision.dictionaries import check_marker
+from companion.vision.geometry import CameraIntrinsics, frame_from_axes
+
+__all__ = ["CameraMount", "MarkerMount"]
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """A camera on ``body``: at ``pos_b_m``, looking along ``optical_axis_b`` with the image's right
+    along ``image_right_b`` (body frame; orthogonal), ``width_px`` x ``height_px`` with vertical
+    field of view ``fovy_deg`` (square pixels, principal point at the centre) and OpenCV
+    distortion ``dist_coeffs`` (k1, k2, p1, p2[, k3]; empty: none), at ``rate_hz`` (a whole divisor
+    of the physics rate), delivered ``latency_s`` after capture, with Gaussian pixel noise of
+    ``noise_std_dn`` grey levels and, if ``exposure_s`` > 0, motion blur: the mean of
+    ``blur_samples`` renders spread over the exposure. ``vehicle``: the vehicle the frames are
+    attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0)."""
+
+    name: str
+    body: str = "link1"
+    pos_b_m: tuple[float, float, float] = (0.0, 0.0, -0.05)
+    optical_axis_b: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    image_right_b: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    width_px: int = 640
+    height_px: int = 480
+    fovy_deg: float = 60.0
+    dist_coeffs: tuple[float, ...] = ()
+    rate_hz: float = 10.0
+    latency_s: float = 0.05
+    noise_std_dn: float = 2.0
+    exposure_s: float = 0.0
+    blur_samples: int = 3
+    vehicle: int = -1
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[A-Za-z0-9_]+", self.name):
+            raise ValueError(f"name: letters, digits and '_' only, got {self.name!r}")
+        frame_from_axes(self.optical_axis_b, self.image_right_b)
+        self.intrinsics()  # size, field of view and distortion checked there
+        require_positive(self, "rate_hz")
+        require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s")
+        if self.exposure_s > 0 and self.blur_samples < 2:
+            raise ValueError(f"blur_samples must be >= 2 with an exposure, got {self.blur_samples}")
+        if self.exposure_s >= 1.0 / self.rate_hz:
+            raise ValueError(f"exposure_s must be shorter than the frame period {1.0 / self.rate_hz:g} s")
+
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics.from_fov(self.width_px, self.height_px, self.fovy_deg, self.dist_coeffs)
+
+    def R_b_c(self) -> np.ndarray:
+        """Camera (OpenCV axes) to body rotation."""
+        return frame_from_axes(self.optical_axis_b, self.image_right_b)
+
+    def vehicle_index(self) -> int:
+        if self.vehicle >= 0:
+            return self.vehicle
+        m = re.fullmatch(r"link(\d+)", self.body)
+        return int(m.group(1)) - 1 if m else 0
+
+
+@dataclass(frozen=True)
+class MarkerMount:
+    """An ArUco marker ``id`` of ``dictionary`` on ``body``, its centre at ``pos_b_m``, its face
+    normal (marker z) ``normal_b`` and its right (marker x) ``right_b`` (body frame; orthogonal);
+    ``size_m`` is the side of the black square (the length PnP takes); a white quiet zone of
+    ``quiet_zone_bits`` bits surrounds it."""
+
+    id: int
+    body: str = "world"
+    dictionary: str = "DICT_4X4_50"
+    size_m: float = 0.2
+    pos_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    normal_b: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    right_b: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    quiet_zone_bits: int = 1
+
+    def __post_init__(self) -> None:
+        require_positive(self, "size_m")
+        require_nonnegative(self, "quiet_zone_bits")
+        check_marker(self.dictionary, self.id)
+        frame_from_axes(self.normal_b, self.right_b)
+
+    def R_b_m(self) -> np.ndarray:
+        """Marker to body rotation."""
+        return frame_from_axes(self.normal_b, self.right_b)

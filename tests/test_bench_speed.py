@@ -1,0 +1,84 @@
+"""The plumbing of ``python -m sitl.bench sitl`` (sitl/bench/speed.py), cheaply: the MuJoCo
+ceiling on a short horizon, a child's CPU/RSS accounting and metrics reading (with a stand-in for
+the flight), the /proc sampling and the fleet processes' roles, the table, and the CLI's errors.
+The real figures are the command's (README)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import textwrap
+
+import pytest
+
+from sitl.bench import speed
+from sitl.bench.__main__ import main as bench_main
+
+
+def test_mujoco_ceiling_runs_the_scenarios_model():
+    c = speed.mujoco_ceiling("three_link", 0.05)
+    assert c["sim_s"] == pytest.approx(0.05)
+    assert c["realtime_factor"] > 0 and c["cpu_s_per_sim_s"] > 0
+
+
+def test_firmware_tick_times_both_paths():
+    tick = speed.firmware_tick(60)
+    assert set(tick) == {"fused_us", "step_by_step_us"} and all(v > 0 for v in tick.values())
+    with pytest.raises(ValueError, match="n_ticks"):
+        speed.firmware_tick(0)
+
+
+def test_run_batch_reads_the_child_and_its_metrics(tmp_path):
+    """A stand-in for ``python -m sitl fly``: burns some CPU, writes metrics.json where --out says."""
+    fake = tmp_path / "fake_python.py"
+    fake.write_text(textwrap.dedent("""
+        import json, pathlib, sys, time
+        out = pathlib.Path(sys.argv[sys.argv.index("--out") + 1]); out.mkdir(parents=True)
+        t = time.process_time()
+        while time.process_time() - t < 0.2:
+            pass
+        blob = bytearray(64 << 20)  # 64 MB resident
+        (out / "metrics.json").write_text(json.dumps({"duration_s": 4.0, "realtime_factor": 2.5, "crashed": False}))
+    """))
+    wrapper = tmp_path / "python"
+    wrapper.write_text(f"#!/bin/sh\nshift 2\nexec {sys.executable} {fake} \"$@\"\n")  # drops "-m sitl"
+    wrapper.chmod(0o755)
+    r = speed.run_batch("three_link", 4.0, tmp_path, python=str(wrapper))
+    assert r["exit_code"] == 0 and r["sim_s"] == 4.0 and r["realtime_factor"] == 2.5
+    assert 0.2 / 4.0 <= r["cpu_s_per_sim_s"] < 2.0
+    assert r["peak_rss_mb"] > 64
+
+
+def test_fleet_flight_arguments_are_the_launch_clis(tmp_path):
+    from sitl.__main__ import build_parser
+
+    args = build_parser().parse_args(speed.fleet_args("seven_link", 20.0, tmp_path / "f"))
+    assert args.command == "launch" and args.speed == 0 and args.no_plots and args.duration == 20.0
+
+
+def test_proc_sampling_and_roles():
+    cmd, cpu, hwm = speed._sample(os.getpid())
+    assert "python" in cmd and cpu > 0 and hwm > 0
+    assert speed._sample(2**22 + 12345) is None  # no such process
+    assert speed._role("python -m link_firmware_sim --config x --instance 2 --out y") == "vehicle 3"
+    assert speed._role("python -m companion --config c --out d --group 2") == "companion g2"
+    assert speed._role("python -m companion --config c --out d") == "companion"
+    assert speed._role("python -m pytest") is None
+
+
+def test_format_and_cli_errors(tmp_path, capsys):
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0),
+              "firmware_tick_us": {"fused_us": 21.5, "step_by_step_us": 60.25},
+              "mujoco_ceiling": {"three_link": {"realtime_factor": 40.0, "cpu_s_per_sim_s": 0.02}},
+              "runs": [{"mode": "fleet", "scenario": "three_link", "exit_code": 0, "realtime_factor": 2.0,
+                        "ratio_to_ceiling": 0.05, "cpu_s_per_sim_s": 1.5,
+                        "processes": {"harness": {"cpu_s_per_sim_s": 0.5, "peak_rss_mb": 300.0}}}]}
+    text = speed.format_speed(result)
+    assert "fleet three_link" in text and "0.050" in text and "harness" in text
+    assert "21.5 us one-kernel" in text and "60.2 us step by step" in text
+    assert bench_main(["sitl", "--batch", "no_such_scenario", "--fleet", "", "--out", str(tmp_path / "x"),
+                       "--quiet", "--ceiling-duration", "0.01"]) == 2
+    assert "no_such_scenario" in capsys.readouterr().err
+    assert bench_main(["sitl", "--duration", "0", "--out", str(tmp_path / "y")]) == 2
+    json.dumps(result)

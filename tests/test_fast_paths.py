@@ -1,0 +1,323 @@
+"""Oracle tests: the compiled kernels (link_firmware_sim._fast, sitl.rotor) against the numpy
+specification on random inputs (seeded), agreeing to 1e-12.
+
+Without numba (an onboard install) the compiled path is the numpy one and these tests are skipped;
+with it, the first run compiles the kernels (about 20 s on a 2-core VM, then cached on disk).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from companion.estimation.so3 import quat_normalize, quat_to_rotmat
+from companion.messages import PoseTarget
+from companion.skeleton.body import LinkInertia
+from companion.skeleton.rotors import RotorGeometry, RotorParams
+from link_firmware_sim import _fast
+from link_firmware_sim import ekf as E
+from link_firmware_sim.allocation import AllocationParams, Allocator
+from link_firmware_sim.control import ControlIntegrals, ImpedanceGains, impedance_control, impedance_control_compiled
+from sitl.rotor import RotorBank
+
+pytestmark = pytest.mark.skipif(not _fast.ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
+
+TOL = dict(rtol=1e-12, atol=1e-12)
+N_CASES = 40
+
+
+def _spd(rng, n: int) -> np.ndarray:
+    A = rng.normal(size=(n, n)) * rng.uniform(0.01, 1.0)
+    return A @ A.T + rng.uniform(1e-4, 0.1) * np.eye(n)
+
+
+def _state(rng, baro: bool) -> tuple[np.ndarray, np.ndarray]:
+    x = np.concatenate((rng.normal(size=3) * 5, rng.normal(size=3), quat_normalize(rng.normal(size=4)),
+                        rng.normal(size=3) * 0.1, rng.normal(size=3) * 0.01))
+    if baro:
+        x = np.concatenate((x, [rng.normal()]))
+    return x, _spd(rng, E.NE_BARO if baro else E.NE)
+
+
+def _noise(rng) -> E.EkfNoise:
+    return E.EkfNoise(*rng.uniform(0, 0.1, size=5), att_yaw_rad2_s=rng.uniform(0, 0.1), baro_bias_m2_s=rng.uniform(0, 1e-3))
+
+
+def _same_update(a, b) -> None:
+    (xa, Pa, ia), (xb, Pb, ib) = a, b
+    assert ia.accepted == ib.accepted
+    np.testing.assert_allclose(ia.test_ratio, ib.test_ratio, **TOL)
+    np.testing.assert_allclose(xa, xb, **TOL)
+    np.testing.assert_allclose(Pa, Pb, **TOL)
+    np.testing.assert_array_equal(Pb, Pb.T)  # symmetric, exactly
+
+
+@pytest.mark.parametrize("baro", [False, True])
+def test_predict_matches_numpy(baro):
+    rng = np.random.default_rng(11 + baro)
+    for _ in range(N_CASES):
+        x, P = _state(rng, baro)
+        gyro, accel = rng.normal(size=3) * rng.choice([1e-9, 1.0]), rng.normal(size=3) * 5
+        dt, noise = rng.uniform(1e-4, 0.02), _noise(rng)
+        xa, Pa = E.ekf_predict(x, P, gyro, accel, dt, noise)
+        xb, Pb = E._predict_compiled(x, P, gyro, accel, dt, noise)
+        np.testing.assert_allclose(xb, xa, **TOL)
+        np.testing.assert_allclose(Pb, Pa, **TOL)
+        np.testing.assert_array_equal(Pb, Pb.T)
+    with pytest.raises(ValueError, match="dt_s"):
+        E._predict_compiled(x, P, gyro, accel, 0.0, noise)
+
+
+@pytest.mark.parametrize("kind", ["position", "velocity", "attitude", "heading", "baro", "mag"])
+def test_updates_match_numpy(kind):
+    rng = np.random.default_rng(["position", "velocity", "attitude", "heading", "baro", "mag"].index(kind))
+    accepted = rejected = 0
+    for _ in range(N_CASES):
+        x, P = _state(rng, baro=kind == "baro")
+        gate = rng.choice([0.5, 5.0])  # a tight gate rejects some
+        if kind == "position":
+            args, fn = (x[E.X_P] + rng.normal(size=3), rng.uniform(0.01, 1.0), gate), E._position
+        elif kind == "velocity":
+            args, fn = (x[E.X_V] + rng.normal(size=3), rng.uniform(0.01, 1.0, size=3), gate), E._velocity
+        elif kind == "attitude":
+            args, fn = (quat_normalize(x[E.X_Q] + 0.5 * rng.normal(size=4)), rng.uniform(1e-3, 0.1), gate), E._attitude
+        elif kind == "heading":
+            args, fn = (rng.uniform(-np.pi, np.pi), rng.uniform(1e-3, 0.1), gate), E._heading
+        elif kind == "baro":
+            args, fn = (x[2] + x[16] + rng.normal(), rng.uniform(1e-3, 0.1), gate, rng.choice([0.0, 1.0])), E._baro
+        else:
+            args, fn = (rng.normal(size=3), rng.uniform(-0.3, 0.3), rng.uniform(1e-3, 0.1), gate), E._mag_heading
+        ref = fn(x, P, *args, E._NUMPY)
+        _same_update(ref, fn(x, P, *args, E._COMPILED))
+        accepted += ref[2].accepted
+        rejected += not ref[2].accepted
+    assert accepted and rejected  # both branches compared
+
+
+def test_link_ekf_class_agrees_with_functions():
+    """The thin class with the compiled kernels against the functional numpy core over a sequence."""
+    rng = np.random.default_rng(5)
+    cfg = E.EkfConfig(noise=_noise(rng))
+    q0 = quat_normalize(rng.normal(size=4))
+    fast = E.LinkEkf(np.zeros(3), np.zeros(3), q0, cfg, compiled=True)
+    x, P = E.ekf_init(np.zeros(3), np.zeros(3), q0, cfg)
+    for k in range(60):
+        g, a = rng.normal(size=3) * 0.1, rng.normal(size=3) + [0, 0, 9.8]
+        fast.predict(g, a, 0.002)
+        x, P = E.ekf_predict(x, P, g, a, 0.002, cfg.noise)
+        if k % 5 == 0:
+            z = rng.normal(size=3) * 0.3
+            fast.update_position(z)
+            x, P, _ = E.ekf_update_position(x, P, z, cfg.gps_pos_var_m2, cfg.gate_sigma)
+        if k % 7 == 0:
+            m = np.array([0.2, 0.0, -0.4]) + 0.01 * rng.normal(size=3)
+            fast.update_mag(m)
+            x, P, _ = E.ekf_update_mag_heading(x, P, m, cfg.mag_declination_rad, cfg.mag_heading_var_rad2,
+                                               cfg.gate_sigma)
+    np.testing.assert_allclose(fast.x, x, **TOL)
+    np.testing.assert_allclose(fast.P, P, **TOL)
+
+
+def _target(rng) -> PoseTarget:
+    return PoseTarget(rng.normal(size=3), quat_normalize(rng.normal(size=4)), *(rng.normal(size=(6, 3))))
+
+
+def test_impedance_control_matches_numpy():
+    rng = np.random.default_rng(7)
+    for _ in range(N_CASES):
+        gains = ImpedanceGains(tuple(rng.uniform(0, 20, 3)), tuple(rng.uniform(0, 10, 3)), tuple(rng.uniform(0, 2, 3)),
+                               *rng.uniform(0, 5, 4), pos_integral_limit_ms=rng.uniform(0.01, 2),
+                               att_integral_limit_rad=rng.uniform(0.01, 1))
+        inertia = LinkInertia(rng.uniform(0.5, 3), tuple(rng.uniform(0.01, 0.5, 3)))
+        integ = ControlIntegrals(rng.normal(size=3), rng.normal(size=3))  # beyond the limits too: clamps
+        args = (rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3),
+                _target(rng), gains, inertia, integ, rng.uniform(1e-4, 0.02))
+        Ua, ia = impedance_control(*args)
+        Ub, ib = impedance_control_compiled(*args)
+        np.testing.assert_allclose(Ub, Ua, **TOL)
+        np.testing.assert_allclose(ib.pos, ia.pos, **TOL)
+        np.testing.assert_allclose(ib.att, ia.att, **TOL)
+
+
+@pytest.mark.parametrize("selective", [True, False])
+def test_allocation_matches_numpy(selective):
+    """A sequence of wrenches (the modulation's state carries over), many near a rotor's zero."""
+    rng = np.random.default_rng(3)
+    geometry = RotorGeometry.odar()
+    params = AllocationParams(selective_mapping=selective)
+    ref, fast = Allocator(geometry, params, compiled=False), Allocator(geometry, params, compiled=True)
+    near = 0
+    U = np.array([0.0, 0.0, 17.6, 0.0, 0.0, 0.0])
+    for _ in range(300):
+        U = U + rng.normal(size=6) * [0.5, 0.5, 0.5, 0.05, 0.05, 0.05]
+        a, b = ref.allocate(U), fast.allocate(U)
+        for name in ("command_n", "lambda_o", "lambda_alpha", "lambda_beta", "lambda_gamma"):
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), **TOL, err_msg=name)
+        np.testing.assert_allclose(b.e, a.e, **TOL)
+        assert (b.near_zero, b.saturated) == (a.near_zero, a.saturated)
+        np.testing.assert_allclose(fast.xi_pre, ref.xi_pre, **TOL)
+        near += a.near_zero != (-1, -1)
+    if selective:
+        assert near > 10  # the selective mapping's branches were exercised
+    np.testing.assert_array_equal(fast.command(U), fast.allocate(U).command_n)
+    with pytest.raises(ValueError):
+        fast.command(np.full(6, np.nan))
+
+
+@pytest.mark.parametrize("min_thrust_n,dwell_s", [(0.0, 0.0), (0.35, 0.25)])
+def test_rotor_bank_matches_numpy(min_thrust_n, dwell_s):
+    """The rotor/ESC model through reversals, stops and restarts."""
+    rng = np.random.default_rng(9)
+    params = RotorParams(min_thrust_n=min_thrust_n, restart_dwell_s=dwell_s)
+    ref, fast = RotorBank(16, params, compiled=False), RotorBank(16, params, compiled=True)
+    signs = rng.choice([-1.0, 1.0], size=16)
+    for k in range(2400):
+        if k % 2 == 0:  # a firmware tick: a new command, reversing every 0.6 s
+            cmd = rng.normal(size=16) * 0.3 + (2.0 if k % 1200 < 600 else -2.0) * signs
+            ref.set_command(cmd)
+            fast.set_command(cmd)
+            assert fast._steady == ref._steady
+        a, b = ref.step(0.001), fast.step(0.001)
+        np.testing.assert_allclose(b, a, **TOL)
+    np.testing.assert_array_equal(fast.zero_crossings, ref.zero_crossings)
+    assert ref.zero_crossings.sum() > 0
+
+
+def test_attitude_update_kernel_matches_numpy():
+    """LinkEkf.update_attitude's compiled path (measurement model and update in one kernel) against
+    ekf_update_attitude: accepted and gated updates, per-axis variance, the errors it raises."""
+    rng = np.random.default_rng(21)
+    accepted = rejected = 0
+    for k in range(N_CASES):
+        x, P = _state(rng, baro=k % 4 == 0)
+        cfg = E.EkfConfig(att_var_rad2=rng.uniform(1e-3, 0.1), att_yaw_var_rad2=rng.choice([None, 0.02]),
+                          gate_sigma=rng.choice([0.5, 5.0]))
+        fast, ref = (E.LinkEkf(np.zeros(3), np.zeros(3), [1.0, 0, 0, 0], cfg, compiled=c) for c in (True, False))
+        for e in (fast, ref):
+            e.x, e.P = x.copy(), P.copy()
+        z = x[E.X_Q] + rng.uniform(0.01, 1.5) * rng.normal(size=4)  # not normalised: the update normalises
+        a, b = fast.update_attitude(z), ref.update_attitude(z)
+        assert a.accepted == b.accepted
+        np.testing.assert_allclose(a.test_ratio, b.test_ratio, **TOL)
+        np.testing.assert_allclose(a.innovation, b.innovation, **TOL)
+        np.testing.assert_allclose(fast.x, ref.x, **TOL)
+        np.testing.assert_allclose(fast.P, ref.P, **TOL)
+        np.testing.assert_array_equal(fast.P, fast.P.T)
+        assert (fast.accepted, fast.rejected) == (ref.accepted, ref.rejected)
+        accepted += b.accepted
+        rejected += not b.accepted
+    assert accepted and rejected
+    for bad, match in (([0.0, 0, 0, 0], "zero quaternion"), ([np.nan, 1, 0, 0], "finite"), ([1.0, 0, 0], "4 finite")):
+        with pytest.raises(ValueError, match=match):
+            fast.update_attitude(np.array(bad))
+
+
+def _firmware_pair():
+    from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+
+    inertia, geometry = LinkInertia(1.8, (0.01, 0.2, 0.2)), RotorGeometry.odar()
+    fused, stepwise = (LinkFirmware(0, FirmwareConfig(), inertia, geometry) for _ in range(2))
+    stepwise.fused_tick = False
+    return fused, stepwise
+
+
+def test_fused_tick_matches_step_by_step():
+    """LinkFirmware.on_imu through the one-kernel tick (_tick_fused) against the step-by-step path
+    (predict, updates, control estimate, eq. 1, allocation) over a flight segment: corrections
+    arriving and fading, GPS and attitude updates queued, new targets, a stale target (the fallback)."""
+    from companion.messages import Correction
+
+    rng = np.random.default_rng(23)
+    fused, stepwise = _firmware_pair()
+    taken = []
+    plain = fused._tick_fused
+
+    def tick_fused(*a):  # records whether the fused path ran, returns its command
+        out = plain(*a)
+        taken.append(out is not None)
+        return out
+
+    fused._tick_fused = tick_fused
+    q0 = quat_normalize(np.array([1.0, 0.02, -0.01, 0.1]))
+    p0 = np.array([0.3, -0.2, 1.5])
+    for fw in (fused, stepwise):
+        fw.initialize(0.0, p0, np.zeros(3), q0)
+        fw.arm(0.0)
+    t = 0.0
+    for k in range(1, 800):
+        t = k * 0.002
+        events = []
+        if k % 50 == 1 and k < 200:  # targets at 10 Hz, then none: stale after 1 s (from tick 652)
+            target = PoseTarget(p0 + rng.normal(size=3) * 0.2, quat_normalize(q0 + rng.normal(size=4) * 0.05),
+                                *(rng.normal(size=(6, 3)) * 0.3))
+            events.append(("set_target", (t, target)))
+        if k % 97 == 3:
+            events.append(("on_correction", (t, Correction(0, t - 0.01, rng.normal(size=3) * 0.05,
+                                                             rng.normal(size=3) * 0.02, rng.normal(size=3) * 0.005,
+                                                             seq=k))))
+        if k % 5 == 0:
+            events.append(("on_gps", (t, p0 + rng.normal(size=3) * 0.3, rng.normal(size=3) * 0.05)))
+        if k % 2 == 0:
+            events.append(("on_attitude", (t, quat_normalize(q0 + rng.normal(size=4) * 0.01))))
+        gyro, accel = rng.normal(size=3) * 0.05, np.array([0.0, 0.0, 9.81]) + rng.normal(size=3) * 0.1
+        for fw in (fused, stepwise):
+            for name, args in events:
+                getattr(fw, name)(*args)
+        a, b = fused.on_imu(t, gyro, accel), stepwise.on_imu(t, gyro, accel)
+        np.testing.assert_allclose(a, b, **TOL, err_msg=f"tick {k}")
+        np.testing.assert_allclose(fused.ekf.x, stepwise.ekf.x, **TOL)
+        np.testing.assert_allclose(fused.ekf.P, stepwise.ekf.P, **TOL)
+        np.testing.assert_allclose(fused.integrals.pos, stepwise.integrals.pos, **TOL)
+        np.testing.assert_allclose(fused.integrals.att, stepwise.integrals.att, **TOL)
+        np.testing.assert_allclose(fused.allocator.xi_pre, stepwise.allocator.xi_pre, **TOL)
+        np.testing.assert_allclose(fused._thrust_total_n, stepwise._thrust_total_n, **TOL)
+        assert fused.time_s == stepwise.time_s and fused._airborne == stepwise._airborne
+    assert fused.ekf.accepted == stepwise.ekf.accepted and fused.ekf.rejected == stepwise.ekf.rejected
+    assert fused.correction_weight(t) == stepwise.correction_weight(t)
+    n_fused = sum(taken)
+    assert 300 < n_fused < len(taken)  # most ticks fused, the stale-target ones through the fallback
+    with pytest.raises(ValueError, match="finite"):  # the allocator's check, on the fused path too
+        fused.set_target(t, PoseTarget.hold(np.full(3, np.nan), q0))
+        fused.on_imu(t + 0.002, gyro, accel)
+
+
+def test_cross_is_numpys():
+    """so3.cross: np.cross's numbers (exactly) for single vectors, stacks and broadcasts."""
+    from companion.estimation.so3 import cross
+
+    rng = np.random.default_rng(29)
+    for a_shape, b_shape in (((3,), (3,)), ((5, 3), (5, 3)), ((4, 3), (3,)), ((2, 1, 3), (1, 6, 3))):
+        a, b = rng.normal(size=a_shape), rng.normal(size=b_shape)
+        np.testing.assert_array_equal(cross(a, b), np.cross(a, b))
+
+
+def test_trajectory_poses_batch_is_pose():
+    """ChainTrajectory.poses (the five instants of a target in one evaluation) equals pose() per time."""
+    from companion.trajectory import ChainTrajectory, TrajectoryConfig
+
+    traj = ChainTrajectory(TrajectoryConfig(kind="bend", bend_start_s=1.0, bend_ramp_s=1.0), 4, 1.0, [0.0, 0.0, 0.3])
+    times = [0.5, 1.2, 2.0, 3.7, 9.1]
+    p, q, R = traj.poses(times)
+    for i, t in enumerate(times):
+        pi, qi = traj.pose(t)
+        np.testing.assert_array_equal(p[i], pi)
+        np.testing.assert_array_equal(q[i], qi)
+    np.testing.assert_array_equal(R, quat_to_rotmat(q))
+
+
+def test_numpy_fallback_without_jit():
+    """SKELETON_JIT=0 (as an install without numba): the numpy path runs, with one log line."""
+    code = ("import logging; logging.basicConfig(level=logging.INFO)\n"
+            "from link_firmware_sim import _fast, ekf, allocation\n"
+            "import numpy as np\n"
+            "assert not _fast.ENABLED\n"
+            "e = ekf.LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]))\n"
+            "assert e._la is ekf._NUMPY\n")
+    env = dict(os.environ, SKELETON_JIT="0")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "numpy path runs" in out.stderr

@@ -1,0 +1,100 @@
+"""The slung-load scenario (issue 16 items 3 and 5): formation targets, config, a short MuJoCo flight."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.configfile import ConfigError
+from companion.formation import (
+    CircleFormationConfig,
+    cable_feedforward,
+    formation_state,
+    formation_targets,
+)
+from sitl.slung_load_config import is_slung_load_file, load_slung_scenario
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sitl" / "slung_load_three.toml"
+
+
+@pytest.mark.parametrize("t", [0.0, 5.0, 9.0, 20.0])
+def test_formation_geometry(t):
+    cfg = CircleFormationConfig(start_s=4.0, ramp_s=4.0)
+    f = formation_state(t, cfg)
+    # vehicles on the formation's circle around the centre, 120 deg apart, at the altitude
+    off = f.pos_w_m - f.center_w_m
+    assert np.allclose(np.linalg.norm(off, axis=1), cfg.formation_radius_m)
+    assert np.allclose(f.pos_w_m[:, 2], cfg.altitude_m)
+    # the centre on the report's circle
+    c0 = np.array([cfg.start_w_m[0] - cfg.circle_radius_m, cfg.start_w_m[1]])
+    assert math.isclose(np.linalg.norm(f.center_w_m[:2] - c0), cfg.circle_radius_m, rel_tol=1e-12)
+    # the same side faces the circle's centre: vehicle 0 always radially outward
+    radial = (f.center_w_m[:2] - c0) / cfg.circle_radius_m
+    assert np.allclose(off[0, :2] / cfg.formation_radius_m, radial, atol=1e-9)
+
+
+def test_formation_targets_speed_and_yaw_rate():
+    cfg = CircleFormationConfig(start_s=1.0, ramp_s=2.0, speed_m_s=1.5, circle_radius_m=2.0)
+    before = formation_targets(0.5, cfg)
+    assert all(np.allclose(x.v_w_m_s, 0.0, atol=1e-9) for x in before)
+    after = formation_targets(10.0, cfg)
+    centre_speed = np.linalg.norm(np.mean([x.v_w_m_s for x in after], axis=0))
+    assert centre_speed == pytest.approx(1.5, rel=1e-4)
+    assert after[0].omega_d_rad_s[2] == pytest.approx(1.5 / 2.0, rel=1e-4)  # the formation yaws with the circle
+    # centripetal acceleration of the centre: v^2 / R
+    a_c = np.linalg.norm(np.mean([x.a_w_m_s2 for x in after], axis=0))
+    assert a_c == pytest.approx(1.5**2 / 2.0, rel=1e-3)
+
+
+def test_cable_feedforward_balances_the_load():
+    rng = np.random.default_rng(4)
+    u = np.column_stack((0.3 * np.cos([0, 2.1, 4.2]), 0.3 * np.sin([0, 2.1, 4.2]), np.ones(3)))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    acc = rng.normal(0, 0.5, 3)
+    f = cable_feedforward(u, 1.3, acc)
+    assert np.allclose(f.sum(axis=0), 1.3 * (acc + [0, 0, 9.80665]))
+    assert np.allclose(np.cross(f, u), 0.0)  # along the cables
+
+
+def test_config_loads_and_validates(tmp_path):
+    assert is_slung_load_file(CONFIG)
+    sc = load_slung_scenario(CONFIG)
+    assert sc.load.n == 3 and len(sc.cameras) == 3
+    assert sc.marker_in_load().pos_m[2] > 0.5 * sc.load.size_m[2]  # above the top face
+    bad = tmp_path / "bad.toml"
+    bad.write_text(CONFIG.read_text().replace("marker_id = 7", "marker_id = 8"))
+    with pytest.raises(ConfigError, match="marker_id"):
+        load_slung_scenario(bad)
+    bad.write_text(CONFIG.read_text().replace("cable_length_m = [1.5, 1.5, 1.5]", "cable_length_m = [1.5, 1.5]"))
+    with pytest.raises(ConfigError, match="cable_length_m"):
+        load_slung_scenario(bad)
+
+
+def test_short_flight_estimates_the_load(tmp_path):
+    """1.2 simulated seconds (hovering with the load, the cameras at 10 Hz): no crash, the cables
+    carry the load, every camera sees the marker, and the EKF, UKF and unfiltered estimates exist
+    and are near the truth (the filters start from the rigging's prior, not from the truth)."""
+    pytest.importorskip("cv2")
+    from sitl.slung_load import fly_slung_load
+
+    sc = load_slung_scenario(CONFIG, duration_s=1.2)
+    sc = replace(sc, load=replace(sc.load, settle_s=0.5))
+    m = fly_slung_load(sc, tmp_path, plots=False)
+    assert not m["crashed"], m["crash_reason"]
+    err = m["load_pose_err"]
+    for kind in ("ekf", "ukf", "unfiltered"):
+        assert err[kind]["n_samples"] > 0, kind
+        assert err[kind]["pos_rms_m"] < 0.1, (kind, err[kind])
+        assert err[kind]["att_rms_deg"] < 5.0, (kind, err[kind])
+    assert m["load_filter_stats"]["ekf"]["accepted"] > 0
+    assert m["load_filter_stats"]["ekf"]["late"] > 0  # the 50 ms camera latency: out-of-sequence updates
+    assert min(m["load_vision"]["detection_rate"].values()) > 0.5
+    load = np.load(tmp_path / "load.npz")
+    tension = load["load_cable_tension"][:, 1:]
+    assert np.all(tension[-5:] > 1.0)  # taut: the cables carry the 1 kg box
+    assert abs(tension[-5:].sum(axis=1).mean() - 9.80665 * sc.load.mass_kg * 1.5 / sc.load.hang_drop_m()[0]) < 2.0
+    assert (tmp_path / "metrics.json").exists() and (tmp_path / "vision.npz").exists()
