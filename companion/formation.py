@@ -67,15 +67,20 @@ class FormationState:
     yaw_rad: np.ndarray
 
 
+def arc_length(tau_s, ramp_s: float, speed_m_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance along the circle and its rate at ``tau_s`` (array) after the start: the speed
+    ramps as ``V (3x^2 - 2x^3)``, ``x = tau / ramp_s`` (0 -> V, zero acceleration at both ends),
+    then stays ``V``; nothing before the start."""
+    tau = np.asarray(tau_s, dtype=float)
+    T, V = ramp_s, speed_m_s
+    x = np.clip(tau / T, 0.0, 1.0)
+    s = np.where(tau < T, V * T * (x**3 - 0.5 * x**4), V * T * 0.5 + V * (tau - T))
+    s_dot = V * np.where(tau < T, 3 * x**2 - 2 * x**3, 1.0)
+    return s, s_dot
+
+
 def _arc_length(t: float, cfg: CircleFormationConfig) -> float:
-    tau = t - cfg.start_s
-    if tau <= 0.0:
-        return 0.0
-    T, V = cfg.ramp_s, cfg.speed_m_s
-    if tau < T:
-        x = tau / T
-        return V * T * (x**3 - 0.5 * x**4)  # speed V (3x^2 - 2x^3): 0 -> V, zero acceleration at both ends
-    return V * T * 0.5 + V * (tau - T)
+    return float(arc_length(t - cfg.start_s, cfg.ramp_s, cfg.speed_m_s)[0])
 
 
 def formation_state(t: float, cfg: CircleFormationConfig) -> FormationState:

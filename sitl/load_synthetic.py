@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.formation import arc_length
 from companion.configfile import require_nonnegative, require_positive
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat
 from companion.vision.geometry import POS as PNP_POS
@@ -127,10 +128,8 @@ class SlungLoadSim:
     def formation(self, t: np.ndarray):
         """Vehicles' positions and velocities (k, n, 3) and yaw (k,) at times ``t`` (k,)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        T, V, Rc = self.ramp_s, self.speed_m_s, self.circle_radius_m
-        x = np.clip(t / T, 0.0, 1.0)
-        s = np.where(t < T, V * T * (x**3 - 0.5 * x**4), V * T * 0.5 + V * (t - T))  # arc length
-        s_dot = V * np.where(t < T, 3 * x**2 - 2 * x**3, 1.0)
+        Rc = self.circle_radius_m
+        s, s_dot = arc_length(t, self.ramp_s, self.speed_m_s)  # the formation's speed profile
         phi, phi_dot = s / Rc, s_dot / Rc
         c = np.stack((Rc * np.cos(phi) - Rc, Rc * np.sin(phi), np.full_like(phi, self.altitude_m)), axis=-1)
         c_dot = np.stack((-Rc * np.sin(phi) * phi_dot, Rc * np.cos(phi) * phi_dot, np.zeros_like(phi)), axis=-1)
