@@ -188,6 +188,9 @@ class Vehicle:
         self.fc_time_us = 0
         self.boot_wall_s = time.monotonic()
         self._next_heartbeat_wall = 0.0
+        # Like PX4's SITL, the firmware is silent on MAVLink until the simulator has connected: a
+        # process started ahead of its "power on" (a scripted reboot) is not seen before it.
+        self._sim_seen = False
         self._pos_target: tuple | None = None  # (p, v, a) ENU
         self._pos_target_ms = -1  # its time_boot_ms
         self._ff_target: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
@@ -353,8 +356,9 @@ class Vehicle:
                     stream.next_us = max(stream.next_us + stream.interval_us, t)
 
     def _heartbeats(self) -> None:
+        self._sim_seen = self._sim_seen or self.sim.transport.connected
         now = time.monotonic()
-        if now < self._next_heartbeat_wall:
+        if now < self._next_heartbeat_wall or not self._sim_seen:
             return
         self._next_heartbeat_wall = now + 1.0
         for ep in self.endpoints:

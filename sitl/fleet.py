@@ -316,13 +316,15 @@ def _bound_ports(kind: str) -> set[int]:
     return ports
 
 
-def _wait_udp_listening(ports: list[int], procs: _Processes, who: str = "the companion") -> None:
+def _wait_listening(kind: str, ports: list[int], procs: _Processes, who: str = "the companion") -> None:
+    """Wait (wall clock, at most STARTUP_TIMEOUT_S) until ``ports`` are bound (``kind = "udp"``)
+    or listening (``"tcp"``); a process that died meanwhile raises :class:`FleetError`."""
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while not set(ports) <= _bound_ports("udp"):
+    while not set(ports) <= _bound_ports(kind):
         procs.check()
         if time.monotonic() > deadline:
-            raise FleetError(f"{who} did not open UDP {ports} within {STARTUP_TIMEOUT_S:.0f} s")
-        time.sleep(0.05)
+            raise FleetError(f"{who} did not open {kind.upper()} {ports} within {STARTUP_TIMEOUT_S:.0f} s")
+        time.sleep(0.02)
 
 
 def load_run_log(folder: Path, stem: str) -> dict[str, np.ndarray] | None:
@@ -589,7 +591,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                                  "--loss", f"{m.loss:g}", "--delay-ms", f"{m.delay_ms:g}", "--jitter-ms",
                                  f"{m.jitter_ms:g}", "--seed", str(sc.seed), "--stats", str(out_dir / "wire" / "wire_stats.json")],
                         out_dir / "wire" / "console.log")
-            _wait_udp_listening([WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
+            _wait_listening("udp", [WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
         for i in range(n):
             start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         def start_companion(group: int | None, folder: str, name: str | None = None) -> None:
@@ -604,7 +606,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             else:
                 start_companion(None, "companion")
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
-            _wait_udp_listening([14540 + i for i in range(n)], procs)
+            _wait_listening("udp", [14540 + i for i in range(n)], procs)
         print(endpoint_table(sc), flush=True)
         try:
             harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + i}" for i in range(n)], plant)
@@ -621,15 +623,18 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 harness.detach(i)
                 link_fault.update(link=i + 1, killed_at_s=round(t, 3))
                 log.warning("fault: killed link %d's firmware at t = %.2f s (rotors stopped)", i + 1, t)
+                if reboot.restart_after_s:
+                    # The new process boots now, in wall time, and then waits for the simulator like
+                    # PX4's SITL (silent until the lockstep connects): its power comes back when the
+                    # harness attaches it, restart_after_s of simulated time after the kill, however
+                    # long this host takes to start a Python process.
+                    start_vehicle(i, f"link {i + 1} (restarted)", f"link{i + 1}-restart")
             if (reboot.restart_after_s and "killed_at_s" in link_fault and "restarted_at_s" not in link_fault
                     and t >= reboot.kill_at_s + reboot.restart_after_s):
-                start_vehicle(i, f"link {i + 1} (restarted)", f"link{i + 1}-restart")
-                link_fault.update(restarted_at_s=round(t, 3))
-                log.warning("fault: restarted link %d's firmware at t = %.2f s", i + 1, t)
-            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + i in _bound_ports("tcp"):
+                _wait_listening("tcp", [4560 + i], procs, f"link {i + 1}'s restarted firmware")  # the physics waits
                 harness.attach(i, f"tcpout://127.0.0.1:{4560 + i}")
-                link_fault.update(rejoined_at_s=round(t, 3))
-                log.warning("fault: link %d re-joined the lockstep at t = %.2f s", i + 1, t)
+                link_fault.update(restarted_at_s=round(t, 3), rejoined_at_s=round(t, 3))
+                log.warning("fault: restarted link %d's firmware at t = %.2f s; it re-joined the lockstep", i + 1, t)
             if "rejoined_at_s" in link_fault and "rotors_on_at_s" not in link_fault and np.any(
                     plant.rotors.command_n.reshape(n, -1)[i] != 0):
                 link_fault.update(rotors_on_at_s=round(t, 3))

@@ -122,11 +122,13 @@ class SimConfig:
 @dataclass(frozen=True)
 class LinkRebootFault:
     """``[faults.link]``: SIGKILL link ``kill``'s firmware process (1-based; 0: none) at
-    ``kill_at_s``, as if its Pixhawk lost power, and start a new one ``restart_after_s`` later
-    (0: never). Meanwhile the physics runs on with that link's rotors stopped (the other links
-    carry it on the cables); the new process re-joins the lockstep, initialises its EKF in flight
-    from GPS and the attitude reference, and is re-admitted and re-armed by the companion. Fleet
-    mode only."""
+    ``kill_at_s``, as if its Pixhawk lost power, and power it on again ``restart_after_s`` of
+    simulated time later (0: never). Meanwhile the physics runs on with that link's rotors stopped
+    (the other links carry it on the cables). The new process is started at the kill and waits
+    for the simulator, silent like PX4's SITL; at the restart the harness connects it (the physics
+    waits if it is not listening yet), so the outage lasts ``restart_after_s`` whatever the host's
+    start-up time. It initialises its EKF in flight from GPS and the attitude reference, and is
+    re-admitted and re-armed by the companion. Fleet mode only."""
 
     kill: int = 0
     kill_at_s: float = 0.0

@@ -121,6 +121,34 @@ def test_heartbeat_and_answer_before_ekf_start(rig):
     assert hb[0].type == D.MAV_TYPE_OCTOROTOR
 
 
+def test_silent_until_the_simulator_connects_like_px4_sitl(tmp_path):
+    """A firmware process waiting for its simulator sends nothing (a scripted reboot starts the new
+    process early and powers it on when the harness connects); then its heartbeat comes at once."""
+    gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190)
+    fw = LinkFirmware(1, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
+    params = ParamTable(2, FirmwareConfig(), ORIGIN, StreamRates(50.0, 0.0), tmp_path / "p.json")
+    ports = VehiclePorts(sim="tcpin://127.0.0.1:0", onboard=f"udpout://127.0.0.1:{gcs.transport.local_port()}", gcs=None)
+    vehicle = Vehicle(1, fw, params, ports, tmp_path / "out", key_path=tmp_path / "vehicle.key")
+    sim = None
+    try:
+        end = time.monotonic() + 1.2  # longer than the heartbeat period
+        while time.monotonic() < end:
+            vehicle.poll(0.02)
+            assert not gcs.read(), "the firmware spoke before its simulator connected"
+        sim = MavlinkPort(f"tcpout://127.0.0.1:{vehicle.sim.transport.local_port()}", system_id=250, component_id=1)
+        got = []
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end and not got:
+            vehicle.poll(0.02)
+            got = [m for m in gcs.read() if m.get_type() == "HEARTBEAT"]
+        assert got and got[0].get_srcSystem() == 2
+    finally:
+        vehicle.close()
+        gcs.close()
+        if sim is not None:
+            sim.close()
+
+
 def test_arming_is_refused_until_the_ekf_runs_then_accepted(rig):
     rig.gcs_collect(0.05)  # let the GCS port learn the vehicle's address
     rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
