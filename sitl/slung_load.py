@@ -269,7 +269,8 @@ class LoadEstimation:
         sc: SlungLoadScenario = runner.scenario
         self.runner, self.sc, self.load = runner, sc, sc.load
         self.params = sc.load.params()
-        cfg = replace(pipeline_config(sc.markers), method=sc.load.pnp_method, ids=(sc.load.marker_id,))
+        cfg = replace(pipeline_config(sc.markers), method=sc.load.pnp_method, ids=(sc.load.marker_id,),
+                      sigma_floor_px=sc.load.sigma_floor_px)
         self.pipeline = LoadVisionPipeline(cfg, sc.cameras_in_body(), sc.load.marker_id, sc.marker_in_load())
         self.dt = runner.dt
         self.v_div = max(1, int(round(1.0 / (sc.load.vehicle_rate_hz * runner.dt))))

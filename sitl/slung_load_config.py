@@ -50,6 +50,8 @@ class LoadConfig:
     cable_width_m: float = 0.004
     marker_id: int = 0
     pnp_method: PnpMethod = "ippe_square"
+    #: the PnP covariance's corner-noise floor [px] (:class:`~companion.vision.config.PipelineConfig`)
+    sigma_floor_px: float = 0.3
     #: metrics leave out the first seconds (the filters' convergence from the rigging's prior)
     settle_s: float = 2.0
     #: the vehicles' samples (firmware EKF position, velocity, covariance) to the filters [Hz]
@@ -58,7 +60,7 @@ class LoadConfig:
     formation: CircleFormationConfig = field(default_factory=CircleFormationConfig)
 
     def __post_init__(self) -> None:
-        require_positive(self, "mass_kg", "attach_radius_m", "cable_width_m", "vehicle_rate_hz")
+        require_positive(self, "mass_kg", "attach_radius_m", "cable_width_m", "vehicle_rate_hz", "sigma_floor_px")
         if min(self.size_m) <= 0:
             raise ValueError(f"size_m must be positive, got {self.size_m}")
         if self.inertia_b_kg_m2 is not None and min(self.inertia_b_kg_m2) <= 0:

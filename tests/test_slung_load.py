@@ -72,6 +72,12 @@ def test_config_loads_and_validates(tmp_path):
     bad.write_text(CONFIG.read_text().replace("cable_length_m = [1.5, 1.5, 1.5]", "cable_length_m = [1.5, 1.5]"))
     with pytest.raises(ConfigError, match="cable_length_m"):
         load_slung_scenario(bad)
+    bad.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.3", "sigma_floor_px = 0.0"))
+    with pytest.raises(ConfigError, match="sigma_floor_px"):
+        load_slung_scenario(bad)
+    good = tmp_path / "floor.toml"
+    good.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.3", "sigma_floor_px = 0.1"))
+    assert load_slung_scenario(good).load.sigma_floor_px == 0.1
 
 
 def test_short_flight_estimates_the_load(tmp_path):
