@@ -202,6 +202,10 @@ class EkfConfig:
     fuse_mag: bool = True
     mag_heading_var_rad2: float = 0.04
     mag_declination_rad: float = MAG_DECLINATION_RAD
+    #: variance of the GNSS position bias the filter does not estimate [m^2], horizontal and
+    #: vertical: the filter follows the receiver, bias and all, and this is added to the position
+    #: covariance it reports (a "consider" state, marginalised; the filter's gains do not see it)
+    gps_bias_var_m2: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in (
@@ -221,6 +225,9 @@ class EkfConfig:
                 raise ValueError(f"EkfConfig.{name} must be a positive number, got {val!r}")
         if self.att_yaw_var_rad2 is not None and not (math.isfinite(self.att_yaw_var_rad2) and self.att_yaw_var_rad2 > 0):
             raise ValueError(f"EkfConfig.att_yaw_var_rad2 must be a positive number or None, got {self.att_yaw_var_rad2!r}")
+        if len(self.gps_bias_var_m2) != 2 or not all(math.isfinite(v) and v >= 0.0 for v in self.gps_bias_var_m2):
+            raise ValueError(f"EkfConfig.gps_bias_var_m2 must be two finite non-negative variances (horizontal, "
+                             f"vertical), got {self.gps_bias_var_m2!r}")
         for name in ("init_accel_bias_var", "init_gyro_bias_var", "baro_ground_effect_height_m",
                      "baro_ground_effect_deadzone_m"):
             val = getattr(self, name)
@@ -604,14 +611,19 @@ def _mag_heading(x, P, mag_b_gauss, declination_rad, var_rad2, gate_sigma, la):
     return la.rows(x, P, r, H, np.array([[var_rad2]]), gate_sigma)
 
 
-def sckf_view(x, P, gyro_b_rad_s):
+def sckf_view(x, P, gyro_b_rad_s, gps_bias_var_m2=(0.0, 0.0)):
     """What the link reports to the companion: ``(p, v, q, omega_b, P9)``.
 
     ``omega_b`` is the bias-corrected body rate (input of eq. 3), ``P9`` the covariance of
-    ``[p~; v~; dtheta]``.
+    ``[p~; v~; dtheta]``, its position block plus the GNSS bias the filter does not estimate
+    (``EkfConfig.gps_bias_var_m2``: horizontal, vertical).
     """
     omega = np.asarray(gyro_b_rad_s, dtype=float) - x[X_BG]
-    return x[X_P].copy(), x[X_V].copy(), x[X_Q].copy(), omega, P[E_SCKF, E_SCKF].copy()
+    P9 = P[E_SCKF, E_SCKF].copy()
+    h, v = gps_bias_var_m2
+    if h or v:
+        P9[E_P, E_P] += np.diag((h, h, v))
+    return x[X_P].copy(), x[X_V].copy(), x[X_Q].copy(), omega, P9
 
 
 class _Linalg:
@@ -764,4 +776,4 @@ class LinkEkf:
 
     def sckf_view(self):
         """``(p, v, q, omega_b, P9)`` for the companion (see :func:`sckf_view`)."""
-        return sckf_view(self.x, self.P, self.last_gyro_b_rad_s)
+        return sckf_view(self.x, self.P, self.last_gyro_b_rad_s, self.config.gps_bias_var_m2)

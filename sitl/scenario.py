@@ -20,6 +20,7 @@ import numpy as np
 from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
+from link_firmware_sim.firmware import m8_ekf_config, outdoor_ekf_config
 
 from .bench.ekf_chain import rate_divisor
 from .camera_config import CameraMount, MarkerMount
@@ -316,7 +317,17 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
     """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``). A
     ``[companion]`` without ``omega_std_rad_s`` gets the simulated gyro's white noise: the
     firmware reports the raw body rate less its bias estimate."""
-    return with_rate_noise(load_setup(Scenario, path, **overrides))
+    return with_profile_ekf(with_rate_noise(load_setup(Scenario, path, **overrides)))
+
+
+def with_profile_ekf(scenario: Scenario) -> Scenario:
+    """``scenario`` with the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.firmware.m8_ekf_config`)
+    if its sensors are the ``m8`` profile and ``[firmware.ekf]`` left the default (``outdoor``)
+    tuning as it is: the default is tuned for ``outdoor``'s decimetre-level drift, and with
+    ``m8``'s metre-level biases it would claim about a hundredth of its position error."""
+    if scenario.sensors.profile != "m8" or scenario.firmware.ekf != outdoor_ekf_config():
+        return scenario
+    return replace(scenario, firmware=replace(scenario.firmware, ekf=m8_ekf_config()))
 
 
 def with_rate_noise(scenario: Scenario) -> Scenario:

@@ -48,3 +48,38 @@ def test_seeded_and_the_older_profiles_draw_as_before():
     assert s._gm == [] and s._vel_bias is None  # no extra draws: outdoor flights are unchanged
     rtk, _ = _run("rtk", 50, 30.0)
     assert np.std(rtk[..., 0]) < 0.02
+
+
+def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
+    """m8_ekf_config: outdoor's gains, and the bias's variance (per-link plus common mode) added
+    to the reported position block only; a scenario on the m8 profile gets it unless its
+    [firmware.ekf] says otherwise."""
+    from dataclasses import replace
+
+    from link_firmware_sim.ekf import E_P, LinkEkf, EkfConfig
+    from link_firmware_sim.firmware import m8_ekf_config, outdoor_ekf_config
+    from sitl.scenario import load_scenario
+
+    g = PROFILES["m8"].gps
+    cfg = m8_ekf_config()
+    h = g.bias_horizontal_std_m ** 2 + g.common_horizontal_std_m ** 2
+    v = g.bias_vertical_std_m ** 2 + g.common_vertical_std_m ** 2
+    assert cfg.gps_bias_var_m2 == pytest.approx((h, v), rel=0.01)
+    assert replace(cfg, gps_bias_var_m2=(0.0, 0.0)) == outdoor_ekf_config()  # the gains are outdoor's
+    plain = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), outdoor_ekf_config())
+    biased = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), cfg)
+    P0, P1 = plain.sckf_view()[4], biased.sckf_view()[4]
+    extra = P1 - P0
+    assert np.allclose(extra[E_P, E_P], np.diag([cfg.gps_bias_var_m2[0]] * 2 + [cfg.gps_bias_var_m2[1]]))
+    extra[E_P, E_P] = 0.0
+    assert not extra.any() and np.array_equal(biased.P, plain.P)  # the filter itself is untouched
+    with pytest.raises(ValueError, match="gps_bias_var_m2"):
+        EkfConfig(gps_bias_var_m2=(-1.0, 0.0))
+    base = open("configs/sitl/three_link.toml").read()
+    m8 = tmp_path / "m8.toml"
+    m8.write_text(base.replace('profile = "outdoor"', 'profile = "m8"'))
+    assert load_scenario(m8).firmware.ekf == cfg
+    assert load_scenario("configs/sitl/three_link.toml").firmware.ekf == outdoor_ekf_config()
+    own = tmp_path / "own.toml"
+    own.write_text(base.replace('profile = "outdoor"', 'profile = "m8"') + "\n[firmware.ekf]\ngps_pos_var_m2 = 0.7\n")
+    assert load_scenario(own).firmware.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)
