@@ -1,7 +1,8 @@
 """ODAR design optimisation tool (thesis sec. 2.2.2).
 
     python -m link_firmware_sim.design evaluate [--config FILE] [--json PATH] [--plot] [--out DIR]
-    python -m link_firmware_sim.design search [--config FILE] [--fine] [--scenario FILE] [--out DIR] [--json PATH]
+    python -m link_firmware_sim.design search [--config FILE] [--fine] [--no-refine] [--tie-tolerance FRAC]
+                                              [--scenario FILE] [--out DIR] [--json PATH]
 
 ``evaluate`` prints the metrics of a geometry as JSON: ``F_min`` (2.2), ``F_min_xz`` (the
 sagittal plane), ``M_min`` (2.3), in units of ``lambda_max``, ``d_aero_m`` (2.6), and the
@@ -12,7 +13,9 @@ config or SITL scenario (without one: the Table 2.1 geometry such a config flies
 ``[design]`` table (:class:`~link_firmware_sim.design.metrics.DesignProblem`: R_max, L_max, W, V,
 D, lambda_max, mass, ``[design.flow]``).
 
-``search`` runs the sequential grid search (2.4)-(2.6) with a progress bar and writes its run
+``search`` runs the sequential grid search (2.4)-(2.6) (step 1's directions then refined
+continuously, near-ties of ``F_min^W`` broken by the larger ``F_min``; ``--no-refine``,
+``--tie-tolerance``) with a progress bar and writes its run
 folder (default ``runs/design-search-<UTC time>``): ``design.json`` (both optima, metrics, run
 time), ``design.toml`` (``[design]`` and the flyable optimum's ``[rotors]``/``[rotors.geometry]``,
 the table firmware configs and SITL scenarios accept), ``optimum_as_posed.toml`` (the optimum of
@@ -116,6 +119,8 @@ def _grid(args) -> SearchGrid:
         x_count=args.x_count or base.x_count,
         radius_count=args.radius_count or base.radius_count,
         angle_step_deg=args.angle_step_deg or base.angle_step_deg,
+        refine_directions=not args.no_refine,
+        direction_tie_tolerance=base.direction_tie_tolerance if args.tie_tolerance is None else args.tie_tolerance,
     )
 
 
@@ -149,8 +154,10 @@ def _cmd_search(args) -> int:
         "problem": to_dict(problem),
         "weight_bound_lambda": problem.weight_lambda,
         "directions_step": {"azimuth_deg": d.azimuth_deg, "elevation_deg": d.elevation_deg,
-                            "F_min_W": d.f_min_weighted, "F_min": d.f_min, "evaluated": d.n_evaluated,
-                            "feasible": d.n_feasible},
+                            "F_min_W": d.f_min_weighted, "F_min": d.f_min, "F_min_xz": d.f_min_xz,
+                            "F_min_W_best": d.f_min_weighted_best, "grid_F_min_W": d.grid_f_min_weighted,
+                            "tie_tolerance": d.tie_tolerance, "refined": d.refined,
+                            "evaluated": d.n_evaluated, "feasible": d.n_feasible},
         "position_designs_evaluated": result.n_position_designs,
         "optimum_as_posed": _design_json(result.optimum, problem),
         "flyable_optimum": _design_json(result.flyable, problem),
@@ -219,6 +226,11 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--angle-step-deg", type=float, metavar="DEG", help="step of the angle about the bar (default 7.5)")
     se.add_argument("--x-count", type=int, metavar="N", help="r_x values in [0, L_max/2] (default 5)")
     se.add_argument("--radius-count", type=int, metavar="N", help="radii in (0, R_max] (default 3)")
+    se.add_argument("--no-refine", action="store_true",
+                    help="grid only: no continuous refinement of the directions (step 1)")
+    se.add_argument("--tie-tolerance", type=float, metavar="FRAC",
+                    help="step 1's secondary criterion: within this relative window of the best F_min^W the "
+                         "larger F_min wins (default 0.001; 0: F_min^W only)")
     se.add_argument("--scenario", metavar="FILE", help="also write DIR/scenario.toml: this scenario with the design")
     se.add_argument("--out", metavar="DIR", help="run folder (default runs/design-search-<UTC time>)")
     se.add_argument("--json", metavar="PATH", help="also write design.json here")

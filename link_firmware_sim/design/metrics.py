@@ -76,6 +76,7 @@ __all__ = [
     "torque_generators",
     "torque_min",
     "torque_min_weighted",
+    "zonotope_facet_distances",
     "zonotope_inradius",
     "zonotope_plane_inradius",
 ]
@@ -119,6 +120,19 @@ def zonotope_inradius(generators: np.ndarray, lambda_max: float = 1.0) -> np.nda
     """
     n, support = _facets(generators)
     return 2.0 * lambda_max * _min_ratio(support, np.linalg.norm(n, axis=-1), _scale(generators))
+
+
+def zonotope_facet_distances(generators: np.ndarray, plane_rows=None, lambda_max: float = 1.0) -> np.ndarray:
+    """Per facet pair ``(g_i, g_j)``: its distance from the origin, (..., P); ``inf`` where ``g_i || g_j``.
+
+    The smooth pieces whose minimum is :func:`zonotope_inradius` (``plane_rows=None``) or, with
+    ``plane_rows``, :func:`zonotope_plane_inradius` (the in-plane distance ``d / ||P n||``);
+    for smooth optimisers (the epigraph form ``max t s.t. every distance >= t``).
+    """
+    n, support = _facets(generators)
+    den = np.linalg.norm(n if plane_rows is None else n[..., list(plane_rows)], axis=-1)
+    ok = den > _PARALLEL_TOL * _scale(generators)[..., None]
+    return np.where(ok, 2.0 * lambda_max * support / np.where(ok, den, 1.0), np.inf)
 
 
 def zonotope_plane_inradius(generators: np.ndarray, plane_rows=_XZ_ROWS, lambda_max: float = 1.0) -> np.ndarray:
