@@ -30,6 +30,8 @@ from .config import VehicleSetup
 from .params import ParamTable
 from .vehicle import Vehicle, VehiclePorts
 
+log = logging.getLogger("link_firmware_sim")
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m link_firmware_sim", description=__doc__.split("\n\n")[0])
@@ -42,6 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcs-url", metavar="URL", help="GCS link, or 'none' (default udpout://127.0.0.1:14550?bind=18570+I)")
     p.add_argument("--params", metavar="FILE", help="parameter file (default DIR/link<I+1>_params.json)")
     p.add_argument("--log-rate", type=float, default=50.0, metavar="HZ", help="flight log rate (default 50)")
+    p.add_argument("--standby", action="store_true",
+                   help="load everything (modules, compiled kernels), then wait for a line on stdin before "
+                        "opening any port (the replacement of a scripted reboot, started ahead so that the "
+                        "reboot's timing is the simulation's, not the host's; EOF: exit)")
     return p
 
 
@@ -56,6 +62,15 @@ def main(argv=None) -> int:
     if not 0 <= args.instance < sc.skeleton.n_links:
         print(f"error: --instance {args.instance} outside 0..{sc.skeleton.n_links - 1}", file=sys.stderr)
         return 2
+    if args.standby:
+        from . import _fast
+
+        _fast.warm_up()
+        log.info("standby: waiting for the start line on stdin")
+        if not sys.stdin.readline():
+            log.info("standby: stdin closed before the start: exiting")
+            return 0
+        log.info("standby: started")
     defaults = VehiclePorts.px4_sitl(args.instance)
     gcs = defaults.gcs if args.gcs_url is None else (None if args.gcs_url == "none" else args.gcs_url)
     ports = VehiclePorts(sim=args.sim_url or defaults.sim, onboard=args.onboard_url or defaults.onboard, gcs=gcs)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -26,7 +27,9 @@ class CameraMount:
     of the physics rate), delivered ``latency_s`` after capture, with Gaussian pixel noise of
     ``noise_std_dn`` grey levels and, if ``exposure_s`` > 0, motion blur: the mean of
     ``blur_samples`` renders spread over the exposure. ``vehicle``: the vehicle the frames are
-    attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0)."""
+    attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0). Fleet mode
+    publishes the frames over Zenoh (:mod:`sitl.camera_stream`) with the image as ``wire_format``
+    (``png``: lossless; ``raw``: no encoding; ``jpeg``: lossy, ``wire_quality`` 1-100)."""
 
     name: str
     body: str = "link1"
@@ -43,6 +46,8 @@ class CameraMount:
     exposure_s: float = 0.0
     blur_samples: int = 3
     vehicle: int = -1
+    wire_format: Literal["raw", "png", "jpeg"] = "png"
+    wire_quality: int = 90
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_]+", self.name):
@@ -53,6 +58,8 @@ class CameraMount:
         require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s")
         if self.exposure_s > 0 and self.blur_samples < 2:
             raise ValueError(f"blur_samples must be >= 2 with an exposure, got {self.blur_samples}")
+        if not 1 <= self.wire_quality <= 100:
+            raise ValueError(f"wire_quality must be in 1..100, got {self.wire_quality}")
         if self.exposure_s >= 1.0 / self.rate_hz:
             raise ValueError(f"exposure_s must be shorter than the frame period {1.0 / self.rate_hz:g} s")
 

@@ -17,6 +17,12 @@
 At the end (or on Ctrl-C) every process is stopped (SIGTERM, then SIGKILL after a grace period;
 children also die with the launcher through PR_SET_PDEATHSIG), their logs are merged and the run
 folder gets the same ``metrics.json``, ``log.npz`` and plots as batch mode, plus a .tlog per link.
+
+A scenario with ``[[cameras]]`` adds the vision consumer (``python -m companion.vision``, folder
+``vision``): the harness renders the cameras on the simulation clock and publishes their frames
+on ``<prefix>/camera/<vehicle>/image`` from its own Zenoh session on a free loopback port
+(:mod:`sitl.camera_stream`); the consumer runs the marker pipeline on them, and
+``metrics.json["vision"]`` scores its poses against the truth (``vision.npz``).
 """
 
 from __future__ import annotations
@@ -105,6 +111,8 @@ class FleetHarness:
                                                       "tension_true")}
         self.wall_s = 0.0
         self.sim_s = 0.0
+        # Called as hook(k, t) at every physics tick after the kinematics (the cameras, sitl.camera_stream).
+        self.tick_hooks: list = []
 
     def _prime_hover(self) -> None:
         """In-air start: the rotors spin at the thrusts that carry each link, as in batch mode."""
@@ -199,6 +207,8 @@ class FleetHarness:
                     r["joint_force_true"].append(truth.joint_force_w_n)
                     r["tension_true"].append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
                     plant.check_crash(t, truth, None)
+                for hook in self.tick_hooks:
+                    hook(k, t)
                 plant.end_tick()
                 self.sim_s += dt
                 if progress is not None and (k - tick0) % 100 == 99:
@@ -226,14 +236,21 @@ class _Processes:
         self.procs: list[tuple[str, subprocess.Popen]] = []
         self.killed: set[str] = set()
 
-    def start(self, name: str, argv: list[str], log_path: Path) -> None:
+    def start(self, name: str, argv: list[str], log_path: Path, stdin_pipe: bool = False) -> None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         fh = open(log_path, "wb")
         # Own session: a Ctrl-C in the terminal reaches the launcher only, which stops the fleet in order.
         proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent,
-                                start_new_session=True)
+                                start_new_session=True, stdin=subprocess.PIPE if stdin_pipe else subprocess.DEVNULL)
         fh.close()
         self.procs.append((name, proc))
+
+    def release(self, name: str) -> None:
+        """Start a process waiting in ``--standby`` (one line on its stdin)."""
+        for pname, proc in self.procs:
+            if pname == name and proc.stdin is not None:
+                proc.stdin.write(b"start\n")
+                proc.stdin.flush()
 
     def kill(self, name: str) -> None:
         """SIGKILL a process on purpose (a scripted fault): it is no longer checked."""
@@ -518,6 +535,27 @@ def _fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, w
     return out
 
 
+def _start_cameras(sc: Scenario, plant: Plant, out_dir: Path, procs: _Processes, python: str):
+    """The camera streamer (renders and publishes; :mod:`sitl.camera_stream`) and the vision
+    consumer connected to it; returns once the consumer's subscription matches every key."""
+    from .camera_stream import CameraStreamer  # OpenCV, rendering and Zenoh only for camera scenarios
+
+    streamer = CameraStreamer(sc, plant.model.model, plant.model.data, plant.dt, sc.zenoh.runtime_env())
+    try:
+        config = out_dir / "vision.toml"
+        streamer.write_consumer_config(config)
+        procs.start("vision consumer", [python, "-m", "companion.vision", "--config", str(config),
+                                        "--out", str(out_dir / "vision")], out_dir / "vision" / "console.log")
+        try:
+            streamer.wait_for_subscriber(STARTUP_TIMEOUT_S, procs.check)
+        except TimeoutError as exc:
+            raise FleetError(f"the vision consumer: {exc}") from None
+    except BaseException:
+        streamer.close()
+        raise
+    return streamer
+
+
 def check_fleet_scenario(sc: Scenario) -> None:
     """``ValueError`` for a scenario that names its own companion links (a hardware config):
     fleet mode wires the simulated links itself (PX4 SITL ports)."""
@@ -570,15 +608,17 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     aborted = ""
     fault_log: dict = {}  # the companion kill
     link_fault: dict = {}  # the vehicle reboot
+    cameras = None  # sitl.camera_stream.CameraStreamer of a camera scenario
 
-    def start_vehicle(i: int, name: str, folder: str) -> None:
+    def start_vehicle(i: int, name: str, folder: str, standby: bool = False) -> None:
         argv = [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance", str(i),
                 "--out", str(out_dir / folder), "--log-rate", f"{sc.sim.log_rate_hz:g}",
                 # a restarted Pixhawk keeps its parameters (the first process's file)
                 "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json")]
         if i in wired:  # its onboard traffic goes through the impaired wire
             argv += ["--onboard-url", f"udpout://127.0.0.1:{WIRE_VEHICLE_SIDE + i}?bind={14580 + i}"]
-        procs.start(name, argv, out_dir / folder / "console.log")
+        procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
+                    stdin_pipe=standby)
 
     # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
     # load numba's on-disk cache instead of each compiling them (link_firmware_sim._fast).
@@ -594,6 +634,10 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             _wait_listening("udp", [WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
         for i in range(n):
             start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
+        reboot = faults.link
+        if reboot.kill and reboot.restart_after_s:
+            # The replacement, loaded now and released at the kill: its start-up is not the host's
+            start_vehicle(reboot.kill - 1, f"link {reboot.kill} (restarted)", f"link{reboot.kill}-restart", standby=True)
         def start_companion(group: int | None, folder: str, name: str | None = None) -> None:
             argv = [python, "-m", "companion", "--config", str(companion_config), "--out", str(out_dir / folder)]
             procs.start(name or _companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
@@ -607,14 +651,19 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 start_companion(None, "companion")
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
             _wait_listening("udp", [14540 + i for i in range(n)], procs)
+        if sc.cameras:
+            cameras = _start_cameras(sc, plant, out_dir, procs, python)
         print(endpoint_table(sc), flush=True)
+        if cameras is not None:
+            print(f"cameras: Zenoh {cameras.endpoint}, keys {cameras.prefix}/camera/<vehicle>/image "
+                  f"(consumer: python -m companion.vision --config {out_dir / 'vision.toml'})", flush=True)
         try:
             harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + i}" for i in range(n)], plant)
         except PortError as exc:
             procs.check()
             raise FleetError(str(exc)) from None
-
-        reboot = faults.link
+        if cameras is not None:
+            harness.tick_hooks.append(cameras.on_tick)
 
         def link_reboot(t: float) -> None:
             i = reboot.kill - 1
@@ -624,17 +673,25 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 link_fault.update(link=i + 1, killed_at_s=round(t, 3))
                 log.warning("fault: killed link %d's firmware at t = %.2f s (rotors stopped)", i + 1, t)
                 if reboot.restart_after_s:
-                    # The new process boots now, in wall time, and then waits for the simulator like
-                    # PX4's SITL (silent until the lockstep connects): its power comes back when the
-                    # harness attaches it, restart_after_s of simulated time after the kill, however
-                    # long this host takes to start a Python process.
-                    start_vehicle(i, f"link {i + 1} (restarted)", f"link{i + 1}-restart")
+                    # The replacement (started with the fleet, loaded, waiting in --standby) opens its
+                    # ports now and then waits for the simulator like PX4's SITL (silent until the
+                    # lockstep connects): its power comes back when the harness attaches it,
+                    # restart_after_s of simulated time after the kill. The physics does not wait for
+                    # it (the companion, on wall time, would take the other links' silence for an
+                    # outage): a host slower than that lengthens the outage, and says so.
+                    procs.release(f"link {i + 1} (restarted)")
             if (reboot.restart_after_s and "killed_at_s" in link_fault and "restarted_at_s" not in link_fault
                     and t >= reboot.kill_at_s + reboot.restart_after_s):
-                _wait_listening("tcp", [4560 + i], procs, f"link {i + 1}'s restarted firmware")  # the physics waits
+                link_fault.update(restarted_at_s=round(t, 3))
+                log.warning("fault: link %d's firmware powered on again at t = %.2f s", i + 1, t)
+            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + i in _bound_ports("tcp"):
                 harness.attach(i, f"tcpout://127.0.0.1:{4560 + i}")
-                link_fault.update(restarted_at_s=round(t, 3), rejoined_at_s=round(t, 3))
-                log.warning("fault: restarted link %d's firmware at t = %.2f s; it re-joined the lockstep", i + 1, t)
+                link_fault.update(rejoined_at_s=round(t, 3))
+                late = t - link_fault["restarted_at_s"]
+                (log.warning if late > 0.05 else log.info)(
+                    "fault: link %d re-joined the lockstep at t = %.2f s%s", i + 1, t,
+                    f" ({late:.2f} s of simulated time after its power-on: its process was still starting)"
+                    if late > 0.05 else "")
             if "rejoined_at_s" in link_fault and "rotors_on_at_s" not in link_fault and np.any(
                     plant.rotors.command_n.reshape(n, -1)[i] != 0):
                 link_fault.update(rotors_on_at_s=round(t, 3))
@@ -668,7 +725,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     finally:
         if harness is not None:
             harness.close()
-        procs.stop()
+        try:
+            procs.stop()  # the vision consumer drains the frames in flight before it exits
+        finally:
+            if cameras is not None:
+                cameras.close()
     if harness is None:
         raise FleetError("the simulator never connected to the vehicles")
     if harness.sim_s <= sc.flight_start_s:
@@ -698,6 +759,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         metrics["faults"] = report
     if n == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
+    if cameras is not None:
+        from .camera_stream import fleet_vision_metrics
+
+        metrics["vision"], vision_arrays = fleet_vision_metrics(cameras, out_dir / "vision", sc.flight_start_s)
+        np.savez_compressed(out_dir / "vision.npz", **vision_arrays)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     np.savez_compressed(out_dir / "log.npz", **merged)
     if plots and sc.trajectory.kind == "cpg":

@@ -126,9 +126,9 @@ class LinkRebootFault:
     ``kill_at_s``, as if its Pixhawk lost power, and power it on again ``restart_after_s`` of
     simulated time later (0: never). Meanwhile the physics runs on with that link's rotors stopped
     (the other links carry it on the cables). The new process is started at the kill and waits
-    for the simulator, silent like PX4's SITL; at the restart the harness connects it (the physics
-    waits if it is not listening yet), so the outage lasts ``restart_after_s`` whatever the host's
-    start-up time. It initialises its EKF in flight from GPS and the attitude reference, and is
+    for the simulator, silent like PX4's SITL; at the restart the harness connects it, so the outage
+    lasts ``restart_after_s`` unless the host took longer than that to start the process (then
+    until it listens; ``rejoined_at_s`` in the metrics). It initialises its EKF in flight from GPS and the attitude reference, and is
     re-admitted and re-armed by the companion. Fleet mode only."""
 
     kill: int = 0

@@ -1,6 +1,7 @@
-"""Ports for tests on loopback."""
+"""Ports (and processes) for tests on loopback."""
 
 import socket
+from pathlib import Path
 
 
 def free_ports(k: int, udp: bool = False) -> list[int]:
@@ -13,3 +14,17 @@ def free_ports(k: int, udp: bool = False) -> list[int]:
     finally:
         for s in socks:
             s.close()
+
+
+def children_of(pid: int) -> list[int]:
+    """The pids whose parent is ``pid`` (from /proc: a test's processes left behind)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:  # the field after the state is the ppid
+                out.append(int(entry.name))
+    return out

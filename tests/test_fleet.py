@@ -30,6 +30,8 @@ from sitl.fleet import launch
 from sitl.fly import fly
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 
+from .ports import children_of
+
 ROOT = Path(__file__).resolve().parents[1]
 THREE_LINK = ROOT / "configs" / "sitl" / "three_link.toml"
 D = load_dialect()
@@ -59,19 +61,6 @@ def _assert_ports_released(n: int) -> None:
         assert _tcp_free(4560 + i), f"TCP {4560 + i} still bound"
         for port in (14540 + i, 14580 + i, 18570 + i):
             assert _udp_free(port), f"UDP {port} still bound"
-
-
-def _children_of(pid: int) -> list[int]:
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:  # the field after the state is the ppid
-                out.append(int(entry.name))
-    return out
 
 
 class HeartbeatListener(threading.Thread):
@@ -152,7 +141,7 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
         m = _launch_under(sc, tmp_path, lambda stop: flood(), speed=0.0)
     finally:
         listener.close()
-    assert not _children_of(os.getpid()), "vehicle or companion processes left behind"
+    assert not children_of(os.getpid()), "vehicle or companion processes left behind"
     _assert_ports_released(3)
 
     assert flooded == {"link2": 1 << 20, "companion": 1 << 20}
@@ -296,7 +285,7 @@ def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path):
     """``python -m sitl launch`` interrupted mid-flight: children stopped, ports free, metrics written."""
     out = tmp_path / "run"
     proc, progress = _launch_cli(out, 8.0)  # past the take-off (7 s)
-    children = _children_of(proc.pid)
+    children = children_of(proc.pid)
     assert len(children) == 4  # three vehicles and the companion
     proc.send_signal(signal.SIGINT)
     _, rest = proc.communicate(timeout=60)
@@ -311,7 +300,7 @@ def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path):
 def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metrics(tmp_path):
     """Killed after the take-off: exit 3 naming the link, and metrics.json for what was flown."""
     proc, progress = _launch_cli(tmp_path / "run", 8.0)
-    children = _children_of(proc.pid)
+    children = children_of(proc.pid)
     link2 = next(pid for pid in children if "--instance\x001\x00" in Path(f"/proc/{pid}/cmdline").read_text())
     os.kill(link2, signal.SIGKILL)
     _, rest = proc.communicate(timeout=60)
@@ -328,21 +317,23 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     """One flight, three faults ([faults]): 10 % loss on every vehicle-companion wire, link 2's
     firmware killed at 9 s and restarted at 10 s (the physics goes on with its rotors stopped),
     link 3's GPS out from 12 s to 13.5 s. The run goes on to the end; link 2 re-joins the
-    lockstep at 10 s (its process, started at the kill, waits silent for the simulator), starts its EKF in flight, is re-admitted and re-armed by the companion; every
+    lockstep at about 10 s (its process, started at the kill, waits silent for the simulator), starts its EKF in flight, is re-admitted and re-armed by the companion; every
     outage is in metrics.json."""
     sc = load_scenario(THREE_LINK, duration_s=17.0)
     sc = replace(sc, faults=replace(sc.faults, link=LinkRebootFault(kill=2, kill_at_s=9.0, restart_after_s=1.0),
                                     mavlink=MavlinkWireFault(loss=0.1),
                                     gps=GpsFault(link=3, outage_at_s=12.0, outage_s=1.5)))
     m = launch(sc, tmp_path, speed=0.0)
-    assert not _children_of(os.getpid()), "vehicle, wire or companion processes left behind"
+    assert not children_of(os.getpid()), "vehicle, wire or companion processes left behind"
     _assert_ports_released(3)
     assert all(_udp_free(15540 + i) and _udp_free(15580 + i) for i in range(3)), "the wire's ports still bound"
     assert not m["crashed"] and not m["aborted"] and m["duration_s"] == pytest.approx(17.0)
     reboot = m["faults"]["link_reboot"]
     assert reboot["killed_at_s"] == pytest.approx(9.0, abs=0.01) and reboot["restarted_at_s"] == pytest.approx(10.0, abs=0.01)
-    # powered on 1 s after the kill in simulated time, however long the new process took to start
-    assert reboot["rejoined_at_s"] == reboot["restarted_at_s"] and reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 12.0
+    # powered on 1 s after the kill in simulated time; the new process, started at the kill, is
+    # ready by then on this machine (it may join later on a slower host, which the metrics show)
+    assert reboot["restarted_at_s"] <= reboot["rejoined_at_s"] < reboot["restarted_at_s"] + 0.5
+    assert reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 12.0
     assert reboot["readmitted_at_s"] is not None and reboot["readmitted_at_s"] < 15.0
     # the killed process's flight log up to its last flush, the restarted one's after it
     assert (tmp_path / "link2" / "link2_firmware.stream").exists()

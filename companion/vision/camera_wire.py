@@ -60,6 +60,11 @@ class CameraPublisher:
         self.sent = 0
         self.bytes_sent = 0
 
+    @property
+    def matched(self) -> bool:
+        """Whether a subscriber matches this key now (Zenoh's matching status)."""
+        return bool(self._pub.matching_status.matching)
+
     def publish(self, frame: CameraFrame) -> int:
         """Encode and put one frame; returns the payload's size in bytes."""
         if frame.header.vehicle != self.vehicle:

@@ -1,8 +1,8 @@
 """One camera image with a typed, versioned header: what a camera delivers to the vision pipeline.
 
 The SITL's cameras (:mod:`sitl.camera`) produce :class:`CameraFrame`; on hardware a
-``cv2.VideoCapture`` source will, and a later Zenoh wire (``<prefix>/camera/<vehicle>/image``)
-will carry the header's fields with an encoded image. The header carries everything a consumer
+``cv2.VideoCapture`` source does (:mod:`.node`), and the Zenoh wire (``<prefix>/camera/<vehicle>/image``,
+:mod:`.camera_wire`) carries the header's fields with an encoded image. The header carries everything a consumer
 needs without the image: which camera, which vehicle, the sequence number, the capture time on
 the producer's clock (the simulation clock in the SITL; mid-exposure), the time the frame became
 available (capture plus the camera's latency), the image's size and encoding, and the

@@ -1,0 +1,177 @@
+"""Configuration of the vision consumer, ``python -m companion.vision --config FILE`` (issue 16 item 7).
+
+No OpenCV and no Zenoh here: the file loads and is validated on any install. One TOML file::
+
+    name = "down_camera"
+    source = "zenoh"            # or "video"
+
+    [zenoh]                     # source = "zenoh": frames on <prefix>/camera/<vehicle>/image
+    prefix = "three_link_camera"
+    connect = ["tcp/127.0.0.1:7450"]   # the publisher's endpoint (the SITL harness writes this file)
+
+    [video]                     # source = "video": a cv2.VideoCapture on this computer
+    device = 0                  # /dev/video0; or url = "clip.mp4" / "rtsp://..." (not both)
+    camera = "down"
+    vehicle = 2                 # 1-based, as in the Zenoh keys
+    width_px = 640
+    height_px = 480
+    fovy_deg = 60.0             # or the calibration: fx_px, fy_px, cx_px, cy_px
+    dist_coeffs = [-0.05, 0.01, 0.0, 0.0]
+
+    [pipeline]                  # companion.vision.config.PipelineConfig
+    marker_length_m = 0.5
+    ids = [7]
+
+Every key is checked (unknown keys, types, ranges: :mod:`companion.configfile`).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+from companion.configfile import build, load_toml, require_nonnegative
+from companion.fleetnet.config import PREFIX_RE
+
+from .config import PipelineConfig
+from .geometry import CameraIntrinsics
+
+__all__ = ["ZenohCameraSource", "VideoCaptureSource", "VisionNodeSetup", "load_vision_setup"]
+
+#: plain tcp/udp endpoints (the camera stream runs on the computer's loopback or a trusted link)
+_ENDPOINT_RE = re.compile(r"^(tcp|udp)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+_NAME_RE = re.compile(r"[A-Za-z0-9_]{1,64}")
+
+
+@dataclass(frozen=True)
+class ZenohCameraSource:
+    """Frames from Zenoh, ``<prefix>/camera/*/image``: a peer session that connects to ``connect``
+    and/or listens on ``listen`` (tcp or udp endpoints), multicast scouting off unless enabled.
+    ``vehicles``: 1-based vehicles whose frames are processed (empty: every vehicle's).
+    ``runtime_threads``: Zenoh worker threads per runtime pool (``ZENOH_RUNTIME``, unless set)."""
+
+    prefix: str = ""
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    vehicles: tuple[int, ...] = ()
+    runtime_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.prefix and not PREFIX_RE.match(self.prefix):
+            raise ValueError(f"prefix {self.prefix!r}: letters, digits, '_' and '-' in '/'-separated chunks")
+        for key in ("connect", "listen"):
+            for ep in getattr(self, key):
+                m = _ENDPOINT_RE.match(ep)
+                if not m or not 0 < int(m.group(3)) <= 65535:
+                    raise ValueError(f"{key}: {ep!r} is not a tcp/ or udp/ Zenoh endpoint like tcp/127.0.0.1:7450")
+        if any(v < 1 or v > 0xFFFF for v in self.vehicles):
+            raise ValueError(f"vehicles: 1-based vehicle numbers, got {list(self.vehicles)}")
+        if not 0 <= self.runtime_threads <= 64:
+            raise ValueError(f"runtime_threads must be in 0..64, got {self.runtime_threads}")
+
+    def runtime_env(self) -> str | None:
+        if not self.runtime_threads:
+            return None
+        return "(" + ", ".join(f"{p}: (worker_threads: {self.runtime_threads})" for p in ("app", "acc", "tx", "rx", "net")) + ")"
+
+
+@dataclass(frozen=True)
+class VideoCaptureSource:
+    """Frames from ``cv2.VideoCapture``: ``device`` (a camera index, /dev/video<N>) or ``url`` (a
+    video file, relative to the config file's folder, or a stream URL), not both.
+
+    The frames are attributed to ``camera`` on 1-based ``vehicle``. ``width_px`` x ``height_px``
+    is the calibrated image size (asked of a device; a frame of another size is rejected and
+    counted); the intrinsics come from the calibration (``fx_px``, ``fy_px``, ``cx_px``, ``cy_px``)
+    or, without one, from the vertical field of view ``fovy_deg``; ``dist_coeffs`` as OpenCV's.
+    ``fps``: the rate asked of a device (0: its default). ``max_frames``: stop after that many
+    frames (0: at the end of the stream, or SIGTERM). Time stamps: a device's frames are stamped
+    with this computer's monotonic clock when read; a file's or URL's with their position in the
+    stream (``CAP_PROP_POS_MSEC``)."""
+
+    device: int = -1
+    url: str = ""
+    camera: str = "cam0"
+    vehicle: int = 1
+    width_px: int = 640
+    height_px: int = 480
+    fovy_deg: float = 0.0
+    fx_px: float = 0.0
+    fy_px: float = 0.0
+    cx_px: float = 0.0
+    cy_px: float = 0.0
+    dist_coeffs: tuple[float, ...] = ()
+    fps: float = 0.0
+    max_frames: int = 0
+
+    def __post_init__(self) -> None:
+        if not _NAME_RE.fullmatch(self.camera):
+            raise ValueError(f"camera {self.camera!r}: 1-64 letters, digits or '_'")
+        if not 1 <= self.vehicle <= 0xFFFF:
+            raise ValueError(f"vehicle: 1-based, 1..65535, got {self.vehicle}")
+        if not (0 < self.width_px <= 4096 and 0 < self.height_px <= 4096):
+            raise ValueError(f"width_px and height_px must be in 1..4096, got {self.width_px} x {self.height_px}")
+        require_nonnegative(self, "fovy_deg", "fx_px", "fy_px", "fps", "max_frames")
+        if self.device < -1:
+            raise ValueError(f"device: a camera index >= 0 (or -1 with url), got {self.device}")
+        if self.fovy_deg and self.fx_px:
+            raise ValueError("fovy_deg: give the calibration (fx_px, fy_px, cx_px, cy_px) or the field of view, not both")
+        if self.fovy_deg or self.fx_px:
+            self.intrinsics()
+
+    def check_source(self) -> None:
+        """``ValueError`` unless exactly one of ``device`` / ``url`` and the intrinsics are given."""
+        if (self.device >= 0) == bool(self.url):
+            raise ValueError("device: name a camera index (device) or a file / URL (url), exactly one")
+        if not (self.fovy_deg or self.fx_px):
+            raise ValueError("fx_px: the intrinsics are needed: fx_px, fy_px, cx_px, cy_px (calibration) or fovy_deg")
+
+    def intrinsics(self) -> CameraIntrinsics:
+        if self.fovy_deg:
+            if not self.fovy_deg < 180:
+                raise ValueError(f"fovy_deg must be in (0, 180), got {self.fovy_deg}")
+            return CameraIntrinsics.from_fov(self.width_px, self.height_px, self.fovy_deg, self.dist_coeffs)
+        return CameraIntrinsics(self.width_px, self.height_px, self.fx_px, self.fy_px, self.cx_px, self.cy_px,
+                                self.dist_coeffs)
+
+
+@dataclass(frozen=True)
+class VisionNodeSetup:
+    """The consumer's whole config (module docstring). ``idle_timeout_s``: stop when no frame has
+    arrived for that long (0: never; the SITL stops the consumer with SIGTERM)."""
+
+    name: str = "vision"
+    source: Literal["zenoh", "video"] = "zenoh"
+    zenoh: ZenohCameraSource = field(default_factory=ZenohCameraSource)
+    video: VideoCaptureSource = field(default_factory=VideoCaptureSource)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    idle_timeout_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not _NAME_RE.fullmatch(self.name):
+            raise ValueError(f"name {self.name!r}: 1-64 letters, digits or '_'")
+        require_nonnegative(self, "idle_timeout_s")
+        if self.source == "zenoh":
+            if not self.zenoh.prefix:
+                raise ValueError("zenoh: prefix (the fleet's key prefix) is needed with source = 'zenoh'")
+            if not (self.zenoh.connect or self.zenoh.listen or self.zenoh.multicast_scouting):
+                raise ValueError("zenoh: name the publisher's endpoint (connect), one to listen on (listen), "
+                                 "or enable multicast_scouting")
+        else:
+            try:
+                self.video.check_source()
+            except ValueError as exc:
+                raise ValueError(f"video: {exc}") from None
+
+
+def load_vision_setup(path: str | Path) -> VisionNodeSetup:
+    """Read a consumer config (:class:`~companion.configfile.ConfigError` naming the key). A
+    relative ``video.url`` that is no URL is resolved against the file's folder."""
+    setup = build(VisionNodeSetup, load_toml(path), file=str(path))
+    url = setup.video.url
+    if url and "://" not in url and not Path(url).expanduser().is_absolute():
+        setup = replace(setup, video=replace(setup.video, url=str(Path(path).resolve().parent / url)))
+    return setup
