@@ -311,7 +311,8 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
                 for kind, item in events:
                     if kind == "error":
                         node.on_rejected(str(item))
-                        log.warning("rejected: %s", item)
+                        if node.rejected <= 5 or node.rejected % 100 == 0:  # a flood stays quiet
+                            log.warning("rejected #%d: %s", node.rejected, item)
                         continue
                     last_frame = time.monotonic()
                     fh.write(json.dumps(node.on_frame(item).to_json()) + "\n")
