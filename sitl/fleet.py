@@ -333,15 +333,13 @@ def _bound_ports(kind: str) -> set[int]:
     return ports
 
 
-def _wait_listening(kind: str, ports: list[int], procs: _Processes, who: str = "the companion") -> None:
-    """Wait (wall clock, at most STARTUP_TIMEOUT_S) until ``ports`` are bound (``kind = "udp"``)
-    or listening (``"tcp"``); a process that died meanwhile raises :class:`FleetError`."""
+def _wait_udp_listening(ports: list[int], procs: _Processes, who: str = "the companion") -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while not set(ports) <= _bound_ports(kind):
+    while not set(ports) <= _bound_ports("udp"):
         procs.check()
         if time.monotonic() > deadline:
-            raise FleetError(f"{who} did not open {kind.upper()} {ports} within {STARTUP_TIMEOUT_S:.0f} s")
-        time.sleep(0.02)
+            raise FleetError(f"{who} did not open UDP {ports} within {STARTUP_TIMEOUT_S:.0f} s")
+        time.sleep(0.05)
 
 
 def load_run_log(folder: Path, stem: str) -> dict[str, np.ndarray] | None:
@@ -631,7 +629,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                                  "--loss", f"{m.loss:g}", "--delay-ms", f"{m.delay_ms:g}", "--jitter-ms",
                                  f"{m.jitter_ms:g}", "--seed", str(sc.seed), "--stats", str(out_dir / "wire" / "wire_stats.json")],
                         out_dir / "wire" / "console.log")
-            _wait_listening("udp", [WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
+            _wait_udp_listening([WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
         for i in range(n):
             start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         reboot = faults.link
@@ -650,7 +648,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             else:
                 start_companion(None, "companion")
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
-            _wait_listening("udp", [14540 + i for i in range(n)], procs)
+            _wait_udp_listening([14540 + i for i in range(n)], procs)
         if sc.cameras:
             cameras = _start_cameras(sc, plant, out_dir, procs, python)
         print(endpoint_table(sc), flush=True)
