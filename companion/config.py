@@ -22,6 +22,8 @@ process validates what it runs.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
@@ -97,6 +99,14 @@ class CompanionConfig:
     (the paper's Alg. 1); a SITL scenario that leaves it unset takes its simulated gyro's white
     noise (the firmware reports the raw rate less its bias estimate). On hardware: the IMU's rate
     noise after the flight controller's gyro filter.
+    ``gnss_common_pos_var_m2``: the variance (horizontal, vertical) of the GNSS position error
+    every link shares (a standalone receiver's atmosphere, ephemeris and clock errors, the same
+    for receivers metres apart), inside the position covariance the links report. No constraint
+    sees a common offset: the step takes it out of every link's covariance before it starts (so
+    the gate and the constraint application weigh only what differs between links) and puts it
+    back into the corrected covariance. Unset: none (RTK, or no common error); a SITL scenario
+    that leaves it unset takes its receiver model's common mode. A link whose reported position
+    covariance is not larger than it keeps its covariance as it is.
     ``distributed``: one companion per group (``python -m companion --config F --group G``),
     joined over Zenoh (``[zenoh]``) for the global step; otherwise one companion serves the
     whole chain and runs the global step in-process. ``enabled = false`` runs no constraint
@@ -117,6 +127,7 @@ class CompanionConfig:
     alpha: float = 0.01
     max_iter: int = 20
     omega_std_rad_s: float | None = None
+    gnss_common_pos_var_m2: tuple[float, float] | None = None
     links: tuple[LinkEndpoint, ...] = ()
     mode: Literal["dialect", "standard"] = "dialect"
     targets: Literal["trajectory", "none"] = "trajectory"
@@ -139,6 +150,10 @@ class CompanionConfig:
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
                          "clock_rate_max", "reboot_silence_s", "reboot_frames")
         self.gate
+        c = self.gnss_common_pos_var_m2
+        if c is not None and (len(c) != 2 or not all(math.isfinite(x) and x >= 0.0 for x in c)):
+            raise ValueError(f"gnss_common_pos_var_m2 must be two finite non-negative variances (horizontal, vertical), "
+                             f"got {c!r}")
         ids = [link.system_id for link in self.links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")

@@ -269,6 +269,10 @@ class CompanionEngine:
         members = self.groups[group] if group is not None else tuple(range(n))
         self.d = setup.skeleton.d_b_m[list(members)]
         self.params = cfg.params
+        c = cfg.gnss_common_pos_var_m2
+        #: the GNSS error common to every link (CompanionConfig.gnss_common_pos_var_m2), or None
+        self._common = np.diag([c[0], c[0], c[1]]) if c is not None and any(c) else None
+        self.common_mode_kept = 0  # link-steps whose position covariance was not larger than it
         endpoints = cfg.endpoints(n)
         self.links = [LinkTrack(i, row, endpoints[i].system_id, stamps=StampGate(cfg.stamp_window))
                       for row, i in enumerate(members)]
@@ -289,7 +293,7 @@ class CompanionEngine:
         self.target_counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
         self._leader_targets_s = -np.inf
         self._forwarded_time_us = -1
-        self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep) awaiting the shift
+        self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
         self._next_heartbeat_s = -np.inf
         self._next_health_s: float | None = None
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
@@ -487,7 +491,7 @@ class CompanionEngine:
             rows = list(run)
             _, p, v, q = align_states([self.links[r].state for r in rows], t_us * 1e-6)
             w = np.stack([self.links[r].state.omega_b_rad_s for r in rows])
-            P = np.stack([self.links[r].state.P for r in rows])
+            P = np.stack([self._step_state(self.links[r]).P for r in rows])
             res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
             # A link that flags a GPS fault and disagrees with its neighbours is not left out: its
             # state is the suspect (its own firmware says so), so it takes part one way.
@@ -520,15 +524,41 @@ class CompanionEngine:
                 self.withheld += 1
         return segs, whole, nis_max
 
+    def _common_removable(self, P: np.ndarray) -> bool:
+        """Whether the configured common GNSS error can come out of ``P`` (its position block is larger)."""
+        return self._common is not None and np.linalg.eigvalsh(P[ERR_P, ERR_P] - self._common).min() > 0.0
+
     def _step_state(self, lk: LinkTrack) -> LinkState:
-        """``lk``'s state as the step uses it: one way (position variance raised by
-        :data:`GPS_FAULT_POS_VAR_M2`) when :meth:`_plan` found its flagged GPS fault at odds with
-        its neighbours, so the step moves it onto them and leaves them unmoved."""
-        if lk.row not in self._one_way:
+        """``lk``'s state as the step uses it: without the GNSS error common to all links
+        (``gnss_common_pos_var_m2``: no constraint sees it; :meth:`_restore_common` puts it back),
+        and one way (position variance raised by :data:`GPS_FAULT_POS_VAR_M2`) when :meth:`_plan`
+        found its flagged GPS fault at odds with its neighbours, so the step moves it onto them and
+        leaves them unmoved."""
+        common = self._common_removable(lk.state.P)
+        if lk.row not in self._one_way and not common:
             return lk.state
         P = lk.state.P.copy()
-        P[ERR_P, ERR_P] += GPS_FAULT_POS_VAR_M2 * np.eye(3)
+        if common:
+            P[ERR_P, ERR_P] -= self._common
+        if lk.row in self._one_way:
+            P[ERR_P, ERR_P] += GPS_FAULT_POS_VAR_M2 * np.eye(3)
         return replace(lk.state, P=P)
+
+    def _restore_common(self, P_reported: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """The corrected covariances ``P`` with the common GNSS error that :meth:`_step_state`
+        took out of the links' reported ones, ``P_reported`` (same order), put back."""
+        if self._common is None:
+            return P
+        P = np.array(P, dtype=float)
+        for j, Pr in enumerate(P_reported):
+            if self._common_removable(Pr):
+                P[j][ERR_P, ERR_P] += self._common
+            else:
+                self.common_mode_kept += 1
+                if self.common_mode_kept == 1:
+                    log.warning("a link's position covariance is not larger than gnss_common_pos_var_m2: it keeps "
+                                "its covariance as reported (its EKF does not report the receiver's bias?)")
+        return P
 
     def _segment_groups(self, seg: tuple[int, ...]) -> list[tuple[int, ...]]:
         """This engine's groups cut to segment ``seg`` (rows), numbered from its first link."""
@@ -581,11 +611,12 @@ class CompanionEngine:
                             self.fc_time_us * 1e-6 if t_s is None else t_s, [self.links[r].index + 1 for r in rows], exc)
                 continue
             p[rows], v[rows], q[rows] = result.p, result.v, result.q
-            P_corr[rows] = result.P
+            P_seg = self._restore_common(P_ekf[rows], result.P)
+            P_corr[rows] = P_seg
             p_local[rows] = np.concatenate([r.p for r in result.local])
             corrected[rows] = True
             iterations = max(iterations, int(result.iterations.max()))
-            done.append((seg, corrections, (result.p, result.v, result.q, result.P)))
+            done.append((seg, corrections, (result.p, result.v, result.q, P_seg)))
         self.step_times_ms.append((self._timer() - t0) * 1e3)
         for seg, corrections, result in done:
             self._send_corrections(seg, corrections, result)
@@ -620,7 +651,8 @@ class CompanionEngine:
             log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
             return
         self.step_times_ms.append((self._timer() - t0) * 1e3)
-        self._local[cycle] = (states, step, nis_max)
+        # (the links' reported covariances, for the log and the common GNSS error to put back)
+        self._local[cycle] = (states, step, nis_max, np.stack([lk.state.P for lk in self.links]))
         b = step.boundary
         # stamped when it goes out, after the computation (the shift deadline runs from there)
         self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock(), b.tip_cov))
@@ -633,17 +665,17 @@ class CompanionEngine:
                 del self._local[old]
             if entry is None:
                 continue
-            states, step, nis_max = entry
+            states, step, nis_max, P_reported = entry
             if res.shift is None and res.reason:
                 log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
             p, v, q, P, corrections = finish_step(states, step, res.shift, self.seq, res.shift_gain, res.shift_cov)
+            P = self._restore_common(P_reported, P)
             self.seq = (self.seq + 1) & 0xFFFF or 1
             self._send_corrections(tuple(range(len(self.links))), corrections, (p, v, q, P))
             self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
                          int(step.result.iterations),
                          res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1,
-                         np.ones(len(self.links), dtype=bool), nis_max,
-                         (np.stack([s.P for s in states]), P))
+                         np.ones(len(self.links), dtype=bool), nis_max, (P_reported, P))
 
     def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
                 leader: int, corrected: np.ndarray, nis_max: float, P) -> None:
@@ -765,6 +797,7 @@ class CompanionEngine:
             "steps": int(steps.size),
             "withheld_steps": self.withheld,
             "degraded_steps": self.degraded,
+            "common_mode_kept": self.common_mode_kept,
             "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
             "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                                       "samples": int(lat.size)} if lat.size else None,

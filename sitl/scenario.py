@@ -317,7 +317,7 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
     """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``). A
     ``[companion]`` without ``omega_std_rad_s`` gets the simulated gyro's white noise: the
     firmware reports the raw body rate less its bias estimate."""
-    return with_profile_ekf(with_rate_noise(load_setup(Scenario, path, **overrides)))
+    return with_rate_noise(with_profile_ekf(load_setup(Scenario, path, **overrides)))
 
 
 def with_profile_ekf(scenario: Scenario) -> Scenario:
@@ -331,8 +331,16 @@ def with_profile_ekf(scenario: Scenario) -> Scenario:
 
 
 def with_rate_noise(scenario: Scenario) -> Scenario:
-    """``scenario`` with ``companion.omega_std_rad_s`` set to its gyro's white noise if unset."""
-    if scenario.companion.omega_std_rad_s is not None:
-        return scenario
-    gyro = scenario.sensors.suite().imu.gyro_std_rad_s
-    return replace(scenario, companion=replace(scenario.companion, omega_std_rad_s=gyro))
+    """``scenario`` with the companion's sensor terms from its sensor models where unset:
+    ``omega_std_rad_s`` its gyro's white noise, ``gnss_common_pos_var_m2`` its receivers' common
+    mode (``m8``: 1.8 m / 2.7 m per axis; none in the other profiles) if the links' EKF reports a
+    bias variance that holds it (``[firmware.ekf] gps_bias_var_m2``), else none."""
+    comp, suite = scenario.companion, scenario.sensors.suite()
+    if comp.omega_std_rad_s is None:
+        comp = replace(comp, omega_std_rad_s=suite.imu.gyro_std_rad_s)
+    if comp.gnss_common_pos_var_m2 is None:
+        g = suite.gps
+        common = (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2)
+        reported = scenario.firmware.ekf.gps_bias_var_m2
+        comp = replace(comp, gnss_common_pos_var_m2=common if all(r >= c for r, c in zip(reported, common)) else (0.0, 0.0))
+    return scenario if comp is scenario.companion else replace(scenario, companion=comp)

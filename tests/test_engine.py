@@ -231,6 +231,68 @@ def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(grou
     assert len({e.log["leader"][-1] for e in engines}) == 1
 
 
+@pytest.mark.parametrize("distributed", [False, True])
+def test_the_common_gnss_error_stays_out_of_the_step_and_back_in_the_covariance(distributed):
+    """gnss_common_pos_var_m2: links whose reported position covariance includes the receivers'
+    common error are corrected as if it were not there (no constraint sees a common offset) and
+    their corrected covariance gets it back; a link whose covariance is not larger keeps it."""
+    n, groups = (7, ((1, 2), (3, 4, 5), (6, 7))) if distributed else (3, ())
+    rng = np.random.default_rng(9)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    C = np.diag([3.24, 3.24, 7.29])
+    P_rep = P.copy()
+    P_rep[:, :3, :3] += C
+    if not distributed:
+        P_rep[1] = P[1]  # this link's EKF does not report the receiver's bias
+
+    def run(common, P_in):
+        setup = setup_for(n, groups, distributed=distributed, gnss_common_pos_var_m2=common)
+        setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+        states = [LinkState(i, 0.0, p[i], v[i], q[i], w[i], P_in[i]) for i in range(n)]
+        if not distributed:
+            engine = CompanionEngine(setup)
+            for i, st in enumerate(states):
+                engine.on_state(i, st, STATE_FLAG_EKF_OK, 0.0)
+            got = {i: c.correction for c in of(CorrectionOut, engine.poll(0.0)) for i in [c.row]}
+            return got, np.asarray(engine.log["P_corr_sckf"][-1]), np.asarray(engine.log["P_ekf_sckf"][-1]), [engine]
+        clock = [0.0]
+        hub = LocalHub(len(groups), lambda: clock[0])
+        engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
+                                   net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
+                                                                shift_deadline_s=0.035, leader_wait_s=0.025),
+                                                 hub.join(g), lambda: clock[0]))
+                   for g in range(len(groups))]
+        got = {}
+        for k in range(14):
+            t = clock[0] = 0.05 * k
+            for e in engines:
+                for lk in e.links:
+                    e.on_state(lk.row, replace(states[lk.index], time_s=t), STATE_FLAG_EKF_OK, t)
+            for _ in range(6):
+                for e in engines:
+                    for out in of(CorrectionOut, e.poll(t)):
+                        got[e.links[out.row].index] = out.correction
+        assert all(e.log["global_applied"][-1] for e in engines)
+        cat = lambda key: np.concatenate([np.asarray(e.log[key][-1]) for e in engines])  # noqa: E731
+        return got, cat("P_corr_sckf"), cat("P_ekf_sckf"), engines
+
+    want, P_corr_want, _, _ = run(None, P)
+    got, P_corr, P_ekf, engines = run((3.24, 7.29), P_rep)
+    for i in range(n):
+        np.testing.assert_allclose(got[i].dp_w_m, want[i].dp_w_m, atol=1e-9)
+        np.testing.assert_allclose(got[i].dtheta_w_rad, want[i].dtheta_w_rad, atol=1e-9)
+    # logged per link as 3x3 blocks (position, velocity, attitude): the position block gets C back
+    kept = [] if distributed else [1]
+    for i in range(n):
+        extra = 0.0 if i in kept else C
+        np.testing.assert_allclose(P_corr[i, 0], P_corr_want[i, 0] + extra, atol=1e-9)
+        np.testing.assert_allclose(P_corr[i, 1:], P_corr_want[i, 1:], atol=1e-9)
+        np.testing.assert_allclose(P_ekf[i, 0], P_rep[i][:3, :3], atol=1e-12)  # as the links reported it
+    assert sum(e.summary()["common_mode_kept"] for e in engines) == len(kept)
+    with pytest.raises(ValueError, match="gnss_common_pos_var_m2"):
+        CompanionConfig(gnss_common_pos_var_m2=(-1.0, 0.0))
+
+
 def test_engine_rejects_inconsistent_group_arguments():
     with pytest.raises(ValueError, match="give the group"):
         CompanionEngine(setup_for(7, ((1, 2), (3, 4, 5), (6, 7)), distributed=True))
