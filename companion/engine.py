@@ -39,7 +39,10 @@ What it decides, on the links' flight-controller time (the newest plausible EKF 
   ``enabled = false`` the step only logs the links' EKF states;
 * every 1/``target_rate_hz``: every link's pose target from the trajectory (``[trajectory]``),
   anchored at ``trajectory.anchor_w_m`` or where the chain is when every link first reports;
-* arming (``arm = true``) once every link reports a usable EKF, retried each second until armed;
+* arming (``arm = true``) once every link reports a usable EKF, until it reports armed: retried
+  every :data:`ARM_RETRY_S` for the first :data:`ARM_FAST_TRIES` commands, then each second (a
+  link rebooted in flight has its rotors off until armed: one lost command must not cost a
+  second; a link that keeps refusing is not flooded);
 * the state stream (SET_MESSAGE_INTERVAL) on a link's heartbeat, retried each second until
   acknowledged; a 1 Hz heartbeat; the health report every ``health_period_s``.
 
@@ -114,6 +117,10 @@ GPS_FAULT_POS_VAR_M2 = 100.0
 CLOCK_SAMPLES = 5
 #: Retry period of unacknowledged commands, the heartbeat period [s].
 RETRY_S = 1.0
+#: Retry period of the first ARM commands to a disarmed link with a usable EKF [s], and how many
+#: are sent that fast before :data:`RETRY_S` (MAVSDK retransmits a command after 0.5 s).
+ARM_RETRY_S = 0.2
+ARM_FAST_TRIES = 5
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
                  "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
@@ -184,6 +191,7 @@ class LinkTrack:
     states_at_report: int = 0
     last_state_s: float | None = None
     arm_sent_s: float = -np.inf
+    arm_tries: int = 0  # ARM commands since the link last reported armed
     armed_ack: bool = False
     stream_sent_s: float = -np.inf
     stream_acked: bool = False
@@ -759,10 +767,15 @@ class CompanionEngine:
         if not self.cfg.arm:
             return
         for lk in self.links:
-            if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK or now_s - lk.arm_sent_s < RETRY_S:
+            if lk.flags & STATE_FLAG_ARMED:
+                lk.arm_tries = 0
+                continue
+            retry_s = ARM_RETRY_S if lk.arm_tries < ARM_FAST_TRIES else RETRY_S
+            if not lk.flags & STATE_FLAG_EKF_OK or now_s - lk.arm_sent_s < retry_s:
                 continue
             self._out.append(CommandOut(lk.row, lk.system_id, Command.ARM))
             lk.arm_sent_s = now_s
+            lk.arm_tries += 1
 
     # -- reports ---------------------------------------------------------------------------------------
     def health_rows(self, period_s: float, now_s: float) -> list[dict]:

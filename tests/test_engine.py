@@ -10,6 +10,8 @@ import pytest
 from companion.config import CompanionConfig, CompanionSetup, LinkEndpoint
 from companion.corrections import compute_corrections
 from companion.engine import (
+    ARM_FAST_TRIES,
+    ARM_RETRY_S,
     RETRY_S,
     Command,
     CommandOut,
@@ -156,14 +158,30 @@ def test_rejected_states_are_counted_per_link():
 
 
 def test_arm_retries_until_the_link_reports_armed():
+    """A disarmed link with a usable EKF (e.g. rebooted in flight, rotors off) is asked again every
+    ARM_RETRY_S for the first ARM_FAST_TRIES commands (a lost command costs 0.2 s, not 1 s), then
+    every RETRY_S; a link that reports armed is left alone and its count starts over."""
     engine = CompanionEngine(setup_for())
-    arms = of(CommandOut, feed(engine, 0.0, 0.0))
-    assert len([a for a in arms if a.command is Command.ARM]) == 3
-    assert not [a for a in of(CommandOut, feed(engine, 0.02, 0.5)) if a.command is Command.ARM]
-    again = [a for a in of(CommandOut, feed(engine, 0.04, 1.0)) if a.command is Command.ARM]
-    assert len(again) == 3
-    assert not [a for a in of(CommandOut, feed(engine, 0.06, 3.0, flags=STATE_FLAG_EKF_OK | STATE_FLAG_ARMED))
-                if a.command is Command.ARM]
+
+    def arms(t, now, flags=STATE_FLAG_EKF_OK):
+        return [a.row for a in of(CommandOut, feed(engine, t, now, flags=flags)) if a.command is Command.ARM]
+
+    assert arms(0.0, 0.0) == [0, 1, 2]
+    assert arms(0.02, 0.5 * ARM_RETRY_S) == []  # too soon
+    sent = [0.0]
+    now = 0.0
+    while len(sent) < ARM_FAST_TRIES:
+        now += ARM_RETRY_S + 1e-6
+        assert arms(now, now) == [0, 1, 2]
+        sent.append(now)
+    assert arms(now + ARM_RETRY_S, now + ARM_RETRY_S) == []  # the fast tries are used up
+    assert arms(now + 0.9 * RETRY_S, now + 0.9 * RETRY_S) == []
+    assert arms(now + RETRY_S + 1e-6, now + RETRY_S + 1e-6) == [0, 1, 2]
+    now += RETRY_S + 1e-6
+    assert arms(now + 0.1, now + 5.0, flags=STATE_FLAG_EKF_OK | STATE_FLAG_ARMED) == []
+    # disarmed again later (a reboot in flight): fast again
+    assert arms(now + 0.2, now + 6.0) == [0, 1, 2]
+    assert arms(now + 0.3, now + 6.0 + ARM_RETRY_S + 1e-6) == [0, 1, 2]
 
 
 def test_disabled_companion_logs_the_ekf_states_and_corrects_nothing():

@@ -327,13 +327,15 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert not children_of(os.getpid()), "vehicle, wire or companion processes left behind"
     _assert_ports_released(3)
     assert all(_udp_free(15540 + i) and _udp_free(15580 + i) for i in range(3)), "the wire's ports still bound"
-    assert not m["crashed"] and not m["aborted"] and m["duration_s"] == pytest.approx(17.0)
     reboot = m["faults"]["link_reboot"]
-    assert reboot["killed_at_s"] == pytest.approx(9.0, abs=0.01) and reboot["restarted_at_s"] == pytest.approx(10.0, abs=0.01)
+    why = (f"{m.get('crash_reason')} {m.get('aborted')}; reboot {reboot}; lowest link {m['min_altitude_m']:.2f} m; "
+           f"real-time factor {m.get('realtime_factor')}")
+    assert not m["crashed"] and not m["aborted"] and m["duration_s"] == pytest.approx(17.0), why
+    assert reboot["killed_at_s"] == pytest.approx(9.0, abs=0.01) and reboot["restarted_at_s"] == pytest.approx(10.0, abs=0.01), why
     # powered on 1 s after the kill in simulated time; the new process, started at the kill, is
     # ready by then on this machine (it may join later on a slower host, which the metrics show)
-    assert reboot["restarted_at_s"] <= reboot["rejoined_at_s"] < reboot["restarted_at_s"] + 0.5
-    assert reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 12.0
+    assert reboot["restarted_at_s"] <= reboot["rejoined_at_s"] < reboot["restarted_at_s"] + 0.5, why
+    assert reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 12.0, why
     assert reboot["readmitted_at_s"] is not None and reboot["readmitted_at_s"] < 15.0
     # the killed process's flight log up to its last flush, the restarted one's after it
     assert (tmp_path / "link2" / "link2_firmware.stream").exists()
