@@ -94,7 +94,8 @@ def test_inverse_dynamics_is_consistent_with_rnea(n):
     rng = np.random.default_rng(20 + n)
     cm = model_of(n)
     targets = _targets(cm, rng, n)
-    dyn = cm.inverse_dynamics(targets)
+    assert cm.inverse_dynamics(targets).rnea_tau is None  # the feed-forward's call: no RNEA
+    dyn = cm.inverse_dynamics(targets, check=True)
     np.testing.assert_allclose(dyn.rnea_tau[:6], 0.0, atol=1e-10)
     R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
     passive = np.concatenate([R[j + 1].T @ dyn.joint_torque_w_nm[j] for j in range(n - 1)])

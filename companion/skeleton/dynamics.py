@@ -15,9 +15,10 @@ motion). The joint forces are an internal-force redundancy (thesis sec. 6, "opti
 allocation for a group of links"); :meth:`ChainModel.inverse_dynamics` chooses them to minimise
 ``sum_i |F_i|^2 + |M_i / l|^2`` over the links' rotor wrenches (``l`` the half link length), so a
 link that needs more gets help from its neighbours through the cables. pinocchio's RNEA with
-those rotor wrenches as external forces then gives the force each cable carries (its spatial
-force across the joint) and checks the solution: the free-flyer's generalised force is zero and
-each joint's is the passive torque.
+those rotor wrenches as external forces (``inverse_dynamics(..., check=True)``; the feed-forward
+at the target rate skips it) gives the force each cable carries (its spatial force across the
+joint) and checks the solution: the free-flyer's generalised force is zero and each joint's is
+the passive torque.
 
 pinocchio is an optional dependency (``pip install .[dynamics]``): importing this module needs it.
 """
@@ -50,7 +51,8 @@ class ChainDynamics:
         joint_torque_w_nm: (n-1, 3) passive torque of joint ``j`` on link ``j+1``.
         rotor_wrench_w: (n, 6) each link's whole rotor wrench [force; torque about its centre].
         rnea_tau: pinocchio's RNEA generalised force with those rotor wrenches (free flyer ~0,
-            each joint its passive torque in the child frame).
+            each joint its passive torque in the child frame); ``None`` unless asked for
+            (``check=True``).
     """
 
     force_ff_w_n: np.ndarray
@@ -58,7 +60,7 @@ class ChainDynamics:
     joint_force_w_n: np.ndarray
     joint_torque_w_nm: np.ndarray
     rotor_wrench_w: np.ndarray
-    rnea_tau: np.ndarray
+    rnea_tau: np.ndarray | None
 
 
 class ChainModel:
@@ -150,9 +152,10 @@ class ChainModel:
         return tuple(out)
 
     # -- inverse dynamics ------------------------------------------------------------------------------
-    def inverse_dynamics(self, targets: list[PoseTarget]) -> ChainDynamics:
+    def inverse_dynamics(self, targets: list[PoseTarget], check: bool = False) -> ChainDynamics:
         """The rotor wrenches and cable forces of the chain following ``targets`` (one per link,
-        constraint-consistent; see the module docstring)."""
+        constraint-consistent; see the module docstring). ``check``: also pinocchio's RNEA with
+        those rotor wrenches (``rnea_tau``, and :meth:`cable_forces_rnea` after it)."""
         n = self.n
         p = np.stack([t.p_w_m for t in targets])
         R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
@@ -160,37 +163,38 @@ class ChainModel:
         wd = np.stack([t.omega_dot_d_rad_s2 for t in targets])
         v = np.stack([t.v_w_m_s for t in targets])
         acc = np.stack([t.a_w_m_s2 for t in targets])
-        q_, v_, a_ = self.coordinates(p, R, v, w, acc, wd)
         m, J = self.inertia.mass_kg, np.diag(self.inertia.inertia_kgm2)
         # each link's own rigid-body wrench (what eq. 1's feed-forward produces), world, about its centre
         own_f = m * (acc + np.array([0.0, 0.0, GRAVITY_M_S2]))
         own_m = np.einsum("nij,nj->ni", R, np.einsum("ij,nj->ni", J, wd) + cross(w, np.einsum("ij,nj->ni", J, w)))
-        # passive joint torques on the child (compliant cable: stiffness and damping)
+        # passive joint torques on the child (compliant cable: stiffness and damping) at the joint's
+        # relative attitude R_j^T R_{j+1} and relative rate in the child frame (the generalised
+        # coordinates of :meth:`coordinates`)
         tau_j = np.zeros((max(n - 1, 0), 3))
         for j in range(n - 1):
-            qi, vi = 7 + 4 * j, 6 + 3 * j
-            Rrel = pin.Quaternion(q_[qi + 3], *q_[qi:qi + 3]).toRotationMatrix()
-            local = -self.stiffness * pin.log3(Rrel) - self.damping * v_[vi:vi + 3]
-            tau_j[j] = R[j + 1] @ local
+            Rrel = R[j].T @ R[j + 1]
+            w_rel = w[j + 1] - Rrel.T @ w[j]
+            tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
         # joint points and the moment arms to each centre
         x = p[:-1] + np.einsum("nij,j->ni", R[:-1], self.d)
         F = self._share(own_f, own_m, p, x, tau_j)
         add_f, add_m = self._joint_wrench(F, tau_j, p, x)
         rotor = np.concatenate([own_f - add_f, own_m - add_m], axis=1)
-        rnea = self._rnea(q_, v_, a_, rotor, R, p)
+        rnea = self._rnea(*self.coordinates(p, R, v, w, acc, wd), rotor, R, p) if check else None
         self.last = ChainDynamics(-add_f, -add_m, F, tau_j, rotor, rnea)
         return self.last
 
     def _joint_wrench(self, F, tau_j, p, x):
-        """The force and moment (about each centre) the joints exert on every link."""
+        """The force and moment (about each centre) the joints exert on every link: joint ``j``
+        pushes link ``j+1`` with ``F_j`` (and the passive torque) and link ``j`` with the opposite."""
         n = self.n
         f = np.zeros((n, 3))
         mom = np.zeros((n, 3))
-        for j in range(n - 1):
-            f[j + 1] += F[j]
-            f[j] -= F[j]
-            mom[j + 1] += cross(x[j] - p[j + 1], F[j]) + tau_j[j]
-            mom[j] -= cross(x[j] - p[j], F[j]) + tau_j[j]
+        if n > 1:
+            f[1:] += F
+            f[:-1] -= F
+            mom[1:] += cross(x - p[1:], F) + tau_j
+            mom[:-1] -= cross(x - p[:-1], F) + tau_j
         return f, mom
 
     def _share(self, own_f, own_m, p, x, tau_j) -> np.ndarray:
@@ -199,13 +203,13 @@ class ChainModel:
         if n < 2:
             return np.zeros((0, 3))
         scale = 1.0 / self.d[0]  # moments weighed per half link length, like forces
-        A = np.zeros((6 * n, 3 * (n - 1)))
-        for j in range(n - 1):
-            cols = slice(3 * j, 3 * j + 3)
-            A[6 * (j + 1):6 * (j + 1) + 3, cols] = np.eye(3)
-            A[6 * (j + 1) + 3:6 * (j + 2), cols] = scale * skew(x[j] - p[j + 1])
-            A[6 * j:6 * j + 3, cols] = -np.eye(3)
-            A[6 * j + 3:6 * j + 6, cols] = -scale * skew(x[j] - p[j])
+        A = np.zeros((n, 6, n - 1, 3))
+        j = np.arange(n - 1)
+        A[j + 1, 0:3, j] = np.eye(3)
+        A[j + 1, 3:6, j] = scale * skew(x - p[1:])
+        A[j, 0:3, j] = -np.eye(3)
+        A[j, 3:6, j] = -scale * skew(x - p[:-1])
+        A = A.reshape(6 * n, 3 * (n - 1))
         _, tau_m = self._joint_wrench(np.zeros((n - 1, 3)), tau_j, p, x)
         b = np.concatenate([own_f, scale * (own_m - tau_m)], axis=1).reshape(-1)
         # rotor wrench = b - A F: the minimum-norm rotor wrenches are the least-squares F
