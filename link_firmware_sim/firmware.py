@@ -206,6 +206,7 @@ class LinkFirmware:
         self._thrust_total_n = 0.0
         self._airborne = False
         self.integrals = ControlIntegrals()
+        self._kernel_const: tuple | None = None  # _tick_fused's packed configuration
         self.target: PoseTarget | None = None
         self._target_time_s = -math.inf
         self._hold: PoseTarget | None = None
@@ -568,11 +569,14 @@ class LinkFirmware:
         :func:`._fast.tick_kernel`: the EKF's propagation, the control estimate, eq. 1 and the
         allocation in one call (with measurements queued: the propagation and the updates first,
         as the step-by-step path runs them), with the same state changes as the step-by-step path.
-        ``None`` (nothing changed) in any other case, or without the compiled kernels."""
+        ``None`` (nothing changed) in any other case, or without the compiled kernels. The packed
+        arrays the kernel reads are kept per object (targets at 50 Hz, gains and the inertia when
+        they change), not rebuilt at 500 Hz."""
+        target = self.target
         if not (self.fused_tick and self.armed and self._controller is None and self.observer is None
-                and self.target is not None and t_s - self._target_time_s <= self.config.target_stale_s):
+                and target is not None and t_s - self._target_time_s <= self.config.target_stale_s):
             return None
-        ekf, fk = self.ekf, _fast
+        ekf = self.ekf
         gyro = np.array(gyro_b_rad_s, dtype=float)
         accel = np.asarray(accel_b_m_s2, dtype=float)
         predict = not self._pending
@@ -580,26 +584,48 @@ class LinkFirmware:
             ekf.predict(gyro, accel, dt)
             self.time_s = t_s
             self._apply_pending()
-        noise = ekf.config.noise
         wgt = self.correction_weight(t_s)
-        corr = fk.packed(self.correction, fk.pack_correction) if wgt > 0.0 else _NO_CORRECTION
-        out = np.empty(fk.TICK_OUT_SIZE)
-        ekf.x, ekf.P = fk.tick_kernel(
-            ekf.x, ekf.P, predict, gyro, accel, dt, noise.densities, noise.baro_bias_m2_s, _GRAVITY_W, wgt, corr,
-            fk.packed(self.target, fk.pack_target), fk.packed(self.config.gains, fk.pack_gains),
-            fk.packed(self.inertia, fk.pack_inertia), self.integrals.pos, self.integrals.att, GRAVITY_M_S2,
+        corr = _packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
+        const = self._kernel_const  # what the kernel reads from the configuration and the inertia
+        if const is None or const[0] is not self.config or const[1] is not ekf.config or const[2] is not self.inertia:
+            noise = ekf.config.noise
+            const = self._kernel_const = (self.config, ekf.config, self.inertia, noise.densities, noise.baro_bias_m2_s,
+                                          _packed(self.config.gains, _fast.pack_gains),
+                                          _packed(self.inertia, _fast.pack_inertia))
+        _, _, _, densities, baro_density, gains, inertia = const
+        out = np.empty(_fast.TICK_OUT_SIZE)
+        integrals = self.integrals
+        ekf.x, ekf.P = _fast.tick_kernel(
+            ekf.x, ekf.P, predict, gyro, accel, dt, densities, baro_density, _GRAVITY_W, wgt, corr,
+            _packed(target, _fast.pack_target), gains, inertia, integrals.pos, integrals.att, GRAVITY_M_S2,
             *self.allocator.kernel_args(), out)
         ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
         self.events.extend(self.gps_health.on_tick(t_s))
-        lay = fk.TICK_OUT
-        self.integrals = ControlIntegrals(out[lay["pos_int"]], out[lay["att_int"]])
-        if not out[lay["finite"]]:
-            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[lay['U']]!r}")
-        self._thrust_total_n = float(out[lay["force_norm"]])
-        if not self._airborne and out[lay["p_ctrl"]][2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
+        self.integrals = ControlIntegrals(out[_OUT_POS_INT], out[_OUT_ATT_INT])
+        if not out[_OUT_FINITE]:
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[_OUT_U]!r}")
+        self._thrust_total_n = float(out[_OUT_FORCE_NORM])
+        if not self._airborne and out[_OUT_P_CTRL_Z] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True
-        return out[lay["command"]]
+        return out[_OUT_COMMAND]
+
+
+def _packed(obj, pack) -> np.ndarray:
+    """:func:`._fast.packed` without its call on the hot path when the array is already kept."""
+    a = obj.__dict__.get(_PACK_KEYS[pack])
+    return a if a is not None else _fast.packed(obj, pack)
+
+
+_PACK_KEYS = {pack: "_fast_" + pack.__name__ for pack in (_fast.pack_correction, _fast.pack_target, _fast.pack_gains,
+                                                         _fast.pack_inertia)}
+_OUT_COMMAND = _fast.TICK_OUT["command"]
+_OUT_U = _fast.TICK_OUT["U"]
+_OUT_POS_INT = _fast.TICK_OUT["pos_int"]
+_OUT_ATT_INT = _fast.TICK_OUT["att_int"]
+_OUT_FORCE_NORM = _fast.TICK_OUT["force_norm"]
+_OUT_P_CTRL_Z = _fast.TICK_OUT["p_ctrl"].start + 2
+_OUT_FINITE = _fast.TICK_OUT["finite"]
 
 
 _NO_CORRECTION = np.zeros(9)

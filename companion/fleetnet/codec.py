@@ -15,6 +15,8 @@ valid group lists) with the same checks as the MAVLink codec; anything else rais
 
 from __future__ import annotations
 
+import functools
+
 import struct
 from typing import Any
 
@@ -91,7 +93,7 @@ def encode(msg) -> bytes:
         else:  # sym, optsym
             if kind[0] == "optsym":
                 out.append(b"\x01")
-            out.append(np.asarray(value, dtype="<f8")[np.triu_indices(kind[1])].tobytes())
+            out.append(np.asarray(value, dtype="<f8")[_upper(kind[1])].tobytes())
     return b"".join(out)
 
 
@@ -147,10 +149,22 @@ def decode(payload: bytes):
     return _VALIDATE[cls](values)
 
 
+@functools.cache
+def _upper(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n)``, computed once per size (a global step's payloads carry dozens of
+    covariance blocks per cycle)."""
+    rows, cols = np.triu_indices(n)
+    rows.setflags(write=False)
+    cols.setflags(write=False)
+    return rows, cols
+
+
 def _sym(upper: np.ndarray, n: int) -> np.ndarray:
-    m = np.zeros((n, n))
-    m[np.triu_indices(n)] = upper
-    return m + np.triu(m, 1).T
+    rows, cols = _upper(n)
+    m = np.empty((n, n))
+    m[rows, cols] = upper
+    m[cols, rows] = upper
+    return m
 
 
 def _finite_all(cls: type, values: dict[str, Any]) -> None:
