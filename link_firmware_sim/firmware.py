@@ -450,10 +450,15 @@ class LinkFirmware:
 
     # -- arming --------------------------------------------------------------------------
     def arm(self, t_s: float) -> bool:
-        """Arm (requires an initialised EKF). Without a target the link holds its pose."""
+        """Arm (requires an initialised EKF). Without a target the link holds its pose. Arming an
+        armed link accepts and changes nothing (PX4: a repeated ARM is acknowledged): a retried
+        command that crossed the link's armed state report does not reset its integrators or its
+        take-off reference in flight."""
         if self.ekf is None:
             log.warning("link %d: arming refused, EKF not initialised", self.link)
             return False
+        if self.armed:
+            return True
         self.armed = True
         self.integrals = ControlIntegrals()
         if self._controller is not None:

@@ -69,6 +69,26 @@ def test_firmware_refuses_to_arm_before_the_ekf_starts():
     np.testing.assert_array_equal(fw.on_imu(0.002, np.zeros(3), [0, 0, 9.8]), 0.0)
 
 
+def test_a_repeated_arm_is_accepted_and_changes_nothing():
+    """A retried ARM that crossed the armed state report (the companion retries every 0.2 s) must
+    not reset the integrators, the allocator's modulation state or the take-off reference in flight."""
+    fw = _firmware()
+    q = np.array([1.0, 0, 0, 0])
+    fw.initialize(0.0, np.zeros(3), np.zeros(3), q)
+    assert fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget.hold(np.array([0.3, -0.2, 1.0]), q))
+    for k in range(1, 200):
+        fw.on_imu(0.002 * k, np.zeros(3), [0, 0, 9.8])
+    before = (fw.integrals, fw._arm_height_m, fw._airborne, fw.allocator.kernel_args()[3].copy())
+    assert np.any(before[0].pos != 0.0)
+    assert fw.arm(0.4)
+    after = (fw.integrals, fw._arm_height_m, fw._airborne, fw.allocator.kernel_args()[3])
+    assert after[0] is before[0] and after[1:3] == before[1:3]
+    np.testing.assert_array_equal(after[3], before[3])
+    fw.disarm()
+    assert fw.arm(0.5) and np.all(fw.integrals.pos == 0.0)  # a real arming starts over
+
+
 def test_correction_is_held_then_fades_and_never_enters_the_ekf():
     fw = _firmware()
     fw.initialize(0.0, np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]))
