@@ -231,8 +231,9 @@ class ChainModel:
         return np.array(pin.rnea(model, data, q, v, a, fext))
 
     def cable_forces_rnea(self) -> np.ndarray:
-        """(n-1, 3) world force across each joint from the last :meth:`inverse_dynamics` RNEA
-        (pinocchio's ``data.f``: the parent's force on the child's subtree)."""
+        """(n-1, 3) world force across each joint from the last RNEA, that of the last
+        ``inverse_dynamics(..., check=True)`` (pinocchio's ``data.f``: the parent's force on the
+        child's subtree)."""
         out = np.empty((self.n - 1, 3))
         for j, jid in enumerate(self.joints[1:]):
             out[j] = self.data.oMi[jid].rotation @ self.data.f[jid].linear
