@@ -392,12 +392,13 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path):
     assert down == [{"kind": "companion_down", "start_s": fault["killed_at_s"], "end_s": fault["restarted_at_s"],
                      "links": [1]}]
     gaps = [w for w in outs if w["kind"] == "no_global_step"]
-    back_s = fault["restarted_at_s"] + 3.0
-    assert gaps and all(w["start_s"] >= fault["killed_at_s"] - 1.1 for w in gaps), gaps
-    assert any(w["start_s"] <= fault["killed_at_s"] and w["end_s"] >= fault["restarted_at_s"] for w in gaps), gaps
-    # After it, at most a stray cycle whose shift missed the 20 ms deadline on a busy host (seen
-    # with two CPU hogs beside the fleet on 2 cores): counted, never a run of them.
-    stray = [w for w in gaps if w["end_s"] > back_s]
+    first_s, back_s = fault["killed_at_s"] - 1.1 - 1e-6, fault["restarted_at_s"] + 3.0
+    outage = [w for w in gaps if w["start_s"] >= first_s and w["end_s"] <= back_s]
+    assert any(w["start_s"] <= fault["killed_at_s"] and w["end_s"] >= fault["restarted_at_s"] for w in outage), gaps
+    # Outside it, at most a few stray cycles whose shift missed the 20 ms deadline on a busy host
+    # (seen with two CPU hogs beside the fleet on 2 cores, after the outage and once 1.1 s before
+    # the kill): counted, never a run of them.
+    stray = [w for w in gaps if w not in outage]
     assert len(stray) <= 3 and all(w["end_s"] - w["start_s"] <= 0.1 for w in stray), gaps
     assert d["cycles_with_global_step_fraction"] > 0.35
     _assert_ports_released(3)
