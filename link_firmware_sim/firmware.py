@@ -590,19 +590,19 @@ class LinkFirmware:
             self.time_s = t_s
             self._apply_pending()
         wgt = self.correction_weight(t_s)
-        corr = _packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
+        corr = _fast.packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
         const = self._kernel_const  # what the kernel reads from the configuration and the inertia
         if const is None or const[0] is not self.config or const[1] is not ekf.config or const[2] is not self.inertia:
             noise = ekf.config.noise
             const = self._kernel_const = (self.config, ekf.config, self.inertia, noise.densities, noise.baro_bias_m2_s,
-                                          _packed(self.config.gains, _fast.pack_gains),
-                                          _packed(self.inertia, _fast.pack_inertia))
+                                          _fast.packed(self.config.gains, _fast.pack_gains),
+                                          _fast.packed(self.inertia, _fast.pack_inertia))
         _, _, _, densities, baro_density, gains, inertia = const
         out = np.empty(_fast.TICK_OUT_SIZE)
         integrals = self.integrals
         ekf.x, ekf.P = _fast.tick_kernel(
             ekf.x, ekf.P, predict, gyro, accel, dt, densities, baro_density, _GRAVITY_W, wgt, corr,
-            _packed(target, _fast.pack_target), gains, inertia, integrals.pos, integrals.att, GRAVITY_M_S2,
+            _fast.packed(target, _fast.pack_target), gains, inertia, integrals.pos, integrals.att, GRAVITY_M_S2,
             *self.allocator.kernel_args(), out)
         ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
@@ -616,14 +616,6 @@ class LinkFirmware:
         return out[_OUT_COMMAND]
 
 
-def _packed(obj, pack) -> np.ndarray:
-    """:func:`._fast.packed` without its call on the hot path when the array is already kept."""
-    a = obj.__dict__.get(_PACK_KEYS[pack])
-    return a if a is not None else _fast.packed(obj, pack)
-
-
-_PACK_KEYS = {pack: "_fast_" + pack.__name__ for pack in (_fast.pack_correction, _fast.pack_target, _fast.pack_gains,
-                                                         _fast.pack_inertia)}
 _OUT_COMMAND = _fast.TICK_OUT["command"]
 _OUT_U = _fast.TICK_OUT["U"]
 _OUT_POS_INT = _fast.TICK_OUT["pos_int"]
