@@ -120,6 +120,9 @@ def test_force_and_torque_scale_with_lambda_max(u, lam):
 @settings(max_examples=30, deadline=None)
 @given(directions4)
 def test_weights_interpolate_between_f_min_and_the_sagittal_plane(u):
+    # W_y -> 0 gives F_min^xz only while the force volume's y extent is much larger than W_y (a
+    # set whose y half-width is 1e-7 against W_y = 1e-6 reads its y faces: hypothesis found one)
+    assume(np.abs(u[:, 1]).sum() > 1e-2)
     f, fxz = float(force_min(u)), float(force_min_xz(u))
     assert float(force_min_weighted(u, (1, 1, 1))) == pytest.approx(f, rel=1e-12)
     assert fxz >= f - 1e-12
