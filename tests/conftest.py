@@ -5,8 +5,20 @@ import os
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import pytest
+from hypothesis import settings
 
 from companion.cli import single_thread_blas
+
+# Property tests draw the same examples on every run (each test's own seed, from its name): the
+# suite and CI give the same verdict on the same commit. `pytest --hypothesis-profile explore`
+# draws fresh examples (and remembers failing ones in .hypothesis/) to look for new counterexamples.
+settings.register_profile("default_seeded", derandomize=True, print_blob=True)
+settings.register_profile("explore", derandomize=False, print_blob=True)
+
+
+def pytest_configure(config):
+    if not config.getoption("hypothesis_profile", None):
+        settings.load_profile("default_seeded")
 
 
 @pytest.fixture(autouse=True, scope="session")
