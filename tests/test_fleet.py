@@ -313,6 +313,7 @@ def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metric
     _assert_ports_released(3)
 
 
+@pytest.mark.open_defect  # the recovery after an in-flight reboot sometimes crashes (README, "Scripted faults")
 def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_path):
     """One flight, three faults ([faults]): 10 % loss on every vehicle-companion wire, link 2's
     firmware killed at 9 s and restarted at 10 s (the physics goes on with its rotors stopped),
