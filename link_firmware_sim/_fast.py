@@ -410,15 +410,13 @@ TARGET_SIZE = 30
 def packed(obj, pack) -> np.ndarray:
     """``pack(obj)``, computed once per (frozen) object and kept in its ``__dict__`` like a
     ``functools.cached_property`` (targets change at 50 Hz, the controller runs at 500 Hz)."""
-    key = _PACK_KEYS.get(pack) or _PACK_KEYS.setdefault(pack, "_fast_" + pack.__name__)
-    a = obj.__dict__.get(key)
+    d = obj.__dict__
+    key = "_fast_" + pack.__name__
+    a = d.get(key)
     if a is None:
-        a = obj.__dict__[key] = pack(obj)
+        a = d[key] = pack(obj)
         a.setflags(write=False)
     return a
-
-
-_PACK_KEYS: dict = {}  # pack function -> the __dict__ key its arrays are kept under
 
 
 def pack_target(target) -> np.ndarray:

@@ -16,7 +16,6 @@ valid group lists) with the same checks as the MAVLink codec; anything else rais
 from __future__ import annotations
 
 import functools
-
 import struct
 from typing import Any
 
