@@ -88,6 +88,9 @@ PSPM_DEBUG_NAME = b"PSPM"
 _PX4_OFFBOARD = 6 << 16  # PX4 custom_mode: main mode OFFBOARD
 #: MAV_CMD_COMPONENT_ARM_DISARM param2 that disarms a vehicle in flight (PX4, ArduPilot)
 FORCE_DISARM = 21196
+#: How long a SKELETON_TARGET_FEEDFORWARD goes on applying to later position targets when theirs
+#: has not come (lost, or still on its way) [ms of time_boot_ms]: five 50 Hz target periods.
+FEEDFORWARD_HOLD_MS = 100
 _LINK_NAMES = ("onboard", "gcs")
 # MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors this vehicle answers
 _FTP_TERMINATE, _FTP_RESET, _FTP_ACK, _FTP_NAK = 1, 2, 128, 129
@@ -194,6 +197,7 @@ class Vehicle:
         self._pos_target: tuple | None = None  # (p, v, a) ENU
         self._pos_target_ms = -1  # its time_boot_ms
         self._ff_target: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
+        self._ff_applied: tuple | None = None  # the newest one that met its position target
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
         self._log = _Stream.at_rate(log_rate_hz)
         # pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m] (pspm_report; NaN while PSPM is off)
@@ -484,7 +488,8 @@ class Vehicle:
                 self._on_attitude_target(msg)
             elif kind == "SKELETON_TARGET_FEEDFORWARD":
                 self._ff_target = (msg.time_boot_ms, *decode_target_feedforward(msg))
-                self._update_target()
+                if msg.time_boot_ms == self._pos_target_ms:  # after its position target: applies now
+                    self._update_target()
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
                 self._on_command(ep, msg)
             elif kind.startswith("PARAM_"):
@@ -613,11 +618,18 @@ class Vehicle:
             p_now, q_now = np.zeros(3), np.array([1.0, 0, 0, 0])
         p, v, a = self._pos_target if self._pos_target is not None else (p_now, np.zeros(3), np.zeros(3))
         q, w = self._att_target if self._att_target is not None else (q_now, np.zeros(3))
-        # The rest of the target (angular acceleration, whole-chain feed-forward) applies to the
-        # position target of the same time_boot_ms only.
-        zero = np.zeros(3)
+        # The rest of the target (angular acceleration, whole-chain feed-forward) comes in its own
+        # message stamped with its position target's time_boot_ms: it applies to that position
+        # target and, while the next one's is still to come or was lost on the wire, to the
+        # position targets of the next FEEDFORWARD_HOLD_MS (dropping it for a lost message would
+        # drop, for one target period, the weight a link carries for a neighbour without rotors).
+        # One that comes before its position target waits for it (the companion sends it first).
         ff = self._ff_target
-        wd, f_ff, tau_ff = ff[1:] if ff is not None and ff[0] == self._pos_target_ms else (zero, zero, zero)
+        if ff is not None and ff[0] == self._pos_target_ms:
+            self._ff_applied = ff
+        ff = self._ff_applied
+        held = ff is not None and (self._pos_target_ms - ff[0]) & 0xFFFFFFFF <= FEEDFORWARD_HOLD_MS
+        wd, f_ff, tau_ff = ff[1:] if held else (np.zeros(3), np.zeros(3), np.zeros(3))
         # The target rate is in the desired body frame (eq. 1): FLU rates of the target attitude.
         self.fw.set_target(self.fc_time_s, PoseTarget(p, q, v, a, w, wd, f_ff, tau_ff))
 

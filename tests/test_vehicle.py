@@ -5,17 +5,18 @@ import math
 import socket
 import struct
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
 from companion.mavlink.frames import enu_ned
-from companion.mavlink.codec import encode_correction
+from companion.mavlink.codec import encode_correction, encode_target_feedforward
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
 from companion.mavlink.signing import SigningConfig, load_key, signing_timestamp
-from companion.messages import Correction
+from companion.messages import Correction, PoseTarget
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.ekf import X_BARO
@@ -255,6 +256,35 @@ def test_targets_from_mavlink_and_stale_target_hold(rig):
         rig.tick()
     hold = rig.vehicle.fw._active_target(rig.t, rig.vehicle.fw.ekf.p_w_m)
     assert hold is not target and np.linalg.norm(hold.p_w_m - [2.0, 1.0, 3.0]) > 0.5
+
+
+def test_the_feedforward_holds_over_a_lost_message_for_a_while(rig):
+    """SKELETON_TARGET_FEEDFORWARD applies to the position target of its time_boot_ms, whichever
+    comes first (the companion sends it first: until its position target comes the last one
+    stays, so no tick runs without it). A position target whose own was lost keeps the last one
+    (a link carrying a neighbour without rotors must not drop its weight for a target period);
+    one that comes more than FEEDFORWARD_HOLD_MS after the last feed-forward gets none."""
+    rig.start()
+    rig.vehicle.fw.arm(rig.t)
+
+    def send_ff(ms, ff):
+        rig.gcs_send(encode_target_feedforward(replace(PoseTarget.hold(np.zeros(3), LEVEL), force_ff_w_n=np.array(ff)),
+                                               ms, 2))
+        rig.gcs_collect(0.05)
+        return rig.vehicle.fw.target.force_ff_w_n
+
+    def target(ms, ff=None):
+        rig.gcs_send(D.MAVLink_set_position_target_local_ned_message(ms, 2, 1, D.MAV_FRAME_LOCAL_NED, 0b110000000000,
+                                                                      0.0, 0.0, -2.0, 0, 0, 0, 0, 0, 0, 0, 0))
+        rig.gcs_collect(0.05)
+        return rig.vehicle.fw.target.force_ff_w_n if ff is None else send_ff(ms, ff)
+
+    np.testing.assert_allclose(target(1000, ff=(1.0, 2.0, 8.8)), [1.0, 2.0, 8.8])  # after its position target
+    np.testing.assert_allclose(target(1020), [1.0, 2.0, 8.8])  # its own was lost: the last one's
+    np.testing.assert_allclose(send_ff(1040, (0.0, 0.0, 4.0)), [1.0, 2.0, 8.8])  # before its position target
+    np.testing.assert_allclose(target(1040), [0.0, 0.0, 4.0])
+    np.testing.assert_allclose(target(1140), [0.0, 0.0, 4.0])
+    np.testing.assert_allclose(target(1160), 0.0)  # too long without one
 
 
 def test_garbage_is_counted_and_dropped(rig):
