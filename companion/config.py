@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
-from .configfile import ConfigError, build, load_toml, require_positive
+from .configfile import ConfigError, build, load_toml, require_nonnegative, require_positive
 from .estimation.gate import CHI2_6_1E6, GateParams
 from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
@@ -118,6 +118,19 @@ class CompanionConfig:
     pace); a link whose stream went silent for ``reboot_silence_s`` and comes back on a new clock
     (``reboot_frames`` consistent states) has rebooted. The joint gate cuts a joint whose NIS
     (6 dof) exceeds ``gate_threshold`` with ``gate_pos_m`` / ``gate_vel_m_s`` of slack.
+
+    Carrying a link whose rotors are off (``trajectory.feedforward`` only): a link that has flown
+    and is now silent for ``carry_silence_s`` (its newest state that far behind the chain's, on
+    the time base: its Pixhawk lost power), disarmed (rebooted in flight), or armed again for
+    less than ``carry_spinup_s`` (its ESCs restart from standstill: SITL's rotor model takes its
+    ``restart_dwell_s`` 0.25 s plus the spin-up; counted from its first armed state after a
+    disarmed one or after a silence of ``reboot_silence_s``) is carried by its neighbours: the
+    targets' whole-chain feed-forward holds its rotor wrench at zero
+    (:meth:`~companion.skeleton.dynamics.ChainModel.inverse_dynamics`, ``passive``). Each 50 ms
+    of delay costs: a dead middle link of ``three_link`` pulled its neighbours 61 deg off when
+    carried from 0.25 s, 16 deg from 0.1 s. A link alive but unheard that long is carried too:
+    its neighbours push up by its weight until it is heard again (three states in a row lost on a
+    10 % lossy wire: about once in 20 s, for a target period).
     """
 
     enabled: bool = True
@@ -141,6 +154,8 @@ class CompanionConfig:
     clock_rate_max: float = 1.1
     reboot_silence_s: float = 1.0
     reboot_frames: int = 10
+    carry_silence_s: float = 0.06
+    carry_spinup_s: float = 0.35
     gate_threshold: float = CHI2_6_1E6
     gate_pos_m: float = 0.05
     gate_vel_m_s: float = 0.25
@@ -148,7 +163,8 @@ class CompanionConfig:
     def __post_init__(self) -> None:
         self.params
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
-                         "clock_rate_max", "reboot_silence_s", "reboot_frames")
+                         "clock_rate_max", "reboot_silence_s", "reboot_frames", "carry_silence_s")
+        require_nonnegative(self, "carry_spinup_s")
         self.gate
         c = self.gnss_common_pos_var_m2
         if c is not None and (len(c) != 2 or not all(math.isfinite(x) and x >= 0.0 for x in c)):

@@ -39,6 +39,10 @@ What it decides, on the links' flight-controller time (the newest plausible EKF 
   ``enabled = false`` the step only logs the links' EKF states;
 * every 1/``target_rate_hz``: every link's pose target from the trajectory (``[trajectory]``),
   anchored at ``trajectory.anchor_w_m`` or where the chain is when every link first reports;
+  with the whole-chain feed-forward (``trajectory.feedforward``), a link whose rotors are taken
+  to be off (it has flown, and is now silent ``carry_silence_s``, disarmed, or re-armed less than
+  ``carry_spinup_s`` ago) is carried: its neighbours' feed-forward takes its weight
+  (:meth:`_passive_links`; ``carried_s`` in the summary);
 * arming (``arm = true``) once every link reports a usable EKF, until it reports armed: retried
   every :data:`ARM_RETRY_S` for the first :data:`ARM_FAST_TRIES` commands, then each second (a
   link rebooted in flight has its rotors off until armed: one lost command must not cost a
@@ -214,6 +218,13 @@ class LinkTrack:
     #: why it was left out of the last step ("" = used)
     status: str = ""
     readmit_cycles: int = 0
+    #: it has been armed for ``carry_spinup_s`` (it has flown); since when it reports armed;
+    #: passive: its rotors taken to be off (``carry_silence_s``, ``carry_spinup_s``)
+    flown: bool = False
+    armed_since_s: float | None = None
+    passive: bool = False
+    passive_s: float = 0.0  # time with its rotors taken to be off [s], on the time base
+    passive_since_s: float | None = None
 
     def to_link_clock_us(self, t_us: int) -> int:
         return t_us - (self.offset_us or 0)
@@ -726,7 +737,8 @@ class CompanionEngine:
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
-        targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6)
+        targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6,
+                                          passive=self._passive_links())
         if self._net_targets:
             if self.net.leads(self.next_step_us, now_s):
                 self.net.publish_targets(ChainTargets.of(self.group, self.fc_time_us,
@@ -738,6 +750,42 @@ class CompanionEngine:
             self.target_counts["own"] += 1
         for lk in self.links:
             self._target_out(lk, self.fc_time_us, targets[lk.index])
+
+    def _passive_links(self) -> frozenset[int]:
+        """The chain indices of this engine's links whose rotors are taken to be off: a link that
+        has flown and is now silent ``carry_silence_s`` (its newest state that far behind the
+        chain's newest), disarmed, or heard armed again for less than ``carry_spinup_s`` (its
+        ESCs restarting; after a silence of ``reboot_silence_s`` too, which may have been a reboot
+        whose disarmed states were lost; a shorter dropout of an armed link costs no spin-up
+        wait). All on the time base: what matters is how long the link
+        has been falling or spinning up, and in SITL that is simulated time. Transitions are logged."""
+        cfg, out = self.cfg, set()
+        t = self.fc_time_us * 1e-6
+        for lk in self.links:
+            lag = np.inf if lk.state is None else t - lk.state.time_s
+            silent = lag >= cfg.carry_silence_s
+            armed = bool(lk.flags & STATE_FLAG_ARMED)
+            if not armed or lag >= cfg.reboot_silence_s:  # unheard that long: it may have rebooted
+                lk.armed_since_s = None
+            elif lk.armed_since_s is None and not silent:
+                lk.armed_since_s = t
+            spinning = armed and not silent and t - lk.armed_since_s >= cfg.carry_spinup_s
+            lk.flown = lk.flown or spinning
+            passive = lk.flown and (silent or not spinning)
+            if passive != lk.passive:
+                lk.passive = passive
+                if passive:
+                    lk.passive_since_s = t
+                    why = "silent" if silent else "disarmed in flight" if not armed else "re-armed, rotors starting"
+                    log.warning("link %d: %s at %.2f s: its neighbours carry it (whole-chain feed-forward)",
+                                lk.index + 1, why, t)
+                else:
+                    lk.passive_s += t - lk.passive_since_s
+                    log.warning("link %d: flies itself again at %.2f s, after %.2f s carried", lk.index + 1, t,
+                                t - lk.passive_since_s)
+            if passive:
+                out.add(lk.index)
+        return frozenset(out)
 
     def _trajectory_start_us(self) -> int:
         """Where trajectory time starts on the time base: 0 for distributed companions on the links'
@@ -817,6 +865,7 @@ class CompanionEngine:
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,
+                                          "carried_s": round(lk.passive_s, 3),
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),

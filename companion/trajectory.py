@@ -96,14 +96,22 @@ class TrajectoryConfig:
         return self.takeoff_start_s + (0.0 if self.kind == "rest" else self.takeoff_duration_s)
 
 
-def with_feedforward(targets: list[PoseTarget], model) -> list[PoseTarget]:
+def with_feedforward(targets: list[PoseTarget], model, passive=frozenset()) -> list[PoseTarget]:
     """``targets`` with the whole-chain feed-forward of ``model`` (a
-    :class:`~companion.skeleton.dynamics.ChainModel`; ``None``: unchanged)."""
+    :class:`~companion.skeleton.dynamics.ChainModel`; ``None``: unchanged); ``passive``: links
+    (0-based) whose rotors are off, carried by their neighbours. A carried link's own target
+    keeps the feed-forward of the chain with every link flying: when its rotors come back it is
+    to lift itself (a feed-forward that cancelled its weight would keep its rotors stopped, and
+    they would restart from standstill once more when it ends)."""
     if model is None:
         return targets
-    dyn = model.inverse_dynamics(targets)
-    return [replace(t, force_ff_w_n=dyn.force_ff_w_n[i], torque_ff_b_nm=t.R_d.T @ dyn.torque_ff_w_nm[i])
-            for i, t in enumerate(targets)]
+    flying = model.inverse_dynamics(targets) if passive else None
+    dyn = model.inverse_dynamics(targets, passive=passive)
+    out = []
+    for i, t in enumerate(targets):
+        d = flying if i in passive else dyn
+        out.append(replace(t, force_ff_w_n=d.force_ff_w_n[i], torque_ff_b_nm=t.R_d.T @ d.torque_ff_w_nm[i]))
+    return out
 
 
 class ChainTrajectory:
@@ -163,8 +171,9 @@ class ChainTrajectory:
         center = np.stack([self.center_w_m(t) for t in times])
         return r + (center - middle_offset(r, R, self.d))[:, None, :], q, R
 
-    def targets(self, t: float) -> list[PoseTarget]:
-        """Targets with velocity, acceleration, body rate and its derivative."""
+    def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:
+        """Targets with velocity, acceleration, body rate and its derivative (``passive``: see
+        :func:`with_feedforward`)."""
         h = self.h
         p, qs, R = self.poses([t + k * h for k in (-2, -1, 0, 1, 2)])
         v = (p[3] - p[1]) / (2 * h)
@@ -178,7 +187,7 @@ class ChainTrajectory:
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
         q = qs[2]
         return with_feedforward([PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
-                                self.dynamics)
+                                self.dynamics, passive)
 
 
 class CpgChainTrajectory:
@@ -237,9 +246,9 @@ class CpgChainTrajectory:
         """The CPG parameters ``[A_x, A_y, B_x, B_y]`` in use."""
         return self.generator.eta
 
-    def targets(self, t: float) -> list[PoseTarget]:
+    def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:
         if t < self.start_s:
-            return self.hover.targets(t)
+            return self.hover.targets(t, passive)
         k = int(round((t - self.start_s) / self.dt))
         if k < self._k - 1:
             raise ValueError(f"targets at {t:.3f} s: the generator is already at {self.start_s + self._k * self.dt:.3f} s")
@@ -252,7 +261,7 @@ class CpgChainTrajectory:
         w_dot = (after.omega_l_rad_s - before.omega_l_rad_s) / span
         q = rotmat_to_quat(now.R_wl)
         return with_feedforward([PoseTarget(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i])
-                                 for i in range(self.n)], self.dynamics)
+                                 for i in range(self.n)], self.dynamics, passive)
 
 
 def chain_model(skeleton: SkeletonConfig):

@@ -53,7 +53,7 @@ from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
 from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 
-from .metrics import PAPER_THREE_LINK, compute_metrics
+from .metrics import PAPER_THREE_LINK, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
 from .runner import Plant, Schedule
 from .scenario import Scenario
@@ -484,10 +484,7 @@ def _impaired_links(sc: Scenario) -> list[int]:
 def _fault_windows(sc: Scenario, fault_log: dict, link_fault: dict, end_s: float) -> list[dict]:
     """The scripted faults' outage windows: a vehicle down (killed until back in the lockstep),
     a companion down (killed until restarted, or the end of the run)."""
-    out = []
-    if "killed_at_s" in link_fault:
-        out.append({"kind": "vehicle_down", "start_s": link_fault["killed_at_s"],
-                    "end_s": link_fault.get("rejoined_at_s", end_s), "links": [link_fault["link"]]})
+    out = vehicle_down_windows(link_fault, end_s)
     if "killed_at_s" in fault_log:
         group = sc.companion.group_layout(sc.skeleton.n_links)[fault_log["group"] - 1]
         out.append({"kind": "companion_down", "start_s": fault_log["killed_at_s"],
@@ -501,15 +498,7 @@ def _fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, w
     wires' counters, and the GPS glitch as the firmware reported it."""
     out: dict = {}
     if link_fault:
-        i = link_fault["link"] - 1
-        entry = dict(link_fault)
-        if "restarted_at_s" in link_fault and "corrected_sckf" in merged:
-            t, corrected = merged["t_sckf"], merged["corrected_sckf"][:, i]
-            after = np.flatnonzero((t >= link_fault["restarted_at_s"]) & corrected)
-            entry["readmitted_at_s"] = round(float(t[after[0]]), 3) if after.size else None
-            if after.size:
-                entry["readmitted_after_restart_s"] = round(float(t[after[0]]) - link_fault["restarted_at_s"], 3)
-        out["link_reboot"] = entry
+        out["link_reboot"] = reboot_timeline(link_fault, merged)
     if wired:
         path = out_dir / "wire" / "wire_stats.json"
         try:

@@ -19,7 +19,7 @@ import numpy as np
 from companion.configfile import dump_toml
 from companion.trajectory import CpgChainTrajectory
 
-from .metrics import PAPER_THREE_LINK, compute_metrics
+from .metrics import PAPER_THREE_LINK, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
 from .runner import BatchRunner
 from .scenario import Scenario
@@ -60,6 +60,7 @@ def fly(
         groups=runner.groups,
         resting=sc.trajectory.kind == "rest",
         motion=sc.motion if sc.trajectory.kind == "cpg" else None,
+        fault_windows=vehicle_down_windows(runner.link_fault, runner.sim_s),
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed
@@ -67,8 +68,10 @@ def fly(
     metrics["selective_mapping"] = sc.firmware.allocation.selective_mapping
     metrics["corrections_rejected"] = runner.corrections_rejected
     if sc.faults.gps.link:  # what each link's firmware made of the glitch (GPS health)
-        metrics["faults"] = {"gps": {"link": sc.faults.gps.link,
-                                     "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}}
+        metrics.setdefault("faults", {})["gps"] = {
+            "link": sc.faults.gps.link, "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}
+    if runner.link_fault:
+        metrics.setdefault("faults", {})["link_reboot"] = reboot_timeline(runner.link_fault, arrays)
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     metrics.update(vision.metrics())

@@ -328,6 +328,29 @@ def uncorrected_metrics(t: np.ndarray, corrected: np.ndarray, nis_max: np.ndarra
     return out
 
 
+def vehicle_down_windows(link_fault: dict, end_s: float) -> list[dict]:
+    """The outage window of a link reboot (``faults.link_reboot`` so far): its firmware killed
+    until it is back (``rejoined_at_s``; the end of the run if never)."""
+    if "killed_at_s" not in link_fault:
+        return []
+    return [{"kind": "vehicle_down", "start_s": link_fault["killed_at_s"],
+             "end_s": link_fault.get("rejoined_at_s", end_s), "links": [link_fault["link"]]}]
+
+
+def reboot_timeline(link_fault: dict, steps: dict) -> dict:
+    """``faults.link_reboot``: the reboot's timeline (killed, restarted, back, rotors on) and when
+    the companion first corrected the link after its restart (``readmitted_at_s``, from the step
+    log ``steps``; ``None`` if never)."""
+    entry = dict(link_fault)
+    if "restarted_at_s" in link_fault and "corrected_sckf" in steps:
+        t, corrected = steps["t_sckf"], steps["corrected_sckf"][:, link_fault["link"] - 1]
+        after = np.flatnonzero((t >= link_fault["restarted_at_s"]) & corrected)
+        entry["readmitted_at_s"] = round(float(t[after[0]]), 3) if after.size else None
+        if after.size:
+            entry["readmitted_after_restart_s"] = round(float(t[after[0]]) - link_fault["restarted_at_s"], 3)
+    return entry
+
+
 def compute_metrics(
     log: dict[str, np.ndarray],
     flight_start_s: float,

@@ -210,7 +210,9 @@ class Plant:
             return
         if target_q is None:
             return
-        tilt = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz, target_q), axis=1))
+        ok = np.all(np.isfinite(target_q), axis=1)  # a link without power or EKF has no target
+        tilt = np.zeros(len(ok))
+        tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
         if tilt.max() > CRASH_TILT_DEG:
             self.crashed = True
             self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
@@ -224,9 +226,9 @@ class _SharedTargets:
         self.source = source
         self._last: tuple[float, list] | None = None
 
-    def targets(self, t: float):
-        if self._last is None or self._last[0] != t:
-            self._last = (t, self.source.targets(t))
+    def targets(self, t: float, passive=frozenset()):
+        if self._last is None or self._last[0] != (t, passive):
+            self._last = ((t, passive), self.source.targets(t, passive))
         return self._last[1]
 
     def __getattr__(self, name):
@@ -278,6 +280,11 @@ class BatchRunner:
         if sc.faults.fleet_only:
             raise ValueError(f"{', '.join(sc.faults.fleet_only)}: fleet mode only (python -m sitl launch)")
         self.gps_fault = sc.faults.gps
+        self.reboot = sc.faults.link
+        #: the link reboot's timeline (metrics ``faults.link_reboot``), as the fleet reports it
+        self.link_fault: dict = {}
+        self._down: set[int] = set()  # links whose firmware is off (killed, not yet powered on)
+        self._boot_fix: dict[int, list] = {}  # a restarted firmware's newest [GPS fix, attitude] before its EKF starts
         self.log = RunLog()
         self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
@@ -318,6 +325,45 @@ class BatchRunner:
     def crash_reason(self) -> str:
         return self.plant.crash_reason
 
+    def _link_reboot(self, t: float, commands: np.ndarray) -> None:
+        """``[faults.link]`` in batch mode: link ``kill``'s firmware loses power at ``kill_at_s`` (its
+        rotors stop, it is silent) and a new one powers on ``restart_after_s`` later. The new
+        firmware starts its EKF in flight at its first GPS fix with an attitude reference (as a
+        vehicle does) and waits for the companion to re-admit and re-arm it. Its clock is the
+        simulation's, as a restarted vehicle's is in the lockstep."""
+        rb, lf = self.reboot, self.link_fault
+        i = rb.kill - 1
+        if "killed_at_s" not in lf and t >= rb.kill_at_s:
+            self._down.add(i)
+            commands[i] = 0.0
+            lf.update(link=rb.kill, killed_at_s=round(t, 3))
+            log.warning("fault: link %d's firmware off at t = %.2f s (rotors stopped)", rb.kill, t)
+        if (rb.restart_after_s and "killed_at_s" in lf and "restarted_at_s" not in lf
+                and t >= rb.kill_at_s + rb.restart_after_s):
+            self.firmware[i] = LinkFirmware(i, self.scenario.firmware, self.plant.inertia, self.plant.geometry)
+            self._down.discard(i)
+            self._boot_fix[i] = [None, None]
+            lf.update(restarted_at_s=round(t, 3), rejoined_at_s=round(t, 3))
+            log.warning("fault: link %d's firmware powered on again at t = %.2f s", rb.kill, t)
+        if "restarted_at_s" in lf and "rotors_on_at_s" not in lf and np.any(commands[i] != 0):
+            lf.update(rotors_on_at_s=round(t, 3))
+
+    def _boot(self, i: int, t: float, fix=None, att=None) -> bool:
+        """A restarted firmware's sensor sample before its EKF runs: the EKF starts once it has a
+        GPS fix and an attitude reference (the newest of each). True if the sample was taken
+        here (the firmware was booting), False if the firmware takes it itself."""
+        pending = self._boot_fix.get(i)
+        if pending is None:
+            return False
+        if fix is not None:
+            pending[0] = fix
+        if att is not None:
+            pending[1] = att
+        if pending[0] is not None and pending[1] is not None:
+            self.firmware[i].initialize(t, pending[0][0], pending[0][1], pending[1])
+            del self._boot_fix[i]
+        return True
+
     def _companion_exchange(self, t: float, t_us: int) -> None:
         """Link states (at the stream rate), heartbeats and SYSTEM_TIME (1 Hz) to the engines; their
         outputs to the firmware; repeated while the in-process bus carries messages."""
@@ -327,6 +373,8 @@ class BatchRunner:
         for engine in self.engines:
             for lk in engine.links:
                 fw = self.firmware[lk.index]
+                if lk.index in self._down:
+                    continue  # no power: silent
                 if second:
                     engine.on_heartbeat(lk.row, t)
                     engine.on_system_time(lk.row, sitl_gps_time_us(t_us) if fw.initialized else 0, t_us // 1000)
@@ -342,6 +390,8 @@ class BatchRunner:
     def _apply(self, engine: CompanionEngine, outputs, t: float) -> None:
         standard = self.scenario.companion.mode == "standard"
         for out in outputs:
+            if hasattr(out, "row") and engine.links[out.row].index in self._down:
+                continue  # a firmware without power hears nothing (and acknowledges nothing)
             if isinstance(out, CorrectionOut):
                 fw = self.firmware[engine.links[out.row].index]
                 if standard:
@@ -377,22 +427,33 @@ class BatchRunner:
         lg.p_true.append(truth.p_w_m.copy())
         lg.v_true.append(truth.v_w_m_s.copy())
         lg.q_true.append(truth.q_wxyz.copy())
-        ctrl = [fw.control_estimate(t) for fw in self.firmware]
+        live = [i not in self._down and fw.initialized for i, fw in enumerate(self.firmware)]
+        if all(live):
+            ctrl = [fw.control_estimate(t) for fw in self.firmware]
+            ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) for fw in self.firmware]
+            targets = [fw.active_target(t) for fw in self.firmware]
+            p_target, q_target = [x.p_w_m for x in targets], [x.q_wxyz for x in targets]
+        else:  # a link without power or still booting logs no estimate (NaN), as a vehicle logs nothing
+            nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
+            ctrl = [fw.control_estimate(t) if ok else (nan3, nan3, nan4) for ok, fw in zip(live, self.firmware)]
+            ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
+            targets = [fw.active_target(t) if ok else None for ok, fw in zip(live, self.firmware)]
+            p_target = [nan3 if x is None else x.p_w_m for x in targets]
+            q_target = [nan4 if x is None else x.q_wxyz for x in targets]
         lg.p_ctrl.append(np.stack([c[0] for c in ctrl]))
         lg.q_ctrl.append(np.stack([c[2] for c in ctrl]))
-        lg.p_ekf.append(np.stack([fw.ekf.p_w_m for fw in self.firmware]))
-        lg.q_ekf.append(np.stack([fw.ekf.q_wxyz for fw in self.firmware]))
-        targets = [fw.active_target(t) for fw in self.firmware]
-        lg.p_target.append(np.stack([x.p_w_m for x in targets]))
-        lg.q_target.append(np.stack([x.q_wxyz for x in targets]))
+        lg.p_ekf.append(np.stack([e[0] for e in ekf]))
+        lg.q_ekf.append(np.stack([e[1] for e in ekf]))
+        lg.p_target.append(np.stack(p_target))
+        lg.q_target.append(np.stack(q_target))
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
         lg.joint_force_true.append(truth.joint_force_w_n)
         lg.tension_true.append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
         dynamics = getattr(self.trajectory, "dynamics", None) if self.trajectory is not None else None
         if dynamics is not None:
             last = dynamics.last
-            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None else tension(
-                last.joint_force_w_n, quat_to_rotmat(np.stack([x.q_wxyz for x in targets]))))
+            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None or not all(live) else tension(
+                last.joint_force_w_n, quat_to_rotmat(np.stack(q_target))))
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
             lg.xi_desired.append(self.trajectory.xi_desired.copy())
@@ -413,26 +474,32 @@ class BatchRunner:
                 if not np.all(np.isfinite(truth.p_w_m)):
                     plant.check_crash(t, truth, None)
                     break
+                if self.reboot.kill:
+                    self._link_reboot(t, commands)
+                down, booting = self._down, self._boot_fix  # no power; powered, no EKF yet
                 if k % sch.gps == 0:
                     pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
                     pos, has_fix = self.gps_fault.apply(t, pos)
                     for i, fw in enumerate(self.firmware):
-                        if has_fix[i]:
+                        if has_fix[i] and i not in down and not self._boot(i, t, fix=(pos[i], vel[i])):
                             fw.on_gps(t, pos[i], vel[i])
                 if k % sch.att == 0:
                     att = sensors.attitude(t, truth.q_wxyz)
                     for i, fw in enumerate(self.firmware):
-                        fw.on_attitude(t, att[i])
+                        if i not in down and not self._boot(i, t, att=att[i]):
+                            fw.on_attitude(t, att[i])
                 baro, mag = plant.baro_mag(k, sch, truth)
                 if baro is not None:
                     for i, fw in enumerate(self.firmware):
-                        fw.on_baro(t, float(baro[i]))
+                        if i not in down and i not in booting:
+                            fw.on_baro(t, float(baro[i]))
                 if mag is not None:
                     for i, fw in enumerate(self.firmware):
-                        fw.on_mag(t, mag[i])
+                        if i not in down and i not in booting:
+                            fw.on_mag(t, mag[i])
                 gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
                 for i, fw in enumerate(self.firmware):
-                    commands[i] = fw.on_imu(t, gyro[i], accel[i])
+                    commands[i] = 0.0 if i in self._down else fw.on_imu(t, gyro[i], accel[i])
                     if fw.events:  # GPS health transitions (a vehicle sends them as STATUSTEXT)
                         for ev in fw.events:
                             log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
@@ -441,7 +508,7 @@ class BatchRunner:
                 self._companion_exchange(t, int(round(k * self.dt * 1e6)))
             if k % sch.log == 0:
                 self._log_tick(t, truth)
-                plant.check_crash(t, truth, np.stack([fw.active_target(t).q_wxyz for fw in self.firmware]))
+                plant.check_crash(t, truth, self.log.q_target[-1])
             for hook in self.tick_hooks:
                 hook(k, t)
             plant.end_tick()

@@ -129,7 +129,8 @@ class LinkRebootFault:
     for the simulator, silent like PX4's SITL; at the restart the harness connects it, so the outage
     lasts ``restart_after_s`` unless the host took longer than that to start the process (then
     until it listens; ``rejoined_at_s`` in the metrics). It initialises its EKF in flight from GPS and the attitude reference, and is
-    re-admitted and re-armed by the companion. Fleet mode only."""
+    re-admitted and re-armed by the companion. Batch and fleet mode: in batch mode the firmware
+    object is replaced at the restart and keeps the simulation clock (:meth:`sitl.runner.BatchRunner._link_reboot`)."""
 
     kill: int = 0
     kill_at_s: float = 0.0
@@ -252,8 +253,6 @@ class FaultConfig:
         out = []
         if self.kill_companion_group:
             out.append("faults.kill_companion_group")
-        if self.link.kill:
-            out.append("faults.link")
         if self.mavlink.active:
             out.append("faults.mavlink")
         return out

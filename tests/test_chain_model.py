@@ -103,6 +103,48 @@ def test_inverse_dynamics_is_consistent_with_rnea(n):
     np.testing.assert_allclose(cm.cable_forces_rnea(), dyn.joint_force_w_n, atol=1e-10)
 
 
+@pytest.mark.parametrize("n, passive", [(3, (1,)), (5, (2,)), (7, (1, 4)), (7, (1, 3, 5))])
+def test_a_passive_link_is_carried_by_its_neighbours_on_the_joints(n, passive):
+    """Links whose rotors are off (``passive``; no two side by side, none at an end): while the
+    chain follows any motion their rotors produce no force and no moment across their axis (the
+    joints carry them; about its own axis a link is turned only by the joints' springs, so what
+    its target's roll needs beyond them stays with it), RNEA agrees, and the links' rotors
+    together still produce the whole chain's force."""
+    rng = np.random.default_rng(40 + n)
+    cm = model_of(n)
+    targets = _targets(cm, rng, n, lift=2.0)
+    usual = cm.inverse_dynamics(targets, check=True).rotor_wrench_w
+    dyn = cm.inverse_dynamics(targets, check=True, passive=passive)
+    weight = cm.inertia.mass_kg * 9.80665
+    R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
+    for i in passive:
+        axis = R[i][:, 0]
+        moment = dyn.rotor_wrench_w[i, 3:]
+        np.testing.assert_allclose(dyn.rotor_wrench_w[i, :3], 0.0, atol=1e-5 * weight)
+        np.testing.assert_allclose(moment - axis * (axis @ moment), 0.0, atol=1e-5 * weight * cm.d[0])
+    np.testing.assert_allclose(dyn.rnea_tau[:6], 0.0, atol=1e-9)
+    joint_torques = np.concatenate([R[j + 1].T @ dyn.joint_torque_w_nm[j] for j in range(n - 1)])
+    np.testing.assert_allclose(dyn.rnea_tau[6:], joint_torques, atol=1e-9)
+    np.testing.assert_allclose(cm.cable_forces_rnea(), dyn.joint_force_w_n, atol=1e-9)
+    np.testing.assert_allclose(dyn.rotor_wrench_w[:, :3].sum(0), usual[:, :3].sum(0), atol=1e-9)
+    assert np.abs(usual[list(passive)]).max() > 0.5 * weight  # they would have carried themselves
+
+
+def test_a_passive_end_link_gets_the_least_squares_compromise():
+    """An end link hangs on one ball joint: held level it cannot be carried, since a force at its
+    tip that takes its weight turns it by the same amount. The least squares (its wrench weighted
+    PASSIVE_WEIGHT over force and moment per half length alike) splits it: the joint takes half
+    its weight, and half its weight and the matching moment are left to it."""
+    cm = model_of(3)
+    traj = ChainTrajectory(TrajectoryConfig(kind="hover", takeoff_start_s=0.0, takeoff_duration_s=1.0), 3, 1.0,
+                           [0.0, 0.0, 2.0], dynamics=cm)
+    targets = traj.targets(3.0)
+    dyn = cm.inverse_dynamics(targets, passive=(0,))
+    weight = cm.inertia.mass_kg * 9.80665
+    np.testing.assert_allclose(dyn.rotor_wrench_w[0], [0, 0, weight / 2, 0, weight / 2 * cm.d[0], 0], atol=1e-3)
+    assert dyn.rotor_wrench_w[1, 2] == pytest.approx(1.5 * weight, rel=1e-3)
+
+
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(2, 6))
 def test_the_cable_forces_minimise_the_rotor_wrenches(seed, n):

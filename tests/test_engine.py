@@ -184,6 +184,87 @@ def test_arm_retries_until_the_link_reports_armed():
     assert arms(now + 0.3, now + 6.0 + ARM_RETRY_S + 1e-6) == [0, 1, 2]
 
 
+@pytest.mark.parametrize("n, down", [(3, 1), (5, 2), (7, 3)])
+def test_a_link_without_rotors_is_carried_by_its_neighbours(n, down):
+    """A link that has flown and goes silent (power lost), comes back disarmed (rebooted) and is
+    re-armed (ESCs restarting) is carried: the feed-forward of its neighbours' targets takes its
+    weight, from carry_silence_s after its last state (on the time base) until carry_spinup_s
+    after it reports armed again; the links carry nothing otherwise, and the summary says how
+    long it was carried. A dropout of an armed link is carried only while it lasts."""
+    pytest.importorskip("pinocchio")
+    setup = setup_for(n)
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True))
+    cfg = setup.companion
+    engine = CompanionEngine(setup)
+    flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
+    t = 0.0
+
+    def tick(rows, down_flags=flying):
+        nonlocal t, weight
+        t = round(t + 0.02, 6)
+        for r in rows:
+            engine.on_state(r, straight_state(r, n, t), down_flags if r == down else flying, t)
+        out = of(TargetOut, engine.poll(t))
+        # its weight, and what its target's acceleration (the take-off's) needs
+        weight = mass * (9.80665 + out[down].target.a_w_m_s2[2])
+        return {o.row: o.target.force_ff_w_n for o in out}
+
+    everyone, others = range(n), [r for r in range(n) if r != down]
+    mass, weight = 0.0, 0.0
+    ff = tick(everyone)
+    mass = engine.trajectory.dynamics.inertia.mass_kg
+    while t < 1.0:
+        ff = tick(everyone)
+    assert all(np.abs(f).max() < 1e-9 for f in ff.values())  # hover: each link carries itself
+    t_silent = t
+    carried_from = None
+    while t < t_silent + 0.5:
+        ff = tick(others)
+        lift = sum(ff[r][2] for r in (down - 1, down + 1))
+        if carried_from is None and lift > 0.5 * weight:
+            carried_from = t
+    assert carried_from is not None and carried_from - t_silent == pytest.approx(cfg.carry_silence_s, abs=0.021)
+    # its two neighbours take its weight; the others are unmoved; its own target keeps the
+    # feed-forward of a flying chain (none in a hover), to lift itself when its rotors are back
+    assert lift == pytest.approx(weight, rel=1e-5) and np.abs(ff[down]).max() < 1e-9
+    assert np.abs(engine.trajectory.dynamics.last.rotor_wrench_w[down]).max() < 1e-5 * weight  # its rotors: nothing
+    assert all(np.abs(ff[r]).max() < 1e-5 * weight for r in others if abs(r - down) > 1)
+    for _ in range(10):  # back, disarmed (a reboot): still carried
+        ff = tick(everyone, down_flags=STATE_FLAG_EKF_OK)
+    assert ff[down - 1][2] + ff[down + 1][2] == pytest.approx(weight, rel=1e-5)
+    t_armed = t + 0.02
+    released = None
+    while t < t_armed + 1.0:
+        ff = tick(everyone)
+        if released is None and abs(ff[down - 1][2]) < 1e-6 * weight:
+            released = t
+    assert released is not None and released - t_armed == pytest.approx(cfg.carry_spinup_s, abs=0.021)
+    carried = engine.summary()["links"][str(down + 1)]["carried_s"]
+    assert carried == pytest.approx(released - carried_from, abs=1e-6)
+    assert all(engine.summary()["links"][str(r + 1)]["carried_s"] == 0.0 for r in others)
+    # a dropout shorter than reboot_silence_s, heard armed again: carried while unheard only
+    t_silent = t
+    while t < t_silent + 0.3:
+        ff = tick(others)
+    assert ff[down - 1][2] + ff[down + 1][2] == pytest.approx(weight, rel=1e-5)
+    ff = tick(everyone)
+    assert abs(ff[down - 1][2]) < 1e-6 * weight
+    # silent reboot_silence_s, then heard armed (a reboot whose disarmed states were lost):
+    # carried until carry_spinup_s after it is heard
+    t_silent = t
+    while t < t_silent + cfg.reboot_silence_s + 0.02:
+        tick(others)
+    t_heard = t + 0.02
+    ff = tick(everyone)
+    assert ff[down - 1][2] + ff[down + 1][2] == pytest.approx(weight, rel=1e-5)
+    while t < t_heard + cfg.carry_spinup_s - 0.03:
+        ff = tick(everyone)
+    assert ff[down - 1][2] + ff[down + 1][2] == pytest.approx(weight, rel=1e-5)
+    for _ in range(3):
+        ff = tick(everyone)
+    assert abs(ff[down - 1][2]) < 1e-6 * weight
+
+
 def test_disabled_companion_logs_the_ekf_states_and_corrects_nothing():
     engine = CompanionEngine(setup_for(enabled=False))
     out = feed(engine, 0.0, 0.0, dx=(0.0, 0.2, 0.0))

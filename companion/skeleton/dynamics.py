@@ -36,7 +36,11 @@ from companion.messages import PoseTarget
 from .body import GRAVITY_M_S2, SkeletonConfig, link_inertia
 from .rotors import RotorGeometry
 
-__all__ = ["ChainModel", "ChainDynamics"]
+__all__ = ["ChainModel", "ChainDynamics", "PASSIVE_WEIGHT"]
+
+#: Weight of a passive link's rotor wrench in the joint-force least squares (relative to 1 for
+#: the others): its wrench is then zero to about 1e-6 of the load wherever the joints can carry it.
+PASSIVE_WEIGHT = 1e3
 
 
 @dataclass(frozen=True)
@@ -152,10 +156,16 @@ class ChainModel:
         return tuple(out)
 
     # -- inverse dynamics ------------------------------------------------------------------------------
-    def inverse_dynamics(self, targets: list[PoseTarget], check: bool = False) -> ChainDynamics:
+    def inverse_dynamics(self, targets: list[PoseTarget], check: bool = False, passive=()) -> ChainDynamics:
         """The rotor wrenches and cable forces of the chain following ``targets`` (one per link,
         constraint-consistent; see the module docstring). ``check``: also pinocchio's RNEA with
-        those rotor wrenches (``rnea_tau``, and :meth:`cable_forces_rnea` after it)."""
+        those rotor wrenches (``rnea_tau``, and :meth:`cable_forces_rnea` after it). ``passive``:
+        0-based links whose rotors are off (a link that lost power or was disarmed in flight):
+        their rotor wrench is held at zero (weighted :data:`PASSIVE_WEIGHT` times the others in
+        the least squares), so the joints carry them and their neighbours' rotors carry the joints.
+        Where the motion cannot be followed with such a link passive (an end link held level by
+        one ball joint) the result is the least-squares compromise and ``rotor_wrench_w`` says
+        what that link would still need."""
         n = self.n
         p = np.stack([t.p_w_m for t in targets])
         R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
@@ -177,7 +187,7 @@ class ChainModel:
             tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
         # joint points and the moment arms to each centre
         x = p[:-1] + np.einsum("nij,j->ni", R[:-1], self.d)
-        F = self._share(own_f, own_m, p, x, tau_j)
+        F = self._share(own_f, own_m, p, x, tau_j, passive)
         add_f, add_m = self._joint_wrench(F, tau_j, p, x)
         rotor = np.concatenate([own_f - add_f, own_m - add_m], axis=1)
         rnea = self._rnea(*self.coordinates(p, R, v, w, acc, wd), rotor, R, p) if check else None
@@ -197,8 +207,9 @@ class ChainModel:
             mom[:-1] -= cross(x - p[:-1], F) + tau_j
         return f, mom
 
-    def _share(self, own_f, own_m, p, x, tau_j) -> np.ndarray:
-        """The joint forces minimising the links' rotor wrenches (weighted least squares)."""
+    def _share(self, own_f, own_m, p, x, tau_j, passive=()) -> np.ndarray:
+        """The joint forces minimising the links' rotor wrenches (weighted least squares; the
+        rotor wrenches of ``passive`` links weigh :data:`PASSIVE_WEIGHT` times more)."""
         n = self.n
         if n < 2:
             return np.zeros((0, 3))
@@ -212,6 +223,10 @@ class ChainModel:
         A = A.reshape(6 * n, 3 * (n - 1))
         _, tau_m = self._joint_wrench(np.zeros((n - 1, 3)), tau_j, p, x)
         b = np.concatenate([own_f, scale * (own_m - tau_m)], axis=1).reshape(-1)
+        if len(passive):
+            w = np.ones((n, 6))
+            w[list(passive)] = PASSIVE_WEIGHT
+            A, b = A * w.reshape(-1, 1), b * w.reshape(-1)
         # rotor wrench = b - A F: the minimum-norm rotor wrenches are the least-squares F
         F, *_ = np.linalg.lstsq(A, b, rcond=None)
         return F.reshape(n - 1, 3)
