@@ -313,13 +313,13 @@ def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metric
     _assert_ports_released(3)
 
 
-@pytest.mark.open_defect  # the recovery after an in-flight reboot sometimes crashes (README, "Scripted faults")
 def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_path):
     """One flight, three faults ([faults]): 10 % loss on every vehicle-companion wire, link 2's
     firmware killed at 9 s and restarted at 10 s (the physics goes on with its rotors stopped),
     link 3's GPS out from 12 s to 13.5 s. The run goes on to the end; link 2 re-joins the
     lockstep at about 10 s (its process, started at the kill, waits silent for the simulator), starts its EKF in flight, is re-admitted and re-armed by the companion; every
-    outage is in metrics.json."""
+    outage is in metrics.json. Its neighbours carry it from its silence until its rotors are
+    back (the companion's feed-forward): the chain sags by centimetres, not metres."""
     sc = load_scenario(THREE_LINK, duration_s=17.0)
     sc = replace(sc, faults=replace(sc.faults, link=LinkRebootFault(kill=2, kill_at_s=9.0, restart_after_s=1.0),
                                     mavlink=MavlinkWireFault(loss=0.1),
@@ -344,7 +344,9 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert (tmp_path / "link2-restart" / "link2_firmware.npz").exists()
     coverage = m["estimate_coverage"]
     assert coverage[0] == coverage[2] == 1.0 and 0.6 < coverage[1] < 0.95
-    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 0.3  # the chain sags, no crash
+    # carried (measured 2.16-2.37 m in 14 runs; 0.02-1.10 m before the companion carried it, and
+    # a crash in 1 of 16 runs, 6 of 8 with the link back after 0.5 s)
+    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 1.5, why
     windows = m["outages"]["windows"]
     down = [w for w in windows if w["kind"] == "vehicle_down"]
     assert down == [{"kind": "vehicle_down", "start_s": reboot["killed_at_s"], "end_s": reboot["rejoined_at_s"],
@@ -357,6 +359,8 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
                                    for w in wires.values())
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     assert all(comp["links"][str(i)]["seq_lost"] > 20 for i in (1, 3))
+    # carried from 3 lost states after the kill until carry_spinup_s after it reported armed
+    assert 1.2 < comp["links"]["2"]["carried_s"] < 2.0 and comp["links"]["1"]["carried_s"] == 0.0
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
