@@ -242,7 +242,7 @@ def _reboot_flight(tmp_path, restart_after_s, **companion):
     return m, log, tilt
 
 
-@pytest.mark.parametrize("restart_after_s", [0.5, 1.0])
+@pytest.mark.parametrize("restart_after_s", [0.5])  # the fleet's scripted-faults test: 1 s
 def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_path, restart_after_s):
     """Batch mode's [faults.link]: link 2's firmware off at 9 s (rotors stopped, silent), a new one
     powered on restart_after_s later, its EKF started in flight, re-armed and re-admitted. Its

@@ -359,8 +359,11 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
                                    for w in wires.values())
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     assert all(comp["links"][str(i)]["seq_lost"] > 20 for i in (1, 3))
-    # carried from 3 lost states after the kill until carry_spinup_s after it reported armed
-    assert 1.2 < comp["links"]["2"]["carried_s"] < 2.0 and comp["links"]["1"]["carried_s"] == 0.0
+    # carried from 3 lost states after the kill until carry_spinup_s after it reported armed; the
+    # others only for a target period or two when three of their states in a row were lost on
+    # the 10 % lossy wire (about once in 20 s per link)
+    carried = [comp["links"][str(i)]["carried_s"] for i in (1, 2, 3)]
+    assert 1.2 < carried[1] < 2.0 and carried[0] < 0.3 and carried[2] < 0.3, carried
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
