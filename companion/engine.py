@@ -125,6 +125,9 @@ RETRY_S = 1.0
 #: are sent that fast before :data:`RETRY_S` (MAVSDK retransmits a command after 0.5 s).
 ARM_RETRY_S = 0.2
 ARM_FAST_TRIES = 5
+#: Accepted states in a row reporting a link disarmed before the companion takes its rotors to
+#: be off (carrying, :meth:`CompanionEngine._passive_links`): 60 ms of the 50 Hz stream.
+DISARMED_STATES = 3
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
                  "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
@@ -222,6 +225,10 @@ class LinkTrack:
     #: passive: its rotors taken to be off (``carry_silence_s``, ``carry_spinup_s``)
     flown: bool = False
     armed_since_s: float | None = None
+    disarmed_states: int = 0  # accepted states in a row that report it disarmed
+    believed_armed: bool = False
+    after_silence: bool = False
+    stamp_rejected_s: float = -np.inf  # the last replayed or future state, on the time base
     passive: bool = False
     passive_s: float = 0.0  # time with its rotors taken to be off [s], on the time base
     passive_since_s: float | None = None
@@ -390,6 +397,8 @@ class CompanionEngine:
             state = replace(state, time_s=(_usec(state.time_s) + lk.offset_us) * 1e-6)
         stamp_us = _usec(state.time_s)
         verdict = lk.stamps.check(stamp_us, now_s)
+        if verdict in (StampVerdict.REPLAY, StampVerdict.FUTURE):
+            lk.stamp_rejected_s = self.fc_time_us * 1e-6  # its flags are not believed for a while
         if verdict is StampVerdict.REPLAY:
             lk.replayed += 1
             self._log_rejection(lk, "replay", now_s, "state stamped %.3f s, not newer than its last (%.3f s): a "
@@ -414,6 +423,7 @@ class CompanionEngine:
             lk.latencies_ms.append(correction_latency_us * 1e-3)
             lk.latency_window_ms.append(correction_latency_us * 1e-3)
         lk.flags = flags
+        lk.disarmed_states = 0 if flags & STATE_FLAG_ARMED else lk.disarmed_states + 1
         lk.state = state
         lk.states += 1
         lk.last_state_s = now_s
@@ -754,17 +764,38 @@ class CompanionEngine:
     def _passive_links(self) -> frozenset[int]:
         """The chain indices of this engine's links whose rotors are taken to be off: a link that
         has flown and is now silent ``carry_silence_s`` (its newest state that far behind the
-        chain's newest), disarmed, or heard armed again for less than ``carry_spinup_s`` (its
+        median of the links' newest; the newest with fewer than three links), disarmed (its first
+        report after a silence, else :data:`DISARMED_STATES` reports in a row; not believed while
+        its stream has had replayed or future stamps within ``reboot_silence_s``), or
+        heard armed again for less than ``carry_spinup_s`` (its
         ESCs restarting; after a silence of ``reboot_silence_s`` too, which may have been a reboot
         whose disarmed states were lost; a shorter dropout of an armed link costs no spin-up
         wait). All on the time base: what matters is how long the link
         has been falling or spinning up, and in SITL that is simulated time. Transitions are logged."""
         cfg, out = self.cfg, set()
-        t = self.fc_time_us * 1e-6
+        heard = [lk.state.time_s for lk in self.links if lk.state is not None]
+        # the reference: the median of the links' newest stamps, which a link whose states are
+        # forged ahead (within the stamp margin) does not move for the others; with fewer than
+        # three links (a group's engine) the cycle clock, the newest stamp
+        t = float(np.median(heard)) if len(heard) >= 3 else self.fc_time_us * 1e-6
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s
             silent = lag >= cfg.carry_silence_s
-            armed = bool(lk.flags & STATE_FLAG_ARMED)
+            # disarmed: the first report after a silence says, otherwise DISARMED_STATES reports in
+            # a row (a lone forged one on an unsigned wire does not)
+            # (not while its stream carries replayed or future stamps: then some of it is forged)
+            if silent:
+                lk.after_silence = True
+            elif t - lk.stamp_rejected_s < cfg.reboot_silence_s:
+                pass
+            elif lk.after_silence:
+                lk.after_silence = False
+                lk.believed_armed = bool(lk.flags & STATE_FLAG_ARMED)
+            elif lk.flags & STATE_FLAG_ARMED:
+                lk.believed_armed = True
+            elif lk.disarmed_states >= DISARMED_STATES:
+                lk.believed_armed = False
+            armed = lk.believed_armed
             if not armed or lag >= cfg.reboot_silence_s:  # unheard that long: it may have rebooted
                 lk.armed_since_s = None
             elif lk.armed_since_s is None and not silent:

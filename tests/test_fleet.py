@@ -572,6 +572,9 @@ def test_crafted_states_neither_stop_the_companion_nor_move_a_healthy_link(tmp_p
     # the plausible +3 m states: those used left link 2 out by the joint gate, never spread
     print("companion, link 2:", link2, "sent:", sent)
     assert link2["excluded_steps"].get("gate", 0) > 0
+    # nor does anything forged (stamps ahead, "disarmed" flags) make the companion carry a link
+    # (measured 0.0 s; a link alive but unheard for 60 ms of stamps would be)
+    assert all(comp["links"][str(i)]["carried_s"] <= 0.1 for i in (1, 2, 3)), comp["links"]
     # the companion kept stepping at 20 Hz over the whole flight (no stall on a future stamp)
     assert comp["steps"] >= 0.9 * 20 * 16.0
     assert not m["crashed"]
