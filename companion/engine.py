@@ -818,6 +818,10 @@ class CompanionEngine:
                 out.add(lk.index)
         return frozenset(out)
 
+    def _carried_s(self, lk: LinkTrack) -> float:
+        """How long ``lk`` has been carried, a carry still going on included (to the cycle clock)."""
+        return lk.passive_s + (self.fc_time_us * 1e-6 - lk.passive_since_s if lk.passive else 0.0)
+
     def _trajectory_start_us(self) -> int:
         """Where trajectory time starts on the time base: 0 for distributed companions on the links'
         shared clock (SITL: simulation time, the same in every group), else the first targets."""
@@ -896,7 +900,7 @@ class CompanionEngine:
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,
-                                          "carried_s": round(lk.passive_s, 3),
+                                          "carried_s": round(self._carried_s(lk), 3),
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),

@@ -224,6 +224,7 @@ def test_a_link_without_rotors_is_carried_by_its_neighbours(n, down):
         if carried_from is None and lift > 0.5 * weight:
             carried_from = t
     assert carried_from is not None and carried_from - t_silent == pytest.approx(cfg.carry_silence_s, abs=0.021)
+    assert engine.summary()["links"][str(down + 1)]["carried_s"] == pytest.approx(t - carried_from, abs=1e-6)
     # its two neighbours take its weight; the others are unmoved; its own target keeps the
     # feed-forward of a flying chain (none in a hover), to lift itself when its rotors are back
     assert lift == pytest.approx(weight, rel=1e-5) and np.abs(ff[down]).max() < 1e-9
