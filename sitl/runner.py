@@ -427,19 +427,14 @@ class BatchRunner:
         lg.p_true.append(truth.p_w_m.copy())
         lg.v_true.append(truth.v_w_m_s.copy())
         lg.q_true.append(truth.q_wxyz.copy())
+        # a link without power or still booting logs no estimate (NaN), as a vehicle logs nothing
         live = [i not in self._down and fw.initialized for i, fw in enumerate(self.firmware)]
-        if all(live):
-            ctrl = [fw.control_estimate(t) for fw in self.firmware]
-            ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) for fw in self.firmware]
-            targets = [fw.active_target(t) for fw in self.firmware]
-            p_target, q_target = [x.p_w_m for x in targets], [x.q_wxyz for x in targets]
-        else:  # a link without power or still booting logs no estimate (NaN), as a vehicle logs nothing
-            nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
-            ctrl = [fw.control_estimate(t) if ok else (nan3, nan3, nan4) for ok, fw in zip(live, self.firmware)]
-            ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
-            targets = [fw.active_target(t) if ok else None for ok, fw in zip(live, self.firmware)]
-            p_target = [nan3 if x is None else x.p_w_m for x in targets]
-            q_target = [nan4 if x is None else x.q_wxyz for x in targets]
+        nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
+        ctrl = [fw.control_estimate(t) if ok else (nan3, nan3, nan4) for ok, fw in zip(live, self.firmware)]
+        ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
+        targets = [fw.active_target(t) if ok else None for ok, fw in zip(live, self.firmware)]
+        p_target = [nan3 if x is None else x.p_w_m for x in targets]
+        q_target = [nan4 if x is None else x.q_wxyz for x in targets]
         lg.p_ctrl.append(np.stack([c[0] for c in ctrl]))
         lg.q_ctrl.append(np.stack([c[2] for c in ctrl]))
         lg.p_ekf.append(np.stack([e[0] for e in ekf]))
