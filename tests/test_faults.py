@@ -267,6 +267,7 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     assert np.max(tilt[end]) < 5.0 and np.max(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[end]) < 0.3
 
 
+@pytest.mark.slow  # the counterfactual of the test above (7 s), out of the default run for the suite's time
 def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     """The same reboot with the carrying off (a silence taken as one only after 100 s, no spin-up
     wait): the neighbours hold the unpowered link on feedback alone and tip past 60 deg."""
