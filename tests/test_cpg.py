@@ -12,6 +12,8 @@ from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat
 from companion.motion.cpg import (
     Cpg,
     CpgParams,
+    CpgState,
+    cpg_derivative,
     cpg_initial_state,
     cpg_output,
     cpg_step,
@@ -43,6 +45,26 @@ def test_oscillators_lock_to_the_commanded_phase_lags(n):
     # locked: every oscillator runs at the common frequency 2 pi f
     later = cpg_step(state, params, [0.3, 0.0], [0.0, 0.0], DT)
     np.testing.assert_allclose((later.phi - state.phi) / DT, 2 * math.pi * params.frequency_hz, rtol=1e-3)
+
+
+@pytest.mark.parametrize("n", [2, 3, 7, 12])
+def test_phase_coupling_over_the_pair_list_is_the_dense_sum(n):
+    """The derivative sums sin(phi_j - phi_i - phi_ij) over the coupled pairs only: the same numbers
+    as the sum over the whole (n, n) coupling matrix with the uncoupled entries zeroed, bit for bit
+    (a batch of random phases). The cached shaping and coupling are read-only."""
+    params = CpgParams(n)
+    rng = np.random.default_rng(n)
+    phi = rng.uniform(-10.0, 10.0, (5, n))
+    z = np.zeros((5, n, 2))
+    d = cpg_derivative(CpgState(z, z, z, z, phi), params, [0.3, 0.1], [0.0, 0.2])
+    coupled = ~np.isnan(params.coupling)
+    diff = phi[..., None, :] - phi[..., :, None] - np.where(coupled, params.coupling, 0.0)
+    dense = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=-1)
+    np.testing.assert_array_equal(d.phi, 2 * math.pi * params.frequency_hz + params.k_phi * dense)
+    assert params.shaping[0] is params.shaping[0]  # computed once per instance
+    for a in (*params.shaping[:2], params.coupling, *params.coupled_pairs):
+        with pytest.raises(ValueError):
+            a[...] = 0
 
 
 def test_amplitude_and_bias_converge_to_the_shaped_commands():

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -87,23 +88,42 @@ class CpgParams:
         if not math.isfinite(self.lag_rad):
             raise ValueError(f"lag_rad must be finite, got {self.lag_rad}")
 
-    @property
+    # The two below are computed once per (frozen) instance and read-only: the CPG's derivative
+    # reads them at every Runge-Kutta stage (``cached_property`` writes the instance's ``__dict__``,
+    # which a frozen dataclass allows; fields, equality and hashing are unchanged).
+    @cached_property
     def shaping(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """``(sigma_a (n,), sigma_b (n,), lag)`` with the eel defaults filled in."""
+        """``(sigma_a (n,), sigma_b (n,), lag)`` with the eel defaults filled in (read-only arrays)."""
         sa, sb, lag = eel_shaping(self.n_links)
-        return (np.asarray(self.sigma_a or sa, dtype=float), np.asarray(self.sigma_b or sb, dtype=float),
+        return (_frozen(np.asarray(self.sigma_a or sa, dtype=float)), _frozen(np.asarray(self.sigma_b or sb, dtype=float)),
                 self.lag_rad or lag)
 
-    @property
+    @cached_property
     def coupling(self) -> np.ndarray:
-        """(n, n) desired phase differences ``phi_ij`` (``nan`` where not coupled): nearest neighbours."""
+        """(n, n) desired phase differences ``phi_ij`` (``nan`` where not coupled): nearest neighbours
+        (read-only)."""
         lag = self.shaping[2]
         n = self.n_links
         phi = np.full((n, n), np.nan)
         idx = np.arange(n - 1)
         phi[idx, idx + 1] = -lag  # link i + 1 (towards the tail) lags link i
         phi[idx + 1, idx] = lag
-        return phi
+        return _frozen(phi)
+
+    @cached_property
+    def coupled_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:attr:`coupling` as a list of its P coupled pairs ``(i (P,), j (P,), phi_ij (P,),
+        incidence (P, n))``, ``incidence[p, i[p]] = 1``: a sum over each link's pairs is one
+        product with it (read-only)."""
+        i, j = np.nonzero(~np.isnan(self.coupling))
+        incidence = np.zeros((len(i), self.n_links))
+        incidence[np.arange(len(i)), i] = 1.0
+        return _frozen(i), _frozen(j), _frozen(self.coupling[i, j]), _frozen(incidence)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
 
 
 @dataclass(frozen=True)
@@ -145,11 +165,9 @@ def cpg_derivative(state: CpgState, params: CpgParams, A, B) -> CpgState:
     B = np.asarray(B, dtype=float)[..., None, :]
     a_dd = params.k_a * (params.k_a / 4.0 * (sigma_a[:, None] * A - state.a) - state.a_dot)
     b_dd = params.k_b * (params.k_b / 4.0 * (sigma_b[:, None] * B - state.b) - state.b_dot)
-    phi_ij = params.coupling
-    coupled = ~np.isnan(phi_ij)
-    # [..., i, j] = phi_j - phi_i - phi_ij
-    diff = state.phi[..., None, :] - state.phi[..., :, None] - np.where(coupled, phi_ij, 0.0)
-    coupling = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=-1)
+    # sum over the coupled j of sin(phi_j - phi_i - phi_ij), one term per coupled pair (i, j)
+    i, j, phi_ij, incidence = params.coupled_pairs
+    coupling = np.sin(state.phi[..., j] - state.phi[..., i] - phi_ij) @ incidence
     phi_dot = 2.0 * math.pi * params.frequency_hz + params.k_phi * coupling
     return CpgState(state.a_dot, a_dd, state.b_dot, b_dd, phi_dot)
 

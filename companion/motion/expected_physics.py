@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.configfile import require_positive
+from companion.estimation.so3 import cross
 from companion.skeleton.kinematics import chain_offsets
 
 from .cpg import so3_exp
@@ -101,7 +102,7 @@ def link_drag(v_l: np.ndarray, water: WaterParams) -> np.ndarray:
 def _link_velocities_b(body: BodyState, r: np.ndarray, rd: np.ndarray) -> np.ndarray:
     """(..., n, 3) link-centre velocities in ``{B}``."""
     v_b = np.einsum("...ji,...j->...i", body.R_wb, body.v_w_m_s)[..., None, :]
-    return v_b + np.cross(body.omega_b_rad_s[..., None, :], r) + rd
+    return v_b + cross(body.omega_b_rad_s[..., None, :], r) + rd
 
 
 def body_wrench(body: BodyState, R_bl: np.ndarray, omega_bl_l: np.ndarray, half_length_m: float,
@@ -110,7 +111,7 @@ def body_wrench(body: BodyState, R_bl: np.ndarray, omega_bl_l: np.ndarray, half_
     r, rd = chain_shape(R_bl, omega_bl_l, half_length_m)
     v_l = np.einsum("...ji,...j->...i", R_bl, _link_velocities_b(body, r, rd))  # R_BLi^T v
     f_b = np.einsum("...ij,...j->...i", R_bl, link_drag(v_l, water))
-    return f_b.sum(axis=-2), np.cross(r, f_b).sum(axis=-2)
+    return f_b.sum(axis=-2), cross(r, f_b).sum(axis=-2)
 
 
 def body_step(body: BodyState, f_b: np.ndarray, tau_b: np.ndarray, water: WaterParams, dt_s: float,
@@ -122,7 +123,7 @@ def body_step(body: BodyState, f_b: np.ndarray, tau_b: np.ndarray, water: WaterP
     w1 = w0.copy()
     for _ in range(iterations):
         wm = 0.5 * (w0 + w1)
-        w1 = w0 + dt_s * (tau_b - np.cross(wm, J * wm)) / J
+        w1 = w0 + dt_s * (tau_b - cross(wm, J * wm)) / J
     wm = 0.5 * (w0 + w1)
     R1 = body.R_wb @ so3_exp(dt_s * wm)
     Rm = body.R_wb @ so3_exp(0.5 * dt_s * wm)

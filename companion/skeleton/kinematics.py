@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.estimation.so3 import quat_to_rotmat
+from companion.estimation.so3 import cross, quat_to_rotmat
 
 __all__ = ["chain_offsets", "chain_middle", "middle_offset", "tension"]
 
@@ -31,7 +31,7 @@ def _tip_vectors(R: np.ndarray, omega_b: np.ndarray | None, d: np.ndarray):
     a = np.einsum("...ij,...j->...i", R, d)
     if omega_b is None:
         return a, None
-    return a, np.einsum("...ij,...j->...i", R, np.cross(omega_b, d))
+    return a, np.einsum("...ij,...j->...i", R, cross(omega_b, d))
 
 
 def chain_offsets(R: np.ndarray, omega_b: np.ndarray | None, d) -> tuple[np.ndarray, np.ndarray | None]:
