@@ -42,7 +42,9 @@ What it decides, on the links' flight-controller time (the newest plausible EKF 
   with the whole-chain feed-forward (``trajectory.feedforward``), a link whose rotors are taken
   to be off (it has flown, and is now silent ``carry_silence_s``, disarmed, or re-armed less than
   ``carry_spinup_s`` ago) is carried: its neighbours' feed-forward takes its weight
-  (:meth:`_passive_links`; ``carried_s`` in the summary);
+  (:meth:`_passive_links`; ``carried_s`` in the summary); in distributed mode with the other
+  groups' carried links too, which each group publishes (:class:`~.messages.GroupPassiveLinks`,
+  :meth:`_publish_passive`): a dead link at a group's end hangs on a link of the next group;
 * arming (``arm = true``) once every link reports a usable EKF, until it reports armed: retried
   every :data:`ARM_RETRY_S` for the first :data:`ARM_FAST_TRIES` commands, then each second (a
   link rebooted in flight has its rotors off until armed: one lost command must not cost a
@@ -78,7 +80,8 @@ from .config import CompanionSetup
 from .corrections import align_states, compute_corrections, finish_step, local_step
 from .estimation.chain import ERR_P
 from .estimation.gate import gate_chain, segments
-from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, ChainTargets, Correction, LinkState, PoseTarget
+from .messages import (STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, ChainTargets, Correction,
+                       GroupPassiveLinks, LinkState, PoseTarget)
 from .plausibility import StampGate, StampVerdict
 from .skeleton.kinematics import chain_middle
 from .trajectory import chain_model, make_trajectory
@@ -128,6 +131,11 @@ ARM_FAST_TRIES = 5
 #: Accepted states in a row reporting a link disarmed before the companion takes its rotors to
 #: be off (carrying, :meth:`CompanionEngine._passive_links`): 60 ms of the 50 Hz stream.
 DISARMED_STATES = 3
+#: Distributed mode: a group publishes its carried links (:class:`~.messages.GroupPassiveLinks`)
+#: when they change and at least this often [us]; the others take a group's newest one within
+#: :data:`PASSIVE_STALE_US` of their own cycle clock (and while its companion is up).
+PASSIVE_REPEAT_US = 1_000_000
+PASSIVE_STALE_US = 2_500_000
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
                  "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
@@ -317,6 +325,12 @@ class CompanionEngine:
         #: CPG targets travel over the network from the leader (distributed mode)
         self._net_targets = net is not None and setup.trajectory.kind == "cpg"
         self.target_counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
+        # distributed mode: the other groups' carried links (newest message per group), what this
+        # group last published, and how long each other group's link has been carried here
+        self._remote_passive: dict[int, GroupPassiveLinks] = {}
+        self._passive_sent: tuple[tuple[int, ...], int] | None = None
+        self.passive_counts = {"published": 0, "received": 0, "rejected": 0}
+        self._remote_carried: dict[int, list] = {}  # link -> [seconds carried, since (s) or None]
         self._leader_targets_s = -np.inf
         self._forwarded_time_us = -1
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
@@ -450,6 +464,8 @@ class CompanionEngine:
             for msg in self.net.take_targets():
                 if self._net_targets:
                     self._forward_targets(msg, now_s)
+            for msg in self.net.take_passive():
+                self._on_remote_passive(msg)
         self._duties(now_s)
         if self._all_states():
             t = self.fc_time_us
@@ -747,8 +763,11 @@ class CompanionEngine:
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
-        targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6,
-                                          passive=self._passive_links())
+        passive = self._passive_links()
+        if self.net is not None:
+            self._publish_passive(passive)
+            passive = passive | self._remote_passive_links()
+        targets = self.trajectory.targets((self.fc_time_us - self._trajectory_t0_us) * 1e-6, passive=passive)
         if self._net_targets:
             if self.net.leads(self.next_step_us, now_s):
                 self.net.publish_targets(ChainTargets.of(self.group, self.fc_time_us,
@@ -817,6 +836,65 @@ class CompanionEngine:
             if passive:
                 out.add(lk.index)
         return frozenset(out)
+
+    # -- carrying across groups (distributed mode) -------------------------------------------------
+    def _publish_passive(self, own: frozenset[int]) -> None:
+        """This group's carried links to the other groups: when the set changes, and each
+        :data:`PASSIVE_REPEAT_US` (a group that starts later, or lost one, learns it)."""
+        links, t = tuple(sorted(own)), self.fc_time_us
+        sent = self._passive_sent
+        if sent is not None and sent[0] == links and t - sent[1] < PASSIVE_REPEAT_US:
+            return
+        self._passive_sent = (links, t)
+        self.net.publish_passive(GroupPassiveLinks(self.group, t, links))
+        self.passive_counts["published"] += 1
+
+    def _on_remote_passive(self, msg: GroupPassiveLinks) -> None:
+        """Another group's carried links: kept (its newest) if they are that group's own links and
+        its stamp is within :data:`PASSIVE_STALE_US` of this group's cycle clock; otherwise counted
+        and dropped (a group cannot make another group's links, or this group's, carried)."""
+        g = msg.group
+        why = None
+        if g == self.group or not 0 <= g < len(self.groups):
+            why = f"from group {g + 1}"
+        elif not set(msg.links) <= set(self.groups[g]):
+            why = f"links {[i + 1 for i in msg.links]} are not all group {g + 1}'s"
+        elif abs(msg.time_us - self.fc_time_us) > PASSIVE_STALE_US and self.fc_time_us:
+            why = f"stamp {msg.time_us * 1e-6:.3f} s, {(msg.time_us - self.fc_time_us) * 1e-6:+.3f} s off the cycle clock"
+        if why is not None:
+            self.passive_counts["rejected"] += 1
+            n = self.passive_counts["rejected"]
+            if n <= 5 or n % 100 == 0:
+                log.warning("carried links of group %d dropped (#%d): %s", g + 1, n, why)
+            return
+        self.passive_counts["received"] += 1
+        old = self._remote_passive.get(g)
+        if old is None or msg.time_us >= old.time_us:
+            self._remote_passive[g] = msg
+
+    def _remote_passive_links(self) -> frozenset[int]:
+        """The links the other groups' companions carry (their newest messages, not stale, while
+        they are up); each carried stretch is logged and timed (``carried_by_other_groups_s``)."""
+        t_us = self.fc_time_us
+        out: set[int] = set()
+        for g, msg in self._remote_passive.items():
+            if self.net.alive(g) and t_us - msg.time_us <= PASSIVE_STALE_US:
+                out.update(msg.links)
+        t = t_us * 1e-6
+        for i in out | {i for i, rec in self._remote_carried.items() if rec[1] is not None}:
+            rec = self._remote_carried.setdefault(i, [0.0, None])
+            if i in out and rec[1] is None:
+                rec[1] = t
+                log.warning("link %d (group %d) carried at %.2f s: its rotors are off (its group's companion says)",
+                            i + 1, self._group_of(i) + 1, t)
+            elif i not in out and rec[1] is not None:
+                rec[0] += t - rec[1]
+                rec[1] = None
+                log.warning("link %d (group %d) flies itself again at %.2f s", i + 1, self._group_of(i) + 1, t)
+        return frozenset(out)
+
+    def _group_of(self, link: int) -> int:
+        return next(g for g, members in enumerate(self.groups) if link in members)
 
     def _carried_s(self, lk: LinkTrack) -> float:
         """How long ``lk`` has been carried, a carry still going on included (to the cycle clock)."""
@@ -904,6 +982,11 @@ class CompanionEngine:
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),
+            **({"carried_by_other_groups_s": {
+                str(self.setup.companion.endpoints(self.n)[i].system_id):
+                    round(rec[0] + (self.fc_time_us * 1e-6 - rec[1] if rec[1] is not None else 0.0), 3)
+                for i, rec in sorted(self._remote_carried.items())},
+                "carried_links_messages": dict(self.passive_counts)} if self.net is not None else {}),
         }
 
     def log_arrays(self) -> dict[str, np.ndarray]:

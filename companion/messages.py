@@ -36,6 +36,7 @@ __all__ = [
     "GroupBoundaryReport",
     "GlobalShift",
     "ChainTargets",
+    "GroupPassiveLinks",
     "PoseTarget",
     "ContactTarget",
     "ExternalWrench",
@@ -290,6 +291,25 @@ class ChainTargets:
         """The :class:`PoseTarget` of the ``k``-th listed link."""
         return PoseTarget(self.p_w_m[k], self.q_wxyz[k], self.v_w_m_s[k], self.a_w_m_s2[k], self.omega_b_rad_s[k],
                           self.omega_dot_b_rad_s2[k], self.force_ff_w_n[k], self.torque_ff_b_nm[k])
+
+
+@dataclass(frozen=True)
+class GroupPassiveLinks:
+    """Which of a group's links its companion takes to have their rotors off (carried: the
+    whole-chain feed-forward gives their weight to their neighbours), so that the companion of a
+    neighbouring group carries them too: a dead link at a group's end hangs on a link of the next
+    group. Published when the set changes and each second.
+
+    Attributes:
+        group: 0-based group index of the companion that publishes it.
+        time_us: when, on the companions' common time base [us] (the publisher's cycle clock).
+        links: 0-based chain indices of the group's own links taken as passive, increasing (empty:
+            none).
+    """
+
+    group: int
+    time_us: int
+    links: tuple[int, ...]
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from companion.estimation.so3 import quat_from_euler_zyx
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
-from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, LinkState
+from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, GroupPassiveLinks, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
@@ -309,6 +309,88 @@ def test_one_engine_equals_the_in_process_step(n, groups):
     for g, c in zip(got, want):
         np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
         np.testing.assert_allclose(g.correction.dtheta_w_rad, c.dtheta_w_rad, atol=1e-12)
+
+
+@pytest.mark.parametrize("groups, down", [(((1, 2), (3, 4, 5), (6, 7)), 2), (((1, 2), (3, 4, 5), (6, 7)), 4),
+                                          (((1, 2, 3), (4, 5, 6, 7)), 3), (((1,), (2, 3)), 1)])
+def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(groups, down):
+    """Distributed mode: a dead link at the end of its group hangs on a link of the next group. Its
+    group's companion publishes it as carried (GroupPassiveLinks) and the other companions carry it
+    too: each group's neighbour of it gets its share of the weight within two target periods, and
+    the shares are those of the single-engine feed-forward. A group's claim about links that are
+    not its own, or a stale one, is counted and dropped; a group that leaves takes its claim with it."""
+    pytest.importorskip("pinocchio")
+    n = max(max(g) for g in groups)
+    setup = setup_for(n, groups, distributed=True)
+    # a hover at the start's height: the targets do not depend on when each engine computes them
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0))
+    clock = [0.0]
+    hub = LocalHub(len(groups), lambda: clock[0])
+    layout = setup.companion.group_layout(n)
+    engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
+                               net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
+                                                            shift_deadline_s=0.035, leader_wait_s=0.025),
+                                             hub.join(g), lambda: clock[0]))
+               for g in range(len(groups))]
+    # one engine over the whole chain: the reference shares
+    whole = CompanionEngine(replace(setup_for(n), trajectory=setup.trajectory), start_center=(0.0, 0.0, 2.0))
+    flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
+    ff: dict[int, np.ndarray] = {}
+    ref: dict[int, np.ndarray] = {}
+
+    def tick(t, alive):
+        clock[0] = t
+        running = [e for e in engines if e.group in hub.buses]  # (a group's companion may have left)
+        for e in [*running, whole]:
+            for lk in e.links:
+                if lk.index in alive:
+                    e.on_state(lk.row, straight_state(lk.index, n, t), flying, t)
+        for _ in range(3):
+            for e in running:
+                for o in of(TargetOut, e.poll(t)):
+                    ff[e.links[o.row].index] = o.target.force_ff_w_n
+        for o in of(TargetOut, whole.poll(t)):
+            ref[o.row] = o.target.force_ff_w_n
+
+    t = 0.0
+    while t < 1.0:
+        t = round(t + 0.02, 6)
+        tick(t, range(n))
+    assert all(np.abs(f).max() < 1e-9 for f in ff.values())  # hover: each link carries itself
+    t_dead = t
+    neighbours = [i for i in (down - 1, down + 1) if 0 <= i < n]
+    g_down = next(g for g, m in enumerate(layout) if down in m)
+    other = [i for i in neighbours if i not in layout[g_down]]
+    assert other, "the case has a neighbour in another group"
+    carried_at = {}
+    while t < t_dead + 0.3:
+        t = round(t + 0.02, 6)
+        tick(t, [i for i in range(n) if i != down])
+        for i in neighbours:
+            if i not in carried_at and ff[i][2] > 1.0:
+                carried_at[i] = t
+    weight = whole.trajectory.dynamics.inertia.mass_kg * 9.80665
+    for i in neighbours:  # each neighbour, in whichever group, carries its share of the whole chain's
+        np.testing.assert_allclose(ff[i], ref[i], atol=1e-6 * weight)
+        assert carried_at[i] - t_dead <= setup.companion.carry_silence_s + 2 * 0.02 + 1e-9
+    assert sum(ff[i][2] for i in neighbours) == pytest.approx(weight, rel=1e-5)
+    g_other = next(g for g, m in enumerate(layout) if other[0] in m)
+    summary = engines[g_other].summary()
+    assert summary["carried_by_other_groups_s"][str(down + 1)] > 0.2
+    assert summary["carried_links_messages"]["rejected"] == 0
+    # hostile or stale claims: dropped and counted; they carry nothing
+    e = engines[g_other]
+    healthy = other[0]
+    for msg in (GroupPassiveLinks(g_down, int(t * 1e6), (healthy,)),            # not its link
+                GroupPassiveLinks(g_other, int(t * 1e6), (healthy,)),           # "from" the receiver itself
+                GroupPassiveLinks(g_down, int((t - 5.0) * 1e6), (down,))):      # stale
+        e._on_remote_passive(msg)
+    assert e.summary()["carried_links_messages"]["rejected"] == 3
+    # its group's companion leaves: its claim goes with it (the link is back to flying itself here)
+    hub.buses[g_down].close()
+    t = round(t + 0.02, 6)
+    tick(t, [i for i in range(n) if i != down and i not in layout[g_down]])
+    assert abs(ff[healthy][2]) < 1e-6 * weight
 
 
 @pytest.mark.parametrize("groups", [((1, 2), (3, 4, 5), (6, 7)), ((1, 2, 3), (4, 5, 6, 7))])

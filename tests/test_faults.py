@@ -267,6 +267,19 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     assert np.max(tilt[end]) < 5.0 and np.max(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[end]) < 0.3
 
 
+def test_batch_link_reboot_in_distributed_mode_the_next_groups_companion_carries_it_too(tmp_path):
+    """The same reboot with one companion per group, link 2 the first of group 2 (groups [1], [2, 3]):
+    link 1's companion hears nothing of link 2 and carries it on group 2's word (GroupPassiveLinks
+    over the in-process bus): link 1 stays within 20 deg of its target (45 deg, and the chain 0.52 m
+    off its targets, when only link 2's own group carried it)."""
+    m, log, tilt = _reboot_flight(tmp_path, 0.5, distributed=True, groups=((1,), (2, 3)))
+    assert not m["crashed"], m["crash_reason"]
+    after = log["t"] >= 9.0
+    assert np.nanmax(tilt[after][:, [0, 2]]) < 20.0
+    assert np.nanmax(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[after]) < 0.35
+    assert m["min_altitude_m"] > 2.0
+
+
 @pytest.mark.slow  # the counterfactual of the test above (7 s), out of the default run for the suite's time
 def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     """The same reboot with the carrying off (a silence taken as one only after 100 s, no spin-up

@@ -23,9 +23,10 @@ from companion.fleetnet import codec
 from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
-from companion.fleetnet.keys import boundary_key, shift_key, target_key
+from companion.fleetnet.keys import boundary_key, passive_key, shift_key, target_key
 from companion.fleetnet.leader import GlobalStepNode, shift_covariance_terms, solve_cycle
-from companion.messages import ChainTargets, Correction, GlobalShift, GroupBoundaryReport, LinkState, MessageError
+from companion.messages import (ChainTargets, Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState,
+                                MessageError)
 from sitl.scenario import Scenario
 
 from .chains import perturbed_chain, random_covariances
@@ -50,6 +51,9 @@ def _messages(rng):
         GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
         _targets(rng, (0, 1, 2, 3, 4, 5, 6)),
         _targets(rng, (2, 5)),
+        GroupPassiveLinks(1, 20_060_000, (2,)),
+        GroupPassiveLinks(0, 5_000_000, ()),
+        GroupPassiveLinks(3, 2**40, (6, 7, 9)),
     ]
 
 
@@ -116,6 +120,8 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
         codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), a_w_m_s2=np.full((2, 3), np.inf))):
             "a_w_m_s2: non-finite",
+        codec.encode(GroupPassiveLinks(1, 0, (3, 2))): "GroupPassiveLinks.links",
+        codec.encode(GroupPassiveLinks(1, 0, (2, 2))): "GroupPassiveLinks.links",
     }
     for payload, reason in cases.items():
         with pytest.raises(MessageError, match=reason):
@@ -134,10 +140,7 @@ def test_cpg_targets_cross_zenoh_bit_for_bit_and_misplaced_ones_are_errors():
     the shift key (or a shift on the target key) is an error, never applied."""
     cfg, buses = _buses(2, "test_targets")
     try:
-        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
-                 for g, bus in enumerate(buses)]
-        _wait_live(links, 2)
-        time.sleep(0.3)
+        links = _two_live_links(cfg, buses)
         rng = np.random.default_rng(5)
         sent = [_targets(rng, tuple(range(7)), time_us=20_000 * k, seq=k) for k in range(50)]
         for msg in sent:
@@ -158,6 +161,31 @@ def test_cpg_targets_cross_zenoh_bit_for_bit_and_misplaced_ones_are_errors():
             time.sleep(0.005)
         assert links[0].errors == {shift_key("test_targets"): 1, target_key("test_targets"): 1}
         assert links[0].take_targets() == []
+    finally:
+        for bus in buses:
+            bus.close()
+
+
+def test_carried_links_cross_zenoh_and_one_on_another_groups_key_is_an_error():
+    """A group's GroupPassiveLinks reach the other group's companion unchanged (empty sets too); one
+    published on another group's key is an error, never taken."""
+    cfg, buses = _buses(2, "test_passive")
+    try:
+        links = _two_live_links(cfg, buses)
+        sent = [GroupPassiveLinks(1, 20_000 * k, (2,) if k % 2 else ()) for k in range(20)]
+        for msg in sent:
+            links[1].publish_passive(msg)
+        buses[1]._boundary_pub.put(codec.encode(sent[1]))  # on its boundary key
+        buses[1].session.put(passive_key("test_passive", 0), codec.encode(sent[1]))  # on group 1's key
+        got = []
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and (len(got) < len(sent) or sum(links[0].errors.values()) < 2):
+            links[0].pump(time.monotonic())
+            got += links[0].take_passive()
+            time.sleep(0.005)
+        assert got == sent
+        assert links[0].errors == {boundary_key("test_passive", 1): 1, passive_key("test_passive", 0): 1}
+        assert links[0].alive(1) and not links[0].take_passive()
     finally:
         for bus in buses:
             bus.close()
@@ -347,6 +375,15 @@ def _wait_live(links, n):
     _pump(links, lambda r: all(len(lk.node.live) == n for lk in links if not lk.bus.closed))
 
 
+def _two_live_links(cfg, buses) -> list[GroupLink]:
+    """The group links of two Zenoh buses, once each sees the other alive (and a moment for the
+    subscriptions to settle)."""
+    links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus) for g, bus in enumerate(buses)]
+    _wait_live(links, 2)
+    time.sleep(0.3)
+    return links
+
+
 @pytest.mark.parametrize("groups", LAYOUTS[:2])
 def test_global_step_over_zenoh_equals_in_process_eq6(groups):
     s = len(groups)
@@ -415,10 +452,7 @@ def test_malformed_zenoh_payloads_are_counted_not_applied():
     raw_cfg.insert_json5("connect/endpoints", f'["{cfg.endpoints[0]}"]')
     raw = zenoh.open(raw_cfg)
     try:
-        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
-                 for g, bus in enumerate(buses)]
-        _wait_live(links, 2)
-        time.sleep(0.3)
+        _two_live_links(cfg, buses)  # (both see each other alive)
         good = codec.encode(GroupBoundaryReport(1, PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)))
         payloads = [b"", b"garbage", good[:-1], good[:4] + bytes([codec.VERSION + 1]) + good[5:],
                     struct.pack("<4sBB", b"ASKZ", codec.VERSION, 4) + b"\xff" * 10]
@@ -616,10 +650,7 @@ def test_a_session_without_the_fleet_credentials_cannot_join(tmp_path):
                 rc.insert_json5("transport/auth/usrpwd/user", f'"{user}"')
                 rc.insert_json5("transport/auth/usrpwd/password", f'"{password}"')
             rogues.append(zenoh.open(rc))
-        links = [GroupLink(GlobalStepNode(g, 2, cfg.order(2), PERIOD_US, startup_s=0.0), bus)
-                 for g, bus in enumerate(buses)]
-        _wait_live(links, 2)
-        time.sleep(0.3)
+        _two_live_links(cfg, buses)  # (both see each other alive)
         fake = codec.encode(GlobalShift(1, PERIOD_US, (0, 1), np.ones((2, 6)), hold_us=(0, 0)))
         forged = codec.encode(GroupBoundaryReport(1, PERIOD_US, np.ones(6), np.ones(6), np.eye(6)))
         for r in rogues:

@@ -1,9 +1,9 @@
 """The Zenoh session of one group companion (the only module of the stack that imports ``zenoh``).
 
 :class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
-declares this group's liveliness token, subscribes to the other groups' boundaries, the
-leader's shifts and CPG targets and the liveliness of every group, and publishes this group's
-boundary and (when it leads) the shifts and targets. Zenoh calls back on its own threads; the callbacks only stamp the
+declares this group's liveliness token, subscribes to the other groups' boundaries and carried
+links, the leader's shifts and CPG targets and the liveliness of every group, and publishes this
+group's boundary, its carried links and (when it leads) the shifts and targets. Zenoh calls back on its own threads; the callbacks only stamp the
 arrival time and queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`);
 :meth:`drain` decodes in the daemon's thread, where all the estimation state lives. A payload
 that fails :func:`~companion.fleetnet.codec.decode` becomes an error event: the daemon counts
@@ -24,12 +24,13 @@ import zenoh
 
 from companion.configfile import ConfigError
 from companion.keyfiles import read_private_text
-from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, MessageError
+from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, MessageError
 
 from . import codec
 from .config import ZenohConfig, group_user, read_users_file
-from .hub import BusEvent
-from .keys import alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, shift_key, target_key
+from .hub import KINDS, BusEvent
+from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, passive_key, passive_pattern,
+                   shift_key, target_key)
 
 __all__ = ["BusEvent", "FleetBus", "zenoh_config"]
 
@@ -136,12 +137,14 @@ class FleetBus:
             s.declare_subscriber(boundary_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
             s.declare_subscriber(shift_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
             s.declare_subscriber(target_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
+            s.declare_subscriber(passive_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
         ]
         opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
                     express=True)
         self._boundary_pub = s.declare_publisher(boundary_key(prefix, group), **opts)
         self._shift_pub = s.declare_publisher(shift_key(prefix), **opts)
         self._target_pub = s.declare_publisher(target_key(prefix), **opts)
+        self._passive_pub = s.declare_publisher(passive_key(prefix, group), **opts)
         self.closed = False
         log.info("zenoh %s session %s: group %d, listening %s", cfg.mode, s.zid(), group + 1,
                  cfg.group_endpoint(group) if cfg.mode == "peer" else "-")
@@ -164,10 +167,12 @@ class FleetBus:
             msg = codec.decode(ev.value)
         except MessageError as exc:
             return BusEvent("error", str(exc), ev.time_s, ev.key)
-        kind = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets"}.get(type(msg))
-        expected = {"boundary": None, "shift": shift_key(self.prefix), "targets": target_key(self.prefix)}
-        misplaced = kind is None or (group_of_key(self.prefix, ev.key) != msg.group if kind == "boundary"
-                                     else ev.key != expected[kind])
+        kind = KINDS.get(type(msg))
+        # a group's own messages on its own key (the key carries the group), the leader's on theirs
+        expected = {"boundary": boundary_key(self.prefix, getattr(msg, "group", -1)),
+                    "passive": passive_key(self.prefix, getattr(msg, "group", -1)),
+                    "shift": shift_key(self.prefix), "targets": target_key(self.prefix)}
+        misplaced = kind is None or ev.key != expected[kind]
         if misplaced:
             return BusEvent("error", f"{type(msg).__name__} does not belong on this key", ev.time_s, ev.key)
         return BusEvent(kind, msg, ev.time_s, ev.key)
@@ -207,6 +212,9 @@ class FleetBus:
 
     def publish_targets(self, targets: ChainTargets) -> None:
         self._target_pub.put(codec.encode(targets))
+
+    def publish_passive(self, passive: GroupPassiveLinks) -> None:
+        self._passive_pub.put(codec.encode(passive))
 
     def close(self) -> None:
         if self.closed:

@@ -26,6 +26,7 @@ from companion.messages import (
     Correction,
     GlobalShift,
     GroupBoundaryReport,
+    GroupPassiveLinks,
     LinkState,
     MessageError,
     check_finite,
@@ -37,7 +38,9 @@ from companion.messages import (
 __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
 
 MAGIC = b"ASKZ"
-VERSION = 3  # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance
+# 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance;
+# 4: GroupPassiveLinks (a group's links carried by their neighbours)
+VERSION = 4
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -62,6 +65,7 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                        ("p_w_m", ("rows", 3)), ("q_wxyz", ("rows", 4)), ("v_w_m_s", ("rows", 3)),
                        ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)),
                        ("force_ff_w_n", ("rows", 3)), ("torque_ff_b_nm", ("rows", 3)))),
+    GroupPassiveLinks: (6, (("group", "u8"), ("time_us", "i64"), ("links", "ids"))),
 }
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 
@@ -213,5 +217,13 @@ def _targets(v: dict[str, Any]) -> ChainTargets:
     return ChainTargets(**v)
 
 
+def _passive(v: dict[str, Any]) -> GroupPassiveLinks:
+    # empty: none of the group's links is carried; otherwise strictly increasing (whether they are
+    # the group's own links is the receiver's check: it knows the layout)
+    if v["links"] and list(v["links"]) != sorted(set(v["links"])):
+        raise MessageError(f"GroupPassiveLinks.links: {list(v['links'])} is not an increasing list of links")
+    return GroupPassiveLinks(**v)
+
+
 _VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift,
-             ChainTargets: _targets}
+             ChainTargets: _targets, GroupPassiveLinks: _passive}

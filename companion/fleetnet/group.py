@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from companion.messages import ChainTargets
+from companion.messages import ChainTargets, GroupPassiveLinks
 
 from .leader import Actions, GlobalStepNode, Resolution
 
@@ -47,6 +47,7 @@ class GroupLink:
         self.round_trips_ms: list[float] = []
         self.network_round_trips_ms: list[float] = []
         self._targets_in: list[ChainTargets] = []
+        self._passive_in: list[GroupPassiveLinks] = []
 
     @property
     def group(self) -> int:
@@ -70,6 +71,18 @@ class GroupLink:
         out, self._targets_in = self._targets_in, []
         return out
 
+    def publish_passive(self, passive: GroupPassiveLinks) -> None:
+        self.bus.publish_passive(passive)
+
+    def take_passive(self) -> list[GroupPassiveLinks]:
+        """The other groups' carried links that arrived since the last call (oldest first)."""
+        out, self._passive_in = self._passive_in, []
+        return out
+
+    def alive(self, group: int) -> bool:
+        """Whether 0-based ``group``'s companion is up (its liveliness token is there)."""
+        return group in self.node.live
+
     def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float,
                    tip_cov_pv=None) -> list[Resolution]:
         """This group's boundary for ``cycle_us``: publish it (and solve, if leading)."""
@@ -86,6 +99,8 @@ class GroupLink:
                 resolved += self._carry_out(self.node.on_shift(ev.value, now_s, ev.time_s), now_s)
             elif ev.kind == "targets":
                 self._targets_in.append(ev.value)
+            elif ev.kind == "passive":
+                self._passive_in.append(ev.value)
             elif ev.kind in ("alive", "gone"):
                 alive = ev.kind == "alive"
                 if ev.value != self.group:

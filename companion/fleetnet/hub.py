@@ -13,18 +13,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport
+from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks
 
 from . import codec
 
-__all__ = ["BusEvent", "LocalHub", "LocalBus"]
+__all__ = ["BusEvent", "KINDS", "LocalHub", "LocalBus"]
 
-_KINDS = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets"}
+#: the event kind of each message type (one table for both buses)
+KINDS = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets", GroupPassiveLinks: "passive"}
 
 
 @dataclass(frozen=True)
 class BusEvent:
-    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``alive``, ``gone`` or ``error``;
+    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``passive``, ``alive``, ``gone``
+    or ``error``;
     ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
     arrival time on the receiver's clock; ``key`` the key expression it came on."""
 
@@ -65,7 +67,7 @@ class LocalHub:
         for group, bus in self.buses.items():
             if group != sender:
                 msg = codec.decode(payload)
-                bus.events.append(BusEvent(_KINDS[type(msg)], msg, now, key))
+                bus.events.append(BusEvent(KINDS[type(msg)], msg, now, key))
 
     def _leave(self, group: int) -> None:
         self.buses.pop(group, None)
@@ -94,6 +96,9 @@ class LocalBus:
 
     def publish_targets(self, targets: ChainTargets) -> None:
         self.hub._send(self.group, targets, f"{self.hub.prefix}/cpg/target")
+
+    def publish_passive(self, passive: GroupPassiveLinks) -> None:
+        self.hub._send(self.group, passive, f"{self.hub.prefix}/group/{self.group + 1}/passive")
 
     def close(self) -> None:
         self.hub._leave(self.group)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["boundary_key", "boundary_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key"]
+__all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key"]
 
 
 def boundary_key(prefix: str, group: int) -> str:
@@ -12,6 +12,16 @@ def boundary_key(prefix: str, group: int) -> str:
 
 def boundary_pattern(prefix: str) -> str:
     return f"{prefix}/group/*/boundary"
+
+
+def passive_key(prefix: str, group: int) -> str:
+    """Where 0-based ``group`` publishes which of its links are carried
+    (:class:`~companion.messages.GroupPassiveLinks`)."""
+    return f"{prefix}/group/{group + 1}/passive"
+
+
+def passive_pattern(prefix: str) -> str:
+    return f"{prefix}/group/*/passive"
 
 
 def shift_key(prefix: str) -> str:
