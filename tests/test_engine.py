@@ -383,9 +383,10 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
     healthy = other[0]
     for msg in (GroupPassiveLinks(g_down, int(t * 1e6), (healthy,)),            # not its link
                 GroupPassiveLinks(g_other, int(t * 1e6), (healthy,)),           # "from" the receiver itself
-                GroupPassiveLinks(g_down, int((t - 5.0) * 1e6), (down,))):      # stale
+                GroupPassiveLinks(g_down, int((t - 5.0) * 1e6), (down,)),       # stale
+                GroupPassiveLinks(g_down, int((t + 60.0) * 1e6), (down,))):     # far ahead
         e._on_remote_passive(msg)
-    assert e.summary()["carried_links_messages"]["rejected"] == 3
+    assert e.summary()["carried_links_messages"]["rejected"] == 4
     # its group's companion leaves: its claim goes with it (the link is back to flying itself here)
     hub.buses[g_down].close()
     t = round(t + 0.02, 6)
