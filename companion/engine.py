@@ -850,19 +850,18 @@ class CompanionEngine:
         self.passive_counts["published"] += 1
 
     def _on_remote_passive(self, msg: GroupPassiveLinks) -> None:
-        """Another group's carried links: kept (its newest) if they are that group's own links and
-        its stamp is within :data:`PASSIVE_STALE_US` of this group's cycle clock, either way;
-        otherwise counted and dropped (a group cannot make another group's links, or this group's,
-        carried, and a stamp far ahead cannot pin a claim)."""
+        """Another group's carried links: kept (its newest) if they are that group's own links and,
+        once this group has a cycle clock, its stamp is within :data:`PASSIVE_STALE_US` of it either
+        way; otherwise counted and dropped (a group cannot make another group's links, or this
+        group's, carried). Only a current claim is used (:meth:`_remote_passive_links`), and one
+        that is not current gives way to any other (a stamp far ahead cannot pin a claim)."""
         g = msg.group
         why = None
         if g == self.group or not 0 <= g < len(self.groups):
             why = f"from group {g + 1}"
         elif not set(msg.links) <= set(self.groups[g]):
             why = f"links {[i + 1 for i in msg.links]} are not all group {g + 1}'s"
-        elif not self.fc_time_us:
-            why = "no cycle clock yet to check its stamp against (it is sent again each second)"
-        elif abs(msg.time_us - self.fc_time_us) > PASSIVE_STALE_US:
+        elif self.fc_time_us and not self._passive_current(msg):
             why = f"stamp {msg.time_us * 1e-6:.3f} s, {(msg.time_us - self.fc_time_us) * 1e-6:+.3f} s off the cycle clock"
         if why is not None:
             self.passive_counts["rejected"] += 1
@@ -872,8 +871,12 @@ class CompanionEngine:
             return
         self.passive_counts["received"] += 1
         old = self._remote_passive.get(g)
-        if old is None or msg.time_us >= old.time_us:
+        if old is None or msg.time_us >= old.time_us or not self._passive_current(old):
             self._remote_passive[g] = msg
+
+    def _passive_current(self, msg: GroupPassiveLinks) -> bool:
+        """Whether a group's claim is within :data:`PASSIVE_STALE_US` of this group's cycle clock."""
+        return bool(self.fc_time_us) and abs(msg.time_us - self.fc_time_us) <= PASSIVE_STALE_US
 
     def _remote_passive_links(self) -> frozenset[int]:
         """The links the other groups' companions carry (their newest messages, not stale, while
@@ -881,7 +884,7 @@ class CompanionEngine:
         t_us = self.fc_time_us
         out: set[int] = set()
         for g, msg in self._remote_passive.items():
-            if self.net.alive(g) and abs(t_us - msg.time_us) <= PASSIVE_STALE_US:
+            if self.net.alive(g) and self._passive_current(msg):
                 out.update(msg.links)
         t = t_us * 1e-6
         for i in out | {i for i, rec in self._remote_carried.items() if rec[1] is not None}:

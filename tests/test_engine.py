@@ -394,6 +394,28 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
     assert abs(ff[healthy][2]) < 1e-6 * weight
 
 
+def test_a_carried_links_claim_before_the_cycle_clock_is_held_and_one_far_ahead_cannot_pin():
+    """A group's claim that arrives before this companion has a cycle clock (the groups start in
+    any order) is held, not counted as rejected; once the clock runs, only a claim within 2.5 s of
+    it is used, and one that is not gives way to the next real one."""
+    setup = setup_for(4, ((1, 2), (3, 4)), distributed=True)
+    hub = LocalHub(2, lambda: 0.0)
+    engine = CompanionEngine(setup, group=0, start_center=(0.0, 0.0, 2.0),
+                             net=GroupLink(GlobalStepNode(0, 2, setup.zenoh.order(2), 50_000), hub.join(0), lambda: 0.0))
+    hub.join(1)
+    engine.poll(0.0)  # (group 2 is up)
+    engine._on_remote_passive(GroupPassiveLinks(1, 600_000_000, (2,)))  # far ahead, before any clock
+    assert engine.passive_counts == {"published": 0, "received": 1, "rejected": 0}
+    for lk in engine.links:
+        engine.on_state(lk.row, straight_state(lk.index, 4, 1.0), STATE_FLAG_EKF_OK, 1.0)
+    assert engine.fc_time_us == 1_000_000
+    assert engine._remote_passive_links() == frozenset()  # not current: not used
+    engine._on_remote_passive(GroupPassiveLinks(1, 1_000_000, (2,)))  # the real one replaces it
+    assert engine._remote_passive_links() == {2}
+    engine._on_remote_passive(GroupPassiveLinks(1, 900_000_000, (3,)))  # far ahead now: dropped, counted
+    assert engine.passive_counts["rejected"] == 1 and engine._remote_passive_links() == {2}
+
+
 @pytest.mark.parametrize("groups", [((1, 2), (3, 4, 5), (6, 7)), ((1, 2, 3), (4, 5, 6, 7))])
 def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(groups):
     """Group engines joined by a LocalHub (batch mode's bus): after the start-up listening, every
