@@ -24,7 +24,7 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
-from .fleet import FleetError, check_fleet_scenario, launch
+from .fleet import FleetError, check_fleet_scenario, check_instance_offset, launch
 from .fly import fly
 from .scenario import load_scenario
 from .slung_load_config import SlungLoadScenario, is_slung_load_file, load_slung_scenario
@@ -104,6 +104,7 @@ def _cmd_launch(args) -> int:
         if isinstance(scenario, SlungLoadScenario):
             raise ValueError("the slung-load scenario runs in batch mode only (python -m sitl fly)")
         check_fleet_scenario(scenario)
+        check_instance_offset(scenario, args.instance_offset)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
@@ -115,7 +116,7 @@ def _cmd_launch(args) -> int:
     try:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
             metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
-                             plots=not args.no_plots)
+                             plots=not args.no_plots, instance_offset=args.instance_offset)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -162,6 +163,10 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--no-companion", action="store_true",
                     help="do not start the companion daemon: UDP 14540+i is free for your own (MAVSDK, MAVProxy)")
     la.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    la.add_argument("--instance-offset", type=int, default=0, metavar="K",
+                    help="link i takes PX4 SITL instance K+i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i, "
+                         "GCS from 18570+K+i; Zenoh base_port+K+g): a second fleet beside a first of n links "
+                         "needs K >= n (default 0)")
     la.set_defaults(func=_cmd_launch)
     return parser
 

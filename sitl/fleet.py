@@ -8,6 +8,8 @@
   ``companion.distributed`` one per group (``--group G``, run folder ``companion-gG``), joined
   over Zenoh on loopback (``tcp/127.0.0.1:7460+G-1``, clear of a local zenohd on 7447); ``[faults]`` can SIGKILL one of them
   mid-flight and start a new one later (folder ``companion-gG-restart``);
+* with ``--instance-offset K`` every one of these ports moves by K (link ``i`` is PX4 SITL
+  instance K+i; the system ids stay), so that two fleets can fly side by side;
 * the harness (this process): the same :class:`~sitl.runner.Plant` as batch mode, talking to each
   vehicle over its simulator link. Lockstep: at every firmware tick the harness sends HIL_GPS /
   SKELETON_AHRS_REFERENCE (when due) and HIL_SENSOR to every vehicle, waits until every vehicle
@@ -39,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.config import SITL_STATE_PORT, LinkEndpoint
 from companion.configfile import dump_toml
 from companion.fleetnet.config import new_users_file
 from companion.logstream import read_log_stream
@@ -59,7 +62,7 @@ from .runner import Plant, Schedule
 from .scenario import Scenario
 from .steplog import attach_truth, merge_step_logs
 
-__all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "endpoint_table", "launch"]
+__all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "check_instance_offset", "endpoint_table", "launch"]
 
 log = logging.getLogger(__name__)
 
@@ -76,17 +79,19 @@ class FleetError(RuntimeError):
     """The fleet could not run (a process died, a link stopped answering the simulator)."""
 
 
-def endpoint_table(sc: Scenario, host: str = "127.0.0.1") -> str:
+def endpoint_table(sc: Scenario, host: str = "127.0.0.1", instance_offset: int = 0) -> str:
+    k = instance_offset
     rows = [f"{'link':>4} | {'sysid':>5} | {'simulator (TCP)':>18} | {'onboard / companion (UDP)':>28} | {'GCS (UDP)':>17}",
             "-" * 86]
     for i in range(sc.skeleton.n_links):
-        rows.append(f"{i + 1:>4} | {i + 1:>5} | {host}:{4560 + i:>5}    | {host}:{14540 + i} <- :{14580 + i}"
-                    f"{'':>6} | {host}:14550 <- :{18570 + i}")
+        rows.append(f"{i + 1:>4} | {i + 1:>5} | {host}:{4560 + k + i:>5}    | {host}:{14540 + k + i} <- :{14580 + k + i}"
+                    f"{'':>6} | {host}:14550 <- :{18570 + k + i}")
     if sc.companion.distributed:
         for g, links in enumerate(sc.companion.group_layout(sc.skeleton.n_links)):
             rows.append(f"companion of group {g + 1} (links {links[0] + 1}-{links[-1] + 1}): Zenoh "
                         f"{sc.zenoh.group_endpoint(g)}, keys {sc.zenoh_prefix}/...")
-    rows.append("QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://127.0.0.1:14540+i (launch with --no-companion).")
+    rows.append(f"QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://127.0.0.1:{14540 + k}+i (launch with "
+                "--no-companion).")
     if sc.signing.active:
         rows.append(f"MAVLink 2 signing: onboard {sc.signing.link_mode('onboard')}, GCS {sc.signing.link_mode('gcs')}; "
                     f"key {sc.signing.key_file} (MAVProxy: signing key $(cat {sc.signing.key_file}))")
@@ -551,11 +556,28 @@ def check_fleet_scenario(sc: Scenario) -> None:
                          "fleet mode wires the simulated links itself: use a SITL config")
 
 
+def check_instance_offset(sc: Scenario, instance_offset: int) -> None:
+    """``ValueError`` unless a fleet shifted by ``instance_offset`` K keeps its companion ports
+    14540+K+i clear of the GCS port 14550 and below the vehicles' own 14580+ (PX4's layout leaves
+    room for 40 instances), and its impaired wire's 15540+K+i below 15580."""
+    n, k = sc.skeleton.n_links, instance_offset
+    first, last = SITL_STATE_PORT + k, SITL_STATE_PORT + k + n - 1
+    if k < 0 or last >= 14580 or first <= 14550 <= last:
+        raise ValueError(f"instance offset {k}: the companion ports of {n} links would be {first}-{last}; they must "
+                         f"miss the GCS port 14550 and stay below 14580 (K + n <= 10, or 11 <= K <= {40 - n})")
+
+
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
-           companion: bool = True, plots: bool = True) -> dict:
+           companion: bool = True, plots: bool = True, instance_offset: int = 0) -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
-    too unless ``plots`` is false)."""
+    too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
+    K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
+    18570+K+i, the impaired wire's 15540+K+i and 15580+K+i) and the group companions Zenoh's
+    ``base_port`` + K + g, so that fleets with offsets n apart run side by side on one host; the
+    system ids stay 1..n."""
     check_fleet_scenario(sc)
+    check_instance_offset(sc, instance_offset)
+    k = instance_offset
     out_dir.mkdir(parents=True, exist_ok=True)
     if sc.signing.active and not sc.signing.key_file:
         # A throwaway key for this run (never in the repository): the run folder holds it.
@@ -572,6 +594,13 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     link_config.write_text(dump_toml(sc.vehicle_setup()))
     anchor = tuple(float(x) for x in plant.start_center())
     companion_setup = sc.companion_setup()
+    if k:  # the companion listens where this fleet's vehicles send (its defaults are instance 0's)
+        cfg = companion_setup.companion
+        links = tuple(LinkEndpoint(e.system_id, f"udpin://127.0.0.1:{SITL_STATE_PORT + k + i}")
+                      for i, e in enumerate(cfg.endpoints(sc.skeleton.n_links)))
+        zc = companion_setup.zenoh
+        companion_setup = replace(companion_setup, companion=replace(cfg, links=links),
+                                  zenoh=zc if zc.endpoints else replace(zc, base_port=zc.base_port + k))
     if sc.companion.distributed and not sc.zenoh.users_file:
         # The companions authenticate to each other with throwaway credentials of this run: another
         # process on this host cannot join their Zenoh session (zenoh.users_file).
@@ -601,9 +630,12 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         argv = [python, "-m", "link_firmware_sim", "--config", str(link_config), "--instance", str(i),
                 "--out", str(out_dir / folder), "--log-rate", f"{sc.sim.log_rate_hz:g}",
                 # a restarted Pixhawk keeps its parameters (the first process's file)
-                "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json")]
-        if i in wired:  # its onboard traffic goes through the impaired wire
-            argv += ["--onboard-url", f"udpout://127.0.0.1:{WIRE_VEHICLE_SIDE + i}?bind={14580 + i}"]
+                "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json"),
+                "--sim-url", f"tcpin://127.0.0.1:{4560 + k + i}",
+                "--gcs-url", f"udpout://127.0.0.1:14550?bind={18570 + k + i}",
+                # its onboard traffic to the companion, or through the impaired wire
+                "--onboard-url", f"udpout://127.0.0.1:{(WIRE_VEHICLE_SIDE if i in wired else SITL_STATE_PORT) + k + i}"
+                                 f"?bind={14580 + k + i}"]
         procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
                     stdin_pipe=standby)
 
@@ -613,12 +645,12 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     try:
         if wired:
             m = faults.mavlink
-            pairs = [f"{WIRE_VEHICLE_SIDE + i}:{14540 + i}:{WIRE_COMPANION_SIDE + i}" for i in wired]
+            pairs = [f"{WIRE_VEHICLE_SIDE + k + i}:{SITL_STATE_PORT + k + i}:{WIRE_COMPANION_SIDE + k + i}" for i in wired]
             procs.start("wire", [python, "-m", "sitl.wire", *(a for p in pairs for a in ("--pair", p)),
                                  "--loss", f"{m.loss:g}", "--delay-ms", f"{m.delay_ms:g}", "--jitter-ms",
                                  f"{m.jitter_ms:g}", "--seed", str(sc.seed), "--stats", str(out_dir / "wire" / "wire_stats.json")],
                         out_dir / "wire" / "console.log")
-            _wait_udp_listening([WIRE_VEHICLE_SIDE + i for i in wired], procs, "the impaired wire")
+            _wait_udp_listening([WIRE_VEHICLE_SIDE + k + i for i in wired], procs, "the impaired wire")
         for i in range(n):
             start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         reboot = faults.link
@@ -637,15 +669,15 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             else:
                 start_companion(None, "companion")
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
-            _wait_udp_listening([14540 + i for i in range(n)], procs)
+            _wait_udp_listening([SITL_STATE_PORT + k + i for i in range(n)], procs)
         if sc.cameras:
             cameras = _start_cameras(sc, plant, out_dir, procs, python)
-        print(endpoint_table(sc), flush=True)
+        print(endpoint_table(replace(sc, zenoh=companion_setup.zenoh), instance_offset=k), flush=True)
         if cameras is not None:
             print(f"cameras: Zenoh {cameras.endpoint}, keys {cameras.prefix}/camera/<vehicle>/image "
                   f"(consumer: python -m companion.vision --config {out_dir / 'vision.toml'})", flush=True)
         try:
-            harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + i}" for i in range(n)], plant)
+            harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + k + i}" for i in range(n)], plant)
         except PortError as exc:
             procs.check()
             raise FleetError(str(exc)) from None
@@ -671,8 +703,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                     and t >= reboot.kill_at_s + reboot.restart_after_s):
                 link_fault.update(restarted_at_s=round(t, 3))
                 log.warning("fault: link %d's firmware powered on again at t = %.2f s", i + 1, t)
-            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + i in _bound_ports("tcp"):
-                harness.attach(i, f"tcpout://127.0.0.1:{4560 + i}")
+            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + k + i in _bound_ports("tcp"):
+                harness.attach(i, f"tcpout://127.0.0.1:{4560 + k + i}")
                 link_fault.update(rejoined_at_s=round(t, 3))
                 late = t - link_fault["restarted_at_s"]
                 (log.warning if late > 0.05 else log.info)(

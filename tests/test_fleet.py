@@ -26,7 +26,7 @@ from pymavlink import mavutil
 from companion.mavlink.dialect import load_dialect, tool_environment
 from companion.mavlink.port import MavlinkPort, wait_readable
 from companion.mavlink.signing import load_key, new_key_file
-from sitl.fleet import launch
+from sitl.fleet import check_instance_offset, launch
 from sitl.fly import fly
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 
@@ -249,11 +249,15 @@ def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_pa
 
 def test_standard_messages_mode_corrects_through_odometry(tmp_path):
     """Stock-PX4 mode: ODOMETRY in, corrections as external-vision ODOMETRY (MAV_FRAME_LOCAL_FRD),
-    on GPS time."""
+    on GPS time. The fleet runs as PX4 instances 11-13 (``--instance-offset 11``): every port
+    moves with it, the companion's too."""
     sc = load_scenario(THREE_LINK, duration_s=12.0)
     # as next to real Pixhawks: every link's clock mapped onto GPS time through SYSTEM_TIME
     sc = replace(sc, companion=replace(sc.companion, mode="standard", time_base="gps"))
-    m = launch(sc, tmp_path, speed=0.0)
+    for bad in (-1, 8, 38):  # 14548-14550 would take the GCS port; 14578-14580 a vehicle's own
+        with pytest.raises(ValueError, match="instance offset"):
+            check_instance_offset(sc, bad)
+    m = launch(sc, tmp_path, speed=0.0, instance_offset=11)
     assert not m["crashed"]
     assert m["constraint_pos_p95_m"]["after"] < 0.05 * m["constraint_pos_p95_m"]["before"]
     assert m["correction_latency_ms"]["samples"] > 100 and m["correction_latency_ms"]["p99"] <= 30.0
@@ -262,7 +266,8 @@ def test_standard_messages_mode_corrects_through_odometry(tmp_path):
     assert "SKELETON_LINK_STATE" not in comp["links"]["1"]["per_type"]
     assert comp["links"]["1"]["per_type"].get("SYSTEM_TIME", 0) >= 10 and comp["withheld_steps"] == 0
     link1 = json.loads((tmp_path / "link1" / "link1_ports.json").read_text())
-    onboard = next(v for k, v in link1.items() if k.startswith("udpout://127.0.0.1:14540"))
+    assert {"tcpin://127.0.0.1:4571", "udpout://127.0.0.1:14550?bind=18581", "udpout://127.0.0.1:14551?bind=14591"} < set(link1)
+    onboard = link1["udpout://127.0.0.1:14551?bind=14591"]
     assert onboard["per_type"].get("ODOMETRY", 0) > 100 and "SKELETON_CORRECTION" not in onboard["per_type"]
 
 
