@@ -78,8 +78,8 @@ def sitl_gps_time_us(sim_time_us: int) -> int:
 
 
 def _check(name: str, values) -> np.ndarray:
-    a = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(a)):
+    a = np.array(values, dtype=float)
+    if not np.isfinite(a).all():
         raise MessageError(f"{name}: non-finite value")
     return a
 
@@ -198,6 +198,6 @@ def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool):
 def decode_actuators(msg, thrust_max_n: float) -> tuple[int, np.ndarray]:
     """``(time_usec, thrust (8,) [N])``; non-finite controls are rejected."""
     u = msg.controls[:ROTORS_PER_LINK]
-    if not all(math.isfinite(x) for x in u):
+    if not all(map(math.isfinite, u)):
         raise MessageError("HIL_ACTUATOR_CONTROLS.controls: non-finite value")
     return int(msg.time_usec), np.array([min(max(x, -1.0), 1.0) * thrust_max_n for x in u])
