@@ -763,7 +763,7 @@ class CompanionEngine:
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
-        passive = self._passive_links()
+        passive = self._passive_links(now_s)
         if self.net is not None:
             self._publish_passive(passive)
             passive = passive | self._remote_passive_links()
@@ -780,10 +780,13 @@ class CompanionEngine:
         for lk in self.links:
             self._target_out(lk, self.fc_time_us, targets[lk.index])
 
-    def _passive_links(self) -> frozenset[int]:
+    def _passive_links(self, now_s: float) -> frozenset[int]:
         """The chain indices of this engine's links whose rotors are taken to be off: a link that
         has flown and is now silent ``carry_silence_s`` (its newest state that far behind the
-        median of the links' newest; the newest with fewer than three links), disarmed (its first
+        median of the links' newest, the newest with fewer than three links; and nothing from it
+        for ``carry_silence_s / clock_rate_max`` on the companion's own clock ``now_s``, so that a
+        link whose states keep arriving is not taken as silent because another link's stamps were
+        forged ahead, as they can be in a group of two), disarmed (its first
         report after a silence, else :data:`DISARMED_STATES` reports in a row; not believed while
         its stream has had replayed or future stamps within ``reboot_silence_s``), or
         heard armed again for less than ``carry_spinup_s`` (its
@@ -797,9 +800,10 @@ class CompanionEngine:
         # forged ahead (within the stamp margin) does not move for the others; with fewer than
         # three links (a group's engine) the cycle clock, the newest stamp
         t = float(np.median(heard)) if len(heard) >= 3 else self.fc_time_us * 1e-6
+        quiet_s = cfg.carry_silence_s / cfg.clock_rate_max  # the same silence, on the companion's clock
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s
-            silent = lag >= cfg.carry_silence_s
+            silent = lag >= cfg.carry_silence_s and (lk.last_state_s is None or now_s - lk.last_state_s >= quiet_s)
             # disarmed: the first report after a silence says, otherwise DISARMED_STATES reports in
             # a row (a lone forged one on an unsigned wire does not)
             # (not while its stream carries replayed or future stamps: then some of it is forged)

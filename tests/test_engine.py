@@ -266,25 +266,28 @@ def test_a_link_without_rotors_is_carried_by_its_neighbours(n, down):
     assert abs(ff[down - 1][2]) < 1e-6 * weight
 
 
-def test_forged_states_of_one_link_carry_no_link():
+@pytest.mark.parametrize("n", [2, 3])
+def test_forged_states_of_one_link_carry_no_link(n):
     """An unsigned wire's forger sends plausible states of link 2 stamped 0.08 s ahead and
-    reporting it disarmed, between its real (armed) ones: the others do not fall behind the
-    median of the chain's stamps, a lone disarmed report is not believed, so nothing is carried."""
+    reporting it disarmed, between its real (armed) ones: with three links or more the others do
+    not fall behind the median of the chain's stamps; with two (a group's engine) the other falls
+    behind link 2's forged stamps, but it has not been silent on the companion's own clock (its
+    states keep arriving); a lone disarmed report is not believed. So nothing is carried."""
     pytest.importorskip("pinocchio")
-    setup = setup_for(3)
+    setup = setup_for(n)
     setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True))
     engine = CompanionEngine(setup)
     flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
     t = 0.0
     for k in range(150):
         t = round(t + 0.02, 6)
-        for r in range(3):
-            engine.on_state(r, straight_state(r, 3, t), flying, t)
+        for r in range(n):
+            engine.on_state(r, straight_state(r, n, t), flying, t)
         if k > 50 and k % 2:
-            engine.on_state(1, straight_state(1, 3, t + 0.08), STATE_FLAG_EKF_OK, t)  # forged: ahead, disarmed
+            engine.on_state(1, straight_state(1, n, t + 0.08), STATE_FLAG_EKF_OK, t)  # forged: ahead, disarmed
         out = of(TargetOut, engine.poll(t))
         assert all(np.abs(o.target.force_ff_w_n).max() < 1e-6 for o in out), k
-    assert all(engine.summary()["links"][str(i)]["carried_s"] == 0.0 for i in (1, 2, 3))
+    assert all(engine.summary()["links"][str(i + 1)]["carried_s"] == 0.0 for i in range(n))
 
 
 def test_disabled_companion_logs_the_ekf_states_and_corrects_nothing():
