@@ -56,7 +56,7 @@ from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
 from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 
-from .metrics import PAPER_THREE_LINK, compute_metrics, reboot_timeline, vehicle_down_windows
+from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
 from .runner import Plant, Schedule
 from .scenario import Scenario
@@ -772,6 +772,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                    missing_flight_logs=missing)
     if sc.companion.distributed and companion and sc.companion.enabled:
         metrics["distributed"] = _distributed_metrics(sc, merged, _companion_summaries(out_dir), fault_log)
+    if sc.trajectory.feedforward and companion and sc.companion.enabled:
+        metrics["carrying"] = carrying_metrics(_companion_summaries(out_dir))
     metrics["mavlink"] = mavlink_counters(out_dir)
     report = _fault_report(sc, merged, out_dir, link_fault, wired)
     if report:

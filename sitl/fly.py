@@ -19,7 +19,7 @@ import numpy as np
 from companion.configfile import dump_toml
 from companion.trajectory import CpgChainTrajectory
 
-from .metrics import PAPER_THREE_LINK, compute_metrics, reboot_timeline, vehicle_down_windows
+from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
 from .runner import BatchRunner
 from .scenario import Scenario
@@ -72,6 +72,9 @@ def fly(
             "link": sc.faults.gps.link, "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}
     if runner.link_fault:
         metrics.setdefault("faults", {})["link_reboot"] = reboot_timeline(runner.link_fault, arrays)
+    if sc.trajectory.feedforward and sc.companion.enabled:
+        metrics["carrying"] = carrying_metrics({"companion" if e.group is None else f"companion-g{e.group + 1}": e.summary()
+                                                for e in runner.engines})
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     metrics.update(vision.metrics())

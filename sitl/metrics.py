@@ -58,7 +58,7 @@ from companion.estimation.so3 import attitude_error
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
            "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
-           "correlation_time", "static_metrics"]
+           "correlation_time", "static_metrics", "carrying_metrics"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
 #: the constraint error after SCKF ("under 5 cm and 2 cm/s").
@@ -325,6 +325,25 @@ def uncorrected_metrics(t: np.ndarray, corrected: np.ndarray, nis_max: np.ndarra
         if finite.size:
             out["gate_nis_max"] = {"p50": float(np.percentile(finite, 50)), "p99": float(np.percentile(finite, 99)),
                                    "max": float(finite.max())}
+    return out
+
+
+def carrying_metrics(summaries: dict[str, dict]) -> dict:
+    """``carrying``: how long the companions carried each link (its rotors taken to be off, the
+    whole-chain feed-forward giving its weight to its neighbours), from their summaries (``name``
+    -> summary; a restarted companion's time is added to its predecessor's): ``carried_s`` per
+    link (system id) by its own group's companion, and ``carried_by_other_groups_s`` per
+    companion (distributed mode: the other groups' links it carried on their word)."""
+    own: dict[str, float] = {}
+    others: dict[str, dict] = {}
+    for name, summ in summaries.items():
+        for sysid, entry in (summ.get("links") or {}).items():
+            own[sysid] = round(own.get(sysid, 0.0) + float(entry.get("carried_s", 0.0)), 3)
+        if summ.get("carried_by_other_groups_s"):
+            others[name] = summ["carried_by_other_groups_s"]
+    out: dict = {"carried_s": dict(sorted(own.items(), key=lambda kv: int(kv[0])))}
+    if others:
+        out["carried_by_other_groups_s"] = others
     return out
 
 

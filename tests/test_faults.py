@@ -274,6 +274,12 @@ def test_batch_link_reboot_in_distributed_mode_the_next_groups_companion_carries
     off its targets, when only link 2's own group carried it)."""
     m, log, tilt = _reboot_flight(tmp_path, 0.5, distributed=True, groups=((1,), (2, 3)))
     assert not m["crashed"], m["crash_reason"]
+    # carried by its own group's companion from the silence until its rotors run again, and by
+    # group 1's for as long (a target period or two later); nothing else carried
+    carrying = m["carrying"]
+    assert 0.5 < carrying["carried_s"]["2"] < 1.0 and carrying["carried_s"]["1"] == carrying["carried_s"]["3"] == 0.0
+    assert carrying["carried_by_other_groups_s"] == {
+        "companion-g1": {"2": pytest.approx(carrying["carried_s"]["2"], abs=0.05)}}
     after = log["t"] >= 9.0
     assert np.nanmax(tilt[after][:, [0, 2]]) < 20.0
     assert np.nanmax(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[after]) < 0.35

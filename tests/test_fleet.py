@@ -369,6 +369,7 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     # the 10 % lossy wire (about once in 20 s per link)
     carried = [comp["links"][str(i)]["carried_s"] for i in (1, 2, 3)]
     assert 1.2 < carried[1] < 2.0 and carried[0] < 0.3 and carried[2] < 0.3, carried
+    assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)}}  # in the metrics too
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
