@@ -193,6 +193,33 @@ class HealthDue:
 
 
 @dataclass
+class CarryClock:
+    """How long a link has been carried (its rotors taken to be off), on the time base: the
+    stretches so far and the one going on."""
+
+    total_s: float = 0.0
+    since_s: float | None = None
+
+    @property
+    def on(self) -> bool:
+        return self.since_s is not None
+
+    def switch(self, on: bool, t: float) -> float | None:
+        """Start or end a stretch at ``t``; the length of the one that ended (``None``: none)."""
+        if on and self.since_s is None:
+            self.since_s = t
+        elif not on and self.since_s is not None:
+            ended, self.since_s = t - self.since_s, None
+            self.total_s += ended
+            return ended
+        return None
+
+    def seconds(self, t: float) -> float:
+        """Carried so far, a stretch still going on included (to ``t``)."""
+        return self.total_s + (t - self.since_s if self.since_s is not None else 0.0)
+
+
+@dataclass
 class LinkTrack:
     """What the engine knows of one link (``index`` in the chain, ``row`` in this engine)."""
 
@@ -230,16 +257,14 @@ class LinkTrack:
     status: str = ""
     readmit_cycles: int = 0
     #: it has been armed for ``carry_spinup_s`` (it has flown); since when it reports armed;
-    #: passive: its rotors taken to be off (``carry_silence_s``, ``carry_spinup_s``)
+    #: carried: its rotors taken to be off (``carry_silence_s``, ``carry_spinup_s``)
     flown: bool = False
     armed_since_s: float | None = None
     disarmed_states: int = 0  # accepted states in a row that report it disarmed
     believed_armed: bool = False
     after_silence: bool = False
     stamp_rejected_s: float = -np.inf  # the last replayed or future state, on the time base
-    passive: bool = False
-    passive_s: float = 0.0  # time with its rotors taken to be off [s], on the time base
-    passive_since_s: float | None = None
+    carried: CarryClock = field(default_factory=CarryClock)
 
     def to_link_clock_us(self, t_us: int) -> int:
         return t_us - (self.offset_us or 0)
@@ -330,7 +355,7 @@ class CompanionEngine:
         self._remote_passive: dict[int, GroupPassiveLinks] = {}
         self._passive_sent: tuple[tuple[int, ...], int] | None = None
         self.passive_counts = {"published": 0, "received": 0, "rejected": 0}
-        self._remote_carried: dict[int, list] = {}  # link -> [seconds carried, since (s) or None]
+        self._remote_carried: dict[int, CarryClock] = {}  # another group's link -> its carrying here
         self._leader_targets_s = -np.inf
         self._forwarded_time_us = -1
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
@@ -826,17 +851,14 @@ class CompanionEngine:
             spinning = armed and not silent and t - lk.armed_since_s >= cfg.carry_spinup_s
             lk.flown = lk.flown or spinning
             passive = lk.flown and (silent or not spinning)
-            if passive != lk.passive:
-                lk.passive = passive
-                if passive:
-                    lk.passive_since_s = t
-                    why = "silent" if silent else "disarmed in flight" if not armed else "re-armed, rotors starting"
-                    log.warning("link %d: %s at %.2f s: its neighbours carry it (whole-chain feed-forward)",
-                                lk.index + 1, why, t)
-                else:
-                    lk.passive_s += t - lk.passive_since_s
-                    log.warning("link %d: flies itself again at %.2f s, after %.2f s carried", lk.index + 1, t,
-                                t - lk.passive_since_s)
+            was = lk.carried.on
+            ended = lk.carried.switch(passive, t)
+            if passive and not was:
+                why = "silent" if silent else "disarmed in flight" if not armed else "re-armed, rotors starting"
+                log.warning("link %d: %s at %.2f s: its neighbours carry it (whole-chain feed-forward)",
+                            lk.index + 1, why, t)
+            elif ended is not None:
+                log.warning("link %d: flies itself again at %.2f s, after %.2f s carried", lk.index + 1, t, ended)
             if passive:
                 out.add(lk.index)
         return frozenset(out)
@@ -891,24 +913,18 @@ class CompanionEngine:
             if self.net.alive(g) and self._passive_current(msg):
                 out.update(msg.links)
         t = t_us * 1e-6
-        for i in out | {i for i, rec in self._remote_carried.items() if rec[1] is not None}:
-            rec = self._remote_carried.setdefault(i, [0.0, None])
-            if i in out and rec[1] is None:
-                rec[1] = t
+        for i in out | {i for i, clock in self._remote_carried.items() if clock.on}:
+            clock = self._remote_carried.setdefault(i, CarryClock())
+            was = clock.on
+            if clock.switch(i in out, t) is not None:
+                log.warning("link %d (group %d) flies itself again at %.2f s", i + 1, self._group_of(i) + 1, t)
+            elif clock.on and not was:
                 log.warning("link %d (group %d) carried at %.2f s: its rotors are off (its group's companion says)",
                             i + 1, self._group_of(i) + 1, t)
-            elif i not in out and rec[1] is not None:
-                rec[0] += t - rec[1]
-                rec[1] = None
-                log.warning("link %d (group %d) flies itself again at %.2f s", i + 1, self._group_of(i) + 1, t)
         return frozenset(out)
 
     def _group_of(self, link: int) -> int:
         return next(g for g, members in enumerate(self.groups) if link in members)
-
-    def _carried_s(self, lk: LinkTrack) -> float:
-        """How long ``lk`` has been carried, a carry still going on included (to the cycle clock)."""
-        return lk.passive_s + (self.fc_time_us * 1e-6 - lk.passive_since_s if lk.passive else 0.0)
 
     def _trajectory_start_us(self) -> int:
         """Where trajectory time starts on the time base: 0 for distributed companions on the links'
@@ -988,14 +1004,13 @@ class CompanionEngine:
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,
-                                          "carried_s": round(self._carried_s(lk), 3),
+                                          "carried_s": round(lk.carried.seconds(self.fc_time_us * 1e-6), 3),
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.target_counts)} if self._net_targets else {}),
             **({"carried_by_other_groups_s": {
-                str(self.setup.companion.endpoints(self.n)[i].system_id):
-                    round(rec[0] + (self.fc_time_us * 1e-6 - rec[1] if rec[1] is not None else 0.0), 3)
-                for i, rec in sorted(self._remote_carried.items())},
+                str(self.cfg.endpoints(self.n)[i].system_id): round(clock.seconds(self.fc_time_us * 1e-6), 3)
+                for i, clock in sorted(self._remote_carried.items())},
                 "carried_links_messages": dict(self.passive_counts)} if self.net is not None else {}),
         }
 
