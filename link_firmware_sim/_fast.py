@@ -48,6 +48,7 @@ __all__ = [
     "attitude_update_kernel",
     "impedance_kernel",
     "allocate_kernel",
+    "ALLOC_META",
     "tick_kernel",
     "TICK_OUT",
     "packed",
@@ -501,51 +502,144 @@ def impedance_kernel(p, v, q, w, tgt, gains, inertia, pos, att, dt_s, gravity, o
 
 
 @jit
-def _modulate_side(b, xi_pre, eps1, tol):
-    """allocation._modulate_side: the exact solution of (2.15) for one side."""
+def _below_margin(b, x, thr):
+    c = 0
+    for k in range(4):
+        if abs(b[k] + x) < thr:
+            c += 1
+    return c
+
+
+_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+
+
+@jit
+def _modulate_side(b, xi_pre, eps1, tmax, tol):
+    """allocation._modulate_side: the exact solution of (2.15) for one side, within ``tmax``."""
     thr = eps1 - tol
-    cnt = 0
-    for i in range(4):
-        if abs(b[i] + xi_pre) < thr:
-            cnt += 1
-    if cnt <= 1:
+    bmin = min(min(b[0], b[1]), min(b[2], b[3]))
+    bmax = max(max(b[0], b[1]), max(b[2], b[3]))
+    lo = -tmax - bmin
+    hi = tmax - bmax
+    if lo > hi:
+        return 0.0
+    if lo <= xi_pre <= hi and _below_margin(b, xi_pre, thr) <= 1:
         return xi_pre
     best = np.inf
     best_d = np.inf
-    for i in range(4):
-        for sgn in (-1.0, 1.0):
-            x = -b[i] + sgn * eps1
-            d = abs(x - xi_pre)
-            if d < best_d or (d == best_d and x < best):
-                c = 0
-                for k in range(4):
-                    if abs(b[k] + x) < thr:
-                        c += 1
-                if c <= 1:
-                    best = x
-                    best_d = d
+    for k in range(10):
+        if k < 8:
+            x = -b[k // 2] + (eps1 if k % 2 else -eps1)
+        else:
+            x = lo if k == 8 else hi
+            if not math.isfinite(x):
+                continue
+        d = abs(x - xi_pre)
+        if lo <= x <= hi and (d < best_d or (d == best_d and x < best)) and _below_margin(b, x, thr) <= 1:
+            best = x
+            best_d = d
+    if best_d == np.inf:
+        return _least_within_margin(b, xi_pre, lo, hi)
     return best
 
 
 @jit
-def allocate_kernel(U, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, out, meta):
-    """Allocator.allocate: ``out`` (5, 8) rows command, lambda_o, lambda_alpha, lambda_beta,
-    lambda_gamma; ``meta`` = (e_r, e_l, near_r, near_l, saturated); ``xi_pre`` (2,) is updated."""
-    lo = out[1]
+def _second_smallest_magnitude(b, x):
+    m1 = np.inf
+    m2 = np.inf
+    for k in range(4):
+        v = abs(b[k] + x)
+        if v < m1:
+            m2 = m1
+            m1 = v
+        elif v < m2:
+            m2 = v
+    return m2
+
+
+@jit
+def _least_within_margin(b, xi_pre, lo, hi):
+    """allocation._least_within_margin (the same candidates in the same order)."""
+    best = lo
+    best_f = -np.inf
+    best_d = np.inf
+    for k in range(12):
+        if k == 0:
+            x = lo
+        elif k == 1:
+            x = hi
+        elif k < 6:
+            x = -b[k - 2]
+        else:
+            i, j = _PAIRS[k - 6]
+            x = -(b[i] + b[j]) * 0.5
+        if not (lo <= x <= hi):
+            continue
+        f = _second_smallest_magnitude(b, x)
+        d = abs(x - xi_pre)
+        if f > best_f or (f == best_f and (d < best_d or (d == best_d and x < best))):
+            best = x
+            best_f = f
+            best_d = d
+    return best
+
+
+#: the size of :func:`allocate_kernel`'s ``meta``
+ALLOC_META = 12
+
+
+@jit
+def _side_range(lam, nu, o):
+    """``(min, max)`` of side ``o``'s (0 or 4) ``diag(nu) lambda``."""
+    mx = -np.inf
+    mn = np.inf
+    for i in range(4):
+        val = nu[i] * lam[o + i]
+        mx = max(mx, val)
+        mn = min(mn, val)
+    return mn, mx
+
+
+@jit
+def _pinv_times(B_pinv, U, lo):
+    """``lo = B^+ U``."""
     for i in range(8):
         s = 0.0
         for k in range(6):
             s += B_pinv[i, k] * U[k]
         lo[i] = s
+
+
+@jit
+def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit, tol, out,
+                    meta):
+    """Allocator.allocate: ``out`` (5, 8) rows command, lambda_o, lambda_alpha, lambda_beta,
+    lambda_gamma; ``meta`` (:data:`ALLOC_META`) = (e_r, e_l, near_r, near_l, saturated, scale,
+    the wrench allocated (6)); ``xi_pre`` (2,) is updated."""
+    U = np.empty(6)
+    for k in range(6):
+        U[k] = U_in[k]
+    lo = out[1]
+    _pinv_times(B_pinv, U, lo)
+    scale = 1.0
+    xi_limit = np.inf
+    if scale_to_limit:  # allocation.scaled_to_limit: the wider side's spread is twice Prop. 1's norm
+        xi_limit = tmax
+        mn_r, mx_r = _side_range(lo, nu, 0)
+        mn_l, mx_l = _side_range(lo, nu, 4)
+        spread = max(mx_r - mn_r, mx_l - mn_l)
+        if spread > 2.0 * tmax:
+            scale = 2.0 * tmax / spread
+            for k in range(6):
+                U[k] = scale * U_in[k]
+            _pinv_times(B_pinv, U, lo)
+    meta[5] = scale
+    for k in range(6):
+        meta[6 + k] = U[k]
     b = np.empty(8)
     for side in range(2):
         o = 4 * side
-        mx = -np.inf
-        mn = np.inf
-        for i in range(4):
-            val = nu[i] * lo[o + i]
-            mx = max(mx, val)
-            mn = min(mn, val)
+        mn, mx = _side_range(lo, nu, o)
         xi1 = -0.5 * (mx + mn)  # (2.12)
         for i in range(4):
             b[o + i] = nu[i] * lo[o + i] + xi1
@@ -561,7 +655,7 @@ def allocate_kernel(U, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, se
     else:
         for side in range(2):
             o = 4 * side
-            xi2 = _modulate_side(b[o:o + 4], xi_pre[side], eps1, tol)  # (2.15)
+            xi2 = _modulate_side(b[o:o + 4], xi_pre[side], eps1, xi_limit, tol)  # (2.15)
             xi_pre[side] = xi2
             mags = np.empty(4)
             for i in range(4):
@@ -589,7 +683,7 @@ def allocate_kernel(U, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, se
                     out[4, o + i] = s + e * (out[3, o + i] - s)
                 meta[2 + side] = j + o
             meta[side] = e
-    sat = 0.0
+    sat = 0.0 if scale == 1.0 else 1.0
     for i in range(8):
         g = out[4, i]
         out[0, i] = min(max(g, -tmax), tmax)
@@ -617,7 +711,8 @@ def pack_correction(correction) -> np.ndarray:
 
 @jit
 def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
-                inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, out):
+                inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                scale_to_limit, tol, out):
     """The fast loop's tick in one call, with the operations of the functions it fuses in their
     order: if ``predict``, :func:`ekf_predict_kernel` (paper eq. 2's propagation; else ``x, P`` are
     already propagated and updated), the control estimate (EKF output
@@ -662,8 +757,8 @@ def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravi
     out[24] = 1.0 if finite else 0.0
     if finite:
         alloc = np.empty((5, 8))
-        allocate_kernel(ctrl[:6], B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, tol, alloc,
-                        np.empty(5))
+        allocate_kernel(ctrl[:6], B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit,
+                        tol, alloc, np.empty(ALLOC_META))
         for i in range(8):
             out[i] = alloc[0, i]
     return xn, Pn

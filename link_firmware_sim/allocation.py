@@ -64,6 +64,7 @@ __all__ = [
     "reduced_pseudo_inverse",
     "reduced_pseudo_inverses",
     "infinity_norm_allocation",
+    "scaled_to_limit",
     "selective_modulation",
     "selective_mapping_weights",
     "gradual_selective_mapping",
@@ -97,6 +98,10 @@ class AllocationParams:
         Thrust margin of (2.15) and the threshold above which a rotor is fully used (``e = 1``) [N].
     selective_mapping : bool
         ``False``: command ``lambda_alpha`` (Prop. 1 only), skipping (2.15) and (2.17).
+    scale_to_limit : bool
+        A wrench beyond the rotors' limit: allocate the largest multiple of it they can produce
+        (:func:`scaled_to_limit`), and keep (2.15)'s modulation within the limit. ``False``: the
+        thesis as written, commands clipped rotor by rotor.
 
     Requires ``0 < eps0_n < eps1_n < thrust_max_n`` (all finite).
     """
@@ -105,6 +110,7 @@ class AllocationParams:
     eps0_n: float = 0.3
     eps1_n: float = 0.8
     selective_mapping: bool = True
+    scale_to_limit: bool = True
 
     def __post_init__(self) -> None:
         vals = (self.thrust_max_n, self.eps0_n, self.eps1_n)
@@ -144,7 +150,13 @@ class AllocationResult:
         0-based index of the near-zero rotor of each side (``0..3``, ``4..7``), ``-1`` if no
         rotor of that side is below ``eps1`` (or selective mapping is off).
     saturated : bool
-        Whether any unclipped thrust exceeded ``thrust_max_n`` in magnitude (the command was clipped).
+        Whether the wrench asked for was beyond the rotors (scaled, ``scale``) or any unclipped
+        thrust exceeded ``thrust_max_n`` in magnitude (the command was clipped).
+    wrench : ndarray, shape (6,)
+        The wrench allocated: ``U``, or with ``scale_to_limit`` the multiple of it the rotors can
+        produce.
+    scale : float
+        ``s`` of :func:`scaled_to_limit` (1: all of ``U``).
     """
 
     command_n: np.ndarray
@@ -155,6 +167,8 @@ class AllocationResult:
     e: tuple[float, float]
     near_zero: tuple[int, int]
     saturated: bool
+    wrench: np.ndarray
+    scale: float = 1.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -238,25 +252,81 @@ def infinity_norm_allocation(
     return lambda_o, xi_prime, lambda_alpha
 
 
-def _modulate_side(b: Sequence[float], xi_pre: float, eps1: float) -> float:
-    """Exact solution of (2.15) for one side; see :func:`selective_modulation`.
+def scaled_to_limit(B_pinv: np.ndarray, U: np.ndarray, tmax: float, nu: np.ndarray = NU) -> tuple[np.ndarray, float]:
+    """The largest multiple ``s U`` (``0 < s <= 1``) of the wrench ``U`` that the rotors can produce
+    (an addition to the thesis, whose commands are clipped rotor by rotor): ``(s U, s)``.
+
+    ``U`` is feasible (some ``lambda`` with ``B lambda = U`` and every ``|lambda_i| <= tmax``) iff
+    Prop. 1's minimum infinity norm is within ``tmax``, i.e. iff on each side the spread
+    ``max - min`` of ``diag(nu) B^+ U`` is at most ``2 tmax`` (2.12). The spread is homogeneous in
+    ``U``, so ``s = 2 tmax / spread`` of the wider side, and a feasible ``U`` is returned as it is
+    (``s = 1``). The wrench keeps its direction: force and torque give way in proportion.
+
+    Why: clipping rotor by rotor distorts the wrench (part of the torque lost, a side force
+    gained; 5-15 % of the pitch torque of a tilted link at 110 % of its limit). In ``three_link``
+    with link 2 unpowered and carried, each neighbour holds half of its weight at its joint,
+    0.5 m from its centre: 96 % of the 8 N rotors' limit when level. Clipped, the neighbours
+    tipped 10-75 deg and the lowest link fell to 0.71-2.32 m (12 fleet runs); scaled, 6-20 deg
+    and 1.96-2.31 m (30 runs). The torque first, then the force (PX4's multicopter order) held
+    the attitude but spent lift on it: 1.71-1.91 m.
+    """
+    U = np.asarray(U, dtype=float)
+    spread = float(np.max(np.ptp((np.asarray(B_pinv, dtype=float) @ U).reshape(2, N_SIDE) * np.asarray(nu, dtype=float),
+                                 axis=1)))
+    if spread <= 2.0 * tmax:
+        return U, 1.0
+    scale = 2.0 * tmax / spread
+    return scale * U, scale
+
+
+def _modulate_side(b: Sequence[float], xi_pre: float, eps1: float, tmax: float = math.inf) -> float:
+    """Exact solution of (2.15) for one side, within the thrust limit; see :func:`selective_modulation`.
 
     ``b[i] = nu_i lambda_{o,i} + xi'`` (the nu-scaled ``lambda_alpha`` of the side, 2.14), so
     rotor ``i`` is clear of the margin iff ``|b_i + xi''| >= eps1``: it forbids the open
-    interval of ``xi''`` of half-width ``eps1`` centred at ``-b_i``.
+    interval of ``xi''`` of half-width ``eps1`` centred at ``-b_i``. Every rotor stays within
+    ``tmax`` iff ``lo = -tmax - min(b) <= xi'' <= tmax - max(b) = hi``.
     """
     thr = eps1 - MARGIN_TOL_N
-    if sum(abs(bi + xi_pre) < thr for bi in b) <= 1:
+    lo, hi = -tmax - min(b), tmax - max(b)
+    if lo > hi:
+        return 0.0  # beyond the limit even at Prop. 1's optimum (xi'' = 0): the least saturated
+    if lo <= xi_pre <= hi and sum(abs(bi + xi_pre) < thr for bi in b) <= 1:
         return xi_pre  # feasible: no needless motion
-    # Otherwise the closest feasible point is an endpoint of a forbidden interval (the
-    # infeasible set is a union of pairwise intersections of open intervals); the largest
-    # endpoint is always feasible. Exact ties go to the smaller xi''.
+    # Otherwise the closest feasible point is an endpoint of a forbidden interval or of the
+    # limit's interval (the feasible set is a union of closed intervals with such endpoints).
+    # Exact ties go to the smaller xi''.
     best = best_d = math.inf
-    for bi in b:
-        for x in (-bi - eps1, -bi + eps1):
-            d = abs(x - xi_pre)
-            if (d < best_d or (d == best_d and x < best)) and sum(abs(bk + x) < thr for bk in b) <= 1:
-                best, best_d = x, d
+    ends = [x for bi in b for x in (-bi - eps1, -bi + eps1)] + [x for x in (lo, hi) if math.isfinite(x)]
+    for x in ends:
+        d = abs(x - xi_pre)
+        if lo <= x <= hi and (d < best_d or (d == best_d and x < best)) and sum(abs(bk + x) < thr for bk in b) <= 1:
+            best, best_d = x, d
+    if best_d == math.inf:
+        return _least_within_margin(b, xi_pre, lo, hi)
+    return best
+
+
+def _second_smallest_magnitude(b: Sequence[float], x: float) -> float:
+    """The second-smallest ``|b_i + x|`` of a side: (2.17) fades only the smallest."""
+    return sorted(abs(bi + x) for bi in b)[1]
+
+
+def _least_within_margin(b: Sequence[float], xi_pre: float, lo: float, hi: float) -> float:
+    """``xi''`` in ``[lo, hi]`` where no point has three rotors clear of the margin: the point
+    that takes the second-nearest-zero rotor furthest from zero (the nearest one (2.17) fades
+    out), ties to the point nearest ``xi_pre``, then the smaller.
+
+    The objective is piecewise linear in ``xi''`` with kinks at ``-b_i`` and at the midpoints
+    ``-(b_i + b_j) / 2``, so its maximum over ``[lo, hi]`` is at one of these or at an end."""
+    ends = [lo, hi] + [-bi for bi in b] + [-(b[i] + b[j]) * 0.5 for i in range(N_SIDE) for j in range(i + 1, N_SIDE)]
+    best, best_f, best_d = lo, -math.inf, math.inf
+    for x in ends:
+        if not lo <= x <= hi:
+            continue
+        f, d = _second_smallest_magnitude(b, x), abs(x - xi_pre)
+        if f > best_f or (f == best_f and (d < best_d or (d == best_d and x < best))):
+            best, best_f, best_d = x, f, d
     return best
 
 
@@ -274,12 +344,14 @@ def _side_weight(mags: Sequence[float], eps0: float, eps1: float) -> tuple[float
 
 
 def selective_modulation(
-    lambda_o: np.ndarray, xi_prime: np.ndarray, xi_pre: np.ndarray, nu: np.ndarray, eps1: float
+    lambda_o: np.ndarray, xi_prime: np.ndarray, xi_pre: np.ndarray, nu: np.ndarray, eps1: float,
+    tmax: float = math.inf,
 ) -> np.ndarray:
     """Null-space modulation ``xi''`` of (2.15), solved exactly (pure function).
 
     Per side ``s``: ``xi''_s = argmin |xi''_s - xi''_{s,pre}|`` subject to at least three of
-    the four rotors having ``|lambda_{o,s,i} + nu_i (xi'_s + xi''_s)| >= eps1``.
+    the four rotors having ``|lambda_{o,s,i} + nu_i (xi'_s + xi''_s)| >= eps1`` and, an addition
+    to the thesis, every rotor ``|lambda_{o,s,i} + nu_i (xi'_s + xi''_s)| <= tmax``.
 
     By (2.14) each rotor forbids the open interval ``|xi'' - c_i| < eps1``,
     ``c_i = -(nu_i lambda_{o,s,i} + xi'_s)``; the feasible set is where at most one interval
@@ -318,12 +390,19 @@ def selective_modulation(
       jump (by up to about ``2 eps1``); the near-zero rotor then changes.
     * Nothing pulls ``xi''`` back to 0: after a modulation, ``lambda_beta`` stays off the
       infinity-norm optimum ``lambda_alpha`` until the constraint pushes it again (this follows
-      (2.15) literally).
+      (2.15) literally). Up to about ``2 eps1`` off it: near full load that would push a rotor
+      past ``tmax`` where ``lambda_alpha`` fits (the ESC command is clipped, and the wrench with
+      it). So the limit bounds ``xi''`` too (``tmax``; ``inf``: the thesis's (2.15) alone):
+      where no point within the limit has three rotors clear of ``eps1``, the limit wins: the
+      point within it that takes the second-nearest-zero rotor furthest from zero ((2.17)
+      fades the nearest out; the other is left below the margin); beyond the
+      limit even at ``xi'' = 0`` (an infeasible wrench, see :func:`scaled_to_limit`),
+      ``xi'' = 0``, the optimum.
     """
     b = np.asarray(lambda_o, dtype=float).reshape(2, N_SIDE) * np.asarray(nu, dtype=float)
     b = b + np.asarray(xi_prime, dtype=float).reshape(2, 1)
     xi_pre = np.asarray(xi_pre, dtype=float).reshape(2)
-    return np.array([_modulate_side(b[s].tolist(), float(xi_pre[s]), float(eps1)) for s in range(2)])
+    return np.array([_modulate_side(b[s].tolist(), float(xi_pre[s]), float(eps1), float(tmax)) for s in range(2)])
 
 
 def selective_mapping_weights(
@@ -464,6 +543,8 @@ class Allocator:
         self._eps0 = float(params.eps0_n)
         self._eps1 = float(params.eps1_n)
         self._tmax = float(params.thrust_max_n)
+        self._scale_to_limit = bool(params.scale_to_limit)
+        self._xi_limit = self._tmax if self._scale_to_limit else math.inf  # (2.15) within the limit
         self._xi_pre = np.zeros(2)
         self._compiled = _fast.ENABLED if compiled is None else bool(compiled)
 
@@ -494,8 +575,10 @@ class Allocator:
     def allocate(self, U: np.ndarray) -> AllocationResult:
         """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
 
-        Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15) (updating ``xi''_pre``)
-        and the gradual selective mapping (2.17); clips to ``+-thrust_max_n``.
+        With ``scale_to_limit``, first the multiple of ``U`` the rotors can produce
+        (:func:`scaled_to_limit`). Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15)
+        (updating ``xi''_pre``; within the limit with ``scale_to_limit``) and the gradual
+        selective mapping (2.17); clips to ``+-thrust_max_n``.
 
         Raises
         ------
@@ -507,9 +590,13 @@ class Allocator:
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
         if self._compiled:
             return self._allocate_compiled(U)
+        tmax = self._tmax
+        scale = 1.0
+        if self._scale_to_limit:
+            U, scale = scaled_to_limit(self._B_pinv, U, tmax)
+        scaled = scale != 1.0
         lam_o = self._B_pinv @ U
         lo = lam_o.tolist()
-        tmax = self._tmax
         # Per side, b_i = nu_i lambda_{o,i} + xi' is the nu-scaled lambda_alpha (2.12), (2.14):
         # lambda_alpha_i = nu_i b_i, and lambda_beta_i = nu_i (b_i + xi'') (2.15).
         nu = _NU_LIST
@@ -531,7 +618,9 @@ class Allocator:
                 lambda_gamma=lam_alpha,
                 e=(1.0, 1.0),
                 near_zero=(-1, -1),
-                saturated=max(map(abs, alpha)) > tmax,
+                saturated=scaled or max(map(abs, alpha)) > tmax,
+                wrench=U,
+                scale=scale,
             )
         beta: list[float] = []
         gamma: list[float] = []
@@ -539,7 +628,7 @@ class Allocator:
         near = []
         xi_pre = self._xi_pre.tolist()
         for s, b in enumerate(b_sides):
-            xi2 = _modulate_side(b, xi_pre[s], self._eps1)  # (2.15)
+            xi2 = _modulate_side(b, xi_pre[s], self._eps1, self._xi_limit)  # (2.15)
             xi_pre[s] = xi2
             bb = [x + xi2 for x in b]
             beta_s = [n * x for n, x in zip(nu, bb)]
@@ -566,7 +655,9 @@ class Allocator:
             lambda_gamma=lam_gamma,
             e=(e_out[0], e_out[1]),
             near_zero=(near[0], near[1]),
-            saturated=max(map(abs, gamma)) > tmax,
+            saturated=scaled or max(map(abs, gamma)) > tmax,
+            wrench=U,
+            scale=scale,
         )
 
     def command(self, U: np.ndarray) -> np.ndarray:
@@ -577,9 +668,7 @@ class Allocator:
         U = np.asarray(U, dtype=float)
         if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
-        return _fast.allocate_kernel(U, self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1,
-                                     self._tmax, self._selective, MARGIN_TOL_N, np.empty((5, N_ROTORS)),
-                                     np.empty(5))[0]
+        return _fast.allocate_kernel(U, *self.kernel_args(), np.empty((5, N_ROTORS)), np.empty(_fast.ALLOC_META))[0]
 
     def kernel_args(self) -> tuple:
         """The arguments after ``U`` with which :meth:`command` calls :func:`._fast.allocate_kernel`
@@ -587,13 +676,13 @@ class Allocator:
         parameters), for a caller that fuses the allocation into a larger kernel
         (:func:`._fast.tick_kernel`)."""
         return (self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1, self._tmax,
-                self._selective, MARGIN_TOL_N)
+                self._selective, self._scale_to_limit, MARGIN_TOL_N)
 
     def _allocate_compiled(self, U: np.ndarray) -> AllocationResult:
         """:meth:`allocate` by :func:`._fast.allocate_kernel` (``U`` checked)."""
-        out, meta = np.empty((5, N_ROTORS)), np.empty(5)
-        _fast.allocate_kernel(U, self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1,
-                              self._tmax, self._selective, MARGIN_TOL_N, out, meta)
+        out, meta = np.empty((5, N_ROTORS)), np.empty(_fast.ALLOC_META)
+        _fast.allocate_kernel(U, *self.kernel_args(), out, meta)
         return AllocationResult(command_n=out[0], lambda_o=out[1], lambda_alpha=out[2], lambda_beta=out[3],
                                 lambda_gamma=out[4], e=(float(meta[0]), float(meta[1])),
-                                near_zero=(int(meta[2]), int(meta[3])), saturated=bool(meta[4]))
+                                near_zero=(int(meta[2]), int(meta[3])), saturated=bool(meta[4]), wrench=meta[6:12],
+                                scale=float(meta[5]))

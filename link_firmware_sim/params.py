@@ -61,6 +61,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EN", "int", 0, 1, "Selective mapping (thesis sec. 2.4.2) enabled"),
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
+    ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 scale the wrench onto it, 0 clip each rotor"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
     ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
     ParamSpec("SKL_WRENCH_HZ", "float", 0.0, 500.0, "SKELETON_EXTERNAL_WRENCH rate to the companion [Hz] (hybrid)"),
@@ -117,6 +118,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_SM_EN": int(a.selective_mapping),
         "SKL_SM_EPS0": a.eps0_n,
         "SKL_SM_EPS1": a.eps1_n,
+        "SKL_SAT_SCALE": int(a.scale_to_limit),
         "SKL_STATE_HZ": rates.state_hz,
         "SKL_ODOM_HZ": rates.odometry_hz,
         "SKL_WRENCH_HZ": rates.wrench_hz,
@@ -223,7 +225,8 @@ class ParamTable:
             gamma_I=v["IMP_GAMMA_I"],
         )
         allocation = replace(
-            self._base.allocation, selective_mapping=bool(v["SKL_SM_EN"]), eps0_n=v["SKL_SM_EPS0"], eps1_n=v["SKL_SM_EPS1"]
+            self._base.allocation, selective_mapping=bool(v["SKL_SM_EN"]), eps0_n=v["SKL_SM_EPS0"],
+            eps1_n=v["SKL_SM_EPS1"], scale_to_limit=bool(v["SKL_SAT_SCALE"])
         )
         return replace(
             self._base,

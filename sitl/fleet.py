@@ -761,7 +761,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                               sc.companion.enabled and "p_corr_sckf" in merged,
                               groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
                               motion=sc.motion if sc.trajectory.kind == "cpg" else None,
-                              fault_windows=_fault_windows(sc, fault_log, link_fault, harness.sim_s))
+                              fault_windows=_fault_windows(sc, fault_log, link_fault, harness.sim_s),
+                              rotor_limit_s=plant.rotors.limit_s)
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),

@@ -61,6 +61,7 @@ def fly(
         resting=sc.trajectory.kind == "rest",
         motion=sc.motion if sc.trajectory.kind == "cpg" else None,
         fault_windows=vehicle_down_windows(runner.link_fault, runner.sim_s),
+        rotor_limit_s=runner.rotors.limit_s,
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed

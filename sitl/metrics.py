@@ -32,6 +32,9 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   ``compression_fraction`` in which a cable would have to push (a real cable goes slack there);
   with the whole-chain feed-forward also the model's predicted tension (``model_*``);
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
+* ``rotor_limit_s_per_link``: per link, the simulated seconds (whole run) with one of its rotors
+  commanded at the thrust limit: the link asked for more than it can do (its firmware then
+  allocates the largest multiple of the wrench within the limit, ``SKL_SAT_SCALE``);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
 * ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
   estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones
@@ -382,6 +385,7 @@ def compute_metrics(
     resting: bool = False,
     motion=None,
     fault_windows: list[dict] | None = None,
+    rotor_limit_s: np.ndarray | None = None,
 ) -> dict:
     """The figures of the module docstring; ``fault_windows``: outage windows the run knows of
     besides the step log's (fleet mode's scripted faults, each with its ``kind``)."""
@@ -424,6 +428,8 @@ def compute_metrics(
         "constraint_vel_p95_m_s": {},
         "rotor_zero_crossings": int(np.sum(zero_crossings)),
         "rotor_zero_crossings_per_link": np.asarray(zero_crossings).reshape(n, -1).sum(axis=1).tolist(),
+        "rotor_limit_s_per_link": (None if rotor_limit_s is None else
+                                   [round(float(x), 3) for x in np.asarray(rotor_limit_s, dtype=float)]),
         "min_altitude_m": float(log["p_true"][win][..., 2].min()),
         "estimate_coverage": np.mean(np.all(np.isfinite(log["p_ctrl"][win]), axis=-1), axis=0).tolist(),
         "crashed": bool(crashed),

@@ -22,7 +22,9 @@ min_thrust_n``) and spins down towards zero for anything else; once below ``esc_
 it is *stopped*; a stopped rotor asked to spin goes through the restart dwell, then spins up
 in the commanded direction. Each step integrates the first-order law exactly (``lambda``
 relaxes exponentially towards its current target). Commands are clipped to
-``+-thrust_max_n``; thrust sign changes are counted. The MuJoCo harness feeds ``thrust_n`` to
+``+-thrust_max_n``; thrust sign changes are counted, and per link (``rotors_per_link``) the
+time with a rotor commanded at the limit (``limit_s``: the firmware's allocation at the edge of
+what the link can do, :func:`link_firmware_sim.allocation.scaled_to_limit`). The MuJoCo harness feeds ``thrust_n`` to
 the rotor actuators.
 
 The numpy code of :meth:`RotorBank.step` is the specification; with numba installed the bank steps
@@ -45,8 +47,16 @@ __all__ = ["RotorParams", "RotorBank"]
 class RotorBank:
     """All rotors of a skeleton (any count), stepped together at the physics rate."""
 
-    def __init__(self, n_rotors: int, params: RotorParams = RotorParams(), *, compiled: bool | None = None):
+    def __init__(self, n_rotors: int, params: RotorParams = RotorParams(), *, compiled: bool | None = None,
+                 rotors_per_link: int | None = None):
         self.params = params
+        per = rotors_per_link or n_rotors
+        if n_rotors % per:
+            raise ValueError(f"{n_rotors} rotors are not links of {per}")
+        self._per_link = per
+        #: per link: simulated seconds with some rotor commanded at +-thrust_max_n
+        self.limit_s = np.zeros(n_rotors // per)
+        self._at_limit: np.ndarray | None = None
         self._compiled = _COMPILED_DEFAULT if compiled is None else bool(compiled)
         self.thrust_n = np.zeros(n_rotors)
         self.command_n = np.zeros(n_rotors)
@@ -66,8 +76,10 @@ class RotorBank:
             self._steady = _set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
                                                self._spinning, self._direction, self._out_sign,
                                                max(self.params.min_thrust_n, 1e-12))
+            self._count_limit(limit)
             return
         np.clip(np.asarray(command_n, dtype=float), -limit, limit, out=self.command_n)
+        self._count_limit(limit)
         # Steady: every rotor spins and tracks a sustainable command of its own sign, so a
         # step is pure first-order relaxation (no stop, restart or sign change can happen).
         cmd = self.command_n
@@ -76,6 +88,14 @@ class RotorBank:
             and np.all(cmd * self._direction >= max(self.params.min_thrust_n, 1e-12))
             and np.array_equal(self._out_sign, self._direction)
         )
+
+    def _count_limit(self, limit: float) -> None:
+        cmd = self.command_n
+        edge = limit * (1.0 - 1e-6)  # a command scaled onto the limit, to rounding (and float32 on the wire)
+        if cmd.max() >= edge or -cmd.min() >= edge:
+            self._at_limit = (np.abs(cmd) >= edge).reshape(-1, self._per_link).any(axis=1)
+        else:
+            self._at_limit = None
 
     def prime(self, thrust_n: np.ndarray) -> None:
         """Start with every rotor already spinning at ``thrust_n`` (an in-air start)."""
@@ -93,6 +113,8 @@ class RotorBank:
 
     def step(self, dt_s: float) -> np.ndarray:
         """Advance every rotor by ``dt_s`` and return the thrusts [N]."""
+        if self._at_limit is not None:
+            self.limit_s[self._at_limit] += dt_s
         if self._steady:
             cmd = self.command_n
             if self._compiled:

@@ -153,7 +153,7 @@ class Plant:
         self.d = sc.skeleton.d_b_m
         self.rng = np.random.default_rng(sc.seed)
         self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
-        self.rotors = RotorBank(8 * self.n, sc.rotors)
+        self.rotors = RotorBank(8 * self.n, sc.rotors, rotors_per_link=8)
         self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
         self.model.begin_step()
         self._fresh = True  # begin_step already done for the current instant

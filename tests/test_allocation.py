@@ -19,6 +19,7 @@ from link_firmware_sim.allocation import (
     reduced_pseudo_inverses,
     selective_mapping_weights,
     selective_modulation,
+    scaled_to_limit,
 )
 
 GEOM = RotorGeometry.odar()
@@ -255,12 +256,25 @@ def test_prop2_mapping_not_exact_without_null_structure():
     assert np.max(np.abs(Bt @ lam - U)) > 1e-3
 
 
-def _check_allocator_step(alloc, U):
-    """One allocate() call checked against the pure functions and Props. 1-2, (2.15), (2.17)."""
+def _check_allocator_step(alloc, U_asked):
+    """One allocate() call checked against the pure functions and Props. 1-2, (2.15), (2.17), and
+    the limit (AllocationParams.scale_to_limit): every rotor of lambda_alpha and lambda_beta
+    within it, all of U when U is feasible (Prop. 1's infinity norm within it), else the
+    largest multiple of U that is."""
     xi_pre = alloc.xi_pre
-    r = alloc.allocate(U)
+    r = alloc.allocate(U_asked)
+    U, scale = scaled_to_limit(B_PINV, U_asked, TMAX)
+    np.testing.assert_allclose(r.wrench, U, atol=1e-12)
+    assert r.scale == pytest.approx(scale, abs=1e-12)
+    inf_norm = lambda V: np.max(np.abs(infinity_norm_allocation(B_PINV, V, NU)[2]))  # noqa: E731
+    feasible = inf_norm(U_asked) <= TMAX
+    if feasible:
+        assert r.scale == 1.0 and np.array_equal(r.wrench, U_asked)
+    else:  # on the limit, the direction kept
+        assert 0.0 < scale < 1.0 and inf_norm(U) == pytest.approx(TMAX, abs=1e-9)
+        np.testing.assert_allclose(U, scale * U_asked, atol=1e-12)
     lam_o, xi1, lam_a = infinity_norm_allocation(B_PINV, U, NU)
-    xi2 = selective_modulation(lam_o, xi1, xi_pre, NU, EPS1)
+    xi2 = selective_modulation(lam_o, xi1, xi_pre, NU, EPS1, TMAX)
     np.testing.assert_allclose(alloc.xi_pre, xi2, atol=1e-12)
     np.testing.assert_allclose(r.lambda_o, lam_o, atol=1e-12)
     np.testing.assert_allclose(r.lambda_alpha, lam_a, atol=1e-12)
@@ -272,7 +286,17 @@ def _check_allocator_step(alloc, U):
     # Prop. 2 and (2.15).
     for lam in (r.lambda_alpha, r.lambda_beta, r.lambda_gamma):
         np.testing.assert_allclose(B @ lam, U, atol=1e-9)
-    assert all(c <= 1 for c in _below_margin_per_side(r.lambda_beta))
+    assert np.max(np.abs(r.lambda_alpha)) <= TMAX + 1e-9 and np.max(np.abs(r.lambda_beta)) <= TMAX + 1e-9
+    # (2.15)'s margin, unless the limit leaves no room for it: then (checked on a dense grid of
+    # the xi'' the limit allows) the second-nearest-zero rotor as far from zero as it can be
+    for s, c in enumerate(_below_margin_per_side(r.lambda_beta)):
+        if c <= 1:
+            continue
+        b = NU * r.lambda_beta[SIDES[s]]  # nu-scaled, xi'' included: the grid is of moves of it
+        grid = np.linspace(-TMAX - b.min(), TMAX - b.max(), 4001)
+        mags = np.sort(np.abs(b[None, :] + grid[:, None]), axis=1)
+        assert np.all(np.sum(mags < EPS1 - MARGIN_TOL_N, axis=1) >= 2), "a point within the limit clears the margin"
+        assert np.sort(np.abs(b))[1] >= mags[:, 1].max() - 1e-9
     for s, side in enumerate(SIDES):
         if r.near_zero[s] == -1:
             assert r.e[s] == 1.0
@@ -283,7 +307,7 @@ def _check_allocator_step(alloc, U):
             if r.e[s] == 0.0:
                 assert r.lambda_gamma[r.near_zero[s]] == 0.0
     np.testing.assert_array_equal(r.command_n, np.clip(r.lambda_gamma, -TMAX, TMAX))
-    assert r.saturated == bool(np.any(np.abs(r.lambda_gamma) > TMAX))
+    assert r.saturated == (not feasible or bool(np.any(np.abs(r.lambda_gamma) > TMAX)))
     return r
 
 
@@ -530,7 +554,7 @@ def test_hard_switching_would_break_the_gamma_bound():
 
 
 def test_selective_mapping_off_sends_clipped_lambda_alpha():
-    alloc = Allocator(GEOM, AllocationParams(selective_mapping=False))
+    alloc = Allocator(GEOM, AllocationParams(selective_mapping=False, scale_to_limit=False))
     Us = list(_random_wrenches(30, seed=61)) + [_hover_wrench(_ry(np.pi / 4)), np.array([80.0, 0, 0, 0, 0, 0])]
     for U in Us:
         r = alloc.allocate(U)
@@ -545,8 +569,86 @@ def test_selective_mapping_off_sends_clipped_lambda_alpha():
     assert r.saturated  # the 80 N wrench
 
 
+def test_selective_mapping_off_with_the_limit():
+    alloc = Allocator(GEOM, AllocationParams(selective_mapping=False))
+    for U in list(_random_wrenches(30, seed=61)) + [np.array([80.0, 0, 0, 0, 0, 0])]:
+        r = alloc.allocate(U)
+        V, scale = scaled_to_limit(B_PINV, U, TMAX)
+        _, _, lam_a = infinity_norm_allocation(B_PINV, V, NU)
+        np.testing.assert_allclose(r.lambda_alpha, lam_a, atol=1e-12)
+        np.testing.assert_array_equal(r.lambda_gamma, r.lambda_alpha)
+        assert np.max(np.abs(r.lambda_alpha)) <= TMAX + 1e-9
+        np.testing.assert_array_equal(r.command_n, np.clip(r.lambda_alpha, -TMAX, TMAX))
+        assert r.saturated == (r.scale != 1.0) and r.scale == pytest.approx(scale, abs=1e-12)
+    assert r.saturated and r.scale == pytest.approx(TMAX / np.max(np.abs(infinity_norm_allocation(B_PINV, U, NU)[2])))
+    np.testing.assert_allclose(B @ r.command_n, r.wrench, atol=1e-9)  # the 80 N wrench, scaled
+
+
+def test_scaling_to_the_limit_keeps_the_wrench_a_link_carrying_a_neighbour_asks_for():
+    """The case that made it (three_link, link 2 unpowered and carried): each neighbour holds its
+    own weight plus half of link 2's (8.8 N) at its joint, 0.5 m from its centre (4.41 N m), with
+    8 N rotors: 96 % of the limit when level. Tilted 20 deg, with the attitude loop asking 1.5 N m
+    more, it is beyond the limit. Clipped rotor by rotor, the wrench produced loses 5 % of its
+    pitch torque and gains a side force (5-15 % of the torque from 0 to 30 deg, the link tips
+    further); scaled, force and torque give way alike and nothing else is produced."""
+    carry = np.r_[0.0, 0.0, MASS_KG * G + 8.83]
+    level = np.r_[carry, 0.0, 4.41, 0.0]
+    assert np.max(np.abs(infinity_norm_allocation(B_PINV, level, NU)[2])) == pytest.approx(7.71, abs=0.01)
+    U = np.r_[_ry(np.radians(20.0)).T @ carry, 0.0, 4.41 + 1.5, 0.0]
+    clipped = Allocator(GEOM, AllocationParams(scale_to_limit=False)).allocate(U)
+    scaled = Allocator(GEOM).allocate(U)
+    assert clipped.saturated and scaled.saturated
+    produced_clipped, produced_scaled = B @ clipped.command_n, B @ scaled.command_n
+    assert produced_clipped[4] < 0.96 * U[4] and abs(produced_clipped[1]) > 0.15  # torque lost, a side force
+    assert 0.9 < scaled.scale < 1.0
+    np.testing.assert_allclose(produced_scaled, scaled.scale * U, atol=1e-9)
+    assert np.max(np.abs(scaled.command_n)) <= TMAX
+
+
+def test_the_limit_bounds_the_modulation():
+    """(2.15) keeps xi'' where it is while three rotors are clear of eps1 (it is not pulled back to
+    the infinity-norm optimum): after a modulation at light load, a heavier feasible wrench (Prop.
+    1's norm 7.9 N of 8) puts a rotor past the limit, and the clip distorts the wrench. With
+    scale_to_limit the limit bounds xi'' too: lambda_beta stays within it. lambda_gamma of (2.17)
+    may still pass it where a near-zero rotor is faded out (the reduced mapping shifts its
+    thrust to the others) and is clipped, as before: measured here, the wrench error of the
+    command falls from 0.18 to 0.05 N (N m) on average."""
+    thesis = Allocator(GEOM, AllocationParams(scale_to_limit=False))
+    bounded = Allocator(GEOM)
+    rng = np.random.default_rng(5)
+    beta_over, err_thesis, err_bounded = 0, [], []
+    for _ in range(200):
+        light = _near_zero_wrenches(1, int(rng.integers(1 << 30)))[0]
+        heavy = light * (7.9 / np.max(np.abs(infinity_norm_allocation(B_PINV, light, NU)[2])))
+        for alloc in (thesis, bounded):
+            alloc.reset()
+            alloc.allocate(light)
+        t, r = thesis.allocate(heavy), bounded.allocate(heavy)
+        beta_over += np.max(np.abs(t.lambda_beta)) > TMAX
+        assert np.max(np.abs(r.lambda_beta)) <= TMAX + 1e-9 and r.scale == 1.0
+        np.testing.assert_allclose(B @ r.lambda_gamma, heavy, atol=1e-9)
+        err_thesis.append(np.max(np.abs(B @ t.command_n - heavy)))
+        err_bounded.append(np.max(np.abs(B @ r.command_n - heavy)))
+    assert beta_over > 180  # the thesis's modulation alone: past the limit
+    assert np.mean(err_bounded) < 0.4 * np.mean(err_thesis) and max(err_bounded) < 0.6 * max(err_thesis)
+
+
+def test_where_the_limit_leaves_no_room_for_the_margin():
+    """Found by hypothesis: after a modulation to xi'' = -0.435, a wrench beyond the limit (scaled
+    by 0.757) leaves the l side's xi'' in [-0.619, 0.619], where two rotors are always within eps1
+    of zero. Kept at -0.435 they would be at 0.335 and 0.593 N; the second is taken to 0.776 N
+    (xi'' at the limit's end), as far from zero as the limit allows."""
+    alloc = Allocator(GEOM)
+    for U in ([0.0] * 6, [0.0, 9.0, 0.0, 5.0, 0.0, 0.0], [26.0, 12.0, 1.0, 0.0, 0.0, 0.5]):
+        r = _check_allocator_step(alloc, np.array(U))
+    assert r.scale == pytest.approx(0.7575, abs=1e-4)
+    left = np.sort(np.abs(r.lambda_beta[L_SIDE]))
+    assert _below_margin_per_side(r.lambda_beta)[1] == 2 and left[1] == pytest.approx(0.776, abs=1e-3)
+    assert np.max(np.abs(r.lambda_beta[L_SIDE])) == pytest.approx(TMAX, abs=1e-9)
+
+
 def test_saturation_flag_and_clipping():
-    alloc = Allocator(GEOM, AllocationParams(thrust_max_n=5.0))
+    alloc = Allocator(GEOM, AllocationParams(thrust_max_n=5.0, scale_to_limit=False))
     r = alloc.allocate(np.array([60.0, 0.0, 20.0, 0.0, 0.0, 0.0]))
     assert r.saturated
     assert np.max(np.abs(r.lambda_gamma)) > 5.0

@@ -143,26 +143,32 @@ def test_impedance_control_matches_numpy():
         np.testing.assert_allclose(ib.att, ia.att, **TOL)
 
 
+@pytest.mark.parametrize("scale_to_limit", [True, False])
 @pytest.mark.parametrize("selective", [True, False])
-def test_allocation_matches_numpy(selective):
-    """A sequence of wrenches (the modulation's state carries over), many near a rotor's zero."""
+def test_allocation_matches_numpy(selective, scale_to_limit):
+    """A sequence of wrenches (the modulation's state carries over), many near a rotor's zero,
+    every seventh one beyond the rotors' limit (scaled to it, or clipped)."""
     rng = np.random.default_rng(3)
     geometry = RotorGeometry.odar()
-    params = AllocationParams(selective_mapping=selective)
+    params = AllocationParams(selective_mapping=selective, scale_to_limit=scale_to_limit)
     ref, fast = Allocator(geometry, params, compiled=False), Allocator(geometry, params, compiled=True)
-    near = 0
+    near = saturated = 0
     U = np.array([0.0, 0.0, 17.6, 0.0, 0.0, 0.0])
-    for _ in range(300):
+    for k in range(300):
         U = U + rng.normal(size=6) * [0.5, 0.5, 0.5, 0.05, 0.05, 0.05]
-        a, b = ref.allocate(U), fast.allocate(U)
-        for name in ("command_n", "lambda_o", "lambda_alpha", "lambda_beta", "lambda_gamma"):
+        V = U * rng.uniform(1.5, 4.0) if k % 7 == 6 else U
+        a, b = ref.allocate(V), fast.allocate(V)
+        for name in ("command_n", "lambda_o", "lambda_alpha", "lambda_beta", "lambda_gamma", "wrench"):
             np.testing.assert_allclose(getattr(b, name), getattr(a, name), **TOL, err_msg=name)
         np.testing.assert_allclose(b.e, a.e, **TOL)
+        np.testing.assert_allclose(b.scale, a.scale, **TOL)
         assert (b.near_zero, b.saturated) == (a.near_zero, a.saturated)
         np.testing.assert_allclose(fast.xi_pre, ref.xi_pre, **TOL)
         near += a.near_zero != (-1, -1)
+        saturated += a.saturated
     if selective:
         assert near > 10  # the selective mapping's branches were exercised
+    assert saturated > 20  # and the limit's
     np.testing.assert_array_equal(fast.command(U), fast.allocate(U).command_n)
     with pytest.raises(ValueError):
         fast.command(np.full(6, np.nan))

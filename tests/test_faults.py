@@ -263,6 +263,9 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     assert np.nanmax(tilt[after][:, [0, 2]]) < 20.0
     assert np.nanmax(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[after]) < 0.35
     assert m["min_altitude_m"] > 2.0
+    # carrying takes the neighbours to their rotors' limit (scaled onto it), link 2 never
+    limit = m["rotor_limit_s_per_link"]
+    assert limit[1] == 0.0 and max(limit[0], limit[2]) > 0.3 and max(limit) < 9.0 + restart_after_s, limit
     end = t >= 11.5  # recovered
     assert np.max(tilt[end]) < 5.0 and np.max(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[end]) < 0.3
 

@@ -349,9 +349,11 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert (tmp_path / "link2-restart" / "link2_firmware.npz").exists()
     coverage = m["estimate_coverage"]
     assert coverage[0] == coverage[2] == 1.0 and 0.6 < coverage[1] < 0.95
-    # carried (measured 2.16-2.37 m in 14 runs; 0.02-1.10 m before the companion carried it, and
-    # a crash in 1 of 16 runs, 6 of 8 with the link back after 0.5 s)
-    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 1.5, why
+    # carried (0.02-1.10 m before the companion carried it, and a crash in 1 of 16 runs, 6 of 8
+    # with the link back after 0.5 s); carrying takes the neighbours to their rotors' limit, where
+    # the allocation scales the wrench onto it: 1.96-2.31 m in 30 runs (clipping each rotor,
+    # 0.71-2.32 m in 12: the neighbours tipped up to 75 deg)
+    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 1.8, why
     windows = m["outages"]["windows"]
     down = [w for w in windows if w["kind"] == "vehicle_down"]
     assert down == [{"kind": "vehicle_down", "start_s": reboot["killed_at_s"], "end_s": reboot["rejoined_at_s"],
@@ -370,6 +372,10 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     carried = [comp["links"][str(i)]["carried_s"] for i in (1, 2, 3)]
     assert 1.2 < carried[1] < 2.0 and carried[0] < 0.3 and carried[2] < 0.3, carried
     assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)}}  # in the metrics too
+    # the neighbours at their rotors' limit while they carried it (1.36-1.43 s), link 2 never
+    limit = m["rotor_limit_s_per_link"]
+    assert 0.5 * carried[1] < limit[0] < carried[1] + 0.5 and 0.5 * carried[1] < limit[2] < carried[1] + 0.5, limit
+    assert limit[1] < 0.1, limit
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0

@@ -32,6 +32,24 @@ def test_commands_are_clipped_to_the_thrust_limit():
     np.testing.assert_allclose(thrust[-1], [8.0, -8.0], rtol=1e-6)
 
 
+@pytest.mark.parametrize("compiled", [False, True])
+def test_time_at_the_limit_is_counted_per_link(compiled):
+    """limit_s: per link of 8 rotors, the time with one of them commanded at +-thrust_max_n (a
+    command scaled onto the limit, to float32 rounding, counts; 1 ppm below it does not)."""
+    bank = RotorBank(16, RotorParams(thrust_max_n=8.0), compiled=compiled, rotors_per_link=8)
+    cmd = np.full(16, 3.0)
+    _run(bank, cmd, 0.2)
+    cmd[3] = -8.0 * (1.0 - 1e-7)  # link 1 at the limit (a float32 1.0 on the wire decodes to this)
+    _run(bank, cmd, 0.3)
+    cmd[3], cmd[12] = 3.0, 20.0  # link 2 beyond it (clipped)
+    _run(bank, cmd, 0.1)
+    cmd[12] = 8.0 * (1.0 - 1e-5)
+    _run(bank, cmd, 0.4)
+    np.testing.assert_allclose(bank.limit_s, [0.3, 0.1], atol=1e-9)
+    with pytest.raises(ValueError, match="links of 8"):
+        RotorBank(12, RotorParams(), rotors_per_link=8)
+
+
 def test_reversal_first_decays_to_zero_then_spins_up():
     """Thesis sec. 2.4.2: a reversing rotor goes to zero thrust first (ESC singularity)."""
     p = RotorParams(time_constant_s=0.05, esc_epsilon_n=0.05)
