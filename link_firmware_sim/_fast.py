@@ -637,6 +637,7 @@ def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax,
     for k in range(6):
         meta[6 + k] = U[k]
     b = np.empty(8)
+    faded_to_limit = False
     for side in range(2):
         o = 4 * side
         mn, mx = _side_range(lo, nu, o)
@@ -676,14 +677,30 @@ def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax,
                 e = (mmin - eps0) / (eps1 - eps0)
                 if not e > 0.0:
                     e = 0.0
+                red = np.empty(4)
+                over = False
                 for i in range(4):
                     s = 0.0
                     for k in range(6):
                         s += reduced_by_side[side, j, i, k] * U[k]
+                    red[i] = s
                     out[4, o + i] = s + e * (out[3, o + i] - s)
+                    if abs(out[4, o + i]) > tmax:
+                        over = True
+                if scale_to_limit and over:  # allocation._fade_within_limit
+                    for i in range(4):
+                        d = out[3, o + i] - red[i]
+                        if d > 0.0:
+                            e = max(e, (-tmax - red[i]) / d)
+                        elif d < 0.0:
+                            e = max(e, (tmax - red[i]) / d)
+                    e = min(e, 1.0)
+                    for i in range(4):
+                        out[4, o + i] = red[i] + e * (out[3, o + i] - red[i])
+                    faded_to_limit = True
                 meta[2 + side] = j + o
             meta[side] = e
-    sat = 0.0 if scale == 1.0 else 1.0
+    sat = 0.0 if scale == 1.0 and not faded_to_limit else 1.0
     for i in range(8):
         g = out[4, i]
         out[0, i] = min(max(g, -tmax), tmax)

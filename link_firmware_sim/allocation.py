@@ -100,8 +100,9 @@ class AllocationParams:
         ``False``: command ``lambda_alpha`` (Prop. 1 only), skipping (2.15) and (2.17).
     scale_to_limit : bool
         A wrench beyond the rotors' limit: allocate the largest multiple of it they can produce
-        (:func:`scaled_to_limit`), and keep (2.15)'s modulation within the limit. ``False``: the
-        thesis as written, commands clipped rotor by rotor.
+        (:func:`scaled_to_limit`), and keep (2.15)'s modulation and (2.17)'s fade within the
+        limit (the fade's weight ``e`` raised as far as that needs). ``False``: the thesis as
+        written, commands clipped rotor by rotor.
 
     Requires ``0 < eps0_n < eps1_n < thrust_max_n`` (all finite).
     """
@@ -145,13 +146,15 @@ class AllocationResult:
     lambda_gamma : ndarray, shape (8,)
         Gradually switching selective mapping (2.17), unclipped; ``lambda_alpha`` if off.
     e : tuple of float
-        ``(e_r, e_l)`` of (2.17); ``(1.0, 1.0)`` if off.
+        ``(e_r, e_l)`` of (2.17), as used: with ``scale_to_limit`` raised above (2.17)'s where
+        its fade would take a rotor past the limit; ``(1.0, 1.0)`` if off.
     near_zero : tuple of int
         0-based index of the near-zero rotor of each side (``0..3``, ``4..7``), ``-1`` if no
         rotor of that side is below ``eps1`` (or selective mapping is off).
     saturated : bool
-        Whether the wrench asked for was beyond the rotors (scaled, ``scale``) or any unclipped
-        thrust exceeded ``thrust_max_n`` in magnitude (the command was clipped).
+        Whether the wrench asked for was beyond the rotors (scaled, ``scale``), the fade (2.17)
+        was held back by the limit (``e`` raised) or any unclipped thrust exceeded
+        ``thrust_max_n`` in magnitude (the command was clipped).
     wrench : ndarray, shape (6,)
         The wrench allocated: ``U``, or with ``scale_to_limit`` the multiple of it the rotors can
         produce.
@@ -328,6 +331,20 @@ def _least_within_margin(b: Sequence[float], xi_pre: float, lo: float, hi: float
         if f > best_f or (f == best_f and (d < best_d or (d == best_d and x < best))):
             best, best_f, best_d = x, f, d
     return best
+
+
+def _fade_within_limit(red: Sequence[float], beta: Sequence[float], e: float, tmax: float) -> float:
+    """The smallest ``e' >= e`` for which (2.17)'s side ``red + e' (beta - red)`` is within
+    ``+-tmax`` (``red``: the side rows of ``B^+_{\\j} U``; ``beta``: ``lambda_beta`` of the side,
+    within the limit, so ``e' = 1`` always is). Each rotor allows an interval of ``e'`` that
+    contains 1 (the side is affine in ``e'``), so ``e'`` is the largest of their lower ends."""
+    for p, x in zip(red, beta):
+        d = x - p
+        if d > 0.0:
+            e = max(e, (-tmax - p) / d)
+        elif d < 0.0:
+            e = max(e, (tmax - p) / d)
+    return min(e, 1.0)
 
 
 def _side_weight(mags: Sequence[float], eps0: float, eps1: float) -> tuple[float, int]:
@@ -578,7 +595,8 @@ class Allocator:
         With ``scale_to_limit``, first the multiple of ``U`` the rotors can produce
         (:func:`scaled_to_limit`). Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15)
         (updating ``xi''_pre``; within the limit with ``scale_to_limit``) and the gradual
-        selective mapping (2.17); clips to ``+-thrust_max_n``.
+        selective mapping (2.17) (within the limit with ``scale_to_limit``:
+        :func:`_fade_within_limit`); clips to ``+-thrust_max_n``.
 
         Raises
         ------
@@ -627,6 +645,7 @@ class Allocator:
         e_out = []
         near = []
         xi_pre = self._xi_pre.tolist()
+        faded_to_limit = False
         for s, b in enumerate(b_sides):
             xi2 = _modulate_side(b, xi_pre[s], self._eps1, self._xi_limit)  # (2.15)
             xi_pre[s] = xi2
@@ -641,6 +660,10 @@ class Allocator:
                 # P_j the side rows of B^+_{\j}, by the decoupling (2.18)-(2.19).
                 red = (self._reduced_by_side[s, j] @ U).tolist()
                 gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
+                if self._scale_to_limit and max(map(abs, gamma_s)) > tmax:
+                    e = _fade_within_limit(red, beta_s, e, tmax)
+                    gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
+                    faded_to_limit = True
                 near.append(j + s * N_SIDE)
             beta += beta_s
             gamma += gamma_s
@@ -655,7 +678,7 @@ class Allocator:
             lambda_gamma=lam_gamma,
             e=(e_out[0], e_out[1]),
             near_zero=(near[0], near[1]),
-            saturated=scaled or max(map(abs, gamma)) > tmax,
+            saturated=scaled or faded_to_limit or max(map(abs, gamma)) > tmax,
             wrench=U,
             scale=scale,
         )

@@ -280,9 +280,20 @@ def _check_allocator_step(alloc, U_asked):
     np.testing.assert_allclose(r.lambda_alpha, lam_a, atol=1e-12)
     np.testing.assert_allclose(r.lambda_beta, lam_o + N_B @ (xi1 + xi2), atol=1e-12)
     e, near = selective_mapping_weights(r.lambda_beta, EPS0, EPS1)
-    assert r.e == pytest.approx(e, abs=1e-12) and r.near_zero == near
+    assert r.near_zero == near
     lam_g = gradual_selective_mapping(B_PINV, B_RED, U, NU, xi1 + xi2, r.e, r.near_zero)
     np.testing.assert_allclose(r.lambda_gamma, lam_g, atol=1e-9)
+    # (2.17)'s weight, raised only as far as the limit needs (a rotor of that side on it); the
+    # fade is affine in e, so any smaller weight would take that rotor past the limit
+    faded = False
+    for s, side in enumerate(SIDES):
+        if r.e[s] != pytest.approx(e[s], abs=1e-12):
+            faded = True
+            assert r.e[s] > e[s] and np.max(np.abs(r.lambda_gamma[side])) == pytest.approx(TMAX, abs=1e-9)
+            smaller = gradual_selective_mapping(B_PINV, B_RED, U, NU, xi1 + xi2,
+                                                tuple(x - 1e-6 if k == s else x for k, x in enumerate(r.e)), r.near_zero)
+            assert np.max(np.abs(smaller[side])) > TMAX
+    assert np.max(np.abs(r.lambda_gamma)) <= TMAX + 1e-9
     # Prop. 2 and (2.15).
     for lam in (r.lambda_alpha, r.lambda_beta, r.lambda_gamma):
         np.testing.assert_allclose(B @ lam, U, atol=1e-9)
@@ -307,7 +318,8 @@ def _check_allocator_step(alloc, U_asked):
             if r.e[s] == 0.0:
                 assert r.lambda_gamma[r.near_zero[s]] == 0.0
     np.testing.assert_array_equal(r.command_n, np.clip(r.lambda_gamma, -TMAX, TMAX))
-    assert r.saturated == (not feasible or bool(np.any(np.abs(r.lambda_gamma) > TMAX)))
+    np.testing.assert_allclose(B @ r.command_n, U, atol=1e-9)  # within the limit: nothing clipped
+    assert r.saturated == (not feasible or faded or bool(np.any(np.abs(r.lambda_gamma) > TMAX)))
     return r
 
 
@@ -605,32 +617,31 @@ def test_scaling_to_the_limit_keeps_the_wrench_a_link_carrying_a_neighbour_asks_
     assert np.max(np.abs(scaled.command_n)) <= TMAX
 
 
-def test_the_limit_bounds_the_modulation():
+def test_the_limit_bounds_the_modulation_and_the_fade():
     """(2.15) keeps xi'' where it is while three rotors are clear of eps1 (it is not pulled back to
     the infinity-norm optimum): after a modulation at light load, a heavier feasible wrench (Prop.
-    1's norm 7.9 N of 8) puts a rotor past the limit, and the clip distorts the wrench. With
-    scale_to_limit the limit bounds xi'' too: lambda_beta stays within it. lambda_gamma of (2.17)
-    may still pass it where a near-zero rotor is faded out (the reduced mapping shifts its
-    thrust to the others) and is clipped, as before: measured here, the wrench error of the
-    command falls from 0.18 to 0.05 N (N m) on average."""
+    1's norm 7.9 N of 8) puts a rotor past the limit, and the clip distorts the wrench (0.18 N
+    (N m) on average, up to 0.46). With scale_to_limit the limit bounds xi'' too, and where (2.17)'s
+    fade of the near-zero rotor would shift thrust past it (121 of these 200 cases), the fade's
+    weight is raised just enough: the command is the wrench, exactly."""
     thesis = Allocator(GEOM, AllocationParams(scale_to_limit=False))
     bounded = Allocator(GEOM)
     rng = np.random.default_rng(5)
-    beta_over, err_thesis, err_bounded = 0, [], []
+    beta_over, raised, err_thesis, err_bounded = 0, 0, [], []
     for _ in range(200):
         light = _near_zero_wrenches(1, int(rng.integers(1 << 30)))[0]
         heavy = light * (7.9 / np.max(np.abs(infinity_norm_allocation(B_PINV, light, NU)[2])))
         for alloc in (thesis, bounded):
             alloc.reset()
             alloc.allocate(light)
-        t, r = thesis.allocate(heavy), bounded.allocate(heavy)
+        t, r = thesis.allocate(heavy), _check_allocator_step(bounded, heavy)
         beta_over += np.max(np.abs(t.lambda_beta)) > TMAX
+        raised += r.saturated
         assert np.max(np.abs(r.lambda_beta)) <= TMAX + 1e-9 and r.scale == 1.0
-        np.testing.assert_allclose(B @ r.lambda_gamma, heavy, atol=1e-9)
         err_thesis.append(np.max(np.abs(B @ t.command_n - heavy)))
         err_bounded.append(np.max(np.abs(B @ r.command_n - heavy)))
     assert beta_over > 180  # the thesis's modulation alone: past the limit
-    assert np.mean(err_bounded) < 0.4 * np.mean(err_thesis) and max(err_bounded) < 0.6 * max(err_thesis)
+    assert raised > 100 and np.mean(err_thesis) > 0.1 and max(err_bounded) < 1e-9
 
 
 def test_where_the_limit_leaves_no_room_for_the_margin():
