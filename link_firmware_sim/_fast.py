@@ -601,6 +601,12 @@ def _side_range(lam, nu, o):
 
 
 @jit
+def _spread(v, o):
+    """``max - min`` of ``v[o:o + 4]``."""
+    return max(max(v[o], v[o + 1]), max(v[o + 2], v[o + 3])) - min(min(v[o], v[o + 1]), min(v[o + 2], v[o + 3]))
+
+
+@jit
 def _pinv_times(B_pinv, U, lo):
     """``lo = B^+ U``."""
     for i in range(8):
@@ -611,11 +617,12 @@ def _pinv_times(B_pinv, U, lo):
 
 
 @jit
-def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit, tol, out,
-                    meta):
+def allocate_kernel(U_in, keep, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit, tol,
+                    out, meta):
     """Allocator.allocate: ``out`` (5, 8) rows command, lambda_o, lambda_alpha, lambda_beta,
     lambda_gamma; ``meta`` (:data:`ALLOC_META`) = (e_r, e_l, near_r, near_l, saturated, scale,
-    the wrench allocated (6)); ``xi_pre`` (2,) is updated."""
+    the wrench allocated (6)); ``xi_pre`` (2,) is updated; ``keep``: the wrench
+    allocation.scaled_to_limit keeps whole (zeros: none)."""
     U = np.empty(6)
     for k in range(6):
         U[k] = U_in[k]
@@ -623,15 +630,39 @@ def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax,
     _pinv_times(B_pinv, U, lo)
     scale = 1.0
     xi_limit = np.inf
-    if scale_to_limit:  # allocation.scaled_to_limit: the wider side's spread is twice Prop. 1's norm
+    if scale_to_limit:  # allocation.scaled_to_limit
         xi_limit = tmax
         mn_r, mx_r = _side_range(lo, nu, 0)
         mn_l, mx_l = _side_range(lo, nu, 4)
-        spread = max(mx_r - mn_r, mx_l - mn_l)
-        if spread > 2.0 * tmax:
-            scale = 2.0 * tmax / spread
+        if max(mx_r - mn_r, mx_l - mn_l) > 2.0 * tmax:
+            K = np.empty(6)
             for k in range(6):
-                U[k] = scale * U_in[k]
+                K[k] = keep[k]
+            a = np.empty(8)
+            _pinv_times(B_pinv, K, a)
+            for i in range(8):
+                a[i] = a[i] * nu[i % 4]
+            if not max(_spread(a, 0), _spread(a, 4)) <= 2.0 * tmax:  # beyond the rotors too: none
+                for k in range(6):
+                    K[k] = 0.0
+                for i in range(8):
+                    a[i] = 0.0
+            D = np.empty(6)
+            for k in range(6):
+                D[k] = U_in[k] - K[k]
+            d = np.empty(8)
+            _pinv_times(B_pinv, D, d)
+            for i in range(8):
+                d[i] = d[i] * nu[i % 4]
+            for o in range(0, 8, 4):
+                for i in range(4):
+                    for j in range(4):
+                        dd = d[o + i] - d[o + j]
+                        if dd > 0.0:
+                            scale = min(scale, (2.0 * tmax - (a[o + i] - a[o + j])) / dd)
+            scale = max(scale, 0.0)
+            for k in range(6):
+                U[k] = K[k] + scale * D[k]
             _pinv_times(B_pinv, U, lo)
     meta[5] = scale
     for k in range(6):
@@ -715,10 +746,11 @@ def allocate_kernel(U_in, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax,
 # --------------------------------------------------------------------------------------------
 
 #: layout of :func:`tick_kernel`'s ``out``: thrust commands, ``U = [u; tau]``, the position and
-#: attitude integrals, ``|u|``, the control estimate's position, 1 if ``U`` is finite (else 0)
+#: attitude integrals, ``|u|``, the control estimate's position, 1 if ``U`` is finite (else 0), the
+#: allocation's ``scale`` and ``saturated`` (1 or 0; with ``U`` finite)
 TICK_OUT = {"command": slice(0, 8), "U": slice(8, 14), "pos_int": slice(14, 17), "att_int": slice(17, 20),
-            "force_norm": 20, "p_ctrl": slice(21, 24), "finite": 24}
-TICK_OUT_SIZE = 25
+            "force_norm": 20, "p_ctrl": slice(21, 24), "finite": 24, "scale": 25, "saturated": 26}
+TICK_OUT_SIZE = 27
 
 
 def pack_correction(correction) -> np.ndarray:
@@ -774,10 +806,20 @@ def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravi
     out[24] = 1.0 if finite else 0.0
     if finite:
         alloc = np.empty((5, 8))
-        allocate_kernel(ctrl[:6], B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit,
-                        tol, alloc, np.empty(ALLOC_META))
+        meta = np.empty(ALLOC_META)
+        # the link's weight at the control estimate's attitude, kept whole at the limit:
+        # control.weight_wrench, R^T m g e3 = m g (the third row of R(q))
+        mg = inertia[0] * gravity
+        keep = np.zeros(6)
+        keep[0] = (2.0 * (q[1] * q[3] - q[0] * q[2])) * mg
+        keep[1] = (2.0 * (q[2] * q[3] + q[0] * q[1])) * mg
+        keep[2] = (1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])) * mg
+        allocate_kernel(ctrl[:6], keep, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                        scale_to_limit, tol, alloc, meta)
         for i in range(8):
             out[i] = alloc[0, i]
+        out[25] = meta[5]
+        out[26] = meta[4]
     return xn, Pn
 
 

@@ -255,31 +255,54 @@ def infinity_norm_allocation(
     return lambda_o, xi_prime, lambda_alpha
 
 
-def scaled_to_limit(B_pinv: np.ndarray, U: np.ndarray, tmax: float, nu: np.ndarray = NU) -> tuple[np.ndarray, float]:
-    """The largest multiple ``s U`` (``0 < s <= 1``) of the wrench ``U`` that the rotors can produce
-    (an addition to the thesis, whose commands are clipped rotor by rotor): ``(s U, s)``.
+def scaled_to_limit(B_pinv: np.ndarray, U: np.ndarray, tmax: float, nu: np.ndarray = NU,
+                    keep: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The wrench ``K + s (U - K)`` (``0 <= s <= 1``, largest) that the rotors can produce, ``K``
+    the wrench ``keep`` kept whole (an addition to the thesis, whose commands are clipped rotor by
+    rotor): ``(K + s (U - K), s)``. ``keep``: the firmware passes the link's weight at its attitude
+    (:func:`~link_firmware_sim.control.weight_wrench`), so that a demand beyond the rotors gives way
+    in what it adds to hovering (a far target's force, an attitude torque, a neighbour's weight)
+    and the link does not drop; ``None`` (or a ``keep`` the rotors cannot produce): ``K = 0``, the
+    whole wrench scaled.
 
     ``U`` is feasible (some ``lambda`` with ``B lambda = U`` and every ``|lambda_i| <= tmax``) iff
     Prop. 1's minimum infinity norm is within ``tmax``, i.e. iff on each side the spread
-    ``max - min`` of ``diag(nu) B^+ U`` is at most ``2 tmax`` (2.12). The spread is homogeneous in
-    ``U``, so ``s = 2 tmax / spread`` of the wider side, and a feasible ``U`` is returned as it is
-    (``s = 1``). The wrench keeps its direction: force and torque give way in proportion.
+    ``max - min`` of ``diag(nu) B^+ U`` is at most ``2 tmax`` (2.12); a feasible ``U`` is returned as
+    it is (``s = 1``). Along ``K + s D`` the side values are ``a_i + s d_i`` (``a``, ``d``: of ``K``
+    and ``D = U - K``), and every difference ``(a_i - a_j) + s (d_i - d_j) <= 2 tmax``: the
+    largest ``s`` is the smallest of ``(2 tmax - (a_i - a_j)) / (d_i - d_j)`` over ``d_i > d_j``
+    (with ``K = 0``, ``2 tmax`` over the wider side's spread of ``d``).
 
     Why: clipping rotor by rotor distorts the wrench (part of the torque lost, a side force
-    gained; 5-15 % of the pitch torque of a tilted link at 110 % of its limit). In ``three_link``
-    with link 2 unpowered and carried, each neighbour holds half of its weight at its joint,
-    0.5 m from its centre: 96 % of the 8 N rotors' limit when level. Clipped, the neighbours
-    tipped 10-75 deg and the lowest link fell to 0.71-2.32 m (12 fleet runs); scaled, 6-20 deg
-    and 1.96-2.31 m (30 runs). The torque first, then the force (PX4's multicopter order) held
-    the attitude but spent lift on it: 1.71-1.91 m.
+    gained; 5-15 % of the pitch torque of a tilted link at 110 % of its limit; a 300 N lateral
+    demand, a target 30 m off, came out with no lift at all). In ``three_link`` with link 2
+    unpowered and carried, each neighbour holds half of its weight at its joint, 0.5 m from its
+    centre: 96 % of the 8 N rotors' limit when level. Clipped, the neighbours tipped 10-75 deg
+    and the lowest link fell to 0.71-2.32 m (12 fleet runs); the whole wrench scaled, 6-20 deg
+    and 1.96-2.31 m (30 runs); the weight kept, 2.11-2.27 m (8 runs). The torque first, then the
+    force (PX4's multicopter order) held the attitude but spent lift on it: 1.71-1.91 m.
     """
     U = np.asarray(U, dtype=float)
-    spread = float(np.max(np.ptp((np.asarray(B_pinv, dtype=float) @ U).reshape(2, N_SIDE) * np.asarray(nu, dtype=float),
-                                 axis=1)))
-    if spread <= 2.0 * tmax:
+    B_pinv = np.asarray(B_pinv, dtype=float)
+    nu = np.asarray(nu, dtype=float)
+    side_values = lambda V: (B_pinv @ V).reshape(2, N_SIDE) * nu  # noqa: E731
+    if float(np.max(np.ptp(side_values(U), axis=1))) <= 2.0 * tmax:
         return U, 1.0
-    scale = 2.0 * tmax / spread
-    return scale * U, scale
+    K = np.zeros(WRENCH_DIM) if keep is None else np.asarray(keep, dtype=float)
+    a = side_values(K)
+    if not float(np.max(np.ptp(a, axis=1))) <= 2.0 * tmax:  # the kept wrench beyond the rotors too
+        K, a = np.zeros(WRENCH_DIM), np.zeros((2, N_SIDE))
+    D = U - K
+    d = side_values(D)
+    scale = 1.0
+    for s in range(2):
+        for i in range(N_SIDE):
+            for j in range(N_SIDE):
+                dd = d[s, i] - d[s, j]
+                if dd > 0.0:
+                    scale = min(scale, (2.0 * tmax - (a[s, i] - a[s, j])) / dd)
+    scale = max(scale, 0.0)
+    return K + scale * D, scale
 
 
 def _modulate_side(b: Sequence[float], xi_pre: float, eps1: float, tmax: float = math.inf) -> float:
@@ -512,6 +535,20 @@ def gradual_selective_mapping(
 # --------------------------------------------------------------------------------------------
 
 
+_NO_KEEP = np.zeros(WRENCH_DIM)
+_NO_KEEP.setflags(write=False)
+
+
+def _checked_keep(keep) -> np.ndarray:
+    """The wrench :func:`scaled_to_limit` keeps: zeros for ``None``; 6 finite numbers."""
+    if keep is None:
+        return _NO_KEEP
+    keep = np.asarray(keep, dtype=float)
+    if keep.shape != (WRENCH_DIM,) or not math.isfinite(keep.sum()):
+        raise ValueError(f"keep must be 6 finite numbers [force (N); torque (Nm)]; got {keep!r}")
+    return keep
+
+
 class Allocator:
     """Stateful allocation of one link: keeps ``xi''_pre`` of (2.15) between calls.
 
@@ -564,6 +601,9 @@ class Allocator:
         self._xi_limit = self._tmax if self._scale_to_limit else math.inf  # (2.15) within the limit
         self._xi_pre = np.zeros(2)
         self._compiled = _fast.ENABLED if compiled is None else bool(compiled)
+        #: of the last allocation: ``AllocationResult.scale`` and ``.saturated`` (the firmware's
+        #: thrust-limit report reads them; :func:`._fast.tick_kernel` returns them for its own)
+        self.scale, self.saturated = 1.0, False
 
     @property
     def mapping_matrix(self) -> np.ndarray:
@@ -589,10 +629,10 @@ class Allocator:
         """Clear the modulation state: ``xi''_pre = 0``."""
         self._xi_pre = np.zeros(2)
 
-    def allocate(self, U: np.ndarray) -> AllocationResult:
+    def allocate(self, U: np.ndarray, keep: np.ndarray | None = None) -> AllocationResult:
         """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
 
-        With ``scale_to_limit``, first the multiple of ``U`` the rotors can produce
+        With ``scale_to_limit``, first the wrench the rotors can produce, ``keep`` kept whole
         (:func:`scaled_to_limit`). Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15)
         (updating ``xi''_pre``; within the limit with ``scale_to_limit``) and the gradual
         selective mapping (2.17) (within the limit with ``scale_to_limit``:
@@ -606,12 +646,17 @@ class Allocator:
         U = np.asarray(U, dtype=float)
         if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
-        if self._compiled:
-            return self._allocate_compiled(U)
+        keep = _checked_keep(keep)
+        r = self._allocate_compiled(U, keep) if self._compiled else self._allocate_numpy(U, keep)
+        self.scale, self.saturated = r.scale, r.saturated
+        return r
+
+    def _allocate_numpy(self, U: np.ndarray, keep: np.ndarray) -> AllocationResult:
+        """:meth:`allocate` in numpy (``U`` checked): the specification of the compiled kernel."""
         tmax = self._tmax
         scale = 1.0
         if self._scale_to_limit:
-            U, scale = scaled_to_limit(self._B_pinv, U, tmax)
+            U, scale = scaled_to_limit(self._B_pinv, U, tmax, keep=keep)
         scaled = scale != 1.0
         lam_o = self._B_pinv @ U
         lo = lam_o.tolist()
@@ -683,15 +728,18 @@ class Allocator:
             scale=scale,
         )
 
-    def command(self, U: np.ndarray) -> np.ndarray:
+    def command(self, U: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
         """``allocate(U).command_n`` (the thrusts sent to the ESCs) without the intermediate
         allocations: what the firmware's fast loop needs of it."""
         if not self._compiled:
-            return self.allocate(U).command_n
+            return self.allocate(U, keep).command_n
         U = np.asarray(U, dtype=float)
         if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
-        return _fast.allocate_kernel(U, *self.kernel_args(), np.empty((5, N_ROTORS)), np.empty(_fast.ALLOC_META))[0]
+        meta = np.empty(_fast.ALLOC_META)
+        out = _fast.allocate_kernel(U, _checked_keep(keep), *self.kernel_args(), np.empty((5, N_ROTORS)), meta)
+        self.scale, self.saturated = float(meta[5]), bool(meta[4])
+        return out[0]
 
     def kernel_args(self) -> tuple:
         """The arguments after ``U`` with which :meth:`command` calls :func:`._fast.allocate_kernel`
@@ -701,10 +749,10 @@ class Allocator:
         return (self._B_pinv, self._reduced_by_side, NU, self._xi_pre, self._eps0, self._eps1, self._tmax,
                 self._selective, self._scale_to_limit, MARGIN_TOL_N)
 
-    def _allocate_compiled(self, U: np.ndarray) -> AllocationResult:
+    def _allocate_compiled(self, U: np.ndarray, keep: np.ndarray) -> AllocationResult:
         """:meth:`allocate` by :func:`._fast.allocate_kernel` (``U`` checked)."""
         out, meta = np.empty((5, N_ROTORS)), np.empty(_fast.ALLOC_META)
-        _fast.allocate_kernel(U, *self.kernel_args(), out, meta)
+        _fast.allocate_kernel(U, keep, *self.kernel_args(), out, meta)
         return AllocationResult(command_n=out[0], lambda_o=out[1], lambda_alpha=out[2], lambda_beta=out[3],
                                 lambda_gamma=out[4], e=(float(meta[0]), float(meta[1])),
                                 near_zero=(int(meta[2]), int(meta[3])), saturated=bool(meta[4]), wrench=meta[6:12],

@@ -56,7 +56,9 @@ from .allocation import AllocationParams, Allocator
 from . import _fast
 from .control import ControlIntegrals, ImpedanceGains, impedance_control, impedance_control_compiled, weight_wrench
 from .ekf import X_BG, X_P, EkfConfig, EkfNoise, LinkEkf
-from .gps_health import GpsEvent, GpsHealth, GpsHealthConfig
+from .events import StatusEvent
+from .gps_health import GpsHealth, GpsHealthConfig
+from .thrust_limit import ThrustLimit
 from .hybrid import (ContactTarget, HybridController, HybridGains, MomentumObserver, ObserverConfig,
                      contact_force_estimate, contact_pfaffian)
 from .se3_control import Se3PidController, Se3PidGains
@@ -222,8 +224,10 @@ class LinkFirmware:
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
         self.gps_health = GpsHealth(config.gps)
-        #: GPS health transitions not yet reported by the shell (STATUSTEXT)
-        self.events: list[GpsEvent] = []
+        #: the rotors' thrust limit: time at it, episodes (reported as events)
+        self.thrust_limit = ThrustLimit()
+        #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
+        self.events: list[StatusEvent] = []
         self._make_controller()
 
     def _make_controller(self) -> None:
@@ -319,7 +323,7 @@ class LinkFirmware:
             if ev.kind == "reset":
                 jump = float(np.linalg.norm(np.asarray(pos_w_m) - ekf.p_w_m))
                 ekf.reset_position(pos_w_m)
-                ev = GpsEvent("reset", f"GPS reset: position jumped {jump:.1f} m")
+                ev = StatusEvent("reset", f"GPS reset: position jumped {jump:.1f} m")
             self.events.append(ev)
         if was_fault and not health.fault:  # recovered: this fix is fused again
             ekf.update_position(pos_w_m)
@@ -534,6 +538,7 @@ class LinkFirmware:
             self._apply_pending()
         self.events.extend(self.gps_health.on_tick(t_s))
         if not self.armed:
+            self.events.extend(self.thrust_limit.on_tick(t_s, dt, False))
             return self._zero
         p, v, q = self.control_estimate(t_s)
         omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
@@ -550,7 +555,8 @@ class LinkFirmware:
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
         if not self._airborne and p[2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True  # take-off detected: a disarm now needs the force value
-        command = self.allocator.command(U)
+        command = self.allocator.command(U, weight_wrench(self.inertia, q))  # at the limit, the weight kept
+        self.events.extend(self.thrust_limit.on_tick(t_s, dt, self.allocator.saturated, self.allocator.scale))
         if self.observer is not None:
             self._observe(v, q, omega, command, dt)
         return command
@@ -613,6 +619,9 @@ class LinkFirmware:
         self._thrust_total_n = float(out[_OUT_FORCE_NORM])
         if not self._airborne and out[_OUT_P_CTRL_Z] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True
+        alloc = self.allocator
+        alloc.scale, alloc.saturated = float(out[_OUT_SCALE]), bool(out[_OUT_SATURATED])
+        self.events.extend(self.thrust_limit.on_tick(t_s, dt, alloc.saturated, alloc.scale))
         return out[_OUT_COMMAND]
 
 
@@ -623,6 +632,8 @@ _OUT_ATT_INT = _fast.TICK_OUT["att_int"]
 _OUT_FORCE_NORM = _fast.TICK_OUT["force_norm"]
 _OUT_P_CTRL_Z = _fast.TICK_OUT["p_ctrl"].start + 2
 _OUT_FINITE = _fast.TICK_OUT["finite"]
+_OUT_SCALE = _fast.TICK_OUT["scale"]
+_OUT_SATURATED = _fast.TICK_OUT["saturated"]
 
 
 _NO_CORRECTION = np.zeros(9)

@@ -16,7 +16,8 @@ rejected fixes into a fault state, as PX4's EKF2 does with its GNSS checks:
   EKF2 resets to GNSS after its fusion timeout (``reset_timeout_max``) when GNSS is the only
   horizontal aiding source. The estimate jumps; the reset is counted and reported.
 
-Each transition is returned as an :class:`GpsEvent` for the shell to report (STATUSTEXT).
+Each transition is returned as a :class:`~link_firmware_sim.events.StatusEvent` for the shell to
+report (STATUSTEXT).
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ import numpy as np
 
 from companion.configfile import require_nonnegative, require_positive
 
-__all__ = ["GpsHealthConfig", "GpsEvent", "GpsHealth"]
+from .events import StatusEvent
+
+__all__ = ["GpsHealthConfig", "GpsHealth"]
 
 
 @dataclass(frozen=True)
@@ -52,12 +55,6 @@ class GpsHealthConfig:
         require_nonnegative(self, "recover_s")
 
 
-@dataclass(frozen=True)
-class GpsEvent:
-    kind: str  # "fault", "recovered", "reset"
-    text: str  # a STATUSTEXT (at most 50 characters)
-
-
 class GpsHealth:
     """See the module docstring; feed it every fix (:meth:`on_fix`) and every tick (:meth:`on_tick`)."""
 
@@ -76,13 +73,13 @@ class GpsHealth:
         self._window: deque = deque()  # (t, horizontal position, horizontal velocity) of recent fixes
         self.drift_m_s = 0.0  # the last consistency test's figure
 
-    def _raise(self, t_s: float, reason: str, text: str) -> GpsEvent | None:
+    def _raise(self, t_s: float, reason: str, text: str) -> StatusEvent | None:
         if self.fault:
             return None
         self.fault, self.reason = True, reason
         self.faults += 1
         self._fault_since_s = t_s
-        return GpsEvent("fault", text)
+        return StatusEvent("fault", text)
 
     def consistent(self, t_s: float, pos_w_m, vel_w_m_s) -> bool:
         """Record a fix; ``False`` if the horizontal positions of the last ``drift_window_s``
@@ -102,11 +99,11 @@ class GpsHealth:
         self.drift_m_s = float(np.linalg.norm(slope - v.mean(axis=0)))
         return self.drift_m_s <= self.config.drift_max_m_s
 
-    def on_fix(self, t_s: float, accepted: bool, aided: bool, why: str = "position fix rejected") -> list[GpsEvent]:
+    def on_fix(self, t_s: float, accepted: bool, aided: bool, why: str = "position fix rejected") -> list[StatusEvent]:
         """One position fix, accepted or rejected (by the EKF's gate, or the consistency test:
         ``why``). ``aided``: a companion correction is active (the estimate has another source).
         A ``reset`` event asks the caller to reset the EKF's position to this fix."""
-        out: list[GpsEvent] = []
+        out: list[StatusEvent] = []
         self.last_fix_s = t_s
         if accepted:
             self.rejecting_since_s = None
@@ -115,7 +112,7 @@ class GpsHealth:
             if self.fault and t_s - self.accepting_since_s >= self.config.recover_s:
                 self.fault = False
                 self.fault_time_s += t_s - self._fault_since_s
-                out.append(GpsEvent("recovered", f"GPS ok again after {t_s - self._fault_since_s:.1f} s"))
+                out.append(StatusEvent("recovered", f"GPS ok again after {t_s - self._fault_since_s:.1f} s"))
             return out
         self.rejected += 1
         self.accepting_since_s = None
@@ -127,10 +124,10 @@ class GpsHealth:
         if not aided and t_s - self.rejecting_since_s >= self.config.reset_s:
             self.resets += 1
             self.rejecting_since_s = t_s  # a new run starts from the reset
-            out.append(GpsEvent("reset", f"GPS rejected {self.config.reset_s:g} s: position reset"))
+            out.append(StatusEvent("reset", f"GPS rejected {self.config.reset_s:g} s: position reset"))
         return out
 
-    def on_tick(self, t_s: float) -> list[GpsEvent]:
+    def on_tick(self, t_s: float) -> list[StatusEvent]:
         """The outage check: no fix for ``timeout_s``."""
         if not self.fault and t_s - self.last_fix_s >= self.config.timeout_s:
             self.accepting_since_s = None

@@ -442,7 +442,8 @@ class Vehicle:
             self._log_row()
 
     def _report_events(self) -> None:
-        """The firmware's GPS health transitions, as STATUSTEXT to every link and in the log."""
+        """The firmware's GPS health and thrust-limit transitions, as STATUSTEXT to every link and in
+        the log."""
         severity = {"fault": D.MAV_SEVERITY_WARNING, "reset": D.MAV_SEVERITY_CRITICAL, "recovered": D.MAV_SEVERITY_INFO}
         for ev in self.fw.events:
             log.warning("link %d at %.2f s: %s", self.system_id, self.fc_time_s, ev.text)
@@ -813,6 +814,7 @@ class Vehicle:
             stats[self.sim.url] = vars(self.sim.stats)
             stats["errors"] = self.errors
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
+            stats["thrust_limit"] = self.fw.thrust_limit.report()
             if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)
                 stats["ekf"] = {"accepted": self.fw.ekf.accepted, "rejected": self.fw.ekf.rejected}
             (self.out_dir / f"link{self.instance + 1}_ports.json").write_text(json.dumps(stats, indent=1, default=str))

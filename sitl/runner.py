@@ -495,7 +495,7 @@ class BatchRunner:
                 gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
                 for i, fw in enumerate(self.firmware):
                     commands[i] = 0.0 if i in self._down else fw.on_imu(t, gyro[i], accel[i])
-                    if fw.events:  # GPS health transitions (a vehicle sends them as STATUSTEXT)
+                    if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
                         for ev in fw.events:
                             log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
                         fw.events.clear()

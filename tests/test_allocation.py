@@ -256,23 +256,24 @@ def test_prop2_mapping_not_exact_without_null_structure():
     assert np.max(np.abs(Bt @ lam - U)) > 1e-3
 
 
-def _check_allocator_step(alloc, U_asked):
+def _check_allocator_step(alloc, U_asked, keep=None):
     """One allocate() call checked against the pure functions and Props. 1-2, (2.15), (2.17), and
     the limit (AllocationParams.scale_to_limit): every rotor of lambda_alpha and lambda_beta
     within it, all of U when U is feasible (Prop. 1's infinity norm within it), else the
     largest multiple of U that is."""
     xi_pre = alloc.xi_pre
-    r = alloc.allocate(U_asked)
-    U, scale = scaled_to_limit(B_PINV, U_asked, TMAX)
+    r = alloc.allocate(U_asked, keep)
+    U, scale = scaled_to_limit(B_PINV, U_asked, TMAX, keep=keep)
     np.testing.assert_allclose(r.wrench, U, atol=1e-12)
     assert r.scale == pytest.approx(scale, abs=1e-12)
     inf_norm = lambda V: np.max(np.abs(infinity_norm_allocation(B_PINV, V, NU)[2]))  # noqa: E731
     feasible = inf_norm(U_asked) <= TMAX
     if feasible:
         assert r.scale == 1.0 and np.array_equal(r.wrench, U_asked)
-    else:  # on the limit, the direction kept
-        assert 0.0 < scale < 1.0 and inf_norm(U) == pytest.approx(TMAX, abs=1e-9)
-        np.testing.assert_allclose(U, scale * U_asked, atol=1e-12)
+    else:  # on the limit; what is kept whole, the rest in its direction
+        K = np.zeros(6) if keep is None or inf_norm(keep) > TMAX else keep
+        assert 0.0 <= scale < 1.0 and inf_norm(U) == pytest.approx(TMAX, abs=1e-9)
+        np.testing.assert_allclose(U, K + scale * (U_asked - K), atol=1e-12)
     lam_o, xi1, lam_a = infinity_norm_allocation(B_PINV, U, NU)
     xi2 = selective_modulation(lam_o, xi1, xi_pre, NU, EPS1, TMAX)
     np.testing.assert_allclose(alloc.xi_pre, xi2, atol=1e-12)
@@ -329,6 +330,39 @@ def test_allocator_exact_and_consistent_hypothesis(Us):
     alloc = Allocator(GEOM)
     for U in Us:
         _check_allocator_step(alloc, U)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(wrench, st.floats(-3.2, 3.2), st.floats(-1.5, 1.5), st.floats(-3.2, 3.2)),
+                min_size=1, max_size=8))
+def test_allocator_keeping_the_weight_hypothesis(steps):
+    """The firmware's call: the link's weight at its attitude kept whole at the limit."""
+    alloc = Allocator(GEOM)
+    for U, yaw, pitch, roll in steps:
+        R = _rz(yaw) @ _ry(pitch) @ np.array([[1.0, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+        keep = _hover_wrench(R)
+        r = _check_allocator_step(alloc, _hover_wrench(R) + 4.0 * U, keep)
+        hover = np.max(np.abs(infinity_norm_allocation(B_PINV, keep, NU)[2])) <= TMAX  # (not past 50-60 deg of roll)
+        if r.scale < 1.0 and hover:  # the weight is carried: B command = keep + s (U - keep)
+            np.testing.assert_allclose(B @ r.command_n - keep, r.scale * 4.0 * U, atol=1e-9)
+
+
+def test_a_far_target_gives_way_above_the_weight():
+    """A target 30 m off asks eq. 1 for 300 N sideways (it has no limit of its own): clipped rotor
+    by rotor that came out as 43 N sideways and no lift; the whole wrench scaled, 2.4 N of lift
+    for 17.7 N of weight. With the weight kept (the firmware's call) the link holds its height and
+    pushes sideways with what is left (25.8 N)."""
+    weight = _hover_wrench(np.eye(3))
+    U = weight + np.array([300.0, 0, 0, 0, 0, 0])
+    clipped = Allocator(GEOM, AllocationParams(scale_to_limit=False)).allocate(U).command_n
+    whole = Allocator(GEOM).allocate(U).command_n
+    kept = Allocator(GEOM).allocate(U, weight)
+    assert (B @ clipped)[2] < 0.1 and (B @ whole)[2] < 0.2 * weight[2]
+    np.testing.assert_allclose(B @ kept.command_n, weight + kept.scale * (U - weight), atol=1e-9)
+    assert (B @ kept.command_n)[2] == pytest.approx(weight[2], abs=1e-9) and (B @ kept.command_n)[0] > 25.0
+    assert np.max(np.abs(kept.command_n)) == pytest.approx(TMAX, abs=1e-9)
+    with pytest.raises(ValueError, match="keep"):
+        Allocator(GEOM).allocate(U, [1.0, 2.0])
 
 
 def test_allocator_exact_and_consistent_on_seeded_sequences():

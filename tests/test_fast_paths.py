@@ -147,7 +147,8 @@ def test_impedance_control_matches_numpy():
 @pytest.mark.parametrize("selective", [True, False])
 def test_allocation_matches_numpy(selective, scale_to_limit):
     """A sequence of wrenches (the modulation's state carries over), many near a rotor's zero,
-    every seventh one beyond the rotors' limit (scaled to it, or clipped)."""
+    every seventh one beyond the rotors' limit (scaled to it, or clipped), with the weight of a
+    tilted link kept whole (and every third time nothing or a wrench beyond the rotors kept)."""
     rng = np.random.default_rng(3)
     geometry = RotorGeometry.odar()
     params = AllocationParams(selective_mapping=selective, scale_to_limit=scale_to_limit)
@@ -157,7 +158,11 @@ def test_allocation_matches_numpy(selective, scale_to_limit):
     for k in range(300):
         U = U + rng.normal(size=6) * [0.5, 0.5, 0.5, 0.05, 0.05, 0.05]
         V = U * rng.uniform(1.5, 4.0) if k % 7 == 6 else U
-        a, b = ref.allocate(V), fast.allocate(V)
+        tilt = rng.normal(size=3) * 0.3
+        keep = (None, np.concatenate((17.6 * tilt / max(1.0, np.linalg.norm(tilt)) + [0, 0, 17.6], np.zeros(3))),
+                np.array([90.0, 0, 0, 0, 0, 0]))[k % 3]
+        a, b = ref.allocate(V, keep), fast.allocate(V, keep)
+        assert (fast.scale, fast.saturated) == (b.scale, b.saturated)
         for name in ("command_n", "lambda_o", "lambda_alpha", "lambda_beta", "lambda_gamma", "wrench"):
             np.testing.assert_allclose(getattr(b, name), getattr(a, name), **TOL, err_msg=name)
         np.testing.assert_allclose(b.e, a.e, **TOL)
@@ -172,6 +177,8 @@ def test_allocation_matches_numpy(selective, scale_to_limit):
     np.testing.assert_array_equal(fast.command(U), fast.allocate(U).command_n)
     with pytest.raises(ValueError):
         fast.command(np.full(6, np.nan))
+    with pytest.raises(ValueError, match="keep"):
+        fast.command(U, np.full(6, np.nan))
 
 
 @pytest.mark.parametrize("min_thrust_n,dwell_s", [(0.0, 0.0), (0.35, 0.25)])
@@ -234,7 +241,8 @@ def _firmware_pair():
 def test_fused_tick_matches_step_by_step():
     """LinkFirmware.on_imu through the one-kernel tick (_tick_fused) against the step-by-step path
     (predict, updates, control estimate, eq. 1, allocation) over a flight segment: corrections
-    arriving and fading, GPS and attitude updates queued, new targets, a stale target (the fallback)."""
+    arriving and fading, GPS and attitude updates queued, new targets, a target 30 m off (the
+    rotors at their limit: the wrench scaled, reported), a stale target (the fallback)."""
     from companion.messages import Correction
 
     rng = np.random.default_rng(23)
@@ -257,10 +265,12 @@ def test_fused_tick_matches_step_by_step():
     for k in range(1, 800):
         t = k * 0.002
         events = []
-        if k % 50 == 1 and k < 200:  # targets at 10 Hz, then none: stale after 1 s (from tick 652)
+        if k % 50 == 1 and k < 200:  # targets at 10 Hz, then a far one: stale after 1 s (from tick 752)
             target = PoseTarget(p0 + rng.normal(size=3) * 0.2, quat_normalize(q0 + rng.normal(size=4) * 0.05),
                                 *(rng.normal(size=(6, 3)) * 0.3))
             events.append(("set_target", (t, target)))
+        if k == 251:
+            events.append(("set_target", (t, PoseTarget.hold(p0 + np.array([30.0, -10.0, 20.0]), q0))))
         if k % 97 == 3:
             events.append(("on_correction", (t, Correction(0, t - 0.01, rng.normal(size=3) * 0.05,
                                                              rng.normal(size=3) * 0.02, rng.normal(size=3) * 0.005,
@@ -281,7 +291,11 @@ def test_fused_tick_matches_step_by_step():
         np.testing.assert_allclose(fused.integrals.att, stepwise.integrals.att, **TOL)
         np.testing.assert_allclose(fused.allocator.xi_pre, stepwise.allocator.xi_pre, **TOL)
         np.testing.assert_allclose(fused._thrust_total_n, stepwise._thrust_total_n, **TOL)
+        np.testing.assert_allclose(fused.allocator.scale, stepwise.allocator.scale, **TOL)
+        assert fused.allocator.saturated == stepwise.allocator.saturated
         assert fused.time_s == stepwise.time_s and fused._airborne == stepwise._airborne
+    limit = fused.thrust_limit.report()
+    assert limit == stepwise.thrust_limit.report() and limit["episodes"] == 1 and limit["min_scale"] < 0.9, limit
     assert fused.ekf.accepted == stepwise.ekf.accepted and fused.ekf.rejected == stepwise.ekf.rejected
     assert fused.correction_weight(t) == stepwise.correction_weight(t)
     n_fused = sum(taken)
