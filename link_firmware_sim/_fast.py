@@ -428,10 +428,11 @@ def pack_target(target) -> np.ndarray:
 
 
 def pack_gains(gains) -> np.ndarray:
-    """:class:`~link_firmware_sim.control.ImpedanceGains` as (15,): kp, kd, ki (3 each), kR, kw,
-    kI, gamma_I, position and attitude integral limits."""
+    """:class:`~link_firmware_sim.control.ImpedanceGains` as (16,): kp, kd, ki (3 each), kR, kw,
+    kI, gamma_I, position and attitude integral limits, the position error's limit."""
     return np.array((*gains.kp_n_m, *gains.kd_ns_m, *gains.ki_n_ms, gains.kR_nm, gains.kw_nms, gains.kI_nm_s,
-                     gains.gamma_I, gains.pos_integral_limit_ms, gains.att_integral_limit_rad), dtype=float)
+                     gains.gamma_I, gains.pos_integral_limit_ms, gains.att_integral_limit_rad,
+                     gains.pos_error_limit_m), dtype=float)
 
 
 def pack_inertia(inertia) -> np.ndarray:
@@ -458,8 +459,16 @@ def impedance_kernel(p, v, q, w, tgt, gains, inertia, pos, att, dt_s, gravity, o
     Jx, Jy, Jz = inertia[1], inertia[2], inertia[3]
     pos_lim, att_lim = gains[13], gains[14]
     f_w = np.empty(3)
+    e = np.empty(3)
     for i in range(3):
-        e_p = p[i] - tgt[i]
+        e[i] = p[i] - tgt[i]
+    n = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    if n > gains[15]:  # control._limited
+        k = gains[15] / n
+        for i in range(3):
+            e[i] = e[i] * k
+    for i in range(3):
+        e_p = e[i]
         pi = _clamp(pos[i] + e_p * dt_s, pos_lim)
         out[6 + i] = pi
         ag = tgt[6 + i] + (gravity if i == 2 else 0.0)

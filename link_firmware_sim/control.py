@@ -64,6 +64,13 @@ class ImpedanceGains:
 
     Defaults suit a 1 m, 1.8 kg LASDRA link: about 2.5 rad/s critically damped in
     translation, about 5 rad/s in pitch/yaw.
+
+    ``pos_error_limit_m`` (an addition to eq. 1, IMP_PERR_MAX): the position error ``p - p_d`` is
+    taken at most this long (its direction kept), as ArduPilot's position controller limits its
+    leash and PX4 its velocity setpoint. Eq. 1 itself has no limit: a target 30 m off asked for
+    300 N and the link flew at it at 15 m/s and overshot by 13 m. With 2 m the stiffness term is
+    at most 22 N and the link closes a far target at about ``k_p L / k_d`` = 2.4 m/s. Tracking
+    errors in flight are centimetres to a few decimetres: the limit is not reached there.
     """
 
     kp_n_m: tuple[float, float, float] = (11.0, 11.0, 11.0)
@@ -75,6 +82,7 @@ class ImpedanceGains:
     gamma_I: float = 0.5
     pos_integral_limit_ms: float = 2.0
     att_integral_limit_rad: float = 1.0
+    pos_error_limit_m: float = 2.0
 
     def __post_init__(self) -> None:
         for name in ("kp_n_m", "kd_ns_m", "ki_n_ms"):
@@ -83,6 +91,8 @@ class ImpedanceGains:
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {val!r}")
+        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
+            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
 
 
 @dataclass(frozen=True)
@@ -91,6 +101,15 @@ class ControlIntegrals:
 
     pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     att: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def _limited(e, limit: float) -> tuple:
+    """``e`` (a 3-tuple) shortened to length ``limit`` if longer (ImpedanceGains.pos_error_limit_m)."""
+    n = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    if n <= limit:
+        return e
+    k = limit / n
+    return (e[0] * k, e[1] * k, e[2] * k)
 
 
 def weight_wrench(inertia: LinkInertia, q_wxyz: np.ndarray) -> np.ndarray:
@@ -164,7 +183,7 @@ def impedance_control(
     Jx, Jy, Jz = inertia.inertia_kgm2
     kp, kd, ki = gains.kp_n_m, gains.kd_ns_m, gains.ki_n_ms
     # Translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p (p - p_d) - k_i int(p - p_d) (+ f_ff).
-    e_p = (p[0] - pd[0], p[1] - pd[1], p[2] - pd[2])
+    e_p = _limited((p[0] - pd[0], p[1] - pd[1], p[2] - pd[2]), gains.pos_error_limit_m)
     pos = integrals.pos
     pos_int = _clamp([pos[i] + e_p[i] * dt_s for i in range(3)], gains.pos_integral_limit_ms)
     gz = GRAVITY_M_S2

@@ -53,6 +53,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("IMP_KW", "float", 0.0, 50.0, "Angular rate damping [N m s] (eq. 1 k_omega)"),
     ParamSpec("IMP_KI_ATT", "float", 0.0, 50.0, "Attitude integral [N m] (eq. 1 k_I)"),
     ParamSpec("IMP_GAMMA_I", "float", 0.0, 10.0, "Attitude integral mixing (eq. 1 gamma_I)"),
+    ParamSpec("IMP_PERR_MAX", "float", 0.1, 100.0, "Position error taken at most this long in eq. 1 [m]"),
     ParamSpec("SKL_CORR_HOLD", "float", 0.0, 10.0, "Correction held at full weight [s]"),
     ParamSpec("SKL_CORR_STALE", "float", 0.01, 60.0, "Correction stale after [s]: control on the raw EKF"),
     ParamSpec("COM_OF_LOSS_T", "float", 0.05, 60.0, "Target stale after [s]: hold position"),
@@ -110,6 +111,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "IMP_KW": g.kw_nms,
         "IMP_KI_ATT": g.kI_nm_s,
         "IMP_GAMMA_I": g.gamma_I,
+        "IMP_PERR_MAX": g.pos_error_limit_m,
         "SKL_CORR_HOLD": config.correction_hold_s,
         "SKL_CORR_STALE": config.correction_stale_s,
         "COM_OF_LOSS_T": config.target_stale_s,
@@ -223,6 +225,7 @@ class ParamTable:
             kw_nms=v["IMP_KW"],
             kI_nm_s=v["IMP_KI_ATT"],
             gamma_I=v["IMP_GAMMA_I"],
+            pos_error_limit_m=v["IMP_PERR_MAX"],
         )
         allocation = replace(
             self._base.allocation, selective_mapping=bool(v["SKL_SM_EN"]), eps0_n=v["SKL_SM_EPS0"],

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -31,7 +33,7 @@ def _eq1_reference(p, v, q, w, target, gains, inertia, integrals, dt):
 def test_controller_equals_eq1(seed):
     rng = np.random.default_rng(seed)
     gains = ImpedanceGains(kp_n_m=(11.0, 9.0, 13.0), kd_ns_m=(8.0, 7.0, 9.0), ki_n_ms=(0.5, 0.4, 0.3),
-                           pos_integral_limit_ms=0.05, att_integral_limit_rad=0.02)
+                           pos_integral_limit_ms=0.05, att_integral_limit_rad=0.02, pos_error_limit_m=100.0)
     inertia = LinkInertia(1.8, (0.04, 0.16, 0.17))
     target = PoseTarget(rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3),
                         rng.normal(size=3), rng.normal(size=3), rng.normal(size=3),
@@ -43,6 +45,28 @@ def test_controller_equals_eq1(seed):
     np.testing.assert_allclose(U, U_ref, atol=1e-12)
     np.testing.assert_allclose(ints.pos, pos_ref, atol=1e-15)
     np.testing.assert_allclose(ints.att, att_ref, atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_the_position_error_is_limited(seed):
+    """pos_error_limit_m: a target beyond it acts as the point on the way to it at that distance
+    (eq. 1 with p_d moved there), integral included; within it, eq. 1 unchanged."""
+    rng = np.random.default_rng(100 + seed)
+    gains = ImpedanceGains(ki_n_ms=(0.5, 0.4, 0.3), pos_error_limit_m=1.5)
+    inertia = LinkInertia(1.8, (0.04, 0.16, 0.17))
+    p, v, q, w = rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3)
+    integrals = ControlIntegrals(rng.normal(scale=0.03, size=3), rng.normal(scale=0.01, size=3))
+    for distance in (0.5, 1.5, 4.0, 300.0):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        far = PoseTarget(p + distance * direction, quat_normalize(rng.normal(size=4)), *rng.normal(size=(4, 3)))
+        near = replace(far, p_w_m=p + min(distance, 1.5) * direction)
+        U, ints = impedance_control(p, v, q, w, far, gains, inertia, integrals, 0.01)
+        U_ref, pos_ref, att_ref = _eq1_reference(p, v, q, w, near, gains, inertia, integrals, 0.01)
+        np.testing.assert_allclose(U, U_ref, atol=1e-9)
+        np.testing.assert_allclose(ints.pos, pos_ref, atol=1e-12)
+    with pytest.raises(ValueError, match="pos_error_limit_m"):
+        ImpedanceGains(pos_error_limit_m=0.0)
 
 
 def test_hover_at_target_needs_only_weight_compensation():
