@@ -99,10 +99,11 @@ class AllocationParams:
     selective_mapping : bool
         ``False``: command ``lambda_alpha`` (Prop. 1 only), skipping (2.15) and (2.17).
     scale_to_limit : bool
-        A wrench beyond the rotors' limit: allocate the largest multiple of it they can produce
-        (:func:`scaled_to_limit`), and keep (2.15)'s modulation and (2.17)'s fade within the
-        limit (the fade's weight ``e`` raised as far as that needs). ``False``: the thesis as
-        written, commands clipped rotor by rotor.
+        A wrench beyond the rotors' limit: allocate what they can produce of it, a wrench kept
+        whole (the firmware: the link's weight) and the rest scaled (:func:`scaled_to_limit`),
+        and keep (2.15)'s modulation and (2.17)'s fade within the limit (the fade's weight ``e``
+        raised as far as that needs). ``False``: the thesis as written, commands clipped rotor
+        by rotor.
 
     Requires ``0 < eps0_n < eps1_n < thrust_max_n`` (all finite).
     """
@@ -156,8 +157,8 @@ class AllocationResult:
         was held back by the limit (``e`` raised) or any unclipped thrust exceeded
         ``thrust_max_n`` in magnitude (the command was clipped).
     wrench : ndarray, shape (6,)
-        The wrench allocated: ``U``, or with ``scale_to_limit`` the multiple of it the rotors can
-        produce.
+        The wrench allocated: ``U``, or with ``scale_to_limit`` ``K + s (U - K)``, what the rotors
+        can produce of it (:func:`scaled_to_limit`).
     scale : float
         ``s`` of :func:`scaled_to_limit` (1: all of ``U``).
     """

@@ -58,10 +58,10 @@ from .control import ControlIntegrals, ImpedanceGains, impedance_control, impeda
 from .ekf import X_BG, X_P, EkfConfig, EkfNoise, LinkEkf
 from .events import StatusEvent
 from .gps_health import GpsHealth, GpsHealthConfig
-from .thrust_limit import ThrustLimit
 from .hybrid import (ContactTarget, HybridController, HybridGains, MomentumObserver, ObserverConfig,
                      contact_force_estimate, contact_pfaffian)
 from .se3_control import Se3PidController, Se3PidGains
+from .thrust_limit import ThrustLimit
 from .pspm import PspmGains, PspmModulator, PspmSlave
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config", "m8_ekf_config", "EKF_TUNINGS"]

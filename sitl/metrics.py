@@ -34,7 +34,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``rotor_zero_crossings``: thrust sign changes over all rotors (the ESC singularity);
 * ``rotor_limit_s_per_link``: per link, the simulated seconds (whole run) with one of its rotors
   commanded at the thrust limit: the link asked for more than it can do (its firmware then
-  allocates the largest multiple of the wrench within the limit, ``SKL_SAT_SCALE``);
+  scales the wrench onto the limit above the link's weight, ``SKL_SAT_SCALE``, and reports it:
+  ``thrust_limit`` in ``linkN_ports.json``);
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
 * ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
   estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones

@@ -24,8 +24,8 @@ in the commanded direction. Each step integrates the first-order law exactly (``
 relaxes exponentially towards its current target). Commands are clipped to
 ``+-thrust_max_n``; thrust sign changes are counted, and per link (``rotors_per_link``) the
 time with a rotor commanded at the limit (``limit_s``: the firmware's allocation at the edge of
-what the link can do, :func:`link_firmware_sim.allocation.scaled_to_limit`). The MuJoCo harness feeds ``thrust_n`` to
-the rotor actuators.
+what the link can do, :func:`link_firmware_sim.allocation.scaled_to_limit`). The MuJoCo
+harness feeds ``thrust_n`` to the rotor actuators.
 
 The numpy code of :meth:`RotorBank.step` is the specification; with numba installed the bank steps
 by :func:`_step_kernel`, the same per-rotor logic compiled (``tests/test_fast_paths.py`` checks it

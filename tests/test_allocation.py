@@ -259,8 +259,8 @@ def test_prop2_mapping_not_exact_without_null_structure():
 def _check_allocator_step(alloc, U_asked, keep=None):
     """One allocate() call checked against the pure functions and Props. 1-2, (2.15), (2.17), and
     the limit (AllocationParams.scale_to_limit): every rotor of lambda_alpha and lambda_beta
-    within it, all of U when U is feasible (Prop. 1's infinity norm within it), else the
-    largest multiple of U that is."""
+    within it, all of U when U is feasible (Prop. 1's infinity norm within it), else
+    keep + s (U - keep) on the limit (keep = 0 when it is beyond the rotors itself)."""
     xi_pre = alloc.xi_pre
     r = alloc.allocate(U_asked, keep)
     U, scale = scaled_to_limit(B_PINV, U_asked, TMAX, keep=keep)
