@@ -463,7 +463,7 @@ def impedance_kernel(p, v, q, w, tgt, gains, inertia, pos, att, dt_s, gravity, o
     for i in range(3):
         e[i] = p[i] - tgt[i]
     n = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-    if n > gains[15]:  # control._limited
+    if n > gains[15]:  # control.limit_length
         k = gains[15] / n
         for i in range(3):
             e[i] = e[i] * k

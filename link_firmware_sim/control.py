@@ -103,11 +103,12 @@ class ControlIntegrals:
     att: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
-def _limited(e, limit: float) -> tuple:
-    """``e`` (a 3-tuple) shortened to length ``limit`` if longer (ImpedanceGains.pos_error_limit_m)."""
+def limit_length(e, limit: float) -> tuple:
+    """``e`` (3 floats) as a tuple, shortened to length ``limit`` if longer (the position error's
+    limit of eq. 1 and of sec. 2.3.2's controller, ``pos_error_limit_m``)."""
     n = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     if n <= limit:
-        return e
+        return tuple(e)
     k = limit / n
     return (e[0] * k, e[1] * k, e[2] * k)
 
@@ -183,7 +184,7 @@ def impedance_control(
     Jx, Jy, Jz = inertia.inertia_kgm2
     kp, kd, ki = gains.kp_n_m, gains.kd_ns_m, gains.ki_n_ms
     # Translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p (p - p_d) - k_i int(p - p_d) (+ f_ff).
-    e_p = _limited((p[0] - pd[0], p[1] - pd[1], p[2] - pd[2]), gains.pos_error_limit_m)
+    e_p = limit_length((p[0] - pd[0], p[1] - pd[1], p[2] - pd[2]), gains.pos_error_limit_m)
     pos = integrals.pos
     pos_int = _clamp([pos[i] + e_p[i] * dt_s for i in range(3)], gains.pos_integral_limit_ms)
     gz = GRAVITY_M_S2

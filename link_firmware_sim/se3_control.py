@@ -47,7 +47,7 @@ from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
-from .control import vee
+from .control import limit_length, vee
 
 __all__ = [
     "Se3PidGains",
@@ -85,8 +85,12 @@ class Se3PidGains:
     c2: float | None = None
     pos_integral_limit_ms: float = 2.0
     att_integral_limit_rad: float = 1.0
+    #: the position error taken at most this long [m], as eq. 1's (control.ImpedanceGains)
+    pos_error_limit_m: float = 2.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
+            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
         for name in ("kp_n_m", "kd_ns_m", "ki_n_ms"):
             val = getattr(self, name)
             if len(val) != 3:
@@ -160,7 +164,7 @@ def se3_pid_control(
     J = np.asarray(inertia.inertia_kgm2, dtype=float)
     kp, kd, ki = (np.asarray(g, dtype=float) for g in (gains.kp_n_m, gains.kd_ns_m, gains.ki_n_ms))
     # Translation (world).
-    e_p = p_w_m - target.p_w_m
+    e_p = np.array(limit_length((p_w_m - target.p_w_m).tolist(), gains.pos_error_limit_m))
     e_v = v_w_m_s - target.v_w_m_s
     pos_int = _clamp(integrals.pos_m_s + e_p * dt_s, gains.pos_integral_limit_ms)
     f_w = m * target.a_w_m_s2 - kd * e_v - kp * e_p - ki * pos_int + m * GRAVITY_M_S2 * E3 + target.force_ff_w_n

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -93,6 +94,28 @@ def test_c2_below_bound_makes_the_lyapunov_matrices_definite(kR, kw, frac):
     W2 = np.array([[c2 * kR, -0.5 * c2 * kw], [-0.5 * c2 * kw, kw - c2 * lM]])
     assert np.linalg.eigvalsh(W1).min() > 0
     assert np.linalg.eigvalsh(W2).min() > 0
+
+
+def test_se3_pid_limits_the_position_error():
+    """As eq. 1's: a target beyond pos_error_limit_m acts as the point on the way at that distance."""
+    rng = np.random.default_rng(11)
+    gains = Se3PidGains(pos_error_limit_m=1.5)
+    for distance in (0.7, 3.0, 40.0):
+        p, v, q, w = rng.normal(size=3), rng.normal(size=3), quat_from_rotvec(rng.normal(size=3)), rng.normal(size=3)
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        far = replace(_target(rng), p_w_m=p + distance * direction)
+        near = replace(far, p_w_m=p + min(distance, 1.5) * direction)
+        ints = Se3PidIntegrals(rng.normal(scale=0.1, size=3), rng.normal(scale=0.1, size=3))
+        U_far, i_far = se3_pid_control(p, v, q, w, far, gains, INERTIA, ints, 0.002)
+        U_near, i_near = se3_pid_control(p, v, q, w, near, gains, INERTIA, ints, 0.002)
+        np.testing.assert_allclose(U_far, U_near, atol=1e-9)
+        np.testing.assert_allclose(i_far.pos_m_s, i_near.pos_m_s, atol=1e-12)
+        if distance > 1.5:
+            U_free, _ = se3_pid_control(p, v, q, w, far, replace(gains, pos_error_limit_m=100.0), INERTIA, ints, 0.002)
+            assert np.linalg.norm(U_free[:3]) > np.linalg.norm(U_far[:3]) + 1.0
+    with pytest.raises(ValueError, match="pos_error_limit_m"):
+        Se3PidGains(pos_error_limit_m=math.inf)
 
 
 def test_c2_above_bound_is_rejected():
