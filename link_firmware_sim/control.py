@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.estimation.so3 import quat_to_rotmat, rotmat_tuple
+from companion.estimation.so3 import rotmat_tuple
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
@@ -114,9 +114,11 @@ def limit_length(e, limit: float) -> tuple:
 
 
 def weight_wrench(inertia: LinkInertia, q_wxyz: np.ndarray) -> np.ndarray:
-    """Body-frame wrench ``U = [R^T m g e3; 0]`` that carries the link's weight at attitude ``q``."""
-    R = quat_to_rotmat(q_wxyz)
-    return np.concatenate((R.T @ np.array([0.0, 0.0, inertia.mass_kg * GRAVITY_M_S2]), np.zeros(3)))
+    """Body-frame wrench ``U = [R^T m g e3; 0]`` that carries the link's weight at attitude ``q``
+    (``R^T e3`` is R's third row; the firmware's step-by-step path calls this every tick)."""
+    mg = inertia.mass_kg * GRAVITY_M_S2
+    r3 = rotmat_tuple(np.asarray(q_wxyz, dtype=float).tolist())[6:]
+    return np.array((r3[0] * mg, r3[1] * mg, r3[2] * mg, 0.0, 0.0, 0.0))
 
 
 def vee(S: np.ndarray) -> np.ndarray:
