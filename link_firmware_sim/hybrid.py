@@ -51,6 +51,7 @@ from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import ContactTarget, PoseTarget  # ContactTarget: one schema, also on MAVLink
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
+from .control import limit_length
 from .se3_control import attitude_error_so3, c2_bound
 
 __all__ = [
@@ -99,8 +100,12 @@ class HybridGains:
     pos_integral_limit_ms: float = 2.0
     att_integral_limit_rad: float = 1.0
     force_integral_limit_ns: float = 20.0
+    #: the position error taken at most this long [m], as eq. 1's (control.ImpedanceGains)
+    pos_error_limit_m: float = 2.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
+            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
         for name in ("kp_1_s2", "kd_1_s", "ki_1_s3"):
             _six(name, getattr(self, name))
         for name in ("kf_1_s", "pos_integral_limit_ms", "att_integral_limit_rad", "force_integral_limit_ns"):
@@ -260,7 +265,7 @@ def hybrid_control(
     P = m_projector(null_basis(A), M)
     e_R = attitude_error_so3(R, R_d)
     w_d = RtRd @ target.omega_d_rad_s
-    e = np.concatenate((p_w_m - target.p_w_m, e_R))
+    e = np.concatenate((limit_length((p_w_m - target.p_w_m).tolist(), gains.pos_error_limit_m), e_R))
     edot = np.concatenate((v_w_m_s - target.v_w_m_s, omega_b_rad_s - w_d))
     pos_int = np.clip(integrals.pos_m_s + e[LIN] * dt_s, -gains.pos_integral_limit_ms, gains.pos_integral_limit_ms)
     att_int = np.clip(integrals.att_rad + (edot[ANG] + c2 * e_R) * dt_s,

@@ -118,6 +118,26 @@ def test_se3_pid_limits_the_position_error():
         Se3PidGains(pos_error_limit_m=math.inf)
 
 
+def test_hybrid_limits_the_position_error():
+    """As eq. 1's: a target beyond pos_error_limit_m acts as the point on the way at that distance
+    (in contact and free)."""
+    rng = np.random.default_rng(12)
+    gains = HybridGains(pos_error_limit_m=1.5)
+    for distance, contact in ((0.7, CONTACT), (3.0, CONTACT), (40.0, None)):
+        p, v, q, w = rng.normal(size=3), rng.normal(size=3), quat_from_rotvec(rng.normal(size=3) * 0.3), rng.normal(size=3)
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        far = replace(_target(rng), p_w_m=p + distance * direction)
+        near = replace(far, p_w_m=p + min(distance, 1.5) * direction)
+        lam = np.array([7.0]) if contact is not None else np.zeros(0)
+        U_far, i_far = hybrid_control(p, v, q, w, far, contact, lam, gains, INERTIA, HybridIntegrals(), 0.002)
+        U_near, i_near = hybrid_control(p, v, q, w, near, contact, lam, gains, INERTIA, HybridIntegrals(), 0.002)
+        np.testing.assert_allclose(U_far, U_near, atol=1e-9)
+        np.testing.assert_allclose(i_far.pos_m_s, i_near.pos_m_s, atol=1e-12)
+    with pytest.raises(ValueError, match="pos_error_limit_m"):
+        HybridGains(pos_error_limit_m=0.0)
+
+
 def test_c2_above_bound_is_rejected():
     bound = c2_bound(6.0, 1.2, INERTIA)
     with pytest.raises(ValueError, match="c2"):
@@ -219,9 +239,10 @@ def test_hybrid_law_sets_the_constraint_force_to_the_command(seed):
 
 
 def test_hybrid_with_scalar_gains_is_the_printed_law():
-    """Equal entries in the 6-vector gains give the thesis's M Delta (phidd_d - K_d edot_phi - ...)."""
+    """Equal entries in the 6-vector gains give the thesis's M Delta (phidd_d - K_d edot_phi - ...)
+    (the position error's limit out of reach: the printed law has none)."""
     rng = np.random.default_rng(11)
-    g = HybridGains(kp_1_s2=(5.0,) * 6, kd_1_s=(3.0,) * 6, ki_1_s3=(0.5,) * 6)
+    g = HybridGains(kp_1_s2=(5.0,) * 6, kd_1_s=(3.0,) * 6, ki_1_s3=(0.5,) * 6, pos_error_limit_m=100.0)
     q = quat_from_rotvec(rng.normal(size=3) * 0.3)
     p, v, w = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
     t = _target(rng)
