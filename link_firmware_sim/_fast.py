@@ -610,12 +610,6 @@ def _side_range(lam, nu, o):
 
 
 @jit
-def _spread(v, o):
-    """``max - min`` of ``v[o:o + 4]``."""
-    return max(max(v[o], v[o + 1]), max(v[o + 2], v[o + 3])) - min(min(v[o], v[o + 1]), min(v[o + 2], v[o + 3]))
-
-
-@jit
 def _pinv_times(B_pinv, U, lo):
     """``lo = B^+ U``."""
     for i in range(8):
@@ -649,9 +643,11 @@ def allocate_kernel(U_in, keep, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1,
                 K[k] = keep[k]
             a = np.empty(8)
             _pinv_times(B_pinv, K, a)
+            mn_r, mx_r = _side_range(a, nu, 0)
+            mn_l, mx_l = _side_range(a, nu, 4)
             for i in range(8):
                 a[i] = a[i] * nu[i % 4]
-            if not max(_spread(a, 0), _spread(a, 4)) <= 2.0 * tmax:  # beyond the rotors too: none
+            if not max(mx_r - mn_r, mx_l - mn_l) <= 2.0 * tmax:  # beyond the rotors too: none
                 for k in range(6):
                     K[k] = 0.0
                 for i in range(8):

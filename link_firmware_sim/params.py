@@ -62,7 +62,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EN", "int", 0, 1, "Selective mapping (thesis sec. 2.4.2) enabled"),
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
-    ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 scale the wrench onto it, 0 clip each rotor"),
+    ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 weight kept, the rest scaled onto it; 0 clip each rotor"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
     ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
     ParamSpec("SKL_WRENCH_HZ", "float", 0.0, 500.0, "SKELETON_EXTERNAL_WRENCH rate to the companion [Hz] (hybrid)"),
