@@ -61,7 +61,7 @@ from .gps_health import GpsHealth, GpsHealthConfig
 from .hybrid import (ContactTarget, HybridController, HybridGains, MomentumObserver, ObserverConfig,
                      contact_force_estimate, contact_pfaffian)
 from .se3_control import Se3PidController, Se3PidGains
-from .thrust_limit import ThrustLimit
+from .thrust_limit import ThrustLimit, ThrustLimitConfig
 from .pspm import PspmGains, PspmModulator, PspmSlave
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config", "m8_ekf_config", "EKF_TUNINGS"]
@@ -166,6 +166,8 @@ class FirmwareConfig:
     correction_max_dv_m_s: float = 1.0
     correction_max_dtheta_rad: float = 0.5
     gps: GpsHealthConfig = field(default_factory=GpsHealthConfig)
+    #: when the rotors' thrust limit is reported and when the report ends (SKL_TLIM_WARN / _CLR)
+    thrust_limit: ThrustLimitConfig = field(default_factory=ThrustLimitConfig)
     #: the pose controller (SKL_CTRL): eq. 1's impedance control, the SE(3) PID of thesis sec. 2.3.2
     #: (:mod:`.se3_control`) or the hybrid pose/wrench control of sec. 2.3.3 (:mod:`.hybrid`: pose
     #: control until a contact is commanded, with the momentum observer running)
@@ -232,7 +234,7 @@ class LinkFirmware:
         self._pending: list[tuple[str, tuple]] = []
         self.gps_health = GpsHealth(config.gps)
         #: the rotors' thrust limit: time at it, episodes (reported as events)
-        self.thrust_limit = ThrustLimit()
+        self.thrust_limit = ThrustLimit(config.thrust_limit)
         #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
         self.events: list[StatusEvent] = []
         self._make_controller()
@@ -256,6 +258,7 @@ class LinkFirmware:
         if config.allocation != self.config.allocation:
             self.allocator = Allocator(self.allocator.geometry, config.allocation)
         self.gps_health.config = config.gps
+        self.thrust_limit.config = config.thrust_limit
         rebuild = (config.controller, config.se3_pid, config.hybrid, config.observer, config.pspm_mode, config.pspm) != (
             self.config.controller, self.config.se3_pid, self.config.hybrid, self.config.observer,
             self.config.pspm_mode, self.config.pspm)

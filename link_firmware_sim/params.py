@@ -63,6 +63,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
     ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 weight kept, the rest scaled onto it; 0 clip each rotor"),
+    ParamSpec("SKL_TLIM_WARN", "float", 0.01, 10.0, "Rotors at their thrust limit this long: STATUSTEXT warning [s]"),
+    ParamSpec("SKL_TLIM_CLR", "float", 0.01, 10.0, "Rotors back within their limit this long: episode over [s]"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
     ParamSpec("SKL_ODOM_HZ", "float", 0.0, 500.0, "ODOMETRY rate to the companion [Hz]"),
     ParamSpec("SKL_WRENCH_HZ", "float", 0.0, 500.0, "SKELETON_EXTERNAL_WRENCH rate to the companion [Hz] (hybrid)"),
@@ -121,6 +123,8 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_SM_EPS0": a.eps0_n,
         "SKL_SM_EPS1": a.eps1_n,
         "SKL_SAT_SCALE": int(a.scale_to_limit),
+        "SKL_TLIM_WARN": config.thrust_limit.warn_after_s,
+        "SKL_TLIM_CLR": config.thrust_limit.clear_after_s,
         "SKL_STATE_HZ": rates.state_hz,
         "SKL_ODOM_HZ": rates.odometry_hz,
         "SKL_WRENCH_HZ": rates.wrench_hz,
@@ -247,6 +251,8 @@ class ParamTable:
             gps=replace(self._base.gps, timeout_s=v["SKL_GPS_TOUT"], recover_s=v["SKL_GPS_RECOV"],
                         drift_max_m_s=v["SKL_GPS_DRIFT"],
                         reset_s=v["SKL_GPS_RST_T"]),
+            thrust_limit=replace(self._base.thrust_limit, warn_after_s=v["SKL_TLIM_WARN"],
+                                 clear_after_s=v["SKL_TLIM_CLR"]),
         )
 
     def origin(self) -> GeoOrigin:

@@ -68,6 +68,8 @@ def fly(
     metrics["duration_s"] = runner.sim_s
     metrics["selective_mapping"] = sc.firmware.allocation.selective_mapping
     metrics["corrections_rejected"] = runner.corrections_rejected
+    # the firmware's own account (a fleet's linkN_ports.json), since each link's last boot
+    metrics["thrust_limit"] = [fw.thrust_limit.report() for fw in runner.firmware]
     if sc.faults.gps.link:  # what each link's firmware made of the glitch (GPS health)
         metrics.setdefault("faults", {})["gps"] = {
             "link": sc.faults.gps.link, "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}

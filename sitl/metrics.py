@@ -35,7 +35,10 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``rotor_limit_s_per_link``: per link, the simulated seconds (whole run) with one of its rotors
   commanded at the thrust limit: the link asked for more than it can do (its firmware then
   scales the wrench onto the limit above the link's weight, ``SKL_SAT_SCALE``, and reports it:
-  ``thrust_limit`` in ``linkN_ports.json``);
+  ``thrust_limit`` in ``linkN_ports.json`` in a fleet, in ``metrics.json`` in batch mode);
+* ``thrust_limit`` (batch mode, :func:`sitl.fly.fly`): per link its firmware's report since its
+  last boot: ``at_limit_s``, ``episodes`` (each announced by STATUSTEXT after ``SKL_TLIM_WARN``),
+  ``min_scale``, ``at_limit_now``;
 * ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
 * ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
   estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones

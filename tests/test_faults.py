@@ -266,6 +266,12 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     # carrying takes the neighbours to their rotors' limit (scaled onto it), link 2 never
     limit = m["rotor_limit_s_per_link"]
     assert limit[1] == 0.0 and max(limit[0], limit[2]) > 0.3 and max(limit) < 9.0 + restart_after_s, limit
+    # ... and the neighbours' firmware counted the same time at the limit (link 2's new one none)
+    reports = m["thrust_limit"]
+    for i in (0, 2):
+        assert abs(reports[i]["at_limit_s"] - limit[i]) < 0.05 and reports[i]["min_scale"] <= 1.0, (reports, limit)
+    assert max(r["episodes"] for r in reports) >= 1 and reports[1] == {
+        "at_limit_s": 0.0, "episodes": 0, "min_scale": 1.0, "at_limit_now": False}, reports
     end = t >= 11.5  # recovered
     assert np.max(tilt[end]) < 5.0 and np.max(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[end]) < 0.3
 

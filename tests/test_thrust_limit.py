@@ -51,6 +51,31 @@ def test_the_times_are_configurable(warn, clear):
     assert [t for t, _ in events] == [pytest.approx(DT + warn, abs=1.01 * DT), pytest.approx(2.0 + DT + clear, abs=1.01 * DT)]
 
 
+def test_the_times_are_parameters_and_a_change_applies_at_once():
+    """SKL_TLIM_WARN / SKL_TLIM_CLR (the parameter protocol's table) set the firmware's thrust
+    limit times; a PARAM_SET reaches the running monitor (LinkFirmware.reconfigure)."""
+    from companion.skeleton.body import SkeletonConfig, link_inertia
+    from companion.skeleton.rotors import RotorGeometry
+    from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
+    from link_firmware_sim.geo import GeoOrigin
+    from link_firmware_sim.params import ParamTable, StreamRates
+
+    table = ParamTable(1, FirmwareConfig(), GeoOrigin(), StreamRates())
+    assert (table.values["SKL_TLIM_WARN"], table.values["SKL_TLIM_CLR"]) == (0.25, 0.5)
+    geometry = RotorGeometry.odar()
+    fw = LinkFirmware(0, table.firmware_config(), link_inertia(SkeletonConfig(), geometry), geometry)
+    table.set("SKL_TLIM_WARN", 1.0)
+    table.set("SKL_TLIM_CLR", 0.1)
+    fw.reconfigure(table.firmware_config())
+    assert fw.thrust_limit.config == ThrustLimitConfig(warn_after_s=1.0, clear_after_s=0.1)
+    events = _fly(fw.thrust_limit, [(0.9, True), (0.2, False), (1.5, True), (0.2, False)])
+    assert [e.kind for _, e in events] == ["fault", "recovered"]  # the 0.9 s run at the limit is not reported
+    assert [t for t, _ in events] == [pytest.approx(1.1 + DT + 1.0, abs=1.01 * DT), pytest.approx(2.6 + DT + 0.1, abs=1.01 * DT)]
+    for name, bad in (("SKL_TLIM_WARN", 0.0), ("SKL_TLIM_CLR", 11.0)):
+        with pytest.raises(ValueError, match=name):
+            table.set(name, bad)
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError):
         ThrustLimitConfig(warn_after_s=0.0)
