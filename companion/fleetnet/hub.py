@@ -5,13 +5,16 @@ liveliness change or an error. :class:`LocalHub` connects the group engines of a
 flight the way Zenoh connects the daemons of a fleet: every message goes through the binary codec
 (:mod:`.codec`), so the shifts and targets a group receives are the wire's, bit for bit; every
 group sees the others come alive when it joins and leave when they close. Delivery is immediate
-and in publication order, so a batch flight stays deterministic.
+and in publication order, so a batch flight stays deterministic. A payload is decoded (and
+validated) once and the receivers share the message: frozen, its arrays read-only.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
+
+import numpy as np
 
 from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks
 
@@ -62,18 +65,30 @@ class LocalHub:
         return any(bus.events for bus in self.buses.values())
 
     def _send(self, sender: int, message, key: str) -> None:
+        receivers = [bus for group, bus in self.buses.items() if group != sender]
         payload = codec.encode(message)
         now = self.clock()
-        for group, bus in self.buses.items():
-            if group != sender:
-                msg = codec.decode(payload)
-                bus.events.append(BusEvent(KINDS[type(msg)], msg, now, key))
+        if not receivers:
+            return
+        msg = _read_only(codec.decode(payload))  # one decode for all: the validation is most of its cost
+        for bus in receivers:
+            bus.events.append(BusEvent(KINDS[type(msg)], msg, now, key))
 
     def _leave(self, group: int) -> None:
         self.buses.pop(group, None)
         now = self.clock()
         for bus in self.buses.values():
             bus.events.append(BusEvent("gone", group, now, f"{self.prefix}/group/{group + 1}/alive"))
+
+
+def _read_only(msg):
+    """``msg`` (a frozen message) with its arrays made read-only, so that the groups sharing it
+    cannot change it for one another."""
+    for f in fields(msg):
+        value = getattr(msg, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+    return msg
 
 
 class LocalBus:
