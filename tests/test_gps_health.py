@@ -92,6 +92,23 @@ def test_consistency_catches_a_slow_ramp_and_passes_noise():
     assert caught is not None and 5.0 <= caught <= 6.5, caught
 
 
+@pytest.mark.parametrize("speed_m_s,ramp_s", [(9.0, 1.0), (5.0, 1.0), (8.8, 2.0)])
+def test_hard_acceleration_with_a_consistent_gps_is_not_drift(speed_m_s, ramp_s):
+    """A link going from rest to speed_m_s in ramp_s (smoothstep), its GPS exact: the positions
+    follow the velocities, so no drift (a slope against the window's mean velocity read 0.70 /
+    0.39 / 0.39 m/s here, the first over the 0.5 m/s limit: a false fault)."""
+    h = GpsHealth(GpsHealthConfig(drift_max_m_s=0.5, drift_window_s=2.0))
+    worst = 0.0
+    for k in range(60):
+        t = 0.1 * k
+        s = min(max((t - 1.0) / ramp_s, 0.0), 1.0)
+        vel = speed_m_s * s * s * (3.0 - 2.0 * s)
+        dist = speed_m_s * (ramp_s * (s**3 - 0.5 * s**4) + max(t - 1.0 - ramp_s, 0.0))  # its integral
+        assert h.consistent(t, [dist, 0.0, 0.0], [vel, 0.0, 0.0]), (t, h.drift_m_s)
+        worst = max(worst, h.drift_m_s)
+    assert worst < 0.05 * speed_m_s / ramp_s, worst  # the trapezoids' error: 0.1 s steps
+
+
 def test_position_reset_is_a_clean_discontinuity():
     cfg = EkfConfig()
     x, P = ekf_init(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), cfg)
