@@ -51,8 +51,8 @@ from collections.abc import Mapping
 from os import PathLike
 from typing import Any
 
-__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "require_nonnegative", "require_positive",
-           "to_dict"]
+__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "require_finite_positive",
+           "require_nonnegative", "require_positive", "to_dict"]
 
 
 def require_positive(obj: Any, *names: str) -> None:
@@ -61,6 +61,14 @@ def require_positive(obj: Any, *names: str) -> None:
         value = getattr(obj, name)
         if not value > 0:
             raise ValueError(f"{name} must be positive, got {value}")
+
+
+def require_finite_positive(obj: Any, *names: str) -> None:
+    """``ValueError`` naming the first field of ``obj`` in ``names`` that is not a finite number > 0."""
+    for name in names:
+        value = getattr(obj, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a finite positive number, got {value!r}")
 
 
 def require_nonnegative(obj: Any, *names: str) -> None:

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.configfile import require_finite_positive
 from companion.estimation.so3 import rotmat_tuple
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
@@ -91,8 +92,7 @@ class ImpedanceGains:
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be a finite non-negative number, got {val!r}")
-        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
-            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
+        require_finite_positive(self, "pos_error_limit_m")
 
 
 @dataclass(frozen=True)

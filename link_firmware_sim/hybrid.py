@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.configfile import require_finite_positive
 from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import ContactTarget, PoseTarget  # ContactTarget: one schema, also on MAVLink
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
@@ -104,8 +105,7 @@ class HybridGains:
     pos_error_limit_m: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
-            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
+        require_finite_positive(self, "pos_error_limit_m")
         for name in ("kp_1_s2", "kd_1_s", "ki_1_s3"):
             _six(name, getattr(self, name))
         for name in ("kf_1_s", "pos_integral_limit_ms", "att_integral_limit_rad", "force_integral_limit_ns"):

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.configfile import require_finite_positive
 from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
@@ -89,8 +90,7 @@ class Se3PidGains:
     pos_error_limit_m: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.pos_error_limit_m) and self.pos_error_limit_m > 0.0):
-            raise ValueError(f"pos_error_limit_m must be a finite positive number, got {self.pos_error_limit_m!r}")
+        require_finite_positive(self, "pos_error_limit_m")
         for name in ("kp_n_m", "kd_ns_m", "ki_n_ms"):
             val = getattr(self, name)
             if len(val) != 3:
