@@ -73,6 +73,7 @@ import logging
 import time
 from dataclasses import dataclass, field, replace
 from enum import Enum
+from statistics import median
 
 import numpy as np
 
@@ -824,7 +825,7 @@ class CompanionEngine:
         # the reference: the median of the links' newest stamps, which a link whose states are
         # forged ahead (within the stamp margin) does not move for the others; with fewer than
         # three links (a group's engine) the cycle clock, the newest stamp
-        t = float(np.median(heard)) if len(heard) >= 3 else self.fc_time_us * 1e-6
+        t = median(heard) if len(heard) >= 3 else self.fc_time_us * 1e-6
         quiet_s = cfg.carry_silence_s / cfg.clock_rate_max  # the same silence, on the companion's clock
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s

@@ -516,9 +516,10 @@ class LinkFirmware:
     def disarm(self) -> None:
         self.armed = False
 
-    def active_target(self, t_s: float) -> PoseTarget:
-        """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate)."""
-        p, _, q = self.control_estimate(t_s)
+    def active_target(self, t_s: float, estimate: tuple | None = None) -> PoseTarget:
+        """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate);
+        ``estimate``: :meth:`control_estimate` at ``t_s`` when the caller has it already."""
+        p, _, q = self.control_estimate(t_s) if estimate is None else estimate
         return self._active_target(t_s, p) if self.armed else PoseTarget.hold(p, q)
 
     def _active_target(self, t_s: float, p_w_m) -> PoseTarget:

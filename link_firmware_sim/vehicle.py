@@ -453,8 +453,9 @@ class Vehicle:
 
     def _log_row(self) -> None:
         fw = self.fw
-        p, _, q = fw.control_estimate(self.fc_time_s)
-        target = fw.active_target(self.fc_time_s)
+        estimate = fw.control_estimate(self.fc_time_s)
+        p, _, q = estimate
+        target = fw.active_target(self.fc_time_s, estimate)
         r = self._rows
         r["t"].append(self.fc_time_s)
         r["p_ekf"].append(fw.ekf.p_w_m)

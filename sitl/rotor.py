@@ -41,7 +41,7 @@ from companion.skeleton.rotors import RotorParams
 from link_firmware_sim._fast import ENABLED as _COMPILED_DEFAULT
 from link_firmware_sim._fast import jit
 
-__all__ = ["RotorParams", "RotorBank"]
+__all__ = ["RotorParams", "RotorBank", "warm_up"]
 
 
 class RotorBank:
@@ -161,6 +161,19 @@ class RotorBank:
         self._out_sign = np.where(outside, new_sign, self._out_sign)
         self.thrust_n = new
         return new
+
+
+def warm_up() -> None:
+    """Load (or compile) the bank's kernels through the paths :meth:`RotorBank.step` calls them by:
+    a run's first physics tick then costs no more than any other (without numba: nothing)."""
+    if not _COMPILED_DEFAULT:
+        return
+    bank = RotorBank(8, compiled=True)
+    bank.set_command(np.full(8, -1.0))  # stopped rotors asked to spin: the full step
+    bank.step(0.001)
+    bank.prime(np.ones(8))  # spinning, tracking their commands: the steady step
+    bank.set_command(np.ones(8))
+    bank.step(0.001)
 
 
 @jit

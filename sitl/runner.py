@@ -35,6 +35,7 @@ from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
+from link_firmware_sim import _fast
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
@@ -42,6 +43,7 @@ from .bench.ekf_chain import rate_divisor
 
 from .model import SkeletonModel
 from .rotor import RotorBank
+from .rotor import warm_up as warm_up_rotors
 from .scenario import Scenario, WindConfig
 from .sensors import LinkSensors, downwash_fraction
 from .steplog import attach_truth, merge_step_logs
@@ -154,6 +156,7 @@ class Plant:
         self.rng = np.random.default_rng(sc.seed)
         self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
         self.rotors = RotorBank(8 * self.n, sc.rotors, rotors_per_link=8)
+        warm_up_rotors()  # the compiled rotor kernels loaded now, not in the first tick of the flight
         self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
         self.model.begin_step()
         self._fresh = True  # begin_step already done for the current instant
@@ -263,6 +266,9 @@ class BatchRunner:
         self.d = plant.d
         self.rotors = plant.rotors
         self.model = plant.model
+        # The firmware's compiled kernels loaded (from numba's cache) now, before the flight: a real-time
+        # factor is the flight's, not the process's start-up (loading them in the first tick took 0.4 s).
+        _fast.warm_up()
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.corrections_rejected = [0] * self.n  # out of the firmware's bounds (SKL_CORR_MAX*)
         self.groups = sc.companion.group_layout(self.n)
@@ -432,7 +438,7 @@ class BatchRunner:
         nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
         ctrl = [fw.control_estimate(t) if ok else (nan3, nan3, nan4) for ok, fw in zip(live, self.firmware)]
         ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
-        targets = [fw.active_target(t) if ok else None for ok, fw in zip(live, self.firmware)]
+        targets = [fw.active_target(t, c) if ok else None for ok, fw, c in zip(live, self.firmware, ctrl)]
         p_target = [nan3 if x is None else x.p_w_m for x in targets]
         q_target = [nan4 if x is None else x.q_wxyz for x in targets]
         lg.p_ctrl.append(np.stack([c[0] for c in ctrl]))

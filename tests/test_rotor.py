@@ -134,3 +134,16 @@ def test_steady_fast_path_equals_the_full_state_machine(seed):
         np.testing.assert_array_equal(fast.step(DT), full.step(DT))
     np.testing.assert_array_equal(fast.zero_crossings, full.zero_crossings)
     assert fast.zero_crossings.sum() > 0  # the sequence really exercised reversals
+
+
+def test_warm_up_loads_every_kernel_the_bank_steps_by():
+    """A run's first physics tick must not load (or compile) a kernel: ``warm_up`` leaves each of the
+    bank's kernels with a compiled signature (without numba it does nothing)."""
+    from link_firmware_sim._fast import ENABLED
+    from sitl import rotor
+
+    rotor.warm_up()
+    if not ENABLED:
+        pytest.skip("numba not installed: the numpy path has nothing to load")
+    for kernel in (rotor._step_kernel, rotor._set_command_kernel, rotor._relax_kernel):
+        assert kernel.signatures, kernel.__name__
