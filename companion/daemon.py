@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _fast
 from .config import CompanionSetup
 from .logstream import LogStream
 from .engine import (
@@ -246,6 +247,9 @@ class CompanionDaemon:
         signal.signal(signal.SIGINT, self.stop)
         end = None if duration_s is None else self.clock() + duration_s
         engine = self.engine
+        if self.setup.trajectory.feedforward and _fast.ENABLED:
+            # the feed-forward's kernel loaded (or compiled) now, not at the first target in flight
+            log.info("compiled kernels ready in %.1f s", _fast.warm_up())
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,
                  f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "")

@@ -105,8 +105,9 @@ def with_feedforward(targets: list[PoseTarget], model, passive=frozenset()) -> l
     they would restart from standstill once more when it ends)."""
     if model is None:
         return targets
-    flying = model.inverse_dynamics(targets) if passive else None
-    dyn = model.inverse_dynamics(targets, passive=passive)
+    arrays = model.stack(targets)
+    flying = model.solve(*arrays) if passive else None
+    dyn = model.solve(*arrays, passive=passive)
     out = []
     for i, t in enumerate(targets):
         d = flying if i in passive else dyn

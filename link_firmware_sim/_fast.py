@@ -33,10 +33,12 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 
 import numpy as np
+
+# the one switch and decorator of every compiled kernel (numba optional; ``SKELETON_JIT=0`` turns it off)
+from companion._fast import ENABLED, jit
 
 __all__ = [
     "ENABLED",
@@ -59,32 +61,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def _want_jit() -> bool:
-    return os.environ.get("SKELETON_JIT", "1").strip().lower() not in ("0", "false", "no", "off")
-
-
-try:
-    if not _want_jit():
-        raise ImportError("SKELETON_JIT=0")
-    import numba
-
-    #: the kernels are compiled (numba importable and not turned off with ``SKELETON_JIT=0``)
-    ENABLED = True
-
-    def jit(fn):
-        """``numba.njit`` as every kernel here uses it: cached on disk, numpy's float semantics
-        (a division by zero gives inf / nan, as in the numpy specification, instead of raising),
-        no fast-math (IEEE arithmetic, so the kernels reorder no sums within one expression)."""
-        return numba.njit(cache=True, error_model="numpy", nogil=True)(fn)
-
-except ImportError as exc:  # the onboard install (no numba) or turned off
-    ENABLED = False
-    log.info("firmware kernels not compiled (%s): the numpy path runs", exc)
-
-    def jit(fn):
-        return fn
 
 
 # --------------------------------------------------------------------------------------------

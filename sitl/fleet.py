@@ -50,6 +50,7 @@ from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
 from companion.skeleton.kinematics import tension
+from companion import _fast as _companion_fast
 from link_firmware_sim import _fast
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
@@ -639,9 +640,10 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
                     stdin_pipe=standby)
 
-    # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
-    # load numba's on-disk cache instead of each compiling them (link_firmware_sim._fast).
-    log.info("firmware kernels ready in %.1f s", _fast.warm_up())
+    # The firmware's and the companion's compiled kernels: compiled (or loaded) here once, so that the
+    # vehicle and companion processes load numba's on-disk cache instead of each compiling them
+    # (link_firmware_sim._fast, companion._fast).
+    log.info("firmware kernels ready in %.1f s, the companion's in %.1f s", _fast.warm_up(), _companion_fast.warm_up())
     try:
         if wired:
             m = faults.mavlink

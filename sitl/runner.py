@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from companion import _fast as _companion_fast
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
 from companion.fleetnet.group import GroupLink
@@ -269,6 +270,7 @@ class BatchRunner:
         # The firmware's compiled kernels loaded (from numba's cache) now, before the flight: a real-time
         # factor is the flight's, not the process's start-up (loading them in the first tick took 0.4 s).
         _fast.warm_up()
+        _companion_fast.warm_up()
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.corrections_rejected = [0] * self.n  # out of the firmware's bounds (SKL_CORR_MAX*)
         self.groups = sc.companion.group_layout(self.n)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from companion import _fast
 from companion.estimation.so3 import cross, quat_to_rotmat, rotmat_to_quat, skew
 from companion.messages import PoseTarget
 
@@ -166,17 +167,24 @@ class ChainModel:
         Where the motion cannot be followed with such a link passive (an end link held level by
         one ball joint) the result is the least-squares compromise and ``rotor_wrench_w`` says
         what that link would still need."""
+        return self.solve(*self.stack(targets), check=check, passive=passive)
+
+    @staticmethod
+    def stack(targets: list[PoseTarget]) -> tuple[np.ndarray, ...]:
+        """``(p, R, v, w, acc, wd)`` of ``targets``, each stacked over the links, as :meth:`solve` takes them."""
+        return (np.stack([t.p_w_m for t in targets]), quat_to_rotmat(np.stack([t.q_wxyz for t in targets])),
+                np.stack([t.v_w_m_s for t in targets]), np.stack([t.omega_d_rad_s for t in targets]),
+                np.stack([t.a_w_m_s2 for t in targets]), np.stack([t.omega_dot_d_rad_s2 for t in targets]))
+
+    def solve(self, p, R, v, w, acc, wd, check: bool = False, passive=(), compiled: bool | None = None) -> ChainDynamics:
+        """:meth:`inverse_dynamics` of the links' centres ``p``, attitudes ``R`` (n, 3, 3), centre
+        velocities ``v`` and accelerations ``acc`` (world), body rates ``w`` and their derivatives
+        ``wd`` (each (n, 3)). The numpy code below is the specification; ``compiled`` (default:
+        when numba is installed) runs the part after the joints' passive torques as
+        :func:`companion._fast.feedforward_kernel` (the same numbers to 1e-12:
+        ``tests/test_fast_paths.py``)."""
         n = self.n
-        p = np.stack([t.p_w_m for t in targets])
-        R = quat_to_rotmat(np.stack([t.q_wxyz for t in targets]))
-        w = np.stack([t.omega_d_rad_s for t in targets])
-        wd = np.stack([t.omega_dot_d_rad_s2 for t in targets])
-        v = np.stack([t.v_w_m_s for t in targets])
-        acc = np.stack([t.a_w_m_s2 for t in targets])
-        m, J = self.inertia.mass_kg, np.diag(self.inertia.inertia_kgm2)
-        # each link's own rigid-body wrench (what eq. 1's feed-forward produces), world, about its centre
-        own_f = m * (acc + np.array([0.0, 0.0, GRAVITY_M_S2]))
-        own_m = np.einsum("nij,nj->ni", R, np.einsum("ij,nj->ni", J, wd) + cross(w, np.einsum("ij,nj->ni", J, w)))
+        m = self.inertia.mass_kg
         # passive joint torques on the child (compliant cable: stiffness and damping) at the joint's
         # relative attitude R_j^T R_{j+1} and relative rate in the child frame (the generalised
         # coordinates of :meth:`coordinates`)
@@ -185,13 +193,29 @@ class ChainModel:
             Rrel = R[j].T @ R[j + 1]
             w_rel = w[j + 1] - Rrel.T @ w[j]
             tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
-        # joint points and the moment arms to each centre
-        x = p[:-1] + np.einsum("nij,j->ni", R[:-1], self.d)
-        F = self._share(own_f, own_m, p, x, tau_j, passive)
-        add_f, add_m = self._joint_wrench(F, tau_j, p, x)
-        rotor = np.concatenate([own_f - add_f, own_m - add_m], axis=1)
+        if _fast.ENABLED if compiled is None else compiled:
+            weights = np.ones(n)
+            if len(passive):
+                weights[list(passive)] = PASSIVE_WEIGHT
+            force_ff, torque_ff, F, rotor = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n - 1, 3)), np.empty((n, 6))
+            _fast.feedforward_kernel(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(R, dtype=float),
+                                     np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(wd, dtype=float),
+                                     np.ascontiguousarray(acc, dtype=float), tau_j, self.d, m,
+                                     np.asarray(self.inertia.inertia_kgm2, dtype=float), GRAVITY_M_S2,
+                                     1.0 / self.d[0], weights, force_ff, torque_ff, F, rotor)
+        else:
+            J = np.diag(self.inertia.inertia_kgm2)
+            # each link's own rigid-body wrench (what eq. 1's feed-forward produces), world, about its centre
+            own_f = m * (acc + np.array([0.0, 0.0, GRAVITY_M_S2]))
+            own_m = np.einsum("nij,nj->ni", R, np.einsum("ij,nj->ni", J, wd) + cross(w, np.einsum("ij,nj->ni", J, w)))
+            # joint points and the moment arms to each centre
+            x = p[:-1] + np.einsum("nij,j->ni", R[:-1], self.d)
+            F = self._share(own_f, own_m, p, x, tau_j, passive)
+            add_f, add_m = self._joint_wrench(F, tau_j, p, x)
+            rotor = np.concatenate([own_f - add_f, own_m - add_m], axis=1)
+            force_ff, torque_ff = -add_f, -add_m
         rnea = self._rnea(*self.coordinates(p, R, v, w, acc, wd), rotor, R, p) if check else None
-        self.last = ChainDynamics(-add_f, -add_m, F, tau_j, rotor, rnea)
+        self.last = ChainDynamics(force_ff, torque_ff, F, tau_j, rotor, rnea)
         return self.last
 
     def _joint_wrench(self, F, tau_j, p, x):

@@ -244,11 +244,12 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
 def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, ...] = BATCH_SCENARIOS,
               fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None) -> dict:
     """Every figure of the bench; ``progress(label)`` after each flight."""
+    from companion import _fast as companion_fast
     from link_firmware_sim import _fast
 
     for name in {*batch, *fleet}:
         _config(name)  # a clear error before anything runs
-    compile_s = _fast.warm_up()  # compiled (or loaded) once, before the flights load the cache
+    compile_s = _fast.warm_up() + companion_fast.warm_up()  # compiled (or loaded) once, before the flights load the cache
     tick = firmware_tick()
     ceilings = {}
     for name in dict.fromkeys((*batch, *fleet)):
