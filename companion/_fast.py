@@ -3,9 +3,14 @@
 The numpy functions stay the specification; a kernel here computes the same numbers with plain
 loops over scalars, compiled by numba (``njit(cache=True)``), and
 ``tests/test_fast_paths.py`` checks it against its specification on random inputs (agreement to
-1e-12). Today one kernel: :func:`feedforward_kernel`, the whole-chain inverse dynamics of
-:meth:`~companion.skeleton.dynamics.ChainModel.solve` after the joints' passive torques (the
-target source calls it at 50 Hz; interpreted it was a quarter of a batch flight's companion).
+1e-12). The kernels:
+
+* :func:`feedforward_kernel`: the whole-chain inverse dynamics of
+  :meth:`~companion.skeleton.dynamics.ChainModel.solve` after the joints' passive torques (the
+  target source calls it at 50 Hz; interpreted it was a quarter of a batch flight's companion);
+* :func:`constraint_apply_kernel`: Alg. 1 (paper) on one chain's dense covariance, with the
+  body-rate noise gain, the iterates of :func:`~companion.estimation.sckf.constraint_apply_dense`
+  (each SCKF step of a group).
 
 numba is not an onboard dependency: it comes with the ``sim`` extra. Without it (the Raspberry Pi
 install), or with ``SKELETON_JIT=0`` in the environment, :data:`ENABLED` is false, :func:`jit`
@@ -24,7 +29,7 @@ import time
 
 import numpy as np
 
-__all__ = ["ENABLED", "jit", "warm_up", "feedforward_kernel"]
+__all__ = ["ENABLED", "jit", "warm_up", "feedforward_kernel", "constraint_apply_kernel", "constraint_apply_batched_kernel"]
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +150,175 @@ def feedforward_kernel(p, R, w, wd, acc, tau_j, d, mass, J, gravity, scale, weig
             torque_ff[i, k] = -torque_ff[i, k]
 
 
+# Alg. 1 (companion.estimation.sckf.constraint_apply_dense): the error state of a link is
+# [dp; dv; dtheta] (companion.estimation.chain.ERR_*), a joint's constraint [position; velocity]
+# (CON_*); the kernel indexes them by these offsets
+_EP, _EV, _ETH, _ED = 0, 3, 6, 9
+_CP, _CV, _CD = 0, 3, 6
+
+
+@jit
+def _ca_tips(q, body_d, body_wd, a, b):
+    """``a = R(q) d``, ``b = R(q) (w x d)`` per link (companion.estimation.constraints.tips_from_body)."""
+    for i in range(q.shape[0]):
+        w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+        R00 = w * w + x * x - y * y - z * z
+        R01 = 2.0 * (x * y - w * z)
+        R02 = 2.0 * (x * z + w * y)
+        R10 = 2.0 * (x * y + w * z)
+        R11 = w * w - x * x + y * y - z * z
+        R12 = 2.0 * (y * z - w * x)
+        R20 = 2.0 * (x * z - w * y)
+        R21 = 2.0 * (y * z + w * x)
+        R22 = w * w - x * x - y * y + z * z
+        for half in range(2):
+            src, dst = (body_d, a) if half == 0 else (body_wd, b)
+            u0, u1, u2 = src[i, 0], src[i, 1], src[i, 2]
+            dst[i, 0] = R00 * u0 + R01 * u1 + R02 * u2
+            dst[i, 1] = R10 * u0 + R11 * u1 + R12 * u2
+            dst[i, 2] = R20 * u0 + R21 * u1 + R22 * u2
+
+
+@jit
+def _ca_residual(p, v, a, b, c):
+    """Eq. 3: ``c`` (6 (n-1),) of the tips; returns ``||c||``."""
+    s = 0.0
+    for i in range(p.shape[0] - 1):
+        for k in range(3):
+            cp = (p[i, k] + a[i, k]) - (p[i + 1, k] - a[i + 1, k])
+            cv = (v[i, k] + b[i, k]) - (v[i + 1, k] - b[i + 1, k])
+            c[_CD * i + _CP + k] = cp
+            c[_CD * i + _CV + k] = cv
+    for r in range(c.shape[0]):
+        s += c[r] * c[r]
+    return np.sqrt(s)
+
+
+@jit
+def _ca_jacobian(a, b, C):
+    """Eq. 4 dense: joint ``i``'s rows take ``[I 0 -S(a_i); 0 I -S(b_i)]`` at link ``i`` and
+    ``[-I 0 -S(a_i+1); 0 -I -S(b_i+1)]`` at link ``i+1``."""
+    C[:, :] = 0.0
+    for i in range(a.shape[0] - 1):
+        r = _CD * i
+        for side in range(2):
+            link = i + side
+            col = _ED * link
+            sgn = 1.0 if side == 0 else -1.0
+            for k in range(3):
+                C[r + _CP + k, col + _EP + k] = sgn
+                C[r + _CV + k, col + _EV + k] = sgn
+            for half in range(2):
+                blk = _CP if half == 0 else _CV
+                u = a if half == 0 else b
+                u0, u1, u2 = u[link, 0], u[link, 1], u[link, 2]
+                # -S(u): rows (0, u2, -u1), (-u2, 0, u0), (u1, -u0, 0)
+                C[r + blk + 0, col + _ETH + 1] = u2
+                C[r + blk + 0, col + _ETH + 2] = -u1
+                C[r + blk + 1, col + _ETH + 0] = -u2
+                C[r + blk + 1, col + _ETH + 2] = u0
+                C[r + blk + 2, col + _ETH + 0] = u1
+                C[r + blk + 2, col + _ETH + 1] = -u0
+
+
+@jit
+def constraint_apply_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate_gain, history):
+    """Alg. 1 on one chain (:func:`~companion.estimation.sckf.constraint_apply_dense`'s iterates):
+    ``p``, ``v`` (n, 3), ``q`` (n, 4) the EKF states, updated in place; ``w`` the body rates and
+    ``d`` the centre-to-right-tip vectors (n, 3); ``P`` (n, 9, 9) the EKF blocks; ``alpha``,
+    ``eps``, ``max_iter`` Alg. 1's weakening, tolerance and iteration limit. ``history``
+    (max_iter + 1,) takes ``||c||`` before the first iteration and after each. Returns
+    ``(Pc, iterations, KD)``: the corrected ``9n x 9n`` covariance (before the rate noise), the
+    iterations run, and (``rate_gain`` and at least one iteration, else zeros) the rate-noise gain
+    ``K D`` (9n, 3n) of :func:`~companion.estimation.sckf._rate_noise_gain` at the corrected attitudes."""
+    n = p.shape[0]
+    N, M = _ED * n, _CD * (n - 1)
+    body_wd = np.empty((n, 3))
+    for i in range(n):
+        body_wd[i, 0] = w[i, 1] * d[i, 2] - w[i, 2] * d[i, 1]
+        body_wd[i, 1] = w[i, 2] * d[i, 0] - w[i, 0] * d[i, 2]
+        body_wd[i, 2] = w[i, 0] * d[i, 1] - w[i, 1] * d[i, 0]
+    PE = np.zeros((N, N))
+    for i in range(n):
+        PE[_ED * i:_ED * (i + 1), _ED * i:_ED * (i + 1)] = P[i]
+    Pc = PE.copy()
+    a, b = np.empty((n, 3)), np.empty((n, 3))
+    c = np.empty(M)
+    C = np.empty((M, N))
+    eye = np.eye(N)
+    _ca_tips(q, d, body_wd, a, b)
+    norm = _ca_residual(p, v, a, b, c)
+    history[0] = norm
+    j = 0
+    while norm > eps and j < max_iter:
+        _ca_jacobian(a, b, C)
+        Ct = np.ascontiguousarray(C.T)
+        Pw = (alpha * np.exp(-float(j))) * ((C @ PE) @ Ct)
+        PCt = Pc @ Ct
+        S = C @ PCt + Pw
+        K = np.ascontiguousarray(np.linalg.solve(S, np.ascontiguousarray(PCt.T)).T)  # K = P C^T S^-1
+        A = eye - K @ C
+        Pn = (A @ Pc) @ np.ascontiguousarray(A.T) + (K @ Pw) @ np.ascontiguousarray(K.T)  # Joseph form
+        Pc = 0.5 * (Pn + Pn.T)
+        dx = -(K @ c)
+        for i in range(n):
+            o = _ED * i
+            for k in range(3):
+                p[i, k] = p[i, k] + dx[o + _EP + k]
+                v[i, k] = v[i, k] + dx[o + _EV + k]
+            # q <- normalise(normalise((1, dtheta / 2)) (x) q)  (so3.retract)
+            h0, h1, h2 = 0.5 * dx[o + _ETH], 0.5 * dx[o + _ETH + 1], 0.5 * dx[o + _ETH + 2]
+            inv = 1.0 / np.sqrt(1.0 + h0 * h0 + h1 * h1 + h2 * h2)
+            aw, ax, ay, az = inv, h0 * inv, h1 * inv, h2 * inv
+            bw, bx, by, bz = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+            rw = aw * bw - ax * bx - ay * by - az * bz
+            rx = aw * bx + ax * bw + ay * bz - az * by
+            ry = aw * by - ax * bz + ay * bw + az * bx
+            rz = aw * bz + ax * by - ay * bx + az * bw
+            nq = np.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+            q[i, 0], q[i, 1], q[i, 2], q[i, 3] = rw / nq, rx / nq, ry / nq, rz / nq
+        _ca_tips(q, d, body_wd, a, b)
+        norm = _ca_residual(p, v, a, b, c)
+        j += 1
+        history[j] = norm
+    KD = np.zeros((N, 3 * n))
+    if rate_gain and j > 0 and n > 1:
+        _ca_jacobian(a, b, C)
+        D = np.zeros((M, 3 * n))
+        for i in range(n - 1):
+            for side in range(2):
+                link = i + side
+                qw, qx, qy, qz = q[link, 0], q[link, 1], q[link, 2], q[link, 3]
+                R = np.empty((3, 3))
+                R[0, 0] = qw * qw + qx * qx - qy * qy - qz * qz
+                R[0, 1] = 2.0 * (qx * qy - qw * qz)
+                R[0, 2] = 2.0 * (qx * qz + qw * qy)
+                R[1, 0] = 2.0 * (qx * qy + qw * qz)
+                R[1, 1] = qw * qw - qx * qx + qy * qy - qz * qz
+                R[1, 2] = 2.0 * (qy * qz - qw * qx)
+                R[2, 0] = 2.0 * (qx * qz - qw * qy)
+                R[2, 1] = 2.0 * (qy * qz + qw * qx)
+                R[2, 2] = qw * qw - qx * qx - qy * qy + qz * qz
+                d0, d1, d2 = d[link, 0], d[link, 1], d[link, 2]
+                for r in range(3):  # B = -R S(d): d(tip velocity offset)/d(w)
+                    D[_CD * i + _CV + r, 3 * link + 0] = -(R[r, 1] * d2 - R[r, 2] * d1)
+                    D[_CD * i + _CV + r, 3 * link + 1] = -(-R[r, 0] * d2 + R[r, 2] * d0)
+                    D[_CD * i + _CV + r, 3 * link + 2] = -(R[r, 0] * d1 - R[r, 1] * d0)
+        PCt = PE @ np.ascontiguousarray(C.T)
+        KD = PCt @ np.linalg.solve(C @ PCt, D)
+    return Pc, j, KD
+
+
+@jit
+def constraint_apply_batched_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate_gain, history, Pc, iterations, KD):
+    """:func:`constraint_apply_kernel` on ``G`` chains of equal length (leading axis ``G`` of every
+    array; ``history`` (G, max_iter + 1)); writes each chain's ``Pc`` (G, 9n, 9n), ``iterations``
+    (G,) and ``KD`` (G, 9n, 3n)."""
+    for g in range(p.shape[0]):
+        Pc[g], iterations[g], KD[g] = constraint_apply_kernel(p[g], v[g], q[g], w[g], d[g], P[g], alpha, eps, max_iter,
+                                                              rate_gain, history[g])
+
+
 def warm_up() -> float:
     """Compile (first run) or load from the cache (later runs) every kernel here, with the argument
     types its callers pass; returns the seconds it took (0 without numba)."""
@@ -156,4 +330,11 @@ def warm_up() -> float:
     R = np.repeat(np.eye(3)[None], n, axis=0)
     feedforward_kernel(z, R, z, z, z, np.zeros((n - 1, 3)), np.array([0.5, 0.0, 0.0]), 1.0, np.ones(3), 9.81, 2.0,
                        np.ones(n), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n - 1, 3)), np.zeros((n, 6)))
+    q = np.array([[1.0, 0.0, 0.0, 0.0]] * n)
+    P = np.repeat(np.eye(9)[None], n, axis=0)
+    p = np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.0]])
+    G, N = 1, 9 * n
+    constraint_apply_batched_kernel(p[None], z[None].copy(), q[None], z[None] + 0.1, z[None] + np.array([0.5, 0.0, 0.0]),
+                                    P[None], 1.0, 1e-9, 20, True, np.empty((G, 21)), np.empty((G, N, N)),
+                                    np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n)))
     return time.perf_counter() - t0

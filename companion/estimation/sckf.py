@@ -42,6 +42,7 @@ import numpy as np
 from scipy.linalg.lapack import dpbtrf as _dpbtrf
 from scipy.linalg.lapack import dpbtrs as _dpbtrs
 
+from .. import _fast
 from .chain import CON_DIM, CON_VEL, ERR_DIM, ERR_P, ERR_TH, ERR_V
 from .constraints import (
     body_tip_vectors,
@@ -154,7 +155,7 @@ def _inject(p, v, q, dx_links):
     return p + dx_links[..., ERR_P], v + dx_links[..., ERR_V], retract(q, dx_links[..., ERR_TH])
 
 
-def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams()) -> CAResult:
+def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams(), compiled: bool | None = None) -> CAResult:
     """Alg. 1 verbatim on the full covariance (reference implementation).
 
     Args:
@@ -162,18 +163,26 @@ def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams()) -> C
             attitudes, body angular velocities and centre-to-right-tip vectors.
         P: (n, 9, 9) EKF covariance blocks (the block-diagonal ``P^E``).
         params: :class:`CAParams`.
+        compiled: see :func:`constraint_apply_dense_batched`.
     """
     batch = [a[None] for a in (p, v, q, w, d, P)]
-    return constraint_apply_dense_batched(*batch, params=params)[0]
+    return constraint_apply_dense_batched(*batch, params=params, compiled=compiled)[0]
 
 
-def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams()) -> list[CAResult]:
+def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams(),
+                                   compiled: bool | None = None) -> list[CAResult]:
     """Alg. 1 on ``G`` independent chains of equal length at once (leading axis ``G``).
 
     Each chain keeps its own iteration counter ``j`` (in ``P^w_j``) and stops on its own
     ``||c|| <= eps``; the results equal running :func:`constraint_apply_dense` per chain. Used
     for the many small groups of the semi-distributed step, where per-call overhead dominates.
+
+    The numpy code below is the specification. ``compiled`` (default: when numba is installed)
+    runs each chain through :func:`companion._fast.constraint_apply_kernel` instead, the same
+    iterates in plain loops (``tests/test_fast_paths.py``: agreement to 1e-12).
     """
+    if _fast.ENABLED if compiled is None else compiled:
+        return _constraint_apply_compiled(p, v, q, w, d, P, params)
     G, n = p.shape[:2]
     PE = block_diag_covariance(P)
     Pc = PE
@@ -228,6 +237,33 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
             W_ends=None if W_ends is None else W_ends[g],
             omega_std_rad_s=params.omega_std_rad_s,
         )
+        for g in range(G)
+    ]
+
+
+def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CAResult]:
+    """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain; the
+    covariance's rate-noise term and the results' blocks formed as the numpy path forms them)."""
+    G, n = p.shape[:2]
+    N = ERR_DIM * n
+    p, v, q = (np.array(x, dtype=float) for x in (p, v, q))  # the kernel updates them in place
+    w = np.array(np.broadcast_to(w, (G, n, 3)), dtype=float)
+    d = np.array(np.broadcast_to(d, (G, n, 3)), dtype=float)
+    history = np.empty((G, params.max_iter + 1))
+    Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
+    rate = params.omega_std_rad_s > 0.0 and n > 1
+    _fast.constraint_apply_batched_kernel(p, v, q, w, d, np.ascontiguousarray(P, dtype=float), params.alpha, params.eps,
+                                          params.max_iter, rate, history, Pc, j, KD)
+    W_ends = None
+    if rate:
+        Pc = Pc + params.omega_std_rad_s**2 * _outer(KD)
+        W_ends = _rate_end_columns(KD, n, params.omega_std_rad_s)
+    blocks = diagonal_blocks(Pc)
+    ends = _end_columns(Pc, n)
+    return [
+        CAResult(p=p[g], v=v[g], q=q[g], P=blocks[g], iterations=int(j[g]), residual_history=history[g, :j[g] + 1].copy(),
+                 converged=bool(history[g, j[g]] <= params.eps), P_full=Pc[g], P_ends=ends[g],
+                 W_ends=None if W_ends is None else W_ends[g], omega_std_rad_s=params.omega_std_rad_s)
         for g in range(G)
     ]
 
