@@ -73,10 +73,10 @@ class RotorBank:
         """Commanded thrusts [N]; clipped to the thrust limit."""
         limit = self.params.thrust_max_n
         if self._compiled:
-            self._steady = _set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
-                                               self._spinning, self._direction, self._out_sign,
-                                               max(self.params.min_thrust_n, 1e-12))
-            self._count_limit(limit)
+            self._steady, peak = _set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
+                                                     self._spinning, self._direction, self._out_sign,
+                                                     max(self.params.min_thrust_n, 1e-12))
+            self._count_limit(limit, peak)
             return
         np.clip(np.asarray(command_n, dtype=float), -limit, limit, out=self.command_n)
         self._count_limit(limit)
@@ -89,10 +89,14 @@ class RotorBank:
             and np.array_equal(self._out_sign, self._direction)
         )
 
-    def _count_limit(self, limit: float) -> None:
+    def _count_limit(self, limit: float, peak: float | None = None) -> None:
+        """Which links have a rotor commanded at the limit (``peak``: the largest command magnitude,
+        NaN if a command is NaN, when the caller has it)."""
         cmd = self.command_n
         edge = limit * (1.0 - 1e-6)  # a command scaled onto the limit, to rounding (and float32 on the wire)
-        if cmd.max() >= edge or -cmd.min() >= edge:
+        if peak is None:
+            peak = max(cmd.max(), -cmd.min())  # (NaN if a command is)
+        if peak >= edge:
             self._at_limit = (np.abs(cmd) >= edge).reshape(-1, self._per_link).any(axis=1)
         else:
             self._at_limit = None
@@ -220,8 +224,11 @@ def _step_kernel(thrust, command, spinning, direction, restarting, restart_left,
 def _set_command_kernel(command, limit, out, spinning, direction, out_sign, margin):
     """:meth:`RotorBank.set_command`: ``out`` <- the command clipped to ``+-limit`` (NaN stays
     NaN, as ``np.clip``); returns whether the bank is steady (every rotor spinning, tracking a
-    command of its own sign of at least ``margin``, its last thrust sign its direction)."""
+    command of its own sign of at least ``margin``, its last thrust sign its direction) and the
+    largest clipped command magnitude (NaN if a command is NaN, as ``max(cmd.max(), -cmd.min())``)."""
     steady = True
+    peak = 0.0 if len(command) else -np.inf
+    nan = False
     for i in range(len(command)):
         c = command[i]
         if c < -limit:
@@ -229,9 +236,13 @@ def _set_command_kernel(command, limit, out, spinning, direction, out_sign, marg
         elif c > limit:
             c = limit
         out[i] = c
+        if c != c:
+            nan = True
+        elif abs(c) > peak:
+            peak = abs(c)
         if not (spinning[i] and c * direction[i] >= margin and out_sign[i] == direction[i]):
             steady = False
-    return steady
+    return steady, (np.nan if nan else peak)
 
 
 @jit

@@ -474,7 +474,7 @@ class BatchRunner:
             t = k * self.dt
             truth = plant.begin_tick()
             if k % sch.fw == 0:
-                if not np.all(np.isfinite(truth.p_w_m)):
+                if not np.isfinite(truth.p_w_m).all():
                     plant.check_crash(t, truth, None)
                     break
                 if self.reboot.kill:

@@ -46,6 +46,9 @@ def test_time_at_the_limit_is_counted_per_link(compiled):
     cmd[12] = 8.0 * (1.0 - 1e-5)
     _run(bank, cmd, 0.4)
     np.testing.assert_allclose(bank.limit_s, [0.3, 0.1], atol=1e-9)
+    cmd[12], cmd[0] = -8.0, np.nan  # a NaN command (clipped as NaN) counts nothing, as np.max gives
+    _run(bank, cmd, 0.1)
+    np.testing.assert_allclose(bank.limit_s, [0.3, 0.1], atol=1e-9)
     with pytest.raises(ValueError, match="links of 8"):
         RotorBank(12, RotorParams(), rotors_per_link=8)
 
