@@ -9,6 +9,7 @@ import json
 import os
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -82,3 +83,22 @@ def test_format_and_cli_errors(tmp_path, capsys):
     assert "no_such_scenario" in capsys.readouterr().err
     assert bench_main(["sitl", "--duration", "0", "--out", str(tmp_path / "y")]) == 2
     json.dumps(result)
+
+
+def test_median_of_repeated_runs_and_its_report():
+    runs = [{"realtime_factor": x, "cpu_s_per_sim_s": c, "scenario": "three_link", "mode": "batch", "exit_code": 0}
+            for x, c in ((8.0, 0.30), (6.0, 0.40), (9.5, 0.28), (None, 0.5))]
+    m = speed.median_of(runs)
+    assert m["realtime_factor"] == 8.0 and m["cpu_s_per_sim_s"] == 0.30  # the median run, whole
+    assert m["realtime_factor_runs"] == [8.0, 6.0, 9.5, None]
+    assert m["cpu_s_per_sim_s_runs"] == [0.30, 0.40, 0.28, 0.5]
+    assert speed.median_of(runs[:2])["realtime_factor"] == 6.0  # the lower middle of an even count
+    assert "realtime_factor_runs" not in speed.median_of(runs[:1])
+    assert speed.median_of([{"realtime_factor": None}]) == {"realtime_factor": None}
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0), "repeat": 4,
+              "mujoco_ceiling": {"three_link": {"realtime_factor": 40.0, "cpu_s_per_sim_s": 0.02}},
+              "runs": [dict(m, ratio_to_ceiling=0.2, peak_rss_mb=300.0)]}
+    text = speed.format_speed(result)
+    assert "median of 4 interleaved runs" in text and "[8.00 6.00 9.50 -]" in text
+    with pytest.raises(ValueError, match="repeat"):
+        speed.run_speed(Path("."), 1.0, 1.0, (), (), repeat=0)

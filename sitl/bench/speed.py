@@ -120,13 +120,13 @@ def _wait_child(proc: subprocess.Popen) -> tuple[int, float, int]:
     return proc.returncode, usage.ru_utime + usage.ru_stime, int(usage.ru_maxrss)
 
 
-def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.executable) -> dict:
-    """One batch flight (``python -m sitl fly``) as a child process."""
-    folder = out_dir / f"batch-{name}"
+def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.executable, tag: str = "") -> dict:
+    """One batch flight (``python -m sitl fly``) as a child process (``tag``: its folder's suffix)."""
+    folder = out_dir / f"batch-{name}{tag}"
     argv = [python, "-m", "sitl", "fly", "--config", str(_config(name)), "--duration", f"{duration_s:g}",
             "--no-plots", "--quiet", "--out", str(folder)]
     wall0 = time.perf_counter()
-    with open(out_dir / f"batch-{name}.log", "wb") as fh:
+    with open(out_dir / f"batch-{name}{tag}.log", "wb") as fh:
         proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT)
         code, cpu, rss = _wait_child(proc)
     wall = time.perf_counter() - wall0
@@ -241,9 +241,28 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
             "cpu_s_per_sim_s": cpu / sim, "processes": processes, "crashed": metrics.get("crashed")}
 
 
+def median_of(runs: list[dict]) -> dict:
+    """The run with the median real-time factor of repeated runs of one thing (the lower middle one
+    of an even count), with every run's real-time factor and CPU figure beside it
+    (``realtime_factor_runs``, ``cpu_s_per_sim_s_runs``, in run order): a VM's speed varies by
+    tens of percent from minute to minute, and one sample can land anywhere in that range."""
+    ok = [r for r in runs if r.get("realtime_factor") is not None]
+    if not ok:
+        return dict(runs[0])
+    out = dict(sorted(ok, key=lambda r: r["realtime_factor"])[(len(ok) - 1) // 2])
+    if len(runs) > 1:
+        out["realtime_factor_runs"] = [r.get("realtime_factor") for r in runs]
+        out["cpu_s_per_sim_s_runs"] = [r.get("cpu_s_per_sim_s") for r in runs]
+    return out
+
+
 def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, ...] = BATCH_SCENARIOS,
-              fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None) -> dict:
-    """Every figure of the bench; ``progress(label)`` after each flight."""
+              fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None, repeat: int = 1) -> dict:
+    """Every figure of the bench; ``progress(label)`` after each flight. ``repeat``: the MuJoCo
+    ceilings and the batch flights are measured that many times, interleaved (every scenario once,
+    then again), and each figure is the median run (:func:`median_of`); the fleets run once."""
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
     from companion import _fast as companion_fast
     from link_firmware_sim import _fast
 
@@ -251,16 +270,20 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
         _config(name)  # a clear error before anything runs
     compile_s = _fast.warm_up() + companion_fast.warm_up()  # compiled (or loaded) once, before the flights load the cache
     tick = firmware_tick()
-    ceilings = {}
-    for name in dict.fromkeys((*batch, *fleet)):
-        ceilings[name] = mujoco_ceiling(name, ceiling_s)
-        if progress:
-            progress(f"MuJoCo {name}")
-    runs = []
-    for name in batch:
-        runs.append(run_batch(name, batch_s, out_dir))
-        if progress:
-            progress(f"batch {name}")
+    models = list(dict.fromkeys((*batch, *fleet)))
+    ceiling_runs: dict[str, list] = {name: [] for name in models}
+    batch_runs: dict[str, list] = {name: [] for name in batch}
+    for k in range(repeat):
+        for name in models:
+            ceiling_runs[name].append(mujoco_ceiling(name, ceiling_s))
+            if progress:
+                progress(f"MuJoCo {name}")
+        for name in batch:
+            batch_runs[name].append(run_batch(name, batch_s, out_dir, tag=f"-{k + 1}" if repeat > 1 else ""))
+            if progress:
+                progress(f"batch {name}")
+    ceilings = {name: median_of(ceiling_runs[name]) for name in models}
+    runs = [median_of(batch_runs[name]) for name in batch]
     for name in fleet:
         runs.append(run_fleet(name, fleet_s, out_dir))
         if progress:
@@ -269,7 +292,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
         ceiling = ceilings[r["scenario"]]["realtime_factor"]
         r["ratio_to_ceiling"] = None if r["realtime_factor"] is None else r["realtime_factor"] / ceiling
     return {"compiled": _fast.ENABLED, "warm_up_s": compile_s, "firmware_tick_us": tick, "cpu_count": os.cpu_count(),
-            "load_average_at_end": os.getloadavg(), "mujoco_ceiling": ceilings, "runs": runs}
+            "load_average_at_end": os.getloadavg(), "repeat": repeat, "mujoco_ceiling": ceilings, "runs": runs}
 
 
 def format_speed(result: dict) -> str:
@@ -280,16 +303,24 @@ def format_speed(result: dict) -> str:
     if tick:
         rows.insert(1, f"firmware tick per link (CPU): {tick['fused_us']:.1f} us one-kernel, "
                        f"{tick['step_by_step_us']:.1f} us step by step")
+    if result.get("repeat", 1) > 1:
+        rows.insert(1, f"MuJoCo and batch figures: the median of {result['repeat']} interleaved runs (all runs' "
+                       f"real-time factors in brackets); fleets: one run")
     for name, c in result["mujoco_ceiling"].items():
         rows.append(f"{'MuJoCo only ' + name:<24} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
-                     f" {'':>12}")
+                     f" {'':>12}{_runs_text(c)}")
     for r in result["runs"]:
         rtf = r["realtime_factor"]
         label = f"{r['mode']} {r['scenario']}" + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})")
         rtf_s = "-" if rtf is None else f"{rtf:.2f}"
         ratio = "-" if r["ratio_to_ceiling"] is None else f"{r['ratio_to_ceiling']:.3f}"
         rss = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
-        rows.append(f"{label:<24} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}")
+        rows.append(f"{label:<24} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}{_runs_text(r)}")
         for role, p in sorted(r.get("processes", {}).items()):
             rows.append(f"{'  ' + role:<24} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {p['peak_rss_mb']:>12.0f}")
     return "\n".join(rows)
+
+
+def _runs_text(r: dict) -> str:
+    runs = r.get("realtime_factor_runs")
+    return "" if not runs else "  [" + " ".join("-" if x is None else f"{x:.2f}" for x in runs) + "]"
