@@ -96,16 +96,18 @@ class TrajectoryConfig:
         return self.takeoff_start_s + (0.0 if self.kind == "rest" else self.takeoff_duration_s)
 
 
-def with_feedforward(targets: list[PoseTarget], model, passive=frozenset()) -> list[PoseTarget]:
+def with_feedforward(targets: list[PoseTarget], model, passive=frozenset(), arrays=None) -> list[PoseTarget]:
     """``targets`` with the whole-chain feed-forward of ``model`` (a
     :class:`~companion.skeleton.dynamics.ChainModel`; ``None``: unchanged); ``passive``: links
     (0-based) whose rotors are off, carried by their neighbours. A carried link's own target
     keeps the feed-forward of the chain with every link flying: when its rotors come back it is
     to lift itself (a feed-forward that cancelled its weight would keep its rotors stopped, and
-    they would restart from standstill once more when it ends)."""
+    they would restart from standstill once more when it ends). ``arrays``: the targets' ``(p, R,
+    v, w, acc, wd)`` stacked over the links, when the caller has them (else
+    :meth:`~companion.skeleton.dynamics.ChainModel.stack` forms them)."""
     if model is None:
         return targets
-    arrays = model.stack(targets)
+    arrays = model.stack(targets) if arrays is None else arrays
     flying = model.solve(*arrays) if passive else None
     dyn = model.solve(*arrays, passive=passive)
     out = []
@@ -188,7 +190,7 @@ class ChainTrajectory:
         w_dot = (body_rate(1) - body_rate(-1)) / (2 * h)
         q = qs[2]
         return with_feedforward([PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
-                                self.dynamics, passive)
+                                self.dynamics, passive, arrays=(p[2], R[2], v, w, a, w_dot))
 
 
 class CpgChainTrajectory:
