@@ -78,10 +78,10 @@ def sitl_gps_time_us(sim_time_us: int) -> int:
 
 
 def _check(name: str, values) -> np.ndarray:
-    a = np.array(values, dtype=float)
-    if not np.isfinite(a).all():
+    """``values`` (a message's numbers) as a float array; :class:`MessageError` if one is not finite."""
+    if not all(map(math.isfinite, values)):
         raise MessageError(f"{name}: non-finite value")
-    return a
+    return np.array(values, dtype=float)
 
 
 def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None,
@@ -124,6 +124,11 @@ class HilBaroMag:
     rejected: tuple[str, ...] = ()
 
 
+#: any of these bits marks a barometer or magnetometer sample
+_BARO_MAG_BITS = HIL_SENSOR_MAG | _HIL_ABS_PRESSURE | _HIL_PRESSURE_ALT
+_NO_BARO_MAG = HilBaroMag(None, None)
+
+
 def decode_hil_baro_mag(msg) -> HilBaroMag:
     """The barometer and magnetometer samples of a HIL_SENSOR, by its ``fields_updated`` bits.
 
@@ -132,6 +137,8 @@ def decode_hil_baro_mag(msg) -> HilBaroMag:
     marked. A non-finite or out-of-range value (pressure outside 10-1200 hPa, a field component
     beyond 4 G) drops that sensor's sample and names it in ``rejected``; never raises."""
     bits = int(msg.fields_updated)
+    if not bits & _BARO_MAG_BITS:  # an IMU-only tick (most of them)
+        return _NO_BARO_MAG
     rejected = []
     baro = mag = None
     if bits & _HIL_ABS_PRESSURE:

@@ -239,6 +239,7 @@ class Vehicle:
     def _set_default_streams(self) -> None:
         for k, ep in enumerate(self.endpoints):
             ep.streams = {mid: _Stream.at_rate(hz) for mid, hz in self._default_rates(k).items() if hz > 0}
+        self._streams_due_us = 0  # (streams changed: the next tick looks at every one)
 
     def _builders(self):
         return {
@@ -347,8 +348,12 @@ class Vehicle:
         return None if report is None else D.MAVLink_debug_vect_message(PSPM_DEBUG_NAME, self.fc_time_us, *report)
 
     def _send_due_streams(self) -> None:
-        builders = None
+        """Every stream whose time has come; ticks before the earliest one due return at once."""
         t = self.fc_time_us
+        if t < self._streams_due_us:
+            return
+        builders = None
+        due = math.inf
         for ep in self.endpoints:
             for mid, stream in ep.streams.items():
                 if t >= stream.next_us:
@@ -358,6 +363,8 @@ class Vehicle:
                     if msg is not None:
                         ep.port.send(msg)
                     stream.next_us = max(stream.next_us + stream.interval_us, t)
+                due = min(due, stream.next_us)
+        self._streams_due_us = due
 
     def _heartbeats(self) -> None:
         self._sim_seen = self._sim_seen or self.sim.transport.connected
@@ -668,6 +675,7 @@ class Vehicle:
                 ep.streams.pop(mid, None)
             else:
                 ep.streams[mid] = _Stream.every(int(round(interval_us)), self.fc_time_us)
+            self._streams_due_us = 0
             self._ack(ep, msg, D.MAV_RESULT_ACCEPTED)
         elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             mid = int(msg.param1) if cmd == D.MAV_CMD_REQUEST_MESSAGE else D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
@@ -766,6 +774,7 @@ class Vehicle:
                     streams[mid] = _Stream.at_rate(hz, self.fc_time_us)
                 else:
                     streams.pop(mid, None)
+            self._streams_due_us = 0
 
     # -- main loop -----------------------------------------------------------------------------
     def stop(self, *_args) -> None:
