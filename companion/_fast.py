@@ -29,7 +29,8 @@ import time
 
 import numpy as np
 
-__all__ = ["ENABLED", "jit", "warm_up", "feedforward_kernel", "constraint_apply_kernel", "constraint_apply_batched_kernel"]
+__all__ = ["ENABLED", "jit", "warm_up", "feedforward_kernel", "constraint_apply_kernel",
+           "constraint_apply_batched_kernel"]
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,8 @@ def feedforward_kernel(p, R, w, wd, acc, tau_j, d, mass, J, gravity, scale, weig
             for side in range(2):  # the child (+F_j) and the parent (-F_j)
                 link = j + 1 if side == 0 else j
                 sgn = 1.0 if side == 0 else -1.0
-                a0, a1, a2 = (arm_r[j, 0], arm_r[j, 1], arm_r[j, 2]) if side == 0 else (arm_l[j, 0], arm_l[j, 1],
-                                                                                        arm_l[j, 2])
+                arm = arm_r if side == 0 else arm_l
+                a0, a1, a2 = arm[j, 0], arm[j, 1], arm[j, 2]
                 r0, c0 = 6 * link, 3 * j
                 for k in range(3):
                     A[r0 + k, c0 + k] = sgn
@@ -135,7 +136,8 @@ def feedforward_kernel(p, R, w, wd, acc, tau_j, d, mass, J, gravity, scale, weig
         for side in range(2):
             link = j + 1 if side == 0 else j
             sgn = 1.0 if side == 0 else -1.0
-            a0, a1, a2 = (arm_r[j, 0], arm_r[j, 1], arm_r[j, 2]) if side == 0 else (arm_l[j, 0], arm_l[j, 1], arm_l[j, 2])
+            arm = arm_r if side == 0 else arm_l
+            a0, a1, a2 = arm[j, 0], arm[j, 1], arm[j, 2]
             force_ff[link, 0] += sgn * f0
             force_ff[link, 1] += sgn * f1
             force_ff[link, 2] += sgn * f2
@@ -334,7 +336,8 @@ def warm_up() -> float:
     P = np.repeat(np.eye(9)[None], n, axis=0)
     p = np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.0]])
     G, N = 1, 9 * n
-    constraint_apply_batched_kernel(p[None], z[None].copy(), q[None], z[None] + 0.1, z[None] + np.array([0.5, 0.0, 0.0]),
-                                    P[None], 1.0, 1e-9, 20, True, np.empty((G, 21)), np.empty((G, N, N)),
-                                    np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n)))
+    d = z + np.array([0.5, 0.0, 0.0])
+    constraint_apply_batched_kernel(p[None], z[None].copy(), q[None], z[None] + 0.1, d[None], P[None], 1.0, 1e-9, 20, True,
+                                    np.empty((G, 21)), np.empty((G, N, N)), np.empty(G, dtype=np.int64),
+                                    np.empty((G, N, 3 * n)))
     return time.perf_counter() - t0

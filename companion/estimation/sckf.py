@@ -252,8 +252,8 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     history = np.empty((G, params.max_iter + 1))
     Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
     rate = params.omega_std_rad_s > 0.0 and n > 1
-    _fast.constraint_apply_batched_kernel(p, v, q, w, d, np.ascontiguousarray(P, dtype=float), params.alpha, params.eps,
-                                          params.max_iter, rate, history, Pc, j, KD)
+    _fast.constraint_apply_batched_kernel(p, v, q, w, d, np.ascontiguousarray(P, dtype=float), float(params.alpha),
+                                          float(params.eps), int(params.max_iter), rate, history, Pc, j, KD)
     W_ends = None
     if rate:
         Pc = Pc + params.omega_std_rad_s**2 * _outer(KD)
@@ -261,8 +261,8 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     blocks = diagonal_blocks(Pc)
     ends = _end_columns(Pc, n)
     return [
-        CAResult(p=p[g], v=v[g], q=q[g], P=blocks[g], iterations=int(j[g]), residual_history=history[g, :j[g] + 1].copy(),
-                 converged=bool(history[g, j[g]] <= params.eps), P_full=Pc[g], P_ends=ends[g],
+        CAResult(p=p[g], v=v[g], q=q[g], P=blocks[g], iterations=int(j[g]),
+                 residual_history=history[g, :j[g] + 1].copy(), converged=bool(history[g, j[g]] <= params.eps), P_full=Pc[g], P_ends=ends[g],
                  W_ends=None if W_ends is None else W_ends[g], omega_std_rad_s=params.omega_std_rad_s)
         for g in range(G)
     ]

@@ -176,7 +176,8 @@ class ChainModel:
                 np.stack([t.v_w_m_s for t in targets]), np.stack([t.omega_d_rad_s for t in targets]),
                 np.stack([t.a_w_m_s2 for t in targets]), np.stack([t.omega_dot_d_rad_s2 for t in targets]))
 
-    def solve(self, p, R, v, w, acc, wd, check: bool = False, passive=(), compiled: bool | None = None) -> ChainDynamics:
+    def solve(self, p, R, v, w, acc, wd, check: bool = False, passive=(),
+              compiled: bool | None = None) -> ChainDynamics:
         """:meth:`inverse_dynamics` of the links' centres ``p``, attitudes ``R`` (n, 3, 3), centre
         velocities ``v`` and accelerations ``acc`` (world), body rates ``w`` and their derivatives
         ``wd`` (each (n, 3)). The numpy code below is the specification; ``compiled`` (default:
@@ -200,7 +201,7 @@ class ChainModel:
             force_ff, torque_ff, F, rotor = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n - 1, 3)), np.empty((n, 6))
             _fast.feedforward_kernel(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(R, dtype=float),
                                      np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(wd, dtype=float),
-                                     np.ascontiguousarray(acc, dtype=float), tau_j, self.d, m,
+                                     np.ascontiguousarray(acc, dtype=float), tau_j, self.d, float(m),
                                      np.asarray(self.inertia.inertia_kgm2, dtype=float), GRAVITY_M_S2,
                                      1.0 / self.d[0], weights, force_ff, torque_ff, F, rotor)
         else:

@@ -268,7 +268,8 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
 
     for name in {*batch, *fleet}:
         _config(name)  # a clear error before anything runs
-    compile_s = _fast.warm_up() + companion_fast.warm_up()  # compiled (or loaded) once, before the flights load the cache
+    # compiled (or loaded) once, before the flights load the cache
+    compile_s = _fast.warm_up() + companion_fast.warm_up()
     tick = firmware_tick()
     models = list(dict.fromkeys((*batch, *fleet)))
     ceiling_runs: dict[str, list] = {name: [] for name in models}
