@@ -7,10 +7,11 @@ loops over scalars, compiled by numba (``njit(cache=True)``), and
 
 * :func:`feedforward_kernel`: the whole-chain inverse dynamics of
   :meth:`~companion.skeleton.dynamics.ChainModel.solve` after the joints' passive torques (the
-  target source calls it at 50 Hz; interpreted it was a quarter of a batch flight's companion);
+  target source calls it at 50 Hz: 49 us a 3-link call, 148 us in numpy);
 * :func:`constraint_apply_kernel`: Alg. 1 (paper) on one chain's dense covariance, with the
   body-rate noise gain, the iterates of :func:`~companion.estimation.sckf.constraint_apply_dense`
-  (each SCKF step of a group).
+  (each SCKF step of a group: 59 us a 3-link step, 337 us in numpy);
+  :func:`constraint_apply_batched_kernel` runs it over equal groups in one call.
 
 numba is not an onboard dependency: it comes with the ``sim`` extra. Without it (the Raspberry Pi
 install), or with ``SKELETON_JIT=0`` in the environment, :data:`ENABLED` is false, :func:`jit`

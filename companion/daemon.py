@@ -250,9 +250,10 @@ class CompanionDaemon:
         if self.setup.trajectory.feedforward and _fast.ENABLED:
             # the feed-forward's kernel loaded (or compiled) now, not at the first target in flight
             log.info("compiled kernels ready in %.1f s", _fast.warm_up())
-        log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s", len(self.ports),
+        log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,
-                 f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "")
+                 f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "",
+                 "compiled kernels" if _fast.ENABLED else "numpy path (no compiled kernels)")
         try:
             while not self._stop and (end is None or self.clock() < end):
                 self.poll(0.05)

@@ -152,6 +152,8 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
     link2 = json.loads((tmp_path / "link2" / "link2_ports.json").read_text())
     onboard = next(v for k, v in link2.items() if k.startswith("udpout://127.0.0.1:14541"))
     assert onboard["dropped_bytes"] > 900_000 and onboard["dropped_frames"] >= 1024
+    # the companion stands in for an onboard computer (no numba there): the numpy path, as on the Pi
+    assert "numpy path (no compiled kernels)" in (tmp_path / "companion" / "console.log").read_text()
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     assert comp["links"]["2"]["dropped_bytes"] > 900_000 and comp["links"]["2"]["dropped_frames"] >= 1024
     assert comp["links"]["1"]["dropped_bytes"] == 0
