@@ -24,10 +24,15 @@ def test_mujoco_ceiling_runs_the_scenarios_model():
 
 
 def test_firmware_tick_times_both_paths():
-    tick = speed.firmware_tick(60)
-    assert set(tick) == {"fused_us", "step_by_step_us"} and all(v > 0 for v in tick.values())
+    tick = speed.firmware_tick(60, repeat=3)
+    assert set(tick) == {"fused_us", "step_by_step_us", "fused_us_runs", "step_by_step_us_runs"}
+    for path in ("fused_us", "step_by_step_us"):
+        assert len(tick[f"{path}_runs"]) == 3 and all(v > 0 for v in tick[f"{path}_runs"])
+        assert tick[path] == min(tick[f"{path}_runs"])  # the least: a busy host only adds
     with pytest.raises(ValueError, match="n_ticks"):
         speed.firmware_tick(0)
+    with pytest.raises(ValueError, match="repeat"):
+        speed.firmware_tick(10, repeat=0)
 
 
 def test_run_batch_reads_the_child_and_its_metrics(tmp_path):
