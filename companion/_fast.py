@@ -161,25 +161,31 @@ _CP, _CV, _CD = 0, 3, 6
 
 
 @jit
+def _ca_rotmat(q, i, R):
+    """``R`` (3, 3) <- R(q[i]) (companion.estimation.so3.quat_to_rotmat of a unit quaternion)."""
+    w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
+    R[0, 0] = w * w + x * x - y * y - z * z
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = w * w - x * x + y * y - z * z
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = w * w - x * x - y * y + z * z
+
+
+@jit
 def _ca_tips(q, body_d, body_wd, a, b):
     """``a = R(q) d``, ``b = R(q) (w x d)`` per link (companion.estimation.constraints.tips_from_body)."""
+    R = np.empty((3, 3))
     for i in range(q.shape[0]):
-        w, x, y, z = q[i, 0], q[i, 1], q[i, 2], q[i, 3]
-        R00 = w * w + x * x - y * y - z * z
-        R01 = 2.0 * (x * y - w * z)
-        R02 = 2.0 * (x * z + w * y)
-        R10 = 2.0 * (x * y + w * z)
-        R11 = w * w - x * x + y * y - z * z
-        R12 = 2.0 * (y * z - w * x)
-        R20 = 2.0 * (x * z - w * y)
-        R21 = 2.0 * (y * z + w * x)
-        R22 = w * w - x * x - y * y + z * z
+        _ca_rotmat(q, i, R)
         for half in range(2):
             src, dst = (body_d, a) if half == 0 else (body_wd, b)
             u0, u1, u2 = src[i, 0], src[i, 1], src[i, 2]
-            dst[i, 0] = R00 * u0 + R01 * u1 + R02 * u2
-            dst[i, 1] = R10 * u0 + R11 * u1 + R12 * u2
-            dst[i, 2] = R20 * u0 + R21 * u1 + R22 * u2
+            for r in range(3):
+                dst[i, r] = R[r, 0] * u0 + R[r, 1] * u1 + R[r, 2] * u2
 
 
 @jit
@@ -288,20 +294,11 @@ def constraint_apply_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate_gain, h
     if rate_gain and j > 0 and n > 1:
         _ca_jacobian(a, b, C)
         D = np.zeros((M, 3 * n))
+        R = np.empty((3, 3))
         for i in range(n - 1):
             for side in range(2):
                 link = i + side
-                qw, qx, qy, qz = q[link, 0], q[link, 1], q[link, 2], q[link, 3]
-                R = np.empty((3, 3))
-                R[0, 0] = qw * qw + qx * qx - qy * qy - qz * qz
-                R[0, 1] = 2.0 * (qx * qy - qw * qz)
-                R[0, 2] = 2.0 * (qx * qz + qw * qy)
-                R[1, 0] = 2.0 * (qx * qy + qw * qz)
-                R[1, 1] = qw * qw - qx * qx + qy * qy - qz * qz
-                R[1, 2] = 2.0 * (qy * qz - qw * qx)
-                R[2, 0] = 2.0 * (qx * qz - qw * qy)
-                R[2, 1] = 2.0 * (qy * qz + qw * qx)
-                R[2, 2] = qw * qw - qx * qx - qy * qy + qz * qz
+                _ca_rotmat(q, link, R)
                 d0, d1, d2 = d[link, 0], d[link, 1], d[link, 2]
                 for r in range(3):  # B = -R S(d): d(tip velocity offset)/d(w)
                     D[_CD * i + _CV + r, 3 * link + 0] = -(R[r, 1] * d2 - R[r, 2] * d1)

@@ -216,34 +216,14 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
         for g in np.flatnonzero(active):
             history[g].append(float(norms[g]))
         active = active & (norms > params.eps) & (j < params.max_iter)
-    W_ends = None
+    KD = None
     if params.omega_std_rad_s > 0.0 and n > 1:  # (a chain that needed no correction took none)
         KD = (j > 0)[:, None, None] * _rate_noise_gain(q, w, d, P)
-        Pc = Pc + params.omega_std_rad_s**2 * _outer(KD)
-        W_ends = _rate_end_columns(KD, n, params.omega_std_rad_s)
-    blocks = diagonal_blocks(Pc)
-    ends = _end_columns(Pc, n)
-    return [
-        CAResult(
-            p=p[g],
-            v=v[g],
-            q=q[g],
-            P=blocks[g],
-            iterations=int(j[g]),
-            residual_history=np.asarray(history[g]),
-            converged=history[g][-1] <= params.eps,
-            P_full=Pc[g],
-            P_ends=ends[g],
-            W_ends=None if W_ends is None else W_ends[g],
-            omega_std_rad_s=params.omega_std_rad_s,
-        )
-        for g in range(G)
-    ]
+    return _ca_results(p, v, q, Pc, j, history, KD, params)
 
 
 def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CAResult]:
-    """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain; the
-    covariance's rate-noise term and the results' blocks formed as the numpy path forms them)."""
+    """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain)."""
     G, n = p.shape[:2]
     N = ERR_DIM * n
     p, v, q = (np.array(x, dtype=float) for x in (p, v, q))  # the kernel updates them in place
@@ -254,17 +234,34 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     rate = params.omega_std_rad_s > 0.0 and n > 1
     _fast.constraint_apply_batched_kernel(p, v, q, w, d, np.ascontiguousarray(P, dtype=float), float(params.alpha),
                                           float(params.eps), int(params.max_iter), rate, history, Pc, j, KD)
+    return _ca_results(p, v, q, Pc, j, [history[g, :j[g] + 1] for g in range(G)], KD if rate else None, params)
+
+
+def _ca_results(p, v, q, Pc, iterations, histories, KD, params: CAParams) -> list[CAResult]:
+    """The results of ``G`` chains' Alg. 1 (both paths): the rate noise's covariance term and
+    cross-covariances from its gain ``KD`` (``None``: the rates count as exact), the blocks."""
+    n = p.shape[1]
     W_ends = None
-    if rate:
+    if KD is not None:
         Pc = Pc + params.omega_std_rad_s**2 * _outer(KD)
         W_ends = _rate_end_columns(KD, n, params.omega_std_rad_s)
     blocks = diagonal_blocks(Pc)
     ends = _end_columns(Pc, n)
     return [
-        CAResult(p=p[g], v=v[g], q=q[g], P=blocks[g], iterations=int(j[g]),
-                 residual_history=history[g, :j[g] + 1].copy(), converged=bool(history[g, j[g]] <= params.eps), P_full=Pc[g], P_ends=ends[g],
-                 W_ends=None if W_ends is None else W_ends[g], omega_std_rad_s=params.omega_std_rad_s)
-        for g in range(G)
+        CAResult(
+            p=p[g],
+            v=v[g],
+            q=q[g],
+            P=blocks[g],
+            iterations=int(iterations[g]),
+            residual_history=np.array(histories[g], dtype=float),
+            converged=bool(histories[g][-1] <= params.eps),
+            P_full=Pc[g],
+            P_ends=ends[g],
+            W_ends=None if W_ends is None else W_ends[g],
+            omega_std_rad_s=params.omega_std_rad_s,
+        )
+        for g in range(len(iterations))
     ]
 
 
