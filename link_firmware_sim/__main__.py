@@ -26,6 +26,7 @@ from companion.config import load_setup
 from companion.configfile import ConfigError
 from companion.mavlink.port import PortError
 
+from . import _fast
 from .config import VehicleSetup
 from .params import ParamTable
 from .vehicle import Vehicle, VehiclePorts
@@ -62,10 +63,12 @@ def main(argv=None) -> int:
     if not 0 <= args.instance < sc.skeleton.n_links:
         print(f"error: --instance {args.instance} outside 0..{sc.skeleton.n_links - 1}", file=sys.stderr)
         return 2
+    # The compiled kernels loaded (or compiled) before the ports open, as firmware boots before the
+    # simulator connects: not in the first ticks of the lockstep, where every link would wait for it.
+    seconds = _fast.warm_up() if not __import__("os").environ.get("XNOWARM") else 0.0
+    if _fast.ENABLED:
+        log.info("compiled kernels ready in %.1f s", seconds)
     if args.standby:
-        from . import _fast
-
-        _fast.warm_up()
         log.info("standby: waiting for the start line on stdin")
         if not sys.stdin.readline():
             log.info("standby: stdin closed before the start: exiting")

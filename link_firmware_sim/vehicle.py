@@ -4,6 +4,7 @@ Ports (PX4 SITL habits; all configurable):
 
 * simulator: ``tcpin://127.0.0.1:4560+i`` (PX4's simulator MAVLink API, lockstep): HIL_SENSOR,
   HIL_GPS and SKELETON_AHRS_REFERENCE in, HIL_ACTUATOR_CONTROLS out, one answer per HIL_SENSOR;
+  or the same messages over the same-host link ``unixin:///PATH`` (:mod:`.simlink`);
 * onboard (companion): ``udpout://127.0.0.1:14540+i`` from local port 14580+i;
 * GCS: ``udpout://127.0.0.1:14550`` from local port 18570+i.
 
@@ -71,6 +72,7 @@ from .hil import (
     sitl_gps_time_us,
 )
 from .params import ParamTable
+from .simlink import open_sim_port
 
 __all__ = ["VehiclePorts", "Vehicle", "FORCE_DISARM"]
 
@@ -166,7 +168,7 @@ class Vehicle:
         self.key_path = key_path
         self.fw.reconfigure(params.firmware_config())
         # The simulator link is the physics (PX4's simulator API): never signed.
-        self.sim = MavlinkPort(ports.sim, self.system_id, accept=HIL_ACCEPT)
+        self.sim = open_sim_port(ports.sim, self.system_id, accept=HIL_ACCEPT)
         self.endpoints = []
         for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
             if not url:
@@ -367,7 +369,7 @@ class Vehicle:
         self._streams_due_us = due
 
     def _heartbeats(self) -> None:
-        self._sim_seen = self._sim_seen or self.sim.transport.connected
+        self._sim_seen = self._sim_seen or self.sim.connected
         now = time.monotonic()
         if now < self._next_heartbeat_wall or not self._sim_seen:
             return
@@ -783,7 +785,7 @@ class Vehicle:
     def poll(self, timeout_s: float) -> None:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
         ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
-        if self.sim in ready or not self.sim.transport.connected:  # (a listener accepts on readable too)
+        if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)
             for msg in self.sim.read():
                 self._on_hil(msg)
         for ep in self.endpoints:

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
-from .fleet import FleetError, check_fleet_scenario, check_instance_offset, launch
+from .fleet import SIM_LINKS, FleetError, check_fleet_scenario, check_instance_offset, launch
 from .fly import fly
 from .scenario import load_scenario
 from .slung_load_config import SlungLoadScenario, is_slung_load_file, load_slung_scenario
@@ -116,7 +116,8 @@ def _cmd_launch(args) -> int:
     try:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
             metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
-                             plots=not args.no_plots, instance_offset=args.instance_offset)
+                             plots=not args.no_plots, instance_offset=args.instance_offset,
+                             sim_link=args.sim_link)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -167,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="link i takes PX4 SITL instance K+i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i, "
                          "GCS from 18570+K+i; Zenoh base_port+K+g): a second fleet beside a first of n links "
                          "needs K >= n (default 0)")
+    la.add_argument("--sim-link", choices=SIM_LINKS, default="tcp",
+                    help="the vehicles' simulator links: tcp, PX4's simulator API on TCP 4560+K+i (default), or "
+                         "unix, the same HIL messages as binary records over UNIX sockets (one host only; faster)")
     la.set_defaults(func=_cmd_launch)
     return parser
 

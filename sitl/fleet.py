@@ -8,6 +8,9 @@
   ``companion.distributed`` one per group (``--group G``, run folder ``companion-gG``), joined
   over Zenoh on loopback (``tcp/127.0.0.1:7460+G-1``, clear of a local zenohd on 7447); ``[faults]`` can SIGKILL one of them
   mid-flight and start a new one later (folder ``companion-gG-restart``);
+* with ``--sim-link unix`` the vehicles' simulator links are the same-host link
+  (:mod:`link_firmware_sim.simlink`: the same HIL messages as binary records over UNIX sockets in
+  a private temporary folder) instead of PX4's TCP 4560+i, which stays the default;
 * with ``--instance-offset K`` every one of these ports moves by K (link ``i`` is PX4 SITL
   instance K+i; the system ids stay), so that two fleets can fly side by side;
 * the harness (this process): the same :class:`~sitl.runner.Plant` as batch mode, talking to each
@@ -33,9 +36,11 @@ import ctypes
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -49,12 +54,13 @@ from companion.logstream import read_log_stream
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.codec import usec
 from companion.estimation.so3 import quat_to_rotmat
-from companion.mavlink.port import MavlinkPort, PortError, wait_readable
+from companion.mavlink.port import PortError, wait_readable
 from companion.skeleton.kinematics import tension
 from link_firmware_sim import _fast
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
+from link_firmware_sim.simlink import open_sim_port
 from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
@@ -72,6 +78,8 @@ log = logging.getLogger(__name__)
 WIRE_VEHICLE_SIDE = 15540
 WIRE_COMPANION_SIDE = 15580
 ANSWER_TIMEOUT_S = 10.0
+#: the vehicles' simulator links: PX4's simulator API on TCP (the default), or the same-host link
+SIM_LINKS = ("tcp", "unix")
 STOP_GRACE_S = 10.0
 STARTUP_TIMEOUT_S = 30.0
 
@@ -80,13 +88,18 @@ class FleetError(RuntimeError):
     """The fleet could not run (a process died, a link stopped answering the simulator)."""
 
 
-def endpoint_table(sc: Scenario, host: str = "127.0.0.1", instance_offset: int = 0) -> str:
+def endpoint_table(sc: Scenario, host: str = "127.0.0.1", instance_offset: int = 0,
+                   sim_dir: Path | None = None) -> str:
+    """The fleet's addresses; ``sim_dir``: the same-host simulator link's socket folder (else TCP)."""
     k = instance_offset
-    rows = [f"{'link':>4} | {'sysid':>5} | {'simulator (TCP)':>18} | {'onboard / companion (UDP)':>28} | {'GCS (UDP)':>17}",
-            "-" * 86]
+    rows = [f"{'link':>4} | {'sysid':>5} | {'simulator (TCP)' if sim_dir is None else 'simulator (UNIX)':>18} | "
+            f"{'onboard / companion (UDP)':>28} | {'GCS (UDP)':>17}", "-" * 86]
     for i in range(sc.skeleton.n_links):
-        rows.append(f"{i + 1:>4} | {i + 1:>5} | {host}:{4560 + k + i:>5}    | {host}:{14540 + k + i} <- :{14580 + k + i}"
+        sim = f"{host}:{4560 + k + i:>5}   " if sim_dir is None else f"{f'link{i + 1}.sock':>18}"
+        rows.append(f"{i + 1:>4} | {i + 1:>5} | {sim} | {host}:{14540 + k + i} <- :{14580 + k + i}"
                     f"{'':>6} | {host}:14550 <- :{18570 + k + i}")
+    if sim_dir is not None:
+        rows.append(f"simulator links: UNIX sockets in {sim_dir} (this run only)")
     if sc.companion.distributed:
         for g, links in enumerate(sc.companion.group_layout(sc.skeleton.n_links)):
             rows.append(f"companion of group {g + 1} (links {links[0] + 1}-{links[-1] + 1}): Zenoh "
@@ -99,6 +112,14 @@ def endpoint_table(sc: Scenario, host: str = "127.0.0.1", instance_offset: int =
     return "\n".join(rows)
 
 
+def _sim_port(url: str):
+    """The simulator's end of link ``url``'s simulator link (PX4's simulator API: system 255,
+    component 190; TCP or the same-host link, :mod:`link_firmware_sim.simlink`), waiting for the
+    vehicle as long as a process may take to start (it loads its compiled kernels first)."""
+    return open_sim_port(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}),
+                         connect_timeout_s=STARTUP_TIMEOUT_S)
+
+
 class FleetHarness:
     """The physics of a scenario in lockstep with vehicles behind simulator links."""
 
@@ -107,8 +128,7 @@ class FleetHarness:
         self.plant = plant if plant is not None else Plant(sc)
         self.schedule = Schedule.of(sc)
         self.n = self.plant.n
-        self.ports = [MavlinkPort(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}))
-                      for url in sim_urls]
+        self.ports = [_sim_port(url) for url in sim_urls]
         if not sc.start.on_ground:
             self._prime_hover()
         self.gps_fault = sc.faults.gps
@@ -137,7 +157,7 @@ class FleetHarness:
 
     def attach(self, i: int, url: str) -> None:
         """A (restarted) vehicle for link ``i`` re-joins the lockstep at the next tick."""
-        self.ports[i] = MavlinkPort(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}))
+        self.ports[i] = _sim_port(url)
         self.down.discard(i)
 
     def _exchange(self, t: float, k: int, truth) -> np.ndarray:
@@ -176,7 +196,7 @@ class FleetHarness:
                 port = self.ports[i]
                 if port not in ready:
                     continue
-                if not port.transport.connected:
+                if not port.connected:
                     raise FleetError(f"link {i + 1} closed its simulator connection at t = {t:.3f} s")
                 for msg in port.read():
                     t_us, u = decode_actuators(msg, self.scenario.rotors.thrust_max_n)
@@ -339,6 +359,20 @@ def _bound_ports(kind: str) -> set[int]:
             if kind == "udp" or cols[3] == "0A":
                 ports.add(int(cols[1].rsplit(":", 1)[1], 16))
     return ports
+
+
+def _listening_unix_paths() -> set[str]:
+    """Paths of listening UNIX sockets, from Linux's /proc/net/unix (flag 0x10000: accepting)."""
+    paths = set()
+    try:
+        lines = Path("/proc/net/unix").read_text().splitlines()[1:]
+    except OSError:
+        return paths
+    for line in lines:
+        cols = line.split()  # Num RefCount Protocol Flags Type St Inode [Path]
+        if len(cols) >= 8 and int(cols[3], 16) & 0x10000:
+            paths.add(cols[7])
+    return paths
 
 
 def _wait_udp_listening(ports: list[int], procs: _Processes, who: str = "the companion") -> None:
@@ -571,13 +605,16 @@ def check_instance_offset(sc: Scenario, instance_offset: int) -> None:
 
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
-           companion: bool = True, plots: bool = True, instance_offset: int = 0) -> dict:
+           companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp") -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
     too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
     K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
     18570+K+i, the impaired wire's 15540+K+i and 15580+K+i) and the group companions Zenoh's
     ``base_port`` + K + g, so that fleets with offsets n apart run side by side on one host; the
-    system ids stay 1..n."""
+    system ids stay 1..n. ``sim_link``: ``"tcp"`` (PX4's simulator API on TCP 4560+K+i) or
+    ``"unix"`` (the same-host link, :mod:`link_firmware_sim.simlink`)."""
+    if sim_link not in SIM_LINKS:
+        raise ValueError(f"sim_link {sim_link!r}: one of {', '.join(SIM_LINKS)}")
     check_fleet_scenario(sc)
     check_instance_offset(sc, instance_offset)
     k = instance_offset
@@ -623,6 +660,18 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     wired = _impaired_links(sc) if companion and sc.companion.enabled else []
     procs = _Processes()
     harness = None
+    # the same-host link's sockets: a private (0700) folder of its own, short enough for a socket path
+    sim_dir = Path(tempfile.mkdtemp(prefix="skeleton-sim-")) if sim_link == "unix" else None
+
+    def sim_url(i: int, side: str) -> str:
+        if sim_dir is not None:
+            return f"{'unixin' if side == 'vehicle' else 'unix'}://{sim_dir / f'link{i + 1}.sock'}"
+        return f"{'tcpin' if side == 'vehicle' else 'tcpout'}://127.0.0.1:{4560 + k + i}"
+
+    def sim_listening(i: int) -> bool:
+        if sim_dir is not None:
+            return str(sim_dir / f"link{i + 1}.sock") in _listening_unix_paths()
+        return 4560 + k + i in _bound_ports("tcp")
     interrupted = False
     aborted = ""
     fault_log: dict = {}  # the companion kill
@@ -634,7 +683,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 "--out", str(out_dir / folder), "--log-rate", f"{sc.sim.log_rate_hz:g}",
                 # a restarted Pixhawk keeps its parameters (the first process's file)
                 "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json"),
-                "--sim-url", f"tcpin://127.0.0.1:{4560 + k + i}",
+                "--sim-url", sim_url(i, "vehicle"),
                 "--gcs-url", f"udpout://127.0.0.1:14550?bind={18570 + k + i}",
                 # its onboard traffic to the companion, or through the impaired wire
                 "--onboard-url", f"udpout://127.0.0.1:{(WIRE_VEHICLE_SIDE if i in wired else SITL_STATE_PORT) + k + i}"
@@ -678,12 +727,12 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             _wait_udp_listening([SITL_STATE_PORT + k + i for i in range(n)], procs)
         if sc.cameras:
             cameras = _start_cameras(sc, plant, out_dir, procs, python)
-        print(endpoint_table(replace(sc, zenoh=companion_setup.zenoh), instance_offset=k), flush=True)
+        print(endpoint_table(replace(sc, zenoh=companion_setup.zenoh), instance_offset=k, sim_dir=sim_dir), flush=True)
         if cameras is not None:
             print(f"cameras: Zenoh {cameras.endpoint}, keys {cameras.prefix}/camera/<vehicle>/image "
                   f"(consumer: python -m companion.vision --config {out_dir / 'vision.toml'})", flush=True)
         try:
-            harness = FleetHarness(sc, [f"tcpout://127.0.0.1:{4560 + k + i}" for i in range(n)], plant)
+            harness = FleetHarness(sc, [sim_url(i, "harness") for i in range(n)], plant)
         except PortError as exc:
             procs.check()
             raise FleetError(str(exc)) from None
@@ -709,8 +758,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                     and t >= reboot.kill_at_s + reboot.restart_after_s):
                 link_fault.update(restarted_at_s=round(t, 3))
                 log.warning("fault: link %d's firmware powered on again at t = %.2f s", i + 1, t)
-            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and 4560 + k + i in _bound_ports("tcp"):
-                harness.attach(i, f"tcpout://127.0.0.1:{4560 + k + i}")
+            if "restarted_at_s" in link_fault and "rejoined_at_s" not in link_fault and sim_listening(i):
+                harness.attach(i, sim_url(i, "harness"))
                 link_fault.update(rejoined_at_s=round(t, 3))
                 late = t - link_fault["restarted_at_s"]
                 (log.warning if late > 0.05 else log.info)(
@@ -755,6 +804,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         finally:
             if cameras is not None:
                 cameras.close()
+            if sim_dir is not None:
+                shutil.rmtree(sim_dir, ignore_errors=True)
     if harness is None:
         raise FleetError("the simulator never connected to the vehicles")
     if harness.sim_s <= sc.flight_start_s:
@@ -774,7 +825,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),
          "max": round(float(lat.max() * 1e3), 3), "samples": int(lat.size)} if lat.size else None
     )
-    metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed,
+    metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed, sim_link=sim_link,
                    interrupted=interrupted, aborted=aborted or None,
                    missing_flight_logs=missing)
     if sc.companion.distributed and companion and sc.companion.enabled:

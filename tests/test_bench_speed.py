@@ -61,6 +61,8 @@ def test_fleet_flight_arguments_are_the_launch_clis(tmp_path):
 
     args = build_parser().parse_args(speed.fleet_args("seven_link", 20.0, tmp_path / "f"))
     assert args.command == "launch" and args.speed == 0 and args.no_plots and args.duration == 20.0
+    assert args.sim_link == "tcp"
+    assert build_parser().parse_args(speed.fleet_args("seven_link", 20.0, tmp_path / "f", "unix")).sim_link == "unix"
 
 
 def test_proc_sampling_and_roles():
@@ -77,11 +79,11 @@ def test_format_and_cli_errors(tmp_path, capsys):
     result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0),
               "firmware_tick_us": {"fused_us": 21.5, "step_by_step_us": 60.25},
               "mujoco_ceiling": {"three_link": {"realtime_factor": 40.0, "cpu_s_per_sim_s": 0.02}},
-              "runs": [{"mode": "fleet", "scenario": "three_link", "exit_code": 0, "realtime_factor": 2.0,
+              "runs": [{"mode": "fleet", "scenario": "three_link", "sim_link": "unix", "exit_code": 0, "realtime_factor": 2.0,
                         "ratio_to_ceiling": 0.05, "cpu_s_per_sim_s": 1.5,
                         "processes": {"harness": {"cpu_s_per_sim_s": 0.5, "peak_rss_mb": 300.0}}}]}
     text = speed.format_speed(result)
-    assert "fleet three_link" in text and "0.050" in text and "harness" in text
+    assert "fleet three_link (unix)" in text and "0.050" in text and "harness" in text
     assert "21.5 us one-kernel" in text and "60.2 us step by step" in text
     assert bench_main(["sitl", "--batch", "no_such_scenario", "--fleet", "", "--out", str(tmp_path / "x"),
                        "--quiet", "--ceiling-duration", "0.01"]) == 2
@@ -107,3 +109,5 @@ def test_median_of_repeated_runs_and_its_report():
     assert "median of 4 interleaved runs" in text and "[8.00 6.00 9.50 -]" in text
     with pytest.raises(ValueError, match="repeat"):
         speed.run_speed(Path("."), 1.0, 1.0, (), (), repeat=0)
+    with pytest.raises(ValueError, match="sim links shm"):
+        speed.run_speed(Path("."), 1.0, 1.0, (), ("three_link",), sim_links=("shm",))

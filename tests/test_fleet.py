@@ -198,6 +198,32 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
         assert _sequence_gaps(path, sysid) == 0, path
 
 
+def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_reference):
+    """``sim_link="unix"``: the vehicles' simulator links over UNIX sockets in a private folder
+    (link_firmware_sim.simlink); the flight is batch mode's, and the folder goes with the fleet."""
+    sc = load_scenario(THREE_LINK, duration_s=16.0)
+    with pytest.raises(ValueError, match="sim_link 'shm'"):
+        launch(sc, tmp_path / "bad", sim_link="shm")
+    m = launch(sc, tmp_path, speed=0.0, plots=False, sim_link="unix")
+    assert not children_of(os.getpid()), "vehicle or companion processes left behind"
+    _assert_ports_released(3)
+    assert m["sim_link"] == "unix" and not m["crashed"] and not m["aborted"]
+    for key in ("rms_track_est_m", "rms_track_true_m"):
+        np.testing.assert_allclose(m[key], batch_reference[key], rtol=0.2, err_msg=key)
+    for key in ("constraint_pos_p95_m", "constraint_vel_p95_m_s"):
+        assert m[key]["after"] == pytest.approx(batch_reference[key]["after"], rel=0.2), key
+    folders = set()
+    for i in (1, 2, 3):
+        ports = json.loads((tmp_path / f"link{i}" / f"link{i}_ports.json").read_text())
+        url, sim = next((k, v) for k, v in ports.items() if k.startswith("unixin:///"))
+        folders.add(Path(url[len("unixin://"):]).parent)
+        # one HIL_SENSOR per 2 ms tick, none dropped, none refused
+        assert sim["per_type"]["HIL_SENSOR"] >= 0.95 * 16.0 / 0.002, sim
+        assert sim["dropped_frames"] == 0 and sim["rejected_peer"] == 0 and sim["tx_messages"] > 7000, sim
+    (folder,) = folders
+    assert folder.name.startswith("skeleton-sim-") and not folder.exists()
+
+
 def _sequence_gaps(path: Path, sysid: int) -> int:
     """Frames of ``sysid`` lost by their sequence numbers in a tlog, as MAVProxy counts them (every
     frame of the tlog: 8-byte time stamp, then a MAVLink 2 frame, whatever its message)."""

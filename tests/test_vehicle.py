@@ -24,6 +24,7 @@ from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS, GeoOrigin
 from link_firmware_sim.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from link_firmware_sim.params import ParamTable, StreamRates
+from link_firmware_sim.simlink import SimLinkPort
 from link_firmware_sim.vehicle import Vehicle, VehiclePorts
 
 D = load_dialect()
@@ -34,17 +35,21 @@ LEVEL = quat_from_euler_zyx(0.0, 0.0, 0.0)
 class Rig:
     """A vehicle (sysid 2) plus a fake simulator (TCP) and a fake GCS (UDP)."""
 
-    def __init__(self, tmp_path, params_file=None, signing=None, key=None, gcs_key=None):
+    def __init__(self, tmp_path, params_file=None, signing=None, key=None, gcs_key=None, sim_link="tcp"):
         self.gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190,
                                signing="required" if gcs_key else "off", key=gcs_key)
         gcs_port = self.gcs.transport.local_port()
         fw = LinkFirmware(1, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
         params = ParamTable(2, FirmwareConfig(), ORIGIN, StreamRates(50.0, 0.0), params_file or tmp_path / "p.json")
-        ports = VehiclePorts(sim="tcpin://127.0.0.1:0", onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
+        sim = "tcpin://127.0.0.1:0" if sim_link == "tcp" else f"unixin://{tmp_path / 'sim.sock'}"
+        ports = VehiclePorts(sim=sim, onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
         self.vehicle = Vehicle(1, fw, params, ports, tmp_path / "out", signing=signing, key=key,
                                key_path=tmp_path / "vehicle.key")
-        sim_port = self.vehicle.sim.transport.local_port()
-        self.sim = MavlinkPort(f"tcpout://127.0.0.1:{sim_port}", system_id=250, component_id=1)
+        if sim_link == "tcp":
+            sim_port = self.vehicle.sim.transport.local_port()
+            self.sim = MavlinkPort(f"tcpout://127.0.0.1:{sim_port}", system_id=250, component_id=1)
+        else:  # the same-host link (link_firmware_sim.simlink)
+            self.sim = SimLinkPort(f"unix://{tmp_path / 'sim.sock'}", accept=frozenset({"HIL_ACTUATOR_CONTROLS"}))
         self.t = 0.0
         self.height_m = 2.0  # where the fake GPS puts the link
         self.vel_m_s = np.zeros(3)  # and its velocity

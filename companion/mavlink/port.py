@@ -42,7 +42,8 @@ from urllib.parse import parse_qs, urlparse
 from .dialect import load_dialect
 from .signing import UNSIGNED_ALLOWED, SignatureChecker, SigningMode, Verdict, signing_timestamp
 
-__all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWriter", "wait_readable", "PortError"]
+__all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWriter", "wait_readable", "PortError",
+           "send_all"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,7 @@ class PortStats:
     rejected_unsigned: int = 0  # unsigned where signing is required
     rejected_signature: int = 0  # wrong key or altered frame
     rejected_replay: int = 0  # a signed frame's timestamp not newer than its stream's last
+    rejected_peer: int = 0  # connections refused: another user's process (the same-host simulator link)
     peer_kept: int = 0  # valid frames from another address while the peer was alive (not re-aimed)
     seq_lost: int = 0  # gaps in the senders' sequence numbers (frames lost on the way), as MAVProxy counts
     last_rx_wall_s: float = 0.0
@@ -228,7 +230,7 @@ class _TcpServer(Transport):
 
     def send(self, data: bytes) -> None:
         if self.conn is not None:
-            _send_all(self.conn, data)
+            send_all(self.conn, data)
 
     def close(self) -> None:
         if self.conn is not None:
@@ -240,7 +242,8 @@ class _TcpServer(Transport):
         return self.conn is not None
 
 
-def _send_all(sock: socket.socket, data: bytes) -> None:
+def send_all(sock: socket.socket, data: bytes) -> None:
+    """Write all of ``data`` to a non-blocking stream (or packet) socket, waiting while its buffer is full."""
     view = memoryview(data)
     while view:
         try:
@@ -289,7 +292,7 @@ class _TcpClient(Transport):
     def send(self, data: bytes) -> None:
         if not self.closed:
             try:
-                _send_all(self.sock, data)
+                send_all(self.sock, data)
             except (BrokenPipeError, ConnectionResetError):
                 self.closed = True
 
@@ -504,6 +507,11 @@ class MavlinkPort:
 
     def fileno(self) -> int:
         return self.transport.fileno()
+
+    @property
+    def connected(self) -> bool:
+        """The transport has its peer (a TCP connection, a UDP peer learnt or given, a serial device open)."""
+        return self.transport.connected
 
     def read(self) -> list:
         """Messages received since the last call that are whitelisted (never blocks).

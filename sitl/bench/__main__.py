@@ -258,6 +258,7 @@ def _cmd_sitl(args) -> int:
 
     batch = tuple(x for x in args.batch.split(",") if x)
     fleet = tuple(x for x in args.fleet.split(",") if x)
+    sim_links = tuple(x for x in args.sim_link.split(",") if x)
     if args.duration <= 0 or args.fleet_duration <= 0 or args.ceiling_duration <= 0:
         print("error: --duration, --fleet-duration and --ceiling-duration must be positive", file=sys.stderr)
         return 2
@@ -265,11 +266,12 @@ def _cmd_sitl(args) -> int:
         print("error: --repeat must be at least 1", file=sys.stderr)
         return 2
     run_dir = make_run_dir("sitl-speed", args.out)
-    total = args.repeat * (len(set(batch) | set(fleet)) + len(batch)) + len(fleet)
+    total = args.repeat * (len(set(batch) | set(fleet)) + len(batch) + len(fleet) * len(sim_links))
     with tqdm(total=total, desc="speed", unit="run", disable=args.quiet, file=sys.stderr) as bar:
         try:
             result = run_speed(run_dir, args.duration, args.fleet_duration, batch, fleet, args.ceiling_duration,
-                               progress=lambda label: (bar.set_postfix_str(label), bar.update()), repeat=args.repeat)
+                               progress=lambda label: (bar.set_postfix_str(label), bar.update()), repeat=args.repeat,
+                               sim_links=sim_links)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -297,9 +299,12 @@ def _add_sitl_parser(sub) -> None:
                     help=f"batch scenarios, comma-separated (default {','.join(BATCH_SCENARIOS)}; empty: none)")
     sp.add_argument("--fleet", default=",".join(FLEET_SCENARIOS),
                     help=f"fleet scenarios, comma-separated (default {','.join(FLEET_SCENARIOS)}; empty: none)")
+    sp.add_argument("--sim-link", default="tcp,unix", metavar="LINKS",
+                    help="the fleets' simulator links, comma-separated: tcp (PX4's TCP 4560+i), unix (the same-host "
+                         "link) (default tcp,unix: both, in one run)")
     sp.add_argument("--repeat", type=int, default=1,
-                    help="measure the MuJoCo ceilings and the batch flights N times, interleaved, and report the "
-                         "median run with every run's real-time factor (default 1; a VM's speed drifts)")
+                    help="measure every figure (MuJoCo ceilings, batch flights, fleets) N times, interleaved, and "
+                         "report the median run with every run's real-time factor (default 1; a VM's speed drifts)")
     sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
     sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/sitl-speed-<UTC time>)")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -5,9 +5,10 @@ In one run, each figure beside the ceiling (MuJoCo alone stepping the same model
 * batch mode (``python -m sitl fly``, one process) for each scenario: the real-time factor of the
   flight loop (simulated seconds per wall second, ``metrics.json``), the process's CPU seconds per
   simulated second and its peak RSS;
-* fleet mode unpaced (``python -m sitl launch --speed 0``) for each scenario: the harness's
-  real-time factor and, per process (harness, each vehicle, each companion), CPU seconds per
-  simulated second and peak RSS, sampled from ``/proc`` while the fleet runs (Linux);
+* fleet mode unpaced (``python -m sitl launch --speed 0``) for each scenario and simulator link
+  (``--sim-link``: PX4's TCP link, the default, and the same-host UNIX-socket link): the
+  harness's real-time factor and, per process (harness, each vehicle, each companion), CPU
+  seconds per simulated second and peak RSS, sampled from ``/proc`` while the fleet runs (Linux);
 * the MuJoCo-only real-time factor of each scenario's model (the rotors held at hover, no
   firmware, no sensors): what the physics alone allows, the ceiling.
 
@@ -28,6 +29,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from ..fleet import SIM_LINKS
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
            "run_speed", "format_speed"]
@@ -203,24 +206,24 @@ def _role(cmd: str) -> str | None:
     return None
 
 
-def fleet_args(name: str, duration_s: float, folder: Path) -> list[str]:
+def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp") -> list[str]:
     """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
-    the lockstep's, not matplotlib's)."""
+    the lockstep's, not matplotlib's) over ``sim_link``."""
     return ["launch", "--config", str(_config(name)), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
-            "--no-plots", "--out", str(folder)]
+            "--no-plots", "--sim-link", sim_link, "--out", str(folder)]
 
 
 def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.executable,
-              sample_s: float = 0.25) -> dict:
-    """One unpaced fleet flight (``python -m sitl launch --speed 0``): the launcher is the harness;
-    its children's CPU and peak RSS are sampled from /proc until they exit (the last sample is up
-    to ``sample_s`` before a process's end)."""
-    folder = out_dir / f"fleet-{name}"
-    argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder)]
+              sample_s: float = 0.25, sim_link: str = "tcp", tag: str = "") -> dict:
+    """One unpaced fleet flight (``python -m sitl launch --speed 0 --sim-link SIM_LINK``): the
+    launcher is the harness; its children's CPU and peak RSS are sampled from /proc until they
+    exit (the last sample is up to ``sample_s`` before a process's end)."""
+    folder = out_dir / f"fleet-{name}-{sim_link}{tag}"
+    argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder, sim_link)]
     seen: dict[int, tuple[str, float, int]] = {}
     stop = threading.Event()
     wall0 = time.perf_counter()
-    with open(out_dir / f"fleet-{name}.log", "wb") as fh:
+    with open(folder.with_name(folder.name + ".log"), "wb") as fh:
         proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT)
 
         def sampler() -> None:
@@ -250,7 +253,7 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
         processes[role] = {"cpu_s_per_sim_s": c / sim, "peak_rss_mb": hwm / 1024.0}
         children_cpu += c
     processes["harness"]["cpu_s_per_sim_s"] = max(cpu - children_cpu, 0.0) / sim
-    return {"scenario": name, "mode": "fleet", "exit_code": code, "sim_s": sim,
+    return {"scenario": name, "mode": "fleet", "sim_link": sim_link, "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
             "cpu_s_per_sim_s": cpu / sim, "processes": processes, "crashed": metrics.get("crashed")}
 
@@ -271,12 +274,17 @@ def median_of(runs: list[dict]) -> dict:
 
 
 def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, ...] = BATCH_SCENARIOS,
-              fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None, repeat: int = 1) -> dict:
-    """Every figure of the bench; ``progress(label)`` after each flight. ``repeat``: the MuJoCo
-    ceilings and the batch flights are measured that many times, interleaved (every scenario once,
-    then again), and each figure is the median run (:func:`median_of`); the fleets run once."""
+              fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None, repeat: int = 1,
+              sim_links: tuple[str, ...] = SIM_LINKS) -> dict:
+    """Every figure of the bench; ``progress(label)`` after each flight. ``repeat``: every figure
+    (the MuJoCo ceilings, the batch flights, the fleets over each of ``sim_links``) is measured
+    that many times, interleaved (everything once, then again), and each is the median run
+    (:func:`median_of`)."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
+    bad = [x for x in sim_links if x not in SIM_LINKS]
+    if bad or (fleet and not sim_links):
+        raise ValueError(f"sim links {', '.join(bad) or '(none)'}: one or more of {', '.join(SIM_LINKS)}")
     from companion import _fast as companion_fast
     from link_firmware_sim import _fast
 
@@ -288,6 +296,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
     models = list(dict.fromkeys((*batch, *fleet)))
     ceiling_runs: dict[str, list] = {name: [] for name in models}
     batch_runs: dict[str, list] = {name: [] for name in batch}
+    fleet_runs: dict[tuple[str, str], list] = {(name, link): [] for name in fleet for link in sim_links}
     for k in range(repeat):
         for name in models:
             ceiling_runs[name].append(mujoco_ceiling(name, ceiling_s))
@@ -297,12 +306,13 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
             batch_runs[name].append(run_batch(name, batch_s, out_dir, tag=f"-{k + 1}" if repeat > 1 else ""))
             if progress:
                 progress(f"batch {name}")
+        for name, link in fleet_runs:
+            fleet_runs[name, link].append(run_fleet(name, fleet_s, out_dir, sim_link=link,
+                                                    tag=f"-{k + 1}" if repeat > 1 else ""))
+            if progress:
+                progress(f"fleet {name} ({link})")
     ceilings = {name: median_of(ceiling_runs[name]) for name in models}
-    runs = [median_of(batch_runs[name]) for name in batch]
-    for name in fleet:
-        runs.append(run_fleet(name, fleet_s, out_dir))
-        if progress:
-            progress(f"fleet {name}")
+    runs = [median_of(batch_runs[name]) for name in batch] + [median_of(r) for r in fleet_runs.values()]
     for r in runs:
         ceiling = ceilings[r["scenario"]]["realtime_factor"]
         r["ratio_to_ceiling"] = None if r["realtime_factor"] is None else r["realtime_factor"] / ceiling
@@ -313,27 +323,28 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
 def format_speed(result: dict) -> str:
     rows = [f"kernels compiled: {result['compiled']} (warm-up {result['warm_up_s']:.1f} s); "
             f"load average at the end {', '.join(f'{x:.1f}' for x in result['load_average_at_end'])}",
-            f"{'run':<24} {'RTF':>6} {'/ceiling':>9} {'CPU s/sim s':>12} {'peak RSS MB':>12}"]
+            f"{'run':<28} {'RTF':>6} {'/ceiling':>9} {'CPU s/sim s':>12} {'peak RSS MB':>12}"]
     tick = result.get("firmware_tick_us")
     if tick:
         runs = len(tick.get("fused_us_runs", ())) or 1
         rows.insert(1, f"firmware tick per link (CPU, least of {runs}): {tick['fused_us']:.1f} us one-kernel, "
                        f"{tick['step_by_step_us']:.1f} us step by step")
     if result.get("repeat", 1) > 1:
-        rows.insert(1, f"MuJoCo and batch figures: the median of {result['repeat']} interleaved runs (all runs' "
-                       f"real-time factors in brackets); fleets: one run")
+        rows.insert(1, f"every figure: the median of {result['repeat']} interleaved runs (all runs' "
+                       f"real-time factors in brackets)")
     for name, c in result["mujoco_ceiling"].items():
-        rows.append(f"{'MuJoCo only ' + name:<24} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
+        rows.append(f"{'MuJoCo only ' + name:<28} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
                      f" {'':>12}{_runs_text(c)}")
     for r in result["runs"]:
         rtf = r["realtime_factor"]
-        label = f"{r['mode']} {r['scenario']}" + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})")
+        label = (f"{r['mode']} {r['scenario']}" + (f" ({r['sim_link']})" if "sim_link" in r else "")
+                 + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})"))
         rtf_s = "-" if rtf is None else f"{rtf:.2f}"
         ratio = "-" if r["ratio_to_ceiling"] is None else f"{r['ratio_to_ceiling']:.3f}"
         rss = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
-        rows.append(f"{label:<24} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}{_runs_text(r)}")
+        rows.append(f"{label:<28} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}{_runs_text(r)}")
         for role, p in sorted(r.get("processes", {}).items()):
-            rows.append(f"{'  ' + role:<24} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {p['peak_rss_mb']:>12.0f}")
+            rows.append(f"{'  ' + role:<28} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {p['peak_rss_mb']:>12.0f}")
     return "\n".join(rows)
 
 

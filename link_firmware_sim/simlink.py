@@ -1,0 +1,349 @@
+"""The same-host simulator link: the HIL messages as binary records over a UNIX socket.
+
+PX4's simulator API stays the default link between the physics and a vehicle: MAVLink
+``HIL_SENSOR`` / ``HIL_GPS`` / ``SKELETON_AHRS_REFERENCE`` in, ``HIL_ACTUATOR_CONTROLS`` out,
+over TCP 4560+i (``tcpin://`` on the vehicle, ``tcpout://`` in the simulator; :mod:`.hil`). When
+both run on one host, this link carries the same messages without what only a network needs:
+
+* URLs ``unixin:///PATH`` (the vehicle: binds and listens, like ``tcpin``) and ``unix:///PATH``
+  (the simulator: connects, retrying while the vehicle starts, like ``tcpout``);
+* a ``SOCK_SEQPACKET`` socket: the kernel keeps each packet whole and in order and reports the
+  peer closing, as TCP does, without TCP's stack;
+* one packet per tick and direction; a packet is a run of records, each a 1-byte kind and the
+  message's MAVLink payload in wire order (the dialect's own layout, :attr:`unpacker`): no
+  header, sequence number or checksum, since nothing is lost, reordered or corrupted between
+  two processes on one kernel.
+
+A sender passes the :mod:`.hil` encoders' pymavlink messages; a receiver gets read-only records
+with the same field names (and ``get_type()``) for the :mod:`.hil` decoders, so units, frames and
+value checks are the same code on both links; only the framing differs (``python -m sitl bench
+sitl`` measures both).
+
+Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
+launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
+of its own user (``SO_PEERCRED``); others are counted (``PortStats.rejected_peer``) and closed.
+A packet with an unknown kind, a kind this side does not accept, or a length that is not a
+whole number of records is dropped whole and counted (``dropped_frames``, ``dropped_bytes``);
+it never raises. A stale socket file (a killed vehicle's) is replaced.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import socket
+import stat
+import struct
+import time
+from collections import namedtuple
+from operator import attrgetter
+from pathlib import Path
+from urllib.parse import urlparse
+
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.port import MavlinkPort, PortError, PortStats, open_transport, send_all
+
+__all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "open_sim_port",
+           "is_simlink_url"]
+
+log = logging.getLogger(__name__)
+
+#: the message kinds of the link, by record tag (the tag is the index)
+SIM_KINDS = ("HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE", "HIL_ACTUATOR_CONTROLS")
+_SCHEMES = ("unix", "unixin")
+#: the longest packet: every kind once (a tick carries at most GPS, AHRS and the IMU sample)
+_MAX_PACKET = 1024
+#: a UNIX socket path's limit (sun_path is 108 bytes with its terminating NUL on Linux)
+_MAX_PATH = 107
+
+
+class FrameError(ValueError):
+    """A packet that is not a run of whole records of accepted kinds."""
+
+
+class _Layout:
+    """One kind's record: its tag, the pymavlink class, and the payload's struct in wire order."""
+
+    def __init__(self, tag: int, cls):
+        self.tag = tag
+        self.name = cls.msgname
+        self.cls = cls
+        self.struct: struct.Struct = cls.unpacker
+        self.size = 1 + self.struct.size
+        self.head = bytes([tag])
+        self.fields = tuple(cls.ordered_fieldnames)
+        self.lengths = tuple(cls.array_lengths)
+        self.flat = not any(self.lengths)
+        self._get = attrgetter(*self.fields)
+        # what a receiver gets: a read-only record with the message's field names and get_type(),
+        # all the .hil decoders use (cheaper to build than a pymavlink message)
+        name = self.name
+
+        class Record(namedtuple(f"{cls.__name__}_record", self.fields)):
+            __slots__ = ()
+
+            def get_type(self) -> str:
+                return name
+
+        self.record = Record
+
+    def pack(self, msg) -> bytes:
+        values = self._get(msg)
+        if not self.flat:
+            out = []
+            for v, n in zip(values, self.lengths):
+                if n:
+                    if len(v) != n:
+                        raise FrameError(f"{self.name}: an array field of {len(v)} values, expected {n}")
+                    out.extend(v)
+                else:
+                    out.append(v)
+            values = out
+        try:
+            return self.head + self.struct.pack(*values)
+        except struct.error as exc:
+            raise FrameError(f"{self.name}: {exc}") from None
+
+    def unpack(self, data: bytes, offset: int):
+        values = self.struct.unpack_from(data, offset + 1)
+        if self.flat:
+            return tuple.__new__(self.record, values)
+        out, i = [], 0
+        for n in self.lengths:
+            if n:
+                out.append(list(values[i:i + n]))
+                i += n
+            else:
+                out.append(values[i])
+                i += 1
+        return tuple.__new__(self.record, out)
+
+
+def _layouts() -> dict[str, _Layout]:
+    D = load_dialect()
+    by_name = {cls.msgname: cls for cls in D.mavlink_map.values()}
+    return {name: _Layout(tag, by_name[name]) for tag, name in enumerate(SIM_KINDS)}
+
+
+_LAYOUTS = _layouts()
+_BY_TAG = tuple(_LAYOUTS[name] for name in SIM_KINDS)
+
+
+def encode_packet(msgs) -> bytes:
+    """One packet of ``msgs`` (pymavlink messages of :data:`SIM_KINDS`)."""
+    try:
+        return b"".join(_LAYOUTS[m.get_type()].pack(m) for m in msgs)
+    except KeyError as exc:
+        raise FrameError(f"{exc.args[0]} is not a simulator-link message ({', '.join(SIM_KINDS)})") from None
+
+
+def decode_packet(data: bytes, accept: frozenset[str] | None = None) -> list:
+    """The messages of one packet; :class:`FrameError` (nothing decoded) unless it is a run of
+    whole records whose kinds are in ``accept`` (``None``: every kind)."""
+    out, i, n = [], 0, len(data)
+    if n == 0:
+        raise FrameError("an empty packet")
+    while i < n:
+        tag = data[i]
+        if tag >= len(_BY_TAG):
+            raise FrameError(f"unknown record kind {tag} at byte {i}")
+        layout = _BY_TAG[tag]
+        if accept is not None and layout.name not in accept:
+            raise FrameError(f"{layout.name} is not accepted on this side of the link")
+        if i + layout.size > n:
+            raise FrameError(f"a {layout.name} record cut short: {n - i} of {layout.size} bytes")
+        out.append(layout.unpack(data, i))
+        i += layout.size
+    return out
+
+
+def is_simlink_url(url: str) -> bool:
+    return urlparse(url).scheme in _SCHEMES
+
+
+def _path_of(url: str) -> tuple[str, Path]:
+    parsed = urlparse(url)
+    if parsed.scheme not in _SCHEMES or parsed.netloc or not parsed.path.startswith("/"):
+        raise PortError(f"{url}: expected unixin:///ABSOLUTE/PATH or unix:///ABSOLUTE/PATH")
+    if len(os.fsencode(parsed.path)) > _MAX_PATH:
+        raise PortError(f"{url}: a UNIX socket path is at most {_MAX_PATH} bytes")
+    return parsed.scheme, Path(parsed.path)
+
+
+class SimLinkPort:
+    """One end of a same-host simulator link; reads never block, like :class:`MavlinkPort`'s.
+
+    ``accept``: the kinds this end takes (the vehicle: the sensor messages; the simulator: the
+    actuator controls). The interface is the part of :class:`MavlinkPort` a simulator link uses:
+    ``read``, ``send``, ``send_many``, ``fileno``, ``connected``, ``stats``, ``url``, ``close``.
+    """
+
+    def __init__(self, url: str, accept: frozenset[str] | None = None, connect_timeout_s: float = 10.0):
+        self.url = url
+        self.accept = accept
+        self.stats = PortStats()
+        self._warned_s = -float("inf")
+        scheme, self.path = _path_of(url)
+        self.listening = scheme == "unixin"
+        self.server: socket.socket | None = None
+        self.conn: socket.socket | None = None
+        self.closed = False
+        if self.listening:
+            self._listen()
+        else:
+            self.conn = self._connect(connect_timeout_s)
+
+    def _listen(self) -> None:
+        try:
+            stale = stat.S_ISSOCK(self.path.lstat().st_mode)
+        except FileNotFoundError:
+            stale = False
+        if stale:  # a killed vehicle's socket is ours to replace; a live one's is not
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            try:
+                probe.connect(str(self.path))
+            except OSError:
+                self.path.unlink()
+            else:
+                raise PortError(f"cannot bind {self.url}: another process listens there")
+            finally:
+                probe.close()
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        old = os.umask(0o177)  # the socket file: 0600
+        try:
+            s.bind(str(self.path))
+        except OSError as exc:
+            s.close()
+            raise PortError(f"cannot bind {self.url}: {exc.strerror}") from None
+        finally:
+            os.umask(old)
+        s.listen(1)
+        s.setblocking(False)
+        self.server = s
+
+    def _connect(self, timeout_s: float) -> socket.socket:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            try:
+                s.connect(str(self.path))
+                s.setblocking(False)
+                return s
+            except OSError as exc:
+                s.close()
+                if exc.errno not in (errno.ENOENT, errno.ECONNREFUSED, errno.EAGAIN) or time.monotonic() > deadline:
+                    raise PortError(f"cannot connect to {self.url}: {exc.strerror}") from None
+            time.sleep(0.05)
+
+    def fileno(self) -> int:
+        sock = self.conn or self.server
+        return sock.fileno() if sock is not None else -1
+
+    @property
+    def connected(self) -> bool:
+        return self.conn is not None
+
+    def _accept(self) -> None:
+        try:
+            conn, _ = self.server.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        pid, uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
+        if uid != os.getuid():
+            conn.close()
+            self.stats.rejected_peer += 1
+            self._warn(f"refused a simulator connection from process {pid} of user {uid}")
+            return
+        conn.setblocking(False)
+        self.conn = conn
+
+    def _warn(self, text: str) -> None:
+        now = time.monotonic()
+        if now - self._warned_s >= 5.0:  # the first, then at most one every 5 s
+            self._warned_s = now
+            log.warning("%s: %s (dropped so far: %d packets)", self.url, text, self.stats.dropped_frames)
+
+    def _lost_peer(self) -> None:
+        self.conn.close()
+        self.conn = None
+        if not self.listening:
+            self.closed = True
+
+    def read(self) -> list:
+        """The accepted messages of the next packet (``[]`` if none is waiting, or it was dropped).
+
+        One packet per call: the lockstep has at most one in flight per direction, so a second
+        ``recv`` would only hear EAGAIN; a backlog (a flood) makes the socket readable again and
+        the next calls read it, the caller's other ports served in between.
+        """
+        if self.conn is None:
+            if self.listening:
+                self._accept()
+            return []
+        try:
+            data = self.conn.recv(_MAX_PACKET)
+        except (BlockingIOError, InterruptedError):
+            return []
+        except OSError:
+            data = b""  # reset by the peer
+        if not data:  # the peer closed (a listener waits for the next one)
+            self._lost_peer()
+            return []
+        st = self.stats
+        st.rx_bytes += len(data)
+        st.last_rx_wall_s = time.monotonic()
+        try:
+            msgs = decode_packet(data, self.accept)
+        except FrameError as exc:
+            st.dropped_frames += 1
+            st.dropped_bytes += len(data)
+            self._warn(f"dropped a packet: {exc}")
+            return []
+        st.rx_messages += len(msgs)
+        for m in msgs:
+            kind = m.get_type()
+            st.per_type[kind] = st.per_type.get(kind, 0) + 1
+        return msgs
+
+    def send(self, msg) -> None:
+        self.send_many((msg,))
+
+    def send_many(self, msgs) -> None:
+        """Send ``msgs`` as one packet (nothing while no peer is connected)."""
+        msgs = list(msgs)
+        data = encode_packet(msgs)
+        if self.conn is None:
+            return
+        try:
+            send_all(self.conn, data)
+        except (BrokenPipeError, ConnectionResetError):
+            self._lost_peer()
+            return
+        except OSError:
+            self.stats.tx_errors += 1
+            return
+        self.stats.tx_messages += len(msgs)
+
+    def close(self) -> None:
+        if self.conn is not None:
+            self.conn.close()
+            self.conn = None
+        if self.server is not None:
+            self.server.close()
+            self.server = None
+            try:
+                self.path.unlink()
+            except OSError:
+                pass
+
+
+def open_sim_port(url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
+                  connect_timeout_s: float = 10.0):
+    """The simulator link of ``url``: a :class:`SimLinkPort` for ``unix``/``unixin`` URLs, else a
+    :class:`MavlinkPort` (PX4's simulator API over TCP, the default). A connecting end retries for
+    ``connect_timeout_s`` while the other end starts."""
+    if is_simlink_url(url):
+        return SimLinkPort(url, accept, connect_timeout_s)
+    return MavlinkPort(url, system_id, component_id, accept=accept,
+                       transport=open_transport(url, connect_timeout_s))

@@ -1,0 +1,253 @@
+"""The same-host simulator link (link_firmware_sim.simlink): its records carry exactly what the
+MAVLink HIL frames carry, malformed packets are counted and dropped, the socket is private, and a
+vehicle behind it answers the lockstep with the same thrusts as behind PX4's TCP link."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import stat
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.estimation.so3 import quat_normalize
+from companion.mavlink.dialect import load_dialect
+from companion.mavlink.port import MavlinkPort, PortError
+from link_firmware_sim.geo import GeoOrigin
+from link_firmware_sim.hil import (
+    decode_actuators,
+    decode_ahrs,
+    decode_hil_baro_mag,
+    decode_hil_gps,
+    decode_hil_sensor,
+    encode_actuators,
+    encode_ahrs,
+    encode_hil_gps,
+    encode_hil_sensor,
+)
+from link_firmware_sim.simlink import (
+    SIM_KINDS,
+    FrameError,
+    SimLinkPort,
+    decode_packet,
+    encode_packet,
+    open_sim_port,
+)
+from sitl.fleet import _listening_unix_paths
+
+from .test_vehicle import Rig
+
+D = load_dialect()
+SENSORS = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
+ACTUATORS = frozenset({"HIL_ACTUATOR_CONTROLS"})
+
+
+def _over_mavlink(msg):
+    """``msg`` after a MAVLink 2 frame and pymavlink's parser (what the TCP link delivers)."""
+    frame = msg.pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
+    return D.MAVLink(None).parse_char(bytearray(frame))
+
+
+def _messages(rng: np.random.Generator) -> list:
+    origin = GeoOrigin()
+    t = float(rng.uniform(0, 100))
+    return [
+        encode_hil_gps(t, rng.normal(size=3) * 50, rng.normal(size=3), origin),
+        encode_ahrs(t, quat_normalize(rng.normal(size=4))),
+        encode_hil_sensor(t, rng.normal(size=3) + [0, 0, 9.8], rng.normal(size=3),
+                          mag_flu_gauss=rng.normal(size=3) * 0.3, baro_alt_m=float(rng.uniform(0, 500))),
+        encode_actuators(t, rng.uniform(-10, 10, size=8), 8.0, bool(rng.integers(2))),
+    ]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_records_carry_what_mavlink_frames_carry(seed):
+    """Every field of every kind, through the link and through a MAVLink frame: equal (both float32)."""
+    msgs = _messages(np.random.default_rng(seed))
+    assert [m.get_type() for m in msgs] == sorted(SIM_KINDS, key=[m.get_type() for m in msgs].index)
+    got = decode_packet(encode_packet(msgs))
+    assert [r.get_type() for r in got] == [m.get_type() for m in msgs]
+    for rec, msg in zip(got, msgs):
+        ref = _over_mavlink(msg)
+        for name in ref.fieldnames:
+            assert getattr(rec, name) == pytest.approx(getattr(ref, name), rel=0, abs=0), (msg.get_type(), name)
+    # and the decoders read them alike
+    origin = GeoOrigin()
+    ref = [_over_mavlink(m) for m in msgs]
+    np.testing.assert_array_equal(decode_hil_gps(got[0], origin)[1], decode_hil_gps(ref[0], origin)[1])
+    np.testing.assert_array_equal(decode_ahrs(got[1])[1], decode_ahrs(ref[1])[1])
+    for a, b in zip(decode_hil_sensor(got[2])[1:], decode_hil_sensor(ref[2])[1:]):
+        np.testing.assert_array_equal(a, b)
+    a, b = decode_hil_baro_mag(got[2]), decode_hil_baro_mag(ref[2])
+    assert a.baro_alt_m == b.baro_alt_m and a.rejected == b.rejected == ()
+    np.testing.assert_array_equal(a.mag_flu_gauss, b.mag_flu_gauss)
+    np.testing.assert_array_equal(decode_actuators(got[3], 8.0)[1], decode_actuators(ref[3], 8.0)[1])
+
+
+def test_malformed_packets_are_refused_whole():
+    good = encode_packet([encode_hil_sensor(1.0, np.zeros(3), np.zeros(3))])
+    with pytest.raises(FrameError, match="empty"):
+        decode_packet(b"")
+    with pytest.raises(FrameError, match="cut short"):
+        decode_packet(good[:-1])
+    with pytest.raises(FrameError, match="cut short"):
+        decode_packet(good + good[:5])
+    with pytest.raises(FrameError, match="unknown record kind"):
+        decode_packet(bytes([len(SIM_KINDS)]) + good[1:])
+    with pytest.raises(FrameError, match="not accepted"):
+        decode_packet(good, ACTUATORS)  # a sensor sample sent to the simulator's side
+    with pytest.raises(FrameError, match="not a simulator-link message"):
+        encode_packet([D.MAVLink_heartbeat_message(2, 0, 0, 0, 4, 3)])
+    assert len(decode_packet(good + good, SENSORS)) == 2
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_decode_or_raise_frame_error(data):
+    try:
+        out = decode_packet(data, SENSORS)
+    except FrameError:
+        return
+    assert out and all(r.get_type() in SENSORS for r in out)
+
+
+def _pair(tmp_path):
+    url = f"unixin://{tmp_path / 'link1.sock'}"
+    vehicle = SimLinkPort(url, accept=SENSORS)
+    sim = SimLinkPort(f"unix://{tmp_path / 'link1.sock'}", accept=ACTUATORS, connect_timeout_s=2.0)
+    return vehicle, sim
+
+
+def _read(port, want: int = 1, timeout_s: float = 2.0) -> list:
+    out, deadline = port.read(), time.monotonic() + timeout_s
+    while len(out) < want and time.monotonic() < deadline:
+        time.sleep(0.001)
+        out += port.read()
+    return out
+
+
+def test_a_pair_exchanges_counts_drops_and_sees_the_peer_go(tmp_path):
+    vehicle, sim = _pair(tmp_path)
+    try:
+        path = tmp_path / "link1.sock"
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600  # only this user can connect
+        assert str(path) in _listening_unix_paths()
+        _read(vehicle, 0, 0.05)  # accepts
+        assert vehicle.connected and sim.connected
+        msgs = _messages(np.random.default_rng(3))
+        sim.send_many(msgs[:3])
+        got = _read(vehicle, 3)
+        assert [m.get_type() for m in got] == ["HIL_GPS", "SKELETON_AHRS_REFERENCE", "HIL_SENSOR"]
+        # hostile packets: counted and dropped whole, never raised; the next good one goes through
+        raw = sim.conn
+        raw.send(b"\xff" * 40)
+        raw.send(encode_packet(msgs[:1])[:-3])
+        raw.send(encode_packet(msgs[3:]))  # the simulator's kind, sent to the vehicle
+        sim.send(msgs[2])
+        got = _read(vehicle, 1)
+        assert [m.get_type() for m in got] == ["HIL_SENSOR"]
+        st_ = vehicle.stats
+        assert st_.dropped_frames == 3 and st_.rx_messages == 4 and st_.per_type["HIL_SENSOR"] == 2
+        vehicle.send(msgs[3])
+        (answer,) = _read(sim, 1)
+        assert decode_actuators(answer, 8.0)[0] == msgs[3].time_usec
+        # the simulator goes: the vehicle waits for the next one, which it then serves
+        sim.close()
+        deadline = time.monotonic() + 2.0
+        while vehicle.connected and time.monotonic() < deadline:
+            vehicle.read()
+        assert not vehicle.connected
+        sim = SimLinkPort(f"unix://{path}", accept=ACTUATORS, connect_timeout_s=2.0)
+        _read(vehicle, 0, 0.05)
+        assert vehicle.connected
+        sim.send(msgs[2])
+        assert len(_read(vehicle, 1)) == 1
+        # the vehicle goes: the simulator's end is closed for good
+        vehicle.close()
+        assert not path.exists()
+        deadline = time.monotonic() + 2.0
+        while sim.connected and time.monotonic() < deadline:
+            sim.read()
+        assert not sim.connected and sim.read() == []
+        sim.send(msgs[2])  # nothing to send to: no error
+    finally:
+        vehicle.close()
+        sim.close()
+
+
+def test_stale_socket_files_are_replaced_live_ones_are_not(tmp_path):
+    path = tmp_path / "link1.sock"
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    stale.bind(str(path))
+    stale.close()  # a killed vehicle's file: nobody listens
+    first = SimLinkPort(f"unixin://{path}", accept=SENSORS)
+    try:
+        with pytest.raises(PortError, match="another process listens"):
+            SimLinkPort(f"unixin://{path}", accept=SENSORS)
+        assert first.server is not None and path.exists()
+    finally:
+        first.close()
+
+
+def test_bad_urls_and_absent_peers_are_clear_errors(tmp_path):
+    with pytest.raises(PortError, match="ABSOLUTE"):
+        SimLinkPort("unixin://relative/path.sock")
+    with pytest.raises(PortError, match="at most 107 bytes"):
+        SimLinkPort("unixin:///" + "x" * 120)
+    with pytest.raises(PortError, match="cannot connect"):
+        SimLinkPort(f"unix://{tmp_path / 'nobody.sock'}", connect_timeout_s=0.1)
+    assert isinstance(open_sim_port("tcpin://127.0.0.1:0", 1), MavlinkPort)
+
+
+def test_another_users_process_is_refused(tmp_path):
+    if os.getuid() != 0:
+        pytest.skip("needs root to connect as another user")
+    # a folder and a socket file open to all (the fleet's are private: this checks the last line)
+    folder = Path(tempfile.mkdtemp(prefix="simlink-peer-"))
+    os.chmod(folder, 0o777)
+    path = folder / "link1.sock"
+    vehicle = SimLinkPort(f"unixin://{path}", accept=SENSORS)
+    os.chmod(path, 0o666)
+    pid = os.fork()
+    if pid == 0:  # the child: another user
+        try:
+            os.setuid(65534)
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            s.connect(str(path))
+            s.send(encode_packet([encode_hil_sensor(1.0, np.zeros(3), np.zeros(3))]))
+            time.sleep(0.3)
+        finally:
+            os._exit(0)
+    try:
+        deadline = time.monotonic() + 2.0
+        while vehicle.stats.rejected_peer == 0 and time.monotonic() < deadline:
+            assert vehicle.read() == []
+            time.sleep(0.005)
+        assert vehicle.stats.rejected_peer == 1 and not vehicle.connected
+    finally:
+        os.waitpid(pid, 0)
+        vehicle.close()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_a_vehicle_answers_alike_over_both_links(tmp_path):
+    """The same ticks into a vehicle behind TCP and one behind the same-host link: the same thrusts."""
+    thrusts = {}
+    for link in ("tcp", "unix"):
+        (tmp_path / link).mkdir()
+        rig = Rig(tmp_path / link, sim_link=link)
+        try:
+            rig.start(0.3)
+            assert rig.vehicle.fw.arm(rig.t)  # as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick
+            thrusts[link] = np.array([rig.tick(gps=k % 50 == 0, ahrs=k % 10 == 0) for k in range(100)])
+        finally:
+            rig.close()
+    assert np.abs(thrusts["tcp"]).sum(axis=1).min() > 10.0  # armed: carrying its weight
+    np.testing.assert_array_equal(thrusts["unix"], thrusts["tcp"])
