@@ -46,10 +46,10 @@ def align_states(states: Sequence[LinkState], t: float | None = None) -> tuple[f
     if t is None:
         t = max(s.time_s for s in states)
     dt = np.array([t - s.time_s for s in states])[:, None]
-    p = np.stack([s.p_w_m for s in states]) + np.stack([s.v_w_m_s for s in states]) * dt
-    v = np.stack([s.v_w_m_s for s in states])
-    w = np.stack([s.omega_b_rad_s for s in states])
-    q = quat_mul(np.stack([s.q_wxyz for s in states]), quat_from_rotvec(w * dt))
+    p = np.array([s.p_w_m for s in states]) + np.array([s.v_w_m_s for s in states]) * dt
+    v = np.array([s.v_w_m_s for s in states])
+    w = np.array([s.omega_b_rad_s for s in states])
+    q = quat_mul(np.array([s.q_wxyz for s in states]), quat_from_rotvec(w * dt))
     return t, p, v, q
 
 
@@ -68,8 +68,8 @@ def compute_corrections(
     if not links or links != list(range(links[0], links[0] + len(links))):
         raise ValueError(f"states must be consecutive links in chain order, got {links}")
     _, p, v, q = align_states(states, t)
-    w = np.stack([s.omega_b_rad_s for s in states])
-    P = np.stack([s.P for s in states])
+    w = np.array([s.omega_b_rad_s for s in states])
+    P = np.array([s.P for s in states])
     result = semi_distributed_apply(p, v, q, w, d_b_m, P, groups, params)
     return result, _deltas(states, p, v, q, result.p, result.v, result.q, seq)
 
@@ -108,8 +108,8 @@ def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams 
     if links != list(range(links[0], links[0] + len(links))):
         raise ValueError(f"a group's states must be consecutive links in chain order, got {links}")
     t, p, v, q = align_states(states, t)
-    w = np.stack([s.omega_b_rad_s for s in states])
-    P = np.stack([s.P for s in states])
+    w = np.array([s.omega_b_rad_s for s in states])
+    P = np.array([s.P for s in states])
     result = constraint_apply(p, v, q, w, d_b_m, P, params)
     tip_cov, tip_cross = group_tip_terms(result.q, w, np.asarray(d_b_m, float), result)
     boundary = group_boundary(result.p, result.v, result.q, w, d_b_m, result.P, tip_cov)

@@ -283,8 +283,8 @@ def _blocks(P: np.ndarray) -> np.ndarray:
 
 def _stacked(states: list[LinkState]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(p, v, q, w)`` of ``states``, stacked (n, 3 or 4)."""
-    return (np.stack([s.p_w_m for s in states]), np.stack([s.v_w_m_s for s in states]),
-            np.stack([s.q_wxyz for s in states]), np.stack([s.omega_b_rad_s for s in states]))
+    return (np.array([s.p_w_m for s in states]), np.array([s.v_w_m_s for s in states]),
+            np.array([s.q_wxyz for s in states]), np.array([s.omega_b_rad_s for s in states]))
 
 
 class CompanionEngine:
@@ -561,8 +561,8 @@ class CompanionEngine:
         for run in segments(usable):
             rows = list(run)
             _, p, v, q = align_states([self.links[r].state for r in rows], t_us * 1e-6)
-            w = np.stack([self.links[r].state.omega_b_rad_s for r in rows])
-            P = np.stack([self._step_state(self.links[r]).P for r in rows])
+            w = np.array([self.links[r].state.omega_b_rad_s for r in rows])
+            P = np.array([self._step_state(self.links[r]).P for r in rows])
             res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
             # A link that flags a GPS fault and disagrees with its neighbours is not left out: its
             # state is the suspect (its own firmware says so), so it takes part one way.
@@ -570,7 +570,7 @@ class CompanionEngine:
                         and (k in res.excluded or (k > 0 and res.cut[k - 1]) or (k < len(rows) - 1 and res.cut[k]))}
             if suspects:
                 self._one_way.update(rows[k] for k in suspects)
-                P = np.stack([self._step_state(self.links[r]).P for r in rows])
+                P = np.array([self._step_state(self.links[r]).P for r in rows])
                 res = gate_chain(p, v, q, w, self.d[rows], P, self.gate_params)
             for j, c in enumerate(res.cut):
                 cut[run[0] + j] = bool(c)
@@ -664,7 +664,7 @@ class CompanionEngine:
                 for a in ekf:
                     a[lk.row] = np.nan
         p, v, q = (a.copy() for a in ekf[:3])
-        P_ekf = np.stack([lk.state.P for lk in self.links])
+        P_ekf = np.array([lk.state.P for lk in self.links])
         P_corr = P_ekf.copy()
         p_local = p.copy()
         corrected = np.zeros(len(self.links), dtype=bool)
@@ -700,7 +700,7 @@ class CompanionEngine:
         ekf = _stacked([lk.state for lk in self.links])
         cycle = self.next_step_us if self.net is not None else -1
         p, v, q, _ = ekf
-        P = np.stack([lk.state.P for lk in self.links])
+        P = np.array([lk.state.P for lk in self.links])
         self._record(self.fc_time_us if cycle < 0 else cycle, cycle, ekf, p, v, q, p, 0, False, -1,
                      np.zeros(len(self.links), dtype=bool), float("nan"), (P, P))
 
@@ -723,7 +723,7 @@ class CompanionEngine:
             return
         self.step_times_ms.append((self._timer() - t0) * 1e3)
         # (the links' reported covariances, for the log and the common GNSS error to put back)
-        self._local[cycle] = (states, step, nis_max, np.stack([lk.state.P for lk in self.links]))
+        self._local[cycle] = (states, step, nis_max, np.array([lk.state.P for lk in self.links]))
         b = step.boundary
         # stamped when it goes out, after the computation (the shift deadline runs from there)
         self._finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock(), b.tip_cov))
@@ -784,8 +784,8 @@ class CompanionEngine:
         if self.trajectory is None:
             center = self._start_center
             if center is None:
-                center = chain_middle(np.stack([lk.state.p_w_m for lk in self.links]),
-                                      np.stack([lk.state.q_wxyz for lk in self.links]), self.d)
+                center = chain_middle(np.array([lk.state.p_w_m for lk in self.links]),
+                                      np.array([lk.state.q_wxyz for lk in self.links]), self.d)
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).

@@ -171,7 +171,7 @@ class ChainTrajectory:
         R = quat_to_rotmat(q)
         r, _ = chain_offsets(R, None, self.d)
         # Anchor the chain's middle point (middle link centre, or middle joint) at the centre.
-        center = np.stack([self.center_w_m(t) for t in times])
+        center = np.array([self.center_w_m(t) for t in times])
         return r + (center - middle_offset(r, R, self.d))[:, None, :], q, R
 
     def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:

@@ -211,7 +211,7 @@ def global_step(boundaries: Sequence[GroupBoundary]) -> np.ndarray:
     offsets = np.zeros((s, 6))
     if s > 1:
         offsets[1:] = np.cumsum(boundary_residuals(boundaries), axis=0)
-    infos = np.stack([b.info_pv for b in boundaries])
+    infos = np.array([b.info_pv for b in boundaries])
     total = infos.sum(axis=0)
     weighted = np.einsum("gij,gj->i", infos, offsets)
     first = -np.linalg.solve(total, weighted)
@@ -246,7 +246,7 @@ def global_solution(boundaries: Sequence[GroupBoundary]) -> GlobalSolution:
     # c_h = right tip of h - left tip of h+1. So, with Wsuf_k = sum_{j>=k} W_j:
     #   dDx_g / d(left tip of k)  = Wsuf_k - [g >= k] I      (0 for k = 0: Wsuf_0 = I)
     #   dDx_g / d(right tip of k) = [g > k] I - Wsuf_{k+1}   (0 for the last group)
-    infos = np.stack([b.info_pv for b in boundaries])
+    infos = np.array([b.info_pv for b in boundaries])
     W = np.linalg.solve(infos.sum(axis=0)[None], infos)  # (s, 6, 6)
     Wsuf = np.zeros((s + 1, CON_DIM, CON_DIM))
     Wsuf[:s] = np.cumsum(W[::-1], axis=0)[::-1]
@@ -255,7 +255,7 @@ def global_solution(boundaries: Sequence[GroupBoundary]) -> GlobalSolution:
     G = np.empty((s, s, CON_DIM, 2 * CON_DIM))  # [g, k]: dDx_g / d tau_k
     G[:, :, :, :CON_DIM] = Wsuf[None, :s] - (order[:, None] >= order[None, :])[:, :, None, None] * eye
     G[:, :, :, CON_DIM:] = (order[:, None] > order[None, :])[:, :, None, None] * eye - Wsuf[None, 1:]
-    T = np.stack([b.tip_cov for b in boundaries])
+    T = np.array([b.tip_cov for b in boundaries])
     gains = G[order, order]  # (s, 6, 12)
     cov = np.sum(G @ T[None] @ np.swapaxes(G, 2, 3), axis=1)
     return GlobalSolution(shifts, gains, 0.5 * (cov + np.swapaxes(cov, 1, 2)))
