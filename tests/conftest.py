@@ -33,11 +33,7 @@ def _compiled_kernels():
     """numba's kernels compiled (a clean checkout: 40-70 s on a 2-core VM) or loaded from its cache
     once, before any test: a vehicle or companion process a test starts then loads the cache
     instead of compiling while the test waits for it. (Without numba: nothing to do.)"""
-    from companion import _fast as companion_fast
-    from link_firmware_sim import _fast as firmware_fast
-    from sitl import rotor
+    from sitl.runner import warm_up_kernels
 
-    firmware_fast.warm_up()
-    companion_fast.warm_up()
-    rotor.warm_up()
+    warm_up_kernels()
     yield

@@ -285,13 +285,14 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
     bad = [x for x in sim_links if x not in SIM_LINKS]
     if bad or (fleet and not sim_links):
         raise ValueError(f"sim links {', '.join(bad) or '(none)'}: one or more of {', '.join(SIM_LINKS)}")
-    from companion import _fast as companion_fast
     from link_firmware_sim import _fast
+
+    from ..runner import warm_up_kernels
 
     for name in {*batch, *fleet}:
         _config(name)  # a clear error before anything runs
     # compiled (or loaded) once, before the flights load the cache
-    compile_s = _fast.warm_up() + companion_fast.warm_up()
+    compile_s = warm_up_kernels()
     tick = firmware_tick()
     models = list(dict.fromkeys((*batch, *fleet)))
     ceiling_runs: dict[str, list] = {name: [] for name in models}
