@@ -261,6 +261,7 @@ class _Processes:
     def __init__(self):
         self.procs: list[tuple[str, subprocess.Popen]] = []
         self.killed: set[str] = set()
+        self._next_check_s = -float("inf")
 
     def start(self, name: str, argv: list[str], log_path: Path, stdin_pipe: bool = False,
               env: dict | None = None) -> None:
@@ -288,7 +289,14 @@ class _Processes:
                 proc.wait()
         self.killed.add(name)
 
-    def check(self) -> None:
+    def check(self, every_s: float = 0.0) -> None:
+        """:class:`FleetError` if a process exited (not one killed on purpose); with ``every_s``, at
+        most once per that much wall time (the lockstep calls it every tick: ten waitpid calls)."""
+        if every_s > 0.0:
+            now = time.monotonic()
+            if now < self._next_check_s:
+                return
+            self._next_check_s = now + every_s
         for name, proc in self.procs:
             if name not in self.killed and proc.poll() is not None:
                 raise FleetError(f"{name} exited with code {proc.returncode} (see its console log)")
@@ -785,7 +793,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                     start_companion(g, f"companion-g{g + 1}-restart", f"{_companion_name(g)} (restarted)")
                     fault_log.update(restarted_at_s=round(t, 3), restarted_at_monotonic=time.monotonic())
                     log.warning("fault: restarted the companion of group %d at t = %.2f s", g + 1, t)
-            procs.check()  # raises FleetError if a process died
+            procs.check(every_s=0.02)  # FleetError if a process died (noticed within 20 ms)
             return False
 
         try:
