@@ -282,7 +282,7 @@ class SimLinkPort:
                 self._accept()
             return []
         try:
-            data = self.conn.recv(_MAX_PACKET)
+            data = self.conn.recv(_MAX_PACKET + 1)  # a longer packet is cut: seen as too long
         except (BlockingIOError, InterruptedError):
             return []
         except OSError:
@@ -294,6 +294,8 @@ class SimLinkPort:
         st.rx_bytes += len(data)
         st.last_rx_wall_s = time.monotonic()
         try:
+            if len(data) > _MAX_PACKET:
+                raise FrameError(f"a packet of more than {_MAX_PACKET} bytes")
             msgs = decode_packet(data, self.accept)
         except FrameError as exc:
             st.dropped_frames += 1

@@ -377,7 +377,7 @@ def _listening_unix_paths() -> set[str]:
     except OSError:
         return paths
     for line in lines:
-        cols = line.split()  # Num RefCount Protocol Flags Type St Inode [Path]
+        cols = line.split(None, 7)  # Num RefCount Protocol Flags Type St Inode [Path (may hold spaces)]
         if len(cols) >= 8 and int(cols[3], 16) & 0x10000:
             paths.add(cols[7])
     return paths
@@ -505,16 +505,21 @@ _PORT_COUNTERS = ("signed", "unsigned", "rejected_unsigned", "rejected_signature
 
 def mavlink_counters(out_dir: Path) -> dict:
     """Per process of a fleet run: its MAVLink ports' signing and rejection counters (from the
-    vehicles' ``link<i>_ports.json`` and the companions' ``companion_summary.json``), and the
-    vehicles' refusals (out-of-bound corrections, disarms in flight, SETUP_SIGNING)."""
+    vehicles' ``link<i>_ports.json`` and the companions' ``companion_summary.json``), the
+    vehicles' refusals (out-of-bound corrections, disarms in flight, SETUP_SIGNING), and their
+    simulator links' drops and refused peers (``sim_dropped_frames``, ``sim_rejected_peer``)."""
     out: dict = {}
     for path in sorted(out_dir.glob("link*/link*_ports.json")):
         try:
             ports = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        entry = {k: sum(p.get(k, 0) for url, p in ports.items() if url not in ("errors", "gps", "ekf") and not url.startswith("tcp"))
+        links = {url: p for url, p in ports.items() if url not in ("errors", "gps", "ekf", "thrust_limit")}
+        sim = [p for url, p in links.items() if url.startswith(("tcp", "unix"))]
+        entry = {k: sum(p.get(k, 0) for url, p in links.items() if not url.startswith(("tcp", "unix")))
                  for k in _PORT_COUNTERS}
+        entry.update(sim_dropped_frames=sum(p.get("dropped_frames", 0) for p in sim),
+                     sim_rejected_peer=sum(p.get("rejected_peer", 0) for p in sim))
         entry.update(ports.get("errors", {}))
         out[path.parent.name] = entry
     for folder, summary in _companion_summaries(out_dir).items():

@@ -222,6 +222,8 @@ def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_ref
         assert sim["dropped_frames"] == 0 and sim["rejected_peer"] == 0 and sim["tx_messages"] > 7000, sim
     (folder,) = folders
     assert folder.name.startswith("skeleton-sim-") and not folder.exists()
+    assert all(m["mavlink"][f"link{i}"]["sim_dropped_frames"] == 0 == m["mavlink"][f"link{i}"]["sim_rejected_peer"]
+               for i in (1, 2, 3))
 
 
 def _sequence_gaps(path: Path, sysid: int) -> int:

@@ -150,11 +150,12 @@ def test_a_pair_exchanges_counts_drops_and_sees_the_peer_go(tmp_path):
         raw.send(b"\xff" * 40)
         raw.send(encode_packet(msgs[:1])[:-3])
         raw.send(encode_packet(msgs[3:]))  # the simulator's kind, sent to the vehicle
+        raw.send(encode_packet(msgs[2:3] * 20))  # whole records, but more than a packet may hold
         sim.send(msgs[2])
         got = _read(vehicle, 1)
         assert [m.get_type() for m in got] == ["HIL_SENSOR"]
         st_ = vehicle.stats
-        assert st_.dropped_frames == 3 and st_.rx_messages == 4 and st_.per_type["HIL_SENSOR"] == 2
+        assert st_.dropped_frames == 4 and st_.rx_messages == 4 and st_.per_type["HIL_SENSOR"] == 2
         vehicle.send(msgs[3])
         (answer,) = _read(sim, 1)
         assert decode_actuators(answer, 8.0)[0] == msgs[3].time_usec
