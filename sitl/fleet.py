@@ -80,6 +80,9 @@ WIRE_COMPANION_SIDE = 15580
 ANSWER_TIMEOUT_S = 10.0
 #: the vehicles' simulator links: PX4's simulator API on TCP (the default), or the same-host link
 SIM_LINKS = ("tcp", "unix")
+#: the harness's log lines where the lockstep starts and ends (``bench sitl`` times the loop by them)
+LOCKSTEP_STARTED = "lockstep started:"
+LOCKSTEP_ENDED = "lockstep ended"
 STOP_GRACE_S = 10.0
 STARTUP_TIMEOUT_S = 30.0
 
@@ -210,6 +213,7 @@ class FleetHarness:
         dt = plant.dt
         n_ticks = int(round(duration_s / dt))
         tick0 = int(round(plant.time_s / dt))
+        log.info("%s %d vehicle(s) from t = %.3f s", LOCKSTEP_STARTED, self.n - len(self.down), plant.time_s)
         wall0 = time.perf_counter()
         try:
             for k in range(tick0, tick0 + n_ticks):
@@ -241,6 +245,7 @@ class FleetHarness:
                     progress(100 * dt)
         finally:
             self.wall_s += time.perf_counter() - wall0
+            log.info("%s at t = %.3f s", LOCKSTEP_ENDED, plant.time_s)
 
     def truth_log(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.rows.items()}

@@ -8,6 +8,7 @@ time and check that every port is free again afterwards.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import signal
@@ -26,7 +27,7 @@ from pymavlink import mavutil
 from companion.mavlink.dialect import load_dialect, tool_environment
 from companion.mavlink.port import MavlinkPort, wait_readable
 from companion.mavlink.signing import load_key, new_key_file
-from sitl.fleet import check_instance_offset, launch
+from sitl.fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, check_instance_offset, launch
 from sitl.fly import fly
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 
@@ -198,14 +199,19 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
         assert _sequence_gaps(path, sysid) == 0, path
 
 
-def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_reference):
+def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_reference, caplog):
     """``sim_link="unix"``: the vehicles' simulator links over UNIX sockets in a private folder
     (link_firmware_sim.simlink); the flight is batch mode's, and the folder goes with the fleet."""
     sc = load_scenario(THREE_LINK, duration_s=16.0)
     with pytest.raises(ValueError, match="sim_link 'shm'"):
         launch(sc, tmp_path / "bad", sim_link="shm")
-    m = launch(sc, tmp_path, speed=0.0, plots=False, sim_link="unix")
+    with caplog.at_level(logging.INFO, logger="sitl.fleet"):
+        m = launch(sc, tmp_path, speed=0.0, plots=False, sim_link="unix")
     assert not children_of(os.getpid()), "vehicle or companion processes left behind"
+    # the loop's start and end, as bench sitl finds them in the harness's log
+    lines = [r.getMessage() for r in caplog.records if r.name == "sitl.fleet"]
+    assert any(x.startswith(LOCKSTEP_STARTED + " 3 vehicle(s) from t = 0.000 s") for x in lines), lines
+    assert any(x.startswith(LOCKSTEP_ENDED + " at t = 16.000 s") for x in lines), lines
     _assert_ports_released(3)
     assert m["sim_link"] == "unix" and not m["crashed"] and not m["aborted"]
     for key in ("rms_track_est_m", "rms_track_true_m"):

@@ -8,7 +8,9 @@ In one run, each figure beside the ceiling (MuJoCo alone stepping the same model
 * fleet mode unpaced (``python -m sitl launch --speed 0``) for each scenario and simulator link
   (``--sim-link``: PX4's TCP link, the default, and the same-host UNIX-socket link): the
   harness's real-time factor and, per process (harness, each vehicle, each companion), CPU
-  seconds per simulated second and peak RSS, sampled from ``/proc`` while the fleet runs (Linux);
+  seconds per simulated second over the process's life and in the lockstep loop alone (between
+  the harness's "lockstep started" and "lockstep ended" log lines), and peak RSS, sampled from
+  ``/proc`` while the fleet runs (Linux);
 * the MuJoCo-only real-time factor of each scenario's model (the rotors held at hover, no
   firmware, no sensors): what the physics alone allows, the ceiling.
 
@@ -30,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fleet import SIM_LINKS
+from ..fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
            "run_speed", "format_speed"]
@@ -220,18 +222,35 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
     exit (the last sample is up to ``sample_s`` before a process's end)."""
     folder = out_dir / f"fleet-{name}-{sim_link}{tag}"
     argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder, sim_link)]
+    log_path = folder.with_name(folder.name + ".log")
     seen: dict[int, tuple[str, float, int]] = {}
+    # every process's CPU seconds when the harness logged the lockstep's start and its end
+    marks: dict[str, dict[int, float]] = {}
     stop = threading.Event()
     wall0 = time.perf_counter()
-    with open(folder.with_name(folder.name + ".log"), "wb") as fh:
+    with open(log_path, "wb") as fh:
         proc = subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT)
 
         def sampler() -> None:
+            offset, text = 0, ""
             while not stop.is_set():
-                for pid in _descendants(proc.pid):
+                # the markers first, then the samples: a mark is at most one period early
+                with open(log_path, "rb") as logf:
+                    logf.seek(offset)
+                    chunk = logf.read()
+                offset += len(chunk)
+                text = text[-200:] + chunk.decode(errors="replace")
+                due = [m for m, line in (("start", LOCKSTEP_STARTED), ("end", LOCKSTEP_ENDED))
+                       if m not in marks and line in text]
+                sample = {}
+                for pid in _descendants(proc.pid) | {proc.pid}:
                     s = _sample(pid)
-                    if s is not None and _role(s[0]) is not None:
-                        seen[pid] = s
+                    if s is not None and (pid == proc.pid or _role(s[0]) is not None):
+                        sample[pid] = s[1]
+                        if pid != proc.pid:
+                            seen[pid] = s
+                for m in due:
+                    marks[m] = sample
                 stop.wait(sample_s)
 
         thread = threading.Thread(target=sampler, daemon=True)
@@ -253,9 +272,21 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
         processes[role] = {"cpu_s_per_sim_s": c / sim, "peak_rss_mb": hwm / 1024.0}
         children_cpu += c
     processes["harness"]["cpu_s_per_sim_s"] = max(cpu - children_cpu, 0.0) / sim
+    # In the loop only (start-up and the end's log merging left out): the CPU between the marks,
+    # each sampled up to sample_s after its log line; a process started in flight from zero.
+    loop_total = None
+    if "start" in marks and "end" in marks:
+        loop_total = 0.0
+        for pid, c_end in marks["end"].items():
+            c = c_end - marks["start"].get(pid, 0.0)
+            role = "harness" if pid == proc.pid else _role(seen[pid][0]) if pid in seen else None
+            if role in processes:
+                processes[role]["loop_cpu_s_per_sim_s"] = c / sim
+                loop_total += c
     return {"scenario": name, "mode": "fleet", "sim_link": sim_link, "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
-            "cpu_s_per_sim_s": cpu / sim, "processes": processes, "crashed": metrics.get("crashed")}
+            "cpu_s_per_sim_s": cpu / sim, "loop_cpu_s_per_sim_s": None if loop_total is None else loop_total / sim,
+            "processes": processes, "crashed": metrics.get("crashed")}
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -324,7 +355,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
 def format_speed(result: dict) -> str:
     rows = [f"kernels compiled: {result['compiled']} (warm-up {result['warm_up_s']:.1f} s); "
             f"load average at the end {', '.join(f'{x:.1f}' for x in result['load_average_at_end'])}",
-            f"{'run':<28} {'RTF':>6} {'/ceiling':>9} {'CPU s/sim s':>12} {'peak RSS MB':>12}"]
+            f"{'run':<28} {'RTF':>6} {'/ceiling':>9} {'CPU s/sim s':>12} {'in loop':>8} {'peak RSS MB':>12}"]
     tick = result.get("firmware_tick_us")
     if tick:
         runs = len(tick.get("fused_us_runs", ())) or 1
@@ -335,7 +366,7 @@ def format_speed(result: dict) -> str:
                        f"real-time factors in brackets)")
     for name, c in result["mujoco_ceiling"].items():
         rows.append(f"{'MuJoCo only ' + name:<28} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
-                     f" {'':>12}{_runs_text(c)}")
+                     f" {'':>8} {'':>12}{_runs_text(c)}")
     for r in result["runs"]:
         rtf = r["realtime_factor"]
         label = (f"{r['mode']} {r['scenario']}" + (f" ({r['sim_link']})" if "sim_link" in r else "")
@@ -343,10 +374,18 @@ def format_speed(result: dict) -> str:
         rtf_s = "-" if rtf is None else f"{rtf:.2f}"
         ratio = "-" if r["ratio_to_ceiling"] is None else f"{r['ratio_to_ceiling']:.3f}"
         rss = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
-        rows.append(f"{label:<28} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {rss:>12}{_runs_text(r)}")
+        rows.append(f"{label:<28} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {_loop(r):>8} {rss:>12}"
+                    f"{_runs_text(r)}")
         for role, p in sorted(r.get("processes", {}).items()):
-            rows.append(f"{'  ' + role:<28} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {p['peak_rss_mb']:>12.0f}")
+            rows.append(f"{'  ' + role:<28} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {_loop(p):>8}"
+                        f" {p['peak_rss_mb']:>12.0f}")
     return "\n".join(rows)
+
+
+def _loop(r: dict) -> str:
+    """A fleet figure's CPU seconds per simulated second in the lockstep loop alone (else blank)."""
+    x = r.get("loop_cpu_s_per_sim_s")
+    return "" if x is None else f"{x:.3f}"
 
 
 def _runs_text(r: dict) -> str:
