@@ -59,7 +59,7 @@ class MessageError(ValueError):
 def check_finite(name: str, values) -> np.ndarray:
     """``values`` as a float array; :class:`MessageError` on NaN or infinity."""
     a = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise MessageError(f"{name}: non-finite value")
     return a
 
@@ -325,10 +325,10 @@ class ContactTarget:
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal_w, dtype=float)
-        if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(np.linalg.norm(n) - 1.0) > 1e-6:
+        if n.shape != (3,) or not np.isfinite(n).all() or abs(np.linalg.norm(n) - 1.0) > 1e-6:
             raise ValueError(f"normal_w must be a unit 3-vector, got {self.normal_w!r}")
         r = np.asarray(self.contact_b_m, dtype=float)
-        if r.shape != (3,) or not np.all(np.isfinite(r)):
+        if r.shape != (3,) or not np.isfinite(r).all():
             raise ValueError(f"contact_b_m must be a finite 3-vector, got {self.contact_b_m!r}")
         if not (np.isfinite(self.force_n) and self.force_n >= 0):
             raise ValueError(f"force_n must be finite and non-negative, got {self.force_n!r}")

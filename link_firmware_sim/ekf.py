@@ -443,7 +443,7 @@ def _as_cov(var, dim: int) -> np.ndarray:
 
 def _check_meas(z, name: str, size: int) -> np.ndarray:
     a = np.asarray(z, dtype=float)
-    if a.shape != (size,) or not np.all(np.isfinite(a)):
+    if a.shape != (size,) or not np.isfinite(a).all():
         raise ValueError(f"{name}: expected {size} finite numbers, got {a!r}")
     return a
 

@@ -155,7 +155,7 @@ def decode_hil_baro_mag(msg) -> HilBaroMag:
             rejected.append("baro")
     if bits & HIL_SENSOR_MAG == HIL_SENSOR_MAG:
         m = np.array([msg.xmag, msg.ymag, msg.zmag], dtype=float)
-        if np.all(np.isfinite(m)) and np.all(np.abs(m) <= MAG_MAX_GAUSS):
+        if np.isfinite(m).all() and np.all(np.abs(m) <= MAG_MAX_GAUSS):
             mag = flu_frd(m)
         else:
             rejected.append("mag")

@@ -333,7 +333,7 @@ class GlobalStepNode:
             self._heard_cycle_us = max(self._heard_cycle_us, cycle)
             return self._reject("conflicted", shift)
         own = shift.shift_for(self.group)
-        if own is not None and (not np.all(np.isfinite(own)) or np.linalg.norm(own[:3]) > self.max_shift_p_m
+        if own is not None and (not np.isfinite(own).all() or np.linalg.norm(own[:3]) > self.max_shift_p_m
                                 or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
             return self._reject("bounds", shift)
         verdict = self._verify(shift)
@@ -396,7 +396,7 @@ class GlobalStepNode:
         if self.conflicted.get(shift.cycle_us, set()) & set(shift.groups):
             return False
         if (len(shift.groups) != len(set(shift.groups)) or np.shape(shift.shift_pv_w) != (len(shift.groups), 6)
-                or not np.all(np.isfinite(shift.shift_pv_w))):
+                or not np.isfinite(shift.shift_pv_w).all()):
             return False
         if not all(g in reports for g in shift.groups):
             return None

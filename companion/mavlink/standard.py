@@ -70,7 +70,7 @@ def _full6(values, name: str) -> np.ndarray:
     M = np.zeros((6, 6))
     M[UPPER_6] = np.asarray(values, dtype=float)
     M = M + np.triu(M, 1).T
-    if not np.all(np.isfinite(M)):
+    if not np.isfinite(M).all():
         raise MessageError(f"{name}: covariance unknown (NaN)")
     return M
 
@@ -128,7 +128,7 @@ def decode_odometry(msg, link: int) -> LinkState:
     body-frame velocity covariance rotated to the local frame; ODOMETRY does not carry the
     position-velocity cross terms, so they are zero."""
     p, v, q, w = _odometry_kinematics(msg)
-    if not np.all(np.isfinite(w)):
+    if not np.isfinite(w).all():
         raise MessageError("ODOMETRY.rollspeed/pitchspeed/yawspeed: non-finite value")
     pose = _full6(msg.pose_covariance, "ODOMETRY.pose_covariance")
     vel = _full6(msg.velocity_covariance, "ODOMETRY.velocity_covariance")
