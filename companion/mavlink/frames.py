@@ -87,6 +87,7 @@ def unpack_upper(values) -> np.ndarray:
     v = np.asarray(values, dtype=float)
     if v.shape != (45,):
         raise ValueError(f"covariance: expected 45 values, got {v.shape}")
-    P = np.zeros((9, 9))
+    P = np.empty((9, 9))
     P[UPPER_9] = v
-    return P + np.triu(P, 1).T
+    P[UPPER_9[1], UPPER_9[0]] = v  # the mirror (the diagonal written twice, the same values)
+    return P
