@@ -233,6 +233,7 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
 
         def sampler() -> None:
             offset, text = 0, ""
+            latest: dict[int, float] = {}  # every process's newest CPU figure (one gone keeps its last)
             while not stop.is_set():
                 # the markers first, then the samples: a mark is at most one period early
                 with open(log_path, "rb") as logf:
@@ -242,15 +243,14 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
                 text = text[-200:] + chunk.decode(errors="replace")
                 due = [m for m, line in (("start", LOCKSTEP_STARTED), ("end", LOCKSTEP_ENDED))
                        if m not in marks and line in text]
-                sample = {}
                 for pid in _descendants(proc.pid) | {proc.pid}:
                     s = _sample(pid)
                     if s is not None and (pid == proc.pid or _role(s[0]) is not None):
-                        sample[pid] = s[1]
+                        latest[pid] = s[1]
                         if pid != proc.pid:
                             seen[pid] = s
-                for m in due:
-                    marks[m] = sample
+                for m in due:  # (a process stopped right after the loop: its last figure)
+                    marks[m] = dict(latest)
                 stop.wait(sample_s)
 
         thread = threading.Thread(target=sampler, daemon=True)
