@@ -667,10 +667,16 @@ def wait_readable(ports, timeout_s: float) -> list:
     Ports without a file descriptor (``fileno() < 0``: a serial device waiting to reappear) are
     always returned, so that reading them gives them their chance to reopen.
     """
-    live = [p for p in ports if p.fileno() >= 0]
-    idle = [p for p in ports if p.fileno() < 0]
+    live: dict[int, list] = {}  # descriptor -> its ports (each port's fileno asked once: a hot loop's cost)
+    idle = []
+    for p in ports:
+        fd = p.fileno()
+        if fd >= 0:
+            live.setdefault(fd, []).append(p)
+        else:
+            idle.append(p)
     if not live:
         time.sleep(max(timeout_s, 0.0))
         return idle
-    ready, _, _ = select.select(live, [], [], max(timeout_s, 0.0))
-    return ready + idle
+    ready, _, _ = select.select(list(live), [], [], max(timeout_s, 0.0))
+    return [p for fd in ready for p in live[fd]] + idle
