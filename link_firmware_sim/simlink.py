@@ -15,7 +15,7 @@ both run on one host, this link carries the same messages without what only a ne
   two processes on one kernel.
 
 A sender passes the :mod:`.hil` encoders' pymavlink messages; a receiver gets read-only records
-with the same field names (and ``get_type()``) for the :mod:`.hil` decoders, so units, frames and
+with the same field names (an array field as a tuple) and ``get_type()`` for the :mod:`.hil` decoders, so units, frames and
 value checks are the same code on both links; only the framing differs (``python -m sitl bench
 sitl`` measures both).
 
@@ -87,6 +87,12 @@ class _Layout:
                 return name
 
         self.record = Record
+        # where each field sits in the unpacked values: an index, or a slice for an array field
+        keys, i = [], 0
+        for n in self.lengths:
+            keys.append(slice(i, i + n) if n else i)
+            i += n or 1
+        self._keys = tuple(keys)
 
     def pack(self, msg) -> bytes:
         values = self._get(msg)
@@ -109,15 +115,7 @@ class _Layout:
         values = self.struct.unpack_from(data, offset + 1)
         if self.flat:
             return tuple.__new__(self.record, values)
-        out, i = [], 0
-        for n in self.lengths:
-            if n:
-                out.append(list(values[i:i + n]))
-                i += n
-            else:
-                out.append(values[i])
-                i += 1
-        return tuple.__new__(self.record, out)
+        return tuple.__new__(self.record, [values[k] for k in self._keys])  # an array field: a tuple
 
 
 def _layouts() -> dict[str, _Layout]:
