@@ -15,16 +15,17 @@ both run on one host, this link carries the same messages without what only a ne
   two processes on one kernel.
 
 A sender passes the :mod:`.hil` encoders' pymavlink messages; a receiver gets read-only records
-with the same field names (an array field as a tuple) and ``get_type()`` for the :mod:`.hil` decoders, so units, frames and
-value checks are the same code on both links; only the framing differs (``python -m sitl bench
-sitl`` measures both).
+with the same field names (an array field as a tuple) and ``get_type()``, for the :mod:`.hil`
+decoders: units, frames and value checks are the same code on both links, only the framing
+differs (``python -m sitl.bench sitl`` measures both).
 
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
 of its own user (``SO_PEERCRED``); others are counted (``PortStats.rejected_peer``) and closed.
-A packet with an unknown kind, a kind this side does not accept, or a length that is not a
-whole number of records is dropped whole and counted (``dropped_frames``, ``dropped_bytes``);
-it never raises. A stale socket file (a killed vehicle's) is replaced.
+A packet with an unknown kind, a kind this side does not accept, a length that is not a whole
+number of records, or more than 1024 bytes is dropped whole and counted (``dropped_frames``,
+``dropped_bytes``); it never raises. A stale socket file (a killed vehicle's) is replaced; a
+live one (another vehicle listening there) is a :class:`PortError`.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ log = logging.getLogger(__name__)
 #: the message kinds of the link, by record tag (the tag is the index)
 SIM_KINDS = ("HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE", "HIL_ACTUATOR_CONTROLS")
 _SCHEMES = ("unix", "unixin")
-#: the longest packet: every kind once (a tick carries at most GPS, AHRS and the IMU sample)
+#: the longest packet taken: far above what a tick carries (GPS, AHRS and the IMU sample: 131 bytes)
 _MAX_PACKET = 1024
 #: a UNIX socket path's limit (sun_path is 108 bytes with its terminating NUL on Linux)
 _MAX_PATH = 107
