@@ -67,9 +67,7 @@ class _Layout:
     """One kind's record: its tag, the pymavlink class, and the payload's struct in wire order."""
 
     def __init__(self, tag: int, cls):
-        self.tag = tag
         self.name = cls.msgname
-        self.cls = cls
         self.struct: struct.Struct = cls.unpacker
         self.size = 1 + self.struct.size
         self.head = bytes([tag])
@@ -187,7 +185,6 @@ class SimLinkPort:
         self.listening = scheme == "unixin"
         self.server: socket.socket | None = None
         self.conn: socket.socket | None = None
-        self.closed = False
         if self.listening:
             self._listen()
         else:
@@ -264,10 +261,9 @@ class SimLinkPort:
             log.warning("%s: %s (dropped so far: %d packets)", self.url, text, self.stats.dropped_frames)
 
     def _lost_peer(self) -> None:
+        """The peer went: a listener accepts the next one; a connecting end stays unconnected."""
         self.conn.close()
         self.conn = None
-        if not self.listening:
-            self.closed = True
 
     def read(self) -> list:
         """The accepted messages of the next packet (``[]`` if none is waiting, or it was dropped).
