@@ -678,7 +678,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     wired = _impaired_links(sc) if companion and sc.companion.enabled else []
     procs = _Processes()
     harness = None
+    # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
+    # load numba's on-disk cache instead of each compiling them (link_firmware_sim._fast).
+    log.info("firmware kernels ready in %.1f s", _fast.warm_up())
     # the same-host link's sockets: a private (0700) folder of its own, short enough for a socket path
+    # (made after the last step that can fail before the ``try`` that removes it)
     sim_dir = Path(tempfile.mkdtemp(prefix="skeleton-sim-")) if sim_link == "unix" else None
 
     def sim_url(i: int, side: str) -> str:
@@ -709,9 +713,6 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
                     stdin_pipe=standby)
 
-    # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
-    # load numba's on-disk cache instead of each compiling them (link_firmware_sim._fast).
-    log.info("firmware kernels ready in %.1f s", _fast.warm_up())
     try:
         if wired:
             m = faults.mavlink
