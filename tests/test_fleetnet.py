@@ -273,6 +273,40 @@ def test_solve_cycle_is_eq6_and_a_missing_group_splits_the_chain(groups):
         np.testing.assert_allclose(shifts[1:], rest, atol=1e-12)
 
 
+def test_one_cycles_eq6_is_solved_once_and_shared_read_only(monkeypatch):
+    """The leader's solution, the followers' checks and every group's covariance terms of one
+    cycle solve the same boundaries: computed once (three groups in one process, as in batch
+    mode), the same numbers as a fresh solution, shared read-only; a changed number is solved anew."""
+    from companion.estimation.semi import global_solution
+    from companion.fleetnet import leader
+
+    groups = ((0, 1), (2, 3, 4), (5, 6))
+    n = 7
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(5), n)
+    ref = semi_distributed_apply(p, v, q, w, d, P, groups)
+    A = np.random.default_rng(6).normal(scale=0.1, size=(len(groups), 12, 12))
+    covs = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(12)  # SPD tip covariances
+    reports = [GroupBoundaryReport(g, PERIOD_US, b.left_tip, b.right_tip, b.info_pv, tip_cov_pv=covs[g])
+               for g, b in enumerate(ref.boundaries)]
+    calls = []
+    monkeypatch.setattr(leader, "global_solution", lambda bs: calls.append(len(bs)) or global_solution(bs))
+    leader._SOLUTIONS.clear()
+    _, shifts = solve_cycle(reports)
+    terms = [shift_covariance_terms(reports[::-1], g) for g in range(len(groups))]
+    assert calls == [3]
+    fresh = global_solution([leader._boundary(r) for r in reports])
+    np.testing.assert_array_equal(shifts, fresh.shifts)
+    for g, (gain, cov) in enumerate(terms):
+        np.testing.assert_array_equal(gain, fresh.gains[g])
+        np.testing.assert_array_equal(cov, fresh.shift_cov[g])
+        assert not gain.flags.writeable and not cov.flags.writeable
+    changed = [replace(reports[1], info_pv=2.0 * reports[1].info_pv)] + [reports[0], reports[2]]
+    _, other = solve_cycle(changed)
+    assert calls == [3, 3]
+    assert not np.array_equal(other, shifts)
+    np.testing.assert_array_equal(other, global_solution([leader._boundary(r) for r in sorted(changed, key=lambda r: r.group)]).shifts)
+
+
 # -- leader election, pure ------------------------------------------------------------------------------
 def _drive(nodes, cycles, t0=0.0, alive=None):
     """Run ``cycles`` cycles on pure nodes with instant delivery; returns the leaders per cycle."""

@@ -50,12 +50,13 @@ it) can wedge the election.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.estimation.semi import GroupBoundary, global_solution, global_step
+from companion.estimation.semi import GlobalSolution, GroupBoundary, global_solution
 from companion.messages import GlobalShift, GroupBoundaryReport
 
 log = logging.getLogger(__name__)
@@ -80,10 +81,43 @@ def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...]
     start = 0
     for k in range(1, len(groups) + 1):
         if k == len(groups) or groups[k] != groups[k - 1] + 1:
-            run = [by_group[g] for g in groups[start:k]]
-            shifts[start:k] = global_step([_boundary(r) for r in run])
+            shifts[start:k] = _solution([by_group[g] for g in groups[start:k]]).shifts
             start = k
     return groups, shifts
+
+
+#: The latest eq. 6 solutions, by the content of their boundaries. One cycle's boundaries are
+#: solved by the leader, checked by each follower against its shift and used by each group for its
+#: covariance terms: twice per process and cycle, six times for three groups in one process (batch
+#: mode, ``sitl.runner``). The arrays are read-only: every caller of the same content shares them.
+_SOLUTIONS: OrderedDict[tuple, GlobalSolution] = OrderedDict()
+_SOLUTIONS_KEPT = 8
+
+
+def _content(a: np.ndarray | None) -> tuple | None:
+    if a is None:
+        return None
+    a = np.asarray(a, dtype=float)
+    return a.shape, a.tobytes()
+
+
+def _solution(run: Sequence[GroupBoundaryReport]) -> GlobalSolution:
+    """:func:`~companion.estimation.semi.global_solution` of a run of consecutive groups' reports,
+    computed once per content (the same numbers: the same function of the same bytes)."""
+    key = tuple((_content(r.left_tip_pv_w), _content(r.right_tip_pv_w), _content(r.info_pv), _content(r.tip_cov_pv))
+                for r in run)
+    solution = _SOLUTIONS.get(key)
+    if solution is not None:
+        _SOLUTIONS.move_to_end(key)
+        return solution
+    solution = global_solution([_boundary(r) for r in run])
+    for a in (solution.shifts, solution.gains, solution.shift_cov):
+        if a is not None:
+            a.setflags(write=False)
+    _SOLUTIONS[key] = solution
+    while len(_SOLUTIONS) > _SOLUTIONS_KEPT:
+        _SOLUTIONS.popitem(last=False)
+    return solution
 
 
 def _same_report(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
@@ -107,7 +141,7 @@ def shift_covariance_terms(reports: Sequence[GroupBoundaryReport], group: int) -
         lo -= 1
     while hi + 1 in by_group:
         hi += 1
-    solution = global_solution([_boundary(by_group[g]) for g in range(lo, hi + 1)])
+    solution = _solution([by_group[g] for g in range(lo, hi + 1)])
     if solution.gains is None:
         return None
     return solution.gains[group - lo], solution.shift_cov[group - lo]
