@@ -578,7 +578,7 @@ class CompanionEngine:
                 self.links[run[k]].status = "gate"
                 usable[run[k]] = False
             if res.nis.size:
-                nis_max = float(np.nanmax([nis_max, *res.nis]))
+                nis_max = float(np.nanmax(np.append(res.nis, nis_max)))
         for r in self._one_way:
             self.links[r].gps_fault_steps += 1
         whole = all(usable) and not any(cut)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .chain import CON_POS, CON_VEL
-from .constraints import constraint_jacobian_blocks, constraint_residual
+from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offsets
 
 __all__ = ["CHI2_6_1E6", "GateParams", "GateResult", "joint_nis", "gate_chain", "segments"]
 
@@ -69,8 +69,9 @@ def joint_nis(p, v, q, w, d, P, params: GateParams = GateParams()) -> np.ndarray
     n = np.shape(p)[0]
     if n < 2:
         return np.zeros(0)
-    c = constraint_residual(p, v, q, w, d).reshape(n - 1, 6)
-    L, R = constraint_jacobian_blocks(q, w, d)
+    a, b = tip_offsets(q, w, d)  # once for the residual and the Jacobian blocks
+    c = residual_from_tips(p, v, a, b).reshape(n - 1, 6)
+    L, R = jacobian_blocks_from_tips(a, b)
     S = L @ P[:-1] @ np.swapaxes(L, 1, 2) + R @ P[1:] @ np.swapaxes(R, 1, 2)
     slack = np.zeros(6)
     slack[CON_POS] = params.gate_pos_m ** 2
