@@ -60,7 +60,7 @@ from link_firmware_sim import _fast
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
-from link_firmware_sim.simlink import open_sim_port
+from link_firmware_sim.simlink import is_simlink_url, open_sim_port
 from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
@@ -508,6 +508,11 @@ _PORT_COUNTERS = ("signed", "unsigned", "rejected_unsigned", "rejected_signature
                   "dropped_frames", "dropped_unknown")
 
 
+def _is_sim_url(url: str) -> bool:
+    """A vehicle's simulator link: PX4's TCP, or the same-host link (its UDP ports are MAVLink's)."""
+    return url.startswith("tcp") or is_simlink_url(url)
+
+
 def mavlink_counters(out_dir: Path) -> dict:
     """Per process of a fleet run: its MAVLink ports' signing and rejection counters (from the
     vehicles' ``link<i>_ports.json`` and the companions' ``companion_summary.json``), the
@@ -520,9 +525,9 @@ def mavlink_counters(out_dir: Path) -> dict:
         except (OSError, ValueError):
             continue
         links = {url: p for url, p in ports.items() if url not in ("errors", "gps", "ekf", "thrust_limit")}
-        sim = [p for url, p in links.items() if url.startswith(("tcp", "unix"))]
-        entry = {k: sum(p.get(k, 0) for url, p in links.items() if not url.startswith(("tcp", "unix")))
-                 for k in _PORT_COUNTERS}
+        sim = [p for url, p in links.items() if _is_sim_url(url)]
+        mavlink = [p for url, p in links.items() if not _is_sim_url(url)]
+        entry = {k: sum(p.get(k, 0) for p in mavlink) for k in _PORT_COUNTERS}
         entry.update(sim_dropped_frames=sum(p.get("dropped_frames", 0) for p in sim),
                      sim_rejected_peer=sum(p.get("rejected_peer", 0) for p in sim))
         entry.update(ports.get("errors", {}))
