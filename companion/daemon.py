@@ -184,32 +184,40 @@ class CompanionDaemon:
 
     # -- output ------------------------------------------------------------------------------------
     def _carry_out(self, outputs, now_s: float) -> None:
+        """The engine's outputs: the messages for each link leave together (one UDP datagram where
+        they fit: one wake-up of the link's firmware for its target and correction, not four)."""
+        outgoing: dict[int, list] = {}  # port row -> messages, in the engine's order
+
+        def queue(row: int, *msgs) -> None:
+            outgoing.setdefault(row, []).extend(msgs)
+
         for out in outputs:
             if isinstance(out, CorrectionOut):
-                port = self.ports[out.row]
                 if self.cfg.mode == "dialect":
-                    port.send(encode_correction(out.correction, out.system_id, 1))
+                    queue(out.row, encode_correction(out.correction, out.system_id, 1))
                 else:
-                    port.send(encode_odometry(out.corrected, usec(out.corrected.time_s),
-                                              estimator_type=D.MAV_ESTIMATOR_TYPE_VISION, rates_known=False))
+                    queue(out.row, encode_odometry(out.corrected, usec(out.corrected.time_s),
+                                                   estimator_type=D.MAV_ESTIMATOR_TYPE_VISION, rates_known=False))
             elif isinstance(out, TargetOut):
-                port, boot_ms = self.ports[out.row], out.time_us // 1000
+                boot_ms = out.time_us // 1000
                 if self.cfg.mode == "dialect":  # stock PX4 knows no SKELETON_TARGET_FEEDFORWARD
-                    port.send(encode_target_feedforward(out.target, boot_ms, out.system_id))
-                port.send(encode_position_target(out.target, boot_ms, out.system_id))
-                port.send(encode_attitude_target(out.target, boot_ms, out.system_id))
+                    queue(out.row, encode_target_feedforward(out.target, boot_ms, out.system_id))
+                queue(out.row, encode_position_target(out.target, boot_ms, out.system_id),
+                      encode_attitude_target(out.target, boot_ms, out.system_id))
             elif isinstance(out, CommandOut):
-                self.ports[out.row].send(self._command(out))
+                queue(out.row, self._command(out))
             elif isinstance(out, Heartbeat):
-                for port in self.ports:
-                    port.send(D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
-                                                          0, 0, D.MAV_STATE_ACTIVE, 3))
+                for row in range(len(self.ports)):
+                    queue(row, D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
+                                                           0, 0, D.MAV_STATE_ACTIVE, 3))
                 if self._log_stream is not None:  # once a second, like the heartbeat
                     self._log_stream.flush(self.engine.log)
             elif isinstance(out, HealthDue):
                 log.info("health (last %.0f s):\n%s", out.period_s, self.health_table(out.period_s, now_s))
                 if self.net is not None:
                     log.info("%s", self.net.status_line())
+        for row, msgs in outgoing.items():
+            self.ports[row].send_many(msgs)
 
     def _command(self, out: CommandOut):
         if out.command is Command.ARM:

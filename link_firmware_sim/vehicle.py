@@ -357,15 +357,18 @@ class Vehicle:
         builders = None
         due = math.inf
         for ep in self.endpoints:
+            msgs = []  # one link's messages due on this tick leave together (one UDP datagram)
             for mid, stream in ep.streams.items():
                 if t >= stream.next_us:
                     if builders is None:
                         builders = self._builders()
                     msg = builders[mid]()
                     if msg is not None:
-                        ep.port.send(msg)
+                        msgs.append(msg)
                     stream.next_us = max(stream.next_us + stream.interval_us, t)
                 due = min(due, stream.next_us)
+            if msgs:
+                ep.port.send_many(msgs)
         self._streams_due_us = due
 
     def _heartbeats(self) -> None:
@@ -375,8 +378,7 @@ class Vehicle:
             return
         self._next_heartbeat_wall = now + 1.0
         for ep in self.endpoints:
-            ep.port.send(self._msg_heartbeat())
-            ep.port.send(self._msg_sys_status())
+            ep.port.send_many((self._msg_heartbeat(), self._msg_sys_status()))
         if self._log_stream is not None:
             self._log_stream.flush(self._log_lists())
 

@@ -127,6 +127,24 @@ def test_corrections_targets_and_arm_go_out_as_mavlink(fleet):
     assert summary["steps"] == 1 and summary["links"]["2"]["rx_messages"] >= 3
 
 
+def test_what_one_poll_sends_a_link_leaves_in_one_datagram(fleet):
+    """A poll's messages for one link (its correction, its target's messages, a command) go as one
+    UDP datagram: one wake-up of the flight controller, not one per message."""
+    datagrams = []
+    for k in range(3):
+        fleet.send_states(0.02 * k, dx=(0.0, 0.2, 0.0))
+        for _ in range(3):
+            fleet.daemon.poll(0.01)
+            fleet.clock.t += 0.01
+            for fc in fleet.fcs:
+                chunks = fc.transport.recv_chunks()
+                assert len(chunks) <= 1
+                parser = D.MAVLink(None)
+                datagrams += [[m.get_type() for m in parser.parse_buffer(bytearray(data)) or []] for data, _ in chunks]
+    assert any({"SET_POSITION_TARGET_LOCAL_NED", "SET_ATTITUDE_TARGET"} <= set(kinds) for kinds in datagrams)
+    assert sum(kinds.count("SKELETON_CORRECTION") for kinds in datagrams) == 3
+
+
 @pytest.mark.parametrize("bad", ["nan", "not_pd", "not_unit", "wrong_sysid"])
 def test_bad_states_are_rejected_and_the_daemon_keeps_going(fleet, bad):
     fleet.send_states(0.0)

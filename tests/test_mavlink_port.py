@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from pymavlink import mavutil
 
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MavlinkPort, PortError, TlogWriter, open_transport, wait_readable
+from companion.mavlink.port import MAX_DATAGRAM_BYTES, MavlinkPort, PortError, TlogWriter, open_transport, wait_readable
 from companion.mavlink.signing import SignatureChecker, Verdict, signing_timestamp
 
 D = load_dialect()
@@ -71,6 +71,47 @@ def test_every_frame_carries_the_next_sequence_number(udp_pair):
     got = _read_until(server, 300)
     seqs = [m.get_seq() for m in got]
     assert len(seqs) == 300 and seqs == [k % 256 for k in range(300)]
+
+
+@pytest.mark.parametrize("n", [1, 3, 69, 150])
+def test_send_many_on_udp_packs_whole_frames_into_few_datagrams(tmp_path, n):
+    """Messages sent together share datagrams of whole frames, none over MAX_DATAGRAM_BYTES (an
+    Ethernet MTU's payload): one datagram while they fit, the fewest after; every frame counted,
+    numbered in order and in the tlog."""
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.bind(("127.0.0.1", 0))
+    raw.settimeout(2.0)
+    tlog = TlogWriter(tmp_path / "out.tlog")
+    port = MavlinkPort(f"udpout://127.0.0.1:{raw.getsockname()[1]}", system_id=7, tlog=tlog)
+    msgs = [_heartbeat() if k % 3 else D.MAVLink_param_value_message(f"P{k}".encode(), float(k), 9, n, k)
+            for k in range(n)]
+    frames = [m.pack(D.MAVLink(None, srcSystem=7, srcComponent=1)) for m in msgs]  # the sizes to expect
+    port.send_many(msgs)
+    datagrams = []
+    raw.settimeout(0.3)
+    try:
+        while True:
+            datagrams.append(raw.recvfrom(65536)[0])
+    except socket.timeout:
+        pass
+    raw.close()
+    port.close()
+    assert all(len(d) <= MAX_DATAGRAM_BYTES for d in datagrams)
+    got = []
+    for i, d in enumerate(datagrams):  # each datagram alone parses to whole frames, nothing left over
+        parser = D.MAVLink(None)
+        parser.robust_parsing = True
+        out = parser.parse_buffer(bytearray(d)) or []
+        assert parser.buf_len() == 0 and all(m.get_type() != "BAD_DATA" for m in out)
+        got += out
+        if i + 1 < len(datagrams):  # full: the next frame would not have fitted
+            assert len(d) + len(frames[len(got)]) > MAX_DATAGRAM_BYTES
+    assert len(datagrams) == 1 or sum(map(len, frames)) > MAX_DATAGRAM_BYTES
+    assert [m.get_type() for m in got] == [m.get_type() for m in msgs]
+    assert [m.get_seq() for m in got] == [k % 256 for k in range(n)]
+    assert port.stats.tx_messages == n
+    log = mavutil.mavlink_connection(str(tmp_path / "out.tlog"), dialect="common")
+    assert sum(1 for _ in iter(lambda: log.recv_match(blocking=False), None)) == n
 
 
 def test_bad_input_is_counted_never_delivered_and_cannot_steal_the_peer(udp_pair):

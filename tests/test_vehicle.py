@@ -248,6 +248,34 @@ def test_link_state_stream_and_correction_latency(rig):
     assert after[-1].correction_seq == 7
 
 
+def test_the_streams_due_on_one_tick_leave_in_one_datagram(rig):
+    """The onboard link's streams due together (state, attitude, positions on the 10 Hz ticks) go
+    as one datagram: one wake-up of the companion, not one per message. The once-a-second
+    heartbeat and SYS_STATUS go together too."""
+    rig.start()
+    rig.gcs.read()
+    streams = {"SKELETON_LINK_STATE", "ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYSTEM_TIME"}
+    kinds_per_datagram = []
+    for _ in range(300):  # 0.6 s: 30 state ticks, 6 attitude ones, a heartbeat
+        rig.tick()
+        chunks = rig.gcs.transport.recv_chunks()
+        parser = D.MAVLink(None)
+        decoded = [[m.get_type() for m in parser.parse_buffer(bytearray(data)) or []] for data, _ in chunks]
+        with_streams = [kinds for kinds in decoded if streams & set(kinds)]
+        assert len(with_streams) <= 1  # every stream due on this tick in one datagram
+        kinds_per_datagram += decoded
+    assert sum(kinds.count("SKELETON_LINK_STATE") for kinds in kinds_per_datagram) >= 29
+    together = [kinds for kinds in kinds_per_datagram if {"SKELETON_LINK_STATE", "ATTITUDE", "LOCAL_POSITION_NED"} <= set(kinds)]
+    assert len(together) >= 5
+    deadline = time.monotonic() + 2.5  # the heartbeat is once a wall-clock second
+    while ["HEARTBEAT", "SYS_STATUS"] not in kinds_per_datagram and time.monotonic() < deadline:
+        rig.tick()
+        parser = D.MAVLink(None)
+        kinds_per_datagram += [[m.get_type() for m in parser.parse_buffer(bytearray(data)) or []]
+                               for data, _ in rig.gcs.transport.recv_chunks()]
+    assert ["HEARTBEAT", "SYS_STATUS"] in kinds_per_datagram
+
+
 def test_targets_from_mavlink_and_stale_target_hold(rig):
     rig.start()
     rig.vehicle.fw.arm(rig.t)

@@ -48,6 +48,9 @@ __all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWrite
 log = logging.getLogger(__name__)
 
 _READ_CHUNK = 65536
+# The most MAVLink bytes one UDP datagram carries when several frames are sent together: an
+# Ethernet MTU (1500) less the IPv4 and UDP headers, so a batch is never fragmented on a real link.
+MAX_DATAGRAM_BYTES = 1472
 
 
 class PortError(ValueError):
@@ -630,25 +633,37 @@ class MavlinkPort:
         return frame
 
     def send(self, msg) -> None:
-        frame = self._pack(msg)
+        self._write([self._pack(msg)])
+
+    def send_many(self, msgs) -> None:
+        """Send several messages in as few writes as the transport allows: one segment on a stream,
+        datagrams of whole frames of at most :data:`MAX_DATAGRAM_BYTES` on UDP (MAVLink's UDP
+        links carry several frames per datagram, as PX4 sends them; every stock parser reads them).
+        Fewer writes mean fewer wake-ups of the peer: a vehicle's streams due on one tick, a
+        companion's target and correction for one link."""
+        frames = [self._pack(m) for m in msgs]
+        if not frames:
+            return
+        if not self.transport.datagram:
+            self._write(frames)
+            return
+        batch, size = [], 0
+        for frame in frames:
+            if batch and size + len(frame) > MAX_DATAGRAM_BYTES:
+                self._write(batch)
+                batch, size = [], 0
+            batch.append(frame)
+            size += len(frame)
+        self._write(batch)
+
+    def _write(self, frames: list[bytes]) -> None:
+        """One transport write of ``frames``; a failure is counted (UDP semantics: not retried)."""
         try:
-            self.transport.send(frame)
+            self.transport.send(frames[0] if len(frames) == 1 else b"".join(frames))
         except OSError as exc:
             self.stats.tx_errors += 1
             if exc.errno not in (errno.ENOBUFS, errno.EAGAIN):
                 log.debug("%s: send failed: %s", self.url, exc)
-            return
-        self.stats.tx_messages += 1
-        if self.tlog is not None:
-            self.tlog.write(frame)
-
-    def send_many(self, msgs) -> None:
-        """Send several messages in one write (a stream transport sees one segment)."""
-        frames = [self._pack(m) for m in msgs]
-        try:
-            self.transport.send(b"".join(frames))
-        except OSError:
-            self.stats.tx_errors += 1
             return
         self.stats.tx_messages += len(frames)
         if self.tlog is not None:
