@@ -38,6 +38,7 @@ __all__ = [
     "MAG_FIELD_NED_GAUSS",
     "ROTORS_PER_LINK",
     "encode_hil_sensor",
+    "encode_hil_sensors",
     "decode_hil_sensor",
     "HilBaroMag",
     "decode_hil_baro_mag",
@@ -50,6 +51,7 @@ __all__ = [
     "decode_ahrs",
     "encode_actuators",
     "decode_actuators",
+    "thrusts_from_controls",
 ]
 
 _D = load_dialect()
@@ -89,21 +91,30 @@ def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gau
     """HIL_SENSOR from body-frame (FLU) specific force and rate, and, when a sample is due, the
     magnetometer's field (FLU, gauss) and the barometer's pressure altitude ``baro_alt_m`` [m above
     mean sea level], sent as its standard-atmosphere pressure [hPa] and as ``pressure_alt``."""
-    ax, ay, az = flu_frd(accel_flu_m_s2).tolist()
-    gx, gy, gz = flu_frd(gyro_flu_rad_s).tolist()
+    return encode_hil_sensors(t_s, np.reshape(accel_flu_m_s2, (1, 3)), np.reshape(gyro_flu_rad_s, (1, 3)),
+                              mag_flu_gauss=None if mag_flu_gauss is None else np.reshape(mag_flu_gauss, (1, 3)),
+                              baro_alt_m=None if baro_alt_m is None else (baro_alt_m,))[0]
+
+
+def encode_hil_sensors(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None, baro_alt_m=None) -> list:
+    """:func:`encode_hil_sensor` for ``n`` links at once (one HIL_SENSOR each): ``(n, 3)`` arrays
+    of specific force and rate, ``mag_flu_gauss`` ``(n, 3)`` and ``baro_alt_m`` ``(n,)`` or
+    ``None``. The frames are converted once for the tick, not once per link."""
+    usec_t = usec(t_s)
+    acc = flu_frd(np.asarray(accel_flu_m_s2, dtype=float)).tolist()
+    gyr = flu_frd(np.asarray(gyro_flu_rad_s, dtype=float)).tolist()
+    n = len(acc)
     bits = HIL_SENSOR_IMU
-    mx = my = mz = 0.0
+    mag = [(0.0, 0.0, 0.0)] * n
     if mag_flu_gauss is not None:
-        mx, my, mz = flu_frd(mag_flu_gauss).tolist()
+        mag = flu_frd(np.asarray(mag_flu_gauss, dtype=float)).tolist()
         bits |= HIL_SENSOR_MAG
-    pressure_hpa = alt = temperature = 0.0
+    baro = [(0.0, 0.0, 0.0)] * n  # (pressure [hPa], pressure altitude [m], temperature [C])
     if baro_alt_m is not None:
-        alt = float(baro_alt_m)
-        pressure_hpa, temperature = pressure_hpa_at(alt), _BARO_TEMPERATURE_C
+        baro = [(pressure_hpa_at(alt), alt, _BARO_TEMPERATURE_C) for alt in map(float, baro_alt_m)]
         bits |= HIL_SENSOR_BARO
-    return _D.MAVLink_hil_sensor_message(
-        usec(t_s), ax, ay, az, gx, gy, gz, mx, my, mz, pressure_hpa, 0.0, alt, temperature, bits, 0,
-    )
+    new = _D.MAVLink_hil_sensor_message
+    return [new(usec_t, *a, *g, *m, p, 0.0, alt, temp, bits, 0) for a, g, m, (p, alt, temp) in zip(acc, gyr, mag, baro)]
 
 
 def decode_hil_sensor(msg) -> tuple[float, np.ndarray, np.ndarray]:
@@ -206,7 +217,18 @@ def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool):
 
 def decode_actuators(msg, thrust_max_n: float) -> tuple[int, np.ndarray]:
     """``(time_usec, thrust (8,) [N])``; non-finite controls are rejected."""
-    u = msg.controls[:ROTORS_PER_LINK]
-    if not all(map(math.isfinite, u)):
-        raise MessageError("HIL_ACTUATOR_CONTROLS.controls: non-finite value")
-    return int(msg.time_usec), np.array([min(max(x, -1.0), 1.0) * thrust_max_n for x in u])
+    return int(msg.time_usec), thrusts_from_controls(np.array(msg.controls[:ROTORS_PER_LINK], dtype=float),
+                                                     thrust_max_n)
+
+
+def thrusts_from_controls(controls, thrust_max_n: float) -> np.ndarray:
+    """Rotor thrusts [N] of HIL_ACTUATOR_CONTROLS ``controls`` (the first 8 of a message, or one row
+    of them per link: ``(n, 8)``), each clipped to -1..1 and scaled by the thrust limit;
+    :class:`MessageError` naming the rows (0-based) with a non-finite value. The harness decodes
+    a whole tick's answers in one call."""
+    controls = np.asarray(controls, dtype=float)
+    finite = np.isfinite(controls)
+    if not finite.all():
+        rows = sorted(set(np.nonzero(~finite.reshape(-1, ROTORS_PER_LINK).all(axis=1))[0].tolist()))
+        raise MessageError(f"HIL_ACTUATOR_CONTROLS.controls: non-finite value (row(s) {rows})")
+    return np.minimum(np.maximum(controls, -1.0), 1.0) * thrust_max_n

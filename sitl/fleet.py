@@ -52,7 +52,7 @@ from companion.configfile import dump_toml
 from companion.fleetnet.config import new_users_file
 from companion.logstream import read_log_stream
 from companion.mavlink.signing import new_key_file
-from companion.mavlink.codec import usec
+from companion.mavlink.codec import MessageError, usec
 from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import PortError, wait_readable
 from companion.skeleton.kinematics import tension
@@ -61,7 +61,8 @@ from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
 from link_firmware_sim.simlink import is_simlink_url, open_sim_port
-from link_firmware_sim.hil import SITL_GPS_EPOCH_US, decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
+from link_firmware_sim.hil import (ROTORS_PER_LINK, SITL_GPS_EPOCH_US, encode_ahrs, encode_hil_gps, encode_hil_sensors,
+                                   thrusts_from_controls)
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
@@ -181,14 +182,14 @@ class FleetHarness:
         if baro is not None:
             baro = baro + self.scenario.origin.alt_m  # pressure altitude above mean sea level
         gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, sch.fw * self.plant.dt)
+        imu = encode_hil_sensors(t, accel, gyro, mag_flu_gauss=mag, baro_alt_m=baro)
         for i, port in enumerate(self.ports):
             if i in self.down:
                 continue
-            outgoing[i].append(encode_hil_sensor(t, accel[i], gyro[i], mag_flu_gauss=None if mag is None else mag[i],
-                                                 baro_alt_m=None if baro is None else float(baro[i])))
+            outgoing[i].append(imu[i])
             port.send_many(outgoing[i])  # one write per vehicle and tick
         want = usec(t)
-        thrust = np.zeros((self.n, 8))
+        controls = np.zeros((self.n, ROTORS_PER_LINK))  # a link that is down: its rotors stopped
         pending = set(range(self.n)) - self.down
         deadline = time.monotonic() + ANSWER_TIMEOUT_S
         while pending:
@@ -202,11 +203,13 @@ class FleetHarness:
                 if not port.connected:
                     raise FleetError(f"link {i + 1} closed its simulator connection at t = {t:.3f} s")
                 for msg in port.read():
-                    t_us, u = decode_actuators(msg, self.scenario.rotors.thrust_max_n)
-                    if t_us == want:
-                        thrust[i] = u
+                    if int(msg.time_usec) == want:
+                        controls[i] = msg.controls[:ROTORS_PER_LINK]
                         pending.discard(i)
-        return thrust
+        try:  # the tick's answers decoded together
+            return thrusts_from_controls(controls, self.scenario.rotors.thrust_max_n)
+        except MessageError as exc:
+            raise FleetError(f"at t = {t:.3f} s: {exc}") from None
 
     def run(self, duration_s: float, speed: float = 0.0, progress=None, stop=lambda: False) -> None:
         plant, sch = self.plant, self.schedule

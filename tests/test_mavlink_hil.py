@@ -7,6 +7,7 @@ from companion.mavlink.dialect import load_dialect
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.hil import (
     decode_actuators,
+    thrusts_from_controls,
     decode_ahrs,
     decode_hil_gps,
     decode_hil_sensor,
@@ -72,3 +73,20 @@ def test_actuators_round_trip_and_limits():
     assert t_us == 500000
     np.testing.assert_allclose(back, np.clip(thrust, -8, 8), rtol=1e-6)
     assert _wire(encode_actuators(0.5, thrust, 8.0, True)).mode & D.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def test_a_ticks_answers_decode_together_as_each_alone_and_a_non_finite_row_is_named():
+    """The harness decodes all links' HIL_ACTUATOR_CONTROLS of a tick in one call: the same thrusts
+    as one message at a time; a non-finite control names its row."""
+    rng = np.random.default_rng(5)
+    thrust = rng.uniform(-12.0, 12.0, size=(4, 8))
+    msgs = [_wire(encode_actuators(0.5, row, 8.0, True)) for row in thrust]
+    rows = np.array([m.controls[:8] for m in msgs])
+    together = thrusts_from_controls(rows, 8.0)
+    for i, m in enumerate(msgs):
+        np.testing.assert_array_equal(together[i], decode_actuators(m, 8.0)[1])
+    np.testing.assert_allclose(together, np.clip(thrust, -8.0, 8.0), rtol=1e-6)
+    rows[2, 5] = np.nan
+    rows[3, 0] = np.inf
+    with pytest.raises(MessageError, match=r"row\(s\) \[2, 3\]"):
+        thrusts_from_controls(rows, 8.0)

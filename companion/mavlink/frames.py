@@ -53,13 +53,16 @@ def enu_ned(v: np.ndarray) -> np.ndarray:
     return np.stack((v[..., 1], v[..., 0], -v[..., 2]), axis=-1)
 
 
+_FLIP_YZ = np.array([1.0, -1.0, -1.0])
+
+
 def flu_frd(v: np.ndarray) -> np.ndarray:
     """Body vector FLU -> FRD, or FRD -> FLU."""
     v = np.asarray(v, dtype=float)
     if v.ndim == 1:
         x, y, z = v.tolist()
         return np.array((x, -y, -z))
-    return np.stack((v[..., 0], -v[..., 1], -v[..., 2]), axis=-1)
+    return v * _FLIP_YZ  # (exactly the negations: a product by -1 only flips the sign)
 
 
 def quat_enu_flu_to_ned_frd(q: np.ndarray) -> np.ndarray:
