@@ -117,7 +117,7 @@ def _cmd_launch(args) -> int:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
             metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
                              plots=not args.no_plots, instance_offset=args.instance_offset,
-                             sim_link=args.sim_link)
+                             sim_link=args.sim_link, batch_scheduling=False if args.default_scheduling else None)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -171,6 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--sim-link", choices=SIM_LINKS, default="tcp",
                     help="the vehicles' simulator links: tcp, PX4's simulator API on TCP 4560+K+i (default), or "
                          "unix, the same HIL messages as binary records over UNIX sockets (one host only; faster)")
+    la.add_argument("--default-scheduling", action="store_true",
+                    help="unpaced (--speed 0) too, keep Linux's default scheduling policy; without it an unpaced "
+                         "fleet runs under SCHED_BATCH: no process preempts the one that woke it (faster lockstep)")
     la.set_defaults(func=_cmd_launch)
     return parser
 

@@ -265,6 +265,38 @@ def _die_with_parent() -> None:  # runs in the child before exec (Linux)
         pass
 
 
+def _enter_batch_scheduling() -> int | None:
+    """Put the calling thread under Linux's SCHED_BATCH, and so every process it starts from now
+    (the policy is inherited across fork and exec); returns the policy to restore
+    (:func:`_restore_scheduling`), or ``None`` where SCHED_BATCH is missing (not Linux) or refused.
+
+    An unpaced fleet is a throughput job: each tick the harness wakes seven vehicles, they wake
+    it and their companions, and under the default policy every woken process preempts the one
+    that woke it. SCHED_BATCH keeps the same CPU shares (nice values) but a woken process waits
+    for the running one to block or use up its slice instead of preempting it (sched(7)), which
+    spares the context switches and the caches they cost. Measured on the 2-core VM
+    (seven_link, same-host link, 6 interleaved pairs of 20 s flights): 1.36x mean real-time
+    factor without it, 1.48x with it, every pair faster."""
+    policy = getattr(os, "SCHED_BATCH", None)
+    if policy is None:
+        return None
+    try:
+        before = os.sched_getscheduler(0)
+        os.sched_setscheduler(0, policy, os.sched_param(0))
+    except OSError as exc:
+        log.info("SCHED_BATCH refused (%s): the default scheduling policy stays", exc)
+        return None
+    return before
+
+
+def _restore_scheduling(before: int | None) -> None:
+    if before is not None:
+        try:
+            os.sched_setscheduler(0, before, os.sched_param(0))
+        except OSError as exc:  # (back to SCHED_OTHER is allowed unprivileged)
+            log.warning("could not restore the scheduling policy: %s", exc)
+
+
 class _Processes:
     def __init__(self):
         self.procs: list[tuple[str, subprocess.Popen]] = []
@@ -631,14 +663,18 @@ def check_instance_offset(sc: Scenario, instance_offset: int) -> None:
 
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
-           companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp") -> dict:
+           companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
+           batch_scheduling: bool | None = None) -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
     too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
     K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
     18570+K+i, the impaired wire's 15540+K+i and 15580+K+i) and the group companions Zenoh's
     ``base_port`` + K + g, so that fleets with offsets n apart run side by side on one host; the
     system ids stay 1..n. ``sim_link``: ``"tcp"`` (PX4's simulator API on TCP 4560+K+i) or
-    ``"unix"`` (the same-host link, :mod:`link_firmware_sim.simlink`)."""
+    ``"unix"`` (the same-host link, :mod:`link_firmware_sim.simlink`). ``batch_scheduling``: the
+    harness and every process of the fleet under SCHED_BATCH (:func:`_enter_batch_scheduling`);
+    ``None``: when unpaced (``speed`` 0), where only throughput counts (the metrics say which:
+    ``scheduling``)."""
     if sim_link not in SIM_LINKS:
         raise ValueError(f"sim_link {sim_link!r}: one of {', '.join(SIM_LINKS)}")
     check_fleet_scenario(sc)
@@ -721,6 +757,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
                     stdin_pipe=standby)
 
+    if batch_scheduling is None:
+        batch_scheduling = speed <= 0
+    policy_before = _enter_batch_scheduling() if batch_scheduling else None
+    if policy_before is not None:
+        log.info("the harness and the fleet's processes run under SCHED_BATCH (no wake-up preemption)")
     try:
         if wired:
             m = faults.mavlink
@@ -833,6 +874,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 cameras.close()
             if sim_dir is not None:
                 shutil.rmtree(sim_dir, ignore_errors=True)
+            _restore_scheduling(policy_before)
     if harness is None:
         raise FleetError("the simulator never connected to the vehicles")
     if harness.sim_s <= sc.flight_start_s:
@@ -853,6 +895,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
          "max": round(float(lat.max() * 1e3), 3), "samples": int(lat.size)} if lat.size else None
     )
     metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=speed, sim_link=sim_link,
+                   scheduling="batch" if policy_before is not None else "default",
                    interrupted=interrupted, aborted=aborted or None,
                    missing_flight_logs=missing)
     if sc.companion.distributed and companion and sc.companion.enabled:

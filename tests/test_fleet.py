@@ -201,12 +201,32 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
 
 def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_reference, caplog):
     """``sim_link="unix"``: the vehicles' simulator links over UNIX sockets in a private folder
-    (link_firmware_sim.simlink); the flight is batch mode's, and the folder goes with the fleet."""
+    (link_firmware_sim.simlink); the flight is batch mode's, and the folder goes with the fleet.
+    Unpaced, the harness and every process of the fleet run under SCHED_BATCH; the launching
+    thread gets its policy back."""
     sc = load_scenario(THREE_LINK, duration_s=16.0)
     with pytest.raises(ValueError, match="sim_link 'shm'"):
         launch(sc, tmp_path / "bad", sim_link="shm")
+    result, policies = {}, {}
+
+    def fleet() -> None:
+        result["metrics"] = launch(sc, tmp_path, speed=0.0, plots=False, sim_link="unix")
+        result["policy_after"] = os.sched_getscheduler(0)
+
     with caplog.at_level(logging.INFO, logger="sitl.fleet"):
-        m = launch(sc, tmp_path, speed=0.0, plots=False, sim_link="unix")
+        runner = threading.Thread(target=fleet)
+        runner.start()
+        while runner.is_alive():
+            for pid in children_of(os.getpid()):
+                try:
+                    policies[pid] = os.sched_getscheduler(pid)
+                except OSError:
+                    pass  # gone meanwhile
+            time.sleep(0.2)
+        runner.join()
+    m = result["metrics"]
+    assert len(policies) == 4 and set(policies.values()) == {os.SCHED_BATCH}, policies  # 3 vehicles, the companion
+    assert m["scheduling"] == "batch" and result["policy_after"] == os.SCHED_OTHER
     assert not children_of(os.getpid()), "vehicle or companion processes left behind"
     # the loop's start and end, as bench sitl finds them in the harness's log
     lines = [r.getMessage() for r in caplog.records if r.name == "sitl.fleet"]
@@ -262,6 +282,8 @@ def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_pa
 
     runner = threading.Thread(target=fleet, daemon=True)
     runner.start()
+    time.sleep(1.0)  # paced: the fleet keeps the default scheduling policy
+    assert {os.sched_getscheduler(pid) for pid in children_of(os.getpid())} == {os.SCHED_OTHER}
     client = subprocess.run([sys.executable, str(ROOT / "tests" / "mavsdk_client.py"), "udpin://127.0.0.1:14541", "2",
                              "--timeout", "15", "--set-int", "SKL_SM_EN=0", "--set-int", "MAV_SYS_ID=7",
                              "--set-float", "SKL_CORR_HOLD=0.375"], capture_output=True, text=True, timeout=60)
@@ -280,6 +302,7 @@ def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_pa
     lat, lon, _ = out["position"]
     assert lat == pytest.approx(sc.origin.lat_deg, abs=1e-3) and lon == pytest.approx(sc.origin.lon_deg, abs=1e-3)
     assert "metrics" in result  # the fleet ran to its end (the links stayed on the ground, unarmed)
+    assert result["metrics"]["scheduling"] == "default"
     _assert_ports_released(3)
 
 

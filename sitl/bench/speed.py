@@ -283,7 +283,8 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
             if role in processes:
                 processes[role]["loop_cpu_s_per_sim_s"] = c / sim
                 loop_total += c
-    return {"scenario": name, "mode": "fleet", "sim_link": sim_link, "exit_code": code, "sim_s": sim,
+    return {"scenario": name, "mode": "fleet", "sim_link": sim_link, "scheduling": metrics.get("scheduling"),
+            "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
             "cpu_s_per_sim_s": cpu / sim, "loop_cpu_s_per_sim_s": None if loop_total is None else loop_total / sim,
             "processes": processes, "crashed": metrics.get("crashed")}
