@@ -208,8 +208,9 @@ class FleetHarness:
                         pending.discard(i)
         try:  # the tick's answers decoded together
             return thrusts_from_controls(controls, self.scenario.rotors.thrust_max_n)
-        except MessageError as exc:
-            raise FleetError(f"at t = {t:.3f} s: {exc}") from None
+        except MessageError:
+            bad = [i + 1 for i in range(self.n) if not np.isfinite(controls[i]).all()]
+            raise FleetError(f"link(s) {bad} answered the simulator with a non-finite control at t = {t:.3f} s") from None
 
     def run(self, duration_s: float, speed: float = 0.0, progress=None, stop=lambda: False) -> None:
         plant, sch = self.plant, self.schedule

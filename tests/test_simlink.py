@@ -9,6 +9,7 @@ import shutil
 import socket
 import stat
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from hypothesis import strategies as st
 
 from companion.estimation.so3 import quat_normalize
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MavlinkPort, PortError
+from companion.mavlink.port import MavlinkPort, PortError, wait_readable
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.hil import (
     decode_actuators,
@@ -40,7 +41,8 @@ from link_firmware_sim.simlink import (
     encode_packet,
     open_sim_port,
 )
-from sitl.fleet import _listening_unix_paths
+from sitl.fleet import FleetError, FleetHarness, _listening_unix_paths
+from sitl.scenario import load_scenario
 
 from .test_vehicle import Rig
 
@@ -252,3 +254,47 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path):
             rig.close()
     assert np.abs(thrusts["tcp"]).sum(axis=1).min() > 10.0  # armed: carrying its weight
     np.testing.assert_array_equal(thrusts["unix"], thrusts["tcp"])
+
+
+def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering_nan(tmp_path):
+    """The fleet harness over the same-host link with three fake vehicles: their answers become
+    the rotor commands of the tick (decoded together, as each alone); a non-finite answer stops
+    the lockstep with a FleetError naming that link."""
+    sc = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "sitl" / "three_link.toml")
+    folder = Path(tempfile.mkdtemp(prefix="skl-h-"))  # short: a socket path's limit
+    vehicles = [SimLinkPort(f"unixin://{folder / f'l{i}.sock'}", accept=SENSORS) for i in range(3)]
+    answers = np.array([[1.0, -2.0, 3.0, 0.5, 0.0, 2.0, 9.0, -9.0]]) * np.array([[1.0], [0.5], [0.25]])
+    poisoned = threading.Event()
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            for i in range(3):
+                v = vehicles[i]
+                if v in wait_readable([v], 0.01) or not v.connected:
+                    for msg in v.read():
+                        if msg.get_type() == "HIL_SENSOR":
+                            u = answers[i].copy()
+                            if i == 1 and poisoned.is_set():
+                                u[3] = np.nan
+                            v.send(encode_actuators(msg.time_usec * 1e-6, u, sc.rotors.thrust_max_n, True))
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    harness = FleetHarness(sc, [f"unix://{folder / f'l{i}.sock'}" for i in range(3)])
+    try:
+        truth = harness.plant.begin_tick()
+        thrust = harness._exchange(0.0, 0, truth)
+        expected = np.array([decode_actuators(_over_mavlink(encode_actuators(0.0, a, sc.rotors.thrust_max_n, True)),
+                                              sc.rotors.thrust_max_n)[1] for a in answers])
+        np.testing.assert_array_equal(thrust, expected)
+        poisoned.set()
+        with pytest.raises(FleetError, match=r"link\(s\) \[2\] answered the simulator with a non-finite control"):
+            harness._exchange(0.002, 2, truth)
+    finally:
+        stop.set()
+        server.join(2.0)
+        harness.close()
+        for v in vehicles:
+            v.close()
+        shutil.rmtree(folder, ignore_errors=True)
