@@ -79,13 +79,15 @@ def test_format_and_cli_errors(tmp_path, capsys):
     result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0),
               "firmware_tick_us": {"fused_us": 21.5, "step_by_step_us": 60.25},
               "mujoco_ceiling": {"three_link": {"realtime_factor": 40.0, "cpu_s_per_sim_s": 0.02}},
-              "runs": [{"mode": "fleet", "scenario": "three_link", "sim_link": "unix", "exit_code": 0, "realtime_factor": 2.0,
+              "runs": [{"mode": "fleet", "scenario": "three_link", "sim_link": "unix", "scheduling": "batch",
+                        "exit_code": 0, "realtime_factor": 2.0,
                         "ratio_to_ceiling": 0.05, "cpu_s_per_sim_s": 1.5,
                         "loop_cpu_s_per_sim_s": 0.75,
                         "processes": {"harness": {"cpu_s_per_sim_s": 0.5, "loop_cpu_s_per_sim_s": 0.25,
                                                   "peak_rss_mb": 300.0}}}]}
     text = speed.format_speed(result)
     assert "fleet three_link (unix)" in text and "0.050" in text and "harness" in text
+    assert "fleets' scheduling policy: batch" in text
     assert "in loop" in text and "0.750" in text and "0.250" in text
     assert "21.5 us one-kernel" in text and "60.2 us step by step" in text
     assert bench_main(["sitl", "--batch", "no_such_scenario", "--fleet", "", "--out", str(tmp_path / "x"),

@@ -365,6 +365,9 @@ def format_speed(result: dict) -> str:
     if result.get("repeat", 1) > 1:
         rows.insert(1, f"every figure: the median of {result['repeat']} interleaved runs (all runs' "
                        f"real-time factors in brackets)")
+    policies = sorted({str(r.get("scheduling")) for r in result["runs"] if r.get("mode") == "fleet"})
+    if policies:  # (sitl launch: SCHED_BATCH unpaced, unless --default-scheduling or not Linux)
+        rows.insert(1, f"fleets' scheduling policy: {', '.join(policies)}")
     for name, c in result["mujoco_ceiling"].items():
         rows.append(f"{'MuJoCo only ' + name:<28} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
                      f" {'':>8} {'':>12}{_runs_text(c)}")
