@@ -229,6 +229,6 @@ def thrusts_from_controls(controls, thrust_max_n: float) -> np.ndarray:
     controls = np.asarray(controls, dtype=float)
     finite = np.isfinite(controls)
     if not finite.all():
-        rows = sorted(set(np.nonzero(~finite.reshape(-1, ROTORS_PER_LINK).all(axis=1))[0].tolist()))
+        rows = np.flatnonzero(~finite.reshape(-1, ROTORS_PER_LINK).all(axis=1)).tolist()
         raise MessageError(f"HIL_ACTUATOR_CONTROLS.controls: non-finite value (row(s) {rows})")
     return np.minimum(np.maximum(controls, -1.0), 1.0) * thrust_max_n
