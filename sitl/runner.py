@@ -452,13 +452,13 @@ class BatchRunner:
         ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
         targets = [fw.active_target(t, c) if ok else None for ok, fw, c in zip(live, self.firmware, ctrl)]
         p_target = [nan3 if x is None else x.p_w_m for x in targets]
-        q_target = [nan4 if x is None else x.q_wxyz for x in targets]
+        q_target = np.array([nan4 if x is None else x.q_wxyz for x in targets])  # logged, and the model's tension
         lg.p_ctrl.append(np.array([c[0] for c in ctrl]))
         lg.q_ctrl.append(np.array([c[2] for c in ctrl]))
         lg.p_ekf.append(np.array([e[0] for e in ekf]))
         lg.q_ekf.append(np.array([e[1] for e in ekf]))
         lg.p_target.append(np.array(p_target))
-        lg.q_target.append(np.array(q_target))
+        lg.q_target.append(q_target)
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
         lg.joint_force_true.append(truth.joint_force_w_n)
         lg.tension_true.append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
@@ -466,7 +466,7 @@ class BatchRunner:
         if dynamics is not None:
             last = dynamics.last
             lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None or not all(live) else tension(
-                last.joint_force_w_n, quat_to_rotmat(np.array(q_target))))
+                last.joint_force_w_n, quat_to_rotmat(q_target)))
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
             lg.xi_desired.append(self.trajectory.xi_desired.copy())
