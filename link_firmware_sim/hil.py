@@ -52,6 +52,7 @@ __all__ = [
     "encode_actuators",
     "decode_actuators",
     "thrusts_from_controls",
+    "nonfinite_rows",
 ]
 
 _D = load_dialect()
@@ -227,8 +228,12 @@ def thrusts_from_controls(controls, thrust_max_n: float) -> np.ndarray:
     :class:`MessageError` naming the rows (0-based) with a non-finite value. The harness decodes
     a whole tick's answers in one call."""
     controls = np.asarray(controls, dtype=float)
-    finite = np.isfinite(controls)
-    if not finite.all():
-        rows = np.flatnonzero(~finite.reshape(-1, ROTORS_PER_LINK).all(axis=1)).tolist()
-        raise MessageError(f"HIL_ACTUATOR_CONTROLS.controls: non-finite value (row(s) {rows})")
+    if not np.isfinite(controls).all():
+        raise MessageError(f"HIL_ACTUATOR_CONTROLS.controls: non-finite value (row(s) {nonfinite_rows(controls)})")
     return np.minimum(np.maximum(controls, -1.0), 1.0) * thrust_max_n
+
+
+def nonfinite_rows(controls) -> list[int]:
+    """The rows (0-based) of ``controls`` (8, or (n, 8)) holding a NaN or an infinity."""
+    finite = np.isfinite(np.asarray(controls, dtype=float)).reshape(-1, ROTORS_PER_LINK)
+    return np.flatnonzero(~finite.all(axis=1)).tolist()

@@ -62,7 +62,7 @@ from link_firmware_sim.control import weight_wrench
 from companion.motion.inverse import InverseModel
 from link_firmware_sim.simlink import is_simlink_url, open_sim_port
 from link_firmware_sim.hil import (ROTORS_PER_LINK, SITL_GPS_EPOCH_US, encode_ahrs, encode_hil_gps, encode_hil_sensors,
-                                   thrusts_from_controls)
+                                   nonfinite_rows, thrusts_from_controls)
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
 from .plots import write_plots
@@ -209,7 +209,7 @@ class FleetHarness:
         try:  # the tick's answers decoded together
             return thrusts_from_controls(controls, self.scenario.rotors.thrust_max_n)
         except MessageError:
-            bad = [i + 1 for i in range(self.n) if not np.isfinite(controls[i]).all()]
+            bad = [i + 1 for i in nonfinite_rows(controls)]
             raise FleetError(f"link(s) {bad} answered the simulator with a non-finite control at t = {t:.3f} s") from None
 
     def run(self, duration_s: float, speed: float = 0.0, progress=None, stop=lambda: False) -> None:
