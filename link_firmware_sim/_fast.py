@@ -53,6 +53,10 @@ __all__ = [
     "ALLOC_META",
     "tick_kernel",
     "TICK_OUT",
+    "hil_tick_kernel",
+    "HIL_SENSOR_RECORD",
+    "HIL_ACTUATOR_RECORD",
+    "HIL_BARO_MAG_BITS",
     "packed",
     "pack_correction",
     "pack_target",
@@ -805,6 +809,78 @@ def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravi
 
 
 # --------------------------------------------------------------------------------------------
+# One tick from the same-host simulator link's bytes to its answer's (link_firmware_sim.vehicle)
+# --------------------------------------------------------------------------------------------
+
+#: the simulator link's records (:mod:`link_firmware_sim.simlink`: a 1-byte kind, then the MAVLink
+#: payload in wire order, little-endian) as :func:`hil_tick_kernel` reads and writes them; the
+#: simlink module checks these offsets against the dialect's layouts when it is imported.
+#: HIL_SENSOR: kind 0, ``time_usec`` (uint64), ``xacc..zacc`` then ``xgyro..zgyro`` (floats, body
+#: FRD), ..., ``fields_updated`` (uint32)
+HIL_SENSOR_RECORD = {"kind": 0, "size": 66, "time_usec": 1, "acc": 9, "gyro": 21, "fields_updated": 61}
+#: HIL_ACTUATOR_CONTROLS: kind 3, ``time_usec`` and ``flags`` (uint64), ``controls`` (16 floats), ``mode`` (uint8)
+HIL_ACTUATOR_RECORD = {"kind": 3, "size": 82, "time_usec": 1, "flags": 9, "controls": 17, "mode": 81}
+# the same numbers as the kernel's compile-time constants
+_SENSOR_KIND, _SENSOR_SIZE, _SENSOR_T, _SENSOR_ACC, _SENSOR_GYRO, _SENSOR_BITS = HIL_SENSOR_RECORD.values()
+_ACT_KIND, _ACT_SIZE, _ACT_T, _ACT_FLAGS, _ACT_CONTROLS, _ACT_MODE = HIL_ACTUATOR_RECORD.values()
+#: the HIL_SENSOR ``fields_updated`` bits of a magnetometer or barometer sample (``hil``:
+#: HIL_SENSOR_MAG, abs_pressure, pressure_alt): such a tick takes the decoding path
+HIL_BARO_MAG_BITS = 0x1C0 | (1 << 9) | (1 << 11)
+
+
+@jit
+def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities, baro_density, gravity_w, wgt,
+                    corr, tgt, gains, inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1,
+                    tmax, selective, scale_to_limit, tol, out):
+    """The vehicle's common lockstep tick from bytes to bytes: a same-host simulator-link packet
+    ``rec`` (uint8) holding one HIL_SENSOR record with an IMU sample only (no barometer or
+    magnetometer bits) and finite accelerations and rates, to its HIL_ACTUATOR_CONTROLS record in
+    ``answer`` (uint8, :data:`HIL_ACTUATOR_RECORD`'s size).
+
+    The steps of the decoding path, with the same numbers: ``hil.decode_hil_sensor`` (body FRD to
+    FLU), :func:`tick_kernel` with the propagation (its arguments from ``x`` on, without
+    ``predict``, ``gyro`` and ``accel``), ``hil.encode_actuators`` (each command over
+    ``thrust_max_n``, clipped to -1..1, as a float; ``mode``; the sample's ``time_usec`` echoed).
+    ``gyro`` (3,) gets the body rate (FLU). Returns ``(x, P, taken)``: with ``taken`` false (another
+    kind or size, baro/mag bits, a non-finite value) nothing was changed or written and the caller
+    decodes the packet the general way. The fields sit at odd offsets: they are copied byte-wise
+    into aligned arrays, never read or written through a misaligned view."""
+    if rec.shape[0] != _SENSOR_SIZE or rec[0] != _SENSOR_KIND:
+        return x, P, False
+    bits = np.empty(1, np.uint32)
+    bits.view(np.uint8)[:] = rec[_SENSOR_BITS:_SENSOR_BITS + 4]
+    if bits[0] & HIL_BARO_MAG_BITS:
+        return x, P, False
+    imu = np.empty(6, np.float32)  # xacc, yacc, zacc, xgyro, ygyro, zgyro: adjacent in the record
+    imu.view(np.uint8)[:] = rec[_SENSOR_ACC:_SENSOR_ACC + 24]
+    for i in range(6):
+        if not math.isfinite(imu[i]):
+            return x, P, False
+    accel = np.empty(3)
+    for i in range(3):
+        sign = 1.0 if i == 0 else -1.0  # frames.flu_frd: (x, -y, -z)
+        accel[i] = sign * np.float64(imu[i])
+        gyro[i] = sign * np.float64(imu[3 + i])
+    xn, Pn = tick_kernel(x, P, True, gyro, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
+                         inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                         scale_to_limit, tol, out)
+    controls = np.zeros(16, np.float32)
+    for i in range(8):
+        u = out[i] / thrust_max_n
+        if u > 1.0:
+            u = 1.0
+        elif u < -1.0:
+            u = -1.0
+        controls[i] = np.float32(u)
+    answer[0] = _ACT_KIND
+    answer[_ACT_T:_ACT_T + 8] = rec[_SENSOR_T:_SENSOR_T + 8]
+    answer[_ACT_FLAGS:_ACT_FLAGS + 8] = 0
+    answer[_ACT_CONTROLS:_ACT_CONTROLS + 64] = controls.view(np.uint8)
+    answer[_ACT_MODE] = mode
+    return xn, Pn, True
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def warm_up() -> float:
@@ -850,4 +926,10 @@ def warm_up() -> float:
     fw.on_correction(0.002, Correction(0, 0.0, z3 + 0.01, z3, z3))
     fw.on_attitude(0.004, q)
     fw.on_imu(0.004, z3, accel)
+    # the vehicle's record tick (hil_tick_kernel) from a same-host simulator-link packet
+    from .hil import encode_hil_sensor
+    from .simlink import encode_packet
+
+    record = np.frombuffer(encode_packet([encode_hil_sensor(0.006, accel, z3)]), dtype=np.uint8)
+    fw.on_hil_record(0.006, record, np.zeros(HIL_ACTUATOR_RECORD["size"], dtype=np.uint8), 8.0, 128)
     return time.perf_counter() - t0

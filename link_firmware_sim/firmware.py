@@ -594,9 +594,7 @@ class LinkFirmware:
         ``None`` (nothing changed) in any other case, or without the compiled kernels. The packed
         arrays the kernel reads are kept per object (targets at 50 Hz, gains and the inertia when
         they change), not rebuilt at 500 Hz."""
-        target = self.target
-        if not (self.fused_tick and self.armed and self._controller is None and self.observer is None
-                and target is not None and t_s - self._target_time_s <= self.config.target_stale_s):
+        if not self._fused_applies(t_s):
             return None
         ekf = self.ekf
         gyro = np.array(gyro_b_rad_s, dtype=float)
@@ -606,8 +604,21 @@ class LinkFirmware:
             ekf.predict(gyro, accel, dt)
             self.time_s = t_s
             self._apply_pending()
+        out = np.empty(_fast.TICK_OUT_SIZE)
+        ekf.x, ekf.P = _fast.tick_kernel(ekf.x, ekf.P, predict, gyro, accel, dt, *self._fused_args(t_s), out)
+        return self._fused_done(t_s, dt, gyro, out)
+
+    def _fused_applies(self, t_s: float) -> bool:
+        """The fused tick's case: armed, eq. 1's controller without the observer, a fresh target."""
+        target = self.target
+        return (self.fused_tick and self.armed and self._controller is None and self.observer is None
+                and target is not None and t_s - self._target_time_s <= self.config.target_stale_s)
+
+    def _fused_args(self, t_s: float) -> tuple:
+        """:func:`._fast.tick_kernel`'s arguments after ``dt_s`` and before ``out``."""
         wgt = self.correction_weight(t_s)
         corr = _fast.packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
+        ekf = self.ekf
         const = self._kernel_const  # what the kernel reads from the configuration and the inertia
         if const is None or const[0] is not self.config or const[1] is not ekf.config or const[2] is not self.inertia:
             noise = ekf.config.noise
@@ -615,13 +626,14 @@ class LinkFirmware:
                                           _fast.packed(self.config.gains, _fast.pack_gains),
                                           _fast.packed(self.inertia, _fast.pack_inertia))
         _, _, _, densities, baro_density, gains, inertia = const
-        out = np.empty(_fast.TICK_OUT_SIZE)
         integrals = self.integrals
-        ekf.x, ekf.P = _fast.tick_kernel(
-            ekf.x, ekf.P, predict, gyro, accel, dt, densities, baro_density, _GRAVITY_W, wgt, corr,
-            _fast.packed(target, _fast.pack_target), gains, inertia, integrals.pos, integrals.att, GRAVITY_M_S2,
-            *self.allocator.kernel_args(), out)
-        ekf.last_gyro_b_rad_s = gyro
+        return (densities, baro_density, _GRAVITY_W, wgt, corr, _fast.packed(self.target, _fast.pack_target), gains,
+                inertia, integrals.pos, integrals.att, GRAVITY_M_S2, *self.allocator.kernel_args())
+
+    def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """The state the fused tick leaves outside ``x, P`` (its ``out``, :data:`._fast.TICK_OUT`);
+        returns the thrust commands."""
+        self.ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
         self.events.extend(self.gps_health.on_tick(t_s))
         self.integrals = ControlIntegrals(out[_OUT_POS_INT], out[_OUT_ATT_INT])
@@ -634,6 +646,28 @@ class LinkFirmware:
         alloc.scale, alloc.saturated = float(out[_OUT_SCALE]), bool(out[_OUT_SATURATED])
         self.events.extend(self.thrust_limit.on_tick(t_s, dt, alloc.saturated, alloc.scale))
         return out[_OUT_COMMAND]
+
+    def on_hil_record(self, t_s: float, record: np.ndarray, answer: np.ndarray, thrust_max_n: float,
+                      mode: int) -> np.ndarray | None:
+        """:meth:`on_imu`'s fused case (armed, eq. 1, a fresh target) with no measurement queued,
+        straight from a same-host simulator-link record to its answer record, by
+        :func:`._fast.hil_tick_kernel`: ``record`` (uint8) one HIL_SENSOR of sample time ``t_s``,
+        ``answer`` (uint8) gets the HIL_ACTUATOR_CONTROLS (``thrust_max_n``, ``mode``). Returns the
+        thrust commands; ``None`` (nothing changed or written) in any other case, for a record the
+        kernel leaves to the decoding path, or without the compiled kernels. The vehicle's shell
+        calls it (the record formats are :mod:`.simlink`'s); the firmware stays free of MAVLink."""
+        if self.ekf is None or self._pending or not self._fused_applies(t_s):
+            return None
+        dt = t_s - self.time_s
+        if dt <= 0.0:
+            dt = 1.0 / self.config.rate_hz
+        gyro, out, ekf = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), self.ekf
+        x, P, taken = _fast.hil_tick_kernel(record, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, dt,
+                                            *self._fused_args(t_s), out)
+        if not taken:
+            return None
+        ekf.x, ekf.P = x, P
+        return self._fused_done(t_s, dt, gyro, out)
 
 
 _OUT_COMMAND = _fast.TICK_OUT["command"]

@@ -33,6 +33,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import re
 import socket
 import stat
 import struct
@@ -44,6 +45,8 @@ from urllib.parse import urlparse
 
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort, PortError, PortStats, open_transport, send_all
+
+from . import _fast
 
 __all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "open_sim_port",
            "is_simlink_url"]
@@ -125,6 +128,43 @@ def _layouts() -> dict[str, _Layout]:
 
 _LAYOUTS = _layouts()
 _BY_TAG = tuple(_LAYOUTS[name] for name in SIM_KINDS)
+
+
+def _offsets(layout: _Layout) -> dict[str, tuple[int, str, int]]:
+    """Each field of a record: ``(byte offset, struct code, count)``, the kind byte first."""
+    out, at = {}, 1
+    codes = re.findall(r"(\d*)([a-zA-Z?])", layout.struct.format.lstrip("<"))
+    for name, (count, code) in zip(layout.fields, codes):
+        count = int(count or 1)
+        out[name] = (at, code, count)
+        at += struct.calcsize("<" + code) * count
+    return out
+
+
+def _check_compiled_layouts() -> None:
+    """The compiled record tick (:func:`._fast.hil_tick_kernel`) reads and writes the records at
+    fixed offsets: they must be this dialect's (a changed message definition fails here, at import,
+    not as wrong numbers in flight)."""
+    sensor, act = _LAYOUTS["HIL_SENSOR"], _LAYOUTS["HIL_ACTUATOR_CONTROLS"]
+    so, ao = _offsets(sensor), _offsets(act)
+    s, a = _fast.HIL_SENSOR_RECORD, _fast.HIL_ACTUATOR_RECORD
+    imu = ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro")
+    expected = [
+        (s["kind"], SIM_KINDS.index("HIL_SENSOR")), (s["size"], sensor.size),
+        (s["time_usec"], so["time_usec"][0]), ("Q", so["time_usec"][1]),
+        ([s["acc"] + 4 * i for i in range(6)], [so[f][0] for f in imu]), ("f" * 6, "".join(so[f][1] for f in imu)),
+        (s["gyro"], so["xgyro"][0]), ((s["fields_updated"], "I"), so["fields_updated"][:2]),
+        (a["kind"], SIM_KINDS.index("HIL_ACTUATOR_CONTROLS")), (a["size"], act.size),
+        ((a["time_usec"], "Q"), ao["time_usec"][:2]), ((a["flags"], "Q"), ao["flags"][:2]),
+        ((a["controls"], "f", 16), ao["controls"]), ((a["mode"], "B"), ao["mode"][:2]),
+    ]
+    for want, have in expected:
+        if want != have:
+            raise RuntimeError(f"link_firmware_sim._fast's simulator-link records do not match the dialect: "
+                               f"{want} != {have}")
+
+
+_check_compiled_layouts()
 
 
 def encode_packet(msgs) -> bytes:
@@ -272,22 +312,35 @@ class SimLinkPort:
         ``recv`` would only hear EAGAIN; a backlog (a flood) makes the socket readable again and
         the next calls read it, the caller's other ports served in between.
         """
+        data = self.recv()
+        return [] if data is None else self.decode(data)
+
+    def recv(self) -> bytes | None:
+        """:meth:`read`'s first half: the next packet's bytes, undecoded (``None`` if none is
+        waiting); counted in ``rx_bytes``. Its messages are counted by :meth:`decode`, or by
+        :meth:`count` for a packet the caller takes as it is (the vehicle's record tick)."""
         if self.conn is None:
             if self.listening:
                 self._accept()
-            return []
+            return None
         try:
             data = self.conn.recv(_MAX_PACKET + 1)  # a longer packet is cut: seen as too long
         except (BlockingIOError, InterruptedError):
-            return []
+            return None
         except OSError:
             data = b""  # reset by the peer
         if not data:  # the peer closed (a listener waits for the next one)
             self._lost_peer()
-            return []
+            return None
         st = self.stats
         st.rx_bytes += len(data)
         st.last_rx_wall_s = time.monotonic()
+        return data
+
+    def decode(self, data: bytes) -> list:
+        """:meth:`read`'s second half: the accepted messages of the packet ``data``, counted;
+        ``[]`` for a packet dropped whole (counted, warned about)."""
+        st = self.stats
         try:
             if len(data) > _MAX_PACKET:
                 raise FrameError(f"a packet of more than {_MAX_PACKET} bytes")
@@ -297,11 +350,15 @@ class SimLinkPort:
             st.dropped_bytes += len(data)
             self._warn(f"dropped a packet: {exc}")
             return []
-        st.rx_messages += len(msgs)
         for m in msgs:
-            kind = m.get_type()
-            st.per_type[kind] = st.per_type.get(kind, 0) + 1
+            self.count(m.get_type())
         return msgs
+
+    def count(self, kind: str) -> None:
+        """Count one received message of ``kind``."""
+        st = self.stats
+        st.rx_messages += 1
+        st.per_type[kind] = st.per_type.get(kind, 0) + 1
 
     def send(self, msg) -> None:
         self.send_many((msg,))
@@ -309,7 +366,11 @@ class SimLinkPort:
     def send_many(self, msgs) -> None:
         """Send ``msgs`` as one packet (nothing while no peer is connected)."""
         msgs = list(msgs)
-        data = encode_packet(msgs)
+        self.send_packet(encode_packet(msgs), len(msgs))
+
+    def send_packet(self, data, n_messages: int = 1) -> None:
+        """Send one packet already encoded (bytes, or a uint8 array: the vehicle's record tick
+        answers from its buffer) holding ``n_messages`` records."""
         if self.conn is None:
             return
         try:
@@ -320,7 +381,7 @@ class SimLinkPort:
         except OSError:
             self.stats.tx_errors += 1
             return
-        self.stats.tx_messages += len(msgs)
+        self.stats.tx_messages += n_messages
 
     def close(self) -> None:
         if self.conn is not None:

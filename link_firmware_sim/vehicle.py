@@ -46,6 +46,7 @@ from companion.mavlink.codec import (
     decode_target_feedforward,
     encode_external_wrench,
     encode_link_state,
+    seconds,
     usec,
 )
 from companion.mavlink.dialect import load_dialect
@@ -61,6 +62,7 @@ from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
 from companion.mavlink.signing import KEY_LEN, UNSIGNED_ALLOWED, SigningConfig, write_key_file
 from companion.messages import Correction, PoseTarget
 
+from . import _fast
 from .firmware import CorrectionRejected, LinkFirmware
 from .geo import GeoOrigin
 from .hil import (
@@ -72,7 +74,7 @@ from .hil import (
     sitl_gps_time_us,
 )
 from .params import ParamTable
-from .simlink import open_sim_port
+from .simlink import SimLinkPort, open_sim_port
 
 __all__ = ["VehiclePorts", "Vehicle", "FORCE_DISARM"]
 
@@ -94,6 +96,11 @@ FORCE_DISARM = 21196
 #: has not come (lost, or still on its way) [ms of time_boot_ms]: five 50 Hz target periods.
 FEEDFORWARD_HOLD_MS = 100
 _LINK_NAMES = ("onboard", "gcs")
+# the same-host link's records the compiled tick reads and writes (checked against the dialect by .simlink)
+_SENSOR_RECORD_KIND = _fast.HIL_SENSOR_RECORD["kind"]
+_SENSOR_RECORD_SIZE = _fast.HIL_SENSOR_RECORD["size"]
+_SENSOR_TIME = slice(_fast.HIL_SENSOR_RECORD["time_usec"], _fast.HIL_SENSOR_RECORD["time_usec"] + 8)
+_ANSWER_RECORD_SIZE = _fast.HIL_ACTUATOR_RECORD["size"]
 # MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors this vehicle answers
 _FTP_TERMINATE, _FTP_RESET, _FTP_ACK, _FTP_NAK = 1, 2, 128, 129
 _FTP_ERR_UNKNOWN_COMMAND, _FTP_ERR_FILE_NOT_FOUND = 9, 10
@@ -169,6 +176,9 @@ class Vehicle:
         self.fw.reconfigure(params.firmware_config())
         # The simulator link is the physics (PX4's simulator API): never signed.
         self.sim = open_sim_port(ports.sim, self.system_id, accept=HIL_ACCEPT)
+        # the same-host link's common tick, bytes to bytes (_tick_record): the answer's buffer
+        self._records = isinstance(self.sim, SimLinkPort)
+        self._answer_record = np.zeros(_ANSWER_RECORD_SIZE, dtype=np.uint8)
         self.endpoints = []
         for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
             if not url:
@@ -424,6 +434,25 @@ class Vehicle:
             return
         self._answer(self.fw.on_imu(t, gyro, accel))
         self._after_tick()
+
+    def _tick_record(self, data: bytes) -> bool:
+        """The same-host link's common tick (one HIL_SENSOR record with an IMU sample only, armed,
+        eq. 1's controller, a fresh target, no measurement queued) from the packet's bytes to the
+        answer's, in one compiled call (:meth:`LinkFirmware.on_hil_record`): the decoding path's
+        numbers (``tests/test_fast_paths.py``) without a message object on the way. ``False``
+        (nothing changed) for any other packet: the caller decodes it."""
+        if len(data) != _SENSOR_RECORD_SIZE or data[0] != _SENSOR_RECORD_KIND:
+            return False
+        t_us = int.from_bytes(data[_SENSOR_TIME], "little")
+        t_s = seconds(t_us)
+        if self.fw.on_hil_record(t_s, np.frombuffer(data, dtype=np.uint8), self._answer_record, self.thrust_max_n,
+                                 D.MAV_MODE_FLAG_SAFETY_ARMED) is None:
+            return False
+        self.fc_time_us, self.fc_time_s = t_us, t_s
+        self.sim.count("HIL_SENSOR")
+        self.sim.send_packet(self._answer_record)
+        self._after_tick()
+        return True
 
     def _on_baro_mag(self, t: float, msg) -> None:
         """The HIL_SENSOR's barometer and magnetometer samples (when its bits mark them) to the
@@ -788,8 +817,14 @@ class Vehicle:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
         ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
         if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)
-            for msg in self.sim.read():
-                self._on_hil(msg)
+            if self._records:
+                data = self.sim.recv()
+                if data is not None and not self._tick_record(data):
+                    for msg in self.sim.decode(data):
+                        self._on_hil(msg)
+            else:
+                for msg in self.sim.read():
+                    self._on_hil(msg)
         for ep in self.endpoints:
             if ep.port in ready:
                 for msg in ep.port.read():

@@ -305,6 +305,103 @@ def test_fused_tick_matches_step_by_step():
         fused.on_imu(t + 0.002, gyro, accel)
 
 
+def test_record_tick_matches_the_decoding_path():
+    """LinkFirmware.on_hil_record (hil_tick_kernel: a same-host simulator-link packet's bytes to its
+    answer's) against the decoding path the other ticks take (simlink.decode_packet,
+    hil.decode_hil_sensor, on_imu, hil.encode_actuators, simlink.encode_packet) over a flight
+    segment: corrections, measurements queued (those ticks are left to the decoding path), new
+    targets, one 30 m off (the rotors at their limit, the controls clipped to -1..1): the answer
+    byte for byte, the commands and the state bit for bit. Then what the kernel must leave to the
+    decoders, with nothing changed or written: a non-finite sample, a barometer or magnetometer
+    sample, another kind, two records, a cut packet, the fused tick off."""
+    from companion.messages import Correction
+    from link_firmware_sim import hil
+    from link_firmware_sim.simlink import decode_packet, encode_packet
+
+    assert _fast.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
+    rng = np.random.default_rng(29)
+    record, decoding = _firmware_pair()
+    decoding.fused_tick = True  # its ticks through on_imu (fused when it can: the same kernel's numbers)
+    tmax = 4.0  # under the allocator's limit: the normalised controls reach the clip
+    q0 = quat_normalize(np.array([1.0, 0.02, -0.01, 0.1]))
+    p0 = np.array([0.3, -0.2, 1.5])
+    for fw in (record, decoding):
+        fw.initialize(0.0, p0, np.zeros(3), q0)
+        fw.arm(0.0)
+        fw.set_target(0.0, PoseTarget.hold(p0, q0))
+    taken, clipped = 0, 0
+    for k in range(1, 500):
+        t = k * 0.002
+        events = []
+        if k % 50 == 1:
+            target = PoseTarget(p0 + rng.normal(size=3) * 0.2, quat_normalize(q0 + rng.normal(size=4) * 0.05),
+                                *(rng.normal(size=(6, 3)) * 0.3))
+            events.append(("set_target", (t, target)))
+        if k == 301:
+            events.append(("set_target", (t, PoseTarget.hold(p0 + np.array([30.0, -10.0, 20.0]), q0))))
+        if k % 97 == 3:
+            events.append(("on_correction", (t, Correction(0, t - 0.01, rng.normal(size=3) * 0.05,
+                                                             rng.normal(size=3) * 0.02, rng.normal(size=3) * 0.005,
+                                                             seq=k))))
+        if k % 25 == 0:
+            events.append(("on_gps", (t, p0 + rng.normal(size=3) * 0.3, rng.normal(size=3) * 0.05)))
+        if k % 5 == 0:
+            events.append(("on_attitude", (t, quat_normalize(q0 + rng.normal(size=4) * 0.01))))
+        for fw in (record, decoding):
+            for name, args in events:
+                getattr(fw, name)(*args)
+        gyro, accel = rng.normal(size=3) * 0.05, np.array([0.0, 0.0, 9.81]) + rng.normal(size=3) * 0.1
+        packet = encode_packet([hil.encode_hil_sensor(t, accel, gyro)])
+        t_s, g, a = hil.decode_hil_sensor(decode_packet(packet)[0])
+        expected = decoding.on_imu(t_s, g, a)
+        expected_answer = encode_packet([hil.encode_actuators(t_s, expected, tmax, True)])
+        answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
+        command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128)
+        if command is None:  # measurements queued: the decoding path, nothing written
+            assert record._pending and not answer.any(), f"tick {k}"
+            command = record.on_imu(t_s, g, a)
+        else:
+            taken += 1
+            assert answer.tobytes() == expected_answer, f"tick {k}"
+            clipped += int(np.any(np.abs(expected) > tmax))
+        np.testing.assert_array_equal(command, expected, err_msg=f"tick {k}")
+        np.testing.assert_array_equal(record.ekf.x, decoding.ekf.x)
+        np.testing.assert_array_equal(record.ekf.P, decoding.ekf.P)
+        np.testing.assert_array_equal(record.ekf.last_gyro_b_rad_s, decoding.ekf.last_gyro_b_rad_s)
+        np.testing.assert_array_equal(record.integrals.pos, decoding.integrals.pos)
+        np.testing.assert_array_equal(record.integrals.att, decoding.integrals.att)
+        np.testing.assert_array_equal(record.allocator.xi_pre, decoding.allocator.xi_pre)
+        assert record._thrust_total_n == decoding._thrust_total_n
+        assert (record.allocator.scale, record.allocator.saturated) == (decoding.allocator.scale,
+                                                                        decoding.allocator.saturated)
+        assert record.time_s == decoding.time_s and record._airborne == decoding._airborne
+        assert record.events == decoding.events
+    assert record.thrust_limit.report() == decoding.thrust_limit.report()
+    assert 300 < taken < 499 and clipped > 10, (taken, clipped)
+
+    t = 500 * 0.002
+    sample = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3))
+    nan = hil.encode_hil_sensor(t, np.array([0.0, np.nan, 9.81]), np.zeros(3))
+    inf = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.array([0.0, 0.0, np.inf]))
+    baro = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3), baro_alt_m=120.0)
+    mag = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3), mag_flu_gauss=np.array([0.2, 0.0, -0.4]))
+    gps = hil.encode_hil_gps(t, p0, np.zeros(3), hil.GeoOrigin())
+    left = [encode_packet([m]) for m in (nan, inf, baro, mag, gps)]
+    left += [encode_packet([hil.encode_ahrs(t, q0), sample]), encode_packet([sample])[:-1]]
+    before = (record.ekf.x.copy(), record.ekf.P.copy(), record.time_s, record.allocator.xi_pre.copy())
+    for packet in left:
+        answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
+        assert record.on_hil_record(t, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128) is None
+        assert not answer.any()
+        for x, y in zip((record.ekf.x, record.ekf.P, record.time_s, record.allocator.xi_pre), before):
+            np.testing.assert_array_equal(x, y)
+    record.fused_tick = False
+    packet = np.frombuffer(encode_packet([sample]), dtype=np.uint8)
+    assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is None
+    record.fused_tick = True
+    assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is not None
+
+
 def test_cross_is_numpys():
     """so3.cross: np.cross's numbers (exactly) for single vectors, stacks and broadcasts."""
     from companion.estimation.so3 import cross

@@ -21,6 +21,8 @@ from hypothesis import strategies as st
 from companion.estimation.so3 import quat_normalize
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
+from companion.messages import PoseTarget
+from link_firmware_sim import _fast
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.hil import (
     decode_actuators,
@@ -240,20 +242,40 @@ def test_another_users_process_is_refused(tmp_path):
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def test_a_vehicle_answers_alike_over_both_links(tmp_path):
-    """The same ticks into a vehicle behind TCP and one behind the same-host link: the same thrusts."""
-    thrusts = {}
+@pytest.mark.parametrize("jit", [True, False], ids=["compiled", "numpy"])
+def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
+    """The same ticks into a vehicle behind TCP and one behind the same-host link: the same thrusts
+    and the same EKF state, bit for bit. Over the same-host link the IMU-only ticks (nine in ten)
+    go from the packet's bytes to the answer's in one compiled call (Vehicle._tick_record), the
+    others through the decoders; over TCP, and without the compiled kernels, every tick is decoded."""
+    if jit and not _fast.ENABLED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    thrusts, states, taken = {}, {}, {}
     for link in ("tcp", "unix"):
         (tmp_path / link).mkdir()
         rig = Rig(tmp_path / link, sim_link=link)
+        v = rig.vehicle
+        v.fw.fused_tick = jit
+        records = taken[link] = []
+        plain = v._tick_record
+        v._tick_record = lambda data: records.append(plain(data)) or records[-1]
         try:
             rig.start(0.3)
-            assert rig.vehicle.fw.arm(rig.t)  # as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick
+            assert v.fw.arm(rig.t)  # as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick
+            p, _, q = v.fw.control_estimate(rig.t)
+            v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
             thrusts[link] = np.array([rig.tick(gps=k % 50 == 0, ahrs=k % 10 == 0) for k in range(100)])
+            states[link] = (v.fw.ekf.x.copy(), v.fw.ekf.P.copy(), v.fc_time_us, dict(v.sim.stats.per_type),
+                            v.sim.stats.rx_messages, v.sim.stats.tx_messages)
         finally:
             rig.close()
     assert np.abs(thrusts["tcp"]).sum(axis=1).min() > 10.0  # armed: carrying its weight
     np.testing.assert_array_equal(thrusts["unix"], thrusts["tcp"])
+    for a, b in zip(states["unix"], states["tcp"]):
+        np.testing.assert_array_equal(a, b)
+    assert not taken["tcp"]
+    # the 100 armed ticks with a target: 90 without an AHRS or GPS record go by the compiled call
+    assert sum(taken["unix"]) == (90 if jit else 0), sum(taken["unix"])
 
 
 def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering_nan(tmp_path):
