@@ -647,15 +647,19 @@ class LinkFirmware:
         self.events.extend(self.thrust_limit.on_tick(t_s, dt, alloc.saturated, alloc.scale))
         return out[_OUT_COMMAND]
 
-    def on_hil_record(self, t_s: float, record: np.ndarray, answer: np.ndarray, thrust_max_n: float,
-                      mode: int) -> np.ndarray | None:
+    def on_hil_record(self, t_s: float, record: np.ndarray, answer: np.ndarray, thrust_max_n: float, mode: int,
+                      answered=None) -> np.ndarray | None:
         """:meth:`on_imu`'s fused case (armed, eq. 1, a fresh target) with no measurement queued,
         straight from a same-host simulator-link record to its answer record, by
         :func:`._fast.hil_tick_kernel`: ``record`` (uint8) one HIL_SENSOR of sample time ``t_s``,
-        ``answer`` (uint8) gets the HIL_ACTUATOR_CONTROLS (``thrust_max_n``, ``mode``). Returns the
-        thrust commands; ``None`` (nothing changed or written) in any other case, for a record the
-        kernel leaves to the decoding path, or without the compiled kernels. The vehicle's shell
-        calls it (the record formats are :mod:`.simlink`'s); the firmware stays free of MAVLink."""
+        ``answer`` (uint8) gets the HIL_ACTUATOR_CONTROLS (``thrust_max_n``, ``mode``), and
+        ``answered(answer)``, when given, is called as soon as it is written and its wrench found
+        finite, before the tick's bookkeeping (integrals, health and thrust-limit monitors): the
+        simulator is not kept waiting for what does not change the answer. Returns the thrust
+        commands; ``None`` (nothing changed or written) in any other case, for a record the kernel
+        leaves to the decoding path, or without the compiled kernels. The vehicle's shell calls it;
+        the record layouts are :data:`._fast.HIL_SENSOR_RECORD` / ``HIL_ACTUATOR_RECORD``, which
+        :mod:`.simlink` checks against the dialect."""
         if self.ekf is None or self._pending or not self._fused_applies(t_s):
             return None
         dt = t_s - self.time_s
@@ -667,6 +671,8 @@ class LinkFirmware:
         if not taken:
             return None
         ekf.x, ekf.P = x, P
+        if answered is not None and out[_OUT_FINITE]:
+            answered(answer)
         return self._fused_done(t_s, dt, gyro, out)
 
 

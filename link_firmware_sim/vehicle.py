@@ -446,11 +446,10 @@ class Vehicle:
         t_us = int.from_bytes(data[_SENSOR_TIME], "little")
         t_s = seconds(t_us)
         if self.fw.on_hil_record(t_s, np.frombuffer(data, dtype=np.uint8), self._answer_record, self.thrust_max_n,
-                                 D.MAV_MODE_FLAG_SAFETY_ARMED) is None:
-            return False
+                                 D.MAV_MODE_FLAG_SAFETY_ARMED, self.sim.send_packet) is None:
+            return False  # (sent the answer, if it took the record, before its bookkeeping)
         self.fc_time_us, self.fc_time_s = t_us, t_s
         self.sim.count("HIL_SENSOR")
-        self.sim.send_packet(self._answer_record)
         self._after_tick()
         return True
 

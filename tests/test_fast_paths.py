@@ -356,13 +356,16 @@ def test_record_tick_matches_the_decoding_path():
         expected = decoding.on_imu(t_s, g, a)
         expected_answer = encode_packet([hil.encode_actuators(t_s, expected, tmax, True)])
         answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
-        command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128)
+        handed, last_s = [], record.time_s  # the answer, handed over before the tick's bookkeeping
+        command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128,
+                                       lambda ans: handed.append((ans.tobytes(), record.time_s)))
         if command is None:  # measurements queued: the decoding path, nothing written
-            assert record._pending and not answer.any(), f"tick {k}"
+            assert record._pending and not answer.any() and not handed, f"tick {k}"
             command = record.on_imu(t_s, g, a)
         else:
             taken += 1
             assert answer.tobytes() == expected_answer, f"tick {k}"
+            assert handed == [(expected_answer, last_s)] and last_s < t_s == record.time_s, f"tick {k}"
             clipped += int(np.any(np.abs(expected) > tmax))
         np.testing.assert_array_equal(command, expected, err_msg=f"tick {k}")
         np.testing.assert_array_equal(record.ekf.x, decoding.ekf.x)
