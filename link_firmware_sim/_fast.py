@@ -14,7 +14,9 @@ allocation) in one call, which :meth:`~link_firmware_sim.firmware.LinkFirmware.o
 common case (armed, eq. 1, a fresh target): a call's dispatch and the Python between the steps cost
 more than their arithmetic. :func:`attitude_update_kernel` is the 50 Hz attitude reference's whole
 update (measurement model too). ``tests/test_fast_paths.py`` checks both against the step-by-step
-numpy path.
+numpy path. :func:`hil_tick_kernel` wraps the fused tick between the same-host simulator link's
+bytes: the HIL_SENSOR record in, the HIL_ACTUATOR_CONTROLS record out (the vehicle's common tick,
+no message object on the way); its test checks the answer byte for byte against the decoders'.
 
 Dispatch: :class:`~link_firmware_sim.ekf.LinkEkf`, :class:`~link_firmware_sim.allocation.Allocator`
 and :class:`~link_firmware_sim.firmware.LinkFirmware` use the kernels when :data:`ENABLED`, else the

@@ -17,7 +17,11 @@ both run on one host, this link carries the same messages without what only a ne
 A sender passes the :mod:`.hil` encoders' pymavlink messages; a receiver gets read-only records
 with the same field names (an array field as a tuple) and ``get_type()``, for the :mod:`.hil`
 decoders: units, frames and value checks are the same code on both links, only the framing
-differs (``python -m sitl.bench sitl`` measures both).
+differs (``python -m sitl.bench sitl`` measures both). One exception, with the same bytes and
+numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick) to its
+answer record in one compiled call (``Vehicle._tick_record``, :func:`._fast.hil_tick_kernel`), at
+the offsets :data:`._fast.HIL_SENSOR_RECORD` / ``HIL_ACTUATOR_RECORD``, which this module checks
+against the dialect when it is imported; every other packet goes through the decoders.
 
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
