@@ -816,7 +816,9 @@ def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravi
 
 #: the simulator link's records (:mod:`link_firmware_sim.simlink`: a 1-byte kind, then the MAVLink
 #: payload in wire order, little-endian) as :func:`hil_tick_kernel` reads and writes them; the
-#: simlink module checks these offsets against the dialect's layouts when it is imported.
+#: simlink module checks these offsets against the dialect's layouts when it is imported. They are
+#: literals in this file, not derived from the dialect, on purpose: numba freezes a global into the
+#: machine code it caches on disk, and its cache follows this file's changes only.
 #: HIL_SENSOR: kind 0, ``time_usec`` (uint64), ``xacc..zacc`` then ``xgyro..zgyro`` (floats, body
 #: FRD), ..., ``fields_updated`` (uint32)
 HIL_SENSOR_RECORD = {"kind": 0, "size": 66, "time_usec": 1, "acc": 9, "gyro": 21, "fields_updated": 61}
@@ -826,7 +828,8 @@ HIL_ACTUATOR_RECORD = {"kind": 3, "size": 82, "time_usec": 1, "flags": 9, "contr
 _SENSOR_KIND, _SENSOR_SIZE, _SENSOR_T, _SENSOR_ACC, _SENSOR_GYRO, _SENSOR_BITS = HIL_SENSOR_RECORD.values()
 _ACT_KIND, _ACT_SIZE, _ACT_T, _ACT_FLAGS, _ACT_CONTROLS, _ACT_MODE = HIL_ACTUATOR_RECORD.values()
 #: the HIL_SENSOR ``fields_updated`` bits of a magnetometer or barometer sample (``hil``:
-#: HIL_SENSOR_MAG, abs_pressure, pressure_alt): such a tick takes the decoding path
+#: HIL_SENSOR_MAG, abs_pressure, pressure_alt; a literal for the same reason, and
+#: ``tests/test_fast_paths.py`` checks it is hil's): such a tick takes the decoding path
 HIL_BARO_MAG_BITS = 0x1C0 | (1 << 9) | (1 << 11)
 
 

@@ -445,9 +445,10 @@ class Vehicle:
             return False
         t_us = int.from_bytes(data[_SENSOR_TIME], "little")
         t_s = seconds(t_us)
+        # (a record it takes is answered through send_packet before the tick's bookkeeping)
         if self.fw.on_hil_record(t_s, np.frombuffer(data, dtype=np.uint8), self._answer_record, self.thrust_max_n,
                                  D.MAV_MODE_FLAG_SAFETY_ARMED, self.sim.send_packet) is None:
-            return False  # (sent the answer, if it took the record, before its bookkeeping)
+            return False
         self.fc_time_us, self.fc_time_s = t_us, t_s
         self.sim.count("HIL_SENSOR")
         self._after_tick()
