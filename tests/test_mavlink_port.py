@@ -351,3 +351,79 @@ def test_empty_host_and_udpout_bind_are_loopback():
     finally:
         server.close()
         out.close()
+
+
+def _pool_messages():
+    """Messages of every shape a datagram carries: arrays, strings, trailing zeros (MAVLink 2
+    truncates them), the dialect's own, an unknown id."""
+    return [
+        _heartbeat(),
+        D.MAVLink_statustext_message(D.MAV_SEVERITY_WARNING, b"Correction rejected: out of bounds"),
+        D.MAVLink_set_position_target_local_ned_message(1000, 2, 1, D.MAV_FRAME_LOCAL_NED, 0b110000000000,
+                                                        1.0, 2.0, -3.0, 0, 0, 0, 0, 0, 0, 0, 0),
+        D.MAVLink_set_attitude_target_message(1000, 2, 1, 0, [1.0, 0.0, 0.0, 0.0], 0.1, 0.0, 0.0, 0.0),
+        D.MAVLink_skeleton_target_feedforward_message(1000, 2, 1, [0.1, 0.2, 0.3], [0.0, 0.0, 0.0], [1.0, 2.0, 3.0]),
+        D.MAVLink_command_long_message(2, 1, D.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, 20000, 0, 0, 0, 0, 0),
+        D.MAVLink_system_time_message(0, 0),  # all zeros: the shortest payload
+    ]
+
+
+def _frame(msg, signed: bool, seq: int) -> bytes:
+    if signed:
+        return _signed_frame(msg)
+    mav = D.MAVLink(None, srcSystem=7, srcComponent=1)
+    mav.seq = seq % 256
+    return bytes(msg.pack(mav))
+
+
+def _same_as_the_parser(port, data: bytes) -> list | None:
+    """The port's datagram fast path on ``data``, checked against pymavlink's parser on the same
+    bytes: ``None`` (left to the parser), or the parser's messages exactly."""
+    fast = port._decode_datagram(data)
+    slow = D.MAVLink(None)
+    slow.robust_parsing = True
+    want = slow.parse_buffer(bytearray(data)) or []
+    if fast is not None:
+        assert [m.get_type() for m in fast] == [m.get_type() for m in want]
+        assert [bytes(m.get_msgbuf()) for m in fast] == [bytes(m.get_msgbuf()) for m in want]
+        assert [m.to_dict() for m in fast] == [m.to_dict() for m in want]
+        assert all(m.get_type() != "BAD_DATA" for m in fast) and slow.buf_len() == 0
+    return fast
+
+
+@settings(max_examples=300, deadline=None)
+@given(picks=st.lists(st.tuples(st.integers(0, 6), st.booleans()), min_size=1, max_size=6),
+       damage=st.sampled_from(["none", "bit", "cut", "junk_after", "junk_before", "v1", "unknown_id"]),
+       where=st.integers(min_value=0), bit=st.integers(0, 7))
+def test_a_datagram_of_whole_frames_decodes_as_the_parser_reads_it(picks, damage, where, bit):
+    """MavlinkPort's fast path for a datagram of whole MAVLink 2 frames (split by their lengths,
+    each through pymavlink's decode) gives pymavlink's parser's messages, byte for byte and field
+    for field; anything else (a flipped bit, a cut frame, stray bytes, a MAVLink 1 frame) it leaves
+    to the parser (None) or reads the same. Whole undamaged datagrams take the fast path."""
+    pool = _pool_messages()
+    data = b"".join(_frame(pool[i], signed, k) for k, (i, signed) in enumerate(picks))
+    if damage == "bit":
+        b = bytearray(data)
+        b[where % len(b)] ^= 1 << bit
+        data = bytes(b)
+    elif damage == "cut":
+        data = data[:where % len(data)]
+    elif damage == "junk_after":
+        data += bytes([where % 256, bit])
+    elif damage == "junk_before":
+        data = bytes([where % 256]) + data
+    elif damage == "v1":
+        mav1 = D.MAVLink(None, srcSystem=7, srcComponent=1)
+        mav1.WIRE_PROTOCOL_VERSION = "1.0"
+        data += bytes(_heartbeat().pack(mav1, force_mavlink1=True))
+    elif damage == "unknown_id":
+        data += _unknown_id_frame()
+    port = MavlinkPort("udpin://127.0.0.1:0", system_id=190)
+    try:
+        fast = _same_as_the_parser(port, data)
+        if damage in ("none", "unknown_id"):
+            assert fast is not None and len(fast) == len(picks) + (damage == "unknown_id")
+        if damage == "v1":
+            assert fast is None
+    finally:
+        port.close()
