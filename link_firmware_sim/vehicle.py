@@ -211,6 +211,7 @@ class Vehicle:
         self._ff_target: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
         self._ff_applied: tuple | None = None  # the newest one that met its position target
         self._att_target: tuple | None = None  # (q ENU/FLU, omega FLU)
+        self._target_due = False  # a target message came: _update_target after the link's read
         self._log = _Stream.at_rate(log_rate_hz)
         # pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m] (pspm_report; NaN while PSPM is off)
         self._rows: dict[str, list] = {k: [] for k in ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target",
@@ -531,7 +532,7 @@ class Vehicle:
             elif kind == "SKELETON_TARGET_FEEDFORWARD":
                 self._ff_target = (msg.time_boot_ms, *decode_target_feedforward(msg))
                 if msg.time_boot_ms == self._pos_target_ms:  # after its position target: applies now
-                    self._update_target()
+                    self._target_due = True
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
                 self._on_command(ep, msg)
             elif kind.startswith("PARAM_"):
@@ -645,13 +646,18 @@ class Vehicle:
     def _on_position_target(self, msg) -> None:
         self._pos_target = decode_position_target(msg)
         self._pos_target_ms = msg.time_boot_ms
-        self._update_target()
+        self._target_due = True
 
     def _on_attitude_target(self, msg) -> None:
         self._att_target = decode_attitude_target(msg)
-        self._update_target()
+        self._target_due = True
 
     def _update_target(self) -> None:
+        """The firmware's target from the newest position, attitude and feed-forward messages: once
+        per read of a link (:meth:`poll`), after all its messages, so that one target sent as its
+        three messages in one datagram is one target (under PSPM, one set pose), not three partial
+        ones at the same flight-controller time."""
+        self._target_due = False
         if self._pos_target is None and self._att_target is None:
             return
         if self.fw.initialized:
@@ -829,6 +835,8 @@ class Vehicle:
             if ep.port in ready:
                 for msg in ep.port.read():
                     self._on_mavlink(ep, msg)
+                if self._target_due:
+                    self._update_target()
         self._heartbeats()
 
     def run(self) -> None:

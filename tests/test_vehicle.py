@@ -13,6 +13,7 @@ import pytest
 from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
 from companion.mavlink.frames import enu_ned
 from companion.mavlink.codec import encode_correction, encode_target_feedforward
+from companion.mavlink.standard import encode_attitude_target
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
 from companion.mavlink.signing import SigningConfig, load_key, signing_timestamp
@@ -318,6 +319,35 @@ def test_the_feedforward_holds_over_a_lost_message_for_a_while(rig):
     np.testing.assert_allclose(target(1040), [0.0, 0.0, 4.0])
     np.testing.assert_allclose(target(1140), [0.0, 0.0, 4.0])
     np.testing.assert_allclose(target(1160), 0.0)  # too long without one
+
+
+def test_a_target_sent_as_its_three_messages_in_one_datagram_is_one_target(rig):
+    """The companion sends a target as SKELETON_TARGET_FEEDFORWARD, SET_POSITION_TARGET_LOCAL_NED
+    and SET_ATTITUDE_TARGET in one datagram: the firmware gets one target with all three (one
+    set_target, so PSPM sees one set pose), not a position with the old attitude first."""
+    rig.start()
+    fw = rig.vehicle.fw
+    fw.arm(rig.t)
+    rig.gcs_send(D.MAVLink_param_request_read_message(2, 1, b"SKL_CORR_HOLD", -1))  # the GCS is heard
+    rig.gcs_collect(0.02)
+    calls = []
+    plain = fw.set_target
+    fw.set_target = lambda t, target: calls.append(target) or plain(t, target)
+    q = quat_from_euler_zyx(0.3, 0.0, 0.0)
+    target = replace(PoseTarget.hold(np.array([1.0, 2.0, 3.0]), q), force_ff_w_n=np.array([0.5, -0.5, 9.0]))
+    rig.gcs.send_many([
+        encode_target_feedforward(target, 2000, 2),
+        D.MAVLink_set_position_target_local_ned_message(2000, 2, 1, D.MAV_FRAME_LOCAL_NED, 0b110000000000,
+                                                        *enu_ned(target.p_w_m).tolist(), 0, 0, 0, 0, 0, 0, 0, 0),
+        encode_attitude_target(target, 2000, 2),
+    ])
+    rig.gcs_collect(0.02)
+    assert len(calls) == 1, calls
+    got = calls[0]
+    np.testing.assert_allclose(got.p_w_m, target.p_w_m, atol=1e-6)
+    np.testing.assert_allclose(abs(np.dot(got.q_wxyz, q)), 1.0, atol=1e-6)
+    np.testing.assert_allclose(got.force_ff_w_n, target.force_ff_w_n, atol=1e-6)
+    assert fw.target is got
 
 
 def test_garbage_is_counted_and_dropped(rig):
