@@ -652,6 +652,15 @@ class Vehicle:
         self._att_target = decode_attitude_target(msg)
         self._target_due = True
 
+    def _apply_target(self) -> None:
+        """:meth:`_update_target` after a read; a target the firmware refuses is counted as a bad
+        message (``errors["mavlink"]``), as it was when each message applied its own."""
+        try:
+            self._update_target()
+        except MessageError as exc:
+            self.errors["mavlink"] += 1
+            log.warning("link %d: rejected a target: %s", self.system_id, exc)
+
     def _update_target(self) -> None:
         """The firmware's target from the newest position, attitude and feed-forward messages: once
         per read of a link (:meth:`poll`), after all its messages, so that one target sent as its
@@ -836,7 +845,7 @@ class Vehicle:
                 for msg in ep.port.read():
                     self._on_mavlink(ep, msg)
                 if self._target_due:
-                    self._update_target()
+                    self._apply_target()
         self._heartbeats()
 
     def run(self) -> None:

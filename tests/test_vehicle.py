@@ -12,7 +12,7 @@ import pytest
 
 from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
 from companion.mavlink.frames import enu_ned
-from companion.mavlink.codec import encode_correction, encode_target_feedforward
+from companion.mavlink.codec import MessageError, encode_correction, encode_target_feedforward
 from companion.mavlink.standard import encode_attitude_target
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
@@ -348,6 +348,16 @@ def test_a_target_sent_as_its_three_messages_in_one_datagram_is_one_target(rig):
     np.testing.assert_allclose(abs(np.dot(got.q_wxyz, q)), 1.0, atol=1e-6)
     np.testing.assert_allclose(got.force_ff_w_n, target.force_ff_w_n, atol=1e-6)
     assert fw.target is got
+
+    def refuse(t, target):
+        raise MessageError("refused")
+
+    fw.set_target = refuse  # a target the firmware refuses: counted as a bad message, the vehicle goes on
+    before = rig.vehicle.errors["mavlink"]
+    rig.gcs.send(encode_attitude_target(target, 2020, 2))
+    rig.gcs_collect(0.02)
+    assert rig.vehicle.errors["mavlink"] == before + 1 and fw.target is got
+    assert np.all(np.isfinite(rig.tick()))
 
 
 def test_garbage_is_counted_and_dropped(rig):
