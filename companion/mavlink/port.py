@@ -48,12 +48,6 @@ __all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWrite
 log = logging.getLogger(__name__)
 
 _READ_CHUNK = 65536
-# MAVLink 2 framing (mavlink.io "Packet Serialization"): the start marker, a frame's bytes around
-# its payload (10 of header, 2 of checksum), the signed flag and the signature it adds
-_STX_V2 = 0xFD
-_FRAME_MIN_V2 = 12
-_IFLAG_SIGNED = 0x01
-_SIGNATURE_LEN = 13
 # The most MAVLink bytes one UDP datagram carries when several frames are sent together: an
 # Ethernet MTU (1500) less the IPv4 and UDP headers, so a batch is never fragmented on a real link.
 MAX_DATAGRAM_BYTES = 1472
@@ -574,38 +568,12 @@ class MavlinkPort:
         p.expected_length = self._header_len + 2
         p.have_prefix_error = False
 
-    def _decode_datagram(self, data: bytes) -> list | None:
-        """A datagram that is a run of whole, well-formed MAVLink 2 frames (what every sender here
-        and PX4 send), each decoded by the parser's own ``decode`` (CRC, payload): the messages the
-        parser would give, without its byte-wise buffering. ``None`` for anything else (a MAVLink 1
-        frame, an unknown incompatibility flag, a frame cut short, stray bytes, a frame ``decode``
-        refuses): the parser then reads the datagram the usual way and names what is wrong."""
-        frames, i, n = [], 0, len(data)
-        while i < n:
-            if data[i] != _STX_V2 or n - i < _FRAME_MIN_V2:
-                return None
-            flags = data[i + 2]
-            if flags & ~_IFLAG_SIGNED:
-                return None
-            end = i + _FRAME_MIN_V2 + data[i + 1] + (_SIGNATURE_LEN if flags else 0)
-            if end > n:
-                return None
-            frames.append(data[i:end])
-            i = end
-        decode = self.parser.decode
-        try:
-            return [decode(bytearray(frame)) for frame in frames]
-        except Exception:  # (MAVError: a bad CRC, a payload too long, ...) the parser's path reports it
-            return None
-
     def _parse(self, data: bytes, out: list) -> bool:
         st = self.stats
         st.rx_bytes += len(data)
         st.last_rx_wall_s = time.monotonic()
         try:
-            msgs = self._decode_datagram(data) if self.transport.datagram else None
-            if msgs is None:
-                msgs = self.parser.parse_buffer(bytearray(data)) or []
+            msgs = self.parser.parse_buffer(bytearray(data)) or []
         except Exception as exc:  # the parser should not raise with robust parsing; never crash
             log.warning("%s: parser error %s", self.url, exc)
             st.dropped_bytes += len(data)
