@@ -847,11 +847,12 @@ def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities
     ``predict``, ``gyro`` and ``accel``), ``hil.encode_actuators`` (each command over
     ``thrust_max_n``, clipped to -1..1, as a float; ``mode``; the sample's ``time_usec`` echoed).
     ``gyro`` (3,) gets the body rate (FLU). Returns ``(x, P, taken)``: with ``taken`` false (another
-    kind or size, baro/mag bits, a non-finite value) nothing was changed or written and the caller
+    kind or size, baro/mag bits, a non-finite value, an answer buffer of another size) nothing was
+    changed or written and the caller
     decodes the packet the general way. The fields sit at odd offsets: they are copied byte-wise
     into aligned arrays, never read or written through a misaligned view."""
-    if rec.shape[0] != _SENSOR_SIZE or rec[0] != _SENSOR_KIND:
-        return x, P, False
+    if rec.shape[0] != _SENSOR_SIZE or rec[0] != _SENSOR_KIND or answer.shape[0] != _ACT_SIZE:
+        return x, P, False  # (the answer's size checked too: numba does not check the writes' bounds)
     bits = np.empty(1, np.uint32)
     bits.view(np.uint8)[:] = rec[_SENSOR_BITS:_SENSOR_BITS + 4]
     if bits[0] & HIL_BARO_MAG_BITS:

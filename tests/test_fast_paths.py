@@ -395,8 +395,10 @@ def test_record_tick_matches_the_decoding_path():
         assert not answer.any()
         for x, y in zip((record.ekf.x, record.ekf.P, record.time_s, record.allocator.xi_pre), before):
             np.testing.assert_array_equal(x, y)
-    record.fused_tick = False
     packet = np.frombuffer(encode_packet([sample]), dtype=np.uint8)
+    short = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"] - 1, dtype=np.uint8)  # an answer buffer too small
+    assert record.on_hil_record(t, packet, short, tmax, 128) is None and not short.any()
+    record.fused_tick = False
     assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is None
     record.fused_tick = True
     assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is not None
