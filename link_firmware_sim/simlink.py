@@ -37,7 +37,6 @@ from __future__ import annotations
 import errno
 import logging
 import os
-import re
 import socket
 import stat
 import struct
@@ -134,38 +133,38 @@ _LAYOUTS = _layouts()
 _BY_TAG = tuple(_LAYOUTS[name] for name in SIM_KINDS)
 
 
-def _offsets(layout: _Layout) -> dict[str, tuple[int, str, int]]:
-    """Each field of a record: ``(byte offset, struct code, count)``, the kind byte first."""
-    out, at = {}, 1
-    codes = re.findall(r"(\d*)([a-zA-Z?])", layout.struct.format.lstrip("<"))
-    for name, (count, code) in zip(layout.fields, codes):
-        count = int(count or 1)
-        out[name] = (at, code, count)
-        at += struct.calcsize("<" + code) * count
-    return out
-
-
 def _check_compiled_layouts() -> None:
     """The compiled record tick (:func:`._fast.hil_tick_kernel`) reads and writes the records at
     fixed offsets: they must be this dialect's (a changed message definition fails here, at import,
-    not as wrong numbers in flight)."""
-    sensor, act = _LAYOUTS["HIL_SENSOR"], _LAYOUTS["HIL_ACTUATOR_CONTROLS"]
-    so, ao = _offsets(sensor), _offsets(act)
+    not as wrong numbers in flight). Checked on records this module packs, each field a distinct
+    value read back at the kernel's offset."""
+    D = load_dialect()
+    t_us, flags, bits, mode = 0x0102030405060708, 0x1112131415161718, 0x89ABCDEF, 0x5A
+    imu = tuple(float(k) for k in range(1, 7))  # xacc..zacc, xgyro..zgyro (exact in float32)
+    controls = tuple(float(k) for k in range(101, 117))
     s, a = _fast.HIL_SENSOR_RECORD, _fast.HIL_ACTUATOR_RECORD
-    imu = ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro")
-    expected = [
-        (s["kind"], SIM_KINDS.index("HIL_SENSOR")), (s["size"], sensor.size),
-        (s["time_usec"], so["time_usec"][0]), ("Q", so["time_usec"][1]),
-        ([s["acc"] + 4 * i for i in range(6)], [so[f][0] for f in imu]), ("f" * 6, "".join(so[f][1] for f in imu)),
-        (s["gyro"], so["xgyro"][0]), ((s["fields_updated"], "I"), so["fields_updated"][:2]),
-        (a["kind"], SIM_KINDS.index("HIL_ACTUATOR_CONTROLS")), (a["size"], act.size),
-        ((a["time_usec"], "Q"), ao["time_usec"][:2]), ((a["flags"], "Q"), ao["flags"][:2]),
-        ((a["controls"], "f", 16), ao["controls"]), ((a["mode"], "B"), ao["mode"][:2]),
+    sensor = _LAYOUTS["HIL_SENSOR"].pack(D.MAVLink_hil_sensor_message(
+        t_us, *imu, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, fields_updated=bits, id=0))
+    answer = _LAYOUTS["HIL_ACTUATOR_CONTROLS"].pack(D.MAVLink_hil_actuator_controls_message(
+        t_us, controls, mode, flags))
+    checks = [
+        ("HIL_SENSOR size", len(sensor), s["size"]),
+        ("HIL_SENSOR kind", sensor[0], s["kind"]),
+        ("HIL_SENSOR.time_usec", struct.unpack_from("<Q", sensor, s["time_usec"])[0], t_us),
+        ("HIL_SENSOR acc and gyro", struct.unpack_from("<6f", sensor, s["acc"]), imu),
+        ("HIL_SENSOR gyro", struct.unpack_from("<3f", sensor, s["gyro"]), imu[3:]),
+        ("HIL_SENSOR.fields_updated", struct.unpack_from("<I", sensor, s["fields_updated"])[0], bits),
+        ("HIL_ACTUATOR_CONTROLS size", len(answer), a["size"]),
+        ("HIL_ACTUATOR_CONTROLS kind", answer[0], a["kind"]),
+        ("HIL_ACTUATOR_CONTROLS.time_usec", struct.unpack_from("<Q", answer, a["time_usec"])[0], t_us),
+        ("HIL_ACTUATOR_CONTROLS.flags", struct.unpack_from("<Q", answer, a["flags"])[0], flags),
+        ("HIL_ACTUATOR_CONTROLS.controls", struct.unpack_from("<16f", answer, a["controls"]), controls),
+        ("HIL_ACTUATOR_CONTROLS.mode", answer[a["mode"]], mode),
     ]
-    for want, have in expected:
-        if want != have:
+    for name, have, want in checks:
+        if have != want:
             raise RuntimeError(f"link_firmware_sim._fast's simulator-link records do not match the dialect: "
-                               f"{want} != {have}")
+                               f"{name} reads {have}, expected {want}")
 
 
 _check_compiled_layouts()
