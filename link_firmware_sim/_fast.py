@@ -17,6 +17,10 @@ update (measurement model too). ``tests/test_fast_paths.py`` checks both against
 numpy path. :func:`hil_tick_kernel` wraps the fused tick between the same-host simulator link's
 bytes: the HIL_SENSOR record in, the HIL_ACTUATOR_CONTROLS record out (the vehicle's common tick,
 no message object on the way); its test checks the answer byte for byte against the decoders'.
+:func:`hil_loop_kernel` runs the vehicle's lockstep over its quiet ticks, the waits and the socket
+calls included (the C library's ``poll``, ``recv`` and ``send``, linked by symbol, so numba caches
+it like the others), and hands back to Python at the first tick whose bookkeeping changes anything;
+``tests/test_simlink.py`` flies it against the record tick, bit for bit.
 
 Dispatch: :class:`~link_firmware_sim.ekf.LinkEkf`, :class:`~link_firmware_sim.allocation.Allocator`
 and :class:`~link_firmware_sim.firmware.LinkFirmware` use the kernels when :data:`ENABLED`, else the
@@ -56,6 +60,11 @@ __all__ = [
     "tick_kernel",
     "TICK_OUT",
     "hil_tick_kernel",
+    "hil_loop_kernel",
+    "LOOP_INFO",
+    "LOOP_IDLE",
+    "LOOP_PACKET",
+    "LOOP_TICKED",
     "HIL_SENSOR_RECORD",
     "HIL_ACTUATOR_RECORD",
     "HIL_BARO_MAG_BITS",
@@ -887,6 +896,172 @@ def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities
 
 
 # --------------------------------------------------------------------------------------------
+# The vehicle's lockstep loop over quiet ticks, socket calls included (link_firmware_sim.vehicle)
+# --------------------------------------------------------------------------------------------
+
+#: ``info`` of :func:`hil_loop_kernel`: why it returned (one of the ``LOOP_*`` codes), the ticks it
+#: computed, the answers it sent, the newest tick's sample time [us] and ``dt`` [s], the length of a
+#: packet it received and left to the caller, and ``errno``-free flags of the wait
+LOOP_INFO = {"status": 0, "ticks": 1, "sent": 2, "t_us": 3, "dt": 4, "packet": 5}
+LOOP_INFO_SIZE = 6
+#: nothing received is left over: the wait timed out or was interrupted, another descriptor (a
+#: MAVLink port) is readable, the simulator's socket reported an error or hang-up, or ``max_ticks``
+LOOP_IDLE = 0
+#: a packet of ``info["packet"]`` bytes is in ``buf``, received but not taken (another kind or
+#: size, baro/mag bits, a stale target, a GPS timeout due, ...): the caller decodes it
+LOOP_PACKET = 1
+#: the newest tick (``info["ticks"]`` >= 1) needs the caller's bookkeeping (the monitors, a stream or
+#: log row due, ...), its answer already sent if ``info["sent"]`` counts it (else not: a non-finite
+#: wrench, or a send that did not go through whole)
+LOOP_TICKED = 2
+_POLLIN = 0x1
+_MSG_NOSIGNAL = 0x4000
+
+if ENABLED:
+    from llvmlite import ir as _ir
+    from numba import types as _types
+    from numba.core import cgutils as _cgutils
+    from numba.extending import intrinsic as _intrinsic
+
+    _I32, _I64, _P8 = _ir.IntType(32), _ir.IntType(64), _ir.IntType(8).as_pointer()
+
+    def _data_ptr(context, builder, array_type, value):
+        return builder.bitcast(context.make_array(array_type)(context, builder, value).data, _P8)
+
+    def _libc_call(builder, name, ret, params, args):
+        """A call of the C library's ``name`` by symbol (numba caches code that links libc by name)."""
+        fn = _cgutils.get_or_insert_function(builder.module, _ir.FunctionType(ret, params), name)
+        return builder.call(fn, args)
+
+    @_intrinsic
+    def _c_poll(typingctx, fds, nfds, timeout_ms):
+        """``poll(2)`` on ``fds``: int32 pairs ``(fd, events | revents << 16)``, a ``struct pollfd`` each."""
+        def codegen(context, builder, sig, args):
+            return _libc_call(builder, "poll", _I32, [_P8, _I64, _I32],
+                              [_data_ptr(context, builder, sig.args[0], args[0]), args[1], args[2]])
+        return _types.int32(fds, _types.int64, _types.int32), codegen
+
+    @_intrinsic
+    def _c_recv(typingctx, fd, buf, n, flags):
+        """``recv(2)`` into ``buf`` (uint8), at most ``n`` bytes."""
+        def codegen(context, builder, sig, args):
+            return _libc_call(builder, "recv", _I64, [_I32, _P8, _I64, _I32],
+                              [args[0], _data_ptr(context, builder, sig.args[1], args[1]), args[2], args[3]])
+        return _types.int64(_types.int32, buf, _types.int64, _types.int32), codegen
+
+    @_intrinsic
+    def _c_send(typingctx, fd, buf, n, flags):
+        """``send(2)`` of ``buf``'s (uint8) first ``n`` bytes."""
+        def codegen(context, builder, sig, args):
+            return _libc_call(builder, "send", _I64, [_I32, _P8, _I64, _I32],
+                              [args[0], _data_ptr(context, builder, sig.args[1], args[1]), args[2], args[3]])
+        return _types.int64(_types.int32, buf, _types.int64, _types.int32), codegen
+else:  # the numpy path never runs the loop (LinkFirmware.hil_loop is off without the kernels)
+    def _c_poll(fds, nfds, timeout_ms):
+        raise RuntimeError("the lockstep loop needs the compiled kernels")
+
+    _c_recv = _c_send = _c_poll
+
+
+@jit
+def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, answer, gyro, x, P, t_prev_s,
+                    dt_default_s, target_time_s, target_stale_s, corr_time_s, corr_hold_s, corr_stale_s, gps_fix_s,
+                    gps_timeout_s, due_us, arm_height_m, takeoff_m, densities, baro_density, gravity_w, corr, tgt, gains,
+                    inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                    scale_to_limit, tol, out, info):
+    """The vehicle's lockstep over its quiet ticks in one call, the waits and the socket calls in it
+    (C library's ``poll``, ``recv``, ``send``): the simulator's socket is ``pfd``'s first
+    descriptor (a same-host simulator link, ``SOCK_SEQPACKET``, non-blocking), the vehicle's MAVLink
+    ports the others. Each turn waits for the simulator (at most ``timeout_ms``), receives one
+    packet into ``buf`` and, when :func:`hil_tick_kernel` takes it, sends its answer at once.
+
+    A tick is quiet when what :meth:`~link_firmware_sim.firmware.LinkFirmware.on_hil_record` and
+    the vehicle do after the kernel changes nothing, so that leaving it out is exact: the wrench is
+    finite, the allocation not saturated, no take-off to detect (the control estimate's height at
+    most ``takeoff_m`` above ``arm_height_m``, infinite once airborne), no stream or log row due (``t_us < due_us``). What the caller finds
+    before a tick, the kernel checks for each: the target still fresh (``t - target_time_s <=
+    target_stale_s``), no GPS timeout due (``t - gps_fix_s < gps_timeout_s``), and it computes the
+    correction's weight (:meth:`~link_firmware_sim.firmware.LinkFirmware.correction_weight`: 1
+    until ``corr_hold_s``, then a linear fade to 0 at ``corr_stale_s``; ``corr_time_s`` NaN: no
+    correction) and ``dt`` (since ``t_prev_s``; ``dt_default_s`` if not positive) as the firmware
+    does. It returns at the first tick that is not quiet (:data:`LOOP_TICKED`: the caller does that
+    tick's bookkeeping, which also stands for the quiet ticks' before it, as those change nothing
+    it would not set again), at a packet it does not take (:data:`LOOP_PACKET`), and when there is
+    nothing to do (:data:`LOOP_IDLE`: timeout, a MAVLink port readable, the simulator's socket in
+    error, ``max_ticks`` quiet ticks). Returns ``(x, P)``; the integrals ``pos``, ``att`` and
+    ``xi_pre`` are updated in place, ``out`` and ``gyro`` hold the newest tick's, ``info``
+    (:data:`LOOP_INFO`) the rest."""
+    info[0] = LOOP_IDLE
+    info[1] = 0.0
+    info[2] = 0.0
+    info[5] = 0.0
+    while info[1] < max_ticks:
+        for k in range(n_fds):
+            pfd[2 * k + 1] = _POLLIN
+        r = _c_poll(pfd, n_fds, timeout_ms)
+        if r <= 0:
+            return x, P  # timeout, or interrupted (a signal: the caller's handler runs)
+        for k in range(1, n_fds):
+            if pfd[2 * k + 1] >> 16 != 0:
+                return x, P  # a MAVLink port has something: the caller reads it
+        if (pfd[1] >> 16) != _POLLIN:
+            return x, P  # nothing from the simulator yet, or an error / hang-up: the caller's recv sees it
+        n = _c_recv(pfd[0], buf, buf.shape[0], 0)
+        if n <= 0:
+            return x, P  # EAGAIN, or the peer closed: the caller's recv sees it again
+        if n != _SENSOR_SIZE or buf[0] != _SENSOR_KIND:
+            info[0] = LOOP_PACKET
+            info[5] = n
+            return x, P
+        tb = np.empty(1, np.uint64)
+        tb.view(np.uint8)[:] = buf[_SENSOR_T:_SENSOR_T + 8]
+        t_us = tb[0]
+        t_s = t_us * 1e-6  # (hil.seconds)
+        if not (t_s - target_time_s <= target_stale_s) or not (t_s - gps_fix_s < gps_timeout_s):
+            info[0] = LOOP_PACKET
+            info[5] = n
+            return x, P
+        wgt = 0.0  # LinkFirmware.correction_weight
+        if not math.isnan(corr_time_s):
+            age = t_s - corr_time_s
+            if age <= corr_hold_s:
+                wgt = 1.0
+            elif age >= corr_stale_s:
+                wgt = 0.0
+            else:
+                wgt = (corr_stale_s - age) / (corr_stale_s - corr_hold_s)
+        dt = t_s - t_prev_s
+        if dt <= 0.0:
+            dt = dt_default_s
+        xn, Pn, taken = hil_tick_kernel(buf[:n], thrust_max_n, mode, answer, gyro, x, P, dt, densities,
+                                        baro_density, gravity_w, wgt, corr, tgt, gains, inertia, pos, att, gravity,
+                                        B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                                        scale_to_limit, tol, out)
+        if not taken:
+            info[0] = LOOP_PACKET
+            info[5] = n
+            return x, P
+        x, P = xn, Pn
+        info[1] += 1.0
+        info[3] = t_us
+        info[4] = dt
+        t_prev_s = t_s
+        finite = out[24] != 0.0
+        if finite and _c_send(pfd[0], answer, _ACT_SIZE, _MSG_NOSIGNAL) == _ACT_SIZE:
+            info[2] += 1.0
+        else:
+            info[0] = LOOP_TICKED  # not sent: the caller's send_packet (or its error) takes over
+            return x, P
+        for i in range(3):
+            pos[i] = out[14 + i]
+            att[i] = out[17 + i]
+        if out[26] != 0.0 or out[23] - arm_height_m > takeoff_m or t_us >= due_us:
+            info[0] = LOOP_TICKED
+            return x, P
+    return x, P
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def warm_up() -> float:
@@ -937,5 +1112,20 @@ def warm_up() -> float:
     from .simlink import encode_packet
 
     record = np.frombuffer(encode_packet([encode_hil_sensor(0.006, accel, z3)]), dtype=np.uint8)
-    fw.on_hil_record(0.006, record, np.zeros(HIL_ACTUATOR_RECORD["size"], dtype=np.uint8), 8.0, 128)
+    answer = np.zeros(HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
+    fw.on_hil_record(0.006, record, answer, 8.0, 128)
+    # ... and its lockstep loop (hil_loop_kernel), over a socket pair: one tick, then no packet
+    import socket
+
+    from .simlink import RECV_BYTES
+
+    sim, harness = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        sim.setblocking(False)
+        harness.send(encode_packet([encode_hil_sensor(0.008, accel, z3)]))
+        fds = np.array([sim.fileno(), 0], dtype=np.int32)
+        fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send)
+    finally:
+        sim.close()
+        harness.close()
     return time.perf_counter() - t0

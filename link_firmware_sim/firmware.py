@@ -675,6 +675,47 @@ class LinkFirmware:
             answered(answer)
         return self._fused_done(t_s, dt, gyro, out)
 
+    #: let the vehicle run its quiet lockstep ticks in :func:`._fast.hil_loop_kernel` (:meth:`on_hil_loop`);
+    #: ``False`` on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/test_simlink.py``)
+    hil_loop: bool = _fast.ENABLED
+
+    def on_hil_loop(self, pfd: np.ndarray, n_fds: int, timeout_ms: int, max_ticks: int, buf: np.ndarray,
+                    answer: np.ndarray, thrust_max_n: float, mode: int, due_us: int, answered) -> tuple | None:
+        """The vehicle's lockstep over quiet ticks (:func:`._fast.hil_loop_kernel`, the waits and the
+        socket calls in it): each is :meth:`on_hil_record`'s tick, answered through the simulator's
+        socket (``pfd``'s first descriptor) from ``answer``, with the bookkeeping left out that such a
+        tick does not change. The newest tick's bookkeeping is done here (``answered(answer)`` first
+        if the kernel did not send it), as :meth:`on_hil_record` does it, and stands for the ticks
+        before it. ``due_us``: the vehicle's next stream or log row (a tick at or after it is the
+        last). Returns ``(status, ticks, sent, t_us, packet)`` (:data:`._fast.LOOP_INFO`); ``None``
+        (nothing waited for or changed) unless the case holds: armed, eq. 1, a target, no
+        measurement or event queued, the GPS and thrust-limit monitors quiet."""
+        if not (self.hil_loop and self.ekf is not None and not self._pending and not self.events
+                and not self.gps_health.fault and self.thrust_limit.quiet and self._fused_applies(self.time_s)):
+            return None
+        ekf, cfg = self.ekf, self.config
+        corr = self.correction
+        corr_time = math.nan if corr is None else self._correction_time_s
+        corr_arr = _NO_CORRECTION if corr is None else _fast.packed(corr, _fast.pack_correction)
+        args = self._fused_args(self.time_s)  # (the kernel weighs the correction itself, tick by tick)
+        densities, baro_density, gravity_w, _, _, tgt, gains, inertia, pos, att, gravity, *alloc = args
+        pos, att = pos.copy(), att.copy()  # updated in place by the kernel
+        gyro, out, info = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), np.zeros(_fast.LOOP_INFO_SIZE)
+        x, P = _fast.hil_loop_kernel(
+            pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, self.time_s,
+            1.0 / cfg.rate_hz, self._target_time_s, cfg.target_stale_s, corr_time, cfg.correction_hold_s,
+            cfg.correction_stale_s, self.gps_health.last_fix_s, self.gps_health.config.timeout_s, due_us,
+            math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M, densities, baro_density,
+            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, out, info)
+        status, ticks, sent, t_us, packet = (int(info[k]) for k in (0, 1, 2, 3, 5))
+        if ticks:
+            ekf.x, ekf.P = x, P
+            t_s = t_us * 1e-6
+            if sent < ticks and out[_OUT_FINITE]:
+                answered(answer)
+            self._fused_done(t_s, float(info[4]), gyro, out)
+        return status, ticks, sent, t_us, packet
+
 
 _OUT_COMMAND = _fast.TICK_OUT["command"]
 _OUT_U = _fast.TICK_OUT["U"]

@@ -61,6 +61,8 @@ SIM_KINDS = ("HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE", "HIL_ACTUATOR_C
 _SCHEMES = ("unix", "unixin")
 #: the longest packet taken: far above what a tick carries (GPS, AHRS and the IMU sample: 131 bytes)
 _MAX_PACKET = 1024
+#: one receive's buffer: a longer packet is cut, and seen as too long
+RECV_BYTES = _MAX_PACKET + 1
 #: a UNIX socket path's limit (sun_path is 108 bytes with its terminating NUL on Linux)
 _MAX_PATH = 107
 
@@ -327,7 +329,7 @@ class SimLinkPort:
                 self._accept()
             return None
         try:
-            data = self.conn.recv(_MAX_PACKET + 1)  # a longer packet is cut: seen as too long
+            data = self.conn.recv(RECV_BYTES)
         except (BlockingIOError, InterruptedError):
             return None
         except OSError:
@@ -335,10 +337,15 @@ class SimLinkPort:
         if not data:  # the peer closed (a listener waits for the next one)
             self._lost_peer()
             return None
-        st = self.stats
-        st.rx_bytes += len(data)
-        st.last_rx_wall_s = time.monotonic()
+        self.received(len(data))
         return data
+
+    def received(self, n_bytes: int) -> None:
+        """Count ``n_bytes`` received from the socket (by :meth:`recv`, or by the vehicle's lockstep
+        loop, which receives from it in compiled code)."""
+        st = self.stats
+        st.rx_bytes += n_bytes
+        st.last_rx_wall_s = time.monotonic()
 
     def decode(self, data: bytes) -> list:
         """:meth:`read`'s second half: the accepted messages of the packet ``data``, counted;
@@ -357,11 +364,15 @@ class SimLinkPort:
             self.count(m.get_type())
         return msgs
 
-    def count(self, kind: str) -> None:
-        """Count one received message of ``kind``."""
+    def count(self, kind: str, n: int = 1) -> None:
+        """Count ``n`` received messages of ``kind``."""
         st = self.stats
-        st.rx_messages += 1
-        st.per_type[kind] = st.per_type.get(kind, 0) + 1
+        st.rx_messages += n
+        st.per_type[kind] = st.per_type.get(kind, 0) + n
+
+    def sent(self, n_messages: int) -> None:
+        """Count ``n_messages`` records sent by the vehicle's lockstep loop (in compiled code)."""
+        self.stats.tx_messages += n_messages
 
     def send(self, msg) -> None:
         self.send_many((msg,))

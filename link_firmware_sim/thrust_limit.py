@@ -57,6 +57,13 @@ class ThrustLimit:
         self._episode_s = 0.0  # the active episode's start
         self._episode_scale = 1.0
 
+    @property
+    def quiet(self) -> bool:
+        """No episode and no run of ticks at the limit: a tick within the limit changes nothing
+        (what lets the vehicle's lockstep loop leave such ticks out, :meth:`~link_firmware_sim.
+        firmware.LinkFirmware.on_hil_loop`)."""
+        return not self.active and self._since_s is None and self._episode_scale == 1.0
+
     def on_tick(self, t_s: float, dt_s: float, at_limit: bool, scale: float = 1.0) -> list[StatusEvent]:
         """One allocation at ``t_s`` (``dt_s`` since the last): ``at_limit`` (saturated) and its
         ``scale``. A tick without an allocation (disarmed) is one within the limit."""

@@ -74,7 +74,7 @@ from .hil import (
     sitl_gps_time_us,
 )
 from .params import ParamTable
-from .simlink import SimLinkPort, open_sim_port
+from .simlink import RECV_BYTES, SimLinkPort, open_sim_port
 
 __all__ = ["VehiclePorts", "Vehicle", "FORCE_DISARM"]
 
@@ -101,6 +101,9 @@ _SENSOR_RECORD_KIND = _fast.HIL_SENSOR_RECORD["kind"]
 _SENSOR_RECORD_SIZE = _fast.HIL_SENSOR_RECORD["size"]
 _SENSOR_TIME = slice(_fast.HIL_SENSOR_RECORD["time_usec"], _fast.HIL_SENSOR_RECORD["time_usec"] + 8)
 _ANSWER_RECORD_SIZE = _fast.HIL_ACTUATOR_RECORD["size"]
+#: the most quiet ticks one call of the lockstep loop runs (streams and log rows end it sooner)
+_LOOP_MAX_TICKS = 64
+_NEVER_US = 2**62
 # MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors this vehicle answers
 _FTP_TERMINATE, _FTP_RESET, _FTP_ACK, _FTP_NAK = 1, 2, 128, 129
 _FTP_ERR_UNKNOWN_COMMAND, _FTP_ERR_FILE_NOT_FOUND = 9, 10
@@ -179,6 +182,9 @@ class Vehicle:
         # the same-host link's common tick, bytes to bytes (_tick_record): the answer's buffer
         self._records = isinstance(self.sim, SimLinkPort)
         self._answer_record = np.zeros(_ANSWER_RECORD_SIZE, dtype=np.uint8)
+        # ... and its lockstep loop's (_poll_loop): the receive buffer and the poll descriptors
+        self._loop_buf = np.zeros(RECV_BYTES, dtype=np.uint8)
+        self._loop_fds = np.zeros(2 * 3, dtype=np.int32)
         self.endpoints = []
         for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
             if not url:
@@ -453,6 +459,44 @@ class Vehicle:
         self.fc_time_us, self.fc_time_s = t_us, t_s
         self.sim.count("HIL_SENSOR")
         self._after_tick()
+        return True
+
+    def _poll_loop(self, timeout_s: float) -> bool:
+        """The same-host link's quiet ticks in one compiled call (:meth:`LinkFirmware.on_hil_loop`:
+        the waits, the packets, the ticks and their answers, with the numbers of :meth:`_tick_record`,
+        ``tests/test_simlink.py``), until a tick needs the vehicle's bookkeeping (a stream or log row
+        due, an event), a packet is of another kind, a MAVLink port is readable, or ``timeout_s``.
+        ``False`` (nothing waited for) when the case does not hold; :meth:`poll` then waits as usual."""
+        conn = self.sim.conn
+        if conn is None:
+            return False
+        fds = self._loop_fds
+        fds[0] = conn.fileno()
+        for k, ep in enumerate(self.endpoints, 1):
+            fds[2 * k] = ep.port.fileno()
+        n_fds = 1 + len(self.endpoints)
+        if fds[:2 * n_fds:2].min() < 0:
+            return False  # (a serial port waiting to reopen)
+        due = self._streams_due_us if self.out_dir is None else min(self._streams_due_us, self._log.next_us)
+        due = int(min(due, _NEVER_US))  # (no stream at all: inf; the kernel takes an integer)
+        res = self.fw.on_hil_loop(fds, n_fds, max(int(timeout_s * 1e3), 0), _LOOP_MAX_TICKS, self._loop_buf,
+                                  self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED, due,
+                                  self.sim.send_packet)
+        if res is None:
+            return False
+        status, ticks, sent, t_us, packet = res
+        if ticks:
+            self.sim.received(ticks * _SENSOR_RECORD_SIZE)
+            self.sim.count("HIL_SENSOR", ticks)
+            self.sim.sent(sent)
+            self.fc_time_us, self.fc_time_s = t_us, seconds(t_us)
+            self._after_tick()
+        if status == _fast.LOOP_PACKET:  # received, not taken: as poll takes a packet
+            self.sim.received(packet)
+            data = self._loop_buf[:packet].tobytes()
+            if not self._tick_record(data):
+                for msg in self.sim.decode(data):
+                    self._on_hil(msg)
         return True
 
     def _on_baro_mag(self, t: float, msg) -> None:
@@ -830,6 +874,8 @@ class Vehicle:
 
     def poll(self, timeout_s: float) -> None:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
+        if self._records and self._poll_loop(timeout_s):
+            timeout_s = 0.0  # the loop waited: what it left (a MAVLink port, a packet) is handled below
         ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
         if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)
             if self._records:

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from companion.estimation.so3 import quat_normalize
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort, PortError, wait_readable
-from companion.messages import PoseTarget
+from companion.messages import Correction, PoseTarget
 from link_firmware_sim import _fast
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.hil import (
@@ -46,7 +46,7 @@ from link_firmware_sim.simlink import (
 from sitl.fleet import FleetError, FleetHarness, _listening_unix_paths
 from sitl.scenario import load_scenario
 
-from .test_vehicle import Rig
+from .test_vehicle import LEVEL, Rig
 
 D = load_dialect()
 SENSORS = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
@@ -245,12 +245,14 @@ def test_another_users_process_is_refused(tmp_path):
 @pytest.mark.parametrize("jit", [True, False], ids=["compiled", "numpy"])
 def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
     """The same ticks into a vehicle behind TCP and one behind the same-host link: the same thrusts
-    and the same EKF state, bit for bit. Over the same-host link the IMU-only ticks (nine in ten)
-    go from the packet's bytes to the answer's in one compiled call (Vehicle._tick_record), the
-    others through the decoders; over TCP, and without the compiled kernels, every tick is decoded."""
+    and the same EKF state and link counters, bit for bit. Over the same-host link the IMU-only
+    ticks (nine in ten) go from the packet's bytes to the answer's in compiled code: the lockstep
+    loop's (Vehicle._poll_loop: the wait, the packet, the tick and the answer's send in one call) or
+    the record tick's (Vehicle._tick_record); the others through the decoders. Over TCP, and without
+    the compiled kernels, every tick is decoded."""
     if jit and not _fast.ENABLED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
-    thrusts, states, taken = {}, {}, {}
+    thrusts, states, taken, loops = {}, {}, {}, {}
     for link in ("tcp", "unix"):
         (tmp_path / link).mkdir()
         rig = Rig(tmp_path / link, sim_link=link)
@@ -259,6 +261,9 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
         records = taken[link] = []
         plain = v._tick_record
         v._tick_record = lambda data: records.append(plain(data)) or records[-1]
+        looped = loops[link] = []
+        plain_loop = v.fw.on_hil_loop
+        v.fw.on_hil_loop = lambda *a: looped.append(plain_loop(*a)) or looped[-1]
         try:
             rig.start(0.3)
             assert v.fw.arm(rig.t)  # as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick
@@ -273,9 +278,98 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
     np.testing.assert_array_equal(thrusts["unix"], thrusts["tcp"])
     for a, b in zip(states["unix"], states["tcp"]):
         np.testing.assert_array_equal(a, b)
-    assert not taken["tcp"]
-    # the 100 armed ticks with a target: 90 without an AHRS or GPS record go by the compiled call
-    assert sum(taken["unix"]) == (90 if jit else 0), sum(taken["unix"])
+    assert not taken["tcp"] and not loops["tcp"]
+    # the 100 armed ticks with a target: 90 without an AHRS or GPS record go by a compiled call, the
+    # lockstep loop's (Vehicle._poll_loop) or, when the loop leaves the packet, the record tick's
+    by_loop = sum(r[1] for r in loops["unix"] if r is not None)
+    assert sum(taken["unix"]) + by_loop == (90 if jit else 0), (sum(taken["unix"]), by_loop)
+    assert (by_loop >= 80) if jit else not any(r is not None for r in loops["unix"]), by_loop
+
+
+
+def _lockstep_flight(rig, n_ticks: int, loop: bool) -> dict:
+    """``n_ticks`` lockstep ticks into ``rig``'s vehicle (armed, with a target and a correction that
+    fades out and lifts the control estimate past the take-off height), the vehicle polling in its
+    own thread as its process does, so that records arrive while it waits (the lockstep loop runs
+    several ticks in one call); what the flight leaves, for a bit-for-bit comparison."""
+    v = rig.vehicle
+    v.fw.hil_loop = loop
+    calls = []
+    plain = v.fw.on_hil_loop
+    v.fw.on_hil_loop = lambda *a: calls.append(plain(*a)) or calls[-1]
+    rig.start(0.3)
+    assert v.fw.arm(rig.t)
+    p, _, q = v.fw.control_estimate(rig.t)
+    v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
+    v.fw.on_correction(rig.t, Correction(0, rig.t, np.array([0.05, 0.0, 0.2]), np.zeros(3), np.zeros(3)))
+    stop = threading.Event()
+
+    def fly():
+        while not stop.is_set():
+            v.poll(0.05)
+
+    thread = threading.Thread(target=fly, daemon=True)
+    thread.start()
+    thrusts = []
+    try:
+        for k in range(n_ticks):
+            rig.t = round(rig.t + 0.002, 6)
+            wave = np.sin(0.37 * k)
+            msgs = [encode_hil_gps(rig.t, np.array([0.0, 0.0, rig.height_m]), rig.vel_m_s, GeoOrigin())] \
+                if k % 50 == 0 else []
+            if k % 10 == 0:
+                msgs.append(encode_ahrs(rig.t, LEVEL))
+            msgs.append(encode_hil_sensor(rig.t, np.array([0.1 * wave, -0.05, 9.80665]),
+                                          np.array([0.02 * wave, 0.01, -0.03 * wave])))
+            rig.sim.send_many(msgs)
+            deadline = time.monotonic() + 2.0
+            answer = None
+            while answer is None:
+                assert time.monotonic() < deadline, f"no answer at tick {k}"
+                wait_readable([rig.sim], 0.05)
+                for msg in rig.sim.read():
+                    t_us, answer = decode_actuators(msg, 8.0)
+                    assert t_us == int(round(rig.t * 1e6))
+            thrusts.append(answer)
+    finally:
+        stop.set()
+        thread.join(2.0)
+    fw, st = v.fw, v.sim.stats
+    return {"thrusts": np.array(thrusts), "x": fw.ekf.x, "P": fw.ekf.P, "pos_int": fw.integrals.pos,
+            "att_int": fw.integrals.att, "xi_pre": fw.allocator._xi_pre, "time": (fw.time_s, v.fc_time_us),
+            "airborne": fw._airborne, "thrust_n": fw._thrust_total_n, "log_t": v._rows["t"],
+            "log_p": v._rows["p_ctrl"], "counts": (dict(st.per_type), st.rx_messages, st.tx_messages, st.rx_bytes),
+            "calls": [c for c in calls if c is not None]}
+
+
+def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path):
+    """The vehicle's lockstep loop (Vehicle._poll_loop: the waits, the packets, the quiet ticks and
+    their answers in one compiled call) against the record tick it stands for, over 400 ticks with
+    a fading correction, a take-off and AHRS and GPS ticks: the same answers, EKF state, integrals,
+    allocation state, flight log and link counters, bit for bit; and the loop did run many ticks in
+    a call and handed back the ticks that need the vehicle (streams and log rows at 50 Hz, the
+    take-off) and the packets that are not its (AHRS, GPS)."""
+    if not _fast.ENABLED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    flights = {}
+    for loop in (False, True):
+        (tmp_path / str(loop)).mkdir()
+        rig = Rig(tmp_path / str(loop), sim_link="unix")
+        try:
+            flights[loop] = _lockstep_flight(rig, 400, loop)
+        finally:
+            rig.close()
+    plain, looped = flights[False], flights[True]
+    assert np.abs(plain["thrusts"]).sum(axis=1).min() > 10.0 and plain["airborne"]
+    for key in plain:
+        if key != "calls":
+            np.testing.assert_equal(looped[key], plain[key], err_msg=key)
+    assert not plain["calls"]
+    calls = looped["calls"]
+    ticks = sum(c[1] for c in calls)
+    assert ticks >= 300 and max(c[1] for c in calls) >= 5, (ticks, max(c[1] for c in calls))
+    statuses = {c[0] for c in calls}
+    assert {_fast.LOOP_TICKED, _fast.LOOP_PACKET} <= statuses, statuses
 
 
 def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering_nan(tmp_path):
