@@ -21,7 +21,10 @@ differs (``python -m sitl.bench sitl`` measures both). One exception, with the s
 numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick) to its
 answer record in one compiled call (``Vehicle._tick_record``, :func:`._fast.hil_tick_kernel`), at
 the offsets :data:`._fast.HIL_SENSOR_RECORD` / ``HIL_ACTUATOR_RECORD``, which this module checks
-against the dialect when it is imported; every other packet goes through the decoders.
+against the dialect when it is imported; every other packet goes through the decoders. A run of
+such ticks, with the waits and the socket calls between them, is one compiled call too
+(``Vehicle._poll_loop``, :func:`._fast.hil_loop_kernel`: it receives into a buffer of
+:data:`RECV_BYTES`, as :meth:`SimLinkPort.recv` does, and leaves any other packet to the decoders).
 
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
