@@ -287,11 +287,12 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
 
 
 
-def _lockstep_flight(rig, n_ticks: int, loop: bool) -> dict:
+def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None) -> dict:
     """``n_ticks`` lockstep ticks into ``rig``'s vehicle (armed, with a target and a correction that
     fades out and lifts the control estimate past the take-off height), the vehicle polling in its
     own thread as its process does, so that records arrive while it waits (the lockstep loop runs
-    several ticks in one call); what the flight leaves, for a bit-for-bit comparison."""
+    several ticks in one call); what the flight leaves, for a bit-for-bit comparison. ``on_tick(k)``
+    runs after tick ``k``'s answer, ``after()`` after the last, the vehicle still polling."""
     v = rig.vehicle
     v.fw.hil_loop = loop
     calls = []
@@ -331,6 +332,10 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool) -> dict:
                     t_us, answer = decode_actuators(msg, 8.0)
                     assert t_us == int(round(rig.t * 1e6))
             thrusts.append(answer)
+            if on_tick is not None:
+                on_tick(k)
+        if after is not None:
+            after()
     finally:
         stop.set()
         thread.join(2.0)
@@ -370,6 +375,46 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path):
     assert ticks >= 300 and max(c[1] for c in calls) >= 5, (ticks, max(c[1] for c in calls))
     statuses = {c[0] for c in calls}
     assert {_fast.LOOP_TICKED, _fast.LOOP_PACKET} <= statuses, statuses
+
+
+
+def test_the_lockstep_loop_hands_mavlink_input_over_at_once_and_while_the_simulator_is_silent(tmp_path):
+    """In the lockstep loop a vehicle waits on its MAVLink ports too and hands a readable one to
+    poll at once: a GCS request sent between two ticks is answered by the next tick; with the
+    simulator silent (armed, flying, no tick coming) it is answered all the same."""
+    if not _fast.ENABLED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    rig = Rig(tmp_path, sim_link="unix")
+    request = D.MAVLink_param_request_read_message(2, 1, b"SKL_CORR_HOLD", -1)
+    answered_at, asked = [], []
+
+    def replies():
+        return [m for m in rig.gcs.read() if m.get_type() == "PARAM_VALUE"]
+
+    def on_tick(k):
+        if replies() and asked and not answered_at:
+            answered_at.append(k)
+        if k == 150:
+            assert rig.gcs.transport.connected  # the vehicle's streams reached it: it can reply
+            rig.gcs.send(request)
+            asked.append(k)
+
+    def after():
+        time.sleep(0.1)  # the simulator silent: no tick comes
+        rig.gcs.read()
+        rig.gcs.send(request)
+        deadline = time.monotonic() + 1.0
+        while not replies():
+            assert time.monotonic() < deadline, "no PARAM_VALUE while the simulator is silent"
+            time.sleep(0.005)
+
+    try:
+        flight = _lockstep_flight(rig, 200, True, on_tick, after)
+    finally:
+        rig.close()
+    assert sum(c[1] for c in flight["calls"]) >= 100
+    # replied while tick 151 is on its way: the feeder finds it after tick 151 (152: UDP's timing)
+    assert answered_at and answered_at[0] <= 152, answered_at
 
 
 def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering_nan(tmp_path):
