@@ -941,21 +941,18 @@ if ENABLED:
                               [_data_ptr(context, builder, sig.args[0], args[0]), args[1], args[2]])
         return _types.int32(fds, _types.int64, _types.int32), codegen
 
-    @_intrinsic
-    def _c_recv(typingctx, fd, buf, n, flags):
-        """``recv(2)`` into ``buf`` (uint8), at most ``n`` bytes."""
-        def codegen(context, builder, sig, args):
-            return _libc_call(builder, "recv", _I64, [_I32, _P8, _I64, _I32],
-                              [args[0], _data_ptr(context, builder, sig.args[1], args[1]), args[2], args[3]])
-        return _types.int64(_types.int32, buf, _types.int64, _types.int32), codegen
+    def _c_transfer(name: str):
+        """The C library's ``name`` (``recv`` or ``send``: ``(fd, buf, n, flags)``, the first ``n``
+        bytes of ``buf``, uint8) as an intrinsic."""
+        def call(typingctx, fd, buf, n, flags):
+            def codegen(context, builder, sig, args):
+                return _libc_call(builder, name, _I64, [_I32, _P8, _I64, _I32],
+                                  [args[0], _data_ptr(context, builder, sig.args[1], args[1]), args[2], args[3]])
+            return _types.int64(_types.int32, buf, _types.int64, _types.int32), codegen
+        call.__name__ = call.__qualname__ = f"_c_{name}"
+        return _intrinsic(call)
 
-    @_intrinsic
-    def _c_send(typingctx, fd, buf, n, flags):
-        """``send(2)`` of ``buf``'s (uint8) first ``n`` bytes."""
-        def codegen(context, builder, sig, args):
-            return _libc_call(builder, "send", _I64, [_I32, _P8, _I64, _I32],
-                              [args[0], _data_ptr(context, builder, sig.args[1], args[1]), args[2], args[3]])
-        return _types.int64(_types.int32, buf, _types.int64, _types.int32), codegen
+    _c_recv, _c_send = _c_transfer("recv"), _c_transfer("send")
 else:  # the numpy path never runs the loop (LinkFirmware.hil_loop is off without the kernels)
     def _c_poll(fds, nfds, timeout_ms):
         raise RuntimeError("the lockstep loop needs the compiled kernels")
