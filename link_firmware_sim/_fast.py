@@ -900,8 +900,8 @@ def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities
 # --------------------------------------------------------------------------------------------
 
 #: ``info`` of :func:`hil_loop_kernel`: why it returned (one of the ``LOOP_*`` codes), the ticks it
-#: computed, the answers it sent, the newest tick's sample time [us] and ``dt`` [s], the length of a
-#: packet it received and left to the caller, and ``errno``-free flags of the wait
+#: computed, the answers it sent, the newest tick's sample time [us] and ``dt`` [s], and the length of
+#: a packet it received and left to the caller
 LOOP_INFO = {"status": 0, "ticks": 1, "sent": 2, "t_us": 3, "dt": 4, "packet": 5}
 LOOP_INFO_SIZE = 6
 #: nothing received is left over: the wait timed out or was interrupted, another descriptor (a
@@ -915,7 +915,7 @@ LOOP_PACKET = 1
 #: wrench, or a send that did not go through whole)
 LOOP_TICKED = 2
 _POLLIN = 0x1
-_MSG_NOSIGNAL = 0x4000
+_MSG_NOSIGNAL = 0x4000  # Linux's (the same-host link is Linux's: SOCK_SEQPACKET, SO_PEERCRED)
 
 if ENABLED:
     from llvmlite import ir as _ir
