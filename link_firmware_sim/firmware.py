@@ -537,9 +537,7 @@ class LinkFirmware:
         """EKF propagation, then (armed) control and allocation; returns thrust commands [N]."""
         if self.ekf is None:
             return self._zero
-        dt = t_s - self.time_s
-        if dt <= 0.0:
-            dt = 1.0 / self.config.rate_hz
+        dt = self._tick_dt(t_s)
         command = self._tick_fused(t_s, dt, gyro_b_rad_s, accel_b_m_s2)  # the steps below in one kernel
         if command is not None:
             return command
@@ -571,6 +569,12 @@ class LinkFirmware:
         if self.observer is not None:
             self._observe(v, q, omega, command, dt)
         return command
+
+    def _tick_dt(self, t_s: float) -> float:
+        """The step since the last tick; the nominal ``1 / rate_hz`` when not positive (the first
+        tick, a repeated stamp). :func:`._fast.hil_loop_kernel` steps its ticks the same way."""
+        dt = t_s - self.time_s
+        return 1.0 / self.config.rate_hz if dt <= 0.0 else dt
 
     def _contact_estimate(self, q_wxyz) -> np.ndarray:
         if self.contact is None:
@@ -662,9 +666,7 @@ class LinkFirmware:
         :mod:`.simlink` checks against the dialect."""
         if self.ekf is None or self._pending or not self._fused_applies(t_s):
             return None
-        dt = t_s - self.time_s
-        if dt <= 0.0:
-            dt = 1.0 / self.config.rate_hz
+        dt = self._tick_dt(t_s)
         gyro, out, ekf = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), self.ekf
         x, P, taken = _fast.hil_tick_kernel(record, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, dt,
                                             *self._fused_args(t_s), out)

@@ -493,11 +493,15 @@ class Vehicle:
             self._after_tick()
         if status == _fast.LOOP_PACKET:  # received, not taken: as poll takes a packet
             self.sim.received(packet)
-            data = self._loop_buf[:packet].tobytes()
-            if not self._tick_record(data):
-                for msg in self.sim.decode(data):
-                    self._on_hil(msg)
+            self._on_sim_packet(self._loop_buf[:packet].tobytes())
         return True
+
+    def _on_sim_packet(self, data: bytes) -> None:
+        """A same-host link's packet: the record tick (:meth:`_tick_record`), else its messages
+        through the decoders."""
+        if not self._tick_record(data):
+            for msg in self.sim.decode(data):
+                self._on_hil(msg)
 
     def _on_baro_mag(self, t: float, msg) -> None:
         """The HIL_SENSOR's barometer and magnetometer samples (when its bits mark them) to the
@@ -880,9 +884,8 @@ class Vehicle:
         if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)
             if self._records:
                 data = self.sim.recv()
-                if data is not None and not self._tick_record(data):
-                    for msg in self.sim.decode(data):
-                        self._on_hil(msg)
+                if data is not None:
+                    self._on_sim_packet(data)
             else:
                 for msg in self.sim.read():
                     self._on_hil(msg)
