@@ -58,6 +58,7 @@ __all__ = [
     "allocate_kernel",
     "ALLOC_META",
     "tick_kernel",
+    "attitude_tick_kernel",
     "TICK_OUT",
     "hil_tick_kernel",
     "hil_loop_kernel",
@@ -67,6 +68,10 @@ __all__ = [
     "LOOP_TICKED",
     "HIL_SENSOR_RECORD",
     "HIL_ACTUATOR_RECORD",
+    "HIL_AHRS_RECORD",
+    "sensor_record_at",
+    "AHRS_NORM_TOLERANCE",
+    "AHRS_OUT",
     "HIL_BARO_MAG_BITS",
     "packed",
     "pack_correction",
@@ -819,6 +824,27 @@ def tick_kernel(x, P, predict, gyro, accel, dt_s, densities, baro_density, gravi
     return xn, Pn
 
 
+@jit
+def attitude_tick_kernel(x, P, q_meas, att_Rm, gate_sigma, gyro, accel, dt_s, densities, baro_density, gravity_w,
+                         wgt, corr, tgt, gains, inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0,
+                         eps1, tmax, selective, scale_to_limit, tol, out):
+    """:func:`tick_kernel` for a tick with an attitude reference ``q_meas`` queued, as the firmware
+    runs it step by step: :func:`ekf_predict_kernel`, :func:`attitude_update_kernel` (covariance
+    ``att_Rm``, gate ``gate_sigma``; the state's ekf.X_Q and the error's ekf.E_TH block), then the
+    tick without the propagation (its arguments from ``gyro`` on, without ``predict``). Returns
+    ``(x, P, status)``, the update's status: 1 accepted, 0 rejected by the gate, -1 an invalid
+    quaternion (non-finite or zero), when nothing was changed or written and the caller takes the
+    step-by-step path (which raises the specification's error)."""
+    xp, Pp = ekf_predict_kernel(x, P, gyro, accel, dt_s, densities, baro_density, gravity_w)
+    xu, Pu, status, _, _ = attitude_update_kernel(xp, Pp, q_meas, att_Rm, gate_sigma, 6, 6)
+    if status < 0:
+        return x, P, status
+    xn, Pn = tick_kernel(xu, Pu, False, gyro, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
+                         inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
+                         scale_to_limit, tol, out)
+    return xn, Pn, status
+
+
 # --------------------------------------------------------------------------------------------
 # One tick from the same-host simulator link's bytes to its answer's (link_firmware_sim.vehicle)
 # --------------------------------------------------------------------------------------------
@@ -836,6 +862,17 @@ HIL_ACTUATOR_RECORD = {"kind": 3, "size": 82, "time_usec": 1, "flags": 9, "contr
 # the same numbers as the kernel's compile-time constants
 _SENSOR_KIND, _SENSOR_SIZE, _SENSOR_T, _SENSOR_ACC, _SENSOR_GYRO, _SENSOR_BITS = HIL_SENSOR_RECORD.values()
 _ACT_KIND, _ACT_SIZE, _ACT_T, _ACT_FLAGS, _ACT_CONTROLS, _ACT_MODE = HIL_ACTUATOR_RECORD.values()
+#: SKELETON_AHRS_REFERENCE: kind 2, ``time_usec`` (uint64), ``q`` (4 floats, body FRD to local NED)
+HIL_AHRS_RECORD = {"kind": 2, "size": 25, "time_usec": 1, "q": 9}
+_AHRS_KIND, _AHRS_SIZE, _AHRS_T, _AHRS_Q = HIL_AHRS_RECORD.values()
+#: ``hil.decode_ahrs``'s tolerance on the reference quaternion's norm (a literal: ``tests/test_fast_paths.py``
+#: checks it is hil's)
+AHRS_NORM_TOLERANCE = 1e-3
+#: ``ahrs`` of :func:`hil_tick_kernel` and :func:`hil_loop_kernel`: the attitude references they
+#: fused, counted (accepted, rejected by the gate), and the newest one's ``time_usec`` and quaternion
+#: (body FLU to ENU, normalised: what ``hil.decode_ahrs`` returns); the kernels add to the counts
+AHRS_OUT = {"accepted": 0, "rejected": 1, "t_us": 2, "q": slice(3, 7)}
+AHRS_OUT_SIZE = 7
 #: the HIL_SENSOR ``fields_updated`` bits of a magnetometer or barometer sample (``hil``:
 #: HIL_SENSOR_MAG, abs_pressure, pressure_alt; a literal for the same reason, and
 #: ``tests/test_fast_paths.py`` checks it is hil's): such a tick takes the decoding path
@@ -843,42 +880,114 @@ HIL_BARO_MAG_BITS = 0x1C0 | (1 << 9) | (1 << 11)
 
 
 @jit
+def sensor_record_at(rec, n):
+    """Where the HIL_SENSOR record of a packet of ``n`` bytes the record tick takes starts: 0 for
+    [HIL_SENSOR], :data:`HIL_AHRS_RECORD`'s size for [SKELETON_AHRS_REFERENCE, HIL_SENSOR] (the
+    attitude reference's ticks); -1 for any other packet."""
+    if n == _SENSOR_SIZE and rec[0] == _SENSOR_KIND:
+        return 0
+    if n == _AHRS_SIZE + _SENSOR_SIZE and rec[0] == _AHRS_KIND and rec[_AHRS_SIZE] == _SENSOR_KIND:
+        return _AHRS_SIZE
+    return -1
+
+
+@jit
+def _quat_mul_into(a, b, out):
+    """``so3.quat_mul``'s one-product case into ``out``: the same operations in the same order."""
+    aw, ax, ay, az = a[0], a[1], a[2], a[3]
+    bw, bx, by, bz = b[0], b[1], b[2], b[3]
+    out[0] = aw * bw - ax * bx - ay * by - az * bz
+    out[1] = aw * bx + ax * bw + ay * bz - az * by
+    out[2] = aw * by - ax * bz + ay * bw + az * bx
+    out[3] = aw * bz + ax * by - ay * bx + az * bw
+
+
+@jit
+def _ahrs_record(rec, frame, q):
+    """``hil.decode_ahrs`` of the SKELETON_AHRS_REFERENCE record at the start of ``rec``, with the
+    same numbers: its quaternion (body FRD to local NED) finite and of norm 1 within
+    :data:`AHRS_NORM_TOLERANCE`, normalised and turned into body FLU to ENU
+    (``frames.quat_ned_frd_to_enu_flu``: ``frame[:4] (x) q (x) frame[4:]``), into ``q``. False (``q``
+    undefined) for a quaternion the decoder rejects."""
+    qf = np.empty(4, np.float32)
+    qf.view(np.uint8)[:] = rec[_AHRS_Q:_AHRS_Q + 16]
+    m = np.empty(4)
+    for i in range(4):
+        if not math.isfinite(qf[i]):
+            return False
+        m[i] = np.float64(qf[i])
+    n = math.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3])
+    if abs(n - 1.0) > AHRS_NORM_TOLERANCE:
+        return False
+    for i in range(4):
+        m[i] = m[i] / n
+    e2n = np.empty(4)
+    _quat_mul_into(frame[:4], m, e2n)
+    _quat_mul_into(e2n, frame[4:], q)
+    return True
+
+
+@jit
 def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities, baro_density, gravity_w, wgt,
                     corr, tgt, gains, inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1,
-                    tmax, selective, scale_to_limit, tol, out):
+                    tmax, selective, scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out):
     """The vehicle's common lockstep tick from bytes to bytes: a same-host simulator-link packet
     ``rec`` (uint8) holding one HIL_SENSOR record with an IMU sample only (no barometer or
-    magnetometer bits) and finite accelerations and rates, to its HIL_ACTUATOR_CONTROLS record in
-    ``answer`` (uint8, :data:`HIL_ACTUATOR_RECORD`'s size).
+    magnetometer bits) and finite accelerations and rates, after a SKELETON_AHRS_REFERENCE record
+    on the attitude reference's ticks, to its HIL_ACTUATOR_CONTROLS record in ``answer`` (uint8,
+    :data:`HIL_ACTUATOR_RECORD`'s size).
 
     The steps of the decoding path, with the same numbers: ``hil.decode_hil_sensor`` (body FRD to
-    FLU), :func:`tick_kernel` with the propagation (its arguments from ``x`` on, without
+    FLU), :func:`tick_kernel` with the propagation (its arguments from ``x`` to ``tol``, without
     ``predict``, ``gyro`` and ``accel``), ``hil.encode_actuators`` (each command over
     ``thrust_max_n``, clipped to -1..1, as a float; ``mode``; the sample's ``time_usec`` echoed).
+    With an attitude reference (:func:`_ahrs_record`, ``ahrs_frame`` the frame change's two
+    quaternions) the propagation, then :func:`attitude_update_kernel` (covariance ``att_Rm``, gate
+    ``gate_sigma``), then the tick without the propagation, as the firmware runs a queued
+    measurement; ``ahrs`` (:data:`AHRS_OUT`) counts it and holds its time and quaternion.
     ``gyro`` (3,) gets the body rate (FLU). Returns ``(x, P, taken)``: with ``taken`` false (another
-    kind or size, baro/mag bits, a non-finite value, an answer buffer of another size) nothing was
-    changed or written and the caller
-    decodes the packet the general way. The fields sit at odd offsets: they are copied byte-wise
-    into aligned arrays, never read or written through a misaligned view."""
-    if rec.shape[0] != _SENSOR_SIZE or rec[0] != _SENSOR_KIND or answer.shape[0] != _ACT_SIZE:
+    kind or size, baro/mag bits, a non-finite value, a reference the decoder rejects, an answer
+    buffer of another size) nothing was changed or written and the caller decodes the packet the
+    general way. The fields sit at odd offsets: they are copied byte-wise into aligned arrays, never
+    read or written through a misaligned view."""
+    s0 = sensor_record_at(rec, rec.shape[0])
+    if s0 < 0 or answer.shape[0] != _ACT_SIZE:
         return x, P, False  # (the answer's size checked too: numba does not check the writes' bounds)
     bits = np.empty(1, np.uint32)
-    bits.view(np.uint8)[:] = rec[_SENSOR_BITS:_SENSOR_BITS + 4]
+    bits.view(np.uint8)[:] = rec[s0 + _SENSOR_BITS:s0 + _SENSOR_BITS + 4]
     if bits[0] & HIL_BARO_MAG_BITS:
         return x, P, False
     imu = np.empty(6, np.float32)  # xacc, yacc, zacc, xgyro, ygyro, zgyro: adjacent in the record
-    imu.view(np.uint8)[:] = rec[_SENSOR_ACC:_SENSOR_ACC + 24]
+    imu.view(np.uint8)[:] = rec[s0 + _SENSOR_ACC:s0 + _SENSOR_ACC + 24]
     for i in range(6):
         if not math.isfinite(imu[i]):
             return x, P, False
     accel = np.empty(3)
+    g = np.empty(3)
     for i in range(3):
         sign = 1.0 if i == 0 else -1.0  # frames.flu_frd: (x, -y, -z)
         accel[i] = sign * np.float64(imu[i])
-        gyro[i] = sign * np.float64(imu[3 + i])
-    xn, Pn = tick_kernel(x, P, True, gyro, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
-                         inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
-                         scale_to_limit, tol, out)
+        g[i] = sign * np.float64(imu[3 + i])
+    if s0 == 0:
+        xn, Pn = tick_kernel(x, P, True, g, accel, dt_s, densities, baro_density, gravity_w, wgt, corr, tgt, gains,
+                             inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax,
+                             selective, scale_to_limit, tol, out)
+    else:
+        qm = np.empty(4)
+        if not dt_s > 0.0 or not _ahrs_record(rec, ahrs_frame, qm):
+            return x, P, False  # (the decoding path raises for a step that is not positive)
+        xn, Pn, status = attitude_tick_kernel(x, P, qm, att_Rm, gate_sigma, g, accel, dt_s, densities, baro_density,
+                                              gravity_w, wgt, corr, tgt, gains, inertia, pos, att, gravity, B_pinv,
+                                              reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective, scale_to_limit,
+                                              tol, out)
+        ahrs[0 if status == 1 else 1] += 1.0  # (status -1, an invalid quaternion, cannot pass _ahrs_record)
+        tb = np.empty(1, np.uint64)
+        tb.view(np.uint8)[:] = rec[_AHRS_T:_AHRS_T + 8]
+        ahrs[2] = tb[0]
+        for i in range(4):
+            ahrs[3 + i] = qm[i]
+    for i in range(3):
+        gyro[i] = g[i]
     controls = np.zeros(16, np.float32)
     for i in range(8):
         u = out[i] / thrust_max_n
@@ -888,7 +997,7 @@ def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities
             u = -1.0
         controls[i] = np.float32(u)
     answer[0] = _ACT_KIND
-    answer[_ACT_T:_ACT_T + 8] = rec[_SENSOR_T:_SENSOR_T + 8]
+    answer[_ACT_T:_ACT_T + 8] = rec[s0 + _SENSOR_T:s0 + _SENSOR_T + 8]
     answer[_ACT_FLAGS:_ACT_FLAGS + 8] = 0
     answer[_ACT_CONTROLS:_ACT_CONTROLS + 64] = controls.view(np.uint8)
     answer[_ACT_MODE] = mode
@@ -900,10 +1009,10 @@ def hil_tick_kernel(rec, thrust_max_n, mode, answer, gyro, x, P, dt_s, densities
 # --------------------------------------------------------------------------------------------
 
 #: ``info`` of :func:`hil_loop_kernel`: why it returned (one of the ``LOOP_*`` codes), the ticks it
-#: computed, the answers it sent, the newest tick's sample time [us] and ``dt`` [s], and the length of
-#: a packet it received and left to the caller
-LOOP_INFO = {"status": 0, "ticks": 1, "sent": 2, "t_us": 3, "dt": 4, "packet": 5}
-LOOP_INFO_SIZE = 6
+#: computed, the answers it sent, the newest tick's sample time [us] and ``dt`` [s], the length of
+#: a packet it received and left to the caller, and the bytes of the packets it took
+LOOP_INFO = {"status": 0, "ticks": 1, "sent": 2, "t_us": 3, "dt": 4, "packet": 5, "taken_bytes": 6}
+LOOP_INFO_SIZE = 7
 #: nothing received is left over: the wait timed out or was interrupted, another descriptor (a
 #: MAVLink port) is readable, the simulator's socket reported an error or hang-up, or ``max_ticks``
 LOOP_IDLE = 0
@@ -965,7 +1074,7 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
                     dt_default_s, target_time_s, target_stale_s, corr_time_s, corr_hold_s, corr_stale_s, gps_fix_s,
                     gps_timeout_s, due_us, arm_height_m, takeoff_m, densities, baro_density, gravity_w, corr, tgt, gains,
                     inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
-                    scale_to_limit, tol, out, info):
+                    scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out, info):
     """The vehicle's lockstep over its quiet ticks in one call, the waits and the socket calls in it
     (C library's ``poll``, ``recv``, ``send``): the simulator's socket is ``pfd``'s first
     descriptor (a same-host simulator link, ``SOCK_SEQPACKET``, non-blocking), the vehicle's MAVLink
@@ -986,12 +1095,14 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
     it would not set again), at a packet it does not take (:data:`LOOP_PACKET`), and when there is
     nothing to do (:data:`LOOP_IDLE`: timeout, a MAVLink port readable, the simulator's socket in
     error, ``max_ticks`` quiet ticks). Returns ``(x, P)``; the integrals ``pos``, ``att`` and
-    ``xi_pre`` are updated in place, ``out`` and ``gyro`` hold the newest tick's, ``info``
+    ``xi_pre`` are updated in place, ``out`` and ``gyro`` hold the newest tick's, ``ahrs``
+    (:data:`AHRS_OUT`) counts the attitude references fused and holds the newest, ``info``
     (:data:`LOOP_INFO`) the rest."""
     info[0] = LOOP_IDLE
     info[1] = 0.0
     info[2] = 0.0
     info[5] = 0.0
+    info[6] = 0.0
     while info[1] < max_ticks:
         for k in range(n_fds):
             pfd[2 * k + 1] = _POLLIN
@@ -1006,12 +1117,13 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         n = _c_recv(pfd[0], buf, buf.shape[0], 0)
         if n <= 0:
             return x, P  # EAGAIN, or the peer closed: the caller's recv sees it again
-        if n != _SENSOR_SIZE or buf[0] != _SENSOR_KIND:
+        s0 = sensor_record_at(buf, n)
+        if s0 < 0:
             info[0] = LOOP_PACKET
             info[5] = n
             return x, P
         tb = np.empty(1, np.uint64)
-        tb.view(np.uint8)[:] = buf[_SENSOR_T:_SENSOR_T + 8]
+        tb.view(np.uint8)[:] = buf[s0 + _SENSOR_T:s0 + _SENSOR_T + 8]
         t_us = tb[0]
         t_s = t_us * 1e-6  # (hil.seconds)
         if not (t_s - target_time_s <= target_stale_s) or not (t_s - gps_fix_s < gps_timeout_s):
@@ -1033,13 +1145,14 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         xn, Pn, taken = hil_tick_kernel(buf[:n], thrust_max_n, mode, answer, gyro, x, P, dt, densities,
                                         baro_density, gravity_w, wgt, corr, tgt, gains, inertia, pos, att, gravity,
                                         B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
-                                        scale_to_limit, tol, out)
+                                        scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out)
         if not taken:
             info[0] = LOOP_PACKET
             info[5] = n
             return x, P
         x, P = xn, Pn
         info[1] += 1.0
+        info[6] += n
         info[3] = t_us
         info[4] = dt
         t_prev_s = t_s
@@ -1108,9 +1221,12 @@ def warm_up() -> float:
     from .hil import encode_hil_sensor
     from .simlink import encode_packet
 
+    from .hil import encode_ahrs
+
     record = np.frombuffer(encode_packet([encode_hil_sensor(0.006, accel, z3)]), dtype=np.uint8)
     answer = np.zeros(HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
     fw.on_hil_record(0.006, record, answer, 8.0, 128)
+    sensor_record_at(record, len(record))  # (the vehicle finds the sample's time with it)
     # ... and its lockstep loop (hil_loop_kernel), over a socket pair: one tick, then no packet
     import socket
 
@@ -1120,8 +1236,10 @@ def warm_up() -> float:
     try:
         sim.setblocking(False)
         harness.send(encode_packet([encode_hil_sensor(0.008, accel, z3)]))
+        harness.send(encode_packet([encode_ahrs(0.010, q), encode_hil_sensor(0.010, accel, z3)]))
         fds = np.array([sim.fileno(), 0], dtype=np.int32)
-        fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send)
+        fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send,
+                       np.zeros(AHRS_OUT_SIZE))
     finally:
         sim.close()
         harness.close()

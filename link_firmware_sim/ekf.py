@@ -748,13 +748,24 @@ class LinkEkf:
             q = np.asarray(q_meas_wxyz, dtype=float)
             if q.shape != (4,):
                 _check_meas(q, "attitude quaternion", 4)
-            x, P, status, test, r = _fast.attitude_update_kernel(self.x, self.P, q, _covariances(cfg)["att"],
-                                                                 float(cfg.gate_sigma), X_Q.start, E_TH.start)
+            x, P, status, test, r = _fast.attitude_update_kernel(self.x, self.P, q, *self.attitude_kernel_args(),
+                                                                 X_Q.start, E_TH.start)
             if status < 0:
                 quat_normalize(_check_meas(q, "attitude quaternion", 4))  # raises the specification's error
             return self._record("att", (x, P, UpdateInfo(status == 1, r, test)))
         return self._record("att", _attitude(self.x, self.P, q_meas_wxyz, attitude_variance(cfg), cfg.gate_sigma,
                                              self._la))
+
+    def attitude_kernel_args(self) -> tuple[np.ndarray, float]:
+        """The measurement covariance and the gate :meth:`update_attitude` passes to
+        :func:`._fast.attitude_update_kernel`, for the kernels that fuse an attitude reference
+        inside a tick (:func:`._fast.hil_tick_kernel`)."""
+        return _covariances(self.config)["att"], float(self.config.gate_sigma)
+
+    def count_attitude(self, accepted: int, rejected: int) -> None:
+        """Attitude references those kernels fused, counted as :meth:`update_attitude` counts them."""
+        self.accepted["att"] += accepted
+        self.rejected["att"] += rejected
 
     def update_heading(self, yaw_rad: float) -> UpdateInfo:
         cfg = self.config

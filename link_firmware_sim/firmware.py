@@ -38,6 +38,7 @@ import numpy as np
 
 from companion.configfile import require_positive
 from companion.estimation.so3 import attitude_error, quat_to_rotmat, retract
+from companion.mavlink.frames import FRAME_CHANGE_QUATS
 from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
@@ -597,18 +598,31 @@ class LinkFirmware:
         as the step-by-step path runs them), with the same state changes as the step-by-step path.
         ``None`` (nothing changed) in any other case, or without the compiled kernels. The packed
         arrays the kernel reads are kept per object (targets at 50 Hz, gains and the inertia when
-        they change), not rebuilt at 500 Hz."""
+        they change), not rebuilt at 500 Hz. A tick with an attitude reference alone queued (the
+        attitude reference's ticks between GPS fixes) runs the propagation, the update and the
+        tick as one call too (:func:`._fast.attitude_tick_kernel`)."""
         if not self._fused_applies(t_s):
             return None
         ekf = self.ekf
         gyro = np.array(gyro_b_rad_s, dtype=float)
         accel = np.asarray(accel_b_m_s2, dtype=float)
+        out = np.empty(_fast.TICK_OUT_SIZE)
         predict = not self._pending
         if not predict:
+            pending = self._pending
+            if len(pending) == 1 and pending[0][0] == "att" and dt > 0.0:  # an attitude reference alone
+                q = np.asarray(pending[0][1][0], dtype=float)
+                if q.shape == (4,):
+                    x, P, status = _fast.attitude_tick_kernel(ekf.x, ekf.P, q, *ekf.attitude_kernel_args(), gyro,
+                                                              accel, dt, *self._fused_args(t_s), out)
+                    if status >= 0:  # (else the steps below raise the specification's error)
+                        ekf.x, ekf.P = x, P
+                        ekf.count_attitude(int(status == 1), int(status == 0))
+                        pending.clear()
+                        return self._fused_done(t_s, dt, gyro, out)
             ekf.predict(gyro, accel, dt)
             self.time_s = t_s
             self._apply_pending()
-        out = np.empty(_fast.TICK_OUT_SIZE)
         ekf.x, ekf.P = _fast.tick_kernel(ekf.x, ekf.P, predict, gyro, accel, dt, *self._fused_args(t_s), out)
         return self._fused_done(t_s, dt, gyro, out)
 
@@ -652,10 +666,12 @@ class LinkFirmware:
         return out[_OUT_COMMAND]
 
     def on_hil_record(self, t_s: float, record: np.ndarray, answer: np.ndarray, thrust_max_n: float, mode: int,
-                      answered=None) -> np.ndarray | None:
+                      answered=None, ahrs: np.ndarray | None = None) -> np.ndarray | None:
         """:meth:`on_imu`'s fused case (armed, eq. 1, a fresh target) with no measurement queued,
         straight from a same-host simulator-link record to its answer record, by
-        :func:`._fast.hil_tick_kernel`: ``record`` (uint8) one HIL_SENSOR of sample time ``t_s``,
+        :func:`._fast.hil_tick_kernel`: ``record`` (uint8) one HIL_SENSOR of sample time ``t_s``
+        (after a SKELETON_AHRS_REFERENCE on the attitude reference's ticks: :meth:`on_attitude`'s
+        update, counted by the EKF; ``ahrs``, when given, gets :data:`._fast.AHRS_OUT`),
         ``answer`` (uint8) gets the HIL_ACTUATOR_CONTROLS (``thrust_max_n``, ``mode``), and
         ``answered(answer)``, when given, is called as soon as it is written and its wrench found
         finite, before the tick's bookkeeping (integrals, health and thrust-limit monitors): the
@@ -668,11 +684,15 @@ class LinkFirmware:
             return None
         dt = self._tick_dt(t_s)
         gyro, out, ekf = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), self.ekf
+        ahrs = np.zeros(_fast.AHRS_OUT_SIZE) if ahrs is None else ahrs
+        ahrs[:] = 0.0
         x, P, taken = _fast.hil_tick_kernel(record, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, dt,
-                                            *self._fused_args(t_s), out)
+                                            *self._fused_args(t_s), *ekf.attitude_kernel_args(), FRAME_CHANGE_QUATS,
+                                            ahrs, out)
         if not taken:
             return None
         ekf.x, ekf.P = x, P
+        ekf.count_attitude(int(ahrs[_AHRS_ACCEPTED]), int(ahrs[_AHRS_REJECTED]))
         if answered is not None and out[_OUT_FINITE]:
             answered(answer)
         return self._fused_done(t_s, dt, gyro, out)
@@ -682,14 +702,16 @@ class LinkFirmware:
     hil_loop: bool = _fast.ENABLED
 
     def on_hil_loop(self, pfd: np.ndarray, n_fds: int, timeout_ms: int, max_ticks: int, buf: np.ndarray,
-                    answer: np.ndarray, thrust_max_n: float, mode: int, due_us: int, answered) -> tuple | None:
+                    answer: np.ndarray, thrust_max_n: float, mode: int, due_us: int, answered,
+                    ahrs: np.ndarray) -> tuple | None:
         """The vehicle's lockstep over quiet ticks (:func:`._fast.hil_loop_kernel`, the waits and the
         socket calls in it): each is :meth:`on_hil_record`'s tick, answered through the simulator's
         socket (``pfd``'s first descriptor) from ``answer``, with the bookkeeping left out that such a
         tick does not change. The newest tick's bookkeeping is done here (``answered(answer)`` first
         if the kernel did not send it), as :meth:`on_hil_record` does it, and stands for the ticks
         before it. ``due_us``: the vehicle's next stream or log row (a tick at or after it is the
-        last). Returns ``(status, ticks, sent, t_us, packet)`` (:data:`._fast.LOOP_INFO`); ``None``
+        last). ``ahrs`` gets :data:`._fast.AHRS_OUT` (the attitude references fused, counted by the
+        EKF). Returns ``(status, ticks, sent, t_us, packet, taken_bytes)`` (:data:`._fast.LOOP_INFO`); ``None``
         (nothing waited for or changed) unless the case holds: armed, eq. 1, a target, no
         measurement or event queued, the GPS and thrust-limit monitors quiet."""
         if not (self.hil_loop and self.ekf is not None and not self._pending and not self.events
@@ -703,20 +725,23 @@ class LinkFirmware:
         densities, baro_density, gravity_w, _, _, tgt, gains, inertia, pos, att, gravity, *alloc = args
         pos, att = pos.copy(), att.copy()  # updated in place by the kernel
         gyro, out, info = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), np.zeros(_fast.LOOP_INFO_SIZE)
+        ahrs[:] = 0.0
         x, P = _fast.hil_loop_kernel(
             pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, self.time_s,
             1.0 / cfg.rate_hz, self._target_time_s, cfg.target_stale_s, corr_time, cfg.correction_hold_s,
             cfg.correction_stale_s, self.gps_health.last_fix_s, self.gps_health.config.timeout_s, due_us,
             math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M, densities, baro_density,
-            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, out, info)
-        status, ticks, sent, t_us, packet = (int(info[k]) for k in (0, 1, 2, 3, 5))
+            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, *ekf.attitude_kernel_args(),
+            FRAME_CHANGE_QUATS, ahrs, out, info)
+        status, ticks, sent, t_us, packet, taken_bytes = (int(info[k]) for k in (0, 1, 2, 3, 5, 6))
         if ticks:
             ekf.x, ekf.P = x, P
+            ekf.count_attitude(int(ahrs[_AHRS_ACCEPTED]), int(ahrs[_AHRS_REJECTED]))
             t_s = t_us * 1e-6
             if sent < ticks and out[_OUT_FINITE]:
                 answered(answer)
             self._fused_done(t_s, float(info[4]), gyro, out)
-        return status, ticks, sent, t_us, packet
+        return status, ticks, sent, t_us, packet, taken_bytes
 
 
 _OUT_COMMAND = _fast.TICK_OUT["command"]
@@ -728,6 +753,8 @@ _OUT_P_CTRL_Z = _fast.TICK_OUT["p_ctrl"].start + 2
 _OUT_FINITE = _fast.TICK_OUT["finite"]
 _OUT_SCALE = _fast.TICK_OUT["scale"]
 _OUT_SATURATED = _fast.TICK_OUT["saturated"]
+_AHRS_ACCEPTED = _fast.AHRS_OUT["accepted"]
+_AHRS_REJECTED = _fast.AHRS_OUT["rejected"]
 
 
 _NO_CORRECTION = np.zeros(9)

@@ -199,10 +199,17 @@ def encode_ahrs(t_s: float, q_enu_flu):
     return _D.MAVLink_skeleton_ahrs_reference_message(usec(t_s), quat_enu_flu_to_ned_frd(q_enu_flu).tolist())
 
 
+#: the largest departure from 1 of an attitude reference's norm :func:`decode_ahrs` takes
+AHRS_NORM_TOLERANCE = 1e-3
+
+
 def decode_ahrs(msg) -> tuple[float, np.ndarray]:
+    """``(time [s], q body FLU to ENU)``; the quaternion normalised, its norm summed in order
+    (``w, x, y, z``: the vehicle's record tick, :func:`._fast.hil_tick_kernel`, gives the same numbers)."""
     q = _check("SKELETON_AHRS_REFERENCE.q", msg.q)
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > 1e-3:
+    w, x, y, z = q.tolist()
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if abs(n - 1.0) > AHRS_NORM_TOLERANCE:
         raise MessageError(f"SKELETON_AHRS_REFERENCE.q: norm {n:.6g} is not 1")
     return seconds(msg.time_usec), quat_ned_frd_to_enu_flu(q / n)
 

@@ -18,10 +18,11 @@ A sender passes the :mod:`.hil` encoders' pymavlink messages; a receiver gets re
 with the same field names (an array field as a tuple) and ``get_type()``, for the :mod:`.hil`
 decoders: units, frames and value checks are the same code on both links, only the framing
 differs (``python -m sitl.bench sitl`` measures both). One exception, with the same bytes and
-numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick) to its
-answer record in one compiled call (``Vehicle._tick_record``, :func:`._fast.hil_tick_kernel`), at
-the offsets :data:`._fast.HIL_SENSOR_RECORD` / ``HIL_ACTUATOR_RECORD``, which this module checks
-against the dialect when it is imported; every other packet goes through the decoders. A run of
+numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick), or a
+SKELETON_AHRS_REFERENCE record and one (the attitude reference's ticks), to its answer record in
+one compiled call (``Vehicle._tick_record``, :func:`._fast.hil_tick_kernel`), at the offsets
+:data:`._fast.HIL_SENSOR_RECORD` / ``HIL_AHRS_RECORD`` / ``HIL_ACTUATOR_RECORD``, which this module
+checks against the dialect when it is imported; every other packet goes through the decoders. A run of
 such ticks, with the waits and the socket calls between them, is one compiled call too
 (``Vehicle._poll_loop``, :func:`._fast.hil_loop_kernel`: it receives into a buffer of
 :data:`RECV_BYTES`, as :meth:`SimLinkPort.recv` does, and leaves any other packet to the decoders).
@@ -147,9 +148,10 @@ def _check_compiled_layouts() -> None:
     t_us, flags, bits, mode = 0x0102030405060708, 0x1112131415161718, 0x89ABCDEF, 0x5A
     imu = tuple(float(k) for k in range(1, 7))  # xacc..zacc, xgyro..zgyro (exact in float32)
     controls = tuple(float(k) for k in range(101, 117))
-    s, a = _fast.HIL_SENSOR_RECORD, _fast.HIL_ACTUATOR_RECORD
+    s, a, r = _fast.HIL_SENSOR_RECORD, _fast.HIL_ACTUATOR_RECORD, _fast.HIL_AHRS_RECORD
     sensor = _LAYOUTS["HIL_SENSOR"].pack(D.MAVLink_hil_sensor_message(
         t_us, *imu, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, fields_updated=bits, id=0))
+    ahrs = _LAYOUTS["SKELETON_AHRS_REFERENCE"].pack(D.MAVLink_skeleton_ahrs_reference_message(t_us, imu[:4]))
     answer = _LAYOUTS["HIL_ACTUATOR_CONTROLS"].pack(D.MAVLink_hil_actuator_controls_message(
         t_us, controls, mode, flags))
     checks = [
@@ -159,6 +161,10 @@ def _check_compiled_layouts() -> None:
         ("HIL_SENSOR acc and gyro", struct.unpack_from("<6f", sensor, s["acc"]), imu),
         ("HIL_SENSOR gyro", struct.unpack_from("<3f", sensor, s["gyro"]), imu[3:]),
         ("HIL_SENSOR.fields_updated", struct.unpack_from("<I", sensor, s["fields_updated"])[0], bits),
+        ("SKELETON_AHRS_REFERENCE size", len(ahrs), r["size"]),
+        ("SKELETON_AHRS_REFERENCE kind", ahrs[0], r["kind"]),
+        ("SKELETON_AHRS_REFERENCE.time_usec", struct.unpack_from("<Q", ahrs, r["time_usec"])[0], t_us),
+        ("SKELETON_AHRS_REFERENCE.q", struct.unpack_from("<4f", ahrs, r["q"]), imu[:4]),
         ("HIL_ACTUATOR_CONTROLS size", len(answer), a["size"]),
         ("HIL_ACTUATOR_CONTROLS kind", answer[0], a["kind"]),
         ("HIL_ACTUATOR_CONTROLS.time_usec", struct.unpack_from("<Q", answer, a["time_usec"])[0], t_us),

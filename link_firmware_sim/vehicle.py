@@ -97,9 +97,8 @@ FORCE_DISARM = 21196
 FEEDFORWARD_HOLD_MS = 100
 _LINK_NAMES = ("onboard", "gcs")
 # the same-host link's records the compiled tick reads and writes (checked against the dialect by .simlink)
-_SENSOR_RECORD_KIND = _fast.HIL_SENSOR_RECORD["kind"]
-_SENSOR_RECORD_SIZE = _fast.HIL_SENSOR_RECORD["size"]
-_SENSOR_TIME = slice(_fast.HIL_SENSOR_RECORD["time_usec"], _fast.HIL_SENSOR_RECORD["time_usec"] + 8)
+_SENSOR_TIME = _fast.HIL_SENSOR_RECORD["time_usec"]
+_AHRS_ACCEPTED, _AHRS_REJECTED, _AHRS_TIME, _AHRS_Q = _fast.AHRS_OUT.values()
 _ANSWER_RECORD_SIZE = _fast.HIL_ACTUATOR_RECORD["size"]
 #: the most quiet ticks one call of the lockstep loop runs (streams and log rows end it sooner)
 _LOOP_MAX_TICKS = 64
@@ -182,6 +181,7 @@ class Vehicle:
         # the same-host link's common tick, bytes to bytes (_tick_record): the answer's buffer
         self._records = isinstance(self.sim, SimLinkPort)
         self._answer_record = np.zeros(_ANSWER_RECORD_SIZE, dtype=np.uint8)
+        self._ahrs_out = np.zeros(_fast.AHRS_OUT_SIZE)  # ... and the attitude references it fused
         # ... and its lockstep loop's (_poll_loop): the receive buffer and the poll descriptors
         self._loop_buf = np.zeros(RECV_BYTES, dtype=np.uint8)
         self._loop_fds = np.zeros(2 * 3, dtype=np.int32)
@@ -443,23 +443,36 @@ class Vehicle:
         self._after_tick()
 
     def _tick_record(self, data: bytes) -> bool:
-        """The same-host link's common tick (one HIL_SENSOR record with an IMU sample only, armed,
-        eq. 1's controller, a fresh target, no measurement queued) from the packet's bytes to the
-        answer's, in one compiled call (:meth:`LinkFirmware.on_hil_record`): the decoding path's
-        numbers (``tests/test_fast_paths.py``) without a message object on the way. ``False``
-        (nothing changed) for any other packet: the caller decodes it."""
-        if len(data) != _SENSOR_RECORD_SIZE or data[0] != _SENSOR_RECORD_KIND:
+        """The same-host link's common tick (one HIL_SENSOR record with an IMU sample only, after
+        a SKELETON_AHRS_REFERENCE on the attitude reference's ticks; armed, eq. 1's controller, a
+        fresh target, no measurement queued) from the packet's bytes to the answer's, in one
+        compiled call (:meth:`LinkFirmware.on_hil_record`): the decoding path's numbers
+        (``tests/test_fast_paths.py``) without a message object on the way. ``False`` (nothing
+        changed) for any other packet: the caller decodes it."""
+        rec = np.frombuffer(data, dtype=np.uint8)
+        at = _fast.sensor_record_at(rec, len(rec))
+        if at < 0:
             return False
-        t_us = int.from_bytes(data[_SENSOR_TIME], "little")
+        t_us = int.from_bytes(data[at + _SENSOR_TIME:at + _SENSOR_TIME + 8], "little")
         t_s = seconds(t_us)
         # (a record it takes is answered through send_packet before the tick's bookkeeping)
-        if self.fw.on_hil_record(t_s, np.frombuffer(data, dtype=np.uint8), self._answer_record, self.thrust_max_n,
-                                 D.MAV_MODE_FLAG_SAFETY_ARMED, self.sim.send_packet) is None:
+        if self.fw.on_hil_record(t_s, rec, self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED,
+                                 self.sim.send_packet, self._ahrs_out) is None:
             return False
         self.fc_time_us, self.fc_time_s = t_us, t_s
         self.sim.count("HIL_SENSOR")
+        self._ahrs_fused()
         self._after_tick()
         return True
+
+    def _ahrs_fused(self) -> None:
+        """The attitude references a compiled tick fused (``_ahrs_out``): counted on the link, the
+        newest kept, as :meth:`_on_hil` does with one it decodes."""
+        a = self._ahrs_out
+        n = int(a[_AHRS_ACCEPTED] + a[_AHRS_REJECTED])
+        if n:
+            self.sim.count("SKELETON_AHRS_REFERENCE", n)
+            self._last_ahrs = (seconds(int(a[_AHRS_TIME])), a[_AHRS_Q].copy())
 
     def _poll_loop(self, timeout_s: float) -> bool:
         """The same-host link's quiet ticks in one compiled call (:meth:`LinkFirmware.on_hil_loop`:
@@ -481,13 +494,14 @@ class Vehicle:
         due = int(min(due, _NEVER_US))  # (no stream at all: inf; the kernel takes an integer)
         res = self.fw.on_hil_loop(fds, n_fds, max(int(timeout_s * 1e3), 0), _LOOP_MAX_TICKS, self._loop_buf,
                                   self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED, due,
-                                  self.sim.send_packet)
+                                  self.sim.send_packet, self._ahrs_out)
         if res is None:
             return False
-        status, ticks, sent, t_us, packet = res
+        status, ticks, sent, t_us, packet, taken_bytes = res
         if ticks:
-            self.sim.received(ticks * _SENSOR_RECORD_SIZE)
+            self.sim.received(taken_bytes)
             self.sim.count("HIL_SENSOR", ticks)
+            self._ahrs_fused()
             self.sim.sent(sent)
             self.fc_time_us, self.fc_time_s = t_us, seconds(t_us)
             self._after_tick()

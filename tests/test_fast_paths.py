@@ -264,14 +264,18 @@ def _flight_events(rng, k: int, p0, q0, *, targets_until: int, far_at: int, gps_
     return events
 
 
-def test_fused_tick_matches_step_by_step():
+def test_fused_tick_matches_step_by_step(monkeypatch):
     """LinkFirmware.on_imu through the one-kernel tick (_tick_fused) against the step-by-step path
     (predict, updates, control estimate, eq. 1, allocation) over a flight segment: corrections
-    arriving and fading, GPS and attitude updates queued, new targets, a target 30 m off (the
-    rotors at their limit: the wrench scaled, reported), a stale target (the fallback)."""
+    arriving and fading, GPS and attitude updates queued (an attitude reference alone through
+    attitude_tick_kernel), new targets, a target 30 m off (the rotors at their limit: the wrench
+    scaled, reported), a stale target (the fallback)."""
 
     rng = np.random.default_rng(23)
     fused, stepwise = _firmware_pair()
+    by_attitude_kernel = []
+    kernel = _fast.attitude_tick_kernel
+    monkeypatch.setattr(_fast, "attitude_tick_kernel", lambda *a: by_attitude_kernel.append(1) or kernel(*a))
     taken = []
     plain = fused._tick_fused
 
@@ -312,6 +316,7 @@ def test_fused_tick_matches_step_by_step():
     assert fused.correction_weight(t) == stepwise.correction_weight(t)
     n_fused = sum(taken)
     assert 300 < n_fused < len(taken)  # most ticks fused, the stale-target ones through the fallback
+    assert len(by_attitude_kernel) > 150, len(by_attitude_kernel)  # ticks 2, 4, 6, 8 of every 10 while fused
     with pytest.raises(ValueError, match="finite"):  # the allocator's check, on the fused path too
         fused.set_target(t, PoseTarget.hold(np.full(3, np.nan), q0))
         fused.on_imu(t + 0.002, gyro, accel)
@@ -320,16 +325,22 @@ def test_fused_tick_matches_step_by_step():
 def test_record_tick_matches_the_decoding_path():
     """LinkFirmware.on_hil_record (hil_tick_kernel: a same-host simulator-link packet's bytes to its
     answer's) against the decoding path the other ticks take (simlink.decode_packet,
-    hil.decode_hil_sensor, on_imu, hil.encode_actuators, simlink.encode_packet) over a flight
-    segment: corrections, measurements queued (those ticks are left to the decoding path), new
-    targets, one 30 m off (the rotors at their limit, the controls clipped to -1..1): the answer
-    byte for byte, the commands and the state bit for bit. Then what the kernel must leave to the
-    decoders, with nothing changed or written: a non-finite sample, a barometer or magnetometer
-    sample, another kind, two records, a cut packet, the fused tick off."""
+    hil.decode_hil_sensor, hil.decode_ahrs, on_attitude, on_imu, hil.encode_actuators,
+    simlink.encode_packet) over a flight segment: corrections, measurements queued (those ticks are
+    left to the decoding path), attitude references in the packet (accepted, and one 40 deg off
+    rejected by the gate), new targets, one 30 m off (the rotors at their limit, the controls
+    clipped to -1..1): the answer byte for byte, the commands, the state and the EKF's counts bit
+    for bit. Then what the kernel must leave to the decoders, with nothing changed or written: a
+    non-finite sample, a barometer or magnetometer sample, another kind, a reference not finite, not
+    of norm 1 or without its sample, the records in another order or with a GPS fix, a cut packet,
+    the fused tick off."""
+    from companion.estimation.so3 import quat_from_rotvec, quat_mul
+    from companion.mavlink.codec import seconds
     from link_firmware_sim import hil
     from link_firmware_sim.simlink import decode_packet, encode_packet
 
     assert _fast.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
+    assert _fast.AHRS_NORM_TOLERANCE == hil.AHRS_NORM_TOLERANCE
     rng = np.random.default_rng(29)
     record, decoding = _firmware_pair()
     decoding.fused_tick = True  # its ticks through on_imu (fused when it can: the same kernel's numbers)
@@ -340,30 +351,51 @@ def test_record_tick_matches_the_decoding_path():
         fw.initialize(0.0, p0, np.zeros(3), q0)
         fw.arm(0.0)
         fw.set_target(0.0, PoseTarget.hold(p0, q0))
-    taken, clipped = 0, 0
+    taken, clipped, references = 0, 0, np.zeros(2, dtype=int)
     for k in range(1, 500):
         t = k * 0.002
-        events = _flight_events(rng, k, p0, q0, targets_until=500, far_at=301, gps_every=25, attitude_every=5)
+        events = _flight_events(rng, k, p0, q0, targets_until=500, far_at=301, gps_every=25, attitude_every=35)
         for fw in (record, decoding):
             for name, args in events:
                 getattr(fw, name)(*args)
         gyro, accel = rng.normal(size=3) * 0.05, np.array([0.0, 0.0, 9.81]) + rng.normal(size=3) * 0.1
-        packet = encode_packet([hil.encode_hil_sensor(t, accel, gyro)])
-        t_s, g, a = hil.decode_hil_sensor(decode_packet(packet)[0])
+        msgs = [hil.encode_hil_sensor(t, accel, gyro)]
+        if k % 3 == 1:  # an attitude reference in the packet, 40 deg off at tick 202
+            off = quat_from_rotvec(np.radians([0.0, 40.0, 0.0])) if k == 202 else quat_normalize(
+                np.array([1.0, *(rng.normal(size=3) * 0.01)]))
+            msgs.insert(0, hil.encode_ahrs(t, quat_mul(q0, off)))
+        packet = encode_packet(msgs)
+        decoded = decode_packet(packet)
+        reference = hil.decode_ahrs(decoded[0]) if len(msgs) == 2 else None
+        if reference is not None:
+            decoding.on_attitude(*reference)
+        t_s, g, a = hil.decode_hil_sensor(decoded[-1])
         expected = decoding.on_imu(t_s, g, a)
         expected_answer = encode_packet([hil.encode_actuators(t_s, expected, tmax, True)])
         answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
+        fused = np.full(_fast.AHRS_OUT_SIZE, 7.0)  # (zeroed by the call)
         handed, last_s = [], record.time_s  # the answer, handed over before the tick's bookkeeping
         command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128,
-                                       lambda ans: handed.append((ans.tobytes(), record.time_s)))
+                                       lambda ans: handed.append((ans.tobytes(), record.time_s)), fused)
         if command is None:  # measurements queued: the decoding path, nothing written
             assert record._pending and not answer.any() and not handed, f"tick {k}"
+            if reference is not None:
+                record.on_attitude(*reference)
             command = record.on_imu(t_s, g, a)
         else:
             taken += 1
             assert answer.tobytes() == expected_answer, f"tick {k}"
             assert handed == [(expected_answer, last_s)] and last_s < t_s == record.time_s, f"tick {k}"
             clipped += int(np.any(np.abs(expected) > tmax))
+            out = _fast.AHRS_OUT
+            if reference is None:
+                assert not fused.any(), f"tick {k}"
+            else:  # counted, and the reference as the decoder gives it
+                references += fused[[out["accepted"], out["rejected"]]].astype(int)
+                assert fused[out["accepted"]] + fused[out["rejected"]] == 1, f"tick {k}"
+                assert seconds(int(fused[out["t_us"]])) == reference[0], f"tick {k}"
+                np.testing.assert_array_equal(fused[out["q"]], reference[1], err_msg=f"tick {k}")
+        assert (record.ekf.accepted, record.ekf.rejected) == (decoding.ekf.accepted, decoding.ekf.rejected)
         np.testing.assert_array_equal(command, expected, err_msg=f"tick {k}")
         np.testing.assert_array_equal(record.ekf.x, decoding.ekf.x)
         np.testing.assert_array_equal(record.ekf.P, decoding.ekf.P)
@@ -378,6 +410,7 @@ def test_record_tick_matches_the_decoding_path():
         assert record.events == decoding.events
     assert record.thrust_limit.report() == decoding.thrust_limit.report()
     assert 300 < taken < 499 and clipped > 10, (taken, clipped)
+    assert references[0] > 100 and references[1] == 1, references  # fused in the kernel: accepted, rejected
 
     t = 500 * 0.002
     sample = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3))
@@ -387,7 +420,12 @@ def test_record_tick_matches_the_decoding_path():
     mag = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3), mag_flu_gauss=np.array([0.2, 0.0, -0.4]))
     gps = hil.encode_hil_gps(t, p0, np.zeros(3), hil.GeoOrigin())
     left = [encode_packet([m]) for m in (nan, inf, baro, mag, gps)]
-    left += [encode_packet([hil.encode_ahrs(t, q0), sample]), encode_packet([sample])[:-1]]
+    ahrs = hil.encode_ahrs(t, q0)
+    left += [encode_packet(m) for m in ([ahrs], [sample, ahrs], [gps, ahrs, sample], [ahrs, baro], [ahrs, nan])]
+    for q in ([np.nan, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.05], [0.0, 0.0, 0.0, 0.0]):  # the decoder rejects
+        ahrs.q = q
+        left.append(encode_packet([ahrs, sample]))
+    left.append(encode_packet([sample])[:-1])
     before = (record.ekf.x.copy(), record.ekf.P.copy(), record.time_s, record.allocator.xi_pre.copy())
     for packet in left:
         answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)

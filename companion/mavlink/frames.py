@@ -26,6 +26,7 @@ __all__ = [
     "flu_frd",
     "quat_enu_flu_to_ned_frd",
     "quat_ned_frd_to_enu_flu",
+    "FRAME_CHANGE_QUATS",
     "error_cov_enu_ned",
     "UPPER_9",
     "pack_upper",
@@ -37,6 +38,10 @@ FLU_FRD = np.diag([1.0, -1.0, -1.0])
 _S = 1.0 / math.sqrt(2.0)
 _Q_E2N = np.array([0.0, _S, _S, 0.0])  # rotation ENU -> NED
 _Q_F2F = np.array([0.0, 1.0, 0.0, 0.0])  # rotation FLU -> FRD
+#: ``q_E2N`` then ``q_F2F`` (8,): the attitude's frame change as data, for a compiled copy of
+#: :func:`quat_ned_frd_to_enu_flu` that must give its numbers (the vehicle's record tick)
+FRAME_CHANGE_QUATS = np.concatenate((_Q_E2N, _Q_F2F))
+FRAME_CHANGE_QUATS.setflags(write=False)
 _T9 = np.kron(np.eye(3), ENU_NED)  # [dp; dv; dtheta]
 
 #: Row-major upper triangle (diagonal included) of a 9x9 matrix: the order of the 45
