@@ -368,6 +368,17 @@ def update_rows_kernel(x, P, r, H, Rm, gate_sigma):
 
 
 @jit
+def _quat_mul_into(a, b, out):
+    """``so3.quat_mul``'s one-product case into ``out``: the same operations in the same order."""
+    aw, ax, ay, az = a[0], a[1], a[2], a[3]
+    bw, bx, by, bz = b[0], b[1], b[2], b[3]
+    out[0] = aw * bw - ax * bx - ay * by - az * bz
+    out[1] = aw * bx + ax * bw + ay * bz - az * by
+    out[2] = aw * by - ax * bz + ay * bw + az * bx
+    out[3] = aw * bz + ax * by - ay * bx + az * bw
+
+
+@jit
 def attitude_update_kernel(x, P, q_meas, Rm, gate_sigma, q0, b0):
     """ekf.ekf_update_attitude: the measured quaternion normalised (``so3.quat_normalize``), the
     residual ``so3.attitude_error(q_meas, q_est)`` (the world-frame rotation vector, angle in
@@ -380,13 +391,13 @@ def attitude_update_kernel(x, P, q_meas, Rm, gate_sigma, q0, b0):
     norm = math.sqrt(w * w + a * a + b * b + c * c)
     if not (math.isfinite(norm) and norm >= 1e-12):
         return x, P, -1, math.nan, r
-    w, a, b, c = w / norm, a / norm, b / norm, c / norm
-    # q_meas (x) conj(q_est)
-    ew, ex, ey, ez = x[q0], -x[q0 + 1], -x[q0 + 2], -x[q0 + 3]
-    dw = w * ew - a * ex - b * ey - c * ez
-    dx = w * ex + a * ew + b * ez - c * ey
-    dy = w * ey - a * ez + b * ew + c * ex
-    dz = w * ez + a * ey - b * ex + c * ew
+    qn = np.empty(4)
+    qn[0], qn[1], qn[2], qn[3] = w / norm, a / norm, b / norm, c / norm
+    conj = np.empty(4)  # conj(q_est)
+    conj[0], conj[1], conj[2], conj[3] = x[q0], -x[q0 + 1], -x[q0 + 2], -x[q0 + 3]
+    d = np.empty(4)
+    _quat_mul_into(qn, conj, d)  # q_meas (x) conj(q_est)
+    dw, dx, dy, dz = d[0], d[1], d[2], d[3]
     if dw < 0.0:
         dw, dx, dy, dz = -dw, -dx, -dy, -dz
     sn = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -889,17 +900,6 @@ def sensor_record_at(rec, n):
     if n == _AHRS_SIZE + _SENSOR_SIZE and rec[0] == _AHRS_KIND and rec[_AHRS_SIZE] == _SENSOR_KIND:
         return _AHRS_SIZE
     return -1
-
-
-@jit
-def _quat_mul_into(a, b, out):
-    """``so3.quat_mul``'s one-product case into ``out``: the same operations in the same order."""
-    aw, ax, ay, az = a[0], a[1], a[2], a[3]
-    bw, bx, by, bz = b[0], b[1], b[2], b[3]
-    out[0] = aw * bw - ax * bx - ay * by - az * bz
-    out[1] = aw * bx + ax * bw + ay * bz - az * by
-    out[2] = aw * by - ax * bz + ay * bw + az * bx
-    out[3] = aw * bz + ax * by - ay * bx + az * bw
 
 
 @jit
