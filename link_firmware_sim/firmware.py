@@ -613,7 +613,7 @@ class LinkFirmware:
             if len(pending) == 1 and pending[0][0] == "att" and dt > 0.0:  # an attitude reference alone
                 q = np.asarray(pending[0][1][0], dtype=float)
                 if q.shape == (4,):
-                    x, P, status = _fast.attitude_tick_kernel(ekf.x, ekf.P, q, *ekf.attitude_kernel_args(), gyro,
+                    x, P, status = _fast.attitude_tick_kernel(ekf.x, ekf.P, q, *self._kernel_consts()[-1], gyro,
                                                               accel, dt, *self._fused_args(t_s), out)
                     if status >= 0:  # (else the steps below raise the specification's error)
                         ekf.x, ekf.P = x, P
@@ -632,18 +632,23 @@ class LinkFirmware:
         return (self.fused_tick and self.armed and self._controller is None and self.observer is None
                 and target is not None and t_s - self._target_time_s <= self.config.target_stale_s)
 
-    def _fused_args(self, t_s: float) -> tuple:
-        """:func:`._fast.tick_kernel`'s arguments after ``dt_s`` and before ``out``."""
-        wgt = self.correction_weight(t_s)
-        corr = _fast.packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
-        ekf = self.ekf
-        const = self._kernel_const  # what the kernel reads from the configuration and the inertia
+    def _kernel_consts(self) -> tuple:
+        """What the kernels read from the configuration and the inertia, packed once (again when
+        one of the three is replaced): ``(config, ekf config, inertia, densities, baro_density,
+        gains, inertia packed, (the attitude update's covariance, gate))``."""
+        const, ekf = self._kernel_const, self.ekf
         if const is None or const[0] is not self.config or const[1] is not ekf.config or const[2] is not self.inertia:
             noise = ekf.config.noise
             const = self._kernel_const = (self.config, ekf.config, self.inertia, noise.densities, noise.baro_bias_m2_s,
                                           _fast.packed(self.config.gains, _fast.pack_gains),
-                                          _fast.packed(self.inertia, _fast.pack_inertia))
-        _, _, _, densities, baro_density, gains, inertia = const
+                                          _fast.packed(self.inertia, _fast.pack_inertia), ekf.attitude_kernel_args())
+        return const
+
+    def _fused_args(self, t_s: float) -> tuple:
+        """:func:`._fast.tick_kernel`'s arguments after ``dt_s`` and before ``out``."""
+        wgt = self.correction_weight(t_s)
+        corr = _fast.packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
+        _, _, _, densities, baro_density, gains, inertia, _ = self._kernel_consts()
         integrals = self.integrals
         return (densities, baro_density, _GRAVITY_W, wgt, corr, _fast.packed(self.target, _fast.pack_target), gains,
                 inertia, integrals.pos, integrals.att, GRAVITY_M_S2, *self.allocator.kernel_args())
@@ -687,7 +692,7 @@ class LinkFirmware:
         ahrs = np.zeros(_fast.AHRS_OUT_SIZE) if ahrs is None else ahrs
         ahrs[:] = 0.0
         x, P, taken = _fast.hil_tick_kernel(record, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, dt,
-                                            *self._fused_args(t_s), *ekf.attitude_kernel_args(), FRAME_CHANGE_QUATS,
+                                            *self._fused_args(t_s), *self._kernel_consts()[-1], FRAME_CHANGE_QUATS,
                                             ahrs, out)
         if not taken:
             return None
@@ -731,7 +736,7 @@ class LinkFirmware:
             1.0 / cfg.rate_hz, self._target_time_s, cfg.target_stale_s, corr_time, cfg.correction_hold_s,
             cfg.correction_stale_s, self.gps_health.last_fix_s, self.gps_health.config.timeout_s, due_us,
             math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M, densities, baro_density,
-            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, *ekf.attitude_kernel_args(),
+            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, *self._kernel_consts()[-1],
             FRAME_CHANGE_QUATS, ahrs, out, info)
         status, ticks, sent, t_us, packet, taken_bytes = (int(info[k]) for k in (0, 1, 2, 3, 5, 6))
         if ticks:
