@@ -24,7 +24,6 @@ report (STATUSTEXT).
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,7 +70,12 @@ class GpsHealth:
         self.rejected = 0
         self.fault_time_s = 0.0
         self._fault_since_s = 0.0
-        self._window: deque = deque()  # (t, horizontal position, horizontal velocity) of recent fixes
+        # the recent fixes' times, horizontal positions and horizontal velocities: rows lo:hi of
+        # buffers kept from fix to fix (the test reads them as arrays, not rebuilt per fix)
+        self._t = np.empty(32)
+        self._p = np.empty((32, 2))
+        self._v = np.empty((32, 2))
+        self._lo = self._hi = 0
         self.drift_m_s = 0.0  # the last consistency test's figure
 
     def _raise(self, t_s: float, reason: str, text: str) -> StatusEvent | None:
@@ -89,15 +93,14 @@ class GpsHealth:
         constant velocity that is the positions' slope less the velocity; under acceleration the
         track follows the velocity's changes, which a slope against the window's mean velocity
         would take for drift (0.7 m/s for a link going from rest to 9 m/s in 1 s)."""
-        win = self._window
-        win.append((t_s, np.asarray(pos_w_m, dtype=float)[:2], np.asarray(vel_w_m_s, dtype=float)[:2]))
-        while win and win[0][0] < t_s - self.config.drift_window_s:
-            win.popleft()
-        if len(win) < 5 or win[-1][0] - win[0][0] < 0.5 * self.config.drift_window_s:
+        self._append(t_s, pos_w_m, vel_w_m_s)
+        lo, hi, times = self._lo, self._hi, self._t
+        while times[lo] < t_s - self.config.drift_window_s:  # (the newest is never dropped)
+            lo += 1
+        self._lo = lo
+        if hi - lo < 5 or times[hi - 1] - times[lo] < 0.5 * self.config.drift_window_s:
             return True
-        t = np.array([w[0] for w in win])
-        p = np.stack([w[1] for w in win])
-        v = np.stack([w[2] for w in win])
+        t, p, v = times[lo:hi], self._p[lo:hi], self._v[lo:hi]
         track = np.zeros_like(p)
         np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None], axis=0, out=track[1:])
         off = p - track  # constant for positions that follow the velocities
@@ -105,6 +108,22 @@ class GpsHealth:
         slope = tc @ (off - off.mean(axis=0)) / (tc @ tc)
         self.drift_m_s = float(np.linalg.norm(slope))
         return self.drift_m_s <= self.config.drift_max_m_s
+
+    def _append(self, t_s: float, pos_w_m, vel_w_m_s) -> None:
+        lo, hi = self._lo, self._hi
+        if hi == self._t.size:  # full: the window moved to the front, the buffers doubled if it fills them
+            n = hi - lo
+            size = self._t.size * (2 if n > self._t.size // 2 else 1)
+            for name in ("_t", "_p", "_v"):
+                old = getattr(self, name)
+                new = np.empty((size,) + old.shape[1:])
+                new[:n] = old[lo:hi]
+                setattr(self, name, new)
+            lo, hi = 0, n
+        self._t[hi] = t_s
+        self._p[hi] = np.asarray(pos_w_m, dtype=float)[:2]
+        self._v[hi] = np.asarray(vel_w_m_s, dtype=float)[:2]
+        self._lo, self._hi = lo, hi + 1
 
     def on_fix(self, t_s: float, accepted: bool, aided: bool, why: str = "position fix rejected") -> list[StatusEvent]:
         """One position fix, accepted or rejected (by the EKF's gate, or the consistency test:

@@ -92,6 +92,44 @@ def test_consistency_catches_a_slow_ramp_and_passes_noise():
     assert caught is not None and 5.0 <= caught <= 6.5, caught
 
 
+def _drift_from_scratch(fixes, t_s, window_s):
+    """The consistency test's figure with the window rebuilt from the list of fixes (the
+    specification of the buffers :class:`GpsHealth` keeps from fix to fix); ``None`` when the
+    window is too short to test."""
+    win = [f for f in fixes if not f[0] < t_s - window_s]
+    if len(win) < 5 or win[-1][0] - win[0][0] < 0.5 * window_s:
+        return None
+    t = np.array([w[0] for w in win])
+    p = np.stack([np.asarray(w[1], dtype=float)[:2] for w in win])
+    v = np.stack([np.asarray(w[2], dtype=float)[:2] for w in win])
+    track = np.zeros_like(p)
+    np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None], axis=0, out=track[1:])
+    off = p - track
+    tc = t - t.mean()
+    return float(np.linalg.norm(tc @ (off - off.mean(axis=0)) / (tc @ tc)))
+
+
+@pytest.mark.parametrize("rate_hz,window_s", [(10.0, 2.0), (5.0, 1.0), (50.0, 3.0), (20.0, 0.4)])
+def test_the_kept_window_gives_the_figure_of_the_window_rebuilt_each_fix(rate_hz, window_s):
+    """Bit for bit, over windows that fit the buffers and one that makes them grow (150 fixes),
+    with jittered stamps, a gap longer than the window and a drifting fix stream."""
+    rng = np.random.default_rng(11)
+    h = GpsHealth(GpsHealthConfig(drift_max_m_s=0.5, drift_window_s=window_s))
+    fixes, t, tested = [], 0.0, 0
+    for k in range(400):
+        t += (1.0 + 0.2 * rng.uniform(-1, 1)) / rate_hz + (4.0 * window_s if k == 200 else 0.0)
+        pos, vel = rng.normal(size=3) + [0.3 * t, 0.0, 0.0], rng.normal(scale=0.1, size=3)
+        fixes.append((t, pos, vel))
+        ok = h.consistent(t, pos, vel)
+        want = _drift_from_scratch(fixes, t, window_s)
+        if want is None:
+            assert ok
+        else:
+            tested += 1
+            assert h.drift_m_s == want and ok == (want <= 0.5), (k, h.drift_m_s, want)
+    assert tested > 200
+
+
 @pytest.mark.parametrize("speed_m_s,ramp_s", [(9.0, 1.0), (5.0, 1.0), (8.8, 2.0)])
 def test_hard_acceleration_with_a_consistent_gps_is_not_drift(speed_m_s, ramp_s):
     """A link going from rest to speed_m_s in ramp_s (smoothstep), its GPS exact: the positions
