@@ -11,7 +11,11 @@ loops over scalars, compiled by numba (``njit(cache=True)``), and
 * :func:`constraint_apply_kernel`: Alg. 1 (paper) on one chain's dense covariance, with the
   body-rate noise gain, the iterates of :func:`~companion.estimation.sckf.constraint_apply_dense`
   (each SCKF step of a group: 59 us a 3-link step, 337 us in numpy);
-  :func:`constraint_apply_batched_kernel` runs it over equal groups in one call.
+  :func:`constraint_apply_batched_kernel` runs it over equal groups in one call;
+* :func:`joint_nis_kernel`: the joint gate's NIS (:func:`~companion.estimation.gate.joint_nis`),
+  before every step;
+* :func:`group_terms_kernel`: a group's boundary and tip covariance terms after its local step
+  (:func:`~companion.estimation.semi.local_boundary`).
 
 numba is not an onboard dependency: it comes with the ``sim`` extra. Without it (the Raspberry Pi
 install), or with ``SKELETON_JIT=0`` in the environment, :data:`ENABLED` is false, :func:`jit`
@@ -30,8 +34,8 @@ import time
 
 import numpy as np
 
-__all__ = ["ENABLED", "jit", "warm_up", "feedforward_kernel", "constraint_apply_kernel",
-           "constraint_apply_batched_kernel"]
+__all__ = ["ENABLED", "jit", "warm_up", "as_kernel_array", "feedforward_kernel", "constraint_apply_kernel",
+           "constraint_apply_batched_kernel", "joint_nis_kernel", "group_terms_kernel"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +64,15 @@ except ImportError as exc:  # the onboard install (no numba) or turned off
 
     def jit(fn):
         return fn
+
+
+def as_kernel_array(x, shape: tuple) -> np.ndarray:
+    """``x`` as the C-contiguous float64 array of ``shape`` a kernel reads (broadcast if it is
+    not that shape); ``x`` itself, not a copy, when it already is one (a kernel here never writes
+    to its inputs unless its docstring says so)."""
+    if type(x) is np.ndarray and x.shape == shape and x.dtype == np.float64 and x.flags.c_contiguous:
+        return x
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), shape))
 
 
 @jit
@@ -319,6 +332,123 @@ def constraint_apply_batched_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate
                                                               rate_gain, history[g])
 
 
+@jit
+def _tip_jacobian(a, b, sgn, row, J):
+    """``J[row:row + 6]`` (J (6k, 9)) <- the Jacobian of a link's tip ``[p + sgn a; v + sgn b]``
+    with respect to its error state: ``[I 0 -sgn S(a); 0 I -sgn S(b)]``
+    (companion.estimation.constraints.tip_jacobians: right tip ``sgn = 1``, left tip ``-1``)."""
+    for half in range(2):
+        blk = row + (_CP if half == 0 else _CV)
+        u = a if half == 0 else b
+        u0, u1, u2 = -sgn * u[0], -sgn * u[1], -sgn * u[2]
+        for k in range(3):
+            for c in range(_ED):
+                J[blk + k, c] = 0.0
+            J[blk + k, (_EP if half == 0 else _EV) + k] = 1.0
+        # S(u) rows (0, -u2, u1), (u2, 0, -u0), (-u1, u0, 0)
+        J[blk + 0, _ETH + 1] = -u2
+        J[blk + 0, _ETH + 2] = u1
+        J[blk + 1, _ETH + 0] = u2
+        J[blk + 1, _ETH + 2] = -u0
+        J[blk + 2, _ETH + 0] = -u1
+        J[blk + 2, _ETH + 1] = u0
+
+
+@jit
+def _link_tip(q, w, d, i, R, a, b):
+    """``R`` <- R(q[i]); ``a = R d_i``, ``b = R (w_i x d_i)`` of link ``i`` (constraints.tip_offsets)."""
+    _ca_rotmat(q, i, R)
+    d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+    wd0 = w[i, 1] * d2 - w[i, 2] * d1
+    wd1 = w[i, 2] * d0 - w[i, 0] * d2
+    wd2 = w[i, 0] * d1 - w[i, 1] * d0
+    for r in range(3):
+        a[r] = R[r, 0] * d0 + R[r, 1] * d1 + R[r, 2] * d2
+        b[r] = R[r, 0] * wd0 + R[r, 1] * wd1 + R[r, 2] * wd2
+
+
+@jit
+def joint_nis_kernel(p, v, q, w, d, P, slack_pos, slack_vel, nis):
+    """:func:`~companion.estimation.gate.joint_nis`: ``nis`` (n-1,) <- per joint ``i`` the NIS
+    ``c_i^T S_i^-1 c_i`` of its eq. 3 residual, ``S_i = L_i P_i L_i^T + R_i P_{i+1} R_i^T + G``
+    with ``G = diag(slack_pos I3, slack_vel I3)`` (the squared slacks), symmetrised."""
+    n = p.shape[0]
+    a, b = np.empty((n, 3)), np.empty((n, 3))
+    R = np.empty((3, 3))
+    for i in range(n):
+        _link_tip(q, w, d, i, R, a[i], b[i])
+    L, Rb = np.empty((_CD, _ED)), np.empty((_CD, _ED))
+    c = np.empty(_CD)
+    S = np.empty((_CD, _CD))
+    for i in range(n - 1):
+        for k in range(3):
+            c[_CP + k] = (p[i, k] + a[i, k]) - (p[i + 1, k] - a[i + 1, k])
+            c[_CV + k] = (v[i, k] + b[i, k]) - (v[i + 1, k] - b[i + 1, k])
+        _tip_jacobian(a[i], b[i], 1.0, 0, L)  # link i's right tip
+        _tip_jacobian(a[i + 1], b[i + 1], -1.0, 0, Rb)  # minus link i+1's left tip
+        for r in range(_CD):
+            for col in range(_ED):
+                Rb[r, col] = -Rb[r, col]
+        S[:, :] = (L @ P[i]) @ np.ascontiguousarray(L.T) + (Rb @ P[i + 1]) @ np.ascontiguousarray(Rb.T)
+        for k in range(3):
+            S[_CP + k, _CP + k] += slack_pos
+            S[_CV + k, _CV + k] += slack_vel
+        S[:, :] = 0.5 * (S + S.T)
+        if not (np.isfinite(S).all() and np.isfinite(c).all()):
+            nis[i] = np.nan  # (numpy's solve passes a NaN through; numba's raises)
+            continue
+        x = np.linalg.solve(S, c)
+        s = 0.0
+        for r in range(_CD):
+            s += c[r] * x[r]
+        nis[i] = s
+
+
+@jit
+def group_terms_kernel(p, v, q, w, d, P, P_ends, W_ends, has_w, rate_var, tips, info, T, Y):
+    """One group after its local step (:func:`~companion.estimation.semi.local_boundary`): ``p``,
+    ``v``, ``q`` its corrected states, ``w``, ``d`` (n, 3), ``P`` (n, 9, 9) its corrected blocks,
+    ``P_ends`` (2, n, 9, 9) and (``has_w``) ``W_ends`` (2, n, 9, 3) the step's end columns,
+    ``rate_var`` the body-rate noise variance. Writes ``tips`` (2, 6) the first link's left tip
+    and the last link's right tip, ``info`` (6, 6) the sum of the links' ``P_pv^-1``
+    (symmetrised), ``T`` (12, 12) the tips' covariance and ``Y`` (n, 12, 9) ``Cov(tau, x~_i)``
+    (:func:`~companion.estimation.semi.group_tip_terms`)."""
+    n = p.shape[0]
+    R = np.empty((3, 3))
+    a, b = np.empty(3), np.empty(3)
+    J = np.zeros((2, 2 * _CD, _ED))
+    B = np.zeros((2, 2 * _CD, 3))
+    for e in range(2):
+        i = 0 if e == 0 else n - 1
+        sgn = -1.0 if e == 0 else 1.0  # left tip p - a, right tip p + a
+        _link_tip(q, w, d, i, R, a, b)
+        for k in range(3):
+            tips[e, _CP + k] = p[i, k] + sgn * a[k]
+            tips[e, _CV + k] = v[i, k] + sgn * b[k]
+        _tip_jacobian(a, b, sgn, e * _CD, J[e])
+        d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+        for r in range(3):  # the tip velocity's rate column: +-R S(w) d = -+R S(d) w, so -sgn R S(d)
+            B[e, e * _CD + _CV + r, 0] = -sgn * (R[r, 1] * d2 - R[r, 2] * d1)
+            B[e, e * _CD + _CV + r, 1] = -sgn * (-R[r, 0] * d2 + R[r, 2] * d0)
+            B[e, e * _CD + _CV + r, 2] = -sgn * (R[r, 0] * d1 - R[r, 1] * d0)
+    for i in range(n):
+        Y[i] = J[0] @ np.ascontiguousarray(P_ends[0, i].T) + J[1] @ np.ascontiguousarray(P_ends[1, i].T)
+        if has_w:
+            Y[i] += B[0] @ np.ascontiguousarray(W_ends[0, i].T) + B[1] @ np.ascontiguousarray(W_ends[1, i].T)
+    T[:, :] = Y[0] @ np.ascontiguousarray(J[0].T) + Y[n - 1] @ np.ascontiguousarray(J[1].T)
+    if rate_var > 0.0:
+        for e in range(2):
+            Z = rate_var * (B[0] + B[1] if n == 1 else B[e])
+            if has_w:
+                Z = Z + J[0] @ W_ends[e, 0] + J[1] @ W_ends[e, n - 1]
+            T[:, :] += Z @ np.ascontiguousarray(B[e].T)
+    T[:, :] = 0.5 * (T + T.T)
+    info[:, :] = 0.0
+    for i in range(n):
+        info[:, :] += np.linalg.inv(np.ascontiguousarray(P[i, :_CD, :_CD]))
+    info[:, :] = 0.5 * (info + info.T)
+
+
 def warm_up() -> float:
     """Compile (first run) or load from the cache (later runs) every kernel here, with the argument
     types its callers pass; returns the seconds it took (0 without numba)."""
@@ -338,4 +468,7 @@ def warm_up() -> float:
     constraint_apply_batched_kernel(p[None], z[None].copy(), q[None], z[None] + 0.1, d[None], P[None], 1.0, 1e-9, 20, True,
                                     np.empty((G, 21)), np.empty((G, N, N)), np.empty(G, dtype=np.int64),
                                     np.empty((G, N, 3 * n)))
+    joint_nis_kernel(p, z, q, z, d, P, 0.01, 0.01, np.empty(n - 1))
+    group_terms_kernel(p, z, q, z, d, P, np.zeros((2, n, 9, 9)), np.zeros((2, n, 9, 3)), True, 1e-4, np.empty((2, 6)),
+                       np.empty((6, 6)), np.empty((12, 12)), np.empty((n, 12, 9)))
     return time.perf_counter() - t0

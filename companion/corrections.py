@@ -30,9 +30,8 @@ from .estimation.semi import (
     GroupBoundary,
     Groups,
     SemiResult,
-    group_boundary,
+    local_boundary,
     semi_distributed_apply,
-    group_tip_terms,
     shifted_covariance,
 )
 from .estimation.so3 import attitude_error, quat_from_rotvec, quat_mul
@@ -111,8 +110,7 @@ def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams 
     w = np.array([s.omega_b_rad_s for s in states])
     P = np.array([s.P for s in states])
     result = constraint_apply(p, v, q, w, d_b_m, P, params)
-    tip_cov, tip_cross = group_tip_terms(result.q, w, np.asarray(d_b_m, float), result)
-    boundary = group_boundary(result.p, result.v, result.q, w, d_b_m, result.P, tip_cov)
+    boundary, tip_cross = local_boundary(result.p, result.v, result.q, w, d_b_m, result)
     return LocalStep(t, p, v, q, w, result, boundary, tip_cross)
 
 

@@ -550,3 +550,67 @@ def test_constraint_apply_kernel_matches_numpy(n_links, omega_std):
             np.testing.assert_array_equal(batched.P_full, fast.P_full)
     if n_links > 1:
         assert max(iterations) > 1  # the loop itself is exercised, not only the first iteration
+
+
+def _random_chain(rng, n_links: int, spread: float):
+    """A chain of ``n_links`` 1 m links along x, off its joints by about ``spread``: p, v, q, w, d, P."""
+    p = np.cumsum(np.tile([1.0, 0.0, 0.0], (n_links, 1)), axis=0) + rng.normal(size=(n_links, 3)) * spread
+    v = rng.normal(size=(n_links, 3)) * 0.3
+    q = quat_normalize(np.array([1.0, 0.0, 0.0, 0.0]) + rng.normal(size=(n_links, 4)) * spread)
+    w = rng.normal(size=(n_links, 3)) * 0.2
+    d = np.tile([0.5, 0.0, 0.0], (n_links, 1)) + rng.normal(size=(n_links, 3)) * 0.01
+    return p, v, q, w, d, _ekf_like_covariances(rng, n_links)
+
+
+@pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
+def test_joint_nis_kernel_matches_numpy(n_links):
+    """companion._fast.joint_nis_kernel against joint_nis's numpy specification on random chains,
+    from consistent to far off (NIS from about 1 to thousands): to 1e-12 of each value; a NaN
+    state gives NaN at its joints both ways, so the gate cuts them."""
+    from companion.estimation.gate import CHI2_6_1E6, GateParams, joint_nis
+
+    rng = np.random.default_rng(71 + n_links)
+    values = []
+    for k in range(N_CASES):
+        params = GateParams(gate_pos_m=rng.choice([0.01, 0.05]), gate_vel_m_s=rng.choice([0.1, 0.25]))
+        p, v, q, w, d, P = _random_chain(rng, n_links, rng.choice([0.001, 0.05, 0.3, 1.0]))
+        spec = joint_nis(p, v, q, w, d, P, params, compiled=False)
+        fast = joint_nis(p, v, q, w, d, P, params, compiled=True)
+        assert fast.shape == spec.shape == (n_links - 1,)
+        np.testing.assert_allclose(fast, spec, rtol=1e-12, atol=0)
+        values.extend(spec)
+    if n_links > 1:
+        assert min(values) < CHI2_6_1E6 < 10 * CHI2_6_1E6 < max(values)  # the inputs reach both sides of the gate
+        p[n_links // 2, 1] = np.nan
+        spec = joint_nis(p, v, q, w, d, P, compiled=False)
+        fast = joint_nis(p, v, q, w, d, P, compiled=True)
+        np.testing.assert_array_equal(np.isnan(fast), np.isnan(spec))
+        assert np.isnan(spec).any()
+
+
+@pytest.mark.parametrize("n_links", [1, 2, 3, 5])
+@pytest.mark.parametrize("omega_std", [0.0, 0.02])
+def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
+    """companion._fast.group_terms_kernel against local_boundary's specification (group_tip_terms
+    and group_boundary) after a local step on random groups, with and without the body-rate
+    noise (its end columns): tips, information, tip covariance and Cov(tau, x~_i) to 1e-12 of
+    their largest entry."""
+    from companion.estimation.sckf import CAParams, constraint_apply
+    from companion.estimation.semi import local_boundary
+
+    rng = np.random.default_rng(83 + n_links)
+    params = CAParams(omega_std_rad_s=omega_std)
+    with_rate_columns = 0
+    for _ in range(N_CASES // 2):
+        p, v, q, w, d, P = _random_chain(rng, n_links, rng.choice([0.001, 0.05, 0.3]))
+        local = constraint_apply(p, v, q, w, d, P, params)
+        with_rate_columns += local.W_ends is not None
+        spec_b, spec_y = local_boundary(local.p, local.v, local.q, w, d, local, compiled=False)
+        fast_b, fast_y = local_boundary(local.p, local.v, local.q, w, d, local, compiled=True)
+        names = ("left_tip", "right_tip", "info_pv", "tip_cov")
+        pairs = [(name, getattr(fast_b, name), getattr(spec_b, name)) for name in names]
+        for name, a, b in pairs + [("Y", fast_y, spec_y)]:
+            assert a.shape == b.shape, name
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(np.abs(b).max()), err_msg=name)
+        assert np.array_equal(fast_b.info_pv, fast_b.info_pv.T) and np.array_equal(fast_b.tip_cov, fast_b.tip_cov.T)
+    assert (with_rate_columns > 0) == (omega_std > 0 and n_links > 1)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _fast
 from .chain import CON_POS, CON_VEL
 from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offsets
 
@@ -64,11 +65,21 @@ class GateResult:
     excluded: tuple[int, ...]
 
 
-def joint_nis(p, v, q, w, d, P, params: GateParams = GateParams()) -> np.ndarray:
-    """NIS of every joint's eq. 3 residual (see the module docstring), shape (n-1,)."""
+def joint_nis(p, v, q, w, d, P, params: GateParams = GateParams(), compiled: bool | None = None) -> np.ndarray:
+    """NIS of every joint's eq. 3 residual (see the module docstring), shape (n-1,).
+
+    The numpy code below is the specification; ``compiled`` (default: when numba is installed)
+    computes the same numbers by :func:`companion._fast.joint_nis_kernel` (one call instead of
+    about thirty numpy calls before every step; ``tests/test_fast_paths.py``: agreement to 1e-12)."""
     n = np.shape(p)[0]
     if n < 2:
         return np.zeros(0)
+    if _fast.ENABLED if compiled is None else compiled:
+        nis = np.empty(n - 1)
+        arr, v3 = _fast.as_kernel_array, (n, 3)
+        _fast.joint_nis_kernel(arr(p, v3), arr(v, v3), arr(q, (n, 4)), arr(w, v3), arr(d, v3), arr(P, (n, 9, 9)),
+                               params.gate_pos_m ** 2, params.gate_vel_m_s ** 2, nis)
+        return nis
     a, b = tip_offsets(q, w, d)  # once for the residual and the Jacobian blocks
     c = residual_from_tips(p, v, a, b).reshape(n - 1, 6)
     L, R = jacobian_blocks_from_tips(a, b)
