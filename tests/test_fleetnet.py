@@ -121,6 +121,9 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         codec.encode(replace(_targets(np.random.default_rng(2), (0, 1)), a_w_m_s2=np.full((2, 3), np.inf))):
             "a_w_m_s2: non-finite",
         codec.encode(GroupPassiveLinks(1, 0, (3, 2))): "GroupPassiveLinks.links",
+        codec.encode(replace(_messages(np.random.default_rng(3))[0], time_s=float("nan"))): "LinkState.time_s: non-finite",
+        codec.encode(replace(_messages(np.random.default_rng(3))[1], ekf_time_s=float("inf"))):
+            "Correction.ekf_time_s: non-finite",
         codec.encode(GroupPassiveLinks(1, 0, (2, 2))): "GroupPassiveLinks.links",
     }
     for payload, reason in cases.items():

@@ -16,6 +16,7 @@ valid group lists) with the same checks as the MAVLink codec; anything else rais
 from __future__ import annotations
 
 import functools
+import math
 import struct
 from typing import Any
 
@@ -171,9 +172,10 @@ def _sym(upper: np.ndarray, n: int) -> np.ndarray:
 
 
 def _finite_all(cls: type, values: dict[str, Any]) -> None:
+    """The float fields finite (:func:`decode` checked every array field as it read it)."""
     for name, value in values.items():
-        if isinstance(value, (float, np.ndarray)):
-            check_finite(f"{cls.__name__}.{name}", value)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise MessageError(f"{cls.__name__}.{name}: non-finite value")
 
 
 def _check_increasing(name: str, ids: tuple[int, ...], what: str) -> None:
