@@ -189,16 +189,33 @@ def _ca_rotmat(q, i, R):
 
 
 @jit
+def _body_wd(w, d):
+    """``w x d`` per link (n, 3): the body-frame velocity of a tip (constraints.body_tip_vectors)."""
+    wd = np.empty(w.shape)
+    for i in range(w.shape[0]):
+        wd[i, 0] = w[i, 1] * d[i, 2] - w[i, 2] * d[i, 1]
+        wd[i, 1] = w[i, 2] * d[i, 0] - w[i, 0] * d[i, 2]
+        wd[i, 2] = w[i, 0] * d[i, 1] - w[i, 1] * d[i, 0]
+    return wd
+
+
+@jit
+def _link_tip(q, body_d, body_wd, i, R, a, b):
+    """Link ``i``: ``R`` <- R(q[i]); ``a`` (3,) <- ``R d``, ``b`` (3,) <- ``R (w x d)``."""
+    _ca_rotmat(q, i, R)
+    for half in range(2):
+        src, dst = (body_d, a) if half == 0 else (body_wd, b)
+        u0, u1, u2 = src[i, 0], src[i, 1], src[i, 2]
+        for r in range(3):
+            dst[r] = R[r, 0] * u0 + R[r, 1] * u1 + R[r, 2] * u2
+
+
+@jit
 def _ca_tips(q, body_d, body_wd, a, b):
     """``a = R(q) d``, ``b = R(q) (w x d)`` per link (companion.estimation.constraints.tips_from_body)."""
     R = np.empty((3, 3))
     for i in range(q.shape[0]):
-        _ca_rotmat(q, i, R)
-        for half in range(2):
-            src, dst = (body_d, a) if half == 0 else (body_wd, b)
-            u0, u1, u2 = src[i, 0], src[i, 1], src[i, 2]
-            for r in range(3):
-                dst[i, r] = R[r, 0] * u0 + R[r, 1] * u1 + R[r, 2] * u2
+        _link_tip(q, body_d, body_wd, i, R, a[i], b[i])
 
 
 @jit
@@ -255,11 +272,7 @@ def constraint_apply_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate_gain, h
     ``K D`` (9n, 3n) of :func:`~companion.estimation.sckf._rate_noise_gain` at the corrected attitudes."""
     n = p.shape[0]
     N, M = _ED * n, _CD * (n - 1)
-    body_wd = np.empty((n, 3))
-    for i in range(n):
-        body_wd[i, 0] = w[i, 1] * d[i, 2] - w[i, 2] * d[i, 1]
-        body_wd[i, 1] = w[i, 2] * d[i, 0] - w[i, 0] * d[i, 2]
-        body_wd[i, 2] = w[i, 0] * d[i, 1] - w[i, 1] * d[i, 0]
+    body_wd = _body_wd(w, d)
     PE = np.zeros((N, N))
     for i in range(n):
         PE[_ED * i:_ED * (i + 1), _ED * i:_ED * (i + 1)] = P[i]
@@ -355,28 +368,13 @@ def _tip_jacobian(a, b, sgn, row, J):
 
 
 @jit
-def _link_tip(q, w, d, i, R, a, b):
-    """``R`` <- R(q[i]); ``a = R d_i``, ``b = R (w_i x d_i)`` of link ``i`` (constraints.tip_offsets)."""
-    _ca_rotmat(q, i, R)
-    d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
-    wd0 = w[i, 1] * d2 - w[i, 2] * d1
-    wd1 = w[i, 2] * d0 - w[i, 0] * d2
-    wd2 = w[i, 0] * d1 - w[i, 1] * d0
-    for r in range(3):
-        a[r] = R[r, 0] * d0 + R[r, 1] * d1 + R[r, 2] * d2
-        b[r] = R[r, 0] * wd0 + R[r, 1] * wd1 + R[r, 2] * wd2
-
-
-@jit
 def joint_nis_kernel(p, v, q, w, d, P, slack_pos, slack_vel, nis):
     """:func:`~companion.estimation.gate.joint_nis`: ``nis`` (n-1,) <- per joint ``i`` the NIS
     ``c_i^T S_i^-1 c_i`` of its eq. 3 residual, ``S_i = L_i P_i L_i^T + R_i P_{i+1} R_i^T + G``
     with ``G = diag(slack_pos I3, slack_vel I3)`` (the squared slacks), symmetrised."""
     n = p.shape[0]
     a, b = np.empty((n, 3)), np.empty((n, 3))
-    R = np.empty((3, 3))
-    for i in range(n):
-        _link_tip(q, w, d, i, R, a[i], b[i])
+    _ca_tips(q, d, _body_wd(w, d), a, b)
     L, Rb = np.empty((_CD, _ED)), np.empty((_CD, _ED))
     c = np.empty(_CD)
     S = np.empty((_CD, _CD))
@@ -418,10 +416,11 @@ def group_terms_kernel(p, v, q, w, d, P, P_ends, W_ends, has_w, rate_var, tips, 
     a, b = np.empty(3), np.empty(3)
     J = np.zeros((2, 2 * _CD, _ED))
     B = np.zeros((2, 2 * _CD, 3))
+    wd = _body_wd(w, d)
     for e in range(2):
         i = 0 if e == 0 else n - 1
         sgn = -1.0 if e == 0 else 1.0  # left tip p - a, right tip p + a
-        _link_tip(q, w, d, i, R, a, b)
+        _link_tip(q, d, wd, i, R, a, b)
         for k in range(3):
             tips[e, _CP + k] = p[i, k] + sgn * a[k]
             tips[e, _CV + k] = v[i, k] + sgn * b[k]
