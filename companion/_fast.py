@@ -234,30 +234,37 @@ def _ca_residual(p, v, a, b, c):
 
 
 @jit
+def _tip_jacobian(a, b, sgn, scale, row, col, J):
+    """``J[row:row + 6, col:col + 9]`` <- ``scale`` times the Jacobian of a link's tip ``[p + sgn a;
+    v + sgn b]`` with respect to its error state, ``[I 0 -sgn S(a); 0 I -sgn S(b)]``
+    (companion.estimation.constraints.tip_jacobians: right tip ``sgn = 1``, left tip ``-1``)."""
+    for half in range(2):
+        blk = row + (_CP if half == 0 else _CV)
+        u = a if half == 0 else b
+        f = -sgn * scale
+        u0, u1, u2 = f * u[0], f * u[1], f * u[2]
+        for k in range(3):
+            for c in range(_ED):
+                J[blk + k, col + c] = 0.0
+            J[blk + k, col + (_EP if half == 0 else _EV) + k] = scale
+        # S(u) rows (0, -u2, u1), (u2, 0, -u0), (-u1, u0, 0)
+        J[blk + 0, col + _ETH + 1] = -u2
+        J[blk + 0, col + _ETH + 2] = u1
+        J[blk + 1, col + _ETH + 0] = u2
+        J[blk + 1, col + _ETH + 2] = -u0
+        J[blk + 2, col + _ETH + 0] = -u1
+        J[blk + 2, col + _ETH + 1] = u0
+
+
+@jit
 def _ca_jacobian(a, b, C):
-    """Eq. 4 dense: joint ``i``'s rows take ``[I 0 -S(a_i); 0 I -S(b_i)]`` at link ``i`` and
-    ``[-I 0 -S(a_i+1); 0 -I -S(b_i+1)]`` at link ``i+1``."""
+    """Eq. 4 dense: joint ``i``'s rows take link ``i``'s right-tip Jacobian ``[I 0 -S(a_i); 0 I
+    -S(b_i)]`` at link ``i`` and minus link ``i+1``'s left-tip Jacobian ``[-I 0 -S(a_i+1); 0 -I
+    -S(b_i+1)]`` at link ``i+1``."""
     C[:, :] = 0.0
     for i in range(a.shape[0] - 1):
-        r = _CD * i
-        for side in range(2):
-            link = i + side
-            col = _ED * link
-            sgn = 1.0 if side == 0 else -1.0
-            for k in range(3):
-                C[r + _CP + k, col + _EP + k] = sgn
-                C[r + _CV + k, col + _EV + k] = sgn
-            for half in range(2):
-                blk = _CP if half == 0 else _CV
-                u = a if half == 0 else b
-                u0, u1, u2 = u[link, 0], u[link, 1], u[link, 2]
-                # -S(u): rows (0, u2, -u1), (-u2, 0, u0), (u1, -u0, 0)
-                C[r + blk + 0, col + _ETH + 1] = u2
-                C[r + blk + 0, col + _ETH + 2] = -u1
-                C[r + blk + 1, col + _ETH + 0] = -u2
-                C[r + blk + 1, col + _ETH + 2] = u0
-                C[r + blk + 2, col + _ETH + 0] = u1
-                C[r + blk + 2, col + _ETH + 1] = -u0
+        _tip_jacobian(a[i], b[i], 1.0, 1.0, _CD * i, _ED * i, C)
+        _tip_jacobian(a[i + 1], b[i + 1], -1.0, -1.0, _CD * i, _ED * (i + 1), C)
 
 
 @jit
@@ -346,28 +353,6 @@ def constraint_apply_batched_kernel(p, v, q, w, d, P, alpha, eps, max_iter, rate
 
 
 @jit
-def _tip_jacobian(a, b, sgn, row, J):
-    """``J[row:row + 6]`` (J (6k, 9)) <- the Jacobian of a link's tip ``[p + sgn a; v + sgn b]``
-    with respect to its error state: ``[I 0 -sgn S(a); 0 I -sgn S(b)]``
-    (companion.estimation.constraints.tip_jacobians: right tip ``sgn = 1``, left tip ``-1``)."""
-    for half in range(2):
-        blk = row + (_CP if half == 0 else _CV)
-        u = a if half == 0 else b
-        u0, u1, u2 = -sgn * u[0], -sgn * u[1], -sgn * u[2]
-        for k in range(3):
-            for c in range(_ED):
-                J[blk + k, c] = 0.0
-            J[blk + k, (_EP if half == 0 else _EV) + k] = 1.0
-        # S(u) rows (0, -u2, u1), (u2, 0, -u0), (-u1, u0, 0)
-        J[blk + 0, _ETH + 1] = -u2
-        J[blk + 0, _ETH + 2] = u1
-        J[blk + 1, _ETH + 0] = u2
-        J[blk + 1, _ETH + 2] = -u0
-        J[blk + 2, _ETH + 0] = -u1
-        J[blk + 2, _ETH + 1] = u0
-
-
-@jit
 def joint_nis_kernel(p, v, q, w, d, P, slack_pos, slack_vel, nis):
     """:func:`~companion.estimation.gate.joint_nis`: ``nis`` (n-1,) <- per joint ``i`` the NIS
     ``c_i^T S_i^-1 c_i`` of its eq. 3 residual, ``S_i = L_i P_i L_i^T + R_i P_{i+1} R_i^T + G``
@@ -382,11 +367,8 @@ def joint_nis_kernel(p, v, q, w, d, P, slack_pos, slack_vel, nis):
         for k in range(3):
             c[_CP + k] = (p[i, k] + a[i, k]) - (p[i + 1, k] - a[i + 1, k])
             c[_CV + k] = (v[i, k] + b[i, k]) - (v[i + 1, k] - b[i + 1, k])
-        _tip_jacobian(a[i], b[i], 1.0, 0, L)  # link i's right tip
-        _tip_jacobian(a[i + 1], b[i + 1], -1.0, 0, Rb)  # minus link i+1's left tip
-        for r in range(_CD):
-            for col in range(_ED):
-                Rb[r, col] = -Rb[r, col]
+        _tip_jacobian(a[i], b[i], 1.0, 1.0, 0, 0, L)  # eq. 4's blocks, as _ca_jacobian's
+        _tip_jacobian(a[i + 1], b[i + 1], -1.0, -1.0, 0, 0, Rb)
         S[:, :] = (L @ P[i]) @ np.ascontiguousarray(L.T) + (Rb @ P[i + 1]) @ np.ascontiguousarray(Rb.T)
         for k in range(3):
             S[_CP + k, _CP + k] += slack_pos
@@ -424,7 +406,7 @@ def group_terms_kernel(p, v, q, w, d, P, P_ends, W_ends, has_w, rate_var, tips, 
         for k in range(3):
             tips[e, _CP + k] = p[i, k] + sgn * a[k]
             tips[e, _CV + k] = v[i, k] + sgn * b[k]
-        _tip_jacobian(a, b, sgn, e * _CD, J[e])
+        _tip_jacobian(a, b, sgn, 1.0, e * _CD, 0, J[e])
         d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
         for r in range(3):  # the tip velocity's rate column: +-R S(w) d = -+R S(d) w, so -sgn R S(d)
             B[e, e * _CD + _CV + r, 0] = -sgn * (R[r, 1] * d2 - R[r, 2] * d1)
