@@ -100,7 +100,8 @@ def test_single_group_is_alg1():
     p, v, q, w, d, P = perturbed_chain(np.random.default_rng(22), 6)
     semi = semi_distributed_apply(p, v, q, w, d, P, make_groups(6, 6))
     full = constraint_apply(p, v, q, w, d, P)
-    np.testing.assert_array_equal(semi.shifts, 0.0)
+    np.testing.assert_array_equal(semi.shifts, np.zeros((1, 6)))
+    assert semi.boundaries == ()  # no joint between groups: eq. 6 is not solved
     np.testing.assert_allclose(semi.p, full.p, atol=1e-15)
     np.testing.assert_allclose(semi.q, full.q, atol=1e-15)
     np.testing.assert_allclose(semi.P, full.P, atol=1e-15)

@@ -312,7 +312,8 @@ class SemiResult:
             carried through the global step: :func:`shifted_covariance`).
         shifts: (s, 6) global-step shifts per group.
         local: the per-group :class:`CAResult` of Alg. 2.
-        boundaries: the per-group :class:`GroupBoundary` fed to eq. 6.
+        boundaries: the per-group :class:`GroupBoundary` fed to eq. 6; none with a single group
+            (no joint between groups for eq. 6 to close: its shift is zero).
     """
 
     p: np.ndarray
@@ -360,7 +361,7 @@ def semi_distributed_apply(
 ) -> SemiResult:
     """Local CA in every group (Alg. 2), then the global shift of eq. 6.
 
-    With a single group this is exactly Alg. 1 on the whole chain.
+    With a single group this is exactly Alg. 1 on the whole chain (no boundaries, a zero shift).
     """
     groups = validate_groups(groups, p.shape[0])
     local = local_constraint_apply(p, v, q, w, d, P, groups, params, method)
@@ -368,16 +369,17 @@ def semi_distributed_apply(
     v_out = np.concatenate([r.v for r in local])
     q_out = np.concatenate([r.q for r in local])
     P_out = np.concatenate([r.P for r in local])
+    if len(groups) == 1:
+        return SemiResult(p_out, v_out, q_out, P_out, np.zeros((1, CON_DIM)), local, ())
     terms = [group_tip_terms(q_out[g[0]:g[-1] + 1], w[g[0]:g[-1] + 1], d[g[0]:g[-1] + 1], r)
-             for g, r in zip(groups, local)] if len(groups) > 1 else [(None, None)]
+             for g, r in zip(groups, local)]
     boundaries = group_boundaries(p_out, v_out, q_out, w, d, P_out, groups, [T for T, _ in terms])
     solution = global_solution(boundaries)
     shifts = solution.shifts
     sizes = [len(g) for g in groups]
-    if len(groups) > 1:
-        for k, g in enumerate(groups):
-            sl = slice(g[0], g[-1] + 1)
-            P_out[sl] = shifted_covariance(P_out[sl], terms[k][1], solution.gains[k], solution.shift_cov[k])
+    for k, g in enumerate(groups):
+        sl = slice(g[0], g[-1] + 1)
+        P_out[sl] = shifted_covariance(P_out[sl], terms[k][1], solution.gains[k], solution.shift_cov[k])
     p_out += np.repeat(shifts[:, CON_POS], sizes, axis=0)
     v_out += np.repeat(shifts[:, CON_VEL], sizes, axis=0)
     return SemiResult(p_out, v_out, q_out, P_out, shifts, local, boundaries)
