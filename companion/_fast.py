@@ -67,12 +67,15 @@ except ImportError as exc:  # the onboard install (no numba) or turned off
 
 
 def as_kernel_array(x, shape: tuple) -> np.ndarray:
-    """``x`` as the C-contiguous float64 array of ``shape`` a kernel reads (broadcast if it is
-    not that shape); ``x`` itself, not a copy, when it already is one (a kernel here never writes
-    to its inputs unless its docstring says so)."""
-    if type(x) is np.ndarray and x.shape == shape and x.dtype == np.float64 and x.flags.c_contiguous:
-        return x
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), shape))
+    """``x`` as the C-contiguous, writeable float64 array of ``shape`` a kernel reads (broadcast if
+    it is not that shape); ``x`` itself, not a copy, when it already is one (a kernel here never
+    writes to its inputs unless its docstring says so; a read-only array is copied all the same,
+    as numba would compile the kernel again for it)."""
+    if type(x) is np.ndarray and x.shape == shape and x.dtype == np.float64:
+        flags = x.flags
+        if flags.c_contiguous and flags.writeable:
+            return x
+    return np.array(np.broadcast_to(np.asarray(x, dtype=float), shape), order="C")  # (a writeable copy)
 
 
 @jit

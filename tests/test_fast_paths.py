@@ -614,3 +614,21 @@ def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(np.abs(b).max()), err_msg=name)
         assert np.array_equal(fast_b.info_pv, fast_b.info_pv.T) and np.array_equal(fast_b.tip_cov, fast_b.tip_cov.T)
     assert (with_rate_columns > 0) == (omega_std > 0 and n_links > 1)
+
+
+def test_kernel_arrays_pass_through_or_copy_to_one_layout():
+    """companion._fast.as_kernel_array: a C-contiguous writeable float64 array of the shape is
+    passed as is; anything else (read-only, transposed, broadcast, integer) becomes one, so every
+    kernel sees one array type (numba compiles again for a read-only array)."""
+    from companion._fast import as_kernel_array
+
+    x = np.zeros((2, 3))
+    assert as_kernel_array(x, (2, 3)) is x
+    ro = np.arange(6.0).reshape(2, 3)
+    ro.setflags(write=False)
+    for given, shape in ((ro, (2, 3)), (np.arange(6.0).reshape(3, 2).T, (2, 3)), ([0.5, 0, 0], (4, 3)),
+                         (np.arange(6).reshape(2, 3), (2, 3))):
+        out = as_kernel_array(given, shape)
+        assert out.shape == shape and out.dtype == np.float64 and out.flags.c_contiguous and out.flags.writeable
+        np.testing.assert_array_equal(out, np.broadcast_to(np.asarray(given, dtype=float), shape))
+        assert not np.shares_memory(out, np.asarray(given))

@@ -227,13 +227,13 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     G, n = p.shape[:2]
     N = ERR_DIM * n
     p, v, q = (np.array(x, dtype=float) for x in (p, v, q))  # the kernel updates them in place
-    w = np.array(np.broadcast_to(w, (G, n, 3)), dtype=float)
-    d = np.array(np.broadcast_to(d, (G, n, 3)), dtype=float)
+    w, d = (_fast.as_kernel_array(x, (G, n, 3)) for x in (w, d))  # (it only reads these and P)
     history = np.empty((G, params.max_iter + 1))
     Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
     rate = params.omega_std_rad_s > 0.0 and n > 1
-    _fast.constraint_apply_batched_kernel(p, v, q, w, d, np.ascontiguousarray(P, dtype=float), float(params.alpha),
-                                          float(params.eps), int(params.max_iter), rate, history, Pc, j, KD)
+    P = _fast.as_kernel_array(P, (G, n, ERR_DIM, ERR_DIM))
+    _fast.constraint_apply_batched_kernel(p, v, q, w, d, P, float(params.alpha), float(params.eps), int(params.max_iter),
+                                          rate, history, Pc, j, KD)
     return _ca_results(p, v, q, Pc, j, [history[g, :j[g] + 1] for g in range(G)], KD if rate else None, params)
 
 
