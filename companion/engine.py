@@ -370,6 +370,7 @@ class CompanionEngine:
         self._reject_logged_s: dict[tuple[int, str], float] = {}
         self._timer = timer
         self._out: list = []
+        self._heard = True  # an input since the last poll (:meth:`needs_poll`)
 
     # -- inputs ----------------------------------------------------------------------------------
     def row_of(self, system_id: int) -> int | None:
@@ -381,6 +382,7 @@ class CompanionEngine:
 
     def on_heartbeat(self, row: int, now_s: float) -> None:
         """A link's heartbeat: ask for its state stream until it acknowledges."""
+        self._heard = True
         lk = self.links[row]
         if lk.stream_acked or now_s - lk.stream_sent_s < RETRY_S:
             return
@@ -388,6 +390,7 @@ class CompanionEngine:
         lk.stream_sent_s = now_s
 
     def on_command_ack(self, row: int, command: Command, accepted: bool, result: int = 0) -> None:
+        self._heard = True
         lk = self.links[row]
         if command is Command.ARM and accepted:
             lk.armed_ack = True
@@ -399,6 +402,7 @@ class CompanionEngine:
 
     def on_system_time(self, row: int, time_unix_us: int, time_boot_ms: int) -> None:
         """``gps`` time base: the link's boot-to-GPS offset from SYSTEM_TIME."""
+        self._heard = True
         if self.cfg.time_base != "gps":
             return
         lk = self.links[row]
@@ -421,6 +425,7 @@ class CompanionEngine:
 
     def on_rejected(self, row: int, kind: str, reason: str) -> None:
         """A state message from the link that failed validation (counted and logged)."""
+        self._heard = True
         self.links[row].rejected += 1
         log.warning("link %d: rejected %s: %s", self.links[row].index + 1, kind, reason)
 
@@ -430,6 +435,7 @@ class CompanionEngine:
         clock), with the flags and the correction it reports. ``False``: not usable yet (no GPS
         time offset for this link, or its stamp was rejected: then nothing it carries is used,
         flags and reported latency included)."""
+        self._heard = True
         lk = self.links[row]
         if self.cfg.time_base == "gps":
             if lk.offset_us is None:
@@ -483,8 +489,23 @@ class CompanionEngine:
         """When :meth:`poll` next has something to do without new input (the network's deadlines)."""
         return self.net.next_deadline_s() if self.net is not None else None
 
+    def needs_poll(self, now_s: float) -> bool:
+        """Whether :meth:`poll` at ``now_s`` has anything to do: an input since the last poll (a
+        link's message or acknowledgement), an output waiting, an event on the network, or a timer
+        due (the heartbeat, the health table, an arm retry, the network's deadlines); the same tests
+        as the poll's. ``False``: a poll would change nothing and return nothing, so a caller that
+        polls on every tick of a simulation (the batch runner) may leave it out."""
+        if self._heard or self._out or self._next_health_s is None:
+            return True
+        if now_s >= self._next_heartbeat_s or now_s >= self._next_health_s:
+            return True
+        if self.cfg.arm and any(self._arm_due(lk, now_s) for lk in self.links):
+            return True
+        return self.net is not None and self.net.needs_pump(now_s)
+
     def poll(self, now_s: float) -> list:
         """Run what is due at ``now_s``; returns the outputs (see the module docstring)."""
+        self._heard = False
         if self.net is not None:
             self._finish(self.net.pump(now_s))
             for msg in self.net.take_targets():
@@ -958,12 +979,18 @@ class CompanionEngine:
             if lk.flags & STATE_FLAG_ARMED:
                 lk.arm_tries = 0
                 continue
-            retry_s = ARM_RETRY_S if lk.arm_tries < ARM_FAST_TRIES else RETRY_S
-            if not lk.flags & STATE_FLAG_EKF_OK or now_s - lk.arm_sent_s < retry_s:
+            if not self._arm_due(lk, now_s):
                 continue
             self._out.append(CommandOut(lk.row, lk.system_id, Command.ARM))
             lk.arm_sent_s = now_s
             lk.arm_tries += 1
+
+    @staticmethod
+    def _arm_due(lk: LinkTrack, now_s: float) -> bool:
+        """A disarmed link with a healthy EKF whose last ARM was sent its retry interval ago."""
+        if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK:
+            return False
+        return now_s - lk.arm_sent_s >= (ARM_RETRY_S if lk.arm_tries < ARM_FAST_TRIES else RETRY_S)
 
     # -- reports ---------------------------------------------------------------------------------------
     def health_rows(self, period_s: float, now_s: float) -> list[dict]:

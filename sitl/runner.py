@@ -262,6 +262,11 @@ class BatchRunner:
     boundaries and eq. 6 shifts as over Zenoh, deterministic.
     """
 
+    #: poll an engine only when :meth:`~companion.engine.CompanionEngine.needs_poll` says it has
+    #: something to do (an input, a bus event, a timer); ``False`` on an instance: every engine on
+    #: every firmware tick (the two give the same flight, bit for bit: ``tests/test_runner.py``)
+    skip_idle_polls: bool = True
+
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None):
         sc = scenario
         if selective_mapping is not None:
@@ -401,7 +406,8 @@ class BatchRunner:
                                     fw.correction_latency_us)
         for _ in range(4 * len(self.engines) + 4):
             for engine in self.engines:
-                self._apply(engine, engine.poll(t), t)
+                if not self.skip_idle_polls or engine.needs_poll(t):  # (most ticks bring an engine nothing)
+                    self._apply(engine, engine.poll(t), t)
             if self.hub is None or not self.hub.pending():
                 break
 

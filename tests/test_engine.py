@@ -419,6 +419,66 @@ def test_a_carried_links_claim_before_the_cycle_clock_is_held_and_one_far_ahead_
     assert engine.passive_counts["rejected"] == 1 and engine._remote_passive_links() == {2}
 
 
+def test_needs_poll_leaves_out_only_polls_that_would_do_nothing():
+    """Two copies of a distributed companion (groups [1, 2] and [3], a LocalHub each) get the same
+    inputs: states every 30 ms (link 2 silent from 0.6 s: the leader's wait and the shift deadline
+    run out), flags that never say armed (ARM retries), a health period of 0.3 s, heartbeats; both
+    are polled on a 1 ms grid, one on every tick, the other only when needs_poll. The same outputs
+    at the same times and the same step logs; every poll needs_poll would leave out returns nothing."""
+    n, groups = 3, ((1, 2), (3,))
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(5), n)
+    setup = setup_for(n, groups, distributed=True, health_period_s=0.3)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+
+    def system():
+        clock = [0.0]
+        hub = LocalHub(len(groups), lambda: clock[0])
+        engines = []
+        for g in range(len(groups)):
+            node = GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000, startup_s=0.1,
+                                  shift_deadline_s=0.035, leader_wait_s=0.025)
+            engines.append(CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
+                                           net=GroupLink(node, hub.join(g), lambda: clock[0])))
+        return clock, hub, engines
+
+    runs = {}
+    for every in (True, False):
+        clock, hub, engines = system()
+        outputs, polls = [], 0
+        for k in range(1500):
+            t = clock[0] = k * 1e-3
+            for e in engines:
+                if k % 30 == 0:
+                    for lk in e.links:
+                        if lk.index != 1 or t < 0.6:
+                            e.on_state(lk.row, LinkState(lk.index, t, p[lk.index], v[lk.index], q[lk.index],
+                                                         w[lk.index], P[lk.index]), STATE_FLAG_EKF_OK, t)
+                if k % 700 == 350:
+                    e.on_heartbeat(0, t)
+            for _ in range(6):
+                for g, e in enumerate(engines):
+                    idle = not e.needs_poll(t)
+                    if every or not idle:
+                        polls += 1
+                        out = e.poll(t)
+                        assert not (idle and out), (t, g, out)
+                        outputs += [(k, g, type(o).__name__, getattr(o, "row", None)) for o in out]
+                if not hub.pending():
+                    break
+        runs[every] = outputs, polls, [e.log_arrays() for e in engines], [dict(e.net.node.counts) for e in engines]
+    (out_every, polls_every, logs_every, counts), (out_needed, polls_needed, logs_needed, counts_needed) = (
+        runs[True], runs[False])
+    kinds = {kind for _, _, kind, _ in out_every}
+    assert {"Heartbeat", "HealthDue", "CommandOut", "CorrectionOut", "TargetOut"} <= kinds, kinds
+    assert out_needed == out_every and counts_needed == counts
+    assert all(c["global"] > 5 for c in counts) and counts[1]["local_only"] > 10, counts  # deadlines ran out
+    assert polls_needed < 0.5 * polls_every  # (the start-up listening and the silence need the most)
+    for a, b in zip(logs_every, logs_needed):
+        assert a.keys() == b.keys() and a["t_sckf"].size > 20
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
 @pytest.mark.parametrize("groups", [((1, 2), (3, 4, 5), (6, 7)), ((1, 2, 3), (4, 5, 6, 7))])
 def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(groups):
     """Group engines joined by a LocalHub (batch mode's bus): after the start-up listening, every

@@ -295,6 +295,47 @@ def test_batch_link_reboot_in_distributed_mode_the_next_groups_companion_carries
     assert m["min_altitude_m"] > 2.0
 
 
+def test_batch_runner_leaves_out_only_engine_polls_that_change_nothing(tmp_path, monkeypatch):
+    """The batch runner polls a companion engine only when it needs one (an input, an event on the
+    in-process bus, a timer due: :meth:`~companion.engine.CompanionEngine.needs_poll`). The
+    distributed reboot flight above (arm retries at the start and after the reboot, a link silent
+    and carried across groups, heartbeats, health tables, the global step) flies the same, bit for
+    bit, with every engine polled on every firmware tick; there, every poll ``needs_poll`` would
+    have left out returns nothing; and most polls are left out."""
+    from companion.engine import CompanionEngine
+    from sitl.runner import BatchRunner
+
+    poll = CompanionEngine.poll
+    counts = {"polls": 0, "idle": 0, "idle_with_output": 0}
+
+    def counted(self, now_s):
+        idle = not self.needs_poll(now_s)
+        out = poll(self, now_s)
+        counts["polls"] += 1
+        counts["idle"] += idle
+        counts["idle_with_output"] += idle and bool(out)
+        return out
+
+    monkeypatch.setattr(CompanionEngine, "poll", counted)
+    runs = {}
+    for skip in (True, False):
+        monkeypatch.setattr(BatchRunner, "skip_idle_polls", skip)
+        counts.update(polls=0, idle=0, idle_with_output=0)
+        m, _, _ = _reboot_flight(tmp_path / str(skip), 0.5, distributed=True, groups=((1,), (2, 3)))
+        runs[skip] = dict(counts), m, np.load(tmp_path / str(skip) / "log.npz")
+    (skipped, m_skip, log_skip), (every, m_every, log_every) = runs[True], runs[False]
+    assert every["idle_with_output"] == 0 and every["idle"] > 0.8 * every["polls"], every
+    assert skipped["idle"] == 0 and skipped["polls"] == every["polls"] - every["idle"], (skipped, every)
+    assert sorted(log_skip.files) == sorted(log_every.files)
+    for key in log_every.files:
+        np.testing.assert_array_equal(log_skip[key], log_every[key], err_msg=key)
+    assert _strip_timing(m_skip) == _strip_timing(m_every)
+
+
+def _strip_timing(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if k not in ("realtime_factor", "wall_s")}
+
+
 @pytest.mark.slow  # the counterfactual of the test above (7 s), out of the default run for the suite's time
 def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     """The same reboot with the carrying off (a silence taken as one only after 100 s, no spin-up

@@ -190,6 +190,10 @@ class FleetBus:
     def fileno(self) -> int:
         return self._wake_r
 
+    def pending(self) -> bool:
+        """Whether events wait to be drained (Zenoh's threads may add one right after)."""
+        return not self._events.empty()
+
     def drain(self) -> list[BusEvent]:
         try:
             while os.read(self._wake_r, 4096):

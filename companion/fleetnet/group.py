@@ -59,6 +59,11 @@ class GroupLink:
     def next_deadline_s(self) -> float | None:
         return self.node.next_deadline_s()
 
+    def needs_pump(self, now_s: float) -> bool:
+        """Whether :meth:`pump` at ``now_s`` has anything to do: an event waiting on the bus or a
+        deadline of the node's reached (``False``: a pump would change nothing and return nothing)."""
+        return self.bus.pending() or self.node.due(now_s)
+
     def leads(self, cycle_us: int, now_s: float) -> bool:
         """Whether this group leads ``cycle_us`` (and so generates the CPG targets)."""
         return self.node.leader_for(cycle_us, now_s) == self.group

@@ -99,6 +99,10 @@ class LocalBus:
         self.group = group
         self.events: list[BusEvent] = []
 
+    def pending(self) -> bool:
+        """Whether events wait to be drained."""
+        return bool(self.events)
+
     def drain(self) -> list[BusEvent]:
         out, self.events = self.events, []
         return out

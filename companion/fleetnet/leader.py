@@ -443,9 +443,9 @@ class GlobalStepNode:
         ``shift_deadline_s`` for its shift sends local-only corrections."""
         out = Actions()
         for cycle, first in sorted(self.first_report_s.items()):
-            if cycle not in self.settled and now_s - first >= self.leader_wait_s and self._leads(cycle, now_s):
+            if self._waited(cycle, first, now_s) and self._leads(cycle, now_s):
                 out.merge(self._solve(cycle, now_s))
-        if self.pending is not None and now_s - self.pending.published_s >= self.shift_deadline_s:
+        if self._shift_overdue(now_s):
             leader = self.leader_for(self.pending.cycle_us, now_s)
             heard = self._heard_cycle_us >= self.pending.cycle_us
             if self._held:
@@ -476,6 +476,21 @@ class GlobalStepNode:
         if self.pending is not None:
             times.append(self.pending.published_s + self.shift_deadline_s)
         return min(times) if times else None
+
+    def due(self, now_s: float) -> bool:
+        """Whether :meth:`tick` at ``now_s`` may have something to do: a cycle has waited
+        ``leader_wait_s`` (whether this group leads it or not), or the shift is overdue (the same
+        tests as :meth:`tick`'s; ``False``: a tick would change nothing)."""
+        return self._shift_overdue(now_s) or any(
+            self._waited(cycle, first, now_s) for cycle, first in self.first_report_s.items())
+
+    def _waited(self, cycle: int, first_s: float, now_s: float) -> bool:
+        """A cycle not settled whose first report came ``leader_wait_s`` ago or more."""
+        return cycle not in self.settled and now_s - first_s >= self.leader_wait_s
+
+    def _shift_overdue(self, now_s: float) -> bool:
+        """This group's boundary has waited ``shift_deadline_s`` for its shift."""
+        return self.pending is not None and now_s - self.pending.published_s >= self.shift_deadline_s
 
     # -- internals ----------------------------------------------------------------------------------------
     def _add_report(self, report: GroupBoundaryReport, now_s: float, arrived_s: float) -> Actions:
