@@ -37,6 +37,7 @@ from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim import _fast
+from link_firmware_sim.ekf import X_P, X_Q
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
@@ -393,7 +394,7 @@ class BatchRunner:
         self.now_s = t
         second = t_us % 1_000_000 == 0
         states = t_us % self.state_interval_us == 0
-        for engine in self.engines:
+        for engine in self.engines if second or states else ():
             for lk in engine.links:
                 fw = self.firmware[lk.index]
                 if lk.index in self._down:
@@ -452,18 +453,25 @@ class BatchRunner:
         lg.v_true.append(truth.v_w_m_s.copy())
         lg.q_true.append(truth.q_wxyz.copy())
         # a link without power or still booting logs no estimate (NaN), as a vehicle logs nothing
-        live = [i not in self._down and fw.initialized for i, fw in enumerate(self.firmware)]
-        nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
-        ctrl = [fw.control_estimate(t) if ok else (nan3, nan3, nan4) for ok, fw in zip(live, self.firmware)]
-        ekf = [(fw.ekf.p_w_m, fw.ekf.q_wxyz) if ok else (nan3, nan4) for ok, fw in zip(live, self.firmware)]
-        targets = [fw.active_target(t, c) if ok else None for ok, fw, c in zip(live, self.firmware, ctrl)]
-        p_target = [nan3 if x is None else x.p_w_m for x in targets]
-        q_target = np.array([nan4 if x is None else x.q_wxyz for x in targets])  # logged, and the model's tension
-        lg.p_ctrl.append(np.array([c[0] for c in ctrl]))
-        lg.q_ctrl.append(np.array([c[2] for c in ctrl]))
-        lg.p_ekf.append(np.array([e[0] for e in ekf]))
-        lg.q_ekf.append(np.array([e[1] for e in ekf]))
-        lg.p_target.append(np.array(p_target))
+        n = self.n
+        p_ctrl, p_ekf, p_target = np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+        q_ctrl, q_ekf, q_target = np.full((n, 4), np.nan), np.full((n, 4), np.nan), np.full((n, 4), np.nan)
+        all_live = True
+        for i, fw in enumerate(self.firmware):
+            if i in self._down or not fw.initialized:
+                all_live = False
+                continue
+            ctrl = fw.control_estimate(t)
+            p_ctrl[i], q_ctrl[i] = ctrl[0], ctrl[2]
+            x = fw.ekf.x
+            p_ekf[i], q_ekf[i] = x[X_P], x[X_Q]
+            target = fw.active_target(t, ctrl)
+            p_target[i], q_target[i] = target.p_w_m, target.q_wxyz  # q: logged, and the model's tension
+        lg.p_ctrl.append(p_ctrl)
+        lg.q_ctrl.append(q_ctrl)
+        lg.p_ekf.append(p_ekf)
+        lg.q_ekf.append(q_ekf)
+        lg.p_target.append(p_target)
         lg.q_target.append(q_target)
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
         lg.joint_force_true.append(truth.joint_force_w_n)
@@ -471,7 +479,7 @@ class BatchRunner:
         dynamics = getattr(self.trajectory, "dynamics", None) if self.trajectory is not None else None
         if dynamics is not None:
             last = dynamics.last
-            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None or not all(live) else tension(
+            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None or not all_live else tension(
                 last.joint_force_w_n, quat_to_rotmat(q_target)))
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
