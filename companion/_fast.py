@@ -16,6 +16,8 @@ loops over scalars, compiled by numba (``njit(cache=True)``), and
   before every step;
 * :func:`group_terms_kernel`: a group's boundary and tip covariance terms after its local step
   (:func:`~companion.estimation.semi.local_boundary`).
+* :func:`trajectory_kernel`: the targets of a bending chain (poses at five instants and their
+  central differences: :meth:`~companion.trajectory.ChainTrajectory.target_arrays`), at 50 Hz.
 
 numba is not an onboard dependency: it comes with the ``sim`` extra. Without it (the Raspberry Pi
 install), or with ``SKELETON_JIT=0`` in the environment, :data:`ENABLED` is false, :func:`jit`
@@ -29,13 +31,14 @@ firmware kernels (``link_firmware_sim._fast``) use the same :func:`jit`.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 
 import numpy as np
 
 __all__ = ["ENABLED", "jit", "warm_up", "as_kernel_array", "feedforward_kernel", "constraint_apply_kernel",
-           "constraint_apply_batched_kernel", "joint_nis_kernel", "group_terms_kernel"]
+           "constraint_apply_batched_kernel", "joint_nis_kernel", "group_terms_kernel", "trajectory_kernel"]
 
 log = logging.getLogger(__name__)
 
@@ -433,6 +436,71 @@ def group_terms_kernel(p, v, q, w, d, P, P_ends, W_ends, has_w, rate_var, tips, 
     info[:, :] = 0.5 * (info + info.T)
 
 
+@jit
+def trajectory_kernel(theta, share, base_q, d, center, h, p, q, R, v, acc, w, wd):
+    """:meth:`~companion.trajectory.ChainTrajectory.target_arrays` (its numpy form is the
+    specification): ``theta`` (5,) the bend angles and ``center`` (5, 3) the chain's middle point at
+    ``t + k h``, ``k = -2..2``; link ``i`` is pitched by ``theta share[i]`` after ``base_q``, the links
+    joined tip to tip (``d`` (3,), centre to right tip, body frame). Writes at ``t`` every link's
+    centre ``p`` (n, 3), attitude ``q`` (n, 4) and ``R`` (n, 3, 3), velocity ``v``, acceleration
+    ``acc``, body rate ``w = (R^T dR/dt)^v`` and its derivative ``wd``, all by central differences."""
+    n = share.shape[0]
+    P5 = np.empty((5, n, 3))
+    Q5 = np.empty((5, n, 4))
+    R5 = np.empty((5, n, 3, 3))
+    bw, bx, by, bz = base_q[0], base_q[1], base_q[2], base_q[3]
+    mid = n // 2
+    for k in range(5):
+        for i in range(n):
+            half = 0.5 * (theta[k] * share[i])
+            c, s = math.cos(half), math.sin(half)  # the bend: (c, 0, s, 0), after the base attitude
+            qw, qx, qy, qz = bw * c - by * s, bx * c - bz * s, bw * s + by * c, bx * s + bz * c
+            Q5[k, i, 0], Q5[k, i, 1], Q5[k, i, 2], Q5[k, i, 3] = qw, qx, qy, qz
+            Rk = R5[k, i]
+            ww, xx, yy, zz = qw * qw, qx * qx, qy * qy, qz * qz
+            Rk[0, 0], Rk[1, 1], Rk[2, 2] = ww + xx - yy - zz, ww - xx + yy - zz, ww - xx - yy + zz
+            Rk[0, 1], Rk[1, 0] = 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qy + qw * qz)
+            Rk[0, 2], Rk[2, 0] = 2.0 * (qx * qz + qw * qy), 2.0 * (qx * qz - qw * qy)
+            Rk[1, 2], Rk[2, 1] = 2.0 * (qy * qz - qw * qx), 2.0 * (qy * qz + qw * qx)
+        # centres relative to the first link's (r_i = r_(i-1) + R_(i-1) d + R_i d), the middle on ``center``
+        for j in range(3):
+            P5[k, 0, j] = 0.0
+        for i in range(1, n):
+            for j in range(3):
+                a0 = R5[k, i - 1, j, 0] * d[0] + R5[k, i - 1, j, 1] * d[1] + R5[k, i - 1, j, 2] * d[2]
+                a1 = R5[k, i, j, 0] * d[0] + R5[k, i, j, 1] * d[1] + R5[k, i, j, 2] * d[2]
+                P5[k, i, j] = P5[k, i - 1, j] + (a0 + a1)
+        for j in range(3):
+            m = P5[k, mid, j]
+            if n % 2 == 0:  # the middle joint: the left tip of link n/2
+                m -= R5[k, mid, j, 0] * d[0] + R5[k, mid, j, 1] * d[1] + R5[k, mid, j, 2] * d[2]
+            shift = center[k, j] - m
+            for i in range(n):
+                P5[k, i, j] += shift
+    rates = np.empty((3, n, 3))
+    D = np.empty((3, 3))
+    for s in range(3):  # (R^T dR/dt)^v at t - h, t, t + h
+        for i in range(n):
+            for j in range(3):
+                for l in range(3):
+                    D[j, l] = (R5[s + 2, i, j, l] - R5[s, i, j, l]) / (2.0 * h)
+            Rm = R5[s + 1, i]
+            rates[s, i, 0] = Rm[0, 2] * D[0, 1] + Rm[1, 2] * D[1, 1] + Rm[2, 2] * D[2, 1]
+            rates[s, i, 1] = Rm[0, 0] * D[0, 2] + Rm[1, 0] * D[1, 2] + Rm[2, 0] * D[2, 2]
+            rates[s, i, 2] = Rm[0, 1] * D[0, 0] + Rm[1, 1] * D[1, 0] + Rm[2, 1] * D[2, 0]
+    for i in range(n):
+        for j in range(3):
+            p[i, j] = P5[2, i, j]
+            v[i, j] = (P5[3, i, j] - P5[1, i, j]) / (2.0 * h)
+            acc[i, j] = (P5[3, i, j] - 2.0 * P5[2, i, j] + P5[1, i, j]) / (h * h)
+            w[i, j] = rates[1, i, j]
+            wd[i, j] = (rates[2, i, j] - rates[0, i, j]) / (2.0 * h)
+            for l in range(3):
+                R[i, j, l] = R5[2, i, j, l]
+        for j in range(4):
+            q[i, j] = Q5[2, i, j]
+
+
 def warm_up() -> float:
     """Compile (first run) or load from the cache (later runs) every kernel here, with the argument
     types its callers pass; returns the seconds it took (0 without numba)."""
@@ -455,4 +523,7 @@ def warm_up() -> float:
     joint_nis_kernel(p, z, q, z, d, P, 0.01, 0.01, np.empty(n - 1))
     group_terms_kernel(p, z, q, z, d, P, np.zeros((2, n, 9, 9)), np.zeros((2, n, 9, 3)), True, 1e-4, np.empty((2, 6)),
                        np.empty((6, 6)), np.empty((12, 12)), np.empty((n, 12, 9)))
+    trajectory_kernel(np.zeros(5), np.array([-1.0, 1.0]), np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.5, 0.0, 0.0]),
+                      np.zeros((5, 3)), 1e-3, np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)),
+                      np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)))
     return time.perf_counter() - t0

@@ -47,6 +47,7 @@ from typing import Literal
 
 import numpy as np
 
+from . import _fast
 from .configfile import require_nonnegative, require_positive
 from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
 from .messages import PoseTarget
@@ -176,22 +177,35 @@ class ChainTrajectory:
         center = np.array([self.center_w_m(t) for t in times])
         return r + (center - middle_offset(r, R, self.d))[:, None, :], q, R
 
-    def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:
-        """Targets with velocity, acceleration, body rate and its derivative (``passive``: see
-        :func:`with_feedforward`)."""
+    def target_arrays(self, t: float, compiled: bool | None = None) -> tuple[np.ndarray, ...]:
+        """Every link's ``(p, q, R, v, a, w, w_dot)`` at ``t`` ((n, 3), (n, 4), (n, 3, 3), then (n, 3)
+        each): the poses at ``t + k h``, ``k = -2..2``, and their central differences (``w``: ``(R^T
+        dR/dt)^v``). ``compiled`` (default: :data:`companion._fast.ENABLED`): by
+        :func:`companion._fast.trajectory_kernel` (the same numbers to 1e-12:
+        ``tests/test_fast_paths.py``), else in numpy, the specification below."""
         h = self.h
-        p, qs, R = self.poses([t + k * h for k in (-2, -1, 0, 1, 2)])
+        times = [t + k * h for k in (-2, -1, 0, 1, 2)]
+        if _fast.ENABLED if compiled is None else compiled:
+            n = self.n
+            out = (np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
+                   np.empty((n, 3)), np.empty((n, 3)))
+            _fast.trajectory_kernel(np.array([self.bend_angle_rad(x) for x in times]), self._share, self._base_q,
+                                    self.d, np.array([self.center_w_m(x) for x in times]), float(h), *out)
+            return out
+        p, qs, R = self.poses(times)
         v = (p[3] - p[1]) / (2 * h)
         a = (p[3] - 2 * p[2] + p[1]) / (h * h)
-
         # (R^T dR/dt)^v of every link at the offsets -1, 0, 1 at once
         W = np.einsum("snji,snjk->snik", R[1:4], (R[2:5] - R[0:3]) / (2 * h))
         rates = np.stack((W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]), axis=-1)
-        w = rates[1]
-        w_dot = (rates[2] - rates[0]) / (2 * h)
-        q = qs[2]
-        return with_feedforward([PoseTarget(p[2][i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
-                                self.dynamics, passive, arrays=(p[2], R[2], v, w, a, w_dot))
+        return p[2], qs[2], R[2], v, a, rates[1], (rates[2] - rates[0]) / (2 * h)
+
+    def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:
+        """Targets with velocity, acceleration, body rate and its derivative (``passive``: see
+        :func:`with_feedforward`)."""
+        p, q, R, v, a, w, w_dot = self.target_arrays(t)
+        return with_feedforward([PoseTarget(p[i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
+                                self.dynamics, passive, arrays=(p, R, v, w, a, w_dot))
 
 
 class CpgChainTrajectory:

@@ -66,6 +66,7 @@ def warm_up_kernels() -> float:
 
 
 CRASH_TILT_DEG = 60.0
+_COS_HALF_NEAR_CRASH = math.cos(math.radians(CRASH_TILT_DEG - 5.0) / 2.0)  # (check_crash)
 
 
 class Wind:
@@ -227,6 +228,10 @@ class Plant:
         if target_q is None:
             return
         ok = np.all(np.isfinite(target_q), axis=1)  # a link without power or EKF has no target
+        # every link's rotation from its target, 2 acos |<q, q_target>|, well inside the limit:
+        # no crash (the rotation vectors below are worked out only near it)
+        if not np.any(np.abs(np.einsum("ij,ij->i", truth.q_wxyz[ok], target_q[ok])) < _COS_HALF_NEAR_CRASH):
+            return
         tilt = np.zeros(len(ok))
         tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
         if tilt.max() > CRASH_TILT_DEG:

@@ -466,6 +466,33 @@ def test_trajectory_poses_batch_is_pose():
     np.testing.assert_array_equal(R, quat_to_rotmat(q))
 
 
+@pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
+@pytest.mark.parametrize("kind", ["bend", "figure8", "hover", "rest"])
+def test_trajectory_kernel_matches_numpy(n_links, kind):
+    """ChainTrajectory.target_arrays by the kernel equals its numpy specification: poses, attitudes,
+    velocity and acceleration to 1e-12 (here bit for bit, as it happens), the body rate to 1e-12,
+    its derivative to 1e-9 (central differences over h = 1 ms carry R's rounding, 1e-16 between the
+    two forms of R(q), as 1e-16 / h^2); random headings, pitches, link lengths, start points and
+    times before, during and after the take-off and the bend's ramp, ``targets`` on the kernel."""
+    from companion.trajectory import ChainTrajectory, TrajectoryConfig
+
+    rng = np.random.default_rng(n_links * 10 + len(kind))
+    for _ in range(10):
+        cfg = TrajectoryConfig(kind=kind, takeoff_start_s=rng.uniform(0, 2), takeoff_duration_s=rng.uniform(1, 6),
+                               takeoff_altitude_m=rng.uniform(1, 4), yaw_deg=rng.uniform(-180, 180),
+                               pitch_deg=rng.uniform(-30, 30), bend_start_s=rng.uniform(2, 8),
+                               bend_amplitude_deg=rng.uniform(5, 40), bend_period_s=rng.uniform(4, 12),
+                               bend_ramp_s=rng.uniform(0, 6), figure8_start_s=rng.uniform(2, 8))
+        traj = ChainTrajectory(cfg, n_links, rng.uniform(0.3, 2.0), rng.normal(size=3))
+        for t in rng.uniform(0, 30, size=8):
+            got, want = traj.target_arrays(t, compiled=True), traj.target_arrays(t, compiled=False)
+            for name, g, w, atol in zip(("p", "q", "R", "v", "a", "w", "w_dot"), got, want, [1e-12] * 6 + [1e-9]):
+                assert g.shape == w.shape, name
+                np.testing.assert_allclose(g, w, rtol=0, atol=atol, err_msg=name)
+            targets = traj.targets(t)
+            np.testing.assert_array_equal(np.array([x.omega_dot_d_rad_s2 for x in targets]), got[6])
+
+
 def test_numpy_fallback_without_jit():
     """SKELETON_JIT=0 (as an install without numba): the numpy path runs, with one log line."""
     code = ("import logging; logging.basicConfig(level=logging.INFO)\n"
