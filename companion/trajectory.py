@@ -181,7 +181,7 @@ class ChainTrajectory:
         """Every link's ``(p, q, R, v, a, w, w_dot)`` at ``t`` ((n, 3), (n, 4), (n, 3, 3), then (n, 3)
         each): the poses at ``t + k h``, ``k = -2..2``, and their central differences (``w``: ``(R^T
         dR/dt)^v``). ``compiled`` (default: :data:`companion._fast.ENABLED`): by
-        :func:`companion._fast.trajectory_kernel` (the same numbers to 1e-12:
+        :func:`companion._fast.trajectory_kernel` (the same numbers to 1e-12, ``w_dot`` to 1e-9:
         ``tests/test_fast_paths.py``), else in numpy, the specification below."""
         h = self.h
         times = [t + k * h for k in (-2, -1, 0, 1, 2)]

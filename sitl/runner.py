@@ -37,7 +37,6 @@ from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim import _fast
-from link_firmware_sim.ekf import X_P, X_Q
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
@@ -270,7 +269,7 @@ class BatchRunner:
 
     #: poll an engine only when :meth:`~companion.engine.CompanionEngine.needs_poll` says it has
     #: something to do (an input, a bus event, a timer); ``False`` on an instance: every engine on
-    #: every firmware tick (the two give the same flight, bit for bit: ``tests/test_runner.py``)
+    #: every firmware tick (the two give the same flight, bit for bit: ``tests/test_faults.py``)
     skip_idle_polls: bool = True
 
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None):
@@ -468,8 +467,7 @@ class BatchRunner:
                 continue
             ctrl = fw.control_estimate(t)
             p_ctrl[i], q_ctrl[i] = ctrl[0], ctrl[2]
-            x = fw.ekf.x
-            p_ekf[i], q_ekf[i] = x[X_P], x[X_Q]
+            p_ekf[i], q_ekf[i] = fw.ekf.p_w_m, fw.ekf.q_wxyz
             target = fw.active_target(t, ctrl)
             p_target[i], q_target[i] = target.p_w_m, target.q_wxyz  # q: logged, and the model's tension
         lg.p_ctrl.append(p_ctrl)

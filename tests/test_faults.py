@@ -22,6 +22,7 @@ from sitl.steplog import merge_step_logs
 from sitl.wire import Impairment, WireProxy
 
 from .ports import free_ports
+from .test_sitl_flight import _strip
 
 FAULTS = "configs/sitl/faults"
 
@@ -329,11 +330,7 @@ def test_batch_runner_leaves_out_only_engine_polls_that_change_nothing(tmp_path,
     assert sorted(log_skip.files) == sorted(log_every.files)
     for key in log_every.files:
         np.testing.assert_array_equal(log_skip[key], log_every[key], err_msg=key)
-    assert _strip_timing(m_skip) == _strip_timing(m_every)
-
-
-def _strip_timing(metrics: dict) -> dict:
-    return {k: v for k, v in metrics.items() if k not in ("realtime_factor", "wall_s")}
+    assert _strip(m_skip) == _strip(m_every)  # (all but the real-time factor)
 
 
 @pytest.mark.slow  # the counterfactual of the test above (7 s), out of the default run for the suite's time
