@@ -252,7 +252,10 @@ class FleetHarness:
             log.info("%s at t = %.3f s", LOCKSTEP_ENDED, plant.time_s)
 
     def truth_log(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v) for k, v in self.rows.items()}
+        """The log-rate truth, one row per log tick; a row an interruption (Ctrl-C) cut short is
+        left out, so that every series has the same rows."""
+        n = min(len(v) for v in self.rows.values())
+        return {k: np.asarray(v[:n]) for k, v in self.rows.items()}
 
     def close(self) -> None:
         for port in self.ports:
