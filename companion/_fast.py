@@ -448,32 +448,28 @@ def trajectory_kernel(theta, share, base_q, d, center, h, p, q, R, v, acc, w, wd
     P5 = np.empty((5, n, 3))
     Q5 = np.empty((5, n, 4))
     R5 = np.empty((5, n, 3, 3))
+    A = np.empty((n, 3))  # each link's right-tip offset R d at one instant
     bw, bx, by, bz = base_q[0], base_q[1], base_q[2], base_q[3]
     mid = n // 2
     for k in range(5):
         for i in range(n):
             half = 0.5 * (theta[k] * share[i])
             c, s = math.cos(half), math.sin(half)  # the bend: (c, 0, s, 0), after the base attitude
-            qw, qx, qy, qz = bw * c - by * s, bx * c - bz * s, bw * s + by * c, bx * s + bz * c
-            Q5[k, i, 0], Q5[k, i, 1], Q5[k, i, 2], Q5[k, i, 3] = qw, qx, qy, qz
-            Rk = R5[k, i]
-            ww, xx, yy, zz = qw * qw, qx * qx, qy * qy, qz * qz
-            Rk[0, 0], Rk[1, 1], Rk[2, 2] = ww + xx - yy - zz, ww - xx + yy - zz, ww - xx - yy + zz
-            Rk[0, 1], Rk[1, 0] = 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qy + qw * qz)
-            Rk[0, 2], Rk[2, 0] = 2.0 * (qx * qz + qw * qy), 2.0 * (qx * qz - qw * qy)
-            Rk[1, 2], Rk[2, 1] = 2.0 * (qy * qz - qw * qx), 2.0 * (qy * qz + qw * qx)
+            Q5[k, i, 0], Q5[k, i, 1] = bw * c - by * s, bx * c - bz * s
+            Q5[k, i, 2], Q5[k, i, 3] = bw * s + by * c, bx * s + bz * c
+            _ca_rotmat(Q5[k], i, R5[k, i])
+            for j in range(3):
+                A[i, j] = R5[k, i, j, 0] * d[0] + R5[k, i, j, 1] * d[1] + R5[k, i, j, 2] * d[2]
         # centres relative to the first link's (r_i = r_(i-1) + R_(i-1) d + R_i d), the middle on ``center``
         for j in range(3):
             P5[k, 0, j] = 0.0
         for i in range(1, n):
             for j in range(3):
-                a0 = R5[k, i - 1, j, 0] * d[0] + R5[k, i - 1, j, 1] * d[1] + R5[k, i - 1, j, 2] * d[2]
-                a1 = R5[k, i, j, 0] * d[0] + R5[k, i, j, 1] * d[1] + R5[k, i, j, 2] * d[2]
-                P5[k, i, j] = P5[k, i - 1, j] + (a0 + a1)
+                P5[k, i, j] = P5[k, i - 1, j] + (A[i - 1, j] + A[i, j])
         for j in range(3):
             m = P5[k, mid, j]
             if n % 2 == 0:  # the middle joint: the left tip of link n/2
-                m -= R5[k, mid, j, 0] * d[0] + R5[k, mid, j, 1] * d[1] + R5[k, mid, j, 2] * d[2]
+                m -= A[mid, j]
             shift = center[k, j] - m
             for i in range(n):
                 P5[k, i, j] += shift
