@@ -90,6 +90,7 @@ def test_format_and_cli_errors(tmp_path, capsys):
     assert "fleets' scheduling policy: batch" in text
     assert "in loop" in text and "0.750" in text and "0.250" in text
     assert "21.5 us one-kernel" in text and "60.2 us step by step" in text
+    assert "MISSED" not in text and "target" not in text.splitlines()[-1]  # (judged by run_speed: below)
     assert bench_main(["sitl", "--batch", "no_such_scenario", "--fleet", "", "--out", str(tmp_path / "x"),
                        "--quiet", "--ceiling-duration", "0.01"]) == 2
     assert "no_such_scenario" in capsys.readouterr().err
@@ -116,3 +117,36 @@ def test_median_of_repeated_runs_and_its_report():
         speed.run_speed(Path("."), 1.0, 1.0, (), (), repeat=0)
     with pytest.raises(ValueError, match="sim links shm"):
         speed.run_speed(Path("."), 1.0, 1.0, (), ("three_link",), sim_links=("shm",))
+
+
+def test_the_targets_are_judged_and_reported():
+    """issue 15's targets beside each figure and in one closing line: a flight under its target, or
+    one that failed, is MISSED; a scenario without a target is not judged."""
+    runs = [{"mode": "batch", "scenario": "three_link", "exit_code": 0, "realtime_factor": 10.5},
+            {"mode": "batch", "scenario": "seven_link", "exit_code": 0, "realtime_factor": 4.9},
+            {"mode": "batch", "scenario": "seven_link_cpg", "exit_code": 0, "realtime_factor": 4.0},
+            {"mode": "fleet", "scenario": "seven_link", "sim_link": "unix", "exit_code": 0, "realtime_factor": 1.5},
+            {"mode": "fleet", "scenario": "seven_link", "sim_link": "tcp", "exit_code": 0, "realtime_factor": 1.1},
+            {"mode": "fleet", "scenario": "three_link", "sim_link": "unix", "exit_code": 1, "realtime_factor": 3.5},
+            {"mode": "fleet", "scenario": "three_link", "sim_link": "tcp", "exit_code": 1, "realtime_factor": None}]
+    for r in runs:
+        speed._judge(r)
+        r.update(ratio_to_ceiling=None if r["realtime_factor"] is None else 0.1, cpu_s_per_sim_s=0.3)
+    assert [r["target_rtf"] for r in runs] == [10.0, 5.0, None, 1.5, 1.5, 3.0, 3.0]
+    assert [r["target_met"] for r in runs] == [True, False, None, True, False, False, False]
+    tick = {"fused_us": 31.0, "step_by_step_us": 60.0, "target_us": speed.TICK_TARGET_US, "target_met": False}
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0), "firmware_tick_us": tick,
+              "mujoco_ceiling": {"three_link": {"realtime_factor": 130.0, "cpu_s_per_sim_s": 0.01},
+                                 "seven_link": {"realtime_factor": 57.0, "cpu_s_per_sim_s": 0.02}},
+              "runs": runs}
+    lines = speed.format_speed(result).splitlines()
+    assert any(line.startswith("firmware tick") and line.endswith("(target <= 30 us: MISSED)") for line in lines)
+    row = {line.split("  ")[0]: line for line in lines}
+    assert ">= 10x met" in row["batch three_link"] and ">= 5x MISSED" in row["batch seven_link"]
+    assert "met" not in row["batch seven_link_cpg"] and "MISSED" not in row["batch seven_link_cpg"]
+    assert ">= 1.5x met" in row["fleet seven_link (unix)"] and ">= 1.5x MISSED" in row["fleet seven_link (tcp)"]
+    assert lines[-1] == ("targets met: batch three_link >= 10x, fleet seven_link (unix) >= 1.5x; missed: firmware "
+                         "tick <= 30 us, batch seven_link >= 5x, fleet seven_link (tcp) >= 1.5x, fleet three_link "
+                         "(unix) >= 3x, fleet three_link (tcp) >= 3x (MuJoCo alone, the machine's phase: three_link "
+                         "130x, seven_link 57x)")
+    json.dumps(result)
