@@ -39,8 +39,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg.lapack import dpbtrf as _dpbtrf
-from scipy.linalg.lapack import dpbtrs as _dpbtrs
 
 from .. import _fast
 from .chain import CON_DIM, CON_VEL, ERR_DIM, ERR_P, ERR_TH, ERR_V
@@ -364,13 +362,19 @@ class _BandedSPD:
         ab[d_dst] = D.reshape(-1)[d_src]
         if m > 1:
             ab[e_dst] = E.reshape(-1)
-        cb, info = _dpbtrf(ab.reshape(u + 1, M), lower=0, overwrite_ab=1)
+        # (scipy's LAPACK is imported here, where the banded path runs: a process that never takes
+        # it, a vehicle or the companion of short groups, does not load scipy.linalg: 26 MB, 0.16 s)
+        from scipy.linalg.lapack import dpbtrf
+
+        cb, info = dpbtrf(ab.reshape(u + 1, M), lower=0, overwrite_ab=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"constraint system is not positive definite (LAPACK pbtrf info={info})")
         self._cb = cb
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        x, info = _dpbtrs(self._cb, rhs.reshape(self.m * self.bs, -1), lower=0)
+        from scipy.linalg.lapack import dpbtrs
+
+        x, info = dpbtrs(self._cb, rhs.reshape(self.m * self.bs, -1), lower=0)
         if info != 0:  # pragma: no cover - only on invalid arguments
             raise np.linalg.LinAlgError(f"LAPACK pbtrs failed (info={info})")
         return x
