@@ -65,7 +65,6 @@ from link_firmware_sim.hil import (ROTORS_PER_LINK, SITL_GPS_EPOCH_US, encode_ah
                                    nonfinite_rows, thrusts_from_controls)
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
-from .plots import write_plots
 from .runner import Plant, Schedule
 from .scenario import Scenario
 from .steplog import attach_truth, merge_step_logs
@@ -920,6 +919,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
         np.savez_compressed(out_dir / "vision.npz", **vision_arrays)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     np.savez_compressed(out_dir / "log.npz", **merged)
+    if plots:
+        from .plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
     if plots and sc.trajectory.kind == "cpg":
         period_s = 1.0 / InverseModel.load(sc.motion.model).steady.cpg_params.frequency_hz
         write_plots(merged, out_dir, motion=sc.motion, period_s=period_s)

@@ -20,7 +20,6 @@ from companion.configfile import dump_toml
 from companion.trajectory import CpgChainTrajectory
 
 from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
-from .plots import write_plots
 from .runner import BatchRunner
 from .scenario import Scenario
 
@@ -92,6 +91,8 @@ def fly(
             np.savez_compressed(out_dir / "vision.npz", **vision.log.arrays())
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
+            from .plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
+
             cpg = isinstance(runner.trajectory, CpgChainTrajectory)
             write_plots(arrays, out_dir, motion=sc.motion if cpg else None,
                         period_s=runner.trajectory.generator.period_s if cpg else 4.0)

@@ -127,6 +127,17 @@ def test_a_vehicle_and_a_daemon_start_without_scipys_optimizer_or_lapack():
     assert proc.stdout.strip() == "ok"
 
 
+def test_the_simulator_loads_matplotlib_only_to_write_plots():
+    """``sitl fly`` and ``sitl launch`` import matplotlib after the flight, when they write its
+    plots (not with ``--no-plots``): the harness flies without it (0.3 s of start-up, 28 MB)."""
+    code = ("import sitl.__main__, sitl.fleet, sitl.fly, sitl.runner\n"
+            "assert 'matplotlib' not in sys.modules\n"
+            "print('ok')")
+    proc = run_blocked(code, ("matplotlib",))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ok"
+
+
 def test_the_blocker_really_blocks():
     proc = run_blocked("import matplotlib", ONBOARD_ABSENT)
     assert proc.returncode != 0 and "blocked: matplotlib" in proc.stderr
