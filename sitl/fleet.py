@@ -921,11 +921,12 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     np.savez_compressed(out_dir / "log.npz", **merged)
     if plots:
         from .plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
-    if plots and sc.trajectory.kind == "cpg":
-        period_s = 1.0 / InverseModel.load(sc.motion.model).steady.cpg_params.frequency_hz
-        write_plots(merged, out_dir, motion=sc.motion, period_s=period_s)
-    elif plots:
-        write_plots(merged, out_dir)
+
+        if sc.trajectory.kind == "cpg":
+            period_s = 1.0 / InverseModel.load(sc.motion.model).steady.cpg_params.frequency_hz
+            write_plots(merged, out_dir, motion=sc.motion, period_s=period_s)
+        else:
+            write_plots(merged, out_dir)
     (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=harness.sim_s)))
     if aborted:
         raise FleetError(f"{aborted}; the {harness.sim_s:.1f} s flown are measured in {out_dir / 'metrics.json'}")
