@@ -20,7 +20,10 @@ no message object on the way); its test checks the answer byte for byte against 
 :func:`hil_loop_kernel` runs the vehicle's lockstep over its quiet ticks, the waits and the socket
 calls included (the C library's ``poll``, ``recv`` and ``send``, linked by symbol, so numba caches
 it like the others), and hands back to Python at the first tick whose bookkeeping changes anything;
-``tests/test_simlink.py`` flies it against the record tick, bit for bit.
+``tests/test_simlink.py`` flies it against the record tick, bit for bit. Over PX4's TCP link the same
+loop reads and writes the ticks' MAVLink 2 frames (:func:`frames_to_records`, :func:`record_to_frame`:
+whole, unsigned frames from the simulator, numbered without a gap, checksums checked; anything else
+goes to pymavlink's parser), flown against the decoding path bit for bit, counters included.
 
 Dispatch: :class:`~link_firmware_sim.ekf.LinkEkf`, :class:`~link_firmware_sim.allocation.Allocator`
 and :class:`~link_firmware_sim.firmware.LinkFirmware` use the kernels when :data:`ENABLED`, else the
@@ -62,6 +65,15 @@ __all__ = [
     "TICK_OUT",
     "hil_tick_kernel",
     "hil_loop_kernel",
+    "frames_to_records",
+    "record_to_frame",
+    "crc_mcrf4xx",
+    "MAV_HIL_SENSOR",
+    "MAV_HIL_AHRS",
+    "MAV_HIL_ACTUATOR",
+    "FRAMING",
+    "FRAMING_SIZE",
+    "FRAME_BYTES",
     "LOOP_INFO",
     "LOOP_IDLE",
     "LOOP_PACKET",
@@ -1026,6 +1038,123 @@ LOOP_TICKED = 2
 _POLLIN = 0x1
 _MSG_NOSIGNAL = 0x4000  # Linux's (the same-host link is Linux's: SOCK_SEQPACKET, SO_PEERCRED)
 
+#: PX4's TCP simulator link carries the same messages in MAVLink 2 frames: the start byte, the
+#: header's length (start byte to message id) and the checksum's (CRC-16/MCRF4XX over the frame
+#: after the start byte, then the message's CRC extra)
+MAV2_STX = 0xFD
+MAV2_HEADER = 10
+#: the messages of the common tick over TCP as :func:`hil_loop_kernel` reads (HIL_SENSOR,
+#: SKELETON_AHRS_REFERENCE) and writes (HIL_ACTUATOR_CONTROLS) them: message id, CRC extra and the
+#: payload's size (its record's less the kind byte). Literals for the same reason as the records'
+#: offsets; :mod:`.simlink` checks them against the dialect when it is imported.
+MAV_HIL_SENSOR = {"msgid": 107, "crc_extra": 108, "size": 65}
+MAV_HIL_AHRS = {"msgid": 57002, "crc_extra": 112, "size": 24}
+MAV_HIL_ACTUATOR = {"msgid": 93, "crc_extra": 47, "size": 81}
+_MS_ID, _MS_EXTRA, _MS_SIZE = MAV_HIL_SENSOR.values()
+_MA_ID, _MA_EXTRA, _MA_SIZE = MAV_HIL_AHRS.values()
+_MO_ID, _MO_EXTRA, _MO_SIZE = MAV_HIL_ACTUATOR.values()
+#: the longest answer's frame (an unsigned MAVLink 2 HIL_ACTUATOR_CONTROLS, no trailing zero)
+FRAME_BYTES = MAV2_HEADER + _MO_SIZE + 2
+#: ``framing`` of :func:`hil_loop_kernel` (int64): ``on`` 0 for the same-host link's records, 1 for
+#: MAVLink 2 frames on a TCP stream; the simulator's system and component (the one sender whose frames
+#: the kernel takes) and its last sequence number, kept up to date; this vehicle's system, component
+#: and next sequence number, kept up to date; the bytes of the newest answer's frame that its send
+#: took (-1: none) and the frame's length (the rest is the caller's to send); the sequence number of
+#: the newest frame read (the kernel's scratch)
+FRAMING = {"on": 0, "src_sys": 1, "src_comp": 2, "seq_in": 3, "sys": 4, "comp": 5, "seq_out": 6, "sent": 7,
+           "length": 8, "seq_read": 9}
+FRAMING_SIZE = 10
+
+
+@jit
+def crc_mcrf4xx(data, start, end, crc):
+    """MAVLink's checksum (CRC-16/MCRF4XX, pymavlink's ``x25crc``) of ``data[start:end]`` (uint8)
+    continued from ``crc`` (0xFFFF to start one)."""
+    for i in range(start, end):
+        tmp = (np.int64(data[i]) ^ (crc & 0xFF)) & 0xFF
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
+
+
+@jit
+def _crc_extra(crc, extra):
+    tmp = (extra ^ (crc & 0xFF)) & 0xFF
+    tmp = (tmp ^ (tmp << 4)) & 0xFF
+    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+
+
+@jit
+def frames_to_records(buf, n, rec, framing):
+    """The same-host link's packet (into ``rec``; its length returned) that the first ``n`` bytes
+    of ``buf`` carry as MAVLink 2 frames, or -1 unless those bytes are exactly a run of whole,
+    unsigned frames (no incompatibility or compatibility flag), each a HIL_SENSOR or
+    SKELETON_AHRS_REFERENCE with a payload of 1 to its size bytes (MAVLink 2 cuts a payload's
+    trailing zeros: they are put back), a good checksum, from ``framing``'s sender and numbered
+    on from its last sequence number without a gap. Anything else (another message, a frame cut
+    at either end, a duplicate or a lost frame, another sender, a bad checksum) is left to
+    pymavlink's parser, which counts what it must. The newest frame's sequence number goes to
+    ``framing["seq_read"]``, for the caller to keep once it takes the packet."""
+    i = 0
+    m = 0
+    seq = framing[3]
+    while i < n:
+        if n - i < MAV2_HEADER + 2 or buf[i] != MAV2_STX or buf[i + 2] != 0 or buf[i + 3] != 0:
+            return -1
+        length = np.int64(buf[i + 1])
+        end = i + MAV2_HEADER + length
+        if end + 2 > n or length == 0:
+            return -1
+        if np.int64(buf[i + 4]) != (seq + 1) & 0xFF or buf[i + 5] != framing[1] or buf[i + 6] != framing[2]:
+            return -1
+        msgid = np.int64(buf[i + 7]) | (np.int64(buf[i + 8]) << 8) | (np.int64(buf[i + 9]) << 16)
+        if msgid == _MS_ID:
+            kind, size, extra = _SENSOR_KIND, _MS_SIZE, _MS_EXTRA
+        elif msgid == _MA_ID:
+            kind, size, extra = _AHRS_KIND, _MA_SIZE, _MA_EXTRA
+        else:
+            return -1
+        if length > size or m + 1 + size > rec.shape[0]:
+            return -1
+        crc = _crc_extra(crc_mcrf4xx(buf, i + 1, end, 0xFFFF), extra)
+        if np.int64(buf[end]) != (crc & 0xFF) or np.int64(buf[end + 1]) != crc >> 8:
+            return -1
+        rec[m] = kind
+        rec[m + 1:m + 1 + length] = buf[i + MAV2_HEADER:end]
+        rec[m + 1 + length:m + 1 + size] = 0
+        m += 1 + size
+        seq = np.int64(buf[i + 4])
+        i = end + 2
+    framing[9] = seq
+    return m
+
+
+@jit
+def record_to_frame(answer, frame, framing):
+    """The HIL_ACTUATOR_CONTROLS record ``answer`` as the MAVLink 2 frame pymavlink packs (unsigned,
+    from ``framing``'s system and component, with its next sequence number, which moves on; the
+    payload's trailing zeros cut, one byte kept) into ``frame``; returns the frame's length."""
+    plen = _MO_SIZE
+    while plen > 1 and answer[plen] == 0:  # (the payload's byte j is the record's j + 1)
+        plen -= 1
+    frame[0] = MAV2_STX
+    frame[1] = plen
+    frame[2] = 0
+    frame[3] = 0
+    frame[4] = framing[6] & 0xFF
+    frame[5] = framing[4]
+    frame[6] = framing[5]
+    frame[7] = _MO_ID & 0xFF
+    frame[8] = (_MO_ID >> 8) & 0xFF
+    frame[9] = _MO_ID >> 16
+    frame[MAV2_HEADER:MAV2_HEADER + plen] = answer[1:1 + plen]
+    end = MAV2_HEADER + plen
+    crc = _crc_extra(crc_mcrf4xx(frame, 1, end, 0xFFFF), _MO_EXTRA)
+    frame[end] = crc & 0xFF
+    frame[end + 1] = crc >> 8
+    framing[6] = (framing[6] + 1) & 0xFF
+    return end + 2
+
 if ENABLED:
     from llvmlite import ir as _ir
     from numba import types as _types
@@ -1074,12 +1203,20 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
                     dt_default_s, target_time_s, target_stale_s, corr_time_s, corr_hold_s, corr_stale_s, gps_fix_s,
                     gps_timeout_s, due_us, arm_height_m, takeoff_m, densities, baro_density, gravity_w, corr, tgt, gains,
                     inertia, pos, att, gravity, B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
-                    scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out, info):
+                    scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out, info, framing, rec, frame):
     """The vehicle's lockstep over its quiet ticks in one call, the waits and the socket calls in it
     (C library's ``poll``, ``recv``, ``send``): the simulator's socket is ``pfd``'s first
-    descriptor (a same-host simulator link, ``SOCK_SEQPACKET``, non-blocking), the vehicle's MAVLink
-    ports the others. Each turn waits for the simulator (at most ``timeout_ms``), receives one
-    packet into ``buf`` and, when :func:`hil_tick_kernel` takes it, sends its answer at once.
+    descriptor (non-blocking), the vehicle's MAVLink ports the others. Each turn waits for the
+    simulator (at most ``timeout_ms``), receives one packet into ``buf`` and, when
+    :func:`hil_tick_kernel` takes it, sends its answer at once.
+
+    The simulator's link is the same-host link (``SOCK_SEQPACKET``: a packet of records), or with
+    ``framing["on"]`` (:data:`FRAMING`) PX4's TCP link: what one receive brings is taken when it is
+    exactly the MAVLink 2 frames of such a packet (:func:`frames_to_records`, into ``rec``: the
+    whole frames the simulator writes at once; anything else, e.g. a read that cuts a frame, is
+    handed over as a packet, for pymavlink's parser), and the answer goes out as its MAVLink 2
+    frame (:func:`record_to_frame`, in ``frame``; a send that takes only part of it is the caller's
+    to finish, ``framing["sent"]``); the sequence numbers both ways are kept in ``framing``.
 
     A tick is quiet when what :meth:`~link_firmware_sim.firmware.LinkFirmware.on_hil_record` and
     the vehicle do after the kernel changes nothing, so that leaving it out is exact: the wrench is
@@ -1117,13 +1254,23 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         n = _c_recv(pfd[0], buf, buf.shape[0], 0)
         if n <= 0:
             return x, P  # EAGAIN, or the peer closed: the caller's recv sees it again
-        s0 = sensor_record_at(buf, n)
+        if framing[0] != 0:
+            m = frames_to_records(buf, n, rec, framing)
+            if m < 0:
+                info[0] = LOOP_PACKET
+                info[5] = n
+                return x, P
+            pkt = rec[:m]
+        else:
+            m = n
+            pkt = buf[:n]
+        s0 = sensor_record_at(pkt, m)
         if s0 < 0:
             info[0] = LOOP_PACKET
             info[5] = n
             return x, P
         tb = np.empty(1, np.uint64)
-        tb.view(np.uint8)[:] = buf[s0 + _SENSOR_T:s0 + _SENSOR_T + 8]
+        tb.view(np.uint8)[:] = pkt[s0 + _SENSOR_T:s0 + _SENSOR_T + 8]
         t_us = tb[0]
         t_s = t_us * 1e-6  # (hil.seconds)
         if not (t_s - target_time_s <= target_stale_s) or not (t_s - gps_fix_s < gps_timeout_s):
@@ -1142,7 +1289,7 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         dt = t_s - t_prev_s
         if dt <= 0.0:
             dt = dt_default_s
-        xn, Pn, taken = hil_tick_kernel(buf[:n], thrust_max_n, mode, answer, gyro, x, P, dt, densities,
+        xn, Pn, taken = hil_tick_kernel(pkt, thrust_max_n, mode, answer, gyro, x, P, dt, densities,
                                         baro_density, gravity_w, wgt, corr, tgt, gains, inertia, pos, att, gravity,
                                         B_pinv, reduced_by_side, nu, xi_pre, eps0, eps1, tmax, selective,
                                         scale_to_limit, tol, att_Rm, gate_sigma, ahrs_frame, ahrs, out)
@@ -1151,16 +1298,26 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
             info[5] = n
             return x, P
         x, P = xn, Pn
+        if framing[0] != 0:
+            framing[3] = framing[9]  # the frames taken: their sender's numbers seen
         info[1] += 1.0
         info[6] += n
         info[3] = t_us
         info[4] = dt
         t_prev_s = t_s
-        finite = out[24] != 0.0
-        if finite and _c_send(pfd[0], answer, _ACT_SIZE, _MSG_NOSIGNAL) == _ACT_SIZE:
+        sent = False
+        if out[24] != 0.0:  # a finite wrench: the answer goes out
+            if framing[0] != 0:
+                length = record_to_frame(answer, frame, framing)
+                framing[8] = length
+                framing[7] = _c_send(pfd[0], frame, length, _MSG_NOSIGNAL)
+                sent = framing[7] == length
+            else:
+                sent = _c_send(pfd[0], answer, _ACT_SIZE, _MSG_NOSIGNAL) == _ACT_SIZE
+        if sent:
             info[2] += 1.0
         else:
-            info[0] = LOOP_TICKED  # not sent: the caller's send_packet (or its error) takes over
+            info[0] = LOOP_TICKED  # not sent (whole): the caller's send (or its error) takes over
             return x, P
         for i in range(3):
             pos[i] = out[14 + i]
@@ -1240,6 +1397,23 @@ def warm_up() -> float:
         fds = np.array([sim.fileno(), 0], dtype=np.int32)
         fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send,
                        np.zeros(AHRS_OUT_SIZE))
+    finally:
+        sim.close()
+        harness.close()
+    # ... over a stream of MAVLink 2 frames (PX4's TCP link): one tick (its frames and its answer's)
+    from companion.mavlink.dialect import load_dialect
+
+    mav = load_dialect().MAVLink(None, srcSystem=255, srcComponent=190)
+    sim, harness = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sim.setblocking(False)
+        harness.send(encode_hil_sensor(0.012, accel, z3).pack(mav))
+        framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
+        framing[:7] = (1, 255, 190, 255, 1, 1, 0)
+        fds = np.array([sim.fileno(), 0], dtype=np.int32)
+        fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send,
+                       np.zeros(AHRS_OUT_SIZE), framing, np.zeros(RECV_BYTES, dtype=np.uint8),
+                       np.zeros(FRAME_BYTES, dtype=np.uint8))
     finally:
         sim.close()
         harness.close()

@@ -708,7 +708,8 @@ class LinkFirmware:
 
     def on_hil_loop(self, pfd: np.ndarray, n_fds: int, timeout_ms: int, max_ticks: int, buf: np.ndarray,
                     answer: np.ndarray, thrust_max_n: float, mode: int, due_us: int, answered,
-                    ahrs: np.ndarray) -> tuple | None:
+                    ahrs: np.ndarray, framing: np.ndarray | None = None, rec: np.ndarray | None = None,
+                    frame: np.ndarray | None = None) -> tuple | None:
         """The vehicle's lockstep over quiet ticks (:func:`._fast.hil_loop_kernel`, the waits and the
         socket calls in it): each is :meth:`on_hil_record`'s tick, answered through the simulator's
         socket (``pfd``'s first descriptor) from ``answer``, with the bookkeeping left out that such a
@@ -716,7 +717,9 @@ class LinkFirmware:
         if the kernel did not send it), as :meth:`on_hil_record` does it, and stands for the ticks
         before it. ``due_us``: the vehicle's next stream or log row (a tick at or after it is the
         last). ``ahrs`` gets :data:`._fast.AHRS_OUT` (the attitude references fused, counted by the
-        EKF). Returns ``(status, ticks, sent, t_us, packet, taken_bytes)`` (:data:`._fast.LOOP_INFO`); ``None``
+        EKF). ``framing`` (:data:`._fast.FRAMING`, with the buffers ``rec`` and ``frame``): the
+        simulator's link is PX4's TCP link, MAVLink 2 frames on a stream (``None``: the same-host
+        link's records). Returns ``(status, ticks, sent, t_us, packet, taken_bytes)`` (:data:`._fast.LOOP_INFO`); ``None``
         (nothing waited for or changed) unless the case holds: armed, eq. 1, a target, no
         measurement or event queued, the GPS and thrust-limit monitors quiet."""
         if not (self.hil_loop and self.ekf is not None and not self._pending and not self.events
@@ -731,13 +734,15 @@ class LinkFirmware:
         pos, att = pos.copy(), att.copy()  # updated in place by the kernel
         gyro, out, info = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), np.zeros(_fast.LOOP_INFO_SIZE)
         ahrs[:] = 0.0
+        if framing is None:  # (records: the frame buffers are not touched)
+            framing, rec, frame = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64), _NO_BYTES, _NO_BYTES
         x, P = _fast.hil_loop_kernel(
             pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, self.time_s,
             1.0 / cfg.rate_hz, self._target_time_s, cfg.target_stale_s, corr_time, cfg.correction_hold_s,
             cfg.correction_stale_s, self.gps_health.last_fix_s, self.gps_health.config.timeout_s, due_us,
             math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M, densities, baro_density,
             gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, *self._kernel_consts()[-1],
-            FRAME_CHANGE_QUATS, ahrs, out, info)
+            FRAME_CHANGE_QUATS, ahrs, out, info, framing, rec, frame)
         status, ticks, sent, t_us, packet, taken_bytes = (int(info[k]) for k in (0, 1, 2, 3, 5, 6))
         if ticks:
             ekf.x, ekf.P = x, P
@@ -762,6 +767,7 @@ _AHRS_ACCEPTED = _fast.AHRS_OUT["accepted"]
 _AHRS_REJECTED = _fast.AHRS_OUT["rejected"]
 
 
+_NO_BYTES = np.zeros(0, dtype=np.uint8)  # the frame buffers of the lockstep loop over records (unused)
 _NO_CORRECTION = np.zeros(9)
 _NO_CORRECTION.setflags(write=False)  # as a packed correction: one compiled signature
 _GRAVITY_W = np.array(GRAVITY_W_M_S2, dtype=float)

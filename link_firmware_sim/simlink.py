@@ -172,6 +172,13 @@ def _check_compiled_layouts() -> None:
         ("HIL_ACTUATOR_CONTROLS.controls", struct.unpack_from("<16f", answer, a["controls"]), controls),
         ("HIL_ACTUATOR_CONTROLS.mode", answer[a["mode"]], mode),
     ]
+    by_name = {cls.msgname: cls for cls in D.mavlink_map.values()}
+    for name, frame in (("HIL_SENSOR", _fast.MAV_HIL_SENSOR), ("SKELETON_AHRS_REFERENCE", _fast.MAV_HIL_AHRS),
+                        ("HIL_ACTUATOR_CONTROLS", _fast.MAV_HIL_ACTUATOR)):  # ... and over TCP, their frames
+        cls = by_name[name]
+        checks += [(f"{name}'s message id", cls.id, frame["msgid"]),
+                   (f"{name}'s CRC extra", cls.crc_extra, frame["crc_extra"]),
+                   (f"{name}'s payload size", cls.unpacker.size, frame["size"])]
     for name, have, want in checks:
         if have != want:
             raise RuntimeError(f"link_firmware_sim._fast's simulator-link records do not match the dialect: "

@@ -100,6 +100,8 @@ _LINK_NAMES = ("onboard", "gcs")
 _SENSOR_TIME = _fast.HIL_SENSOR_RECORD["time_usec"]
 _AHRS_ACCEPTED, _AHRS_REJECTED, _AHRS_TIME, _AHRS_Q = _fast.AHRS_OUT.values()
 _ANSWER_RECORD_SIZE = _fast.HIL_ACTUATOR_RECORD["size"]
+_FRAMING_SEQ_IN, _FRAMING_SEQ_OUT = _fast.FRAMING["seq_in"], _fast.FRAMING["seq_out"]
+_FRAMING_SENT, _FRAMING_LENGTH = _fast.FRAMING["sent"], _fast.FRAMING["length"]
 #: the most quiet ticks one call of the lockstep loop runs (streams and log rows end it sooner)
 _LOOP_MAX_TICKS = 64
 _NEVER_US = 2**62
@@ -182,9 +184,13 @@ class Vehicle:
         self._records = isinstance(self.sim, SimLinkPort)
         self._answer_record = np.zeros(_ANSWER_RECORD_SIZE, dtype=np.uint8)
         self._ahrs_out = np.zeros(_fast.AHRS_OUT_SIZE)  # ... and the attitude references it fused
-        # ... and its lockstep loop's (_poll_loop): the receive buffer and the poll descriptors
+        # ... and its lockstep loop's (_poll_loop): the receive buffer and the poll descriptors; over
+        # PX4's TCP link the MAVLink 2 framing (sequence numbers), the records and the answer's frame
         self._loop_buf = np.zeros(RECV_BYTES, dtype=np.uint8)
         self._loop_fds = np.zeros(2 * 3, dtype=np.int32)
+        self._framing = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
+        self._loop_records = np.zeros(RECV_BYTES, dtype=np.uint8)
+        self._loop_frame = np.zeros(_fast.FRAME_BYTES, dtype=np.uint8)
         self.endpoints = []
         for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
             if not url:
@@ -475,16 +481,29 @@ class Vehicle:
             self._last_ahrs = (seconds(int(a[_AHRS_TIME])), a[_AHRS_Q].copy())
 
     def _poll_loop(self, timeout_s: float) -> bool:
-        """The same-host link's quiet ticks in one compiled call (:meth:`LinkFirmware.on_hil_loop`:
-        the waits, the packets, the ticks and their answers, with the numbers of :meth:`_tick_record`,
-        ``tests/test_simlink.py``), until a tick needs the vehicle's bookkeeping (a stream or log row
-        due, an event), a packet is of another kind, a MAVLink port is readable, or ``timeout_s``.
-        ``False`` (nothing waited for) when the case does not hold; :meth:`poll` then waits as usual."""
-        conn = self.sim.conn
-        if conn is None:
-            return False
+        """The simulator link's quiet ticks in one compiled call (:meth:`LinkFirmware.on_hil_loop`:
+        the waits, the packets, the ticks and their answers, with the numbers of :meth:`_tick_record`
+        and of the decoders, ``tests/test_simlink.py``), until a tick needs the vehicle's bookkeeping
+        (a stream or log row due, an event), a packet is of another kind, a MAVLink port is
+        readable, or ``timeout_s``. Over PX4's TCP link the loop reads and writes the MAVLink 2
+        frames while the port may hand its stream over (:meth:`MavlinkPort.handover`) and gives
+        the sequence numbers back. ``False`` (nothing waited for) when the case does not hold;
+        :meth:`poll` then waits as usual."""
+        framing = self._framing
+        if self._records:
+            conn = self.sim.conn
+            if conn is None:
+                return False
+            sim_fd, answered = conn.fileno(), self.sim.send_packet
+        else:
+            handover = self.sim.handover()
+            if handover is None:
+                return False
+            sim_fd, sender, last_seq = handover
+            framing[:7] = (1, *sender, last_seq, self.system_id, self.sim.mav.srcComponent, self.sim.mav.seq)
+            answered = self._answer_rest
         fds = self._loop_fds
-        fds[0] = conn.fileno()
+        fds[0] = sim_fd
         for k, ep in enumerate(self.endpoints, 1):
             fds[2 * k] = ep.port.fileno()
         n_fds = 1 + len(self.endpoints)
@@ -492,12 +511,15 @@ class Vehicle:
             return False  # (a serial port waiting to reopen)
         due = self._streams_due_us if self.out_dir is None else min(self._streams_due_us, self._log.next_us)
         due = int(min(due, _NEVER_US))  # (no stream at all: inf; the kernel takes an integer)
+        frames = () if self._records else (framing, self._loop_records, self._loop_frame)
         res = self.fw.on_hil_loop(fds, n_fds, max(int(timeout_s * 1e3), 0), _LOOP_MAX_TICKS, self._loop_buf,
                                   self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED, due,
-                                  self.sim.send_packet, self._ahrs_out)
+                                  answered, self._ahrs_out, *frames)
         if res is None:
             return False
         status, ticks, sent, t_us, packet, taken_bytes = res
+        if frames and ticks:  # (before a packet handed over is parsed: its numbers follow these)
+            self.sim.resume(sender, int(framing[_FRAMING_SEQ_IN]), int(framing[_FRAMING_SEQ_OUT]))
         if ticks:
             self.sim.received(taken_bytes)
             self.sim.count("HIL_SENSOR", ticks)
@@ -506,9 +528,21 @@ class Vehicle:
             self.fc_time_us, self.fc_time_s = t_us, seconds(t_us)
             self._after_tick()
         if status == _fast.LOOP_PACKET:  # received, not taken: as poll takes a packet
-            self.sim.received(packet)
-            self._on_sim_packet(self._loop_buf[:packet].tobytes())
+            data = self._loop_buf[:packet].tobytes()
+            if self._records:
+                self.sim.received(packet)
+                self._on_sim_packet(data)
+            else:  # (the parser counts the bytes)
+                for msg in self.sim.parse(data):
+                    self._on_hil(msg)
         return True
+
+    def _answer_rest(self, _answer) -> None:
+        """The lockstep loop's answer frame over TCP, the part its send did not take (all of it
+        after EAGAIN or an error): the port writes it as it writes a frame it packed."""
+        framing = self._framing
+        start = max(int(framing[_FRAMING_SENT]), 0)
+        self.sim.send_frame(self._loop_frame[start:int(framing[_FRAMING_LENGTH])].tobytes())
 
     def _on_sim_packet(self, data: bytes) -> None:
         """A same-host link's packet: the record tick (:meth:`_tick_record`), else its messages
@@ -892,7 +926,7 @@ class Vehicle:
 
     def poll(self, timeout_s: float) -> None:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
-        if self._records and self._poll_loop(timeout_s):
+        if self._poll_loop(timeout_s):
             timeout_s = 0.0  # the loop waited: what it left (a MAVLink port, a packet) is handled below
         ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
         if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)

@@ -36,6 +36,7 @@ from link_firmware_sim.hil import (
     encode_hil_sensor,
 )
 from link_firmware_sim.simlink import (
+    RECV_BYTES,
     SIM_KINDS,
     FrameError,
     SimLinkPort,
@@ -135,6 +136,119 @@ def _read(port, want: int = 1, timeout_s: float = 2.0) -> list:
         time.sleep(0.001)
         out += port.read()
     return out
+
+
+# -- PX4's TCP link in the compiled lockstep loop: the ticks' MAVLink 2 frames ------------------
+
+_SIM_SYS, _SIM_COMP = 255, 190
+
+
+def _framing(seq_in: int = 255, sys_id: int = 2, comp: int = 1, seq_out: int = 0) -> np.ndarray:
+    f = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
+    f[:7] = (1, _SIM_SYS, _SIM_COMP, seq_in, sys_id, comp, seq_out)
+    return f
+
+
+def _tick_frames(msgs, seq0: int = 0, sign_key: bytes | None = None) -> bytes:
+    mav = D.MAVLink(None, srcSystem=_SIM_SYS, srcComponent=_SIM_COMP)
+    mav.seq = seq0
+    if sign_key is not None:
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = sign_key, True, 1
+    out = b""
+    for m in msgs:
+        out += m.pack(mav)
+        mav.seq = (mav.seq + 1) % 256
+    return out
+
+
+def _frames_to_records(data: bytes, framing: np.ndarray) -> bytes | None:
+    buf = np.zeros(RECV_BYTES, dtype=np.uint8)
+    buf[:len(data)] = np.frombuffer(data, dtype=np.uint8)
+    rec = np.zeros(RECV_BYTES, dtype=np.uint8)
+    m = _fast.frames_to_records(buf, len(data), rec, framing)
+    return None if m < 0 else rec[:m].tobytes()
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**63), st.lists(st.floats(-3e4, 3e4, width=32), min_size=6, max_size=6),
+       st.sampled_from([0.0, 1.0, -0.5]), st.booleans(), st.integers(0, 255))
+def test_the_loops_frames_give_the_records_of_the_same_messages(t_us, imu, w, with_ahrs, seq0):
+    """frames_to_records (the lockstep loop's reader over TCP) against the same-host link's encoder:
+    a tick's frames packed by pymavlink (MAVLink 2 cuts the payloads' trailing zeros: here the
+    unused fields) give the records of the same messages, byte for byte, and the newest frame's
+    sequence number (numbered on across 255 -> 0)."""
+    t = t_us * 1e-6
+    sensor = encode_hil_sensor(t, np.array(imu[:3]), np.array(imu[3:]))
+    msgs = [encode_ahrs(t, quat_normalize(np.array([1.0, w, 0.0, 0.0]))), sensor] if with_ahrs else [sensor]
+    framing = _framing(seq_in=(seq0 - 1) % 256)
+    assert _frames_to_records(_tick_frames(msgs, seq0), framing) == encode_packet(msgs)
+    assert framing[_fast.FRAMING["seq_read"]] == (seq0 + len(msgs) - 1) % 256
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**64 - 1), st.lists(st.sampled_from([0.0, 1.0, -1.0, 0.25, 1e-9]), min_size=8, max_size=8),
+       st.sampled_from([0, D.MAV_MODE_FLAG_SAFETY_ARMED]), st.integers(0, 255), st.integers(1, 255))
+def test_the_loops_answer_frame_is_pymavlinks(t_us, controls, mode, seq, sys_id):
+    """record_to_frame (the lockstep loop's writer over TCP) against pymavlink: the same bytes for
+    an answer record (trailing zeros cut, down to one byte when all are zero), and the link's
+    sequence number moved on (255 -> 0)."""
+    msg = D.MAVLink_hil_actuator_controls_message(t_us, controls + [0.0] * 8, mode, 0)
+    record = np.frombuffer(encode_packet([msg]), dtype=np.uint8)
+    framing = _framing(sys_id=sys_id, seq_out=seq)
+    frame = np.zeros(_fast.FRAME_BYTES, dtype=np.uint8)
+    n = _fast.record_to_frame(record, frame, framing)
+    mav = D.MAVLink(None, srcSystem=sys_id, srcComponent=1)
+    mav.seq = seq
+    assert frame[:n].tobytes() == msg.pack(mav)
+    assert framing[_fast.FRAMING["seq_out"]] == (seq + 1) % 256
+
+
+def _tick(t: float = 1.25) -> list:
+    return [encode_ahrs(t, LEVEL), encode_hil_sensor(t, np.array([0.1, -0.2, 9.8]), np.array([0.01, 0.0, -0.02]))]
+
+
+def test_the_loop_leaves_every_other_read_to_the_parser():
+    """frames_to_records takes nothing but a tick's whole, unsigned, gap-free frames from the one
+    sender: each of these reads is left to pymavlink's parser (-1), the sequence number untouched."""
+    good = _tick_frames(_tick(), 10)
+    assert _frames_to_records(good, _framing(seq_in=9)) is not None
+    gps = encode_hil_gps(1.25, np.zeros(3), np.zeros(3), GeoOrigin())
+    # a HIL_SENSOR frame with its 65 payload bytes and one more, the checksum right
+    payload = encode_packet(_tick()[1:])[1:] + b"\x07"
+    sensor = _fast.MAV_HIL_SENSOR
+    head = bytes([0xFD, len(payload), 0, 0, 10, _SIM_SYS, _SIM_COMP]) + sensor["msgid"].to_bytes(3, "little")
+    body = np.frombuffer(head[1:] + payload + bytes([sensor["crc_extra"]]), dtype=np.uint8)
+    longer = head + payload + int(_fast.crc_mcrf4xx(body, 0, len(body), 0xFFFF)).to_bytes(2, "little")
+    cases = {
+        "a frame cut at the end": good[:-1],
+        "a frame's start only at the end": good + good[:7],
+        "noise before": b"\x00" + good,
+        "a checksum wrong": good[:-1] + bytes([good[-1] ^ 1]),
+        "a payload byte wrong": good[:20] + bytes([good[20] ^ 0x40]) + good[21:],
+        "another sender's system": _tick_frames(_tick(), 10).replace(b"\xff\xbe", b"\xfe\xbe", 1),
+        "a gap in the numbers": _tick_frames(_tick(), 11),
+        "a frame repeated": _tick_frames(_tick(), 9),
+        "signed": _tick_frames(_tick(), 10, sign_key=bytes(range(32))),
+        "another message (HIL_GPS)": _tick_frames([gps] + _tick(), 10),
+        "MAVLink 1's start byte": b"\xfe" + good[1:],
+        "a payload longer than the message's": bytes(longer),
+    }
+    for name, data in cases.items():
+        framing = _framing(seq_in=9)
+        assert _frames_to_records(data, framing) is None, name
+        assert framing[_fast.FRAMING["seq_read"]] == 0, name
+    # pymavlink's own parser agrees that the longer payload is a good frame (it is not noise)
+    assert [m.get_type() for m in D.MAVLink(None).parse_buffer(bytearray(longer))] == ["HIL_SENSOR"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_any_byte_changed_in_a_ticks_frames_leaves_them_to_the_parser(data):
+    """A tick's frames with any one byte changed (header, payload or checksum): never taken."""
+    good = bytearray(_tick_frames(_tick(), 10))
+    at = data.draw(st.integers(0, len(good) - 1))
+    good[at] ^= data.draw(st.integers(1, 255))
+    assert _frames_to_records(bytes(good), _framing(seq_in=9)) is None
 
 
 def test_a_pair_exchanges_counts_drops_and_sees_the_peer_go(tmp_path):
@@ -249,8 +363,9 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
     a GPS fix (IMU only, or an attitude reference and the IMU sample: 49 in 50) go from the packet's
     bytes to the answer's in compiled code: the lockstep loop's (Vehicle._poll_loop: the wait, the
     packet, the tick and the answer's send in one call) or the record tick's
-    (Vehicle._tick_record); the others through the decoders. Over TCP, and without the compiled
-    kernels, every tick is decoded."""
+    (Vehicle._tick_record); the others through the decoders. Over TCP the lockstep loop takes the
+    same ticks from their MAVLink 2 frames (the record tick is the same-host link's only); the
+    others, and every tick without the compiled kernels, are decoded."""
     if jit and not _fast.ENABLED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     thrusts, states, taken, loops = {}, {}, {}, {}
@@ -279,22 +394,28 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
     np.testing.assert_array_equal(thrusts["unix"], thrusts["tcp"])
     for a, b in zip(states["unix"], states["tcp"]):
         np.testing.assert_array_equal(a, b)
-    assert not taken["tcp"] and not loops["tcp"]
+    assert not taken["tcp"]
     # the 100 armed ticks with a target: 98 without a GPS record go by a compiled call, the lockstep
     # loop's (Vehicle._poll_loop) or, when the loop leaves the packet, the record tick's; the AHRS
     # records among them (8 of 10) are counted on the link as the decoders count them (per_type above)
     by_loop = sum(r[1] for r in loops["unix"] if r is not None)
     assert sum(taken["unix"]) + by_loop == (98 if jit else 0), (sum(taken["unix"]), by_loop)
     assert (by_loop >= 88) if jit else not any(r is not None for r in loops["unix"]), by_loop
+    # over TCP the loop takes those 98 from their frames (it never leaves a whole tick's frames)
+    by_loop = sum(r[1] for r in loops["tcp"] if r is not None)
+    assert by_loop == (98 if jit else 0), by_loop
 
 
 
-def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None) -> dict:
+def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, rough_every: int = 0) -> dict:
     """``n_ticks`` lockstep ticks into ``rig``'s vehicle (armed, with a target and a correction that
     fades out and lifts the control estimate past the take-off height), the vehicle polling in its
     own thread as its process does, so that records arrive while it waits (the lockstep loop runs
     several ticks in one call); what the flight leaves, for a bit-for-bit comparison. ``on_tick(k)``
-    runs after tick ``k``'s answer, ``after()`` after the last, the vehicle still polling."""
+    runs after tick ``k``'s answer, ``after()`` after the last, the vehicle still polling.
+    ``rough_every`` (TCP): every so many ticks the tick's frames are written in two pieces, cut
+    inside a frame, with a pause between, and noise (bytes no parser takes for a frame) is written
+    before the next tick's."""
     v = rig.vehicle
     v.fw.hil_loop = loop
     calls = []
@@ -324,7 +445,17 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None) ->
                 msgs.append(encode_ahrs(rig.t, LEVEL))
             msgs.append(encode_hil_sensor(rig.t, np.array([0.1 * wave, -0.05, 9.80665]),
                                           np.array([0.02 * wave, 0.01, -0.03 * wave])))
-            rig.sim.send_many(msgs)
+            if rough_every and k % rough_every == rough_every - 1:
+                data = b"".join(rig.sim._pack(m) for m in msgs)
+                cut = len(data) - 20  # inside the HIL_SENSOR frame
+                rig.sim.transport.send(data[:cut])
+                time.sleep(0.003)  # the vehicle reads the first piece alone
+                rig.sim.transport.send(data[cut:])
+            elif rough_every and k % rough_every == 0 and k:
+                rig.sim.transport.send(b"\x00noise\x01")
+                rig.sim.send_many(msgs)
+            else:
+                rig.sim.send_many(msgs)
             deadline = time.monotonic() + 2.0
             answer = None
             while answer is None:
@@ -346,14 +477,25 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None) ->
             "att_int": fw.integrals.att, "xi_pre": fw.allocator._xi_pre, "time": (fw.time_s, v.fc_time_us),
             "airborne": fw._airborne, "thrust_n": fw._thrust_total_n, "log_t": v._rows["t"],
             "log_p": v._rows["p_ctrl"], "counts": (dict(st.per_type), st.rx_messages, st.tx_messages, st.rx_bytes),
+            "dropped": (st.dropped_frames, st.dropped_bytes, st.seq_lost), "seq": _seq_numbers(v.sim, rig.sim),
             "calls": [c for c in calls if c is not None]}
 
 
-def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path):
+def _seq_numbers(vehicle_port, sim_port) -> tuple:
+    """A MAVLink link's sequence numbers both ways (the vehicle's next one, the last it heard, the
+    simulator's record of the vehicle's); ``()`` on the same-host link, which has none."""
+    if not isinstance(vehicle_port, MavlinkPort):
+        return ()
+    return vehicle_port.mav.seq, dict(vehicle_port._last_seq), dict(sim_port._last_seq), sim_port.stats.seq_lost
+
+
+@pytest.mark.parametrize("link", ["unix", "tcp"])
+def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     """The vehicle's lockstep loop (Vehicle._poll_loop: the waits, the packets, the quiet ticks and
-    their answers in one compiled call) against the record tick it stands for, over 400 ticks with
-    a fading correction, a take-off and AHRS and GPS ticks: the same answers, EKF state, integrals,
-    allocation state, flight log and link counters, bit for bit; and the loop did run many ticks in
+    their answers in one compiled call) against the record tick it stands for (over TCP: the
+    decoders and pymavlink's frames), over 400 ticks with a fading correction, a take-off and AHRS
+    and GPS ticks: the same answers, EKF state, integrals, allocation state, flight log and link
+    counters (sequence numbers both ways included), bit for bit; and the loop did run many ticks in
     a call and handed back the ticks that need the vehicle (streams and log rows at 50 Hz, the
     take-off) and the packets that are not its (AHRS, GPS)."""
     if not _fast.ENABLED:
@@ -361,7 +503,7 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path):
     flights = {}
     for loop in (False, True):
         (tmp_path / str(loop)).mkdir()
-        rig = Rig(tmp_path / str(loop), sim_link="unix")
+        rig = Rig(tmp_path / str(loop), sim_link=link)
         try:
             flights[loop] = _lockstep_flight(rig, 400, loop)
         finally:
@@ -378,6 +520,33 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path):
     statuses = {c[0] for c in calls}
     assert {_fast.LOOP_TICKED, _fast.LOOP_PACKET} <= statuses, statuses
 
+
+
+def test_the_lockstep_loop_over_tcp_hands_cut_frames_and_noise_to_the_parser(tmp_path):
+    """Over PX4's TCP link the lockstep loop takes only reads that are a tick's whole frames: with
+    ticks written in two pieces (cut inside a frame) and noise between ticks, it hands those bytes
+    to pymavlink's parser, which joins the frames and counts the noise, and takes the stream back
+    once the parser holds no partial frame. The flight is the decoders' flight bit for bit, the
+    noise counted alike, and the loop still took most ticks."""
+    if not _fast.ENABLED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    flights = {}
+    for loop in (False, True):
+        (tmp_path / str(loop)).mkdir()
+        rig = Rig(tmp_path / str(loop), sim_link="tcp")
+        try:
+            flights[loop] = _lockstep_flight(rig, 300, loop, rough_every=7)
+        finally:
+            rig.close()
+    plain, looped = flights[False], flights[True]
+    for key in plain:
+        if key != "calls":
+            np.testing.assert_equal(looped[key], plain[key], err_msg=key)
+    dropped_frames, dropped_bytes, seq_lost = plain["dropped"]
+    assert dropped_frames == 42 and dropped_bytes == 42 * 7 and seq_lost == 0, plain["dropped"]
+    ticks = sum(c[1] for c in looped["calls"])
+    handed = sum(c[0] == _fast.LOOP_PACKET for c in looped["calls"])
+    assert ticks >= 150 and handed >= 2 * 42, (ticks, handed)  # (each cut tick's first piece, the noise)
 
 
 def test_the_lockstep_loop_hands_mavlink_input_over_at_once_and_while_the_simulator_is_silent(tmp_path):

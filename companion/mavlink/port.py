@@ -531,6 +531,59 @@ class MavlinkPort:
                     self._learn_peer(sender)
         return out
 
+    def parse(self, data: bytes) -> list:
+        """:meth:`read`'s second half for bytes of this link's stream received by someone else (the
+        vehicle's compiled lockstep loop hands back what it does not take): the whitelisted
+        messages, with every check and counter of :meth:`read`."""
+        out: list = []
+        self._parse(data, out)
+        return out
+
+    def handover(self) -> tuple[int, tuple[int, int], int] | None:
+        """What a compiled reader needs to take whole frames from this link's stream in the parser's
+        place (the vehicle's lockstep loop over PX4's TCP simulator link): ``(descriptor, (system,
+        component) of the one sender heard, its last sequence number)``. ``None`` when it may not:
+        not a connected stream, a frame begun in the parser, a tlog to write, signing on, no sender
+        or several heard. The reader gives its counts back (:meth:`received`, :meth:`count`,
+        :meth:`sent`, :meth:`resume`)."""
+        t = self.transport
+        if (not isinstance(t, (_TcpServer, _TcpClient)) or not t.connected or self.tlog is not None
+                or self.checker.mode != "off"
+                or self.parser.buf_len() or len(self._last_seq) != 1):
+            return None
+        fd = t.fileno()
+        if fd < 0:
+            return None
+        (sender, last), = self._last_seq.items()
+        return fd, sender, last
+
+    def received(self, n_bytes: int) -> None:
+        """Count ``n_bytes`` received (by a compiled reader, :meth:`handover`)."""
+        st = self.stats
+        st.rx_bytes += n_bytes
+        st.last_rx_wall_s = time.monotonic()
+
+    def count(self, kind: str, n: int = 1) -> None:
+        """Count ``n`` whitelisted messages of ``kind`` received (by a compiled reader)."""
+        st = self.stats
+        st.rx_messages += n
+        st.per_type[kind] = st.per_type.get(kind, 0) + n
+
+    def sent(self, n_messages: int) -> None:
+        """Count ``n_messages`` sent (by a compiled writer)."""
+        self.stats.tx_messages += n_messages
+
+    def send_frame(self, frame: bytes) -> None:
+        """Write ``frame``, packed already with this link's next sequence number (by a compiled
+        writer, or the part of its frame its send did not take), counted as :meth:`send` counts."""
+        self._write([frame])
+
+    def resume(self, sender: tuple[int, int], last_seq: int, next_seq: int) -> None:
+        """Take over from a compiled reader and writer: ``sender``'s last sequence number and this
+        link's next one."""
+        self._last_seq[sender] = last_seq
+        self.mav.seq = next_seq
+
     def _learn_peer(self, sender) -> None:
         """Reply to ``sender`` (it sent a valid frame from the peer): the first one, the same one, or
         another once the current peer has been silent ``peer_hold_s`` (a rebooted peer)."""
