@@ -73,6 +73,8 @@ __all__ = [
     "MAV_HIL_ACTUATOR",
     "FRAMING",
     "FRAMING_SIZE",
+    "FRAMES_TO_VEHICLE",
+    "FRAMES_TO_SIMULATOR",
     "FRAME_BYTES",
     "LOOP_INFO",
     "LOOP_IDLE",
@@ -1055,15 +1057,19 @@ _MA_ID, _MA_EXTRA, _MA_SIZE = MAV_HIL_AHRS.values()
 _MO_ID, _MO_EXTRA, _MO_SIZE = MAV_HIL_ACTUATOR.values()
 #: the longest answer's frame (an unsigned MAVLink 2 HIL_ACTUATOR_CONTROLS, no trailing zero)
 FRAME_BYTES = MAV2_HEADER + _MO_SIZE + 2
-#: ``framing`` of :func:`hil_loop_kernel` (int64): ``on`` 0 for the same-host link's records, 1 for
-#: MAVLink 2 frames on a TCP stream; the simulator's system and component (the one sender whose frames
-#: the kernel takes) and its last sequence number, kept up to date; this vehicle's system, component
-#: and next sequence number, kept up to date; the bytes of the newest answer's frame that its send
-#: took (-1: none) and the frame's length (the rest is the caller's to send); the sequence number of
-#: the newest frame read (the kernel's scratch)
+#: ``framing`` of :func:`hil_loop_kernel` and :func:`frames_to_records` (int64): ``on`` 0 for the
+#: same-host link's records, else MAVLink 2 frames on a TCP stream, read by the vehicle
+#: (:data:`FRAMES_TO_VEHICLE`: HIL_SENSOR, SKELETON_AHRS_REFERENCE) or by the simulator
+#: (:data:`FRAMES_TO_SIMULATOR`: HIL_ACTUATOR_CONTROLS); the peer's system and component (the one
+#: sender whose frames are taken) and its last sequence number, kept up to date; this end's
+#: system, component and next sequence number, kept up to date; the bytes of the newest answer's
+#: frame that its send took (-1: none) and the frame's length (the rest is the caller's to send);
+#: the sequence number of the newest frame read (for the caller to keep once it takes them)
 FRAMING = {"on": 0, "src_sys": 1, "src_comp": 2, "seq_in": 3, "sys": 4, "comp": 5, "seq_out": 6, "sent": 7,
            "length": 8, "seq_read": 9}
 FRAMING_SIZE = 10
+FRAMES_TO_VEHICLE = 1
+FRAMES_TO_SIMULATOR = 2
 
 
 @jit
@@ -1088,8 +1094,9 @@ def _crc_extra(crc, extra):
 def frames_to_records(buf, n, rec, framing):
     """The same-host link's packet (into ``rec``; its length returned) that the first ``n`` bytes
     of ``buf`` carry as MAVLink 2 frames, or -1 unless those bytes are exactly a run of whole,
-    unsigned frames (no incompatibility or compatibility flag), each a HIL_SENSOR or
-    SKELETON_AHRS_REFERENCE with a payload of 1 to its size bytes (MAVLink 2 cuts a payload's
+    unsigned frames (no incompatibility or compatibility flag), each of the kinds of ``framing``'s
+    side (:data:`FRAMES_TO_VEHICLE`: HIL_SENSOR or SKELETON_AHRS_REFERENCE;
+    :data:`FRAMES_TO_SIMULATOR`: HIL_ACTUATOR_CONTROLS) with a payload of 1 to its size bytes (MAVLink 2 cuts a payload's
     trailing zeros: they are put back), a good checksum, from ``framing``'s sender and numbered
     on from its last sequence number without a gap. Anything else (another message, a frame cut
     at either end, a duplicate or a lost frame, another sender, a bad checksum) is left to
@@ -1108,7 +1115,11 @@ def frames_to_records(buf, n, rec, framing):
         if np.int64(buf[i + 4]) != (seq + 1) & 0xFF or buf[i + 5] != framing[1] or buf[i + 6] != framing[2]:
             return -1
         msgid = np.int64(buf[i + 7]) | (np.int64(buf[i + 8]) << 8) | (np.int64(buf[i + 9]) << 16)
-        if msgid == _MS_ID:
+        if framing[0] == FRAMES_TO_SIMULATOR:
+            if msgid != _MO_ID:
+                return -1
+            kind, size, extra = _ACT_KIND, _MO_SIZE, _MO_EXTRA
+        elif msgid == _MS_ID:
             kind, size, extra = _SENSOR_KIND, _MS_SIZE, _MS_EXTRA
         elif msgid == _MA_ID:
             kind, size, extra = _AHRS_KIND, _MA_SIZE, _MA_EXTRA
@@ -1409,7 +1420,7 @@ def warm_up() -> float:
         sim.setblocking(False)
         harness.send(encode_hil_sensor(0.012, accel, z3).pack(mav))
         framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
-        framing[:7] = (1, 255, 190, 255, 1, 1, 0)
+        framing[:7] = (FRAMES_TO_VEHICLE, 255, 190, 255, 1, 1, 0)
         fds = np.array([sim.fileno(), 0], dtype=np.int32)
         fw.on_hil_loop(fds, 1, 0, 4, np.zeros(RECV_BYTES, dtype=np.uint8), answer, 8.0, 128, 2**62, sim.send,
                        np.zeros(AHRS_OUT_SIZE), framing, np.zeros(RECV_BYTES, dtype=np.uint8),
@@ -1417,4 +1428,9 @@ def warm_up() -> float:
     finally:
         sim.close()
         harness.close()
+    # ... and the simulator's reader of the answers' frames (link_firmware_sim.simlink.FrameReader)
+    frame = np.zeros(FRAME_BYTES, dtype=np.uint8)
+    length = record_to_frame(answer, frame, framing)
+    framing[:4] = (FRAMES_TO_SIMULATOR, 1, 1, 255)
+    frames_to_records(frame, length, np.zeros(RECV_BYTES, dtype=np.uint8), framing)
     return time.perf_counter() - t0

@@ -27,6 +27,13 @@ such ticks, with the waits and the socket calls between them, is one compiled ca
 (``Vehicle._poll_loop``, :func:`._fast.hil_loop_kernel`: it receives into a buffer of
 :data:`RECV_BYTES`, as :meth:`SimLinkPort.recv` does, and leaves any other packet to the decoders).
 
+The records are the frames' payloads, so PX4's TCP link uses them too: the vehicle's lockstep
+loop turns a read that is exactly a tick's whole MAVLink 2 frames into its records
+(:func:`._fast.frames_to_records`; the message ids, CRC extras and payload sizes of
+:data:`._fast.MAV_HIL_SENSOR` / ``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the
+dialect here too) and its answer record into the frame pymavlink packs; the harness reads the
+answers so (:class:`SimulatorPort`). Every other read goes through pymavlink's parser.
+
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
 of its own user (``SO_PEERCRED``); others are counted (``PortStats.rejected_peer``) and closed.
@@ -50,13 +57,15 @@ from operator import attrgetter
 from pathlib import Path
 from urllib.parse import urlparse
 
+import numpy as np
+
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort, PortError, PortStats, open_transport, send_all
 
 from . import _fast
 
-__all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "open_sim_port",
-           "is_simlink_url"]
+__all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "SimulatorPort",
+           "open_sim_port", "is_simlink_url"]
 
 log = logging.getLogger(__name__)
 
@@ -426,12 +435,55 @@ class SimLinkPort:
                 pass
 
 
+class SimulatorPort(MavlinkPort):
+    """The simulator's end of PX4's TCP link, reading the vehicles' answers: a read that is exactly
+    whole HIL_ACTUATOR_CONTROLS frames (unsigned, from the one vehicle heard, numbered on without a
+    gap, checksums good: :func:`._fast.frames_to_records`) is decoded from its records, as the
+    same-host link's are (the same field values: the records are the frames' payloads); any other
+    read, and every read while the port may not hand its stream over (:meth:`MavlinkPort.handover`)
+    or without the compiled kernels, goes through pymavlink's parser with its checks and counters."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._buf = np.zeros(RECV_BYTES, dtype=np.uint8)
+        self._records = np.zeros(RECV_BYTES, dtype=np.uint8)
+        self._framing = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
+
+    def read(self) -> list:
+        handover = self.handover() if _fast.ENABLED else None
+        if handover is None:
+            return super().read()
+        fd, sender, last_seq = handover
+        try:
+            n = os.readv(fd, [self._buf])
+        except BlockingIOError:
+            return []
+        except OSError:
+            n = 0
+        if n == 0:  # the peer closed, or an error: the transport's own read sees it
+            return super().read()
+        framing = self._framing
+        framing[:4] = (_fast.FRAMES_TO_SIMULATOR, *sender, last_seq)
+        m = _fast.frames_to_records(self._buf, n, self._records, framing)
+        if m < 0:
+            return self.parse(self._buf[:n].tobytes())
+        msgs = decode_packet(self._records[:m].tobytes(), self.accept)
+        self.received(n)
+        self.count("HIL_ACTUATOR_CONTROLS", len(msgs))
+        self.resume(sender, int(framing[_SEQ_READ]), self.mav.seq)
+        return msgs
+
+
+_SEQ_READ = _fast.FRAMING["seq_read"]
+
+
 def open_sim_port(url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
-                  connect_timeout_s: float = 10.0):
+                  connect_timeout_s: float = 10.0, simulator: bool = False):
     """The simulator link of ``url``: a :class:`SimLinkPort` for ``unix``/``unixin`` URLs, else a
-    :class:`MavlinkPort` (PX4's simulator API over TCP, the default). A connecting end retries for
-    ``connect_timeout_s`` while the other end starts."""
+    :class:`MavlinkPort` (PX4's simulator API over TCP, the default; the simulator's end,
+    ``simulator``, a :class:`SimulatorPort`). A connecting end retries for ``connect_timeout_s``
+    while the other end starts."""
     if is_simlink_url(url):
         return SimLinkPort(url, accept, connect_timeout_s)
-    return MavlinkPort(url, system_id, component_id, accept=accept,
-                       transport=open_transport(url, connect_timeout_s))
+    return (SimulatorPort if simulator else MavlinkPort)(url, system_id, component_id, accept=accept,
+                                                         transport=open_transport(url, connect_timeout_s))

@@ -4,7 +4,9 @@ Ports (PX4 SITL habits; all configurable):
 
 * simulator: ``tcpin://127.0.0.1:4560+i`` (PX4's simulator MAVLink API, lockstep): HIL_SENSOR,
   HIL_GPS and SKELETON_AHRS_REFERENCE in, HIL_ACTUATOR_CONTROLS out, one answer per HIL_SENSOR;
-  or the same messages over the same-host link ``unixin:///PATH`` (:mod:`.simlink`);
+  or the same messages over the same-host link ``unixin:///PATH`` (:mod:`.simlink`). Either way
+  the quiet ticks run in one compiled loop (:meth:`Vehicle._poll_loop`), the waits and the
+  socket calls in it;
 * onboard (companion): ``udpout://127.0.0.1:14540+i`` from local port 14580+i;
 * GCS: ``udpout://127.0.0.1:14550`` from local port 18570+i.
 
@@ -500,7 +502,8 @@ class Vehicle:
             if handover is None:
                 return False
             sim_fd, sender, last_seq = handover
-            framing[:7] = (1, *sender, last_seq, self.system_id, self.sim.mav.srcComponent, self.sim.mav.seq)
+            framing[:7] = (_fast.FRAMES_TO_VEHICLE, *sender, last_seq, self.system_id, self.sim.mav.srcComponent,
+                           self.sim.mav.seq)
             answered = self._answer_rest
         fds = self._loop_fds
         fds[0] = sim_fd

@@ -120,7 +120,7 @@ def _sim_port(url: str):
     component 190; TCP or the same-host link, :mod:`link_firmware_sim.simlink`), waiting for the
     vehicle as long as a process may take to start (it loads its compiled kernels first)."""
     return open_sim_port(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}),
-                         connect_timeout_s=STARTUP_TIMEOUT_S)
+                         connect_timeout_s=STARTUP_TIMEOUT_S, simulator=True)
 
 
 class FleetHarness:

@@ -11,6 +11,7 @@ import stat
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,7 @@ from link_firmware_sim.simlink import (
     SIM_KINDS,
     FrameError,
     SimLinkPort,
+    SimulatorPort,
     decode_packet,
     encode_packet,
     open_sim_port,
@@ -145,7 +147,7 @@ _SIM_SYS, _SIM_COMP = 255, 190
 
 def _framing(seq_in: int = 255, sys_id: int = 2, comp: int = 1, seq_out: int = 0) -> np.ndarray:
     f = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
-    f[:7] = (1, _SIM_SYS, _SIM_COMP, seq_in, sys_id, comp, seq_out)
+    f[:7] = (_fast.FRAMES_TO_VEHICLE, _SIM_SYS, _SIM_COMP, seq_in, sys_id, comp, seq_out)
     return f
 
 
@@ -249,6 +251,82 @@ def test_any_byte_changed_in_a_ticks_frames_leaves_them_to_the_parser(data):
     at = data.draw(st.integers(0, len(good) - 1))
     good[at] ^= data.draw(st.integers(1, 255))
     assert _frames_to_records(bytes(good), _framing(seq_in=9)) is None
+
+
+def test_the_simulators_tcp_port_reads_answers_as_pymavlinks_parser_does():
+    """The simulator's end of PX4's TCP link (SimulatorPort: a read of whole answer frames decoded
+    from their records in compiled code) against a plain MavlinkPort on the same bytes: whole
+    answers, an answer cut in two writes, noise, a gap and a repeat in the sequence numbers, a
+    frame from another system, two answers in one write, a signed one. The same messages (every
+    field), and the same counters and sequence numbers after each step; the compiled reader took
+    the plain reads."""
+    servers, ports, conns = [], [], []
+    for cls in (SimulatorPort, MavlinkPort):
+        server = socket.create_server(("127.0.0.1", 0))
+        servers.append(server)
+        ports.append(cls(f"tcpout://127.0.0.1:{server.getsockname()[1]}", 255, 190, accept=ACTUATORS))
+        conns.append(server.accept()[0])
+    fast, plain = ports
+    taken = []
+    frames_to_records = _fast.frames_to_records
+    _fast.frames_to_records = lambda *a: taken.append(frames_to_records(*a)) or taken[-1]
+    vehicle = D.MAVLink(None, srcSystem=2, srcComponent=1)
+    other = D.MAVLink(None, srcSystem=3, srcComponent=1)
+    signer = D.MAVLink(None, srcSystem=2, srcComponent=1)
+    signer.signing.secret_key, signer.signing.sign_outgoing, signer.signing.timestamp = bytes(32), True, 1
+
+    def answer(k: int, mav=vehicle) -> bytes:
+        msg = encode_actuators(0.002 * k, np.linspace(-9.0, 9.0, 8) * np.cos(k), 8.0, k % 3 != 0)
+        frame = msg.pack(mav)
+        mav.seq = (mav.seq + 1) % 256
+        return frame
+
+    def fields(m) -> tuple:
+        return m.get_type(), m.time_usec, tuple(m.controls), m.mode, m.flags
+
+    def step(data: bytes, n_msgs: int) -> None:
+        for conn in conns:
+            conn.sendall(data)
+        got = []
+        for port in ports:
+            msgs, deadline = [], time.monotonic() + 2.0
+            while len(msgs) < n_msgs or (not n_msgs and time.monotonic() < deadline - 1.9):
+                assert time.monotonic() < deadline, (type(port).__name__, len(msgs), n_msgs)
+                wait_readable([port], 0.01)
+                msgs += port.read()
+            got.append([fields(m) for m in msgs])
+        assert got[0] == got[1]
+        assert replace(fast.stats, last_rx_wall_s=0.0) == replace(plain.stats, last_rx_wall_s=0.0)
+        assert fast._last_seq == plain._last_seq
+
+    try:
+        for k in range(1, 6):
+            step(answer(k), 1)
+        cut = answer(6)
+        step(cut[:30], 0)
+        step(cut[30:], 1)
+        step(b"\x00noise", 0)
+        step(answer(7), 1)
+        answer(8)  # lost on the way: a gap
+        step(answer(9), 1)
+        vehicle.seq = (vehicle.seq - 1) % 256
+        step(answer(10), 1)  # numbered as the one before: a repeat
+        step(answer(11) + answer(12), 2)
+        signer.seq = vehicle.seq
+        step(answer(13, signer), 1)
+        vehicle.seq = signer.seq
+        step(answer(14), 1)
+        step(answer(15, other), 1)  # a second sender: from here on, the parser's
+        step(answer(16), 1)
+    finally:
+        _fast.frames_to_records = frames_to_records
+        for x in ports + conns + servers:
+            x.close()
+    st = plain.stats
+    assert st.rx_messages == 15 and st.seq_lost >= 1 and st.dropped_frames >= 1 and st.per_type == {
+        "HIL_ACTUATOR_CONTROLS": 15}, st
+    if _fast.ENABLED:  # taken: answers 2-5, 7, 11 and 12 (one read), 14
+        assert [m for m in taken if m > 0] == [82] * 5 + [164, 82], str(taken)
 
 
 def test_a_pair_exchanges_counts_drops_and_sees_the_peer_go(tmp_path):
