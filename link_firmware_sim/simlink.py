@@ -60,7 +60,7 @@ from urllib.parse import urlparse
 import numpy as np
 
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MavlinkPort, PortError, PortStats, open_transport, send_all
+from companion.mavlink.port import CountedPort, MavlinkPort, PortError, PortStats, open_transport, send_all
 
 from . import _fast
 
@@ -238,7 +238,7 @@ def _path_of(url: str) -> tuple[str, Path]:
     return parsed.scheme, Path(parsed.path)
 
 
-class SimLinkPort:
+class SimLinkPort(CountedPort):
     """One end of a same-host simulator link; reads never block, like :class:`MavlinkPort`'s.
 
     ``accept``: the kinds this end takes (the vehicle: the sensor messages; the simulator: the
@@ -365,13 +365,6 @@ class SimLinkPort:
         self.received(len(data))
         return data
 
-    def received(self, n_bytes: int) -> None:
-        """Count ``n_bytes`` received from the socket (by :meth:`recv`, or by the vehicle's lockstep
-        loop, which receives from it in compiled code)."""
-        st = self.stats
-        st.rx_bytes += n_bytes
-        st.last_rx_wall_s = time.monotonic()
-
     def decode(self, data: bytes) -> list:
         """:meth:`read`'s second half: the accepted messages of the packet ``data``, counted;
         ``[]`` for a packet dropped whole (counted, warned about)."""
@@ -388,16 +381,6 @@ class SimLinkPort:
         for m in msgs:
             self.count(m.get_type())
         return msgs
-
-    def count(self, kind: str, n: int = 1) -> None:
-        """Count ``n`` received messages of ``kind``."""
-        st = self.stats
-        st.rx_messages += n
-        st.per_type[kind] = st.per_type.get(kind, 0) + n
-
-    def sent(self, n_messages: int) -> None:
-        """Count ``n_messages`` records sent by the vehicle's lockstep loop (in compiled code)."""
-        self.stats.tx_messages += n_messages
 
     def send(self, msg) -> None:
         self.send_many((msg,))

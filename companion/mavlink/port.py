@@ -42,7 +42,7 @@ from urllib.parse import parse_qs, urlparse
 from .dialect import load_dialect
 from .signing import UNSIGNED_ALLOWED, SignatureChecker, SigningMode, Verdict, signing_timestamp
 
-__all__ = ["PortStats", "Transport", "open_transport", "MavlinkPort", "TlogWriter", "wait_readable", "PortError",
+__all__ = ["PortStats", "Transport", "open_transport", "CountedPort", "MavlinkPort", "TlogWriter", "wait_readable", "PortError",
            "send_all"]
 
 log = logging.getLogger(__name__)
@@ -453,7 +453,30 @@ class TlogWriter:
         self._fh.close()
 
 
-class MavlinkPort:
+class CountedPort:
+    """A port's counters (``stats``, :class:`PortStats`) for what others receive and send in its
+    place: the vehicle's compiled lockstep loop (:meth:`MavlinkPort.handover`, the same-host link)."""
+
+    stats: PortStats
+
+    def received(self, n_bytes: int) -> None:
+        """Count ``n_bytes`` received."""
+        st = self.stats
+        st.rx_bytes += n_bytes
+        st.last_rx_wall_s = time.monotonic()
+
+    def count(self, kind: str, n: int = 1) -> None:
+        """Count ``n`` accepted messages of ``kind`` received."""
+        st = self.stats
+        st.rx_messages += n
+        st.per_type[kind] = st.per_type.get(kind, 0) + n
+
+    def sent(self, n_messages: int) -> None:
+        """Count ``n_messages`` sent."""
+        self.stats.tx_messages += n_messages
+
+
+class MavlinkPort(CountedPort):
     """A MAVLink link with a whitelist of message types it acts on.
 
     Args:
@@ -544,8 +567,7 @@ class MavlinkPort:
         place (the vehicle's lockstep loop over PX4's TCP simulator link): ``(descriptor, (system,
         component) of the one sender heard, its last sequence number)``. ``None`` when it may not:
         not a connected stream, a frame begun in the parser, a tlog to write, signing on, no sender
-        or several heard. The reader gives its counts back (:meth:`received`, :meth:`count`,
-        :meth:`sent`, :meth:`resume`)."""
+        or several heard. The reader gives its counts back (:class:`CountedPort`, :meth:`resume`)."""
         t = self.transport
         if (not isinstance(t, (_TcpServer, _TcpClient)) or not t.connected or self.tlog is not None
                 or self.checker.mode != "off"
@@ -556,22 +578,6 @@ class MavlinkPort:
             return None
         (sender, last), = self._last_seq.items()
         return fd, sender, last
-
-    def received(self, n_bytes: int) -> None:
-        """Count ``n_bytes`` received (by a compiled reader, :meth:`handover`)."""
-        st = self.stats
-        st.rx_bytes += n_bytes
-        st.last_rx_wall_s = time.monotonic()
-
-    def count(self, kind: str, n: int = 1) -> None:
-        """Count ``n`` whitelisted messages of ``kind`` received (by a compiled reader)."""
-        st = self.stats
-        st.rx_messages += n
-        st.per_type[kind] = st.per_type.get(kind, 0) + n
-
-    def sent(self, n_messages: int) -> None:
-        """Count ``n_messages`` sent (by a compiled writer)."""
-        self.stats.tx_messages += n_messages
 
     def send_frame(self, frame: bytes) -> None:
         """Write ``frame``, packed already with this link's next sequence number (by a compiled
