@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from companion.estimation.so3 import quat_normalize
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MavlinkPort, PortError, wait_readable
+from companion.mavlink.port import MavlinkPort, PortError, _TcpClient, wait_readable
 from companion.messages import Correction, PoseTarget
 from link_firmware_sim import _fast
 from link_firmware_sim.geo import GeoOrigin
@@ -625,6 +625,112 @@ def test_the_lockstep_loop_over_tcp_hands_cut_frames_and_noise_to_the_parser(tmp
     ticks = sum(c[1] for c in looped["calls"])
     handed = sum(c[0] == _fast.LOOP_PACKET for c in looped["calls"])
     assert ticks >= 150 and handed >= 2 * 42, (ticks, handed)  # (each cut tick's first piece, the noise)
+
+
+def _unread_flight(rig, n_ticks: int, loop: bool) -> dict:
+    """``n_ticks`` ticks into ``rig``'s vehicle over TCP (armed, with a target; polling in its own
+    thread), 2 ms apart, with the socket buffers as small as Linux allows and the simulator reading
+    no answer until the last tick is sent: the vehicle's sends fill the buffers and are cut or
+    refused (EAGAIN), and it waits in them until the simulator reads."""
+    v = rig.vehicle
+    v.fw.hil_loop = loop
+    rests = []
+    plain_rest = v._answer_rest
+    v._answer_rest = lambda a: rests.append(int(v._framing[_fast.FRAMING["sent"]])) or plain_rest(a)
+    # the simulator reconnects with the least receive buffer (set before connecting: TCP's window)
+    rig.sim.close()
+    while v.sim.connected:
+        v.poll(0.01)
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1)
+    sock.connect(("127.0.0.1", v.sim.transport.local_port()))
+    sock.setblocking(False)
+    transport = _TcpClient.__new__(_TcpClient)  # (its constructor connects with the default buffers)
+    transport.sock, transport.closed = sock, False
+    rig.sim = MavlinkPort("tcpout://127.0.0.1", system_id=250, component_id=1, transport=transport)
+    while not v.sim.connected:
+        v.poll(0.01)
+    v.sim.transport.conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1)
+    rig.start(0.3)
+    assert v.fw.arm(rig.t)
+    p, _, q = v.fw.control_estimate(rig.t)
+    v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
+    stop = threading.Event()
+
+    def fly():
+        while not stop.is_set():
+            v.poll(0.05)
+
+    thread = threading.Thread(target=fly, daemon=True)
+    thread.start()
+    want = []
+    answers = []
+    try:
+        for k in range(n_ticks):
+            rig.t = round(rig.t + 0.002, 6)
+            want.append(int(round(rig.t * 1e6)))
+            msgs = [encode_ahrs(rig.t, LEVEL)] if k % 10 == 0 else []
+            msgs.append(encode_hil_sensor(rig.t, np.array([0.1 * np.sin(0.3 * k), -0.05, 9.80665]),
+                                          np.array([0.01, 0.0, -0.02])))
+            rig.sim.send_many(msgs)
+            time.sleep(0.002)
+        deadline = time.monotonic() + 10.0
+        while len(answers) < n_ticks:
+            assert time.monotonic() < deadline, len(answers)
+            wait_readable([rig.sim], 0.05)
+            answers += [decode_actuators(m, 8.0) for m in rig.sim.read()]
+    finally:
+        stop.set()
+        thread.join(2.0)
+    assert [t for t, _ in answers] == want
+    st = rig.sim.stats
+    return {"thrusts": np.array([a for _, a in answers]), "rests": rests,
+            "harness": (st.rx_messages, st.seq_lost, st.dropped_frames, st.dropped_bytes),
+            "vehicle": (v.sim.stats.tx_messages, v.sim.stats.tx_errors, v.sim.mav.seq)}
+
+
+def test_the_lockstep_loop_over_tcp_finishes_an_answer_its_send_cut(tmp_path):
+    """Over TCP the lockstep loop's send of an answer frame may take part of it or nothing (a full
+    socket buffer: the simulator not reading); the vehicle then writes the rest (Vehicle.
+    _answer_rest) and waits until it goes. With the buffers at their least and the simulator
+    reading nothing for 300 ticks: every answer arrives whole and in order, no frame lost or
+    broken, the same thrusts and counters as the decoding path's."""
+    if not _fast.ENABLED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    flights = {}
+    for loop in (False, True):
+        (tmp_path / str(loop)).mkdir()
+        rig = Rig(tmp_path / str(loop), sim_link="tcp")
+        try:
+            flights[loop] = _unread_flight(rig, 300, loop)
+        finally:
+            rig.close()
+    plain, looped = flights[False], flights[True]
+    np.testing.assert_array_equal(looped["thrusts"], plain["thrusts"])
+    assert looped["harness"] == plain["harness"] and plain["harness"][1:] == (0, 0, 0), plain["harness"]
+    assert looped["vehicle"] == plain["vehicle"] and plain["vehicle"][1] == 0
+    assert not plain["rests"] and looped["rests"], looped["rests"]  # the loop's sends were cut
+
+    # ... and a send that took part of the frame (rare on loopback: the buffer has room for some
+    # of its 93 bytes): the rest follows it and the simulator reads one whole answer
+    rig = Rig(tmp_path / "cut", sim_link="tcp")
+    try:
+        v = rig.vehicle
+        answer = np.frombuffer(encode_packet([encode_actuators(0.5, np.arange(8.0), 8.0, True)]), dtype=np.uint8)
+        framing = v._framing
+        framing[:7] = (_fast.FRAMES_TO_VEHICLE, 250, 1, 0, v.system_id, 1, v.sim.mav.seq)
+        length = _fast.record_to_frame(answer, v._loop_frame, framing)
+        framing[_fast.FRAMING["length"]], framing[_fast.FRAMING["sent"]] = length, 40
+        v.sim.transport.conn.send(v._loop_frame[:40].tobytes())
+        v._answer_rest(answer)
+        deadline, got = time.monotonic() + 2.0, []
+        while not got:
+            assert time.monotonic() < deadline
+            wait_readable([rig.sim], 0.05)
+            got = rig.sim.read()
+        assert decode_actuators(got[0], 8.0)[0] == 500_000 and rig.sim.stats.dropped_frames == 0
+    finally:
+        rig.close()
 
 
 def test_the_lockstep_loop_hands_mavlink_input_over_at_once_and_while_the_simulator_is_silent(tmp_path):
