@@ -1096,8 +1096,9 @@ def frames_to_records(buf, n, rec, framing):
     of ``buf`` carry as MAVLink 2 frames, or -1 unless those bytes are exactly a run of whole,
     unsigned frames (no incompatibility or compatibility flag), each of the kinds of ``framing``'s
     side (:data:`FRAMES_TO_VEHICLE`: HIL_SENSOR or SKELETON_AHRS_REFERENCE;
-    :data:`FRAMES_TO_SIMULATOR`: HIL_ACTUATOR_CONTROLS) with a payload of 1 to its size bytes (MAVLink 2 cuts a payload's
-    trailing zeros: they are put back), a good checksum, from ``framing``'s sender and numbered
+    :data:`FRAMES_TO_SIMULATOR`: HIL_ACTUATOR_CONTROLS) with a payload of 1 to its size bytes
+    (MAVLink 2 cuts a payload's trailing zeros: they are put back), a good checksum, from
+    ``framing``'s sender and numbered
     on from its last sequence number without a gap. Anything else (another message, a frame cut
     at either end, a duplicate or a lost frame, another sender, a bad checksum) is left to
     pymavlink's parser, which counts what it must. The newest frame's sequence number goes to

@@ -459,10 +459,7 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
         plain_loop = v.fw.on_hil_loop
         v.fw.on_hil_loop = lambda *a: looped.append(plain_loop(*a)) or looped[-1]
         try:
-            rig.start(0.3)
-            assert v.fw.arm(rig.t)  # as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick
-            p, _, q = v.fw.control_estimate(rig.t)
-            v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
+            _armed_with_a_target(rig)
             thrusts[link] = np.array([rig.tick(gps=k % 50 == 0, ahrs=k % 10 == 0) for k in range(100)])
             states[link] = (v.fw.ekf.x.copy(), v.fw.ekf.P.copy(), v.fc_time_us, dict(v.sim.stats.per_type),
                             v.sim.stats.rx_messages, v.sim.stats.tx_messages)
@@ -485,6 +482,48 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
 
 
 
+def _plain_and_looped(tmp_path, link: str, fly) -> tuple[dict, dict]:
+    """``fly(rig, loop)`` on a new rig over ``link`` with the vehicle's lockstep loop off (the
+    record tick, or the decoders over TCP), then on: both flights."""
+    flights = {}
+    for loop in (False, True):
+        (tmp_path / str(loop)).mkdir()
+        rig = Rig(tmp_path / str(loop), sim_link=link)
+        try:
+            flights[loop] = fly(rig, loop)
+        finally:
+            rig.close()
+    return flights[False], flights[True]
+
+
+def _armed_with_a_target(rig) -> None:
+    """``rig``'s vehicle started, armed (as MAV_CMD_COMPONENT_ARM_DISARM would, at a fixed tick) and
+    given a hold target 0.2 m east, 0.1 m south and 0.3 m above its control estimate."""
+    v = rig.vehicle
+    rig.start(0.3)
+    assert v.fw.arm(rig.t)
+    p, _, q = v.fw.control_estimate(rig.t)
+    v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
+
+
+def _poll_in_thread(vehicle):
+    """``vehicle`` polling in its own thread, as its process does; returns the call that stops it."""
+    stop = threading.Event()
+
+    def fly():
+        while not stop.is_set():
+            vehicle.poll(0.05)
+
+    thread = threading.Thread(target=fly, daemon=True)
+    thread.start()
+
+    def stop_polling() -> None:
+        stop.set()
+        thread.join(2.0)
+
+    return stop_polling
+
+
 def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, rough_every: int = 0) -> dict:
     """``n_ticks`` lockstep ticks into ``rig``'s vehicle (armed, with a target and a correction that
     fades out and lifts the control estimate past the take-off height), the vehicle polling in its
@@ -499,19 +538,9 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
     calls = []
     plain = v.fw.on_hil_loop
     v.fw.on_hil_loop = lambda *a: calls.append(plain(*a)) or calls[-1]
-    rig.start(0.3)
-    assert v.fw.arm(rig.t)
-    p, _, q = v.fw.control_estimate(rig.t)
-    v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
+    _armed_with_a_target(rig)
     v.fw.on_correction(rig.t, Correction(0, rig.t, np.array([0.05, 0.0, 0.2]), np.zeros(3), np.zeros(3)))
-    stop = threading.Event()
-
-    def fly():
-        while not stop.is_set():
-            v.poll(0.05)
-
-    thread = threading.Thread(target=fly, daemon=True)
-    thread.start()
+    stop_polling = _poll_in_thread(v)
     thrusts = []
     try:
         for k in range(n_ticks):
@@ -548,8 +577,7 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
         if after is not None:
             after()
     finally:
-        stop.set()
-        thread.join(2.0)
+        stop_polling()
     fw, st = v.fw, v.sim.stats
     return {"thrusts": np.array(thrusts), "x": fw.ekf.x, "P": fw.ekf.P, "pos_int": fw.integrals.pos,
             "att_int": fw.integrals.att, "xi_pre": fw.allocator._xi_pre, "time": (fw.time_s, v.fc_time_us),
@@ -578,15 +606,7 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     take-off) and the packets that are not its (AHRS, GPS)."""
     if not _fast.ENABLED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
-    flights = {}
-    for loop in (False, True):
-        (tmp_path / str(loop)).mkdir()
-        rig = Rig(tmp_path / str(loop), sim_link=link)
-        try:
-            flights[loop] = _lockstep_flight(rig, 400, loop)
-        finally:
-            rig.close()
-    plain, looped = flights[False], flights[True]
+    plain, looped = _plain_and_looped(tmp_path, link, lambda rig, loop: _lockstep_flight(rig, 400, loop))
     assert np.abs(plain["thrusts"]).sum(axis=1).min() > 10.0 and plain["airborne"]
     for key in plain:
         if key != "calls":
@@ -608,15 +628,8 @@ def test_the_lockstep_loop_over_tcp_hands_cut_frames_and_noise_to_the_parser(tmp
     noise counted alike, and the loop still took most ticks."""
     if not _fast.ENABLED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
-    flights = {}
-    for loop in (False, True):
-        (tmp_path / str(loop)).mkdir()
-        rig = Rig(tmp_path / str(loop), sim_link="tcp")
-        try:
-            flights[loop] = _lockstep_flight(rig, 300, loop, rough_every=7)
-        finally:
-            rig.close()
-    plain, looped = flights[False], flights[True]
+    plain, looped = _plain_and_looped(tmp_path, "tcp",
+                                      lambda rig, loop: _lockstep_flight(rig, 300, loop, rough_every=7))
     for key in plain:
         if key != "calls":
             np.testing.assert_equal(looped[key], plain[key], err_msg=key)
@@ -651,18 +664,8 @@ def _unread_flight(rig, n_ticks: int, loop: bool) -> dict:
     while not v.sim.connected:
         v.poll(0.01)
     v.sim.transport.conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1)
-    rig.start(0.3)
-    assert v.fw.arm(rig.t)
-    p, _, q = v.fw.control_estimate(rig.t)
-    v.fw.set_target(rig.t, PoseTarget.hold(p + np.array([0.2, -0.1, 0.3]), q))
-    stop = threading.Event()
-
-    def fly():
-        while not stop.is_set():
-            v.poll(0.05)
-
-    thread = threading.Thread(target=fly, daemon=True)
-    thread.start()
+    _armed_with_a_target(rig)
+    stop_polling = _poll_in_thread(v)
     want = []
     answers = []
     try:
@@ -680,8 +683,7 @@ def _unread_flight(rig, n_ticks: int, loop: bool) -> dict:
             wait_readable([rig.sim], 0.05)
             answers += [decode_actuators(m, 8.0) for m in rig.sim.read()]
     finally:
-        stop.set()
-        thread.join(2.0)
+        stop_polling()
     assert [t for t, _ in answers] == want
     st = rig.sim.stats
     return {"thrusts": np.array([a for _, a in answers]), "rests": rests,
@@ -697,15 +699,7 @@ def test_the_lockstep_loop_over_tcp_finishes_an_answer_its_send_cut(tmp_path):
     broken, the same thrusts and counters as the decoding path's."""
     if not _fast.ENABLED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
-    flights = {}
-    for loop in (False, True):
-        (tmp_path / str(loop)).mkdir()
-        rig = Rig(tmp_path / str(loop), sim_link="tcp")
-        try:
-            flights[loop] = _unread_flight(rig, 300, loop)
-        finally:
-            rig.close()
-    plain, looped = flights[False], flights[True]
+    plain, looped = _plain_and_looped(tmp_path, "tcp", lambda rig, loop: _unread_flight(rig, 300, loop))
     np.testing.assert_array_equal(looped["thrusts"], plain["thrusts"])
     assert looped["harness"] == plain["harness"] and plain["harness"][1:] == (0, 0, 0), plain["harness"]
     assert looped["vehicle"] == plain["vehicle"] and plain["vehicle"][1] == 0

@@ -42,8 +42,8 @@ from urllib.parse import parse_qs, urlparse
 from .dialect import load_dialect
 from .signing import UNSIGNED_ALLOWED, SignatureChecker, SigningMode, Verdict, signing_timestamp
 
-__all__ = ["PortStats", "Transport", "open_transport", "CountedPort", "MavlinkPort", "TlogWriter", "wait_readable", "PortError",
-           "send_all"]
+__all__ = ["PortStats", "Transport", "open_transport", "CountedPort", "MavlinkPort", "TlogWriter", "wait_readable",
+           "PortError", "send_all"]
 
 log = logging.getLogger(__name__)
 
