@@ -1068,8 +1068,17 @@ FRAME_BYTES = MAV2_HEADER + _MO_SIZE + 2
 FRAMING = {"on": 0, "src_sys": 1, "src_comp": 2, "seq_in": 3, "sys": 4, "comp": 5, "seq_out": 6, "sent": 7,
            "length": 8, "seq_read": 9}
 FRAMING_SIZE = 10
+_F_ON, _F_SRC_SYS, _F_SRC_COMP, _F_SEQ_IN, _F_SYS, _F_COMP, _F_SEQ_OUT, _F_SENT, _F_LENGTH, _F_SEQ_READ = FRAMING.values()
 FRAMES_TO_VEHICLE = 1
 FRAMES_TO_SIMULATOR = 2
+
+
+@jit
+def _crc_step(crc, byte):
+    """MAVLink's checksum (CRC-16/MCRF4XX) ``crc`` continued by one byte."""
+    tmp = (byte ^ (crc & 0xFF)) & 0xFF
+    tmp = (tmp ^ (tmp << 4)) & 0xFF
+    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
 
 
 @jit
@@ -1077,17 +1086,8 @@ def crc_mcrf4xx(data, start, end, crc):
     """MAVLink's checksum (CRC-16/MCRF4XX, pymavlink's ``x25crc``) of ``data[start:end]`` (uint8)
     continued from ``crc`` (0xFFFF to start one)."""
     for i in range(start, end):
-        tmp = (np.int64(data[i]) ^ (crc & 0xFF)) & 0xFF
-        tmp = (tmp ^ (tmp << 4)) & 0xFF
-        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+        crc = _crc_step(crc, np.int64(data[i]))
     return crc
-
-
-@jit
-def _crc_extra(crc, extra):
-    tmp = (extra ^ (crc & 0xFF)) & 0xFF
-    tmp = (tmp ^ (tmp << 4)) & 0xFF
-    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
 
 
 @jit
@@ -1098,14 +1098,13 @@ def frames_to_records(buf, n, rec, framing):
     side (:data:`FRAMES_TO_VEHICLE`: HIL_SENSOR or SKELETON_AHRS_REFERENCE;
     :data:`FRAMES_TO_SIMULATOR`: HIL_ACTUATOR_CONTROLS) with a payload of 1 to its size bytes
     (MAVLink 2 cuts a payload's trailing zeros: they are put back), a good checksum, from
-    ``framing``'s sender and numbered
-    on from its last sequence number without a gap. Anything else (another message, a frame cut
-    at either end, a duplicate or a lost frame, another sender, a bad checksum) is left to
-    pymavlink's parser, which counts what it must. The newest frame's sequence number goes to
+    ``framing``'s sender and numbered on from its last sequence number without a gap. Anything
+    else (another message, a frame cut at either end, a duplicate or a lost frame, another sender,
+    a bad checksum) is left to pymavlink's parser, which counts what it must. The newest frame's sequence number goes to
     ``framing["seq_read"]``, for the caller to keep once it takes the packet."""
     i = 0
     m = 0
-    seq = framing[3]
+    seq = framing[_F_SEQ_IN]
     while i < n:
         if n - i < MAV2_HEADER + 2 or buf[i] != MAV2_STX or buf[i + 2] != 0 or buf[i + 3] != 0:
             return -1
@@ -1113,10 +1112,11 @@ def frames_to_records(buf, n, rec, framing):
         end = i + MAV2_HEADER + length
         if end + 2 > n or length == 0:
             return -1
-        if np.int64(buf[i + 4]) != (seq + 1) & 0xFF or buf[i + 5] != framing[1] or buf[i + 6] != framing[2]:
+        if (np.int64(buf[i + 4]) != (seq + 1) & 0xFF or buf[i + 5] != framing[_F_SRC_SYS]
+                or buf[i + 6] != framing[_F_SRC_COMP]):
             return -1
         msgid = np.int64(buf[i + 7]) | (np.int64(buf[i + 8]) << 8) | (np.int64(buf[i + 9]) << 16)
-        if framing[0] == FRAMES_TO_SIMULATOR:
+        if framing[_F_ON] == FRAMES_TO_SIMULATOR:
             if msgid != _MO_ID:
                 return -1
             kind, size, extra = _ACT_KIND, _MO_SIZE, _MO_EXTRA
@@ -1128,7 +1128,7 @@ def frames_to_records(buf, n, rec, framing):
             return -1
         if length > size or m + 1 + size > rec.shape[0]:
             return -1
-        crc = _crc_extra(crc_mcrf4xx(buf, i + 1, end, 0xFFFF), extra)
+        crc = _crc_step(crc_mcrf4xx(buf, i + 1, end, 0xFFFF), extra)
         if np.int64(buf[end]) != (crc & 0xFF) or np.int64(buf[end + 1]) != crc >> 8:
             return -1
         rec[m] = kind
@@ -1137,7 +1137,7 @@ def frames_to_records(buf, n, rec, framing):
         m += 1 + size
         seq = np.int64(buf[i + 4])
         i = end + 2
-    framing[9] = seq
+    framing[_F_SEQ_READ] = seq
     return m
 
 
@@ -1153,18 +1153,18 @@ def record_to_frame(answer, frame, framing):
     frame[1] = plen
     frame[2] = 0
     frame[3] = 0
-    frame[4] = framing[6] & 0xFF
-    frame[5] = framing[4]
-    frame[6] = framing[5]
+    frame[4] = framing[_F_SEQ_OUT] & 0xFF
+    frame[5] = framing[_F_SYS]
+    frame[6] = framing[_F_COMP]
     frame[7] = _MO_ID & 0xFF
     frame[8] = (_MO_ID >> 8) & 0xFF
     frame[9] = _MO_ID >> 16
     frame[MAV2_HEADER:MAV2_HEADER + plen] = answer[1:1 + plen]
     end = MAV2_HEADER + plen
-    crc = _crc_extra(crc_mcrf4xx(frame, 1, end, 0xFFFF), _MO_EXTRA)
+    crc = _crc_step(crc_mcrf4xx(frame, 1, end, 0xFFFF), _MO_EXTRA)
     frame[end] = crc & 0xFF
     frame[end + 1] = crc >> 8
-    framing[6] = (framing[6] + 1) & 0xFF
+    framing[_F_SEQ_OUT] = (framing[_F_SEQ_OUT] + 1) & 0xFF
     return end + 2
 
 if ENABLED:
@@ -1266,7 +1266,7 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         n = _c_recv(pfd[0], buf, buf.shape[0], 0)
         if n <= 0:
             return x, P  # EAGAIN, or the peer closed: the caller's recv sees it again
-        if framing[0] != 0:
+        if framing[_F_ON] != 0:
             m = frames_to_records(buf, n, rec, framing)
             if m < 0:
                 info[0] = LOOP_PACKET
@@ -1310,8 +1310,8 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
             info[5] = n
             return x, P
         x, P = xn, Pn
-        if framing[0] != 0:
-            framing[3] = framing[9]  # the frames taken: their sender's numbers seen
+        if framing[_F_ON] != 0:
+            framing[_F_SEQ_IN] = framing[_F_SEQ_READ]  # the frames taken: their sender's numbers seen
         info[1] += 1.0
         info[6] += n
         info[3] = t_us
@@ -1319,11 +1319,11 @@ def hil_loop_kernel(pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, 
         t_prev_s = t_s
         sent = False
         if out[24] != 0.0:  # a finite wrench: the answer goes out
-            if framing[0] != 0:
+            if framing[_F_ON] != 0:
                 length = record_to_frame(answer, frame, framing)
-                framing[8] = length
-                framing[7] = _c_send(pfd[0], frame, length, _MSG_NOSIGNAL)
-                sent = framing[7] == length
+                framing[_F_LENGTH] = length
+                framing[_F_SENT] = _c_send(pfd[0], frame, length, _MSG_NOSIGNAL)
+                sent = framing[_F_SENT] == length
             else:
                 sent = _c_send(pfd[0], answer, _ACT_SIZE, _MSG_NOSIGNAL) == _ACT_SIZE
         if sent:
