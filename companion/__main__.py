@@ -113,6 +113,7 @@ def _cmd_dialect(args) -> int:
 
 def _cmd_keys(args) -> int:
     import hashlib
+    import shlex
 
     from .fleetnet.config import new_users_file, read_users_file
     from .mavlink.signing import load_key, new_key_file
@@ -142,7 +143,9 @@ def _cmd_keys(args) -> int:
     if args.action == "new":
         # key_file is read relative to the config file's folder: the absolute path is right anywhere
         print(f"name it in the config: [signing] mode = \"required\", key_file = \"{Path(args.file).resolve()}\"")
-        print(f"MAVProxy: signing key $(cat {args.file})   (or a line 'HOST:PORT PASSPHRASE' in ~/.mavproxy/signing.keys)")
+        # MAVProxy's prompt does no shell expansion: the shell expands $(...) on its command line
+        print(f"MAVProxy: mavproxy.py --master=udpin:127.0.0.1:14550 --cmd=\"signing key $(cat {shlex.quote(str(args.file))})\"  "
+              f"(or at its prompt: signing key, then the passphrase in {args.file})")
     return 0
 
 

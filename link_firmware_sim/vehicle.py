@@ -260,6 +260,8 @@ class Vehicle:
             D.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 5.0,
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
             D.MAVLINK_MSG_ID_DEBUG_VECT: 5.0,  # PSPM's reservoirs (nothing is sent while PSPM is off)
+            # the link's state and covariance, for a ground station with the dialect (SET_MESSAGE_INTERVAL: faster)
+            D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: 1.0,
         }
         return onboard if endpoint == 0 else gcs
 
@@ -311,6 +313,7 @@ class Vehicle:
                    | D.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | D.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
         gps_ok = self.fw.initialized and not self.fw.gps_health.fault
         health = sensors if gps_ok else sensors & ~D.MAV_SYS_STATUS_SENSOR_GPS
+        health |= D.MAV_SYS_STATUS_GEOFENCE  # no fence, so none breached (a ground station reads 0 as a breach)
         dropped = sum(ep.port.stats.dropped for ep in self.endpoints)
         return D.MAVLink_sys_status_message(sensors, sensors, health, 0, 16200, -1, 100, 0, min(dropped, 65535),
                                             0, 0, 0, 0)

@@ -6,14 +6,15 @@
   companion daemon(s), the harness in lockstep over PX4-style simulator links;
 * the plant: :mod:`.model` (MuJoCo model generated from the config), :mod:`.rotor` (rotor/ESC
   dynamics), :mod:`.sensors`; the scenario schema :mod:`.scenario`; :mod:`.metrics`,
-  :mod:`.steplog`, :mod:`.plots`;
+  :mod:`.steplog`, :mod:`.plots`; :mod:`.rendering` (MuJoCo's headless OpenGL, only for runs that render);
 * :mod:`.synthetic` -- constraint-consistent chain motion without physics (the paper's sec. IV);
 * :mod:`.bench` -- benchmarks that print figures.
 """
 
 import os as _os
 
-# Cameras and videos render offscreen (sitl.camera, sitl.video): MuJoCo picks its OpenGL backend
-# when it is first imported, so choose a headless one here, before any sitl module imports it.
-# osmesa renders on the CPU (Debian: libosmesa6); set MUJOCO_GL=egl yourself for a GPU.
-_os.environ.setdefault("MUJOCO_GL", "osmesa")
+# MuJoCo takes its OpenGL backend from MUJOCO_GL at its first import. Nothing here renders unless a
+# run asks for it (cameras, a video), so by default none is loaded: the command lines choose a
+# headless one before MuJoCo is imported when the run renders (sitl.rendering.choose_backend), and
+# so can a program that renders (call it before importing mujoco).
+_os.environ.setdefault("MUJOCO_GL", "disable")

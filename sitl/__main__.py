@@ -24,20 +24,23 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
-from .fleet import SIM_LINKS, FleetError, check_fleet_scenario, check_instance_offset, launch
-from .fly import fly
+from .rendering import RenderingUnavailable, choose_backend, require_rendering
 from .scenario import load_scenario
 from .slung_load_config import SlungLoadScenario, is_slung_load_file, load_slung_scenario
+
+# (the simulator's modules import MuJoCo, whose OpenGL backend is chosen first: _prepare_rendering)
 
 EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FLEET = 3
 EXIT_INTERRUPTED = 130
+#: the vehicles' simulator links (``sitl.fleet.SIM_LINKS``; here without importing the simulator)
+SIM_LINKS = ("tcp", "unix")
 
 
 _SUMMARY_KEYS = ("load_pose_err", "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
                  "constraint_vel_p95_m_s", "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m",
-                 "crashed", "realtime_factor")
+                 "took_off", "crashed", "realtime_factor")
 
 
 def _scenario(args):
@@ -52,9 +55,31 @@ def _scenario(args):
     return load_scenario(args.config, **overrides)
 
 
+def _prepare_rendering(scenario, video) -> str | None:
+    """Choose MuJoCo's OpenGL backend before the simulator imports MuJoCo: none for a run that
+    renders nothing, a headless one that renders for a run with cameras or a video. ``None``, or
+    the error for a run that renders on a machine where nothing can (exit code 2)."""
+    renders = bool(scenario.cameras) or video is not None
+    choose_backend(renders)
+    if renders:
+        try:
+            require_rendering()
+        except RenderingUnavailable as exc:
+            return f"{'--video' if video is not None and not scenario.cameras else 'the scenario has cameras'}: {exc}"
+    return None
+
+
+class _Progress(tqdm):
+    """The flight's progress in simulated seconds; the last update stops at the total (a flight's
+    ticks can sum to a hair over its duration)."""
+
+    def update(self, n=1):
+        return super().update(max(0.0, min(n, self.total - self.n)))
+
+
 def _progress(scenario, args, desc: str) -> tqdm:
-    return tqdm(total=scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
-                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
+    return _Progress(total=scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
+                     bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
 
 
 def _report(metrics: dict, out_dir) -> int:
@@ -75,6 +100,12 @@ def _cmd_fly(args) -> int:
         print(f"error: {args.config}: {', '.join(scenario.faults.fleet_only)}: fleet mode only "
               f"(python -m sitl launch --config {args.config})", file=sys.stderr)
         return EXIT_BAD_CONFIG
+    problem = _prepare_rendering(scenario, args.video)
+    if problem:
+        print(f"error: {args.config}: {problem}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    from .fly import fly
+
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
     sckf = False if args.no_sckf else None
     selective = False if args.no_selective_mapping else None
@@ -103,21 +134,29 @@ def _cmd_launch(args) -> int:
         scenario = _scenario(args)
         if isinstance(scenario, SlungLoadScenario):
             raise ValueError("the slung-load scenario runs in batch mode only (python -m sitl fly)")
+        problem = _prepare_rendering(scenario, None)
+        if problem:
+            raise ValueError(problem)
+        from .fleet import check_fleet_scenario, check_instance_offset
+
         check_fleet_scenario(scenario)
-        check_instance_offset(scenario, args.instance_offset)
+        check_instance_offset(scenario, args.instance_offset, args.gcs_port)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
     except ValueError as exc:
         print(f"error: {args.config}: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
+    from .fleet import FleetError, launch
+
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
     signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
     try:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
             metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
                              plots=not args.no_plots, instance_offset=args.instance_offset,
-                             sim_link=args.sim_link, batch_scheduling=False if args.default_scheduling else None)
+                             sim_link=args.sim_link, batch_scheduling=False if args.default_scheduling else None,
+                             gcs_port=args.gcs_port)
     except FleetError as exc:
         print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
         return EXIT_FLEET
@@ -130,7 +169,9 @@ def _cmd_launch(args) -> int:
 def _run_args(p: argparse.ArgumentParser, kind: str) -> None:
     """The options ``fly`` and ``launch`` share (read by :func:`_scenario`, :func:`_progress`)."""
     p.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/three_link.toml")
-    p.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="simulated seconds (default: the scenario's); must be longer than the scenario's take-off, "
+                        "trajectory.takeoff_start_s + takeoff_duration_s, where the metrics window starts")
     p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
     p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{kind}-<scenario>-<UTC time>)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -168,6 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="link i takes PX4 SITL instance K+i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i, "
                          "GCS from 18570+K+i; Zenoh base_port+K+g): a second fleet beside a first of n links "
                          "needs K >= n (default 0)")
+    la.add_argument("--gcs-port", type=int, default=14550, metavar="P",
+                    help="UDP port on 127.0.0.1 every vehicle sends its ground-station traffic to, where QGroundControl "
+                         "or MAVProxy listens (default 14550, PX4's)")
     la.add_argument("--sim-link", choices=SIM_LINKS, default="tcp",
                     help="the vehicles' simulator links: tcp, PX4's simulator API on TCP 4560+K+i (default), or "
                          "unix, the same HIL messages as binary records over UNIX sockets (one host only; faster)")

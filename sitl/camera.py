@@ -19,16 +19,15 @@ and delivered ``latency_s`` later (:meth:`CameraRig.poll`). Each frame keeps the
 at capture (camera and marker poses in the world) beside the companion's
 :class:`~companion.vision.frame.CameraFrame`.
 
-Rendering needs an OpenGL context without a display: ``MUJOCO_GL=osmesa`` (Debian's
-``libosmesa6``, installed by ``.ci/run``), which :mod:`sitl` sets when it is unset, before
-MuJoCo is imported (MuJoCo picks its GL backend at import). ``MUJOCO_GL=egl`` uses a GPU
-instead. Renderers hold GL contexts: :meth:`CameraRig.close` (or ``with``) frees them.
+Rendering needs an OpenGL context without a display, chosen before MuJoCo is imported
+(:mod:`sitl.rendering`: osmesa on the CPU, or egl); a rig or a video on a machine where nothing
+renders raises :class:`~sitl.rendering.RenderingUnavailable`, which names what to install.
+Renderers hold GL contexts: :meth:`CameraRig.close` (or ``with``) frees them.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import re
 import time
 from collections import deque
@@ -44,9 +43,10 @@ from companion.vision.geometry import CV_TO_MUJOCO_CAM
 from companion.vision.markers import marker_image
 
 from .camera_config import CameraMount, MarkerMount
+from .rendering import require_rendering
 
 __all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig",
-           "check_gl_backend", "fast_renderer"]
+           "fast_renderer"]
 
 log = logging.getLogger(__name__)
 
@@ -122,18 +122,6 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
     width = max([c.width_px for c in cameras] + [min_offscreen[0]])
     height = max([c.height_px for c in cameras] + [min_offscreen[1]])
     return _ensure_offscreen(xml, width, height), assets
-
-
-def check_gl_backend() -> None:
-    """``RuntimeError`` when MuJoCo was imported with a windowed OpenGL backend (GLFW) and there is
-    no display: ``MUJOCO_GL`` must be ``osmesa`` or ``egl`` before MuJoCo is first imported
-    (importing :mod:`sitl` first sets ``osmesa`` when it is unset)."""
-    backend = getattr(getattr(mujoco, "GLContext", None), "__module__", "")
-    if "glfw" in backend and not os.environ.get("DISPLAY"):
-        raise RuntimeError("offscreen rendering: MuJoCo was imported with the GLFW backend and there is no display; "
-                           "set MUJOCO_GL=osmesa (CPU, libosmesa6) or egl (GPU) before MuJoCo is imported, "
-                           "or import sitl before mujoco")
-    log.debug("MuJoCo offscreen rendering via %s", backend)
 
 
 def fast_renderer(model: mujoco.MjModel, height_px: int, width_px: int, shadows: bool = False) -> mujoco.Renderer:
@@ -227,7 +215,7 @@ class CameraRig:
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, cameras: tuple[CameraMount, ...],
                  markers: tuple[MarkerMount, ...], dt_s: float, seed: int):
-        check_gl_backend()
+        require_rendering()
         self.model, self.data, self.dt = model, data, dt_s
         self.marker_sites = {m.id: model.site(f"marker{m.id}").id for m in markers}
         self.cameras: list[_Camera] = []

@@ -3,7 +3,8 @@
 ``python -m sitl launch --config FILE`` starts, for an n-link scenario:
 
 * n vehicle processes (``python -m link_firmware_sim``): link ``i`` is MAVLink system ``i + 1``,
-  simulator TCP 4560+i, onboard UDP 14540+i (from 14580+i), GCS UDP 14550 (from 18570+i);
+  simulator TCP 4560+i, onboard UDP 14540+i (from 14580+i), GCS UDP 14550 (from 18570+i; another
+  port with ``--gcs-port``);
 * the companion daemon (``python -m companion``), listening on UDP 14540+i; with
   ``companion.distributed`` one per group (``--group G``, run folder ``companion-gG``), joined
   over Zenoh on loopback (``tcp/127.0.0.1:7460+G-1``, clear of a local zenohd on 7447); ``[faults]`` can SIGKILL one of them
@@ -51,7 +52,7 @@ from companion.config import SITL_STATE_PORT, LinkEndpoint
 from companion.configfile import dump_toml
 from companion.fleetnet.config import new_users_file
 from companion.logstream import read_log_stream
-from companion.mavlink.signing import new_key_file
+from companion.mavlink.signing import key_passphrase, new_key_file
 from companion.mavlink.codec import MessageError, usec
 from companion.estimation.so3 import quat_to_rotmat
 from companion.mavlink.port import PortError, wait_readable
@@ -69,7 +70,8 @@ from .runner import Plant, Schedule
 from .scenario import Scenario
 from .steplog import attach_truth, merge_step_logs
 
-__all__ = ["FleetError", "FleetHarness", "check_fleet_scenario", "check_instance_offset", "endpoint_table", "launch"]
+__all__ = ["FleetError", "FleetHarness", "GCS_PORT", "check_fleet_scenario", "check_instance_offset", "endpoint_table",
+           "launch", "signing_instructions"]
 
 log = logging.getLogger(__name__)
 
@@ -85,33 +87,51 @@ LOCKSTEP_STARTED = "lockstep started:"
 LOCKSTEP_ENDED = "lockstep ended"
 STOP_GRACE_S = 10.0
 STARTUP_TIMEOUT_S = 30.0
+#: where every vehicle sends its ground-station traffic (PX4 SITL's: QGroundControl listens there)
+GCS_PORT = 14550
 
 
 class FleetError(RuntimeError):
     """The fleet could not run (a process died, a link stopped answering the simulator)."""
 
 
+def signing_instructions(sc: Scenario, gcs_port: int = GCS_PORT) -> str:
+    """How a ground station joins a signed fleet, as typed: MAVProxy's ``signing key`` takes the
+    passphrase itself (its prompt does no shell expansion)."""
+    modes = f"MAVLink 2 signing: onboard {sc.signing.link_mode('onboard')}, GCS {sc.signing.link_mode('gcs')}; key file " \
+            f"{sc.signing.key_file}"
+    try:
+        passphrase = key_passphrase(sc.signing.key_file)
+    except ValueError as exc:
+        return f"{modes} ({exc})"
+    if passphrase is None:
+        return (f"{modes}: a raw key; MAVProxy and QGroundControl derive theirs from a passphrase "
+                "(python -m companion keys new FILE makes one)")
+    return (f"{modes}\nMAVProxy: mavproxy.py --master=udpin:127.0.0.1:{gcs_port}, then type at its prompt:\n"
+            f"    signing key {passphrase}")
+
+
 def endpoint_table(sc: Scenario, host: str = "127.0.0.1", instance_offset: int = 0,
-                   sim_dir: Path | None = None) -> str:
+                   sim_dir: Path | None = None, gcs_port: int = GCS_PORT) -> str:
     """The fleet's addresses; ``sim_dir``: the same-host simulator link's socket folder (else TCP)."""
     k = instance_offset
     rows = [f"{'link':>4} | {'sysid':>5} | {'simulator (TCP)' if sim_dir is None else 'simulator (UNIX)':>18} | "
-            f"{'onboard / companion (UDP)':>28} | {'GCS (UDP)':>17}", "-" * 86]
+            f"{'onboard / companion (UDP)':>28} | {'GCS (UDP)':>24}", "-" * 93]
     for i in range(sc.skeleton.n_links):
-        sim = f"{host}:{4560 + k + i:>5}   " if sim_dir is None else f"{f'link{i + 1}.sock':>18}"
-        rows.append(f"{i + 1:>4} | {i + 1:>5} | {sim} | {host}:{14540 + k + i} <- :{14580 + k + i}"
-                    f"{'':>6} | {host}:14550 <- :{18570 + k + i}")
+        sim = f"{host}:{4560 + k + i}" if sim_dir is None else f"link{i + 1}.sock"
+        onboard = f"{host}:{14540 + k + i} <- :{14580 + k + i}"
+        gcs = f"{host}:{gcs_port} <- :{18570 + k + i}"
+        rows.append(f"{i + 1:>4} | {i + 1:>5} | {sim:>18} | {onboard:>28} | {gcs:>24}")
     if sim_dir is not None:
         rows.append(f"simulator links: UNIX sockets in {sim_dir} (this run only)")
     if sc.companion.distributed:
         for g, links in enumerate(sc.companion.group_layout(sc.skeleton.n_links)):
             rows.append(f"companion of group {g + 1} (links {links[0] + 1}-{links[-1] + 1}): Zenoh "
                         f"{sc.zenoh.group_endpoint(g)}, keys {sc.zenoh_prefix}/...")
-    rows.append(f"QGroundControl / MAVProxy: listen on UDP 14550. MAVSDK: udpin://127.0.0.1:{14540 + k}+i (launch with "
+    rows.append(f"QGroundControl / MAVProxy: listen on UDP {gcs_port}. MAVSDK: udpin://127.0.0.1:{14540 + k}+i (launch with "
                 "--no-companion).")
     if sc.signing.active:
-        rows.append(f"MAVLink 2 signing: onboard {sc.signing.link_mode('onboard')}, GCS {sc.signing.link_mode('gcs')}; "
-                    f"key {sc.signing.key_file} (MAVProxy: signing key $(cat {sc.signing.key_file}))")
+        rows.append(signing_instructions(sc, gcs_port))
     return "\n".join(rows)
 
 
@@ -655,20 +675,23 @@ def check_fleet_scenario(sc: Scenario) -> None:
                          "fleet mode wires the simulated links itself: use a SITL config")
 
 
-def check_instance_offset(sc: Scenario, instance_offset: int) -> None:
+def check_instance_offset(sc: Scenario, instance_offset: int, gcs_port: int = GCS_PORT) -> None:
     """``ValueError`` unless a fleet shifted by ``instance_offset`` K keeps its companion ports
-    14540+K+i clear of the GCS port 14550 and below the vehicles' own 14580+ (PX4's layout leaves
+    14540+K+i clear of the GCS port (14550) and below the vehicles' own 14580+ (PX4's layout leaves
     room for 40 instances), and its impaired wire's 15540+K+i below 15580."""
     n, k = sc.skeleton.n_links, instance_offset
     first, last = SITL_STATE_PORT + k, SITL_STATE_PORT + k + n - 1
-    if k < 0 or last >= 14580 or first <= 14550 <= last:
+    if not 0 < gcs_port < 65536:
+        raise ValueError(f"GCS port {gcs_port}: a UDP port is 1-65535")
+    if k < 0 or last >= 14580 or first <= gcs_port <= last:
         raise ValueError(f"instance offset {k}: the companion ports of {n} links would be {first}-{last}; they must "
-                         f"miss the GCS port 14550 and stay below 14580 (K + n <= 10, or 11 <= K <= {40 - n})")
+                         f"miss the GCS port {gcs_port} and stay below 14580"
+                         + (f" (K + n <= 10, or 11 <= K <= {40 - n})" if gcs_port == GCS_PORT else ""))
 
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
            companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
-           batch_scheduling: bool | None = None) -> dict:
+           batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT) -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
     too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
     K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
@@ -678,11 +701,11 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     ``"unix"`` (the same-host link, :mod:`link_firmware_sim.simlink`). ``batch_scheduling``: the
     harness and every process of the fleet under SCHED_BATCH (:func:`_enter_batch_scheduling`);
     ``None``: when unpaced (``speed`` 0), where only throughput counts (the metrics say which:
-    ``scheduling``)."""
+    ``scheduling``). ``gcs_port``: the UDP port every vehicle sends its ground-station traffic to."""
     if sim_link not in SIM_LINKS:
         raise ValueError(f"sim_link {sim_link!r}: one of {', '.join(SIM_LINKS)}")
     check_fleet_scenario(sc)
-    check_instance_offset(sc, instance_offset)
+    check_instance_offset(sc, instance_offset, gcs_port)
     k = instance_offset
     out_dir.mkdir(parents=True, exist_ok=True)
     if sc.signing.active and not sc.signing.key_file:
@@ -754,7 +777,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                 # a restarted Pixhawk keeps its parameters (the first process's file)
                 "--params", str(out_dir / f"link{i + 1}" / f"link{i + 1}_params.json"),
                 "--sim-url", sim_url(i, "vehicle"),
-                "--gcs-url", f"udpout://127.0.0.1:14550?bind={18570 + k + i}",
+                "--gcs-url", f"udpout://127.0.0.1:{gcs_port}?bind={18570 + k + i}",
                 # its onboard traffic to the companion, or through the impaired wire
                 "--onboard-url", f"udpout://127.0.0.1:{(WIRE_VEHICLE_SIDE if i in wired else SITL_STATE_PORT) + k + i}"
                                  f"?bind={14580 + k + i}"]
@@ -799,7 +822,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
             _wait_udp_listening([SITL_STATE_PORT + k + i for i in range(n)], procs)
         if sc.cameras:
             cameras = _start_cameras(sc, plant, out_dir, procs, python)
-        print(endpoint_table(replace(sc, zenoh=companion_setup.zenoh), instance_offset=k, sim_dir=sim_dir), flush=True)
+        print(endpoint_table(replace(sc, zenoh=companion_setup.zenoh), instance_offset=k, sim_dir=sim_dir,
+                             gcs_port=gcs_port), flush=True)
         if cameras is not None:
             print(f"cameras: Zenoh {cameras.endpoint}, keys {cameras.prefix}/camera/<vehicle>/image "
                   f"(consumer: python -m companion.vision --config {out_dir / 'vision.toml'})", flush=True)
@@ -892,7 +916,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
                               groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
                               motion=sc.motion if sc.trajectory.kind == "cpg" else None,
                               fault_windows=_fault_windows(sc, fault_log, link_fault, harness.sim_s),
-                              rotor_limit_s=plant.rotors.limit_s)
+                              rotor_limit_s=plant.rotors.limit_s, took_off=plant.took_off)
     lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
     metrics["correction_latency_ms"] = (
         {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),

@@ -61,6 +61,7 @@ def fly(
         motion=sc.motion if sc.trajectory.kind == "cpg" else None,
         fault_windows=vehicle_down_windows(runner.link_fault, runner.sim_s),
         rotor_limit_s=runner.rotors.limit_s,
+        took_off=runner.plant.took_off,
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed
@@ -82,6 +83,8 @@ def fly(
     metrics.update(vision.metrics())
     if runner.crashed:
         log.warning("crash: %s", runner.crash_reason)
+    elif not runner.plant.took_off and sc.trajectory.kind != "rest":
+        log.warning("the chain never took off (on the ground for the whole flight)")
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)

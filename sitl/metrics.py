@@ -39,7 +39,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``thrust_limit`` (batch mode, :func:`sitl.fly.fly`): per link its firmware's report since its
   last boot: ``at_limit_s``, ``episodes`` (each announced by STATUSTEXT after ``SKL_TLIM_WARN``),
   ``min_scale``, ``at_limit_now``;
-* ``min_altitude_m``: lowest true link-centre altitude; ``crashed``;
+* ``min_altitude_m``: lowest true link-centre altitude; ``took_off`` (whether every link ever
+  cleared the ground: a chain nobody armed stays on it, and that is not a crash); ``crashed``;
 * ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
   estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones
   (``corrected``: the constraint application's covariance), against the truth at the companion's
@@ -390,9 +391,11 @@ def compute_metrics(
     motion=None,
     fault_windows: list[dict] | None = None,
     rotor_limit_s: np.ndarray | None = None,
+    took_off: bool = True,
 ) -> dict:
     """The figures of the module docstring; ``fault_windows``: outage windows the run knows of
-    besides the step log's (fleet mode's scripted faults, each with its ``kind``)."""
+    besides the step log's (fleet mode's scripted faults, each with its ``kind``); ``took_off``:
+    whether the chain ever left the ground (a run that never did has not crashed either)."""
     t = log["t"]
     win = t >= flight_start_s
     if not np.any(win):
@@ -436,6 +439,7 @@ def compute_metrics(
                                    [round(float(x), 3) for x in np.asarray(rotor_limit_s, dtype=float)]),
         "min_altitude_m": float(log["p_true"][win][..., 2].min()),
         "estimate_coverage": np.mean(np.all(np.isfinite(log["p_ctrl"][win]), axis=-1), axis=0).tolist(),
+        "took_off": bool(took_off),
         "crashed": bool(crashed),
         "crash_reason": crash_reason,
         "realtime_factor": float(realtime_factor),

@@ -70,7 +70,7 @@ def compare_controllers(scenario: Scenario, out_dir: Path | None, controllers=CO
         runner.run(sc.duration_s, progress=progress)
         arrays = runner.arrays()
         m = tracking_metrics(arrays, start)
-        m.update(crashed=runner.crashed, crash_reason=runner.crash_reason,
+        m.update(took_off=runner.plant.took_off, crashed=runner.crashed, crash_reason=runner.crash_reason,
                  real_time_factor=runner.sim_s / runner.wall_s if runner.wall_s > 0 else None)
         out["controllers"][name] = m
         log.info("%s: %s", name, m)

@@ -65,6 +65,8 @@ def warm_up_kernels() -> float:
 
 
 CRASH_TILT_DEG = 60.0
+#: height above the crash floor every link must clear once for the chain to count as taken off [m]
+TAKEOFF_CLEARANCE_M = 0.2
 _COS_HALF_NEAR_CRASH = math.cos(math.radians(CRASH_TILT_DEG - 5.0) / 2.0)  # (check_crash)
 
 
@@ -175,6 +177,9 @@ class Plant:
         self._fresh = True  # begin_step already done for the current instant
         self.crashed = False
         self.crash_reason = ""
+        # whether the chain ever flew (every link clear of the ground): a chain that never took off
+        # (nobody armed it) rests on the ground without having crashed
+        self.took_off = False
 
     @property
     def time_s(self) -> float:
@@ -211,17 +216,21 @@ class Plant:
         self.model.end_step(thrust.reshape(self.n, -1), wind)
 
     def check_crash(self, t: float, truth, target_q: np.ndarray | None) -> None:
-        """Flag a crash: a diverged simulation, or (after the take-off) a link on the ground or far
-        off its target attitude (``target_q``: (n, 4))."""
+        """Flag a crash: a diverged simulation, or (after the take-off window, once the chain has
+        flown) a link on the ground or far off its target attitude (``target_q``: (n, 4)). A chain
+        that never left the ground has not crashed (:attr:`took_off` stays false)."""
         if self.crashed:
             return
         if not np.all(np.isfinite(truth.p_w_m)):
             self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
             return
-        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest":
-            return
         floor = self.scenario.skeleton.bar_radius_m + 0.05
-        if truth.p_w_m[:, 2].min() < floor:
+        lowest = truth.p_w_m[:, 2].min()
+        if not self.took_off and lowest > floor + TAKEOFF_CLEARANCE_M:
+            self.took_off = True
+        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest" or not self.took_off:
+            return
+        if lowest < floor:
             self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
             return
         if target_q is None:

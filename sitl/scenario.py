@@ -278,7 +278,8 @@ class Scenario(CompanionSetup, VehicleSetup):
     def __post_init__(self) -> None:
         if not self.duration_s > self.flight_start_s:
             raise ValueError(f"duration_s must be longer than the take-off, which ends at {self.flight_start_s:g} s "
-                             f"(the metrics window starts there), got {self.duration_s:g}")
+                             f"(trajectory.takeoff_start_s + takeoff_duration_s: the metrics window starts there), got "
+                             f"{self.duration_s:g}")
         physics = self.sim.physics_rate_hz
         rate_divisor(physics, self.firmware.rate_hz, "firmware.rate_hz")
         rate_divisor(physics, self.companion.rate_hz, "companion.rate_hz")

@@ -432,7 +432,8 @@ def fly_slung_load(scenario: SlungLoadScenario, out_dir: Path | None, *, progres
     with _LoadVision(runner, video, estimation) as vision:
         runner.run(sc.duration_s, progress=progress)
     arrays = runner.arrays()
-    metrics = {"scenario": sc.name, "seed": sc.seed, "duration_s": runner.sim_s, "crashed": runner.crashed,
+    metrics = {"scenario": sc.name, "seed": sc.seed, "duration_s": runner.sim_s,
+               "took_off": runner.plant.took_off, "crashed": runner.crashed,
                "crash_reason": runner.crash_reason,
                "realtime_factor": runner.sim_s / runner.wall_s if runner.wall_s > 0 else None}
     metrics.update(estimation.metrics())

@@ -3,10 +3,9 @@ picture-in-picture of one onboard camera and the detected markers' axes when the
 
 The chase camera is a MuJoCo free camera looking at the model's centre of mass from a fixed
 azimuth and elevation (it follows the flight, it does not turn with it). Frames are rendered
-offscreen (:mod:`sitl.camera`: ``MUJOCO_GL=osmesa`` on the CPU) at the video's rate of
+offscreen (:mod:`sitl.rendering`: a headless backend, osmesa on the CPU) at the video's rate of
 *simulation* time (``fps`` frames per simulated second, at the nearest physics tick), not at
-every physics step, so the file plays at real-time speed; each frame costs one render
-(about 50-100 ms at 640x480 on the development VM). The onboard inset is the newest frame that
+every physics step, so the file plays at real-time speed; each frame costs one render. The onboard inset is the newest frame that
 camera has delivered (its rate and latency: what the companion sees), annotated with the markers
 the companion's pipeline (:class:`~companion.vision.pnp.MarkerPipeline`) found in it: outline,
 id and the estimated axes (x red, y green, z blue, as the report's Fig. 2).
@@ -26,7 +25,8 @@ import numpy as np
 from companion.vision.config import DetectorConfig, PipelineConfig
 from companion.vision.pnp import MarkerPipeline
 
-from .camera import CameraRig, check_gl_backend, fast_renderer
+from .camera import CameraRig, fast_renderer
+from .rendering import require_rendering
 from .camera_config import MarkerMount
 
 __all__ = ["VideoConfig", "VideoRecorder", "pipeline_config"]
@@ -101,7 +101,7 @@ class VideoRecorder:
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, path: str | Path, dt_s: float,
                  cfg: VideoConfig = VideoConfig(), rig: CameraRig | None = None,
                  markers: tuple[MarkerMount, ...] = (), title: str = ""):
-        check_gl_backend()
+        require_rendering()
         self.model, self.data, self.dt, self.cfg, self.rig = model, data, dt_s, cfg, rig
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,13 +1,15 @@
 import os
 
-# Offscreen rendering (cameras, videos) on the CPU: set before anything imports MuJoCo (sitl does
-# the same on import; here it also covers tests that import mujoco first).
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-
 import pytest
 from hypothesis import settings
 
 from companion.cli import single_thread_blas
+from sitl.rendering import RenderingUnavailable, choose_backend, require_rendering
+
+# Offscreen rendering (the tests marked `rendering`: cameras, videos): a headless OpenGL backend
+# chosen before anything imports MuJoCo, osmesa on the CPU or egl. Where none renders those tests
+# are skipped with the reason, unless SKELETON_REQUIRE_RENDERING=1 (.ci/run): then they fail.
+choose_backend(renders=True)
 
 # Property tests draw the same examples on every run (each test's own seed, from its name): the
 # suite and CI give the same verdict on the same commit. `pytest --hypothesis-profile explore`
@@ -37,3 +39,25 @@ def _compiled_kernels():
 
     warm_up_kernels()
     yield
+
+
+def _need_rendering() -> str:
+    try:
+        return require_rendering()
+    except RenderingUnavailable as exc:
+        if os.environ.get("SKELETON_REQUIRE_RENDERING") == "1":
+            pytest.fail(f"SKELETON_REQUIRE_RENDERING=1: {exc}")
+        pytest.skip(str(exc))
+
+
+@pytest.fixture(scope="session")
+def rendering_backend() -> str:
+    """The headless OpenGL backend (for fixtures that render; tests say so with the marker)."""
+    return _need_rendering()
+
+
+@pytest.fixture(autouse=True)
+def _rendering(request):
+    """A test marked ``rendering`` needs a headless OpenGL backend that renders."""
+    if request.node.get_closest_marker("rendering") is not None:
+        _need_rendering()

@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CAMERA_FLEET = ROOT / "configs" / "sitl" / "three_link_camera_fleet.toml"
 
 
+@pytest.mark.rendering
 def test_fleet_frames_cross_zenoh_and_the_consumer_measures_the_marker(tmp_path):
     pytest.importorskip("zenoh")
     pytest.importorskip("mujoco")

@@ -1,6 +1,7 @@
 """Cameras rendered by MuJoCo in the SITL (sitl/camera.py), markers, and the flight video (sitl/video.py).
 
-Renders offscreen with MUJOCO_GL=osmesa (conftest.py; libosmesa6 from .ci/run)."""
+The tests marked ``rendering`` render offscreen with a headless OpenGL backend (conftest.py; .ci/run
+installs libosmesa6)."""
 
 from __future__ import annotations
 
@@ -53,11 +54,12 @@ def render_once(cameras, markers, ticks=1):
 
 
 @pytest.fixture(scope="module")
-def marker_frame():
+def marker_frame(rendering_backend):
     frames, _, _ = render_once((CAM,), (marker_facing_camera(30.0),))
     return frames[0]
 
 
+@pytest.mark.rendering
 def test_intrinsics_match_the_render_of_a_known_point():
     frames, m, d = render_once((replace(CAM, noise_std_dn=0.0),), ())
     img = frames[0].frame.image.astype(int)
@@ -71,6 +73,7 @@ def test_intrinsics_match_the_render_of_a_known_point():
     assert np.hypot(u.mean() - expected[0], v.mean() - expected[1]) < 0.5
 
 
+@pytest.mark.rendering
 @pytest.mark.parametrize("method", PNP_METHOD_NAMES)
 def test_a_rendered_marker_2m_away_is_recovered_by_each_method(marker_frame, method):
     f = marker_frame
@@ -83,6 +86,7 @@ def test_a_rendered_marker_2m_away_is_recovered_by_each_method(marker_frame, met
     assert np.degrees(geodesic_angle_rad(p.R_cm, R_true)) < 1.0
 
 
+@pytest.mark.rendering
 def test_rate_latency_stamps_and_seeded_noise():
     cams = (CAM, replace(CAM, name="blur", exposure_s=0.004, blur_samples=3, latency_s=0.0))
     xml, assets = vision_mjcf(BASE, cams, ())
@@ -124,6 +128,7 @@ def test_config_errors_name_the_key(tmp_path):
         vision_mjcf(BASE, (replace(CAM, body="link9"),), ())
 
 
+@pytest.mark.rendering
 def test_video_of_a_short_three_link_flight(tmp_path):
     sc = load_scenario("configs/sitl/three_link.toml")
     runner = BatchRunner(sc)
@@ -146,6 +151,7 @@ def test_video_of_a_short_three_link_flight(tmp_path):
     assert n == 15 and first.shape == (480, 640, 3) and first.std() > 5  # a picture, not a blank
 
 
+@pytest.mark.rendering
 def test_video_with_the_onboard_inset(tmp_path, marker_frame):
     xml, assets = vision_mjcf(BASE, (CAM,), (marker_facing_camera(30.0),))
     m = mujoco.MjModel.from_xml_string(xml, assets)

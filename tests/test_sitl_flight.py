@@ -206,13 +206,32 @@ def test_the_crash_rule_at_the_tilt_limit(deg, crashed):
         q_target = target.copy()
         if without_target is not None:
             q_target[without_target] = np.nan
-        plant = SimpleNamespace(crashed=False, crash_reason=None, scenario=sc)
+        plant = SimpleNamespace(crashed=False, crash_reason=None, scenario=sc, took_off=False)
         truth = SimpleNamespace(p_w_m=np.tile([0.0, 0.0, 2.0], (3, 1)), q_wxyz=q)
         Plant.check_crash(plant, sc.flight_start_s + 1.0, truth, q_target)
         assert plant.crashed == crashed, (deg, plant.crash_reason)
         if crashed:
             assert plant.crash_reason.startswith(f"attitude error {deg:.0f} deg on link 2"), plant.crash_reason
     assert CRASH_TILT_DEG == 60.0
+
+
+@pytest.mark.parametrize("heights_m, took_off, crashed", [
+    ((0.05,), False, False),  # on the ground throughout (nobody armed it): never took off, no crash
+    ((0.05, 2.0, 2.5), True, False),  # took off and flies
+    ((0.05, 2.0, 0.05), True, True),  # took off, then hit the ground
+])
+def test_a_chain_that_never_took_off_has_not_crashed(heights_m, took_off, crashed):
+    from types import SimpleNamespace
+
+    from sitl.runner import Plant
+
+    sc = load_scenario(CONFIG)
+    plant = SimpleNamespace(crashed=False, crash_reason="", scenario=sc, took_off=False)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    for k, z in enumerate(heights_m):
+        truth = SimpleNamespace(p_w_m=np.tile([0.0, 0.0, z], (3, 1)), q_wxyz=q)
+        Plant.check_crash(plant, sc.flight_start_s + k, truth, None)
+    assert (plant.took_off, plant.crashed) == (took_off, crashed), plant.crash_reason
 
 
 def _strip(metrics):

@@ -80,6 +80,7 @@ def test_config_loads_and_validates(tmp_path):
     assert load_slung_scenario(good).load.sigma_floor_px == 0.1
 
 
+@pytest.mark.rendering
 def test_short_flight_estimates_the_load(tmp_path):
     """1.2 simulated seconds (hovering with the load, the cameras at 10 Hz): no crash, the cables
     carry the load, every camera sees the marker, and the EKF, UKF and unfiltered estimates exist

@@ -35,7 +35,10 @@ __all__ = ["DIALECT_XML", "cache_root", "dialect_fingerprint", "export_definitio
 log = logging.getLogger(__name__)
 
 DIALECT_XML = Path(__file__).with_name("aerial_skeleton.xml")
-_INCLUDES = ("common.xml", "standard.xml", "minimal.xml")
+#: the definitions the dialect is built on: ArduPilot's ardupilotmega.xml (common.xml and the rest,
+#: what MAVProxy's modules expect of a dialect, signing's RADIO among them) and what it includes
+_INCLUDES = ("ardupilotmega.xml", "common.xml", "standard.xml", "minimal.xml", "uAvionix.xml", "icarous.xml",
+             "loweheiser.xml", "cubepilot.xml", "csAirLink.xml")
 
 
 def _pymavlink_definitions() -> Path:

@@ -23,8 +23,8 @@ Per link, a :data:`SigningMode`:
   configuration trusts, SETUP_SIGNING (PX4 accepts a key only over USB).
 
 Key files hold one line: a passphrase (the key is its SHA-256, as MAVProxy's ``signing``
-module and QGroundControl derive theirs, so ``signing key $(cat FILE)`` in MAVProxy signs with
-the same key) or 64 hexadecimal digits (the raw key, e.g. one received by SETUP_SIGNING). A
+module and QGroundControl derive theirs, so ``signing key PASSPHRASE`` typed at MAVProxy's prompt
+signs with the same key) or 64 hexadecimal digits (the raw key, e.g. one received by SETUP_SIGNING). A
 key file readable by group or others is refused, as ssh refuses such private keys.
 """
 
@@ -51,6 +51,7 @@ __all__ = [
     "signing_timestamp",
     "key_from_text",
     "load_key",
+    "key_passphrase",
     "new_key_file",
     "write_key_file",
     "frame_is_signed",
@@ -207,6 +208,17 @@ def load_key(path: str | Path) -> bytes:
         return key_from_text(text)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
+
+
+def key_passphrase(path: str | Path) -> str | None:
+    """The passphrase in the key file ``path`` (what a ground station's ``signing key`` takes), or
+    ``None`` when the file holds a raw key; ``ValueError`` naming the file and the reason."""
+    text = read_private_text(path, "signing key").strip()
+    try:
+        key_from_text(text)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    return None if len(text) == 2 * KEY_LEN and all(c in "0123456789abcdefABCDEF" for c in text) else text
 
 
 def write_key_file(path: str | Path, text: str, overwrite: bool = False) -> Path:
