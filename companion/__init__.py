@@ -18,6 +18,7 @@ Pure core (no sockets, clocks or threads):
 * :mod:`.mavlink` (codec, frames, standard messages, dialect) and :mod:`.fleetnet` (Zenoh
   codec, leader election) -- the wire codecs.
 
-Shells: :mod:`.daemon` (``python -m companion``), :mod:`.mavlink.port`, :mod:`.fleetnet.bus`
+Shells: :mod:`.daemon` (``python -m companion``), :mod:`.mavlink.port` and its transports
+(:mod:`.mavlink.transport`, :mod:`.mavlink.sockets`, :mod:`.mavlink.serialport`), :mod:`.fleetnet.bus`
 (Zenoh, distributed mode only), :mod:`.replay`, :mod:`.cli`.
 """

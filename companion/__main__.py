@@ -65,7 +65,7 @@ def _cmd_daemon(args) -> int:
     from .config import CompanionSetup, load_setup
     from .configfile import ConfigError
     from .daemon import CompanionDaemon
-    from .mavlink.port import PortError
+    from .mavlink.transport import PortError
 
     try:
         scenario = load_setup(CompanionSetup, args.config)

@@ -1,8 +1,8 @@
 """The companion daemon: the :class:`~companion.engine.CompanionEngine` behind MAVLink ports (and Zenoh).
 
 The engine decides everything (steps, corrections, targets, arming, time base, the distributed
-halves); this shell owns the I/O and the wall clock. For every link it holds a
-:class:`~companion.mavlink.port.MavlinkPort` (UDP in SITL, serial on hardware):
+halves); this shell owns the I/O and the clocks (passed in; the system's by default). For every
+link it holds a :class:`~companion.mavlink.port.MavlinkPort` (UDP in SITL, serial on hardware):
 
 * frames in: with ``[signing]`` (``onboard`` link mode) every frame is signed and checked by
   the port first (unsigned, wrongly signed and replayed frames are counted per link: the
@@ -55,8 +55,10 @@ from .engine import (
 )
 from .mavlink.codec import decode_link_state, encode_correction, encode_target_feedforward, usec
 from .mavlink.dialect import load_dialect
-from .mavlink.port import MavlinkPort, TlogWriter, wait_readable
+from .mavlink.port import MavlinkPort
 from .mavlink.standard import decode_odometry, encode_attitude_target, encode_odometry, encode_position_target
+from .mavlink.tlog import TlogWriter
+from .mavlink.transport import wait_readable
 from .messages import STATE_FLAG_EKF_OK, MessageError
 
 __all__ = ["CompanionDaemon", "COMPANION_SYSTEM_ID", "COMPANION_COMPONENT_ID", "format_health_table"]
@@ -91,10 +93,13 @@ def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
 
 class CompanionDaemon:
     """See the module docstring. ``group`` (0-based) selects distributed mode's group; ``bus``
-    replaces the Zenoh session it would open (tests); ``clock`` is the wall clock."""
+    replaces the Zenoh session it would open (tests). ``clock`` (monotonic seconds) is the one
+    time of the daemon: the engine's inputs and polls, the ports' and the group link's timing;
+    ``wall_clock`` (UNIX seconds) stamps the tlogs and the MAVLink signatures."""
 
     def __init__(self, setup: CompanionSetup, out_dir: Path | None = None, start_center=None,
-                 group: int | None = None, bus=None, config_file: str = "<config>", clock=time.monotonic):
+                 group: int | None = None, bus=None, config_file: str = "<config>", clock=time.monotonic,
+                 wall_clock=time.time):
         cfg = setup.companion
         self.setup = setup
         self.cfg = cfg
@@ -111,10 +116,11 @@ class CompanionDaemon:
         try:
             for i in members:
                 sysid = endpoints[i].system_id
-                tlog = TlogWriter(out_dir / f"companion_link{sysid}.tlog") if out_dir is not None else None
+                tlog = (TlogWriter(out_dir / f"companion_link{sysid}.tlog", wall_clock=wall_clock)
+                        if out_dir is not None else None)
                 self.ports.append(MavlinkPort(endpoints[i].url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID, _ACCEPT,
                                               tlog, peer_system_id=endpoints[i].system_id, signing=mode, key=key,
-                                              link_id=i))
+                                              link_id=i, clock=clock, wall_clock=wall_clock))
             if group is not None and cfg.distributed and 0 <= group < len(groups):
                 net = self._group_link(setup, group, bus, config_file)
             self.engine = CompanionEngine(setup, group=group, start_center=start_center, net=net)

@@ -24,7 +24,7 @@ from pathlib import Path
 from companion.cli import single_thread_blas
 from companion.config import load_setup
 from companion.configfile import ConfigError
-from companion.mavlink.port import PortError
+from companion.mavlink.transport import PortError
 
 from . import _fast
 from .config import VehicleSetup

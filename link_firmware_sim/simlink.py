@@ -60,7 +60,9 @@ from urllib.parse import urlparse
 import numpy as np
 
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import CountedPort, MavlinkPort, PortError, PortStats, open_transport, send_all
+from companion.mavlink.port import CountedPort, MavlinkPort, PortStats
+from companion.mavlink.transport import PortError, send_all
+from companion.mavlink.urls import open_transport
 
 from . import _fast
 

@@ -60,7 +60,9 @@ from companion.mavlink.standard import (
     encode_odometry,
     euler_zyx,
 )
-from companion.mavlink.port import MavlinkPort, TlogWriter, wait_readable
+from companion.mavlink.port import MavlinkPort
+from companion.mavlink.tlog import TlogWriter
+from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import KEY_LEN, UNSIGNED_ALLOWED, SigningConfig, write_key_file
 from companion.messages import Correction, PoseTarget
 

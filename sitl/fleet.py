@@ -55,7 +55,7 @@ from companion.logstream import read_log_stream
 from companion.mavlink.signing import key_passphrase, new_key_file
 from companion.mavlink.codec import MessageError, usec
 from companion.estimation.so3 import quat_to_rotmat
-from companion.mavlink.port import PortError, wait_readable
+from companion.mavlink.transport import PortError, wait_readable
 from companion.skeleton.kinematics import tension
 from link_firmware_sim import _fast
 from link_firmware_sim.allocation import Allocator

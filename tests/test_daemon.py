@@ -28,16 +28,10 @@ from companion.messages import STATE_FLAG_EKF_OK, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
+from .clocks import FakeClock
+
 ROOT = Path(__file__).resolve().parents[1]
 D = load_dialect()
-
-
-class FakeClock:
-    def __init__(self, t=1000.0):
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 class Fleet:

@@ -25,7 +25,8 @@ import pytest
 from pymavlink import mavutil
 
 from companion.mavlink.dialect import load_dialect, tool_environment
-from companion.mavlink.port import MavlinkPort, wait_readable
+from companion.mavlink.port import MavlinkPort
+from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import load_key, new_key_file
 from sitl.fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, check_instance_offset, launch
 from sitl.fly import fly

@@ -14,8 +14,13 @@ from hypothesis import strategies as st
 from pymavlink import mavutil
 
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MAX_DATAGRAM_BYTES, MavlinkPort, PortError, TlogWriter, open_transport, wait_readable
+from companion.mavlink.port import MAX_DATAGRAM_BYTES, MavlinkPort
+from companion.mavlink.tlog import TlogWriter
+from companion.mavlink.transport import PortError, wait_readable
+from companion.mavlink.urls import open_transport
 from companion.mavlink.signing import SignatureChecker, Verdict, signing_timestamp
+
+from .clocks import FakeClock
 
 D = load_dialect()
 
@@ -184,7 +189,7 @@ def test_port_in_use_is_a_clear_error():
 
 
 def test_tlog_is_readable_by_pymavlink(tmp_path):
-    tlog = TlogWriter(tmp_path / "x.tlog")
+    tlog = TlogWriter(tmp_path / "x.tlog", wall_clock=lambda: 1_700_000_000.25)
     server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, tlog=tlog)
     client = MavlinkPort(f"udpout://127.0.0.1:{server.transport.local_port()}", system_id=7)
     client.send(_heartbeat())
@@ -195,22 +200,25 @@ def test_tlog_is_readable_by_pymavlink(tmp_path):
     log = mavutil.mavlink_connection(str(tmp_path / "x.tlog"), dialect="common")
     msgs = []
     while (m := log.recv_match()) is not None:
-        msgs.append((m.get_type(), m.get_srcSystem()))
+        msgs.append((m.get_type(), m.get_srcSystem(), m._timestamp))
     log.close()
-    assert msgs == [("HEARTBEAT", 7), ("SYSTEM_TIME", 190)]
+    assert msgs == [("HEARTBEAT", 7, 1_700_000_000.25), ("SYSTEM_TIME", 190, 1_700_000_000.25)]
 
 
 def test_serial_device_missing_then_plugged_in_then_unplugged(tmp_path, caplog):
     """A by-id path that appears later (autopilot powered after the daemon), then goes away."""
     link = tmp_path / "usb-Hex_ProfiCNC_CubeOrange-if00"
-    port = MavlinkPort(f"serial://{link}:921600", system_id=190)  # retries once a second
+    clock = FakeClock()
+    port = MavlinkPort(f"serial://{link}:921600", system_id=190, clock=clock)  # retries once a second
     assert not port.transport.connected and port.read() == [] and port.fileno() < 0
     assert wait_readable([port], 0.01) == [port]  # a port waiting to reopen is polled
     port.send(_heartbeat())  # dropped, not raised
     assert str(link) in caplog.text and "cannot open" in caplog.text
     master, slave = os.openpty()
     os.symlink(os.ttyname(slave), link)
-    time.sleep(1.05)
+    port.read()
+    assert not port.transport.connected  # not retried before its second
+    clock.t += 1.05
     port.read()
     assert port.transport.connected
     os.write(master, _heartbeat().pack(D.MAVLink(None, srcSystem=3, srcComponent=1)))
@@ -315,8 +323,9 @@ def test_ports_sign_and_check_end_to_end_and_count_rejections():
 
 
 def test_a_valid_frame_from_another_address_does_not_re_aim_replies_while_the_peer_lives():
+    clock = FakeClock()
     server = MavlinkPort("udpin://127.0.0.1:0", system_id=190, accept=frozenset({"HEARTBEAT"}), peer_system_id=7,
-                         peer_hold_s=0.3)
+                         peer_hold_s=0.3, clock=clock)
     port = server.transport.local_port()
     peer = MavlinkPort(f"udpout://127.0.0.1:{port}", system_id=7)
     hijacker = MavlinkPort(f"udpout://127.0.0.1:{port}", system_id=7)  # carries the peer's system id
@@ -332,7 +341,7 @@ def test_a_valid_frame_from_another_address_does_not_re_aim_replies_while_the_pe
         time.sleep(0.05)
         assert len(peer.read()) == 5 and hijacker.read() == []
         assert server.stats.peer_kept == 5
-        time.sleep(0.4)  # the peer goes silent (a rebooted vehicle comes back from elsewhere)
+        clock.t += 0.4  # the peer goes silent (a rebooted vehicle comes back from elsewhere)
         hijacker.send(_heartbeat())
         _read_until(server, 1)
         server.send(_heartbeat())

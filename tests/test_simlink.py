@@ -21,7 +21,9 @@ from hypothesis import strategies as st
 
 from companion.estimation.so3 import quat_normalize
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.port import MavlinkPort, PortError, _TcpClient, wait_readable
+from companion.mavlink.port import MavlinkPort
+from companion.mavlink.sockets import TcpClient
+from companion.mavlink.transport import PortError, wait_readable
 from companion.messages import Correction, PoseTarget
 from link_firmware_sim import _fast
 from link_firmware_sim.geo import GeoOrigin
@@ -658,7 +660,7 @@ def _unread_flight(rig, n_ticks: int, loop: bool) -> dict:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1)
     sock.connect(("127.0.0.1", v.sim.transport.local_port()))
     sock.setblocking(False)
-    transport = _TcpClient.__new__(_TcpClient)  # (its constructor connects with the default buffers)
+    transport = TcpClient.__new__(TcpClient)  # (its constructor connects with the default buffers)
     transport.sock, transport.closed = sock, False
     rig.sim = MavlinkPort("tcpout://127.0.0.1", system_id=250, component_id=1, transport=transport)
     while not v.sim.connected:

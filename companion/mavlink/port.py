@@ -1,64 +1,52 @@
-"""MAVLink ports: a transport (UDP, TCP or serial) plus parsing, accounting and a .tlog.
+"""MAVLink ports: a transport plus parsing, accounting, signing checks and a .tlog.
 
-A :class:`MavlinkPort` owns its socket or serial device, so it sees every byte: frames that fail
-to parse (bad CRC, truncated, random bytes) are counted as dropped bytes, frames with a message
-id the dialect does not know are counted as unknown, and well-formed messages not in the port's
-whitelist are counted as ignored; only whitelisted messages reach the caller. Reads never block
-(the caller waits with :func:`wait_readable` or its own ``select``).
-
-Transports (URL syntax as MAVSDK / MAVProxy users expect; an empty HOST means 127.0.0.1, so
-nothing is reachable from off the machine unless a URL names an interface or 0.0.0.0):
-
-* ``udpin://HOST:PORT``: bind and listen; replies go to the sender of the last valid frame
-  from the expected system (see :class:`MavlinkPort`);
-* ``udpout://HOST:PORT`` (optionally ``?bind=PORT`` or ``?bind=HOST:PORT``): send to
-  ``HOST:PORT`` from a local port (fixed with ``bind``, like PX4 SITL's local ports 14580+i;
-  the local address is 127.0.0.1 when HOST is a loopback address, else 0.0.0.0);
-* ``tcpin://HOST:PORT`` (a server: the first client is the peer) / ``tcpout://HOST:PORT``;
-* ``serial:///dev/serial/by-id/...:BAUD``.
-
-A tlog (``.tlog``: 8-byte big-endian UNIX time in microseconds, then the raw frame, per message;
-readable by pymavlink and MAVExplorer) records what the port sends and accepts.
+A :class:`MavlinkPort` owns its transport (:mod:`companion.mavlink.transport`; opened from a URL
+by :func:`companion.mavlink.urls.open_transport`: UDP, TCP or serial), so it sees every byte:
+frames that fail to parse (bad CRC, truncated, random bytes) are counted as dropped bytes,
+frames with a message id the dialect does not know are counted as unknown, and well-formed
+messages not in the port's whitelist are counted as ignored; only whitelisted messages reach the
+caller. Reads never block (the caller waits with
+:func:`~companion.mavlink.transport.wait_readable` or its own ``select``). What the port sends
+and accepts can go to a :class:`~companion.mavlink.tlog.TlogWriter`.
 
 MAVLink 2 signing (:mod:`companion.mavlink.signing`) is per port: with a mode other than
 ``off`` every frame sent is signed, and incoming frames are checked before anything else sees
 them; rejected frames (unsigned where signing is required, a bad signature, a replay) are
 counted in :class:`PortStats` and logged (the first of each kind, then at most every 5 s).
+
+Time: a port reads the clocks it is given (the system's by default): ``clock``, monotonic
+seconds, for its receive stamps, its peer hold and its log rate limits (and a serial transport's
+reopen retries); ``wall_clock``, UNIX seconds, for signing timestamps.
 """
 
 from __future__ import annotations
 
 import errno
 import logging
-import os
-import select
-import socket
-import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
-from urllib.parse import parse_qs, urlparse
 
 from .dialect import load_dialect
 from .signing import UNSIGNED_ALLOWED, SignatureChecker, SigningMode, Verdict, signing_timestamp
+from .sockets import TcpClient, TcpServer
+from .tlog import TlogWriter
+from .transport import Transport
+from .urls import open_transport
 
-__all__ = ["PortStats", "Transport", "open_transport", "CountedPort", "MavlinkPort", "TlogWriter", "wait_readable",
-           "PortError", "send_all"]
+__all__ = ["PortStats", "CountedPort", "MavlinkPort", "MAX_DATAGRAM_BYTES"]
 
 log = logging.getLogger(__name__)
 
-_READ_CHUNK = 65536
 # The most MAVLink bytes one UDP datagram carries when several frames are sent together: an
 # Ethernet MTU (1500) less the IPv4 and UDP headers, so a batch is never fragmented on a real link.
 MAX_DATAGRAM_BYTES = 1472
 
 
-class PortError(ValueError):
-    """A port URL that cannot be opened (bad syntax, missing device, port in use)."""
-
-
 @dataclass
 class PortStats:
+    """A port's counters since it opened (``last_rx_wall_s``: its clock at the last bytes received)."""
+
     rx_bytes: int = 0
     rx_messages: int = 0  # accepted (whitelisted) messages
     dropped_bytes: int = 0  # bytes that never reached the application (noise, bad CRC, truncated, unknown id)
@@ -89,381 +77,19 @@ class PortStats:
         return self.rejected_unsigned + self.rejected_signature + self.rejected_replay
 
 
-class Transport:
-    """Byte transport; subclasses implement ``recv_all`` (non-blocking) and ``send``.
-
-    ``recv_chunks`` returns what arrived as ``(bytes, sender)`` pieces: one per datagram on UDP
-    (frames never span datagrams there), one piece with sender ``None`` on streams.
-    """
-
-    datagram = False
-
-    def fileno(self) -> int:
-        raise NotImplementedError
-
-    def recv_all(self) -> bytes:
-        raise NotImplementedError
-
-    def recv_chunks(self) -> list[tuple[bytes, tuple | None]]:
-        data = self.recv_all()
-        return [(data, None)] if data else []
-
-    def learn_peer(self, addr) -> None:
-        """Reply to ``addr`` from now on (UDP listeners only)."""
-
-    def local_port(self) -> int | None:
-        """The bound local port (sockets), for URLs given with port 0."""
-        return None
-
-    def send(self, data: bytes) -> None:
-        raise NotImplementedError
-
-    def close(self) -> None:
-        raise NotImplementedError
-
-    @property
-    def connected(self) -> bool:
-        return True
-
-
-class _Udp(Transport):
-    datagram = True
-
-    def __init__(self, bind: tuple[str, int] | None, remote: tuple[str, int] | None):
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-        try:
-            self.sock.bind(bind or (_local_host(remote), 0))
-        except OSError as exc:
-            self.sock.close()
-            raise PortError(f"cannot bind UDP {bind[0]}:{bind[1]}: {exc.strerror}") from None
-        self.sock.setblocking(False)
-        self.remote = remote
-        self._fixed_remote = remote is not None
-
-    def fileno(self) -> int:
-        return self.sock.fileno()
-
-    def recv_chunks(self) -> list[tuple[bytes, tuple | None]]:
-        chunks = []
-        while True:
-            try:
-                data, addr = self.sock.recvfrom(_READ_CHUNK)
-            except BlockingIOError:
-                break
-            except ConnectionRefusedError:  # ICMP from an earlier send to a closed port
-                continue
-            chunks.append((data, addr))
-        return chunks
-
-    def recv_all(self) -> bytes:
-        return b"".join(data for data, _ in self.recv_chunks())
-
-    def learn_peer(self, addr) -> None:
-        if not self._fixed_remote:
-            self.remote = addr
-
-    def local_port(self) -> int:
-        return self.sock.getsockname()[1]
-
-    def send(self, data: bytes) -> None:
-        if self.remote is None:
-            return  # udpin before the first datagram: nobody to talk to yet
-        try:
-            self.sock.sendto(data, self.remote)
-        except (ConnectionRefusedError, BlockingIOError):
-            pass  # nobody listening (yet), or a full buffer: UDP semantics
-
-    def close(self) -> None:
-        self.sock.close()
-
-    @property
-    def connected(self) -> bool:
-        return self.remote is not None
-
-
-class _TcpServer(Transport):
-    def __init__(self, bind: tuple[str, int]):
-        self.server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            self.server.bind(bind)
-        except OSError as exc:
-            self.server.close()
-            raise PortError(f"cannot bind TCP {bind[0]}:{bind[1]}: {exc.strerror}") from None
-        self.server.listen(1)
-        self.server.setblocking(False)
-        self.conn: socket.socket | None = None
-
-    def fileno(self) -> int:
-        return (self.conn or self.server).fileno()
-
-    def local_port(self) -> int:
-        return self.server.getsockname()[1]
-
-    def _accept(self) -> None:
-        try:
-            conn, _ = self.server.accept()
-        except BlockingIOError:
-            return
-        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        conn.setblocking(False)
-        self.conn = conn
-
-    def recv_all(self) -> bytes:
-        if self.conn is None:
-            self._accept()
-            return b""
-        chunks = []
-        while True:
-            try:
-                data = self.conn.recv(_READ_CHUNK)
-            except BlockingIOError:
-                break
-            except OSError:
-                data = b""  # reset by the peer
-            if not data:  # peer closed: wait for the next one
-                self.conn.close()
-                self.conn = None
-                break
-            chunks.append(data)
-            if len(data) < _READ_CHUNK:  # drained: no second recv only to hear EAGAIN (one syscall a read)
-                break
-        return b"".join(chunks)
-
-    def send(self, data: bytes) -> None:
-        if self.conn is not None:
-            send_all(self.conn, data)
-
-    def close(self) -> None:
-        if self.conn is not None:
-            self.conn.close()
-        self.server.close()
-
-    @property
-    def connected(self) -> bool:
-        return self.conn is not None
-
-
-def send_all(sock: socket.socket, data: bytes) -> None:
-    """Write all of ``data`` to a non-blocking stream (or packet) socket, waiting while its buffer is full."""
-    view = memoryview(data)
-    while view:
-        try:
-            n = sock.send(view)
-        except BlockingIOError:
-            select.select([], [sock], [], 1.0)
-            continue
-        view = view[n:]
-
-
-class _TcpClient(Transport):
-    def __init__(self, remote: tuple[str, int], timeout_s: float):
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                self.sock = socket.create_connection(remote, timeout=1.0)
-                break
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    raise PortError(f"cannot connect to TCP {remote[0]}:{remote[1]}: {exc.strerror or exc}") from None
-                time.sleep(0.05)
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.sock.setblocking(False)
-        self.closed = False
-
-    def fileno(self) -> int:
-        return self.sock.fileno()
-
-    def recv_all(self) -> bytes:
-        chunks = []
-        while not self.closed:
-            try:
-                data = self.sock.recv(_READ_CHUNK)
-            except BlockingIOError:
-                break
-            except (ConnectionResetError, OSError):
-                data = b""  # reset by the peer: closed
-            if not data:
-                self.closed = True
-                break
-            chunks.append(data)
-            if len(data) < _READ_CHUNK:  # drained (a later arrival makes the socket readable again)
-                break
-        return b"".join(chunks)
-
-    def send(self, data: bytes) -> None:
-        if not self.closed:
-            try:
-                send_all(self.sock, data)
-            except (BrokenPipeError, ConnectionResetError):
-                self.closed = True
-
-    def close(self) -> None:
-        self.sock.close()
-
-    @property
-    def connected(self) -> bool:
-        return not self.closed
-
-
-class _Serial(Transport):
-    """A serial device, e.g. a Pixhawk's USB or TELEM2 port by id.
-
-    A missing device, one that fails to open, or one that errors (a USB autopilot rebooting) is
-    not fatal: the port logs what and where, stays disconnected (reads return nothing, writes
-    are dropped) and tries to reopen the device every ``retry_s`` seconds.
-    """
-
-    def __init__(self, device: str, baud: int, retry_s: float = 1.0):
-        import serial  # pyserial: only hardware links need it
-
-        self._serial = serial
-        self.device = device
-        self.baud = baud
-        self.retry_s = retry_s
-        self.port = None
-        self._next_try = 0.0
-        self._reported = False
-        self._open()
-
-    def _open(self) -> None:
-        now = time.monotonic()
-        if now < self._next_try:
-            return
-        self._next_try = now + self.retry_s
-        try:
-            if not os.path.exists(self.device):
-                raise OSError(errno.ENOENT, "no such device")
-            self.port = self._serial.Serial(self.device, baudrate=self.baud, timeout=0, write_timeout=0.1)
-        except (self._serial.SerialException, OSError) as exc:
-            if not self._reported:
-                log.warning("serial %s (%d baud): cannot open: %s; retrying every %.0f s", self.device, self.baud,
-                            getattr(exc, "strerror", None) or exc, self.retry_s)
-                self._reported = True
-            return
-        log.info("serial %s open at %d baud", self.device, self.baud)
-        self._reported = False
-
-    def _lost(self, exc: Exception) -> None:
-        log.warning("serial %s: %s; reopening", self.device, exc)
-        try:
-            self.port.close()
-        except (self._serial.SerialException, OSError):
-            pass
-        self.port = None
-        self._next_try = time.monotonic() + self.retry_s
-
-    def fileno(self) -> int:
-        return self.port.fileno() if self.port is not None else -1
-
-    def recv_all(self) -> bytes:
-        if self.port is None:
-            self._open()
-            return b""
-        try:
-            n = self.port.in_waiting
-            data = self.port.read(n) if n else b""
-        except (self._serial.SerialException, OSError) as exc:
-            self._lost(exc)
-            return b""
-        if not n and not data and self._hung_up():
-            self._lost(OSError(errno.EIO, "device hung up"))
-        return data
-
-    def _hung_up(self) -> bool:
-        """select() said readable but nothing is waiting: the device went away."""
-        ready, _, _ = select.select([self.port.fileno()], [], [], 0)
-        return bool(ready)
-
-    def send(self, data: bytes) -> None:
-        if self.port is None:
-            return
-        try:
-            self.port.write(data)
-        except self._serial.SerialTimeoutException:
-            pass  # a congested link: drop, like UDP
-        except (self._serial.SerialException, OSError) as exc:
-            self._lost(exc)
-
-    def close(self) -> None:
-        if self.port is not None:
-            self.port.close()
-            self.port = None
-
-    @property
-    def connected(self) -> bool:
-        return self.port is not None
-
-
-def _host_port(netloc: str, url: str) -> tuple[str, int]:
-    host, sep, port = netloc.rpartition(":")
-    if not sep or not port.isdigit() or int(port) > 65535:
-        raise PortError(f"{url}: expected HOST:PORT")
-    return host or "127.0.0.1", int(port)
-
-
-def _local_host(remote: tuple[str, int] | None) -> str:
-    """The local address to send from: loopback for a loopback peer (nothing else can reach us)."""
-    if remote is not None and (remote[0] == "localhost" or remote[0].startswith("127.")):
-        return "127.0.0.1"
-    return "0.0.0.0"
-
-
-def open_transport(url: str, connect_timeout_s: float = 10.0) -> Transport:
-    """Open a transport from a URL (see the module docstring)."""
-    parsed = urlparse(url)
-    scheme = parsed.scheme
-    if scheme == "serial":
-        path, sep, baud = (parsed.netloc + parsed.path).rpartition(":")
-        if not sep or not baud.isdigit():
-            raise PortError(f"{url}: expected serial:///dev/...:BAUD")
-        return _Serial(path, int(baud))
-    if scheme not in ("udpin", "udpout", "tcpin", "tcpout"):
-        raise PortError(f"{url}: unknown scheme {scheme!r} (udpin, udpout, tcpin, tcpout, serial)")
-    host, port = _host_port(parsed.netloc, url)
-    if scheme == "udpin":
-        return _Udp((host, port), None)
-    if scheme == "udpout":
-        bind = parse_qs(parsed.query).get("bind")
-        local = None
-        if bind:
-            bind_host, sep, bind_port = bind[0].rpartition(":")
-            if not bind_port.isdigit() or int(bind_port) > 65535:
-                raise PortError(f"{url}: bind must be PORT or HOST:PORT")
-            local = (bind_host if sep and bind_host else _local_host((host, port)), int(bind_port))
-        return _Udp(local, (host, port))
-    if scheme == "tcpin":
-        return _TcpServer((host, port))
-    return _TcpClient((host, port), connect_timeout_s)
-
-
-class TlogWriter:
-    """Append MAVLink frames to a .tlog file (MAVProxy / MAVExplorer format)."""
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "ab", buffering=1 << 16)
-
-    def write(self, frame: bytes) -> None:
-        self._fh.write(struct.pack(">Q", int(time.time() * 1e6)) + frame)
-
-    def close(self) -> None:
-        self._fh.close()
-
-
 class CountedPort:
     """A port's counters (``stats``, :class:`PortStats`) for what others receive and send in its
-    place: the vehicle's compiled lockstep loop (:meth:`MavlinkPort.handover`, the same-host link)."""
+    place: the vehicle's compiled lockstep loop (:meth:`MavlinkPort.handover`, the same-host link).
+    ``clock`` (monotonic seconds) stamps what is received (``last_rx_wall_s``)."""
 
     stats: PortStats
+    clock: Callable[[], float] = staticmethod(time.monotonic)
 
     def received(self, n_bytes: int) -> None:
         """Count ``n_bytes`` received."""
         st = self.stats
         st.rx_bytes += n_bytes
-        st.last_rx_wall_s = time.monotonic()
+        st.last_rx_wall_s = self.clock()
 
     def count(self, kind: str, n: int = 1) -> None:
         """Count ``n`` accepted messages of ``kind`` received."""
@@ -480,26 +106,33 @@ class MavlinkPort(CountedPort):
     """A MAVLink link with a whitelist of message types it acts on.
 
     Args:
-        url: transport URL (see :func:`open_transport`).
+        url: transport URL (see :func:`~companion.mavlink.urls.open_transport`).
         system_id, component_id: our identity on this link (for sending).
         accept: message type names delivered to the caller; ``None`` delivers every known one.
-        tlog: optional :class:`TlogWriter`.
+        tlog: optional :class:`~companion.mavlink.tlog.TlogWriter`.
+        transport: an open transport to use instead of opening ``url``.
         peer_system_id: the system this link talks to: a UDP listener learns where to reply only
             from its valid frames.
         signing, key, link_id: MAVLink 2 signing mode, 32-byte key and our link id.
         unsigned_allowed: message names accepted unsigned when signing is required.
         peer_hold_s: a learnt peer is kept while its frames keep coming; another address takes
             over only after this long without a valid frame from it.
+        clock: monotonic seconds: receive stamps, the peer hold, log rate limits (and a serial
+            transport's reopen retries).
+        wall_clock: UNIX seconds: the signing timestamps of frames sent and checked.
     """
 
     def __init__(self, url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,
                  tlog: TlogWriter | None = None, transport: Transport | None = None, peer_system_id: int | None = None,
                  signing: SigningMode = "off", key: bytes | None = None, link_id: int = 0,
-                 unsigned_allowed=UNSIGNED_ALLOWED, peer_hold_s: float = 2.0):
+                 unsigned_allowed=UNSIGNED_ALLOWED, peer_hold_s: float = 2.0,
+                 clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
         D = load_dialect()
         self.url = url
+        self.clock = clock
+        self.wall_clock = wall_clock
         self.checker = SignatureChecker(signing, key, unsigned_allowed)
-        self.transport = transport or open_transport(url)
+        self.transport = transport or open_transport(url, clock=clock)
         self.mav = D.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.parser = D.MAVLink(None)
         self.parser.robust_parsing = True
@@ -569,7 +202,7 @@ class MavlinkPort(CountedPort):
         not a connected stream, a frame begun in the parser, a tlog to write, signing on, no sender
         or several heard. The reader gives its counts back (:class:`CountedPort`, :meth:`resume`)."""
         t = self.transport
-        if (not isinstance(t, (_TcpServer, _TcpClient)) or not t.connected or self.tlog is not None
+        if (not isinstance(t, (TcpServer, TcpClient)) or not t.connected or self.tlog is not None
                 or self.checker.mode != "off"
                 or self.parser.buf_len() or len(self._last_seq) != 1):
             return None
@@ -593,7 +226,7 @@ class MavlinkPort(CountedPort):
     def _learn_peer(self, sender) -> None:
         """Reply to ``sender`` (it sent a valid frame from the peer): the first one, the same one, or
         another once the current peer has been silent ``peer_hold_s`` (a rebooted peer)."""
-        now = time.monotonic()
+        now = self.clock()
         current = getattr(self.transport, "remote", None)
         if current is None or current == sender or now - self._peer_seen_s > self.peer_hold_s:
             if current is not None and current != sender:
@@ -607,7 +240,7 @@ class MavlinkPort(CountedPort):
 
     def _warn(self, kind: str, text: str) -> None:
         """Log a rejection: the first of each kind, then at most one per kind every 5 s."""
-        now = time.monotonic()
+        now = self.clock()
         if now - self._warned.get(kind, -float("inf")) >= 5.0:
             self._warned[kind] = now
             st = self.stats
@@ -630,7 +263,7 @@ class MavlinkPort(CountedPort):
     def _parse(self, data: bytes, out: list) -> bool:
         st = self.stats
         st.rx_bytes += len(data)
-        st.last_rx_wall_s = time.monotonic()
+        st.last_rx_wall_s = self.clock()
         try:
             msgs = self.parser.parse_buffer(bytearray(data)) or []
         except Exception as exc:  # the parser should not raise with robust parsing; never crash
@@ -640,7 +273,7 @@ class MavlinkPort(CountedPort):
             self._drop_partial_frame()
             return False
         valid_from_peer = False
-        stamp = signing_timestamp() if self.checker.mode != "off" else 0
+        stamp = signing_timestamp(self.wall_clock()) if self.checker.mode != "off" else 0
         for m in msgs:
             kind = m.get_type()
             if kind == "BAD_DATA":
@@ -686,7 +319,7 @@ class MavlinkPort(CountedPort):
         signing is on (timestamp: the signing clock, strictly increasing)."""
         sig = self.mav.signing
         if sig.sign_outgoing:
-            sig.timestamp = max(sig.timestamp, signing_timestamp())
+            sig.timestamp = max(sig.timestamp, signing_timestamp(self.wall_clock()))
         frame = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         return frame
@@ -733,24 +366,3 @@ class MavlinkPort(CountedPort):
         self.transport.close()
         if self.tlog is not None:
             self.tlog.close()
-
-
-def wait_readable(ports, timeout_s: float) -> list:
-    """The ports (objects with ``fileno``) that have data, waiting at most ``timeout_s``.
-
-    Ports without a file descriptor (``fileno() < 0``: a serial device waiting to reappear) are
-    always returned, so that reading them gives them their chance to reopen.
-    """
-    live: dict[int, list] = {}  # descriptor -> its ports (each port's fileno asked once: a hot loop's cost)
-    idle = []
-    for p in ports:
-        fd = p.fileno()
-        if fd >= 0:
-            live.setdefault(fd, []).append(p)
-        else:
-            idle.append(p)
-    if not live:
-        time.sleep(max(timeout_s, 0.0))
-        return idle
-    ready, _, _ = select.select(list(live), [], [], max(timeout_s, 0.0))
-    return [p for fd in ready for p in live[fd]] + idle
