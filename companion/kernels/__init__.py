@@ -1,0 +1,16 @@
+"""The companion's compiled kernels (numba), and the one jit switch and SO(3) kernels of the project.
+
+Every module here is a leaf: it imports the standard library, numpy, numba and other kernel
+modules only, never the code that calls it (``tests/test_layers.py`` checks). Each kernel computes
+what a readable numpy function (its specification, named in the kernel's docstring) computes, with
+plain loops over scalars; ``tests/test_fast_paths.py`` compares the two.
+
+* :mod:`.jit`: :data:`~.jit.ENABLED`, :func:`~.jit.jit` and :func:`~.jit.as_kernel_array`, the one
+  switch of every kernel in the project (``SKELETON_JIT=0``, or no numba: the specifications run);
+* :mod:`.so3`: the scalar quaternion and rotation kernels the others share;
+* :mod:`.constraints`, :mod:`.sckf`, :mod:`.gate`, :mod:`.semi`: the chain constraint (eq. 3, 4),
+  Alg. 1, the joint gate and the semi-decentralised group terms;
+* :mod:`.dynamics`: the chain's inverse dynamics (the feed-forward);
+* :mod:`.trajectory`: a bending chain's targets;
+* :mod:`.warm`: compiles (or loads from numba's cache) every kernel of this package.
+"""
