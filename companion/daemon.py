@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _fast
+from .kernels import warm as _kernels
 from .config import CompanionSetup
 from .logstream import LogStream
 from .engine import (
@@ -261,14 +261,14 @@ class CompanionDaemon:
         signal.signal(signal.SIGINT, self.stop)
         end = None if duration_s is None else self.clock() + duration_s
         engine = self.engine
-        if _fast.ENABLED:
+        if _kernels.ENABLED:
             # every kernel loaded (or compiled) now, not in the first SCKF cycle or target in flight:
             # a new cache compiles for about 24 s, a cached one loads in 0.3-0.9 s
-            log.info("compiled kernels ready in %.1f s", _fast.warm_up())
+            log.info("compiled kernels ready in %.1f s", _kernels.warm_up())
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,
                  f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "",
-                 "compiled kernels" if _fast.ENABLED else "numpy path (no compiled kernels)")
+                 "compiled kernels" if _kernels.ENABLED else "numpy path (no compiled kernels)")
         try:
             while not self._stop and (end is None or self.clock() < end):
                 self.poll(0.05)

@@ -47,7 +47,8 @@ from typing import Literal
 
 import numpy as np
 
-from . import _fast
+from .kernels.jit import ENABLED as _COMPILED
+from .kernels.trajectory import trajectory_kernel
 from .configfile import require_nonnegative, require_positive
 from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
 from .messages import PoseTarget
@@ -180,17 +181,18 @@ class ChainTrajectory:
     def target_arrays(self, t: float, compiled: bool | None = None) -> tuple[np.ndarray, ...]:
         """Every link's ``(p, q, R, v, a, w, w_dot)`` at ``t`` ((n, 3), (n, 4), (n, 3, 3), then (n, 3)
         each): the poses at ``t + k h``, ``k = -2..2``, and their central differences (``w``: ``(R^T
-        dR/dt)^v``). ``compiled`` (default: :data:`companion._fast.ENABLED`): by
-        :func:`companion._fast.trajectory_kernel` (the same numbers to 1e-12, ``w_dot`` to 1e-9:
+        dR/dt)^v``). ``compiled`` (default: :data:`companion.kernels.jit.ENABLED`): by
+        :func:`companion.kernels.trajectory.trajectory_kernel` (the same numbers to 1e-12, ``w_dot`` to 1e-9:
         ``tests/test_fast_paths.py``), else in numpy, the specification below."""
         h = self.h
         times = [t + k * h for k in (-2, -1, 0, 1, 2)]
-        if _fast.ENABLED if compiled is None else compiled:
+        if _COMPILED if compiled is None else compiled:
             n = self.n
             out = (np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
                    np.empty((n, 3)), np.empty((n, 3)))
-            _fast.trajectory_kernel(np.array([self.bend_angle_rad(x) for x in times]), self._share, self._base_q,
-                                    self.d, np.array([self.center_w_m(x) for x in times]), float(h), *out)
+            trajectory_kernel(np.array([self.bend_angle_rad(x) for x in times]),
+                              np.array([self.center_w_m(x) for x in times]), (self._share, self._base_q, self.d),
+                              float(h), out)
             return out
         p, qs, R = self.poses(times)
         v = (p[3] - p[1]) / (2 * h)

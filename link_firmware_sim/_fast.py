@@ -47,7 +47,7 @@ import time
 import numpy as np
 
 # the one switch and decorator of every compiled kernel (numba optional; ``SKELETON_JIT=0`` turns it off)
-from companion._fast import ENABLED, jit
+from companion.kernels.jit import ENABLED, jit
 
 __all__ = [
     "ENABLED",

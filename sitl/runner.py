@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from companion import _fast as _companion_fast
+from companion.kernels import warm as _companion_kernels
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
 from companion.fleetnet.group import GroupLink
@@ -59,7 +59,7 @@ def warm_up_kernels() -> float:
     or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba)."""
     t0 = time.perf_counter()
     _fast.warm_up()
-    _companion_fast.warm_up()
+    _companion_kernels.warm_up()
     warm_up_rotors()
     return time.perf_counter() - t0
 

@@ -251,8 +251,8 @@ def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, 
     fleet = Fleet(tmp_path)
     fleet.daemon.setup = replace(fleet.setup, trajectory=replace(fleet.setup.trajectory, feedforward=feedforward))
     calls = []
-    monkeypatch.setattr(daemon_module._fast, "ENABLED", compiled)
-    monkeypatch.setattr(daemon_module._fast, "warm_up", lambda: calls.append(fleet.clock()) or 0.0)
+    monkeypatch.setattr(daemon_module._kernels, "ENABLED", compiled)
+    monkeypatch.setattr(daemon_module._kernels, "warm_up", lambda: calls.append(fleet.clock()) or 0.0)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         fleet.daemon.run(duration_s=0.0)  # (no cycle: the loop ends at once; run closes the daemon)

@@ -509,7 +509,7 @@ def test_numpy_fallback_without_jit():
 
 @pytest.mark.parametrize("n_links", [1, 2, 3, 5, 7])
 def test_feedforward_kernel_matches_numpy(n_links):
-    """companion._fast.feedforward_kernel (the chain's inverse dynamics after the passive joint
+    """companion.kernels.dynamics.feedforward_kernel (the chain's inverse dynamics after the passive joint
     torques) against ChainModel.solve's numpy specification: random motions, every link flying and
     with an end or a middle link passive, to 1e-12 of the largest wrench."""
     pytest.importorskip("pinocchio")
@@ -544,7 +544,7 @@ def _ekf_like_covariances(rng, n: int) -> np.ndarray:
 @pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
 @pytest.mark.parametrize("omega_std", [0.0, 0.02])
 def test_constraint_apply_kernel_matches_numpy(n_links, omega_std):
-    """companion._fast.constraint_apply_kernel (Alg. 1 on one chain, with the body-rate noise gain)
+    """companion.kernels.sckf.constraint_apply_kernel (Alg. 1 on one chain, with the body-rate noise gain)
     against constraint_apply_dense's numpy specification on random chains: the same iteration
     count and every output to 1e-12 of its largest entry."""
     from companion.estimation.sckf import CAParams, constraint_apply_dense
@@ -591,7 +591,7 @@ def _random_chain(rng, n_links: int, spread: float):
 
 @pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
 def test_joint_nis_kernel_matches_numpy(n_links):
-    """companion._fast.joint_nis_kernel against joint_nis's numpy specification on random chains,
+    """companion.kernels.gate.joint_nis_kernel against joint_nis's numpy specification on random chains,
     from consistent to far off (NIS from about 1 to thousands): to 1e-12 of each value; a NaN
     state gives NaN at its joints both ways, so the gate cuts them."""
     from companion.estimation.gate import CHI2_6_1E6, GateParams, joint_nis
@@ -618,7 +618,7 @@ def test_joint_nis_kernel_matches_numpy(n_links):
 @pytest.mark.parametrize("n_links", [1, 2, 3, 5])
 @pytest.mark.parametrize("omega_std", [0.0, 0.02])
 def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
-    """companion._fast.group_terms_kernel against local_boundary's specification (group_tip_terms
+    """companion.kernels.semi.group_terms_kernel against local_boundary's specification (group_tip_terms
     and group_boundary) after a local step on random groups, with and without the body-rate
     noise (its end columns): tips, information, tip covariance and Cov(tau, x~_i) to 1e-12 of
     their largest entry."""
@@ -644,10 +644,10 @@ def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
 
 
 def test_kernel_arrays_pass_through_or_copy_to_one_layout():
-    """companion._fast.as_kernel_array: a C-contiguous writeable float64 array of the shape is
+    """companion.kernels.jit.as_kernel_array: a C-contiguous writeable float64 array of the shape is
     passed as is; anything else (read-only, transposed, broadcast, integer) becomes one, so every
     kernel sees one array type (numba compiles again for a read-only array)."""
-    from companion._fast import as_kernel_array
+    from companion.kernels.jit import as_kernel_array
 
     x = np.zeros((2, 3))
     assert as_kernel_array(x, (2, 3)) is x

@@ -98,11 +98,11 @@ def test_the_onboard_daemon_imports_without_simulator_plotting_vision_or_zenoh()
 def test_the_onboard_feedforward_runs_without_numba():
     """numba is the simulator's (the sim extra): without it the companion's compiled kernels are off
     and the feed-forward's numpy specification runs."""
-    code = ("from companion import _fast\n"
+    code = ("from companion.kernels import jit\n"
             "from companion.skeleton.body import SkeletonConfig\n"
             "from companion.skeleton.dynamics import ChainModel\n"
             "import numpy as np\n"
-            "assert not _fast.ENABLED\n"
+            "assert not jit.ENABLED\n"
             "m = ChainModel(SkeletonConfig(n_links=3))\n"
             "d = m.solve(np.zeros((3, 3)), np.repeat(np.eye(3)[None], 3, axis=0), *np.zeros((4, 3, 3)))\n"
             "assert abs(d.rotor_wrench_w[:, 2].sum() - 3 * m.inertia.mass_kg * 9.80665) < 1e-6, d.rotor_wrench_w\n"

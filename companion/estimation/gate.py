@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import _fast
+from ..kernels.gate import joint_nis_kernel
+from ..kernels.jit import ENABLED as _COMPILED, as_kernel_array
 from .chain import CON_POS, CON_VEL
 from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offsets
 
@@ -69,16 +70,16 @@ def joint_nis(p, v, q, w, d, P, params: GateParams = GateParams(), compiled: boo
     """NIS of every joint's eq. 3 residual (see the module docstring), shape (n-1,).
 
     The numpy code below is the specification; ``compiled`` (default: when numba is installed)
-    computes the same numbers by :func:`companion._fast.joint_nis_kernel` (one call instead of
+    computes the same numbers by :func:`companion.kernels.gate.joint_nis_kernel` (one call instead of
     about thirty numpy calls before every step; ``tests/test_fast_paths.py``: agreement to 1e-12)."""
     n = np.shape(p)[0]
     if n < 2:
         return np.zeros(0)
-    if _fast.ENABLED if compiled is None else compiled:
+    if _COMPILED if compiled is None else compiled:
         nis = np.empty(n - 1)
-        arr, v3 = _fast.as_kernel_array, (n, 3)
-        _fast.joint_nis_kernel(arr(p, v3), arr(v, v3), arr(q, (n, 4)), arr(w, v3), arr(d, v3), arr(P, (n, 9, 9)),
-                               params.gate_pos_m ** 2, params.gate_vel_m_s ** 2, nis)
+        arr, v3 = as_kernel_array, (n, 3)
+        joint_nis_kernel((arr(p, v3), arr(v, v3), arr(q, (n, 4)), arr(w, v3), arr(d, v3)), arr(P, (n, 9, 9)),
+                         params.gate_pos_m ** 2, params.gate_vel_m_s ** 2, nis)
         return nis
     a, b = tip_offsets(q, w, d)  # once for the residual and the Jacobian blocks
     c = residual_from_tips(p, v, a, b).reshape(n - 1, 6)

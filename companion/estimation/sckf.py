@@ -40,7 +40,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from .. import _fast
+from ..kernels.jit import ENABLED as _COMPILED, as_kernel_array
+from ..kernels.sckf import constraint_apply_batched_kernel
 from .chain import CON_DIM, CON_VEL, ERR_DIM, ERR_P, ERR_TH, ERR_V
 from .constraints import (
     body_tip_vectors,
@@ -176,10 +177,10 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
     for the many small groups of the semi-distributed step, where per-call overhead dominates.
 
     The numpy code below is the specification. ``compiled`` (default: when numba is installed)
-    runs each chain through :func:`companion._fast.constraint_apply_kernel` instead, the same
+    runs each chain through :func:`companion.kernels.sckf.constraint_apply_kernel` instead, the same
     iterates in plain loops (``tests/test_fast_paths.py``: agreement to 1e-12).
     """
-    if _fast.ENABLED if compiled is None else compiled:
+    if _COMPILED if compiled is None else compiled:
         return _constraint_apply_compiled(p, v, q, w, d, P, params)
     G, n = p.shape[:2]
     PE = block_diag_covariance(P)
@@ -225,13 +226,13 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     G, n = p.shape[:2]
     N = ERR_DIM * n
     p, v, q = (np.array(x, dtype=float) for x in (p, v, q))  # the kernel updates them in place
-    w, d = (_fast.as_kernel_array(x, (G, n, 3)) for x in (w, d))  # (it only reads these and P)
+    w, d = (as_kernel_array(x, (G, n, 3)) for x in (w, d))  # (it only reads these and P)
     history = np.empty((G, params.max_iter + 1))
     Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
     rate = params.omega_std_rad_s > 0.0 and n > 1
-    P = _fast.as_kernel_array(P, (G, n, ERR_DIM, ERR_DIM))
-    _fast.constraint_apply_batched_kernel(p, v, q, w, d, P, float(params.alpha), float(params.eps), int(params.max_iter),
-                                          rate, history, Pc, j, KD)
+    P = as_kernel_array(P, (G, n, ERR_DIM, ERR_DIM))
+    constraint_apply_batched_kernel((p, v, q, w, d), P, (float(params.alpha), float(params.eps), int(params.max_iter),
+                                                         rate), history, (Pc, j, KD))
     return _ca_results(p, v, q, Pc, j, [history[g, :j[g] + 1] for g in range(G)], KD if rate else None, params)
 
 

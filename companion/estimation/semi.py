@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import _fast
+from ..kernels.jit import ENABLED as _COMPILED, as_kernel_array
+from ..kernels.semi import group_terms_kernel
 from .chain import CON_DIM, CON_POS, CON_VEL, ERR_DIM, ERR_PV
 from .constraints import left_tip, right_tip, tip_jacobians
 from .sckf import CAParams, CAResult, constraint_apply, constraint_apply_dense_batched
@@ -210,20 +211,21 @@ def local_boundary(p, v, q, w, d, local: CAResult, compiled: bool | None = None)
     publishes and keeps for its shift.
 
     The two functions named are the specification; ``compiled`` (default: when numba is
-    installed) computes the same numbers by :func:`companion._fast.group_terms_kernel` in one
+    installed) computes the same numbers by :func:`companion.kernels.semi.group_terms_kernel` in one
     call (``tests/test_fast_paths.py``: agreement to 1e-12)."""
-    if not (_fast.ENABLED if compiled is None else compiled):
+    if not (_COMPILED if compiled is None else compiled):
         T, Y = group_tip_terms(q, w, np.asarray(d, float), local)
         return group_boundary(p, v, q, w, d, local.P, T), Y
     n = np.shape(p)[0]
-    arr, v3 = _fast.as_kernel_array, (n, 3)
+    arr, v3 = as_kernel_array, (n, 3)
     has_w = local.W_ends is not None
     tips, info = np.empty((2, CON_DIM)), np.empty((CON_DIM, CON_DIM))
     T, Y = np.empty((2 * CON_DIM, 2 * CON_DIM)), np.empty((n, 2 * CON_DIM, ERR_DIM))
-    _fast.group_terms_kernel(arr(p, v3), arr(v, v3), arr(q, (n, 4)), arr(w, v3), arr(d, v3),
-                             arr(local.P, (n, ERR_DIM, ERR_DIM)), arr(local.P_ends, (2, n, ERR_DIM, ERR_DIM)),
-                             arr(local.W_ends, (2, n, ERR_DIM, 3)) if has_w else _NO_RATE_COLUMNS, has_w,
-                             float(local.omega_std_rad_s) ** 2, tips, info, T, Y)
+    group_terms_kernel((arr(p, v3), arr(v, v3), arr(q, (n, 4)), arr(w, v3), arr(d, v3)),
+                       arr(local.P, (n, ERR_DIM, ERR_DIM)),
+                       (arr(local.P_ends, (2, n, ERR_DIM, ERR_DIM)),
+                        arr(local.W_ends, (2, n, ERR_DIM, 3)) if has_w else _NO_RATE_COLUMNS),
+                       has_w, float(local.omega_std_rad_s) ** 2, (tips, info, T, Y))
     return GroupBoundary(left_tip=tips[0], right_tip=tips[1], info_pv=info, tip_cov=T), Y
 
 

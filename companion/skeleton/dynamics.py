@@ -30,7 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from companion import _fast
+from companion.kernels.dynamics import feedforward_kernel
+from companion.kernels.jit import ENABLED as _COMPILED
 from companion.estimation.so3 import cross, quat_to_rotmat, rotmat_to_quat, skew
 from companion.messages import PoseTarget
 
@@ -182,7 +183,7 @@ class ChainModel:
         velocities ``v`` and accelerations ``acc`` (world), body rates ``w`` and their derivatives
         ``wd`` (each (n, 3)). The numpy code below is the specification; ``compiled`` (default:
         when numba is installed) runs the part after the joints' passive torques as
-        :func:`companion._fast.feedforward_kernel` (the same numbers to 1e-12:
+        :func:`companion.kernels.dynamics.feedforward_kernel` (the same numbers to 1e-12:
         ``tests/test_fast_paths.py``)."""
         n = self.n
         m = self.inertia.mass_kg
@@ -194,16 +195,15 @@ class ChainModel:
             Rrel = R[j].T @ R[j + 1]
             w_rel = w[j + 1] - Rrel.T @ w[j]
             tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
-        if _fast.ENABLED if compiled is None else compiled:
+        if _COMPILED if compiled is None else compiled:
             weights = np.ones(n)
             if len(passive):
                 weights[list(passive)] = PASSIVE_WEIGHT
             force_ff, torque_ff, F, rotor = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n - 1, 3)), np.empty((n, 6))
-            _fast.feedforward_kernel(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(R, dtype=float),
-                                     np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(wd, dtype=float),
-                                     np.ascontiguousarray(acc, dtype=float), tau_j, self.d, float(m),
-                                     np.asarray(self.inertia.inertia_kgm2, dtype=float), GRAVITY_M_S2,
-                                     1.0 / self.d[0], weights, force_ff, torque_ff, F, rotor)
+            motion = tuple(np.ascontiguousarray(x, dtype=float) for x in (p, w, wd, acc))
+            link = (self.d, np.asarray(self.inertia.inertia_kgm2, dtype=float), float(m), GRAVITY_M_S2, 1.0 / self.d[0])
+            feedforward_kernel(motion, np.ascontiguousarray(R, dtype=float), tau_j, link, weights,
+                               (force_ff, torque_ff, F, rotor))
         else:
             J = np.diag(self.inertia.inertia_kgm2)
             # each link's own rigid-body wrench (what eq. 1's feed-forward produces), world, about its centre

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from companion import _fast as companion_fast
+from companion.kernels import warm as companion_kernels
 from companion.estimation.sckf import CAParams, constraint_apply_dense, constraint_apply_structured
 from companion.estimation.semi import make_groups, semi_distributed_apply
 from sitl.synthetic import ChainMotion
@@ -52,7 +52,7 @@ def run_scaling(
     progress=None,
 ) -> dict:
     result = {"full": {}, "semi2": {}, "full_dense_reference": {}, "iterations": {}, "protocol": {}}
-    companion_fast.warm_up()  # the compiled kernels loaded before anything is timed
+    companion_kernels.warm_up()  # the compiled kernels loaded before anything is timed
     for n in link_counts:
         run = ChainRun(motion=replace(ChainMotion(), n_links=n), duration_s=duration_s)
         stream = simulate_ekf_chain(run, seed)

@@ -1,0 +1,111 @@
+"""Alg. 1 (the paper's constraint application) on a chain's dense covariance, as a kernel.
+
+The specification is :func:`companion.estimation.sckf.constraint_apply_dense_batched` (its numpy
+code); :func:`constraint_apply_kernel` computes the same iterates with plain loops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .constraints import CD, CV, ED, EP, ETH, EV, body_tip_rates, jacobian, residual, tips
+from .jit import jit
+from .so3 import quat_mul, rotmat_quadratic_into, small_angle_quat
+
+__all__ = ["constraint_apply_kernel", "constraint_apply_batched_kernel"]
+
+
+@jit
+def _inject(p, v, q, dx):
+    """Each link's state corrected by its error ``dx[9 i:9 i + 9]``: ``p += dp``, ``v += dv``,
+    ``q <- normalise(normalise((1, dtheta / 2)) (x) q)`` (``sckf._inject``, ``so3.retract`` of a stack)."""
+    for i in range(p.shape[0]):
+        o = ED * i
+        for k in range(3):
+            p[i, k] = p[i, k] + dx[o + EP + k]
+            v[i, k] = v[i, k] + dx[o + EV + k]
+        aw, ax, ay, az = small_angle_quat(0.5 * dx[o + ETH], 0.5 * dx[o + ETH + 1], 0.5 * dx[o + ETH + 2])
+        rw, rx, ry, rz = quat_mul(aw, ax, ay, az, q[i, 0], q[i, 1], q[i, 2], q[i, 3])
+        nq = np.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+        q[i, 0], q[i, 1], q[i, 2], q[i, 3] = rw / nq, rx / nq, ry / nq, rz / nq
+
+
+@jit
+def _rate_noise_gain(q, d, a, b, C, PE):
+    """``K D`` (9n, 3n) of ``sckf._rate_noise_gain`` at the attitudes ``q`` (tips ``a``, ``b``)."""
+    n = q.shape[0]
+    jacobian(a, b, C)
+    D = np.zeros((CD * (n - 1), 3 * n))
+    R = np.empty((3, 3))
+    for i in range(n - 1):
+        for side in range(2):
+            link = i + side
+            rotmat_quadratic_into(q, link, R)
+            d0, d1, d2 = d[link, 0], d[link, 1], d[link, 2]
+            for r in range(3):  # B = -R S(d): d(tip velocity offset)/d(w)
+                D[CD * i + CV + r, 3 * link + 0] = -(R[r, 1] * d2 - R[r, 2] * d1)
+                D[CD * i + CV + r, 3 * link + 1] = -(-R[r, 0] * d2 + R[r, 2] * d0)
+                D[CD * i + CV + r, 3 * link + 2] = -(R[r, 0] * d1 - R[r, 1] * d0)
+    PCt = PE @ np.ascontiguousarray(C.T)
+    return PCt @ np.linalg.solve(C @ PCt, D)
+
+
+@jit
+def constraint_apply_kernel(chain, P, settings, history):
+    """Alg. 1 on one chain. ``chain = (p, v, q, w, d)``: the EKF states ``p``, ``v`` (n, 3), ``q``
+    (n, 4), updated in place, the body rates ``w`` and the centre-to-right-tip vectors ``d`` (n,
+    3); ``P`` (n, 9, 9) the EKF blocks; ``settings = (alpha, eps, max_iter, rate_gain)``: Alg. 1's
+    weakening, tolerance and iteration limit, and whether to compute the rate-noise gain.
+    ``history`` (max_iter + 1,) takes ``||c||`` before the first iteration and after each. Returns
+    ``(Pc, iterations, KD)``: the corrected ``9n x 9n`` covariance (before the rate noise), the
+    iterations run, and (``rate_gain`` and at least one iteration, else zeros) the rate-noise gain
+    ``K D`` (9n, 3n) at the corrected attitudes."""
+    p, v, q, w, d = chain
+    alpha, eps, max_iter, rate_gain = settings
+    n = p.shape[0]
+    N, M = ED * n, CD * (n - 1)
+    body_wd = body_tip_rates(w, d)
+    PE = np.zeros((N, N))
+    for i in range(n):
+        PE[ED * i:ED * (i + 1), ED * i:ED * (i + 1)] = P[i]
+    Pc = PE.copy()
+    a, b = np.empty((n, 3)), np.empty((n, 3))
+    c = np.empty(M)
+    C = np.empty((M, N))
+    eye = np.eye(N)
+    tips(q, d, body_wd, a, b)
+    norm = residual(p, v, a, b, c)
+    history[0] = norm
+    j = 0
+    while norm > eps and j < max_iter:
+        jacobian(a, b, C)
+        Ct = np.ascontiguousarray(C.T)
+        Pw = (alpha * np.exp(-float(j))) * ((C @ PE) @ Ct)
+        PCt = Pc @ Ct
+        S = C @ PCt + Pw
+        K = np.ascontiguousarray(np.linalg.solve(S, np.ascontiguousarray(PCt.T)).T)  # K = P C^T S^-1
+        A = eye - K @ C
+        Pn = (A @ Pc) @ np.ascontiguousarray(A.T) + (K @ Pw) @ np.ascontiguousarray(K.T)  # Joseph form
+        Pc = 0.5 * (Pn + Pn.T)
+        _inject(p, v, q, -(K @ c))
+        tips(q, d, body_wd, a, b)
+        norm = residual(p, v, a, b, c)
+        j += 1
+        history[j] = norm
+    KD = np.zeros((N, 3 * n))
+    if rate_gain and j > 0 and n > 1:
+        KD = _rate_noise_gain(q, d, a, b, C, PE)
+    return Pc, j, KD
+
+
+@jit
+def constraint_apply_batched_kernel(chains, P, settings, history, out):
+    """:func:`constraint_apply_kernel` on ``G`` chains of equal length: ``chains`` its ``chain``
+    with a leading axis ``G`` on every array, as ``P`` (G, n, 9, 9) and ``history`` (G, max_iter +
+    1); ``out = (Pc, iterations, KD)`` gets each chain's corrected covariance (G, 9n, 9n),
+    iterations (G,) and rate-noise gain (G, 9n, 3n)."""
+    p, v, q, w, d = chains
+    Pc, iterations, KD = out
+    for g in range(p.shape[0]):
+        Pc[g], iterations[g], KD[g] = constraint_apply_kernel((p[g], v[g], q[g], w[g], d[g]), P[g], settings,
+                                                              history[g])

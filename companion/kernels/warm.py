@@ -1,0 +1,53 @@
+"""Compile (first run) or load from numba's cache (later runs) every kernel of this package, for
+the argument types their callers pass, before the first flight step needs them.
+
+It imports the kernels it warms, never their callers: each is compiled for the signature of example
+arguments built as the callers build theirs (C-contiguous writeable float64 arrays, tuples of them,
+Python floats, ints and bools), without running it. ``tests/test_fast_paths.py`` checks that the
+callers then find every signature they use.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .dynamics import feedforward_kernel
+from .gate import joint_nis_kernel
+from .jit import ENABLED
+from .sckf import constraint_apply_batched_kernel
+from .semi import group_terms_kernel
+from .trajectory import trajectory_kernel
+
+__all__ = ["ENABLED", "warm_up", "load"]
+
+
+def load(kernel, *args) -> None:
+    """Compile ``kernel`` (or load it from the cache) for the types of ``args``, without running it."""
+    import numba
+
+    kernel.compile(tuple(numba.typeof(a) for a in args))
+
+
+def warm_up() -> float:
+    """Every kernel of this package compiled or loaded; returns the seconds it took (0 without the
+    compiled kernels)."""
+    if not ENABLED:
+        return 0.0
+    t0 = time.perf_counter()
+    n, G = 2, 1
+    v3, m3 = np.zeros((n, 3)), np.zeros((n, 3, 3))
+    chain = (v3, v3, np.zeros((n, 4)), v3, v3)
+    P = np.zeros((n, 9, 9))
+    load(feedforward_kernel, (v3, v3, v3, v3), m3, np.zeros((n - 1, 3)), (np.zeros(3), np.zeros(3), 1.0, 9.8, 2.0),
+         np.ones(n), (v3, v3, np.zeros((n - 1, 3)), np.zeros((n, 6))))
+    stacked = tuple(a[None].copy() for a in chain)
+    load(constraint_apply_batched_kernel, stacked, P[None].copy(), (1.0, 1e-9, 20, True), np.zeros((G, 21)),
+         (np.zeros((G, 9 * n, 9 * n)), np.zeros(G, dtype=np.int64), np.zeros((G, 9 * n, 3 * n))))
+    load(joint_nis_kernel, chain, P, 0.01, 0.01, np.zeros(n - 1))
+    load(group_terms_kernel, chain, P, (np.zeros((2, n, 9, 9)), np.zeros((2, n, 9, 3))), True, 1e-4,
+         (np.zeros((2, 6)), np.zeros((6, 6)), np.zeros((12, 12)), np.zeros((n, 12, 9))))
+    load(trajectory_kernel, np.zeros(5), np.zeros((5, 3)), (np.zeros(n), np.zeros(4), np.zeros(3)), 1e-3,
+         (v3, np.zeros((n, 4)), m3, v3, v3, v3, v3))
+    return time.perf_counter() - t0
