@@ -8,11 +8,17 @@
     python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
+    (every bench also takes [--doc [PATH] | --no-doc], below)
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
 result (or ``--json PATH`` instead) and, for table2, the EKF stream of the first seed in the
 ``companion replay`` input format (``ekf_stream.npz`` for the paper's tuning,
 ``ekf_stream_consistent.npz`` for the consistent one) with the truth (``truth.npz``).
+
+Every bench also writes a Markdown report of the same result (``sitl/bench/report.py``: the
+command, UTC date, git commit, machine, then the figures as tables): ``<bench>.md`` in the run
+folder by default, ``docs/bench/<bench>.md`` (the published figures, never edited by hand) with
+``--doc``, any other file with ``--doc PATH``, none with ``--no-doc``.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +37,24 @@ from companion.estimation.semi import parse_groups
 from companion.cli import make_run_dir, run_subcommand
 
 from .ekf_chain import EKF_CONFIGS, ChainRun
-from .scaling import LINK_COUNTS, format_scaling, run_scaling
-from .table2 import GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, run_table2_configs
-from .zenoh_rtt import format_zenoh_rtt, run_zenoh_rtt
+from .report import add_doc_options, doc_path, load_average, write_doc
+from .scaling import LINK_COUNTS, format_scaling, markdown_scaling, run_scaling
+from .table2 import (GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, markdown_table2,
+                     run_table2_configs)
+from .zenoh_rtt import format_zenoh_rtt, markdown_zenoh_rtt, run_zenoh_rtt
+
+#: per bench (the subcommand): the report's title and the packages whose versions it records
+DOCS = {
+    "table2": ("Table II protocol (paper sec. IV): accuracy and compute time vs. group size",
+               ("numpy", "scipy", "numba")),
+    "scaling": ("Constraint application per step vs. chain length", ("numpy", "scipy", "numba")),
+    "zenoh": ("Global step over Zenoh on loopback: round trip", ("numpy", "scipy", "eclipse-zenoh")),
+    "nees": ("Monte Carlo NEES of a SITL flight over seeds", ("numpy", "scipy", "mujoco", "numba")),
+    "static": ("The thesis's static test over seeds", ("numpy", "scipy", "mujoco", "numba")),
+    "load_filter": ("Slung load pose: EKF vs UKF vs unfiltered (synthetic)", ("numpy", "scipy")),
+    "sitl": ("SITL speed: batch and fleet real-time factors against MuJoCo alone",
+             ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
+}
 
 
 
@@ -41,6 +63,22 @@ def _write_json(result: dict, json_path: str | None, run_dir: Path, name: str) -
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2) + "\n")
     return path
+
+
+def _write_doc(args, run_dir: Path, body: str, console: str, outputs) -> None:
+    """This run's Markdown report (:mod:`.report`) where ``--doc`` / ``--no-doc`` say; ``args.command``
+    names the bench (:data:`DOCS`)."""
+    name = args.command
+    path = doc_path(args, run_dir, name)
+    if path is None:
+        return
+    title, packages = DOCS[name]
+    argv = getattr(args, "argv", None) or [name]
+    started = getattr(args, "started", None)
+    write_doc(path, title=title, argv=argv, body=body, console=console, packages=packages,
+              elapsed_s=None if started is None else time.perf_counter() - started, outputs=outputs,
+              load_start=getattr(args, "load_start", None))
+    print(f"wrote the Markdown report {path}")
 
 
 def _params(args) -> CAParams | None:
@@ -81,9 +119,11 @@ def _cmd_table2(args) -> int:
                 )
     result = combine_configs({name: aggregate_seeds(res) for name, res in results.items()})
     path = _write_json(result, args.json, run_dir, "table2.json")
-    print(format_table2_configs(result))
+    text = format_table2_configs(result)
+    print(text)
     streams = ", ".join(f"ekf_stream{'' if n == 'paper' else '_' + n}.npz ({n})" for n in configs)
     print(f"\nwrote {path} and in {run_dir}: {streams}, replay inputs of seed {args.seed}")
+    _write_doc(args, run_dir, markdown_table2(result), text, [path])
     return 0
 
 
@@ -95,8 +135,10 @@ def _cmd_scaling(args) -> int:
     with tqdm(total=len(LINK_COUNTS), desc="chain lengths", unit="n", disable=args.quiet, file=sys.stderr) as bar:
         result = run_scaling(args.seed, LINK_COUNTS, params=params, progress=bar.update)
     path = _write_json(result, args.json, run_dir, "scaling.json")
-    print(format_scaling(result))
+    text = format_scaling(result)
+    print(text)
     print(f"\nwrote {path}")
+    _write_doc(args, run_dir, markdown_scaling(result), text, [path])
     return 0
 
 
@@ -114,8 +156,10 @@ def _cmd_zenoh(args) -> int:
     print(f"{args.duration:g} s of global steps over Zenoh on loopback ...", file=sys.stderr)
     result = run_zenoh_rtt(groups, args.duration, seed=args.seed, base_port=args.base_port)
     path = _write_json(result, args.json, run_dir, "zenoh.json")
-    print(format_zenoh_rtt(result))
+    text = format_zenoh_rtt(result)
+    print(text)
     print(f"\nwrote {path}")
+    _write_doc(args, run_dir, markdown_zenoh_rtt(result), text, [path])
     return 0
 
 
@@ -150,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="EKF tuning: paper (Table I, drifts unmodelled), consistent (drifts carried in the noise) or both on "
         "the same sensor data (default both)",
     )
+    add_doc_options(t2, "table2")
     t2.set_defaults(func=_cmd_table2)
     sc = sub.add_parser(
         "scaling",
@@ -157,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="per-step time of full and semi-distributed SCKF for n = 3..96",
         description="Per-step time of Alg. 1 (full chain) and Alg. 2 + eq. 6 (groups of 2) vs. chain length.",
     )
+    add_doc_options(sc, "scaling")
     sc.set_defaults(func=_cmd_scaling)
     zb = sub.add_parser(
         "zenoh",
@@ -170,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     zb.add_argument("--groups", default="1,2/3,4,5/6,7", metavar="LAYOUT",
                     help="group layout, 1-based links (default 1,2/3,4,5/6,7: the thesis's seven links)")
     zb.add_argument("--base-port", type=int, default=17447, help="group g listens on TCP base+g-1 (default 17447)")
+    add_doc_options(zb, "zenoh")
     zb.set_defaults(func=_cmd_zenoh)
     for name, config, help_text, desc in (
         ("nees", "configs/sitl/three_link.toml", "Monte Carlo NEES: a flight over N seeds, per link and block",
@@ -191,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
         sp.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        add_doc_options(sp, name)
         sp.set_defaults(func=_cmd_seeds, bench=name)
     _add_sitl_parser(sub)
     lfb = sub.add_parser(
@@ -207,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     lfb.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
     lfb.add_argument("--out", metavar="DIR", help="run folder (default: runs/load_filter-<UTC time>)")
     lfb.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(lfb, "load_filter")
     lfb.set_defaults(func=_cmd_load_filter)
     return parser
 
@@ -215,7 +264,8 @@ def _cmd_seeds(args) -> int:
     from sitl.scenario import load_scenario
     from sitl.sensors import PROFILES
 
-    from .seeds import aggregate_nees, aggregate_static, fly_seeds, format_nees, format_static
+    from .seeds import (aggregate_nees, aggregate_static, fly_seeds, format_nees, format_static, markdown_nees,
+                        markdown_static)
 
     if args.seeds < 1 or args.jobs < 1 or (args.duration is not None and args.duration <= 0):
         print("error: --seeds and --jobs must be >= 1 and --duration positive", file=sys.stderr)
@@ -248,13 +298,15 @@ def _cmd_seeds(args) -> int:
     result["profile"] = args.profile or sc.sensors.profile
     result["duration_s"] = sc.duration_s
     path = _write_json(result, args.json, run_dir, f"{args.bench}.json")
-    print((format_nees if args.bench == "nees" else format_static)(result))
+    text = (format_nees if args.bench == "nees" else format_static)(result)
+    print(text)
     print(f"\nwrote {path} and one folder per seed in {run_dir}")
+    _write_doc(args, run_dir, (markdown_nees if args.bench == "nees" else markdown_static)(result), text, [path])
     return 0
 
 
 def _cmd_sitl(args) -> int:
-    from .speed import format_speed, run_speed
+    from .speed import format_speed, markdown_speed, run_speed
 
     batch = tuple(x for x in args.batch.split(",") if x)
     fleet = tuple(x for x in args.fleet.split(",") if x)
@@ -277,8 +329,10 @@ def _cmd_sitl(args) -> int:
             return 2
     result.update(batch_duration_s=args.duration, fleet_duration_s=args.fleet_duration)
     path = _write_json(result, args.json, run_dir, "speed.json")
-    print(format_speed(result))
+    text = format_speed(result)
+    print(text)
     print(f"\nwrote {path}; every flight's folder and console log in {run_dir}")
+    _write_doc(args, run_dir, markdown_speed(result), text, [path])
     return 0 if all(r["exit_code"] == 0 for r in result["runs"]) else 1
 
 
@@ -308,6 +362,7 @@ def _add_sitl_parser(sub) -> None:
     sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
     sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/sitl-speed-<UTC time>)")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(sp, "sitl")
     sp.set_defaults(func=_cmd_sitl)
 
 
@@ -315,7 +370,7 @@ def _cmd_load_filter(args) -> int:
     from companion.vision.load_filter import LoadFilterConfig
     from sitl.load_synthetic import SlungLoadSim
 
-    from .load_filter import format_load_filter, plot_load_errors, run_load_filter_bench
+    from .load_filter import format_load_filter, markdown_load_filter, plot_load_errors, run_load_filter_bench
 
     try:
         if args.seeds < 1:
@@ -331,13 +386,21 @@ def _cmd_load_filter(args) -> int:
         result, first = run_load_filter_bench(seeds, sim, cfg, progress=bar.update)
     path = _write_json(result, args.json, run_dir, "load_filter.json")
     plot_load_errors(first, run_dir / "load_pose_error.png")
-    print(format_load_filter(result))
+    text = format_load_filter(result)
+    print(text)
     print(f"\nwrote {path} and {run_dir / 'load_pose_error.png'}")
+    _write_doc(args, run_dir, markdown_load_filter(result), text, [path, run_dir / "load_pose_error.png"])
     return 0
 
 
 def main(argv=None) -> int:
-    return run_subcommand(build_parser(), argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.argv = argv  # the report records the command as typed (report.command_line)
+    args.started = time.perf_counter()
+    args.load_start = load_average()
+    return run_subcommand(parser, args=args)
 
 
 if __name__ == "__main__":

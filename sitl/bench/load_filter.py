@@ -112,3 +112,25 @@ def plot_load_errors(run, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def markdown_load_filter(result: dict) -> str:
+    """The Markdown tables of a :func:`run_load_filter_bench` result (``load_filter.json``):
+    :func:`format_load_filter`'s figures, every seed's counters beside them."""
+    from .report import md_table
+
+    sim = result["scenario"]
+    intro = (f"Synthetic slung load: {sim['duration_s']:g} s, circle {sim['circle_radius_m']:g} m at "
+             f"{sim['speed_m_s']:g} m/s, 3 cameras at {sim['camera_rate_hz']:g} Hz, image latency "
+             f"{sim['latency_s'] * 1e3:.0f}-{(sim['latency_s'] + sim['latency_jitter_s']) * 1e3:.0f} ms, "
+             f"{len(result['per_seed'])} seed(s); RMS error after the first second, mean ± std over the seeds.")
+    rows = [(name, f"{100 * r['pos_rms_m']:.2f} ± {100 * r['pos_rms_std_m']:.2f}",
+             f"{r['att_rms_deg']:.2f} ± {r['att_rms_std_deg']:.2f}") for name, r in result["load_pose_err"].items()]
+    nees = result["pose_nees_mean"]
+    seeds = [(s["seed"], s["images"], s["frames"], f"{s['estimators_wall_s']:.1f}") for s in result["per_seed"]]
+    return "\n".join([
+        intro, "", md_table(("estimator", "position RMS [cm]", "attitude RMS [deg]"), rows), "",
+        f"Mean pose NEES (6 dof, 6 if consistent): EKF {nees['ekf']:.2f}, UKF {nees['ukf']:.2f}.", "",
+        "## Per seed", "",
+        md_table(("seed", "images", "frames", "estimators' wall time [s] (all four)"), seeds),
+    ])

@@ -26,7 +26,7 @@ from sitl.synthetic import ChainMotion
 
 from .ekf_chain import ChainRun, simulate_ekf_chain
 
-__all__ = ["LINK_COUNTS", "DENSE_CAP_LINKS", "run_scaling", "format_scaling"]
+__all__ = ["LINK_COUNTS", "DENSE_CAP_LINKS", "run_scaling", "format_scaling", "markdown_scaling"]
 
 LINK_COUNTS = (3, 7, 12, 24, 48, 96)
 DENSE_CAP_LINKS = 24
@@ -96,3 +96,25 @@ def format_scaling(result: dict) -> str:
             f"{n:>7} | {ms:9.3f} | {result['semi2'][n]:8.3f} | {dtxt} | {result['iterations'][n]['full']:10.2f}"
         )
     return "\n".join(lines)
+
+
+def markdown_scaling(result: dict) -> str:
+    """The Markdown table of a :func:`run_scaling` result (``scaling.json``): :func:`format_scaling`'s figures."""
+    from .report import fmt, md_table
+
+    proto = result.get("protocol", {})
+    rows = []
+    for n, ms in result["full"].items():
+        it = result["iterations"][n]
+        rows.append((n, f"{ms:.3f}", f"{result['semi2'][n]:.3f}",
+                     fmt(result["full_dense_reference"].get(n), ".3f", "(capped)"), f"{it['full']:.2f}",
+                     f"{it['semi2_max_group']:.2f}"))
+    intro = ("Constraint application per 20 Hz step, wall-clock milliseconds (mean over "
+             f"{proto.get('steps_per_n', '?')} steps per chain length after a {proto.get('transient_s', 0):g} s "
+             f"transient of a {proto.get('duration_s', 0):g} s run; seed {proto.get('seed')}, eps "
+             f"{proto.get('eps', 0):g}, alpha {proto.get('alpha', 0):g}). Dense reference only up to "
+             f"{proto.get('dense_cap_links', DENSE_CAP_LINKS)} links. Iterations: mean CA loops (semi: the "
+             "group with the most).")
+    header = ("n links", "full SCKF [ms]", "semi, groups of 2 [ms]", "dense reference [ms]", "iterations full",
+              "iterations semi")
+    return "\n".join([intro, "", md_table(header, rows)])

@@ -34,7 +34,7 @@ from companion.cli import LOG_FORMAT
 from sitl.metrics import NEES_BLOCKS, STATIC_ESTIMATES, THESIS_STATIC_LINK4_STD_M, nees_bounds95
 
 __all__ = ["fly_seeds", "aggregate_nees", "format_nees", "aggregate_static", "format_static",
-           "independent_reduction"]
+           "independent_reduction", "markdown_nees", "markdown_static"]
 
 log = logging.getLogger(__name__)
 
@@ -207,3 +207,74 @@ def format_static(result: dict) -> str:
                   + f", link {link + 1} " + " / ".join(f"{x:.2f}" for x in red["per_link"][link])
                   + f"; at most sqrt({n}) = {result['independent_reduction']:.2f} for independent equal errors"]
     return "\n".join(lines)
+
+
+def _run_line(result: dict) -> str:
+    extra = []
+    if result.get("profile") is not None:
+        extra.append(f"sensor profile {result['profile']}")
+    if result.get("duration_s") is not None:
+        extra.append(f"{result['duration_s']:g} s per flight")
+    return (f"{result['scenario']}, {len(result['seeds'])} seed(s) ({', '.join(str(s) for s in result['seeds'])})"
+            + (f", {', '.join(extra)}" if extra else ""))
+
+
+def markdown_nees(result: dict) -> str:
+    """The Markdown tables of an :func:`aggregate_nees` result (``nees.json``): :func:`format_nees`'s
+    figures, one table per estimate with a row per link."""
+    from .report import md_table
+
+    lo_i, hi_i = result["bounds95_independent"]
+    parts = [f"Monte Carlo NEES: {_run_line(result)}. Per link and 3-dof block, the NEES averaged over the window "
+             "and the seeds (3: consistent; below the bounds the covariance is larger than the error, above it "
+             f"is smaller) with the 95 % bounds of that average; **out**: outside. Bounds if every step were "
+             f"independent: {lo_i:.2f}-{hi_i:.2f}."]
+    titles = {"ekf": "EKF (each link's own filter)", "corrected": "corrected (after the companion's SCKF)"}
+    for which in ("ekf", "corrected"):
+        n = len(result[which][NEES_BLOCKS[0]]["mean"])
+        rows = []
+        for i in range(n):
+            cells = []
+            for block in NEES_BLOCKS:
+                row = result[which][block]
+                lo, hi = row["bounds95"][i]
+                cells.append(f"{row['mean'][i]:.2f} [{lo:.2f}-{hi:.2f}]" + ("" if row["inside95"][i] else " **out**"))
+            rows.append((f"link {i + 1}", *cells))
+        parts += ["", f"## {titles[which]}", "", md_table(("link", *NEES_BLOCKS), rows)]
+    return "\n".join(parts)
+
+
+def markdown_static(result: dict) -> str:
+    """The Markdown tables of an :func:`aggregate_static` result (``static.json``): :func:`format_static`'s
+    figures (mean ± spread over the seeds, metres)."""
+    from .report import md_table
+
+    n = result["n_links"]
+    link = min(3, n - 1)
+
+    def cell(entry, i, j):
+        return f"{entry['mean'][i][j]:.3f} ± {entry['spread'][i][j]:.3f}"
+
+    parts = [f"Static protocol (thesis sec. 3.5.2): {_run_line(result)}; mean ± spread over the seeds, metres."]
+    rows = []
+    for name in ("ekf", "local", "semi_distributed", "truth"):
+        entry = result["std_m"].get(name)
+        if entry is None:
+            continue
+        thesis = result["thesis_link4_std_m"].get(name) if n == 7 else None
+        rows.append((name, *(cell(entry, link, j) for j in range(3)),
+                     " / ".join(f"{x:.3f}" for x in thesis) if thesis else "-"))
+    parts += ["", f"## Link {link + 1}: std of the estimate over the window (the thesis's figure)", "",
+              md_table(("estimate", "x", "y", "z", "thesis x / y / z"), rows)]
+    names = [name for name in ("ekf", "local", "semi_distributed") if name in result["rms_err_m"]]
+    rows = [(f"link {i + 1}", *(cell(result["rms_err_m"][name], i, j) for name in names for j in range(3)))
+            for i in range(n)]
+    parts += ["", "## RMS error against the truth per link", "",
+              md_table(("link", *(f"{name} {axis}" for name in names for axis in "xyz")), rows)]
+    red = result.get("reduction_rms")
+    if red:
+        parts += ["", "RMS error EKF / semi-distributed, x / y / z: chain "
+                  + " / ".join(f"{x:.2f}" for x in red["chain"])
+                  + f", link {link + 1} " + " / ".join(f"{x:.2f}" for x in red["per_link"][link])
+                  + f"; at most sqrt({n}) = {result['independent_reduction']:.2f} for independent equal errors."]
+    return "\n".join(parts)

@@ -35,7 +35,7 @@ import numpy as np
 from ..fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
-           "run_speed", "format_speed"]
+           "run_speed", "format_speed", "markdown_speed"]
 
 log = logging.getLogger(__name__)
 
@@ -437,3 +437,58 @@ def _loop(r: dict) -> str:
 def _runs_text(r: dict) -> str:
     runs = r.get("realtime_factor_runs")
     return "" if not runs else "  [" + " ".join("-" if x is None else f"{x:.2f}" for x in runs) + "]"
+
+
+def markdown_speed(result: dict) -> str:
+    """The Markdown tables of a :func:`run_speed` result (``speed.json``): :func:`format_speed`'s figures."""
+    from .report import fmt, md_table
+
+    parts = []
+    facts = [f"kernels compiled: {result['compiled']} (warm-up {result['warm_up_s']:.1f} s)",
+             f"load average at the end: {', '.join(f'{x:.2f}' for x in result['load_average_at_end'])}"]
+    if result.get("batch_duration_s") is not None:
+        facts.append(f"simulated seconds per batch flight {result['batch_duration_s']:g}, per fleet flight "
+                     f"{result['fleet_duration_s']:g}")
+    if result.get("repeat", 1) > 1:
+        facts.append(f"every figure: the median of {result['repeat']} interleaved runs (every run's real-time "
+                     "factor in the last column)")
+    policies = sorted({str(r.get("scheduling")) for r in result["runs"] if r.get("mode") == "fleet"})
+    if policies:
+        facts.append(f"fleets' scheduling policy: {', '.join(policies)}")
+    parts += [f"- {f}" for f in facts]
+    tick = result.get("firmware_tick_us")
+    if tick:
+        runs = len(tick.get("fused_us_runs", ())) or 1
+        target = "" if "target_us" not in tick else \
+            f"; target <= {tick['target_us']:g} us: {'met' if tick['target_met'] else '**missed**'}"
+        parts += ["", "## Firmware tick per link (CPU)", "",
+                  f"Least of {runs} runs: {tick['fused_us']:.1f} us one-kernel, {tick['step_by_step_us']:.1f} us "
+                  f"step by step{target}."]
+
+    def runs_cell(r):
+        xs = r.get("realtime_factor_runs")
+        return "" if not xs else " ".join("-" if x is None else f"{x:.2f}" for x in xs)
+
+    rows = [(f"MuJoCo only {name}", f"{c['realtime_factor']:.1f}", "1.000", f"{c['cpu_s_per_sim_s']:.3f}", "", "", "",
+             runs_cell(c)) for name, c in result["mujoco_ceiling"].items()]
+    for r in result["runs"]:
+        label = (f"{r['mode']} {r['scenario']}" + (f" ({r['sim_link']})" if "sim_link" in r else "")
+                 + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})"))
+        target = "" if r.get("target_rtf") is None else \
+            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "**missed**")
+        rows.append((label, fmt(r["realtime_factor"], ".2f"), fmt(r["ratio_to_ceiling"], ".3f"),
+                     f"{r['cpu_s_per_sim_s']:.3f}", fmt(r.get("loop_cpu_s_per_sim_s"), ".3f", ""),
+                     fmt(r.get("peak_rss_mb"), ".0f", ""), target, runs_cell(r)))
+        for role, p in sorted(r.get("processes", {}).items()):
+            rows.append((f"- {role}", "", "", fmt(p["cpu_s_per_sim_s"], ".3f"),
+                         fmt(p.get("loop_cpu_s_per_sim_s"), ".3f", ""), f"{p['peak_rss_mb']:.0f}", "", ""))
+    parts += ["", "## Real-time factors, CPU and memory", "",
+              "RTF: simulated seconds per wall second; /ceiling: against MuJoCo alone on the same model; CPU s/sim s: "
+              "CPU seconds per simulated second over the process's life, *in loop*: in the lockstep loop alone; "
+              "the rows under a fleet that start with a dash are its processes.", "",
+              md_table(("run", "RTF", "/ceiling", "CPU s/sim s", "in loop", "peak RSS [MB]", "target",
+                        "every run's RTF"), rows)]
+    verdict = _verdict(result)
+    if verdict:
+        parts += ["", verdict + "."]
+    return "\n".join(parts)

@@ -20,7 +20,7 @@ import numpy as np
 
 from companion.estimation.semi import Groups, semi_distributed_apply
 
-__all__ = ["run_zenoh_rtt", "format_zenoh_rtt"]
+__all__ = ["run_zenoh_rtt", "format_zenoh_rtt", "markdown_zenoh_rtt"]
 
 
 def _snapshot(seed: int, n_links: int, groups):
@@ -106,3 +106,24 @@ def format_zenoh_rtt(result: dict) -> str:
         lines.append(f"  group {c['group']}: cycles with global step {g['global']}, local-only {g['local_only']}, "
                      f"max |shift - in-process eq. 6| {c['max_shift_error_vs_in_process']:.2e}")
     return "\n".join(lines)
+
+
+def markdown_zenoh_rtt(result: dict) -> str:
+    """The Markdown tables of a :func:`run_zenoh_rtt` result (``zenoh.json``): :func:`format_zenoh_rtt`'s figures."""
+    from .report import md_table
+
+    rt = result["round_trip_ms"] or {}
+    parts = [f"{result['n_links']} links, groups {result['groups']}, {result['rate_hz']:g} Hz, "
+             f"{result['duration_s']:g} s on loopback; leader: group {result['leader']}.", "",
+             "## Round trip as the leader saw it (boundary published -> shift received) [ms]", ""]
+    rows = [(part.replace("_", " "), f"{r['p50']:.3f}", f"{r['p99']:.3f}", f"{r['max']:.3f}", r["samples"])
+            for part in ("network", "end_to_end") if (r := rt.get(part))]
+    parts.append(md_table(("round trip", "p50", "p99", "max", "boundaries"), rows) if rows
+                 else "No round trip measured (no leader reported one).")
+    rows = [(c["group"], ", ".join(str(i) for i in result["groups"][c["group"] - 1]), c["global_step"]["global"],
+             c["global_step"]["local_only"], f"{c['max_shift_error_vs_in_process']:.2e}")
+            for c in result["companions"]]
+    parts += ["", "## Per group", "",
+              md_table(("group", "links", "cycles with global step", "local-only cycles",
+                        "max abs(shift - in-process eq. 6)"), rows)]
+    return "\n".join(parts)
