@@ -15,7 +15,7 @@ write) are read and checked against the code.
   target (GitHub's slugs). http(s) links are not fetched.
 * ``path/file.py::Name`` (also ``Class.method`` and pytest's ``::Class::test``): the file exists
   and defines the name (read with ``ast``, nothing imported).
-* Backticked repository paths (``configs/sitl/three_link.toml``, ``companion/engine.py``,
+* Backticked repository paths (``configs/sitl/three_link.toml``, ``companion/daemon.py``,
   globs like ``configs/sitl/*.toml``, ``<placeholders>`` as wildcards) exist, unless git ignores
   them (files a command creates, like ``configs/hardware/keys/skeleton.key``); so do the
   ``--config`` files of the checked commands.
@@ -773,7 +773,7 @@ See [the architecture](architecture.md#no-such-heading), [a missing page](missin
 ![a missing image](images/none.png), [this page](#brokn).
 
 The trajectory is `companion/trajectory.py::NoSuchTrajectory`, the engine
-companion/engine.py::CompanionEngine.no_such_method, the scenarios `configs/sitl/no_such.toml`
+companion/engine/core.py::CompanionEngine.no_such_method, the scenarios `configs/sitl/no_such.toml`
 and `configs/nowhere/*.toml`. Quoted: `python -m sitl fly --no-plot`.
 """
 
@@ -805,7 +805,7 @@ def test_checker_reports_broken_flags_links_names_and_paths():
         "docs/snippet.md:16: link to #brokn: no heading #brokn in this file (did you mean #broken?)",
         "docs/snippet.md:18: companion/trajectory.py::NoSuchTrajectory: companion/trajectory.py defines no "
         "NoSuchTrajectory",
-        "docs/snippet.md:19: companion/engine.py::CompanionEngine.no_such_method: companion/engine.py defines no "
+        "docs/snippet.md:19: companion/engine/core.py::CompanionEngine.no_such_method: companion/engine/core.py defines no "
         "CompanionEngine.no_such_method",
         "docs/snippet.md:19: `configs/sitl/no_such.toml` does not exist",
         "docs/snippet.md:20: `configs/nowhere/*.toml` does not exist (no match)",
@@ -859,7 +859,7 @@ python -m sitl fly --not-checked-in-text-blocks
 [up](../README.md), [here](#good-heading-with-code-and-punctuation), [again](#repeated-1),
 [arch](architecture.md#architecture), [web](https://example.com/x#y), `configs/sitl/*.toml`,
 `python -m sitl launch --speed 0` (partial: fine in prose), `python -m sitl.bench <bench> --doc`,
-`companion/engine.py::CompanionEngine`, `companion/skeleton/` and `runs/<run>/log.npz`.
+`companion/engine/core.py::CompanionEngine`, `companion/skeleton/` and `runs/<run>/log.npz`.
 """
 
 

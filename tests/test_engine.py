@@ -388,7 +388,7 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
                 GroupPassiveLinks(g_other, int(t * 1e6), (healthy,)),           # "from" the receiver itself
                 GroupPassiveLinks(g_down, int((t - 5.0) * 1e6), (down,)),       # stale
                 GroupPassiveLinks(g_down, int((t + 60.0) * 1e6), (down,))):     # far ahead
-        e._on_remote_passive(msg)
+        e.carrying.on_remote(msg, e.fc_time_us)
     assert e.summary()["carried_links_messages"]["rejected"] == 4
     # its group's companion leaves: its claim goes with it (the link is back to flying itself here)
     hub.buses[g_down].close()
@@ -407,16 +407,16 @@ def test_a_carried_links_claim_before_the_cycle_clock_is_held_and_one_far_ahead_
                              net=GroupLink(GlobalStepNode(0, 2, setup.zenoh.order(2), 50_000), hub.join(0), lambda: 0.0))
     hub.join(1)
     engine.poll(0.0)  # (group 2 is up)
-    engine._on_remote_passive(GroupPassiveLinks(1, 600_000_000, (2,)))  # far ahead, before any clock
+    engine.carrying.on_remote(GroupPassiveLinks(1, 600_000_000, (2,)), engine.fc_time_us)  # far ahead, before any clock
     assert engine.passive_counts == {"published": 0, "received": 1, "rejected": 0}
     for lk in engine.links:
         engine.on_state(lk.row, straight_state(lk.index, 4, 1.0), STATE_FLAG_EKF_OK, 1.0)
     assert engine.fc_time_us == 1_000_000
-    assert engine._remote_passive_links() == frozenset()  # not current: not used
-    engine._on_remote_passive(GroupPassiveLinks(1, 1_000_000, (2,)))  # the real one replaces it
-    assert engine._remote_passive_links() == {2}
-    engine._on_remote_passive(GroupPassiveLinks(1, 900_000_000, (3,)))  # far ahead now: dropped, counted
-    assert engine.passive_counts["rejected"] == 1 and engine._remote_passive_links() == {2}
+    assert engine.carrying.remote(engine.fc_time_us) == frozenset()  # not current: not used
+    engine.carrying.on_remote(GroupPassiveLinks(1, 1_000_000, (2,)), engine.fc_time_us)  # the real one replaces it
+    assert engine.carrying.remote(engine.fc_time_us) == {2}
+    engine.carrying.on_remote(GroupPassiveLinks(1, 900_000_000, (3,)), engine.fc_time_us)  # far ahead: dropped, counted
+    assert engine.passive_counts["rejected"] == 1 and engine.carrying.remote(engine.fc_time_us) == {2}
 
 
 def test_needs_poll_leaves_out_only_polls_that_would_do_nothing():

@@ -1,0 +1,183 @@
+"""Carrying: which links have their rotors off, so that their neighbours' feed-forward takes
+their weight (the whole-chain feed-forward, ``trajectory.feedforward``).
+
+A link is carried when it has flown and is now silent ``carry_silence_s``, disarmed, or re-armed
+less than ``carry_spinup_s`` ago (:meth:`Carrying.own`). In distributed mode each group publishes
+its carried links (:class:`~companion.messages.GroupPassiveLinks`, :meth:`Carrying.publish`) and
+takes the other groups' (:meth:`Carrying.on_remote`, :meth:`Carrying.remote`): a dead link at a
+group's end hangs on a link of the next group. Every carried stretch is logged and timed
+(``carried_s`` and ``carried_by_other_groups_s`` in the engine's summary).
+"""
+
+from __future__ import annotations
+
+import logging
+from statistics import median
+
+import numpy as np
+
+from ..messages import STATE_FLAG_ARMED, GroupPassiveLinks
+from .links import CarryClock, LinkTrack
+
+__all__ = ["DISARMED_STATES", "PASSIVE_REPEAT_US", "PASSIVE_STALE_US", "Carrying"]
+
+log = logging.getLogger(__name__)
+
+#: Accepted states in a row reporting a link disarmed before the companion takes its rotors to
+#: be off: 60 ms of the 50 Hz stream.
+DISARMED_STATES = 3
+#: Distributed mode: a group publishes its carried links when they change and at least this
+#: often [us]; the others take a group's newest one within :data:`PASSIVE_STALE_US` of their own
+#: cycle clock (and while its companion is up).
+PASSIVE_REPEAT_US = 1_000_000
+PASSIVE_STALE_US = 2_500_000
+
+
+class Carrying:
+    """The carried links of one engine's ``links`` under ``cfg`` (a
+    :class:`~companion.config.CompanionConfig`); in distributed mode (``net`` a group link,
+    ``group`` this engine's, ``groups`` every group's chain indices) also the other groups'.
+    Every method takes the engine's cycle clock ``t_us`` (on the time base)."""
+
+    def __init__(self, cfg, links: list[LinkTrack], group: int | None, groups, net):
+        self.cfg = cfg
+        self.links = links
+        self.group = group
+        self.groups = groups
+        self.net = net
+        # distributed mode: the other groups' carried links (newest message per group), what this
+        # group last published, and how long each other group's link has been carried here
+        self._remote: dict[int, GroupPassiveLinks] = {}
+        self._sent: tuple[tuple[int, ...], int] | None = None
+        self.counts = {"published": 0, "received": 0, "rejected": 0}
+        self.remote_carried: dict[int, CarryClock] = {}  # another group's link -> its carrying here
+
+    def now(self, now_s: float, t_us: int) -> frozenset[int]:
+        """The chain indices carried now: this engine's own (:meth:`own`) and, in distributed
+        mode, the other groups' (after publishing this group's)."""
+        passive = self.own(now_s, t_us)
+        if self.net is not None:
+            self.publish(passive, t_us)
+            passive = passive | self.remote(t_us)
+        return passive
+
+    def own(self, now_s: float, t_us: int) -> frozenset[int]:
+        """The chain indices of this engine's links whose rotors are taken to be off: a link that
+        has flown and is now silent ``carry_silence_s`` (its newest state that far behind the
+        median of the links' newest, the newest with fewer than three links; and nothing from it
+        for ``carry_silence_s / clock_rate_max`` on the companion's own clock ``now_s``, so that a
+        link whose states keep arriving is not taken as silent because another link's stamps were
+        forged ahead, as they can be in a group of two), disarmed (its first
+        report after a silence, else :data:`DISARMED_STATES` reports in a row; not believed while
+        its stream has had replayed or future stamps within ``reboot_silence_s``), or
+        heard armed again for less than ``carry_spinup_s`` (its
+        ESCs restarting; after a silence of ``reboot_silence_s`` too, which may have been a reboot
+        whose disarmed states were lost; a shorter dropout of an armed link costs no spin-up
+        wait). All on the time base: what matters is how long the link
+        has been falling or spinning up, and in SITL that is simulated time. Transitions are logged."""
+        cfg, out = self.cfg, set()
+        heard = [lk.state.time_s for lk in self.links if lk.state is not None]
+        # the reference: the median of the links' newest stamps, which a link whose states are
+        # forged ahead (within the stamp margin) does not move for the others; with fewer than
+        # three links (a group's engine) the cycle clock, the newest stamp
+        t = median(heard) if len(heard) >= 3 else t_us * 1e-6
+        quiet_s = cfg.carry_silence_s / cfg.clock_rate_max  # the same silence, on the companion's clock
+        for lk in self.links:
+            lag = np.inf if lk.state is None else t - lk.state.time_s
+            silent = lag >= cfg.carry_silence_s and (lk.last_state_s is None or now_s - lk.last_state_s >= quiet_s)
+            # disarmed: the first report after a silence says, otherwise DISARMED_STATES reports in
+            # a row (a lone forged one on an unsigned wire does not)
+            # (not while its stream carries replayed or future stamps: then some of it is forged)
+            if silent:
+                lk.after_silence = True
+            elif t - lk.stamp_rejected_s < cfg.reboot_silence_s:
+                pass
+            elif lk.after_silence:
+                lk.after_silence = False
+                lk.believed_armed = bool(lk.flags & STATE_FLAG_ARMED)
+            elif lk.flags & STATE_FLAG_ARMED:
+                lk.believed_armed = True
+            elif lk.disarmed_states >= DISARMED_STATES:
+                lk.believed_armed = False
+            armed = lk.believed_armed
+            if not armed or lag >= cfg.reboot_silence_s:  # unheard that long: it may have rebooted
+                lk.armed_since_s = None
+            elif lk.armed_since_s is None and not silent:
+                lk.armed_since_s = t
+            spinning = armed and not silent and t - lk.armed_since_s >= cfg.carry_spinup_s
+            lk.flown = lk.flown or spinning
+            passive = lk.flown and (silent or not spinning)
+            was = lk.carried.on
+            ended = lk.carried.switch(passive, t)
+            if passive and not was:
+                why = "silent" if silent else "disarmed in flight" if not armed else "re-armed, rotors starting"
+                log.warning("link %d: %s at %.2f s: its neighbours carry it (whole-chain feed-forward)",
+                            lk.index + 1, why, t)
+            elif ended is not None:
+                log.warning("link %d: flies itself again at %.2f s, after %.2f s carried", lk.index + 1, t, ended)
+            if passive:
+                out.add(lk.index)
+        return frozenset(out)
+
+    # -- across groups (distributed mode) ----------------------------------------------------------
+    def publish(self, own: frozenset[int], t_us: int) -> None:
+        """This group's carried links to the other groups: when the set changes, and each
+        :data:`PASSIVE_REPEAT_US` (a group that starts later, or lost one, learns it)."""
+        links = tuple(sorted(own))
+        sent = self._sent
+        if sent is not None and sent[0] == links and t_us - sent[1] < PASSIVE_REPEAT_US:
+            return
+        self._sent = (links, t_us)
+        self.net.publish_passive(GroupPassiveLinks(self.group, t_us, links))
+        self.counts["published"] += 1
+
+    def on_remote(self, msg: GroupPassiveLinks, t_us: int) -> None:
+        """Another group's carried links: kept (its newest) if they are that group's own links and,
+        once this group has a cycle clock, its stamp is within :data:`PASSIVE_STALE_US` of it either
+        way; otherwise counted and dropped (a group cannot make another group's links, or this
+        group's, carried). Only a current claim is used (:meth:`remote`), and one that is not
+        current gives way to any other (a stamp far ahead cannot pin a claim)."""
+        g = msg.group
+        why = None
+        if g == self.group or not 0 <= g < len(self.groups):
+            why = f"from group {g + 1}"
+        elif not set(msg.links) <= set(self.groups[g]):
+            why = f"links {[i + 1 for i in msg.links]} are not all group {g + 1}'s"
+        elif t_us and not self._current(msg, t_us):
+            why = f"stamp {msg.time_us * 1e-6:.3f} s, {(msg.time_us - t_us) * 1e-6:+.3f} s off the cycle clock"
+        if why is not None:
+            self.counts["rejected"] += 1
+            n = self.counts["rejected"]
+            if n <= 5 or n % 100 == 0:
+                log.warning("carried links of group %d dropped (#%d): %s", g + 1, n, why)
+            return
+        self.counts["received"] += 1
+        old = self._remote.get(g)
+        if old is None or msg.time_us >= old.time_us or not self._current(old, t_us):
+            self._remote[g] = msg
+
+    @staticmethod
+    def _current(msg: GroupPassiveLinks, t_us: int) -> bool:
+        """Whether a group's claim is within :data:`PASSIVE_STALE_US` of the cycle clock ``t_us``."""
+        return bool(t_us) and abs(msg.time_us - t_us) <= PASSIVE_STALE_US
+
+    def remote(self, t_us: int) -> frozenset[int]:
+        """The links the other groups' companions carry (their newest messages, not stale, while
+        they are up); each carried stretch is logged and timed (``remote_carried``)."""
+        out: set[int] = set()
+        for g, msg in self._remote.items():
+            if self.net.alive(g) and self._current(msg, t_us):
+                out.update(msg.links)
+        t = t_us * 1e-6
+        for i in out | {i for i, clock in self.remote_carried.items() if clock.on}:
+            clock = self.remote_carried.setdefault(i, CarryClock())
+            was = clock.on
+            if clock.switch(i in out, t) is not None:
+                log.warning("link %d (group %d) flies itself again at %.2f s", i + 1, self._group_of(i) + 1, t)
+            elif clock.on and not was:
+                log.warning("link %d (group %d) carried at %.2f s: its rotors are off (its group's companion says)",
+                            i + 1, self._group_of(i) + 1, t)
+        return frozenset(out)
+
+    def _group_of(self, link: int) -> int:
+        return next(g for g, members in enumerate(self.groups) if link in members)

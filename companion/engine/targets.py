@@ -1,0 +1,115 @@
+"""Pose targets: every link's target from the trajectory, every 1/``target_rate_hz``.
+
+The trajectory (``[trajectory]``) is anchored at ``trajectory.anchor_w_m`` or where the chain is
+when every link first reports, and its time starts then (:meth:`Targets.send`); with the
+whole-chain feed-forward, the carried links (:class:`~.carrying.Carrying`) are flown by their
+neighbours. Targets are stamped on each link's own clock.
+
+Distributed mode with ``trajectory.kind = "cpg"``: the leader publishes every link's targets
+(:class:`~companion.messages.ChainTargets`) and the others forward their links' share
+(:meth:`Targets.forward`); each engine also steps its own copy of the generator so that a new
+leader continues the motion, and sends its own targets while no leader's arrive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..messages import ChainTargets, PoseTarget
+from ..skeleton.kinematics import chain_middle
+from ..trajectory import make_trajectory
+from .carrying import Carrying
+from .links import LinkTrack
+from .outputs import TargetOut
+
+__all__ = ["Targets"]
+
+
+class Targets:
+    """The target source of one engine's ``links`` (``d``: their tip vectors) for ``setup`` (a
+    :class:`~companion.config.CompanionSetup`).
+
+    Args:
+        group, net: distributed mode's group and group link (else ``None``).
+        trajectory: a target source to use instead of the one built from the config at the first
+            targets.
+        start_center: the trajectory's anchor [m] (``None``: the chain's estimated middle at the
+            first targets).
+        carrying: who is carried when targets are due.
+        emit: takes each :class:`~.outputs.TargetOut`.
+    """
+
+    def __init__(self, setup, links: list[LinkTrack], d: np.ndarray, group: int | None, net, trajectory,
+                 start_center, carrying: Carrying, emit: Callable[[object], None]):
+        self.setup = setup
+        self.links = links
+        self.d = d
+        self.n = setup.skeleton.n_links
+        self.group = group
+        self.net = net
+        self.trajectory = trajectory
+        self.carrying = carrying
+        self._emit = emit
+        self.period_us = int(round(1e6 / setup.companion.target_rate_hz))
+        self._t0_us = 0
+        self._started = False
+        self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
+        #: CPG targets travel over the network from the leader (distributed mode)
+        self.via_net = net is not None and setup.trajectory.kind == "cpg"
+        self.counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
+        self._leader_targets_s = -np.inf
+        self._forwarded_time_us = -1
+
+    def send(self, now_s: float, t_us: int, next_step_us: int) -> None:
+        """Every link's target for the cycle clock ``t_us`` (or, from a follower in distributed CPG
+        mode, nothing while the leader's are being forwarded); ``next_step_us``: the cycle whose
+        leader publishes them."""
+        if not self._started:
+            self._started = True
+            self._t0_us = self._start_us(t_us)
+        if self.trajectory is None:
+            center = self._start_center
+            if center is None:
+                center = chain_middle(np.array([lk.state.p_w_m for lk in self.links]),
+                                      np.array([lk.state.q_wxyz for lk in self.links]), self.d)
+            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
+        # Trajectory time starts when every link has first reported (on hardware the flight
+        # controllers have been up for a while; in SITL this is within a tick of t = 0).
+        passive = self.carrying.now(now_s, t_us)
+        targets = self.trajectory.targets((t_us - self._t0_us) * 1e-6, passive=passive)
+        if self.via_net:
+            if self.net.leads(next_step_us, now_s):
+                self.net.publish_targets(ChainTargets.of(self.group, t_us, self.counts["published"] & 0xFFFFFFFF,
+                                                         range(self.n), targets))
+                self.counts["published"] += 1
+            elif now_s - self._leader_targets_s < 3e-6 * self.period_us:
+                return  # the leader's targets are being forwarded (:meth:`forward`)
+            self.counts["own"] += 1
+        for lk in self.links:
+            self._out(lk, t_us, targets[lk.index])
+
+    def _start_us(self, t_us: int) -> int:
+        """Where trajectory time starts on the time base: 0 for distributed companions on the links'
+        shared clock (SITL: simulation time, the same in every group), else the first targets."""
+        shared = self.net is not None and self.setup.companion.time_base == "flight_controller"
+        return 0 if shared else t_us
+
+    def forward(self, msg: ChainTargets, now_s: float) -> None:
+        """Send this group's links their share of the leader's CPG targets."""
+        self.counts["received"] += 1
+        if msg.time_us <= self._forwarded_time_us:
+            self.counts["stale"] += 1  # out of order, or a second leader during a hand-over
+            return
+        self._forwarded_time_us = msg.time_us
+        self._leader_targets_s = now_s
+        rows = {link: k for k, link in enumerate(msg.links)}
+        for lk in self.links:
+            k = rows.get(lk.index)
+            if k is not None:
+                self._out(lk, msg.time_us, msg.target(k))
+        self.counts["forwarded"] += 1
+
+    def _out(self, lk: LinkTrack, time_us: int, target: PoseTarget) -> None:
+        self._emit(TargetOut(lk.row, lk.system_id, lk.to_link_clock_us(time_us), target))
