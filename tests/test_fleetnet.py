@@ -24,7 +24,8 @@ from companion.fleetnet.bus import FleetBus, zenoh_config
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.keys import boundary_key, passive_key, shift_key, target_key
-from companion.fleetnet.leader import GlobalStepNode, shift_covariance_terms, solve_cycle
+from companion.fleetnet.leader import GlobalStepNode
+from companion.fleetnet.solve import shift_covariance_terms, solve_cycle
 from companion.messages import (ChainTargets, Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState,
                                 MessageError)
 from sitl.scenario import Scenario
@@ -281,7 +282,7 @@ def test_one_cycles_eq6_is_solved_once_and_shared_read_only(monkeypatch):
     cycle solve the same boundaries: computed once (three groups in one process, as in batch
     mode), the same numbers as a fresh solution, shared read-only; a changed number is solved anew."""
     from companion.estimation.semi import global_solution
-    from companion.fleetnet import leader
+    from companion.fleetnet import solve
 
     groups = ((0, 1), (2, 3, 4), (5, 6))
     n = 7
@@ -292,12 +293,12 @@ def test_one_cycles_eq6_is_solved_once_and_shared_read_only(monkeypatch):
     reports = [GroupBoundaryReport(g, PERIOD_US, b.left_tip, b.right_tip, b.info_pv, tip_cov_pv=covs[g])
                for g, b in enumerate(ref.boundaries)]
     calls = []
-    monkeypatch.setattr(leader, "global_solution", lambda bs: calls.append(len(bs)) or global_solution(bs))
-    leader._SOLUTIONS.clear()
+    monkeypatch.setattr(solve, "global_solution", lambda bs: calls.append(len(bs)) or global_solution(bs))
+    solve._SOLUTIONS.clear()
     _, shifts = solve_cycle(reports)
     terms = [shift_covariance_terms(reports[::-1], g) for g in range(len(groups))]
     assert calls == [3]
-    fresh = global_solution([leader._boundary(r) for r in reports])
+    fresh = global_solution([solve._boundary(r) for r in reports])
     np.testing.assert_array_equal(shifts, fresh.shifts)
     for g, (gain, cov) in enumerate(terms):
         np.testing.assert_array_equal(gain, fresh.gains[g])
@@ -307,7 +308,7 @@ def test_one_cycles_eq6_is_solved_once_and_shared_read_only(monkeypatch):
     _, other = solve_cycle(changed)
     assert calls == [3, 3]
     assert not np.array_equal(other, shifts)
-    np.testing.assert_array_equal(other, global_solution([leader._boundary(r) for r in sorted(changed, key=lambda r: r.group)]).shifts)
+    np.testing.assert_array_equal(other, global_solution([solve._boundary(r) for r in sorted(changed, key=lambda r: r.group)]).shifts)
 
 
 # -- leader election, pure ------------------------------------------------------------------------------
