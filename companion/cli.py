@@ -1,9 +1,8 @@
 """Helpers every command-line tool of the stack uses (never the pure core): BLAS threads, run folders, logging.
 
 * BLAS threading: the estimator works on many small matrices (9x9 blocks, banded systems
-  of a few hundred rows). On a 2-core machine OpenBLAS's threads make those calls up to 20x
-  slower (measured: dense Alg. 1 on 12 links, 44 ms threaded vs 2 ms single-threaded), so
-  every CLI runs with one BLAS thread.
+  of a few hundred rows). On a small machine OpenBLAS's threads make those calls many times
+  slower than one thread does, so every CLI runs with one BLAS thread.
 * Run folders: every run writes its artefacts into one folder that it names.
 * Logging setup for CLIs.
 """

@@ -262,8 +262,8 @@ class CompanionDaemon:
         end = None if duration_s is None else self.clock() + duration_s
         engine = self.engine
         if _kernels.ENABLED:
-            # every kernel loaded (or compiled) now, not in the first SCKF cycle or target in flight:
-            # a new cache compiles for about 24 s, a cached one loads in 0.3-0.9 s
+            # every kernel loaded (or compiled) now, not in the first SCKF cycle or target in flight,
+            # where the load (or a compile) would hold up the chain's corrections
             log.info("compiled kernels ready in %.1f s", _kernels.warm_up())
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,

@@ -242,8 +242,8 @@ def _free_tcp_port() -> int:
 def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, monkeypatch, feedforward, compiled):
     """With the compiled kernels on, ``run`` loads (or compiles) every one of them before its loop,
     with or without the feed-forward: the SCKF's kernels run in every cycle, and a first cycle
-    that loads them would stall the chain's corrections (0.3-0.9 s from the cache, about 24 s on a
-    new one). Without them (the onboard install) nothing is loaded."""
+    that loads them would stall the chain's corrections. Without them (the onboard install)
+    nothing is loaded."""
     import signal
 
     from companion import daemon as daemon_module

@@ -654,12 +654,12 @@ def test_a_link_flagging_a_gps_fault_is_corrected_from_its_neighbours_one_way(n,
     assert set(got) == set(range(n)) and engine.links[bad].status == ""
     np.testing.assert_allclose(got[bad].dp_w_m, [-0.8, 0.0, 0.0], atol=0.01)
     # one group: exact up to the variance ratio; with groups the global step's rigid group shifts
-    # (eq. 6) leak a little (measured 5.3 mm of the 0.8 m)
+    # (eq. 6) leak a little (millimetres of the 0.8 m)
     bound = 1e-3 if not groups else 1e-2
     assert max(np.linalg.norm(c.dp_w_m) for r, c in got.items() if r != bad) < bound
     assert engine.summary()["links"][str(bad + 1)]["gps_fault_steps"] == 1
     assert engine.health_rows(1.0, 0.0)[bad]["status"] == "gps"
-    # without the flag the same state is left out (a plausible false state: item 1's case)
+    # without the flag the same state is left out (a plausible false state)
     engine = CompanionEngine(setup_for(n, groups=groups))
     for r in range(n):
         st = replace(straight_state(r, n, 0.0, dx[r]), P=np.eye(9) * 1e-4 if r == bad else np.eye(9) * 1e-3)

@@ -606,8 +606,9 @@ def _two_groups():
 
 
 def test_next_cycle_shifts_claiming_each_group_as_leader_are_never_applied():
-    """The measured attack: well-formed shifts for the next cycle, one claiming each group as the
-    leader, before every cycle. Before: both groups went local-only for the rest of the flight."""
+    """Well-formed shifts for the next cycle, one claiming each group as the leader, before every
+    cycle: none is applied, and both groups keep the true global step (they do not fall back to
+    local-only corrections)."""
     rng = np.random.default_rng(1)
     nodes = _two_groups()
     applied = 0
