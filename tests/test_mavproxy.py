@@ -79,11 +79,13 @@ class _Session:
         with self._new:
             return "\n".join(self.lines)
 
-    def close(self, sig: int = signal.SIGTERM) -> str:
+    def close(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> str:
+        """Stop the process with ``sig`` (it alone: it stops what it started), then its whole
+        process group with SIGKILL if it is not gone after ``timeout_s``; its output."""
         if self.proc.poll() is None:
-            os.killpg(self.proc.pid, sig)
+            self.proc.send_signal(sig)
             try:
-                self.proc.wait(timeout=20)
+                self.proc.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
@@ -174,7 +176,8 @@ def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path):
     finally:
         for session in sessions:
             session.close()
-        fleet.close(signal.SIGINT)
+        fleet.close(signal.SIGINT, timeout_s=120.0)  # (Ctrl-C: the launcher stops the fleet and writes its logs)
+    assert fleet.proc.returncode == 130, fleet.output()[-3000:]
     # the vehicles refused the unkeyed session's commands, and say so
     ports = json.loads((out / "link1" / "link1_ports.json").read_text())
     gcs_side = next(v for k, v in ports.items() if k.startswith(f"udpout://127.0.0.1:{gcs_port}"))
