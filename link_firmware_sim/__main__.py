@@ -26,7 +26,7 @@ from companion.config import load_setup
 from companion.configfile import ConfigError
 from companion.mavlink.transport import PortError
 
-from . import _fast
+from .kernels import warm
 from .config import VehicleSetup
 from .params import ParamTable
 from .vehicle import Vehicle, VehiclePorts
@@ -65,8 +65,8 @@ def main(argv=None) -> int:
         return 2
     # The compiled kernels loaded (or compiled) before the ports open, as firmware boots before the
     # simulator connects: not in the first ticks of the lockstep, where every link would wait for it.
-    seconds = _fast.warm_up()
-    if _fast.ENABLED:
+    seconds = warm.warm_up()
+    if warm.ENABLED:
         log.info("compiled kernels ready in %.1f s", seconds)
     if args.standby:
         log.info("standby: waiting for the start line on stdin")

@@ -37,8 +37,7 @@ from typing import Literal
 import numpy as np
 
 from companion.configfile import require_positive
-from companion.estimation.so3 import attitude_error, quat_to_rotmat, retract
-from companion.mavlink.frames import FRAME_CHANGE_QUATS
+from companion.estimation.so3 import attitude_error, retract
 from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
@@ -50,104 +49,24 @@ from companion.messages import (
     PoseTarget,
 )
 
-from companion.skeleton.body import GRAVITY_M_S2, GRAVITY_W_M_S2, LinkInertia
+from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 
 from .allocation import AllocationParams, Allocator
-from . import _fast
-from .control import ControlIntegrals, ImpedanceGains, impedance_control, impedance_control_compiled, weight_wrench
-from .ekf import X_BG, X_P, EkfConfig, EkfNoise, LinkEkf
+from .controllers import ImpedanceController, ImpedanceGains, make_controller, weight_wrench
+from .controllers.hybrid import ContactTarget, HybridGains, ObserverConfig
+from .controllers.pspm import PspmGains, PspmModulator
+from .controllers.se3_control import Se3PidGains
+from .estimators import X_BG, X_P, EkfConfig, GpsHealth, GpsHealthConfig, LinkEkf, outdoor_ekf_config
 from .events import StatusEvent
-from .gps_health import GpsHealth, GpsHealthConfig
-from .hybrid import (ContactTarget, HybridController, HybridGains, MomentumObserver, ObserverConfig,
-                     contact_force_estimate, contact_pfaffian)
-from .se3_control import Se3PidController, Se3PidGains
+from .fused import TAKEOFF_HEIGHT_M, FusedTicks
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
-from .pspm import PspmGains, PspmModulator, PspmSlave
 
-__all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware", "outdoor_ekf_config", "m8_ekf_config", "EKF_TUNINGS"]
-
-#: eq. 1 as the fast loop runs it: compiled (:mod:`._fast`, numba installed) or the numpy specification;
-#: the EKF and the allocator choose the same way
-_IMPEDANCE = impedance_control_compiled if _fast.ENABLED else impedance_control
+__all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
 
 log = logging.getLogger(__name__)
 
-TAKEOFF_HEIGHT_M = 0.15  # above the arming height: the land detector's take-off
 TAKEOFF_SPEED_M_S = 0.5  # armed faster than this: already in flight
-
-
-def outdoor_ekf_config() -> EkfConfig:
-    """EKF tuning for the SITL ``outdoor`` sensor profile (MEMS IMU, M8-class GPS, AHRS).
-
-    The filter estimates position, velocity, attitude and the IMU biases; the companion receives
-    the marginal 9x9 covariance of ``[p~; v~; dtheta]``. The GPS position drift (0.5 m below
-    0.1 Hz) and the AHRS drift (2 deg) are not white: fused at 10 / 50 Hz as if they were, a
-    filter tuned to the white noise alone claims far less error than it has (measured on a 60 s
-    three_link flight: time-averaged NEES per 3-dof block of 4.5-11 for position and 31 for
-    attitude, where 3 is consistent). The correlated parts are therefore carried in the noise
-    this filter assumes: a GPS position variance of 0.6 m^2 (white 0.15 / 0.3 m plus the drift
-    seen over the filter's memory) and the process noise that keeps the estimate following the
-    drift (position 8e-4 m^2/s). The attitude reference's tilt and heading are set apart
-    (``att_yaw_*``): the tilt is also held by gravity through the accelerometers and the GPS
-    velocity, so its reference variance is 0.003 rad^2 and its process density 3e-5 rad^2/s,
-    while the heading, held by the reference alone, carries its 3 deg white noise and 2 deg
-    drift: 0.015 rad^2 and 1.2e-4 rad^2/s. GPS velocity variance is the receiver's white
-    0.05 m/s (0.0025 m^2/s^2), with 3e-5 m^2/s^3 process noise (the accelerometer's white
-    noise is 5e-6: 0.05 m/s^2 per 500 Hz sample; the rest stands for the accelerometer bias and
-    the tilt error that the propagation turns into velocity error).
-
-    Calibrated with the Monte Carlo NEES (``python -m sitl.bench nees``, 10 seeds of 60 s
-    three_link) and the per-axis ratio error^2 / variance: with one attitude variance for all
-    axes (0.015 rad^2, 1.2e-4 rad^2/s) the tilt's covariance was 2.6 times its error (ratio
-    0.38) and the heading's right (0.93), and the velocity block inherited the over-stated tilt
-    (NEES 1.9-2.2 with the receiver's variance); with the tilt at 0.0015 rad^2 and 1e-5 rad^2/s
-    it turned over-confident, and the horizontal velocity with it (ratios 1.3-1.6 and 1.7-1.9,
-    NEES velocity 4.0-4.7). The velocity process noise was 6e-5 at first: the seed-averaged
-    velocity NEES was then 2.8-3.1 for the EKF and 2.9 corrected, but single flights read low
-    (three_link seed 1: corrected 2.30-2.39, under its bands from 2.32-2.41); with 3e-5 the ten
-    seeds read 3.0-3.2 / 3.0 and that flight 2.4-2.5 (bands from 2.29-2.39). Figures with this
-    tuning: README, "SITL batch mode". Before any of it (white-noise tuning): NEES position
-    6.3-9.4, velocity 1.6-3.5, attitude 15-50, and a true tracking error of 13 cm where it is now
-    9 cm on three_link.
-    """
-    return EkfConfig(
-        noise=EkfNoise(
-            pos_m2_s=8e-4, vel_m2_s3=3e-5, att_rad2_s=3e-5, accel_bias_m2_s5=1e-6, gyro_bias_rad2_s3=1e-8,
-            att_yaw_rad2_s=1.2e-4,
-        ),
-        gps_pos_var_m2=0.6,
-        gps_vel_var_m2_s2=0.0025,
-        att_var_rad2=0.003,
-        att_yaw_var_rad2=0.015,
-        heading_var_rad2=0.04,
-        init_pos_var_m2=1.0,
-        init_vel_var_m2_s2=0.1,
-        init_att_var_rad2=3e-3,
-        init_accel_bias_var=2.5e-3,
-        init_gyro_bias_var=1e-5,
-    )
-
-
-def m8_ekf_config() -> EkfConfig:
-    """EKF tuning for a standalone u-blox M8-class receiver (the SITL ``m8`` profile).
-
-    Such a receiver errs by metres, slowly: a bias that nearby receivers share (1.8 m per axis
-    horizontal, 2.7 m vertical, over about 5 min) plus its own (0.8 / 1.2 m over about 60 s), on
-    top of 0.1 / 0.2 m of white noise. Nothing on a link can tell that bias from its position
-    (only an RTK base or a map could), so the filter follows the receiver, bias and all, with
-    :func:`outdoor_ekf_config`'s gains, and says so: the bias's variance (0.8^2 + 1.8^2 = 3.9 m^2
-    horizontal, 1.2^2 + 2.7^2 = 8.7 m^2 vertical) is added to the position covariance it reports
-    (``gps_bias_var_m2``), not to the gains. Following the bias's wander faster (position process
-    noise at its diffusion, 0.06 m^2/s, with the white noise's 0.04 m^2 as the GPS variance) made
-    the estimate jump with it and crashed a three_link flight (seed 2, 26 s): the gains stay.
-    Measured on three_link 40 s, seeds 1 and 2: position NEES 2.6-5.4 (outdoor's tuning: 1900-3600);
-    velocity 3.8-7.4, as with outdoor's tuning (the receiver's correlated velocity error)."""
-    return replace(outdoor_ekf_config(), gps_bias_var_m2=(3.9, 8.7))
-
-
-#: Named EKF tunings (:func:`outdoor_ekf_config`, :func:`m8_ekf_config`), by the receiver they suit
-EKF_TUNINGS = {"outdoor": outdoor_ekf_config, "m8": m8_ekf_config}
 
 
 @dataclass(frozen=True)
@@ -202,8 +121,9 @@ class CorrectionRejected(ValueError):
     """A correction outside the configured bounds (counted and reported by the shell)."""
 
 
-class LinkFirmware:
-    """One link's flight controller (see the module docstring for the event interface)."""
+class LinkFirmware(FusedTicks):
+    """One link's flight controller (see the module docstring for the event interface; the fused
+    ticks, :class:`~.fused.FusedTicks`, run its common case in one kernel call)."""
 
     def __init__(
         self, link: int, config: FirmwareConfig, inertia: LinkInertia, geometry: RotorGeometry
@@ -217,8 +137,6 @@ class LinkFirmware:
         self._arm_height_m = 0.0
         self._thrust_total_n = 0.0
         self._airborne = False
-        self.integrals = ControlIntegrals()
-        self._kernel_const: tuple | None = None  # _tick_fused's packed configuration
         self.target: PoseTarget | None = None
         self._target_time_s = -math.inf
         self._hold: PoseTarget | None = None
@@ -238,21 +156,37 @@ class LinkFirmware:
         self.thrust_limit = ThrustLimit(config.thrust_limit)
         #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
         self.events: list[StatusEvent] = []
+        self._init_fused()
         self._make_controller()
 
     def _make_controller(self) -> None:
-        """The selected controller other than eq. 1 (``None`` for the impedance controller), the
-        observer (hybrid only) and the commanded contact."""
+        """The selected controller (:func:`~.controllers.make_controller`; the hybrid one with its
+        observer and, at first, no contact) and PSPM's modulator (``pspm_mode = "on"``)."""
         cfg = self.config
-        self._controller = (Se3PidController(cfg.se3_pid, self.inertia) if cfg.controller == "se3_pid" else
-                            HybridController(cfg.hybrid, self.inertia) if cfg.controller == "hybrid" else None)
-        self.observer = MomentumObserver(cfg.observer, self.inertia) if cfg.controller == "hybrid" else None
-        self.contact: ContactTarget | None = None
         #: PSPM's modulator (``pspm_mode = "on"``) and the last operator set pose it modulated
         self.pspm = PspmModulator(cfg.pspm) if cfg.pspm_mode == "on" else None
         self.operator_target: PoseTarget | None = None
-        if cfg.pspm_mode != "off":  # the slave law of sec. 2.3.4 replaces the selected controller
-            self._controller, self.observer = PspmSlave(cfg.pspm, self.inertia.mass_kg, self.pspm), None
+        self._controller = make_controller(cfg, self.inertia, self.pspm)
+
+    @property
+    def controller(self):
+        """The pose controller the firmware runs (:class:`~.controllers.base.Controller`)."""
+        return self._controller
+
+    @property
+    def observer(self):
+        """The controller's momentum observer (the hybrid controller's), else ``None``."""
+        return self._controller.observer
+
+    @property
+    def contact(self) -> ContactTarget | None:
+        """The commanded contact of the hybrid controller (``None``: none, or another controller)."""
+        return getattr(self._controller, "contact", None)
+
+    @property
+    def integrals(self):
+        """The controller's integrals (eq. 1's: :class:`~.controllers.impedance.ControlIntegrals`)."""
+        return getattr(self._controller, "integrals", None)
 
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
@@ -266,6 +200,8 @@ class LinkFirmware:
         self.config = config
         if rebuild:
             self._make_controller()
+        elif isinstance(self._controller, ImpedanceController) and self._controller.gains != config.gains:
+            self._controller.gains = config.gains  # (eq. 1's integrals kept)
 
     # -- estimator -------------------------------------------------------------------
     @property
@@ -405,7 +341,7 @@ class LinkFirmware:
             raise ValueError("no contact under PSPM teleoperation (SKL_PSPM_EN): the slave law runs")
         if contact is not None and not contact.force_n <= self.config.contact_max_force_n:
             raise ValueError(f"force {contact.force_n:g} N > bound {self.config.contact_max_force_n:g} N")
-        self.contact = contact
+        self._controller.contact = contact
 
     def external_wrench_report(self) -> ExternalWrench | None:
         """The observer's estimate as streamed (SKELETON_EXTERNAL_WRENCH); ``None`` without an observer."""
@@ -424,7 +360,7 @@ class LinkFirmware:
             return None
         if self.ekf is None:
             return self.observer.wrench_e, np.zeros(0)
-        return self.observer.wrench_e, self._contact_estimate(self.ekf.q_wxyz)
+        return self.observer.wrench_e, self._controller.contact_estimate(self.ekf.q_wxyz)
 
     def pspm_report(self) -> tuple[float, float, float] | None:
         """PSPM's reservoirs ``(E_t, E_r)`` [J] and how far the modulated set position lags the
@@ -475,11 +411,7 @@ class LinkFirmware:
         if self.armed:
             return True
         self.armed = True
-        self.integrals = ControlIntegrals()
-        if self._controller is not None:
-            self._controller.reset()
-        if self.observer is not None:
-            self.observer.reset()
+        self._controller.reset()
         self.allocator.reset()
         p, v, _ = self.control_estimate(t_s)
         self._arm_height_m = float(p[2])
@@ -554,220 +486,18 @@ class LinkFirmware:
         omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
         target = self._active_target(t_s, p)
         ctrl = self._controller
-        if ctrl is None:  # the one dispatch point: eq. 1 (default), sec. 2.3.2 or sec. 2.3.3
-            U, self.integrals = _IMPEDANCE(
-                p, v, q, omega, target, self.config.gains, self.inertia, self.integrals, dt
-            )
-        elif self.observer is None:
-            U = ctrl(p, v, q, omega, target, dt)
-        else:
-            U = ctrl(p, v, q, omega, target, self.contact, self._contact_estimate(q), dt)
+        U = ctrl(p, v, q, omega, target, dt)  # eq. 1 (default), sec. 2.3.2, 2.3.3 or 2.3.4's slave law
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
         if not self._airborne and p[2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True  # take-off detected: a disarm now needs the force value
         command = self.allocator.command(U, weight_wrench(self.inertia, q))  # at the limit, the weight kept
         self.events.extend(self.thrust_limit.on_tick(t_s, dt, self.allocator.saturated, self.allocator.scale))
-        if self.observer is not None:
-            self._observe(v, q, omega, command, dt)
+        if ctrl.observer is not None:  # with the wrench the clipped commands produce
+            ctrl.observe(v, q, omega, self.allocator.mapping_matrix @ command, dt)
         return command
 
     def _tick_dt(self, t_s: float) -> float:
         """The step since the last tick; the nominal ``1 / rate_hz`` when not positive (the first
-        tick, a repeated stamp). :func:`._fast.hil_loop_kernel` steps its ticks the same way."""
+        tick, a repeated stamp). The lockstep loop's kernel steps its ticks the same way."""
         dt = t_s - self.time_s
         return 1.0 / self.config.rate_hz if dt <= 0.0 else dt
-
-    def _contact_estimate(self, q_wxyz) -> np.ndarray:
-        if self.contact is None:
-            return np.zeros(0)
-        return contact_force_estimate(contact_pfaffian(self.contact, quat_to_rotmat(q_wxyz)), self.observer.wrench_e)
-
-    def _observe(self, v, q_wxyz, omega, command_n, dt: float) -> None:
-        """Momentum observer step with the wrench the clipped commands produce, ``[R B_f l; B_tau l]``."""
-        U = self.allocator.mapping_matrix @ command_n
-        self.observer.step(v, omega, np.concatenate((quat_to_rotmat(q_wxyz) @ U[:3], U[3:])), dt)
-
-    #: run :meth:`on_imu`'s common case as one compiled kernel (:meth:`_tick_fused`); ``False`` on an
-    #: instance: every tick through the step-by-step path (the two agree: ``tests/test_fast_paths.py``)
-    fused_tick: bool = _fast.ENABLED
-
-    def _tick_fused(self, t_s: float, dt: float, gyro_b_rad_s, accel_b_m_s2) -> np.ndarray | None:
-        """:meth:`on_imu`'s common case (armed, eq. 1's controller, a fresh target) by
-        :func:`._fast.tick_kernel`: the EKF's propagation, the control estimate, eq. 1 and the
-        allocation in one call (with measurements queued: the propagation and the updates first,
-        as the step-by-step path runs them), with the same state changes as the step-by-step path.
-        ``None`` (nothing changed) in any other case, or without the compiled kernels. The packed
-        arrays the kernel reads are kept per object (targets at 50 Hz, gains and the inertia when
-        they change), not rebuilt at 500 Hz. A tick with an attitude reference alone queued (the
-        attitude reference's ticks between GPS fixes) runs the propagation, the update and the
-        tick as one call too (:func:`._fast.attitude_tick_kernel`)."""
-        if not self._fused_applies(t_s):
-            return None
-        ekf = self.ekf
-        gyro = np.array(gyro_b_rad_s, dtype=float)
-        accel = np.asarray(accel_b_m_s2, dtype=float)
-        out = np.empty(_fast.TICK_OUT_SIZE)
-        predict = not self._pending
-        if not predict:
-            pending = self._pending
-            if len(pending) == 1 and pending[0][0] == "att" and dt > 0.0:  # an attitude reference alone
-                q = np.asarray(pending[0][1][0], dtype=float)
-                if q.shape == (4,):
-                    x, P, status = _fast.attitude_tick_kernel(ekf.x, ekf.P, q, *self._kernel_consts()[-1], gyro,
-                                                              accel, dt, *self._fused_args(t_s), out)
-                    if status >= 0:  # (else the steps below raise the specification's error)
-                        ekf.x, ekf.P = x, P
-                        ekf.count_attitude(int(status == 1), int(status == 0))
-                        pending.clear()
-                        return self._fused_done(t_s, dt, gyro, out)
-            ekf.predict(gyro, accel, dt)
-            self.time_s = t_s
-            self._apply_pending()
-        ekf.x, ekf.P = _fast.tick_kernel(ekf.x, ekf.P, predict, gyro, accel, dt, *self._fused_args(t_s), out)
-        return self._fused_done(t_s, dt, gyro, out)
-
-    def _fused_applies(self, t_s: float) -> bool:
-        """The fused tick's case: armed, eq. 1's controller without the observer, a fresh target."""
-        target = self.target
-        return (self.fused_tick and self.armed and self._controller is None and self.observer is None
-                and target is not None and t_s - self._target_time_s <= self.config.target_stale_s)
-
-    def _kernel_consts(self) -> tuple:
-        """What the kernels read from the configuration and the inertia, packed once (again when
-        one of the three is replaced): ``(config, ekf config, inertia, densities, baro_density,
-        gains, inertia packed, (the attitude update's covariance, gate))``."""
-        const, ekf = self._kernel_const, self.ekf
-        if const is None or const[0] is not self.config or const[1] is not ekf.config or const[2] is not self.inertia:
-            noise = ekf.config.noise
-            const = self._kernel_const = (self.config, ekf.config, self.inertia, noise.densities, noise.baro_bias_m2_s,
-                                          _fast.packed(self.config.gains, _fast.pack_gains),
-                                          _fast.packed(self.inertia, _fast.pack_inertia), ekf.attitude_kernel_args())
-        return const
-
-    def _fused_args(self, t_s: float) -> tuple:
-        """:func:`._fast.tick_kernel`'s arguments after ``dt_s`` and before ``out``."""
-        wgt = self.correction_weight(t_s)
-        corr = _fast.packed(self.correction, _fast.pack_correction) if wgt > 0.0 else _NO_CORRECTION
-        _, _, _, densities, baro_density, gains, inertia, _ = self._kernel_consts()
-        integrals = self.integrals
-        return (densities, baro_density, _GRAVITY_W, wgt, corr, _fast.packed(self.target, _fast.pack_target), gains,
-                inertia, integrals.pos, integrals.att, GRAVITY_M_S2, *self.allocator.kernel_args())
-
-    def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """The state the fused tick leaves outside ``x, P`` (its ``out``, :data:`._fast.TICK_OUT`);
-        returns the thrust commands."""
-        self.ekf.last_gyro_b_rad_s = gyro
-        self.time_s = t_s
-        self.events.extend(self.gps_health.on_tick(t_s))
-        self.integrals = ControlIntegrals(out[_OUT_POS_INT], out[_OUT_ATT_INT])
-        if not out[_OUT_FINITE]:
-            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[_OUT_U]!r}")
-        self._thrust_total_n = float(out[_OUT_FORCE_NORM])
-        if not self._airborne and out[_OUT_P_CTRL_Z] - self._arm_height_m > TAKEOFF_HEIGHT_M:
-            self._airborne = True
-        alloc = self.allocator
-        alloc.scale, alloc.saturated = float(out[_OUT_SCALE]), bool(out[_OUT_SATURATED])
-        self.events.extend(self.thrust_limit.on_tick(t_s, dt, alloc.saturated, alloc.scale))
-        return out[_OUT_COMMAND]
-
-    def on_hil_record(self, t_s: float, record: np.ndarray, answer: np.ndarray, thrust_max_n: float, mode: int,
-                      answered=None, ahrs: np.ndarray | None = None) -> np.ndarray | None:
-        """:meth:`on_imu`'s fused case (armed, eq. 1, a fresh target) with no measurement queued,
-        straight from a same-host simulator-link record to its answer record, by
-        :func:`._fast.hil_tick_kernel`: ``record`` (uint8) one HIL_SENSOR of sample time ``t_s``
-        (after a SKELETON_AHRS_REFERENCE on the attitude reference's ticks: :meth:`on_attitude`'s
-        update, counted by the EKF; ``ahrs``, when given, gets :data:`._fast.AHRS_OUT`),
-        ``answer`` (uint8) gets the HIL_ACTUATOR_CONTROLS (``thrust_max_n``, ``mode``), and
-        ``answered(answer)``, when given, is called as soon as it is written and its wrench found
-        finite, before the tick's bookkeeping (integrals, health and thrust-limit monitors): the
-        simulator is not kept waiting for what does not change the answer. Returns the thrust
-        commands; ``None`` (nothing changed or written) in any other case, for a record the kernel
-        leaves to the decoding path, or without the compiled kernels. The vehicle's shell calls it;
-        the record layouts are :data:`._fast.HIL_SENSOR_RECORD` / ``HIL_ACTUATOR_RECORD``, which
-        :mod:`.simlink` checks against the dialect."""
-        if self.ekf is None or self._pending or not self._fused_applies(t_s):
-            return None
-        dt = self._tick_dt(t_s)
-        gyro, out, ekf = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), self.ekf
-        ahrs = np.zeros(_fast.AHRS_OUT_SIZE) if ahrs is None else ahrs
-        ahrs[:] = 0.0
-        x, P, taken = _fast.hil_tick_kernel(record, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, dt,
-                                            *self._fused_args(t_s), *self._kernel_consts()[-1], FRAME_CHANGE_QUATS,
-                                            ahrs, out)
-        if not taken:
-            return None
-        ekf.x, ekf.P = x, P
-        ekf.count_attitude(int(ahrs[_AHRS_ACCEPTED]), int(ahrs[_AHRS_REJECTED]))
-        if answered is not None and out[_OUT_FINITE]:
-            answered(answer)
-        return self._fused_done(t_s, dt, gyro, out)
-
-    #: let the vehicle run its quiet lockstep ticks in :func:`._fast.hil_loop_kernel` (:meth:`on_hil_loop`);
-    #: ``False`` on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/test_simlink.py``)
-    hil_loop: bool = _fast.ENABLED
-
-    def on_hil_loop(self, pfd: np.ndarray, n_fds: int, timeout_ms: int, max_ticks: int, buf: np.ndarray,
-                    answer: np.ndarray, thrust_max_n: float, mode: int, due_us: int, answered,
-                    ahrs: np.ndarray, framing: np.ndarray | None = None, rec: np.ndarray | None = None,
-                    frame: np.ndarray | None = None) -> tuple | None:
-        """The vehicle's lockstep over quiet ticks (:func:`._fast.hil_loop_kernel`, the waits and the
-        socket calls in it): each is :meth:`on_hil_record`'s tick, answered through the simulator's
-        socket (``pfd``'s first descriptor) from ``answer``, with the bookkeeping left out that such a
-        tick does not change. The newest tick's bookkeeping is done here (``answered(answer)`` first
-        if the kernel did not send it), as :meth:`on_hil_record` does it, and stands for the ticks
-        before it. ``due_us``: the vehicle's next stream or log row (a tick at or after it is the
-        last). ``ahrs`` gets :data:`._fast.AHRS_OUT` (the attitude references fused, counted by the
-        EKF). ``framing`` (:data:`._fast.FRAMING`, with the buffers ``rec`` and ``frame``): the
-        simulator's link is PX4's TCP link, MAVLink 2 frames on a stream (``None``: the same-host
-        link's records). Returns ``(status, ticks, sent, t_us, packet, taken_bytes)`` (:data:`._fast.LOOP_INFO`); ``None``
-        (nothing waited for or changed) unless the case holds: armed, eq. 1, a target, no
-        measurement or event queued, the GPS and thrust-limit monitors quiet."""
-        if not (self.hil_loop and self.ekf is not None and not self._pending and not self.events
-                and not self.gps_health.fault and self.thrust_limit.quiet and self._fused_applies(self.time_s)):
-            return None
-        ekf, cfg = self.ekf, self.config
-        corr = self.correction
-        corr_time = math.nan if corr is None else self._correction_time_s
-        corr_arr = _NO_CORRECTION if corr is None else _fast.packed(corr, _fast.pack_correction)
-        args = self._fused_args(self.time_s)  # (the kernel weighs the correction itself, tick by tick)
-        densities, baro_density, gravity_w, _, _, tgt, gains, inertia, pos, att, gravity, *alloc = args
-        pos, att = pos.copy(), att.copy()  # updated in place by the kernel
-        gyro, out, info = np.empty(3), np.empty(_fast.TICK_OUT_SIZE), np.zeros(_fast.LOOP_INFO_SIZE)
-        ahrs[:] = 0.0
-        if framing is None:  # (records: the frame buffers are not touched)
-            framing, rec, frame = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64), _NO_BYTES, _NO_BYTES
-        x, P = _fast.hil_loop_kernel(
-            pfd, n_fds, timeout_ms, max_ticks, buf, thrust_max_n, mode, answer, gyro, ekf.x, ekf.P, self.time_s,
-            1.0 / cfg.rate_hz, self._target_time_s, cfg.target_stale_s, corr_time, cfg.correction_hold_s,
-            cfg.correction_stale_s, self.gps_health.last_fix_s, self.gps_health.config.timeout_s, due_us,
-            math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M, densities, baro_density,
-            gravity_w, corr_arr, tgt, gains, inertia, pos, att, gravity, *alloc, *self._kernel_consts()[-1],
-            FRAME_CHANGE_QUATS, ahrs, out, info, framing, rec, frame)
-        status, ticks, sent, t_us, packet, taken_bytes = (int(info[k]) for k in (0, 1, 2, 3, 5, 6))
-        if ticks:
-            ekf.x, ekf.P = x, P
-            ekf.count_attitude(int(ahrs[_AHRS_ACCEPTED]), int(ahrs[_AHRS_REJECTED]))
-            t_s = t_us * 1e-6
-            if sent < ticks and out[_OUT_FINITE]:
-                answered(answer)
-            self._fused_done(t_s, float(info[4]), gyro, out)
-        return status, ticks, sent, t_us, packet, taken_bytes
-
-
-_OUT_COMMAND = _fast.TICK_OUT["command"]
-_OUT_U = _fast.TICK_OUT["U"]
-_OUT_POS_INT = _fast.TICK_OUT["pos_int"]
-_OUT_ATT_INT = _fast.TICK_OUT["att_int"]
-_OUT_FORCE_NORM = _fast.TICK_OUT["force_norm"]
-_OUT_P_CTRL_Z = _fast.TICK_OUT["p_ctrl"].start + 2
-_OUT_FINITE = _fast.TICK_OUT["finite"]
-_OUT_SCALE = _fast.TICK_OUT["scale"]
-_OUT_SATURATED = _fast.TICK_OUT["saturated"]
-_AHRS_ACCEPTED = _fast.AHRS_OUT["accepted"]
-_AHRS_REJECTED = _fast.AHRS_OUT["rejected"]
-
-
-_NO_BYTES = np.zeros(0, dtype=np.uint8)  # the frame buffers of the lockstep loop over records (unused)
-_NO_CORRECTION = np.zeros(9)
-_NO_CORRECTION.setflags(write=False)  # as a packed correction: one compiled signature
-_GRAVITY_W = np.array(GRAVITY_W_M_S2, dtype=float)

@@ -205,7 +205,7 @@ AHRS_NORM_TOLERANCE = 1e-3
 
 def decode_ahrs(msg) -> tuple[float, np.ndarray]:
     """``(time [s], q body FLU to ENU)``; the quaternion normalised, its norm summed in order
-    (``w, x, y, z``: the vehicle's record tick, :func:`._fast.hil_tick_kernel`, gives the same numbers)."""
+    (``w, x, y, z``: the vehicle's record tick, :func:`.kernels.tick.hil_tick_kernel`, gives the same numbers)."""
     q = _check("SKELETON_AHRS_REFERENCE.q", msg.q)
     w, x, y, z = q.tolist()
     n = math.sqrt(w * w + x * x + y * y + z * z)

@@ -20,17 +20,17 @@ decoders: units, frames and value checks are the same code on both links, only t
 differs (``python -m sitl.bench sitl`` measures both). One exception, with the same bytes and
 numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick), or a
 SKELETON_AHRS_REFERENCE record and one (the attitude reference's ticks), to its answer record in
-one compiled call (``Vehicle._tick_record``, :func:`._fast.hil_tick_kernel`), at the offsets
-:data:`._fast.HIL_SENSOR_RECORD` / ``HIL_AHRS_RECORD`` / ``HIL_ACTUATOR_RECORD``, which this module
+one compiled call (``Vehicle._tick_record``, :func:`.kernels.tick.hil_tick_kernel`), at the offsets
+:data:`.kernels.hil_records.HIL_SENSOR_RECORD` / ``HIL_AHRS_RECORD`` / ``HIL_ACTUATOR_RECORD``, which this module
 checks against the dialect when it is imported; every other packet goes through the decoders. A run of
 such ticks, with the waits and the socket calls between them, is one compiled call too
-(``Vehicle._poll_loop``, :func:`._fast.hil_loop_kernel`: it receives into a buffer of
+(``Vehicle._poll_loop``, :func:`.kernels.lockstep.hil_loop_kernel`: it receives into a buffer of
 :data:`RECV_BYTES`, as :meth:`SimLinkPort.recv` does, and leaves any other packet to the decoders).
 
 The records are the frames' payloads, so PX4's TCP link uses them too: the vehicle's lockstep
 loop turns a read that is exactly a tick's whole MAVLink 2 frames into its records
-(:func:`._fast.frames_to_records`; the message ids, CRC extras and payload sizes of
-:data:`._fast.MAV_HIL_SENSOR` / ``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the
+(:func:`.kernels.mavlink_frames.frames_to_records`; the message ids, CRC extras and payload sizes of
+:data:`.kernels.mavlink_frames.MAV_HIL_SENSOR` / ``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the
 dialect here too) and its answer record into the frame pymavlink packs; the harness reads the
 answers so (:class:`SimulatorPort`). Every other read goes through pymavlink's parser.
 
@@ -63,8 +63,11 @@ from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import CountedPort, MavlinkPort, PortStats
 from companion.mavlink.transport import PortError, send_all
 from companion.mavlink.urls import open_transport
+from companion.kernels.jit import ENABLED as _COMPILED
 
-from . import _fast
+from .kernels.hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD
+from .kernels.mavlink_frames import (FRAMES_TO_SIMULATOR, FRAMING, FRAMING_SIZE, MAV_HIL_ACTUATOR, MAV_HIL_AHRS,
+                                     MAV_HIL_SENSOR, frames_to_records)
 
 __all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "SimulatorPort",
            "open_sim_port", "is_simlink_url"]
@@ -151,7 +154,7 @@ _BY_TAG = tuple(_LAYOUTS[name] for name in SIM_KINDS)
 
 
 def _check_compiled_layouts() -> None:
-    """The compiled record tick (:func:`._fast.hil_tick_kernel`) reads and writes the records at
+    """The compiled record tick (:func:`.kernels.tick.hil_tick_kernel`) reads and writes the records at
     fixed offsets: they must be this dialect's (a changed message definition fails here, at import,
     not as wrong numbers in flight). Checked on records this module packs, each field a distinct
     value read back at the kernel's offset."""
@@ -159,7 +162,7 @@ def _check_compiled_layouts() -> None:
     t_us, flags, bits, mode = 0x0102030405060708, 0x1112131415161718, 0x89ABCDEF, 0x5A
     imu = tuple(float(k) for k in range(1, 7))  # xacc..zacc, xgyro..zgyro (exact in float32)
     controls = tuple(float(k) for k in range(101, 117))
-    s, a, r = _fast.HIL_SENSOR_RECORD, _fast.HIL_ACTUATOR_RECORD, _fast.HIL_AHRS_RECORD
+    s, a, r = HIL_SENSOR_RECORD, HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD
     sensor = _LAYOUTS["HIL_SENSOR"].pack(D.MAVLink_hil_sensor_message(
         t_us, *imu, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, fields_updated=bits, id=0))
     ahrs = _LAYOUTS["SKELETON_AHRS_REFERENCE"].pack(D.MAVLink_skeleton_ahrs_reference_message(t_us, imu[:4]))
@@ -184,15 +187,15 @@ def _check_compiled_layouts() -> None:
         ("HIL_ACTUATOR_CONTROLS.mode", answer[a["mode"]], mode),
     ]
     by_name = {cls.msgname: cls for cls in D.mavlink_map.values()}
-    for name, frame in (("HIL_SENSOR", _fast.MAV_HIL_SENSOR), ("SKELETON_AHRS_REFERENCE", _fast.MAV_HIL_AHRS),
-                        ("HIL_ACTUATOR_CONTROLS", _fast.MAV_HIL_ACTUATOR)):  # ... and over TCP, their frames
+    for name, frame in (("HIL_SENSOR", MAV_HIL_SENSOR), ("SKELETON_AHRS_REFERENCE", MAV_HIL_AHRS),
+                        ("HIL_ACTUATOR_CONTROLS", MAV_HIL_ACTUATOR)):  # ... and over TCP, their frames
         cls = by_name[name]
         checks += [(f"{name}'s message id", cls.id, frame["msgid"]),
                    (f"{name}'s CRC extra", cls.crc_extra, frame["crc_extra"]),
                    (f"{name}'s payload size", cls.unpacker.size, frame["size"])]
     for name, have, want in checks:
         if have != want:
-            raise RuntimeError(f"link_firmware_sim._fast's simulator-link records do not match the dialect: "
+            raise RuntimeError(f"the kernels' simulator-link records do not match the dialect: "
                                f"{name} reads {have}, expected {want}")
 
 
@@ -423,7 +426,7 @@ class SimLinkPort(CountedPort):
 class SimulatorPort(MavlinkPort):
     """The simulator's end of PX4's TCP link, reading the vehicles' answers: a read that is exactly
     whole HIL_ACTUATOR_CONTROLS frames (unsigned, from the one vehicle heard, numbered on without a
-    gap, checksums good: :func:`._fast.frames_to_records`) is decoded from its records, as the
+    gap, checksums good: :func:`.kernels.mavlink_frames.frames_to_records`) is decoded from its records, as the
     same-host link's are (the same field values: the records are the frames' payloads); any other
     read, and every read while the port may not hand its stream over (:meth:`MavlinkPort.handover`)
     or without the compiled kernels, goes through pymavlink's parser with its checks and counters."""
@@ -432,10 +435,10 @@ class SimulatorPort(MavlinkPort):
         super().__init__(*args, **kwargs)
         self._buf = np.zeros(RECV_BYTES, dtype=np.uint8)
         self._records = np.zeros(RECV_BYTES, dtype=np.uint8)
-        self._framing = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
+        self._framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
 
     def read(self) -> list:
-        handover = self.handover() if _fast.ENABLED else None
+        handover = self.handover() if _COMPILED else None
         if handover is None:
             return super().read()
         fd, sender, last_seq = handover
@@ -448,8 +451,8 @@ class SimulatorPort(MavlinkPort):
         if n == 0:  # the peer closed, or an error: the transport's own read sees it
             return super().read()
         framing = self._framing
-        framing[:4] = (_fast.FRAMES_TO_SIMULATOR, *sender, last_seq)
-        m = _fast.frames_to_records(self._buf, n, self._records, framing)
+        framing[:4] = (FRAMES_TO_SIMULATOR, *sender, last_seq)
+        m = frames_to_records(self._buf, n, self._records, framing)
         if m < 0:
             return self.parse(self._buf[:n].tobytes())
         msgs = decode_packet(self._records[:m].tobytes(), self.accept)
@@ -459,7 +462,7 @@ class SimulatorPort(MavlinkPort):
         return msgs
 
 
-_SEQ_READ = _fast.FRAMING["seq_read"]
+_SEQ_READ = FRAMING["seq_read"]
 
 
 def open_sim_port(url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,

@@ -66,8 +66,8 @@ from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import KEY_LEN, UNSIGNED_ALLOWED, SigningConfig, write_key_file
 from companion.messages import Correction, PoseTarget
 
-from . import _fast
 from .firmware import CorrectionRejected, LinkFirmware
+from .fused import HilBuffers
 from .geo import GeoOrigin
 from .hil import (
     decode_ahrs,
@@ -77,6 +77,9 @@ from .hil import (
     encode_actuators,
     sitl_gps_time_us,
 )
+from .kernels.hil_records import HIL_SENSOR_RECORD, sensor_record_at
+from .kernels.lockstep import LOOP_PACKET
+from .kernels.mavlink_frames import FRAMES_TO_VEHICLE, FRAMING
 from .params import ParamTable
 from .simlink import RECV_BYTES, SimLinkPort, open_sim_port
 
@@ -101,11 +104,9 @@ FORCE_DISARM = 21196
 FEEDFORWARD_HOLD_MS = 100
 _LINK_NAMES = ("onboard", "gcs")
 # the same-host link's records the compiled tick reads and writes (checked against the dialect by .simlink)
-_SENSOR_TIME = _fast.HIL_SENSOR_RECORD["time_usec"]
-_AHRS_ACCEPTED, _AHRS_REJECTED, _AHRS_TIME, _AHRS_Q = _fast.AHRS_OUT.values()
-_ANSWER_RECORD_SIZE = _fast.HIL_ACTUATOR_RECORD["size"]
-_FRAMING_SEQ_IN, _FRAMING_SEQ_OUT = _fast.FRAMING["seq_in"], _fast.FRAMING["seq_out"]
-_FRAMING_SENT, _FRAMING_LENGTH = _fast.FRAMING["sent"], _fast.FRAMING["length"]
+_SENSOR_TIME = HIL_SENSOR_RECORD["time_usec"]
+_FRAMING_SEQ_IN, _FRAMING_SEQ_OUT = FRAMING["seq_in"], FRAMING["seq_out"]
+_FRAMING_SENT, _FRAMING_LENGTH = FRAMING["sent"], FRAMING["length"]
 #: the most quiet ticks one call of the lockstep loop runs (streams and log rows end it sooner)
 _LOOP_MAX_TICKS = 64
 _NEVER_US = 2**62
@@ -184,17 +185,11 @@ class Vehicle:
         self.fw.reconfigure(params.firmware_config())
         # The simulator link is the physics (PX4's simulator API): never signed.
         self.sim = open_sim_port(ports.sim, self.system_id, accept=HIL_ACCEPT)
-        # the same-host link's common tick, bytes to bytes (_tick_record): the answer's buffer
         self._records = isinstance(self.sim, SimLinkPort)
-        self._answer_record = np.zeros(_ANSWER_RECORD_SIZE, dtype=np.uint8)
-        self._ahrs_out = np.zeros(_fast.AHRS_OUT_SIZE)  # ... and the attitude references it fused
-        # ... and its lockstep loop's (_poll_loop): the receive buffer and the poll descriptors; over
-        # PX4's TCP link the MAVLink 2 framing (sequence numbers), the records and the answer's frame
-        self._loop_buf = np.zeros(RECV_BYTES, dtype=np.uint8)
-        self._loop_fds = np.zeros(2 * 3, dtype=np.int32)
-        self._framing = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
-        self._loop_records = np.zeros(RECV_BYTES, dtype=np.uint8)
-        self._loop_frame = np.zeros(_fast.FRAME_BYTES, dtype=np.uint8)
+        # the compiled record tick's (_tick_record) and lockstep loop's (_poll_loop) buffers: the answer,
+        # the receive buffer, the poll descriptors, over PX4's TCP link the MAVLink 2 framing (sequence
+        # numbers), and what the kernels report
+        self._hil = HilBuffers(thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED, RECV_BYTES)
         self.endpoints = []
         for link_id, (name, url) in enumerate(zip(_LINK_NAMES, (ports.onboard, ports.gcs))):
             if not url:
@@ -463,14 +458,13 @@ class Vehicle:
         (``tests/test_fast_paths.py``) without a message object on the way. ``False`` (nothing
         changed) for any other packet: the caller decodes it."""
         rec = np.frombuffer(data, dtype=np.uint8)
-        at = _fast.sensor_record_at(rec, len(rec))
+        at = sensor_record_at(rec, len(rec))
         if at < 0:
             return False
         t_us = int.from_bytes(data[at + _SENSOR_TIME:at + _SENSOR_TIME + 8], "little")
         t_s = seconds(t_us)
         # (a record it takes is answered through send_packet before the tick's bookkeeping)
-        if self.fw.on_hil_record(t_s, rec, self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED,
-                                 self.sim.send_packet, self._ahrs_out) is None:
+        if self.fw.on_hil_record(t_s, rec, self._hil, answered=self.sim.send_packet) is None:
             return False
         self.fc_time_us, self.fc_time_s = t_us, t_s
         self.sim.count("HIL_SENSOR")
@@ -479,13 +473,12 @@ class Vehicle:
         return True
 
     def _ahrs_fused(self) -> None:
-        """The attitude references a compiled tick fused (``_ahrs_out``): counted on the link, the
-        newest kept, as :meth:`_on_hil` does with one it decodes."""
-        a = self._ahrs_out
-        n = int(a[_AHRS_ACCEPTED] + a[_AHRS_REJECTED])
-        if n:
-            self.sim.count("SKELETON_AHRS_REFERENCE", n)
-            self._last_ahrs = (seconds(int(a[_AHRS_TIME])), a[_AHRS_Q].copy())
+        """The attitude references a compiled tick fused (:meth:`HilBuffers.ahrs`): counted on the
+        link, the newest kept, as :meth:`_on_hil` does with one it decodes."""
+        accepted, rejected, t_us, q = self._hil.ahrs()
+        if accepted + rejected:
+            self.sim.count("SKELETON_AHRS_REFERENCE", accepted + rejected)
+            self._last_ahrs = (seconds(t_us), q.copy())
 
     def _poll_loop(self, timeout_s: float) -> bool:
         """The simulator link's quiet ticks in one compiled call (:meth:`LinkFirmware.on_hil_loop`:
@@ -496,7 +489,7 @@ class Vehicle:
         frames while the port may hand its stream over (:meth:`MavlinkPort.handover`) and gives
         the sequence numbers back. ``False`` (nothing waited for) when the case does not hold;
         :meth:`poll` then waits as usual."""
-        framing = self._framing
+        framing = self._hil.framing
         if self._records:
             conn = self.sim.conn
             if conn is None:
@@ -507,10 +500,10 @@ class Vehicle:
             if handover is None:
                 return False
             sim_fd, sender, last_seq = handover
-            framing[:7] = (_fast.FRAMES_TO_VEHICLE, *sender, last_seq, self.system_id, self.sim.mav.srcComponent,
+            framing[:7] = (FRAMES_TO_VEHICLE, *sender, last_seq, self.system_id, self.sim.mav.srcComponent,
                            self.sim.mav.seq)
             answered = self._answer_rest
-        fds = self._loop_fds
+        fds = self._hil.fds
         fds[0] = sim_fd
         for k, ep in enumerate(self.endpoints, 1):
             fds[2 * k] = ep.port.fileno()
@@ -519,10 +512,9 @@ class Vehicle:
             return False  # (a serial port waiting to reopen)
         due = self._streams_due_us if self.out_dir is None else min(self._streams_due_us, self._log.next_us)
         due = int(min(due, _NEVER_US))  # (no stream at all: inf; the kernel takes an integer)
-        frames = () if self._records else (framing, self._loop_records, self._loop_frame)
-        res = self.fw.on_hil_loop(fds, n_fds, max(int(timeout_s * 1e3), 0), _LOOP_MAX_TICKS, self._loop_buf,
-                                  self._answer_record, self.thrust_max_n, D.MAV_MODE_FLAG_SAFETY_ARMED, due,
-                                  answered, self._ahrs_out, *frames)
+        frames = not self._records
+        res = self.fw.on_hil_loop(self._hil, n_fds=n_fds, timeout_ms=max(int(timeout_s * 1e3), 0),
+                                  max_ticks=_LOOP_MAX_TICKS, due_us=due, answered=answered, frames=frames)
         if res is None:
             return False
         status, ticks, sent, t_us, packet, taken_bytes = res
@@ -535,8 +527,8 @@ class Vehicle:
             self.sim.sent(sent)
             self.fc_time_us, self.fc_time_s = t_us, seconds(t_us)
             self._after_tick()
-        if status == _fast.LOOP_PACKET:  # received, not taken: as poll takes a packet
-            data = self._loop_buf[:packet].tobytes()
+        if status == LOOP_PACKET:  # received, not taken: as poll takes a packet
+            data = self._hil.buf[:packet].tobytes()
             if self._records:
                 self.sim.received(packet)
                 self._on_sim_packet(data)
@@ -548,9 +540,9 @@ class Vehicle:
     def _answer_rest(self, _answer) -> None:
         """The lockstep loop's answer frame over TCP, the part its send did not take (all of it
         after EAGAIN or an error): the port writes it as it writes a frame it packed."""
-        framing = self._framing
+        framing = self._hil.framing
         start = max(int(framing[_FRAMING_SENT]), 0)
-        self.sim.send_frame(self._loop_frame[start:int(framing[_FRAMING_LENGTH])].tobytes())
+        self.sim.send_frame(self._hil.frame[start:int(framing[_FRAMING_LENGTH])].tobytes())
 
     def _on_sim_packet(self, data: bytes) -> None:
         """A same-host link's packet: the record tick (:meth:`_tick_record`), else its messages

@@ -36,7 +36,7 @@ from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle, tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
-from link_firmware_sim import _fast
+from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
@@ -58,7 +58,7 @@ def warm_up_kernels() -> float:
     """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors') compiled,
     or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba)."""
     t0 = time.perf_counter()
-    _fast.warm_up()
+    _firmware_kernels.warm_up()
     _companion_kernels.warm_up()
     warm_up_rotors()
     return time.perf_counter() - t0

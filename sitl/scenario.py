@@ -20,7 +20,7 @@ import numpy as np
 from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
-from link_firmware_sim.firmware import m8_ekf_config, outdoor_ekf_config
+from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
 
 from .bench.ekf_chain import rate_divisor
 from .camera_config import CameraMount, MarkerMount
@@ -321,7 +321,7 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
 
 
 def with_profile_ekf(scenario: Scenario) -> Scenario:
-    """``scenario`` with the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.firmware.m8_ekf_config`)
+    """``scenario`` with the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.estimators.tunings.m8_ekf_config`)
     if its sensors are the ``m8`` profile and ``[firmware.ekf]`` left the default (``outdoor``)
     tuning as it is: the default is tuned for ``outdoor``'s decimetre-level drift, and with
     ``m8``'s metre-level biases it would claim about a hundredth of its position error."""

@@ -126,7 +126,7 @@ class SensorModel:
     GPS and attitude white noise are the paper's Table I measurement noise; drifts are
     the sec. IV low-frequency biases (sinusoids below 0.1 Hz, 0.5 m and 5 deg amplitude
     along a random axis per link). IMU noise is MEMS grade: Table I's process noise is the
-    filter's tuning (see :class:`link_firmware_sim.ekf.EkfNoise`), not a sensor property.
+    filter's tuning (see :class:`link_firmware_sim.estimators.ekf_config.EkfNoise`), not a sensor property.
     """
 
     gps_pos_var_m2: float = 0.1

@@ -1,5 +1,5 @@
 """The optional barometer and magnetometer: their sensor models (sitl.sensors), their HIL_SENSOR
-fields (link_firmware_sim.hil) and their fusion in the link EKF (link_firmware_sim.ekf)."""
+fields (link_firmware_sim.hil) and their fusion in the link EKF (link_firmware_sim.estimators)."""
 
 import math
 
@@ -8,7 +8,7 @@ import pytest
 
 from companion.estimation.so3 import attitude_error, quat_from_euler_zyx, quat_normalize, quat_to_rotmat, retract
 from companion.mavlink.dialect import load_dialect
-from link_firmware_sim.ekf import (
+from link_firmware_sim.estimators.ekf import (
     E_BARO,
     E_PZ,
     E_TH,
@@ -20,7 +20,6 @@ from link_firmware_sim.ekf import (
     X_Q,
     EkfConfig,
     EkfNoise,
-    LinkEkf,
     ekf_add_baro_offset,
     ekf_init,
     ekf_predict,
@@ -28,6 +27,7 @@ from link_firmware_sim.ekf import (
     ekf_update_mag_heading,
     mag_heading_jacobian,
 )
+from link_firmware_sim.estimators import LinkEkf
 from link_firmware_sim.geo import MAG_DECLINATION_RAD, MAG_FIELD_NED_GAUSS, pressure_altitude_m, pressure_hpa_at
 from link_firmware_sim.hil import (
     HIL_SENSOR_BARO,

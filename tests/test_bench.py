@@ -8,7 +8,7 @@ import pytest
 
 from companion.estimation.sckf import CAParams
 from companion.estimation.so3 import quat_from_rotvec, quat_mul
-from link_firmware_sim.ekf import EkfConfig
+from link_firmware_sim.estimators import EkfConfig
 from sitl.bench.ekf_chain import (
     ChainRun,
     EkfStream,

@@ -570,7 +570,8 @@ def test_a_partial_table_keeps_the_fields_default_not_the_class_defaults():
     # the real case: one EKF key in [firmware.ekf] keeps the rest of outdoor_ekf_config
     from dataclasses import replace
 
-    from link_firmware_sim.firmware import FirmwareConfig, outdoor_ekf_config
+    from link_firmware_sim.estimators import outdoor_ekf_config
+    from link_firmware_sim.firmware import FirmwareConfig
 
     cfg = build(FirmwareConfig, {"ekf": {"gps_pos_var_m2": 0.7}}, file="f")
     assert cfg.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)

@@ -4,33 +4,18 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import quat_normalize, quat_to_rotmat
+from companion.kernels.jit import ENABLED
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
-from link_firmware_sim.control import ControlIntegrals, ImpedanceGains, impedance_control, vee
+from link_firmware_sim.controllers.impedance import (ControlIntegrals, ImpedanceController, ImpedanceGains,
+                                                     impedance_control)
 
 
-def _eq1_reference(p, v, q, w, target, gains, inertia, integrals, dt):
-    """Paper eq. 1 (with the stabilising signs) written directly in numpy: the oracle."""
-    R, Rd = quat_to_rotmat(q), quat_to_rotmat(target.q_wxyz)
-    J = np.diag(inertia.inertia_kgm2)
-    m = inertia.mass_kg
-    e_p = p - target.p_w_m
-    pos_int = np.clip(integrals.pos + e_p * dt, -gains.pos_integral_limit_ms, gains.pos_integral_limit_ms)
-    f = (m * GRAVITY_M_S2 * np.array([0, 0, 1.0]) + m * target.a_w_m_s2
-         - np.array(gains.kd_ns_m) * (v - target.v_w_m_s) - np.array(gains.kp_n_m) * e_p
-         - np.array(gains.ki_n_ms) * pos_int + target.force_ff_w_n)
-    e_R = vee(Rd.T @ R - R.T @ Rd)
-    w_db = R.T @ Rd @ target.omega_d_rad_s
-    e_w = w - w_db
-    att_int = np.clip(integrals.att + (e_w + gains.gamma_I * e_R) * dt,
-                      -gains.att_integral_limit_rad, gains.att_integral_limit_rad)
-    tau = (np.cross(w, J @ w) - gains.kR_nm * e_R - gains.kw_nms * e_w - gains.kI_nm_s * att_int
-           - J @ (np.cross(w, w_db) - R.T @ Rd @ target.omega_dot_d_rad_s2) + R.T @ Rd @ target.torque_ff_b_nm)
-    return np.concatenate((R.T @ f, tau)), pos_int, att_int
-
-
+@pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
 @pytest.mark.parametrize("seed", range(20))
-def test_controller_equals_eq1(seed):
+def test_the_kernel_computes_eq1(seed):
+    """Eq. 1's kernel (the impedance controller, compiled) against its specification
+    (impedance_control), integrals beyond their limits and the whole-chain feed-forward included."""
     rng = np.random.default_rng(seed)
     gains = ImpedanceGains(kp_n_m=(11.0, 9.0, 13.0), kd_ns_m=(8.0, 7.0, 9.0), ki_n_ms=(0.5, 0.4, 0.3),
                            pos_integral_limit_ms=0.05, att_integral_limit_rad=0.02, pos_error_limit_m=100.0)
@@ -40,11 +25,13 @@ def test_controller_equals_eq1(seed):
                         *(rng.normal(size=3) if seed % 2 else np.zeros(3) for _ in range(2)))
     integrals = ControlIntegrals(rng.normal(scale=0.03, size=3), rng.normal(scale=0.01, size=3))
     args = (rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3))
-    U, ints = impedance_control(*args, target, gains, inertia, integrals, 0.01)
-    U_ref, pos_ref, att_ref = _eq1_reference(*args, target, gains, inertia, integrals, 0.01)
+    U_ref, ints_ref = impedance_control(*args, target, gains, inertia, integrals, 0.01)
+    ctrl = ImpedanceController(gains, inertia, compiled=True)
+    ctrl.integrals = integrals
+    U = ctrl(*args, target, 0.01)
     np.testing.assert_allclose(U, U_ref, atol=1e-12)
-    np.testing.assert_allclose(ints.pos, pos_ref, atol=1e-15)
-    np.testing.assert_allclose(ints.att, att_ref, atol=1e-15)
+    np.testing.assert_allclose(ctrl.integrals.pos, ints_ref.pos, atol=1e-15)
+    np.testing.assert_allclose(ctrl.integrals.att, ints_ref.att, atol=1e-15)
 
 
 @pytest.mark.parametrize("seed", range(10))
@@ -62,9 +49,10 @@ def test_the_position_error_is_limited(seed):
         far = PoseTarget(p + distance * direction, quat_normalize(rng.normal(size=4)), *rng.normal(size=(4, 3)))
         near = replace(far, p_w_m=p + min(distance, 1.5) * direction)
         U, ints = impedance_control(p, v, q, w, far, gains, inertia, integrals, 0.01)
-        U_ref, pos_ref, att_ref = _eq1_reference(p, v, q, w, near, gains, inertia, integrals, 0.01)
+        unlimited = replace(gains, pos_error_limit_m=1e9)
+        U_ref, ints_ref = impedance_control(p, v, q, w, near, unlimited, inertia, integrals, 0.01)
         np.testing.assert_allclose(U, U_ref, atol=1e-9)
-        np.testing.assert_allclose(ints.pos, pos_ref, atol=1e-12)
+        np.testing.assert_allclose(ints.pos, ints_ref.pos, atol=1e-12)
     with pytest.raises(ValueError, match="pos_error_limit_m"):
         ImpedanceGains(pos_error_limit_m=0.0)
 

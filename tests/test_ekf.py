@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import attitude_error, quat_distance, quat_normalize, retract, yaw_from_quat
-from link_firmware_sim.ekf import (
+from link_firmware_sim.estimators.ekf import (
     E_BA,
     E_BG,
     E_P,
@@ -16,7 +16,6 @@ from link_firmware_sim.ekf import (
     X_V,
     EkfConfig,
     EkfNoise,
-    LinkEkf,
     ekf_init,
     ekf_predict,
     ekf_update_attitude,
@@ -27,6 +26,7 @@ from link_firmware_sim.ekf import (
     heading_jacobian,
     inject_error,
 )
+from link_firmware_sim.estimators import LinkEkf
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
 
 
@@ -201,7 +201,8 @@ def test_config_is_validated():
 
 @pytest.mark.parametrize("block", [E_P, E_V, E_TH])
 def test_block_update_equals_the_general_joseph_update(block):
-    from link_firmware_sim.ekf import _update, _update_block
+    from link_firmware_sim.estimators.ekf import kalman_update as _update
+    from link_firmware_sim.estimators.ekf import kalman_update_block as _update_block
 
     rng = np.random.default_rng(7)
     A = rng.normal(size=(NE, NE))
@@ -222,7 +223,7 @@ def test_tilt_and_heading_take_their_own_noise_and_the_class_agrees_with_the_fun
     """``att_yaw_*``: the heading axis of the world-frame attitude error gets its own process
     density and reference variance; a reference that is off in tilt and heading by the same angle
     corrects the tilt far more when the heading is the noisier, as the functional update does."""
-    from link_firmware_sim.ekf import E_TH, EkfConfig, EkfNoise, LinkEkf, attitude_variance, ekf_update_attitude
+    from link_firmware_sim.estimators.ekf import E_TH, EkfConfig, EkfNoise, attitude_variance, ekf_update_attitude
     from companion.estimation.so3 import quat_from_rotvec
 
     noise = EkfNoise(att_rad2_s=1e-5, att_yaw_rad2_s=4e-4)

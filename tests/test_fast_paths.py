@@ -1,5 +1,6 @@
-"""Oracle tests: the compiled kernels (link_firmware_sim._fast, sitl.rotor) against the numpy
-specification on random inputs (seeded), agreeing to 1e-12.
+"""Oracle tests: the compiled kernels (link_firmware_sim.kernels, sitl.rotor) against the numpy
+specification on random inputs (seeded), agreeing to 1e-12 (the companion's:
+``tests/test_companion_kernels.py``).
 
 Without numba (an onboard install) the compiled path is the numpy one and these tests are skipped;
 with it, the first run compiles the kernels (about 20 s on a 2-core VM, then cached on disk).
@@ -18,13 +19,19 @@ from companion.estimation.so3 import quat_normalize, quat_to_rotmat
 from companion.messages import PoseTarget
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
-from link_firmware_sim import _fast
-from link_firmware_sim import ekf as E
+from companion.kernels.jit import ENABLED
+from link_firmware_sim import fused as fused_ticks
 from link_firmware_sim.allocation import AllocationParams, Allocator
-from link_firmware_sim.control import ControlIntegrals, ImpedanceGains, impedance_control, impedance_control_compiled
+from link_firmware_sim.controllers.impedance import (ControlIntegrals, ImpedanceController, ImpedanceGains,
+                                                     impedance_control)
+from link_firmware_sim.estimators import ekf as E
+from link_firmware_sim.estimators import link_ekf
+from link_firmware_sim.fused import HilBuffers
+from link_firmware_sim.kernels import hil_records
+from link_firmware_sim.kernels.layouts import IO_AHRS_ACCEPTED, IO_AHRS_Q
 from sitl.rotor import RotorBank
 
-pytestmark = pytest.mark.skipif(not _fast.ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
+pytestmark = pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
 
 TOL = dict(rtol=1e-12, atol=1e-12)
 N_CASES = 40
@@ -64,12 +71,12 @@ def test_predict_matches_numpy(baro):
         gyro, accel = rng.normal(size=3) * rng.choice([1e-9, 1.0]), rng.normal(size=3) * 5
         dt, noise = rng.uniform(1e-4, 0.02), _noise(rng)
         xa, Pa = E.ekf_predict(x, P, gyro, accel, dt, noise)
-        xb, Pb = E._predict_compiled(x, P, gyro, accel, dt, noise)
+        xb, Pb = link_ekf.predict(x, P, gyro, accel, dt, E.EkfConfig(noise=noise), compiled=True)
         np.testing.assert_allclose(xb, xa, **TOL)
         np.testing.assert_allclose(Pb, Pa, **TOL)
         np.testing.assert_array_equal(Pb, Pb.T)
     with pytest.raises(ValueError, match="dt_s"):
-        E._predict_compiled(x, P, gyro, accel, 0.0, noise)
+        link_ekf.predict(x, P, gyro, accel, 0.0, E.EkfConfig(noise=noise), compiled=True)
 
 
 @pytest.mark.parametrize("kind", ["position", "velocity", "attitude", "heading", "baro", "mag"])
@@ -80,19 +87,19 @@ def test_updates_match_numpy(kind):
         x, P = _state(rng, baro=kind == "baro")
         gate = rng.choice([0.5, 5.0])  # a tight gate rejects some
         if kind == "position":
-            args, fn = (x[E.X_P] + rng.normal(size=3), rng.uniform(0.01, 1.0), gate), E._position
+            m = E.position_measurement(x, x[E.X_P] + rng.normal(size=3), rng.uniform(0.01, 1.0))
         elif kind == "velocity":
-            args, fn = (x[E.X_V] + rng.normal(size=3), rng.uniform(0.01, 1.0, size=3), gate), E._velocity
+            m = E.velocity_measurement(x, x[E.X_V] + rng.normal(size=3), rng.uniform(0.01, 1.0, size=3))
         elif kind == "attitude":
-            args, fn = (quat_normalize(x[E.X_Q] + 0.5 * rng.normal(size=4)), rng.uniform(1e-3, 0.1), gate), E._attitude
+            m = E.attitude_measurement(x, quat_normalize(x[E.X_Q] + 0.5 * rng.normal(size=4)), rng.uniform(1e-3, 0.1))
         elif kind == "heading":
-            args, fn = (rng.uniform(-np.pi, np.pi), rng.uniform(1e-3, 0.1), gate), E._heading
+            m = E.heading_measurement(x, rng.uniform(-np.pi, np.pi), rng.uniform(1e-3, 0.1))
         elif kind == "baro":
-            args, fn = (x[2] + x[16] + rng.normal(), rng.uniform(1e-3, 0.1), gate, rng.choice([0.0, 1.0])), E._baro
+            m = E.baro_measurement(x, x[2] + x[16] + rng.normal(), rng.uniform(1e-3, 0.1), rng.choice([0.0, 1.0]))
         else:
-            args, fn = (rng.normal(size=3), rng.uniform(-0.3, 0.3), rng.uniform(1e-3, 0.1), gate), E._mag_heading
-        ref = fn(x, P, *args, E._NUMPY)
-        _same_update(ref, fn(x, P, *args, E._COMPILED))
+            m = E.mag_heading_measurement(x, rng.normal(size=3), rng.uniform(-0.3, 0.3), rng.uniform(1e-3, 0.1))
+        ref = E.kalman_apply(x, P, m, gate)  # the specification
+        _same_update(ref, link_ekf.fuse(x, P, m, gate, compiled=True))
         accepted += ref[2].accepted
         rejected += not ref[2].accepted
     assert accepted and rejected  # both branches compared
@@ -103,7 +110,7 @@ def test_link_ekf_class_agrees_with_functions():
     rng = np.random.default_rng(5)
     cfg = E.EkfConfig(noise=_noise(rng))
     q0 = quat_normalize(rng.normal(size=4))
-    fast = E.LinkEkf(np.zeros(3), np.zeros(3), q0, cfg, compiled=True)
+    fast = link_ekf.LinkEkf(np.zeros(3), np.zeros(3), q0, cfg, compiled=True)
     x, P = E.ekf_init(np.zeros(3), np.zeros(3), q0, cfg)
     for k in range(60):
         g, a = rng.normal(size=3) * 0.1, rng.normal(size=3) + [0, 0, 9.8]
@@ -137,7 +144,9 @@ def test_impedance_control_matches_numpy():
         args = (rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4)), rng.normal(size=3),
                 _target(rng), gains, inertia, integ, rng.uniform(1e-4, 0.02))
         Ua, ia = impedance_control(*args)
-        Ub, ib = impedance_control_compiled(*args)
+        ctrl = ImpedanceController(gains, inertia, compiled=True)
+        ctrl.integrals = integ
+        Ub, ib = ctrl(*args[:5], args[-1]), ctrl.integrals
         np.testing.assert_allclose(Ub, Ua, **TOL)
         np.testing.assert_allclose(ib.pos, ia.pos, **TOL)
         np.testing.assert_allclose(ib.att, ia.att, **TOL)
@@ -209,7 +218,7 @@ def test_attitude_update_kernel_matches_numpy():
         x, P = _state(rng, baro=k % 4 == 0)
         cfg = E.EkfConfig(att_var_rad2=rng.uniform(1e-3, 0.1), att_yaw_var_rad2=rng.choice([None, 0.02]),
                           gate_sigma=rng.choice([0.5, 5.0]))
-        fast, ref = (E.LinkEkf(np.zeros(3), np.zeros(3), [1.0, 0, 0, 0], cfg, compiled=c) for c in (True, False))
+        fast, ref = (link_ekf.LinkEkf(np.zeros(3), np.zeros(3), [1.0, 0, 0, 0], cfg, compiled=c) for c in (True, False))
         for e in (fast, ref):
             e.x, e.P = x.copy(), P.copy()
         z = x[E.X_Q] + rng.uniform(0.01, 1.5) * rng.normal(size=4)  # not normalised: the update normalises
@@ -274,8 +283,8 @@ def test_fused_tick_matches_step_by_step(monkeypatch):
     rng = np.random.default_rng(23)
     fused, stepwise = _firmware_pair()
     by_attitude_kernel = []
-    kernel = _fast.attitude_tick_kernel
-    monkeypatch.setattr(_fast, "attitude_tick_kernel", lambda *a: by_attitude_kernel.append(1) or kernel(*a))
+    kernel = fused_ticks.attitude_tick_kernel
+    monkeypatch.setattr(fused_ticks, "attitude_tick_kernel", lambda *a: by_attitude_kernel.append(1) or kernel(*a))
     taken = []
     plain = fused._tick_fused
 
@@ -339,8 +348,8 @@ def test_record_tick_matches_the_decoding_path():
     from link_firmware_sim import hil
     from link_firmware_sim.simlink import decode_packet, encode_packet
 
-    assert _fast.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
-    assert _fast.AHRS_NORM_TOLERANCE == hil.AHRS_NORM_TOLERANCE
+    assert hil_records.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
+    assert hil_records.AHRS_NORM_TOLERANCE == hil.AHRS_NORM_TOLERANCE
     rng = np.random.default_rng(29)
     record, decoding = _firmware_pair()
     decoding.fused_tick = True  # its ticks through on_imu (fused when it can: the same kernel's numbers)
@@ -372,11 +381,12 @@ def test_record_tick_matches_the_decoding_path():
         t_s, g, a = hil.decode_hil_sensor(decoded[-1])
         expected = decoding.on_imu(t_s, g, a)
         expected_answer = encode_packet([hil.encode_actuators(t_s, expected, tmax, True)])
-        answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
-        fused = np.full(_fast.AHRS_OUT_SIZE, 7.0)  # (zeroed by the call)
+        buffers = HilBuffers(tmax, 128, 1025)
+        answer = buffers.answer
+        buffers.io[IO_AHRS_ACCEPTED:IO_AHRS_Q + 4] = 7.0  # (zeroed by the call)
         handed, last_s = [], record.time_s  # the answer, handed over before the tick's bookkeeping
-        command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128,
-                                       lambda ans: handed.append((ans.tobytes(), record.time_s)), fused)
+        command = record.on_hil_record(t_s, np.frombuffer(packet, dtype=np.uint8), buffers,
+                                       lambda ans: handed.append((ans.tobytes(), record.time_s)))
         if command is None:  # measurements queued: the decoding path, nothing written
             assert record._pending and not answer.any() and not handed, f"tick {k}"
             if reference is not None:
@@ -387,14 +397,14 @@ def test_record_tick_matches_the_decoding_path():
             assert answer.tobytes() == expected_answer, f"tick {k}"
             assert handed == [(expected_answer, last_s)] and last_s < t_s == record.time_s, f"tick {k}"
             clipped += int(np.any(np.abs(expected) > tmax))
-            out = _fast.AHRS_OUT
+            accepted, rejected, t_us, q = buffers.ahrs()
             if reference is None:
-                assert not fused.any(), f"tick {k}"
+                assert accepted == rejected == 0, f"tick {k}"
             else:  # counted, and the reference as the decoder gives it
-                references += fused[[out["accepted"], out["rejected"]]].astype(int)
-                assert fused[out["accepted"]] + fused[out["rejected"]] == 1, f"tick {k}"
-                assert seconds(int(fused[out["t_us"]])) == reference[0], f"tick {k}"
-                np.testing.assert_array_equal(fused[out["q"]], reference[1], err_msg=f"tick {k}")
+                references += (accepted, rejected)
+                assert accepted + rejected == 1, f"tick {k}"
+                assert seconds(t_us) == reference[0], f"tick {k}"
+                np.testing.assert_array_equal(q, reference[1], err_msg=f"tick {k}")
         assert (record.ekf.accepted, record.ekf.rejected) == (decoding.ekf.accepted, decoding.ekf.rejected)
         np.testing.assert_array_equal(command, expected, err_msg=f"tick {k}")
         np.testing.assert_array_equal(record.ekf.x, decoding.ekf.x)
@@ -428,234 +438,75 @@ def test_record_tick_matches_the_decoding_path():
     left.append(encode_packet([sample])[:-1])
     before = (record.ekf.x.copy(), record.ekf.P.copy(), record.time_s, record.allocator.xi_pre.copy())
     for packet in left:
-        answer = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
-        assert record.on_hil_record(t, np.frombuffer(packet, dtype=np.uint8), answer, tmax, 128) is None
-        assert not answer.any()
+        buffers = HilBuffers(tmax, 128, 1025)
+        assert record.on_hil_record(t, np.frombuffer(packet, dtype=np.uint8), buffers) is None
+        assert not buffers.answer.any()
         for x, y in zip((record.ekf.x, record.ekf.P, record.time_s, record.allocator.xi_pre), before):
             np.testing.assert_array_equal(x, y)
     packet = np.frombuffer(encode_packet([sample]), dtype=np.uint8)
-    short = np.zeros(_fast.HIL_ACTUATOR_RECORD["size"] - 1, dtype=np.uint8)  # an answer buffer too small
-    assert record.on_hil_record(t, packet, short, tmax, 128) is None and not short.any()
+    short = HilBuffers(tmax, 128, 1025)
+    short.bufs = (*short.bufs[:3], np.zeros(hil_records.HIL_ACTUATOR_RECORD["size"] - 1, dtype=np.uint8))
+    short.answer = short.bufs[3]  # an answer buffer too small
+    assert record.on_hil_record(t, packet, short) is None and not short.answer.any()
     record.fused_tick = False
-    assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is None
+    assert record.on_hil_record(t, packet, HilBuffers(tmax, 128, 1025)) is None
     record.fused_tick = True
-    assert record.on_hil_record(t, packet, np.zeros(82, dtype=np.uint8), tmax, 128) is not None
-
-
-def test_cross_is_numpys():
-    """so3.cross: np.cross's numbers (exactly) for single vectors, stacks and broadcasts."""
-    from companion.estimation.so3 import cross
-
-    rng = np.random.default_rng(29)
-    for a_shape, b_shape in (((3,), (3,)), ((5, 3), (5, 3)), ((4, 3), (3,)), ((2, 1, 3), (1, 6, 3))):
-        a, b = rng.normal(size=a_shape), rng.normal(size=b_shape)
-        np.testing.assert_array_equal(cross(a, b), np.cross(a, b))
-
-
-def test_trajectory_poses_batch_is_pose():
-    """ChainTrajectory.poses (the five instants of a target in one evaluation) equals pose() per time."""
-    from companion.trajectory import ChainTrajectory, TrajectoryConfig
-
-    traj = ChainTrajectory(TrajectoryConfig(kind="bend", bend_start_s=1.0, bend_ramp_s=1.0), 4, 1.0, [0.0, 0.0, 0.3])
-    times = [0.5, 1.2, 2.0, 3.7, 9.1]
-    p, q, R = traj.poses(times)
-    for i, t in enumerate(times):
-        pi, qi = traj.pose(t)
-        np.testing.assert_array_equal(p[i], pi)
-        np.testing.assert_array_equal(q[i], qi)
-    np.testing.assert_array_equal(R, quat_to_rotmat(q))
-
-
-@pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
-@pytest.mark.parametrize("kind", ["bend", "figure8", "hover", "rest"])
-def test_trajectory_kernel_matches_numpy(n_links, kind):
-    """ChainTrajectory.target_arrays by the kernel equals its numpy specification: poses, attitudes,
-    velocity and acceleration to 1e-12 (here bit for bit, as it happens), the body rate to 1e-12,
-    its derivative to 1e-9 (central differences over h = 1 ms carry R's rounding, 1e-16 between the
-    two forms of R(q), as 1e-16 / h^2); random headings, pitches, link lengths, start points and
-    times before, during and after the take-off and the bend's ramp, ``targets`` on the kernel."""
-    from companion.trajectory import ChainTrajectory, TrajectoryConfig
-
-    rng = np.random.default_rng(n_links * 10 + len(kind))
-    for _ in range(10):
-        cfg = TrajectoryConfig(kind=kind, takeoff_start_s=rng.uniform(0, 2), takeoff_duration_s=rng.uniform(1, 6),
-                               takeoff_altitude_m=rng.uniform(1, 4), yaw_deg=rng.uniform(-180, 180),
-                               pitch_deg=rng.uniform(-30, 30), bend_start_s=rng.uniform(2, 8),
-                               bend_amplitude_deg=rng.uniform(5, 40), bend_period_s=rng.uniform(4, 12),
-                               bend_ramp_s=rng.uniform(0, 6), figure8_start_s=rng.uniform(2, 8))
-        traj = ChainTrajectory(cfg, n_links, rng.uniform(0.3, 2.0), rng.normal(size=3))
-        for t in rng.uniform(0, 30, size=8):
-            got, want = traj.target_arrays(t, compiled=True), traj.target_arrays(t, compiled=False)
-            for name, g, w, atol in zip(("p", "q", "R", "v", "a", "w", "w_dot"), got, want, [1e-12] * 6 + [1e-9]):
-                assert g.shape == w.shape, name
-                np.testing.assert_allclose(g, w, rtol=0, atol=atol, err_msg=name)
-            targets = traj.targets(t)
-            np.testing.assert_array_equal(np.array([x.omega_dot_d_rad_s2 for x in targets]), got[6])
+    assert record.on_hil_record(t, packet, HilBuffers(tmax, 128, 1025)) is not None
 
 
 def test_numpy_fallback_without_jit():
     """SKELETON_JIT=0 (as an install without numba): the numpy path runs, with one log line."""
     code = ("import logging; logging.basicConfig(level=logging.INFO)\n"
-            "from link_firmware_sim import _fast, ekf, allocation\n"
+            "from companion.kernels import jit\n"
+            "from link_firmware_sim.estimators import LinkEkf\n"
+            "from link_firmware_sim.controllers import ImpedanceController, ImpedanceGains\n"
+            "from companion.skeleton.body import LinkInertia\n"
             "import numpy as np\n"
-            "assert not _fast.ENABLED\n"
-            "e = ekf.LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]))\n"
-            "assert e._la is ekf._NUMPY\n")
+            "assert not jit.ENABLED\n"
+            "e = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]))\n"
+            "assert not e.compiled and ImpedanceController(ImpedanceGains(), LinkInertia(1.8, (0.1, 0.2, 0.2))).tick_state is None\n")
     env = dict(os.environ, SKELETON_JIT="0")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "numpy path runs" in out.stderr
 
 
-@pytest.mark.parametrize("n_links", [1, 2, 3, 5, 7])
-def test_feedforward_kernel_matches_numpy(n_links):
-    """companion.kernels.dynamics.feedforward_kernel (the chain's inverse dynamics after the passive joint
-    torques) against ChainModel.solve's numpy specification: random motions, every link flying and
-    with an end or a middle link passive, to 1e-12 of the largest wrench."""
-    pytest.importorskip("pinocchio")
-    from companion.skeleton.body import SkeletonConfig
-    from companion.skeleton.dynamics import ChainModel
+def test_the_warm_up_loads_every_signature_the_firmware_uses():
+    """link_firmware_sim.kernels.warm compiles each kernel for the argument types the firmware and
+    the vehicle pass: after it, a flight segment through every path (the EKF's updates with and
+    without the barometer's offset, the step-by-step and fused ticks, an attitude reference queued,
+    the record tick, the allocator and eq. 1 called alone) compiles nothing new."""
+    from companion.messages import Correction
+    from link_firmware_sim import hil
+    from link_firmware_sim.kernels import allocation, ekf, impedance, tick, warm
+    from link_firmware_sim.simlink import encode_packet
 
-    model = ChainModel(SkeletonConfig(n_links=n_links))
-    rng = np.random.default_rng(31 + n_links)
-    for _ in range(N_CASES // 2):
-        q = quat_normalize(rng.normal(size=(n_links, 4)))
-        motion = (rng.normal(size=(n_links, 3)) * 3, quat_to_rotmat(q), rng.normal(size=(n_links, 3)),
-                  rng.normal(size=(n_links, 3)), rng.normal(size=(n_links, 3)) * 5, rng.normal(size=(n_links, 3)) * 5)
-        for passive in {(), (0,), (n_links // 2,), (n_links - 1,)}:
-            spec = model.solve(*motion, passive=passive, compiled=False)
-            fast = model.solve(*motion, passive=passive, compiled=True)
-            scale = max(1.0, float(np.abs(spec.rotor_wrench_w).max()))
-            for name in ("force_ff_w_n", "torque_ff_w_nm", "joint_force_w_n", "joint_torque_w_nm", "rotor_wrench_w"):
-                np.testing.assert_allclose(getattr(fast, name), getattr(spec, name), rtol=0, atol=1e-12 * scale,
-                                           err_msg=f"{name}, passive {passive}")
-
-
-def _ekf_like_covariances(rng, n: int) -> np.ndarray:
-    """(n, 9, 9) random correlated covariances with an EKF's scales (position 0.1 m, velocity
-    0.05 m/s, attitude 0.02 rad)."""
-    sd = np.array([0.1] * 3 + [0.05] * 3 + [0.02] * 3)
-    A = rng.normal(size=(n, 9, 9))
-    corr = A @ np.swapaxes(A, 1, 2) + 9.0 * np.eye(9)
-    inv_sd = 1.0 / np.sqrt(np.einsum("nii->ni", corr))
-    return corr * inv_sd[:, :, None] * inv_sd[:, None, :] * sd[:, None] * sd[None, :]
-
-
-@pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
-@pytest.mark.parametrize("omega_std", [0.0, 0.02])
-def test_constraint_apply_kernel_matches_numpy(n_links, omega_std):
-    """companion.kernels.sckf.constraint_apply_kernel (Alg. 1 on one chain, with the body-rate noise gain)
-    against constraint_apply_dense's numpy specification on random chains: the same iteration
-    count and every output to 1e-12 of its largest entry."""
-    from companion.estimation.sckf import CAParams, constraint_apply_dense
-    from companion.estimation.semi import BATCH_DENSE_MAX_LINKS, local_constraint_apply
-
-    rng = np.random.default_rng(37 + n_links)
-    params = CAParams(omega_std_rad_s=omega_std)
-    iterations = []
-    for _ in range(N_CASES // 2):
-        spread = rng.choice([0.001, 0.05, 0.3])  # consistent to far off: one to many iterations
-        p = np.cumsum(np.tile([1.0, 0.0, 0.0], (n_links, 1)), axis=0) + rng.normal(size=(n_links, 3)) * spread
-        v = rng.normal(size=(n_links, 3)) * 0.3
-        q = quat_normalize(np.array([1.0, 0.0, 0.0, 0.0]) + rng.normal(size=(n_links, 4)) * spread)
-        w = rng.normal(size=(n_links, 3)) * 0.2
-        d = np.tile([0.5, 0.0, 0.0], (n_links, 1))
-        P = _ekf_like_covariances(rng, n_links)
-        spec = constraint_apply_dense(p, v, q, w, d, P, params, compiled=False)
-        fast = constraint_apply_dense(p, v, q, w, d, P, params, compiled=True)
-        assert fast.iterations == spec.iterations and fast.converged == spec.converged
-        iterations.append(spec.iterations)
-        for name in ("p", "v", "q", "P", "P_full", "P_ends", "W_ends", "residual_history"):
-            a, b = getattr(fast, name), getattr(spec, name)
-            if b is None:
-                assert a is None, name
-                continue
-            scale = max(float(np.abs(b).max()), 1e-300) if b.size else 1.0
-            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * scale, err_msg=name)
-        if n_links <= BATCH_DENSE_MAX_LINKS:  # the semi-distributed step's batched groups take the same path
-            (batched,) = local_constraint_apply(p, v, q, w, d, P, [list(range(n_links))], params)
-            np.testing.assert_array_equal(batched.P_full, fast.P_full)
-    if n_links > 1:
-        assert max(iterations) > 1  # the loop itself is exercised, not only the first iteration
-
-
-def _random_chain(rng, n_links: int, spread: float):
-    """A chain of ``n_links`` 1 m links along x, off its joints by about ``spread``: p, v, q, w, d, P."""
-    p = np.cumsum(np.tile([1.0, 0.0, 0.0], (n_links, 1)), axis=0) + rng.normal(size=(n_links, 3)) * spread
-    v = rng.normal(size=(n_links, 3)) * 0.3
-    q = quat_normalize(np.array([1.0, 0.0, 0.0, 0.0]) + rng.normal(size=(n_links, 4)) * spread)
-    w = rng.normal(size=(n_links, 3)) * 0.2
-    d = np.tile([0.5, 0.0, 0.0], (n_links, 1)) + rng.normal(size=(n_links, 3)) * 0.01
-    return p, v, q, w, d, _ekf_like_covariances(rng, n_links)
-
-
-@pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
-def test_joint_nis_kernel_matches_numpy(n_links):
-    """companion.kernels.gate.joint_nis_kernel against joint_nis's numpy specification on random chains,
-    from consistent to far off (NIS from about 1 to thousands): to 1e-12 of each value; a NaN
-    state gives NaN at its joints both ways, so the gate cuts them."""
-    from companion.estimation.gate import CHI2_6_1E6, GateParams, joint_nis
-
-    rng = np.random.default_rng(71 + n_links)
-    values = []
-    for k in range(N_CASES):
-        params = GateParams(gate_pos_m=rng.choice([0.01, 0.05]), gate_vel_m_s=rng.choice([0.1, 0.25]))
-        p, v, q, w, d, P = _random_chain(rng, n_links, rng.choice([0.001, 0.05, 0.3, 1.0]))
-        spec = joint_nis(p, v, q, w, d, P, params, compiled=False)
-        fast = joint_nis(p, v, q, w, d, P, params, compiled=True)
-        assert fast.shape == spec.shape == (n_links - 1,)
-        np.testing.assert_allclose(fast, spec, rtol=1e-12, atol=0)
-        values.extend(spec)
-    if n_links > 1:
-        assert min(values) < CHI2_6_1E6 < 10 * CHI2_6_1E6 < max(values)  # the inputs reach both sides of the gate
-        p[n_links // 2, 1] = np.nan
-        spec = joint_nis(p, v, q, w, d, P, compiled=False)
-        fast = joint_nis(p, v, q, w, d, P, compiled=True)
-        np.testing.assert_array_equal(np.isnan(fast), np.isnan(spec))
-        assert np.isnan(spec).any()
-
-
-@pytest.mark.parametrize("n_links", [1, 2, 3, 5])
-@pytest.mark.parametrize("omega_std", [0.0, 0.02])
-def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
-    """companion.kernels.semi.group_terms_kernel against local_boundary's specification (group_tip_terms
-    and group_boundary) after a local step on random groups, with and without the body-rate
-    noise (its end columns): tips, information, tip covariance and Cov(tau, x~_i) to 1e-12 of
-    their largest entry."""
-    from companion.estimation.sckf import CAParams, constraint_apply
-    from companion.estimation.semi import local_boundary
-
-    rng = np.random.default_rng(83 + n_links)
-    params = CAParams(omega_std_rad_s=omega_std)
-    with_rate_columns = 0
-    for _ in range(N_CASES // 2):
-        p, v, q, w, d, P = _random_chain(rng, n_links, rng.choice([0.001, 0.05, 0.3]))
-        local = constraint_apply(p, v, q, w, d, P, params)
-        with_rate_columns += local.W_ends is not None
-        spec_b, spec_y = local_boundary(local.p, local.v, local.q, w, d, local, compiled=False)
-        fast_b, fast_y = local_boundary(local.p, local.v, local.q, w, d, local, compiled=True)
-        names = ("left_tip", "right_tip", "info_pv", "tip_cov")
-        pairs = [(name, getattr(fast_b, name), getattr(spec_b, name)) for name in names]
-        for name, a, b in pairs + [("Y", fast_y, spec_y)]:
-            assert a.shape == b.shape, name
-            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(np.abs(b).max()), err_msg=name)
-        assert np.array_equal(fast_b.info_pv, fast_b.info_pv.T) and np.array_equal(fast_b.tip_cov, fast_b.tip_cov.T)
-    assert (with_rate_columns > 0) == (omega_std > 0 and n_links > 1)
-
-
-def test_kernel_arrays_pass_through_or_copy_to_one_layout():
-    """companion.kernels.jit.as_kernel_array: a C-contiguous writeable float64 array of the shape is
-    passed as is; anything else (read-only, transposed, broadcast, integer) becomes one, so every
-    kernel sees one array type (numba compiles again for a read-only array)."""
-    from companion.kernels.jit import as_kernel_array
-
-    x = np.zeros((2, 3))
-    assert as_kernel_array(x, (2, 3)) is x
-    ro = np.arange(6.0).reshape(2, 3)
-    ro.setflags(write=False)
-    for given, shape in ((ro, (2, 3)), (np.arange(6.0).reshape(3, 2).T, (2, 3)), ([0.5, 0, 0], (4, 3)),
-                         (np.arange(6).reshape(2, 3), (2, 3))):
-        out = as_kernel_array(given, shape)
-        assert out.shape == shape and out.dtype == np.float64 and out.flags.c_contiguous and out.flags.writeable
-        np.testing.assert_array_equal(out, np.broadcast_to(np.asarray(given, dtype=float), shape))
-        assert not np.shares_memory(out, np.asarray(given))
+    warm.warm_up()
+    kernels = (ekf.ekf_predict_kernel, ekf.update_block_kernel, ekf.update_rows_kernel, ekf.attitude_update_kernel,
+               impedance.impedance_kernel, allocation.allocate_kernel, tick.tick_kernel, tick.attitude_tick_kernel,
+               tick.hil_tick_kernel, hil_records.sensor_record_at)
+    before = [list(k.signatures) for k in kernels]
+    fw, stepwise = _firmware_pair()
+    z3, q = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+    accel = np.array([0.0, 0.0, 9.8])
+    for f in (fw, stepwise):
+        f.initialize(0.0, z3, z3, q)
+        f.arm(0.0)
+        f.set_target(0.0, PoseTarget.hold(z3, q))
+        for k in range(1, 4):
+            f.on_imu(0.002 * k, z3, accel)
+            f.on_correction(0.002 * k, Correction(0, 0.0, z3 + 0.01, z3, z3))
+            f.on_attitude(0.002 * k, q)
+            f.on_gps(0.002 * k, z3, z3)
+            f.on_baro(0.002 * k, 0.0)
+            f.on_mag(0.002 * k, np.array([0.2, 0.0, -0.4]))
+        f.on_imu(0.008, z3, accel)  # (the measurements queued last: applied)
+        f.ekf.update_heading(0.0)
+        f.hover_command(q)
+    rec = np.frombuffer(encode_packet([hil.encode_hil_sensor(0.01, accel, z3)]), dtype=np.uint8)
+    assert fw.on_hil_record(0.01, rec, HilBuffers(8.0, 128, 1025)) is not None
+    hil_records.sensor_record_at(rec, len(rec))
+    fw.allocator.allocate(np.array([0.0, 0.0, 17.6, 0.0, 0.0, 0.0]))
+    ImpedanceController(ImpedanceGains(), fw.inertia)(z3, z3, q, z3, PoseTarget.hold(z3, q), 0.002)
+    for k, sigs in zip(kernels, before):
+        assert list(k.signatures) == sigs, k.__name__

@@ -56,8 +56,7 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     [firmware.ekf] says otherwise."""
     from dataclasses import replace
 
-    from link_firmware_sim.ekf import E_P, LinkEkf, EkfConfig
-    from link_firmware_sim.firmware import m8_ekf_config, outdoor_ekf_config
+    from link_firmware_sim.estimators import E_P, EkfConfig, LinkEkf, m8_ekf_config, outdoor_ekf_config
     from sitl.scenario import load_scenario
 
     g = PROFILES["m8"].gps

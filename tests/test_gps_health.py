@@ -1,4 +1,4 @@
-"""Firmware GPS health (link_firmware_sim.gps_health) and its use in the firmware: faults on
+"""Firmware GPS health (link_firmware_sim.estimators.gps_health) and its use in the firmware: faults on
 rejected, drifting and missing fixes, recovery, the reset after the timeout without aiding, the
 link-state flag, and the EKF's position reset."""
 
@@ -8,9 +8,9 @@ import pytest
 from companion.messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, Correction
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
-from link_firmware_sim.ekf import E_P, E_V, X_P, EkfConfig, ekf_init, ekf_reset_position
+from link_firmware_sim.estimators.ekf import E_P, E_V, X_P, EkfConfig, ekf_init, ekf_reset_position
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
-from link_firmware_sim.gps_health import GpsHealth, GpsHealthConfig
+from link_firmware_sim.estimators.gps_health import GpsHealth, GpsHealthConfig
 
 GRAVITY_UP = np.array([0.0, 0.0, 9.80665])
 

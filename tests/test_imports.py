@@ -13,11 +13,11 @@ sys.meta_path.insert(0, Block())
 
 def test_estimation_core_imports_without_wire_or_sim_packages():
     code = BLOCKER + (
-        "import companion.estimation, link_firmware_sim.ekf, sitl.synthetic, sitl.bench.table2, companion.replay\n"
+        "import companion.estimation, link_firmware_sim.estimators.ekf, sitl.synthetic, sitl.bench.table2, companion.replay\n"
         "import companion.messages, companion.corrections, companion.fleetnet.codec, companion.fleetnet.leader\n"
         "import companion.fleetnet.config, companion.fleetnet.hub, companion.fleetnet.group, companion.motion.cpg\n"
         "import companion.engine, companion.config, companion.trajectory, companion.skeleton.kinematics\n"
-        "import link_firmware_sim.firmware, link_firmware_sim.allocation, link_firmware_sim.control\n"
+        "import link_firmware_sim.firmware, link_firmware_sim.allocation, link_firmware_sim.controllers\n"
         "print('ok')"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

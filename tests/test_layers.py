@@ -1,4 +1,6 @@
-"""The layers run one way: companion <- link_firmware_sim <- sitl (docs/architecture.md).
+"""The layers run one way: companion <- link_firmware_sim <- sitl (docs/architecture.md), and the
+compiled kernels are leaves: a module in a ``kernels`` folder imports only the standard library,
+numpy, numba (with its llvmlite) and other kernel modules.
 
 Every import statement of every module is read from its source (module level or inside a
 function, absolute or relative), so an import added anywhere fails here.
@@ -59,6 +61,37 @@ def violations(package: str, forbidden: set[str]) -> list[str]:
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
 def test_no_import_runs_upward(package):
     assert violations(package, FORBIDDEN[package]) == []
+
+
+#: what a kernel module may import besides the standard library and other kernel modules
+KERNEL_ALLOWED = {"numpy", "numba", "llvmlite"}
+PACKAGES = ("companion", "link_firmware_sim", "sitl")
+
+
+def kernel_violations(root: Path = ROOT) -> list[str]:
+    """Imports of modules in a ``kernels`` folder that are not the standard library, numpy, numba
+    (llvmlite) or another kernel module."""
+    bad = []
+    for package in PACKAGES:
+        for path in sorted((root / package).rglob("kernels/**/*.py")):
+            for line, name in imported_modules(path, root):
+                top = name.split(".")[0]
+                if top in sys.stdlib_module_names or top in KERNEL_ALLOWED or "kernels" in name.split(".")[1:]:
+                    continue
+                bad.append(f"{path.relative_to(root)}:{line} imports {name}")
+    return bad
+
+
+def test_kernels_import_only_kernels():
+    assert kernel_violations() == []
+
+
+def test_the_kernel_check_sees_a_kernel_that_imports_its_caller(tmp_path):
+    kernels = tmp_path / "link_firmware_sim" / "kernels"
+    kernels.mkdir(parents=True)
+    (kernels / "k.py").write_text("import math\nimport numpy as np\nfrom companion.kernels.jit import jit\n"
+                                  "from . import layouts\nfrom ..firmware import LinkFirmware\n")
+    assert kernel_violations(tmp_path) == ["link_firmware_sim/kernels/k.py:5 imports link_firmware_sim.firmware"]
 
 
 def test_the_check_sees_relative_and_function_level_imports(tmp_path):
@@ -130,7 +163,7 @@ def test_a_vehicle_and_a_daemon_start_without_scipys_optimizer_or_lapack():
 def test_the_simulator_loads_matplotlib_only_to_write_plots():
     """``sitl fly`` and ``sitl launch`` import matplotlib after the flight, when they write its
     plots (not with ``--no-plots``): the harness flies without it (0.3 s of start-up, 28 MB)."""
-    code = ("import sitl.__main__, sitl.fleet, sitl.fly, sitl.runner\n"
+    code = ("import sitl.__main__, sitl.fleet.launcher, sitl.scenarios.chain.flight, sitl.runner\n"
             "assert 'matplotlib' not in sys.modules\n"
             "print('ok')")
     proc = run_blocked(code, ("matplotlib",))

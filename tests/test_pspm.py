@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat
-from link_firmware_sim.pspm import (
+from link_firmware_sim.controllers.pspm import (
     HapticGains,
     PspmGains,
     PspmModulator,

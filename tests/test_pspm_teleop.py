@@ -13,7 +13,8 @@ from companion.messages import PoseTarget
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
-from link_firmware_sim.pspm import PspmSlave, pspm_init, pspm_update, slave_wrench
+from link_firmware_sim.controllers import ImpedanceController
+from link_firmware_sim.controllers.pspm import PspmSlave, pspm_init, pspm_update, slave_wrench
 from link_firmware_sim.vehicle import PSPM_DEBUG_NAME
 
 from .test_vehicle import Rig
@@ -51,7 +52,7 @@ def test_firmware_modulates_an_operator_jump_as_the_functional_api_does():
 def test_the_slave_law_drives_the_rotors_and_books_dissipation():
     fw = _armed("on")
     fw.set_target(0.002, PoseTarget.hold(np.array([1.0, 0.0, 2.0]), LEVEL))
-    assert isinstance(fw._controller, PspmSlave) and fw.observer is None
+    assert isinstance(fw.controller, PspmSlave) and fw.observer is None
     cmd = fw.on_imu(0.004, np.zeros(3), GRAVITY_SPECIFIC_FORCE)
     p, v, q = fw.control_estimate(0.004)
     U_ref = slave_wrench(p, v, q, np.zeros(3), fw.target.p_w_m, fw.target.q_wxyz, fw.config.pspm, INERTIA.mass_kg)
@@ -69,7 +70,7 @@ def test_bypass_passes_the_raw_set_pose_and_off_keeps_the_selected_controller():
     fw.set_target(0.002, jump)
     assert fw.target is jump and fw.pspm is None and fw.pspm_report() is None
     off = _armed("off")
-    assert off._controller is None and off.pspm is None  # eq. 1, untouched
+    assert isinstance(off.controller, ImpedanceController) and off.pspm is None  # eq. 1, untouched
     off.set_target(0.002, jump)
     assert off.target is jump
     with pytest.raises(ValueError, match="PSPM"):

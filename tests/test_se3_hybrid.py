@@ -16,7 +16,7 @@ from companion.skeleton.body import GRAVITY_M_S2, SkeletonConfig, link_inertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig
 from link_firmware_sim.geo import GeoOrigin
-from link_firmware_sim.hybrid import (
+from link_firmware_sim.controllers.hybrid import (
     ANG,
     LIN,
     ContactTarget,
@@ -34,7 +34,7 @@ from link_firmware_sim.hybrid import (
     null_basis,
 )
 from link_firmware_sim.params import ParamTable, StreamRates
-from link_firmware_sim.se3_control import (
+from link_firmware_sim.controllers.se3_control import (
     Se3PidController,
     Se3PidGains,
     Se3PidIntegrals,
@@ -274,7 +274,7 @@ def test_hybrid_class_agrees_with_function():
         args = (rng.normal(size=3), rng.normal(size=3), quat_from_rotvec(rng.normal(size=3)), rng.normal(size=3),
                 _target(rng), contact, lam)
         U_f, integ = hybrid_control(*args, HybridGains(), INERTIA, integ, 0.002, ctrl.c2)
-        np.testing.assert_array_equal(ctrl(*args, 0.002), U_f)
+        np.testing.assert_array_equal(ctrl.command(*args, 0.002), U_f)
 
 
 # -- momentum observer ----------------------------------------------------------------------------------

@@ -25,7 +25,10 @@ from companion.mavlink.port import MavlinkPort
 from companion.mavlink.sockets import TcpClient
 from companion.mavlink.transport import PortError, wait_readable
 from companion.messages import Correction, PoseTarget
-from link_firmware_sim import _fast
+from companion.kernels.jit import ENABLED as COMPILED
+from link_firmware_sim import simlink
+from link_firmware_sim.kernels import mavlink_frames as frames
+from link_firmware_sim.kernels.lockstep import LOOP_PACKET, LOOP_TICKED
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.hil import (
     decode_actuators,
@@ -148,8 +151,8 @@ _SIM_SYS, _SIM_COMP = 255, 190
 
 
 def _framing(seq_in: int = 255, sys_id: int = 2, comp: int = 1, seq_out: int = 0) -> np.ndarray:
-    f = np.zeros(_fast.FRAMING_SIZE, dtype=np.int64)
-    f[:7] = (_fast.FRAMES_TO_VEHICLE, _SIM_SYS, _SIM_COMP, seq_in, sys_id, comp, seq_out)
+    f = np.zeros(frames.FRAMING_SIZE, dtype=np.int64)
+    f[:7] = (frames.FRAMES_TO_VEHICLE, _SIM_SYS, _SIM_COMP, seq_in, sys_id, comp, seq_out)
     return f
 
 
@@ -169,7 +172,7 @@ def _frames_to_records(data: bytes, framing: np.ndarray) -> bytes | None:
     buf = np.zeros(RECV_BYTES, dtype=np.uint8)
     buf[:len(data)] = np.frombuffer(data, dtype=np.uint8)
     rec = np.zeros(RECV_BYTES, dtype=np.uint8)
-    m = _fast.frames_to_records(buf, len(data), rec, framing)
+    m = frames.frames_to_records(buf, len(data), rec, framing)
     return None if m < 0 else rec[:m].tobytes()
 
 
@@ -186,7 +189,7 @@ def test_the_loops_frames_give_the_records_of_the_same_messages(t_us, imu, w, wi
     msgs = [encode_ahrs(t, quat_normalize(np.array([1.0, w, 0.0, 0.0]))), sensor] if with_ahrs else [sensor]
     framing = _framing(seq_in=(seq0 - 1) % 256)
     assert _frames_to_records(_tick_frames(msgs, seq0), framing) == encode_packet(msgs)
-    assert framing[_fast.FRAMING["seq_read"]] == (seq0 + len(msgs) - 1) % 256
+    assert framing[frames.FRAMING["seq_read"]] == (seq0 + len(msgs) - 1) % 256
 
 
 @settings(max_examples=200, deadline=None)
@@ -199,12 +202,12 @@ def test_the_loops_answer_frame_is_pymavlinks(t_us, controls, mode, seq, sys_id)
     msg = D.MAVLink_hil_actuator_controls_message(t_us, controls + [0.0] * 8, mode, 0)
     record = np.frombuffer(encode_packet([msg]), dtype=np.uint8)
     framing = _framing(sys_id=sys_id, seq_out=seq)
-    frame = np.zeros(_fast.FRAME_BYTES, dtype=np.uint8)
-    n = _fast.record_to_frame(record, frame, framing)
+    frame = np.zeros(frames.FRAME_BYTES, dtype=np.uint8)
+    n = frames.record_to_frame(record, frame, framing)
     mav = D.MAVLink(None, srcSystem=sys_id, srcComponent=1)
     mav.seq = seq
     assert frame[:n].tobytes() == msg.pack(mav)
-    assert framing[_fast.FRAMING["seq_out"]] == (seq + 1) % 256
+    assert framing[frames.FRAMING["seq_out"]] == (seq + 1) % 256
 
 
 def _tick(t: float = 1.25) -> list:
@@ -219,10 +222,10 @@ def test_the_loop_leaves_every_other_read_to_the_parser():
     gps = encode_hil_gps(1.25, np.zeros(3), np.zeros(3), GeoOrigin())
     # a HIL_SENSOR frame with its 65 payload bytes and one more, the checksum right
     payload = encode_packet(_tick()[1:])[1:] + b"\x07"
-    sensor = _fast.MAV_HIL_SENSOR
+    sensor = frames.MAV_HIL_SENSOR
     head = bytes([0xFD, len(payload), 0, 0, 10, _SIM_SYS, _SIM_COMP]) + sensor["msgid"].to_bytes(3, "little")
     body = np.frombuffer(head[1:] + payload + bytes([sensor["crc_extra"]]), dtype=np.uint8)
-    longer = head + payload + int(_fast.crc_mcrf4xx(body, 0, len(body), 0xFFFF)).to_bytes(2, "little")
+    longer = head + payload + int(frames.crc_mcrf4xx(body, 0, len(body), 0xFFFF)).to_bytes(2, "little")
     cases = {
         "a frame cut at the end": good[:-1],
         "a frame's start only at the end": good + good[:7],
@@ -240,7 +243,7 @@ def test_the_loop_leaves_every_other_read_to_the_parser():
     for name, data in cases.items():
         framing = _framing(seq_in=9)
         assert _frames_to_records(data, framing) is None, name
-        assert framing[_fast.FRAMING["seq_read"]] == 0, name
+        assert framing[frames.FRAMING["seq_read"]] == 0, name
     # pymavlink's own parser agrees that the longer payload is a good frame (it is not noise)
     assert [m.get_type() for m in D.MAVLink(None).parse_buffer(bytearray(longer))] == ["HIL_SENSOR"]
 
@@ -270,8 +273,8 @@ def test_the_simulators_tcp_port_reads_answers_as_pymavlinks_parser_does():
         conns.append(server.accept()[0])
     fast, plain = ports
     taken = []
-    frames_to_records = _fast.frames_to_records
-    _fast.frames_to_records = lambda *a: taken.append(frames_to_records(*a)) or taken[-1]
+    frames_to_records = simlink.frames_to_records
+    simlink.frames_to_records = lambda *a: taken.append(frames_to_records(*a)) or taken[-1]
     vehicle = D.MAVLink(None, srcSystem=2, srcComponent=1)
     other = D.MAVLink(None, srcSystem=3, srcComponent=1)
     signer = D.MAVLink(None, srcSystem=2, srcComponent=1)
@@ -321,13 +324,13 @@ def test_the_simulators_tcp_port_reads_answers_as_pymavlinks_parser_does():
         step(answer(15, other), 1)  # a second sender: from here on, the parser's
         step(answer(16), 1)
     finally:
-        _fast.frames_to_records = frames_to_records
+        simlink.frames_to_records = frames_to_records
         for x in ports + conns + servers:
             x.close()
     st = plain.stats
     assert st.rx_messages == 15 and st.seq_lost >= 1 and st.dropped_frames >= 1 and st.per_type == {
         "HIL_ACTUATOR_CONTROLS": 15}, st
-    if _fast.ENABLED:  # taken: answers 2-5, 7, 11 and 12 (one read), 14
+    if COMPILED:  # taken: answers 2-5, 7, 11 and 12 (one read), 14
         assert [m for m in taken if m > 0] == [82] * 5 + [164, 82], str(taken)
 
 
@@ -446,7 +449,7 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
     (Vehicle._tick_record); the others through the decoders. Over TCP the lockstep loop takes the
     same ticks from their MAVLink 2 frames (the record tick is the same-host link's only); the
     others, and every tick without the compiled kernels, are decoded."""
-    if jit and not _fast.ENABLED:
+    if jit and not COMPILED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     thrusts, states, taken, loops = {}, {}, {}, {}
     for link in ("tcp", "unix"):
@@ -459,7 +462,7 @@ def test_a_vehicle_answers_alike_over_both_links(tmp_path, jit):
         v._tick_record = lambda data: records.append(plain(data)) or records[-1]
         looped = loops[link] = []
         plain_loop = v.fw.on_hil_loop
-        v.fw.on_hil_loop = lambda *a: looped.append(plain_loop(*a)) or looped[-1]
+        v.fw.on_hil_loop = lambda *a, **k: looped.append(plain_loop(*a, **k)) or looped[-1]
         try:
             _armed_with_a_target(rig)
             thrusts[link] = np.array([rig.tick(gps=k % 50 == 0, ahrs=k % 10 == 0) for k in range(100)])
@@ -539,7 +542,7 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
     v.fw.hil_loop = loop
     calls = []
     plain = v.fw.on_hil_loop
-    v.fw.on_hil_loop = lambda *a: calls.append(plain(*a)) or calls[-1]
+    v.fw.on_hil_loop = lambda *a, **k: calls.append(plain(*a, **k)) or calls[-1]
     _armed_with_a_target(rig)
     v.fw.on_correction(rig.t, Correction(0, rig.t, np.array([0.05, 0.0, 0.2]), np.zeros(3), np.zeros(3)))
     stop_polling = _poll_in_thread(v)
@@ -582,7 +585,7 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
         stop_polling()
     fw, st = v.fw, v.sim.stats
     return {"thrusts": np.array(thrusts), "x": fw.ekf.x, "P": fw.ekf.P, "pos_int": fw.integrals.pos,
-            "att_int": fw.integrals.att, "xi_pre": fw.allocator._xi_pre, "time": (fw.time_s, v.fc_time_us),
+            "att_int": fw.integrals.att, "xi_pre": fw.allocator.xi_pre, "time": (fw.time_s, v.fc_time_us),
             "airborne": fw._airborne, "thrust_n": fw._thrust_total_n, "log_t": v._rows["t"],
             "log_p": v._rows["p_ctrl"], "counts": (dict(st.per_type), st.rx_messages, st.tx_messages, st.rx_bytes),
             "dropped": (st.dropped_frames, st.dropped_bytes, st.seq_lost), "seq": _seq_numbers(v.sim, rig.sim),
@@ -606,7 +609,7 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     counters (sequence numbers both ways included), bit for bit; and the loop did run many ticks in
     a call and handed back the ticks that need the vehicle (streams and log rows at 50 Hz, the
     take-off) and the packets that are not its (AHRS, GPS)."""
-    if not _fast.ENABLED:
+    if not COMPILED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     plain, looped = _plain_and_looped(tmp_path, link, lambda rig, loop: _lockstep_flight(rig, 400, loop))
     assert np.abs(plain["thrusts"]).sum(axis=1).min() > 10.0 and plain["airborne"]
@@ -618,7 +621,7 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     ticks = sum(c[1] for c in calls)
     assert ticks >= 300 and max(c[1] for c in calls) >= 5, (ticks, max(c[1] for c in calls))
     statuses = {c[0] for c in calls}
-    assert {_fast.LOOP_TICKED, _fast.LOOP_PACKET} <= statuses, statuses
+    assert {LOOP_TICKED, LOOP_PACKET} <= statuses, statuses
 
 
 
@@ -628,7 +631,7 @@ def test_the_lockstep_loop_over_tcp_hands_cut_frames_and_noise_to_the_parser(tmp
     to pymavlink's parser, which joins the frames and counts the noise, and takes the stream back
     once the parser holds no partial frame. The flight is the decoders' flight bit for bit, the
     noise counted alike, and the loop still took most ticks."""
-    if not _fast.ENABLED:
+    if not COMPILED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     plain, looped = _plain_and_looped(tmp_path, "tcp",
                                       lambda rig, loop: _lockstep_flight(rig, 300, loop, rough_every=7))
@@ -638,7 +641,7 @@ def test_the_lockstep_loop_over_tcp_hands_cut_frames_and_noise_to_the_parser(tmp
     dropped_frames, dropped_bytes, seq_lost = plain["dropped"]
     assert dropped_frames == 42 and dropped_bytes == 42 * 7 and seq_lost == 0, plain["dropped"]
     ticks = sum(c[1] for c in looped["calls"])
-    handed = sum(c[0] == _fast.LOOP_PACKET for c in looped["calls"])
+    handed = sum(c[0] == LOOP_PACKET for c in looped["calls"])
     assert ticks >= 150 and handed >= 2 * 42, (ticks, handed)  # (each cut tick's first piece, the noise)
 
 
@@ -651,7 +654,7 @@ def _unread_flight(rig, n_ticks: int, loop: bool) -> dict:
     v.fw.hil_loop = loop
     rests = []
     plain_rest = v._answer_rest
-    v._answer_rest = lambda a: rests.append(int(v._framing[_fast.FRAMING["sent"]])) or plain_rest(a)
+    v._answer_rest = lambda a: rests.append(int(v._hil.framing[frames.FRAMING["sent"]])) or plain_rest(a)
     # the simulator reconnects with the least receive buffer (set before connecting: TCP's window)
     rig.sim.close()
     while v.sim.connected:
@@ -699,7 +702,7 @@ def test_the_lockstep_loop_over_tcp_finishes_an_answer_its_send_cut(tmp_path):
     _answer_rest) and waits until it goes. With the buffers at their least and the simulator
     reading nothing for 300 ticks: every answer arrives whole and in order, no frame lost or
     broken, the same thrusts and counters as the decoding path's."""
-    if not _fast.ENABLED:
+    if not COMPILED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     plain, looped = _plain_and_looped(tmp_path, "tcp", lambda rig, loop: _unread_flight(rig, 300, loop))
     np.testing.assert_array_equal(looped["thrusts"], plain["thrusts"])
@@ -713,11 +716,11 @@ def test_the_lockstep_loop_over_tcp_finishes_an_answer_its_send_cut(tmp_path):
     try:
         v = rig.vehicle
         answer = np.frombuffer(encode_packet([encode_actuators(0.5, np.arange(8.0), 8.0, True)]), dtype=np.uint8)
-        framing = v._framing
-        framing[:7] = (_fast.FRAMES_TO_VEHICLE, 250, 1, 0, v.system_id, 1, v.sim.mav.seq)
-        length = _fast.record_to_frame(answer, v._loop_frame, framing)
-        framing[_fast.FRAMING["length"]], framing[_fast.FRAMING["sent"]] = length, 40
-        v.sim.transport.conn.send(v._loop_frame[:40].tobytes())
+        framing = v._hil.framing
+        framing[:7] = (frames.FRAMES_TO_VEHICLE, 250, 1, 0, v.system_id, 1, v.sim.mav.seq)
+        length = frames.record_to_frame(answer, v._hil.frame, framing)
+        framing[frames.FRAMING["length"]], framing[frames.FRAMING["sent"]] = length, 40
+        v.sim.transport.conn.send(v._hil.frame[:40].tobytes())
         v._answer_rest(answer)
         deadline, got = time.monotonic() + 2.0, []
         while not got:
@@ -733,7 +736,7 @@ def test_the_lockstep_loop_hands_mavlink_input_over_at_once_and_while_the_simula
     """In the lockstep loop a vehicle waits on its MAVLink ports too and hands a readable one to
     poll at once: a GCS request sent between two ticks is answered by the next tick; with the
     simulator silent (armed, flying, no tick coming) it is answered all the same."""
-    if not _fast.ENABLED:
+    if not COMPILED:
         pytest.skip("numba not installed (or SKELETON_JIT=0)")
     rig = Rig(tmp_path, sim_link="unix")
     request = D.MAVLink_param_request_read_message(2, 1, b"SKL_CORR_HOLD", -1)

@@ -20,7 +20,7 @@ from companion.mavlink.signing import SigningConfig, load_key, signing_timestamp
 from companion.messages import Correction, PoseTarget
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
-from link_firmware_sim.ekf import X_BARO
+from link_firmware_sim.estimators import X_BARO
 from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS, GeoOrigin
 from link_firmware_sim.hil import decode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware

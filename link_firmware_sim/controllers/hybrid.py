@@ -52,7 +52,8 @@ from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import ContactTarget, PoseTarget  # ContactTarget: one schema, also on MAVLink
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
-from .control import limit_length
+from .base import Controller
+from .common import limit_length
 from .se3_control import attitude_error_so3, c2_bound
 
 __all__ = [
@@ -313,20 +314,42 @@ class MomentumObserver:
         return self.state.wrench_e
 
 
-class HybridController:
-    """The hybrid law with its integrators (``c_2`` resolved once)."""
+class HybridController(Controller):
+    """The hybrid law as the firmware's controller: its integrators (``c_2`` resolved once), the
+    momentum observer it runs (:attr:`observer`, stepped by :meth:`observe` with the wrench the
+    rotors produce) and the commanded :attr:`contact` (``None``: pose control only), whose force
+    it estimates from the observer (:meth:`contact_estimate`)."""
 
-    def __init__(self, gains: HybridGains, inertia: LinkInertia):
+    def __init__(self, gains: HybridGains, inertia: LinkInertia, observer: ObserverConfig = ObserverConfig()):
         self.gains = gains
         self.inertia = inertia
         self.c2 = gains.resolved_c2(inertia)
         self.integrals = HybridIntegrals()
+        self.observer = MomentumObserver(observer, inertia)
+        self.contact: ContactTarget | None = None
 
     def reset(self) -> None:
         self.integrals = HybridIntegrals()
+        self.observer.reset()
 
-    def __call__(self, p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target: PoseTarget, contact: ContactTarget | None,
-                 lambda_hat_n, dt_s: float) -> np.ndarray:
+    def contact_estimate(self, q_wxyz) -> np.ndarray:
+        """The observer's estimate of the contact force (one per contact; empty without one)."""
+        if self.contact is None:
+            return np.zeros(0)
+        return contact_force_estimate(contact_pfaffian(self.contact, quat_to_rotmat(q_wxyz)), self.observer.wrench_e)
+
+    def __call__(self, p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target: PoseTarget, dt_s: float) -> np.ndarray:
+        return self.command(p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target, self.contact,
+                            self.contact_estimate(q_wxyz), dt_s)
+
+    def command(self, p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target: PoseTarget, contact: ContactTarget | None,
+                lambda_hat_n, dt_s: float) -> np.ndarray:
+        """:func:`hybrid_control` with the integrators, for a given contact and force estimate."""
         U, self.integrals = hybrid_control(p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target, contact, lambda_hat_n,
                                            self.gains, self.inertia, self.integrals, dt_s, self.c2)
         return U
+
+    def observe(self, v_w_m_s, q_wxyz, omega_b_rad_s, applied_b: np.ndarray, dt_s: float) -> None:
+        """The momentum observer's step with the applied wrench in its frames, ``[R u; tau]``."""
+        self.observer.step(v_w_m_s, omega_b_rad_s,
+                           np.concatenate((quat_to_rotmat(q_wxyz) @ applied_b[:3], applied_b[3:])), dt_s)

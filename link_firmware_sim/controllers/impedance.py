@@ -26,8 +26,12 @@ mapped from the desired to the current body frame, ``R^T R_d tau_ff``, added to 
 what the cables and the joints' passive torques need of this link's rotors (thesis sec. 3.2's
 Newton-Euler chain); it is zero unless the companion computes it.
 
-Pure functions of numpy arrays: no clocks (``dt`` is an argument), no state except the
-integrals the caller passes in and gets back.
+:func:`impedance_control` is eq. 1 in readable numpy: the specification, which the firmware runs
+without the compiled kernels, and which ``tests/test_fast_paths.py`` compares the kernel
+(:func:`link_firmware_sim.kernels.impedance.impedance_kernel`) with. A pure function (no clocks:
+``dt`` is an argument; no state except the integrals the caller passes in and gets back).
+:class:`ImpedanceController` is eq. 1 as the firmware's controller: its gains, the link's inertia and
+its integrals in one array, with the one dispatch between the kernel and the specification.
 """
 
 from __future__ import annotations
@@ -38,20 +42,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.configfile import require_finite_positive
-from companion.estimation.so3 import rotmat_tuple
+from companion.estimation.so3 import cross, quat_to_rotmat
+from companion.kernels.jit import ENABLED
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
-from . import _fast
+from ..kernels.impedance import impedance_kernel
+from ..kernels.layouts import CTL_ATT_INT, CTL_POS_INT, CTL_SIZE, TGT_SIZE
+from .base import Controller
+from .common import limit_length, vee
 
-__all__ = [
-    "ImpedanceGains",
-    "ControlIntegrals",
-    "vee",
-    "weight_wrench",
-    "impedance_control",
-    "impedance_control_compiled",
-]
+__all__ = ["ImpedanceGains", "ControlIntegrals", "impedance_control", "pack_target", "pack_gains",
+           "ImpedanceController"]
+
+_E3 = np.array([0.0, 0.0, 1.0])
 
 
 def _triple(name: str, value) -> None:
@@ -103,68 +107,6 @@ class ControlIntegrals:
     att: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
-def limit_length(e, limit: float) -> tuple:
-    """``e`` (3 floats) as a tuple, shortened to length ``limit`` if longer (the position error's
-    limit of eq. 1 and of sec. 2.3.2's controller, ``pos_error_limit_m``)."""
-    n = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-    if n <= limit:
-        return tuple(e)
-    k = limit / n
-    return (e[0] * k, e[1] * k, e[2] * k)
-
-
-def weight_wrench(inertia: LinkInertia, q_wxyz: np.ndarray) -> np.ndarray:
-    """Body-frame wrench ``U = [R^T m g e3; 0]`` that carries the link's weight at attitude ``q``
-    (``R^T e3`` is R's third row; the firmware's step-by-step path calls this every tick)."""
-    mg = inertia.mass_kg * GRAVITY_M_S2
-    r3 = rotmat_tuple(np.asarray(q_wxyz, dtype=float).tolist())[6:]
-    return np.array((r3[0] * mg, r3[1] * mg, r3[2] * mg, 0.0, 0.0, 0.0))
-
-
-def vee(S: np.ndarray) -> np.ndarray:
-    """Inverse of the skew map: ``vee(S(w)) = w``."""
-    return np.array([S[2, 1], S[0, 2], S[1, 0]])
-
-
-# Eq. 1 runs at 500 Hz per link on 3-vectors and 3x3 matrices, where numpy's per-call
-# overhead (about a microsecond) dominates the arithmetic; it is evaluated on plain floats
-# (row-major 3x3 tuples) and returns one array. tests/test_control.py checks it against a
-# direct numpy evaluation of eq. 1.
-
-
-def _mv(M, v) -> tuple:
-    return (
-        M[0] * v[0] + M[1] * v[1] + M[2] * v[2],
-        M[3] * v[0] + M[4] * v[1] + M[5] * v[2],
-        M[6] * v[0] + M[7] * v[1] + M[8] * v[2],
-    )
-
-
-def _mtv(M, v) -> tuple:
-    """M^T v."""
-    return (
-        M[0] * v[0] + M[3] * v[1] + M[6] * v[2],
-        M[1] * v[0] + M[4] * v[1] + M[7] * v[2],
-        M[2] * v[0] + M[5] * v[1] + M[8] * v[2],
-    )
-
-
-def _mtm(A, B) -> tuple:
-    """A^T B."""
-    return tuple(
-        A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j] for i in range(3) for j in range(3)
-    )
-
-
-def _cross(a, b) -> tuple:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _clamp(values, limit: float) -> np.ndarray:
-    """Symmetric clamp (anti-windup) of a 3-vector."""
-    return np.array([min(max(c, -limit), limit) for c in values])
-
-
 def impedance_control(
     p_w_m: np.ndarray,
     v_w_m_s: np.ndarray,
@@ -177,62 +119,97 @@ def impedance_control(
     dt_s: float,
 ) -> tuple[np.ndarray, ControlIntegrals]:
     """Eq. 1: the body-frame wrench command ``U = [u; tau]`` and the updated integrals."""
-    p, v, w = p_w_m.tolist(), v_w_m_s.tolist(), omega_b_rad_s.tolist()
-    pd, vd, ad = target.p_w_m.tolist(), target.v_w_m_s.tolist(), target.a_w_m_s2.tolist()
-    wd, wdd = target.omega_d_rad_s.tolist(), target.omega_dot_d_rad_s2.tolist()
-    R = rotmat_tuple(q_wxyz.tolist())
-    Rd = target.R_tuple
+    R, R_d = quat_to_rotmat(q_wxyz), quat_to_rotmat(target.q_wxyz)
+    J = np.diag(inertia.inertia_kgm2)
     m = inertia.mass_kg
-    Jx, Jy, Jz = inertia.inertia_kgm2
-    kp, kd, ki = gains.kp_n_m, gains.kd_ns_m, gains.ki_n_ms
-    # Translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p (p - p_d) - k_i int(p - p_d) (+ f_ff).
-    e_p = limit_length((p[0] - pd[0], p[1] - pd[1], p[2] - pd[2]), gains.pos_error_limit_m)
-    pos = integrals.pos
-    pos_int = _clamp([pos[i] + e_p[i] * dt_s for i in range(3)], gains.pos_integral_limit_ms)
-    gz = GRAVITY_M_S2
-    f_ff = target.force_ff_w_n.tolist()
-    f_w = tuple(
-        m * (ad[i] + (gz if i == 2 else 0.0)) - kd[i] * (v[i] - vd[i]) - kp[i] * e_p[i] - ki[i] * pos_int[i] + f_ff[i]
-        for i in range(3)
-    )
-    u = _mtv(R, f_w)
-    # Rotation.
-    RtRd = _mtm(R, Rd)  # R^T R_d
-    # e_R = (R_d^T R - R^T R_d)^v = vee(RtRd^T - RtRd)
-    e_R = (RtRd[5] - RtRd[7], RtRd[6] - RtRd[2], RtRd[1] - RtRd[3])
-    w_db = _mv(RtRd, wd)  # desired rate in the body frame
-    e_w = (w[0] - w_db[0], w[1] - w_db[1], w[2] - w_db[2])
-    gI = gains.gamma_I
-    att = integrals.att
-    att_int = _clamp([att[i] + (e_w[i] + gI * e_R[i]) * dt_s for i in range(3)], gains.att_integral_limit_rad)
-    Jw = (Jx * w[0], Jy * w[1], Jz * w[2])
-    gyro = _cross(w, Jw)
-    wxwd = _cross(w, w_db)
-    rd = _mv(RtRd, wdd)
-    ff = (Jx * (wxwd[0] - rd[0]), Jy * (wxwd[1] - rd[1]), Jz * (wxwd[2] - rd[2]))
-    tau_ff = _mv(RtRd, target.torque_ff_b_nm.tolist())  # whole-chain feed-forward, desired -> body frame
-    kR, kw, kI = gains.kR_nm, gains.kw_nms, gains.kI_nm_s
-    tau = [gyro[i] - kR * e_R[i] - kw * e_w[i] - kI * att_int[i] - ff[i] + tau_ff[i] for i in range(3)]
-    return np.array((*u, *tau)), ControlIntegrals(pos_int, att_int)
+    w = np.asarray(omega_b_rad_s, dtype=float)
+    # translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p e_p - k_i int(e_p) + f_ff, e_p = p - p_d limited
+    e_p = np.array(limit_length(np.asarray(p_w_m, dtype=float) - target.p_w_m, gains.pos_error_limit_m))
+    pos_int = np.clip(integrals.pos + e_p * dt_s, -gains.pos_integral_limit_ms, gains.pos_integral_limit_ms)
+    f_w = (m * GRAVITY_M_S2 * _E3 + m * target.a_w_m_s2 - np.array(gains.kd_ns_m) * (v_w_m_s - target.v_w_m_s)
+           - np.array(gains.kp_n_m) * e_p - np.array(gains.ki_n_ms) * pos_int + target.force_ff_w_n)
+    # rotation: e_R = (R_d^T R - R^T R_d)^v, e_w = w - R^T R_d w_d, e_I = int(e_w + gamma_I e_R)
+    RtRd = R.T @ R_d
+    e_R = vee(RtRd.T - RtRd)
+    w_d = RtRd @ target.omega_d_rad_s  # the desired rate in the body frame
+    e_w = w - w_d
+    att_int = np.clip(integrals.att + (e_w + gains.gamma_I * e_R) * dt_s, -gains.att_integral_limit_rad,
+                      gains.att_integral_limit_rad)
+    tau = (cross(w, J @ w) - gains.kR_nm * e_R - gains.kw_nms * e_w - gains.kI_nm_s * att_int
+           - J @ (cross(w, w_d) - RtRd @ target.omega_dot_d_rad_s2)
+           + RtRd @ target.torque_ff_b_nm)  # the whole-chain feed-forward, desired -> body frame
+    return np.concatenate((R.T @ f_w, tau)), ControlIntegrals(pos_int, att_int)
 
 
-def impedance_control_compiled(
-    p_w_m: np.ndarray,
-    v_w_m_s: np.ndarray,
-    q_wxyz: np.ndarray,
-    omega_b_rad_s: np.ndarray,
-    target: PoseTarget,
-    gains: ImpedanceGains,
-    inertia: LinkInertia,
-    integrals: ControlIntegrals,
-    dt_s: float,
-) -> tuple[np.ndarray, ControlIntegrals]:
-    """:func:`impedance_control` (eq. 1) by the compiled kernel :func:`._fast.impedance_kernel`:
-    the same arguments and numbers (to rounding). The target, gains and inertia are packed into
-    arrays once per object (kept with it, as ``cached_property`` does)."""
-    out = _fast.impedance_kernel(
-        np.asarray(p_w_m, dtype=float), np.asarray(v_w_m_s, dtype=float), np.asarray(q_wxyz, dtype=float),
-        np.asarray(omega_b_rad_s, dtype=float), _fast.packed(target, _fast.pack_target),
-        _fast.packed(gains, _fast.pack_gains), _fast.packed(inertia, _fast.pack_inertia), integrals.pos,
-        integrals.att, float(dt_s), GRAVITY_M_S2, np.empty(12))
-    return out[:6], ControlIntegrals(out[6:9], out[9:12])
+def pack_target(target: PoseTarget) -> np.ndarray:
+    """A :class:`~companion.messages.PoseTarget` as eq. 1's kernel reads it (``TGT_*``)."""
+    return np.concatenate((target.p_w_m, target.v_w_m_s, target.a_w_m_s2, target.omega_d_rad_s,
+                           target.omega_dot_d_rad_s2, target.R_tuple, target.force_ff_w_n,
+                           target.torque_ff_b_nm)).astype(float)
+
+
+def pack_gains(gains: ImpedanceGains, inertia: LinkInertia) -> np.ndarray:
+    """The gains and the link's inertia as eq. 1's kernel reads them (``CTL_*`` up to the integrals):
+    kp, kd, ki (3 each), kR, kw, kI, gamma_I, the position and attitude integrals' limits, the
+    position error's limit; mass, principal inertia, gravity."""
+    return np.array((*gains.kp_n_m, *gains.kd_ns_m, *gains.ki_n_ms, gains.kR_nm, gains.kw_nms, gains.kI_nm_s,
+                     gains.gamma_I, gains.pos_integral_limit_ms, gains.att_integral_limit_rad,
+                     gains.pos_error_limit_m, inertia.mass_kg, *inertia.inertia_kgm2, GRAVITY_M_S2), dtype=float)
+
+
+class ImpedanceController(Controller):
+    """Eq. 1 as the firmware's controller: by the kernel when ``compiled`` (default: when numba is
+    installed and not turned off, :data:`~companion.kernels.jit.ENABLED`), else by the
+    specification :func:`impedance_control`. Its gains, the link's inertia and its integrals are
+    one array, :attr:`state` (``CTL_*`` of :mod:`link_firmware_sim.kernels.layouts`), which the
+    firmware's fused tick reads and updates in place (:attr:`tick_state`)."""
+
+    def __init__(self, gains: ImpedanceGains, inertia: LinkInertia, compiled: bool | None = None):
+        self.compiled = ENABLED if compiled is None else bool(compiled)
+        self.inertia = inertia
+        self.state = np.zeros(CTL_SIZE)
+        self.gains = gains
+        self._target: PoseTarget | None = None
+        self._target_packed = np.zeros(TGT_SIZE)
+
+    @property
+    def gains(self) -> ImpedanceGains:
+        return self._gains
+
+    @gains.setter
+    def gains(self, gains: ImpedanceGains) -> None:
+        """New gains (a parameter change): the integrals are kept."""
+        self._gains = gains
+        self.state[:CTL_POS_INT] = pack_gains(gains, self.inertia)
+
+    @property
+    def tick_state(self) -> np.ndarray | None:
+        return self.state if self.compiled else None
+
+    @property
+    def integrals(self) -> ControlIntegrals:
+        """A copy of the integrals (position [m s], ``e_I`` [rad])."""
+        return ControlIntegrals(self.state[CTL_POS_INT:CTL_POS_INT + 3].copy(),
+                                self.state[CTL_ATT_INT:CTL_ATT_INT + 3].copy())
+
+    @integrals.setter
+    def integrals(self, integrals: ControlIntegrals) -> None:
+        self.state[CTL_POS_INT:CTL_POS_INT + 3] = integrals.pos
+        self.state[CTL_ATT_INT:CTL_ATT_INT + 3] = integrals.att
+
+    def reset(self) -> None:
+        self.state[CTL_POS_INT:CTL_ATT_INT + 3] = 0.0
+
+    def __call__(self, p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target: PoseTarget, dt_s: float) -> np.ndarray:
+        if not self.compiled:
+            U, self.integrals = impedance_control(p_w_m, v_w_m_s, q_wxyz, omega_b_rad_s, target, self.gains,
+                                                  self.inertia, self.integrals, dt_s)
+            return U
+        if target is not self._target:  # (targets change at 50 Hz, the controller runs at 500 Hz)
+            self._target_packed[:] = pack_target(target)
+            self._target = target
+        U = np.empty(6)
+        impedance_kernel(np.asarray(p_w_m, dtype=float), np.asarray(v_w_m_s, dtype=float),
+                         np.asarray(q_wxyz, dtype=float), np.asarray(omega_b_rad_s, dtype=float), self._target_packed,
+                         self.state, float(dt_s), U)
+        return U

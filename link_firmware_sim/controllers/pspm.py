@@ -51,7 +51,8 @@ import numpy as np
 from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat, quat_to_rotvec, rotmat_to_quat
 from companion.skeleton.body import GRAVITY_M_S2
 
-from .control import vee
+from .base import Controller
+from .common import vee
 
 __all__ = [
     "PspmGains",
@@ -248,7 +249,7 @@ class PspmModulator:
         return self.state.p_bar_w_m, self.state.q_bar_wxyz
 
 
-class PspmSlave:
+class PspmSlave(Controller):
     """The slave law of sec. 2.3.4 (:func:`slave_wrench`) as the firmware's controller,
     ``ctrl(p, v, q, omega, target, dt) -> U``, on the target's pose (the modulated set pose under
     PSPM; the target's velocity, acceleration and rates are not used: the slave law has none). With

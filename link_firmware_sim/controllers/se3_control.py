@@ -30,7 +30,7 @@ Readings, stated because they matter:
   term of [31]; we keep the printed law (the difference is second order in the rate error).
 
 Integrals have symmetric clamps (anti-windup), as the impedance controller's. The whole-chain
-feed-forward of :class:`~companion.messages.PoseTarget` is added as in :mod:`.control`.
+feed-forward of :class:`~companion.messages.PoseTarget` is added as in :mod:`.impedance`.
 
 Pure functions of numpy arrays (no clock: ``dt_s`` is an argument) plus :class:`Se3PidController`,
 a thin holder of the integrator state; ``tests/test_se3_control.py`` checks that they agree.
@@ -48,7 +48,8 @@ from companion.estimation.so3 import quat_to_rotmat
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
-from .control import limit_length, vee
+from .base import Controller
+from .common import limit_length, vee
 
 __all__ = [
     "Se3PidGains",
@@ -180,7 +181,7 @@ def se3_pid_control(
     return np.concatenate((R.T @ f_w, tau)), Se3PidIntegrals(pos_int, att_int)
 
 
-class Se3PidController:
+class Se3PidController(Controller):
     """Sec. 2.3.2 with its integrator state (``c_2`` resolved once at construction)."""
 
     def __init__(self, gains: Se3PidGains, inertia: LinkInertia):

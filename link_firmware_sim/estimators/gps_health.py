@@ -30,7 +30,7 @@ import numpy as np
 
 from companion.configfile import require_nonnegative, require_positive
 
-from .events import StatusEvent
+from ..events import StatusEvent
 
 __all__ = ["GpsHealthConfig", "GpsHealth"]
 

@@ -1,6 +1,6 @@
 """Per-link EKFs on a synthetic chain, sampled at the SCKF rate (paper sec. IV protocol).
 
-Runs one :class:`link_firmware_sim.ekf.LinkEkf` per link on the seeded synthetic sensors of
+Runs one :class:`link_firmware_sim.estimators.link_ekf.LinkEkf` per link on the seeded synthetic sensors of
 :mod:`sitl.synthetic` and records, at every SCKF tick, what the companion would receive
 (state, body rate, 9x9 covariance) beside the ground truth. The result is also the input
 format of ``python -m companion replay``.
@@ -15,7 +15,7 @@ import numpy as np
 
 from companion.configfile import require_positive
 from companion.replay import REPLAY_KEYS, ReplayData
-from link_firmware_sim.ekf import EkfConfig, EkfNoise, LinkEkf
+from link_firmware_sim.estimators import EkfConfig, EkfNoise, LinkEkf
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
 
 __all__ = [
@@ -136,7 +136,7 @@ def consistent_ekf_config(
     by this derivation; much longer memories turn over-confident: the run stays in the transient
     after the first fix, where the drift has not averaged out yet); position
     ``tau`` 0.5 / 1.6 / 5 s -> NEES 3.14 / 3.17 / 4.08, error 0.362 / 0.329 / 0.310 m. Compare
-    :func:`link_firmware_sim.firmware.outdoor_ekf_config`, the same idea for the SITL sensors.
+    :func:`link_firmware_sim.estimators.tunings.outdoor_ekf_config`, the same idea for the SITL sensors.
     """
     m = sensors
     pos_drift = m.pos_drift_amp_m ** 2 / 6.0

@@ -62,7 +62,7 @@ def mujoco_ceiling(name: str, duration_s: float) -> dict:
     """MuJoCo alone on the scenario's model (rotors at the hover thrusts, no firmware): its
     real-time factor and CPU seconds per simulated second, in this process."""
     from link_firmware_sim.allocation import Allocator
-    from link_firmware_sim.control import weight_wrench
+    from link_firmware_sim.controllers import weight_wrench
     from sitl.runner import Plant
     from sitl.scenario import load_scenario
 
@@ -323,7 +323,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
     bad = [x for x in sim_links if x not in SIM_LINKS]
     if bad or (fleet and not sim_links):
         raise ValueError(f"sim links {', '.join(bad) or '(none)'}: one or more of {', '.join(SIM_LINKS)}")
-    from link_firmware_sim import _fast
+    from companion.kernels.jit import ENABLED as compiled
 
     from ..runner import warm_up_kernels
 
@@ -359,7 +359,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
     if tick:
         tick["target_us"] = TICK_TARGET_US
         tick["target_met"] = tick["fused_us"] <= TICK_TARGET_US
-    return {"compiled": _fast.ENABLED, "warm_up_s": compile_s, "firmware_tick_us": tick, "cpu_count": os.cpu_count(),
+    return {"compiled": compiled, "warm_up_s": compile_s, "firmware_tick_us": tick, "cpu_count": os.cpu_count(),
             "load_average_at_end": os.getloadavg(), "repeat": repeat, "mujoco_ceiling": ceilings, "runs": runs}
 
 

@@ -1,0 +1,250 @@
+"""The stateful allocator of one link (thesis ch. 2, sec. 2.4; the equations: :mod:`.mapping`).
+
+:class:`Allocator` precomputes every matrix once, keeps the modulation state ``xi''_pre`` of (2.15)
+between calls and runs the whole pipeline per wrench: by its kernel
+(:func:`link_firmware_sim.kernels.allocation.allocate_kernel`) or by the specification (the
+functional core), the one dispatch in :meth:`Allocator.allocate` and :meth:`Allocator.command`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.kernels.jit import ENABLED
+from companion.skeleton.rotors import N_ROTORS, N_SIDE, NU, SIDES, WRENCH_DIM, RotorGeometry, _frozen
+
+from ..kernels.allocation import ALLOC_META, allocate_kernel
+from ..kernels.layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_SIZE,
+                               ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
+from .mapping import (MARGIN_TOL_N, AllocationParams, AllocationResult, _fade_within_limit, _modulate_side,
+                      _side_weight, pseudo_inverse, reduced_pseudo_inverses, scaled_to_limit)
+
+__all__ = ["Allocator"]
+
+_NU_LIST = tuple(NU.tolist())
+
+
+def _checked_keep(keep) -> np.ndarray:
+    """The wrench :func:`scaled_to_limit` keeps: zeros for ``None``; 6 finite numbers."""
+    if keep is None:
+        return np.zeros(WRENCH_DIM)
+    keep = np.asarray(keep, dtype=float)
+    if keep.shape != (WRENCH_DIM,) or not math.isfinite(keep.sum()):
+        raise ValueError(f"keep must be 6 finite numbers [force (N); torque (Nm)]; got {keep!r}")
+    return keep
+
+
+class Allocator:
+    """Stateful allocation of one link: keeps ``xi''_pre`` of (2.15) between calls.
+
+    Parameters
+    ----------
+    geometry : RotorGeometry
+        Must satisfy (2.11) (:meth:`RotorGeometry.has_null_structure`): Prop. 1's closed form
+        and the selective mapping both rely on it.
+    params : AllocationParams
+    compiled : bool, optional
+        Run :meth:`allocate` and :meth:`command` by the kernel
+        (:func:`link_firmware_sim.kernels.allocation.allocate_kernel`; default: when numba is
+        installed and not turned off) instead of the specification (:meth:`_allocate_spec`, with
+        the functional core of :mod:`.mapping`); the same numbers to rounding
+        (``tests/test_fast_paths.py``).
+
+    Raises
+    ------
+    ValueError
+        If (2.11) does not hold (with selective mapping requested or not: Prop. 1 needs it
+        too), or ``B`` or any single-rotor reduction of it is not full row rank.
+    """
+
+    def __init__(self, geometry: RotorGeometry, params: AllocationParams = AllocationParams(), *,
+                 compiled: bool | None = None) -> None:
+        if not geometry.has_null_structure():
+            if params.selective_mapping:
+                raise ValueError(
+                    "selective mapping (2.15)-(2.17) requires the null structure (2.11) with nu = [1, -1, -1, 1]; "
+                    "this geometry does not have it (Table 2.1 as printed, sigma1=+1? use the modified sigma1=-1)"
+                )
+            raise ValueError(
+                "the closed-form infinity-norm allocation (Prop. 1) requires the null structure (2.11) with "
+                "nu = [1, -1, -1, 1]; this geometry does not have it (use the modified design sigma1=-1)"
+            )
+        self.geometry = geometry
+        self.params = params
+        B = geometry.mapping_matrix()
+        self._B = _frozen(B)
+        self._B_pinv = _frozen(pseudo_inverse(B))
+        self._B_pinv_reduced = _frozen(reduced_pseudo_inverses(B))
+        # _reduced_by_side[s, jl] = side-s rows of B^+_{\(s*4 + jl)} (4x6), by (2.18)-(2.19).
+        red = np.empty((2, N_SIDE, N_SIDE, WRENCH_DIM))
+        for s, side in enumerate(SIDES):
+            for jl in range(N_SIDE):
+                red[s, jl] = self._B_pinv_reduced[side.start + jl][side]
+        self._reduced_by_side = _frozen(red)
+        self._selective = bool(params.selective_mapping)
+        self._eps0 = float(params.eps0_n)
+        self._eps1 = float(params.eps1_n)
+        self._tmax = float(params.thrust_max_n)
+        self._scale_to_limit = bool(params.scale_to_limit)
+        self._xi_limit = self._tmax if self._scale_to_limit else math.inf  # (2.15) within the limit
+        self._compiled = ENABLED if compiled is None else bool(compiled)
+        # the kernels' state (ALLOC_* of kernels.layouts): the thresholds, nu and xi''_pre of (2.15)
+        state = np.zeros(ALLOC_SIZE)
+        state[[ALLOC_EPS0, ALLOC_EPS1, ALLOC_TMAX, ALLOC_SELECTIVE, ALLOC_SCALE_TO_LIMIT, ALLOC_TOL]] = (
+            self._eps0, self._eps1, self._tmax, self._selective, self._scale_to_limit, MARGIN_TOL_N)
+        state[ALLOC_NU:ALLOC_NU + N_SIDE] = NU
+        self._state = state
+        #: what the kernels read and update: ``(B_pinv, reduced_by_side, state)``, ``state`` holding
+        #: the thresholds, the null vector and ``xi''_pre`` (``ALLOC_*`` of
+        #: :mod:`link_firmware_sim.kernels.layouts`); the firmware's fused tick passes it on
+        self.tick_state = (np.array(self._B_pinv, order="C"), np.array(self._reduced_by_side, order="C"), state)
+        #: of the last allocation: ``AllocationResult.scale`` and ``.saturated`` (the firmware's
+        #: thrust-limit report reads them; the fused tick sets them for its own)
+        self.scale, self.saturated = 1.0, False
+
+    @property
+    def mapping_matrix(self) -> np.ndarray:
+        """``B`` (6, 8), read-only."""
+        return self._B
+
+    @property
+    def pinv(self) -> np.ndarray:
+        """``B^+`` (8, 6), read-only."""
+        return self._B_pinv
+
+    @property
+    def reduced_pinvs(self) -> np.ndarray:
+        """``B^+_{\\i}`` stacked (8, 8, 6), read-only."""
+        return self._B_pinv_reduced
+
+    @property
+    def xi_pre(self) -> np.ndarray:
+        """Copy of the stored ``[xi''_{r,pre}; xi''_{l,pre}]`` of (2.15)."""
+        return self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2].copy()
+
+    def reset(self) -> None:
+        """Clear the modulation state: ``xi''_pre = 0``."""
+        self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = 0.0
+
+    def allocate(self, U: np.ndarray, keep: np.ndarray | None = None) -> AllocationResult:
+        """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
+
+        With ``scale_to_limit``, first the wrench the rotors can produce, ``keep`` kept whole
+        (:func:`scaled_to_limit`). Runs Prop. 1 (2.12), then, if enabled, the modulation (2.15)
+        (updating ``xi''_pre``; within the limit with ``scale_to_limit``) and the gradual
+        selective mapping (2.17) (within the limit with ``scale_to_limit``:
+        :func:`_fade_within_limit`); clips to ``+-thrust_max_n``.
+
+        Raises
+        ------
+        ValueError
+            If ``U`` is not 6 finite numbers (the state is left untouched).
+        """
+        U = np.asarray(U, dtype=float)
+        if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
+        keep = _checked_keep(keep)
+        r = self._allocate_kernel(U, keep) if self._compiled else self._allocate_spec(U, keep)
+        self.scale, self.saturated = r.scale, r.saturated
+        return r
+
+    def _allocate_spec(self, U: np.ndarray, keep: np.ndarray) -> AllocationResult:
+        """:meth:`allocate` with the functional core (``U`` checked): the specification of the kernel."""
+        tmax = self._tmax
+        scale = 1.0
+        if self._scale_to_limit:
+            U, scale = scaled_to_limit(self._B_pinv, U, tmax, keep=keep)
+        scaled = scale != 1.0
+        lam_o = self._B_pinv @ U
+        lo = lam_o.tolist()
+        # Per side, b_i = nu_i lambda_{o,i} + xi' is the nu-scaled lambda_alpha (2.12), (2.14):
+        # lambda_alpha_i = nu_i b_i, and lambda_beta_i = nu_i (b_i + xi'') (2.15).
+        nu = _NU_LIST
+        alpha: list[float] = []
+        b_sides = []
+        for side in SIDES:
+            lam_nu = [n * x for n, x in zip(nu, lo[side])]
+            xi1 = -0.5 * (max(lam_nu) + min(lam_nu))  # (2.12)
+            b = [x + xi1 for x in lam_nu]
+            b_sides.append(b)
+            alpha += [n * x for n, x in zip(nu, b)]
+        if not self._selective:
+            lam_alpha = np.array(alpha)
+            return AllocationResult(
+                command_n=np.array([min(max(x, -tmax), tmax) for x in alpha]),
+                lambda_o=lam_o,
+                lambda_alpha=lam_alpha,
+                lambda_beta=lam_alpha,
+                lambda_gamma=lam_alpha,
+                e=(1.0, 1.0),
+                near_zero=(-1, -1),
+                saturated=scaled or max(map(abs, alpha)) > tmax,
+                wrench=U,
+                scale=scale,
+            )
+        beta: list[float] = []
+        gamma: list[float] = []
+        e_out = []
+        near = []
+        xi_pre = self.xi_pre.tolist()
+        faded_to_limit = False
+        for s, b in enumerate(b_sides):
+            xi2 = _modulate_side(b, xi_pre[s], self._eps1, self._xi_limit)  # (2.15)
+            xi_pre[s] = xi2
+            bb = [x + xi2 for x in b]
+            beta_s = [n * x for n, x in zip(nu, bb)]
+            e, j = _side_weight([abs(x) for x in bb], self._eps0, self._eps1)  # (2.17)
+            if j < 0:
+                gamma_s = beta_s
+                near.append(-1)
+            else:
+                # Side rows of Bbar^+ U + Nbar_B xi = P_j U + e_s (lambda_beta_s - P_j U), with
+                # P_j the side rows of B^+_{\j}, by the decoupling (2.18)-(2.19).
+                red = (self._reduced_by_side[s, j] @ U).tolist()
+                gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
+                if self._scale_to_limit and max(map(abs, gamma_s)) > tmax:
+                    e = _fade_within_limit(red, beta_s, e, tmax)
+                    gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
+                    faded_to_limit = True
+                near.append(j + s * N_SIDE)
+            beta += beta_s
+            gamma += gamma_s
+            e_out.append(e)
+        self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = xi_pre
+        lam_gamma = np.array(gamma)
+        return AllocationResult(
+            command_n=np.array([min(max(x, -tmax), tmax) for x in gamma]),
+            lambda_o=lam_o,
+            lambda_alpha=np.array(alpha),
+            lambda_beta=np.array(beta),
+            lambda_gamma=lam_gamma,
+            e=(e_out[0], e_out[1]),
+            near_zero=(near[0], near[1]),
+            saturated=scaled or faded_to_limit or max(map(abs, gamma)) > tmax,
+            wrench=U,
+            scale=scale,
+        )
+
+    def command(self, U: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+        """``allocate(U).command_n`` (the thrusts sent to the ESCs) without the intermediate
+        allocations: what the firmware's fast loop needs of it."""
+        if not self._compiled:
+            return self.allocate(U, keep).command_n
+        U = np.asarray(U, dtype=float)
+        if U.shape != (WRENCH_DIM,) or not math.isfinite(U.sum()):
+            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {U!r}")
+        out, meta = np.empty((5, N_ROTORS)), np.empty(ALLOC_META)
+        allocate_kernel(U, _checked_keep(keep), self.tick_state, out, meta)
+        self.scale, self.saturated = float(meta[5]), bool(meta[4])
+        return out[0]
+
+    def _allocate_kernel(self, U: np.ndarray, keep: np.ndarray) -> AllocationResult:
+        """:meth:`allocate` by the kernel (``U`` checked)."""
+        out, meta = np.empty((5, N_ROTORS)), np.empty(ALLOC_META)
+        allocate_kernel(U, keep, self.tick_state, out, meta)
+        return AllocationResult(command_n=out[0], lambda_o=out[1], lambda_alpha=out[2], lambda_beta=out[3],
+                                lambda_gamma=out[4], e=(float(meta[0]), float(meta[1])),
+                                near_zero=(int(meta[2]), int(meta[3])), saturated=bool(meta[4]), wrench=meta[6:12],
+                                scale=float(meta[5]))
