@@ -38,8 +38,8 @@ def outdoor_ekf_config() -> EkfConfig:
     NEES velocity 4.0-4.7). The velocity process noise was 6e-5 at first: the seed-averaged
     velocity NEES was then 2.8-3.1 for the EKF and 2.9 corrected, but single flights read low
     (three_link seed 1: corrected 2.30-2.39, under its bands from 2.32-2.41); with 3e-5 the ten
-    seeds read 3.0-3.2 / 3.0 and that flight 2.4-2.5 (bands from 2.29-2.39). Figures with this
-    tuning: README, "SITL batch mode". Before any of it (white-noise tuning): NEES position
+    seeds read 3.0-3.2 / 3.0 and that flight 2.4-2.5 (bands from 2.29-2.39). Before any of it
+    (white-noise tuning): NEES position
     6.3-9.4, velocity 1.6-3.5, attitude 15-50, and a true tracking error of 13 cm where it is now
     9 cm on three_link.
     """

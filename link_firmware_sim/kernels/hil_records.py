@@ -17,11 +17,9 @@ from companion.kernels.so3 import quat_mul
 __all__ = ["HIL_SENSOR_RECORD", "HIL_ACTUATOR_RECORD", "HIL_AHRS_RECORD", "AHRS_NORM_TOLERANCE", "HIL_BARO_MAG_BITS",
            "sensor_record_at", "ahrs_record", "record_time_us"]
 
-#: the simulator link's records (:mod:`link_firmware_sim.simlink`: a 1-byte kind, then the MAVLink
-#: payload in wire order, little-endian) as :func:`hil_tick_kernel` reads and writes them; the
-#: simlink module checks these offsets against the dialect's layouts when it is imported. They are
-#: literals in this file, not derived from the dialect, on purpose: numba freezes a global into the
-#: machine code it caches on disk, and its cache follows this file's changes only.
+#: the records as :func:`.tick.hil_tick_kernel` reads and writes them. They are literals in this
+#: file, not derived from the dialect, on purpose: numba freezes a global into the machine code it
+#: caches on disk, and its cache follows this file's changes only.
 #: HIL_SENSOR: kind 0, ``time_usec`` (uint64), ``xacc..zacc`` then ``xgyro..zgyro`` (floats, body
 #: FRD), ..., ``fields_updated`` (uint32)
 HIL_SENSOR_RECORD = {"kind": 0, "size": 66, "time_usec": 1, "acc": 9, "gyro": 21, "fields_updated": 61}
