@@ -1,11 +1,11 @@
 """Typed TOML configuration files: load, validate against frozen dataclasses, write back.
 
-SITL scenarios (``configs/sitl/*.toml``) and hardware companion configs
+SITL scenarios (``configs/sitl/*/*.toml``) and hardware companion configs
 (``configs/hardware/*.toml``) are described by trees of frozen dataclasses. This module turns a
 TOML file into such a tree, or raises :class:`ConfigError` naming the file, the dotted key and
 the reason, e.g.::
 
-    configs/sitl/three_link.toml: skeleton.n_link: unknown key (did you mean 'n_links'?)
+    configs/sitl/chain/three_link.toml: skeleton.n_link: unknown key (did you mean 'n_links'?)
 
 Only the first error found is reported (unknown keys of a table first, then its fields in
 declaration order, then the dataclass constructor).

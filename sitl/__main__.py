@@ -1,14 +1,16 @@
-"""SITL command line.
+"""SITL command line: one for every scenario kind (:mod:`sitl.scenarios`).
 
-    python -m sitl fly --config configs/sitl/three_link.toml [--duration S] [--no-sckf] [--out DIR]
-    python -m sitl launch --config configs/sitl/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
+    python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--no-sckf] [--out DIR]
+    python -m sitl launch --config configs/sitl/chain/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
 
 ``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
-20 Hz, in one process on one clock. ``launch`` is fleet mode: one MAVLink vehicle process per
-link and the companion daemon, the harness in lockstep with them over PX4-style simulator links.
+20 Hz, in one process on one clock; it flies every kind. ``launch`` is fleet mode: one MAVLink
+vehicle process per link and the companion daemon, the harness in lockstep with them over
+PX4-style simulator links; it flies the kinds that have a fleet form and refuses the others.
 Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
-key and reason), 3 the fleet failed (a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet
-mode still writes the metrics when the run got past the take-off).
+key and reason; also an option or a mode the scenario's kind does not have), 3 the fleet failed
+(a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet mode still writes the metrics when
+the run got past the take-off).
 """
 
 from __future__ import annotations
@@ -24,9 +26,9 @@ from tqdm import tqdm
 from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
-from .rendering import RenderingUnavailable, choose_backend, require_rendering
-from .scenario import load_scenario
-from .slung_load_config import SlungLoadScenario, is_slung_load_file, load_slung_scenario
+from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
+from .scenario import with_options
+from .scenarios import load as load_scenario_file
 
 # (the simulator's modules import MuJoCo, whose OpenGL backend is chosen first: _prepare_rendering)
 
@@ -34,25 +36,19 @@ EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FLEET = 3
 EXIT_INTERRUPTED = 130
-#: the vehicles' simulator links (``sitl.fleet.SIM_LINKS``; here without importing the simulator)
+#: the vehicles' simulator links (``sitl.fleet.layout.SIM_LINKS``; here without importing the simulator)
 SIM_LINKS = ("tcp", "unix")
 
 
-_SUMMARY_KEYS = ("load_pose_err", "rms_track_est_m", "rms_track_true_m", "rms_est_err_m", "constraint_pos_p95_m",
-                 "constraint_vel_p95_m_s", "correction_latency_ms", "rotor_zero_crossings", "min_altitude_m",
-                 "took_off", "crashed", "realtime_factor")
-
-
 def _scenario(args):
-    """The scenario file with ``--duration`` / ``--seed`` applied (``ConfigError`` if invalid)."""
+    """``(kind, scenario)`` of the scenario file with ``--duration`` / ``--seed`` applied
+    (``ConfigError`` if invalid)."""
     overrides = {}
     if args.duration is not None:
         overrides["duration_s"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
-    if is_slung_load_file(args.config):  # a [load] table: the slung-load scenario (sitl.slung_load)
-        return load_slung_scenario(args.config, **overrides)
-    return load_scenario(args.config, **overrides)
+    return load_scenario_file(args.config, **overrides)
 
 
 def _prepare_rendering(scenario, video) -> str | None:
@@ -77,24 +73,27 @@ class _Progress(tqdm):
         return super().update(max(0.0, min(n, self.total - self.n)))
 
 
-def _progress(scenario, args, desc: str) -> tqdm:
-    return _Progress(total=scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
+def _progress(scenario, args, desc: str, runs: int = 1) -> tqdm:
+    return _Progress(total=runs * scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
                      bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
 
 
-def _report(metrics: dict, out_dir) -> int:
-    print(json.dumps({k: metrics[k] for k in _SUMMARY_KEYS if k in metrics}, indent=2))
+def _report(metrics: dict, out_dir, summary) -> int:
+    print(json.dumps({k: metrics[k] for k in summary if k in metrics}, indent=2))
     print(f"wrote {out_dir}")
-    if metrics["crashed"]:
+    if metrics.get("crashed"):
         return EXIT_CRASH
     return EXIT_INTERRUPTED if metrics.get("interrupted") else 0
 
 
 def _cmd_fly(args) -> int:
     try:
-        scenario = _scenario(args)
+        kind, scenario = _scenario(args)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    if args.video is not None and not kind.video:
+        print(f"error: {args.config}: --video: a {kind.name} scenario makes no video", file=sys.stderr)
         return EXIT_BAD_CONFIG
     if scenario.faults.fleet_only:
         print(f"error: {args.config}: {', '.join(scenario.faults.fleet_only)}: fleet mode only "
@@ -104,25 +103,17 @@ def _cmd_fly(args) -> int:
     if problem:
         print(f"error: {args.config}: {problem}", file=sys.stderr)
         return EXIT_BAD_CONFIG
-    from .fly import fly
-
+    scenario = with_options(scenario, sckf=False if args.no_sckf else None,
+                            selective_mapping=False if args.no_selective_mapping else None)
+    options = {"video": args.video} if kind.video else {}
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
-    sckf = False if args.no_sckf else None
-    selective = False if args.no_selective_mapping else None
     try:
-        with _progress(scenario, args, scenario.name) as bar:
-            if isinstance(scenario, SlungLoadScenario):
-                from .slung_load import fly_slung_load  # MuJoCo rendering and OpenCV: only for this scenario
-
-                metrics = fly_slung_load(scenario, out_dir, progress=bar.update, plots=not args.no_plots,
-                                         video=args.video)
-            else:
-                metrics = fly(scenario, out_dir, sckf=sckf, selective_mapping=selective, progress=bar.update,
-                              plots=not args.no_plots, video=args.video)
+        with _progress(scenario, args, scenario.name, kind.runs) as bar:
+            metrics = kind.fly(scenario, out_dir, progress=bar.update, plots=not args.no_plots, **options)
     except KeyboardInterrupt:
         print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    return _report(metrics, out_dir)
+    return _report(metrics, out_dir, kind.summary)
 
 
 def _raise_interrupt(_signum, _frame):
@@ -131,13 +122,14 @@ def _raise_interrupt(_signum, _frame):
 
 def _cmd_launch(args) -> int:
     try:
-        scenario = _scenario(args)
-        if isinstance(scenario, SlungLoadScenario):
-            raise ValueError("the slung-load scenario runs in batch mode only (python -m sitl fly)")
+        kind, scenario = _scenario(args)
+        if kind.launch is None:
+            raise ValueError(f"a {kind.name} scenario has no fleet form: it flies in batch mode only "
+                             f"(python -m sitl fly --config {args.config})")
         problem = _prepare_rendering(scenario, None)
         if problem:
             raise ValueError(problem)
-        from .fleet import check_fleet_scenario, check_instance_offset
+        from .fleet.layout import check_fleet_scenario, check_instance_offset
 
         check_fleet_scenario(scenario)
         check_instance_offset(scenario, args.instance_offset, args.gcs_port)
@@ -147,13 +139,13 @@ def _cmd_launch(args) -> int:
     except ValueError as exc:
         print(f"error: {args.config}: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
-    from .fleet import FleetError, launch
+    from .fleet.layout import FleetError
 
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
     signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
     try:
         with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
-            metrics = launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
+            metrics = kind.launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
                              plots=not args.no_plots, instance_offset=args.instance_offset,
                              sim_link=args.sim_link, batch_scheduling=False if args.default_scheduling else None,
                              gcs_port=args.gcs_port)
@@ -163,12 +155,12 @@ def _cmd_launch(args) -> int:
     except KeyboardInterrupt:  # during start-up: the fleet is already stopped
         print(f"interrupted (logs in {out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    return _report(metrics, out_dir)
+    return _report(metrics, out_dir, kind.summary)
 
 
 def _run_args(p: argparse.ArgumentParser, kind: str) -> None:
     """The options ``fly`` and ``launch`` share (read by :func:`_scenario`, :func:`_progress`)."""
-    p.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/three_link.toml")
+    p.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/chain/three_link.toml")
     p.add_argument("--duration", type=float, metavar="S",
                    help="simulated seconds (default: the scenario's); must be longer than the scenario's take-off, "
                         "trajectory.takeoff_start_s + takeoff_duration_s, where the metrics window starts")

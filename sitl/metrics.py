@@ -224,7 +224,7 @@ def nees_metrics(log: dict[str, np.ndarray], flight_start_s: float) -> dict | No
     EKF estimates (``ekf``) and the corrected ones (``corrected``), with the 95 % bounds of such
     an average for a consistent filter.
 
-    ``bounds95`` takes the ``samples`` steps as independent (the issue's band: 2.85-3.15 over a
+    ``bounds95`` takes the ``samples`` steps as independent (e.g. 2.85-3.15 over a
     60 s flight at 20 Hz). They are not: the GPS and attitude-reference errors stay correlated for
     tens of seconds, so one flight holds far fewer independent NEES values.
     ``effective_samples`` (per estimate, block and link) divides the steps by the NEES'

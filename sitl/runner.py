@@ -21,35 +21,31 @@ reach the firmware in the same tick (no transport latency; the MAVLink fleet add
 from __future__ import annotations
 
 import logging
-import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from companion.kernels import warm as _companion_kernels
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
-from companion.estimation.so3 import attitude_error, quat_to_rotmat
+from companion.estimation.so3 import quat_to_rotmat
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
-from companion.skeleton.body import link_inertia
-from companion.skeleton.kinematics import chain_middle, tension
+from companion.skeleton.kinematics import tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.hil import sitl_gps_time_us
 
-from .bench.ekf_chain import rate_divisor
-
-from .model import SkeletonModel
-from .rotor import RotorBank
-from .rotor import warm_up as warm_up_rotors
-from .scenario import Scenario, WindConfig
-from .sensors import LinkSensors, downwash_fraction
+from .plant.plant import Plant
+from .plant.rotor import warm_up as warm_up_rotors
+from .plant.schedule import Schedule
+from .scenario import Scenario, with_options
 from .steplog import attach_truth, merge_step_logs
+from .task import Task
 
-__all__ = ["Wind", "Plant", "Schedule", "BatchRunner", "RunLog", "warm_up_kernels"]
+__all__ = ["BatchRunner", "RunLog", "warm_up_kernels"]
 
 log = logging.getLogger(__name__)
 
@@ -62,36 +58,6 @@ def warm_up_kernels() -> float:
     _companion_kernels.warm_up()
     warm_up_rotors()
     return time.perf_counter() - t0
-
-
-CRASH_TILT_DEG = 60.0
-#: height above the crash floor every link must clear once for the chain to count as taken off [m]
-TAKEOFF_CLEARANCE_M = 0.2
-_COS_HALF_NEAR_CRASH = math.cos(math.radians(CRASH_TILT_DEG - 5.0) / 2.0)  # (check_crash)
-
-
-class Wind:
-    """Steady wind plus Gauss-Markov gusts, as a drag force on every link centre."""
-
-    def __init__(self, cfg: WindConfig, n_links: int, drag_area_m2: float, drag_coefficient: float,
-                 rng: np.random.Generator):
-        self.cfg = cfg
-        self.rng = rng
-        self.gust = np.zeros(3)
-        self.k = 0.5 * cfg.air_density_kg_m3 * drag_coefficient * drag_area_m2
-        self.mean = np.asarray(cfg.mean_w_m_s, dtype=float)
-        self.active = self.k > 0 and (np.any(self.mean != 0) or cfg.gust_std_m_s > 0)
-
-    def force(self, v_w: np.ndarray, dt_s: float) -> np.ndarray | None:
-        """(n, 3) drag forces for link velocities ``v_w`` (``None`` when there is no wind)."""
-        if not self.active:
-            return None
-        cfg = self.cfg
-        if cfg.gust_std_m_s > 0:
-            a = math.exp(-dt_s / cfg.gust_time_constant_s)
-            self.gust = a * self.gust + cfg.gust_std_m_s * math.sqrt(1 - a * a) * self.rng.normal(size=3)
-        rel = self.mean + self.gust - v_w
-        return self.k * np.linalg.norm(rel, axis=1, keepdims=True) * rel
 
 
 @dataclass
@@ -122,131 +88,6 @@ class RunLog:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
 
 
-@dataclass(frozen=True)
-class Schedule:
-    """Every rate of a scenario as a whole number of physics ticks."""
-
-    dt: float
-    fw: int
-    gps: int
-    att: int
-    log: int
-    baro: int
-    mag: int
-
-    @classmethod
-    def of(cls, sc: Scenario) -> Schedule:
-        physics = sc.sim.physics_rate_hz
-        fw = rate_divisor(physics, sc.firmware.rate_hz, "firmware.rate_hz")
-        return cls(
-            dt=1.0 / physics,
-            fw=fw,
-            gps=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.gps_rate_hz, "gps"),
-            att=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.attitude_rate_hz, "attitude"),
-            log=rate_divisor(physics, sc.sim.log_rate_hz, "log_rate_hz"),
-            baro=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.baro_rate_hz, "baro"),
-            mag=fw * rate_divisor(sc.firmware.rate_hz, sc.sensors.mag_rate_hz, "mag"),
-        )
-
-
-class Plant:
-    """The physical side of a run: MuJoCo skeleton, rotors and ESCs, sensors and wind.
-
-    Shared by batch mode (firmware called in-process) and fleet mode (firmware behind the HIL
-    link). One ``numpy.random.Generator`` seeded from the scenario drives every sensor and gust.
-    A physics tick is :meth:`begin_tick` (kinematics, truth) then :meth:`end_tick` (rotor
-    dynamics, wind, integration).
-    """
-
-    def __init__(self, sc: Scenario):
-        self.scenario = sc
-        self.n = sc.skeleton.n_links
-        self.dt = 1.0 / sc.sim.physics_rate_hz
-        self.geometry = sc.geometry()
-        self.inertia = link_inertia(sc.skeleton, self.geometry)
-        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt, cameras=sc.cameras,
-                                   markers=sc.markers)
-        self.model.reset(sc.start)
-        self.d = sc.skeleton.d_b_m
-        self.rng = np.random.default_rng(sc.seed)
-        self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
-        self.rotors = RotorBank(8 * self.n, sc.rotors, rotors_per_link=8)
-        warm_up_rotors()  # the compiled rotor kernels loaded now, not in the first tick of the flight
-        self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
-        self.model.begin_step()
-        self._fresh = True  # begin_step already done for the current instant
-        self.crashed = False
-        self.crash_reason = ""
-        # whether the chain ever flew (every link clear of the ground): a chain that never took off
-        # (nobody armed it) rests on the ground without having crashed
-        self.took_off = False
-
-    @property
-    def time_s(self) -> float:
-        return self.model.time_s
-
-    def start_center(self) -> np.ndarray:
-        """Middle point of the chain (middle link centre or middle joint) at the start."""
-        truth = self.model.truth()
-        return chain_middle(truth.p_w_m, truth.q_wxyz, self.d).copy()
-
-    def begin_tick(self):
-        """Kinematics of the current instant; returns the truth."""
-        if not self._fresh:
-            self.model.begin_step()
-        self._fresh = False
-        return self.model.truth()
-
-    def baro_mag(self, k: int, schedule: Schedule, truth) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The barometric heights (n,) and magnetometer fields (n, 3) due at physics tick ``k``
-        (``None``: not due, or the profile has no such sensor); the ground effect scales with
-        each link's rotor thrust."""
-        sensors = self.sensors
-        baro = mag = None
-        if sensors.has_baro and k % schedule.baro == 0:
-            downwash = downwash_fraction(self.rotors.thrust_n.reshape(self.n, -1), self.inertia.mass_kg)
-            baro = sensors.baro(k * self.dt, truth.p_w_m, downwash)
-        if sensors.has_mag and k % schedule.mag == 0:
-            mag = sensors.mag(truth.q_wxyz)
-        return baro, mag
-
-    def end_tick(self) -> None:
-        thrust = self.rotors.step(self.dt)
-        wind = self.wind.force(self.model.link_velocities(), self.dt) if self.wind.active else None
-        self.model.end_step(thrust.reshape(self.n, -1), wind)
-
-    def check_crash(self, t: float, truth, target_q: np.ndarray | None) -> None:
-        """Flag a crash: a diverged simulation, or (after the take-off window, once the chain has
-        flown) a link on the ground or far off its target attitude (``target_q``: (n, 4)). A chain
-        that never left the ground has not crashed (:attr:`took_off` stays false)."""
-        if self.crashed:
-            return
-        if not np.all(np.isfinite(truth.p_w_m)):
-            self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
-            return
-        floor = self.scenario.skeleton.bar_radius_m + 0.05
-        lowest = truth.p_w_m[:, 2].min()
-        if not self.took_off and lowest > floor + TAKEOFF_CLEARANCE_M:
-            self.took_off = True
-        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest" or not self.took_off:
-            return
-        if lowest < floor:
-            self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
-            return
-        if target_q is None:
-            return
-        ok = np.all(np.isfinite(target_q), axis=1)  # a link without power or EKF has no target
-        # every link's rotation from its target, 2 acos |<q, q_target>|, well inside the limit:
-        # no crash (the rotation vectors below are worked out only near it)
-        if not np.any(np.abs(np.einsum("ij,ij->i", truth.q_wxyz[ok], target_q[ok])) < _COS_HALF_NEAR_CRASH):
-            return
-        tilt = np.zeros(len(ok))
-        tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
-        if tilt.max() > CRASH_TILT_DEG:
-            self.crashed = True
-            self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
-
-
 class _SharedTargets:
     """A target source shared by a batch flight's group engines: the targets of the last time asked,
     computed once (every other attribute is the wrapped source's)."""
@@ -265,7 +106,8 @@ class _SharedTargets:
 
 
 class BatchRunner:
-    """Batch mode: a :class:`Plant`, every link's firmware and the companion engine(s), in one process.
+    """Batch mode: a :class:`~sitl.plant.plant.Plant`, every link's firmware and the companion
+    engine(s), in one process; a scenario kind's :class:`~sitl.task.Task` hooks into its ticks.
 
     The companion is :class:`~companion.engine.CompanionEngine`, the daemon's own logic: each link's
     state reaches it at the state stream's rate on the flight-controller clock (as the vehicles
@@ -281,14 +123,12 @@ class BatchRunner:
     #: every firmware tick (the two give the same flight, bit for bit: ``tests/test_faults.py``)
     skip_idle_polls: bool = True
 
-    def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None):
-        sc = scenario
-        if selective_mapping is not None:
-            fw = replace(sc.firmware, allocation=replace(sc.firmware.allocation, selective_mapping=selective_mapping))
-            sc = replace(sc, firmware=fw)
-        if sckf is not None:
-            sc = replace(sc, companion=replace(sc.companion, enabled=sckf))
+    def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None,
+                 task: Task | None = None):
+        sc = with_options(scenario, sckf=sckf, selective_mapping=selective_mapping)
         self.scenario = sc
+        #: the scenario kind's hooks (:mod:`sitl.task`)
+        self.task = task if task is not None else Task()
         self.plant = Plant(sc)
         plant = self.plant
         self.n = plant.n
@@ -296,24 +136,15 @@ class BatchRunner:
         self.schedule = Schedule.of(sc)
         self.d = plant.d
         self.rotors = plant.rotors
-        self.model = plant.model
         # The compiled kernels loaded (from numba's cache) now, before the flight: a real-time factor is
-        # the flight's, not the process's start-up (loading them in the first tick took 0.4 s).
+        # the flight's, not the process's start-up.
         warm_up_kernels()
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.corrections_rejected = [0] * self.n  # out of the firmware's bounds (SKL_CORR_MAX*)
         self.groups = sc.companion.group_layout(self.n)
         self.now_s = 0.0  # the companions' clock: simulation time
         self.engines, self.hub = self._engines(sc, plant.start_center())
-        truth = plant.model.truth()
-        # Firmware start-up: EKF from the first GPS fix and attitude reference (the companion arms).
-        pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
-        att = plant.sensors.attitude(0.0, truth.q_wxyz)
-        for i, fw in enumerate(self.firmware):
-            fw.initialize(0.0, pos[i], vel[i], att[i])
-        if not sc.start.on_ground:
-            # In-air start: rotors already spinning at the thrusts that carry each link.
-            self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
+        self.start_firmware()
         if sc.faults.fleet_only:
             raise ValueError(f"{', '.join(sc.faults.fleet_only)}: fleet mode only (python -m sitl launch)")
         self.gps_fault = sc.faults.gps
@@ -326,8 +157,28 @@ class BatchRunner:
         self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
         self.sim_s = 0.0
-        # Called as hook(k, t) at every physics tick after the kinematics (cameras, video).
+        #: observers called as hook(k, t) at every physics tick after the kinematics and the log
+        #: (cameras, video, an estimator beside the flight)
         self.tick_hooks: list = []
+        self.task.initialize(self)
+
+    @property
+    def model(self):
+        """The plant's MuJoCo model (:class:`~sitl.plant.model.SkeletonModel` or a scenario's own)."""
+        return self.plant.model
+
+    def start_firmware(self) -> None:
+        """Every link's firmware started at the plant's current truth, as a vehicle starts: its EKF
+        from a GPS fix and an attitude reference at t = 0 (the companion arms it later); an in-air
+        start has the rotors already spinning at the thrusts that carry each link."""
+        plant = self.plant
+        truth = plant.model.truth()
+        pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
+        att = plant.sensors.attitude(0.0, truth.q_wxyz)
+        for i, fw in enumerate(self.firmware):
+            fw.initialize(0.0, pos[i], vel[i], att[i])
+        if not self.scenario.start.on_ground:
+            self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
 
     def _engines(self, sc: Scenario, center: np.ndarray):
         clock = lambda: self.now_s  # noqa: E731 - the engines' and the hub's clock
@@ -421,9 +272,16 @@ class BatchRunner:
         for _ in range(4 * len(self.engines) + 4):
             for engine in self.engines:
                 if not self.skip_idle_polls or engine.needs_poll(t):  # (most ticks bring an engine nothing)
-                    self._apply(engine, engine.poll(t), t)
+                    self.apply(engine, engine.poll(t), t)
             if self.hub is None or not self.hub.pending():
                 break
+
+    def apply(self, engine: CompanionEngine, outputs: list, t: float) -> None:
+        """An engine's outputs at ``t`` to the firmware, between the task's
+        :meth:`~sitl.task.Task.before_outputs` and :meth:`~sitl.task.Task.after_outputs`."""
+        task = self.task
+        self._apply(engine, task.before_outputs(self, engine, outputs, t), t)
+        task.after_outputs(self, engine, outputs, t)
 
     def _apply(self, engine: CompanionEngine, outputs, t: float) -> None:
         standard = self.scenario.companion.mode == "standard"
@@ -499,7 +357,7 @@ class BatchRunner:
 
     def run(self, duration_s: float, progress=None) -> RunLog:
         """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""
-        plant, sch = self.plant, self.schedule
+        plant, sch, task = self.plant, self.schedule, self.task
         sensors, rotors = plant.sensors, plant.rotors
         n_ticks = int(round(duration_s / self.dt))
         fw_dt = sch.fw * self.dt
@@ -547,10 +405,12 @@ class BatchRunner:
                 self._companion_exchange(t, int(round(k * self.dt * 1e6)))
             if k % sch.log == 0:
                 self._log_tick(t, truth)
+                task.after_log(self, t, truth)
                 plant.check_crash(t, truth, self.log.q_target[-1])
             for hook in self.tick_hooks:
                 hook(k, t)
             plant.end_tick()
+            task.after_step(self, k, t)
             if progress is not None and (k - tick0) % 100 == 99:
                 progress(100 * self.dt)
         self.wall_s += time.perf_counter() - wall0

@@ -22,10 +22,10 @@ from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
 
-from .bench.ekf_chain import rate_divisor
-from .camera_config import CameraMount, MarkerMount
-from .sensors import PROFILES, BaroNoise, MagNoise, SensorSuite
-from .skeleton import StartPose
+from .cameras.config import CameraMount, MarkerMount
+from .plant.schedule import rate_divisor
+from .plant.sensors import PROFILES, BaroNoise, MagNoise, SensorSuite
+from .plant.start import StartPose
 
 __all__ = [
     "SensorConfig",
@@ -37,6 +37,7 @@ __all__ = [
     "FaultConfig",
     "Scenario",
     "load_scenario",
+    "with_options",
 ]
 
 
@@ -49,9 +50,9 @@ class SensorConfig:
     """A named sensor profile with optional per-field overrides and the sensor rates.
 
     ``[sensors.imu]``, ``[sensors.gps]``, ``[sensors.attitude]``, ``[sensors.baro]``,
-    ``[sensors.mag]`` override single fields of the profile's :class:`~sitl.sensors.ImuNoise`,
-    :class:`~sitl.sensors.GpsNoise`, :class:`~sitl.sensors.AttitudeRefNoise`,
-    :class:`~sitl.sensors.BaroNoise`, :class:`~sitl.sensors.MagNoise`. A ``[sensors.baro]`` or
+    ``[sensors.mag]`` override single fields of the profile's :class:`~sitl.plant.sensors.ImuNoise`,
+    :class:`~sitl.plant.sensors.GpsNoise`, :class:`~sitl.plant.sensors.AttitudeRefNoise`,
+    :class:`~sitl.plant.sensors.BaroNoise`, :class:`~sitl.plant.sensors.MagNoise`. A ``[sensors.baro]`` or
     ``[sensors.mag]`` table (even an empty one) on a profile without that sensor fits one (its
     defaults, overridden);
     a profile's own barometer or magnetometer is left out by choosing the profile without it
@@ -146,7 +147,7 @@ class MavlinkWireFault:
     datagram with probability ``loss`` and delay it by ``delay_ms`` plus a uniform jitter of up to
     ``jitter_ms`` (wall-clock ms, as a network would; both ways; datagrams may then arrive out of
     order). ``links``: the affected links (1-based; empty: all). Fleet mode only: a proxy process
-    (:mod:`sitl.wire`) sits on every affected wire and counts what it dropped."""
+    (:mod:`sitl.fleet.wire`) sits on every affected wire and counts what it dropped."""
 
     loss: float = 0.0
     delay_ms: float = 0.0
@@ -262,8 +263,11 @@ class FaultConfig:
 class Scenario(CompanionSetup, VehicleSetup):
     """A SITL scenario: the companion's sections (:class:`~companion.config.CompanionSetup`), the
     vehicles' (:class:`~link_firmware_sim.config.VehicleSetup`) and the simulator's own: the run
-    length and seed, the start pose, sensors, wind, physics rates and scripted faults."""
+    length and seed, the start pose, sensors, wind, physics rates and scripted faults. ``kind``
+    names the scenario's kind (:mod:`sitl.scenarios`): a chain flight here, a subclass's own
+    otherwise."""
 
+    kind: Literal["chain"] = "chain"
     duration_s: float = 30.0
     seed: int = 0
     start: StartPose = field(default_factory=StartPose)
@@ -271,7 +275,7 @@ class Scenario(CompanionSetup, VehicleSetup):
     wind: WindConfig = field(default_factory=WindConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
-    # [[cameras]] / [[markers]]: cameras rendered offscreen and ArUco markers (sitl.camera)
+    # [[cameras]] / [[markers]]: cameras rendered offscreen and ArUco markers (sitl.cameras.rig)
     cameras: tuple[CameraMount, ...] = ()
     markers: tuple[MarkerMount, ...] = ()
 
@@ -311,6 +315,19 @@ class Scenario(CompanionSetup, VehicleSetup):
     def vehicle_setup(self) -> VehicleSetup:
         """The vehicles' part (what ``link.toml`` of a fleet run holds)."""
         return project(self, VehicleSetup)
+
+
+def with_options(scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None) -> Scenario:
+    """``scenario`` with the command line's flight options where given (``None``: as it is):
+    ``sckf`` turns the companion's corrections on or off (``companion.enabled``),
+    ``selective_mapping`` the allocation's selective mapping (``firmware.allocation``)."""
+    sc = scenario
+    if selective_mapping is not None:
+        fw = replace(sc.firmware, allocation=replace(sc.firmware.allocation, selective_mapping=selective_mapping))
+        sc = replace(sc, firmware=fw)
+    if sckf is not None:
+        sc = replace(sc, companion=replace(sc.companion, enabled=sckf))
+    return sc
 
 
 def load_scenario(path: str | Path, **overrides) -> Scenario:

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import settings
 
 from companion.cli import single_thread_blas
-from sitl.rendering import RenderingUnavailable, choose_backend, require_rendering
+from sitl.cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
 
 # Offscreen rendering (the tests marked `rendering`: cameras, videos): a headless OpenGL backend
 # chosen before anything imports MuJoCo, osmesa on the CPU or egl. Where none renders those tests

@@ -1,4 +1,4 @@
-"""The optional barometer and magnetometer: their sensor models (sitl.sensors), their HIL_SENSOR
+"""The optional barometer and magnetometer: their sensor models (sitl.plant.sensors), their HIL_SENSOR
 fields (link_firmware_sim.hil) and their fusion in the link EKF (link_firmware_sim.estimators)."""
 
 import math
@@ -38,7 +38,7 @@ from link_firmware_sim.hil import (
     encode_hil_sensor,
 )
 from sitl.scenario import SensorConfig
-from sitl.sensors import MAG_FIELD_ENU_GAUSS, PROFILES, LinkSensors
+from sitl.plant.sensors import MAG_FIELD_ENU_GAUSS, PROFILES, LinkSensors
 
 D = load_dialect()
 
@@ -295,7 +295,7 @@ def _hover_with_gps_outage(profile: str, seed: int):
     from companion.skeleton.body import SkeletonConfig
     from companion.trajectory import TrajectoryConfig
     from sitl.scenario import FaultConfig, GpsFault, Scenario
-    from sitl.skeleton import StartPose
+    from sitl.plant.start import StartPose
 
     return Scenario(name="outage", duration_s=22.0, seed=seed, skeleton=SkeletonConfig(n_links=1),
                     start=StartPose(center_w_m=(0.0, 0.0, 2.0), on_ground=False),

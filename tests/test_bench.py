@@ -16,7 +16,6 @@ from sitl.bench.ekf_chain import (
     drift_seen,
     ekf_config,
     honest_noise,
-    rate_divisor,
     simulate_ekf_chain,
 )
 from sitl.bench.scaling import run_scaling
@@ -29,6 +28,7 @@ from sitl.bench.table2 import (
     run_table2,
     run_table2_configs,
 )
+from sitl.plant.schedule import rate_divisor
 from sitl.synthetic import ChainMotion, SensorModel
 
 

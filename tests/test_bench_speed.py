@@ -120,7 +120,7 @@ def test_median_of_repeated_runs_and_its_report():
 
 
 def test_the_targets_are_judged_and_reported():
-    """issue 15's targets beside each figure and in one closing line: a flight under its target, or
+    """The targets beside each figure and in one closing line: a flight under its target, or
     one that failed, is MISSED; a scenario without a target is not judged."""
     runs = [{"mode": "batch", "scenario": "three_link", "exit_code": 0, "realtime_factor": 10.5},
             {"mode": "batch", "scenario": "seven_link", "exit_code": 0, "realtime_factor": 4.9},

@@ -1,4 +1,4 @@
-"""Fleet mode's cameras and the vision consumer (issue 16 item 7).
+"""Fleet mode's cameras and the vision consumer.
 
 * A fleet run of a camera scenario: the harness renders the camera, publishes its frames over Zenoh
   (loopback, a port the OS picked), the consumer process (``python -m companion.vision``) measures
@@ -33,14 +33,14 @@ from .ports import children_of
 cv2 = pytest.importorskip("cv2")
 
 ROOT = Path(__file__).resolve().parents[1]
-CAMERA_FLEET = ROOT / "configs" / "sitl" / "three_link_camera_fleet.toml"
+CAMERA_FLEET = ROOT / "configs" / "sitl" / "cameras" / "three_link_camera_fleet.toml"
 
 
 @pytest.mark.rendering
 def test_fleet_frames_cross_zenoh_and_the_consumer_measures_the_marker(tmp_path):
     pytest.importorskip("zenoh")
     pytest.importorskip("mujoco")
-    from sitl.fleet import launch
+    from sitl.fleet.launcher import launch
     from sitl.scenario import load_scenario
 
     sc = load_scenario(CAMERA_FLEET, duration_s=5.0)
@@ -165,7 +165,7 @@ def test_consumer_over_zenoh_measures_frames_and_counts_hostile_payloads(tmp_pat
     from companion.vision.camera_wire import CameraPublisher, camera_key
     from companion.vision.frame_codec import encode_frame
     from companion.vision.node import run_node
-    from sitl.camera_stream import free_loopback_port
+    from sitl.cameras.stream import free_loopback_port
 
     from .test_camera_wire import _marker_frame
 

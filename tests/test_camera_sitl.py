@@ -1,4 +1,4 @@
-"""Cameras rendered by MuJoCo in the SITL (sitl/camera.py), markers, and the flight video (sitl/video.py).
+"""Cameras rendered by MuJoCo in the SITL (sitl/cameras/rig.py), markers, and the flight video (sitl/cameras/video.py).
 
 The tests marked ``rendering`` render offscreen with a headless OpenGL backend (conftest.py; .ci/run
 installs libosmesa6)."""
@@ -16,11 +16,11 @@ from companion.configfile import ConfigError
 from companion.vision.config import PNP_METHOD_NAMES, PipelineConfig
 from companion.vision.geometry import geodesic_angle_rad, project_points, translation_error_m
 from companion.vision.pnp import measure_markers
-from sitl.camera import CameraRig, vision_mjcf
-from sitl.camera_config import CameraMount, MarkerMount
+from sitl.cameras.rig import CameraRig, vision_mjcf
+from sitl.cameras.config import CameraMount, MarkerMount
 from sitl.runner import BatchRunner
 from sitl.scenario import load_scenario
-from sitl.video import VideoRecorder
+from sitl.cameras.video import VideoRecorder
 
 BASE = """<mujoco><option timestep="0.001"/><worldbody>
 <light pos="0 0 5" directional="true" dir="0 0 -1"/>
@@ -116,7 +116,7 @@ def test_rate_latency_stamps_and_seeded_noise():
 
 
 def test_config_errors_name_the_key(tmp_path):
-    base = open("configs/sitl/three_link_camera.toml").read()
+    base = open("configs/sitl/cameras/three_link_camera.toml").read()
     bad = tmp_path / "bad.toml"
     bad.write_text(base.replace("rate_hz = 10.0\nlatency_s", "rate_hz = 7.0\nlatency_s"))
     with pytest.raises(ConfigError, match=r"cameras\[0\]"):
@@ -130,7 +130,7 @@ def test_config_errors_name_the_key(tmp_path):
 
 @pytest.mark.rendering
 def test_video_of_a_short_three_link_flight(tmp_path):
-    sc = load_scenario("configs/sitl/three_link.toml")
+    sc = load_scenario("configs/sitl/chain/three_link.toml")
     runner = BatchRunner(sc)
     path = tmp_path / "flight.mp4"
     rec = VideoRecorder(runner.model.model, runner.model.data, path, runner.dt, title=sc.name)

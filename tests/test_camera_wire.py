@@ -1,4 +1,4 @@
-"""Camera frames as bytes and over Zenoh (issue 16 item 7): codec round trip, hostile payloads,
+"""Camera frames as bytes and over Zenoh: codec round trip, hostile payloads,
 a loopback Zenoh session publishing frames that the companion side decodes and detects."""
 
 from __future__ import annotations

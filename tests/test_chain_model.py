@@ -215,7 +215,7 @@ def test_the_model_is_mujocos_chain(n, through):
     two models are the same multibody, and the simulator's cable force is read right."""
     import mujoco
 
-    from sitl.model import SkeletonModel
+    from sitl.plant.model import SkeletonModel
 
     rng = np.random.default_rng(30 + n)
     sk = SkeletonConfig(n_links=n)

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from companion.configfile import ConfigError, build, dump_toml, load_config, load_toml, to_dict
 
-FILE = "configs/sitl/three_link.toml"
+FILE = "configs/sitl/chain/three_link.toml"
 
 
 # Example schema (module level: string annotations are resolved in the module globals).
@@ -203,7 +203,7 @@ def test_prefix_is_used_for_nested_builds():
 def test_unknown_key_did_you_mean():
     data = _with(("skeleton", "n_link"), 3, _with(("skeleton", "n_links"), DELETE))
     err = _error(data)
-    assert str(err) == "configs/sitl/three_link.toml: skeleton.n_link: unknown key (did you mean 'n_links'?)"
+    assert str(err) == "configs/sitl/chain/three_link.toml: skeleton.n_link: unknown key (did you mean 'n_links'?)"
 
 
 def test_unknown_top_level_key_did_you_mean():

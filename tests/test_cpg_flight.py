@@ -15,14 +15,14 @@ from companion.estimation.constraints import constraint_residual
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
 from companion.motion.generator import MotionGenerator
 from companion.motion.inverse import InverseModel
-from companion.motion.schedule import MotionCommand, MotionConfig, desired_motion
-from sitl.fly import fly
+from companion.motion.schedule import PACKAGED_MODEL, MotionCommand, MotionConfig, desired_motion
+from sitl.scenarios.chain.flight import fly
 from sitl.scenario import load_scenario
 from companion.trajectory import CpgChainTrajectory, TrajectoryConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "configs" / "sitl" / "seven_link_cpg.toml"
-MODEL = ROOT / "configs" / "models" / "inverse_cpg_7link.npz"
+CONFIG = ROOT / "configs" / "sitl" / "chain" / "seven_link_cpg.toml"
+MODEL = Path(PACKAGED_MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -117,12 +117,11 @@ def test_scenario_motion_section_is_checked(tmp_path):
     assert sc.trajectory.kind == "cpg" and Path(sc.motion.model).resolve() == MODEL.resolve()
     text = CONFIG.read_text()
     bad = tmp_path / "bad_model.toml"
-    bad.write_text(text.replace('model = "../models/inverse_cpg_7link.npz"', 'model = "missing.npz"'))
+    bad.write_text(text.replace("[motion]\n", '[motion]\nmodel = "missing.npz"\n'))
     with pytest.raises(ConfigError, match="motion.model: cannot load"):
         load_scenario(bad)
     wrong = tmp_path / "five.toml"
-    wrong.write_text(text.replace('model = "../models/inverse_cpg_7link.npz"', f'model = "{MODEL}"')
-                     .replace("n_links = 7", "n_links = 5").replace("groups = [[1, 2], [3, 4, 5], [6, 7]]",
+    wrong.write_text(text.replace("n_links = 7", "n_links = 5").replace("groups = [[1, 2], [3, 4, 5], [6, 7]]",
                                                                     "groups = [[1, 2], [3], [4, 5]]"))
     with pytest.raises(ConfigError, match="is for 7 links of 1 m, the skeleton has 5"):
         load_scenario(wrong)

@@ -41,7 +41,7 @@ from link_firmware_sim.design.search import (
 from sitl.scenario import load_scenario
 
 TABLE = RotorGeometry.odar(sigma1=1)  # Table 2.1 as printed
-SCENARIO = "configs/sitl/single_odar_pitch45.toml"
+SCENARIO = "configs/sitl/odar/single_odar_pitch45.toml"
 TINY = SearchGrid(direction_step_deg=3.0, x_count=2, radius_count=1, angle_step_deg=45.0)
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)

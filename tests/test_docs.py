@@ -15,8 +15,8 @@ write) are read and checked against the code.
   target (GitHub's slugs). http(s) links are not fetched.
 * ``path/file.py::Name`` (also ``Class.method`` and pytest's ``::Class::test``): the file exists
   and defines the name (read with ``ast``, nothing imported).
-* Backticked repository paths (``configs/sitl/three_link.toml``, ``companion/daemon.py``,
-  globs like ``configs/sitl/*.toml``, ``<placeholders>`` as wildcards) exist, unless git ignores
+* Backticked repository paths (``configs/sitl/chain/three_link.toml``, ``companion/daemon.py``,
+  globs like ``configs/sitl/*/*.toml``, ``<placeholders>`` as wildcards) exist, unless git ignores
   them (files a command creates, like ``configs/hardware/keys/skeleton.key``); so do the
   ``--config`` files of the checked commands.
 * Commands quoted in the prose's inline code (```python -m sitl fly --video X```) are checked
@@ -743,7 +743,7 @@ def test_document_matches_the_code(doc):
 def test_every_entry_point_has_a_parser_builder():
     """The command check imports each entry point's ``build_parser()``: a new ``python -m`` module
     without one could not be checked."""
-    expected = {"sitl", "sitl.bench", "sitl.odar", "sitl.wire", "companion", "companion.motion", "companion.vision",
+    expected = {"sitl", "sitl.bench", "sitl.fleet.wire", "companion", "companion.motion", "companion.vision",
                 "link_firmware_sim", "link_firmware_sim.design"}
     found = entry_points()
     assert expected <= set(found), f"entry points not found: {expected - set(found)}"
@@ -758,11 +758,11 @@ BROKEN = """\
 # Broken
 
 ```sh
-python -m sitl fly --config configs/sitl/three_link.toml --no-such-flag
+python -m sitl fly --config configs/sitl/chain/three_link.toml --no-such-flag
 .venv/bin/pip install -e . && .venv/bin/python -m sitl.bench nees \\
     --seeds 3 --jobz 2   # a typo after a continuation
-python3 -m sitl flyy --config configs/sitl/three_link.toml
-python -m sitl launch --config configs/sitl/three_link.toml [--sim-link tcp|udp]
+python3 -m sitl flyy --config configs/sitl/chain/three_link.toml
+python -m sitl launch --config configs/sitl/chain/three_link.toml [--sim-link tcp|udp]
 python -m sitl.bench table2 --ekf papr --seeds five
 python -m companion keys renew some.key
 python -m sitl fly --config configs/sitl/no_such_scenario.toml
@@ -782,11 +782,11 @@ def test_checker_reports_broken_flags_links_names_and_paths():
     problems = check_text(BROKEN, ROOT / "docs" / "snippet.md")
     text = "\n".join(problems)
     expected = [
-        "docs/snippet.md:4: python -m sitl fly --config configs/sitl/three_link.toml --no-such-flag: unknown flag "
+        "docs/snippet.md:4: python -m sitl fly --config configs/sitl/chain/three_link.toml --no-such-flag: unknown flag "
         "--no-such-flag for `python -m sitl fly`",
         "docs/snippet.md:5: .venv/bin/pip install -e . && .venv/bin/python -m sitl.bench nees --seeds 3 --jobz 2: ",
         "unknown flag --jobz for `python -m sitl.bench nees` (did you mean --jobs?)",
-        "docs/snippet.md:7: python3 -m sitl flyy --config configs/sitl/three_link.toml: unknown subcommand 'flyy' for "
+        "docs/snippet.md:7: python3 -m sitl flyy --config configs/sitl/chain/three_link.toml: unknown subcommand 'flyy' for "
         "`python -m sitl`",
         "docs/snippet.md:8: ",
         "--sim-link 'udp' of `python -m sitl launch`: not one of tcp, unix",
@@ -821,8 +821,8 @@ def test_checker_reports_a_broken_flag_in_a_copy_of_a_real_document(tmp_path):
     """The README with one flag broken: exactly that line is reported in addition to what it has today."""
     readme = ROOT / "README.md"
     text = readme.read_text()
-    good = re.search(r"^python -m sitl fly --config configs/sitl/three_link.toml", text, re.M)
-    assert good, "no `python -m sitl fly --config configs/sitl/three_link.toml` line in the README"
+    good = re.search(r"^python -m sitl fly --config configs/sitl/chain/three_link.toml", text, re.M)
+    assert good, "no `python -m sitl fly --config configs/sitl/chain/three_link.toml` line in the README"
     line = text[:good.start()].count("\n") + 1
     broken = text[:good.start()] + good.group(0).replace("--config", "--konfig") + text[good.end():]
     before = set(check_text(text, readme))
@@ -838,9 +838,9 @@ GOOD = """\
 ## Repeated
 
 ```sh
-python3 -m venv .venv && .venv/bin/pip install -e '.[sim]' && .venv/bin/python -m sitl fly --config configs/sitl/three_link.toml
-python -m sitl fly --config configs/sitl/three_link.toml [--duration S] [--seed N] [--no-sckf] [--out DIR]  # comment --bogus
-python -m sitl launch --config configs/sitl/three_link.toml [--sim-link tcp|unix] --speed 0
+python3 -m venv .venv && .venv/bin/pip install -e '.[sim]' && .venv/bin/python -m sitl fly --config configs/sitl/chain/three_link.toml
+python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--seed N] [--no-sckf] [--out DIR]  # comment --bogus
+python -m sitl launch --config configs/sitl/chain/three_link.toml [--sim-link tcp|unix] --speed 0
 python -m companion --config runs/<fleet run>/companion.toml [--out DIR]
 python -m companion keys new configs/hardware/keys/skeleton.key
 eval "$(python -m companion dialect)"
@@ -848,7 +848,7 @@ MUJOCO_GL=egl python -m sitl.bench table2 --doc [--doc PATH | --no-doc] \\
     --seeds 2 2>&1 | tee log.txt
 python -m sitl.bench <bench> --out DIR
 python -m pytest tests/test_docs.py::test_checker_reports_broken_flags_links_names_and_paths -q
-python -m sitl.odar pspm [--mujoco]
+python -m sitl.bench controllers [--controllers impedance,se3_pid]
 mavproxy.py --master udp:127.0.0.1:14550 --no-such-flag-of-another-tool
 ```
 
@@ -857,7 +857,7 @@ python -m sitl fly --not-checked-in-text-blocks
 ```
 
 [up](../README.md), [here](#good-heading-with-code-and-punctuation), [again](#repeated-1),
-[arch](architecture.md#architecture), [web](https://example.com/x#y), `configs/sitl/*.toml`,
+[arch](architecture.md#architecture), [web](https://example.com/x#y), `configs/sitl/*/*.toml`,
 `python -m sitl launch --speed 0` (partial: fine in prose), `python -m sitl.bench <bench> --doc`,
 `companion/engine/core.py::CompanionEngine`, `companion/skeleton/` and `runs/<run>/log.npz`.
 """

@@ -1,4 +1,4 @@
-"""Oracle tests: the compiled kernels (link_firmware_sim.kernels, sitl.rotor) against the numpy
+"""Oracle tests: the compiled kernels (link_firmware_sim.kernels, sitl.kernels.rotor) against the numpy
 specification on random inputs (seeded), agreeing to 1e-12 (the companion's:
 ``tests/test_companion_kernels.py``).
 
@@ -29,7 +29,7 @@ from link_firmware_sim.estimators import link_ekf
 from link_firmware_sim.fused import HilBuffers
 from link_firmware_sim.kernels import hil_records
 from link_firmware_sim.kernels.layouts import IO_AHRS_ACCEPTED, IO_AHRS_Q
-from sitl.rotor import RotorBank
+from sitl.plant.rotor import RotorBank
 
 pytestmark = pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
 

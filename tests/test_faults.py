@@ -1,4 +1,4 @@
-"""Scripted SITL faults (sitl.scenario [faults], sitl.wire) and the metrics that report them
+"""Scripted SITL faults (sitl.scenario [faults], sitl.fleet.wire) and the metrics that report them
 (sitl.metrics outage windows, sitl.steplog with a companion down)."""
 
 import json
@@ -15,11 +15,11 @@ import pytest
 from companion.configfile import ConfigError
 from companion.engine import STEP_LOG_KEYS
 from companion.estimation.so3 import attitude_error
-from sitl.fly import fly
+from sitl.scenarios.chain.flight import fly
 from sitl.metrics import flag_windows, outage_split
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 from sitl.steplog import merge_step_logs
-from sitl.wire import Impairment, WireProxy
+from sitl.fleet.wire import Impairment, WireProxy
 
 from .ports import free_ports
 from .test_sitl_flight import _strip
@@ -145,7 +145,7 @@ def test_wire_proxy_forwards_both_ways_drops_and_counts():
 def test_wire_cli_writes_its_counters_and_stops_on_sigterm(tmp_path):
     vside, comp_port, local = free_ports(3, udp=True)
     stats = tmp_path / "wire.json"
-    proc = subprocess.Popen([sys.executable, "-m", "sitl.wire", "--pair", f"{vside}:{comp_port}:{local}", "--loss", "0.5",
+    proc = subprocess.Popen([sys.executable, "-m", "sitl.fleet.wire", "--pair", f"{vside}:{comp_port}:{local}", "--loss", "0.5",
                              "--seed", "3", "--stats", str(stats)], stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 20
@@ -162,7 +162,7 @@ def test_wire_cli_writes_its_counters_and_stops_on_sigterm(tmp_path):
     assert proc.returncode == 0, proc.stderr.read()
     counts = json.loads(stats.read_text())[f"{vside}<->{comp_port}"]["vehicle_to_companion"]
     assert counts["forwarded"] + counts["dropped"] == 100 and 30 < counts["dropped"] < 70
-    bad = subprocess.run([sys.executable, "-m", "sitl.wire", "--pair", "1:2", "--loss", "0.1"], capture_output=True,
+    bad = subprocess.run([sys.executable, "-m", "sitl.fleet.wire", "--pair", "1:2", "--loss", "0.1"], capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "VEHICLE_SIDE:COMPANION_PORT:LOCAL_PORT" in bad.stderr
 
@@ -234,7 +234,7 @@ def test_fault_sections_round_trip_through_the_run_folder_copy(tmp_path):
 
 
 def _reboot_flight(tmp_path, restart_after_s, **companion):
-    sc = load_scenario("configs/sitl/three_link.toml", duration_s=12.0)
+    sc = load_scenario("configs/sitl/chain/three_link.toml", duration_s=12.0)
     sc = replace(sc, faults=replace(sc.faults, link=LinkRebootFault(kill=2, kill_at_s=9.0, restart_after_s=restart_after_s)),
                  companion=replace(sc.companion, **companion))
     m = fly(sc, tmp_path, plots=False)

@@ -1,6 +1,6 @@
 """Fleet mode end to end: vehicle processes, the companion daemon and the harness over loopback sockets.
 
-Each test launches a real fleet (``sitl.fleet.launch``: one OS process per link plus the
+Each test launches a real fleet (``sitl.fleet.launcher.launch``: one OS process per link plus the
 companion) on the PX4-style ports (TCP 4560+i, UDP 14540+i, 14550), so the tests run one at a
 time and check that every port is free again afterwards.
 """
@@ -28,14 +28,16 @@ from companion.mavlink.dialect import load_dialect, tool_environment
 from companion.mavlink.port import MavlinkPort
 from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import load_key, new_key_file
-from sitl.fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, check_instance_offset, launch
-from sitl.fly import fly
+from sitl.fleet.harness import LOCKSTEP_ENDED, LOCKSTEP_STARTED
+from sitl.fleet.launcher import launch
+from sitl.fleet.layout import check_instance_offset
+from sitl.scenarios.chain.flight import fly
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
 
 from .ports import children_of
 
 ROOT = Path(__file__).resolve().parents[1]
-THREE_LINK = ROOT / "configs" / "sitl" / "three_link.toml"
+THREE_LINK = ROOT / "configs" / "sitl" / "chain" / "three_link.toml"
 D = load_dialect()
 
 
@@ -230,7 +232,7 @@ def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_ref
     assert m["scheduling"] == "batch" and result["policy_after"] == os.SCHED_OTHER
     assert not children_of(os.getpid()), "vehicle or companion processes left behind"
     # the loop's start and end, as bench sitl finds them in the harness's log
-    lines = [r.getMessage() for r in caplog.records if r.name == "sitl.fleet"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "sitl.fleet.harness"]
     assert any(x.startswith(LOCKSTEP_STARTED + " 3 vehicle(s) from t = 0.000 s") for x in lines), lines
     assert any(x.startswith(LOCKSTEP_ENDED + " at t = 16.000 s") for x in lines), lines
     _assert_ports_released(3)
@@ -370,7 +372,7 @@ def test_a_truth_row_cut_short_by_an_interruption_is_left_out():
     rows only."""
     from types import SimpleNamespace
 
-    from sitl.fleet import FleetHarness
+    from sitl.fleet.harness import FleetHarness
 
     rows = {"t": [0.0, 0.02, 0.04], "p_true": [np.zeros((3, 3))] * 3, "joint_force_true": [np.ones((2, 3))] * 2}
     truth = FleetHarness.truth_log(SimpleNamespace(rows=rows))
@@ -570,7 +572,7 @@ def _unkeyed_attacks(sent: dict, stop: threading.Event) -> None:
 def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path):
     """three_link_signed.toml: signing required everywhere; the four spoofs change nothing, a keyed
     ground station reads and sets a parameter."""
-    sc = load_scenario(ROOT / "configs" / "sitl" / "three_link_signed.toml", duration_s=16.0)
+    sc = load_scenario(ROOT / "configs" / "sitl" / "chain" / "three_link_signed.toml", duration_s=16.0)
     key_file = tmp_path / "fleet.key"
     new_key_file(key_file)
     sc = replace(sc, signing=replace(sc.signing, key_file=str(key_file)))
@@ -676,7 +678,7 @@ def _crafted_states(sent: dict, stop: threading.Event, seconds: float = 4.0) -> 
 
 
 def test_crafted_states_neither_stop_the_companion_nor_move_a_healthy_link(tmp_path, batch_reference):
-    """Issue 13's crafted states at the companion (unsigned three_link.toml): it keeps stepping at
+    """Crafted states at the companion (unsigned three_link.toml): it keeps stepping at
     20 Hz, rejects or leaves out every one, and the healthy links fly as without them."""
     sc = load_scenario(THREE_LINK, duration_s=16.0)
     sent: dict = {}

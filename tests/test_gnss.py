@@ -1,4 +1,4 @@
-"""The receiver-like GNSS model (sitl.sensors, profiles m8 and rtk): stationary Gauss-Markov
+"""The receiver-like GNSS model (sitl.plant.sensors, profiles m8 and rtk): stationary Gauss-Markov
 biases with their stds and time constants, a common mode shared by all links, seeded."""
 
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from sitl.sensors import PROFILES, LinkSensors
+from sitl.plant.sensors import PROFILES, LinkSensors
 
 
 def _run(profile, n, seconds, rate_hz=10.0, seed=0):
@@ -74,15 +74,15 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     assert not extra.any() and np.array_equal(biased.P, plain.P)  # the filter itself is untouched
     with pytest.raises(ValueError, match="gps_bias_var_m2"):
         EkfConfig(gps_bias_var_m2=(-1.0, 0.0))
-    base = open("configs/sitl/three_link.toml").read()
+    base = open("configs/sitl/chain/three_link.toml").read()
     m8 = tmp_path / "m8.toml"
     m8.write_text(base.replace('profile = "outdoor"', 'profile = "m8"'))
     assert load_scenario(m8).firmware.ekf == cfg
     # the companion takes the receivers' common mode out of the step (tests/test_engine.py)
     assert load_scenario(m8).companion.gnss_common_pos_var_m2 == pytest.approx(
         (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2))
-    assert load_scenario("configs/sitl/three_link.toml").firmware.ekf == outdoor_ekf_config()
-    assert load_scenario("configs/sitl/three_link.toml").companion.gnss_common_pos_var_m2 == (0.0, 0.0)
+    assert load_scenario("configs/sitl/chain/three_link.toml").firmware.ekf == outdoor_ekf_config()
+    assert load_scenario("configs/sitl/chain/three_link.toml").companion.gnss_common_pos_var_m2 == (0.0, 0.0)
     own = tmp_path / "own.toml"
     own.write_text(base.replace('profile = "outdoor"', 'profile = "m8"') + "\n[firmware.ekf]\ngps_pos_var_m2 = 0.7\n")
     assert load_scenario(own).firmware.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)

@@ -14,6 +14,7 @@ from companion.motion.cpg import CpgParams
 from companion.motion.expected_physics import WaterParams
 from companion.motion.generator import MotionGenerator
 from companion.motion.inverse import InverseModel, Mlp, train_inverse_model
+from companion.motion.schedule import PACKAGED_MODEL
 from companion.motion.steady import SteadyConfig, sample_parameters, steady_motion
 
 
@@ -82,7 +83,7 @@ def _segments(model, water, adapt, speeds, seconds=40.0, dt=0.01):
     return np.array(achieved)
 
 
-COMMITTED = Path(__file__).resolve().parents[1] / "configs" / "models" / "inverse_cpg_7link.npz"
+COMMITTED = Path(PACKAGED_MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +113,7 @@ def test_adaptation_reduces_a_deliberate_model_error(committed):
 
 
 def test_the_committed_model_matches_the_current_physics():
-    """configs/models/inverse_cpg_7link.npz against freshly simulated parameters (a stale model fails)."""
+    """companion/motion/models/inverse_cpg_7link.npz against freshly simulated parameters (a stale model fails)."""
     model = InverseModel.load(COMMITTED)
     # the file records the physics it was made with: today's defaults
     assert replace(model.steady, cpg=None) == SteadyConfig() and model.steady.cpg_params == CpgParams(7)

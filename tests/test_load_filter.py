@@ -1,4 +1,4 @@
-"""The slung load's pose filters (issue 16 item 4) and metrics (item 5): model Jacobians against
+"""The slung load's pose filters (companion.load) and metrics: model Jacobians against
 finite differences, eq. 8 against Newton-Euler in the world frame, EKF vs UKF, late images,
 consistency and accuracy on the synthetic scenario (``sitl/load_synthetic.py``, no MuJoCo)."""
 
@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.estimation.so3 import attitude_error, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat, skew
-from companion.vision import load_filter as lf
-from companion.vision import load_metrics as lm
-from companion.vision import load_model as m
-from sitl.load_synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
+from companion.load import filter as lf
+from companion.load import metrics as lm
+from companion.load import model as m
+from sitl.scenarios.slung_load.synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
 
 SIM = SlungLoadSim(duration_s=4.0, sim_dt_s=0.005)
 PARAMS = SIM.load_params()

@@ -1,4 +1,4 @@
-"""MuJoCo's OpenGL backend is chosen by what a run renders (sitl/rendering.py): a run without cameras
+"""MuJoCo's OpenGL backend is chosen by what a run renders (sitl/cameras/rendering.py): a run without cameras
 or video loads no OpenGL library; one that renders without a headless backend exits 2 naming what
 to install."""
 
@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from sitl.rendering import choose_backend
+from sitl.cameras.rendering import choose_backend
 
 ROOT = Path(__file__).resolve().parents[1]
-THREE_LINK = ROOT / "configs" / "sitl" / "three_link.toml"
-CAMERA = ROOT / "configs" / "sitl" / "three_link_camera.toml"
+THREE_LINK = ROOT / "configs" / "sitl" / "chain" / "three_link.toml"
+CAMERA = ROOT / "configs" / "sitl" / "cameras" / "three_link_camera.toml"
 
 
 def _python(code: str, **env) -> subprocess.CompletedProcess:
@@ -33,7 +33,7 @@ def test_a_run_that_renders_nothing_disables_opengl(monkeypatch):
 
 @pytest.mark.parametrize("asked", ["", "osmesa", "egl", "disable"])
 def test_a_run_that_renders_takes_a_backend_whose_library_is_present(monkeypatch, asked):
-    import sitl.rendering as rendering
+    import sitl.cameras.rendering as rendering
 
     monkeypatch.delitem(sys.modules, "mujoco", raising=False)  # (as before MuJoCo's import)
     for present in ({"osmesa", "egl"}, {"egl"}, set()):
@@ -55,7 +55,7 @@ def test_the_batch_flight_loads_no_opengl_library():
         "from sitl.__main__ import _prepare_rendering\n"
         "from sitl.scenario import load_scenario\n"
         f"assert _prepare_rendering(load_scenario({str(THREE_LINK)!r}), None) is None\n"
-        "import sitl.fly, sitl.fleet, mujoco\n"
+        "import sitl.scenarios.chain.flight, sitl.fleet.launcher, mujoco\n"
         "maps = open('/proc/self/maps').read()\n"
         "gl = sorted({l.split('/')[-1] for l in maps.splitlines() if any(k in l for k in ('libOSMesa', 'libEGL', 'libGL'))})\n"
         "print('OpenGL' in sys.modules, gl)\n")
@@ -67,8 +67,8 @@ def test_a_camera_scenario_without_a_backend_exits_2_naming_the_package(tmp_path
     """The command line on a machine where no backend's library is found (the lookup answers no)."""
     r = _python(
         "import sys\n"
-        "import sitl.rendering\n"
-        "sitl.rendering._library_present = lambda backend: False\n"
+        "import sitl.cameras.rendering\n"
+        "sitl.cameras.rendering._library_present = lambda backend: False\n"
         "from sitl.__main__ import main\n"
         f"sys.exit(main(['fly', '--config', {str(CAMERA)!r}, '--duration', '8', '--out', {str(tmp_path)!r}, '--quiet']))\n")
     assert r.returncode == 2, r.stderr
@@ -79,8 +79,8 @@ def test_a_camera_scenario_without_a_backend_exits_2_naming_the_package(tmp_path
 def test_a_video_without_a_backend_exits_2_naming_the_package(tmp_path):
     r = _python(
         "import sys\n"
-        "import sitl.rendering\n"
-        "sitl.rendering._library_present = lambda backend: False\n"
+        "import sitl.cameras.rendering\n"
+        "sitl.cameras.rendering._library_present = lambda backend: False\n"
         "from sitl.__main__ import main\n"
         f"sys.exit(main(['fly', '--config', {str(THREE_LINK)!r}, '--video', {str(tmp_path / 'x.mp4')!r}, "
         f"'--out', {str(tmp_path / 'run')!r}, '--quiet']))\n")
@@ -90,6 +90,6 @@ def test_a_video_without_a_backend_exits_2_naming_the_package(tmp_path):
 
 @pytest.mark.rendering
 def test_the_chosen_backend_renders():
-    from sitl.rendering import require_rendering
+    from sitl.cameras.rendering import require_rendering
 
     assert require_rendering() in ("osmesa", "egl", "glfw")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from companion.skeleton.rotors import RotorParams
-from sitl.rotor import RotorBank
+from sitl.plant.rotor import RotorBank
 
 DT = 0.001
 
@@ -142,11 +142,12 @@ def test_steady_fast_path_equals_the_full_state_machine(seed):
 def test_warm_up_loads_every_kernel_the_bank_steps_by():
     """A run's first physics tick must not load (or compile) a kernel: ``warm_up`` leaves each of the
     bank's kernels with a compiled signature (without numba it does nothing)."""
-    from link_firmware_sim._fast import ENABLED
-    from sitl import rotor
+    from companion.kernels.jit import ENABLED
+    from sitl.kernels import rotor as kernels
+    from sitl.plant import rotor
 
     rotor.warm_up()
     if not ENABLED:
         pytest.skip("numba not installed: the numpy path has nothing to load")
-    for kernel in (rotor._step_kernel, rotor._set_command_kernel, rotor._relax_kernel):
+    for kernel in (kernels.step_kernel, kernels.set_command_kernel, kernels.relax_kernel):
         assert kernel.signatures, kernel.__name__

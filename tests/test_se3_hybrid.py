@@ -44,6 +44,8 @@ from link_firmware_sim.controllers.se3_control import (
     se3_pid_control,
 )
 
+from .rigid_body import rigid_body_step
+
 INERTIA = link_inertia(SkeletonConfig(n_links=1, link_length_m=1.2, link_mass_kg=2.6), RotorGeometry.odar())
 vec3 = st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).map(np.array)
 rotvec = st.lists(st.floats(-2.5, 2.5), min_size=3, max_size=3).map(np.array)
@@ -159,17 +161,6 @@ def test_se3_pid_class_agrees_with_function():
     np.testing.assert_array_equal(ctrl.integrals.att_rad, integrals.att_rad)
 
 
-def _rigid_body_step(p, v, R, w, U, wrench_ext_w, dt):
-    """(2.7) for one link, semi-implicit Euler with an exact rotation update."""
-    J = np.asarray(INERTIA.inertia_kgm2)
-    m = INERTIA.mass_kg
-    a = (R @ U[:3] + wrench_ext_w[LIN]) / m - np.array([0, 0, GRAVITY_M_S2])
-    wdot = (U[3:] + wrench_ext_w[ANG] - np.cross(w, J * w)) / J
-    v = v + dt * a
-    w = w + dt * wdot
-    return p + dt * v, v, R @ quat_to_rotmat(quat_from_rotvec(w * dt)), w
-
-
 def test_se3_pid_integral_removes_a_constant_disturbance_in_closed_loop():
     """Closed loop on (2.7) with a constant external torque and force: the SO(3) and position
     integrals bring the pose back (a PD alone keeps an offset)."""
@@ -182,7 +173,7 @@ def test_se3_pid_integral_removes_a_constant_disturbance_in_closed_loop():
         dt = 0.01
         for _ in range(int(15.0 / dt)):
             U = ctrl(p, v, rotmat_to_quat(R), w, target, dt)
-            p, v, R, w = _rigid_body_step(p, v, R, w, U, dist, dt)
+            p, v, R, w = rigid_body_step(p, v, R, w, U, INERTIA, dt, dist)
         finals[name] = (np.linalg.norm(p), np.linalg.norm(attitude_error_so3(R, target.R_d)))
     assert finals["pid"][0] < 0.01 and finals["pid"][1] < 0.005
     assert finals["pd"][0] > 0.03 and finals["pd"][1] > 0.015
@@ -293,7 +284,7 @@ def test_observer_converges_to_a_constant_external_wrench(seed):
     for k in range(2000):
         U = np.concatenate((R.T @ [0, 0, hover], np.zeros(3))) + 0.5 * np.sin(k * dt * np.arange(1, 7))
         obs.step(v, w, np.concatenate((R @ U[:3], U[3:])), dt)
-        p, v, R, w = _rigid_body_step(p, v, R, w, U, np.concatenate((dist[LIN], dist[ANG])), dt)
+        p, v, R, w = rigid_body_step(p, v, R, w, U, INERTIA, dt, np.concatenate((dist[LIN], dist[ANG])))
         if k == 50:
             early = np.abs(obs.wrench_e - dist).max()
     err = np.abs(obs.wrench_e - dist).max()

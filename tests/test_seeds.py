@@ -78,6 +78,6 @@ def test_static_protocol_cli_flies_each_seed_into_its_folder_and_repeats(tmp_pat
     assert "link 4 std" in text and "semi_distributed" in text
     single = json.loads((tmp_path / "a" / "seed-1" / "metrics.json").read_text())
     assert single["seed"] == 1 and np.array(single["static"]["rms_err_m"]["ekf"]).shape == (7, 3)
-    res = subprocess.run([sys.executable, "-m", "sitl.bench", "static", "--config", "configs/sitl/three_link.toml",
+    res = subprocess.run([sys.executable, "-m", "sitl.bench", "static", "--config", "configs/sitl/chain/three_link.toml",
                           "--seeds", "1", "--out", str(tmp_path / "c")], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 2 and "resting chain" in res.stderr

@@ -14,17 +14,27 @@ from companion.config import CompanionSetup, load_setup
 from companion.configfile import ConfigError, dump_toml
 from link_firmware_sim.config import VehicleSetup
 from sitl.scenario import Scenario, load_scenario
+from sitl.scenarios import KINDS, kind_of, load
 
 ROOT = Path(__file__).resolve().parents[1]
-SITL = sorted((ROOT / "configs" / "sitl").glob("*.toml"))
+SITL = sorted((ROOT / "configs" / "sitl").rglob("*.toml"))
 HARDWARE = sorted((ROOT / "configs" / "hardware").glob("*.toml"))
+#: the kind of every scenario file, by the folder it is in (configs/sitl/<folder>/)
+FOLDER_KINDS = {"chain": {"chain"}, "cameras": {"chain"}, "faults": {"chain"}, "odar": {"chain", "wall_push", "pspm_jump"},
+                "load": {"slung_load"}}
+
+
+def test_the_scenario_folders_mirror_the_kinds_and_each_has_a_readme():
+    folders = {p.parent.name for p in SITL}
+    assert folders == set(FOLDER_KINDS) and not list((ROOT / "configs" / "sitl").glob("*.toml"))
+    assert all((ROOT / "configs" / "sitl" / f / "README.md").exists() for f in folders)
+    assert set().union(*FOLDER_KINDS.values()) == set(KINDS)
 
 
 @pytest.mark.parametrize("path", SITL, ids=lambda p: p.stem)
 def test_every_scenario_splits_into_parts_that_load_back_strictly(path, tmp_path):
-    from sitl.slung_load_config import is_slung_load_file, load_slung_scenario
-
-    sc = load_slung_scenario(path) if is_slung_load_file(path) else load_scenario(path)  # as `sitl fly` does
+    kind, sc = load(path)  # as `sitl fly` does
+    assert kind.name in FOLDER_KINDS[path.parent.name] and sc.kind == kind.name
     assert isinstance(sc, CompanionSetup) and isinstance(sc, VehicleSetup)
     for cls, part in ((CompanionSetup, sc.companion_setup()), (VehicleSetup, sc.vehicle_setup())):
         assert type(part) is cls
@@ -45,14 +55,14 @@ def test_hardware_configs_are_companion_setups_and_nothing_else(path, tmp_path):
 
 
 def test_a_scenario_given_to_the_companion_names_the_first_simulator_key():
-    proc = subprocess.run([sys.executable, "-m", "companion", "--config", str(ROOT / "configs/sitl/three_link.toml"),
+    proc = subprocess.run([sys.executable, "-m", "companion", "--config", str(ROOT / "configs/sitl/chain/three_link.toml"),
                            "--duration", "0"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2
     assert "three_link.toml: duration_s: unknown key" in proc.stderr and "companion.toml" in proc.stderr
 
 
 def test_the_scenario_checks_each_parts_rules():
-    sc = load_scenario(ROOT / "configs" / "sitl" / "three_link.toml")
+    sc = load_scenario(ROOT / "configs" / "sitl" / "chain" / "three_link.toml")
     with pytest.raises(ValueError, match="thrust_max_n"):  # the vehicle's rule
         replace(sc, rotors=replace(sc.rotors, thrust_max_n=6.0))
     with pytest.raises(ValueError, match="keeps the links on the ground"):  # the companion's rule
@@ -65,7 +75,7 @@ def test_the_scenario_checks_each_parts_rules():
 def test_the_wall_push_scenario_loads_as_one():
     """configs/sitl/odar/wall_push.toml is a wall-push scenario ([contact]); as a plain scenario
     its extra table is named."""
-    from sitl.contact import load_wall_scenario
+    from sitl.scenarios.wall_push.config import load_wall_scenario
 
     path = ROOT / "configs" / "sitl" / "odar" / "wall_push.toml"
     sc = load_wall_scenario(path)
@@ -73,3 +83,44 @@ def test_the_wall_push_scenario_loads_as_one():
     with pytest.raises(ConfigError) as info:
         load_scenario(path)
     assert info.value.key == "contact"
+
+
+@pytest.mark.parametrize("kind, table", [("wall_push", "contact"), ("pspm_jump", "teleop"), ("slung_load", "load")])
+def test_a_kinds_table_without_its_kind_names_the_kind(kind, table, tmp_path):
+    path = next(p for p in SITL if kind_of(p).name == kind)
+    bare = tmp_path / "bare.toml"
+    bare.write_text("\n".join(line for line in path.read_text().splitlines() if not line.startswith("kind =")))
+    with pytest.raises(ConfigError) as info:
+        load(bare)
+    assert info.value.key == table and f'kind = "{kind}"' in info.value.reason
+
+
+@pytest.mark.parametrize("value", ['"wall"', "3"])
+def test_an_unknown_kind_is_named(value, tmp_path):
+    path = tmp_path / "x.toml"
+    path.write_text(f"kind = {value}\n" + (ROOT / "configs/sitl/chain/three_link.toml").read_text())
+    with pytest.raises(ConfigError) as info:
+        load(path)
+    assert info.value.key == "kind" and "chain" in info.value.reason and "slung_load" in info.value.reason
+
+
+def test_a_run_folders_scenario_loads_back_as_its_kind(tmp_path):
+    """``scenario.toml`` of a run folder names its kind: ``sitl fly --config <run>/scenario.toml``
+    flies the same kind again."""
+    for path in (ROOT / "configs/sitl/odar/pspm_jump.toml", ROOT / "configs/sitl/chain/three_link.toml"):
+        kind, sc = load(path)
+        copy = tmp_path / f"{path.stem}.toml"
+        copy.write_text(dump_toml(sc))
+        assert load(copy) == (kind, sc)
+
+
+@pytest.mark.parametrize("command, config, needle", [
+    ("launch", "configs/sitl/odar/wall_push.toml", "a wall_push scenario has no fleet form"),
+    ("launch", "configs/sitl/load/slung_load_three.toml", "a slung_load scenario has no fleet form"),
+    ("fly", "configs/sitl/odar/pspm_jump.toml --video x.mp4", "--video: a pspm_jump scenario makes no video"),
+])
+def test_the_command_line_refuses_what_a_kind_does_not_have(command, config, needle, tmp_path):
+    args = [sys.executable, "-m", "sitl", command, "--config", *config.split(), "--out", str(tmp_path / "run")]
+    proc = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
+    assert not (tmp_path / "run").exists()

@@ -51,7 +51,9 @@ from link_firmware_sim.simlink import (
     encode_packet,
     open_sim_port,
 )
-from sitl.fleet import FleetError, FleetHarness, _listening_unix_paths
+from sitl.fleet.harness import FleetHarness
+from sitl.fleet.layout import FleetError
+from sitl.fleet.processes import listening_unix_paths
 from sitl.scenario import load_scenario
 
 from .test_vehicle import LEVEL, Rig
@@ -339,7 +341,7 @@ def test_a_pair_exchanges_counts_drops_and_sees_the_peer_go(tmp_path):
     try:
         path = tmp_path / "link1.sock"
         assert stat.S_IMODE(path.stat().st_mode) == 0o600  # only this user can connect
-        assert str(path) in _listening_unix_paths()
+        assert str(path) in listening_unix_paths()
         _read(vehicle, 0, 0.05)  # accepts
         assert vehicle.connected and sim.connected
         msgs = _messages(np.random.default_rng(3))
@@ -775,7 +777,7 @@ def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering
     """The fleet harness over the same-host link with three fake vehicles: their answers become
     the rotor commands of the tick (decoded together, as each alone); a non-finite answer stops
     the lockstep with a FleetError naming that link."""
-    sc = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "sitl" / "three_link.toml")
+    sc = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "sitl" / "chain" / "three_link.toml")
     folder = Path(tempfile.mkdtemp(prefix="skl-h-"))  # short: a socket path's limit
     vehicles = [SimLinkPort(f"unixin://{folder / f'l{i}.sock'}", accept=SENSORS) for i in range(3)]
     answers = np.array([[1.0, -2.0, 3.0, 0.5, 0.0, 2.0, 9.0, -9.0]]) * np.array([[1.0], [0.5], [0.25]])

@@ -15,17 +15,17 @@ from companion.messages import PoseTarget
 from companion.skeleton.body import LinkInertia, SkeletonConfig
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
-from sitl.fly import fly
-from sitl.skeleton import StartPose
+from sitl.scenarios.chain.flight import fly
+from sitl.plant.start import StartPose
 from sitl.runner import BatchRunner
 from companion.config import CompanionConfig
 from sitl.scenario import Scenario, SensorConfig, load_scenario
-from sitl.sensors import PROFILES, LinkSensors
+from sitl.plant.sensors import PROFILES, LinkSensors
 from companion.trajectory import ChainTrajectory, TrajectoryConfig
 
 from .chains import consistent_chain, random_covariances
 
-CONFIG = "configs/sitl/three_link.toml"
+CONFIG = "configs/sitl/chain/three_link.toml"
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5])
@@ -195,7 +195,7 @@ def test_the_crash_rule_at_the_tilt_limit(deg, crashed):
     from types import SimpleNamespace
 
     from companion.estimation.so3 import quat_from_rotvec, quat_mul
-    from sitl.runner import CRASH_TILT_DEG, Plant
+    from sitl.plant.plant import CRASH_TILT_DEG, Plant
 
     rng = np.random.default_rng(int(deg * 10))
     sc = load_scenario(CONFIG)
@@ -225,7 +225,7 @@ def test_the_crash_rule_at_the_tilt_limit(deg, crashed):
 def test_a_chain_that_never_took_off_has_not_crashed(heights_m, took_off, crashed):
     from types import SimpleNamespace
 
-    from sitl.runner import Plant
+    from sitl.plant.plant import Plant
 
     sc = load_scenario(CONFIG)
     plant = SimpleNamespace(crashed=False, crash_reason="", scenario=sc, took_off=False)
@@ -301,7 +301,7 @@ def test_config_errors_name_file_key_and_reason(tmp_path, text, fragment):
 @pytest.mark.slow
 def test_selective_mapping_holds_the_45_degree_hover():
     """Thesis Fig. 2-7: without selective mapping the ESC singularity ruins the hover."""
-    scenario = load_scenario("configs/sitl/single_odar_pitch45.toml")
+    scenario = load_scenario("configs/sitl/odar/single_odar_pitch45.toml")
     with_sm = fly(scenario, None, plots=False)
     without = fly(scenario, None, selective_mapping=False, plots=False)
     assert not with_sm["crashed"]
@@ -310,7 +310,7 @@ def test_selective_mapping_holds_the_45_degree_hover():
 
 
 def test_wind_drag_and_seeded_gusts():
-    from sitl.runner import Wind
+    from sitl.plant.wind import Wind
     from sitl.scenario import WindConfig
 
     steady = Wind(WindConfig(mean_w_m_s=(4.0, 0.0, 0.0)), 2, 0.1, 1.0, np.random.default_rng(0))
@@ -339,9 +339,9 @@ def test_single_link_holds_position_in_steady_wind():
 
 
 def test_nees_of_a_short_flight_lies_within_its_bounds_and_flags_a_white_noise_tuning():
-    """issue 14: every link's time-averaged NEES (EKF and corrected; position, velocity,
+    """Every link's time-averaged NEES (EKF and corrected; position, velocity,
     attitude) of a 30 s three_link flight within the 95 % bounds of its effective sample count;
-    a 12 s flight with the EKF told the sensors' white noise only (the tuning before issue 14) is
+    a 12 s flight with the EKF told the sensors' white noise only (drifts left out of its tuning) is
     over-confident and outside them."""
     from link_firmware_sim.estimators import EkfConfig, EkfNoise
 
@@ -364,7 +364,7 @@ def test_nees_of_a_short_flight_lies_within_its_bounds_and_flags_a_white_noise_t
 def _far_target_flight(limit_m):
     """single_odar level, holding at 2 m; from 8 s a target 10 m away (as a GCS's
     SET_POSITION_TARGET would set it: re-set every tick, over the trajectory's)."""
-    sc = load_scenario("configs/sitl/single_odar_pitch45.toml", duration_s=16.0)
+    sc = load_scenario("configs/sitl/odar/single_odar_pitch45.toml", duration_s=16.0)
     gains = replace(FirmwareConfig().gains, pos_error_limit_m=limit_m)
     sc = replace(sc, start=replace(sc.start, pitch_deg=0.0), trajectory=replace(sc.trajectory, pitch_deg=0.0),
                  firmware=replace(sc.firmware, gains=gains))

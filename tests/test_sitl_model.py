@@ -6,8 +6,8 @@ from companion.estimation.so3 import quat_to_rotmat
 from companion.skeleton.body import SkeletonConfig, link_inertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
 from link_firmware_sim.allocation import Allocator
-from sitl.model import SkeletonModel
-from sitl.skeleton import StartPose
+from sitl.plant.model import SkeletonModel
+from sitl.plant.start import StartPose
 
 
 def _model(n=3, **kw):

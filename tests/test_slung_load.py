@@ -1,4 +1,4 @@
-"""The slung-load scenario (issue 16 items 3 and 5): formation targets, config, a short MuJoCo flight."""
+"""The slung-load scenario (sitl.scenarios.slung_load): formation targets, config, a short MuJoCo flight."""
 
 from __future__ import annotations
 
@@ -10,15 +10,16 @@ import numpy as np
 import pytest
 
 from companion.configfile import ConfigError
-from companion.formation import (
+from sitl.scenarios import kind_of
+from sitl.scenarios.slung_load.config import load_slung_scenario
+from sitl.scenarios.slung_load.formation import (
     CircleFormationConfig,
     cable_feedforward,
     formation_state,
     formation_targets,
 )
-from sitl.slung_load_config import is_slung_load_file, load_slung_scenario
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sitl" / "slung_load_three.toml"
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sitl" / "load" / "slung_load_three.toml"
 
 
 @pytest.mark.parametrize("t", [0.0, 5.0, 9.0, 20.0])
@@ -61,7 +62,7 @@ def test_cable_feedforward_balances_the_load():
 
 
 def test_config_loads_and_validates(tmp_path):
-    assert is_slung_load_file(CONFIG)
+    assert kind_of(CONFIG).name == "slung_load"
     sc = load_slung_scenario(CONFIG)
     assert sc.load.n == 3 and len(sc.cameras) == 3
     assert sc.marker_in_load().pos_m[2] > 0.5 * sc.load.size_m[2]  # above the top face
@@ -86,7 +87,7 @@ def test_short_flight_estimates_the_load(tmp_path):
     carry the load, every camera sees the marker, and the EKF, UKF and unfiltered estimates exist
     and are near the truth (the filters start from the rigging's prior, not from the truth)."""
     pytest.importorskip("cv2")
-    from sitl.slung_load import fly_slung_load
+    from sitl.scenarios.slung_load.flight import fly_slung_load
 
     sc = load_slung_scenario(CONFIG, duration_s=1.2)
     sc = replace(sc, load=replace(sc.load, settle_s=0.5))

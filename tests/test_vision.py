@@ -200,7 +200,7 @@ def test_vision_config_and_geometry_import_without_opencv():
             "            raise ImportError('blocked: ' + name)\n"
             "sys.meta_path.insert(0, Block())\n"
             "import companion.vision, companion.vision.geometry, companion.vision.frame, companion.vision.config\n"
-            "import sitl.camera_config, sitl.scenario\n"
+            "import sitl.cameras.config, sitl.scenario\n"
             "try:\n"
             "    import companion.vision.pnp\n"
             "except ImportError as e:\n"

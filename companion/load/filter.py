@@ -1,7 +1,7 @@
 """The slung load's pose on SE(3): error-state EKF, UKF with sigma points on the manifold,
-an unfiltered baseline, and late images (report ``004_946c2b2ab3d872ae.txt``, sec. IV).
+an unfiltered baseline, and late images (the report's sec. IV).
 
-Model, state and slices: :mod:`companion.vision.load_model` (eq. 8 dynamics with estimated cable
+Model, state and slices: :mod:`companion.load.model` (eq. 8 dynamics with estimated cable
 tensions in the prediction, eq. 4 measurement). What differs from the report:
 
 * the dynamics are in the prediction, not folded into a control input (the report's eq. 5/7),
@@ -39,7 +39,7 @@ import numpy as np
 
 from companion.estimation.so3 import quat_to_rotmat, rotmat_to_quat
 
-from .load_model import (
+from .model import (
     ERR_ATT,
     ERR_OMEGA,
     ERR_POS,

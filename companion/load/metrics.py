@@ -1,4 +1,4 @@
-"""Metrics of the vision measurement and the load's pose (issue 16 item 5; report 004).
+"""Metrics of the vision measurement and the load's pose.
 
 Errors in the report's definitions, from :mod:`companion.vision.geometry`: eq. 2, the
 translation error ``t_est - t_gt`` (its norm here), and eq. 3, the geodesic angle
@@ -22,7 +22,7 @@ import numpy as np
 
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
 
-from .geometry import geodesic_angle_rad, translation_error_m
+from companion.vision.geometry import geodesic_angle_rad, translation_error_m
 
 __all__ = [
     "rms",

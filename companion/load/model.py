@@ -1,6 +1,6 @@
 """The slung load's model: state on SE(3), dynamics (report eq. 8), measurement (report eq. 4).
 
-The report ``004_946c2b2ab3d872ae.txt`` (sec. IV) estimates a load carried by cables from several
+The slung-load report (sec. IV) estimates a load carried by cables from several
 vehicles. Its filter folded the dynamics into a control input (eq. 5, 7) on a roll-pitch-yaw state
 (eq. 6), which is why its EKF and UKF gave the same trajectory. Here the dynamics are in the
 prediction and the attitude lives on SO(3):
@@ -55,8 +55,8 @@ from companion.estimation.so3 import (
 )
 from companion.skeleton.body import GRAVITY_M_S2
 
-from .geometry import POS as PNP_POS
-from .geometry import ROT as PNP_ROT
+from companion.vision.geometry import POS as PNP_POS
+from companion.vision.geometry import ROT as PNP_ROT
 
 __all__ = [
     "NOM_POS", "NOM_VEL", "NOM_QUAT", "NOM_OMEGA", "nominal_tension_slice", "nominal_dim",

@@ -1,4 +1,4 @@
-"""Camera frame in, eq. 4 measurement of the slung load out (report ``004_946c2b2ab3d872ae.txt``, sec. III-IV).
+"""Camera frame in, eq. 4 measurement of the slung load out (the report's sec. III-IV).
 
 One :class:`LoadVisionPipeline` serves every carrying vehicle's camera: a frame
 (:class:`~companion.vision.frame.CameraFrame`, from the SITL's renderer, a Zenoh subscriber or a
@@ -6,11 +6,11 @@ One :class:`LoadVisionPipeline` serves every carrying vehicle's camera: a frame
 (:class:`~companion.vision.pnp.MarkerPipeline`: ArUco detection with corner refinement, PnP,
 the IPPE ambiguity, a covariance per detection); the load's marker pose becomes the vehicle's
 position in the load frame with its covariance
-(:func:`~companion.vision.load_model.observation_from_pnp`, eq. 4), stamped with the frame's
-capture time. The filters (:mod:`.load_filter`) take it from there.
+(:func:`~companion.load.model.observation_from_pnp`, eq. 4), stamped with the frame's
+capture time. The filters (:mod:`.filter`) take it from there.
 
 Pure: no sockets, clocks or threads (the caller times it if it wants to). OpenCV through
-:mod:`.pnp` (the ``vision`` extra).
+:mod:`companion.vision.pnp` (the ``vision`` extra).
 """
 
 from __future__ import annotations
@@ -18,9 +18,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from .frame import CameraFrame
-from .load_model import LoadObservation, Pose3, observation_from_pnp
-from .pnp import MarkerPipeline, MarkerPose, PipelineConfig
+from companion.vision.frame import CameraFrame
+from companion.vision.pnp import MarkerPipeline, MarkerPose, PipelineConfig
+
+from .model import LoadObservation, Pose3, observation_from_pnp
 
 __all__ = ["LoadVisionResult", "LoadVisionPipeline"]
 

@@ -190,7 +190,7 @@ class InverseModel:
         version = int(data["version"])
         if version != MODEL_VERSION:
             raise ValueError(f"{path}: inverse model format version {version}, this code reads {MODEL_VERSION} "
-                             "(regenerate it: configs/models/README.md)")
+                             "(regenerate it: companion/motion/models/README.md)")
         try:
             steady = build(SteadyConfig, json.loads(str(data["steady"])), file=str(path), prefix="steady")
         except (KeyError, json.JSONDecodeError) as exc:

@@ -32,15 +32,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from companion.configfile import require_nonnegative, require_positive
 
-__all__ = ["MotionCommand", "MotionConfig", "desired_motion", "heading_rad", "pitch_rad", "GAIT_THETA"]
+__all__ = ["MotionCommand", "MotionConfig", "desired_motion", "heading_rad", "pitch_rad", "GAIT_THETA",
+           "PACKAGED_MODEL"]
 
 GAIT_THETA = {"horizontal": 0.0, "vertical": 0.5 * math.pi}
+
+#: the inverse CPG model that comes with the package: the seven-link chain's (``models/README.md``
+#: beside it says how it was made)
+PACKAGED_MODEL = str(Path(__file__).resolve().parent / "models" / "inverse_cpg_7link.npz")
 
 
 @dataclass(frozen=True)
@@ -64,8 +70,9 @@ class MotionCommand:
 class MotionConfig:
     """CPG motion generation on the leader (thesis ch. 4).
 
-    ``model``: the inverse CPG model file (relative paths are relative to the config file); the
-    CPG and expected physics are the ones it records. ``start_s``: scenario time at which the
+    ``model``: the inverse CPG model file (relative paths are relative to the config file; by
+    default the packaged seven-link model, :data:`PACKAGED_MODEL`); the CPG and expected physics
+    are the ones it records. ``start_s``: scenario time at which the
     motion starts (the chain hovers straight before). ``dt_s``: the generator's step (the
     targets are sampled from it). ``adapt``: eq. 4.3 on. ``yaw_kp_1_s``, ``yaw_rate_max_deg_s``:
     the heading controller of ``yaw_deg`` commands. ``hold_altitude`` with ``altitude_kp_deg_m``,
@@ -73,7 +80,7 @@ class MotionConfig:
     docstring). The controllers are sampled once per undulation period.
     """
 
-    model: str = "../models/inverse_cpg_7link.npz"
+    model: str = PACKAGED_MODEL
     start_s: float = 10.0
     dt_s: float = 0.01
     adapt: bool = True

@@ -8,6 +8,7 @@
     python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
+    python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
     (every bench also takes [--doc [PATH] | --no-doc], below)
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
@@ -54,6 +55,7 @@ DOCS = {
     "load_filter": ("Slung load pose: EKF vs UKF vs unfiltered (synthetic)", ("numpy", "scipy")),
     "sitl": ("SITL speed: batch and fleet real-time factors against MuJoCo alone",
              ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
+    "controllers": ("One link's pose controllers on one scenario: tracking", ("numpy", "mujoco", "numba")),
 }
 
 
@@ -219,10 +221,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_doc_options(zb, "zenoh")
     zb.set_defaults(func=_cmd_zenoh)
     for name, config, help_text, desc in (
-        ("nees", "configs/sitl/three_link.toml", "Monte Carlo NEES: a flight over N seeds, per link and block",
+        ("nees", "configs/sitl/chain/three_link.toml", "Monte Carlo NEES: a flight over N seeds, per link and block",
          "Fly a batch scenario once per seed and average each link's NEES (position, velocity, attitude; EKF and "
          "corrected) over the window and the seeds, with the 95 % bounds of that average for a consistent filter."),
-        ("static", "configs/sitl/seven_link_static.toml", "the thesis's static test over N seeds (GNSS receiver model)",
+        ("static", "configs/sitl/chain/seven_link_static.toml", "the thesis's static test over N seeds (GNSS receiver model)",
          "Fly the resting 7-link chain once per seed with a receiver-like GNSS (--profile, default m8) and report "
          "per link and axis the std and RMS error of the EKF, local and semi-distributed estimates, mean and spread "
          "over seeds, beside the thesis's sec. 3.5.2 figures."),
@@ -245,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
         "load_filter",
         help="slung load pose: EKF vs UKF vs unfiltered on the synthetic scenario, N seeds",
         description=("Three vehicles fly the report's 2 m circle at 1.5 m/s carrying a box by elastic cables "
-                     "(sitl/load_synthetic.py, no MuJoCo); seeded GNSS and PnP-like images arriving late. Prints "
+                     "(sitl/scenarios/slung_load/synthetic.py, no MuJoCo); seeded GNSS and PnP-like images arriving late. Prints "
                      "the load position/orientation RMS of the EKF, UKF, unfiltered solve and open-loop model."),
     )
     lfb.add_argument("--seeds", type=int, default=3, metavar="N", help="seeds S..S+N-1 (default 3)")
@@ -257,12 +259,60 @@ def build_parser() -> argparse.ArgumentParser:
     lfb.add_argument("--quiet", action="store_true", help="no progress bar")
     add_doc_options(lfb, "load_filter")
     lfb.set_defaults(func=_cmd_load_filter)
+    cb = sub.add_parser(
+        "controllers",
+        help="one link's pose controllers (impedance, SE(3) PID) on one scenario: tracking errors",
+        description=("Fly a scenario once per controller ([firmware] controller: impedance, eq. 1; se3_pid, thesis "
+                     "sec. 2.3.2), everything else equal, and report link 1's RMS position and attitude tracking "
+                     "against the truth and the estimate, from the end of the figure eight's amplitude ramp."),
+    )
+    cb.add_argument("--config", default="configs/sitl/odar/single_odar_figure8.toml",
+                    help="scenario file (default configs/sitl/odar/single_odar_figure8.toml)")
+    cb.add_argument("--controllers", default="impedance,se3_pid", metavar="A,B",
+                    help="controllers, comma-separated (default impedance,se3_pid)")
+    cb.add_argument("--duration", type=float, help="simulated seconds per flight (default: the scenario's)")
+    cb.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    cb.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    cb.add_argument("--out", metavar="DIR", help="run folder (default: runs/controllers-<UTC time>)")
+    cb.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(cb, "controllers")
+    cb.set_defaults(func=_cmd_controllers)
     return parser
+
+
+def _cmd_controllers(args) -> int:
+    from typing import get_args, get_type_hints
+
+    from link_firmware_sim.firmware import FirmwareConfig
+    from sitl.scenario import load_scenario
+
+    from .controllers import compare_controllers, format_controllers, markdown_controllers
+
+    controllers = tuple(x for x in args.controllers.split(",") if x)
+    known = get_args(get_type_hints(FirmwareConfig)["controller"])
+    overrides = {k: v for k, v in (("duration_s", args.duration), ("seed", args.seed)) if v is not None}
+    try:
+        sc = load_scenario(args.config, **overrides)
+        if not controllers or not set(controllers) <= set(known):
+            raise ValueError(f"--controllers: one or more of {', '.join(known)}, got {args.controllers!r}")
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("controllers", args.out)
+    with tqdm(total=len(controllers) * sc.duration_s, desc="controllers", unit="sim s", disable=args.quiet,
+              file=sys.stderr) as bar:
+        result = compare_controllers(sc, run_dir, controllers, progress=bar.update)
+    path = _write_json(result, args.json, run_dir, "controllers.json")
+    text = format_controllers(result)
+    print(text)
+    print(f"\nwrote {path}, {run_dir / 'compare_tracking.png'} and each controller's log.npz in {run_dir}")
+    _write_doc(args, run_dir, markdown_controllers(result), text, [path, run_dir / "compare_tracking.png"])
+    return 0 if not any(m["crashed"] for m in result["controllers"].values()) else 1
 
 
 def _cmd_seeds(args) -> int:
     from sitl.scenario import load_scenario
-    from sitl.sensors import PROFILES
+    from sitl.plant.sensors import PROFILES
 
     from .seeds import (aggregate_nees, aggregate_static, fly_seeds, format_nees, format_static, markdown_nees,
                         markdown_static)
@@ -367,8 +417,8 @@ def _add_sitl_parser(sub) -> None:
 
 
 def _cmd_load_filter(args) -> int:
-    from companion.vision.load_filter import LoadFilterConfig
-    from sitl.load_synthetic import SlungLoadSim
+    from companion.load.filter import LoadFilterConfig
+    from sitl.scenarios.slung_load.synthetic import SlungLoadSim
 
     from .load_filter import format_load_filter, markdown_load_filter, plot_load_errors, run_load_filter_bench
 

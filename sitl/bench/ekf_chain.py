@@ -16,13 +16,13 @@ import numpy as np
 from companion.configfile import require_positive
 from companion.replay import REPLAY_KEYS, ReplayData
 from link_firmware_sim.estimators import EkfConfig, EkfNoise, LinkEkf
+from sitl.plant.schedule import rate_divisor
 from sitl.synthetic import ChainMotion, Sensors, SensorModel, chain_truth
 
 __all__ = [
     "ChainRun",
     "EkfStream",
     "EKF_CONFIGS",
-    "rate_divisor",
     "drift_seen",
     "honest_noise",
     "consistent_ekf_config",
@@ -32,17 +32,6 @@ __all__ = [
 
 #: The EKF tunings the Table II benchmark compares (see :func:`ekf_config`).
 EKF_CONFIGS = ("paper", "consistent")
-
-
-def rate_divisor(base_hz: float, rate_hz: float, name: str) -> int:
-    """Ticks of the base rate per event of ``rate_hz``; ``ValueError`` unless a whole multiple."""
-    if not (rate_hz > 0 and base_hz > 0):
-        raise ValueError(f"{name}: rates must be positive (base {base_hz} Hz, {name} {rate_hz} Hz)")
-    ratio = base_hz / rate_hz
-    div = round(ratio)
-    if div < 1 or abs(ratio - div) > 1e-9 * ratio:
-        raise ValueError(f"{name} rate {rate_hz} Hz is not a whole divisor of the base tick rate {base_hz} Hz")
-    return int(div)
 
 
 @dataclass(frozen=True)
@@ -128,14 +117,10 @@ def consistent_ekf_config(
       large side.
     * Initial variances: those of the first fix the filter starts from (white + drift).
 
-    Measured (12 links, 20 s; ``python -m sitl.bench table2``, seeds 0-4): EKF NEES position
-    3.28, velocity 2.67, attitude 2.35 (paper tuning: 5.80, 2.23, 3.17); quaternion error 0.0111
-    (paper tuning 0.0361), position error 0.333 m (0.390 m). Memory sweep, seeds 0-2, NEES and
-    quaternion error: attitude ``tau`` 3 / 5 / 8 / 12 / 20 s -> 1.66 / 1.84 / 2.3 / 3.00 / 4.52
-    and 0.0144 / 0.0122 / 0.0109 / 0.0103 / 0.0101 (12 s would be consistent by calibration, not
-    by this derivation; much longer memories turn over-confident: the run stays in the transient
-    after the first fix, where the drift has not averaged out yet); position
-    ``tau`` 0.5 / 1.6 / 5 s -> NEES 3.14 / 3.17 / 4.08, error 0.362 / 0.329 / 0.310 m. Compare
+    Longer attitude memories than this derivation's lower the quaternion error and raise the NEES:
+    much longer ones turn over-confident (a 20 s run stays in the transient after the first fix,
+    where the drift has not averaged out yet). How this tuning and the paper's compare:
+    ``python -m sitl.bench table2`` (docs/bench/table2.md). Compare
     :func:`link_firmware_sim.estimators.tunings.outdoor_ekf_config`, the same idea for the SITL sensors.
     """
     m = sensors

@@ -1,4 +1,4 @@
-"""Benchmark of the slung load's pose filters on the synthetic scenario (``sitl/load_synthetic.py``).
+"""Benchmark of the slung load's pose filters on the synthetic scenario (``sitl/scenarios/slung_load/synthetic.py``).
 
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
 
@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from companion.vision.load_filter import LoadFilterConfig
-from companion.vision.load_metrics import pose_error_series
-from sitl.load_synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
+from companion.load.filter import LoadFilterConfig
+from companion.load.metrics import pose_error_series
+from sitl.scenarios.slung_load.synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
 
 ESTIMATORS = ("ekf", "ukf", "unfiltered", "open_loop")
 

@@ -6,7 +6,7 @@ seconds dropped as filter transient) and every 20 Hz tick is corrected by:
 * ``full``: Alg. 1 on the whole chain (``constraint_apply``, structured solver);
 * ``semi2``: Alg. 2 with groups of 2 links plus the global step of eq. 6;
 * ``full_dense_reference``: Alg. 1 on the dense ``9n x 9n`` covariance, only up to
-  :data:`DENSE_CAP_LINKS` links (it grows as ``n^3``: 105 ms per step at n = 48).
+  :data:`DENSE_CAP_LINKS` links (it grows as ``n^3``).
 
 Figures are wall-clock milliseconds per 20 Hz step (mean over the ticks), measured in one
 process so that the ratios are comparable.

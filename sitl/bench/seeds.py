@@ -1,6 +1,6 @@
 """One SITL scenario flown over many seeds, and what only many seeds can show.
 
-* :func:`fly_seeds` flies a batch scenario (:func:`sitl.fly.fly`) once per seed, each into its
+* :func:`fly_seeds` flies a batch scenario (:func:`sitl.scenarios.chain.flight.fly`) once per seed, each into its
   own folder ``<run>/seed-<S>`` (metrics.json, log.npz, scenario.toml, run.log), in up to ``jobs``
   processes; the seeds are the scenario's seed field, so every run is reproducible alone with
   ``python -m sitl fly --config <run>/seed-<S>/scenario.toml``.
@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 def _fly_one(job: tuple[str, dict, int, str]) -> dict:
     """Fly ``config`` with ``overrides`` and ``seed`` into ``out`` (a worker process)."""
-    from sitl.fly import fly
+    from sitl.scenarios.chain.flight import fly
     from sitl.scenario import load_scenario
 
     config, overrides, seed, out = job

@@ -1,4 +1,4 @@
-"""How fast the SITL runs: ``python -m sitl.bench sitl`` (issue 15, item 3).
+"""How fast the SITL runs: ``python -m sitl.bench sitl``.
 
 In one run, each figure beside the ceiling (MuJoCo alone stepping the same model):
 
@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fleet import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
+from ..fleet.harness import LOCKSTEP_ENDED, LOCKSTEP_STARTED
+from ..fleet.layout import SIM_LINKS
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
            "run_speed", "format_speed", "markdown_speed"]
@@ -41,8 +42,9 @@ log = logging.getLogger(__name__)
 
 BATCH_SCENARIOS = ("three_link", "seven_link", "seven_link_cpg")
 FLEET_SCENARIOS = ("three_link", "seven_link")
+#: the scenario files, by name, in their kinds' folders (configs/sitl/<folder>/<name>.toml)
 CONFIG_DIR = Path("configs/sitl")
-#: issue 15's targets on a 2-core machine: each flight's least real-time factor (a fleet's over
+#: the targets on a 2-core machine: each flight's least real-time factor (a fleet's over
 #: every simulator link measured: the same-host link is the one built to meet them, PX4's TCP link
 #: stays the default), and the firmware tick's most CPU microseconds per link
 RTF_TARGETS = {("batch", "three_link"): 10.0, ("batch", "seven_link"): 5.0, ("fleet", "three_link"): 3.0,
@@ -52,10 +54,11 @@ _TICK_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def _config(name: str) -> Path:
-    path = CONFIG_DIR / f"{name}.toml"
-    if not path.exists():
-        raise ValueError(f"no scenario {name!r} ({path} does not exist)")
-    return path
+    """The scenario file named ``name`` (``configs/sitl/*/<name>.toml``)."""
+    paths = sorted(CONFIG_DIR.glob(f"*/{name}.toml"))
+    if len(paths) != 1:
+        raise ValueError(f"no scenario {name!r} ({CONFIG_DIR}/*/{name}.toml: {len(paths)} files)")
+    return paths[0]
 
 
 def mujoco_ceiling(name: str, duration_s: float) -> dict:
@@ -63,7 +66,7 @@ def mujoco_ceiling(name: str, duration_s: float) -> dict:
     real-time factor and CPU seconds per simulated second, in this process."""
     from link_firmware_sim.allocation import Allocator
     from link_firmware_sim.controllers import weight_wrench
-    from sitl.runner import Plant
+    from sitl.plant.plant import Plant
     from sitl.scenario import load_scenario
 
     sc = load_scenario(_config(name))
@@ -89,8 +92,7 @@ def firmware_tick(n_ticks: int = 5000, seed: int = 0, repeat: int = 5) -> dict:
     every 10 and a GPS fix every 50 (10 Hz), seeded noisy IMU samples; through the one-kernel tick
     (``fused``) and the step-by-step path (``step_by_step``), each after a warm-up. Each is measured
     ``repeat`` times (a fresh firmware each): ``<path>_us`` is the least (what the tick costs; a
-    busy host only adds to it: single runs of the same code read 13-27 us here), ``<path>_us_runs``
-    every run."""
+    busy host only adds to it), ``<path>_us_runs`` every run."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     runs = [_firmware_tick_once(n_ticks, seed) for _ in range(repeat)]
@@ -209,7 +211,7 @@ def _role(cmd: str) -> str | None:
         return f"vehicle {int(parts[parts.index('--instance') + 1]) + 1}" if "--instance" in parts else "vehicle"
     if "companion" in parts:
         return f"companion g{parts[parts.index('--group') + 1]}" if "--group" in parts else "companion"
-    if "sitl.wire" in parts:
+    if "sitl.fleet.wire" in parts:
         return "wire"
     return None
 

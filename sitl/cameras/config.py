@@ -1,4 +1,4 @@
-"""The ``[[cameras]]`` and ``[[markers]]`` of a scenario (:mod:`sitl.camera` renders them).
+"""The ``[[cameras]]`` and ``[[markers]]`` of a scenario (:mod:`sitl.cameras.rig` renders them).
 
 No OpenCV and no MuJoCo here: scenarios load, and are validated, on any install.
 """
@@ -28,7 +28,7 @@ class CameraMount:
     ``noise_std_dn`` grey levels and, if ``exposure_s`` > 0, motion blur: the mean of
     ``blur_samples`` renders spread over the exposure. ``vehicle``: the vehicle the frames are
     attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0). Fleet mode
-    publishes the frames over Zenoh (:mod:`sitl.camera_stream`) with the image as ``wire_format``
+    publishes the frames over Zenoh (:mod:`sitl.cameras.stream`) with the image as ``wire_format``
     (``png``: lossless; ``raw``: no encoding; ``jpeg``: lossy, ``wire_quality`` 1-100)."""
 
     name: str

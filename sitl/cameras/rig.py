@@ -1,4 +1,4 @@
-"""Cameras and ArUco markers in the MuJoCo SITL (the report ``004_946c2b2ab3d872ae.txt``, sec. III).
+"""Cameras and ArUco markers in the MuJoCo SITL (the slung-load report's sec. III).
 
 Config (a scenario's ``[[cameras]]`` and ``[[markers]]`` arrays of tables):
 
@@ -20,8 +20,8 @@ at capture (camera and marker poses in the world) beside the companion's
 :class:`~companion.vision.frame.CameraFrame`.
 
 Rendering needs an OpenGL context without a display, chosen before MuJoCo is imported
-(:mod:`sitl.rendering`: osmesa on the CPU, or egl); a rig or a video on a machine where nothing
-renders raises :class:`~sitl.rendering.RenderingUnavailable`, which names what to install.
+(:mod:`sitl.cameras.rendering`: osmesa on the CPU, or egl); a rig or a video on a machine where nothing
+renders raises :class:`~sitl.cameras.rendering.RenderingUnavailable`, which names what to install.
 Renderers hold GL contexts: :meth:`CameraRig.close` (or ``with``) frees them.
 """
 
@@ -42,7 +42,7 @@ from companion.vision.frame import CameraFrame, CameraFrameHeader
 from companion.vision.geometry import CV_TO_MUJOCO_CAM
 from companion.vision.markers import marker_image
 
-from .camera_config import CameraMount, MarkerMount
+from .config import CameraMount, MarkerMount
 from .rendering import require_rendering
 
 __all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig",
@@ -126,7 +126,7 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
 
 def fast_renderer(model: mujoco.MjModel, height_px: int, width_px: int, shadows: bool = False) -> mujoco.Renderer:
     """An offscreen renderer; without shadows and reflections unless asked: on the CPU (osmesa)
-    they cost most of a frame (640x480 three_link: about 290 ms with them, 30-75 ms without)."""
+    they cost most of a frame)."""
     renderer = mujoco.Renderer(model, height_px, width_px)
     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
     renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = shadows

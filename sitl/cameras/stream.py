@@ -1,10 +1,10 @@
-"""Fleet mode's cameras (issue 16 item 7): rendered by the harness, published over Zenoh, measured by
+"""Fleet mode's cameras: rendered by the harness, published over Zenoh, measured by
 the companion-side consumer, scored against the truth.
 
-:class:`CameraStreamer` renders a scenario's ``[[cameras]]`` with :class:`~sitl.camera.CameraRig`
+:class:`CameraStreamer` renders a scenario's ``[[cameras]]`` with :class:`~sitl.cameras.rig.CameraRig`
 (the renderer of batch mode: same schedule on the simulation clock, latency, seeded noise) from
 the fleet harness's lockstep (:meth:`on_tick` is a tick hook of
-:class:`~sitl.fleet.FleetHarness`), and publishes each frame when it becomes available with
+:class:`~sitl.fleet.harness.FleetHarness`), and publishes each frame when it becomes available with
 :class:`~companion.vision.camera_wire.CameraPublisher` on ``<prefix>/camera/<vehicle>/image``
 (``prefix``: the scenario's Zenoh prefix, ``zenoh.prefix`` or its name; ``vehicle`` 1-based) as
 the camera's ``wire_format`` (PNG by default: lossless, the consumer sees the pixels batch mode
@@ -42,7 +42,7 @@ from companion.vision.geometry import geodesic_angle_rad
 from companion.vision.node import FRAMES_FILE, SUMMARY_FILE, read_frame_log
 from companion.vision.node_config import VisionNodeSetup, ZenohCameraSource
 
-from .camera import CameraRig
+from .rig import CameraRig
 
 __all__ = ["CameraStreamer", "fleet_vision_metrics", "free_loopback_port"]
 

@@ -3,7 +3,7 @@ picture-in-picture of one onboard camera and the detected markers' axes when the
 
 The chase camera is a MuJoCo free camera looking at the model's centre of mass from a fixed
 azimuth and elevation (it follows the flight, it does not turn with it). Frames are rendered
-offscreen (:mod:`sitl.rendering`: a headless backend, osmesa on the CPU) at the video's rate of
+offscreen (:mod:`sitl.cameras.rendering`: a headless backend, osmesa on the CPU) at the video's rate of
 *simulation* time (``fps`` frames per simulated second, at the nearest physics tick), not at
 every physics step, so the file plays at real-time speed; each frame costs one render. The onboard inset is the newest frame that
 camera has delivered (its rate and latency: what the companion sees), annotated with the markers
@@ -25,9 +25,9 @@ import numpy as np
 from companion.vision.config import DetectorConfig, PipelineConfig
 from companion.vision.pnp import MarkerPipeline
 
-from .camera import CameraRig, fast_renderer
+from .rig import CameraRig, fast_renderer
 from .rendering import require_rendering
-from .camera_config import MarkerMount
+from .config import MarkerMount
 
 __all__ = ["VideoConfig", "VideoRecorder", "pipeline_config"]
 
@@ -39,7 +39,7 @@ class VideoConfig:
     """The video: ``fps`` frames per simulated second, size, the chase camera's azimuth and
     elevation [deg] and distance [m] (``None``: from the model's size), the onboard camera shown
     in the inset (``None``: the first), the inset's width as a fraction of the frame's, and
-    shadows and reflections (off: they cost most of a CPU render, :func:`~sitl.camera.fast_renderer`)."""
+    shadows and reflections (off: they cost most of a CPU render, :func:`~sitl.cameras.rig.fast_renderer`)."""
 
     fps: float = 30.0
     width_px: int = 640
@@ -96,7 +96,7 @@ def annotate(image_rgb: np.ndarray, intr, poses, detections=()) -> np.ndarray:
 class VideoRecorder:
     """Writes ``path`` (MP4, ``mp4v``) from the chase camera, with the onboard inset when ``rig``
     has cameras. Call :meth:`on_tick` at every physics tick after the kinematics (as
-    :class:`~sitl.camera.CameraRig`); :meth:`close` finishes the file and frees the renderer."""
+    :class:`~sitl.cameras.rig.CameraRig`); :meth:`close` finishes the file and frees the renderer."""
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, path: str | Path, dt_s: float,
                  cfg: VideoConfig = VideoConfig(), rig: CameraRig | None = None,

@@ -1,7 +1,7 @@
 """The vision measurement of a flight: every delivered camera frame through the companion's
 pipeline, every PnP method, errors against the ground truth at capture.
 
-For each frame (:class:`~sitl.camera.CapturedFrame`) the markers are detected once and each PnP
+For each frame (:class:`~sitl.cameras.rig.CapturedFrame`) the markers are detected once and each PnP
 method of :data:`~companion.vision.pnp.PNP_METHODS` estimates every detected marker's pose in the
 camera frame (with its own continuity state for the IPPE ambiguity). Errors follow the report:
 eq. 2 (translation error; its norm here) and eq. 3 (geodesic angle). The detection and PnP
@@ -19,8 +19,8 @@ from companion.vision.geometry import geodesic_angle_rad, translation_error_m
 from companion.vision.markers import detect_markers
 from companion.vision.pnp import PNP_METHODS, MarkerPipeline, estimate_marker_pose
 
-from .camera import CapturedFrame
-from .camera_config import MarkerMount
+from .rig import CapturedFrame
+from .config import MarkerMount
 from .video import pipeline_config
 
 __all__ = ["VisionLog"]

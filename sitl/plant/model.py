@@ -39,7 +39,7 @@ from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
 from companion.skeleton.body import GRAVITY_M_S2, SkeletonConfig, link_inertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
 
-from .skeleton import StartPose
+from .start import StartPose
 
 __all__ = ["build_mjcf", "SkeletonModel", "Truth"]
 
@@ -155,8 +155,8 @@ class SkeletonModel:
         self.geometry = geometry
         self.xml = build_mjcf(cfg, geometry, rotors, timestep_s)
         assets: dict[str, bytes] = {}
-        if cameras or markers:  # cameras and ArUco markers (sitl.camera; OpenCV only then)
-            from .camera import vision_mjcf
+        if cameras or markers:  # cameras and ArUco markers (sitl.cameras.rig; OpenCV only then)
+            from sitl.cameras.rig import vision_mjcf
 
             self.xml, assets = vision_mjcf(self.xml, tuple(cameras), tuple(markers))
         self.model = mujoco.MjModel.from_xml_string(self.xml, assets)

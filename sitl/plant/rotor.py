@@ -28,8 +28,8 @@ what the link can do, :func:`link_firmware_sim.allocation.scaled_to_limit`). The
 harness feeds ``thrust_n`` to the rotor actuators.
 
 The numpy code of :meth:`RotorBank.step` is the specification; with numba installed the bank steps
-by :func:`_step_kernel`, the same per-rotor logic compiled (``tests/test_fast_paths.py`` checks it
-against the numpy code through reversals, stops and restarts).
+by :func:`sitl.kernels.rotor.step_kernel`, the same per-rotor logic compiled (``tests/test_fast_paths.py``
+checks it against the numpy code through reversals, stops and restarts).
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ from __future__ import annotations
 import math
 import numpy as np
 
+from companion.kernels.jit import ENABLED as _COMPILED_DEFAULT
 from companion.skeleton.rotors import RotorParams
-from link_firmware_sim._fast import ENABLED as _COMPILED_DEFAULT
-from link_firmware_sim._fast import jit
+from sitl.kernels.rotor import relax_kernel, set_command_kernel, step_kernel
 
 __all__ = ["RotorParams", "RotorBank", "warm_up"]
 
@@ -73,7 +73,7 @@ class RotorBank:
         """Commanded thrusts [N]; clipped to the thrust limit."""
         limit = self.params.thrust_max_n
         if self._compiled:
-            self._steady, peak = _set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
+            self._steady, peak = set_command_kernel(np.asarray(command_n, dtype=float), limit, self.command_n,
                                                      self._spinning, self._direction, self._out_sign,
                                                      max(self.params.min_thrust_n, 1e-12))
             self._count_limit(limit, peak)
@@ -122,13 +122,13 @@ class RotorBank:
         if self._steady:
             cmd = self.command_n
             if self._compiled:
-                self.thrust_n = _relax_kernel(cmd, self.thrust_n, self._decay_factor(dt_s))
+                self.thrust_n = relax_kernel(cmd, self.thrust_n, self._decay_factor(dt_s))
             else:
                 self.thrust_n = cmd + (self.thrust_n - cmd) * self._decay_factor(dt_s)
             return self.thrust_n
         p = self.params
         if self._compiled:
-            self.thrust_n = _step_kernel(self.thrust_n, self.command_n, self._spinning, self._direction,
+            self.thrust_n = step_kernel(self.thrust_n, self.command_n, self._spinning, self._direction,
                                          self._restarting, self._restart_left_s, self._out_sign, self.zero_crossings,
                                          p.min_thrust_n, p.restart_dwell_s, p.esc_epsilon_n,
                                          self._decay_factor(dt_s), dt_s)
@@ -178,77 +178,3 @@ def warm_up() -> None:
     bank.prime(np.ones(8))  # spinning, tracking their commands: the steady step
     bank.set_command(np.ones(8))
     bank.step(0.001)
-
-
-@jit
-def _step_kernel(thrust, command, spinning, direction, restarting, restart_left, out_sign, zero_crossings,
-                 min_thrust, dwell, eps, decay, dt_s):
-    """:meth:`RotorBank.step` (not steady) rotor by rotor: the state arrays are updated in place,
-    the new thrusts returned as a new array."""
-    new = np.empty_like(thrust)
-    for i in range(len(thrust)):
-        c = command[i]
-        if min_thrust > 0.0 and not abs(c) >= min_thrust:
-            c = 0.0
-        was_spinning = spinning[i]
-        keep = was_spinning and c * direction[i] > 0.0
-        target = c if keep else 0.0
-        wanted = (not was_spinning) and c != 0.0
-        starting = wanted and not restarting[i]
-        if starting:
-            restart_left[i] = dwell
-        now_restarting = wanted and (restarting[i] or starting)
-        ready = now_restarting and restart_left[i] <= 0.0
-        if now_restarting and not ready:
-            restart_left[i] -= dt_s
-        restarting[i] = now_restarting and not ready
-        if ready:
-            spinning[i] = True
-            direction[i] = np.sign(c)
-            target = c
-        lam = target + (thrust[i] - target) * decay
-        outside = abs(lam) > eps
-        if spinning[i] and not keep and not ready and not outside:  # spun down into the dead band: stopped
-            spinning[i] = False
-            direction[i] = 0.0
-        sgn = np.sign(lam)
-        if outside:
-            if out_sign[i] != 0.0 and sgn != out_sign[i]:
-                zero_crossings[i] += 1
-            out_sign[i] = sgn
-        new[i] = lam
-    return new
-
-
-@jit
-def _set_command_kernel(command, limit, out, spinning, direction, out_sign, margin):
-    """:meth:`RotorBank.set_command`: ``out`` <- the command clipped to ``+-limit`` (NaN stays
-    NaN, as ``np.clip``); returns whether the bank is steady (every rotor spinning, tracking a
-    command of its own sign of at least ``margin``, its last thrust sign its direction) and the
-    largest clipped command magnitude (NaN if a command is NaN, as ``max(cmd.max(), -cmd.min())``)."""
-    steady = True
-    peak = 0.0 if len(command) else -np.inf
-    nan = False
-    for i in range(len(command)):
-        c = command[i]
-        if c < -limit:
-            c = -limit
-        elif c > limit:
-            c = limit
-        out[i] = c
-        if c != c:
-            nan = True
-        elif abs(c) > peak:
-            peak = abs(c)
-        if not (spinning[i] and c * direction[i] >= margin and out_sign[i] == direction[i]):
-            steady = False
-    return steady, (np.nan if nan else peak)
-
-
-@jit
-def _relax_kernel(command, thrust, decay):
-    """The steady step of :meth:`RotorBank.step`: ``command + (thrust - command) decay``."""
-    new = np.empty_like(thrust)
-    for i in range(len(thrust)):
-        new[i] = command[i] + (thrust[i] - command[i]) * decay
-    return new

@@ -1,10 +1,12 @@
-"""Batch mode (``python -m sitl fly``): one flight of a scenario in one process, its metrics and artefacts.
+"""A chain flight in batch mode (``python -m sitl fly``): one flight in one process, its metrics and artefacts.
 
 :func:`fly` runs a :class:`~sitl.runner.BatchRunner` (physics, every link's firmware and the
-companion engine on one clock) for the scenario's duration. The run folder receives
-``metrics.json``, ``log.npz`` (truth, EKF, control estimate, targets, thrusts and cable forces
-at the log rate; the companion's step log with constraint errors and estimates at its steps),
-``scenario.toml`` (the resolved configuration) and PNG plots.
+companion engine on one clock) for the scenario's duration; its ``[[cameras]]`` and a video are
+tick hooks (:class:`~sitl.cameras.flight.FlightCameras`), its ``[faults]`` the runner's own. The
+run folder receives ``metrics.json``, ``log.npz`` (truth, EKF, control estimate, targets, thrusts
+and cable forces at the log rate; the companion's step log with constraint errors and estimates
+at its steps), ``scenario.toml`` (the resolved configuration), ``vision.npz`` with cameras, and
+PNG plots.
 """
 
 from __future__ import annotations
@@ -19,9 +21,10 @@ import numpy as np
 from companion.configfile import dump_toml
 from companion.trajectory import CpgChainTrajectory
 
-from .metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
-from .runner import BatchRunner
-from .scenario import Scenario
+from sitl.cameras.flight import FlightCameras
+from sitl.metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics, reboot_timeline, vehicle_down_windows
+from sitl.runner import BatchRunner
+from sitl.scenario import Scenario
 
 __all__ = ["fly"]
 
@@ -40,12 +43,13 @@ def fly(
 ) -> dict:
     """Run ``scenario`` for its ``duration_s``; returns the metrics (and writes them to ``out_dir``).
 
-    ``video``: write an MP4 of the flight there (:mod:`sitl.video`). A scenario with cameras
-    renders them and runs the vision pipeline on their frames (:mod:`sitl.vision_log`):
-    ``metrics["vision"]`` and ``vision.npz``."""
+    ``video``: write an MP4 of the flight there (:mod:`sitl.cameras.video`). A scenario with cameras
+    renders them and runs the vision pipeline on their frames (:mod:`sitl.cameras.vision_log`):
+    ``metrics["vision"]`` and ``vision.npz``. ``sckf``, ``selective_mapping``: the command line's
+    flight options (:func:`~sitl.scenario.with_options`)."""
     runner = BatchRunner(scenario, sckf=sckf, selective_mapping=selective_mapping)
     sc = runner.scenario
-    with _Vision(runner, video) as vision:
+    with FlightCameras(runner, video) as vision:
         runner.run(sc.duration_s, progress=progress)
     arrays = runner.arrays()
     metrics = compute_metrics(
@@ -94,64 +98,9 @@ def fly(
             np.savez_compressed(out_dir / "vision.npz", **vision.log.arrays())
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
-            from .plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
+            from sitl.plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
 
             cpg = isinstance(runner.trajectory, CpgChainTrajectory)
             write_plots(arrays, out_dir, motion=sc.motion if cpg else None,
                         period_s=runner.trajectory.generator.period_s if cpg else 4.0)
     return metrics
-
-
-class _Vision:
-    """The cameras (:class:`~sitl.camera.CameraRig`), the vision log and the video of one flight,
-    as tick hooks of the runner; closes their renderers and the video file on exit."""
-
-    def __init__(self, runner: BatchRunner, video: Path | None):
-        self.runner, self.video_path = runner, video
-        self.rig = self.log = self.video = None
-
-    def __enter__(self) -> _Vision:
-        sc, runner = self.runner.scenario, self.runner
-        if not sc.cameras and self.video_path is None:
-            return self
-        from .camera import CameraRig  # OpenCV and rendering only for these flights
-        from .video import VideoRecorder
-        from .vision_log import VisionLog
-
-        model, data = runner.model.model, runner.model.data
-        try:
-            if sc.cameras:
-                self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed)
-                self.log = VisionLog(sc.markers)
-                runner.tick_hooks.append(self._cameras)
-            if self.video_path is not None:
-                self.video = VideoRecorder(model, data, self.video_path, runner.dt, rig=self.rig, markers=sc.markers,
-                                           title=sc.name)
-                runner.tick_hooks.append(self.video.on_tick)
-        except BaseException:
-            self.__exit__(None, None, None)
-            raise
-        return self
-
-    def _cameras(self, k: int, t: float) -> None:
-        self.rig.on_tick(k, t)
-        for frame in self.rig.poll(t):
-            self.log.on_frame(frame)
-
-    def metrics(self) -> dict:
-        out = {}
-        if self.log is not None:
-            out["vision"] = self.log.metrics()
-            out["vision"]["render_ms_per_frame"] = 1e3 * self.rig.render_s / self.rig.renders if self.rig.renders else None
-        if self.video is not None:
-            out["video"] = self.video.stats()
-        return out
-
-    def __exit__(self, *exc) -> None:
-        for hook in (self._cameras, getattr(self.video, "on_tick", None)):
-            if hook in self.runner.tick_hooks:
-                self.runner.tick_hooks.remove(hook)
-        if self.video is not None:
-            self.video.close()
-        if self.rig is not None:
-            self.rig.close()

@@ -1,7 +1,7 @@
-"""PSPM teleoperation of one ODAR in MuJoCo (thesis sec. 2.3.4, issue 17): scripted operator jumps, with and without PSPM.
+"""PSPM teleoperation of one ODAR in MuJoCo (thesis sec. 2.3.4): scripted operator jumps, with and without PSPM.
 
-A :class:`PspmJumpScenario` is a single-link :class:`~sitl.scenario.Scenario` with a ``[teleop]``
-section (:class:`TeleopConfig`). The flight runs the full SITL loop (MuJoCo, rotors and ESCs,
+A :class:`~.config.PspmJumpScenario` is a single-link :class:`~sitl.scenario.Scenario` with a
+``[teleop]`` section (:class:`~.config.TeleopConfig`). Each flight runs the full SITL loop (MuJoCo, rotors and ESCs,
 seeded sensors, the link's EKF and firmware); the companion engine arms the link and gives the
 hover pose. A scripted master device replaces every pose target the engine sends (at its target
 rate, 50 Hz) by an operator set pose: the hover pose, moved by ``jump_m`` along ``jump_axis_w``
@@ -14,11 +14,13 @@ and SET_ATTITUDE_TARGET on a vehicle, so the firmware's ``pspm_mode`` decides wh
   slave law of sec. 2.3.4 tracks the modulated pose;
 * ``"bypass"`` (SKL_PSPM_EN = 2): the same slave law on the raw set poses (without PSPM).
 
-The master side's haptic force ``f_h = -K_ht (p_d - p_bar)`` (:func:`~link_firmware_sim.pspm.haptic_feedback`;
+The master side's haptic force ``f_h = -K_ht (p_d - p_bar)`` (:func:`~link_firmware_sim.controllers.pspm.haptic_feedback`;
 the scripted device does not move between its jumps, and no observer runs under the slave law, so
 the ``B_ht`` and ``K_hf f_e^`` terms are zero) is computed and logged with the reservoirs.
 
-Metrics per mode: the position overshoot along the jump (truth; from ``jump_s`` until
+The scripted operator is a :class:`PspmJumpTask`: its set poses replace the engine's targets
+(:meth:`~sitl.task.Task.before_outputs`), its log rows follow the run's (:meth:`~sitl.task.Task.after_log`).
+:func:`pspm_jump` flies the scenario once per mode. Metrics per mode: the position overshoot along the jump (truth; from ``jump_s`` until
 ``yaw_jump_s``), its 5 % settling time and final error, the yaw overshoot after ``yaw_jump_s``, the
 reservoirs' minimum, the largest speed, and whether the flight crashed.
 """
@@ -28,72 +30,27 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from companion.config import load_setup
+from companion.configfile import dump_toml
 from companion.engine import TargetOut
 from companion.estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat
 from companion.messages import PoseTarget
-from link_firmware_sim.pspm import HapticGains, haptic_feedback
+from link_firmware_sim.controllers.pspm import haptic_feedback
+from sitl.runner import BatchRunner
+from sitl.task import Task
 
-from .runner import BatchRunner
-from .scenario import Scenario
+from .config import PspmJumpScenario
 
-__all__ = ["TeleopConfig", "PspmJumpScenario", "load_teleop_scenario", "PspmJumpRunner", "jump_metrics",
-           "pspm_jump_mujoco", "plot_jump", "heading_deg", "MODES"]
+__all__ = ["PspmJumpTask", "jump_runner", "jump_metrics", "pspm_jump", "plot_jump", "heading_deg", "MODES"]
 
 log = logging.getLogger(__name__)
 
 #: firmware pspm_mode per run name
 MODES = {"unmodulated": "bypass", "pspm": "on"}
-
-
-@dataclass(frozen=True)
-class TeleopConfig:
-    """The scripted operator (module docstring) and the master side's haptic gains."""
-
-    jump_m: float = 1.0
-    jump_axis_w: tuple[float, float, float] = (1.0, 0.0, 0.0)
-    jump_s: float = 4.0
-    yaw_jump_deg: float = 60.0
-    yaw_jump_s: float = 11.0
-    haptic: HapticGains = field(default_factory=HapticGains)
-
-    def __post_init__(self) -> None:
-        axis = np.asarray(self.jump_axis_w, dtype=float)
-        if not abs(np.linalg.norm(axis) - 1.0) < 1e-6:
-            raise ValueError(f"jump_axis_w must be a unit vector, got {self.jump_axis_w}")
-        for name in ("jump_m", "jump_s", "yaw_jump_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {v!r}")
-        if not (math.isfinite(self.yaw_jump_deg) and abs(self.yaw_jump_deg) <= 180.0):
-            raise ValueError(f"yaw_jump_deg must be within [-180, 180], got {self.yaw_jump_deg!r}")
-        if not self.yaw_jump_s > self.jump_s:
-            raise ValueError("yaw_jump_s must come after jump_s (the position jump is measured before it)")
-
-
-@dataclass(frozen=True)
-class PspmJumpScenario(Scenario):
-    """A single-link scenario with a scripted operator (``[teleop]``)."""
-
-    teleop: TeleopConfig = field(default_factory=TeleopConfig)
-
-    def __post_init__(self) -> None:
-        Scenario.__post_init__(self)
-        if self.skeleton.n_links != 1:
-            raise ValueError(f"the PSPM jump flies one link, got skeleton.n_links = {self.skeleton.n_links}")
-        if not self.teleop.jump_s >= self.flight_start_s:
-            raise ValueError(f"teleop.jump_s must come after the take-off ({self.flight_start_s:g} s)")
-        if not self.duration_s > self.teleop.yaw_jump_s:
-            raise ValueError(f"duration_s must exceed teleop.yaw_jump_s ({self.teleop.yaw_jump_s:g} s)")
-
-
-def load_teleop_scenario(path, **overrides) -> PspmJumpScenario:
-    return load_setup(PspmJumpScenario, path, **overrides)
 
 
 def heading_deg(q_wxyz: np.ndarray, q_ref_wxyz: np.ndarray) -> float:
@@ -102,13 +59,12 @@ def heading_deg(q_wxyz: np.ndarray, q_ref_wxyz: np.ndarray) -> float:
     return math.degrees(math.atan2(R[1, 0], R[0, 0]))
 
 
-class PspmJumpRunner(BatchRunner):
-    """:class:`BatchRunner` with the scripted operator in place of the engine's targets (module docstring)."""
+class PspmJumpTask(Task):
+    """The scripted operator in place of the engine's targets (module docstring)."""
 
-    def __init__(self, scenario: PspmJumpScenario, pspm_mode: str):
-        super().__init__(replace(scenario, firmware=replace(scenario.firmware, pspm_mode=pspm_mode)))
-        tc = self.scenario.teleop
-        self._axis = np.asarray(tc.jump_axis_w, dtype=float)
+    def __init__(self, scenario: PspmJumpScenario):
+        self.scenario = scenario
+        self.axis = np.asarray(scenario.teleop.jump_axis_w, dtype=float)
         self.base: PoseTarget | None = None  # the engine's (hover) pose the operator moves from
         self.teleop_log: dict[str, list] = {k: [] for k in (
             "t", "along_true_m", "along_d_m", "along_bar_m", "yaw_true_deg", "yaw_d_deg", "yaw_bar_deg",
@@ -117,33 +73,34 @@ class PspmJumpRunner(BatchRunner):
     def operator_pose(self, base: PoseTarget, t: float) -> PoseTarget:
         """The scripted master's set pose at ``t``: ``base`` jumped (position, then yaw)."""
         tc = self.scenario.teleop
-        p = base.p_w_m + (tc.jump_m * self._axis if t >= tc.jump_s else 0.0)
+        p = base.p_w_m + (tc.jump_m * self.axis if t >= tc.jump_s else 0.0)
         yaw = math.radians(tc.yaw_jump_deg) if t >= tc.yaw_jump_s else 0.0
         return PoseTarget.hold(p, quat_mul(quat_from_euler_zyx(yaw, 0.0, 0.0), base.q_wxyz))
 
-    def _apply(self, engine, outputs, t: float) -> None:
+    def before_outputs(self, runner, engine, outputs: list, t: float) -> list:
+        """Every pose target of the engine replaced by the operator's set pose (as
+        SET_POSITION_TARGET_LOCAL_NED / SET_ATTITUDE_TARGET would set it); the rest to the runner."""
         rest = []
         for out in outputs:
-            if isinstance(out, TargetOut):  # the operator's set pose instead (SET_POSITION/ATTITUDE_TARGET)
-                fw = self.firmware[engine.links[out.row].index]
+            if isinstance(out, TargetOut):
+                fw = runner.firmware[engine.links[out.row].index]
                 if self.base is None or t < self.scenario.teleop.jump_s:
                     self.base = out.target
                 fw.set_target(t, self.operator_pose(self.base, t))
             else:
                 rest.append(out)
-        super()._apply(engine, rest, t)
+        return rest
 
-    def _log_tick(self, t: float, truth) -> None:
-        super()._log_tick(t, truth)
+    def after_log(self, runner, t: float, truth) -> None:
         if self.base is None:
             return
-        fw = self.firmware[0]
+        fw = runner.firmware[0]
         op = self.operator_pose(self.base, t)
         mod = fw.active_target(t)
         report = fw.pspm_report()
         f_h, _ = haptic_feedback(np.zeros(3), np.zeros(3), op.p_w_m, op.q_wxyz, mod.p_w_m, mod.q_wxyz, np.zeros(3),
                                  np.zeros(3), self.scenario.teleop.haptic)
-        p0, q0, a = self.base.p_w_m, self.base.q_wxyz, self._axis
+        p0, q0, a = self.base.p_w_m, self.base.q_wxyz, self.axis
         lg = self.teleop_log
         lg["t"].append(t)
         lg["along_true_m"].append(float(a @ (truth.p_w_m[0] - p0)))
@@ -156,6 +113,13 @@ class PspmJumpRunner(BatchRunner):
         lg["energy_r_j"].append(report[1] if report is not None else math.nan)
         lg["f_h_n"].append(f_h)
         lg["speed_m_s"].append(float(np.linalg.norm(truth.v_w_m_s[0])))
+
+
+def jump_runner(scenario: PspmJumpScenario, pspm_mode: str) -> BatchRunner:
+    """A runner of ``scenario`` with the firmware's ``pspm_mode`` (``"on"``, ``"bypass"``) and the
+    scripted operator (``runner.task``: its ``teleop_log``)."""
+    sc = replace(scenario, firmware=replace(scenario.firmware, pspm_mode=pspm_mode))
+    return BatchRunner(sc, task=PspmJumpTask(sc))
 
 
 def jump_metrics(t, along_m, yaw_deg, energy_t_j, energy_r_j, speed_m_s, jump_m: float, jump_s: float,
@@ -185,17 +149,20 @@ def jump_metrics(t, along_m, yaw_deg, energy_t_j, energy_r_j, speed_m_s, jump_m:
     }
 
 
-def pspm_jump_mujoco(scenario: PspmJumpScenario, out_dir: Path | None, runs=tuple(MODES), progress=None) -> dict:
-    """Fly the operator jumps once per run (``"unmodulated"``, ``"pspm"``); metrics, ``log.npz``, plot."""
+def pspm_jump(scenario: PspmJumpScenario, out_dir: Path | None, *, runs=tuple(MODES), progress=None,
+              plots: bool = True) -> dict:
+    """Fly the operator jumps once per run (``"unmodulated"``, ``"pspm"``); returns the metrics (and
+    writes ``metrics.json``, ``log.npz`` with each run's series as ``<run>_<key>``,
+    ``scenario.toml`` and the plot ``pspm_jump.png`` in ``out_dir``)."""
     tc = scenario.teleop
     out: dict = {"scenario": scenario.name, "seed": scenario.seed, "jump_m": tc.jump_m, "yaw_jump_deg": tc.yaw_jump_deg,
                  "operator_hz": scenario.companion.target_rate_hz, "runs": {}}
     series = {}
     for name in runs:
-        runner = PspmJumpRunner(scenario, MODES[name])
+        runner = jump_runner(scenario, MODES[name])
         runner.run(scenario.duration_s, progress=progress)
-        lg = {k: np.asarray(v) for k, v in runner.teleop_log.items()}
-        lg["axis"] = runner._axis
+        lg = {k: np.asarray(v) for k, v in runner.task.teleop_log.items()}
+        lg["axis"] = runner.task.axis
         m = jump_metrics(lg["t"], lg["along_true_m"], lg["yaw_true_deg"], lg["energy_t_j"], lg["energy_r_j"],
                          lg["speed_m_s"], tc.jump_m, tc.jump_s, tc.yaw_jump_deg, tc.yaw_jump_s)
         m.update(crashed=runner.crashed, crash_reason=runner.crash_reason,
@@ -208,7 +175,9 @@ def pspm_jump_mujoco(scenario: PspmJumpScenario, out_dir: Path | None, runs=tupl
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "metrics.json").write_text(json.dumps(out, indent=2) + "\n")
         np.savez_compressed(out_dir / "log.npz", **{f"{n}_{k}": v for n, r in series.items() for k, v in r.items()})
-        plot_jump(series, out_dir / "pspm_jump.png", tc.jump_m, tc.yaw_jump_deg, "MuJoCo SITL")
+        (out_dir / "scenario.toml").write_text(dump_toml(scenario))
+        if plots:
+            plot_jump(series, out_dir / "pspm_jump.png", tc.jump_m, tc.yaw_jump_deg, "MuJoCo SITL")
     return out
 
 

@@ -1,16 +1,14 @@
-"""The slung-load scenario's configuration (issue 16 item 3): a :class:`~sitl.scenario.Scenario`
-with a ``[load]`` table. No OpenCV and no MuJoCo here: the file loads and validates on any install.
+"""The slung-load scenario's configuration: a :class:`~sitl.scenario.Scenario` with
+``kind = "slung_load"`` and a ``[load]`` table. No OpenCV and no MuJoCo here: the file loads and
+validates on any install.
 
 ``[load]`` (:class:`LoadConfig`): the box (mass, size, optional principal inertia), the cables
 (one length per vehicle; attached on the box's top face at ``attach_radius_m`` from its centre,
 towards each vehicle, and at ``vehicle_attach_b_m`` on each vehicle), the marker on the load
 (``marker_id``: one of ``[[markers]]``, on body ``"load"``), the PnP method the filters use,
-the filters' tuning (``[load.filter]``, :class:`~companion.vision.load_filter.LoadFilterConfig`)
+the filters' tuning (``[load.filter]``, :class:`~companion.load.filter.LoadFilterConfig`)
 and the formation's circle (``[load.formation]``,
-:class:`~companion.formation.CircleFormationConfig`).
-
-:func:`is_slung_load_file` tells ``python -m sitl fly`` which loader a file needs (a ``[load]``
-table: this one).
+:class:`~.formation.CircleFormationConfig`).
 """
 
 from __future__ import annotations
@@ -18,20 +16,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from companion.config import load_setup
-from companion.configfile import load_toml, require_positive
+from companion.configfile import require_positive
 from companion.estimation.so3 import rotmat_to_quat
-from companion.formation import CircleFormationConfig
+from companion.load.filter import LoadFilterConfig
+from companion.load.model import LoadParams, Pose3
 from companion.vision.config import PNP_METHOD_NAMES, PnpMethod
-from companion.vision.load_filter import LoadFilterConfig
-from companion.vision.load_model import LoadParams, Pose3
+from sitl.scenario import Scenario, with_rate_noise
 
-from .scenario import Scenario, with_rate_noise
+from .formation import CircleFormationConfig
 
-__all__ = ["LoadConfig", "SlungLoadScenario", "load_slung_scenario", "is_slung_load_file"]
+__all__ = ["LoadConfig", "SlungLoadScenario", "load_slung_scenario"]
 
 
 @dataclass(frozen=True)
@@ -90,7 +89,7 @@ class LoadConfig:
         return np.column_stack((r * np.cos(a), r * np.sin(a), np.full(self.n, 0.5 * self.size_m[2])))
 
     def params(self) -> LoadParams:
-        """The filters' model of the load (:class:`~companion.vision.load_model.LoadParams`)."""
+        """The filters' model of the load (:class:`~companion.load.model.LoadParams`)."""
         L = np.asarray(self.cable_length_m, dtype=float)
         if self.inertia_b_kg_m2 is None:
             return LoadParams.box(self.mass_kg, self.size_m, self.attach_b_m(), L)
@@ -123,8 +122,10 @@ class LoadConfig:
 
 @dataclass(frozen=True)
 class SlungLoadScenario(Scenario):
-    """Three (or more) unjoined vehicles of this stack carrying a box by cables (``[load]``)."""
+    """Three (or more) unjoined vehicles of this stack carrying a box by cables (``kind =
+    "slung_load"``, ``[load]``)."""
 
+    kind: Literal["slung_load"] = "slung_load"
     load: LoadConfig = field(default_factory=LoadConfig)
 
     def __post_init__(self) -> None:
@@ -154,15 +155,6 @@ class SlungLoadScenario(Scenario):
 
     def cameras_in_body(self) -> dict[str, Pose3]:
         return {c.name: Pose3(np.asarray(c.pos_b_m, dtype=float), rotmat_to_quat(c.R_b_c())) for c in self.cameras}
-
-
-def is_slung_load_file(path: str | Path) -> bool:
-    """Whether a scenario file has a ``[load]`` table (``False`` if it cannot be read: the
-    scenario loader then reports why)."""
-    try:
-        return "load" in load_toml(path)
-    except Exception:  # noqa: BLE001 - reported by the loader proper
-        return False
 
 
 def load_slung_scenario(path: str | Path, **overrides) -> SlungLoadScenario:

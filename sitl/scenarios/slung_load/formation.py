@@ -1,4 +1,4 @@
-"""A formation of independent vehicles carrying a slung load on a circle (report ``004_946c2b2ab3d872ae.txt``, sec. IV-A).
+"""A formation of independent vehicles carrying a slung load on a circle (the slung-load report's sec. IV-A).
 
 The report's trajectory: the formation's centre flies a circle of radius ``circle_radius_m``
 at ``speed_m_s`` (2 m at 1.5 m/s), and the formation yaws with the circle so that the same side
@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .configfile import require_nonnegative, require_positive
-from .estimation.so3 import quat_from_euler_zyx
-from .messages import PoseTarget
-from .skeleton.body import GRAVITY_M_S2
+from companion.configfile import require_nonnegative, require_positive
+from companion.estimation.so3 import quat_from_euler_zyx
+from companion.messages import PoseTarget
+from companion.skeleton.body import GRAVITY_M_S2
 
 __all__ = ["CircleFormationConfig", "FormationState", "formation_state", "cable_feedforward", "formation_targets"]
 

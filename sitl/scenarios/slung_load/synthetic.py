@@ -1,10 +1,10 @@
 """Synthetic slung load: three vehicles fly the report's circle carrying a box by elastic cables
 (no physics engine), seeded GNSS and PnP-like camera measurements, and the load filters run on
-them (report ``004_946c2b2ab3d872ae.txt``, sec. III-A and IV-A).
+them (the slung-load report's sec. III-A and IV-A).
 
 Truth: the vehicles follow a prescribed formation (a ``circle_radius_m`` circle at ``speed_m_s``
 reached by a smooth ramp, the formation yawing with the circle so the same side of the load faces
-the centre, as in the report); the box obeys eq. 8 (:func:`companion.vision.load_model.
+the centre, as in the report); the box obeys eq. 8 (:func:`companion.load.model.
 load_accelerations`) with each cable a one-sided spring-damper
 ``T_i = max(0, k (l_i - L_i) + c dl_i/dt)``, integrated by RK4. The filters' model (estimated
 tensions, no cable elasticity) therefore differs from the truth, as it would in flight.
@@ -15,10 +15,10 @@ with white noise ``gnss_sigma_m`` and its covariance, velocity); per vehicle a d
 ``detection_prob``; its PnP pose is the true one perturbed in ``[dtheta; dt]`` by a covariance
 that grows with distance (rotation and lateral linearly, depth quadratically), optionally with
 P3P-like spikes (``outlier_prob``: ``outlier_m`` along the optical axis), turned into eq. 4's
-measurement by :func:`~companion.vision.load_model.observation_from_pnp`, and delivered
+measurement by :func:`~companion.load.model.observation_from_pnp`, and delivered
 ``latency_s`` + U(0, ``latency_jitter_s``) after capture.
 
-This replaces neither MuJoCo nor the real camera pipeline (issue 16 items 1-3); it is the
+This replaces neither MuJoCo nor the real camera pipeline (:mod:`.flight` flies both); it is the
 reference for the filters' tests and the ``python -m sitl.bench load_filter`` benchmark.
 """
 
@@ -29,20 +29,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.formation import arc_length
 from companion.configfile import require_nonnegative, require_positive
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat
 from companion.vision.geometry import POS as PNP_POS
 from companion.vision.geometry import ROT as PNP_ROT
-from companion.vision.load_filter import (
+from companion.load.filter import (
     LoadEstimate,
     LoadFilterConfig,
     LoadPoseFilter,
     UnfilteredLoadPose,
     initial_estimate,
 )
-from companion.vision.load_metrics import load_pose_err, pose_nees
-from companion.vision.load_model import (
+from companion.load.metrics import load_pose_err, pose_nees
+from companion.load.model import (
     ERR_ATT,
     ERR_POS,
     NOM_OMEGA,
@@ -59,6 +58,8 @@ from companion.vision.load_model import (
     marker_in_camera,
     observation_from_pnp,
 )
+
+from .formation import arc_length
 
 __all__ = ["SlungLoadSim", "LoadTruth", "simulate_truth", "LoadMeasurements", "synthesize", "LoadRun",
            "run_estimators", "summarize"]

@@ -1,6 +1,6 @@
 """An impaired UDP wire between a vehicle and its companion (``[faults.mavlink]``, fleet mode).
 
-    python -m sitl.wire --pair VEHICLE_SIDE:COMPANION_PORT:LOCAL_PORT [--pair ...]
+    python -m sitl.fleet.wire --pair VEHICLE_SIDE:COMPANION_PORT:LOCAL_PORT [--pair ...]
         --loss P [--delay-ms D] [--jitter-ms J] [--seed S] [--stats FILE]
 
 For each pair the proxy listens on UDP ``VEHICLE_SIDE`` (where the vehicle sends its onboard
@@ -170,7 +170,7 @@ def _pair(text: str) -> tuple[int, int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sitl.wire", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m sitl.fleet.wire", description=__doc__.split("\n\n")[0])
     p.add_argument("--pair", type=_pair, action="append", required=True, metavar="V:C:L",
                    help="listen for the vehicle on UDP V, forward to the companion's UDP C from local UDP L")
     p.add_argument("--loss", type=float, default=0.0, metavar="P", help="drop probability per datagram, [0, 1)")

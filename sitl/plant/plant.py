@@ -1,0 +1,134 @@
+"""The plant: the physical side of a run, shared by batch mode (firmware called in-process) and
+fleet mode (firmware behind the vehicles' simulator links)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.estimation.so3 import attitude_error
+from companion.skeleton.body import link_inertia
+from companion.skeleton.kinematics import chain_middle
+
+from sitl.scenario import Scenario
+
+from .model import SkeletonModel
+from .rotor import RotorBank
+from .rotor import warm_up as warm_up_rotors
+from .schedule import Schedule
+from .sensors import LinkSensors, downwash_fraction
+from .wind import Wind
+
+__all__ = ["Plant", "CRASH_TILT_DEG", "TAKEOFF_CLEARANCE_M"]
+
+CRASH_TILT_DEG = 60.0
+#: height above the crash floor every link must clear once for the chain to count as taken off [m]
+TAKEOFF_CLEARANCE_M = 0.2
+_COS_HALF_NEAR_CRASH = math.cos(math.radians(CRASH_TILT_DEG - 5.0) / 2.0)  # (check_crash)
+
+
+class Plant:
+    """The physical side of a run: MuJoCo skeleton, rotors and ESCs, sensors and wind.
+
+    Shared by batch mode (firmware called in-process) and fleet mode (firmware behind the HIL
+    link). One ``numpy.random.Generator`` seeded from the scenario drives every sensor and gust.
+    A physics tick is :meth:`begin_tick` (kinematics, truth) then :meth:`end_tick` (rotor
+    dynamics, wind, integration).
+    """
+
+    def __init__(self, sc: Scenario):
+        self.scenario = sc
+        self.n = sc.skeleton.n_links
+        self.dt = 1.0 / sc.sim.physics_rate_hz
+        self.geometry = sc.geometry()
+        self.inertia = link_inertia(sc.skeleton, self.geometry)
+        self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt, cameras=sc.cameras,
+                                   markers=sc.markers)
+        self.model.reset(sc.start)
+        self.d = sc.skeleton.d_b_m
+        self.rng = np.random.default_rng(sc.seed)
+        self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
+        self.rotors = RotorBank(8 * self.n, sc.rotors, rotors_per_link=8)
+        warm_up_rotors()  # the compiled rotor kernels loaded now, not in the first tick of the flight
+        self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
+        self.model.begin_step()
+        self._fresh = True  # begin_step already done for the current instant
+        self.crashed = False
+        self.crash_reason = ""
+        # whether the chain ever flew (every link clear of the ground): a chain that never took off
+        # (nobody armed it) rests on the ground without having crashed
+        self.took_off = False
+
+    def use_model(self, model) -> None:
+        """Fly ``model`` from now on, in place of the chain's (a scenario's own MuJoCo model: a wall
+        beside the link, vehicles carrying a load), before the first tick. ``model`` answers to
+        :class:`~sitl.plant.model.SkeletonModel`'s interface and has been reset to its start."""
+        model.begin_step()
+        self.model = model
+        self._fresh = True
+
+    @property
+    def time_s(self) -> float:
+        return self.model.time_s
+
+    def start_center(self) -> np.ndarray:
+        """Middle point of the chain (middle link centre or middle joint) at the start."""
+        truth = self.model.truth()
+        return chain_middle(truth.p_w_m, truth.q_wxyz, self.d).copy()
+
+    def begin_tick(self):
+        """Kinematics of the current instant; returns the truth."""
+        if not self._fresh:
+            self.model.begin_step()
+        self._fresh = False
+        return self.model.truth()
+
+    def baro_mag(self, k: int, schedule: Schedule, truth) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The barometric heights (n,) and magnetometer fields (n, 3) due at physics tick ``k``
+        (``None``: not due, or the profile has no such sensor); the ground effect scales with
+        each link's rotor thrust."""
+        sensors = self.sensors
+        baro = mag = None
+        if sensors.has_baro and k % schedule.baro == 0:
+            downwash = downwash_fraction(self.rotors.thrust_n.reshape(self.n, -1), self.inertia.mass_kg)
+            baro = sensors.baro(k * self.dt, truth.p_w_m, downwash)
+        if sensors.has_mag and k % schedule.mag == 0:
+            mag = sensors.mag(truth.q_wxyz)
+        return baro, mag
+
+    def end_tick(self) -> None:
+        thrust = self.rotors.step(self.dt)
+        wind = self.wind.force(self.model.link_velocities(), self.dt) if self.wind.active else None
+        self.model.end_step(thrust.reshape(self.n, -1), wind)
+
+    def check_crash(self, t: float, truth, target_q: np.ndarray | None) -> None:
+        """Flag a crash: a diverged simulation, or (after the take-off window, once the chain has
+        flown) a link on the ground or far off its target attitude (``target_q``: (n, 4)). A chain
+        that never left the ground has not crashed (:attr:`took_off` stays false)."""
+        if self.crashed:
+            return
+        if not np.all(np.isfinite(truth.p_w_m)):
+            self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
+            return
+        floor = self.scenario.skeleton.bar_radius_m + 0.05
+        lowest = truth.p_w_m[:, 2].min()
+        if not self.took_off and lowest > floor + TAKEOFF_CLEARANCE_M:
+            self.took_off = True
+        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest" or not self.took_off:
+            return
+        if lowest < floor:
+            self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
+            return
+        if target_q is None:
+            return
+        ok = np.all(np.isfinite(target_q), axis=1)  # a link without power or EKF has no target
+        # every link's rotation from its target, 2 acos |<q, q_target>|, well inside the limit:
+        # no crash (the rotation vectors below are worked out only near it)
+        if not np.any(np.abs(np.einsum("ij,ij->i", truth.q_wxyz[ok], target_q[ok])) < _COS_HALF_NEAR_CRASH):
+            return
+        tilt = np.zeros(len(ok))
+        tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
+        if tilt.max() > CRASH_TILT_DEG:
+            self.crashed = True
+            self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"

@@ -1,0 +1,178 @@
+"""The companion's load estimation on a slung-load flight, with the truth beside it.
+
+Every delivered camera frame goes through :class:`~companion.load.pipeline.LoadVisionPipeline`
+(ArUco, PnP with ``load.pnp_method``, covariance, eq. 4's observation), into an EKF and a UKF
+(:class:`~companion.load.filter.LoadPoseFilter`; frames arrive ``latency_s`` after capture: the
+filters roll back and replay) and the unfiltered solve
+(:class:`~companion.load.filter.UnfilteredLoadPose`); the vehicles' own EKF states (GNSS aided,
+position covariance) are the filters' vehicle samples at ``load.vehicle_rate_hz``. The filters
+start from the rigging's prior (the load hanging level below the formation, 0.1 m and 0.1 rad),
+not from the truth.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from companion.load.filter import LoadPoseFilter, UnfilteredLoadPose, initial_estimate
+from companion.load.metrics import error_summary, load_pose_err, pose_error_series, pose_nees, timing_summary_ms
+from companion.load.model import ERR_ATT, ERR_POS, VehicleStates
+from companion.load.pipeline import LoadVisionPipeline
+from link_firmware_sim.estimators.ekf import E_P
+from sitl.cameras.rig import CapturedFrame
+from sitl.cameras.video import pipeline_config
+
+from .config import SlungLoadScenario
+from .formation import formation_state
+from .model import SlungLoadModel
+
+__all__ = ["LoadEstimation"]
+
+
+class LoadEstimation:
+    """The companion's load estimation on a slung-load flight, with the truth beside it
+    (module docstring). ``on_tick`` at every physics tick (after the kinematics), ``on_frame``
+    for every delivered camera frame."""
+
+    def __init__(self, runner, duration_s: float):
+        sc: SlungLoadScenario = runner.scenario
+        self.runner, self.sc, self.load = runner, sc, sc.load
+        self.params = sc.load.params()
+        cfg = replace(pipeline_config(sc.markers), method=sc.load.pnp_method, ids=(sc.load.marker_id,),
+                      sigma_floor_px=sc.load.sigma_floor_px)
+        self.pipeline = LoadVisionPipeline(cfg, sc.cameras_in_body(), sc.load.marker_id, sc.marker_in_load())
+        self.dt = runner.dt
+        self.v_div = max(1, int(round(1.0 / (sc.load.vehicle_rate_hz * runner.dt))))
+        n_ticks = int(round(duration_s / runner.dt)) + 2
+        self.truth_p = np.full((n_ticks, 3), np.nan)
+        self.truth_q = np.full((n_ticks, 4), np.nan)
+        self.tension = []  # (t, tensions)
+        self.filters: dict[str, LoadPoseFilter] = {}
+        self.unfiltered = UnfilteredLoadPose(sc.load.n, window_s=0.5 / max(c.rate_hz for c in sc.cameras))
+        self.vehicles: list[VehicleStates] = []
+        self.rows: dict[str, list] = {"t": [], "p_true": [], "q_true": [], "ekf_p": [], "ekf_q": [], "ekf_P": [],
+                                      "ukf_p": [], "ukf_q": [], "ukf_P": []}
+        self.solves: list[tuple] = []  # (t, p, q, p_true, q_true)
+        self.frames: dict[str, int] = {}
+        self.detected: dict[str, int] = {}
+        self.frame_s: list[float] = []
+        self.pnp_rows: list[tuple] = []  # (t_capture, vehicle, pos err, att err, range, side px)
+        self.filter_s = 0.0
+
+    # -- ticks -------------------------------------------------------------------------------
+    def on_tick(self, k: int, t: float) -> None:
+        model: SlungLoadModel = self.runner.model
+        if k < len(self.truth_p):
+            self.truth_p[k], self.truth_q[k] = model.load_pose()
+        if k % self.v_div:
+            return
+        fws = self.runner.firmware
+        veh = VehicleStates(t, np.stack([fw.ekf.p_w_m for fw in fws]), np.stack([fw.ekf.v_w_m_s for fw in fws]),
+                            np.stack([fw.ekf.P[E_P, E_P] for fw in fws]))
+        self.vehicles.append(veh)
+        del self.vehicles[:-200]
+        w0 = time.perf_counter()
+        if not self.filters:
+            f = formation_state(t, self.load.formation)
+            prior = self.load.nominal_pose(f.center_w_m, f.phi_rad)
+            init = initial_estimate(t, prior.pos_m, prior.q_wxyz, veh, self.params, pos_sigma_m=0.1, att_sigma_rad=0.1)
+            self.filters = {kind: LoadPoseFilter(kind, self.params, self.load.filter, init) for kind in ("ekf", "ukf")}
+        r = self.rows
+        r["t"].append(t)
+        r["p_true"].append(self.truth_p[k])
+        r["q_true"].append(self.truth_q[k])
+        sl = np.r_[ERR_POS, ERR_ATT]
+        for kind, filt in self.filters.items():
+            est = filt.push_vehicles(veh)
+            r[f"{kind}_p"].append(est.pos_w_m.copy())
+            r[f"{kind}_q"].append(est.q_wxyz.copy())
+            r[f"{kind}_P"].append(est.P[np.ix_(sl, sl)])
+        self.filter_s += time.perf_counter() - w0
+        if k % (5 * self.v_div) == 0:
+            self.tension.append(np.concatenate(([t], model.cable_tensions())))
+
+    def _vehicles_at(self, t_s: float) -> VehicleStates | None:
+        for v in reversed(self.vehicles):
+            if v.stamp_s <= t_s + 1e-12:
+                return v
+        return None
+
+    def _truth_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        k = min(max(int(round(t_s / self.dt)), 0), len(self.truth_p) - 1)
+        return self.truth_p[k], self.truth_q[k]
+
+    def on_frame(self, f: CapturedFrame) -> None:
+        h = f.frame.header
+        self.frames[h.camera] = self.frames.get(h.camera, 0) + 1
+        w0 = time.perf_counter()
+        res = self.pipeline.on_frame(f.frame)
+        self.frame_s.append(time.perf_counter() - w0)
+        if res.pose is None:
+            return
+        self.detected[h.camera] = self.detected.get(h.camera, 0) + 1
+        R_true, t_true = f.truth.marker_in_camera(self.load.marker_id)
+        pe, ae = pose_error_series(res.pose.t_cm_m[None], res.pose.R_cm[None], t_true[None], R_true[None])
+        self.pnp_rows.append((h.t_capture_s, h.vehicle, float(pe[0]), float(ae[0]), float(np.linalg.norm(t_true)),
+                              res.pose.side_px))
+        obs = res.observation
+        w0 = time.perf_counter()
+        for filt in self.filters.values():
+            filt.push_observation(obs)
+        veh = self._vehicles_at(obs.stamp_s)
+        if veh is not None and self.unfiltered.push(obs, veh):
+            p_true, q_true = self._truth_at(self.unfiltered.stamp_s)
+            self.solves.append((self.unfiltered.stamp_s, self.unfiltered.pos_w_m, self.unfiltered.q_wxyz, p_true,
+                                q_true))
+        self.filter_s += time.perf_counter() - w0
+
+    # -- results -------------------------------------------------------------------------------
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {f"load_{k}": np.asarray(v) for k, v in self.rows.items() if v}
+        if self.solves:
+            t, p, q, pt, qt = (np.asarray(a) for a in zip(*self.solves))
+            out.update(load_unf_t=t, load_unf_p=p, load_unf_q=q, load_unf_p_true=pt, load_unf_q_true=qt)
+        if self.tension:
+            out["load_cable_tension"] = np.asarray(self.tension)
+        if self.pnp_rows:
+            a = np.asarray(self.pnp_rows)
+            out.update(load_pnp_t=a[:, 0], load_pnp_vehicle=a[:, 1].astype(int), load_pnp_pos_err_m=a[:, 2],
+                       load_pnp_att_err_deg=a[:, 3], load_pnp_range_m=a[:, 4], load_pnp_side_px=a[:, 5])
+        return out
+
+    def metrics(self) -> dict:
+        a = self.arrays()
+        settle = self.load.settle_s
+        out: dict = {}
+        if "load_t" in a and np.any(a["load_t"] >= settle):
+            keep = a["load_t"] >= settle
+            est = {k: (a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep]) for k in self.filters}
+            out["load_pose_err"] = load_pose_err(est, a["load_p_true"][keep], a["load_q_true"][keep])
+            out["load_pose_nees_mean"] = {
+                k: float(np.nanmean(pose_nees(a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep],
+                                              a["load_p_true"][keep], a["load_q_true"][keep]))) for k in self.filters}
+        if "load_unf_t" in a and np.any(a["load_unf_t"] >= settle):
+            k = a["load_unf_t"] >= settle
+            out.setdefault("load_pose_err", {})["unfiltered"] = error_summary(*pose_error_series(
+                a["load_unf_p"][k], a["load_unf_q"][k], a["load_unf_p_true"][k], a["load_unf_q_true"][k]))
+        else:
+            out.setdefault("load_pose_err", {})["unfiltered"] = None
+        out["load_filter_stats"] = {k: {"images": f.stats.images, "accepted": f.stats.accepted,
+                                        "rejected": f.stats.rejected, "late": f.stats.late,
+                                        "dropped_too_late": f.stats.dropped_too_late,
+                                        "replayed_events": f.stats.replayed_events, "mean_nis": f.stats.mean_nis}
+                                    for k, f in self.filters.items()}
+        n_frames = sum(self.frames.values())
+        out["load_vision"] = {
+            "pnp_method": self.load.pnp_method,
+            "frames": dict(self.frames),
+            "detection_rate": {c: self.detected.get(c, 0) / n for c, n in self.frames.items()},
+            "detection_rate_total": sum(self.detected.values()) / n_frames if n_frames else None,
+            "detect_pnp_ms_per_frame": timing_summary_ms(self.frame_s),
+            "filters_ms_per_sim_s": 1e3 * self.filter_s / max(self.runner.sim_s, 1e-9),
+        }
+        if "load_pnp_t" in a:
+            out["load_vision"]["pnp_error"] = error_summary(a["load_pnp_pos_err_m"], a["load_pnp_att_err_deg"])
+        return out
