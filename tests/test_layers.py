@@ -86,6 +86,22 @@ def test_kernels_import_only_kernels():
     assert kernel_violations() == []
 
 
+#: the most arguments a compiled kernel of the companion or the firmware takes: their state is
+#: grouped into a few arrays (named slots: link_firmware_sim/kernels/layouts.py) and tuples
+KERNEL_MAX_ARGS = 10
+
+
+def test_no_kernel_takes_more_than_ten_arguments():
+    wide = []
+    for package in ("companion", "link_firmware_sim"):
+        for path in sorted((ROOT / package).rglob("kernels/*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if (isinstance(node, ast.FunctionDef) and len(node.args.args) > KERNEL_MAX_ARGS
+                        and any(isinstance(d, ast.Name) and d.id == "jit" for d in node.decorator_list)):
+                    wide.append(f"{path.relative_to(ROOT)}::{node.name} takes {len(node.args.args)}")
+    assert wide == []
+
+
 def test_the_kernel_check_sees_a_kernel_that_imports_its_caller(tmp_path):
     kernels = tmp_path / "link_firmware_sim" / "kernels"
     kernels.mkdir(parents=True)

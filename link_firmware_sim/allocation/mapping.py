@@ -45,15 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.skeleton.rotors import (
-    _frozen,
-    N_ROTORS,
-    N_SIDE,
-    NU,
-    SIDES,
-    WRENCH_DIM,
-    RotorGeometry,
-)
+from companion.skeleton.rotors import N_ROTORS, N_SIDE, NU, SIDES, WRENCH_DIM
 
 __all__ = [
     "MARGIN_TOL_N",
