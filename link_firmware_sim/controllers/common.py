@@ -10,7 +10,21 @@ import numpy as np
 from companion.estimation.so3 import rotmat_tuple
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
-__all__ = ["limit_length", "vee", "weight_wrench"]
+__all__ = ["E3", "require_gains", "limit_length", "vee", "weight_wrench"]
+
+#: the world's vertical (z up)
+E3 = np.array([0.0, 0.0, 1.0])
+_COUNTS = {1: "a", 3: "three", 6: "six"}
+
+
+def require_gains(name: str, value, size: int = 1, positive: bool = False) -> None:
+    """``ValueError`` unless ``value`` is a finite number (``size`` 1) or ``size`` finite numbers,
+    non-negative (``positive``: > 0): a controller's gains, checked when its configuration is made."""
+    values = (value,) if size == 1 else value
+    ok = len(values) == size and all(math.isfinite(x) and (x > 0 if positive else x >= 0) for x in values)
+    if not ok:
+        kind = "positive" if positive else "non-negative"
+        raise ValueError(f"{name} must be {_COUNTS[size]} finite {kind} number{'s' if size > 1 else ''}, got {value!r}")
 
 
 def limit_length(e, limit: float) -> tuple:

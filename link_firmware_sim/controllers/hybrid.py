@@ -53,7 +53,7 @@ from companion.messages import ContactTarget, PoseTarget  # ContactTarget: one s
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
 from .base import Controller
-from .common import limit_length
+from .common import E3, limit_length, require_gains
 from .se3_control import attitude_error_so3, c2_bound
 
 __all__ = [
@@ -77,13 +77,6 @@ __all__ = [
 # Named slices of the 6-vectors (qdot, wrenches, gains): linear part, angular part.
 LIN = slice(0, 3)
 ANG = slice(3, 6)
-E3 = np.array([0.0, 0.0, 1.0])
-
-
-def _six(name: str, value) -> None:
-    if len(value) != 6 or not all(math.isfinite(x) and x >= 0 for x in value):
-        raise ValueError(f"{name} must be six finite non-negative numbers, got {value!r}")
-
 
 @dataclass(frozen=True)
 class HybridGains:
@@ -108,13 +101,11 @@ class HybridGains:
     def __post_init__(self) -> None:
         require_finite_positive(self, "pos_error_limit_m")
         for name in ("kp_1_s2", "kd_1_s", "ki_1_s3"):
-            _six(name, getattr(self, name))
+            require_gains(name, getattr(self, name), 6)
         for name in ("kf_1_s", "pos_integral_limit_ms", "att_integral_limit_rad", "force_integral_limit_ns"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {v!r}")
-        if self.c2 is not None and not (math.isfinite(self.c2) and self.c2 >= 0):
-            raise ValueError(f"c2 must be a finite non-negative number, got {self.c2!r}")
+            require_gains(name, getattr(self, name))
+        if self.c2 is not None:
+            require_gains("c2", self.c2)
 
     def resolved_c2(self, inertia: LinkInertia) -> float:
         if self.c2 is not None:
@@ -142,7 +133,7 @@ class ObserverConfig:
     actuator_time_constant_s: float = 0.05
 
     def __post_init__(self) -> None:
-        _six("gain_1_s", self.gain_1_s)
+        require_gains("gain_1_s", self.gain_1_s, 6)
         if not (math.isfinite(self.actuator_time_constant_s) and self.actuator_time_constant_s >= 0):
             raise ValueError(f"actuator_time_constant_s must be >= 0, got {self.actuator_time_constant_s!r}")
 

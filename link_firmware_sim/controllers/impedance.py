@@ -36,7 +36,6 @@ its integrals in one array, with the one dispatch between the kernel and the spe
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,18 +49,10 @@ from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 from ..kernels.impedance import impedance_kernel
 from ..kernels.layouts import CTL_ATT_INT, CTL_POS_INT, CTL_SIZE, TGT_SIZE
 from .base import Controller
-from .common import limit_length, vee
+from .common import E3, limit_length, require_gains, vee
 
 __all__ = ["ImpedanceGains", "ControlIntegrals", "impedance_control", "pack_target", "pack_gains",
            "ImpedanceController"]
-
-_E3 = np.array([0.0, 0.0, 1.0])
-
-
-def _triple(name: str, value) -> None:
-    if len(value) != 3 or not all(math.isfinite(x) and x >= 0 for x in value):
-        raise ValueError(f"{name} must be three finite non-negative numbers, got {value!r}")
-
 
 @dataclass(frozen=True)
 class ImpedanceGains:
@@ -91,11 +82,9 @@ class ImpedanceGains:
 
     def __post_init__(self) -> None:
         for name in ("kp_n_m", "kd_ns_m", "ki_n_ms"):
-            _triple(name, getattr(self, name))
+            require_gains(name, getattr(self, name), 3)
         for name in ("kR_nm", "kw_nms", "kI_nm_s", "gamma_I", "pos_integral_limit_ms", "att_integral_limit_rad"):
-            val = getattr(self, name)
-            if not (math.isfinite(val) and val >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {val!r}")
+            require_gains(name, getattr(self, name))
         require_finite_positive(self, "pos_error_limit_m")
 
 
@@ -126,7 +115,7 @@ def impedance_control(
     # translation: f_w = m g e3 + m a_d - k_d (v - v_d) - k_p e_p - k_i int(e_p) + f_ff, e_p = p - p_d limited
     e_p = np.array(limit_length(np.asarray(p_w_m, dtype=float) - target.p_w_m, gains.pos_error_limit_m))
     pos_int = np.clip(integrals.pos + e_p * dt_s, -gains.pos_integral_limit_ms, gains.pos_integral_limit_ms)
-    f_w = (m * GRAVITY_M_S2 * _E3 + m * target.a_w_m_s2 - np.array(gains.kd_ns_m) * (v_w_m_s - target.v_w_m_s)
+    f_w = (m * GRAVITY_M_S2 * E3 + m * target.a_w_m_s2 - np.array(gains.kd_ns_m) * (v_w_m_s - target.v_w_m_s)
            - np.array(gains.kp_n_m) * e_p - np.array(gains.ki_n_ms) * pos_int + target.force_ff_w_n)
     # rotation: e_R = (R_d^T R - R^T R_d)^v, e_w = w - R^T R_d w_d, e_I = int(e_w + gamma_I e_R)
     RtRd = R.T @ R_d

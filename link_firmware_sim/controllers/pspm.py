@@ -52,7 +52,7 @@ from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat, quat_to_r
 from companion.skeleton.body import GRAVITY_M_S2
 
 from .base import Controller
-from .common import vee
+from .common import require_gains, vee
 
 __all__ = [
     "PspmGains",
@@ -71,11 +71,6 @@ __all__ = [
 ]
 
 
-def _pos3(name: str, v) -> None:
-    if len(v) != 3 or not all(math.isfinite(x) and x > 0 for x in v):
-        raise ValueError(f"{name} must be three finite positive numbers, got {v!r}")
-
-
 @dataclass(frozen=True)
 class PspmGains:
     """Slave spring-damper gains (diagonal) and the reservoirs' caps and initial energies [J]."""
@@ -91,11 +86,9 @@ class PspmGains:
 
     def __post_init__(self) -> None:
         for name in ("kp_n_m", "kv_ns_m", "kR_nm", "kw_nms"):
-            _pos3(name, getattr(self, name))
+            require_gains(name, getattr(self, name), 3, positive=True)
         for name in ("e_max_t_j", "e_max_r_j", "e0_t_j", "e0_r_j"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite non-negative number, got {v!r}")
+            require_gains(name, getattr(self, name))
         if self.e0_t_j > self.e_max_t_j or self.e0_r_j > self.e_max_r_j:
             raise ValueError("the initial reservoir energies must not exceed their caps")
 

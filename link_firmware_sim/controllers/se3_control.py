@@ -49,7 +49,7 @@ from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 
 from .base import Controller
-from .common import limit_length, vee
+from .common import E3, limit_length, require_gains, vee
 
 __all__ = [
     "Se3PidGains",
@@ -60,14 +60,6 @@ __all__ = [
     "se3_pid_control",
     "Se3PidController",
 ]
-
-E3 = np.array([0.0, 0.0, 1.0])
-
-
-def _nonneg(name: str, value: float) -> None:
-    if not (math.isfinite(value) and value >= 0):
-        raise ValueError(f"{name} must be a finite non-negative number, got {value!r}")
-
 
 @dataclass(frozen=True)
 class Se3PidGains:
@@ -93,15 +85,11 @@ class Se3PidGains:
     def __post_init__(self) -> None:
         require_finite_positive(self, "pos_error_limit_m")
         for name in ("kp_n_m", "kd_ns_m", "ki_n_ms"):
-            val = getattr(self, name)
-            if len(val) != 3:
-                raise ValueError(f"{name} must be three numbers, got {val!r}")
-            for x in val:
-                _nonneg(name, x)
+            require_gains(name, getattr(self, name), 3)
         for name in ("kR_nm", "kw_nms", "kRI_nm_s", "pos_integral_limit_ms", "att_integral_limit_rad"):
-            _nonneg(name, getattr(self, name))
+            require_gains(name, getattr(self, name))
         if self.c2 is not None:
-            _nonneg("c2", self.c2)
+            require_gains("c2", self.c2)
 
 
 @dataclass(frozen=True)
