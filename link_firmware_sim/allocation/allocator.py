@@ -18,12 +18,11 @@ from companion.skeleton.rotors import N_ROTORS, N_SIDE, NU, SIDES, WRENCH_DIM, R
 from ..kernels.allocation import ALLOC_META, allocate_kernel
 from ..kernels.layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_SIZE,
                                ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
-from .mapping import (MARGIN_TOL_N, AllocationParams, AllocationResult, _fade_within_limit, _modulate_side,
-                      _side_weight, pseudo_inverse, reduced_pseudo_inverses, scaled_to_limit)
+from .mapping import (MARGIN_TOL_N, AllocationParams, AllocationResult, _fade_within_limit, gradual_selective_mapping,
+                      infinity_norm_allocation, pseudo_inverse, reduced_pseudo_inverses, scaled_to_limit,
+                      selective_mapping_weights, selective_modulation)
 
 __all__ = ["Allocator"]
-
-_NU_LIST = tuple(NU.tolist())
 
 
 def _checked_keep(keep) -> np.ndarray:
@@ -151,81 +150,37 @@ class Allocator:
         return r
 
     def _allocate_spec(self, U: np.ndarray, keep: np.ndarray) -> AllocationResult:
-        """:meth:`allocate` with the functional core (``U`` checked): the specification of the kernel."""
-        tmax = self._tmax
+        """:meth:`allocate` by the functional core of :mod:`.mapping` (``U`` checked): the
+        specification of the kernel."""
+        tmax, B_pinv = self._tmax, self._B_pinv
         scale = 1.0
         if self._scale_to_limit:
-            U, scale = scaled_to_limit(self._B_pinv, U, tmax, keep=keep)
-        scaled = scale != 1.0
-        lam_o = self._B_pinv @ U
-        lo = lam_o.tolist()
-        # Per side, b_i = nu_i lambda_{o,i} + xi' is the nu-scaled lambda_alpha (2.12), (2.14):
-        # lambda_alpha_i = nu_i b_i, and lambda_beta_i = nu_i (b_i + xi'') (2.15).
-        nu = _NU_LIST
-        alpha: list[float] = []
-        b_sides = []
-        for side in SIDES:
-            lam_nu = [n * x for n, x in zip(nu, lo[side])]
-            xi1 = -0.5 * (max(lam_nu) + min(lam_nu))  # (2.12)
-            b = [x + xi1 for x in lam_nu]
-            b_sides.append(b)
-            alpha += [n * x for n, x in zip(nu, b)]
+            U, scale = scaled_to_limit(B_pinv, U, tmax, keep=keep)
+        lam_o, xi1, lam_alpha = infinity_norm_allocation(B_pinv, U)  # Prop. 1, (2.12)
+        common = {"lambda_o": lam_o, "lambda_alpha": lam_alpha, "wrench": U, "scale": scale}
         if not self._selective:
-            lam_alpha = np.array(alpha)
-            return AllocationResult(
-                command_n=np.array([min(max(x, -tmax), tmax) for x in alpha]),
-                lambda_o=lam_o,
-                lambda_alpha=lam_alpha,
-                lambda_beta=lam_alpha,
-                lambda_gamma=lam_alpha,
-                e=(1.0, 1.0),
-                near_zero=(-1, -1),
-                saturated=scaled or max(map(abs, alpha)) > tmax,
-                wrench=U,
-                scale=scale,
-            )
-        beta: list[float] = []
-        gamma: list[float] = []
-        e_out = []
-        near = []
-        xi_pre = self.xi_pre.tolist()
-        faded_to_limit = False
-        for s, b in enumerate(b_sides):
-            xi2 = _modulate_side(b, xi_pre[s], self._eps1, self._xi_limit)  # (2.15)
-            xi_pre[s] = xi2
-            bb = [x + xi2 for x in b]
-            beta_s = [n * x for n, x in zip(nu, bb)]
-            e, j = _side_weight([abs(x) for x in bb], self._eps0, self._eps1)  # (2.17)
-            if j < 0:
-                gamma_s = beta_s
-                near.append(-1)
-            else:
-                # Side rows of Bbar^+ U + Nbar_B xi = P_j U + e_s (lambda_beta_s - P_j U), with
-                # P_j the side rows of B^+_{\j}, by the decoupling (2.18)-(2.19).
-                red = (self._reduced_by_side[s, j] @ U).tolist()
-                gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
-                if self._scale_to_limit and max(map(abs, gamma_s)) > tmax:
-                    e = _fade_within_limit(red, beta_s, e, tmax)
-                    gamma_s = [p + e * (x - p) for p, x in zip(red, beta_s)]
-                    faded_to_limit = True
-                near.append(j + s * N_SIDE)
-            beta += beta_s
-            gamma += gamma_s
-            e_out.append(e)
-        self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = xi_pre
-        lam_gamma = np.array(gamma)
-        return AllocationResult(
-            command_n=np.array([min(max(x, -tmax), tmax) for x in gamma]),
-            lambda_o=lam_o,
-            lambda_alpha=np.array(alpha),
-            lambda_beta=np.array(beta),
-            lambda_gamma=lam_gamma,
-            e=(e_out[0], e_out[1]),
-            near_zero=(near[0], near[1]),
-            saturated=scaled or faded_to_limit or max(map(abs, gamma)) > tmax,
-            wrench=U,
-            scale=scale,
-        )
+            return AllocationResult(command_n=np.clip(lam_alpha, -tmax, tmax), lambda_beta=lam_alpha,
+                                    lambda_gamma=lam_alpha, e=(1.0, 1.0), near_zero=(-1, -1),
+                                    saturated=scale != 1.0 or np.abs(lam_alpha).max() > tmax, **common)
+        xi2 = selective_modulation(lam_o, xi1, self.xi_pre, NU, self._eps1, self._xi_limit)  # (2.15)
+        self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = xi2
+        xi = xi1 + xi2
+        lam_beta = lam_o + (NU * xi[:, None]).ravel()
+        e, near = selective_mapping_weights(lam_beta, self._eps0, self._eps1)  # (2.17)
+        lam_gamma = gradual_selective_mapping(B_pinv, self._B_pinv_reduced, U, NU, xi, e, near)
+        faded = False
+        if self._scale_to_limit:  # (2.17) within the limit: a side's fade held back as far as that needs
+            e = list(e)
+            for s, side in enumerate(SIDES):
+                if near[s] >= 0 and np.abs(lam_gamma[side]).max() > tmax:
+                    red = self._B_pinv_reduced[near[s]][side] @ U
+                    e[s] = _fade_within_limit(red.tolist(), lam_beta[side].tolist(), e[s], tmax)
+                    lam_gamma[side] = red + e[s] * (lam_beta[side] - red)
+                    faded = True
+            e = (e[0], e[1])
+        return AllocationResult(command_n=np.clip(lam_gamma, -tmax, tmax), lambda_beta=lam_beta, lambda_gamma=lam_gamma,
+                                e=e, near_zero=near, saturated=scale != 1.0 or faded or np.abs(lam_gamma).max() > tmax,
+                                **common)
 
     def command(self, U: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
         """``allocate(U).command_n`` (the thrusts sent to the ESCs) without the intermediate
