@@ -86,14 +86,14 @@ def test_kernels_import_only_kernels():
     assert kernel_violations() == []
 
 
-#: the most arguments a compiled kernel of the companion or the firmware takes: their state is
+#: the most arguments a compiled kernel takes: its state is
 #: grouped into a few arrays (named slots: link_firmware_sim/kernels/layouts.py) and tuples
 KERNEL_MAX_ARGS = 10
 
 
 def test_no_kernel_takes_more_than_ten_arguments():
     wide = []
-    for package in ("companion", "link_firmware_sim"):
+    for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("kernels/*.py")):
             for node in ast.walk(ast.parse(path.read_text())):
                 if (isinstance(node, ast.FunctionDef) and len(node.args.args) > KERNEL_MAX_ARGS

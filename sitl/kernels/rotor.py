@@ -15,10 +15,13 @@ __all__ = ["step_kernel", "set_command_kernel", "relax_kernel"]
 
 
 @jit
-def step_kernel(thrust, command, spinning, direction, restarting, restart_left, out_sign, zero_crossings,
-                 min_thrust, dwell, eps, decay, dt_s):
-    """:meth:`sitl.plant.rotor.RotorBank.step` (not steady) rotor by rotor: the state arrays are updated in place,
-    the new thrusts returned as a new array."""
+def step_kernel(thrust, command, state, params):
+    """:meth:`sitl.plant.rotor.RotorBank.step` (not steady) rotor by rotor, from the thrusts and the
+    clipped commands [N]: ``state`` the bank's arrays ``(spinning, direction, restarting,
+    restart_left_s, out_sign, zero_crossings)``, updated in place; ``params`` ``(min_thrust_n,
+    restart_dwell_s, esc_epsilon_n, decay, dt_s)``. Returns the new thrusts as a new array."""
+    spinning, direction, restarting, restart_left, out_sign, zero_crossings = state
+    min_thrust, dwell, eps, decay, dt_s = params
     new = np.empty_like(thrust)
     for i in range(len(thrust)):
         c = command[i]

@@ -128,10 +128,11 @@ class RotorBank:
             return self.thrust_n
         p = self.params
         if self._compiled:
-            self.thrust_n = step_kernel(self.thrust_n, self.command_n, self._spinning, self._direction,
-                                         self._restarting, self._restart_left_s, self._out_sign, self.zero_crossings,
-                                         p.min_thrust_n, p.restart_dwell_s, p.esc_epsilon_n,
-                                         self._decay_factor(dt_s), dt_s)
+            state = (self._spinning, self._direction, self._restarting, self._restart_left_s, self._out_sign,
+                     self.zero_crossings)
+            params = (float(p.min_thrust_n), float(p.restart_dwell_s), float(p.esc_epsilon_n),
+                      self._decay_factor(dt_s), float(dt_s))
+            self.thrust_n = step_kernel(self.thrust_n, self.command_n, state, params)
             return self.thrust_n
         lam = self.thrust_n
         cmd = self.command_n
