@@ -26,10 +26,10 @@ from companion.config import load_setup
 from companion.configfile import ConfigError
 from companion.mavlink.transport import PortError
 
-from .kernels import warm
 from .config import VehicleSetup
-from .params import ParamTable
-from .vehicle import Vehicle, VehiclePorts
+from .kernels import warm
+from .vehicle.core import Vehicle
+from .vehicle.links import VehiclePorts
 
 log = logging.getLogger("link_firmware_sim")
 
@@ -74,22 +74,16 @@ def main(argv=None) -> int:
             log.info("standby: stdin closed before the start: exiting")
             return 0
         log.info("standby: started")
-    defaults = VehiclePorts.px4_sitl(args.instance)
-    gcs = defaults.gcs if args.gcs_url is None else (None if args.gcs_url == "none" else args.gcs_url)
-    ports = VehiclePorts(sim=args.sim_url or defaults.sim, onboard=args.onboard_url or defaults.onboard, gcs=gcs)
+    ports = VehiclePorts.for_instance(args.instance, sim=args.sim_url, onboard=args.onboard_url, gcs=args.gcs_url)
     out = Path(args.out) if args.out else None
-    params_path = Path(args.params) if args.params else (out / f"link{args.instance + 1}_params.json" if out else None)
-    firmware = sc.firmware_for(args.instance)
-    params = ParamTable(args.instance + 1, sc.firmware, sc.origin, sc.stream_rates(), params_path)
     try:
         key = sc.signing.key()
     except ValueError as exc:
         print(f"error: {args.config}: {exc}", file=sys.stderr)
         return 2
-    key_path = Path(sc.signing.key_file) if sc.signing.key_file else None
     try:
-        vehicle = Vehicle(args.instance, firmware, params, ports, out, args.log_rate, sc.rotors.thrust_max_n,
-                          signing=sc.signing, key=key, key_path=key_path)
+        vehicle = Vehicle.from_setup(sc, args.instance, ports, out, Path(args.params) if args.params else None,
+                                     args.log_rate, key=key)
     except PortError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -28,7 +28,7 @@ from companion.skeleton.rotors import RotorGeometry, RotorParams
 
 from .firmware import FirmwareConfig, LinkFirmware
 from .geo import GeoOrigin
-from .params import StreamRates
+from .vehicle.params import StreamRates
 
 __all__ = ["VehicleSetup", "check_flyable"]
 

@@ -3,7 +3,7 @@
 :class:`FusedTicks` is the part of :class:`~link_firmware_sim.firmware.LinkFirmware` that runs its
 common case (armed, eq. 1's controller, a fresh target) through the kernels of
 :mod:`link_firmware_sim.kernels.tick` and :mod:`link_firmware_sim.kernels.lockstep`, with the same
-state changes as the step-by-step path (``tests/test_fast_paths.py``, ``tests/test_simlink.py``): a
+state changes as the step-by-step path (``tests/test_fast_paths.py``, ``tests/test_lockstep.py``): a
 call's dispatch and the Python between the steps cost more than their arithmetic at 500 Hz per link.
 
 The kernels read the firmware's state as it is grouped (:mod:`link_firmware_sim.kernels.layouts`):
@@ -99,7 +99,7 @@ class FusedTicks:
     #: instance: every tick through the step-by-step path (the two agree: ``tests/test_fast_paths.py``)
     fused_tick: bool = ENABLED
     #: let the vehicle run its quiet lockstep ticks in one kernel call (:meth:`on_hil_loop`); ``False``
-    #: on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/test_simlink.py``)
+    #: on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/test_lockstep.py``)
     hil_loop: bool = ENABLED
 
     def _init_fused(self) -> None:
@@ -188,7 +188,7 @@ class FusedTicks:
         does not change the answer. Returns the thrust commands; ``None`` (nothing changed or
         written) in any other case, for a record the kernel leaves to the decoding path, or without
         the compiled kernels. The record layouts are ``HIL_SENSOR_RECORD`` / ``HIL_ACTUATOR_RECORD``
-        of :mod:`link_firmware_sim.kernels.hil_records`, which :mod:`.simlink` checks against the
+        of :mod:`link_firmware_sim.kernels.hil_records`, which :mod:`.vehicle.simlink` checks against the
         dialect."""
         if self.ekf is None or self._pending or not self._fused_applies(t_s):
             return None

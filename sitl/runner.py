@@ -36,7 +36,7 @@ from companion.skeleton.kinematics import tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
-from link_firmware_sim.hil import sitl_gps_time_us
+from link_firmware_sim.vehicle.hil import sitl_gps_time_us
 
 from .plant.plant import Plant
 from .plant.rotor import warm_up as warm_up_rotors

@@ -61,3 +61,14 @@ def _rendering(request):
     """A test marked ``rendering`` needs a headless OpenGL backend that renders."""
     if request.node.get_closest_marker("rendering") is not None:
         _need_rendering()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    """A vehicle in-process behind loopback sockets, with a fake simulator and a fake GCS
+    (:class:`tests.vehicle_rig.Rig`)."""
+    from .vehicle_rig import Rig
+
+    r = Rig(tmp_path)
+    yield r
+    r.close()

@@ -1,5 +1,5 @@
 """The optional barometer and magnetometer: their sensor models (sitl.plant.sensors), their HIL_SENSOR
-fields (link_firmware_sim.hil) and their fusion in the link EKF (link_firmware_sim.estimators)."""
+fields (link_firmware_sim.vehicle.hil) and their fusion in the link EKF (link_firmware_sim.estimators)."""
 
 import math
 
@@ -29,7 +29,7 @@ from link_firmware_sim.estimators.ekf import (
 )
 from link_firmware_sim.estimators import LinkEkf
 from link_firmware_sim.geo import MAG_DECLINATION_RAD, MAG_FIELD_NED_GAUSS, pressure_altitude_m, pressure_hpa_at
-from link_firmware_sim.hil import (
+from link_firmware_sim.vehicle.hil import (
     HIL_SENSOR_BARO,
     HIL_SENSOR_IMU,
     HIL_SENSOR_MAG,

@@ -24,7 +24,7 @@ from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 
-from .test_vehicle import Rig
+from .vehicle_rig import Rig
 
 D = load_dialect()
 finite = st.floats(-50.0, 50.0, allow_nan=False)
@@ -139,21 +139,12 @@ def test_firmware_bounds_the_commanded_force_and_reports_the_estimate():
 
 def _hybrid(rig: Rig, wrench_hz: float = 0.0) -> None:
     for name, value in (("SKL_CTRL", 2), ("SKL_WRENCH_HZ", wrench_hz)):
-        rig.vehicle.params.set(name, value)
-        rig.vehicle._apply_params(name)  # what a PARAM_SET does
-
-
-@pytest.fixture
-def rig(tmp_path):
-    r = Rig(tmp_path)
-    yield r
-    r.close()
+        rig.vehicle.set_param(name, value)  # what a PARAM_SET does
 
 
 def test_vehicle_streams_the_external_wrench_only_with_the_hybrid_controller(rig):
     rig.start(0.1)
-    rig.vehicle.params.set("SKL_WRENCH_HZ", 50.0)
-    rig.vehicle._apply_params("SKL_WRENCH_HZ")
+    rig.vehicle.set_param("SKL_WRENCH_HZ", 50.0)
     assert not [m for m in rig.gcs_collect(0.1) if m.get_type() == "SKELETON_EXTERNAL_WRENCH"]  # impedance: none
     _hybrid(rig, wrench_hz=50.0)
     rig.vehicle.fw.arm(rig.t)

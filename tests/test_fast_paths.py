@@ -345,8 +345,8 @@ def test_record_tick_matches_the_decoding_path():
     the fused tick off."""
     from companion.estimation.so3 import quat_from_rotvec, quat_mul
     from companion.mavlink.codec import seconds
-    from link_firmware_sim import hil
-    from link_firmware_sim.simlink import decode_packet, encode_packet
+    from link_firmware_sim.vehicle import hil
+    from link_firmware_sim.vehicle.simlink import decode_packet, encode_packet
 
     assert hil_records.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
     assert hil_records.AHRS_NORM_TOLERANCE == hil.AHRS_NORM_TOLERANCE
@@ -477,9 +477,9 @@ def test_the_warm_up_loads_every_signature_the_firmware_uses():
     without the barometer's offset, the step-by-step and fused ticks, an attitude reference queued,
     the record tick, the allocator and eq. 1 called alone) compiles nothing new."""
     from companion.messages import Correction
-    from link_firmware_sim import hil
+    from link_firmware_sim.vehicle import hil
     from link_firmware_sim.kernels import allocation, ekf, impedance, tick, warm
-    from link_firmware_sim.simlink import encode_packet
+    from link_firmware_sim.vehicle.simlink import encode_packet
 
     warm.warm_up()
     kernels = (ekf.ekf_predict_kernel, ekf.update_block_kernel, ekf.update_rows_kernel, ekf.attitude_update_kernel,

@@ -204,7 +204,7 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference):
 
 def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_reference, caplog):
     """``sim_link="unix"``: the vehicles' simulator links over UNIX sockets in a private folder
-    (link_firmware_sim.simlink); the flight is batch mode's, and the folder goes with the fleet.
+    (link_firmware_sim.vehicle.simlink); the flight is batch mode's, and the folder goes with the fleet.
     Unpaced, the harness and every process of the fleet run under SCHED_BATCH; the launching
     thread gets its policy back."""
     sc = load_scenario(THREE_LINK, duration_s=16.0)

@@ -166,7 +166,7 @@ def test_a_vehicle_and_a_daemon_start_without_scipys_optimizer_or_lapack():
     """scipy.optimize (the inverse model's training) and scipy.linalg (the SCKF's banded path for
     long chains) load where they run: a vehicle or a companion that reads its setup does not pay
     their start-up (0.16 s each) and memory (22 and 26 MB), nor does a Raspberry Pi."""
-    code = ("import link_firmware_sim.__main__, link_firmware_sim.vehicle, companion.__main__, companion.daemon\n"
+    code = ("import link_firmware_sim.__main__, link_firmware_sim.vehicle.core, companion.__main__, companion.daemon\n"
             "from companion.config import CompanionSetup\n"
             "loaded = [m for m in ('scipy.optimize', 'scipy.linalg', 'scipy.stats') if m in sys.modules]\n"
             "assert not loaded, loaded\n"

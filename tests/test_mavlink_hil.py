@@ -5,7 +5,7 @@ from companion.estimation.so3 import quat_normalize, quat_to_rotmat
 from companion.mavlink.codec import MessageError
 from companion.mavlink.dialect import load_dialect
 from link_firmware_sim.geo import GeoOrigin
-from link_firmware_sim.hil import (
+from link_firmware_sim.vehicle.hil import (
     decode_actuators,
     thrusts_from_controls,
     decode_ahrs,

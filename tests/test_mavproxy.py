@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from link_firmware_sim.params import PARAMS
+from link_firmware_sim.vehicle.params import PARAMS
 
 from .ports import free_ports
 

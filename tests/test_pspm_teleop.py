@@ -15,9 +15,7 @@ from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from link_firmware_sim.controllers import ImpedanceController
 from link_firmware_sim.controllers.pspm import PspmSlave, pspm_init, pspm_update, slave_wrench
-from link_firmware_sim.vehicle import PSPM_DEBUG_NAME
-
-from .test_vehicle import Rig
+from link_firmware_sim.vehicle.streams.controller import PSPM_DEBUG_NAME
 
 D = load_dialect()
 INERTIA = LinkInertia(2.6, (0.05, 0.3, 0.3))
@@ -78,17 +76,9 @@ def test_bypass_passes_the_raw_set_pose_and_off_keeps_the_selected_controller():
                      RotorGeometry.odar()).set_contact(0.0, None)
 
 
-@pytest.fixture
-def rig(tmp_path):
-    r = Rig(tmp_path)
-    yield r
-    r.close()
-
-
 def test_vehicle_modulates_mavlink_set_poses_and_streams_the_reservoirs(rig):
     rig.start(0.1)
-    rig.vehicle.params.set("SKL_PSPM_EN", 1)
-    rig.vehicle._apply_params("SKL_PSPM_EN")  # what a PARAM_SET does
+    rig.vehicle.set_param("SKL_PSPM_EN", 1)  # what a PARAM_SET does
     fw = rig.vehicle.fw
     assert fw.arm(rig.t)
     jump = PoseTarget.hold(np.array([1.0, 0.0, 2.0]), quat_from_euler_zyx(np.radians(60.0), 0.0, 0.0))
@@ -105,6 +95,5 @@ def test_vehicle_modulates_mavlink_set_poses_and_streams_the_reservoirs(rig):
     assert vec[-1].x >= 0.0 and vec[-1].y >= 0.0 and 0.6 < vec[-1].z < 0.9  # reservoirs, lag of the set position
     logged = rig.vehicle.flight_log()["pspm"]  # E_t, E_r, lag per log row: NaN before PSPM's first sample
     assert np.isnan(logged[0]).all() and np.all(logged[-1][:2] >= 0.0) and logged[-1][2] > 0.6
-    rig.vehicle.params.set("SKL_PSPM_EN", 0)
-    rig.vehicle._apply_params("SKL_PSPM_EN")
+    rig.vehicle.set_param("SKL_PSPM_EN", 0)
     assert fw.pspm is None and fw.pspm_report() is None

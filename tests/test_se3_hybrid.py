@@ -33,7 +33,7 @@ from link_firmware_sim.controllers.hybrid import (
     m_projector,
     null_basis,
 )
-from link_firmware_sim.params import ParamTable, StreamRates
+from link_firmware_sim.vehicle.params import ParamTable, StreamRates
 from link_firmware_sim.controllers.se3_control import (
     Se3PidController,
     Se3PidGains,

@@ -58,7 +58,7 @@ def test_the_times_are_parameters_and_a_change_applies_at_once():
     from companion.skeleton.rotors import RotorGeometry
     from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
     from link_firmware_sim.geo import GeoOrigin
-    from link_firmware_sim.params import ParamTable, StreamRates
+    from link_firmware_sim.vehicle.params import ParamTable, StreamRates
 
     table = ParamTable(1, FirmwareConfig(), GeoOrigin(), StreamRates())
     assert (table.values["SKL_TLIM_WARN"], table.values["SKL_TLIM_CLR"]) == (0.25, 0.5)

@@ -1,7 +1,7 @@
 """The same-host simulator link's records as the compiled ticks read and write them.
 
 A record is a 1-byte kind, then the MAVLink message's payload in wire order, little-endian
-(:mod:`link_firmware_sim.simlink`); :mod:`link_firmware_sim.simlink` checks these offsets against
+(:mod:`link_firmware_sim.vehicle.simlink`); :mod:`link_firmware_sim.vehicle.simlink` checks these offsets against
 the dialect's layouts when it is imported.
 """
 

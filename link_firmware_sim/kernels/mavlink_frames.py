@@ -1,7 +1,7 @@
 """MAVLink 2 frames of the simulator link's common tick (PX4's TCP link) to and from its records.
 
 The same messages as the same-host link's records (:mod:`.hil_records`) in MAVLink 2 frames: the
-ids, CRC extras and payload sizes (:mod:`link_firmware_sim.simlink` checks them against the dialect
+ids, CRC extras and payload sizes (:mod:`link_firmware_sim.vehicle.simlink` checks them against the dialect
 when it is imported), MAVLink's checksum, and the conversions the lockstep loop and the simulator's
 reader use (:func:`frames_to_records`, :func:`record_to_frame`), with their framing state
 (:data:`FRAMING`).
@@ -31,7 +31,7 @@ MAV2_HEADER = 10
 #: the messages of the common tick over TCP as :func:`.lockstep.hil_loop_kernel` reads (HIL_SENSOR,
 #: SKELETON_AHRS_REFERENCE) and writes (HIL_ACTUATOR_CONTROLS) them: message id, CRC extra and the
 #: payload's size (its record's less the kind byte). Literals for the same reason as the records'
-#: offsets; :mod:`link_firmware_sim.simlink` checks them against the dialect when it is imported.
+#: offsets; :mod:`link_firmware_sim.vehicle.simlink` checks them against the dialect when it is imported.
 MAV_HIL_SENSOR = {"msgid": 107, "crc_extra": 108, "size": 65}
 MAV_HIL_AHRS = {"msgid": 57002, "crc_extra": 112, "size": 24}
 MAV_HIL_ACTUATOR = {"msgid": 93, "crc_extra": 47, "size": 81}

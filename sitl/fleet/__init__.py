@@ -10,7 +10,7 @@
   over Zenoh on loopback (``tcp/127.0.0.1:7460+G-1``, clear of a local zenohd on 7447); ``[faults]`` can SIGKILL one of them
   mid-flight and start a new one later (folder ``companion-gG-restart``);
 * with ``--sim-link unix`` the vehicles' simulator links are the same-host link
-  (:mod:`link_firmware_sim.simlink`: the same HIL messages as binary records over UNIX sockets in
+  (:mod:`link_firmware_sim.vehicle.simlink`: the same HIL messages as binary records over UNIX sockets in
   a private temporary folder) instead of PX4's TCP 4560+i, which stays the default;
 * with ``--instance-offset K`` every one of these ports moves by K (link ``i`` is PX4 SITL
   instance K+i; the system ids stay), so that two fleets can fly side by side;

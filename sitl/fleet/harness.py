@@ -19,9 +19,9 @@ from companion.mavlink.transport import wait_readable
 from companion.skeleton.kinematics import tension
 from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.controllers import weight_wrench
-from link_firmware_sim.hil import (ROTORS_PER_LINK, encode_ahrs, encode_hil_gps, encode_hil_sensors, nonfinite_rows,
+from link_firmware_sim.vehicle.hil import (ROTORS_PER_LINK, encode_ahrs, encode_hil_gps, encode_hil_sensors, nonfinite_rows,
                                    thrusts_from_controls)
-from link_firmware_sim.simlink import open_sim_port
+from link_firmware_sim.vehicle.simlink import open_sim_port
 from sitl.plant.plant import Plant
 from sitl.plant.schedule import Schedule
 from sitl.scenario import Scenario
@@ -41,7 +41,7 @@ LOCKSTEP_ENDED = "lockstep ended"
 
 def _sim_port(url: str):
     """The simulator's end of link ``url``'s simulator link (PX4's simulator API: system 255,
-    component 190; TCP or the same-host link, :mod:`link_firmware_sim.simlink`), waiting for the
+    component 190; TCP or the same-host link, :mod:`link_firmware_sim.vehicle.simlink`), waiting for the
     vehicle as long as a process may take to start (it loads its compiled kernels first)."""
     return open_sim_port(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}),
                          connect_timeout_s=STARTUP_TIMEOUT_S, simulator=True)

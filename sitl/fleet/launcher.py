@@ -402,7 +402,7 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     18570+K+i, the impaired wire's 15540+K+i and 15580+K+i) and the group companions Zenoh's
     ``base_port`` + K + g, so that fleets with offsets n apart run side by side on one host; the
     system ids stay 1..n. ``sim_link``: ``"tcp"`` (PX4's simulator API on TCP 4560+K+i) or
-    ``"unix"`` (the same-host link, :mod:`link_firmware_sim.simlink`). ``batch_scheduling``: the
+    ``"unix"`` (the same-host link, :mod:`link_firmware_sim.vehicle.simlink`). ``batch_scheduling``: the
     harness and every process of the fleet under SCHED_BATCH
     (:func:`~sitl.fleet.processes.enter_batch_scheduling`); ``None``: when unpaced (``speed`` 0),
     where only throughput counts (the metrics say which: ``scheduling``). ``gcs_port``: the UDP

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from companion.logstream import read_log_stream
-from link_firmware_sim.hil import SITL_GPS_EPOCH_US
-from link_firmware_sim.simlink import is_simlink_url
+from link_firmware_sim.vehicle.hil import SITL_GPS_EPOCH_US
+from link_firmware_sim.vehicle.simlink import is_simlink_url
 from sitl.metrics import reboot_timeline, vehicle_down_windows
 from sitl.scenario import Scenario
 from sitl.steplog import attach_truth, merge_step_logs

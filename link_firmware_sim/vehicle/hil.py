@@ -28,7 +28,7 @@ from companion.mavlink.codec import MessageError, seconds, usec
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
 
-from .geo import EARTH_RADIUS_M, MAG_FIELD_NED_GAUSS, GeoOrigin, pressure_altitude_m, pressure_hpa_at
+from ..geo import EARTH_RADIUS_M, MAG_FIELD_NED_GAUSS, GeoOrigin, pressure_altitude_m, pressure_hpa_at
 
 __all__ = [
     "SITL_GPS_EPOCH_US",
@@ -205,7 +205,8 @@ AHRS_NORM_TOLERANCE = 1e-3
 
 def decode_ahrs(msg) -> tuple[float, np.ndarray]:
     """``(time [s], q body FLU to ENU)``; the quaternion normalised, its norm summed in order
-    (``w, x, y, z``: the vehicle's record tick, :func:`.kernels.tick.hil_tick_kernel`, gives the same numbers)."""
+    (``w, x, y, z``: the vehicle's record tick, :func:`~link_firmware_sim.kernels.tick.hil_tick_kernel`,
+    gives the same numbers)."""
     q = _check("SKELETON_AHRS_REFERENCE.q", msg.q)
     w, x, y, z = q.tolist()
     n = math.sqrt(w * w + x * x + y * y + z * z)

@@ -22,9 +22,9 @@ import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from .geo import GeoOrigin
+from ..geo import GeoOrigin
 
-from .firmware import FirmwareConfig
+from ..firmware import FirmwareConfig
 
 __all__ = ["ParamSpec", "PARAMS", "ParamTable", "StreamRates"]
 

@@ -20,19 +20,22 @@ decoders: units, frames and value checks are the same code on both links, only t
 differs (``python -m sitl.bench sitl`` measures both). One exception, with the same bytes and
 numbers: a vehicle takes a packet that is one IMU-only HIL_SENSOR record (its common tick), or a
 SKELETON_AHRS_REFERENCE record and one (the attitude reference's ticks), to its answer record in
-one compiled call (``Vehicle._tick_record``, :func:`.kernels.tick.hil_tick_kernel`), at the offsets
-:data:`.kernels.hil_records.HIL_SENSOR_RECORD` / ``HIL_AHRS_RECORD`` / ``HIL_ACTUATOR_RECORD``, which this module
-checks against the dialect when it is imported; every other packet goes through the decoders. A run of
-such ticks, with the waits and the socket calls between them, is one compiled call too
-(``Vehicle._poll_loop``, :func:`.kernels.lockstep.hil_loop_kernel`: it receives into a buffer of
+one compiled call (:meth:`.lockstep.Lockstep.tick_record`,
+:func:`~link_firmware_sim.kernels.tick.hil_tick_kernel`), at the offsets
+:data:`~link_firmware_sim.kernels.hil_records.HIL_SENSOR_RECORD` / ``HIL_AHRS_RECORD`` /
+``HIL_ACTUATOR_RECORD``, which this module checks against the dialect when it is imported; every
+other packet goes through the decoders. A run of such ticks, with the waits and the socket calls
+between them, is one compiled call too (:meth:`.lockstep.Lockstep.run_loop`,
+:func:`~link_firmware_sim.kernels.lockstep.hil_loop_kernel`: it receives into a buffer of
 :data:`RECV_BYTES`, as :meth:`SimLinkPort.recv` does, and leaves any other packet to the decoders).
 
 The records are the frames' payloads, so PX4's TCP link uses them too: the vehicle's lockstep
 loop turns a read that is exactly a tick's whole MAVLink 2 frames into its records
-(:func:`.kernels.mavlink_frames.frames_to_records`; the message ids, CRC extras and payload sizes of
-:data:`.kernels.mavlink_frames.MAV_HIL_SENSOR` / ``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the
-dialect here too) and its answer record into the frame pymavlink packs; the harness reads the
-answers so (:class:`SimulatorPort`). Every other read goes through pymavlink's parser.
+(:func:`~link_firmware_sim.kernels.mavlink_frames.frames_to_records`; the message ids, CRC extras
+and payload sizes of :data:`~link_firmware_sim.kernels.mavlink_frames.MAV_HIL_SENSOR` /
+``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the dialect here too) and its answer
+record into the frame pymavlink packs; the harness reads the answers so (:class:`SimulatorPort`).
+Every other read goes through pymavlink's parser.
 
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
@@ -65,8 +68,8 @@ from companion.mavlink.transport import PortError, send_all
 from companion.mavlink.urls import open_transport
 from companion.kernels.jit import ENABLED as _COMPILED
 
-from .kernels.hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD
-from .kernels.mavlink_frames import (FRAMES_TO_SIMULATOR, FRAMING, FRAMING_SIZE, MAV_HIL_ACTUATOR, MAV_HIL_AHRS,
+from ..kernels.hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD
+from ..kernels.mavlink_frames import (FRAMES_TO_SIMULATOR, FRAMING, FRAMING_SIZE, MAV_HIL_ACTUATOR, MAV_HIL_AHRS,
                                      MAV_HIL_SENSOR, frames_to_records)
 
 __all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "SimulatorPort",
@@ -154,10 +157,10 @@ _BY_TAG = tuple(_LAYOUTS[name] for name in SIM_KINDS)
 
 
 def _check_compiled_layouts() -> None:
-    """The compiled record tick (:func:`.kernels.tick.hil_tick_kernel`) reads and writes the records at
-    fixed offsets: they must be this dialect's (a changed message definition fails here, at import,
-    not as wrong numbers in flight). Checked on records this module packs, each field a distinct
-    value read back at the kernel's offset."""
+    """The compiled record tick (:func:`~link_firmware_sim.kernels.tick.hil_tick_kernel`) reads and
+    writes the records at fixed offsets: they must be this dialect's (a changed message definition
+    fails here, at import, not as wrong numbers in flight). Checked on records this module packs,
+    each field a distinct value read back at the kernel's offset."""
     D = load_dialect()
     t_us, flags, bits, mode = 0x0102030405060708, 0x1112131415161718, 0x89ABCDEF, 0x5A
     imu = tuple(float(k) for k in range(1, 7))  # xacc..zacc, xgyro..zgyro (exact in float32)
@@ -426,10 +429,11 @@ class SimLinkPort(CountedPort):
 class SimulatorPort(MavlinkPort):
     """The simulator's end of PX4's TCP link, reading the vehicles' answers: a read that is exactly
     whole HIL_ACTUATOR_CONTROLS frames (unsigned, from the one vehicle heard, numbered on without a
-    gap, checksums good: :func:`.kernels.mavlink_frames.frames_to_records`) is decoded from its records, as the
-    same-host link's are (the same field values: the records are the frames' payloads); any other
-    read, and every read while the port may not hand its stream over (:meth:`MavlinkPort.handover`)
-    or without the compiled kernels, goes through pymavlink's parser with its checks and counters."""
+    gap, checksums good: :func:`~link_firmware_sim.kernels.mavlink_frames.frames_to_records`) is
+    decoded from its records, as the same-host link's are (the same field values: the records are
+    the frames' payloads); any other read, and every read while the port may not hand its stream
+    over (:meth:`MavlinkPort.handover`) or without the compiled kernels, goes through pymavlink's
+    parser with its checks and counters."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

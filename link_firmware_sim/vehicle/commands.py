@@ -1,0 +1,109 @@
+"""COMMAND_LONG and COMMAND_INT, each answered with a COMMAND_ACK:
+
+* MAV_CMD_COMPONENT_ARM_DISARM: arm (refused while the EKF is not running), disarm (refused in
+  flight unless param2 is PX4's force value :data:`FORCE_DISARM`);
+* MAV_CMD_SET_MESSAGE_INTERVAL: a stream's interval on the link it came from (0: the default,
+  -1: off);
+* MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: one message now;
+* the dialect's MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact, or its release;
+* anything else: MAV_RESULT_UNSUPPORTED.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from companion.mavlink.codec import decode_contact_command
+from companion.mavlink.dialect import load_dialect
+
+from .links import Endpoint, statustext
+from .streams.schedule import BUILDERS
+
+__all__ = ["FORCE_DISARM", "on_command", "ack"]
+
+log = logging.getLogger(__name__)
+D = load_dialect()
+
+#: MAV_CMD_COMPONENT_ARM_DISARM param2 that disarms a vehicle in flight (PX4, ArduPilot)
+FORCE_DISARM = 21196
+
+
+def ack(ep: Endpoint, msg, result: int) -> None:
+    ep.port.send(D.MAVLink_command_ack_message(msg.command, result, 255, 0, msg.get_srcSystem(),
+                                               msg.get_srcComponent()))
+
+
+def on_command(v, ep: Endpoint, msg) -> None:
+    """A COMMAND_LONG or COMMAND_INT ``msg`` to vehicle ``v`` from link ``ep``."""
+    cmd = msg.command
+    if cmd == D.MAV_CMD_COMPONENT_ARM_DISARM:
+        _arm_disarm(v, ep, msg)
+    elif cmd == D.MAV_CMD_SET_MESSAGE_INTERVAL:
+        accepted = v.streams.set_interval(ep, int(msg.param1), msg.param2)
+        ack(ep, msg, D.MAV_RESULT_ACCEPTED if accepted else D.MAV_RESULT_UNSUPPORTED)
+    elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+        _request_message(v, ep, msg)
+    elif cmd == D.MAV_CMD_SKELETON_SET_CONTACT:
+        _set_contact(v, ep, msg)
+    else:
+        ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
+
+
+def _arm_disarm(v, ep: Endpoint, msg) -> None:
+    fw = v.fw
+    if msg.param1 >= 0.5:
+        result = D.MAV_RESULT_ACCEPTED if fw.arm(v.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
+    elif fw.armed and not fw.landed(v.fc_time_s) and int(round(msg.param2)) != FORCE_DISARM:
+        # PX4: disarming in flight needs the force value (the link would fall)
+        v.errors["disarm_refused"] += 1
+        log.warning("link %d: disarm refused in flight (param2 %g, force is %d)", v.system_id, msg.param2,
+                    FORCE_DISARM)
+        statustext(ep, D.MAV_SEVERITY_CRITICAL, f"Disarm refused: in flight (force {FORCE_DISARM})")
+        result = D.MAV_RESULT_DENIED
+    else:
+        fw.disarm()
+        result = D.MAV_RESULT_ACCEPTED
+    ack(ep, msg, result)
+
+
+def _request_message(v, ep: Endpoint, msg) -> None:
+    """The message now (AUTOPILOT_VERSION at any time, the others once the EKF runs); DENIED when
+    there is nothing to send (a report of a controller that is not running)."""
+    if msg.command == D.MAV_CMD_REQUEST_MESSAGE:
+        mid = int(msg.param1)
+    else:
+        mid = D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+    builder = BUILDERS.get(mid)
+    if builder is None or (mid != D.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not v.fw.initialized):
+        ack(ep, msg, D.MAV_RESULT_UNSUPPORTED if builder is None else D.MAV_RESULT_TEMPORARILY_REJECTED)
+        return
+    out = builder(v)
+    ack(ep, msg, D.MAV_RESULT_ACCEPTED if out is not None else D.MAV_RESULT_DENIED)
+    if out is not None:
+        ep.port.send(out)
+
+
+def _set_contact(v, ep: Endpoint, msg) -> None:
+    """MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact (or its release), validated;
+    refused with MAV_RESULT_DENIED and a STATUSTEXT saying why."""
+    fw = v.fw
+    if msg.get_type() != "COMMAND_LONG":
+        reason = "Contact refused: send it as COMMAND_LONG"
+    elif fw.config.controller != "hybrid":
+        reason = f"Contact refused: controller {fw.config.controller} (SKL_CTRL 2)"
+    else:
+        try:
+            contact = decode_contact_command(msg)
+            fw.set_contact(v.fc_time_s, contact)
+        except ValueError as exc:  # MessageError too
+            reason = f"Contact refused: {exc}"
+        else:
+            log.info("link %d: contact %s", v.system_id, "released" if contact is None else
+                     f"{contact.force_n:g} N along {np.round(contact.normal_w, 3).tolist()} (world)")
+            ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+            return
+    log.warning("link %d: %s", v.system_id, reason)
+    statustext(ep, D.MAV_SEVERITY_WARNING, reason)
+    ack(ep, msg, D.MAV_RESULT_DENIED)
