@@ -1,4 +1,4 @@
-"""The hybrid controller over MAVLink (issue 17): the observer's SKELETON_EXTERNAL_WRENCH stream and the
+"""The hybrid controller over MAVLink: the observer's SKELETON_EXTERNAL_WRENCH stream and the
 contact command MAV_CMD_SKELETON_SET_CONTACT, codec and vehicle."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""PSPM teleoperation in the firmware (thesis sec. 2.3.4, issue 17): operator set poses modulated before the
+"""PSPM teleoperation in the firmware (thesis sec. 2.3.4): operator set poses modulated before the
 slave law, over MAVLink (SET_POSITION_TARGET_LOCAL_NED / SET_ATTITUDE_TARGET) with the reservoirs streamed."""
 
 from __future__ import annotations

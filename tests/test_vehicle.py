@@ -422,6 +422,28 @@ def test_disarm_in_flight_needs_the_force_value(rig):
     assert ack.result == D.MAV_RESULT_ACCEPTED and not rig.vehicle.fw.armed
 
 
+@pytest.mark.parametrize("command, params", [
+    ("SET_MESSAGE_INTERVAL", (math.nan, 20000)),
+    ("SET_MESSAGE_INTERVAL", (D.MAVLINK_MSG_ID_ATTITUDE, math.inf)),
+    ("REQUEST_MESSAGE", (math.nan, 0)),
+    ("COMPONENT_ARM_DISARM", (math.nan, 0)),
+    ("COMPONENT_ARM_DISARM", (0, math.nan)),
+])
+def test_a_command_with_a_non_finite_number_is_a_bad_message_and_the_vehicle_goes_on(rig, command, params):
+    """A message id, an interval, an arm flag or the force value that is NaN or infinite: the
+    command is counted as a bad message and not acted on (no ACK); the vehicle flies on."""
+    _flying(rig)
+    cmd = getattr(D, f"MAV_CMD_{command}")
+    for msg in (D.MAVLink_command_long_message(2, 1, cmd, 0, *params, 0, 0, 0, 0, 0),
+                D.MAVLink_command_int_message(2, 1, 0, cmd, 0, 0, *params, 0, 0, 0, 0, 0)):
+        before = rig.vehicle.errors["mavlink"]
+        rig.gcs_send(msg)
+        msgs = rig.gcs_collect(0.05)
+        assert not [m for m in msgs if m.get_type() == "COMMAND_ACK"]
+        assert rig.vehicle.errors["mavlink"] == before + 1 and rig.vehicle.fw.armed
+    assert np.all(np.isfinite(rig.tick()))
+
+
 def test_an_out_of_bounds_correction_is_rejected_and_counted(rig):
     rig.start()
     t = rig.vehicle.fw.time_s

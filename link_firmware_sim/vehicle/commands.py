@@ -7,15 +7,19 @@
 * MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: one message now;
 * the dialect's MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact, or its release;
 * anything else: MAV_RESULT_UNSUPPORTED.
+
+A parameter read as a number (a message id, an interval, the force value) that is not finite
+makes the command a bad message (:class:`MessageError`: counted, not acted on).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
-from companion.mavlink.codec import decode_contact_command
+from companion.mavlink.codec import MessageError, decode_contact_command
 from companion.mavlink.dialect import load_dialect
 
 from .links import Endpoint, statustext
@@ -30,6 +34,14 @@ D = load_dialect()
 FORCE_DISARM = 21196
 
 
+def _finite(msg, name: str) -> float:
+    """Command parameter ``name`` of ``msg``; :class:`MessageError` when it is NaN or infinite."""
+    value = getattr(msg, name)
+    if not math.isfinite(value):
+        raise MessageError(f"{msg.get_type()}.{name}: not finite ({value!r})")
+    return value
+
+
 def ack(ep: Endpoint, msg, result: int) -> None:
     ep.port.send(D.MAVLink_command_ack_message(msg.command, result, 255, 0, msg.get_srcSystem(),
                                                msg.get_srcComponent()))
@@ -41,7 +53,7 @@ def on_command(v, ep: Endpoint, msg) -> None:
     if cmd == D.MAV_CMD_COMPONENT_ARM_DISARM:
         _arm_disarm(v, ep, msg)
     elif cmd == D.MAV_CMD_SET_MESSAGE_INTERVAL:
-        accepted = v.streams.set_interval(ep, int(msg.param1), msg.param2)
+        accepted = v.streams.set_interval(ep, int(_finite(msg, "param1")), _finite(msg, "param2"))
         ack(ep, msg, D.MAV_RESULT_ACCEPTED if accepted else D.MAV_RESULT_UNSUPPORTED)
     elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
         _request_message(v, ep, msg)
@@ -53,9 +65,9 @@ def on_command(v, ep: Endpoint, msg) -> None:
 
 def _arm_disarm(v, ep: Endpoint, msg) -> None:
     fw = v.fw
-    if msg.param1 >= 0.5:
+    if _finite(msg, "param1") >= 0.5:
         result = D.MAV_RESULT_ACCEPTED if fw.arm(v.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
-    elif fw.armed and not fw.landed(v.fc_time_s) and int(round(msg.param2)) != FORCE_DISARM:
+    elif fw.armed and not fw.landed(v.fc_time_s) and int(round(_finite(msg, "param2"))) != FORCE_DISARM:
         # PX4: disarming in flight needs the force value (the link would fall)
         v.errors["disarm_refused"] += 1
         log.warning("link %d: disarm refused in flight (param2 %g, force is %d)", v.system_id, msg.param2,
@@ -72,7 +84,7 @@ def _request_message(v, ep: Endpoint, msg) -> None:
     """The message now (AUTOPILOT_VERSION at any time, the others once the EKF runs); DENIED when
     there is nothing to send (a report of a controller that is not running)."""
     if msg.command == D.MAV_CMD_REQUEST_MESSAGE:
-        mid = int(msg.param1)
+        mid = int(_finite(msg, "param1"))
     else:
         mid = D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
     builder = BUILDERS.get(mid)
