@@ -94,7 +94,6 @@ class Vehicle:
         self.streams.set_defaults()
         self.targets = TargetMessages(self)
         self.recorder = FlightRecorder(firmware, self.system_id, out_dir, log_rate_hz)
-        self.boot_wall_s = time.monotonic()
         self._next_heartbeat_wall = 0.0
         # Like PX4's SITL, the firmware is silent on MAVLink until the simulator has connected: a
         # process started ahead of its "power on" (a scripted reboot) is not seen before it.
