@@ -188,6 +188,22 @@ class LinkFirmware(FusedTicks):
         """The controller's integrals (eq. 1's: :class:`~.controllers.impedance.ControlIntegrals`)."""
         return getattr(self._controller, "integrals", None)
 
+    # the land detector's state (:meth:`landed`), read-only
+    @property
+    def arm_height_m(self) -> float:
+        """The control estimate's height when the link armed: where a take-off is measured from."""
+        return self._arm_height_m
+
+    @property
+    def airborne(self) -> bool:
+        """Whether the link has taken off since it armed."""
+        return self._airborne
+
+    @property
+    def thrust_total_n(self) -> float:
+        """The norm of the force the controller commanded at the last armed tick [N]."""
+        return self._thrust_total_n
+
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
         if config.allocation != self.config.allocation:
