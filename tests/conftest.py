@@ -1,10 +1,13 @@
 import os
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
 
 from companion.cli import single_thread_blas
 from sitl.cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
+
+from .ports import FleetPorts, fleet_slot, free_ports, worker_index
 
 # Offscreen rendering (the tests marked `rendering`: cameras, videos): a headless OpenGL backend
 # chosen before anything imports MuJoCo, osmesa on the CPU or egl. Where none renders those tests
@@ -17,10 +20,32 @@ choose_backend(renders=True)
 settings.register_profile("default_seeded", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 
+#: every test is in one tier (its marker: `pytest -m unit`): the folder it lives in (tests/<tier>/),
+#: unless the test itself is marked with another (a flight among a module's unit tests)
+TIERS = ("unit", "integration", "e2e")
+TESTS = Path(__file__).resolve().parent
+
 
 def pytest_configure(config):
     if not config.getoption("hypothesis_profile", None):
         settings.load_profile("default_seeded")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Each test gets its tier's marker (before ``-m`` selects): its own, else its folder's."""
+    for item in items:
+        try:
+            folder = Path(item.path).resolve().relative_to(TESTS).parts[0]
+        except ValueError:
+            continue  # a test file outside tests/ (pytest given another path)
+        if folder not in TIERS:
+            raise pytest.UsageError(f"{item.nodeid}: a test lives in tests/unit, tests/integration or tests/e2e")
+        own = {m.name for m in item.iter_markers() if m.name in TIERS}
+        if len(own) > 1:
+            raise pytest.UsageError(f"{item.nodeid}: in one tier, not {sorted(own)}")
+        if not own:
+            item.add_marker(folder)
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -30,15 +55,26 @@ def _single_thread_blas():
         yield
 
 
-@pytest.fixture(autouse=True, scope="session")
-def _compiled_kernels():
-    """numba's kernels compiled (a clean checkout: 40-70 s on a 2-core VM) or loaded from its cache
-    once, before any test: a vehicle or companion process a test starts then loads the cache
-    instead of compiling while the test waits for it. (Without numba: nothing to do.)"""
+@pytest.fixture(scope="session")
+def compiled_kernels() -> None:
+    """numba's kernels compiled (a clean checkout: about a minute on 2 cores) or loaded from its
+    cache once, for the tests that start vehicle, companion or fleet processes or wait on real
+    time: a process a test starts then loads the cache instead of compiling while the test waits
+    for it. Tests that call a kernel in this process load it when they first call it. (Without
+    numba: nothing to do.)"""
     from sitl.runner import warm_up_kernels
 
     warm_up_kernels()
-    yield
+
+
+@pytest.fixture
+def fleet_ports(compiled_kernels) -> FleetPorts:
+    """Ports of this test's own for a fleet (an instance offset no other test on this host holds
+    meanwhile, see :func:`tests.ports.fleet_slot`) and a free GCS port: tests run side by side
+    under pytest-xdist (``-n 2``) without a port clash."""
+    (gcs_port,) = free_ports(1, udp=True)
+    with fleet_slot(preferred=worker_index()) as k:
+        yield FleetPorts(k, gcs_port)
 
 
 def _need_rendering() -> str:
@@ -64,7 +100,7 @@ def _rendering(request):
 
 
 @pytest.fixture
-def rig(tmp_path):
+def rig(tmp_path, compiled_kernels):
     """A vehicle in-process behind loopback sockets, with a fake simulator and a fake GCS
     (:class:`tests.vehicle_rig.Rig`)."""
     from .vehicle_rig import Rig

@@ -1,5 +1,5 @@
 """The simulator link's messages for its tests: the kinds each side takes, a random tick of
-every kind, and a message as the TCP link delivers it (through a MAVLink 2 frame)."""
+every kind (a message as the TCP link delivers it: tests/mavlink_wire.py)."""
 
 import numpy as np
 
@@ -12,12 +12,6 @@ D = load_dialect()
 #: what the vehicle's side of the link takes, and the simulator's
 SENSORS = frozenset({"HIL_SENSOR", "HIL_GPS", "SKELETON_AHRS_REFERENCE"})
 ACTUATORS = frozenset({"HIL_ACTUATOR_CONTROLS"})
-
-
-def over_mavlink(msg):
-    """``msg`` after a MAVLink 2 frame and pymavlink's parser (what the TCP link delivers)."""
-    frame = msg.pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
-    return D.MAVLink(None).parse_char(bytearray(frame))
 
 
 def random_messages(rng: np.random.Generator) -> list:

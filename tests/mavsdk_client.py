@@ -4,8 +4,8 @@
 
 Connects to ``URL`` (e.g. ``udpin://127.0.0.1:14541``), waits for the autopilot ``SYSID``, reads
 two parameters (a float and an int), sets the parameters named by ``--set-int``/``--set-float``
-and reads each back, subscribes to position, attitude and odometry telemetry for two seconds and
-prints one JSON object with what it got. Exit code 0 when the system was discovered, 1 otherwise.
+and reads each back, subscribes to position, attitude and odometry telemetry until 5 positions and
+10 attitudes came (at most ``--timeout`` seconds) and prints one JSON object with what it got. Exit code 0 when the system was discovered, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -86,7 +86,12 @@ def main() -> int:
         telemetry.subscribe_position(record("position"))
         telemetry.subscribe_attitude_euler(record("attitude_euler"))
         telemetry.subscribe_odometry(record("odometry"))
-        time.sleep(2.0)
+        until = time.monotonic() + args.timeout
+        while time.monotonic() < until:
+            with lock:
+                if counts["position"] >= 5 and counts["attitude_euler"] >= 10:
+                    break
+            time.sleep(0.05)
         with lock:
             out["telemetry_counts"] = dict(counts)
             if "position" in last:

@@ -22,23 +22,24 @@ import pytest
 
 from link_firmware_sim.vehicle.params import PARAMS
 
-from .ports import free_ports
+from ..paths import ROOT
+
 
 pytest.importorskip("MAVProxy")
 
-ROOT = Path(__file__).resolve().parents[1]
 SIGNED = ROOT / "configs" / "sitl" / "chain" / "three_link_signed.toml"
 MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
-#: ports of PX4 SITL instances 20-22 (clear of the other fleet tests' offsets)
-INSTANCE_OFFSET = 20
 
 
 class _Session:
     """A process driven at its prompt: lines in on stdin, its output read line by line as it comes."""
 
     def __init__(self, argv: list[str], env: dict, cwd: Path):
+        # Ctrl-C acts as in a terminal even where this process was started with SIGINT ignored (a
+        # background job of a shell without job control), which its children would inherit
         self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, env=env, cwd=cwd, start_new_session=True)
+                                     text=True, env=env, cwd=cwd, start_new_session=True,
+                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         self.lines: list[str] = []
         self._new = threading.Condition()
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -81,13 +82,22 @@ class _Session:
 
     def close(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> str:
         """Stop the process with ``sig`` (it alone: it stops what it started), then its whole
-        process group with SIGKILL if it is not gone after ``timeout_s``; its output."""
+        process group with SIGKILL if it is not gone after ``timeout_s`` (first SIGABRT: a Python
+        process started with PYTHONFAULTHANDLER=1 writes where each of its threads was); its output."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
             try:
                 self.proc.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.send_signal(signal.SIGABRT)
+                try:
+                    self.proc.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    pass
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)  # (what it started too)
+                except ProcessLookupError:
+                    pass
                 self.proc.wait()
         self._reader.join(timeout=5)
         return self.output()
@@ -111,13 +121,13 @@ def _mavproxy(port: int, state_dir: Path, env: dict) -> _Session:
                      f"--state-basedir={state_dir}"], env, state_dir)
 
 
-def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path):
+def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path, fleet_ports):
     assert MAVPROXY.exists(), f"{MAVPROXY}: MAVProxy's script (pip install -e '.[test]')"
-    (gcs_port,) = free_ports(1, udp=True)
+    gcs_port = fleet_ports.gcs_port
     out = tmp_path / "run"
     fleet = _Session([sys.executable, "-m", "sitl", "launch", "--config", str(SIGNED), "--no-companion", "--speed", "1",
-                      "--duration", "600", "--quiet", "--no-plots", "--instance-offset", str(INSTANCE_OFFSET),
-                      "--gcs-port", str(gcs_port), "--out", str(out)], dict(os.environ), ROOT)
+                      "--duration", "600", "--quiet", "--no-plots", *fleet_ports.cli_args, "--out",
+                      str(out)], dict(os.environ, PYTHONFAULTHANDLER="1"), ROOT)
     sessions: list[_Session] = []
     try:
         typed = fleet.expect(r"^\s*(signing key \S+)\s*$", 120)

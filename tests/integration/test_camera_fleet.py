@@ -16,8 +16,6 @@ import os
 import subprocess
 import sys
 import threading
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,23 +26,27 @@ from companion.vision.config import PipelineConfig
 from companion.vision.geometry import CameraIntrinsics, geodesic_angle_rad
 from companion.vision.node_config import VideoCaptureSource, VisionNodeSetup, ZenohCameraSource, load_vision_setup
 
-from .ports import children_of
+from ..camera_frames import marker_frame
+from ..ports import children_of
+from ..waits import wait_for
+from ..zenoh_peers import peer_session
+from ..paths import ROOT
 
 cv2 = pytest.importorskip("cv2")
 
-ROOT = Path(__file__).resolve().parents[1]
 CAMERA_FLEET = ROOT / "configs" / "sitl" / "cameras" / "three_link_camera_fleet.toml"
 
 
+@pytest.mark.e2e
 @pytest.mark.rendering
-def test_fleet_frames_cross_zenoh_and_the_consumer_measures_the_marker(tmp_path):
+def test_fleet_frames_cross_zenoh_and_the_consumer_measures_the_marker(tmp_path, fleet_ports):
     pytest.importorskip("zenoh")
     pytest.importorskip("mujoco")
     from sitl.fleet.launcher import launch
     from sitl.scenario import load_scenario
 
     sc = load_scenario(CAMERA_FLEET, duration_s=5.0)
-    m = launch(sc, tmp_path, speed=0.0, plots=False)
+    m = launch(sc, tmp_path, speed=0.0, plots=False, **fleet_ports.launch_kwargs)
     assert not children_of(os.getpid()), "fleet or consumer processes left behind"
     assert not m["crashed"] and not m["aborted"]
 
@@ -161,39 +163,33 @@ def test_video_capture_source_reads_a_file_and_measures_the_marker(tmp_path):
 def test_consumer_over_zenoh_measures_frames_and_counts_hostile_payloads(tmp_path):
     """run_node on a loopback Zenoh session: 4 good frames of two vehicles measured; a frame on the
     wrong vehicle's key and garbage are counted as rejected, never measured."""
-    zenoh = pytest.importorskip("zenoh")
+    pytest.importorskip("zenoh")
     from companion.vision.camera_wire import CameraPublisher, camera_key
     from companion.vision.frame_codec import encode_frame
-    from companion.vision.node import run_node
+    from companion.vision.node import FRAMES_FILE, run_node
     from sitl.cameras.stream import free_loopback_port
 
-    from .test_camera_wire import _marker_frame
-
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", f'["{endpoint}"]')
-    harness = zenoh.open(c)
+    harness = peer_session(listen=(endpoint,))
     setup = VisionNodeSetup(name="t", source="zenoh", zenoh=ZenohCameraSource(prefix="camtest", connect=(endpoint,)),
                             pipeline=PipelineConfig(marker_length_m=0.2))
     stop = threading.Event()
     result = {}
-    worker = threading.Thread(target=lambda: result.update(run_node(setup, tmp_path, stop=stop.is_set)))
+    frames_log = tmp_path / FRAMES_FILE
+
+    def measured_all() -> bool:  # then the node drains what is still in flight (the hostile payloads)
+        return stop.is_set() or (frames_log.exists() and frames_log.read_text().count("\n") >= 4)
+
+    worker = threading.Thread(target=lambda: result.update(run_node(setup, tmp_path, stop=measured_all)))
     try:
         pubs = [CameraPublisher(harness, "camtest", v, fmt="png") for v in range(2)]
         worker.start()
-        deadline = time.monotonic() + 10
-        while not all(p.matched for p in pubs):
-            assert time.monotonic() < deadline, "the consumer never subscribed"
-            time.sleep(0.02)
+        assert wait_for(lambda: all(p.matched for p in pubs), 10.0), "the consumer never subscribed"
         for seq in range(2):
             for v, p in enumerate(pubs):
-                p.publish(_marker_frame(vehicle=v, seq=seq))
-        harness.put(camera_key("camtest", 1), encode_frame(_marker_frame(vehicle=0), "raw"))  # wrong key
+                p.publish(marker_frame(vehicle=v, seq=seq))
+        harness.put(camera_key("camtest", 1), encode_frame(marker_frame(vehicle=0), "raw"))  # wrong key
         harness.put(camera_key("camtest", 0), b"ASKC" + b"\0" * 40)  # garbage
-        time.sleep(0.3)
-        stop.set()
         worker.join(15)
         assert not worker.is_alive()
     finally:

@@ -25,9 +25,11 @@ from companion.fleetnet.bus import zenoh_config
 from companion.fleetnet.certs import check_group_certificate, new_fleet_certs
 from companion.fleetnet.config import ZenohConfig, ZenohTls
 
-from .ports import free_ports
+from ..ports import free_ports
+from ..waits import wait_for
+from ..zenoh_peers import peer_session
+from ..paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 FILES = ["ca.key", "ca.pem", "companion-g1.key", "companion-g1.pem", "companion-g2.key", "companion-g2.pem"]
 
 
@@ -99,22 +101,7 @@ def _tls_cfg(certs: Path, n: int = 2) -> ZenohConfig:
 
 def _outsider(endpoint: str, **tls: str) -> zenoh.Session:
     """A session on this host that connects to ``endpoint`` with the given TLS files."""
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("connect/endpoints", f'["{endpoint}"]')
-    for key, path in tls.items():
-        c.insert_json5(f"transport/link/tls/{key}", f'"{path}"')
-    return zenoh.open(c)
-
-
-def _wait(cond, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
+    return peer_session(connect=(endpoint,), **{f"transport__link__tls__{key}": path for key, path in tls.items()})
 
 
 def test_two_groups_with_mutual_tls_meet_and_sessions_without_a_fleet_certificate_cannot(tmp_path):
@@ -130,8 +117,8 @@ def test_two_groups_with_mutual_tls_meet_and_sessions_without_a_fleet_certificat
     got = []
     try:
         sub = sessions[0].declare_subscriber("test_certs/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
-        assert _wait(lambda: sessions[0].info.peers_zid(), 5.0), "the groups did not connect over mutual TLS"
-        assert _wait(lambda: (sessions[1].put("test_certs/fleet", b"1"), got)[1], 5.0)
+        assert wait_for(lambda: sessions[0].info.peers_zid(), 5.0), "the groups did not connect over mutual TLS"
+        assert wait_for(lambda: (sessions[1].put("test_certs/fleet", b"1"), got)[1], 5.0)
         assert got[0] == ("test_certs/fleet", b"1")
         outsiders = [
             _outsider(cfg.endpoints[0], root_ca_certificate=str(certs / "ca.pem")),  # no client certificate
@@ -148,7 +135,7 @@ def test_two_groups_with_mutual_tls_meet_and_sessions_without_a_fleet_certificat
         assert [str(z) for z in sessions[0].info.peers_zid()] == [str(sessions[1].info.zid())]
         got.clear()
         sessions[1].put("test_certs/fleet", b"2")
-        assert _wait(lambda: got, 2.0)
+        assert wait_for(lambda: got, 2.0)
         assert got == [("test_certs/fleet", b"2")]  # the fleet's own only
         sub.undeclare()
     finally:
@@ -169,7 +156,7 @@ def test_without_mutual_tls_the_same_outsider_would_get_in(tmp_path):
     listener = zenoh.open(zc)
     outsider = _outsider(cfg.endpoints[0], root_ca_certificate=str(certs / "ca.pem"))
     try:
-        assert _wait(lambda: outsider.info.peers_zid(), 5.0)
+        assert wait_for(lambda: outsider.info.peers_zid(), 5.0)
     finally:
         outsider.close()
         listener.close()

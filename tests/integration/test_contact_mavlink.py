@@ -24,17 +24,15 @@ from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 
-from .vehicle_rig import Rig
+from ..mavlink_wire import over_mavlink
+from ..vehicle_rig import Rig
+
+#: the kernels compiled (or loaded) before a vehicle here runs against a deadline
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 D = load_dialect()
 finite = st.floats(-50.0, 50.0, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)
-
-
-def _wire(msg):
-    """``msg`` through MAVLink 2 bytes (float32 on the wire)."""
-    data = msg.pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
-    return D.MAVLink(None).parse_char(bytearray(data))
 
 
 # -- codec -----------------------------------------------------------------------------------------
@@ -45,7 +43,7 @@ def _wire(msg):
 def test_external_wrench_round_trip(f, tau, t, contact):
     lam, lam_d = contact if contact is not None else (math.nan, math.nan)
     sent = ExternalWrench(3, t, f, tau, lam, lam_d)
-    back = decode_external_wrench(_wire(encode_external_wrench(sent)), 3)
+    back = decode_external_wrench(over_mavlink(encode_external_wrench(sent)), 3)
     assert back.link == 3 and back.time_s == pytest.approx(t, abs=1e-6)
     np.testing.assert_allclose(back.force_w_n, f, rtol=1e-6, atol=1e-5)
     np.testing.assert_allclose(back.torque_b_nm, tau, rtol=1e-6, atol=1e-5)
@@ -70,7 +68,7 @@ def test_external_wrench_frames_are_ned_and_frd():
     ("contact_force_setpoint", -1.0, "outside"),
 ])
 def test_external_wrench_decoder_rejects(field, value, match):
-    msg = _wire(encode_external_wrench(ExternalWrench(0, 1.0, np.zeros(3), np.zeros(3))))
+    msg = over_mavlink(encode_external_wrench(ExternalWrench(0, 1.0, np.zeros(3), np.zeros(3))))
     setattr(msg, field, value)
     if field == "contact_force_setpoint":
         msg.contact_force = 0.0
@@ -84,7 +82,7 @@ unit = st.tuples(finite, finite, finite).filter(lambda v: np.linalg.norm(v) > 1e
 @settings(max_examples=40, deadline=None)
 @given(n=unit, r=st.tuples(*[st.floats(-2.0, 2.0)] * 3).map(np.array), force=st.floats(0.0, 200.0))
 def test_contact_command_round_trip(n, r, force):
-    back = decode_contact_command(_wire(encode_contact_command(ContactTarget(n, r, force), 2)))
+    back = decode_contact_command(over_mavlink(encode_contact_command(ContactTarget(n, r, force), 2)))
     np.testing.assert_allclose(back.normal_w, n, atol=1e-6)
     assert np.linalg.norm(back.normal_w) == pytest.approx(1.0, abs=1e-12)  # renormalised after float32
     np.testing.assert_allclose(back.contact_b_m, r, atol=1e-6)
@@ -94,7 +92,7 @@ def test_contact_command_round_trip(n, r, force):
 def test_contact_command_release_and_wire_frames():
     msg = encode_contact_command(None, 2)
     assert msg.command == D.MAV_CMD_SKELETON_SET_CONTACT and msg.param1 == CONTACT_RELEASE
-    assert decode_contact_command(_wire(msg)) is None
+    assert decode_contact_command(over_mavlink(msg)) is None
     msg = encode_contact_command(ContactTarget(np.array([0.0, 0.0, -1.0]), np.array([0.6, 0.1, 0.0]), 5.0), 2)
     assert [msg.param2, msg.param3, msg.param4] == [0.0, 0.0, 1.0]  # world down = NED +D
     assert [msg.param5, msg.param6, msg.param7] == pytest.approx([0.6, -0.1, 0.0])  # FLU -> FRD
@@ -110,7 +108,7 @@ def test_contact_command_release_and_wire_frames():
     ({"param5": 50.0}, "contact point"),
 ])
 def test_contact_command_decoder_rejects(params, match):
-    msg = _wire(encode_contact_command(ContactTarget(np.array([1.0, 0.0, 0.0]), np.array([0.6, 0.0, 0.0]), 5.0), 2))
+    msg = over_mavlink(encode_contact_command(ContactTarget(np.array([1.0, 0.0, 0.0]), np.array([0.6, 0.0, 0.0]), 5.0), 2))
     for k, v in params.items():
         setattr(msg, k, v)
     with pytest.raises(MessageError, match=match):

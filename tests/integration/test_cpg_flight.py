@@ -20,7 +20,8 @@ from sitl.scenarios.chain.flight import fly
 from sitl.scenario import load_scenario
 from companion.trajectory import CpgChainTrajectory, TrajectoryConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 CONFIG = ROOT / "configs" / "sitl" / "chain" / "seven_link_cpg.toml"
 MODEL = Path(PACKAGED_MODEL)
 

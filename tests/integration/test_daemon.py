@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 import socket
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,9 +27,9 @@ from companion.messages import STATE_FLAG_EKF_OK, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
-from .clocks import FakeClock
+from ..clocks import FakeClock
+from ..paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 D = load_dialect()
 
 
@@ -246,13 +245,13 @@ def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, 
     nothing is loaded."""
     import signal
 
-    from companion import daemon as daemon_module
+    from companion.kernels import warm  # (what the daemon loads at its start)
 
     fleet = Fleet(tmp_path)
     fleet.daemon.setup = replace(fleet.setup, trajectory=replace(fleet.setup.trajectory, feedforward=feedforward))
     calls = []
-    monkeypatch.setattr(daemon_module._kernels, "ENABLED", compiled)
-    monkeypatch.setattr(daemon_module._kernels, "warm_up", lambda: calls.append(fleet.clock()) or 0.0)
+    monkeypatch.setattr(warm, "ENABLED", compiled)
+    monkeypatch.setattr(warm, "warm_up", lambda: calls.append(fleet.clock()) or 0.0)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         fleet.daemon.run(duration_s=0.0)  # (no cycle: the loop ends at once; run closes the daemon)

@@ -22,11 +22,11 @@ from companion.fleetnet.keys import boundary_key, passive_key, shift_key, target
 from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import GlobalShift, GroupBoundaryReport, GroupPassiveLinks
 
-from .clocks import FakeClock
-from .fleetnet_cases import LAYOUTS, PERIOD_US, chain_boundaries, equal, targets
-from .ports import free_ports
-from .waits import wait_for
-from .zenoh_peers import peer_session
+from ..clocks import FakeClock
+from ..fleetnet_cases import LAYOUTS, PERIOD_US, chain_boundaries, equal, targets
+from ..ports import free_ports
+from ..waits import wait_for
+from ..zenoh_peers import peer_session
 
 
 def _buses(n_groups: int, prefix: str):

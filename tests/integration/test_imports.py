@@ -25,6 +25,20 @@ def test_estimation_core_imports_without_wire_or_sim_packages():
     assert proc.stdout.strip() == "ok"
 
 
+def test_the_pure_core_and_its_compiled_kernels_import_without_mujoco():
+    """The estimation core and every compiled kernel (numba's, as in the simulator) load without
+    MuJoCo: their unit tests run without it."""
+    code = BLOCKER + (
+        "import numba, companion.estimation, companion.kernels.warm, link_firmware_sim.kernels.warm\n"
+        "import companion.kernels.sckf, companion.kernels.so3, link_firmware_sim.kernels.tick\n"
+        "import os; assert companion.kernels.warm.ENABLED or os.environ.get('SKELETON_JIT') == '0'\n"
+        "print('ok')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ok"
+
+
 def test_blocker_really_blocks():
     proc = subprocess.run([sys.executable, "-c", BLOCKER + "import mujoco"], capture_output=True, text=True)
     assert proc.returncode != 0 and "blocked" in proc.stderr

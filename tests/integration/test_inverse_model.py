@@ -92,15 +92,14 @@ def committed():
 
 
 def test_forward_speed_commands_are_tracked_within_ten_percent(committed):
-    """Issue 6 acceptance, in the expected physics, with the committed model: each segment's mean
-    speed within 10%."""
+    """In the expected physics, with the committed model: each segment's mean speed within 10%."""
     model = committed
     speeds = np.array([0.25, 0.45, 0.35])
     achieved = _segments(model, WaterParams(), adapt=True, speeds=speeds)
     assert np.all(np.abs(achieved - speeds) / speeds < 0.10), achieved
 
 
-@pytest.mark.slow  # 70 s on 2 cores: opt in with -m slow (the default suite keeps its 15 min budget)
+@pytest.mark.slow  # a long run: opt in with -m slow
 def test_adaptation_reduces_a_deliberate_model_error(committed):
     """Twice the axial drag the model learnt with: the model alone is 20-30% slow; eq. 4.3 fixes it."""
     model = committed

@@ -15,7 +15,10 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
+#: the kernels compiled (or loaded) before a vehicle here runs against a deadline
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 #: package -> the top-level packages of this repo it must never import
 FORBIDDEN = {

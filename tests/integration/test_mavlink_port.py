@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import socket
 import struct
 import time
@@ -20,7 +21,8 @@ from companion.mavlink.transport import PortError, wait_readable
 from companion.mavlink.urls import open_transport
 from companion.mavlink.signing import SignatureChecker, Verdict, signing_timestamp
 
-from .clocks import FakeClock
+from ..clocks import FakeClock
+from ..waits import wait_for
 
 D = load_dialect()
 
@@ -35,6 +37,13 @@ def _read_until(port, n, timeout=2.0):
     while len(out) < n and time.monotonic() < deadline:
         wait_readable([port], 0.05)
         out += port.read()
+    return out
+
+
+def _read_while_counting(port, counted, timeout=2.0) -> list:
+    """What ``port`` reads until ``counted()`` says its counters have seen every datagram sent to it."""
+    out = []
+    wait_for(lambda: out.extend(port.read()) or counted(), timeout)
     return out
 
 
@@ -135,8 +144,7 @@ def test_bad_input_is_counted_never_delivered_and_cannot_steal_the_peer(udp_pair
     intruder.sendto(other, addr)  # valid, but not from the peer system
     ping = D.MAVLink_system_time_message(0, 0).pack(D.MAVLink(None, srcSystem=7, srcComponent=1))
     intruder.sendto(ping, addr)  # from "the peer", but not whitelisted: not a reason to re-aim either
-    time.sleep(0.1)
-    got = server.read()
+    got = _read_while_counting(server, lambda: server.stats.ignored >= 1)  # (the last datagram)
     st = server.stats
     assert [m.get_srcSystem() for m in got] == [99]  # the caller decides what to do with a stranger
     assert st.dropped_bytes >= 50 * 700 and st.dropped_frames >= 100
@@ -226,7 +234,7 @@ def test_serial_device_missing_then_plugged_in_then_unplugged(tmp_path, caplog):
     assert got and got[0].get_srcSystem() == 3
     port.send(_heartbeat())
     parser = D.MAVLink(None)
-    time.sleep(0.05)
+    assert select.select([master], [], [], 2.0)[0], "nothing written to the serial device"
     echoed = parser.parse_buffer(bytearray(os.read(master, 4096)))
     assert echoed and echoed[0].get_srcSystem() == 190
     os.close(slave)
@@ -307,8 +315,8 @@ def test_ports_sign_and_check_end_to_end_and_count_rejections():
         for _ in range(3):
             stranger.send(_heartbeat())
             wrong.send(_heartbeat())
-        time.sleep(0.1)
-        assert server.read() == [] and not server.transport.connected  # nothing learnt from them
+        got = _read_while_counting(server, lambda: server.stats.rejected_signing >= 6)
+        assert got == [] and not server.transport.connected  # nothing learnt from them
         client.send(_heartbeat())
         got = _read_until(server, 1)
         assert len(got) == 1 and got[0].get_signed() is False  # (the port checked it; pymavlink has no key)
@@ -332,14 +340,13 @@ def test_a_valid_frame_from_another_address_does_not_re_aim_replies_while_the_pe
     try:
         peer.send(_heartbeat())
         _read_until(server, 1)
-        for _ in range(5):
+        for k in range(5):
             hijacker.send(_heartbeat())
             peer.send(_heartbeat())
-            time.sleep(0.02)
-            server.read()
+            _read_while_counting(server, lambda: server.stats.rx_messages >= 3 + 2 * k)  # both frames
             server.send(_heartbeat())
-        time.sleep(0.05)
-        assert len(peer.read()) == 5 and hijacker.read() == []
+        replies = _read_until(peer, 5)
+        assert len(replies) == 5 and hijacker.read() == []
         assert server.stats.peer_kept == 5
         clock.t += 0.4  # the peer goes silent (a rebooted vehicle comes back from elsewhere)
         hijacker.send(_heartbeat())

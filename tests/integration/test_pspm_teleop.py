@@ -17,6 +17,9 @@ from link_firmware_sim.controllers import ImpedanceController
 from link_firmware_sim.controllers.pspm import PspmSlave, pspm_init, pspm_update, slave_wrench
 from link_firmware_sim.vehicle.streams.controller import PSPM_DEBUG_NAME
 
+#: the kernels compiled (or loaded) before a vehicle here runs against a deadline
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
+
 D = load_dialect()
 INERTIA = LinkInertia(2.6, (0.05, 0.3, 0.3))
 LEVEL = np.array([1.0, 0.0, 0.0, 0.0])

@@ -7,13 +7,13 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from sitl.cameras.rendering import choose_backend
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 THREE_LINK = ROOT / "configs" / "sitl" / "chain" / "three_link.toml"
 CAMERA = ROOT / "configs" / "sitl" / "cameras" / "three_link_camera.toml"
 

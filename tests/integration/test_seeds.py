@@ -5,14 +5,14 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sitl.bench.seeds import aggregate_nees, aggregate_static, format_nees, format_static, independent_reduction
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 
 
 def _nees_run(seed, mean, k_eff, samples=100):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 
@@ -16,7 +15,8 @@ from link_firmware_sim.config import VehicleSetup
 from sitl.scenario import Scenario, load_scenario
 from sitl.scenarios import KINDS, kind_of, load
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 SITL = sorted((ROOT / "configs" / "sitl").rglob("*.toml"))
 HARDWARE = sorted((ROOT / "configs" / "hardware").glob("*.toml"))
 #: the kind of every scenario file, by the folder it is in (configs/sitl/<folder>/)

@@ -10,6 +10,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -23,8 +24,11 @@ from link_firmware_sim.vehicle import simlink
 from link_firmware_sim.vehicle.hil import encode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.vehicle.simlink import RECV_BYTES, SimulatorPort, encode_packet
 
-from .hil_messages import ACTUATORS, D
-from .vehicle_rig import LEVEL
+from ..hil_messages import ACTUATORS, D
+from ..vehicle_rig import LEVEL
+
+#: the kernels compiled (or loaded) before a vehicle here runs against a deadline
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 
 # -- PX4's TCP link in the compiled lockstep loop: the ticks' MAVLink 2 frames ------------------

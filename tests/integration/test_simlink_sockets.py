@@ -26,7 +26,9 @@ from sitl.fleet.layout import FleetError
 from sitl.fleet.processes import listening_unix_paths
 from sitl.scenario import load_scenario
 
-from .hil_messages import ACTUATORS, SENSORS, over_mavlink, random_messages
+from ..paths import ROOT
+from ..hil_messages import ACTUATORS, SENSORS, random_messages
+from ..mavlink_wire import over_mavlink
 
 
 def _pair(tmp_path):
@@ -134,7 +136,8 @@ def test_another_users_process_is_refused(tmp_path):
             s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
             s.connect(str(path))
             s.send(encode_packet([encode_hil_sensor(1.0, np.zeros(3), np.zeros(3))]))
-            time.sleep(0.3)
+            s.settimeout(2.0)
+            s.recv(64)  # until the vehicle closes the connection (b""), at most 2 s
         finally:
             os._exit(0)
     try:
@@ -153,7 +156,7 @@ def test_the_harness_decodes_a_ticks_answers_together_and_names_a_link_answering
     """The fleet harness over the same-host link with three fake vehicles: their answers become
     the rotor commands of the tick (decoded together, as each alone); a non-finite answer stops
     the lockstep with a FleetError naming that link."""
-    sc = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "sitl" / "chain" / "three_link.toml")
+    sc = load_scenario(ROOT / "configs" / "sitl" / "chain" / "three_link.toml")
     folder = Path(tempfile.mkdtemp(prefix="skl-h-"))  # short: a socket path's limit
     vehicles = [SimLinkPort(f"unixin://{folder / f'l{i}.sock'}", accept=SENSORS) for i in range(3)]
     answers = np.array([[1.0, -2.0, 3.0, 0.5, 0.0, 2.0, 9.0, -9.0]]) * np.array([[1.0], [0.5], [0.25]])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +18,9 @@ from sitl.scenarios.slung_load.formation import (
     formation_targets,
 )
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sitl" / "load" / "slung_load_three.toml"
+from ..paths import ROOT
+
+CONFIG = ROOT / "configs" / "sitl" / "load" / "slung_load_three.toml"
 
 
 @pytest.mark.parametrize("t", [0.0, 5.0, 9.0, 20.0])

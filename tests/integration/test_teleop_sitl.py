@@ -16,7 +16,7 @@ from link_firmware_sim.controllers.pspm import (HapticGains, PspmGains, master_s
 from sitl.scenarios.pspm_jump.config import TeleopConfig, load_teleop_scenario
 from sitl.scenarios.pspm_jump.flight import heading_deg, jump_metrics, jump_runner
 
-from .rigid_body import rigid_body_step
+from ..rigid_body import rigid_body_step
 
 CONFIG = "configs/sitl/odar/pspm_jump.toml"
 

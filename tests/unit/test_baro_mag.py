@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from companion.estimation.so3 import attitude_error, quat_from_euler_zyx, quat_normalize, quat_to_rotmat, retract
-from companion.mavlink.dialect import load_dialect
 from link_firmware_sim.estimators.ekf import (
     E_BARO,
     E_PZ,
@@ -40,12 +39,7 @@ from link_firmware_sim.vehicle.hil import (
 from sitl.scenario import SensorConfig
 from sitl.plant.sensors import MAG_FIELD_ENU_GAUSS, PROFILES, LinkSensors
 
-D = load_dialect()
-
-
-def _wire(msg):
-    data = msg.pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
-    return D.MAVLink(None).parse_char(bytearray(data))
+from ..mavlink_wire import over_mavlink
 
 
 # -- sensor models ------------------------------------------------------------------------
@@ -143,11 +137,11 @@ def test_standard_atmosphere_round_trip():
 
 def test_hil_sensor_carries_baro_and_mag_only_when_simulated():
     acc, gyr = np.array([0.1, -0.2, 9.8]), np.array([0.01, 0.02, -0.03])
-    plain = _wire(encode_hil_sensor(1.0, acc, gyr))
+    plain = over_mavlink(encode_hil_sensor(1.0, acc, gyr))
     assert plain.fields_updated == HIL_SENSOR_IMU
     assert decode_hil_baro_mag(plain).baro_alt_m is None and decode_hil_baro_mag(plain).mag_flu_gauss is None
     mag = np.array([0.2, -0.05, -0.41])  # FLU
-    msg = _wire(encode_hil_sensor(1.0, acc, gyr, mag_flu_gauss=mag, baro_alt_m=490.345))
+    msg = over_mavlink(encode_hil_sensor(1.0, acc, gyr, mag_flu_gauss=mag, baro_alt_m=490.345))
     assert msg.fields_updated == HIL_SENSOR_IMU | HIL_SENSOR_MAG | HIL_SENSOR_BARO
     np.testing.assert_allclose([msg.xmag, msg.ymag, msg.zmag], [0.2, 0.05, 0.41], rtol=1e-6)  # body FRD
     assert msg.abs_pressure == pytest.approx(pressure_hpa_at(490.345), rel=1e-7)  # hPa
@@ -167,10 +161,10 @@ def test_hil_sensor_carries_baro_and_mag_only_when_simulated():
 def test_invalid_baro_or_mag_is_dropped_not_raised(field, value, sensor):
     msg = encode_hil_sensor(2.0, np.zeros(3), np.zeros(3), mag_flu_gauss=np.array([0.2, 0.0, -0.4]), baro_alt_m=500.0)
     setattr(msg, field, value)
-    out = decode_hil_baro_mag(_wire(msg))
+    out = decode_hil_baro_mag(over_mavlink(msg))
     assert out.rejected == (sensor,)
     assert (out.baro_alt_m is None) == (sensor == "baro") and (out.mag_flu_gauss is None) == (sensor == "mag")
-    decode_hil_sensor(_wire(msg))  # the IMU part is still good
+    decode_hil_sensor(over_mavlink(msg))  # the IMU part is still good
 
 
 # -- EKF -------------------------------------------------------------------------------------
@@ -305,6 +299,7 @@ def _hover_with_gps_outage(profile: str, seed: int):
                     faults=FaultConfig(gps=GpsFault(link=1, outage_at_s=6.0, outage_s=16.0)))
 
 
+@pytest.mark.integration
 def test_the_barometer_holds_the_height_through_a_gnss_outage():
     """m8 against m8_baro_mag (the same GNSS, IMU and attitude errors, seeded): a hovering link
     loses its GNSS fix for 16 s. Without a barometer its height dead-reckons on the IMU (tens of

@@ -15,7 +15,8 @@ from sitl.bench import report
 from sitl.bench.__main__ import DOCS, _write_doc, build_parser
 from sitl.bench.scaling import format_scaling, markdown_scaling
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 BENCHES = ("table2", "scaling", "zenoh", "nees", "static", "load_filter", "sitl")
 
 #: a small scaling result in the layout ``scaling.json`` holds (sitl/bench/scaling.py::run_scaling)

@@ -11,7 +11,7 @@ from companion.estimation.constraints import (
 )
 from companion.estimation.so3 import retract
 
-from .chains import consistent_chain, perturbed_chain
+from ..chains import consistent_chain, perturbed_chain
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 12])

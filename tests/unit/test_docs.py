@@ -43,7 +43,8 @@ from urllib.parse import unquote
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from ..paths import ROOT
+
 #: the packages whose ``python -m`` entry points are checked
 PACKAGES = ("companion", "link_firmware_sim", "sitl")
 #: top-level folders a backticked path must start with to be checked as a repository path
@@ -847,7 +848,7 @@ eval "$(python -m companion dialect)"
 MUJOCO_GL=egl python -m sitl.bench table2 --doc [--doc PATH | --no-doc] \\
     --seeds 2 2>&1 | tee log.txt
 python -m sitl.bench <bench> --out DIR
-python -m pytest tests/test_docs.py::test_checker_reports_broken_flags_links_names_and_paths -q
+python -m pytest tests/unit/test_docs.py::test_checker_reports_broken_flags_links_names_and_paths -q
 python -m sitl.bench controllers [--controllers impedance,se3_pid]
 mavproxy.py --master udp:127.0.0.1:14550 --no-such-flag-of-another-tool
 ```

@@ -29,7 +29,7 @@ from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, STATE_FLAG_G
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
-from .chains import perturbed_chain
+from ..chains import perturbed_chain
 
 def setup_for(n=3, groups=(), **companion) -> CompanionSetup:
     """A companion config: ``n`` links of 1 m, the paper's bending flight as targets."""

@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 
-from companion.estimation.so3 import quat_normalize, quat_to_rotmat
+from companion.estimation.so3 import quat_normalize
 from companion.messages import PoseTarget
 from companion.skeleton.body import LinkInertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
@@ -315,10 +315,10 @@ def test_fused_tick_matches_step_by_step(monkeypatch):
         np.testing.assert_allclose(fused.integrals.pos, stepwise.integrals.pos, **TOL)
         np.testing.assert_allclose(fused.integrals.att, stepwise.integrals.att, **TOL)
         np.testing.assert_allclose(fused.allocator.xi_pre, stepwise.allocator.xi_pre, **TOL)
-        np.testing.assert_allclose(fused._thrust_total_n, stepwise._thrust_total_n, **TOL)
+        np.testing.assert_allclose(fused.thrust_total_n, stepwise.thrust_total_n, **TOL)
         np.testing.assert_allclose(fused.allocator.scale, stepwise.allocator.scale, **TOL)
         assert fused.allocator.saturated == stepwise.allocator.saturated
-        assert fused.time_s == stepwise.time_s and fused._airborne == stepwise._airborne
+        assert fused.time_s == stepwise.time_s and fused.airborne == stepwise.airborne
     limit = fused.thrust_limit.report()
     assert limit == stepwise.thrust_limit.report() and limit["episodes"] == 1 and limit["min_scale"] < 0.9, limit
     assert fused.ekf.accepted == stepwise.ekf.accepted and fused.ekf.rejected == stepwise.ekf.rejected
@@ -413,10 +413,10 @@ def test_record_tick_matches_the_decoding_path():
         np.testing.assert_array_equal(record.integrals.pos, decoding.integrals.pos)
         np.testing.assert_array_equal(record.integrals.att, decoding.integrals.att)
         np.testing.assert_array_equal(record.allocator.xi_pre, decoding.allocator.xi_pre)
-        assert record._thrust_total_n == decoding._thrust_total_n
+        assert record.thrust_total_n == decoding.thrust_total_n
         assert (record.allocator.scale, record.allocator.saturated) == (decoding.allocator.scale,
                                                                         decoding.allocator.saturated)
-        assert record.time_s == decoding.time_s and record._airborne == decoding._airborne
+        assert record.time_s == decoding.time_s and record.airborne == decoding.airborne
         assert record.events == decoding.events
     assert record.thrust_limit.report() == decoding.thrust_limit.report()
     assert 300 < taken < 499 and clipped > 10, (taken, clipped)

@@ -15,18 +15,10 @@ from companion.mavlink.codec import (
 )
 from companion.mavlink.dialect import load_dialect
 
-from .chains import random_covariances
+from ..chains import random_covariances
+from ..mavlink_wire import frame_and_parsed, over_mavlink
 
 D = load_dialect()
-
-
-def _wire(msg, sysid=2):
-    mav = D.MAVLink(None, srcSystem=sysid, srcComponent=1)
-    data = msg.pack(mav)
-    parser = D.MAVLink(None)
-    out = parser.parse_char(bytearray(data))
-    assert out is not None and out.get_srcSystem() == sysid
-    return data, out
 
 
 def _state(rng):
@@ -62,7 +54,7 @@ def test_link_state_message_is_the_largest_and_fits():
 def test_wire_round_trip_is_exact(seed):
     rng = np.random.default_rng(seed)
     msg = encode_link_state(_state(rng), flags=3, reset_counter=7, correction_seq=9, correction_latency_us=12345)
-    data, back = _wire(msg)
+    data, back = frame_and_parsed(msg, sysid=2)
     for field in msg.fieldnames:
         a, b = getattr(msg, field), getattr(back, field)
         # floats go through float32 on the wire: compare the float32 values exactly
@@ -76,7 +68,7 @@ def test_wire_round_trip_is_exact(seed):
 def test_typed_link_state_round_trip(seed):
     rng = np.random.default_rng(seed)
     state = _state(rng)
-    _, back = _wire(encode_link_state(state))
+    back = over_mavlink(encode_link_state(state), sysid=2)
     got = decode_link_state(back, link=1)
     assert got.time_s == pytest.approx(state.time_s, abs=1e-6)
     np.testing.assert_allclose(got.p_w_m, state.p_w_m, rtol=1e-6, atol=1e-6)
@@ -89,13 +81,13 @@ def test_typed_link_state_round_trip(seed):
 def test_correction_round_trip_and_withdrawal():
     corr = Correction(link=2, ekf_time_s=3.5, dp_w_m=np.array([0.1, -0.2, 0.3]), dv_w_m_s=np.array([0.01, 0.0, -0.02]),
                       dtheta_w_rad=np.array([0.001, 0.002, -0.003]), seq=42)
-    _, back = _wire(encode_correction(corr, target_system=3))
+    back = over_mavlink(encode_correction(corr, target_system=3), sysid=2)
     assert back.target_system == 3 and back.valid == 1
     got = decode_correction(back, link=2)
     assert got.seq == 42 and got.ekf_time_s == pytest.approx(3.5)
     np.testing.assert_allclose(got.dp_w_m, corr.dp_w_m, rtol=1e-6)
     np.testing.assert_allclose(got.dtheta_w_rad, corr.dtheta_w_rad, rtol=1e-6)
-    _, back = _wire(encode_correction(corr, target_system=3, valid=False))
+    back = over_mavlink(encode_correction(corr, target_system=3, valid=False), sysid=2)
     assert decode_correction(back, link=2) is None
 
 

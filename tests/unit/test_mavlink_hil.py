@@ -17,18 +17,15 @@ from link_firmware_sim.vehicle.hil import (
     encode_hil_sensor,
 )
 
+from ..mavlink_wire import over_mavlink
+
 D = load_dialect()
-
-
-def _wire(msg):
-    data = msg.pack(D.MAVLink(None, srcSystem=1, srcComponent=1))
-    return D.MAVLink(None).parse_char(bytearray(data))
 
 
 def test_sensor_round_trip():
     rng = np.random.default_rng(0)
     acc, gyr = rng.normal(size=3) + [0, 0, 9.8], rng.normal(size=3)
-    t, g, a = decode_hil_sensor(_wire(encode_hil_sensor(1.234, acc, gyr)))
+    t, g, a = decode_hil_sensor(over_mavlink(encode_hil_sensor(1.234, acc, gyr)))
     assert t == pytest.approx(1.234, abs=1e-6)
     np.testing.assert_allclose(a, acc, rtol=1e-6)
     np.testing.assert_allclose(g, gyr, rtol=1e-6, atol=1e-7)
@@ -38,7 +35,7 @@ def test_sensor_round_trip():
 def test_gps_round_trip_to_centimetres(p):
     origin = GeoOrigin()
     v = np.array([1.23, -0.45, 0.67])
-    t, p2, v2 = decode_hil_gps(_wire(encode_hil_gps(7.0, np.array(p), v, origin)), origin)
+    t, p2, v2 = decode_hil_gps(over_mavlink(encode_hil_gps(7.0, np.array(p), v, origin)), origin)
     assert t == pytest.approx(7.0)
     np.testing.assert_allclose(p2, p, atol=0.012)  # 1e-7 deg quantisation, mm altitude
     np.testing.assert_allclose(v2, v, atol=0.006)  # cm/s quantisation
@@ -63,16 +60,16 @@ def test_gps_without_fix_is_rejected():
 
 def test_ahrs_round_trip():
     q = quat_normalize(np.random.default_rng(1).normal(size=4))
-    t, q2 = decode_ahrs(_wire(encode_ahrs(2.0, q)))
+    t, q2 = decode_ahrs(over_mavlink(encode_ahrs(2.0, q)))
     np.testing.assert_allclose(quat_to_rotmat(q2), quat_to_rotmat(q), atol=1e-6)
 
 
 def test_actuators_round_trip_and_limits():
     thrust = np.array([8.0, -8.0, 3.0, -2.5, 0.0, 1.0, 9.0, -12.0])
-    t_us, back = decode_actuators(_wire(encode_actuators(0.5, thrust, 8.0, True)), 8.0)
+    t_us, back = decode_actuators(over_mavlink(encode_actuators(0.5, thrust, 8.0, True)), 8.0)
     assert t_us == 500000
     np.testing.assert_allclose(back, np.clip(thrust, -8, 8), rtol=1e-6)
-    assert _wire(encode_actuators(0.5, thrust, 8.0, True)).mode & D.MAV_MODE_FLAG_SAFETY_ARMED
+    assert over_mavlink(encode_actuators(0.5, thrust, 8.0, True)).mode & D.MAV_MODE_FLAG_SAFETY_ARMED
 
 
 def test_a_ticks_answers_decode_together_as_each_alone_and_a_non_finite_row_is_named():
@@ -80,7 +77,7 @@ def test_a_ticks_answers_decode_together_as_each_alone_and_a_non_finite_row_is_n
     as one message at a time; a non-finite control names its row."""
     rng = np.random.default_rng(5)
     thrust = rng.uniform(-12.0, 12.0, size=(4, 8))
-    msgs = [_wire(encode_actuators(0.5, row, 8.0, True)) for row in thrust]
+    msgs = [over_mavlink(encode_actuators(0.5, row, 8.0, True)) for row in thrust]
     rows = np.array([m.controls[:8] for m in msgs])
     together = thrusts_from_controls(rows, 8.0)
     for i, m in enumerate(msgs):

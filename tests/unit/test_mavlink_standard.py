@@ -26,7 +26,7 @@ from companion.mavlink.standard import (
 )
 from companion.messages import LinkState, MessageError, PoseTarget
 
-from .chains import random_covariances
+from ..chains import random_covariances
 
 D = load_dialect()
 _MAV = D.MAVLink(None, srcSystem=1, srcComponent=1)

@@ -11,7 +11,7 @@ from companion.estimation.gate import CHI2_6_1E6, GateParams, gate_chain, joint_
 from companion.estimation.constraints import constraint_jacobian_blocks, constraint_residual
 from companion.plausibility import StampGate, StampVerdict, StampWindow
 
-from .chains import consistent_chain, perturbed_chain, random_covariances
+from ..chains import consistent_chain, perturbed_chain, random_covariances
 
 V = StampVerdict
 

@@ -14,7 +14,7 @@ from companion.estimation.sckf import (
 )
 from companion.estimation.so3 import retract
 
-from .chains import consistent_chain, perturbed_chain, random_covariances
+from ..chains import consistent_chain, perturbed_chain, random_covariances
 
 METHODS = ["dense", "structured"]
 
@@ -200,7 +200,7 @@ def test_rate_noise_keeps_the_corrected_covariance_consistent(groups):
     from companion.estimation.semi import semi_distributed_apply
     from companion.estimation.so3 import attitude_error, retract
 
-    from .chains import consistent_chain
+    from ..chains import consistent_chain
 
     rng = np.random.default_rng(3)
     n, sigma, samples = 5, 0.05, 150

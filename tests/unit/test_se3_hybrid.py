@@ -44,7 +44,7 @@ from link_firmware_sim.controllers.se3_control import (
     se3_pid_control,
 )
 
-from .rigid_body import rigid_body_step
+from ..rigid_body import rigid_body_step
 
 INERTIA = link_inertia(SkeletonConfig(n_links=1, link_length_m=1.2, link_mass_kg=2.6), RotorGeometry.odar())
 vec3 = st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).map(np.array)

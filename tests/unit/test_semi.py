@@ -20,7 +20,7 @@ from companion.estimation.semi import (
 
 from companion.estimation.so3 import attitude_error, retract
 
-from .chains import consistent_chain, perturbed_chain, random_covariances
+from ..chains import consistent_chain, perturbed_chain, random_covariances
 
 LAYOUTS = {
     "paper-7": ("1,2/3,4,5/6,7", 7),

@@ -19,7 +19,8 @@ from link_firmware_sim.vehicle.hil import (
 )
 from link_firmware_sim.vehicle.simlink import SIM_KINDS, FrameError, decode_packet, encode_packet
 
-from .hil_messages import ACTUATORS, SENSORS, D, over_mavlink, random_messages
+from ..hil_messages import ACTUATORS, SENSORS, D, random_messages
+from ..mavlink_wire import over_mavlink
 
 
 @pytest.mark.parametrize("seed", range(5))

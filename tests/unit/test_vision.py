@@ -189,6 +189,7 @@ def test_frame_header_validates():
         CameraFrame(CameraFrameHeader(**h), np.zeros((480, 640), np.uint8))
 
 
+@pytest.mark.integration
 def test_vision_config_and_geometry_import_without_opencv():
     import subprocess
     import sys

@@ -1,0 +1,41 @@
+"""Cases shared by the tests of the Zenoh layer (tests/unit/test_fleetnet.py and
+tests/integration/test_fleetnet_zenoh.py): chain layouts, eq. 6's boundaries of a chain, CPG
+targets, and message equality."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.estimation.semi import semi_distributed_apply
+from companion.messages import ChainTargets, GroupBoundaryReport
+
+from .chains import perturbed_chain
+
+PERIOD_US = 50_000
+LAYOUTS = [((0, 1), (2, 3, 4), (5, 6)), ((0, 1), (2, 3)), ((0,), (1, 2), (3,), (4, 5, 6, 7))]
+
+
+def targets(rng, links, time_us=12_340_000, seq=7) -> ChainTargets:
+    k = len(links)
+    q = rng.normal(size=(k, 4))
+    return ChainTargets(1, time_us, seq, tuple(links), rng.normal(size=(k, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+                        *(rng.normal(size=(k, 3)) for _ in range(6)))
+
+
+def equal(a, b) -> bool:
+    for name in a.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            if not np.array_equal(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+def chain_boundaries(seed: int, groups):
+    n = groups[-1][-1] + 1
+    p, v, q, w, d, P = perturbed_chain(np.random.default_rng(seed), n)
+    ref = semi_distributed_apply(p, v, q, w, d, P, groups)
+    reports = [GroupBoundaryReport(g, PERIOD_US, b.left_tip, b.right_tip, b.info_pv) for g, b in enumerate(ref.boundaries)]
+    return ref, reports
