@@ -1,4 +1,4 @@
-"""Cases shared by the tests of the Zenoh layer (tests/unit/test_fleetnet.py and
+"""Cases shared by the tests of the Zenoh layer (tests/unit/test_fleetnet*.py and
 tests/integration/test_fleetnet_zenoh.py): chain layouts, eq. 6's boundaries of a chain, CPG
 targets, and message equality."""
 

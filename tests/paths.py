@@ -6,3 +6,5 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: the SITL scenarios, by kind (configs/sitl/<kind>/)
 SITL_CONFIGS = ROOT / "configs" / "sitl"
+#: the three-link chain flown by the fleet tests
+THREE_LINK = SITL_CONFIGS / "chain" / "three_link.toml"

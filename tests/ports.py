@@ -121,6 +121,11 @@ class FleetPorts:
                       if not udp_free(p)]
 
 
+def assert_ports_released(ports: FleetPorts, n: int) -> None:
+    """Every port of the first ``n`` links of the fleet on ``ports`` is free again."""
+    assert not ports.unreleased(n), f"still bound: {ports.unreleased(n)}"
+
+
 @contextmanager
 def fleet_slot(preferred: int = 0, timeout_s: float = 1800.0) -> Iterator[int]:
     """Hold one of the host's fleet slots (a lock file in the temporary folder, so pytest-xdist's

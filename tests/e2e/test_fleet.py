@@ -1,9 +1,13 @@
-"""Fleet mode end to end: vehicle processes, the companion daemon and the harness over loopback sockets.
+"""Fleet mode end to end: vehicle processes, the companion daemon and the harness over loopback
+sockets, against batch mode and under attack: garbage at the ports, the simulator links over UNIX
+sockets, distributed companions failing over, a signed fleet and an unkeyed process, crafted
+states at the companion.
 
 Each test launches a real fleet (``sitl.fleet.launcher.launch``: one OS process per link plus the
 companion) on the PX4-style ports of its own instance offset, with a ground-station port of its own
 (the ``fleet_ports`` fixture), so that two tests run side by side (``pytest -n 2``); each checks
-that every port is free again afterwards.
+that every port is free again afterwards. Faults and interruptions: test_fleet_faults.py; standard
+MAVLink clients and messages: test_fleet_interop.py.
 """
 
 from __future__ import annotations
@@ -11,8 +15,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
-import signal
 import socket
 import subprocess
 import sys
@@ -31,20 +33,14 @@ from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import load_key, new_key_file
 from sitl.fleet.harness import LOCKSTEP_ENDED, LOCKSTEP_STARTED
 from sitl.fleet.launcher import launch
-from sitl.fleet.layout import check_instance_offset
 from sitl.scenarios.chain.flight import fly
-from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
+from sitl.scenario import load_scenario
 
-from ..ports import FleetPorts, children_of, tcp_free, udp_free
+from ..ports import FleetPorts, assert_ports_released, children_of, tcp_free
 from ..waits import wait_for
-from ..paths import ROOT
+from ..paths import ROOT, THREE_LINK
 
-THREE_LINK = ROOT / "configs" / "sitl" / "chain" / "three_link.toml"
 D = load_dialect()
-
-
-def _assert_ports_released(ports: FleetPorts, n: int) -> None:
-    assert not ports.unreleased(n), f"still bound: {ports.unreleased(n)}"
 
 
 class HeartbeatListener(threading.Thread):
@@ -129,7 +125,7 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference, fl
     finally:
         listener.close()
     assert not children_of(os.getpid()), "vehicle or companion processes left behind"
-    _assert_ports_released(fleet_ports, 3)
+    assert_ports_released(fleet_ports, 3)
 
     assert flooded == {"link2": 1 << 20, "companion": 1 << 20}
     assert listener.sysids == {1, 2, 3}
@@ -218,7 +214,7 @@ def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_ref
     lines = [r.getMessage() for r in caplog.records if r.name == "sitl.fleet.harness"]
     assert any(x.startswith(LOCKSTEP_STARTED + " 3 vehicle(s) from t = 0.000 s") for x in lines), lines
     assert any(x.startswith(LOCKSTEP_ENDED + " at t = 16.000 s") for x in lines), lines
-    _assert_ports_released(fleet_ports, 3)
+    assert_ports_released(fleet_ports, 3)
     assert m["sim_link"] == "unix" and not m["crashed"] and not m["aborted"]
     for key in ("rms_track_est_m", "rms_track_true_m"):
         np.testing.assert_allclose(m[key], batch_reference[key], rtol=0.2, err_msg=key)
@@ -256,214 +252,6 @@ def _sequence_gaps(path: Path, sysid: int) -> int:
     return lost
 
 
-def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_path, fleet_ports):
-    """MAVSDK in its own process on link 2's onboard port (the companion is not started): reads
-    and sets an integer and a float parameter (bytewise, as the vehicle declares), is refused
-    on the read-only MAV_SYS_ID and reads it back unchanged."""
-    sc = load_scenario(THREE_LINK, duration_s=12.0)
-    result = {}
-
-    def fleet():
-        result["metrics"] = launch(sc, tmp_path, speed=1.0, companion=False, **fleet_ports.launch_kwargs)
-
-    runner = threading.Thread(target=fleet, daemon=True)
-    runner.start()
-    wait_for(lambda: len(children_of(os.getpid())) >= 3, 20.0, poll_s=0.1)
-    # paced: the fleet keeps the default scheduling policy
-    assert {os.sched_getscheduler(pid) for pid in children_of(os.getpid())} == {os.SCHED_OTHER}
-    client = subprocess.run([sys.executable, str(ROOT / "tests" / "mavsdk_client.py"),
-                             f"udpin://127.0.0.1:{fleet_ports.companion(1)}", "2",
-                             "--timeout", "15", "--set-int", "SKL_SM_EN=0", "--set-int", "MAV_SYS_ID=7",
-                             "--set-float", "SKL_CORR_HOLD=0.375"], capture_output=True, text=True, timeout=60)
-    runner.join(60)
-    assert not runner.is_alive()
-    out = json.loads(client.stdout.strip().splitlines()[-1])
-    assert client.returncode == 0 and out["discovered"] and out["sysid"] == 2, client.stderr[-2000:]
-    assert out["IMP_KP_Z"] == pytest.approx(sc.firmware.gains.kp_n_m[2], rel=1e-6)
-    assert out["MAV_SYS_ID"] == 2
-    assert sc.firmware.allocation.selective_mapping  # so that setting 0 is a change
-    assert out["set"]["SKL_SM_EN"] == {"result": "SUCCESS", "read_back": 0}
-    assert out["set"]["SKL_CORR_HOLD"] == {"result": "SUCCESS", "read_back": pytest.approx(0.375)}
-    assert out["set"]["MAV_SYS_ID"]["result"] != "SUCCESS" and out["set"]["MAV_SYS_ID"]["read_back"] == 2
-    counts = out["telemetry_counts"]
-    assert counts.get("position", 0) >= 5 and counts.get("attitude_euler", 0) >= 10
-    lat, lon, _ = out["position"]
-    assert lat == pytest.approx(sc.origin.lat_deg, abs=1e-3) and lon == pytest.approx(sc.origin.lon_deg, abs=1e-3)
-    assert "metrics" in result  # the fleet ran to its end (the links stayed on the ground, unarmed)
-    assert result["metrics"]["scheduling"] == "default"
-    _assert_ports_released(fleet_ports, 3)
-
-
-def test_standard_messages_mode_corrects_through_odometry(tmp_path, fleet_ports):
-    """Stock-PX4 mode: ODOMETRY in, corrections as external-vision ODOMETRY (MAV_FRAME_LOCAL_FRD),
-    on GPS time. The fleet runs 11 PX4 instances up (``--instance-offset`` K + 11, K this test's
-    slot): every port moves with it, the companion's too."""
-    sc = load_scenario(THREE_LINK, duration_s=12.0)
-    # as next to real Pixhawks: every link's clock mapped onto GPS time through SYSTEM_TIME
-    sc = replace(sc, companion=replace(sc.companion, mode="standard", time_base="gps"))
-    for bad in (-1, 8, 38):  # 14548-14550 would take the GCS port; 14578-14580 a vehicle's own
-        with pytest.raises(ValueError, match="instance offset"):
-            check_instance_offset(sc, bad)
-    ports = fleet_ports.shifted(11)
-    m = launch(sc, tmp_path, speed=0.0, **ports.launch_kwargs)
-    assert not m["crashed"]
-    assert m["constraint_pos_p95_m"]["after"] < 0.05 * m["constraint_pos_p95_m"]["before"]
-    assert m["correction_latency_ms"]["samples"] > 100 and m["correction_latency_ms"]["p99"] <= 30.0
-    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
-    assert comp["links"]["1"]["per_type"].get("ODOMETRY", 0) > 300
-    assert "SKELETON_LINK_STATE" not in comp["links"]["1"]["per_type"]
-    assert comp["links"]["1"]["per_type"].get("SYSTEM_TIME", 0) >= 10 and comp["withheld_steps"] == 0
-    link1 = json.loads((tmp_path / "link1" / "link1_ports.json").read_text())
-    onboard_url = f"udpout://127.0.0.1:{ports.companion(0)}?bind={ports.vehicle(0)}"
-    assert {f"tcpin://127.0.0.1:{ports.sim(0)}", f"udpout://127.0.0.1:{ports.gcs_port}?bind={ports.gcs_from(0)}",
-            onboard_url} < set(link1)
-    onboard = link1[onboard_url]
-    assert onboard["per_type"].get("ODOMETRY", 0) > 100 and "SKELETON_CORRECTION" not in onboard["per_type"]
-
-
-def _launch_cli(out: Path, until_sim_s: float, ports: FleetPorts):
-    """Start ``python -m sitl launch`` on ``ports`` (SIGINT as in a terminal) and wait until it has
-    flown ``until_sim_s``."""
-    proc = subprocess.Popen([sys.executable, "-m", "sitl", "launch", "--config", str(THREE_LINK), "--duration", "120",
-                             "--speed", "1", "--out", str(out), *ports.cli_args], cwd=ROOT, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    progress = b""
-    deadline = time.monotonic() + 90
-    sim_s = 0.0
-    while sim_s < until_sim_s and time.monotonic() < deadline and proc.poll() is None:
-        progress += os.read(proc.stderr.fileno(), 4096)
-        done = re.findall(rb"\| (\d+\.\d)/120\.0 sim s", progress)
-        sim_s = float(done[-1]) if done else 0.0
-    return proc, progress
-
-
-def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path, fleet_ports):
-    """``python -m sitl launch`` interrupted mid-flight: children stopped, ports free, metrics written."""
-    out = tmp_path / "run"
-    proc, progress = _launch_cli(out, 8.0, fleet_ports)  # past the take-off (7 s)
-    children = children_of(proc.pid)
-    assert len(children) == 4  # three vehicles and the companion
-    proc.send_signal(signal.SIGINT)
-    _, rest = proc.communicate(timeout=60)
-    assert proc.returncode == 130, (progress + rest).decode(errors="replace")[-3000:]
-    assert all(not Path(f"/proc/{pid}").exists() for pid in children)
-    _assert_ports_released(fleet_ports, 3)
-    m = json.loads((out / "metrics.json").read_text())
-    assert m["interrupted"] and 8.0 <= m["duration_s"] < 60.0 and not m["crashed"]
-    assert (out / "link1" / "link1.tlog").stat().st_size > 0
-
-
-@pytest.mark.unit
-def test_a_truth_row_cut_short_by_an_interruption_is_left_out():
-    """Ctrl-C can land between the appends of one log row (401 times, 400 cable forces: the log
-    merge would fail on the metrics): the truth log keeps the complete rows only."""
-    from types import SimpleNamespace
-
-    from sitl.fleet.harness import FleetHarness
-
-    rows = {"t": [0.0, 0.02, 0.04], "p_true": [np.zeros((3, 3))] * 3, "joint_force_true": [np.ones((2, 3))] * 2}
-    truth = FleetHarness.truth_log(SimpleNamespace(rows=rows))
-    assert {k: v.shape[0] for k, v in truth.items()} == {"t": 2, "p_true": 2, "joint_force_true": 2}
-    np.testing.assert_array_equal(truth["t"], [0.0, 0.02])
-    whole = FleetHarness.truth_log(SimpleNamespace(rows={k: v[:2] for k, v in rows.items()}))
-    assert all(np.array_equal(whole[k], truth[k]) for k in rows)
-
-
-def test_a_vehicle_dying_stops_the_fleet_with_a_clear_error_and_keeps_the_metrics(tmp_path, fleet_ports):
-    """Killed after the take-off: exit 3 naming the link, and metrics.json for what was flown."""
-    proc, progress = _launch_cli(tmp_path / "run", 8.0, fleet_ports)
-    children = children_of(proc.pid)
-    link2 = next(pid for pid in children if "--instance\x001\x00" in Path(f"/proc/{pid}/cmdline").read_text())
-    os.kill(link2, signal.SIGKILL)
-    _, rest = proc.communicate(timeout=60)
-    text = (progress + rest).decode(errors="replace")
-    assert proc.returncode == 3, text[-3000:]
-    assert "link 2" in text and "Traceback" not in text and "metrics.json" in text
-    assert all(not Path(f"/proc/{pid}").exists() for pid in children)
-    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert "link 2" in m["aborted"] and m["duration_s"] >= 8.0 and not m["interrupted"]
-    _assert_ports_released(fleet_ports, 3)
-
-
-def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_path, fleet_ports):
-    """One flight, three faults ([faults]): 10 % loss on every vehicle-companion wire, link 2's
-    firmware killed at 9 s and restarted at 10 s (the physics goes on with its rotors stopped),
-    link 3's GPS out from 12 s to 13.5 s. The run goes on to the end; link 2 re-joins the
-    lockstep at about 10 s (its process, started at the kill, waits silent for the simulator), starts its EKF in flight, is re-admitted and re-armed by the companion; every
-    outage is in metrics.json. Its neighbours carry it from its silence until its rotors are
-    back (the companion's feed-forward): the chain sags by centimetres, not metres."""
-    sc = load_scenario(THREE_LINK, duration_s=17.0)
-    sc = replace(sc, faults=replace(sc.faults, link=LinkRebootFault(kill=2, kill_at_s=9.0, restart_after_s=1.0),
-                                    mavlink=MavlinkWireFault(loss=0.1),
-                                    gps=GpsFault(link=3, outage_at_s=12.0, outage_s=1.5)))
-    m = launch(sc, tmp_path, speed=0.0, **fleet_ports.launch_kwargs)
-    assert not children_of(os.getpid()), "vehicle, wire or companion processes left behind"
-    _assert_ports_released(fleet_ports, 3)
-    assert all(udp_free(p) for i in range(3) for p in fleet_ports.wire(i)), "the wire's ports still bound"
-    reboot = m["faults"]["link_reboot"]
-    why = (f"{m.get('crash_reason')} {m.get('aborted')}; reboot {reboot}; lowest link {m['min_altitude_m']:.2f} m; "
-           f"real-time factor {m.get('realtime_factor')}")
-    assert not m["crashed"] and not m["aborted"] and m["duration_s"] == pytest.approx(17.0), why
-    assert reboot["killed_at_s"] == pytest.approx(9.0, abs=0.01) and reboot["restarted_at_s"] == pytest.approx(10.0, abs=0.01), why
-    # powered on 1 s after the kill in simulated time; the new process, started at the kill, is
-    # ready by then on this machine (it may join later on a slower host, which the metrics show)
-    assert reboot["restarted_at_s"] <= reboot["rejoined_at_s"] < reboot["restarted_at_s"] + 0.5, why
-    assert reboot["rejoined_at_s"] <= reboot["rotors_on_at_s"] < 12.0, why
-    assert reboot["readmitted_at_s"] is not None and reboot["readmitted_at_s"] < 15.0
-    # the killed process's flight log up to its last flush, the restarted one's after it
-    assert (tmp_path / "link2" / "link2_firmware.stream").exists()
-    assert not (tmp_path / "link2" / "link2_firmware.npz").exists()
-    assert (tmp_path / "link2-restart" / "link2_firmware.npz").exists()
-    coverage = m["estimate_coverage"]
-    assert coverage[0] == coverage[2] == 1.0 and 0.6 < coverage[1] < 0.95
-    # carried (0.02-1.10 m before the companion carried it, and a crash in 1 of 16 runs, 6 of 8
-    # with the link back after 0.5 s); carrying takes the neighbours to their rotors' limit, where
-    # the allocation scales the wrench onto it above the weight: 2.11-2.27 m in 8 runs (the
-    # whole wrench scaled 1.96-2.31 m in 30; clipping each rotor,
-    # 0.71-2.32 m in 12: the neighbours tipped up to 75 deg)
-    assert all(np.isfinite(m["rms_track_true_m"])) and m["min_altitude_m"] > 1.8, why
-    windows = m["outages"]["windows"]
-    down = [w for w in windows if w["kind"] == "vehicle_down"]
-    assert down == [{"kind": "vehicle_down", "start_s": reboot["killed_at_s"], "end_s": reboot["rejoined_at_s"],
-                     "links": [2]}]
-    assert any(w["kind"] == "uncorrected" and 2 in w["links"] and w["start_s"] <= 9.2 for w in windows)
-    assert m["outages"]["during_outages"]["samples"] > 0 and m["outages"]["outside_outages"]["samples"] > 0
-    # the lossy wires: what the proxy dropped, and the companion's count of the gaps it saw
-    wires = m["faults"]["mavlink"]["wires"]
-    assert len(wires) == 3 and all(w["vehicle_to_companion"]["dropped"] > 20 and w["companion_to_vehicle"]["dropped"] > 20
-                                   for w in wires.values())
-    comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
-    assert all(comp["links"][str(i)]["seq_lost"] > 20 for i in (1, 3))
-    # carried from 3 lost states after the kill until carry_spinup_s after it reported armed (its
-    # rotors on: one ARM after its EKF started, more when the lossy wire drops one, 0.2 s of wall
-    # time apart, 0.4-0.8 s of simulated time unpaced; carried 2.30 s with two dropped); the
-    # others only for a target period or two when three of their states in a row were lost on
-    # the 10 % lossy wire (about once in 20 s per link)
-    carried = [comp["links"][str(i)]["carried_s"] for i in (1, 2, 3)]
-    spun_up = reboot["rotors_on_at_s"] + sc.companion.carry_spinup_s
-    assert 1.2 < carried[1] and spun_up - 0.15 < reboot["killed_at_s"] + carried[1] < spun_up + 0.3, (carried, reboot)
-    assert carried[0] < 0.3 and carried[2] < 0.3, carried
-    assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)}}  # in the metrics too
-    # the neighbours at their rotors' limit while they carried it, link 2 never. How long each one
-    # stays there varies from run to run: 1.00-1.40 s and 1.13-1.34 s with link 2 carried 1.40-1.48
-    # s; 1.24 s and 2.27 s with it carried 2.66 s (three ARMs dropped by the wire); 0.43 s for link
-    # 1 once with 1.9 s. Both reach it, one of them for at least half the carrying, neither for
-    # longer than it.
-    limit = m["rotor_limit_s_per_link"]
-    neighbours = (limit[0], limit[2])
-    assert min(neighbours) > 0.3 and 0.5 * carried[1] < max(neighbours) < carried[1] + 0.5, (limit, carried)
-    assert limit[1] < 0.1, limit
-    # ... and their firmware said so (STATUSTEXT, and its summary): the same time at the limit
-    reports = [json.loads((tmp_path / d / f"link{i}_ports.json").read_text())["thrust_limit"]
-               for i, d in ((1, "link1"), (2, "link2-restart"), (3, "link3"))]
-    for i in (0, 2):
-        assert reports[i]["episodes"] >= 1 and abs(reports[i]["at_limit_s"] - limit[i]) < 0.3, (reports, limit)
-    assert reports[1]["at_limit_s"] < 0.1, reports
-    # link 3's GPS outage: reported by its firmware, and the flight went on
-    gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
-    assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
-
-
 def test_distributed_companions_fail_over_and_hand_back(tmp_path, fleet_ports):
     """One companion per group over Zenoh; the leader's companion is killed and comes back."""
     sc = load_scenario(THREE_LINK, duration_s=15.0)
@@ -482,7 +270,7 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path, fleet_ports):
     # first cycles too, if group 1's companion came up later: then it hands over at once)
     assert leaders in ([1, 2, 1], [2, 1, 2, 1])
     # one leader per cycle through the hand-back (a returning group that lags a cycle behind used
-    # to lead before the agreed hand-over cycle: test_fleetnet's lagging-group test)
+    # to lead before the agreed hand-over cycle: test_fleetnet_election's lagging-group test)
     for c in comps.values():
         assert c["global_step"]["duplicate_shift"] == 0 and c["global_step"]["yielded"] == 0, c["global_step"]
     cp = m["constraint_pos_p95_m"]
@@ -520,7 +308,7 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path, fleet_ports):
     assert abs(fraction - (1.0 - len(out_cycles) / n_cycles)) <= 1.0 / n_cycles + 1e-9, (fraction, gaps)
     allowed = (back_s - first_s) + sum(w["end_s"] - w["start_s"] + period_s for w in stray)
     assert fraction >= 1.0 - allowed / (sc.duration_s - sc.flight_start_s) - 1.0 / n_cycles, (fraction, gaps)
-    _assert_ports_released(fleet_ports, 3)
+    assert_ports_released(fleet_ports, 3)
     assert tcp_free(fleet_ports.zenoh(0)) and tcp_free(fleet_ports.zenoh(1))
 
 
@@ -614,7 +402,7 @@ def test_signed_fleet_ignores_an_unkeyed_process_and_serves_a_keyed_gcs(tmp_path
     assert err[hover].max() < 0.35  # a 0.35 m target or a 5 m correction would show here
     assert gcs_result.get("value") == pytest.approx(1.5)
     assert gcs_result["stats"]["signed"] > 100 and gcs_result["stats"]["rejected_signing"] == 0
-    _assert_ports_released(fleet_ports, 3)
+    assert_ports_released(fleet_ports, 3)
 
 
 def _crafted_states(sent: dict, stop: threading.Event, ports: FleetPorts, seconds: float = 4.0) -> None:
@@ -694,4 +482,4 @@ def test_crafted_states_neither_stop_the_companion_nor_move_a_healthy_link(tmp_p
         assert m["rms_track_true_m"][i] < batch_reference["rms_track_true_m"][i] + 0.02, m["rms_track_true_m"]
     windows = m["uncorrected"]["windows"]
     assert windows and all(w["end_s"] >= w["start_s"] for w in windows)
-    _assert_ports_released(fleet_ports, 3)
+    assert_ports_released(fleet_ports, 3)

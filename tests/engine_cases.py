@@ -1,0 +1,38 @@
+"""Inputs shared by the tests of the companion engine (tests/unit/test_engine*.py): a companion
+setup, a straight chain's link states, and feeding them to an engine."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.config import CompanionConfig, CompanionSetup, LinkEndpoint
+from companion.estimation.so3 import quat_from_euler_zyx
+from companion.messages import STATE_FLAG_EKF_OK, LinkState
+from companion.skeleton.body import SkeletonConfig
+from companion.trajectory import TrajectoryConfig
+
+
+def setup_for(n=3, groups=(), **companion) -> CompanionSetup:
+    """A companion config: ``n`` links of 1 m, the paper's bending flight as targets."""
+    links = tuple(LinkEndpoint(i + 1, f"udpin://127.0.0.1:{15000 + i}") for i in range(n))
+    return CompanionSetup(name="engine_test", skeleton=SkeletonConfig(n_links=n),
+                          companion=CompanionConfig(links=links, groups=groups, **companion),
+                          trajectory=TrajectoryConfig(kind="bend", takeoff_altitude_m=2.5, bend_start_s=20.0))
+
+
+def straight_state(i, n, t, dx=0.0, L=1.0):
+    p = np.array([(i - (n - 1) / 2) * L + dx, 0.0, 2.0])
+    return LinkState(i, t, p, np.zeros(3), quat_from_euler_zyx(0.0, 0.0, 0.0), np.zeros(3),
+                     np.diag([0.04] * 6 + [1e-3] * 3))
+
+
+def of(kind, outputs):
+    return [o for o in outputs if isinstance(o, kind)]
+
+
+def feed(engine, t, now, dx=None, flags=STATE_FLAG_EKF_OK, offsets=None):
+    for lk in engine.links:
+        off = offsets[lk.row] if offsets is not None else 0.0
+        engine.on_state(lk.row, straight_state(lk.index, engine.n, t + off, 0.0 if dx is None else dx[lk.row]), flags,
+                        now)
+    return engine.poll(now)

@@ -1,0 +1,100 @@
+"""The Zenoh layer's wire codec, without a session: every message round-trips exactly, and a
+malformed payload is refused with the reason (the same over real Zenoh sessions:
+tests/integration/test_fleetnet_zenoh.py)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.fleetnet import codec
+from companion.messages import Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState, MessageError
+
+from ..chains import random_covariances
+from ..fleetnet_cases import equal, targets
+
+
+# -- codec --------------------------------------------------------------------------------------------------
+def _messages(rng):
+    P = random_covariances(rng, 1)[0]
+    info = np.linalg.inv(random_covariances(rng, 1)[0][:6, :6])
+    q = rng.normal(size=4)
+    return [
+        LinkState(5, 12.345678, rng.normal(size=3), rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3), P),
+        Correction(2, 3.25, rng.normal(size=3), rng.normal(size=3), 0.01 * rng.normal(size=3), 4242),
+        GroupBoundaryReport(1, 1_250_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567),
+        GroupBoundaryReport(2, 1_300_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), 1234, 567,
+                            _psd12(rng)),
+        GlobalShift(1, 1_250_000, (0, 1, 3), rng.normal(size=(3, 6)), 0, 1_400_000, (10, 20, 30)),
+        GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
+        targets(rng, (0, 1, 2, 3, 4, 5, 6)),
+        targets(rng, (2, 5)),
+        GroupPassiveLinks(1, 20_060_000, (2,)),
+        GroupPassiveLinks(0, 5_000_000, ()),
+        GroupPassiveLinks(3, 2**40, (6, 7, 9)),
+    ]
+
+
+def _psd12(rng) -> np.ndarray:
+    """A symmetric PSD 12 x 12 of rank 9 (a single link's tip covariance is singular)."""
+    A = rng.normal(size=(12, 9))
+    return A @ A.T
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_codec_round_trip_is_exact(seed):
+    for msg in _messages(np.random.default_rng(seed)):
+        out = codec.decode(codec.encode(msg))
+        assert type(out) is type(msg)
+        if isinstance(msg, LinkState):  # unit quaternion is renormalised, covariance symmetrised
+            np.testing.assert_allclose(out.q_wxyz, msg.q_wxyz, atol=1e-15)
+            np.testing.assert_allclose(out.P, 0.5 * (msg.P + msg.P.T), atol=0)
+            assert out.link == msg.link and out.time_s == msg.time_s
+        elif isinstance(msg, GroupBoundaryReport) and msg.tip_cov_pv is not None:  # symmetrised
+            np.testing.assert_allclose(out.tip_cov_pv, msg.tip_cov_pv, atol=1e-12)
+            assert equal(replace(out, tip_cov_pv=None), replace(msg, tip_cov_pv=None))
+        else:
+            assert equal(out, msg), msg
+
+
+def test_codec_rejects_malformed_payloads_with_the_reason():
+    good = codec.encode(_messages(np.random.default_rng(0))[2])
+    bad_info = GroupBoundaryReport(0, 0, np.zeros(6), np.zeros(6), -np.eye(6))
+    nan_tip = GroupBoundaryReport(0, 0, np.full(6, np.nan), np.zeros(6), np.eye(6))
+    cases = {
+        b"": "shorter than",
+        b"XXXX" + good[4:]: "magic",
+        good[:4] + bytes([9]) + good[5:]: "version 9",
+        good[:5] + bytes([77]) + good[6:]: "unknown message type 77",
+        good[:-3]: "truncated",
+        good + b"\0": "trailing",
+        codec.encode(bad_info): "info_pv: not positive definite",
+        codec.encode(nan_tip): "left_tip_pv_w: non-finite",
+        codec.encode(replace(nan_tip, left_tip_pv_w=np.zeros(6), tip_cov_pv=-np.eye(12))):
+            "tip_cov_pv: not positive semidefinite",
+        codec.encode(replace(nan_tip, left_tip_pv_w=np.zeros(6), tip_cov_pv=np.full((12, 12), np.nan))):
+            "tip_cov_pv: non-finite",
+        good[:-1] + bytes([2]): "tip_cov_pv: presence flag 2",  # (good has no tip covariance: flag 0 last)
+        codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
+        codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), links=(1, 1))): "ChainTargets.links",
+        codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
+        codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), a_w_m_s2=np.full((2, 3), np.inf))):
+            "a_w_m_s2: non-finite",
+        codec.encode(GroupPassiveLinks(1, 0, (3, 2))): "GroupPassiveLinks.links",
+        codec.encode(replace(_messages(np.random.default_rng(3))[0], time_s=float("nan"))): "LinkState.time_s: non-finite",
+        codec.encode(replace(_messages(np.random.default_rng(3))[1], ekf_time_s=float("inf"))):
+            "Correction.ekf_time_s: non-finite",
+        codec.encode(GroupPassiveLinks(1, 0, (2, 2))): "GroupPassiveLinks.links",
+    }
+    for payload, reason in cases.items():
+        with pytest.raises(MessageError, match=reason):
+            codec.decode(payload)
+    rng = np.random.default_rng(1)
+    for _ in range(300):  # random bytes behind a valid header never raise anything else
+        body = rng.integers(0, 256, size=int(rng.integers(0, 400)), dtype=np.uint8).tobytes()
+        try:
+            codec.decode(good[:6] + body)
+        except MessageError:
+            pass
