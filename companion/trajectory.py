@@ -183,7 +183,7 @@ class ChainTrajectory:
         each): the poses at ``t + k h``, ``k = -2..2``, and their central differences (``w``: ``(R^T
         dR/dt)^v``). ``compiled`` (default: :data:`companion.kernels.jit.ENABLED`): by
         :func:`companion.kernels.trajectory.trajectory_kernel` (the same numbers to 1e-12, ``w_dot`` to 1e-9:
-        ``tests/test_fast_paths.py``), else in numpy, the specification below."""
+        ``tests/unit/test_fast_paths.py``), else in numpy, the specification below."""
         h = self.h
         times = [t + k * h for k in (-2, -1, 0, 1, 2)]
         if _COMPILED if compiled is None else compiled:

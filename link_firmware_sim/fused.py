@@ -3,7 +3,7 @@
 :class:`FusedTicks` is the part of :class:`~link_firmware_sim.firmware.LinkFirmware` that runs its
 common case (armed, eq. 1's controller, a fresh target) through the kernels of
 :mod:`link_firmware_sim.kernels.tick` and :mod:`link_firmware_sim.kernels.lockstep`, with the same
-state changes as the step-by-step path (``tests/test_fast_paths.py``, ``tests/test_lockstep.py``): a
+state changes as the step-by-step path (``tests/unit/test_fast_paths.py``, ``tests/integration/test_lockstep.py``): a
 call's dispatch and the Python between the steps cost more than their arithmetic at 500 Hz per link.
 
 The kernels read the firmware's state as it is grouped (:mod:`link_firmware_sim.kernels.layouts`):
@@ -96,10 +96,10 @@ class FusedTicks:
     reads and keeps the firmware's state as the step-by-step path does)."""
 
     #: run :meth:`on_imu`'s common case as one kernel call (:meth:`_tick_fused`); ``False`` on an
-    #: instance: every tick through the step-by-step path (the two agree: ``tests/test_fast_paths.py``)
+    #: instance: every tick through the step-by-step path (the two agree: ``tests/unit/test_fast_paths.py``)
     fused_tick: bool = ENABLED
     #: let the vehicle run its quiet lockstep ticks in one kernel call (:meth:`on_hil_loop`); ``False``
-    #: on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/test_lockstep.py``)
+    #: on an instance: every tick through :meth:`on_hil_record` (the two agree: ``tests/integration/test_lockstep.py``)
     hil_loop: bool = ENABLED
 
     def _init_fused(self) -> None:

@@ -120,7 +120,7 @@ class BatchRunner:
 
     #: poll an engine only when :meth:`~companion.engine.CompanionEngine.needs_poll` says it has
     #: something to do (an input, a bus event, a timer); ``False`` on an instance: every engine on
-    #: every firmware tick (the two give the same flight, bit for bit: ``tests/test_faults.py``)
+    #: every firmware tick (the two give the same flight, bit for bit: ``tests/integration/test_faults.py``)
     skip_idle_polls: bool = True
 
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None,

@@ -71,7 +71,7 @@ def joint_nis(p, v, q, w, d, P, params: GateParams = GateParams(), compiled: boo
 
     The numpy code below is the specification; ``compiled`` (default: when numba is installed)
     computes the same numbers by :func:`companion.kernels.gate.joint_nis_kernel` (one call instead of
-    about thirty numpy calls before every step; ``tests/test_fast_paths.py``: agreement to 1e-12)."""
+    about thirty numpy calls before every step; ``tests/unit/test_fast_paths.py``: agreement to 1e-12)."""
     n = np.shape(p)[0]
     if n < 2:
         return np.zeros(0)

@@ -178,7 +178,7 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
 
     The numpy code below is the specification. ``compiled`` (default: when numba is installed)
     runs each chain through :func:`companion.kernels.sckf.constraint_apply_kernel` instead, the same
-    iterates in plain loops (``tests/test_fast_paths.py``: agreement to 1e-12).
+    iterates in plain loops (``tests/unit/test_fast_paths.py``: agreement to 1e-12).
     """
     if _COMPILED if compiled is None else compiled:
         return _constraint_apply_compiled(p, v, q, w, d, P, params)

@@ -212,7 +212,7 @@ def local_boundary(p, v, q, w, d, local: CAResult, compiled: bool | None = None)
 
     The two functions named are the specification; ``compiled`` (default: when numba is
     installed) computes the same numbers by :func:`companion.kernels.semi.group_terms_kernel` in one
-    call (``tests/test_fast_paths.py``: agreement to 1e-12)."""
+    call (``tests/unit/test_fast_paths.py``: agreement to 1e-12)."""
     if not (_COMPILED if compiled is None else compiled):
         T, Y = group_tip_terms(q, w, np.asarray(d, float), local)
         return group_boundary(p, v, q, w, d, local.P, T), Y

@@ -1,9 +1,9 @@
 """The companion's compiled kernels (numba), and the one jit switch and SO(3) kernels of the project.
 
 Every module here is a leaf: it imports the standard library, numpy, numba and other kernel
-modules only, never the code that calls it (``tests/test_layers.py`` checks). Each kernel computes
+modules only, never the code that calls it (``tests/integration/test_layers.py`` checks). Each kernel computes
 what a readable numpy function (its specification, named in the kernel's docstring) computes, with
-plain loops over scalars; ``tests/test_fast_paths.py`` compares the two.
+plain loops over scalars; ``tests/unit/test_fast_paths.py`` compares the two.
 
 * :mod:`.jit`: :data:`~.jit.ENABLED`, :func:`~.jit.jit` and :func:`~.jit.as_kernel_array`, the one
   switch of every kernel in the project (``SKELETON_JIT=0``, or no numba: the specifications run);

@@ -3,7 +3,7 @@ the argument types their callers pass, before the first flight step needs them.
 
 It imports the kernels it warms, never their callers: each is compiled for the signature of example
 arguments built as the callers build theirs (C-contiguous writeable float64 arrays, tuples of them,
-Python floats, ints and bools), without running it. ``tests/test_fast_paths.py`` checks that the
+Python floats, ints and bools), without running it. ``tests/unit/test_fast_paths.py`` checks that the
 callers then find every signature they use.
 """
 

@@ -184,7 +184,7 @@ class ChainModel:
         ``wd`` (each (n, 3)). The numpy code below is the specification; ``compiled`` (default:
         when numba is installed) runs the part after the joints' passive torques as
         :func:`companion.kernels.dynamics.feedforward_kernel` (the same numbers to 1e-12:
-        ``tests/test_fast_paths.py``)."""
+        ``tests/unit/test_fast_paths.py``)."""
         n = self.n
         m = self.inertia.mass_kg
         # passive joint torques on the child (compliant cable: stiffness and damping) at the joint's

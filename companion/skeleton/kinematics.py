@@ -10,7 +10,7 @@ body rate ``w_i`` the link centres follow, relative to the first link's centre::
 This is the one implementation of the chain's kinematics for batches: the synthetic chain of the
 Table II benchmark (thousands of instants), the CPG's expected physics (hundreds of parameter
 sets at once) and the trajectories. :class:`companion.skeleton.dynamics.ChainModel` (pinocchio)
-computes the same for one configuration with its inverse dynamics; ``tests/test_chain_model.py``
+computes the same for one configuration with its inverse dynamics; ``tests/unit/test_chain_model.py``
 checks both agree. Evaluated through pinocchio from Python, one 7-link configuration costs about
 80 us (the placements are read back one by one) against about 4 us per configuration here for a
 batch of 400, hence this vectorised form for batches.

@@ -1,5 +1,5 @@
 """The predefined ArUco dictionaries and their number of ids, without OpenCV (configs validate
-against it on installs without the ``vision`` extra; ``tests/test_vision.py`` checks it against
+against it on installs without the ``vision`` extra; ``tests/unit/test_vision.py`` checks it against
 ``cv2.aruco``)."""
 
 from __future__ import annotations

@@ -49,7 +49,7 @@ class Allocator:
         (:func:`link_firmware_sim.kernels.allocation.allocate_kernel`; default: when numba is
         installed and not turned off) instead of the specification (:meth:`_allocate_spec`, with
         the functional core of :mod:`.mapping`); the same numbers to rounding
-        (``tests/test_fast_paths.py``).
+        (``tests/unit/test_fast_paths.py``).
 
     Raises
     ------

@@ -27,7 +27,7 @@ what the cables and the joints' passive torques need of this link's rotors (thes
 Newton-Euler chain); it is zero unless the companion computes it.
 
 :func:`impedance_control` is eq. 1 in readable numpy: the specification, which the firmware runs
-without the compiled kernels, and which ``tests/test_fast_paths.py`` compares the kernel
+without the compiled kernels, and which ``tests/unit/test_fast_paths.py`` compares the kernel
 (:func:`link_firmware_sim.kernels.impedance.impedance_kernel`) with. A pure function (no clocks:
 ``dt`` is an argument; no state except the integrals the caller passes in and gets back).
 :class:`ImpedanceController` is eq. 1 as the firmware's controller: its gains, the link's inertia and

@@ -29,7 +29,7 @@ and each reservoir is capped at ``E_t^max`` / ``E_r^max`` (the excess is discard
   ``y`` the same projection of ``log(R^T R_d)`` on ``1/2 |y|^2_KR <= budget`` (exact for an
   isotropic ``K_R``: the closest point then lies on the geodesic; for an anisotropic one it is
   the projection in those coordinates). Either way the energy constraint holds exactly, so the
-  reservoirs never go negative (``tests/test_pspm.py`` checks it with random inputs).
+  reservoirs never go negative (``tests/unit/test_pspm.py`` checks it with random inputs).
 
 The master side (sec. 2.3.4, last pair): ``p_d = eta p_h + p_0``, ``R_d = R_h`` and the haptic
 feedback ``f_h = -B_ht pdot_h - K_ht (p_d - p_bar) + K_hf f_e^``, ``tau_h = -B_hr omega_h -

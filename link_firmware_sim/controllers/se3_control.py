@@ -33,7 +33,7 @@ Integrals have symmetric clamps (anti-windup), as the impedance controller's. Th
 feed-forward of :class:`~companion.messages.PoseTarget` is added as in :mod:`.impedance`.
 
 Pure functions of numpy arrays (no clock: ``dt_s`` is an argument) plus :class:`Se3PidController`,
-a thin holder of the integrator state; ``tests/test_se3_control.py`` checks that they agree.
+a thin holder of the integrator state; ``tests/unit/test_se3_hybrid.py`` checks that they agree.
 """
 
 from __future__ import annotations

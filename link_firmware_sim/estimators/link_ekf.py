@@ -70,7 +70,7 @@ class LinkEkf:
     Counts accepted and rejected (gated) measurements per kind. ``compiled`` (default: when numba
     is installed and not turned off, :data:`~companion.kernels.jit.ENABLED`) runs the kernels of
     :mod:`link_firmware_sim.kernels.ekf` instead of the numpy specification (:func:`predict` and
-    :func:`fuse`, the one dispatch; same numbers to rounding, ``tests/test_fast_paths.py``).
+    :func:`fuse`, the one dispatch; same numbers to rounding, ``tests/unit/test_fast_paths.py``).
     """
 
     def __init__(self, p_w_m, v_w_m_s, q_wxyz, config: EkfConfig = EkfConfig(), compiled: bool | None = None):

@@ -2,7 +2,7 @@
 numba and other kernels (:mod:`companion.kernels`: the jit switch, the SO(3) kernels).
 
 Each computes what a readable numpy specification computes, named in its docstring, with plain
-loops over scalars; ``tests/test_fast_paths.py`` compares the two, and with ``SKELETON_JIT=0`` (or
+loops over scalars; ``tests/unit/test_fast_paths.py`` compares the two, and with ``SKELETON_JIT=0`` (or
 without numba) the firmware runs the specifications. At 500 Hz per link the interpreter's cost of a
 few hundred scalar operations, not the arithmetic, was the simulator's limit.
 

@@ -2,7 +2,7 @@
 
 The specification is :meth:`link_firmware_sim.allocation.Allocator.allocate`'s numpy path (with
 the functions of :mod:`link_firmware_sim.allocation.mapping` it runs); the kernel computes the same
-numbers with plain loops over scalars (``tests/test_fast_paths.py``). The allocator's thresholds,
+numbers with plain loops over scalars (``tests/unit/test_fast_paths.py``). The allocator's thresholds,
 null vector and modulation state are one array (``ALLOC_*`` of :mod:`.layouts`).
 """
 

@@ -3,7 +3,7 @@ attitude reference's update with its measurement model.
 
 The specification is :mod:`link_firmware_sim.estimators.ekf` (``ekf_predict``, ``kalman_update``,
 ``kalman_update_block``, ``ekf_update_attitude``); each kernel computes the same numbers with plain
-loops over scalars (``tests/test_fast_paths.py``). The state layout is the specification's: nominal
+loops over scalars (``tests/unit/test_fast_paths.py``). The state layout is the specification's: nominal
 ``[p v q b_a b_g (b)]``, error ``[dp dv dtheta db_a db_g (db)]`` (16 / 15 numbers, 17 / 16 with the
 barometer's offset); the parameters are one array (``EKF_*`` of :mod:`.layouts`).
 """

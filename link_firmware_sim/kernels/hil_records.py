@@ -31,12 +31,12 @@ _ACT_KIND, _ACT_SIZE, _ACT_T, _ACT_FLAGS, _ACT_CONTROLS, _ACT_MODE = HIL_ACTUATO
 #: SKELETON_AHRS_REFERENCE: kind 2, ``time_usec`` (uint64), ``q`` (4 floats, body FRD to local NED)
 HIL_AHRS_RECORD = {"kind": 2, "size": 25, "time_usec": 1, "q": 9}
 _AHRS_KIND, _AHRS_SIZE, _AHRS_T, _AHRS_Q = HIL_AHRS_RECORD.values()
-#: ``hil.decode_ahrs``'s tolerance on the reference quaternion's norm (a literal: ``tests/test_fast_paths.py``
+#: ``hil.decode_ahrs``'s tolerance on the reference quaternion's norm (a literal: ``tests/unit/test_fast_paths.py``
 #: checks it is hil's)
 AHRS_NORM_TOLERANCE = 1e-3
 #: the HIL_SENSOR ``fields_updated`` bits of a magnetometer or barometer sample (``hil``:
 #: HIL_SENSOR_MAG, abs_pressure, pressure_alt; a literal for the same reason, and
-#: ``tests/test_fast_paths.py`` checks it is hil's): such a tick takes the decoding path
+#: ``tests/unit/test_fast_paths.py`` checks it is hil's): such a tick takes the decoding path
 HIL_BARO_MAG_BITS = 0x1C0 | (1 << 9) | (1 << 11)
 
 

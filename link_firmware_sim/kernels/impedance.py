@@ -1,7 +1,7 @@
 """Eq. 1 (the paper's impedance controller) as a kernel.
 
 The specification is :func:`link_firmware_sim.controllers.impedance.impedance_control`; the kernel
-computes the same numbers with plain loops over scalars (``tests/test_fast_paths.py``). Its gains,
+computes the same numbers with plain loops over scalars (``tests/unit/test_fast_paths.py``). Its gains,
 the link's inertia and its integrals are one array (``CTL_*`` of :mod:`.layouts`), the target
 another (``TGT_*``).
 """

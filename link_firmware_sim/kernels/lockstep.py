@@ -1,7 +1,7 @@
 """The vehicle's lockstep loop over its quiet ticks, the waits and the socket calls in it.
 
 :func:`hil_loop_kernel` hands back to Python at the first tick whose bookkeeping changes anything;
-``tests/test_lockstep.py`` flies it against the record tick, bit for bit. Over PX4's TCP link the same
+``tests/integration/test_lockstep.py`` flies it against the record tick, bit for bit. Over PX4's TCP link the same
 loop reads and writes the ticks' MAVLink 2 frames (:mod:`.mavlink_frames`: whole, unsigned frames
 from the simulator, numbered without a gap, checksums checked; anything else goes to pymavlink's
 parser), flown against the decoding path bit for bit, counters included.

@@ -4,7 +4,7 @@ simulator link's record to its answer's.
 
 A call's dispatch and the Python between the steps cost more than their arithmetic at 500 Hz per
 link, so the firmware runs its common case (armed, eq. 1, a fresh target) as one call, with the
-operations of the kernels it fuses in their order; ``tests/test_fast_paths.py`` checks it against
+operations of the kernels it fuses in their order; ``tests/unit/test_fast_paths.py`` checks it against
 the step-by-step path, and the record tick byte for byte against the decoders'.
 
 The state is grouped (:mod:`.layouts`): ``ekf_par`` the EKF's parameters (``EKF_*``), ``cmd`` the

@@ -6,7 +6,7 @@ vehicles load one cache instead of compiling n times.
 It imports the kernels it warms, never their callers: each is compiled for the signature of example
 arguments built as its callers build theirs (C-contiguous writeable arrays, tuples of them, a
 record received as read-only bytes, Python floats, ints and bools), without running it.
-``tests/test_fast_paths.py`` checks that the firmware then finds every signature it uses.
+``tests/unit/test_fast_paths.py`` checks that the firmware then finds every signature it uses.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 HIL_ACTUATOR_CONTROLS answer, echoing its ``time_usec``; HIL_GPS and SKELETON_AHRS_REFERENCE
 start the EKF, then feed it. The simulator's ticks are the flight controller's clock.
 
-Three paths, with the same numbers (``tests/test_lockstep.py``):
+Three paths, with the same numbers (``tests/integration/test_lockstep.py``):
 
 * the decoders (:mod:`.hil`) and the firmware's step-by-step calls, for every packet;
 * the record tick (:meth:`Lockstep.tick_record`): a same-host link's packet that is the common

@@ -1,5 +1,5 @@
 """The rotor and reversible-ESC model's compiled kernels: :class:`sitl.plant.rotor.RotorBank`'s
-numpy code is their specification (what runs without numba, and what ``tests/test_fast_paths.py``
+numpy code is their specification (what runs without numba, and what ``tests/unit/test_fast_paths.py``
 compares them with through reversals, stops and restarts).
 
 A leaf: it imports numpy and the project's jit switch only.

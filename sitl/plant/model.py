@@ -16,7 +16,7 @@ Sensors per link (site ``link{i}_imu`` at the centre): ``link{i}_acc`` (accelero
 specific force an IMU measures, contacts included), ``link{i}_gyro``, and truth
 ``link{i}_pos``, ``link{i}_quat``, ``link{i}_linvel`` (world frame). The cable force at every
 joint is MuJoCo's ``cfrc_int`` of the child link (the same tree as
-:class:`companion.skeleton.dynamics.ChainModel`; ``tests/test_chain_model.py`` checks both agree). Sites
+:class:`companion.skeleton.dynamics.ChainModel`; ``tests/unit/test_chain_model.py`` checks both agree). Sites
 ``link{i}_tip_left`` / ``link{i}_tip_right`` mark the joints.
 
 Links collide with the ground plane only. A physics step is split: :meth:`SkeletonModel.begin_step`

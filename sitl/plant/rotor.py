@@ -28,7 +28,7 @@ what the link can do, :func:`link_firmware_sim.allocation.scaled_to_limit`). The
 harness feeds ``thrust_n`` to the rotor actuators.
 
 The numpy code of :meth:`RotorBank.step` is the specification; with numba installed the bank steps
-by :func:`sitl.kernels.rotor.step_kernel`, the same per-rotor logic compiled (``tests/test_fast_paths.py``
+by :func:`sitl.kernels.rotor.step_kernel`, the same per-rotor logic compiled (``tests/unit/test_fast_paths.py``
 checks it against the numpy code through reversals, stops and restarts).
 """
 

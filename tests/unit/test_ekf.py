@@ -136,7 +136,7 @@ def test_functional_core_and_class_agree():
     cfg = EkfConfig(noise=EkfNoise(accel_bias_m2_s5=1e-4, gyro_bias_rad2_s3=1e-6), init_accel_bias_var=0.01,
                     init_gyro_bias_var=1e-4)
     p0, v0, q0 = rng.normal(size=3), rng.normal(size=3), quat_normalize(rng.normal(size=4))
-    # the numpy path, bit for bit (the compiled one agrees to rounding: tests/test_fast_paths.py)
+    # the numpy path, bit for bit (the compiled one agrees to rounding: tests/unit/test_fast_paths.py)
     ekf = LinkEkf(p0, v0, q0, cfg, compiled=False)
     x, P = ekf_init(p0, v0, q0, cfg)
     for k in range(200):

@@ -1,6 +1,6 @@
 """Oracle tests: the compiled kernels (link_firmware_sim.kernels, sitl.kernels.rotor) against the numpy
 specification on random inputs (seeded), agreeing to 1e-12 (the companion's:
-``tests/test_companion_kernels.py``).
+``tests/unit/test_companion_kernels.py``).
 
 Without numba (an onboard install) the compiled path is the numpy one and these tests are skipped;
 with it, the first run compiles the kernels (about 20 s on a 2-core VM, then cached on disk).

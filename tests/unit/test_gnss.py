@@ -78,7 +78,7 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     m8 = tmp_path / "m8.toml"
     m8.write_text(base.replace('profile = "outdoor"', 'profile = "m8"'))
     assert load_scenario(m8).firmware.ekf == cfg
-    # the companion takes the receivers' common mode out of the step (tests/test_engine.py)
+    # the companion takes the receivers' common mode out of the step (tests/unit/test_engine.py)
     assert load_scenario(m8).companion.gnss_common_pos_var_m2 == pytest.approx(
         (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2))
     assert load_scenario("configs/sitl/chain/three_link.toml").firmware.ekf == outdoor_ekf_config()
