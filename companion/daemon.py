@@ -148,7 +148,7 @@ class CompanionDaemon:
             except ImportError as exc:
                 raise ValueError(f"companion.distributed needs Eclipse Zenoh ({exc}): pip install "
                                  "'aerial-skeleton-stack[distributed]'") from None
-            bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file)
+            bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file, clock=self.clock)
         return GroupLink(node, bus, self.clock)
 
     # -- input ---------------------------------------------------------------------------------------

@@ -112,8 +112,10 @@ def _check_certs_dir(cfg: ZenohConfig, group: int, n_groups: int, file: str) -> 
 class FleetBus:
     """Zenoh wires of one group companion; see the module docstring."""
 
-    def __init__(self, cfg: ZenohConfig, prefix: str, group: int, n_groups: int, file: str = "<config>"):
+    def __init__(self, cfg: ZenohConfig, prefix: str, group: int, n_groups: int, file: str = "<config>",
+                 clock=time.monotonic):
         self.prefix = prefix
+        self._clock = clock  # stamps each event on arrival (monotonic seconds, the daemon's clock)
         self.group = group
         self._events: queue.SimpleQueue[BusEvent] = queue.SimpleQueue()
         self._wake_r, self._wake_w = os.pipe()
@@ -160,7 +162,7 @@ class FleetBus:
     def _on_data(self, sample) -> None:
         # stamp and queue only: decoding happens in the daemon's thread (:meth:`drain`), so the
         # callback holds the GIL for microseconds and the next sample is not held up behind it
-        self._push(BusEvent("payload", sample.payload.to_bytes(), time.monotonic(), str(sample.key_expr)))
+        self._push(BusEvent("payload", sample.payload.to_bytes(), self._clock(), str(sample.key_expr)))
 
     def _decoded(self, ev: BusEvent) -> BusEvent:
         try:
@@ -178,7 +180,7 @@ class FleetBus:
         return BusEvent(kind, msg, ev.time_s, ev.key)
 
     def _on_liveliness(self, sample) -> None:
-        now = time.monotonic()
+        now = self._clock()
         key = str(sample.key_expr)
         g = group_of_key(self.prefix, key)
         if g is None:
