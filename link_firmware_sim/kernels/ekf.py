@@ -49,6 +49,33 @@ def _sym(A):
 
 
 @jit
+def _sparse_matmul(S, B):
+    """``S B``, skipping the zero entries of ``S`` (the Jacobians are mostly zeros); each entry
+    summed over ``k`` in order from 0."""
+    out = np.zeros((S.shape[0], B.shape[1]))
+    for i in range(S.shape[0]):
+        for k in range(S.shape[1]):
+            s = S[i, k]
+            if s != 0.0:
+                for j in range(B.shape[1]):
+                    out[i, j] += s * B[k, j]
+    return out
+
+
+@jit
+def _matmul_sparse_t(A, S):
+    """``A S^T``, skipping the zero entries of ``S``; each entry summed over ``k`` in order from 0."""
+    out = np.zeros((A.shape[0], S.shape[0]))
+    for j in range(S.shape[0]):
+        for k in range(S.shape[1]):
+            s = S[j, k]
+            if s != 0.0:
+                for i in range(A.shape[0]):
+                    out[i, j] += A[i, k] * s
+    return out
+
+
+@jit
 def ekf_predict_kernel(x, P, gyro, accel, dt_s, par):
     """``estimators.ekf.ekf_predict`` (nominal propagation, ``F P F^T + Q dt``, symmetrised), any
     state size (16 / 17 with the barometer's offset), ``par`` the EKF's parameters (``EKF_*``).
@@ -95,20 +122,7 @@ def ekf_predict_kernel(x, P, gyro, accel, dt_s, par):
             F[3 + i, 6 + j] = dt_s * ms[3 * i + j]
             F[3 + i, 9 + j] = -dt_s * R[3 * i + j]
             F[6 + i, 12 + j] = -dt_s * R[3 * i + j]
-    A = np.zeros((n, n))  # F P
-    for i in range(n):
-        for k in range(n):
-            f = F[i, k]
-            if f != 0.0:
-                for j in range(n):
-                    A[i, j] += f * P[k, j]
-    Pn = np.zeros((n, n))  # A F^T
-    for j in range(n):
-        for k in range(n):
-            f = F[j, k]
-            if f != 0.0:
-                for i in range(n):
-                    Pn[i, j] += A[i, k] * f
+    Pn = _matmul_sparse_t(_sparse_matmul(F, P), F)  # F P F^T
     for i in range(15):
         Pn[i, i] += par[EKF_DENSITIES + i] * dt_s
     if n > 15:
@@ -192,21 +206,8 @@ def _joseph(x, P, K, H, r, Rm):
     update), symmetrised."""
     n = P.shape[0]
     m = len(r)
-    HP = np.zeros((m, n))
-    for k in range(m):
-        for c in range(n):
-            h = H[k, c]
-            if h != 0.0:
-                for j in range(n):
-                    HP[k, j] += h * P[c, j]
-    A = P - _matmul(K, HP, False)
-    AHt = np.zeros((n, m))
-    for k in range(m):
-        for c in range(n):
-            h = H[k, c]
-            if h != 0.0:
-                for i in range(n):
-                    AHt[i, k] += A[i, c] * h
+    A = P - _matmul(K, _sparse_matmul(H, P), False)
+    AHt = _matmul_sparse_t(A, H)
     KR = _matmul(K, Rm, False)
     Pn = np.empty((n, n))
     for i in range(n):
