@@ -1,4 +1,4 @@
-"""The vision consumer's command line (issue 16 item 7).
+"""The vision consumer's command line.
 
     python -m companion.vision --config FILE [--out DIR] [--duration S]
 

@@ -1,4 +1,4 @@
-"""Camera frames over Zenoh (issue 16 item 7): ``<prefix>/camera/<vehicle>/image``, vehicles 1-based in keys.
+"""Camera frames over Zenoh: ``<prefix>/camera/<vehicle>/image``, vehicles 1-based in keys.
 
 :class:`CameraPublisher` puts :func:`~.frame_codec.encode_frame` payloads on a vehicle's key
 (the SITL harness does, for every rendered frame; on an onboard computer the camera's own

@@ -1,5 +1,5 @@
 """Byte codec of :class:`~companion.vision.frame.CameraFrame`: a typed, versioned header and an encoded image
-(issue 16 item 7: the payload of ``<prefix>/camera/<vehicle>/image``).
+(the payload of ``<prefix>/camera/<vehicle>/image``).
 
 Layout (little-endian)::
 

@@ -1,4 +1,4 @@
-"""Configuration of the vision consumer, ``python -m companion.vision --config FILE`` (issue 16 item 7).
+"""Configuration of the vision consumer, ``python -m companion.vision --config FILE``.
 
 No OpenCV and no Zenoh here: the file loads and is validated on any install. One TOML file::
 
