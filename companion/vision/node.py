@@ -274,23 +274,25 @@ def open_source(setup: VisionNodeSetup):
 
 
 def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = lambda: False,
-             duration_s: float | None = None, drain_s: float = 0.5, drain_max_s: float = 5.0, source=None) -> dict:
+             duration_s: float | None = None, drain_s: float = 0.5, drain_max_s: float = 5.0, source=None,
+             clock: Callable[[], float] = time.monotonic) -> dict:
     """Process frames until ``stop()``, ``duration_s`` of wall time, the end of a video or
     ``idle_timeout_s`` without frames; writes the frame log and the summary into ``out_dir`` and
     returns the summary. After ``stop()``, a Zenoh source is drained until nothing has arrived
-    for ``drain_s`` (the frames in flight when the publisher stopped), at most ``drain_max_s``."""
+    for ``drain_s`` (the frames in flight when the publisher stopped), at most ``drain_max_s``.
+    ``clock`` (monotonic seconds) times all of these."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     node = VisionNode(setup.pipeline)
     src = open_source(setup) if source is None else source
-    wall0 = time.monotonic()
+    wall0 = clock()
     last_frame = wall0
     reason = "stopped"
     try:
         with open(out_dir / FRAMES_FILE, "w", buffering=1) as fh:
             draining_since = None
             while True:
-                now = time.monotonic()
+                now = clock()
                 if draining_since is None and stop():
                     draining_since = now
                     if src.kind != "zenoh":
@@ -314,11 +316,11 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
                         if node.rejected <= 5 or node.rejected % 100 == 0:  # a flood stays quiet
                             log.warning("rejected #%d: %s", node.rejected, item)
                         continue
-                    last_frame = time.monotonic()
+                    last_frame = clock()
                     fh.write(json.dumps(node.on_frame(item).to_json()) + "\n")
     finally:
         src.close()
-    wall = time.monotonic() - wall0
+    wall = clock() - wall0
     summary = {"name": setup.name, "source": setup.source, "ended_by": reason, "wall_s": round(wall, 3), **node.summary()}
     summary["frames_per_s"] = round(summary["frames_total"] / wall, 3) if wall > 0 else None
     (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
