@@ -2,11 +2,14 @@
 
     python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--no-sckf] [--out DIR]
     python -m sitl launch --config configs/sitl/chain/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
+    python -m sitl mcap RUN_DIR [--out FILE]
 
 ``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
 20 Hz, in one process on one clock; it flies every kind. ``launch`` is fleet mode: one MAVLink
 vehicle process per link and the companion daemon, the harness in lockstep with them over
-PX4-style simulator links; it flies the kinds that have a fleet form and refuses the others.
+PX4-style simulator links; it flies the kinds that have a fleet form and refuses the others. Both
+leave ``run.mcap`` (:mod:`sitl.recording.mcap_log`) beside ``log.npz``; ``mcap`` writes it for an
+existing run folder.
 Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
 key and reason; also an option or a mode the scenario's kind does not have), 3 the fleet failed
 (a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet mode still writes the metrics when
@@ -27,6 +30,7 @@ from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
 from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
+from .recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 from .scenario import with_options
 from .scenarios import load as load_scenario_file
 
@@ -113,6 +117,8 @@ def _cmd_fly(args) -> int:
     except KeyboardInterrupt:
         print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if not args.no_mcap and (out_dir / "log.npz").exists():
+        write_beside_log(out_dir)
     return _report(metrics, out_dir, kind.summary)
 
 
@@ -158,6 +164,19 @@ def _cmd_launch(args) -> int:
     return _report(metrics, out_dir, kind.summary)
 
 
+def _cmd_mcap(args) -> int:
+    try:
+        path, counts = write_run_mcap(args.run_dir, args.out)
+    except ImportError:
+        print(f"error: the mcap package is missing; {INSTALL_HINT}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    except (OSError, ValueError) as exc:
+        print(f"error: {args.run_dir}: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    print(f"wrote {path}: {len(counts)} channels, {sum(counts.values())} messages")
+    return 0
+
+
 def _run_args(p: argparse.ArgumentParser, kind: str) -> None:
     """The options ``fly`` and ``launch`` share (read by :func:`_scenario`, :func:`_progress`)."""
     p.add_argument("--config", required=True, metavar="FILE", help="scenario file, e.g. configs/sitl/chain/three_link.toml")
@@ -185,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--video", metavar="PATH", type=Path,
                     help="write an MP4 of the flight (chase camera, 30 fps of simulated time; with the scenario's "
                          "first onboard camera and the detected markers' axes inset)")
+    fl.add_argument("--no-mcap", action="store_true", help="skip run.mcap (the log for Foxglove and Lichtblick)")
     fl.set_defaults(func=_cmd_fly)
     la = sub.add_parser(
         "launch",
@@ -211,6 +231,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="unpaced (--speed 0) too, keep Linux's default scheduling policy; without it an unpaced "
                          "fleet runs under SCHED_BATCH: no process preempts the one that woke it (faster lockstep)")
     la.set_defaults(func=_cmd_launch)
+    mc = sub.add_parser(
+        "mcap",
+        help="write a run folder's log.npz as run.mcap (Foxglove, Lichtblick)",
+        description="Convert a run folder's log.npz (batch or fleet) to an MCAP file of Foxglove-schema JSON messages.",
+    )
+    mc.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run folder holding log.npz")
+    mc.add_argument("--out", metavar="FILE", type=Path, help="the MCAP file (default: RUN_DIR/run.mcap)")
+    mc.set_defaults(func=_cmd_mcap)
     return parser
 
 

@@ -31,6 +31,7 @@ from companion.motion.inverse import InverseModel
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from sitl.metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics
 from sitl.plant.plant import Plant
+from sitl.recording.mcap_log import write_beside_log
 from sitl.scenario import Scenario
 
 from .harness import FleetHarness
@@ -335,7 +336,7 @@ class Fleet:
 
     # -- the metrics -----------------------------------------------------------------------------
     def results(self, plots: bool = True) -> dict:
-        """The logs merged and measured; ``metrics.json``, ``log.npz``, ``vision.npz`` (cameras),
+        """The logs merged and measured; ``metrics.json``, ``log.npz``, ``run.mcap``, ``vision.npz`` (cameras),
         the plots and the flown ``scenario.toml`` in the run folder. :class:`FleetError` for a run
         stopped before the metrics' window, or (after writing them) for one a process cut short."""
         sc, harness, plant, out_dir, n = self.sc, self.harness, self.plant, self.out_dir, self.n
@@ -379,6 +380,7 @@ class Fleet:
             np.savez_compressed(out_dir / "vision.npz", **vision_arrays)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         np.savez_compressed(out_dir / "log.npz", **merged)
+        write_beside_log(out_dir)
         if plots:
             from sitl.plots import write_plots  # (matplotlib loaded after the flight, and only for plots)
 

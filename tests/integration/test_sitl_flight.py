@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from companion.corrections import align_states, compute_corrections
 from companion.estimation.constraints import constraint_residual
@@ -267,6 +268,19 @@ def test_smoke_flight_of_the_three_link_config(tmp_path):
     assert load_scenario(out / "scenario.toml").name == "three_link"
     log = np.load(out / "log.npz")
     assert log["p_true"].shape[1:] == (3, 3) and log["p_ekf"].shape == log["p_true"].shape
+    # run.mcap beside it: a message per log sample (per companion step on the SCKF's channels)
+    with open(out / "run.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    counts = {c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()}
+    T, S = len(log["t"]), len(log["t_sckf"])
+    assert counts == {"/tf": T, "/scene": T, "/companion/step": S,
+                      **{f"/link{i}/{name}": S if name == "corrected" else T
+                         for i in (1, 2, 3) for name in ("truth", "ekf", "corrected", "target", "thrust")}}
+    # the subcommand writes it again for the run folder
+    again = subprocess.run([sys.executable, "-m", "sitl", "mcap", str(out), "--out", str(tmp_path / "again.mcap")],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and "18 channels" in again.stdout, again.stderr
+    assert (tmp_path / "again.mcap").stat().st_size > 0
 
 
 def test_no_sckf_flag_flies_on_the_ekf(tmp_path):

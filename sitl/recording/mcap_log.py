@@ -1,0 +1,264 @@
+"""A run folder's ``log.npz`` as an MCAP file (``run.mcap``) that Foxglove and Lichtblick open.
+
+Messages are JSON with Foxglove's schemas (:mod:`sitl.recording.foxglove`), stamped (log and
+publish time) with the simulated time in nanoseconds and written in time order. The channels,
+each written only when the log holds its arrays (links numbered from 1):
+
+- ``/link{i}/truth``, ``/link{i}/ekf``, ``/link{i}/target`` (``foxglove.PoseInFrame``, frame
+  ``world``): ``p_true``/``q_true``, ``p_ekf``/``q_ekf``, ``p_target``/``q_target`` at ``t``;
+- ``/link{i}/corrected`` (``foxglove.PoseInFrame``): the companion's correction,
+  ``p_corr_sckf``/``q_corr_sckf`` at ``t_sckf``;
+- ``/tf`` (``foxglove.FrameTransforms``): ``world`` -> ``link{i}``, the truth, at ``t``;
+- ``/scene`` (``foxglove.SceneUpdate``): a box per link (the link's length along its x axis,
+  0.1 m across; a 0.4 m cube when the run folder's ``scenario.toml`` gives no
+  ``skeleton.link_length_m``) and a line from each link's centre to the next one's, the truth,
+  at ``t`` decimated to at most :data:`SCENE_MAX_HZ`;
+- ``/link{i}/thrust`` (``skeleton.Series``): ``thrust_n``, the rotors' thrusts, at ``t``;
+- ``/companion/step`` (``skeleton.Series``): per companion step (``t_sckf``) the constraint
+  errors per joint before and after the correction, the iterations, the global step's flag per
+  group, the largest NIS, the corrected links and the step's cycle time (:data:`STEP_FIELDS`).
+
+A non-finite number is written as JSON ``null``. Chunks are zstd-compressed when the
+``zstandard`` module is importable, else uncompressed.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import math
+import os
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from .foxglove import FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
+
+__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "MCAP_NAME", "channels", "export_log", "write_run_mcap", "write_beside_log"]
+
+_log = logging.getLogger(__name__)
+
+MCAP_NAME = "run.mcap"
+#: the ``/scene`` channel's highest rate (the log's samples are decimated to it)
+SCENE_MAX_HZ = 50.0
+#: ``/companion/step`` field -> the log's key (stamped ``t_sckf``)
+STEP_FIELDS = {
+    "con_pos_before": "con_pos_before",
+    "con_pos_after": "con_pos_after",
+    "con_vel_before": "con_vel_before",
+    "con_vel_after": "con_vel_after",
+    "iterations": "iterations",
+    "global_applied": "global_applied",
+    "nis_max": "nis_max_sckf",
+    "corrected": "corrected_sckf",
+    "cycle_us": "cycle_us",
+}
+#: the cube's edge when the link's length is unknown (m)
+DEFAULT_CUBE_M = 0.4
+LINK_WIDTH_M = 0.1
+INSTALL_HINT = "pip install 'aerial-skeleton-stack[view]' (or pip install 'mcap>=1.1')"
+
+_LINK_COLOR = {"r": 0.2, "g": 0.45, "b": 0.9, "a": 0.6}
+_CABLE_COLOR = {"r": 1.0, "g": 0.55, "b": 0.0, "a": 1.0}
+_IDENTITY = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+#: compact JSON as bytes (one encoder for every message)
+_ENCODE = json.JSONEncoder(separators=(",", ":"), check_circular=False).encode
+
+
+def _json(message: dict) -> bytes:
+    return _ENCODE(message).encode()
+
+
+def _plain(a: np.ndarray) -> list:
+    """``a`` as nested Python lists, a non-finite number as ``None`` (JSON ``null``)."""
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        return np.where(np.isfinite(a), a, None).tolist()
+    return a.tolist()
+
+
+def _nanoseconds(t: np.ndarray) -> np.ndarray:
+    return np.round(np.asarray(t, dtype=float) * 1e9).astype(np.int64)
+
+
+def _series(log: Mapping[str, np.ndarray], stamp_key: str, *keys: str, width: int | None = None) -> list | None:
+    """The arrays ``keys`` when the log holds them all with one row per ``stamp_key`` sample (and
+    ``width`` links when given), else ``None``."""
+    if stamp_key not in log or any(k not in log for k in keys):
+        return None
+    n = len(log[stamp_key])
+    arrays = [np.asarray(log[k]) for k in keys]
+    if any(a.ndim == 0 or a.shape[0] != n or (width is not None and (a.ndim < 2 or a.shape[1] != width))
+           for a in arrays):
+        _log.debug("%s: shapes do not match %s; skipped", ", ".join(keys), stamp_key)
+        return None
+    return arrays
+
+
+def _pose_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link: int) -> list[bytes]:
+    ps, qs = _plain(p[:, link]), _plain(q[:, link])
+    return [_json({"timestamp": stamp(k), "frame_id": "world", "pose": pose(pk, qk)})
+            for k, pk, qk in zip(ns.tolist(), ps, qs)]
+
+
+def _tf_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray) -> list[bytes]:
+    out = []
+    for k, pk, qk in zip(ns.tolist(), _plain(p), _plain(q)):
+        ts = stamp(k)
+        transforms = []
+        for i, (pi, qi) in enumerate(zip(pk, qk)):
+            f = pose(pi, qi)
+            transforms.append({"timestamp": ts, "parent_frame_id": "world", "child_frame_id": f"link{i + 1}",
+                               "translation": f["position"], "rotation": f["orientation"]})
+        out.append(_json({"transforms": transforms}))
+    return out
+
+
+def _scene_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link_length_m: float | None) -> list[bytes]:
+    if link_length_m:
+        size = {"x": float(link_length_m), "y": LINK_WIDTH_M, "z": LINK_WIDTH_M}
+    else:
+        size = {"x": DEFAULT_CUBE_M, "y": DEFAULT_CUBE_M, "z": DEFAULT_CUBE_M}
+    out = []
+    for k, pk, qk in zip(ns.tolist(), _plain(p), _plain(q)):
+        ts = stamp(k)
+        entities = [{"timestamp": ts, "frame_id": "world", "id": f"link{i + 1}", "frame_locked": False,
+                     "cubes": [{"pose": pose(pi, qi), "size": size, "color": _LINK_COLOR}]}
+                    for i, (pi, qi) in enumerate(zip(pk, qk))]
+        entities += [{"timestamp": ts, "frame_id": "world", "id": f"cable{i + 1}", "frame_locked": False,
+                      "lines": [{"type": 0, "pose": _IDENTITY, "thickness": 0.03, "scale_invariant": False,
+                                 "points": [dict(zip("xyz", pk[i])), dict(zip("xyz", pk[i + 1]))],
+                                 "color": _CABLE_COLOR}]}
+                     for i in range(len(pk) - 1)]
+        out.append(_json({"deletions": [], "entities": entities}))
+    return out
+
+
+def _series_messages(ns: np.ndarray, fields: dict[str, np.ndarray]) -> list[bytes]:
+    names = list(fields)
+    columns = [_plain(fields[name]) for name in names]
+    return [_json({"timestamp": stamp(k), **dict(zip(names, row))})
+            for k, *row in zip(ns.tolist(), *columns)]
+
+
+def _scene_stride(t: np.ndarray) -> int:
+    """Every how many log samples ``/scene`` takes one (at most :data:`SCENE_MAX_HZ`)."""
+    if len(t) < 2:
+        return 1
+    dt = float(np.median(np.diff(t)))
+    return max(1, math.ceil(1.0 / (dt * SCENE_MAX_HZ) - 1e-9)) if dt > 0 else 1
+
+
+def channels(log: Mapping[str, np.ndarray], link_length_m: float | None = None) -> list[tuple[str, str, np.ndarray, list[bytes]]]:
+    """``(topic, schema name, times in ns, JSON messages)`` of every channel the log has arrays for."""
+    out = []
+    truth = _series(log, "t", "p_true", "q_true")
+    n = truth[0].shape[1] if truth else None
+    if truth:
+        ns = _nanoseconds(log["t"])
+        out.append(("/tf", FRAME_TRANSFORMS, ns, _tf_messages(ns, *truth)))
+        stride = _scene_stride(np.asarray(log["t"], dtype=float))
+        out.append(("/scene", SCENE_UPDATE, ns[::stride],
+                    _scene_messages(ns[::stride], truth[0][::stride], truth[1][::stride], link_length_m)))
+    poses = [("truth", "t", "p_true", "q_true"), ("ekf", "t", "p_ekf", "q_ekf"),
+             ("corrected", "t_sckf", "p_corr_sckf", "q_corr_sckf"), ("target", "t", "p_target", "q_target")]
+    per_link = []
+    for name, stamp_key, p_key, q_key in poses:
+        arrays = _series(log, stamp_key, p_key, q_key, width=n)
+        if arrays:
+            ns = _nanoseconds(log[stamp_key])
+            per_link += [(i, f"/link{i + 1}/{name}", POSE_IN_FRAME, ns, _pose_messages(ns, *arrays, i))
+                         for i in range(arrays[0].shape[1])]
+    thrust = _series(log, "t", "thrust", width=n)
+    if thrust:
+        ns = _nanoseconds(log["t"])
+        per_link += [(i, f"/link{i + 1}/thrust", SERIES, ns, _series_messages(ns, {"thrust_n": thrust[0][:, i]}))
+                     for i in range(thrust[0].shape[1])]
+    out += [c[1:] for c in sorted(per_link, key=lambda c: c[0])]  # link by link, in the order above
+    step = {}
+    for name, key in STEP_FIELDS.items():
+        arrays = _series(log, "t_sckf", key)
+        if arrays:
+            step[name] = arrays[0]
+    if step:
+        ns = _nanoseconds(log["t_sckf"])
+        out.append(("/companion/step", SERIES, ns, _series_messages(ns, step)))
+    return out
+
+
+def export_log(log: Mapping[str, np.ndarray], out: str | Path, link_length_m: float | None = None) -> dict[str, int]:
+    """Write the log's channels to the MCAP file ``out``; returns the message count per topic
+    (``ImportError`` without the ``mcap`` package, ``ValueError`` for a log with no channel)."""
+    import mcap.writer  # noqa: F401 (ImportError before the messages are built)
+
+    chans = channels(log, link_length_m)
+    if not chans:
+        raise ValueError("the log holds none of the arrays a channel is made of (t, p_true, q_true, ...)")
+    out = Path(out)
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        _write(tmp, chans)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(tmp, out)
+    return {topic: len(ns) for topic, _, ns, _ in chans}
+
+
+def _write(path: Path, chans: list) -> None:
+    """The channels' messages in time order (ties in channel order) to the MCAP file ``path``."""
+    from mcap.writer import CompressionType, Writer
+
+    compression = CompressionType.ZSTD if importlib.util.find_spec("zstandard") else CompressionType.NONE
+    times = np.concatenate([c[2] for c in chans])
+    ids = np.concatenate([np.full(len(c[2]), j, dtype=np.int64) for j, c in enumerate(chans)])
+    sequence = np.concatenate([np.arange(len(c[2]), dtype=np.int64) for c in chans])
+    payloads = [m for c in chans for m in c[3]]
+    order = np.argsort(times, kind="stable")
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=compression)
+        writer.start(profile="", library="aerial-skeleton-stack")
+        schema_ids = {name: writer.register_schema(name=name, encoding="jsonschema", data=SCHEMAS[name])
+                      for name in dict.fromkeys(c[1] for c in chans)}
+        channel_ids = [writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_ids[schema])
+                       for topic, schema, _, _ in chans]
+        add = writer.add_message
+        for j, k, s, m in zip(ids[order].tolist(), times[order].tolist(), sequence[order].tolist(),
+                              [payloads[i] for i in order.tolist()]):
+            add(channel_id=channel_ids[j], log_time=k, data=m, publish_time=k, sequence=s)
+        writer.finish()
+
+
+def _link_length(run_dir: Path) -> float | None:
+    """``skeleton.link_length_m`` of the run folder's ``scenario.toml``, if it has one."""
+    try:
+        value = tomllib.loads((run_dir / "scenario.toml").read_text()).get("skeleton", {}).get("link_length_m")
+    except (OSError, tomllib.TOMLDecodeError, AttributeError):
+        return None
+    return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
+def write_run_mcap(run_dir: str | Path, out: str | Path | None = None) -> tuple[Path, dict[str, int]]:
+    """Convert ``run_dir/log.npz`` to ``out`` (default ``run_dir/run.mcap``); returns the path and
+    the message count per topic (``FileNotFoundError`` without a log.npz; see :func:`export_log`)."""
+    run_dir = Path(run_dir)
+    out = Path(out) if out is not None else run_dir / MCAP_NAME
+    with np.load(run_dir / "log.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    return out, export_log(arrays, out, _link_length(run_dir))
+
+
+def write_beside_log(run_dir: str | Path) -> Path | None:
+    """:func:`write_run_mcap` at the end of a run: one log line instead of an error when the
+    ``mcap`` package is missing or the log cannot be converted; the path written, or ``None``."""
+    try:
+        path, _ = write_run_mcap(run_dir)
+    except ImportError:
+        _log.info("run.mcap not written: the mcap package is missing; %s", INSTALL_HINT)
+        return None
+    except Exception as exc:  # noqa: BLE001 (the run's other artefacts stand without it)
+        _log.warning("run.mcap not written: %s", exc)
+        return None
+    return path
