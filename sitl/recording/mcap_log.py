@@ -30,7 +30,7 @@ import logging
 import math
 import os
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +59,8 @@ STEP_FIELDS = {
 #: the cube's edge when the link's length is unknown (m)
 DEFAULT_CUBE_M = 0.4
 LINK_WIDTH_M = 0.1
+#: log rows turned into Python lists at a time while the messages are made
+_ROWS_AT_ONCE = 1024
 INSTALL_HINT = "pip install 'aerial-skeleton-stack[view]' (or pip install 'mcap>=1.1')"
 
 _LINK_COLOR = {"r": 0.2, "g": 0.45, "b": 0.9, "a": 0.6}
@@ -79,6 +81,13 @@ def _plain(a: np.ndarray) -> list:
     return a.tolist()
 
 
+def _rows(a: np.ndarray) -> Iterator:
+    """The rows of ``a`` as :func:`_plain` gives them, converted :data:`_ROWS_AT_ONCE` at a time
+    (a long log's messages are made as they are written, never all held at once)."""
+    for start in range(0, len(a), _ROWS_AT_ONCE):
+        yield from _plain(a[start:start + _ROWS_AT_ONCE])
+
+
 def _nanoseconds(t: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(t, dtype=float) * 1e9).astype(np.int64)
 
@@ -97,32 +106,28 @@ def _series(log: Mapping[str, np.ndarray], stamp_key: str, *keys: str, width: in
     return arrays
 
 
-def _pose_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link: int) -> list[bytes]:
-    ps, qs = _plain(p[:, link]), _plain(q[:, link])
-    return [_json({"timestamp": stamp(k), "frame_id": "world", "pose": pose(pk, qk)})
-            for k, pk, qk in zip(ns.tolist(), ps, qs)]
+def _pose_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link: int) -> Iterator[bytes]:
+    return (_json({"timestamp": stamp(k), "frame_id": "world", "pose": pose(pk, qk)})
+            for k, pk, qk in zip(ns.tolist(), _rows(p[:, link]), _rows(q[:, link])))
 
 
-def _tf_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray) -> list[bytes]:
-    out = []
-    for k, pk, qk in zip(ns.tolist(), _plain(p), _plain(q)):
+def _tf_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray) -> Iterator[bytes]:
+    for k, pk, qk in zip(ns.tolist(), _rows(p), _rows(q)):
         ts = stamp(k)
         transforms = []
         for i, (pi, qi) in enumerate(zip(pk, qk)):
             f = pose(pi, qi)
             transforms.append({"timestamp": ts, "parent_frame_id": "world", "child_frame_id": f"link{i + 1}",
                                "translation": f["position"], "rotation": f["orientation"]})
-        out.append(_json({"transforms": transforms}))
-    return out
+        yield _json({"transforms": transforms})
 
 
-def _scene_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link_length_m: float | None) -> list[bytes]:
+def _scene_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link_length_m: float | None) -> Iterator[bytes]:
     if link_length_m:
         size = {"x": float(link_length_m), "y": LINK_WIDTH_M, "z": LINK_WIDTH_M}
     else:
         size = {"x": DEFAULT_CUBE_M, "y": DEFAULT_CUBE_M, "z": DEFAULT_CUBE_M}
-    out = []
-    for k, pk, qk in zip(ns.tolist(), _plain(p), _plain(q)):
+    for k, pk, qk in zip(ns.tolist(), _rows(p), _rows(q)):
         ts = stamp(k)
         entities = [{"timestamp": ts, "frame_id": "world", "id": f"link{i + 1}", "frame_locked": False,
                      "cubes": [{"pose": pose(pi, qi), "size": size, "color": _LINK_COLOR}]}
@@ -132,15 +137,14 @@ def _scene_messages(ns: np.ndarray, p: np.ndarray, q: np.ndarray, link_length_m:
                                  "points": [dict(zip("xyz", pk[i])), dict(zip("xyz", pk[i + 1]))],
                                  "color": _CABLE_COLOR}]}
                      for i in range(len(pk) - 1)]
-        out.append(_json({"deletions": [], "entities": entities}))
-    return out
+        yield _json({"deletions": [], "entities": entities})
 
 
-def _series_messages(ns: np.ndarray, fields: dict[str, np.ndarray]) -> list[bytes]:
+def _series_messages(ns: np.ndarray, fields: dict[str, np.ndarray]) -> Iterator[bytes]:
     names = list(fields)
-    columns = [_plain(fields[name]) for name in names]
-    return [_json({"timestamp": stamp(k), **dict(zip(names, row))})
-            for k, *row in zip(ns.tolist(), *columns)]
+    columns = [_rows(fields[name]) for name in names]
+    return (_json({"timestamp": stamp(k), **dict(zip(names, row))})
+            for k, *row in zip(ns.tolist(), *columns))
 
 
 def _scene_stride(t: np.ndarray) -> int:
@@ -151,8 +155,10 @@ def _scene_stride(t: np.ndarray) -> int:
     return max(1, math.ceil(1.0 / (dt * SCENE_MAX_HZ) - 1e-9)) if dt > 0 else 1
 
 
-def channels(log: Mapping[str, np.ndarray], link_length_m: float | None = None) -> list[tuple[str, str, np.ndarray, list[bytes]]]:
-    """``(topic, schema name, times in ns, JSON messages)`` of every channel the log has arrays for."""
+def channels(log: Mapping[str, np.ndarray],
+             link_length_m: float | None = None) -> list[tuple[str, str, np.ndarray, Iterator[bytes]]]:
+    """``(topic, schema name, times in ns, JSON messages)`` of every channel the log has arrays for;
+    the messages are made as they are iterated, in the order of the times."""
     out = []
     truth = _series(log, "t", "p_true", "q_true")
     n = truth[0].shape[1] if truth else None
@@ -215,7 +221,9 @@ def _write(path: Path, chans: list) -> None:
     times = np.concatenate([c[2] for c in chans])
     ids = np.concatenate([np.full(len(c[2]), j, dtype=np.int64) for j, c in enumerate(chans)])
     sequence = np.concatenate([np.arange(len(c[2]), dtype=np.int64) for c in chans])
-    payloads = [m for c in chans for m in c[3]]
+    messages = [c[3] for c in chans]  # each channel's iterator, read in its own time order
+    # a channel whose times go back (a hostile or damaged log) is made at once and read by sequence
+    held = {j: list(c[3]) for j, c in enumerate(chans) if np.any(np.diff(c[2]) < 0)}
     order = np.argsort(times, kind="stable")
     with open(path, "wb") as stream:
         writer = Writer(stream, compression=compression)
@@ -225,9 +233,9 @@ def _write(path: Path, chans: list) -> None:
         channel_ids = [writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_ids[schema])
                        for topic, schema, _, _ in chans]
         add = writer.add_message
-        for j, k, s, m in zip(ids[order].tolist(), times[order].tolist(), sequence[order].tolist(),
-                              [payloads[i] for i in order.tolist()]):
-            add(channel_id=channel_ids[j], log_time=k, data=m, publish_time=k, sequence=s)
+        for j, k, s in zip(ids[order].tolist(), times[order].tolist(), sequence[order].tolist()):
+            data = held[j][s] if held and j in held else next(messages[j])
+            add(channel_id=channel_ids[j], log_time=k, data=data, publish_time=k, sequence=s)
         writer.finish()
 
 
