@@ -16,7 +16,10 @@ each written only when the log holds its arrays (links numbered from 1):
 - ``/link{i}/thrust`` (``skeleton.Series``): ``thrust_n``, the rotors' thrusts, at ``t``;
 - ``/companion/step`` (``skeleton.Series``): per companion step (``t_sckf``) the constraint
   errors per joint before and after the correction, the iterations, the global step's flag per
-  group, the largest NIS, the corrected links and the step's cycle time (:data:`STEP_FIELDS`).
+  group, the largest NIS, the corrected links and the step's cycle time (:data:`STEP_FIELDS`);
+- ``/contact`` (``skeleton.Series``): the ODAR wall push's contact (:data:`CONTACT_FIELDS`);
+- ``/load/truth``, ``/load/ekf``, ``/load/ukf`` (``foxglove.PoseInFrame``): the slung load's pose
+  and its two filters' estimates, from the run folder's ``load.npz``.
 
 A non-finite number is written as JSON ``null``. Chunks are zstd-compressed when the
 ``zstandard`` module is importable, else uncompressed.
@@ -37,7 +40,8 @@ import numpy as np
 
 from .foxglove import FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
 
-__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "MCAP_NAME", "channels", "export_log", "write_run_mcap", "write_beside_log"]
+__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "export_log",
+           "write_run_mcap", "write_beside_log"]
 
 _log = logging.getLogger(__name__)
 
@@ -56,6 +60,20 @@ STEP_FIELDS = {
     "corrected": "corrected_sckf",
     "cycle_us": "cycle_us",
 }
+#: ``/contact`` field -> the log's key (stamped ``contact_t``): the ODAR wall push's contact force
+#: along the wall's normal (true, commanded, the observer's estimate), the wrenches and the flag
+CONTACT_FIELDS = {
+    "force_true_n": "contact_force_true_n",
+    "force_cmd_n": "contact_force_cmd_n",
+    "force_hat_n": "contact_force_hat_n",
+    "wrench_true": "contact_wrench_true",
+    "wrench_hat": "contact_wrench_hat",
+    "engaged": "contact_engaged",
+}
+#: the slung load's poses, ``/load/<name>`` from ``load.npz`` (stamped ``load_t``):
+#: ``(name, position key, quaternion key)``
+LOAD_POSES = (("truth", "load_p_true", "load_q_true"), ("ekf", "load_ekf_p", "load_ekf_q"),
+              ("ukf", "load_ukf_p", "load_ukf_q"))
 #: the cube's edge when the link's length is unknown (m)
 DEFAULT_CUBE_M = 0.4
 LINK_WIDTH_M = 0.1
@@ -183,15 +201,30 @@ def channels(log: Mapping[str, np.ndarray],
         per_link += [(i, f"/link{i + 1}/thrust", SERIES, ns, _series_messages(ns, {"thrust_n": thrust[0][:, i]}))
                      for i in range(thrust[0].shape[1])]
     out += [c[1:] for c in sorted(per_link, key=lambda c: c[0])]  # link by link, in the order above
-    step = {}
-    for name, key in STEP_FIELDS.items():
-        arrays = _series(log, "t_sckf", key)
-        if arrays:
-            step[name] = arrays[0]
-    if step:
-        ns = _nanoseconds(log["t_sckf"])
-        out.append(("/companion/step", SERIES, ns, _series_messages(ns, step)))
+    out += _series_channel(log, "/companion/step", "t_sckf", STEP_FIELDS)
+    out += _series_channel(log, "/contact", "contact_t", CONTACT_FIELDS)
+    for name, p_key, q_key in LOAD_POSES:
+        arrays = _series(log, "load_t", p_key, q_key)
+        if arrays and arrays[0].shape[1:] == (3,) and arrays[1].shape[1:] == (4,):
+            ns = _nanoseconds(log["load_t"])
+            messages = _pose_messages(ns, arrays[0][:, None], arrays[1][:, None], 0)
+            out.append((f"/load/{name}", POSE_IN_FRAME, ns, messages))
     return out
+
+
+def _series_channel(log: Mapping[str, np.ndarray], topic: str, stamp_key: str,
+                    fields: Mapping[str, str]) -> list[tuple[str, str, np.ndarray, Iterator[bytes]]]:
+    """The ``skeleton.Series`` channel ``topic`` of the ``fields`` (message field -> log key) the
+    log holds at ``stamp_key``; none when it holds none of them."""
+    present = {}
+    for name, key in fields.items():
+        arrays = _series(log, stamp_key, key)
+        if arrays:
+            present[name] = arrays[0]
+    if not present:
+        return []
+    ns = _nanoseconds(log[stamp_key])
+    return [(topic, SERIES, ns, _series_messages(ns, present))]
 
 
 def export_log(log: Mapping[str, np.ndarray], out: str | Path, link_length_m: float | None = None) -> dict[str, int]:
@@ -255,6 +288,9 @@ def write_run_mcap(run_dir: str | Path, out: str | Path | None = None) -> tuple[
     out = Path(out) if out is not None else run_dir / MCAP_NAME
     with np.load(run_dir / "log.npz") as npz:
         arrays = {k: npz[k] for k in npz.files}
+    if (run_dir / "load.npz").is_file():  # the slung load's estimates
+        with np.load(run_dir / "load.npz") as npz:
+            arrays.update({k: npz[k] for k in npz.files if k not in arrays})
     return out, export_log(arrays, out, _link_length(run_dir))
 
 

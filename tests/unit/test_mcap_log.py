@@ -9,7 +9,7 @@ import pytest
 from mcap.reader import make_reader
 
 from sitl.recording.foxglove import SCHEMAS
-from sitl.recording.mcap_log import STEP_FIELDS, export_log, write_beside_log, write_run_mcap
+from sitl.recording.mcap_log import CONTACT_FIELDS, LOAD_POSES, STEP_FIELDS, export_log, write_beside_log, write_run_mcap
 
 T, S = 50, 25  # log samples (50 Hz) and companion steps (25 Hz)
 SCKF_KEYS = ("t_sckf", "p_corr_sckf", "q_corr_sckf", *STEP_FIELDS.values())
@@ -193,3 +193,40 @@ def test_a_log_whose_time_goes_back_keeps_each_message_with_its_own_sample(tmp_p
             assert log_time == ns([log["t"][k]])[0]
     pos = {seq: m["pose"]["position"] for _, _, seq, m in messages["/link1/truth"]}
     assert [pos[10]["x"], pos[11]["x"]] == [log["p_true"][10, 0, 0], log["p_true"][11, 0, 0]]
+
+
+def test_the_wall_contact_and_the_slung_load_get_their_own_channels(tmp_path):
+    """A wall push's contact series in log.npz and a slung load's poses in load.npz beside it."""
+    rng = np.random.default_rng(7)
+    log = synthetic_log(1)
+    log.update(contact_t=log["t"], contact_force_true_n=rng.uniform(0, 5, T), contact_force_cmd_n=np.full(T, 3.0),
+               contact_force_hat_n=rng.uniform(0, 5, T), contact_wrench_true=rng.normal(size=(T, 6)),
+               contact_wrench_hat=rng.normal(size=(T, 6)), contact_engaged=rng.random(T) < 0.5)
+    np.savez(tmp_path / "log.npz", **log)
+    load = {"load_t": np.arange(40) / 20.0}
+    for _, p_key, q_key in LOAD_POSES:
+        q = rng.normal(size=(40, 4))
+        load[p_key], load[q_key] = rng.normal(size=(40, 3)), q / np.linalg.norm(q, axis=1, keepdims=True)
+    np.savez(tmp_path / "load.npz", **load)
+    _, counts = write_run_mcap(tmp_path)
+    _, messages = read_back(tmp_path / "run.mcap")
+    assert set(counts) == set(messages) == expected_topics(1) | {"/contact", "/load/truth", "/load/ekf", "/load/ukf"}
+    contact = [m for *_, m in messages["/contact"]]
+    assert [r[0] for r in messages["/contact"]] == ns(log["contact_t"])
+    assert set(contact[0]) == {"timestamp", *CONTACT_FIELDS}
+    assert [m["force_true_n"] for m in contact] == log["contact_force_true_n"].tolist()
+    assert [m["wrench_hat"] for m in contact] == log["contact_wrench_hat"].tolist()
+    for name, p_key, q_key in LOAD_POSES:
+        rows = messages[f"/load/{name}"]
+        assert [r[0] for r in rows] == ns(load["load_t"])
+        pos, rot = rows[5][3]["pose"]["position"], rows[5][3]["pose"]["orientation"]
+        assert [pos["x"], pos["y"], pos["z"]] == load[p_key][5].tolist()
+        assert [rot["w"], rot["x"], rot["y"], rot["z"]] == load[q_key][5].tolist()
+
+
+def test_a_load_pose_of_the_wrong_width_is_left_out(tmp_path):
+    log = synthetic_log(2)
+    log.update(load_t=np.arange(10.0), load_p_true=np.zeros((10, 2)), load_q_true=np.tile([1.0, 0, 0, 0], (10, 1)),
+               load_ekf_p=np.zeros((10, 3)), load_ekf_q=np.tile([1.0, 0, 0, 0], (10, 1)))
+    counts = export_log(log, tmp_path / "run.mcap")
+    assert "/load/truth" not in counts and counts["/load/ekf"] == 10 and "/load/ukf" not in counts
