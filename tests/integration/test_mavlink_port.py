@@ -40,6 +40,15 @@ def _read_until(port, n, timeout=2.0):
     return out
 
 
+def _read_until_disconnected(port, timeout=2.0) -> bool:
+    """Read ``port`` until its transport notices the peer is gone; whether it did within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while port.transport.connected and time.monotonic() < deadline:
+        wait_readable([port], 0.05)
+        port.read()
+    return not port.transport.connected
+
+
 def _read_while_counting(port, counted, timeout=2.0) -> list:
     """What ``port`` reads until ``counted()`` says its counters have seen every datagram sent to it."""
     out = []
@@ -170,11 +179,7 @@ def test_tcp_server_client_and_reconnect():
         server.send(_heartbeat())
         assert _read_until(client, 1)[0].get_srcSystem() == 1
         client.close()
-        deadline = time.monotonic() + 2.0
-        while server.transport.connected and time.monotonic() < deadline:
-            wait_readable([server], 0.05)
-            server.read()
-        assert not server.transport.connected
+        assert _read_until_disconnected(server)
     server.close()
 
 
@@ -240,11 +245,7 @@ def test_serial_device_missing_then_plugged_in_then_unplugged(tmp_path, caplog):
     os.close(slave)
     os.close(master)  # unplugged: the next read notices, the port reopens later
     os.unlink(link)
-    deadline = time.monotonic() + 2.0
-    while port.transport.connected and time.monotonic() < deadline:
-        wait_readable([port], 0.05)
-        port.read()
-    assert not port.transport.connected
+    assert _read_until_disconnected(port)
     port.close()
 
 
