@@ -28,7 +28,9 @@ invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog``
 CLI), ``companion_log.stream`` (the engine's step log, appended every second with the rows since
 the last flush: a companion killed in flight keeps all but its last second; read it with
 :func:`companion.logstream.read_log_stream`), ``companion_log.npz`` (the whole step log, at the
-end) and ``companion_summary.json``.
+end), ``companion.mcap`` (the step log, the health reports and the links' STATUSTEXTs for Foxglove
+and Lichtblick, at the end, when the ``mcap`` package is installed:
+:mod:`companion.recording.companion_mcap`) and ``companion_summary.json``.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import json
 import logging
 import signal
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +71,9 @@ D = load_dialect()
 
 COMPANION_SYSTEM_ID = 190
 COMPANION_COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+#: health reports and STATUSTEXTs kept for companion.mcap (the newest; a report a minute at the
+#: default period keeps a day of flight)
+MAX_RECORDED = 100_000
 _ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME"})
 _ACK_COMMANDS = {D.MAV_CMD_COMPONENT_ARM_DISARM: Command.ARM, D.MAV_CMD_SET_MESSAGE_INTERVAL: Command.STREAM}
 
@@ -132,6 +138,11 @@ class CompanionDaemon:
         self.net = net
         self._stop = False
         self._log_stream = LogStream(out_dir / "companion_log.stream") if out_dir is not None else None
+        self._members = members
+        #: for companion.mcap: the health reports (time base [s], rows) and the links' STATUSTEXTs
+        #: (time base [s], link, severity, text), the newest MAX_RECORDED of each
+        self.health_log: deque = deque(maxlen=MAX_RECORDED)
+        self.statustext_log: deque = deque(maxlen=MAX_RECORDED)
 
     def _group_link(self, setup: CompanionSetup, group: int, bus, config_file: str):
         from .fleetnet.group import GroupLink
@@ -165,7 +176,9 @@ class CompanionDaemon:
             if command is not None:
                 engine.on_command_ack(row, command, msg.result == D.MAV_RESULT_ACCEPTED, msg.result)
         elif kind == "STATUSTEXT":
-            log.info("link %d: %s", engine.links[row].index + 1, msg.text)
+            link = engine.links[row].index + 1
+            log.info("link %d: %s", link, msg.text)
+            self.statustext_log.append((engine.fc_time_us * 1e-6, link, int(msg.severity), str(msg.text)))
         elif kind == "SYSTEM_TIME":
             engine.on_system_time(row, msg.time_unix_usec, msg.time_boot_ms)
         elif (kind, self.cfg.mode) in (("SKELETON_LINK_STATE", "dialect"), ("ODOMETRY", "standard")):
@@ -235,7 +248,9 @@ class CompanionDaemon:
 
     def health_table(self, period_s: float, now_s: float | None = None) -> str:
         now_s = self.clock() if now_s is None else now_s
-        return format_health_table(self.engine.health_rows(period_s, now_s), self.ports)
+        rows = self.engine.health_rows(period_s, now_s)
+        self.health_log.append((self.engine.fc_time_us * 1e-6, rows))
+        return format_health_table(rows, self.ports)
 
     # -- main loop ---------------------------------------------------------------------------------------
     def poll(self, timeout_s: float) -> None:
@@ -290,6 +305,28 @@ class CompanionDaemon:
         tmp = self.out_dir / "companion_log.tmp.npz"
         np.savez(tmp, **self.engine.log_arrays())
         tmp.replace(self.out_dir / "companion_log.npz")
+        self.write_mcap()
+
+    def write_mcap(self) -> Path | None:
+        """``companion.mcap`` (:mod:`companion.recording.companion_mcap`): the step log, the health
+        reports and the STATUSTEXTs for Foxglove and Lichtblick; one log line instead when the
+        ``mcap`` package is missing or there is nothing to write."""
+        if self.out_dir is None:
+            return None
+        try:
+            from .recording.companion_mcap import COMPANION_MCAP, write_companion_mcap
+
+            path = self.out_dir / COMPANION_MCAP
+            write_companion_mcap(path, self.engine.log_arrays(), self.setup.skeleton.d_b_m[list(self._members)],
+                                 first_link=self._members[0] + 1, health=self.health_log,
+                                 statustext=self.statustext_log)
+        except ImportError:
+            log.info("companion.mcap not written: the mcap package is missing (pip install 'mcap>=1.1')")
+            return None
+        except Exception as exc:  # noqa: BLE001 (the step log and summary stand without it)
+            log.warning("companion.mcap not written: %s", exc)
+            return None
+        return path
 
     def _close_ports(self) -> None:
         for port in self.ports:

@@ -6,7 +6,8 @@ lost, SIGKILL) writes nothing at exit. :class:`LogStream` appends the rows logge
 flush as one chunk: a header (the keys) and one ``.npy`` record per key, written with
 :func:`numpy.save` to one open file and flushed to the OS, so a killed process loses at most the
 rows since its last flush. :func:`read_log_stream` concatenates the chunks per key and stops at
-a truncated last chunk (the process died while writing it). No pickles: keys are a unicode array,
+a truncated last chunk (the process died while writing it); :class:`LogStreamReader` reads the
+chunks as they come. No pickles: keys are a unicode array,
 values numeric arrays, read with ``allow_pickle=False``.
 """
 
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LogStream", "read_log_stream"]
+__all__ = ["LogStream", "LogStreamReader", "read_log_stream"]
 
 log = logging.getLogger(__name__)
 
@@ -59,22 +60,45 @@ class LogStream:
             self._fh.close()
 
 
+class LogStreamReader:
+    """Reads a log stream as it grows: :meth:`read_new` returns the rows appended since its last
+    call. A chunk still being written (or cut short) is read again at the next call."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.offset = 0
+
+    def read_new(self, final: bool = False) -> dict[str, np.ndarray]:
+        """The rows of every key in the whole chunks after the last read (none while the file does
+        not exist); ``final``: a chunk that cannot be read is logged as left out."""
+        parts: dict[str, list[np.ndarray]] = {}
+        try:
+            fh = open(self.path, "rb")
+        except FileNotFoundError:
+            return {}
+        with fh:
+            size = self.path.stat().st_size
+            fh.seek(self.offset)
+            while fh.tell() < size:
+                start = fh.tell()
+                try:
+                    keys = np.load(fh, allow_pickle=False)
+                    if keys.dtype.kind != "U" or keys.ndim != 1:
+                        raise ValueError("chunk header is not a list of keys")
+                    chunk = [(str(k), np.load(fh, allow_pickle=False)) for k in keys]
+                except (ValueError, EOFError, OSError) as exc:
+                    if final:
+                        log.warning("%s: chunk at byte %d unreadable (%s): the %d byte(s) after it are left out",
+                                    self.path, start, exc, size - start)
+                    break
+                self.offset = fh.tell()
+                for key, arr in chunk:
+                    parts.setdefault(key, []).append(arr)
+        return {k: np.concatenate(v, axis=0) for k, v in parts.items()}
+
+
 def read_log_stream(path: str | Path) -> dict[str, np.ndarray]:
     """The rows of every key, in the order written (a truncated last chunk is left out, logged)."""
-    parts: dict[str, list[np.ndarray]] = {}
-    with open(path, "rb") as fh:
-        size = Path(path).stat().st_size
-        while fh.tell() < size:
-            start = fh.tell()
-            try:
-                keys = np.load(fh, allow_pickle=False)
-                if keys.dtype.kind != "U" or keys.ndim != 1:
-                    raise ValueError("chunk header is not a list of keys")
-                chunk = [(str(k), np.load(fh, allow_pickle=False)) for k in keys]
-            except (ValueError, EOFError, OSError) as exc:
-                log.warning("%s: chunk at byte %d unreadable (%s): the %d byte(s) after it are left out",
-                            path, start, exc, size - start)
-                break
-            for key, arr in chunk:
-                parts.setdefault(key, []).append(arr)
-    return {k: np.concatenate(v, axis=0) for k, v in parts.items()}
+    if not Path(path).exists():
+        raise FileNotFoundError(path)
+    return LogStreamReader(path).read_new(final=True)

@@ -3,13 +3,15 @@
     python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--no-sckf] [--out DIR]
     python -m sitl launch --config configs/sitl/chain/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
     python -m sitl mcap RUN_DIR [--out FILE]
+    python -m sitl view RUN_DIR [--view-port P] [--at S] [--screenshot PNG]
 
 ``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
 20 Hz, in one process on one clock; it flies every kind. ``launch`` is fleet mode: one MAVLink
 vehicle process per link and the companion daemon, the harness in lockstep with them over
 PX4-style simulator links; it flies the kinds that have a fleet form and refuses the others. Both
-leave ``run.mcap`` (:mod:`sitl.recording.mcap_log`) beside ``log.npz``; ``mcap`` writes it for an
-existing run folder.
+leave ``run.mcap`` (:mod:`companion.recording.mcap_log`) beside ``log.npz``; ``mcap`` writes it for an
+existing run folder. ``view`` replays a run folder in the browser 3D view (:mod:`sitl.view`);
+``fly --view`` and ``launch --view`` show the run as it flies.
 Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
 key and reason; also an option or a mode the scenario's kind does not have), 3 the fleet failed
 (a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet mode still writes the metrics when
@@ -30,9 +32,10 @@ from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
 
 from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
-from .recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
+from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 from .scenario import with_options
 from .scenarios import load as load_scenario_file
+from .view.cli import add_live_args, add_view_parser, live
 
 # (the simulator's modules import MuJoCo, whose OpenGL backend is chosen first: _prepare_rendering)
 
@@ -111,15 +114,18 @@ def _cmd_fly(args) -> int:
                             selective_mapping=False if args.no_selective_mapping else None)
     options = {"video": args.video} if kind.video else {}
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
-    try:
-        with _progress(scenario, args, scenario.name, kind.runs) as bar:
-            metrics = kind.fly(scenario, out_dir, progress=bar.update, plots=not args.no_plots, **options)
-    except KeyboardInterrupt:
-        print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if not args.no_mcap and (out_dir / "log.npz").exists():
-        write_beside_log(out_dir)
-    return _report(metrics, out_dir, kind.summary)
+    with live(args, scenario.name, out_dir) as replay_after:
+        try:
+            with _progress(scenario, args, scenario.name, kind.runs) as bar:
+                metrics = kind.fly(scenario, out_dir, progress=bar.update, plots=not args.no_plots, **options)
+        except KeyboardInterrupt:
+            print(f"interrupted: no metrics ({out_dir})", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        if not args.no_mcap and (out_dir / "log.npz").exists():
+            write_beside_log(out_dir)
+        code = _report(metrics, out_dir, kind.summary)
+        replay_after(out_dir)
+    return code
 
 
 def _raise_interrupt(_signum, _frame):
@@ -149,19 +155,23 @@ def _cmd_launch(args) -> int:
 
     out_dir = make_run_dir(f"launch-{scenario.name}", args.out)
     signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / systemd stop: the same clean stop as Ctrl-C
-    try:
-        with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
-            metrics = kind.launch(scenario, out_dir, speed=args.speed, progress=bar.update, companion=not args.no_companion,
-                             plots=not args.no_plots, instance_offset=args.instance_offset,
-                             sim_link=args.sim_link, batch_scheduling=False if args.default_scheduling else None,
-                             gcs_port=args.gcs_port)
-    except FleetError as exc:
-        print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
-        return EXIT_FLEET
-    except KeyboardInterrupt:  # during start-up: the fleet is already stopped
-        print(f"interrupted (logs in {out_dir})", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    return _report(metrics, out_dir, kind.summary)
+    with live(args, f"{scenario.name} (fleet)", out_dir) as replay_after:
+        try:
+            with _progress(scenario, args, f"{scenario.name} (fleet)") as bar:
+                metrics = kind.launch(scenario, out_dir, speed=args.speed, progress=bar.update,
+                                      companion=not args.no_companion, plots=not args.no_plots,
+                                      instance_offset=args.instance_offset, sim_link=args.sim_link,
+                                      batch_scheduling=False if args.default_scheduling else None, gcs_port=args.gcs_port)
+        except FleetError as exc:
+            print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
+            return EXIT_FLEET
+        except KeyboardInterrupt:  # during start-up: the fleet is already stopped
+            print(f"interrupted (logs in {out_dir})", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        code = _report(metrics, out_dir, kind.summary)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        replay_after(out_dir)
+    return code
 
 
 def _cmd_mcap(args) -> int:
@@ -205,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="write an MP4 of the flight (chase camera, 30 fps of simulated time; with the scenario's "
                          "first onboard camera and the detected markers' axes inset)")
     fl.add_argument("--no-mcap", action="store_true", help="skip run.mcap (the log for Foxglove and Lichtblick)")
+    add_live_args(fl)
     fl.set_defaults(func=_cmd_fly)
     la = sub.add_parser(
         "launch",
@@ -230,6 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--default-scheduling", action="store_true",
                     help="unpaced (--speed 0) too, keep Linux's default scheduling policy; without it an unpaced "
                          "fleet runs under SCHED_BATCH: no process preempts the one that woke it (faster lockstep)")
+    add_live_args(la)
     la.set_defaults(func=_cmd_launch)
     mc = sub.add_parser(
         "mcap",
@@ -239,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     mc.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run folder holding log.npz")
     mc.add_argument("--out", metavar="FILE", type=Path, help="the MCAP file (default: RUN_DIR/run.mcap)")
     mc.set_defaults(func=_cmd_mcap)
+    add_view_parser(sub)
     return parser
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.kernels import warm as _companion_kernels
+from companion.linkstate import word as state_word
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
 from companion.estimation.so3 import quat_to_rotmat
 from companion.fleetnet.group import GroupLink
@@ -44,6 +45,7 @@ from .plant.schedule import Schedule
 from .scenario import Scenario, with_options
 from .steplog import attach_truth, merge_step_logs
 from .task import Task
+from .watch import announce
 
 __all__ = ["BatchRunner", "RunLog", "warm_up_kernels"]
 
@@ -83,6 +85,10 @@ class RunLog:
     # CPG motion (log ticks): the parameters in use and the desired motion
     eta: list = field(default_factory=list)
     xi_desired: list = field(default_factory=list)
+    #: each link's state word (:mod:`companion.linkstate`)
+    link_state: list = field(default_factory=list)
+    #: each link's newest correction latency (applied minus the state's time) [ms], NaN: none yet
+    correction_latency_ms: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
@@ -161,6 +167,7 @@ class BatchRunner:
         #: (cameras, video, an estimator beside the flight)
         self.tick_hooks: list = []
         self.task.initialize(self)
+        announce(self)
 
     @property
     def model(self):
@@ -354,6 +361,22 @@ class BatchRunner:
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
             lg.xi_desired.append(self.trajectory.xi_desired.copy())
+        lg.link_state.append(self.link_states(t))
+        if self.scenario.companion.enabled:
+            lg.correction_latency_ms.append([fw.correction_latency_us * 1e-3 if fw.latency_log else np.nan
+                                             for fw in self.firmware])
+
+    def link_states(self, t: float) -> np.ndarray:
+        """Every link's state word at ``t`` (:mod:`companion.linkstate`): its firmware's flags, the
+        companion's carried and left-out links, and the links without power."""
+        tracks = {lk.index: lk for engine in self.engines for lk in engine.links}
+        out = np.zeros(self.n, dtype=np.uint8)
+        for i, fw in enumerate(self.firmware):
+            down = i in self._down
+            lk = tracks.get(i)
+            out[i] = state_word(0 if down else fw.flags(t), carried=lk is not None and lk.carried.on,
+                                excluded=lk is not None and bool(lk.status), down=down)
+        return out
 
     def run(self, duration_s: float, progress=None) -> RunLog:
         """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""

@@ -77,13 +77,28 @@ def fleet_ports(compiled_kernels) -> FleetPorts:
         yield FleetPorts(k, gcs_port)
 
 
-def _need_rendering() -> str:
+def _need(check, unavailable: type[Exception], env: str):
+    """``check()``'s value; when it raises ``unavailable``: a skip with its reason, or a failure
+    where ``env`` is set to 1 (CI, which installs what the check needs)."""
     try:
-        return require_rendering()
-    except RenderingUnavailable as exc:
-        if os.environ.get("SKELETON_REQUIRE_RENDERING") == "1":
-            pytest.fail(f"SKELETON_REQUIRE_RENDERING=1: {exc}")
+        return check()
+    except unavailable as exc:
+        if os.environ.get(env) == "1":
+            pytest.fail(f"{env}=1: {exc}")
         pytest.skip(str(exc))
+
+
+def _need_rendering() -> str:
+    return _need(require_rendering, RenderingUnavailable, "SKELETON_REQUIRE_RENDERING")
+
+
+@pytest.fixture(scope="session")
+def browser_binary() -> str:
+    """Debian's Chromium, for the tests marked ``browser`` (skipped without it, failed with
+    ``SKELETON_REQUIRE_BROWSER=1``)."""
+    from sitl.view.browser import BrowserUnavailable, require_browser
+
+    return _need(require_browser, BrowserUnavailable, "SKELETON_REQUIRE_BROWSER")
 
 
 @pytest.fixture(scope="session")

@@ -17,7 +17,7 @@ from .streams.schedule import Stream
 
 __all__ = ["FlightRecorder"]
 
-_COLUMNS = ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target", "pspm")
+_COLUMNS = ("t", "p_ekf", "q_ekf", "p_ctrl", "q_ctrl", "p_target", "q_target", "pspm", "flags")
 
 
 class FlightRecorder:
@@ -28,7 +28,8 @@ class FlightRecorder:
         self.out_dir = out_dir
         self.system_id = system_id
         self._grid = Stream.at_rate(rate_hz)
-        #: the log's columns; pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m]
+        #: the log's columns; pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m];
+        #: flags: the state flags it reports (SKELETON_STATE_FLAGS)
         self.rows: dict[str, list] = {k: [] for k in _COLUMNS}
         self._stream = LogStream(out_dir / f"link{system_id}_firmware.stream") if out_dir is not None else None
 
@@ -58,6 +59,7 @@ class FlightRecorder:
         r["p_target"].append(target.p_w_m)
         r["q_target"].append(target.q_wxyz)
         r["pspm"].append(fw.pspm_report() or (math.nan,) * 3)
+        r["flags"].append(fw.flags(t_s))  # the SKELETON_STATE_FLAGS it reports
 
     def _lists(self) -> dict[str, list]:
         return {**self.rows, "correction_latency": self.fw.latency_log}

@@ -9,6 +9,7 @@
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
     python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
+    python -m sitl.bench view [--config TOML] [--duration S] [--repeat N] [--modes off,on,browser] [--out DIR]
     (every bench also takes [--doc [PATH] | --no-doc], below)
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
@@ -56,6 +57,7 @@ DOCS = {
     "sitl": ("SITL speed: batch and fleet real-time factors against MuJoCo alone",
              ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
     "controllers": ("One link's pose controllers on one scenario: tracking", ("numpy", "mujoco", "numba")),
+    "view": ("The live 3D view's cost: a batch flight with and without --view", ("numpy", "mujoco", "numba", "viser")),
 }
 
 
@@ -243,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_doc_options(sp, name)
         sp.set_defaults(func=_cmd_seeds, bench=name)
     _add_sitl_parser(sub)
+    _add_view_parser(sub)
     lfb = sub.add_parser(
         "load_filter",
         help="slung load pose: EKF vs UKF vs unfiltered on the synthetic scenario, N seeds",
@@ -414,6 +417,40 @@ def _add_sitl_parser(sub) -> None:
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
     add_doc_options(sp, "sitl")
     sp.set_defaults(func=_cmd_sitl)
+
+
+def _cmd_view(args) -> int:
+    from .view_cost import MODES, format_view_cost, markdown_view_cost, run_view_cost
+
+    modes = tuple(m for m in args.modes.split(",") if m)
+    if args.repeat < 1 or args.duration <= 0 or not modes or any(m not in MODES for m in modes):
+        print(f"error: --repeat >= 1, --duration > 0 and --modes from {','.join(MODES)} (got {args.repeat}, "
+              f"{args.duration}, {args.modes})", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("view-cost", args.out)
+    with tqdm(total=args.repeat * len(modes), desc="flights", disable=args.quiet, file=sys.stderr) as bar:
+        result = run_view_cost(args.config, args.duration, args.repeat, run_dir, modes, progress=bar.update)
+    path = _write_json(result, args.json, run_dir, "view_cost.json")
+    text = format_view_cost(result)
+    print(text)
+    print(f"\nwrote {path}")
+    _write_doc(args, run_dir, markdown_view_cost(result), text, [path])
+    return 0 if all(r["exit_code"] == 0 and not r["browser_error"] for r in result["runs"]) else 1
+
+
+def _add_view_parser(sub) -> None:
+    vp = sub.add_parser("view", help="the live 3D view's cost: a batch flight with and without --view, interleaved",
+                        description="Fly one batch scenario N times in each view mode (off, on, on with headless "
+                                    "Chromium connected), interleaved, and compare the flights' wall times.")
+    vp.add_argument("--config", default="configs/sitl/chain/three_link.toml", help="scenario (default three_link)")
+    vp.add_argument("--duration", type=float, default=30.0, help="simulated seconds per flight (default 30)")
+    vp.add_argument("--repeat", type=int, default=3, help="rounds (default 3)")
+    vp.add_argument("--modes", default="off,on,browser", help="view modes, comma-separated (default off,on,browser)")
+    vp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    vp.add_argument("--out", metavar="DIR", help="run folder (default: runs/view-cost-<UTC time>)")
+    vp.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(vp, "view")
+    vp.set_defaults(func=_cmd_view)
 
 
 def _cmd_load_filter(args) -> int:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from sitl.watch import announce
+
 __all__ = ["FlightCameras"]
 
 
@@ -17,7 +19,8 @@ class FlightCameras:
 
     def __init__(self, runner, video: Path | None, consumers=()):
         self.runner, self.video_path = runner, video
-        self.consumers = tuple(consumers)
+        #: called with every delivered frame after the vision log (a live view adds itself)
+        self.consumers = list(consumers)
         self.rig = self.log = self.video = None
 
     def __enter__(self) -> FlightCameras:
@@ -34,6 +37,7 @@ class FlightCameras:
                 self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed)
                 self.log = VisionLog(sc.markers)
                 runner.tick_hooks.append(self._cameras)
+                announce(self)
             if self.video_path is not None:
                 self.video = VideoRecorder(model, data, self.video_path, runner.dt, rig=self.rig, markers=sc.markers,
                                            title=sc.name)

@@ -25,6 +25,7 @@ from link_firmware_sim.vehicle.simlink import open_sim_port
 from sitl.plant.plant import Plant
 from sitl.plant.schedule import Schedule
 from sitl.scenario import Scenario
+from sitl.watch import announce
 
 from .layout import FleetError
 from .processes import STARTUP_TIMEOUT_S
@@ -66,6 +67,7 @@ class FleetHarness:
         self.sim_s = 0.0
         # Called as hook(k, t) at every physics tick after the kinematics (the cameras, sitl.cameras.stream).
         self.tick_hooks: list = []
+        announce(self)
 
     def _prime_hover(self) -> None:
         """In-air start: the rotors spin at the thrusts that carry each link, as in batch mode."""

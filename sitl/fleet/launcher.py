@@ -31,7 +31,7 @@ from companion.motion.inverse import InverseModel
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from sitl.metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics
 from sitl.plant.plant import Plant
-from sitl.recording.mcap_log import write_beside_log
+from companion.recording.mcap_log import write_beside_log
 from sitl.scenario import Scenario
 
 from .harness import FleetHarness

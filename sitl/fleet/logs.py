@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.linkstate import word as state_word
 from companion.logstream import read_log_stream
 from link_firmware_sim.vehicle.hil import SITL_GPS_EPOCH_US
 from link_firmware_sim.vehicle.simlink import is_simlink_url
@@ -90,9 +91,37 @@ def merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
         if sc.companion.time_base == "gps":  # a companion on GPS time: the simulated GPS clock
             comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
         merged.update(attach_truth(comp, truth["t"], truth["p_true"], truth["v_true"], truth["q_true"]))
+    merged.update(_link_states(merged, fw, fw_rows))
     logs = [f["correction_latency"] for f in fw if f is not None]
     latency = np.concatenate(logs) if logs else np.zeros((0, 2))
     return merged, latency, missing
+
+
+def _link_states(merged: dict, fw: list, fw_rows: list) -> dict[str, np.ndarray]:
+    """Each link's state word at the merged times (:mod:`companion.linkstate`: its reported flags, down
+    where its vehicle logged nothing, left out where the companion's newest step did not correct
+    it) and its newest correction latency [ms]."""
+    t = merged["t"]
+    n = len(fw)
+    flags = np.zeros((t.size, n), dtype=np.int64)
+    down = np.ones((t.size, n), dtype=bool)
+    latency = np.full((t.size, n), np.nan)
+    for i, (f, r) in enumerate(zip(fw, fw_rows)):
+        if f is None:
+            continue
+        down[:, i] = r < 0
+        if "flags" in f:
+            flags[r >= 0, i] = f["flags"][r[r >= 0]]
+        lat = np.asarray(f["correction_latency"], dtype=float).reshape(-1, 2)
+        if lat.size:
+            k = np.searchsorted(lat[:, 0], t, side="right") - 1
+            latency[k >= 0, i] = 1e3 * lat[k[k >= 0], 1]
+    excluded = np.zeros((t.size, n), dtype=bool)
+    if "t_sckf" in merged and merged["t_sckf"].size and "corrected_sckf" in merged:
+        j = np.searchsorted(merged["t_sckf"], t, side="right") - 1
+        excluded[j >= 0] = ~merged["corrected_sckf"][j[j >= 0]]
+    words = np.vectorize(lambda f, e, d: state_word(f, excluded=e, down=d), otypes=[np.uint8])(flags, excluded, down)
+    return {"link_state": words, "correction_latency_ms": latency}
 
 
 def vehicle_log(out_dir: Path, i: int) -> dict[str, np.ndarray] | None:

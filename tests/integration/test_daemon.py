@@ -261,3 +261,34 @@ def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, 
         for fc in fleet.fcs:
             fc.close()
     assert calls == ([fleet.clock()] if compiled else [])
+
+
+def test_the_daemon_leaves_its_flight_as_mcap(fleet):
+    """companion.mcap: the states taken in and the corrections sent at each step, the health report
+    and a link's STATUSTEXT, every message on the companion's time base, read back with mcap's reader."""
+    import json as _json
+
+    from mcap.reader import make_reader
+
+    for k in range(6):
+        fleet.send_states(0.02 * k, dx=(0.0, 0.2, 0.0))
+        fleet.pump()
+    fleet.fcs[1].send(D.MAVLink_statustext_message(D.MAV_SEVERITY_WARNING, b"GPS glitch: position rejected"))
+    fleet.pump()
+    fleet.daemon.health_table(5.0)
+    steps = fleet.daemon.engine.log_arrays()
+    fleet.daemon.write_log()
+    with open(fleet.daemon.out_dir / "companion.mcap", "rb") as f:
+        messages = [(ch.topic, m.log_time, _json.loads(m.data)) for _, ch, m in make_reader(f).iter_messages()]
+    topics = {t for t, _, _ in messages}
+    assert topics == {"/companion/step", "/statustext",
+                      *(f"/link{i}/{k}" for i in (1, 2, 3) for k in ("state_in", "corrected", "correction", "health"))}
+    step_ns = np.round(steps["t_sckf"] * 1e9).astype(np.int64).tolist()
+    assert [ns for t, ns, _ in messages if t == "/link2/state_in"] == step_ns
+    moves = [m["delta_p_m"] for t, _, m in messages if t == "/link2/correction"]
+    np.testing.assert_allclose(moves, steps["p_corr_sckf"][:, 1] - steps["p_ekf_sckf"][:, 1])
+    assert moves[0][0] < -0.05  # link 2, 0.2 m off the chain, pulled back
+    [(_, _, text)] = [x for x in messages if x[0] == "/statustext"]
+    assert text["name"] == "link 2" and text["level"] == 3 and text["message"] == "GPS glitch: position rejected"
+    [(_, _, health)] = [x for x in messages if x[0] == "/link1/health"]
+    assert health["rejected"] == 0 and health["left_out"] == 0.0 and health["state_hz"] > 0

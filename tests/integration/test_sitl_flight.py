@@ -274,12 +274,13 @@ def test_smoke_flight_of_the_three_link_config(tmp_path):
     counts = {c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()}
     T, S = len(log["t"]), len(log["t_sckf"])
     assert counts == {"/tf": T, "/scene": T, "/companion/step": S,
-                      **{f"/link{i}/{name}": S if name == "corrected" else T
-                         for i in (1, 2, 3) for name in ("truth", "ekf", "corrected", "target", "thrust")}}
+                      **{f"/link{i}/{name}": S if name in ("state_in", "corrected", "correction") else T
+                         for i in (1, 2, 3)
+                         for name in ("truth", "ekf", "state_in", "corrected", "correction", "target", "thrust", "state")}}
     # the subcommand writes it again for the run folder
     again = subprocess.run([sys.executable, "-m", "sitl", "mcap", str(out), "--out", str(tmp_path / "again.mcap")],
                            capture_output=True, text=True, timeout=120)
-    assert again.returncode == 0 and "18 channels" in again.stdout, again.stderr
+    assert again.returncode == 0 and "27 channels" in again.stdout, again.stderr
     assert (tmp_path / "again.mcap").stat().st_size > 0
 
 

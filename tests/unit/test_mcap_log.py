@@ -1,4 +1,4 @@
-"""run.mcap (sitl.recording.mcap_log): a synthetic log.npz exported and read back with the mcap reader."""
+"""run.mcap (companion.recording.mcap_log): a synthetic log.npz exported and read back with the mcap reader."""
 
 import json
 import logging
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from sitl.recording.foxglove import SCHEMAS
-from sitl.recording.mcap_log import CONTACT_FIELDS, LOAD_POSES, STEP_FIELDS, export_log, write_beside_log, write_run_mcap
+from companion.recording.foxglove import LOG, SCHEMAS
+from companion.recording.mcap_log import CONTACT_FIELDS, LOAD_POSES, STEP_FIELDS, export_log, write_beside_log, write_run_mcap
 
 T, S = 50, 25  # log samples (50 Hz) and companion steps (25 Hz)
 SCKF_KEYS = ("t_sckf", "p_corr_sckf", "q_corr_sckf", *STEP_FIELDS.values())
@@ -67,7 +67,7 @@ def test_every_channel_holds_the_log_at_its_times(tmp_path, n):
     counts = export_log(log, tmp_path / "run.mcap")
     summary, messages = read_back(tmp_path / "run.mcap")
     assert set(counts) == set(messages) == {c.topic for c in summary.channels.values()} == expected_topics(n)
-    assert {s.name for s in summary.schemas.values()} == set(SCHEMAS)
+    assert {s.name for s in summary.schemas.values()} == set(SCHEMAS) - {LOG}  # (the companion's STATUSTEXTs)
     for topic, rows in messages.items():
         stamps = ns(log["t_sckf"] if topic in ("/companion/step",) or topic.endswith("/corrected") else log["t"])
         assert counts[topic] == len(rows) == summary.statistics.channel_message_counts[
@@ -171,7 +171,7 @@ def test_after_a_run_an_unreadable_log_is_a_warning(tmp_path, caplog):
 
 @pytest.mark.parametrize("rows_at_once", [1, 7, 10_000])
 def test_the_messages_made_row_block_by_row_block_give_the_same_file(tmp_path, monkeypatch, rows_at_once):
-    from sitl.recording import mcap_log
+    from companion.recording import mcap_log
 
     log = synthetic_log(3)
     export_log(log, tmp_path / "default.mcap")

@@ -1,11 +1,13 @@
 """A run folder's ``log.npz`` as an MCAP file (``run.mcap``) that Foxglove and Lichtblick open.
 
-Messages are JSON with Foxglove's schemas (:mod:`sitl.recording.foxglove`), stamped (log and
+Messages are JSON with Foxglove's schemas (:mod:`companion.recording.foxglove`), stamped (log and
 publish time) with the simulated time in nanoseconds and written in time order. The channels,
 each written only when the log holds its arrays (links numbered from 1):
 
 - ``/link{i}/truth``, ``/link{i}/ekf``, ``/link{i}/target`` (``foxglove.PoseInFrame``, frame
   ``world``): ``p_true``/``q_true``, ``p_ekf``/``q_ekf``, ``p_target``/``q_target`` at ``t``;
+- ``/link{i}/state_in`` (``foxglove.PoseInFrame``): the link's state as the companion's step took
+  it in, ``p_ekf_sckf``/``q_ekf_sckf`` at ``t_sckf``;
 - ``/link{i}/corrected`` (``foxglove.PoseInFrame``): the companion's correction,
   ``p_corr_sckf``/``q_corr_sckf`` at ``t_sckf``;
 - ``/tf`` (``foxglove.FrameTransforms``): ``world`` -> ``link{i}``, the truth, at ``t``;
@@ -14,6 +16,10 @@ each written only when the log holds its arrays (links numbered from 1):
   ``skeleton.link_length_m``) and a line from each link's centre to the next one's, the truth,
   at ``t`` decimated to at most :data:`SCENE_MAX_HZ`;
 - ``/link{i}/thrust`` (``skeleton.Series``): ``thrust_n``, the rotors' thrusts, at ``t``;
+- ``/link{i}/state`` (``skeleton.Series``): the link's state word (:mod:`companion.linkstate`) and its
+  bits as 0/1 (:data:`STATE_BITS`), and its newest correction latency, at ``t``;
+- ``/link{i}/correction`` (``skeleton.Series``): per companion step, ``delta_p_m``, the corrected
+  position minus the estimate the step used, and whether the step corrected the link;
 - ``/companion/step`` (``skeleton.Series``): per companion step (``t_sckf``) the constraint
   errors per joint before and after the correction, the iterations, the global step's flag per
   group, the largest NIS, the corrected links and the step's cycle time (:data:`STEP_FIELDS`);
@@ -32,15 +38,18 @@ import json
 import logging
 import math
 import os
+import re
 import tomllib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
+from ..linkstate import CARRIED, DOWN, EXCLUDED
+from ..messages import STATE_FLAG_ARMED, STATE_FLAG_CORRECTION_ACTIVE, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT
 from .foxglove import FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
 
-__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "export_log",
+__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "STATE_BITS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "export_log",
            "write_run_mcap", "write_beside_log"]
 
 _log = logging.getLogger(__name__)
@@ -70,6 +79,9 @@ CONTACT_FIELDS = {
     "wrench_hat": "contact_wrench_hat",
     "engaged": "contact_engaged",
 }
+#: ``/link{i}/state``'s 0/1 fields: name -> the state word's bit
+STATE_BITS = {"ekf_ok": STATE_FLAG_EKF_OK, "armed": STATE_FLAG_ARMED, "correction_active": STATE_FLAG_CORRECTION_ACTIVE,
+              "gps_fault": STATE_FLAG_GPS_FAULT, "carried": CARRIED, "excluded": EXCLUDED, "down": DOWN}
 #: the slung load's poses, ``/load/<name>`` from ``load.npz`` (stamped ``load_t``):
 #: ``(name, position key, quaternion key)``
 LOAD_POSES = (("truth", "load_p_true", "load_q_true"), ("ekf", "load_ekf_p", "load_ekf_q"),
@@ -84,6 +96,7 @@ INSTALL_HINT = "pip install 'aerial-skeleton-stack[view]' (or pip install 'mcap>
 _LINK_COLOR = {"r": 0.2, "g": 0.45, "b": 0.9, "a": 0.6}
 _CABLE_COLOR = {"r": 1.0, "g": 0.55, "b": 0.0, "a": 1.0}
 _IDENTITY = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+_LINK_TOPIC = re.compile(r"^/link(\d+)/")
 #: compact JSON as bytes (one encoder for every message)
 _ENCODE = json.JSONEncoder(separators=(",", ":"), check_circular=False).encode
 
@@ -175,11 +188,12 @@ def _scene_stride(t: np.ndarray) -> int:
 
 def channels(log: Mapping[str, np.ndarray],
              link_length_m: float | None = None) -> list[tuple[str, str, np.ndarray, Iterator[bytes]]]:
-    """``(topic, schema name, times in ns, JSON messages)`` of every channel the log has arrays for;
-    the messages are made as they are iterated, in the order of the times."""
+    """``(topic, schema name, times in ns, JSON messages)`` of every channel the log has arrays for
+    (a SITL run's log, or a companion's step log alone); the messages are made as they are
+    iterated, in the order of the times."""
     out = []
     truth = _series(log, "t", "p_true", "q_true")
-    n = truth[0].shape[1] if truth else None
+    n = truth[0].shape[1] if truth else (np.shape(log["p_ekf_sckf"])[1] if np.ndim(log.get("p_ekf_sckf")) == 3 else None)
     if truth:
         ns = _nanoseconds(log["t"])
         out.append(("/tf", FRAME_TRANSFORMS, ns, _tf_messages(ns, *truth)))
@@ -187,7 +201,8 @@ def channels(log: Mapping[str, np.ndarray],
         out.append(("/scene", SCENE_UPDATE, ns[::stride],
                     _scene_messages(ns[::stride], truth[0][::stride], truth[1][::stride], link_length_m)))
     poses = [("truth", "t", "p_true", "q_true"), ("ekf", "t", "p_ekf", "q_ekf"),
-             ("corrected", "t_sckf", "p_corr_sckf", "q_corr_sckf"), ("target", "t", "p_target", "q_target")]
+             ("state_in", "t_sckf", "p_ekf_sckf", "q_ekf_sckf"), ("corrected", "t_sckf", "p_corr_sckf", "q_corr_sckf"),
+             ("target", "t", "p_target", "q_target")]
     per_link = []
     for name, stamp_key, p_key, q_key in poses:
         arrays = _series(log, stamp_key, p_key, q_key, width=n)
@@ -200,6 +215,27 @@ def channels(log: Mapping[str, np.ndarray],
         ns = _nanoseconds(log["t"])
         per_link += [(i, f"/link{i + 1}/thrust", SERIES, ns, _series_messages(ns, {"thrust_n": thrust[0][:, i]}))
                      for i in range(thrust[0].shape[1])]
+    state = _series(log, "t", "link_state", width=n)
+    if state:
+        ns = _nanoseconds(log["t"])
+        words = np.asarray(state[0]).astype(np.int64)
+        latency = _series(log, "t", "correction_latency_ms", width=n)
+        for i in range(words.shape[1]):
+            fields = {"state_word": words[:, i], **{name: (words[:, i] & bit != 0).astype(np.int64)
+                                                    for name, bit in STATE_BITS.items()}}
+            if latency:
+                fields["correction_latency_ms"] = latency[0][:, i]
+            per_link.append((i, f"/link{i + 1}/state", SERIES, ns, _series_messages(ns, fields)))
+    moves = _series(log, "t_sckf", "p_corr_sckf", "p_ekf_sckf", width=n)
+    corrected = _series(log, "t_sckf", "corrected_sckf", width=n)
+    if moves:
+        ns = _nanoseconds(log["t_sckf"])
+        delta = moves[0] - moves[1]
+        for i in range(delta.shape[1]):
+            fields = {"delta_p_m": delta[:, i]}
+            if corrected:
+                fields["corrected"] = corrected[0][:, i].astype(np.int64)
+            per_link.append((i, f"/link{i + 1}/correction", SERIES, ns, _series_messages(ns, fields)))
     out += [c[1:] for c in sorted(per_link, key=lambda c: c[0])]  # link by link, in the order above
     out += _series_channel(log, "/companion/step", "t_sckf", STEP_FIELDS)
     out += _series_channel(log, "/contact", "contact_t", CONTACT_FIELDS)
@@ -227,12 +263,19 @@ def _series_channel(log: Mapping[str, np.ndarray], topic: str, stamp_key: str,
     return [(topic, SERIES, ns, _series_messages(ns, present))]
 
 
-def export_log(log: Mapping[str, np.ndarray], out: str | Path, link_length_m: float | None = None) -> dict[str, int]:
-    """Write the log's channels to the MCAP file ``out``; returns the message count per topic
-    (``ImportError`` without the ``mcap`` package, ``ValueError`` for a log with no channel)."""
+def export_log(log: Mapping[str, np.ndarray], out: str | Path, link_length_m: float | None = None,
+               extra: list | None = None, first_link: int = 1) -> dict[str, int]:
+    """Write the log's channels (and ``extra`` ones, as :func:`channels` gives them) to the MCAP
+    file ``out``; the log's links are numbered from ``first_link`` (a group's companion: its
+    first link's place in the chain). Returns the message count per topic (``ImportError``
+    without the ``mcap`` package, ``ValueError`` for a log with no channel)."""
     import mcap.writer  # noqa: F401 (ImportError before the messages are built)
 
     chans = channels(log, link_length_m)
+    if first_link != 1:
+        chans = [(_LINK_TOPIC.sub(lambda m: f"/link{int(m.group(1)) + first_link - 1}/", c[0], count=1), *c[1:])
+                 for c in chans]
+    chans += list(extra or ())
     if not chans:
         raise ValueError("the log holds none of the arrays a channel is made of (t, p_true, q_true, ...)")
     out = Path(out)

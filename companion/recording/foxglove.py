@@ -2,7 +2,7 @@
 messages' building blocks.
 
 The schemas carry Foxglove's names (``foxglove.PoseInFrame``, ``foxglove.FrameTransforms``,
-``foxglove.SceneUpdate``) and the layout of the fields written here, as in Foxglove's published
+``foxglove.SceneUpdate``, ``foxglove.Log``) and the layout of the fields written here, as in Foxglove's published
 JSON schemas (``schemas/jsonschema/*.json`` of foxglove/foxglove-sdk); Foxglove and Lichtblick
 choose a panel's decoder by the schema's name. ``skeleton.Series`` is this stack's own: a
 timestamp and named numbers or arrays of numbers, for the Plot panel.
@@ -12,12 +12,17 @@ from __future__ import annotations
 
 import json
 
-__all__ = ["SCHEMAS", "SERIES", "POSE_IN_FRAME", "FRAME_TRANSFORMS", "SCENE_UPDATE", "stamp", "pose"]
+__all__ = ["SCHEMAS", "SERIES", "POSE_IN_FRAME", "FRAME_TRANSFORMS", "SCENE_UPDATE", "LOG", "LOG_LEVEL_OF_SEVERITY",
+           "stamp", "pose"]
 
 POSE_IN_FRAME = "foxglove.PoseInFrame"
 FRAME_TRANSFORMS = "foxglove.FrameTransforms"
 SCENE_UPDATE = "foxglove.SceneUpdate"
 SERIES = "skeleton.Series"
+LOG = "foxglove.Log"
+#: MAVLink STATUSTEXT severity (MAV_SEVERITY: 0 emergency ... 7 debug) -> foxglove.Log level
+#: (1 debug, 2 info, 3 warning, 4 error, 5 fatal)
+LOG_LEVEL_OF_SEVERITY = (5, 5, 5, 4, 3, 2, 2, 1)
 
 
 def _obj(title: str | None = None, **properties) -> dict:
@@ -65,6 +70,10 @@ SCHEMAS: dict[str, bytes] = {
         SCENE_UPDATE: _obj(deletions={"type": "array", "items": _DELETION},
                            entities={"type": "array", "items": _ENTITY}),
         SERIES: {**_obj(timestamp=_TIME), "additionalProperties": _NUMBERS},
+        LOG: _obj(timestamp=_TIME, level={"title": "foxglove.LogLevel", "oneOf": [
+            {"title": t, "const": i} for i, t in enumerate(("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"))]},
+                  message={"type": "string"}, name={"type": "string"}, file={"type": "string"},
+                  line={"type": "integer", "minimum": 0}),
     }.items()
 }
 

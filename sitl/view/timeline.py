@@ -1,0 +1,112 @@
+"""A finished run as frames by time (:class:`Timeline`), read from its run folder (:func:`open_run`)."""
+
+from __future__ import annotations
+
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from .frame import ViewFrame, figures, frame
+from .spec import SceneSpec, spec_of_run
+
+__all__ = ["Timeline", "open_run", "RunUnreadable"]
+
+
+class RunUnreadable(ValueError):
+    """A run folder whose log cannot be shown (the message says which file and why)."""
+
+
+def _rows(log: Mapping[str, np.ndarray], stamp: str) -> dict[str, np.ndarray]:
+    """The arrays of ``log`` with one row per sample of ``log[stamp]``."""
+    k = len(log[stamp])
+    return {key: a for key, a in log.items() if np.ndim(a) and len(a) == k}
+
+
+def _check_times(name: str, t: np.ndarray) -> np.ndarray:
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1 or t.size == 0:
+        raise RunUnreadable(f"{name}: expected a non-empty 1-D array of times, got shape {t.shape}")
+    if not np.isfinite(t).all() or np.any(np.diff(t) < 0):
+        raise RunUnreadable(f"{name}: the times must be finite and never go back")
+    return t
+
+
+class Timeline:
+    """The frames of a run's log (``t``, ``p_true``, ``q_true`` and what else it holds; the
+    companion's step rows at ``t_sckf``; ``load`` the load's rows at ``load_t``), by time."""
+
+    def __init__(self, log: Mapping[str, np.ndarray], load: Mapping[str, np.ndarray] | None = None):
+        if "t" not in log or "p_true" not in log or "q_true" not in log:
+            raise RunUnreadable("the log holds no truth (t, p_true, q_true)")
+        self.t = _check_times("t", log["t"])
+        p, q = np.asarray(log["p_true"]), np.asarray(log["q_true"])
+        if p.ndim != 3 or p.shape[0] != self.t.size or p.shape[2] != 3 or q.shape != p.shape[:2] + (4,):
+            raise RunUnreadable(f"p_true {p.shape} and q_true {q.shape}: expected (samples, links, 3) and "
+                                f"(samples, links, 4) with {self.t.size} samples")
+        self.n = p.shape[1]
+        self.rows = _rows(log, "t")
+        self.steps: dict[str, np.ndarray] = {}
+        if "t_sckf" in log and np.size(log["t_sckf"]):
+            self.t_step = _check_times("t_sckf", log["t_sckf"])
+            self.steps = _rows(log, "t_sckf")
+        else:
+            self.t_step = np.zeros(0)
+        self.loads: dict[str, np.ndarray] = {}
+        self.t_load = np.zeros(0)
+        if load and "load_t" in load and np.size(load["load_t"]):
+            self.t_load = _check_times("load_t", load["load_t"])
+            self.loads = _rows(load, "load_t")
+
+    @property
+    def start_s(self) -> float:
+        return float(self.t[0])
+
+    @property
+    def end_s(self) -> float:
+        return float(self.t[-1])
+
+    @staticmethod
+    def _at(t: np.ndarray, t_s: float) -> int:
+        """The index of the newest sample of ``t`` at or before ``t_s`` (-1: none)."""
+        return int(np.searchsorted(t, t_s, side="right")) - 1
+
+    def frame(self, t_s: float) -> ViewFrame:
+        """The frame of the newest log row at or before ``t_s`` (the first row before the log starts)."""
+        k = max(self._at(self.t, t_s), 0)
+        j = self._at(self.t_step, self.t[k])
+        i = self._at(self.t_load, self.t[k])
+        step = {key: a[j] for key, a in self.steps.items()} if j >= 0 else None
+        load = {key: a[i] for key, a in self.loads.items()} if i >= 0 else None
+        return frame(self.t[k], {key: a[k] for key, a in self.rows.items()}, step, load)
+
+    def series(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every figure of the panel over the whole run: name -> (times [s], values)."""
+        out = {name: (self.t, v) for name, v in figures(self.rows).items()}
+        if self.steps:
+            out.update({name: (self.t_step, v) for name, v in figures({}, self.steps).items()})
+        return out
+
+
+def open_run(run_dir: str | Path) -> tuple[Timeline, SceneSpec]:
+    """The timeline and scene of run folder ``run_dir`` (its ``log.npz``, ``load.npz`` when it has
+    one, ``scenario.toml``); :class:`RunUnreadable` when there is nothing to show."""
+    run_dir = Path(run_dir)
+    path = run_dir / "log.npz"
+    if not path.is_file():
+        raise RunUnreadable(f"{run_dir}: no log.npz (a run folder of python -m sitl fly or launch holds one)")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            log = {k: npz[k] for k in npz.files}
+        load = None
+        if (run_dir / "load.npz").is_file():
+            with np.load(run_dir / "load.npz", allow_pickle=False) as npz:
+                load = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise RunUnreadable(f"{path}: unreadable ({exc})") from None
+    try:
+        timeline = Timeline(log, load)
+    except RunUnreadable as exc:
+        raise RunUnreadable(f"{path}: {exc}") from None
+    return timeline, spec_of_run(run_dir, timeline.n)
