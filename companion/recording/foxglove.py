@@ -2,7 +2,7 @@
 messages' building blocks.
 
 The schemas carry Foxglove's names (``foxglove.PoseInFrame``, ``foxglove.FrameTransforms``,
-``foxglove.SceneUpdate``, ``foxglove.Log``) and the layout of the fields written here, as in Foxglove's published
+``foxglove.SceneUpdate``, ``foxglove.Log``, ``foxglove.CompressedImage``: its bytes base64 in JSON) and the layout of the fields written here, as in Foxglove's published
 JSON schemas (``schemas/jsonschema/*.json`` of foxglove/foxglove-sdk); Foxglove and Lichtblick
 choose a panel's decoder by the schema's name. ``skeleton.Series`` is this stack's own: a
 timestamp and named numbers or arrays of numbers, for the Plot panel.
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import json
 
-__all__ = ["SCHEMAS", "SERIES", "POSE_IN_FRAME", "FRAME_TRANSFORMS", "SCENE_UPDATE", "LOG", "LOG_LEVEL_OF_SEVERITY",
+__all__ = ["SCHEMAS", "SERIES", "POSE_IN_FRAME", "FRAME_TRANSFORMS", "SCENE_UPDATE", "LOG", "COMPRESSED_IMAGE",
+           "LOG_LEVEL_OF_SEVERITY",
            "stamp", "pose"]
 
 POSE_IN_FRAME = "foxglove.PoseInFrame"
@@ -20,6 +21,7 @@ FRAME_TRANSFORMS = "foxglove.FrameTransforms"
 SCENE_UPDATE = "foxglove.SceneUpdate"
 SERIES = "skeleton.Series"
 LOG = "foxglove.Log"
+COMPRESSED_IMAGE = "foxglove.CompressedImage"
 #: MAVLink STATUSTEXT severity (MAV_SEVERITY: 0 emergency ... 7 debug) -> foxglove.Log level
 #: (1 debug, 2 info, 3 warning, 4 error, 5 fatal)
 LOG_LEVEL_OF_SEVERITY = (5, 5, 5, 4, 3, 2, 2, 1)
@@ -70,6 +72,8 @@ SCHEMAS: dict[str, bytes] = {
         SCENE_UPDATE: _obj(deletions={"type": "array", "items": _DELETION},
                            entities={"type": "array", "items": _ENTITY}),
         SERIES: {**_obj(timestamp=_TIME), "additionalProperties": _NUMBERS},
+        COMPRESSED_IMAGE: _obj(timestamp=_TIME, frame_id={"type": "string"},
+                               data={"type": "string", "contentEncoding": "base64"}, format={"type": "string"}),
         LOG: _obj(timestamp=_TIME, level={"title": "foxglove.LogLevel", "oneOf": [
             {"title": t, "const": i} for i, t in enumerate(("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"))]},
                   message={"type": "string"}, name={"type": "string"}, file={"type": "string"},

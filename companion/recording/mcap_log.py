@@ -25,7 +25,9 @@ each written only when the log holds its arrays (links numbered from 1):
   group, the largest NIS, the corrected links and the step's cycle time (:data:`STEP_FIELDS`);
 - ``/contact`` (``skeleton.Series``): the ODAR wall push's contact (:data:`CONTACT_FIELDS`);
 - ``/load/truth``, ``/load/ekf``, ``/load/ukf`` (``foxglove.PoseInFrame``): the slung load's pose
-  and its two filters' estimates, from the run folder's ``load.npz``.
+  and its two filters' estimates, from the run folder's ``load.npz``;
+- ``/camera/<name>/image`` (``foxglove.CompressedImage``, JPEG, frame ``camera_<name>``): every
+  frame of each camera at its capture time, from the run folder's ``camera_frames.npz``.
 
 A non-finite number is written as JSON ``null``. Chunks are zstd-compressed when the
 ``zstandard`` module is importable, else uncompressed.
@@ -33,6 +35,7 @@ A non-finite number is written as JSON ``null``. Chunks are zstd-compressed when
 
 from __future__ import annotations
 
+import base64
 import importlib.util
 import json
 import logging
@@ -47,9 +50,9 @@ import numpy as np
 
 from ..linkstate import CARRIED, DOWN, EXCLUDED
 from ..messages import STATE_FLAG_ARMED, STATE_FLAG_CORRECTION_ACTIVE, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT
-from .foxglove import FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
+from .foxglove import COMPRESSED_IMAGE, FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
 
-__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "STATE_BITS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "export_log",
+__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "STATE_BITS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "image_channels", "export_log",
            "write_run_mcap", "write_beside_log"]
 
 _log = logging.getLogger(__name__)
@@ -324,6 +327,42 @@ def _link_length(run_dir: Path) -> float | None:
     return float(value) if isinstance(value, (int, float)) and value > 0 else None
 
 
+def image_channels(frames: Mapping[str, np.ndarray]) -> list[tuple[str, str, np.ndarray, Iterator[bytes]]]:
+    """``/camera/<name>/image`` of a run's JPEG frames (``frame_t``, ``frame_camera``,
+    ``frame_offsets``, ``frame_names``, ``frame_jpeg``: :mod:`sitl.cameras.frame_archive`), a
+    channel per camera with frames; none when the arrays do not fit together."""
+    try:
+        t = np.asarray(frames["frame_t"], dtype=float)
+        cam = np.asarray(frames["frame_camera"], dtype=np.int64)
+        offsets = np.asarray(frames["frame_offsets"], dtype=np.int64)
+        names = [str(x) for x in frames["frame_names"]]
+        data = np.asarray(frames["frame_jpeg"], dtype=np.uint8)
+    except (KeyError, ValueError, TypeError):
+        return []
+    if (t.ndim != 1 or cam.shape != t.shape or offsets.shape != (len(t) + 1,) or np.any(np.diff(offsets) < 0)
+            or (len(t) and (offsets[0] != 0 or offsets[-1] != data.size)) or np.any((cam < 0) | (cam >= len(names)))
+            or not np.isfinite(t).all()):
+        _log.warning("camera frames: the arrays do not fit together; no image channels")
+        return []
+    out = []
+    for j, name in enumerate(names):
+        rows = np.flatnonzero(cam == j)
+        rows = rows[np.argsort(t[rows], kind="stable")]
+        if not rows.size:
+            continue
+        ns = _nanoseconds(t[rows])
+        out.append((f"/camera/{name}/image", COMPRESSED_IMAGE, ns, _image_messages(ns, rows, f"camera_{name}", data,
+                                                                                     offsets)))
+    return out
+
+
+def _image_messages(ns: np.ndarray, rows: np.ndarray, frame_id: str, data: np.ndarray,
+                    offsets: np.ndarray) -> Iterator[bytes]:
+    for k, r in zip(ns.tolist(), rows.tolist()):
+        jpeg = base64.b64encode(data[offsets[r]:offsets[r + 1]].tobytes()).decode()
+        yield _json({"timestamp": stamp(k), "frame_id": frame_id, "format": "jpeg", "data": jpeg})
+
+
 def write_run_mcap(run_dir: str | Path, out: str | Path | None = None) -> tuple[Path, dict[str, int]]:
     """Convert ``run_dir/log.npz`` to ``out`` (default ``run_dir/run.mcap``); returns the path and
     the message count per topic (``FileNotFoundError`` without a log.npz; see :func:`export_log`)."""
@@ -334,7 +373,11 @@ def write_run_mcap(run_dir: str | Path, out: str | Path | None = None) -> tuple[
     if (run_dir / "load.npz").is_file():  # the slung load's estimates
         with np.load(run_dir / "load.npz") as npz:
             arrays.update({k: npz[k] for k in npz.files if k not in arrays})
-    return out, export_log(arrays, out, _link_length(run_dir))
+    extra = []
+    if (run_dir / "camera_frames.npz").is_file():  # the cameras' frames
+        with np.load(run_dir / "camera_frames.npz", allow_pickle=False) as npz:
+            extra = image_channels({k: npz[k] for k in npz.files})
+    return out, export_log(arrays, out, _link_length(run_dir), extra=extra)
 
 
 def write_beside_log(run_dir: str | Path) -> Path | None:

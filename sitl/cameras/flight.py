@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from sitl.watch import announce
 
 __all__ = ["FlightCameras"]
@@ -22,11 +24,14 @@ class FlightCameras:
         #: called with every delivered frame after the vision log (a live view adds itself)
         self.consumers = list(consumers)
         self.rig = self.log = self.video = None
+        #: every delivered frame as JPEG (:class:`~sitl.cameras.frame_archive.FrameArchive`), with cameras
+        self.frames = None
 
     def __enter__(self) -> FlightCameras:
         sc, runner = self.runner.scenario, self.runner
         if not sc.cameras and self.video_path is None:
             return self
+        from .frame_archive import FrameArchive
         from .rig import CameraRig  # OpenCV and rendering only for these flights
         from .video import VideoRecorder
         from .vision_log import VisionLog
@@ -36,6 +41,7 @@ class FlightCameras:
             if sc.cameras:
                 self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed)
                 self.log = VisionLog(sc.markers)
+                self.frames = FrameArchive([c.name for c in sc.cameras])
                 runner.tick_hooks.append(self._cameras)
                 announce(self)
             if self.video_path is not None:
@@ -51,8 +57,16 @@ class FlightCameras:
         self.rig.on_tick(k, t)
         for frame in self.rig.poll(t):
             self.log.on_frame(frame)
+            self.frames.on_frame(frame)
             for consumer in self.consumers:
                 consumer(frame)
+
+    def save_frames(self, out_dir) -> None:
+        """The frames as ``camera_frames.npz`` in ``out_dir`` (nothing without cameras)."""
+        if self.frames is not None:
+            from .frame_archive import FRAMES_NAME
+
+            np.savez(Path(out_dir) / FRAMES_NAME, **self.frames.arrays())
 
     def metrics(self) -> dict:
         out = {}

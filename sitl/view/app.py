@@ -88,6 +88,14 @@ class ViewServer:
             atexit.unregister(self.server.stop)
 
 
+def _decode(jpeg: bytes) -> np.ndarray | None:
+    """An RGB image of JPEG bytes (OpenCV); ``None`` for bytes that are not one."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR) if jpeg else None
+    return None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
 class Replay:
     """A finished run in ``view``: a time slider over ``timeline``, play/pause and a speed; a
     thread advances the time while playing (``clock``: wall seconds)."""
@@ -107,6 +115,7 @@ class Replay:
             self.play = gui.add_button("play", icon=None)
             self.speed = gui.add_dropdown("speed", options=SPEEDS[1:], initial_value="1x")
         self.playing = False
+        self._shown: dict[int, int] = {}  # camera -> the frame number its frustum shows
         self._moving = False  # the slider moved by the thread, not a person
         self.slider.on_update(self._on_slider)
         self.play.on_click(lambda _ev: self.toggle())
@@ -126,6 +135,12 @@ class Replay:
     def seek(self, t_s: float) -> None:
         self.t_s = min(max(float(t_s), self.timeline.start_s), self.timeline.end_s)
         self.view.show(self.timeline.frame(self.t_s))
+        for cam, (number, jpeg) in self.timeline.images_at(self.t_s).items():
+            if self._shown.get(cam) != number:
+                self._shown[cam] = number
+                image = _decode(jpeg)
+                if image is not None:
+                    self.view.scene.set_camera_image(cam, image)
 
     def _on_slider(self, _ev) -> None:
         if not self._moving:

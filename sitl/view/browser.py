@@ -17,6 +17,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import tempfile
 import time
 import urllib.request
@@ -96,7 +97,7 @@ class HeadlessBrowser:
                 f"--user-data-dir={self._profile}", "--remote-debugging-port=0", "about:blank"]
         try:
             self._proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                          stderr=self._stderr, start_new_session=True)
+                                          stderr=self._stderr, start_new_session=True, preexec_fn=_die_with_parent)
         except OSError as exc:
             raise BrowserUnavailable(f"cannot run {self._binary!r} ({exc}): {_INSTALL}") from exc
         port_file = Path(self._profile, "DevToolsActivePort")
@@ -256,6 +257,15 @@ class HeadlessBrowser:
             self._stderr.close()
             Path(self._stderr.name).unlink(missing_ok=True)
         shutil.rmtree(self._profile, ignore_errors=True)
+
+
+def _die_with_parent() -> None:
+    """In the child before it runs Chromium (Linux): killed when the thread that started it ends,
+    so that a test or command killed without cleaning up leaves no browser behind."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 def _exception_text(details: dict) -> str:

@@ -1,7 +1,9 @@
-"""A finished run as frames by time (:class:`Timeline`), read from its run folder (:func:`open_run`)."""
+"""A finished run as frames by time (:class:`Timeline`), read from its run folder (:func:`open_run`),
+with its cameras' images when it kept them."""
 
 from __future__ import annotations
 
+import logging
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -12,6 +14,8 @@ from .frame import ViewFrame, figures, frame
 from .spec import SceneSpec, spec_of_run
 
 __all__ = ["Timeline", "open_run", "RunUnreadable"]
+
+_log = logging.getLogger(__name__)
 
 
 class RunUnreadable(ValueError):
@@ -53,6 +57,7 @@ class Timeline:
             self.steps = _rows(log, "t_sckf")
         else:
             self.t_step = np.zeros(0)
+        self.frames: dict = {}
         self.loads: dict[str, np.ndarray] = {}
         self.t_load = np.zeros(0)
         if load and "load_t" in load and np.size(load["load_t"]):
@@ -80,6 +85,20 @@ class Timeline:
         step = {key: a[j] for key, a in self.steps.items()} if j >= 0 else None
         load = {key: a[i] for key, a in self.loads.items()} if i >= 0 else None
         return frame(self.t[k], {key: a[k] for key, a in self.rows.items()}, step, load)
+
+    def images_at(self, t_s: float) -> dict[int, tuple[int, bytes]]:
+        """Per camera (its index in the scenario), ``(frame number, JPEG bytes)`` of its newest frame
+        captured at or before ``t_s`` (the run folder's ``camera_frames.npz``; none without it)."""
+        f = self.frames
+        if not f:
+            return {}
+        out = {}
+        for cam, (t, rows) in f["by_camera"].items():
+            k = self._at(t, t_s)
+            if k >= 0:
+                r = int(rows[k])
+                out[cam] = (r, f["frame_jpeg"][f["frame_offsets"][r]:f["frame_offsets"][r + 1]].tobytes())
+        return out
 
     def series(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Every figure of the panel over the whole run: name -> (times [s], values)."""
@@ -109,4 +128,28 @@ def open_run(run_dir: str | Path) -> tuple[Timeline, SceneSpec]:
         timeline = Timeline(log, load)
     except RunUnreadable as exc:
         raise RunUnreadable(f"{path}: {exc}") from None
+    timeline.frames = _camera_frames(run_dir / "camera_frames.npz")
     return timeline, spec_of_run(run_dir, timeline.n)
+
+
+def _camera_frames(path: Path) -> dict:
+    """The run's JPEG camera frames (:mod:`sitl.cameras.frame_archive`) with, per camera, its frames'
+    capture times in order and their rows; ``{}`` without the file or when it does not hold together."""
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            f = {k: npz[k] for k in npz.files}
+        t, cam, offsets = f["frame_t"], f["frame_camera"].astype(np.int64), f["frame_offsets"].astype(np.int64)
+        if (offsets.shape != (len(t) + 1,) or np.any(np.diff(offsets) < 0) or (len(t) and offsets[-1] != f["frame_jpeg"].size)
+                or not np.isfinite(t).all() or cam.shape != t.shape):
+            raise ValueError("the arrays do not fit together")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        _log.warning("%s: %s; no camera images", path, exc)
+        return {}
+    by_camera = {}
+    for c in np.unique(cam).tolist():
+        rows = np.flatnonzero(cam == c)
+        rows = rows[np.argsort(t[rows], kind="stable")]
+        by_camera[int(c)] = (t[rows], rows)
+    return {"frame_jpeg": f["frame_jpeg"], "frame_offsets": offsets, "by_camera": by_camera}

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import base64
+import json
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from companion.configfile import ConfigError
+from companion.recording.mcap_log import write_run_mcap
 from sitl.scenarios import kind_of
 from sitl.scenarios.slung_load.config import load_slung_scenario
 from sitl.scenarios.slung_load.formation import (
@@ -107,3 +112,14 @@ def test_short_flight_estimates_the_load(tmp_path):
     assert np.all(tension[-5:] > 1.0)  # taut: the cables carry the 1 kg box
     assert abs(tension[-5:].sum(axis=1).mean() - 9.80665 * sc.load.mass_kg * 1.5 / sc.load.hang_drop_m()[0]) < 2.0
     assert (tmp_path / "metrics.json").exists() and (tmp_path / "vision.npz").exists()
+    # every camera frame kept as JPEG, and as an image channel of run.mcap (the frames in capture order)
+    frames = np.load(tmp_path / "camera_frames.npz")
+    names = [str(x) for x in frames["frame_names"]]
+    assert names == [c.name for c in sc.cameras] and len(frames["frame_t"]) > 10
+    _, counts = write_run_mcap(tmp_path)
+    assert {t: c for t, c in counts.items() if t.startswith("/camera/")} == {
+        f"/camera/{name}/image": int(np.sum(frames["frame_camera"] == j)) for j, name in enumerate(names)}
+    with open(tmp_path / "run.mcap", "rb") as f:
+        _, ch, msg = next(make_reader(f).iter_messages(topics=[f"/camera/{names[0]}/image"]))
+    image = cv2.imdecode(np.frombuffer(base64.b64decode(json.loads(msg.data)["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (sc.cameras[0].height_px, sc.cameras[0].width_px, 3)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from companion.recording.foxglove import LOG, SCHEMAS
+from companion.recording.foxglove import COMPRESSED_IMAGE, LOG, SCHEMAS
 from companion.recording.mcap_log import CONTACT_FIELDS, LOAD_POSES, STEP_FIELDS, export_log, write_beside_log, write_run_mcap
 
 T, S = 50, 25  # log samples (50 Hz) and companion steps (25 Hz)
@@ -67,7 +67,8 @@ def test_every_channel_holds_the_log_at_its_times(tmp_path, n):
     counts = export_log(log, tmp_path / "run.mcap")
     summary, messages = read_back(tmp_path / "run.mcap")
     assert set(counts) == set(messages) == {c.topic for c in summary.channels.values()} == expected_topics(n)
-    assert {s.name for s in summary.schemas.values()} == set(SCHEMAS) - {LOG}  # (the companion's STATUSTEXTs)
+    # (no STATUSTEXT, no camera in the log)
+    assert {s.name for s in summary.schemas.values()} == set(SCHEMAS) - {LOG, COMPRESSED_IMAGE}
     for topic, rows in messages.items():
         stamps = ns(log["t_sckf"] if topic in ("/companion/step",) or topic.endswith("/corrected") else log["t"])
         assert counts[topic] == len(rows) == summary.statistics.channel_message_counts[

@@ -96,6 +96,7 @@ def fly(
         np.savez_compressed(out_dir / "log.npz", **arrays)
         if vision.log is not None:
             np.savez_compressed(out_dir / "vision.npz", **vision.log.arrays())
+        vision.save_frames(out_dir)
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
             from sitl.plots import write_plots  # (matplotlib loaded after the flight, and only for plots)

@@ -130,6 +130,7 @@ def fly_slung_load(scenario: SlungLoadScenario, out_dir: Path | None, *, progres
         np.savez_compressed(out_dir / "load.npz", **estimation.arrays())
         if vision.log is not None:
             np.savez_compressed(out_dir / "vision.npz", **vision.log.arrays())
+        vision.save_frames(out_dir)
         (out_dir / "scenario.toml").write_text(dump_toml(replace(sc, duration_s=runner.sim_s)))
         if plots:
             write_load_plots(estimation.arrays(), vision.log.arrays() if vision.log is not None else None, out_dir,
