@@ -3,7 +3,7 @@
 
 Node names (viser's scene tree; ``i`` counts links from 1):
 
-- ``/ground``, ``/markers/m<id>``: the ground grid and the fiducial markers;
+- ``/ground``, ``/markers/m<id>``, ``/wall``: the ground grid, the fiducial markers, the wall to push on;
 - ``/links/link<i>``: the link's true pose; under it ``body`` (the bar, coloured by the link's
   condition, :data:`CONDITION_COLORS`), ``rotor<k>`` (a disc per rotor, across its thrust
   direction), ``label`` (its name), ``camera_<name>`` (each camera's frustum);
@@ -91,6 +91,10 @@ class Scene:
             if m.body == "world":
                 scene.add_box(f"/markers/m{m.id}", color=(20, 20, 20), dimensions=(m.size_m, m.size_m, 0.004),
                               wxyz=_z_along(m.normal_b, m.right_b), position=m.p_b_m)
+        if spec.wall is not None:  # a 4 m x 4 m slab behind its face
+            point, normal = (np.asarray(v, dtype=float) for v in spec.wall)
+            scene.add_box("/wall", color=(190, 170, 150), dimensions=(4.0, 4.0, 0.1), opacity=0.6,
+                          wxyz=_z_along(normal), position=point + 0.05 * normal)
         self.links, self.bodies, self.labels = [], [], []
         self.frustums: dict = {}  # camera index -> its frustum
         L, r = spec.link_length_m, spec.bar_radius_m

@@ -53,7 +53,7 @@ class SceneSpec:
     (8, 3) each), ``joined`` whether link i's right tip and link i+1's left tip are one joint
     (a chain) and ``d_b_m`` (n, 3) each link's centre-to-right-tip vector; the load's box
     (``load_size_m``, ``None``: no load) and its cable points (``load_attach_b_m``, (n, 3));
-    markers and cameras; ``kind`` the scenario's kind."""
+    markers, cameras and a wall; ``kind`` the scenario's kind."""
 
     n: int
     link_length_m: float = _DEFAULT_LINK_LENGTH_M
@@ -67,6 +67,8 @@ class SceneSpec:
     load_attach_b_m: np.ndarray | None = None
     markers: tuple[MarkerSpec, ...] = ()
     cameras: tuple[CameraSpec, ...] = field(default_factory=tuple)
+    #: a wall to push on: a point of its face and its unit normal (pointing into it), world frame
+    wall: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     kind: str = "chain"
 
     def tips(self) -> np.ndarray:
@@ -89,6 +91,7 @@ def spec_of_scenario(sc) -> SceneSpec:
             cameras.append(CameraSpec(index, c.name, link, tuple(c.pos_b_m), c.R_b_c(), float(np.radians(c.fovy_deg)),
                                       c.width_px / c.height_px))
     load = getattr(sc, "load", None)
+    contact = getattr(sc, "contact", None)
     return SceneSpec(
         n=sk.n_links, link_length_m=float(sk.link_length_m), bar_radius_m=float(sk.bar_radius_m),
         rotor_positions_b_m=np.asarray(geometry.positions_m, dtype=float),
@@ -96,7 +99,8 @@ def spec_of_scenario(sc) -> SceneSpec:
         joined=load is None and sk.n_links > 1, d_b_m=sk.d_b_m,
         load_size_m=tuple(load.size_m) if load is not None else None,
         load_attach_b_m=load.attach_b_m() if load is not None else None,
-        markers=markers, cameras=tuple(cameras), kind=getattr(sc, "kind", "chain"))
+        markers=markers, cameras=tuple(cameras), kind=getattr(sc, "kind", "chain"),
+        wall=(tuple(contact.wall_point_w_m), tuple(contact.normal_w)) if contact is not None else None)
 
 
 def spec_of_run(run_dir: str | Path, n: int) -> SceneSpec:
