@@ -53,6 +53,10 @@ class ViewServer:
         host = self.server.get_host()
         return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}"
 
+    def watched(self) -> bool:
+        """Whether a browser has the view open."""
+        return bool(self.server.get_clients())
+
     def aim(self, f: ViewFrame) -> bool:
         """Point the camera at frame ``f``'s links (from behind and above, far enough to see the
         whole chain): the camera a browser starts with, and, when the links have moved out of the

@@ -1,8 +1,9 @@
 """A flying run in the view: its newest log rows as frames (:func:`batch_rows`), shown at a
 wall-clock rate from the simulation's tick hook, with pause and a speed (:class:`LiveView`).
 
-The tick hook reads the wall clock every :data:`CHECK_EVERY_TICKS` physics ticks between updates; an update reads the
-newest rows only (never the whole log), so its cost does not grow with the flight.
+The tick hook reads the wall clock every :data:`CHECK_EVERY_TICKS` physics ticks between updates;
+an update reads the newest rows only (never the whole log), so its cost does not grow with the
+flight, and sends the scene only while a browser has the view open.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from .frame import ViewFrame, frame
 __all__ = ["LiveView", "batch_rows", "chain_step_row", "DEFAULT_RATE_HZ"]
 
 #: frames per wall second a live view shows by default
-DEFAULT_RATE_HZ = 15.0
+DEFAULT_RATE_HZ = 10.0
 #: the tick hook looks at the wall clock every this many physics ticks (10 ms at 1 kHz)
 CHECK_EVERY_TICKS = 10
 #: the live plots are redrawn this often [wall s]
@@ -92,7 +93,8 @@ class LiveView:
         self._next_s = 0.0
         self._plot_s = 0.0
         self._pace: tuple[float, float] | None = None  # (simulated, wall) seconds the pace counts from
-        self.updates = 0
+        self.updates = 0  # frames shown to a browser
+        self._unseen = False  # the newest frame was not shown (no browser)
         self._images: dict[int, object] = {}  # camera index -> its newest image not shown yet
         self._image_s = 0.0
 
@@ -126,6 +128,8 @@ class LiveView:
             self.update()
             self.held.set()
             while self.paused.is_set():
+                if self._unseen and self.view.watched():  # a browser opened the view during the pause
+                    self.update()
                 self.sleep(0.05)
             self.held.clear()
             self._anchor(None)
@@ -148,13 +152,17 @@ class LiveView:
         self._images[captured.camera_index] = captured.frame.image
 
     def update(self) -> ViewFrame | None:
-        """Show the newest rows now; the frame shown (``None``: no row yet)."""
+        """The newest rows' frame: its figures added to the plots' history and, while a browser
+        has the view open, shown (the scene, the plots, the cameras' images); ``None``: no row yet."""
         newest = self.rows()
         if newest is None:
             return None
         f = frame(*newest)
-        self.view.show(f)
         self.view.panel.append(f)
+        self._unseen = not self.view.watched()
+        if self._unseen:  # nobody looks: nothing to send (a browser that opens gets the next update)
+            return f
+        self.view.show(f)
         self.updates += 1
         now = self.clock()
         if self._images and now >= self._image_s:
