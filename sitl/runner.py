@@ -35,6 +35,7 @@ from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.kinematics import tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
+from link_firmware_sim.events import SEVERITY, statustext_arrays
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.vehicle.hil import sitl_gps_time_us
@@ -160,6 +161,8 @@ class BatchRunner:
         self._down: set[int] = set()  # links whose firmware is off (killed, not yet powered on)
         self._boot_fix: dict[int, list] = {}  # a restarted firmware's newest [GPS fix, attitude] before its EKF starts
         self.log = RunLog()
+        #: the firmware's STATUSTEXTs: (time [s], link from 1, MAV_SEVERITY, text)
+        self.statustext: list[tuple] = []
         self.state_interval_us = int(round(1e6 / sc.companion.state_rate_hz))
         self.wall_s = 0.0
         self.sim_s = 0.0
@@ -319,6 +322,8 @@ class BatchRunner:
     def arrays(self) -> dict[str, np.ndarray]:
         """The run's log: the log-rate series plus the companions' step log with the truth at every step."""
         out = self.log.arrays()
+        if self.statustext:
+            out.update(statustext_arrays(self.statustext))
         steps = self.step_log()
         if steps is not None and "t" in out:
             out.update(attach_truth(steps, out["t"], out["p_true"], out["v_true"], out["q_true"]))
@@ -423,6 +428,7 @@ class BatchRunner:
                     if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
                         for ev in fw.events:
                             log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
+                            self.statustext.append((t, i + 1, SEVERITY[ev.kind], ev.text))
                         fw.events.clear()
                 rotors.set_command(commands.reshape(-1))
                 self._companion_exchange(t, int(round(k * self.dt * 1e6)))

@@ -19,10 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..estimation.constraints import joint_error_norms
-from .foxglove import LOG, LOG_LEVEL_OF_SEVERITY, SERIES, stamp
-from .mcap_log import _json, _nanoseconds, export_log
+from .foxglove import SERIES, stamp
+from .mcap_log import _json, _nanoseconds, export_log, statustext_channel
 
-__all__ = ["COMPANION_MCAP", "HEALTH_FIELDS", "health_channels", "statustext_channel", "write_companion_mcap"]
+__all__ = ["COMPANION_MCAP", "HEALTH_FIELDS", "health_channels", "write_companion_mcap"]
 
 COMPANION_MCAP = "companion.mcap"
 #: ``/link{i}/health`` fields: the health row's numbers (:meth:`~companion.engine.CompanionEngine.health_rows`)
@@ -45,17 +45,6 @@ def health_channels(health: list[tuple[float, list[dict]]]) -> list:
             per_link.setdefault(int(row["link"]), []).append((ns, _json(message)))
     return [(f"/link{link}/health", SERIES, np.array([ns for ns, _ in rows], dtype=np.int64), iter([m for _, m in rows]))
             for link, rows in sorted(per_link.items())]
-
-
-def statustext_channel(texts: list[tuple[float, int, int, str]]) -> list:
-    """``/statustext`` of ``(time base [s], link (1-based), MAV_SEVERITY, text)``; none without texts."""
-    if not texts:
-        return []
-    ns = _nanoseconds(np.array([t for t, *_ in texts]))
-    messages = [_json({"timestamp": stamp(int(k)), "level": LOG_LEVEL_OF_SEVERITY[min(max(int(sev), 0), 7)],
-                       "message": str(text), "name": f"link {link}", "file": "", "line": 0})
-                for k, (_, link, sev, text) in zip(ns.tolist(), texts)]
-    return [("/statustext", LOG, ns, iter(messages))]
 
 
 def write_companion_mcap(path, step_log: dict[str, np.ndarray], d_b_m: np.ndarray, first_link: int = 1,

@@ -26,6 +26,9 @@ each written only when the log holds its arrays (links numbered from 1):
 - ``/contact`` (``skeleton.Series``): the ODAR wall push's contact (:data:`CONTACT_FIELDS`);
 - ``/load/truth``, ``/load/ekf``, ``/load/ukf`` (``foxglove.PoseInFrame``): the slung load's pose
   and its two filters' estimates, from the run folder's ``load.npz``;
+- ``/statustext`` (``foxglove.Log``): every STATUSTEXT a link's firmware sent (GPS health, the
+  rotors' thrust limit), named ``link <i>``, from ``statustext_t`` / ``_link`` / ``_severity`` /
+  ``_text``;
 - ``/camera/<name>/image`` (``foxglove.CompressedImage``, JPEG, frame ``camera_<name>``): every
   frame of each camera at its capture time, from the run folder's ``camera_frames.npz``.
 
@@ -50,9 +53,10 @@ import numpy as np
 
 from ..linkstate import CARRIED, DOWN, EXCLUDED
 from ..messages import STATE_FLAG_ARMED, STATE_FLAG_CORRECTION_ACTIVE, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT
-from .foxglove import COMPRESSED_IMAGE, FRAME_TRANSFORMS, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS, SERIES, pose, stamp
+from .foxglove import (COMPRESSED_IMAGE, FRAME_TRANSFORMS, LOG, LOG_LEVEL_OF_SEVERITY, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS,
+                       SERIES, pose, stamp)
 
-__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "STATE_BITS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "image_channels", "export_log",
+__all__ = ["SCENE_MAX_HZ", "STEP_FIELDS", "STATE_BITS", "CONTACT_FIELDS", "LOAD_POSES", "MCAP_NAME", "channels", "image_channels", "statustext_channel", "export_log",
            "write_run_mcap", "write_beside_log"]
 
 _log = logging.getLogger(__name__)
@@ -242,6 +246,7 @@ def channels(log: Mapping[str, np.ndarray],
     out += [c[1:] for c in sorted(per_link, key=lambda c: c[0])]  # link by link, in the order above
     out += _series_channel(log, "/companion/step", "t_sckf", STEP_FIELDS)
     out += _series_channel(log, "/contact", "contact_t", CONTACT_FIELDS)
+    out += _log_statustext(log)
     for name, p_key, q_key in LOAD_POSES:
         arrays = _series(log, "load_t", p_key, q_key)
         if arrays and arrays[0].shape[1:] == (3,) and arrays[1].shape[1:] == (4,):
@@ -249,6 +254,31 @@ def channels(log: Mapping[str, np.ndarray],
             messages = _pose_messages(ns, arrays[0][:, None], arrays[1][:, None], 0)
             out.append((f"/load/{name}", POSE_IN_FRAME, ns, messages))
     return out
+
+
+def statustext_channel(texts) -> list[tuple[str, str, np.ndarray, Iterator[bytes]]]:
+    """``/statustext`` (``foxglove.Log``) of ``(time [s], link (from 1), MAV_SEVERITY, text)``, each
+    named ``link <i>``; none without texts."""
+    texts = sorted(texts, key=lambda x: x[0])
+    if not texts:
+        return []
+    ns = _nanoseconds(np.array([x[0] for x in texts], dtype=float))
+    messages = [_json({"timestamp": stamp(int(k)), "level": LOG_LEVEL_OF_SEVERITY[min(max(int(sev), 0), 7)],
+                       "message": str(text), "name": f"link {link}", "file": "", "line": 0})
+                for k, (_, link, sev, text) in zip(ns.tolist(), texts)]
+    return [("/statustext", LOG, ns, iter(messages))]
+
+
+def _log_statustext(log: Mapping[str, np.ndarray]) -> list:
+    """:func:`statustext_channel` of a log's ``statustext_*`` arrays (none when they do not fit)."""
+    keys = ("statustext_t", "statustext_link", "statustext_severity", "statustext_text")
+    if any(k not in log for k in keys):
+        return []
+    arrays = [np.asarray(log[k]).reshape(-1) for k in keys]
+    if len({len(a) for a in arrays}) != 1 or not np.isfinite(arrays[0].astype(float)).all():
+        _log.debug("statustext arrays do not fit together; skipped")
+        return []
+    return statustext_channel(list(zip(*(a.tolist() for a in arrays))))
 
 
 def _series_channel(log: Mapping[str, np.ndarray], topic: str, stamp_key: str,

@@ -40,6 +40,7 @@ from companion.mavlink.transport import wait_readable
 from companion.messages import Correction
 
 from ..config import VehicleSetup
+from ..events import SEVERITY
 from ..firmware import CorrectionRejected, LinkFirmware
 from .commands import on_command
 from .ftp import on_ftp
@@ -60,8 +61,6 @@ log = logging.getLogger(__name__)
 D = load_dialect()
 
 #: STATUSTEXT severity of each kind of firmware event
-_EVENT_SEVERITY = {"fault": D.MAV_SEVERITY_WARNING, "reset": D.MAV_SEVERITY_CRITICAL, "recovered": D.MAV_SEVERITY_INFO}
-
 
 class Vehicle:
     """One link's firmware behind its MAVLink ports."""
@@ -179,8 +178,9 @@ class Vehicle:
         the log."""
         for ev in self.fw.events:
             log.warning("link %d at %.2f s: %s", self.system_id, self.fc_time_s, ev.text)
+            self.recorder.statustext(self.fc_time_s, SEVERITY[ev.kind], ev.text)
             for ep in self.endpoints:
-                statustext(ep, _EVENT_SEVERITY[ev.kind], ev.text)
+                statustext(ep, SEVERITY[ev.kind], ev.text)
         self.fw.events.clear()
 
     def status_all(self, severity: int, text: str, every_s: float = 0.0) -> None:

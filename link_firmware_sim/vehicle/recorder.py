@@ -31,6 +31,8 @@ class FlightRecorder:
         #: the log's columns; pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m];
         #: flags: the state flags it reports (SKELETON_STATE_FLAGS)
         self.rows: dict[str, list] = {k: [] for k in _COLUMNS}
+        #: the STATUSTEXTs the vehicle sent: time [s], MAV_SEVERITY, text
+        self.texts: dict[str, list] = {"statustext_t": [], "statustext_severity": [], "statustext_text": []}
         self._stream = LogStream(out_dir / f"link{system_id}_firmware.stream") if out_dir is not None else None
 
     @property
@@ -61,8 +63,14 @@ class FlightRecorder:
         r["pspm"].append(fw.pspm_report() or (math.nan,) * 3)
         r["flags"].append(fw.flags(t_s))  # the SKELETON_STATE_FLAGS it reports
 
+    def statustext(self, t_s: float, severity: int, text: str) -> None:
+        """A STATUSTEXT the vehicle sent at ``t_s``, for the log."""
+        self.texts["statustext_t"].append(float(t_s))
+        self.texts["statustext_severity"].append(int(severity))
+        self.texts["statustext_text"].append(str(text))
+
     def _lists(self) -> dict[str, list]:
-        return {**self.rows, "correction_latency": self.fw.latency_log}
+        return {**self.rows, **self.texts, "correction_latency": self.fw.latency_log}
 
     def flush(self) -> None:
         """The rows so far to the stream file (every second)."""
@@ -72,6 +80,9 @@ class FlightRecorder:
     def arrays(self) -> dict[str, np.ndarray]:
         out = {k: np.asarray(v) for k, v in self.rows.items()}
         out["correction_latency"] = np.asarray(self.fw.latency_log).reshape(-1, 2)
+        out["statustext_t"] = np.asarray(self.texts["statustext_t"], dtype=float)
+        out["statustext_severity"] = np.asarray(self.texts["statustext_severity"], dtype=np.int64)
+        out["statustext_text"] = np.asarray(self.texts["statustext_text"], dtype=np.str_)
         return out
 
     def save(self) -> None:

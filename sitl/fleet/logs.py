@@ -13,6 +13,7 @@ import numpy as np
 
 from companion.linkstate import word as state_word
 from companion.logstream import read_log_stream
+from link_firmware_sim.events import statustext_arrays
 from link_firmware_sim.vehicle.hil import SITL_GPS_EPOCH_US
 from link_firmware_sim.vehicle.simlink import is_simlink_url
 from sitl.metrics import reboot_timeline, vehicle_down_windows
@@ -92,6 +93,9 @@ def merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
             comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
         merged.update(attach_truth(comp, truth["t"], truth["p_true"], truth["v_true"], truth["q_true"]))
     merged.update(_link_states(merged, fw, fw_rows))
+    merged.update(statustext_arrays([(t, i + 1, sev, text) for i, f in enumerate(fw) if f is not None
+                                     for t, sev, text in zip(f["statustext_t"].tolist(), f["statustext_severity"].tolist(),
+                                                             f["statustext_text"].tolist())]))
     logs = [f["correction_latency"] for f in fw if f is not None]
     latency = np.concatenate(logs) if logs else np.zeros((0, 2))
     return merged, latency, missing
@@ -131,8 +135,10 @@ def vehicle_log(out_dir: Path, i: int) -> dict[str, np.ndarray] | None:
                            for folder in (f"link{i + 1}", f"link{i + 1}-restart")) if lg is not None and "t" in lg]
     if not parts:
         return None
-    for p in parts:  # a stream holds the latencies only once a correction arrived
+    for p in parts:  # a stream holds the latencies only once a correction arrived, the texts once one was sent
         p["correction_latency"] = np.asarray(p.get("correction_latency", np.zeros((0, 2)))).reshape(-1, 2)
+        for key, dtype in (("statustext_t", float), ("statustext_severity", np.int64), ("statustext_text", np.str_)):
+            p[key] = np.asarray(p.get(key, np.zeros(0, dtype)), dtype=dtype).reshape(-1)
     keys = set.intersection(*(set(p) for p in parts))
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in keys}
 

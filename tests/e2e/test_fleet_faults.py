@@ -169,3 +169,8 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
+    # those STATUSTEXTs in the merged log (run.mcap's /statustext): link 3's GPS fault among them
+    log = np.load(tmp_path / "log.npz")
+    texts = list(zip(log["statustext_link"].tolist(), log["statustext_text"].tolist()))
+    assert any(link == 3 and "GPS" in text for link, text in texts), texts
+    assert {link for link, _ in texts} <= {1, 2, 3} and np.all(np.diff(log["statustext_t"]) >= 0)

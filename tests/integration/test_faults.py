@@ -14,6 +14,7 @@ import pytest
 from companion.configfile import ConfigError
 from companion.engine import STEP_LOG_KEYS
 from companion.estimation.so3 import attitude_error
+from companion.linkstate import CARRIED, DOWN
 from sitl.scenarios.chain.flight import fly
 from sitl.metrics import flag_windows, outage_split
 from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
@@ -265,6 +266,10 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     t = log["t"]
     down = (t >= 9.0) & (t < 9.0 + restart_after_s)
     assert np.all(np.isnan(log["p_ekf"][down, 1])) and np.all(np.isfinite(log["p_ekf"][~down, 1]))
+    # the state words the view colours links by: link 2 down exactly then, carried by its neighbours
+    state = log["link_state"]
+    assert np.all(state[down, 1] & DOWN) and not np.any(state[~down, 1] & DOWN) and not np.any(state[:, [0, 2]] & DOWN)
+    assert np.any(state[t >= 9.0, 1] & CARRIED) and not np.any(state[t < 9.0, 1] & CARRIED)
     after = t >= 9.0
     assert np.nanmax(tilt[after][:, [0, 2]]) < 20.0
     assert np.nanmax(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[after]) < 0.35
@@ -278,6 +283,10 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
         assert abs(reports[i]["at_limit_s"] - limit[i]) < 0.05 and reports[i]["min_scale"] <= 1.0, (reports, limit)
     assert max(r["episodes"] for r in reports) >= 1 and reports[1] == {
         "at_limit_s": 0.0, "episodes": 0, "min_scale": 1.0, "at_limit_now": False}, reports
+    # each episode's STATUSTEXTs (the fault and its recovery) in the log, from the neighbours only
+    links = log["statustext_link"].tolist()
+    assert set(links) <= {1, 3} and len(links) >= 2 * max(r["episodes"] for r in reports)
+    assert np.all(np.diff(log["statustext_t"]) >= 0) and np.all(log["statustext_t"] >= 9.0)
     end = t >= 11.5  # recovered
     assert np.max(tilt[end]) < 5.0 and np.max(np.linalg.norm(log["p_true"] - log["p_target"], axis=-1)[end]) < 0.3
 

@@ -61,3 +61,20 @@ def test_statustext_levels_and_health_rows(tmp_path, severity):
     ns, row = msgs["/link2/health"]
     assert ns == 1_000_000_000 and row["rejected"] == 3 and row["left_out"] == 1.0
     assert row["age_ms"] is None and row["latency_p50_ms"] is None and row["latency_p99_ms"] == 12.0
+
+
+def test_a_runs_statustexts_are_its_log_channel(tmp_path):
+    """run.mcap's /statustext from a SITL log's statustext_* arrays (batch: the firmware's events;
+    fleet: the vehicles' flight logs), in time order; arrays that do not fit give no channel."""
+    from companion.recording.mcap_log import export_log
+    from link_firmware_sim.events import statustext_arrays
+
+    from .test_mcap_log import synthetic_log
+
+    log = synthetic_log(2) | statustext_arrays([(0.5, 2, 4, "thrust at the rotors' limit"), (0.1, 1, 6, "GPS ok")])
+    counts = export_log(log, tmp_path / "run.mcap")
+    assert counts["/statustext"] == 2
+    texts = [(ns, m["name"], m["level"], m["message"]) for t, ns, m in read(tmp_path / "run.mcap") if t == "/statustext"]
+    assert texts == [(100_000_000, "link 1", 2, "GPS ok"), (500_000_000, "link 2", 3, "thrust at the rotors' limit")]
+    log["statustext_link"] = log["statustext_link"][:1]
+    assert "/statustext" not in export_log(log, tmp_path / "bad.mcap")

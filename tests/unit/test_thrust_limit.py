@@ -106,3 +106,13 @@ def test_time_counted_episodes_alternate_hypothesis(runs):
     assert kinds == ["fault", "recovered"] * (len(kinds) // 2) + (["fault"] if len(kinds) % 2 else [])
     assert m.episodes == kinds.count("fault") and m.active == (len(kinds) % 2 == 1)
     assert np.isfinite(m.min_scale) and 0.0 <= m.min_scale <= 1.0
+
+
+def test_each_event_kind_is_sent_at_its_mavlink_severity():
+    """The severities the vehicle sends and the run logs are the dialect's MAV_SEVERITY values."""
+    from companion.mavlink.dialect import load_dialect
+    from link_firmware_sim.events import EVENT_KINDS, SEVERITY
+
+    D = load_dialect()
+    assert set(SEVERITY) == set(EVENT_KINDS)
+    assert SEVERITY == {"fault": D.MAV_SEVERITY_WARNING, "reset": D.MAV_SEVERITY_CRITICAL, "recovered": D.MAV_SEVERITY_INFO}
