@@ -124,7 +124,8 @@ def _cmd_fly(args) -> int:
         if not args.no_mcap and (out_dir / "log.npz").exists():
             write_beside_log(out_dir)
         code = _report(metrics, out_dir, kind.summary)
-        replay_after(out_dir)
+        if not metrics.get("interrupted"):  # (a fleet stopped with Ctrl-C: the user wants out)
+            replay_after(out_dir)
     return code
 
 
@@ -170,7 +171,8 @@ def _cmd_launch(args) -> int:
             return EXIT_INTERRUPTED
         code = _report(metrics, out_dir, kind.summary)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        replay_after(out_dir)
+        if not metrics.get("interrupted"):  # (a fleet stopped with Ctrl-C: the user wants out)
+            replay_after(out_dir)
     return code
 
 

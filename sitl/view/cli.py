@@ -92,8 +92,9 @@ def live(args, title: str, out_dir: Path):
             from .fleet_rows import fleet_rows
 
             rows = fleet_rows(sim, Path(out_dir))
-        state["live"] = LiveView(state["view"], rows) if "live" not in state else state["live"]
-        state["live"].rows = rows
+        if "live" not in state:
+            state["live"] = LiveView(state["view"], rows)
+        state["live"].rows = rows  # (a kind that flies twice: the second flight's)
         sim.tick_hooks.append(state["live"].on_tick)
 
     def replay_after(out_dir) -> None:
