@@ -57,9 +57,12 @@ def _box_mesh(size) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _unit_quat(q: np.ndarray) -> np.ndarray:
+    """``q`` (..., 4) normalised; a zero (or non-finite) quaternion in a hostile log: the identity
+    (:func:`companion.estimation.so3.quat_normalize` raises on it)."""
     q = np.asarray(q, dtype=float)
-    n = np.linalg.norm(q)
-    return q / n if n > 0 else np.array([1.0, 0.0, 0.0, 0.0])
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    ok = np.isfinite(n) & (n > 1e-12)
+    return np.where(ok, q / np.where(ok, n, 1.0), [1.0, 0.0, 0.0, 0.0])
 
 
 def _z_along(direction, x_hint=None) -> np.ndarray:
@@ -144,14 +147,14 @@ class Scene:
             self.show(self._last)
 
     def _cable_points(self, f: ViewFrame) -> np.ndarray:
-        p, R = f.truth.p_w_m, quat_to_rotmat(np.asarray(f.truth.q_wxyz))
+        p, R = f.truth.p_w_m, quat_to_rotmat(_unit_quat(f.truth.q_wxyz))
         spec = self.spec
         if spec.joined:
             tip = np.einsum("nij,nj->ni", R, spec.tips())
             return np.stack((p[:-1] + tip[:-1], p[1:] - tip[1:]), axis=1)
         if spec.load_attach_b_m is not None and f.load is not None and f.load.known.all():
             pl = np.asarray(f.load.p_w_m, dtype=float).reshape(3)
-            Rl = quat_to_rotmat(np.asarray(f.load.q_wxyz, dtype=float).reshape(4))
+            Rl = quat_to_rotmat(_unit_quat(np.asarray(f.load.q_wxyz, dtype=float).reshape(4)))
             return np.stack((p, pl + spec.load_attach_b_m @ Rl.T), axis=1)
         return np.zeros((0, 2, 3))
 
@@ -204,8 +207,7 @@ class Scene:
             return
         known = poses.known
         p = np.where(known[:, None], np.asarray(poses.p_w_m, dtype=float), _NO_POSE)
-        q = np.where(known[:, None], np.asarray(poses.q_wxyz, dtype=float), [1.0, 0.0, 0.0, 0.0])
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        q = _unit_quat(np.where(known[:, None], np.asarray(poses.q_wxyz, dtype=float), [1.0, 0.0, 0.0, 0.0]))
         node.batched_positions = p.astype(np.float32)
         node.batched_wxyzs = q.astype(np.float32)
         if not node.visible:
