@@ -80,10 +80,19 @@ class _Session:
         with self._new:
             return "\n".join(self.lines)
 
-    def close(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> str:
-        """Stop the process with ``sig`` (it alone: it stops what it started), then its whole
-        process group with SIGKILL if it is not gone after ``timeout_s`` (first SIGABRT: a Python
-        process started with PYTHONFAULTHANDLER=1 writes where each of its threads was); its output."""
+    def close(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0, eof: bool = False) -> str:
+        """Stop the process: with ``eof``, first the end of its input (Ctrl-D at MAVProxy's prompt:
+        it unloads its modules and exits; it does not stop on SIGTERM. Its own log writer thread
+        may raise as it exits, so a session's output is checked before it is closed), then ``sig``
+        (it alone: it stops what it started), then its whole process group
+        with SIGKILL if it is not gone after ``timeout_s`` (first SIGABRT: a Python process started
+        with PYTHONFAULTHANDLER=1 writes where each of its threads was); its output."""
+        if eof and self.proc.poll() is None:
+            try:
+                self.proc.stdin.close()
+                self.proc.wait(timeout=timeout_s)
+            except (OSError, subprocess.TimeoutExpired):
+                pass
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
             try:
@@ -145,7 +154,8 @@ def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path, fleet_ports):
         assert stranger.expect(r"Received \d+ parameters", 5, mark) is None, stranger.output()[-2000:]
         mark = stranger.send("arm throttle")
         assert stranger.expect(r"COMMAND_ACK|ARMED", 5, mark) is None, stranger.output()[-2000:]
-        assert "Traceback" not in stranger.close()
+        assert "Traceback" not in stranger.output()
+        stranger.close(eof=True)
 
         # With the key, typed as the launcher printed it.
         gcs = _mavproxy(gcs_port, tmp_path / "mavproxy", env)
@@ -182,11 +192,12 @@ def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path, fleet_ports):
         assert gcs.expect(r"DISARMED", 15, mark), gcs.output()[-2000:]
         mark = gcs.send("status SKELETON_LINK_STATE")  # the dialect's own message, decoded
         assert gcs.expect(r"SKELETON_LINK_STATE \{time_usec", 10, mark), gcs.output()[-2000:]
-        text = gcs.close()
+        text = gcs.output()
         assert "Traceback" not in text and "fence breach" not in text, text[-3000:]
+        gcs.close(eof=True)
     finally:
         for session in sessions:
-            session.close()
+            session.close(eof=True)
         fleet.close(signal.SIGINT, timeout_s=120.0)  # (Ctrl-C: the launcher stops the fleet and writes its logs)
     assert fleet.proc.returncode == 130, fleet.output()[-3000:]
     # the vehicles refused the unkeyed session's commands, and say so
