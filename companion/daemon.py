@@ -303,21 +303,24 @@ class CompanionDaemon:
         self._log_stream.flush(self.engine.log)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.out_dir / "companion_log.tmp.npz"
-        np.savez(tmp, **self.engine.log_arrays())
+        steps = self.engine.log_arrays()
+        np.savez(tmp, **steps)
         tmp.replace(self.out_dir / "companion_log.npz")
-        self.write_mcap()
+        self.write_mcap(steps)
 
-    def write_mcap(self) -> Path | None:
-        """``companion.mcap`` (:mod:`companion.recording.companion_mcap`): the step log, the health
-        reports and the STATUSTEXTs for Foxglove and Lichtblick; one log line instead when the
-        ``mcap`` package is missing or there is nothing to write."""
+    def write_mcap(self, steps: dict | None = None) -> Path | None:
+        """``companion.mcap`` (:mod:`companion.recording.companion_mcap`): the step log (``steps``,
+        the engine's ``log_arrays()`` when not given), the health reports and the STATUSTEXTs for
+        Foxglove and Lichtblick; one log line instead when the ``mcap`` package is missing or there
+        is nothing to write."""
         if self.out_dir is None:
             return None
         try:
             from .recording.companion_mcap import COMPANION_MCAP, write_companion_mcap
 
             path = self.out_dir / COMPANION_MCAP
-            write_companion_mcap(path, self.engine.log_arrays(), self.setup.skeleton.d_b_m[list(self._members)],
+            steps = self.engine.log_arrays() if steps is None else steps
+            write_companion_mcap(path, steps, self.setup.skeleton.d_b_m[list(self._members)],
                                  first_link=self._members[0] + 1, health=self.health_log,
                                  statustext=self.statustext_log)
         except ImportError:

@@ -28,9 +28,13 @@ DOWN = 64
 CONDITIONS = ("down", "no_ekf", "gps_fault", "excluded", "carried", "disarmed", "flying")
 
 
-def word(flags: int, *, carried: bool = False, excluded: bool = False, down: bool = False) -> int:
-    """A link's state word from its reported ``flags`` and what the companion and simulator know."""
-    return (int(flags) & 0x0F) | (CARRIED if carried else 0) | (EXCLUDED if excluded else 0) | (DOWN if down else 0)
+def word(flags, *, carried=False, excluded=False, down=False):
+    """A link's state word from its reported ``flags`` and what the companion and simulator know:
+    an ``int`` for scalars, a ``uint8`` array (broadcast) for arrays of them."""
+    if all(np.ndim(x) == 0 for x in (flags, carried, excluded, down)):
+        return (int(flags) & 0x0F) | (CARRIED if carried else 0) | (EXCLUDED if excluded else 0) | (DOWN if down else 0)
+    out = (np.asarray(flags, dtype=np.int64) & 0x0F) | np.where(carried, CARRIED, 0) | np.where(excluded, EXCLUDED, 0)
+    return (out | np.where(down, DOWN, 0)).astype(np.uint8)
 
 
 def condition(w: int) -> str:

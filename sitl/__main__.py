@@ -30,9 +30,9 @@ from tqdm import tqdm
 
 from companion.configfile import ConfigError
 from companion.cli import make_run_dir, run_subcommand
+from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 
 from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
-from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 from .scenario import with_options
 from .scenarios import load as load_scenario_file
 from .view.cli import add_live_args, add_view_parser, live

@@ -124,7 +124,7 @@ def _link_states(merged: dict, fw: list, fw_rows: list) -> dict[str, np.ndarray]
     if "t_sckf" in merged and merged["t_sckf"].size and "corrected_sckf" in merged:
         j = np.searchsorted(merged["t_sckf"], t, side="right") - 1
         excluded[j >= 0] = ~merged["corrected_sckf"][j[j >= 0]]
-    words = np.vectorize(lambda f, e, d: state_word(f, excluded=e, down=d), otypes=[np.uint8])(flags, excluded, down)
+    words = state_word(flags, excluded=excluded, down=down)
     return {"link_state": words, "correction_latency_ms": latency}
 
 

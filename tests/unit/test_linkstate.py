@@ -96,3 +96,15 @@ def test_conditions_of_an_array_in_order():
     assert conditions(words) == ["down", "no_ekf", "flying", "disarmed", "carried", "gps_fault"]
     assert conditions(np.zeros(0, dtype=np.uint8)) == []
     assert conditions(np.uint8(3)) == ["flying"]
+
+
+def test_arrays_of_flags_give_the_scalar_words_elementwise():
+    """word() on arrays (a fleet log's links x ticks) is word() on each element, as uint8."""
+    rng = np.random.default_rng(3)
+    flags = rng.integers(0, 256, (20, 4))
+    carried, excluded, down = (rng.random((20, 4)) < 0.3 for _ in range(3))
+    words = word(flags, carried=carried, excluded=excluded, down=down)
+    assert words.dtype == np.uint8 and words.shape == flags.shape
+    expect = [[word(int(f), carried=bool(c), excluded=bool(e), down=bool(d)) for f, c, e, d in zip(*rows)]
+              for rows in zip(flags, carried, excluded, down)]
+    np.testing.assert_array_equal(words, expect)
