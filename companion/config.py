@@ -24,11 +24,12 @@ from __future__ import annotations
 
 import math
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-from .configfile import ConfigError, build, load_toml, require_nonnegative, require_positive
+from .configfile import ConfigError, build, load_toml, require_nonnegative, require_positive, with_settings
 from .estimation.gate import CHI2_6_1E6, GateParams
 from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
@@ -259,15 +260,20 @@ def project(setup, cls: type):
     return cls(**{f.name: getattr(setup, f.name) for f in fields(cls) if f.init})
 
 
-def load_setup(cls: type, path: str | Path, **overrides):
+def load_setup(cls: type, path: str | Path, settings: Mapping[str, Any] | None = None, **overrides):
     """Read the config file at ``path`` as ``cls`` (a :class:`ChainSetup` subclass).
 
-    ``overrides`` replace top-level fields (e.g. ``duration_s``). Relative paths of
+    ``settings``: dotted keys set in the file's tables before it is validated
+    (:func:`~companion.configfile.with_settings`: ``{"firmware.ekf.gate_sigma": 4.0}``), checked
+    as if the file held them. ``overrides`` replace top-level fields (e.g. ``duration_s``). Relative paths of
     ``signing.key_file``, ``zenoh.users_file``, ``zenoh.tls.certs_dir`` and a ``[motion]`` section's
     ``model`` are resolved against the file's folder; with ``trajectory.kind = "cpg"`` the model
     is loaded and must fit the skeleton. Raises :class:`~companion.configfile.ConfigError`.
     """
-    setup = build(cls, load_toml(path), file=str(path))
+    data = load_toml(path)
+    if settings:
+        data = with_settings(data, settings, str(path))
+    setup = build(cls, data, file=str(path))
     if setup.signing.key_file:
         key_path = Path(path).resolve().parent / Path(setup.signing.key_file).expanduser()
         setup = replace(setup, signing=replace(setup.signing, key_file=str(key_path)))

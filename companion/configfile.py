@@ -51,8 +51,8 @@ from collections.abc import Mapping
 from os import PathLike
 from typing import Any
 
-__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "require_finite_positive",
-           "require_nonnegative", "require_positive", "to_dict"]
+__all__ = ["ConfigError", "build", "dump_toml", "load_config", "load_toml", "parse_setting", "require_finite_positive",
+           "require_nonnegative", "require_positive", "to_dict", "with_settings"]
 
 
 def require_positive(obj: Any, *names: str) -> None:
@@ -135,6 +135,44 @@ def load_toml(path: str | PathLike[str]) -> dict[str, Any]:
         raise ConfigError(file, "", f"invalid TOML: {exc}") from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(file, "", f"invalid TOML: not UTF-8 text (byte {exc.start}: {exc.reason})") from exc
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """``"firmware.ekf.gate_sigma=4"`` as ``("firmware.ekf.gate_sigma", 4)``: the value is read as a
+    TOML value (``4``, ``1e-5``, ``true``, ``[1.0, 0.0, 0.0]``, ``"m8"``), and a bare word that is
+    none (``m8``) as a string. ``ValueError`` without ``KEY=VALUE`` or with a malformed key."""
+    key, sep, value = text.partition("=")
+    key, value = key.strip(), value.strip()
+    if not sep or not key or not value:
+        raise ValueError(f"{text!r}: expected KEY=VALUE, e.g. firmware.ekf.gate_sigma=4")
+    if not all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", part) for part in key.split(".")):
+        raise ValueError(f"{text!r}: the key is a dotted path of table and key names, e.g. firmware.ekf.gate_sigma")
+    try:
+        return key, tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        return key, value
+
+
+def with_settings(data: Mapping[str, Any], settings: Mapping[str, Any], file: str) -> dict[str, Any]:
+    """A copy of the parsed TOML ``data`` with each dotted key of ``settings`` set to its value
+    (tables on the way are made where absent), to be built and validated like the file itself:
+    ``firmware.ekf.gate_sigma`` sets ``gate_sigma`` in ``[firmware.ekf]``. A key whose way passes
+    through a value that is not a table is a :class:`ConfigError`."""
+    out = _copy_tables(data)
+    for dotted, value in settings.items():
+        *tables, name = dotted.split(".")
+        node = out
+        for depth, part in enumerate(tables):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ConfigError(file, ".".join(tables[:depth + 1]), f"setting {dotted}: not a table")
+            node = child
+        node[name] = value
+    return out
+
+
+def _copy_tables(data: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: _copy_tables(v) if isinstance(v, Mapping) else v for k, v in data.items()}
 
 
 def load_config(cls: type, path: str | PathLike[str]) -> Any:

@@ -315,7 +315,7 @@ def check_module_args(module: str, args: list[str], complete: bool = True) -> li
             else:
                 names = ", ".join(sub.choices)
                 return problems + [f"unknown subcommand {tok!r} for `{prog}` (one of: {names})"]
-            chosen = True
+            chosen = len(level) != 1 or _subparsers(level[0]) is None  # `campaign run`: a subcommand's own
             positional_index = 0
             seen = set()
             continue

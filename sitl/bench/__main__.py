@@ -1,11 +1,11 @@
 """Benchmarks that print figures and write JSON.
 
     python -m sitl.bench table2 [--json PATH] [--seed S] [--seeds N] [--duration S] [--ekf {paper,consistent,both}]
-                                [--out DIR]
+                                [--jobs J | --scheduler tcp://HOST:PORT] [--out DIR]
     python -m sitl.bench scaling [--json PATH] [--seed S] [--out DIR]
     python -m sitl.bench zenoh [--duration S] [--groups 1,2/3,4,5/6,7] [--json PATH] [--out DIR]
-    python -m sitl.bench nees [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
-    python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J]
+    python -m sitl.bench nees [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J | --scheduler ADDR]
+    python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J | --scheduler ADDR]
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
     python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
@@ -41,7 +41,7 @@ from companion.cli import make_run_dir, run_subcommand
 from .ekf_chain import EKF_CONFIGS, ChainRun
 from .report import add_doc_options, doc_path, load_average, write_doc
 from .scaling import LINK_COUNTS, format_scaling, markdown_scaling, run_scaling
-from .table2 import (GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, markdown_table2,
+from .table2 import (GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, markdown_table2, table2_seed,
                      run_table2_configs)
 from .zenoh_rtt import format_zenoh_rtt, markdown_zenoh_rtt, run_zenoh_rtt
 
@@ -94,6 +94,23 @@ def _params(args) -> CAParams | None:
         return None
 
 
+def _executor(args):
+    """The campaign engine's executor for a bench over seeds: ``--scheduler``'s cluster, else a
+    local cluster of ``--jobs`` workers, or (``--jobs 1``) this process."""
+    from sitl.campaign.cluster import open_executor
+
+    return open_executor(args.scheduler, args.jobs, args.jobs == 1 and not args.scheduler)
+
+
+def _runs_done(bar):
+    """A campaign's progress callback that moves ``bar`` to the finished runs."""
+    def progress(counts):
+        bar.n = counts["done"]
+        bar.refresh()
+
+    return progress
+
+
 def _cmd_table2(args) -> int:
     params = _params(args)
     if params is None:
@@ -101,26 +118,23 @@ def _cmd_table2(args) -> int:
     if args.duration <= 0 or args.seeds < 1:
         print(f"error: --duration must be positive and --seeds >= 1 (got {args.duration}, {args.seeds})", file=sys.stderr)
         return 2
+    from sitl.campaign.engine import Campaign, Job
+
     configs = EKF_CONFIGS if args.ekf == "both" else (args.ekf,)
     run = ChainRun(duration_s=args.duration)
     run_dir = make_run_dir("table2", args.out)
-    n_ticks = int(round(run.duration_s * run.ekf_rate_hz))
-    results: dict[str, list[dict]] = {name: [] for name in configs}
-    with tqdm(
-        total=n_ticks * args.seeds * len(configs), desc=f"EKF x {args.seeds} seed(s) x {len(configs)} tuning(s)",
-        unit="tick", disable=args.quiet, file=sys.stderr,
-    ) as bar:
-        for seed in range(args.seed, args.seed + args.seeds):
-            runs = run_table2_configs(seed, run, configs, GROUP_SIZES, params, progress=bar.update)
-            for name, (result, stream) in runs.items():
-                results[name].append(result)
-                if seed == args.seed:
-                    suffix = "" if name == "paper" else f"_{name}"
-                    np.savez_compressed(run_dir / f"ekf_stream{suffix}.npz", **stream.replay_arrays())
-            if seed == args.seed:
-                np.savez_compressed(
-                    run_dir / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true
-                )
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    jobs = [Job(f"table2|{','.join(configs)}|duration_s={args.duration!r}|eps={params.eps!r}|alpha={params.alpha!r}"
+                f"|seed={seed}", Path(f"seed-{seed}"), table2_seed,
+                (seed, run, configs, params, str(run_dir.resolve()) if seed == args.seed else None)) for seed in seeds]
+    with tqdm(total=len(seeds), desc=f"EKF x {args.seeds} seed(s) x {len(configs)} tuning(s)", unit="seed",
+              disable=args.quiet, file=sys.stderr) as bar:
+        campaign = Campaign(run_dir, jobs).run(lambda: _executor(args), progress=_runs_done(bar))
+    failed = [r for r in campaign.records if r["status"] != "ok"]
+    if failed:
+        print(f"error: seed {failed[0]['key'].rsplit('=', 1)[1]}: {failed[0]['error']}", file=sys.stderr)
+        return 1
+    results = {name: [r["result"][name] for r in campaign.records] for name in configs}
     result = combine_configs({name: aggregate_seeds(res) for name, res in results.items()})
     path = _write_json(result, args.json, run_dir, "table2.json")
     text = format_table2_configs(result)
@@ -198,6 +212,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="EKF tuning: paper (Table I, drifts unmodelled), consistent (drifts carried in the noise) or both on "
         "the same sensor data (default both)",
     )
+    t2.add_argument("--jobs", type=int, default=1,
+                    help="seeds at once: a local Dask cluster of J worker processes (default 1: one after another in "
+                         "this process, where the compute times are not disturbed by a neighbour)")
+    t2.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="fly the seeds on this running Dask scheduler's "
+                                                                  "workers (python -m sitl campaign's engine)")
     add_doc_options(t2, "table2")
     t2.set_defaults(func=_cmd_table2)
     sc = sub.add_parser(
@@ -238,7 +257,11 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--duration", type=float, help="simulated seconds per seed (default: the scenario's)")
         sp.add_argument("--profile", default="m8" if name == "static" else None,
                         help="sensor profile instead of the scenario's" + (" (default m8)" if name == "static" else ""))
-        sp.add_argument("--jobs", type=int, default=2, help="flights at once, one process each (default 2)")
+        sp.add_argument("--jobs", type=int, default=2,
+                        help="flights at once: a local Dask cluster of J worker processes (1: one after another in "
+                             "this process; default 2)")
+        sp.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                        help="fly on this running Dask scheduler's workers instead (python -m sitl campaign's engine)")
         sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
         sp.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -317,8 +340,10 @@ def _cmd_seeds(args) -> int:
     from sitl.scenario import load_scenario
     from sitl.plant.sensors import PROFILES
 
-    from .seeds import (aggregate_nees, aggregate_static, fly_seeds, format_nees, format_static, markdown_nees,
-                        markdown_static)
+    from sitl.campaign.flights import run_flights
+
+    from .seeds import (aggregate_nees, aggregate_static, format_nees, format_static, markdown_nees, markdown_static,
+                        seed_folder, seed_specs)
 
     if args.seeds < 1 or args.jobs < 1 or (args.duration is not None and args.duration <= 0):
         print("error: --seeds and --jobs must be >= 1 and --duration positive", file=sys.stderr)
@@ -336,13 +361,18 @@ def _cmd_seeds(args) -> int:
         print(f"error: {args.config}: the static protocol needs a resting chain (trajectory.kind = \"rest\")",
               file=sys.stderr)
         return 2
-    if args.profile is not None:
-        overrides["profile"] = args.profile
     run_dir = make_run_dir(args.bench, args.out)
     seeds = list(range(args.seed, args.seed + args.seeds))
+    specs = seed_specs(Path(args.config).resolve(), seeds, args.duration, args.profile)
     with tqdm(total=len(seeds), desc=f"{sc.name} x {len(seeds)} seed(s)", unit="flight", disable=args.quiet,
               file=sys.stderr) as bar:
-        runs = fly_seeds(args.config, seeds, run_dir, overrides=overrides, jobs=args.jobs, progress=bar.update)
+        campaign = run_flights(run_dir, specs, lambda: _executor(args), folder=seed_folder, progress=_runs_done(bar))
+    failed = [r for r in campaign.records if r["status"] != "ok"]
+    if failed:
+        print(f"error: {len(failed)} of {len(seeds)} flights did not finish, e.g. {failed[0]['key']}: "
+              f"{failed[0]['error']} (run.log and error.txt in its folder)", file=sys.stderr)
+        return 1
+    runs = [r["result"] for r in campaign.records]
     try:
         result = aggregate_nees(runs) if args.bench == "nees" else aggregate_static(runs)
     except ValueError as exc:

@@ -1,9 +1,9 @@
 """One SITL scenario flown over many seeds, and what only many seeds can show.
 
-* :func:`fly_seeds` flies a batch scenario (:func:`sitl.scenarios.chain.flight.fly`) once per seed, each into its
-  own folder ``<run>/seed-<S>`` (metrics.json, log.npz, scenario.toml, run.log), in up to ``jobs``
-  processes; the seeds are the scenario's seed field, so every run is reproducible alone with
-  ``python -m sitl fly --config <run>/seed-<S>/scenario.toml``.
+* :func:`seed_specs`: the runs of a scenario over seeds, flown by the campaign engine
+  (:mod:`sitl.campaign`) each into its own folder ``<run>/seed-<S>`` (metrics.json, log.npz,
+  scenario.toml, run.log); the seeds are the scenario's seed field, so every run is reproducible
+  alone with ``python -m sitl fly --config <run>/seed-<S>/scenario.toml``.
 * :func:`aggregate_nees`: the Monte Carlo consistency test (Bar-Shalom, Li & Kirubarajan,
   *Estimation with Applications to Tracking and Navigation*, sec. 5.4.2): per link and 3-dof
   block, the NEES averaged over the window and over the N seeds. For a consistent filter it is
@@ -16,80 +16,35 @@
   against the truth, for the EKF alone, the local constraint application and the
   semi-distributed one, mean and spread over the seeds, beside the thesis's figures.
 
-Pure functions over metrics dicts, plus the runner; the CLI is ``python -m sitl.bench nees`` and
+Pure functions over metrics dicts; the CLI is ``python -m sitl.bench nees`` and
 ``python -m sitl.bench static``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import multiprocessing as mp
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from companion.cli import LOG_FORMAT
+from sitl.campaign.grid import RunSpec
 from sitl.metrics import NEES_BLOCKS, STATIC_ESTIMATES, THESIS_STATIC_LINK4_STD_M, nees_bounds95
 
-__all__ = ["fly_seeds", "aggregate_nees", "format_nees", "aggregate_static", "format_static",
+__all__ = ["seed_specs", "seed_folder", "aggregate_nees", "format_nees", "aggregate_static", "format_static",
            "independent_reduction", "markdown_nees", "markdown_static"]
 
-log = logging.getLogger(__name__)
 
 
-def _fly_one(job: tuple[str, dict, int, str]) -> dict:
-    """Fly ``config`` with ``overrides`` and ``seed`` into ``out`` (a worker process)."""
-    from sitl.scenarios.chain.flight import fly
-    from sitl.scenario import load_scenario
-
-    config, overrides, seed, out = job
-    Path(out).mkdir(parents=True, exist_ok=True)
-    # the flight's log (firmware warnings, refused corrections, GPS health) goes to its folder
-    handler = logging.FileHandler(Path(out) / "run.log", mode="w")
-    handler.setFormatter(logging.Formatter(LOG_FORMAT))
-    root = logging.getLogger()
-    saved = (list(root.handlers), root.level)
-    for h in saved[0]:
-        root.removeHandler(h)
-    root.addHandler(handler)
-    root.setLevel(logging.INFO)
-    try:
-        overrides = dict(overrides)
-        profile = overrides.pop("profile", None)
-        sc = load_scenario(config, seed=seed, **overrides)
-        if profile is not None:
-            sc = replace(sc, sensors=replace(sc.sensors, profile=profile))
-        return fly(sc, Path(out), plots=False)
-    finally:
-        root.removeHandler(handler)
-        handler.close()
-        for h in saved[0]:
-            root.addHandler(h)
-        root.setLevel(saved[1])
+def seed_specs(config: str | Path, seeds: list[int], duration_s: float | None = None,
+               profile: str | None = None) -> list[RunSpec]:
+    """The batch runs of ``config`` once per seed (``duration_s``: instead of the file's;
+    ``profile``: the sensor data's profile, the file's EKF tuning kept)."""
+    return [RunSpec(str(config), (), int(s), "batch", duration_s, profile) for s in seeds]
 
 
-def fly_seeds(config: str | Path, seeds: list[int], run_dir: Path, *, overrides: dict | None = None,
-              jobs: int = 1, progress=None) -> list[dict]:
-    """The metrics of ``config`` flown once per seed (in seed order), each run in
-    ``run_dir/seed-<S>``. ``overrides``: top-level scenario fields (``duration_s``) and
-    ``profile`` (the sensor profile). ``jobs`` > 1 flies that many at once (one process each:
-    the physics and the firmware are single-threaded)."""
-    jobs_list = [(str(config), dict(overrides or {}), int(s), str(Path(run_dir) / f"seed-{s}")) for s in seeds]
-    results: dict[int, dict] = {}
-    if jobs <= 1:
-        for job in jobs_list:
-            results[job[2]] = _fly_one(job)
-            if progress is not None:
-                progress(1)
-    else:
-        with mp.get_context("spawn").Pool(min(jobs, len(jobs_list))) as pool:
-            for job, metrics in zip(jobs_list, pool.imap(_fly_one, jobs_list)):
-                results[job[2]] = metrics
-                if progress is not None:
-                    progress(1)
-    return [results[int(s)] for s in seeds]
+def seed_folder(spec: RunSpec) -> Path:
+    """A seed's folder in a bench's run folder: ``seed-<S>``."""
+    return Path(f"seed-{spec.seed}")
 
 
 def aggregate_nees(runs: list[dict]) -> dict:

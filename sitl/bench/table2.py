@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +52,7 @@ __all__ = [
     "evaluate_group_size",
     "run_table2",
     "run_table2_configs",
+    "table2_seed",
     "aggregate_seeds",
     "combine_configs",
     "format_table2",
@@ -193,6 +195,21 @@ def run_table2_configs(
         result["protocol"]["ekf_config"] = name
         out[name] = (result, stream)
     return out
+
+
+def table2_seed(out_dir, seed: int, run: ChainRun, configs, params: CAParams, streams_to: str | None = None) -> dict:
+    """One seed of the protocol as a campaign job (:mod:`sitl.campaign.engine`): the result per
+    EKF tuning in ``configs``; with ``streams_to``, that folder gets the replay inputs of this
+    seed (``ekf_stream[_<tuning>].npz``, ``truth.npz``) for ``python -m companion replay``."""
+    runs = run_table2_configs(seed, run, configs, GROUP_SIZES, params)
+    if streams_to is not None:
+        folder = Path(streams_to)
+        for name, (_, stream) in runs.items():
+            suffix = "" if name == "paper" else f"_{name}"
+            np.savez_compressed(folder / f"ekf_stream{suffix}.npz", **stream.replay_arrays())
+        stream = next(iter(runs.values()))[1]
+        np.savez_compressed(folder / "truth.npz", t=stream.t, p=stream.p_true, v=stream.v_true, q=stream.q_true)
+    return {name: result for name, (result, _) in runs.items()}
 
 
 _NEES_KEYS = ("nees", "nees_effective_samples", "nees_bounds95")

@@ -53,7 +53,8 @@ def kind_of(path: str | Path) -> ScenarioKind:
 
 def load(path: str | Path, **overrides):
     """``(kind, scenario)`` of the scenario file at ``path``, read and validated by its kind's
-    schema; ``overrides`` replace top-level fields (``duration_s``, ``seed``). A
+    schema; ``overrides`` replace top-level fields (``duration_s``, ``seed``), and ``settings=``
+    (a mapping of dotted keys, :func:`companion.config.load_setup`) sets keys in the file's tables. A
     :class:`~companion.configfile.ConfigError` names the file, the key and the reason; a table of
     another kind's in a file that does not name that kind says which ``kind`` it needs."""
     kind = kind_of(path)

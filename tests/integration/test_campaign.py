@@ -1,0 +1,147 @@
+"""The campaign engine (sitl.campaign): records written as runs end, resuming, failures kept, a
+worker's death on a real Dask cluster, and the command line flying real flights on a local
+cluster and on a separately started scheduler with its workers."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from contextlib import nullcontext
+from pathlib import Path
+
+import pytest
+
+from sitl.campaign.cluster import DaskExecutor, connect
+from sitl.campaign.engine import Campaign, Job, SerialExecutor
+
+from .. import campaign_jobs as jobs
+from ..paths import ROOT
+from ..waits import wait_for
+
+
+def _jobs(fn, xs, *extra):
+    return [Job(f"x={x}", Path(f"x-{x}"), fn, (x, *extra), {"x": x}) for x in xs]
+
+
+def _serial():
+    return nullcontext(SerialExecutor())
+
+
+def test_each_run_is_recorded_as_it_ends_and_a_second_run_skips_the_finished(tmp_path):
+    counts = []
+    result = Campaign(tmp_path, _jobs(jobs.fail_at, [1.0, 2.0, 3.0], 2.0)).run(_serial, progress=counts.append)
+    assert [r["status"] for r in result.records] == ["ok", "failed", "ok"]
+    assert result.records[1]["error"] == "RuntimeError: refused 2.0"
+    assert "RuntimeError" in (tmp_path / "x-2.0" / "error.txt").read_text()
+    assert result.records[2]["result"] == {"x": 3.0, "y": 9.0, "per_link": [3.0, 6.0]}
+    assert counts[-1] == {"done": 3, "running": 0, "failed": 1, "lost": 0, "total": 3}
+    on_disk = json.loads((tmp_path / "x-3.0" / "run_record.json").read_text())
+    assert on_disk["status"] == "ok" and on_disk["attempts"] == 1 and on_disk["columns"] == {"x": 3.0}
+    again = Campaign(tmp_path, _jobs(jobs.fail_at, [1.0, 2.0, 3.0], 5.0)).run(_serial)
+    assert (again.skipped, again.ran) == (2, 1)  # the failed run is flown again, the others are not
+    assert [r["status"] for r in again.records] == ["ok", "ok", "ok"]
+
+
+def test_an_interrupted_campaign_goes_on_where_it_stopped(tmp_path):
+    with pytest.raises(KeyboardInterrupt):
+        Campaign(tmp_path, _jobs(jobs.interrupt_at, [1.0, 2.0, 3.0, 4.0], 3.0)).run(_serial)
+    assert sorted(p.parent.name for p in tmp_path.glob("*/run_record.json")) == ["x-1.0", "x-2.0"]
+    resumed = Campaign(tmp_path, _jobs(jobs.interrupt_at, [1.0, 2.0, 3.0, 4.0], None)).run(_serial)
+    assert (resumed.skipped, resumed.ran) == (2, 2)
+    assert resumed.counts() == {"ok": 4, "failed": 0, "lost": 0, "not run": 0}
+
+
+def test_a_record_of_another_run_in_the_folder_does_not_count_as_finished(tmp_path):
+    Campaign(tmp_path, _jobs(jobs.square, [1.0])).run(_serial)
+    other = [Job("x=other", Path("x-1.0"), jobs.square, (7.0,))]
+    assert Campaign(tmp_path, other).run(_serial).ran == 1
+
+
+def test_a_worker_that_dies_loses_only_its_run_which_is_flown_again(tmp_path):
+    """A real local Dask cluster of two workers: one job kills its worker once, one every time;
+    the first is retried and recorded with two attempts, the second recorded lost, the others
+    finish as if nothing happened."""
+    work = (_jobs(jobs.square, [1.0, 2.0]) + [Job("once", Path("once"), jobs.die_once, (3.0,))]
+            + [Job("always", Path("always"), jobs.die_always, (4.0,))] + _jobs(jobs.square, [5.0]))
+    with connect(workers=2, retries=1) as client:
+        result = Campaign(tmp_path, work).run(lambda: nullcontext(DaskExecutor(client)))
+    by = {r["key"]: r for r in result.records}
+    assert all(by[k]["status"] == "ok" and by[k]["attempts"] == 1 for k in ("x=1.0", "x=2.0", "x=5.0"))
+    assert by["once"]["status"] == "ok" and by["once"]["attempts"] == 2 and by["once"]["result"]["y"] == 9.0
+    assert by["always"]["status"] == "lost" and "KilledWorker" in by["always"]["error"]
+    assert by["always"]["attempts"] == 2
+    assert result.counts() == {"ok": 4, "failed": 0, "lost": 1, "not run": 0}
+
+
+def _campaign(out, *where, seeds="0-1"):
+    cmd = [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
+           "--set", "firmware.ekf.gate_sigma=3,5", "--seeds", seeds, "--duration", "8", "--quiet", "--out", str(out),
+           *where]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return res.stdout
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A scheduler and two workers started as a user starts them (dask scheduler, dask worker) on
+    loopback; yields the scheduler's address."""
+    dask = str(Path(sys.executable).parent / "dask")
+    scheduler_file = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(scheduler_file)], cwd=ROOT, start_new_session=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        assert wait_for(scheduler_file.exists, 60.0), "the scheduler wrote no address"
+        for _ in range(2):
+            procs.append(subprocess.Popen([dask, "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
+                                           "--no-dashboard", "--host", "127.0.0.1"], cwd=ROOT,
+                                          start_new_session=True, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL))
+        address = json.loads(scheduler_file.read_text())["address"]
+        from distributed import Client
+
+        with Client(address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_table(tmp_path, dask_cluster):
+    """Real flights (three_link, 8 s, two settings x two seeds): the default local cluster, a
+    separately started scheduler with two workers and the same runs one after another give
+    the same table to the last digit; the campaign started again flies nothing."""
+    out = _campaign(tmp_path / "local", "--workers", "2")
+    assert "0 finished before, 4 now (4 ok, 0 failed, 0 lost)" in out
+    _campaign(tmp_path / "remote", "--scheduler", dask_cluster)
+    again = _campaign(tmp_path / "local", "--workers", "2")
+    assert "4 finished before, 0 now" in again
+    table = (tmp_path / "local" / "results.csv").read_text().splitlines()
+    assert len(table) == 5 and table[0].startswith("scenario,mode,set:firmware.ekf.gate_sigma,duration_s,seed,status")
+    diff = subprocess.run([sys.executable, "-m", "sitl", "campaign", "diff", str(tmp_path / "local" / "results.csv"),
+                           str(tmp_path / "remote" / "results.csv")], cwd=ROOT, capture_output=True, text=True)
+    assert diff.returncode == 0 and "identical" in diff.stdout, diff.stdout
+    remote = (tmp_path / "remote" / "results.csv").read_text()
+    assert "tcp://127.0.0.1:" in remote  # the workers named in the table
+    summary = (tmp_path / "local" / "summary.md").read_text()
+    assert "three_link batch duration_s=8.0 firmware.ekf.gate_sigma=3" in summary
+    assert (tmp_path / "local" / "plots" / "rms_track_true_m.png").stat().st_size > 1000
+    nees = json.loads((tmp_path / "local" / "nees.json").read_text())
+    assert len(nees) == 2 and all(len(g["seeds"]) == 2 for g in nees.values())
+
+
+def test_a_campaign_with_a_bad_setting_stops_before_anything_flies(tmp_path):
+    cmd = [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
+           "--set", "firmware.ekf.gate_sigm=3,5", "--seeds", "0-1", "--quiet", "--out", str(tmp_path / "c")]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "firmware.ekf.gate_sigm: unknown key (did you mean 'gate_sigma'?)" in res.stderr
+    assert not (tmp_path / "c").exists()
