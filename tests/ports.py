@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
 import socket
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
+
+from sitl.fleet.lease import hold_instances
 
 
 def free_ports(k: int, udp: bool = False) -> list[int]:
@@ -128,25 +128,18 @@ def assert_ports_released(ports: FleetPorts, n: int) -> None:
 
 @contextmanager
 def fleet_slot(preferred: int = 0, timeout_s: float = 1800.0) -> Iterator[int]:
-    """Hold one of the host's fleet slots (a lock file in the temporary folder, so pytest-xdist's
-    workers and a second test run on this host each get their own): yields its first instance
-    offset. Tries ``preferred`` first, then the others, until one is free or ``timeout_s`` passed."""
+    """Hold one of the host's fleet slots (its instances' lock files, as a campaign's fleets lease
+    theirs: :func:`sitl.fleet.lease.hold_instances`; so pytest-xdist's workers, a second test run
+    and a campaign on this host each get their own): yields its first instance offset. Tries
+    ``preferred`` first, then the others, until one is free or ``timeout_s`` passed."""
     order = [(preferred + j) % N_SLOTS for j in range(N_SLOTS)]
     deadline = time.monotonic() + timeout_s
     while True:
         for slot in order:
-            f = open(Path(tempfile.gettempdir()) / f"aerial-skeleton-test-fleet-slot{slot}.lock", "w")
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                f.close()
-                continue
-            try:
-                yield slot * SLOT_WIDTH
-            finally:
-                fcntl.flock(f, fcntl.LOCK_UN)
-                f.close()
-            return
+            with hold_instances(slot * SLOT_WIDTH, SLOT_WIDTH) as held:
+                if held:
+                    yield slot * SLOT_WIDTH
+                    return
         assert time.monotonic() < deadline, f"no fleet slot free in {timeout_s:.0f} s"
         time.sleep(0.2)
 

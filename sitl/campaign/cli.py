@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -44,6 +45,10 @@ class _Bar:
             self.bar.close()
 
 
+def _raise_interrupt(_signum, _frame):
+    raise KeyboardInterrupt
+
+
 def _grid(args):
     seeds = parse_seeds(args.seeds)
     sweeps = [parse_sweep(s) for s in args.set]
@@ -74,6 +79,7 @@ def _cmd_run(args) -> int:
                                                              f"{args.workers or 'one worker per core'}")
     print(f"campaign: {len(specs)} runs in {root} ({where})", file=sys.stderr)
     bar = _Bar(len(specs), args.quiet)
+    signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / a batch system's stop: as Ctrl-C
     try:
         result = run_flights(root, specs, lambda: open_executor(args.scheduler, args.workers, args.serial, args.retries),
                              renders=renders, progress=bar,

@@ -99,6 +99,8 @@ class DaskExecutor:
                     done(job, payload, len(seen | {payload["attempt"]}))
                 elif future.status == "error":  # not the run's own error (execute records those)
                     exc = future.exception()
+                    if isinstance(exc, KeyboardInterrupt):  # Ctrl-C reached the workers too: not the run's
+                        raise KeyboardInterrupt
                     payload = lost_payload(job, f"{type(exc).__name__}: {exc}")
                     if not isinstance(exc, KilledWorker):  # e.g. the package missing on the worker
                         payload["status"] = "failed"

@@ -19,14 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from .table import TIMING_COLUMNS, cell, flatten, write_table
+from .table import cell, flatten, write_table
 
 __all__ = ["group_label", "metric_stats", "summarise", "HEADLINE", "markdown_summary", "box_plots", "pooled_nees"]
 
 #: the metrics summary.md and the box plots show first (a column or a per-link list's columns)
 HEADLINE = ("rms_track_true_m", "rms_est_err_m.ekf", "rms_est_err_m.sckf", "constraint_pos_p95_m.after",
             "constraint_vel_p95_m_s.after", "rms_pose_track_true_pos_m", "min_altitude_m", "crashed")
-_KEY = ("scenario", "mode", "duration_s", "profile")
+_NOT_PLOTTED = ("crashed",)
 
 
 def group_label(columns: dict[str, Any]) -> str:
@@ -142,8 +142,7 @@ def write_summary(folder: Path, summary: list[dict]) -> Path:
 
 def box_plots(records: list[dict], folder: Path, metrics: Iterable[str] | None = None) -> list[Path]:
     """One PNG per metric in ``folder``: a box per group over its finished runs' seeds
-    (default: :data:`HEADLINE`; a per-link metric gets a panel per link). Timing columns are
-    not plotted unless asked for."""
+    (default: :data:`HEADLINE` but ``crashed``, a rate; a per-link metric gets a panel per link)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -153,7 +152,7 @@ def box_plots(records: list[dict], folder: Path, metrics: Iterable[str] | None =
     flats = {g: [flatten(r.get("result") or {}) | {"wall_s": r.get("wall_s")} for r in recs]
              for g, recs in groups.items()}
     names = list(dict.fromkeys(k for fl in flats.values() for f in fl for k in f))
-    wanted = list(metrics) if metrics is not None else [h for h in HEADLINE if h not in TIMING_COLUMNS]
+    wanted = list(metrics) if metrics is not None else [h for h in HEADLINE if h not in _NOT_PLOTTED]
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for base in wanted:
@@ -165,7 +164,8 @@ def box_plots(records: list[dict], folder: Path, metrics: Iterable[str] | None =
         for ax, col in zip(axes[0], cols):
             data = [[x for f in flats[g] if (x := _numeric(f.get(col))) is not None and math.isfinite(x)]
                     for g in groups]
-            ax.boxplot(data, tick_labels=[_wrap(g) for g in groups])
+            ax.boxplot([d or [math.nan] for d in data])  # (a group with no finished run: an empty slot)
+            ax.set_xticks(range(1, len(groups) + 1), [_wrap(g) for g in groups])
             ax.set_title(col, fontsize=9)
             ax.tick_params(axis="x", labelsize=7)
         fig.tight_layout()

@@ -20,19 +20,31 @@ from typing import Iterator
 
 from .layout import check_instance_offset
 
-__all__ = ["lease_instance_offset", "MAX_INSTANCES"]
+__all__ = ["lease_instance_offset", "hold_instances", "MAX_INSTANCES"]
 
 #: PX4 SITL's port layout has room for 40 instances (companion ports 14540-14579)
 MAX_INSTANCES = 40
 
 
-def _try_lock(stack: ExitStack, path: Path) -> bool:
-    f = stack.enter_context(open(path, "w"))
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    return True
+def _lock_path(folder: Path, instance: int) -> Path:
+    return folder / f"aerial-skeleton-instance-{instance}.lock"
+
+
+@contextmanager
+def hold_instances(first: int, count: int, lock_dir: str | Path | None = None) -> Iterator[bool]:
+    """Try to hold instances ``first`` .. ``first + count - 1`` (all or none, without waiting);
+    yields whether it holds them, and lets go at the end of the block."""
+    folder = Path(lock_dir or tempfile.gettempdir())
+    with ExitStack() as stack:
+        for j in range(first, first + count):
+            f = stack.enter_context(open(_lock_path(folder, j), "w"))
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                stack.close()
+                yield False
+                return
+        yield True
 
 
 @contextmanager
@@ -51,16 +63,14 @@ def lease_instance_offset(scenario, gcs_port: int, *, timeout_s: float = 3600.0,
         candidates.append(k)
     if not candidates:
         raise ValueError(f"no instance offset fits a fleet of {n} links")
-    folder = Path(lock_dir or tempfile.gettempdir())
     deadline = clock() + timeout_s
     while True:
         for k in candidates:
-            stack = ExitStack()
-            if all(_try_lock(stack, folder / f"aerial-skeleton-instance-{j}.lock") for j in range(k, k + n)):
-                with stack:
+            with hold_instances(k, n, lock_dir) as held:
+                if held:
                     yield k
-                return
-            stack.close()
+                    return
         if clock() > deadline:
-            raise TimeoutError(f"no free instance offset for {n} links within {timeout_s:g} s (lock files in {folder})")
+            raise TimeoutError(f"no free instance offset for {n} links within {timeout_s:g} s "
+                               f"(lock files in {lock_dir or tempfile.gettempdir()})")
         sleep(poll_s)

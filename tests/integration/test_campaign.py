@@ -74,13 +74,35 @@ def test_a_worker_that_dies_loses_only_its_run_which_is_flown_again(tmp_path):
     assert result.counts() == {"ok": 4, "failed": 0, "lost": 1, "not run": 0}
 
 
-def _campaign(out, *where, seeds="0-1"):
-    cmd = [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
-           "--set", "firmware.ekf.gate_sigma=3,5", "--seeds", seeds, "--duration", "8", "--quiet", "--out", str(out),
-           *where]
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+def _campaign_cmd(out, *where):
+    return [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
+            "--set", "firmware.ekf.gate_sigma=3,5", "--seeds", "0-1", "--duration", "8", "--quiet", "--out", str(out),
+            *where]
+
+
+def _campaign(out, *where):
+    res = subprocess.run(_campaign_cmd(out, *where), cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     return res.stdout
+
+
+def _interrupted_campaign(out, *where) -> int:
+    """The campaign stopped as Ctrl-C in a terminal stops it (SIGINT to its whole process group,
+    workers included) once a run has finished; how many runs had."""
+    proc = subprocess.Popen(_campaign_cmd(out, *where), cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_for(lambda: any(out.glob("*/*/seed-*/run_record.json")) or proc.poll() is not None, 120.0)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130 and "the same command goes on where this one stopped" in err, err[-3000:]
+    records = [json.loads(p.read_text()) for p in out.glob("*/*/seed-*/run_record.json")]
+    assert records and all(r["status"] == "ok" for r in records)  # an interrupted run is not recorded
+    return len(records)
 
 
 @pytest.fixture
@@ -117,11 +139,12 @@ def dask_cluster(tmp_path):
 
 
 def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_table(tmp_path, dask_cluster):
-    """Real flights (three_link, 8 s, two settings x two seeds): the default local cluster, a
-    separately started scheduler with two workers and the same runs one after another give
-    the same table to the last digit; the campaign started again flies nothing."""
+    """Real flights (three_link, 8 s, two settings x two seeds): the local cluster, interrupted
+    with Ctrl-C and started again, and a separately started scheduler with two workers give the
+    same table to the last digit; the campaign started once more flies nothing."""
+    finished = _interrupted_campaign(tmp_path / "local", "--workers", "2")
     out = _campaign(tmp_path / "local", "--workers", "2")
-    assert "0 finished before, 4 now (4 ok, 0 failed, 0 lost)" in out
+    assert f"{finished} finished before, {4 - finished} now" in out and "(4 ok, 0 failed, 0 lost)" in out
     _campaign(tmp_path / "remote", "--scheduler", dask_cluster)
     again = _campaign(tmp_path / "local", "--workers", "2")
     assert "4 finished before, 0 now" in again
