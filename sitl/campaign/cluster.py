@@ -104,7 +104,9 @@ class DaskExecutor:
                     payload = lost_payload(job, f"{type(exc).__name__}: {exc}")
                     if not isinstance(exc, KilledWorker):  # e.g. the package missing on the worker
                         payload["status"] = "failed"
-                    done(job, payload, len(seen))
+                        done(job, payload, len(seen))
+                    else:  # every allowed death was an attempt, announced or not
+                        done(job, payload, max(len(seen), exc.allowed_failures + 1))
                 future.release()
         finally:
             for future in futures:

@@ -89,8 +89,10 @@ def _campaign(out, *where):
 def _interrupted_campaign(out, *where) -> int:
     """The campaign stopped as Ctrl-C in a terminal stops it (SIGINT to its whole process group,
     workers included) once a run has finished; how many runs had."""
+    # (SIGINT as a terminal leaves it: a suite started in the background inherits it ignored)
     proc = subprocess.Popen(_campaign_cmd(out, *where), cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         assert wait_for(lambda: any(out.glob("*/*/seed-*/run_record.json")) or proc.poll() is not None, 120.0)
         os.killpg(proc.pid, signal.SIGINT)
