@@ -1,6 +1,6 @@
 """SITL command line: one for every scenario kind (:mod:`sitl.scenarios`).
 
-    python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--no-sckf] [--out DIR]
+    python -m sitl fly --config configs/sitl/chain/three_link.toml [--duration S] [--set KEY=VALUE] [--no-sckf] [--out DIR]
     python -m sitl launch --config configs/sitl/chain/three_link.toml [--duration S] [--speed F] [--no-companion] [--out DIR]
     python -m sitl mcap RUN_DIR [--out FILE]
     python -m sitl view RUN_DIR [--view-port P] [--at S] [--screenshot PNG]
@@ -30,7 +30,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from companion.configfile import ConfigError
+from companion.configfile import ConfigError, parse_setting
 from companion.cli import make_run_dir, run_subcommand
 from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 
@@ -51,14 +51,18 @@ SIM_LINKS = ("tcp", "unix")
 
 
 def _scenario(args):
-    """``(kind, scenario)`` of the scenario file with ``--duration`` / ``--seed`` applied
+    """``(kind, scenario)`` of the scenario file with ``--duration`` / ``--seed`` / ``--set`` applied
     (``ConfigError`` if invalid)."""
     overrides = {}
     if args.duration is not None:
         overrides["duration_s"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
-    return load_scenario_file(args.config, **overrides)
+    try:
+        settings = dict(parse_setting(s) for s in args.set)
+    except ValueError as exc:
+        raise ConfigError(args.config, "--set", str(exc)) from None
+    return load_scenario_file(args.config, settings=settings, **overrides)
 
 
 def _prepare_rendering(scenario, video) -> str | None:
@@ -199,6 +203,8 @@ def _run_args(p: argparse.ArgumentParser, kind: str) -> None:
                    help="simulated seconds (default: the scenario's); must be longer than the scenario's take-off, "
                         "trajectory.takeoff_start_s + takeoff_duration_s, where the metrics window starts")
     p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a key of the scenario file, e.g. firmware.ekf.gate_sigma=4 (a TOML value; repeat for more)")
     p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{kind}-<scenario>-<UTC time>)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

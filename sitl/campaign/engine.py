@@ -191,7 +191,7 @@ class Campaign:
         records: dict[str, dict] = self.finished()
         skipped = len(records)
         todo = [j for j in self.jobs if j.key not in records]
-        running: set[str] = set()
+        running: dict[str, str] = {}  # worker -> the run it started last (its start says the one before ended)
         counts = {"done": skipped, "running": 0, "failed": 0, "lost": 0, "total": len(self.jobs)}
 
         def tell():
@@ -201,13 +201,14 @@ class Campaign:
 
         def started(event: dict) -> None:
             if event.get("key") not in records:
-                running.add(event.get("key"))
+                running[str(event.get("worker"))] = event.get("key")
                 tell()
 
         def done(job: Job, payload: dict, attempts: int) -> None:
             rec = self._write_record(job, payload, attempts)
             records[job.key] = rec
-            running.discard(job.key)
+            for worker in [w for w, key in running.items() if key == job.key]:
+                del running[worker]
             counts["done"] += 1
             if rec["status"] != "ok":
                 counts[rec["status"]] += 1

@@ -108,3 +108,16 @@ def test_a_scenario_loads_with_settings_checked_as_the_file_would_be():
     with pytest.raises(ConfigError, match=r"sensors\.profile"):
         load(THREE_LINK, settings={"sensors.profile": "gps9000"})
     assert math.isclose(load(THREE_LINK, settings={"duration_s": 9.5})[1].duration_s, 9.5)
+
+
+def test_fly_and_launch_take_the_same_settings_one_at_a_time():
+    from sitl.__main__ import _scenario, build_parser
+
+    for command in ("fly", "launch"):
+        args = build_parser().parse_args([command, "--config", THREE_LINK, "--set", "firmware.ekf.gate_sigma=4",
+                                          "--set", "wind.gust_std_m_s=0.5"])
+        _, sc = _scenario(args)
+        assert sc.firmware.ekf.gate_sigma == 4.0 and sc.wind.gust_std_m_s == 0.5
+    bad = build_parser().parse_args(["fly", "--config", THREE_LINK, "--set", "firmware.ekf.gate_sigma"])
+    with pytest.raises(ConfigError, match="--set: 'firmware.ekf.gate_sigma': expected KEY=VALUE"):
+        _scenario(bad)
