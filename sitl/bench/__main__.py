@@ -31,7 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from companion.estimation.sckf import CAParams
@@ -41,8 +40,7 @@ from companion.cli import make_run_dir, run_subcommand
 from .ekf_chain import EKF_CONFIGS, ChainRun
 from .report import add_doc_options, doc_path, load_average, write_doc
 from .scaling import LINK_COUNTS, format_scaling, markdown_scaling, run_scaling
-from .table2 import (GROUP_SIZES, aggregate_seeds, combine_configs, format_table2_configs, markdown_table2, table2_seed,
-                     run_table2_configs)
+from .table2 import aggregate_seeds, combine_configs, format_table2_configs, markdown_table2, table2_seed
 from .zenoh_rtt import format_zenoh_rtt, markdown_zenoh_rtt, run_zenoh_rtt
 
 #: per bench (the subcommand): the report's title and the packages whose versions it records
@@ -115,8 +113,9 @@ def _cmd_table2(args) -> int:
     params = _params(args)
     if params is None:
         return 2
-    if args.duration <= 0 or args.seeds < 1:
-        print(f"error: --duration must be positive and --seeds >= 1 (got {args.duration}, {args.seeds})", file=sys.stderr)
+    if args.duration <= 0 or args.seeds < 1 or args.jobs < 1:
+        print(f"error: --duration must be positive, --seeds and --jobs >= 1 (got {args.duration}, {args.seeds}, "
+              f"{args.jobs})", file=sys.stderr)
         return 2
     from sitl.campaign.engine import Campaign, Job
 

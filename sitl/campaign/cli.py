@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import sys
@@ -60,7 +59,7 @@ def _grid(args):
 
 def _cmd_run(args) -> int:
     from .cluster import open_executor
-    from .flights import check_specs, run_flights, write_reports
+    from .flights import RESULTS_FILE, check_specs, run_flights, write_summaries
 
     try:
         specs = _grid(args)
@@ -98,8 +97,8 @@ def _cmd_run(args) -> int:
         print(f"error: {args.scheduler or 'local cluster'}: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
     bar.close()
-    files = write_reports(root, [r for r in result.records if r], f"Campaign {root.name}",
-                          [p for p in args.plot.split(",") if p] if args.plot else None)
+    files = [root / RESULTS_FILE] + write_summaries(root, [r for r in result.records if r], f"Campaign {root.name}",
+                                                    [p for p in args.plot.split(",") if p] if args.plot else None)
     counts = result.counts()
     print(f"{len(specs)} runs: {result.skipped} finished before, {result.ran} now "
           f"({counts['ok']} ok, {counts['failed']} failed, {counts['lost']} lost) in {result.wall_s:.1f} s")

@@ -101,12 +101,11 @@ class DaskExecutor:
                     exc = future.exception()
                     if isinstance(exc, KeyboardInterrupt):  # Ctrl-C reached the workers too: not the run's
                         raise KeyboardInterrupt
-                    payload = lost_payload(job, f"{type(exc).__name__}: {exc}")
-                    if not isinstance(exc, KilledWorker):  # e.g. the package missing on the worker
-                        payload["status"] = "failed"
-                        done(job, payload, len(seen))
-                    else:  # every allowed death was an attempt, announced or not
-                        done(job, payload, max(len(seen), exc.allowed_failures + 1))
+                    reason = f"{type(exc).__name__}: {exc}"
+                    if isinstance(exc, KilledWorker):  # every allowed death was an attempt, announced or not
+                        done(job, lost_payload(job, reason), max(len(seen), exc.allowed_failures + 1))
+                    else:  # e.g. the package missing on the worker
+                        done(job, lost_payload(job, reason, "failed"), len(seen))
                 future.release()
         finally:
             for future in futures:

@@ -98,9 +98,10 @@ def execute(job: Job, root: str, announce: Callable[[dict], None] | None = None)
             "worker": worker, "host": socket.gethostname(), "pid": os.getpid(), "attempt": attempt}
 
 
-def lost_payload(job: Job, reason: str) -> dict:
-    """The payload of a run whose worker died more often than allowed."""
-    return {"key": job.key, "status": "lost", "result": None, "error": reason, "wall_s": None, "worker": None,
+def lost_payload(job: Job, reason: str, status: str = "lost") -> dict:
+    """The payload of a run the cluster could not fly: its worker died more often than allowed
+    (``lost``), or the task itself could not run (``failed``, e.g. the package missing there)."""
+    return {"key": job.key, "status": status, "result": None, "error": reason, "wall_s": None, "worker": None,
             "host": None, "pid": None, "attempt": None}
 
 
@@ -146,6 +147,8 @@ class Campaign:
         self.root = Path(root)
         self.jobs = jobs
         self.worker_root = str(worker_root or self.root.resolve())
+        #: the records known so far by key: those finished before, then each as it is written by :meth:`run`
+        self.records: dict[str, dict] = {}
 
     def record_path(self, job: Job) -> Path:
         return self.root / job.folder / RECORD_FILE
@@ -172,12 +175,13 @@ class Campaign:
                "error": payload["error"], "wall_s": payload["wall_s"], "worker": payload["worker"],
                "host": payload["host"], "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                "result": payload["result"]}
+        text = json.dumps(rec, indent=1, default=_jsonable)
         path = self.record_path(job)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(rec, indent=1, default=_jsonable))
+        tmp.write_text(text)
         os.replace(tmp, path)
-        return json.loads(path.read_text())  # what a resumed campaign will read: the same numbers
+        return json.loads(text)  # what a resumed campaign will read: the same numbers
 
     def run(self, open_executor: Callable[[], AbstractContextManager], *,
             on_record: Callable[[dict], None] | None = None,
@@ -188,7 +192,7 @@ class Campaign:
         ``total`` whenever one changes. A ``KeyboardInterrupt`` stops the executor and propagates;
         the records written so far stay."""
         t0 = time.perf_counter()
-        records: dict[str, dict] = self.finished()
+        self.records = records = self.finished()
         skipped = len(records)
         todo = [j for j in self.jobs if j.key not in records]
         running: dict[str, str] = {}  # worker -> the run it started last (its start says the one before ended)
@@ -221,8 +225,11 @@ class Campaign:
         if todo:
             with open_executor() as executor:
                 executor.run(todo, self.worker_root, started, done)
-        return CampaignResult([records.get(j.key) for j in self.jobs], skipped, len(records) - skipped,
-                              time.perf_counter() - t0)
+        return CampaignResult(self.in_order(), skipped, len(records) - skipped, time.perf_counter() - t0)
+
+    def in_order(self) -> list[dict | None]:
+        """The known records in the jobs' order (``None``: not finished)."""
+        return [self.records.get(j.key) for j in self.jobs]
 
 
 def _jsonable(obj):

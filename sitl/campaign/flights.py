@@ -19,7 +19,7 @@ from .runs import fly_spec, load_spec
 from .summary import box_plots, markdown_summary, pooled_nees, summarise, write_summary
 from .table import rows, write_table
 
-__all__ = ["flight_jobs", "check_specs", "run_flights", "write_reports", "RESULTS_FILE"]
+__all__ = ["flight_jobs", "check_specs", "run_flights", "write_summaries", "RESULTS_FILE"]
 
 RESULTS_FILE = "results.csv"
 
@@ -44,13 +44,12 @@ def flight_jobs(specs: list[RunSpec], renders: bool = False,
     return [Job(s.key, folder(s), fly_spec, (s, renders), s.columns()) for s in specs]
 
 
-def write_reports(root: Path, records: list[dict], title: str, plots: list[str] | None = None) -> list[Path]:
-    """``results.csv``, ``summary.csv``, ``summary.md``, ``nees.json`` and the box plots of
-    ``records`` in ``root``; the files written."""
+def write_summaries(root: Path, records: list[dict], title: str, plots: list[str] | None = None) -> list[Path]:
+    """``summary.csv``, ``summary.md``, ``nees.json`` and the box plots of ``records`` in
+    ``root`` (:func:`run_flights` wrote ``results.csv``); the files written."""
     root = Path(root)
-    write_table(root / RESULTS_FILE, rows(records))
     summary = summarise(records)
-    out = [root / RESULTS_FILE, write_summary(root, summary)]
+    out = [write_summary(root, summary)]
     (root / "summary.md").write_text(markdown_summary(summary, title))
     out.append(root / "summary.md")
     nees = pooled_nees(records)
@@ -68,14 +67,12 @@ def run_flights(root: Path, specs: list[RunSpec], open_executor, *, renders: boo
     ``results.csv`` is rewritten at most every ``table_every_s`` while runs finish, and at the
     end (an interrupt included)."""
     campaign = Campaign(Path(root), flight_jobs(specs, renders, folder), worker_root=worker_root)
-    done: dict[str, dict] = dict(campaign.finished())
     last = [time.monotonic()]
 
     def flush() -> None:
-        write_table(Path(root) / RESULTS_FILE, rows(done[j.key] for j in campaign.jobs if j.key in done))
+        write_table(Path(root) / RESULTS_FILE, rows(r for r in campaign.in_order() if r))
 
-    def on_record(rec: dict) -> None:
-        done[rec["key"]] = rec
+    def on_record(_rec: dict) -> None:
         if time.monotonic() - last[0] >= table_every_s:
             flush()
             last[0] = time.monotonic()

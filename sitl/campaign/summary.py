@@ -21,7 +21,8 @@ import numpy as np
 
 from .table import cell, flatten, write_table
 
-__all__ = ["group_label", "metric_stats", "summarise", "HEADLINE", "markdown_summary", "box_plots", "pooled_nees"]
+__all__ = ["group_label", "metric_stats", "summarise", "HEADLINE", "markdown_summary", "write_summary", "box_plots",
+           "pooled_nees"]
 
 #: the metrics summary.md and the box plots show first (a column or a per-link list's columns)
 HEADLINE = ("rms_track_true_m", "rms_est_err_m.ekf", "rms_est_err_m.sckf", "constraint_pos_p95_m.after",
