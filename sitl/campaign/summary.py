@@ -162,13 +162,16 @@ def box_plots(records: list[dict], folder: Path, metrics: Iterable[str] | None =
             continue
         fig, axes = plt.subplots(1, len(cols), figsize=(max(4.0, 2.2 * len(groups)) * min(len(cols), 3) / 1.5, 4.0),
                                  squeeze=False, sharey=True)
+        common, xlabel, ticks = _split_labels(list(groups))
         for ax, col in zip(axes[0], cols):
             data = [[x for f in flats[g] if (x := _numeric(f.get(col))) is not None and math.isfinite(x)]
                     for g in groups]
             ax.boxplot([d or [math.nan] for d in data])  # (a group with no finished run: an empty slot)
-            ax.set_xticks(range(1, len(groups) + 1), [_wrap(g) for g in groups])
+            ax.set_xticks(range(1, len(groups) + 1), ticks)
             ax.set_title(col, fontsize=9)
             ax.tick_params(axis="x", labelsize=7)
+            ax.set_xlabel(xlabel, fontsize=7)
+        fig.suptitle(f"{common} (over seeds)", fontsize=9)
         fig.tight_layout()
         path = folder / (re.sub(r"[^A-Za-z0-9._-]", "_", base) + ".png")
         fig.savefig(path, dpi=90)
@@ -177,8 +180,16 @@ def box_plots(records: list[dict], folder: Path, metrics: Iterable[str] | None =
     return out
 
 
-def _wrap(label: str) -> str:
-    return label.replace(" ", "\n")
+def _split_labels(labels: list[str]) -> tuple[str, str, list[str]]:
+    """What the group labels share (the figure's title), the keys whose values tell them apart
+    (the x axis's label) and those values (each group's tick)."""
+    words = [label.split(" ") for label in labels]
+    shared = [w for w in words[0] if all(w in other for other in words)]
+    rest = [[w for w in ws if w not in shared] for ws in words]
+    keys = [[w.partition("=")[0] for w in ws] for ws in rest]
+    if all(rest) and all("=" in w for ws in rest for w in ws) and all(k == keys[0] for k in keys):
+        return " ".join(shared), ", ".join(keys[0]), ["\n".join(w.partition("=")[2] for w in ws) for ws in rest]
+    return " ".join(shared), "", ["\n".join(ws) or "all" for ws in rest]
 
 
 def pooled_nees(records: list[dict]) -> dict[str, dict]:

@@ -80,3 +80,15 @@ def test_the_summary_counts_failed_and_lost_runs_per_group():
     text = markdown_summary(summary, "t")
     assert "| s batch g=4 | 3 | 2 | 1 | 0 |" in text and "| s batch g=5 | 2 | 1 | 0 | 1 |" in text
     assert "crashed" in text
+
+
+@pytest.mark.parametrize("labels, title, xlabel, ticks", [
+    (["s batch g=4 h=1", "s batch g=5 h=1"], "s batch h=1", "g", ["4", "5"]),
+    (["s batch g=4 h=1", "s batch g=5 h=2"], "s batch", "g, h", ["4\n1", "5\n2"]),
+    (["a batch", "b batch g=1"], "batch", "", ["a", "b\ng=1"]),
+    (["s batch"], "s batch", "", ["all"]),
+])
+def test_box_plot_labels_keep_what_the_groups_share_in_the_title(labels, title, xlabel, ticks):
+    from sitl.campaign.summary import _split_labels
+
+    assert _split_labels(labels) == (title, xlabel, ticks)
