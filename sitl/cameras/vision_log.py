@@ -3,7 +3,9 @@ pipeline, every PnP method, errors against the ground truth at capture.
 
 For each frame (:class:`~sitl.cameras.rig.CapturedFrame`) the markers are detected once and each PnP
 method of :data:`~companion.vision.pnp.PNP_METHODS` estimates every detected marker's pose in the
-camera frame (with its own continuity state for the IPPE ambiguity). Errors follow the report:
+camera frame, with the continuity state of that method and that camera for the IPPE ambiguity
+(as the companion's pipeline keeps one per camera: another camera's previous pose of the same
+marker is another pose). Errors follow the report:
 eq. 2 (translation error; its norm here) and eq. 3 (geodesic angle). The detection and PnP
 times are wall-clock per frame (noisy on a shared machine). :meth:`VisionLog.metrics` gives
 ``metrics.json``'s ``vision`` entry; :meth:`VisionLog.arrays` the per-detection series.
@@ -32,8 +34,8 @@ class VisionLog:
     def __init__(self, markers: tuple[MarkerMount, ...], methods: tuple[str, ...] = tuple(PNP_METHODS)):
         self.cfg = pipeline_config(markers)
         self.methods = methods
-        self.pipelines = {m: MarkerPipeline(self.cfg, method=m) for m in methods}  # continuity per method
-        self.detector = self.pipelines[methods[0]].detector
+        self.detector = MarkerPipeline(self.cfg, method=methods[0]).detector
+        self.previous: dict[tuple[str, str], dict] = {}  # (method, camera) -> marker id -> its last pose
         self.frames: dict[str, int] = {}
         self.detected: dict[str, int] = {}
         self.detect_s: list[float] = []
@@ -50,16 +52,16 @@ class VisionLog:
         if dets:
             self.detected[h.camera] = self.detected.get(h.camera, 0) + 1
         for j, method in enumerate(self.methods):
-            pipe = self.pipelines[method]
+            previous = self.previous.setdefault((method, h.camera), {})
             w0 = time.perf_counter()
             poses = []
             for d in dets:
                 pose = estimate_marker_pose(d, self.cfg.length_m(d.marker_id), h.intrinsics, method,
-                                            previous=pipe.previous.get(d.marker_id),
+                                            previous=previous.get(d.marker_id),
                                             ambiguity_ratio=self.cfg.ambiguity_ratio,
                                             sigma_floor_px=self.cfg.sigma_floor_px, refine=self.cfg.refine)
                 if pose is not None:
-                    pipe.previous[d.marker_id] = pose
+                    previous[d.marker_id] = pose
                     poses.append(pose)
             self.pnp_s[method].append(time.perf_counter() - w0)
             for p in poses:

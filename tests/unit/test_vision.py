@@ -209,3 +209,30 @@ def test_vision_config_and_geometry_import_without_opencv():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "True"
+
+
+def test_the_flight_log_resolves_each_cameras_ambiguity_from_that_cameras_own_last_pose():
+    """Two cameras see marker 5: camera 2's ambiguous view (small, nearly fronto-parallel) is
+    resolved from camera 2's previous pose of it, not from camera 1's (another pose of the same
+    marker, mirrored here): the pose kept is the true one."""
+    from sitl.cameras.config import MarkerMount
+    from sitl.cameras.rig import CapturedFrame, FrameTruth
+    from sitl.cameras.vision_log import VisionLog
+
+    def frame(camera: int, seq: int, tilt: float, dist: float) -> CapturedFrame:
+        R, t = FACING @ rot([0.0, -tilt, 0.0]), np.array([0.0, 0.0, dist])
+        header = CameraFrameHeader(f"cam{camera}", camera - 1, seq, 0.1 * seq, 0.1 * seq, INTR.width_px,
+                                   INTR.height_px, "mono8", INTR)
+        truth = FrameTruth(np.eye(3), np.zeros(3), {5: (R, t)})  # the camera at the world's origin
+        return CapturedFrame(CameraFrame(header, synthetic_image(R, t, 0.5, noise=2.0)), truth, camera - 1)
+
+    def last_error_deg(last_camera: int) -> float:
+        log = VisionLog((MarkerMount(id=5, size_m=0.5),), methods=("ippe_square",))
+        for f in (frame(2, 0, 0.3, 2.0), frame(1, 1, -0.3, 2.0), frame(last_camera, 2, 0.15, 4.0)):
+            log.on_frame(f)
+        a = log.arrays()
+        assert not a["vision_ambiguous"][:2].any() and a["vision_ambiguous"][2]  # the last view is ambiguous
+        return a["vision_att_err_deg"][2]
+
+    assert last_error_deg(2) < 3.0  # camera 2's last pose (tilted the same way) picks the true solution
+    assert last_error_deg(1) > 10.0  # the same view after camera 1's opposite pose: the mirrored one
