@@ -7,9 +7,12 @@ from typing import Literal
 
 from .dictionaries import check_marker
 
-__all__ = ["PNP_METHOD_NAMES", "PnpMethod", "DetectorConfig", "PipelineConfig"]
+__all__ = ["PNP_METHOD_NAMES", "PnpMethod", "CORNER_REFINEMENTS", "CornerRefinement", "DetectorConfig", "PipelineConfig"]
 
 PnpMethod = Literal["ippe_square", "p3p", "sqpnp", "iterative"]
+#: OpenCV's ArUco corner refinements (``cv2.aruco.CORNER_REFINE_*``)
+CornerRefinement = Literal["none", "subpix", "contour", "apriltag"]
+CORNER_REFINEMENTS = ("none", "subpix", "contour", "apriltag")
 
 #: the PnP methods of :mod:`.pnp`
 PNP_METHOD_NAMES = ("ippe_square", "p3p", "sqpnp", "iterative")
@@ -20,7 +23,7 @@ class DetectorConfig:
     """The detector: dictionary, corner refinement and its window [px]."""
 
     dictionary: str = "DICT_4X4_50"
-    corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = "subpix"
+    corner_refinement: CornerRefinement = "subpix"
     refinement_window_px: int = 5
 
     def __post_init__(self) -> None:

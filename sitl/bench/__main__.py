@@ -7,6 +7,7 @@
     python -m sitl.bench nees [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J | --scheduler ADDR]
     python -m sitl.bench static [--config TOML] [--seeds N] [--duration S] [--profile P] [--jobs J | --scheduler ADDR]
     python -m sitl.bench load_filter [--seeds N] [--seed S] [--duration S] [--latency S] [--out DIR]
+    python -m sitl.bench corners [--config TOML] [--duration S] [--seed S] [--out DIR]
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
     python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
     python -m sitl.bench view [--config TOML] [--duration S] [--repeat N] [--modes off,on,browser] [--out DIR]
@@ -52,6 +53,8 @@ DOCS = {
     "nees": ("Monte Carlo NEES of a SITL flight over seeds", ("numpy", "scipy", "mujoco", "numba")),
     "static": ("The thesis's static test over seeds", ("numpy", "scipy", "mujoco", "numba")),
     "load_filter": ("Slung load pose: EKF vs UKF vs unfiltered (synthetic)", ("numpy", "scipy")),
+    "corners": ("ArUco corner refinement on rendered frames: corners, range bias, pose",
+                ("numpy", "opencv-python-headless", "mujoco")),
     "sitl": ("SITL speed: batch and fleet real-time factors against MuJoCo alone",
              ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
     "controllers": ("One link's pose controllers on one scenario: tracking", ("numpy", "mujoco", "numba")),
@@ -284,6 +287,21 @@ def build_parser() -> argparse.ArgumentParser:
     lfb.add_argument("--quiet", action="store_true", help="no progress bar")
     add_doc_options(lfb, "load_filter")
     lfb.set_defaults(func=_cmd_load_filter)
+    co = sub.add_parser(
+        "corners",
+        help="ArUco corner refinement (none, subpix, contour, apriltag) on a flight's rendered frames",
+        description=("Fly a scenario with cameras and detect every delivered frame's markers once per corner "
+                     "refinement; report each method's corner error against the true corners (RMS and inward bias, "
+                     "px), the PnP range bias, position and attitude error, and its detection time."))
+    co.add_argument("--config", default="configs/sitl/load/slung_load_three.toml",
+                    help="scenario with cameras and markers (default configs/sitl/load/slung_load_three.toml)")
+    co.add_argument("--duration", type=float, help="simulated seconds (default: the scenario's)")
+    co.add_argument("--seed", type=int, help="seed (default: the scenario's)")
+    co.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    co.add_argument("--out", metavar="DIR", help="run folder (default: runs/corners-<UTC time>)")
+    co.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(co, "corners")
+    co.set_defaults(func=_cmd_corners)
     cb = sub.add_parser(
         "controllers",
         help="one link's pose controllers (impedance, SE(3) PID) on one scenario: tracking errors",
@@ -506,6 +524,26 @@ def _cmd_load_filter(args) -> int:
     print(text)
     print(f"\nwrote {path} and {run_dir / 'load_pose_error.png'}")
     _write_doc(args, run_dir, markdown_load_filter(result), text, [path, run_dir / "load_pose_error.png"])
+    return 0
+
+
+def _cmd_corners(args) -> int:
+    from companion.configfile import ConfigError
+
+    from .corners import format_corners, markdown_corners, run_corners
+
+    run_dir = make_run_dir("corners", args.out)
+    try:
+        with tqdm(desc="corners", unit="sim s", disable=args.quiet, file=sys.stderr) as bar:
+            result = run_corners(args.config, run_dir, args.duration, args.seed, progress=bar.update)
+    except (ConfigError, ValueError, RuntimeError) as exc:  # (RuntimeError: nothing renders on this machine)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    path = _write_json(result, args.json, run_dir, "corners.json")
+    text = format_corners(result)
+    print(text)
+    print(f"\nwrote {path} and the flight in {run_dir}")
+    _write_doc(args, run_dir, markdown_corners(result), text, [path])
     return 0
 
 

@@ -32,8 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fleet.harness import LOCKSTEP_ENDED, LOCKSTEP_STARTED
-from ..fleet.layout import SIM_LINKS
+from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
            "run_speed", "format_speed", "markdown_speed"]

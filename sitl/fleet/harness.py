@@ -27,17 +27,15 @@ from sitl.plant.schedule import Schedule
 from sitl.scenario import Scenario
 from sitl.watch import announce
 
-from .layout import FleetError
+from .layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, FleetError
 from .processes import STARTUP_TIMEOUT_S
 
-__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S", "LOCKSTEP_STARTED", "LOCKSTEP_ENDED"]
+__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
 #: the harness's log lines where the lockstep starts and ends (``bench sitl`` times the loop by them)
-LOCKSTEP_STARTED = "lockstep started:"
-LOCKSTEP_ENDED = "lockstep ended"
 
 
 def _sim_port(url: str):

@@ -16,7 +16,7 @@ from companion.config import SITL_STATE_PORT
 from companion.mavlink.signing import key_passphrase
 from sitl.scenario import Scenario
 
-__all__ = ["FleetError", "GCS_PORT", "SIM_LINKS", "WIRE_VEHICLE_SIDE", "WIRE_COMPANION_SIDE", "signing_instructions",
+__all__ = ["FleetError", "GCS_PORT", "LOCKSTEP_STARTED", "LOCKSTEP_ENDED", "SIM_LINKS", "WIRE_VEHICLE_SIDE", "WIRE_COMPANION_SIDE", "signing_instructions",
            "endpoint_table", "check_fleet_scenario", "check_instance_offset", "impaired_links"]
 
 #: UDP ports of the impaired wire (``[faults.mavlink]``): vehicle i sends to WIRE_VEHICLE_SIDE + i,
@@ -27,6 +27,9 @@ WIRE_COMPANION_SIDE = 15580
 SIM_LINKS = ("tcp", "unix")
 #: where every vehicle sends its ground-station traffic (PX4 SITL's: QGroundControl listens there)
 GCS_PORT = 14550
+#: the harness's log lines at the lockstep's start and end (what ``sitl.bench sitl`` times a fleet by)
+LOCKSTEP_STARTED = "lockstep started:"
+LOCKSTEP_ENDED = "lockstep ended"
 
 
 class FleetError(RuntimeError):

@@ -31,7 +31,7 @@ from companion.mavlink.dialect import load_dialect, tool_environment
 from companion.mavlink.port import MavlinkPort
 from companion.mavlink.transport import wait_readable
 from companion.mavlink.signing import load_key, new_key_file
-from sitl.fleet.harness import LOCKSTEP_ENDED, LOCKSTEP_STARTED
+from sitl.fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED
 from sitl.fleet.launcher import launch
 from sitl.scenarios.chain.flight import fly
 from sitl.scenario import load_scenario

@@ -25,7 +25,7 @@ from companion.configfile import require_positive
 from companion.estimation.so3 import rotmat_to_quat
 from companion.load.filter import LoadFilterConfig
 from companion.load.model import LoadParams, Pose3
-from companion.vision.config import PNP_METHOD_NAMES, PnpMethod
+from companion.vision.config import PNP_METHOD_NAMES, CornerRefinement, PnpMethod
 from sitl.scenario import Scenario, with_rate_noise
 
 from .formation import CircleFormationConfig
@@ -48,6 +48,9 @@ class LoadConfig:
     cable_solref: tuple[float, float] = (0.01, 1.0)
     cable_width_m: float = 0.004
     marker_id: int = 0
+    #: the detector's corner refinement (:class:`~companion.vision.config.DetectorConfig`; what each does
+    #: on this scenario's frames: ``python -m sitl.bench corners``)
+    corner_refinement: CornerRefinement = "subpix"
     pnp_method: PnpMethod = "ippe_square"
     #: the PnP covariance's corner-noise floor [px] (:class:`~companion.vision.config.PipelineConfig`)
     sigma_floor_px: float = 0.3

@@ -41,8 +41,9 @@ class LoadEstimation:
         sc: SlungLoadScenario = runner.scenario
         self.runner, self.sc, self.load = runner, sc, sc.load
         self.params = sc.load.params()
-        cfg = replace(pipeline_config(sc.markers), method=sc.load.pnp_method, ids=(sc.load.marker_id,),
-                      sigma_floor_px=sc.load.sigma_floor_px)
+        cfg = pipeline_config(sc.markers)
+        cfg = replace(cfg, method=sc.load.pnp_method, ids=(sc.load.marker_id,), sigma_floor_px=sc.load.sigma_floor_px,
+                      detector=replace(cfg.detector, corner_refinement=sc.load.corner_refinement))
         self.pipeline = LoadVisionPipeline(cfg, sc.cameras_in_body(), sc.load.marker_id, sc.marker_in_load())
         self.dt = runner.dt
         self.v_div = max(1, int(round(1.0 / (sc.load.vehicle_rate_hz * runner.dt))))
