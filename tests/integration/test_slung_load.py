@@ -104,6 +104,8 @@ def test_short_flight_estimates_the_load(tmp_path):
         assert err[kind]["n_samples"] > 0, kind
         assert err[kind]["pos_rms_m"] < 0.1, (kind, err[kind])
         assert err[kind]["att_rms_deg"] < 5.0, (kind, err[kind])
+    # the baseline without cameras: the rigging below the vehicles' own estimates
+    assert err["camera_free"]["n_samples"] == err["ekf"]["n_samples"] and err["camera_free"]["pos_rms_m"] < 0.1
     assert m["load_filter_stats"]["ekf"]["accepted"] > 0
     assert m["load_filter_stats"]["ekf"]["late"] > 0  # the 50 ms camera latency: out-of-sequence updates
     assert min(m["load_vision"]["detection_rate"].values()) > 0.5

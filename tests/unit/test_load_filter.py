@@ -373,3 +373,18 @@ def test_skew_helper_is_the_repos():
     # the model reuses companion's SO(3) helpers; its cross product agrees with them
     a, b = np.random.default_rng(2).normal(size=(2, 5, 3))
     np.testing.assert_allclose(m.cross(a, b), np.einsum("nij,nj->ni", skew(a), b), atol=1e-14)
+
+
+@given(st.floats(0.0, 60.0))
+@settings(max_examples=25)
+def test_the_camera_free_pose_is_the_rigging_below_the_vehicles_wherever_the_formation_is(t):
+    """Vehicles standing in their formation at time t: the camera-free pose is the nominal hang
+    below the formation's centre, yawed with it (the baseline the camera filters are measured against)."""
+    from sitl.scenarios.slung_load.config import LoadConfig
+    from sitl.scenarios.slung_load.formation import formation_state
+
+    load = LoadConfig()
+    f = formation_state(t, load.formation)
+    got, want = load.camera_free_pose(f.pos_w_m), load.nominal_pose(f.center_w_m, f.phi_rad)
+    assert np.allclose(got.pos_m, want.pos_m, atol=1e-9)
+    assert np.linalg.norm(attitude_error(got.q_wxyz, want.q_wxyz)) < 1e-9

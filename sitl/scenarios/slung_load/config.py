@@ -113,6 +113,16 @@ class LoadConfig:
         L = np.asarray(self.cable_length_m)
         return np.column_stack((span * np.cos(a) / L, span * np.sin(a) / L, self.hang_drop_m() / L))
 
+    def camera_free_pose(self, vehicle_p_w_m: np.ndarray) -> Pose3:
+        """The load's pose from the vehicles' positions alone (no camera): hanging at rest
+        (:meth:`nominal_pose`) below their centroid, yawed as they stand around it (the circular
+        mean of each vehicle's bearing less its place in the formation, ``2 pi i / n``)."""
+        p = np.asarray(vehicle_p_w_m, dtype=float)
+        centre = p.mean(axis=0)
+        bearing = np.arctan2(p[:, 1] - centre[1], p[:, 0] - centre[0]) - 2.0 * math.pi * np.arange(self.n) / self.n
+        phi = math.atan2(float(np.mean(np.sin(bearing))), float(np.mean(np.cos(bearing))))
+        return self.nominal_pose(centre, phi)
+
     def nominal_pose(self, center_w_m: np.ndarray, phi_rad: float) -> Pose3:
         """The load hanging at rest below a formation centred at ``center_w_m`` (vehicle height)
         yawed by ``phi_rad``: the rigging's prior (no measurement in it)."""

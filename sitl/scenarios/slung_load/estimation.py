@@ -55,7 +55,7 @@ class LoadEstimation:
         self.unfiltered = UnfilteredLoadPose(sc.load.n, window_s=0.5 / max(c.rate_hz for c in sc.cameras))
         self.vehicles: list[VehicleStates] = []
         self.rows: dict[str, list] = {"t": [], "p_true": [], "q_true": [], "ekf_p": [], "ekf_q": [], "ekf_P": [],
-                                      "ukf_p": [], "ukf_q": [], "ukf_P": []}
+                                      "ukf_p": [], "ukf_q": [], "ukf_P": [], "camera_free_p": [], "camera_free_q": []}
         self.solves: list[tuple] = []  # (t, p, q, p_true, q_true)
         self.frames: dict[str, int] = {}
         self.detected: dict[str, int] = {}
@@ -91,6 +91,9 @@ class LoadEstimation:
             r[f"{kind}_p"].append(est.pos_w_m.copy())
             r[f"{kind}_q"].append(est.q_wxyz.copy())
             r[f"{kind}_P"].append(est.P[np.ix_(sl, sl)])
+        free = self.load.camera_free_pose(veh.pos_w_m)  # the baseline without cameras
+        r["camera_free_p"].append(free.pos_m)
+        r["camera_free_q"].append(free.q_wxyz)
         self.filter_s += time.perf_counter() - w0
         if k % (5 * self.v_div) == 0:
             self.tension.append(np.concatenate(([t], model.cable_tensions())))
@@ -149,7 +152,7 @@ class LoadEstimation:
         out: dict = {}
         if "load_t" in a and np.any(a["load_t"] >= settle):
             keep = a["load_t"] >= settle
-            est = {k: (a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep]) for k in self.filters}
+            est = {k: (a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep]) for k in (*self.filters, "camera_free")}
             out["load_pose_err"] = load_pose_err(est, a["load_p_true"][keep], a["load_q_true"][keep])
             out["load_pose_nees_mean"] = {
                 k: float(np.nanmean(pose_nees(a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep],
