@@ -183,6 +183,17 @@ def _cmd_zenoh(args) -> int:
     return 0
 
 
+def _flight_bench_args(p: argparse.ArgumentParser, name: str, config: str, what: str) -> None:
+    """The options of a bench that flies one scenario: its file, length, seed, outputs."""
+    p.add_argument("--config", default=config, help=f"{what} (default {config})")
+    p.add_argument("--duration", type=float, help="simulated seconds per flight (default: the scenario's)")
+    p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    p.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(p, name)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m sitl.bench", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -293,14 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
         description=("Fly a scenario with cameras and detect every delivered frame's markers once per corner "
                      "refinement; report each method's corner error against the true corners (RMS and inward bias, "
                      "px), the PnP range bias, position and attitude error, and its detection time."))
-    co.add_argument("--config", default="configs/sitl/load/slung_load_three.toml",
-                    help="scenario with cameras and markers (default configs/sitl/load/slung_load_three.toml)")
-    co.add_argument("--duration", type=float, help="simulated seconds (default: the scenario's)")
-    co.add_argument("--seed", type=int, help="seed (default: the scenario's)")
-    co.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    co.add_argument("--out", metavar="DIR", help="run folder (default: runs/corners-<UTC time>)")
-    co.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(co, "corners")
+    _flight_bench_args(co, "corners", "configs/sitl/load/slung_load_three.toml", "a scenario with cameras and markers")
     co.set_defaults(func=_cmd_corners)
     cb = sub.add_parser(
         "controllers",
@@ -309,16 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "sec. 2.3.2), everything else equal, and report link 1's RMS position and attitude tracking "
                      "against the truth and the estimate, from the end of the figure eight's amplitude ramp."),
     )
-    cb.add_argument("--config", default="configs/sitl/odar/single_odar_figure8.toml",
-                    help="scenario file (default configs/sitl/odar/single_odar_figure8.toml)")
     cb.add_argument("--controllers", default="impedance,se3_pid", metavar="A,B",
                     help="controllers, comma-separated (default impedance,se3_pid)")
-    cb.add_argument("--duration", type=float, help="simulated seconds per flight (default: the scenario's)")
-    cb.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
-    cb.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    cb.add_argument("--out", metavar="DIR", help="run folder (default: runs/controllers-<UTC time>)")
-    cb.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(cb, "controllers")
+    _flight_bench_args(cb, "controllers", "configs/sitl/odar/single_odar_figure8.toml", "scenario file")
     cb.set_defaults(func=_cmd_controllers)
     return parser
 
