@@ -6,7 +6,12 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from ..paths import ROOT
+
+# two fleets at once on 2 cores: 15 s; the leases themselves are tests/unit/test_fleet_lease.py's
+pytestmark = pytest.mark.slow
 
 
 def test_two_fleets_at_once_fly_on_ports_of_their_own(tmp_path):

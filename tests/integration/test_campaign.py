@@ -143,13 +143,11 @@ def dask_cluster(tmp_path):
 def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_table(tmp_path, dask_cluster):
     """Real flights (three_link, 8 s, two settings x two seeds): the local cluster, interrupted
     with Ctrl-C and started again, and a separately started scheduler with two workers give the
-    same table to the last digit; the campaign started once more flies nothing."""
+    same table to the last digit."""
     finished = _interrupted_campaign(tmp_path / "local", "--workers", "2")
     out = _campaign(tmp_path / "local", "--workers", "2")
     assert f"{finished} finished before, {4 - finished} now" in out and "(4 ok, 0 failed, 0 lost)" in out
     _campaign(tmp_path / "remote", "--scheduler", dask_cluster)
-    again = _campaign(tmp_path / "local", "--workers", "2")
-    assert "4 finished before, 0 now" in again
     table = (tmp_path / "local" / "results.csv").read_text().splitlines()
     assert len(table) == 5 and table[0].startswith("scenario,mode,set:firmware.ekf.gate_sigma,duration_s,seed,status")
     diff = subprocess.run([sys.executable, "-m", "sitl", "campaign", "diff", str(tmp_path / "local" / "results.csv"),
