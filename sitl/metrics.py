@@ -210,13 +210,13 @@ def correlation_time(w: np.ndarray, c: float = 5.0) -> np.ndarray:
     return np.maximum(np.nan_to_num(out, nan=1.0), 1.0)
 
 
-def nees_bounds95(samples: np.ndarray | float) -> np.ndarray:
+def nees_bounds95(samples: np.ndarray | float, dof: int = 3) -> np.ndarray:
     """Two-sided 95 % bounds (last axis: lo, hi) of the average of ``samples`` independent
-    3-dof NEES values of a consistent filter (``K * mean ~ chi2(3K)``)."""
+    ``dof``-dof NEES values of a consistent filter (``K * mean ~ chi2(dof K)``)."""
     from scipy.stats import chi2
 
     k = np.asarray(samples, dtype=float)
-    return np.stack([chi2.ppf(0.025, 3 * k) / k, chi2.ppf(0.975, 3 * k) / k], axis=-1)
+    return np.stack([chi2.ppf(0.025, dof * k) / k, chi2.ppf(0.975, dof * k) / k], axis=-1)
 
 
 def nees_metrics(log: dict[str, np.ndarray], flight_start_s: float) -> dict | None:

@@ -33,6 +33,7 @@ __all__ = [
     "detection_rate",
     "timing_summary_ms",
     "pose_nees",
+    "pose_error_whitened",
 ]
 
 
@@ -134,10 +135,19 @@ def pnp_error_table(per_method: Mapping[str, Mapping[str, np.ndarray]], spike_m:
     return out
 
 
-def pose_nees(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> np.ndarray:
-    """Normalised estimation error squared of the pose (6 dof) per sample: error
-    ``[p_gt - p; log(q_gt q^-1)]`` (world-frame attitude error, the filters' convention) against
-    ``P_pose`` (k, 6, 6), the covariance of ``[dp; dtheta]``. Mean 6 for a consistent filter."""
+def pose_error_whitened(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> np.ndarray:
+    """The pose error (6 dof) per sample, ``[p_gt - p; log(q_gt q^-1)]`` (world-frame attitude
+    error, the filters' convention), whitened by ``P_pose`` (k, 6, 6), the covariance of
+    ``[dp; dtheta]``: ``L^-1 e`` with ``P = L L^T`` (k, 6). Its squared norm is the NEES; for a
+    consistent filter its components are independent unit normals."""
     e = np.concatenate((np.asarray(pos_gt_m, float) - np.asarray(pos_est_m, float),
                         attitude_error(np.asarray(q_gt_wxyz, float), np.asarray(q_est_wxyz, float))), axis=-1)
-    return np.einsum("ki,ki->k", e, np.linalg.solve(np.asarray(P_pose, float), e[..., None])[..., 0])
+    L = np.linalg.cholesky(np.asarray(P_pose, float))
+    return np.linalg.solve(L, e[..., None])[..., 0]
+
+
+def pose_nees(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> np.ndarray:
+    """Normalised estimation error squared of the pose (6 dof) per sample
+    (:func:`pose_error_whitened` squared). Mean 6 for a consistent filter."""
+    w = pose_error_whitened(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz)
+    return np.einsum("ki,ki->k", w, w)

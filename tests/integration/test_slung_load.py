@@ -106,6 +106,11 @@ def test_short_flight_estimates_the_load(tmp_path):
         assert err[kind]["att_rms_deg"] < 5.0, (kind, err[kind])
     # the baseline without cameras: the rigging below the vehicles' own estimates
     assert err["camera_free"]["n_samples"] == err["ekf"]["n_samples"] and err["camera_free"]["pos_rms_m"] < 0.1
+    for kind in ("ekf", "ukf"):  # the NEES check: the mean and the bounds of such a mean around 6
+        nees = m["load_pose_nees"][kind]
+        lo, hi = nees["bounds95"]
+        assert nees["mean"] > 0 and nees["effective_samples"] >= 1 and lo < 6.0 < hi
+        assert nees["inside95"] == (lo <= nees["mean"] <= hi)
     assert m["load_filter_stats"]["ekf"]["accepted"] > 0
     assert m["load_filter_stats"]["ekf"]["late"] > 0  # the 50 ms camera latency: out-of-sequence updates
     assert min(m["load_vision"]["detection_rate"].values()) > 0.5

@@ -388,3 +388,18 @@ def test_the_camera_free_pose_is_the_rigging_below_the_vehicles_wherever_the_for
     got, want = load.camera_free_pose(f.pos_w_m), load.nominal_pose(f.center_w_m, f.phi_rad)
     assert np.allclose(got.pos_m, want.pos_m, atol=1e-9)
     assert np.linalg.norm(attitude_error(got.q_wxyz, want.q_wxyz)) < 1e-9
+
+
+@given(st.integers(0, 10_000))
+@settings(max_examples=25)
+def test_the_whitened_pose_error_squared_is_the_nees(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(4, 6, 6))
+    P = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    p_gt, p_est = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
+    q_gt = quat_normalize(rng.normal(size=(4, 4)))
+    q_est = np.array([quat_mul(quat_from_rotvec(0.1 * rng.normal(size=3)), q) for q in q_gt])
+    w = lm.pose_error_whitened(p_est, q_est, P, p_gt, q_gt)
+    e = np.concatenate((p_gt - p_est, attitude_error(q_gt, q_est)), axis=-1)
+    assert np.allclose(np.sum(w * w, axis=-1), [ei @ np.linalg.solve(Pi, ei) for ei, Pi in zip(e, P)])
+    assert np.allclose(lm.pose_nees(p_est, q_est, P, p_gt, q_gt), np.sum(w * w, axis=-1))

@@ -18,12 +18,14 @@ from dataclasses import replace
 import numpy as np
 
 from companion.load.filter import LoadPoseFilter, UnfilteredLoadPose, initial_estimate
-from companion.load.metrics import error_summary, load_pose_err, pose_error_series, pose_nees, timing_summary_ms
+from companion.load.metrics import (error_summary, load_pose_err, pose_error_series, pose_error_whitened,
+                                    timing_summary_ms)
 from companion.load.model import ERR_ATT, ERR_POS, VehicleStates
 from companion.load.pipeline import LoadVisionPipeline
 from link_firmware_sim.estimators.ekf import E_P
 from sitl.cameras.rig import CapturedFrame
 from sitl.cameras.video import pipeline_config
+from sitl.metrics import correlation_time, nees_bounds95
 
 from .config import SlungLoadScenario
 from .formation import formation_state
@@ -154,9 +156,9 @@ class LoadEstimation:
             keep = a["load_t"] >= settle
             est = {k: (a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep]) for k in (*self.filters, "camera_free")}
             out["load_pose_err"] = load_pose_err(est, a["load_p_true"][keep], a["load_q_true"][keep])
-            out["load_pose_nees_mean"] = {
-                k: float(np.nanmean(pose_nees(a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep],
-                                              a["load_p_true"][keep], a["load_q_true"][keep]))) for k in self.filters}
+            out["load_pose_nees"] = {k: _nees_check(pose_error_whitened(
+                a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep], a["load_p_true"][keep],
+                a["load_q_true"][keep])) for k in self.filters}
         if "load_unf_t" in a and np.any(a["load_unf_t"] >= settle):
             k = a["load_unf_t"] >= settle
             out.setdefault("load_pose_err", {})["unfiltered"] = error_summary(*pose_error_series(
@@ -180,3 +182,15 @@ class LoadEstimation:
         if "load_pnp_t" in a:
             out["load_vision"]["pnp_error"] = error_summary(a["load_pnp_pos_err_m"], a["load_pnp_att_err_deg"])
         return out
+
+
+def _nees_check(w: np.ndarray) -> dict:
+    """The filter's pose NEES over the window from its whitened errors ``w`` (k, 6): the mean
+    (6 for a consistent filter), the effective samples (``k`` over the NEES' correlation time,
+    :func:`sitl.metrics.correlation_time`) and the 95 % bounds of such a mean
+    (:func:`sitl.metrics.nees_bounds95`, 6 dof); ``inside95`` whether the mean lies within them."""
+    nees = np.sum(w * w, axis=-1)
+    k_eff = float(len(w) / correlation_time(w))
+    lo, hi = (float(b) for b in nees_bounds95(k_eff, dof=6))
+    mean = float(np.nanmean(nees))
+    return {"mean": mean, "effective_samples": round(k_eff, 1), "bounds95": [lo, hi], "inside95": lo <= mean <= hi}
