@@ -6,7 +6,7 @@ No OpenCV and no MuJoCo here: scenarios load, and are validated, on any install.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -29,7 +29,14 @@ class CameraMount:
     ``blur_samples`` renders spread over the exposure. ``vehicle``: the vehicle the frames are
     attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0). Fleet mode
     publishes the frames over Zenoh (:mod:`sitl.cameras.stream`) with the image as ``wire_format``
-    (``png``: lossless; ``raw``: no encoding; ``jpeg``: lossy, ``wire_quality`` 1-100)."""
+    (``png``: lossless; ``raw``: no encoding; ``jpeg``: lossy, ``wire_quality`` 1-100).
+
+    A calibration error: the camera's true intrinsics are drawn once from the scenario's seed
+    around the nominal ones the frames carry (what the estimator believes): the focal lengths
+    scaled by ``1 + N(0, calib_focal_std_frac)``, the principal point moved by ``N(0,
+    calib_principal_std_px)`` per axis, each distortion coefficient scaled by ``1 + N(0,
+    calib_dist_std_frac)`` (:meth:`true_intrinsics`). ``drop_probability``: each frame is lost
+    before delivery with this probability (seeded; counted)."""
 
     name: str
     body: str = "link1"
@@ -48,6 +55,10 @@ class CameraMount:
     vehicle: int = -1
     wire_format: Literal["raw", "png", "jpeg"] = "png"
     wire_quality: int = 90
+    calib_focal_std_frac: float = 0.0
+    calib_principal_std_px: float = 0.0
+    calib_dist_std_frac: float = 0.0
+    drop_probability: float = 0.0
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_]+", self.name):
@@ -55,7 +66,13 @@ class CameraMount:
         frame_from_axes(self.optical_axis_b, self.image_right_b)
         self.intrinsics()  # size, field of view and distortion checked there
         require_positive(self, "rate_hz")
-        require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s")
+        require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s", "calib_focal_std_frac",
+                            "calib_principal_std_px", "calib_dist_std_frac")
+        if not 0.0 <= self.drop_probability < 1.0:
+            raise ValueError(f"drop_probability must be in [0, 1), got {self.drop_probability}")
+        if self.calib_focal_std_frac >= 0.2:
+            raise ValueError(f"calib_focal_std_frac must be below 0.2 (a calibration, not a guess), "
+                             f"got {self.calib_focal_std_frac}")
         if self.exposure_s > 0 and self.blur_samples < 2:
             raise ValueError(f"blur_samples must be >= 2 with an exposure, got {self.blur_samples}")
         if not 1 <= self.wire_quality <= 100:
@@ -65,6 +82,23 @@ class CameraMount:
 
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics.from_fov(self.width_px, self.height_px, self.fovy_deg, self.dist_coeffs)
+
+    @property
+    def calibration_error(self) -> bool:
+        return bool(self.calib_focal_std_frac or self.calib_principal_std_px or self.calib_dist_std_frac)
+
+    def true_intrinsics(self, rng: np.random.Generator) -> CameraIntrinsics:
+        """The camera's true intrinsics, drawn with ``rng`` around :meth:`intrinsics` (class
+        docstring); the nominal ones when there is no calibration error (``rng`` untouched)."""
+        nom = self.intrinsics()
+        if not self.calibration_error:
+            return nom
+        f, c, d = rng.standard_normal(2), rng.standard_normal(2), rng.standard_normal(len(nom.dist_coeffs))
+        return replace(nom, fx_px=nom.fx_px * (1.0 + self.calib_focal_std_frac * f[0]),
+                       fy_px=nom.fy_px * (1.0 + self.calib_focal_std_frac * f[1]),
+                       cx_px=nom.cx_px + self.calib_principal_std_px * c[0],
+                       cy_px=nom.cy_px + self.calib_principal_std_px * c[1],
+                       dist_coeffs=tuple(k * (1.0 + self.calib_dist_std_frac * e) for k, e in zip(nom.dist_coeffs, d)))
 
     def R_b_c(self) -> np.ndarray:
         """Camera (OpenCV axes) to body rotation."""

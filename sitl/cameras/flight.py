@@ -73,6 +73,7 @@ class FlightCameras:
         if self.log is not None:
             out["vision"] = self.log.metrics()
             out["vision"]["render_ms_per_frame"] = 1e3 * self.rig.render_s / self.rig.renders if self.rig.renders else None
+            out["vision"]["frames_dropped"] = dict(self.rig.dropped)
         if self.video is not None:
             out["video"] = self.video.stats()
         return out

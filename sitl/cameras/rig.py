@@ -14,8 +14,10 @@ Config (a scenario's ``[[cameras]]`` and ``[[markers]]`` arrays of tables):
 PNG assets, the offscreen buffer). :class:`CameraRig` renders every camera offscreen on the CPU
 with ``mujoco.Renderer`` at its rate, on the simulation clock: a frame is captured at the physics
 tick of its period (averaged over ``blur_samples`` renders across ``exposure_s`` for motion
-blur; stamped mid-exposure), distorted, given Gaussian pixel noise from its own seeded stream,
-and delivered ``latency_s`` later (:meth:`CameraRig.poll`). Each frame keeps the ground truth
+blur; stamped mid-exposure), seen through the camera's true lens (its distortion and, with a
+calibration error, its true intrinsics: :meth:`~sitl.cameras.config.CameraMount.true_intrinsics`;
+the frame carries the nominal ones), given Gaussian pixel noise from its own seeded stream, lost
+with the camera's ``drop_probability``, and delivered ``latency_s`` later (:meth:`CameraRig.poll`). Each frame keeps the ground truth
 at capture (camera and marker poses in the world) beside the companion's
 :class:`~companion.vision.frame.CameraFrame`.
 
@@ -31,7 +33,7 @@ import logging
 import re
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import mujoco
@@ -39,13 +41,13 @@ import numpy as np
 
 from companion.estimation.so3 import rotmat_to_quat
 from companion.vision.frame import CameraFrame, CameraFrameHeader
-from companion.vision.geometry import CV_TO_MUJOCO_CAM
+from companion.vision.geometry import CV_TO_MUJOCO_CAM, CameraIntrinsics
 from companion.vision.markers import marker_image
 
 from .config import CameraMount, MarkerMount
 from .rendering import require_rendering
 
-__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig",
+__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig", "pixel_maps",
            "fast_renderer"]
 
 log = logging.getLogger(__name__)
@@ -157,14 +159,26 @@ class CapturedFrame:
     camera_index: int
 
 
+def pixel_maps(true: CameraIntrinsics, rendered: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of the image a camera of intrinsics ``true`` takes (its lens' distortion
+    included), where the same ray lies in the pinhole image rendered with ``rendered``
+    (``cv2.remap``'s maps, x and y)."""
+    u, v = np.meshgrid(np.arange(true.width_px, dtype=np.float64), np.arange(true.height_px, dtype=np.float64))
+    pts = np.stack((u.ravel(), v.ravel()), axis=1).reshape(-1, 1, 2)
+    und = cv2.undistortPoints(pts, true.K, true.dist, P=rendered.K).reshape(true.height_px, true.width_px, 2)
+    return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
+
+
 class _Camera:
     """One camera's renderer and schedule inside :class:`CameraRig`."""
 
     def __init__(self, model: mujoco.MjModel, mount: CameraMount, index: int, period_ticks: int, dt_s: float,
-                 rng: np.random.Generator):
+                 rng: np.random.Generator, calib_rng: np.random.Generator, drop_rng: np.random.Generator):
         self.mount = mount
         self.index = index
-        self.intr = mount.intrinsics()
+        self.intr = mount.intrinsics()  # what the frames say (the estimator's calibration)
+        self.true_intr = mount.true_intrinsics(calib_rng)  # what the lens does
+        self.drop_rng = drop_rng
         self.cam_id = model.camera(f"cam_{mount.name}").id
         self.renderer = fast_renderer(model, mount.height_px, mount.width_px)
         self.period = period_ticks
@@ -178,16 +192,9 @@ class _Camera:
         self.first_t = 0.0
         self.n_acc = 0
         self.seq = 0
-        self.maps = self._distortion_maps() if self.intr.distorted else None
+        rendered = replace(self.intr, dist_coeffs=())  # MuJoCo's pinhole camera (its fovy)
+        self.maps = pixel_maps(self.true_intr, rendered) if self.true_intr != rendered else None
         self.R_cv_to_mj = CV_TO_MUJOCO_CAM
-
-    def _distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """For each pixel of the distorted image, where it lies in the rendered pinhole image."""
-        intr = self.intr
-        u, v = np.meshgrid(np.arange(intr.width_px, dtype=np.float64), np.arange(intr.height_px, dtype=np.float64))
-        pts = np.stack((u.ravel(), v.ravel()), axis=1).reshape(-1, 1, 2)
-        und = cv2.undistortPoints(pts, intr.K, intr.dist, P=intr.K).reshape(intr.height_px, intr.width_px, 2)
-        return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
         self.renderer.update_scene(data, camera=self.cam_id)
@@ -225,11 +232,14 @@ class CameraRig:
                 if period < 1 or abs(period * c.rate_hz * dt_s - 1.0) > 1e-9:
                     raise ValueError(f"cameras[{i}].rate_hz: {c.rate_hz} Hz is not a whole divisor of the physics "
                                      f"rate {1.0 / dt_s:g} Hz")
-                self.cameras.append(_Camera(model, c, i, period, dt_s,
-                                            np.random.default_rng([seed, 0xCA3E7A, i])))
+                self.cameras.append(_Camera(model, c, i, period, dt_s, np.random.default_rng([seed, 0xCA3E7A, i]),
+                                            np.random.default_rng([seed, 0xCA11B, i]),
+                                            np.random.default_rng([seed, 0xD409, i])))
         except BaseException:
             self.close()
             raise
+        #: frames lost on their way, per camera (``drop_probability``)
+        self.dropped = {c.name: 0 for c in cameras}
         self.pending: deque[CapturedFrame] = deque()
         self.latest: dict[int, CapturedFrame] = {}
         self.render_s = 0.0
@@ -266,7 +276,11 @@ class CameraRig:
                                    t_available_s=t_capture + m.latency_s, width_px=m.width_px, height_px=m.height_px,
                                    encoding="rgb8", intrinsics=cam.intr)
         cam.seq += 1
-        self.pending.append(CapturedFrame(CameraFrame(header, cam.finish()), self.truth(cam), cam.index))
+        image = cam.finish()
+        if m.drop_probability and cam.drop_rng.random() < m.drop_probability:
+            self.dropped[m.name] += 1  # lost on its way (its sequence number skipped, as on a real link)
+            return
+        self.pending.append(CapturedFrame(CameraFrame(header, image), self.truth(cam), cam.index))
 
     def poll(self, t_s: float) -> list[CapturedFrame]:
         """The frames that became available by ``t_s`` (capture time plus latency), oldest first."""

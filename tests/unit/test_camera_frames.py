@@ -86,3 +86,39 @@ def test_messages_are_json(tmp_path, archive):
     export_log(synthetic_log(2), tmp_path / "run.mcap", extra=image_channels(archive.arrays()))
     _, messages = read_back(tmp_path / "run.mcap")
     assert json.dumps(messages["/camera/down/image"][0][3])  # decoded and re-encodable
+
+
+def test_the_lens_map_sends_each_true_pixel_to_where_its_ray_was_rendered():
+    """A camera with a calibration error and distortion: a point projected by the true lens
+    (OpenCV, with the true intrinsics) lands, through the rig's map, where the pinhole render shows it."""
+    import cv2
+
+    from companion.vision.geometry import CameraIntrinsics
+    from sitl.cameras.config import CameraMount
+    from sitl.cameras.rig import pixel_maps
+
+    mount = CameraMount(name="c", dist_coeffs=(-0.08, 0.02, 0.001, -0.001), calib_focal_std_frac=0.02,
+                        calib_principal_std_px=4.0, calib_dist_std_frac=0.2)
+    true = mount.true_intrinsics(np.random.default_rng(3))
+    nominal = mount.intrinsics()
+    assert true != nominal and abs(true.fx_px / nominal.fx_px - 1) < 0.1
+    assert mount.true_intrinsics(np.random.default_rng(3)) == true  # drawn from the seed
+    assert CameraMount(name="c").true_intrinsics(np.random.default_rng(3)) == CameraMount(name="c").intrinsics()
+    rendered = CameraIntrinsics.from_fov(640, 480, 60.0)
+    mx, my = pixel_maps(true, rendered)
+    pts = np.array([[0.3, -0.2, 2.0], [-0.5, 0.4, 3.0], [0.05, 0.1, 1.5]])
+    px_true = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), true.K, true.dist)[0].reshape(-1, 2)
+    px_render = pts[:, :2] / pts[:, 2:] * [rendered.fx_px, rendered.fy_px] + [rendered.cx_px, rendered.cy_px]
+    for (u, v), want in zip(px_true, px_render):
+        iu, iv = int(round(u)), int(round(v))  # the map at the nearest pixel (half a pixel off at most)
+        got = np.array([mx[iv, iu], my[iv, iu]], dtype=float)
+        assert np.linalg.norm(got - want) < 1.5
+
+
+@pytest.mark.parametrize("bad", [{"drop_probability": 1.0}, {"drop_probability": -0.1}, {"calib_focal_std_frac": 0.3},
+                                 {"calib_principal_std_px": -1.0}])
+def test_a_camera_refuses_an_impossible_calibration_or_drop_rate(bad):
+    from sitl.cameras.config import CameraMount
+
+    with pytest.raises(ValueError):
+        CameraMount(name="c", **bad)
