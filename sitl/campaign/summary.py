@@ -26,7 +26,8 @@ __all__ = ["group_label", "metric_stats", "summarise", "HEADLINE", "markdown_sum
 
 #: the metrics summary.md and the box plots show first (a column or a per-link list's columns)
 HEADLINE = ("rms_track_true_m", "rms_est_err_m.ekf", "rms_est_err_m.sckf", "constraint_pos_p95_m.after",
-            "constraint_vel_p95_m_s.after", "rms_pose_track_true_pos_m", "min_altitude_m", "crashed")
+            "constraint_vel_p95_m_s.after", "rms_pose_track_true_pos_m", "load_pose_err.ekf.pos_rms_m",
+            "load_pose_err.ekf.att_rms_deg", "load_pose_err.camera_free.pos_rms_m", "min_altitude_m", "crashed")
 _NOT_PLOTTED = ("crashed",)
 
 
