@@ -75,9 +75,10 @@ def test_a_worker_that_dies_loses_only_its_run_which_is_flown_again(tmp_path):
 
 
 def _campaign_cmd(out, *where):
+    # a 1 s take-off (a setting like the swept one) so that 4 s flights have a window for their metrics
     return [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
-            "--set", "firmware.ekf.gate_sigma=3,5", "--seeds", "0-1", "--duration", "8", "--quiet", "--out", str(out),
-            *where]
+            "--set", "firmware.ekf.gate_sigma=3,5", "--set", "trajectory.takeoff_duration_s=1", "--seeds", "0-1",
+            "--duration", "4", "--quiet", "--out", str(out), *where]
 
 
 def _campaign(out, *where):
@@ -141,7 +142,7 @@ def dask_cluster(tmp_path):
 
 
 def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_table(tmp_path, dask_cluster):
-    """Real flights (three_link, 8 s, two settings x two seeds): the local cluster, interrupted
+    """Real flights (three_link, 4 s, two settings x two seeds): the local cluster, interrupted
     with Ctrl-C and started again, and a separately started scheduler with two workers give the
     same table to the last digit."""
     finished = _interrupted_campaign(tmp_path / "local", "--workers", "2")
@@ -149,14 +150,15 @@ def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_
     assert f"{finished} finished before, {4 - finished} now" in out and "(4 ok, 0 failed, 0 lost)" in out
     _campaign(tmp_path / "remote", "--scheduler", dask_cluster)
     table = (tmp_path / "local" / "results.csv").read_text().splitlines()
-    assert len(table) == 5 and table[0].startswith("scenario,mode,set:firmware.ekf.gate_sigma,duration_s,seed,status")
+    assert len(table) == 5 and table[0].startswith(
+        "scenario,mode,set:firmware.ekf.gate_sigma,set:trajectory.takeoff_duration_s,duration_s,seed,status")
     diff = subprocess.run([sys.executable, "-m", "sitl", "campaign", "diff", str(tmp_path / "local" / "results.csv"),
                            str(tmp_path / "remote" / "results.csv")], cwd=ROOT, capture_output=True, text=True)
     assert diff.returncode == 0 and "identical" in diff.stdout, diff.stdout
     remote = (tmp_path / "remote" / "results.csv").read_text()
     assert "tcp://127.0.0.1:" in remote  # the workers named in the table
     summary = (tmp_path / "local" / "summary.md").read_text()
-    assert "three_link batch duration_s=8.0 firmware.ekf.gate_sigma=3" in summary
+    assert "three_link batch duration_s=4.0 firmware.ekf.gate_sigma=3 trajectory.takeoff_duration_s=1" in summary
     assert (tmp_path / "local" / "plots" / "rms_track_true_m.png").stat().st_size > 1000
     nees = json.loads((tmp_path / "local" / "nees.json").read_text())
     assert len(nees) == 2 and all(len(g["seeds"]) == 2 for g in nees.values())
