@@ -29,6 +29,18 @@ TESTS = Path(__file__).resolve().parent
 def pytest_configure(config):
     if not config.getoption("hypothesis_profile", None):
         settings.load_profile("default_seeded")
+    _compile_packages()
+
+
+def _compile_packages() -> None:
+    """The project's modules compiled to bytecode once, before the suite starts its hundreds of
+    processes (vehicles, companions, command lines, Dask workers): each would otherwise compile
+    what it imports from source when ``PYTHONDONTWRITEBYTECODE`` is set (CI images set it), and
+    without it they would race to write the same files. Up-to-date files are skipped."""
+    import compileall
+
+    for package in ("companion", "link_firmware_sim", "sitl"):
+        compileall.compile_dir(str(TESTS.parent / package), quiet=2, workers=1)
 
 
 @pytest.hookimpl(tryfirst=True)
