@@ -47,6 +47,7 @@ __all__ = [
     "resolve_ambiguity",
     "pose_covariance",
     "estimate_marker_pose",
+    "configured_pose",
     "measure_markers",
     "MarkerPipeline",
 ]
@@ -173,14 +174,18 @@ def measure_markers(image: np.ndarray, intr: CameraIntrinsics, cfg: PipelineConf
     dets = detect_markers(image, detector, intr)
     if cfg.ids:
         dets = tuple(d for d in dets if d.marker_id in cfg.ids)
-    poses = []
-    for d in dets:
-        pose = estimate_marker_pose(d, cfg.length_m(d.marker_id), intr, method or cfg.method,
-                                    previous=(previous or {}).get(d.marker_id), ambiguity_ratio=cfg.ambiguity_ratio,
-                                    sigma_floor_px=cfg.sigma_floor_px, refine=cfg.refine)
-        if pose is not None:
-            poses.append(pose)
+    poses = [pose for d in dets if (pose := configured_pose(d, intr, cfg, method, previous)) is not None]
     return dets, tuple(poses)
+
+
+def configured_pose(det: MarkerDetection, intr: CameraIntrinsics, cfg: PipelineConfig, method: str | None = None,
+                    previous: dict[int, MarkerPose] | None = None) -> MarkerPose | None:
+    """:func:`estimate_marker_pose` of one detection with ``cfg``'s marker length, ambiguity
+    ratio, noise floor and refinement (``method`` overrides ``cfg.method``); ``previous``: the last
+    pose of each marker id, for the IPPE ambiguity."""
+    return estimate_marker_pose(det, cfg.length_m(det.marker_id), intr, method or cfg.method,
+                                previous=(previous or {}).get(det.marker_id), ambiguity_ratio=cfg.ambiguity_ratio,
+                                sigma_floor_px=cfg.sigma_floor_px, refine=cfg.refine)
 
 
 class MarkerPipeline:

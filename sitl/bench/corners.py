@@ -56,7 +56,7 @@ class CornerLog:
         from companion.vision.geometry import (geodesic_angle_rad, project_points, transform_points,
                                                translation_error_m)
         from companion.vision.markers import detect_markers, marker_object_points
-        from companion.vision.pnp import estimate_marker_pose
+        from companion.vision.pnp import configured_pose
 
         h, truth = captured.frame.header, captured.truth
         self.frames += 1
@@ -74,10 +74,7 @@ class CornerLog:
                 err = d.corners_px - true_px
                 to_centre = true_px.mean(axis=0) - true_px
                 inward = np.sum(err * to_centre, axis=1) / np.linalg.norm(to_centre, axis=1)
-                pose = estimate_marker_pose(d, length, h.intrinsics, self.cfg.method,
-                                            previous=previous.get(d.marker_id),
-                                            ambiguity_ratio=self.cfg.ambiguity_ratio,
-                                            sigma_floor_px=self.cfg.sigma_floor_px, refine=self.cfg.refine)
+                pose = configured_pose(d, h.intrinsics, self.cfg, previous=previous)
                 if pose is None:
                     continue
                 previous[d.marker_id] = pose

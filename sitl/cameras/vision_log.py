@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.vision.geometry import geodesic_angle_rad, translation_error_m
 from companion.vision.markers import detect_markers
-from companion.vision.pnp import PNP_METHODS, MarkerPipeline, estimate_marker_pose
+from companion.vision.pnp import PNP_METHODS, MarkerPipeline, configured_pose
 
 from .rig import CapturedFrame
 from .config import MarkerMount
@@ -56,10 +56,7 @@ class VisionLog:
             w0 = time.perf_counter()
             poses = []
             for d in dets:
-                pose = estimate_marker_pose(d, self.cfg.length_m(d.marker_id), h.intrinsics, method,
-                                            previous=previous.get(d.marker_id),
-                                            ambiguity_ratio=self.cfg.ambiguity_ratio,
-                                            sigma_floor_px=self.cfg.sigma_floor_px, refine=self.cfg.refine)
+                pose = configured_pose(d, h.intrinsics, self.cfg, method, previous)
                 if pose is not None:
                     previous[d.marker_id] = pose
                     poses.append(pose)
