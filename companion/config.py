@@ -279,13 +279,7 @@ def load_setup(cls: type, path: str | Path, settings: Mapping[str, Any] | None =
         setup = replace(setup, signing=replace(setup.signing, key_file=str(key_path)))
     zenoh_cfg = getattr(setup, "zenoh", None)
     if zenoh_cfg is not None and (zenoh_cfg.users_file or zenoh_cfg.tls.certs_dir):
-        folder = Path(path).resolve().parent
-        if zenoh_cfg.users_file:
-            zenoh_cfg = replace(zenoh_cfg, users_file=str(folder / Path(zenoh_cfg.users_file).expanduser()))
-        if zenoh_cfg.tls.certs_dir:
-            certs_dir = str(folder / Path(zenoh_cfg.tls.certs_dir).expanduser())
-            zenoh_cfg = replace(zenoh_cfg, tls=replace(zenoh_cfg.tls, certs_dir=certs_dir))
-        setup = replace(setup, zenoh=zenoh_cfg)
+        setup = replace(setup, zenoh=zenoh_cfg.resolved(Path(path).resolve().parent))
     motion = getattr(setup, "motion", None)
     if motion is not None:
         model_path = Path(path).resolve().parent / motion.model

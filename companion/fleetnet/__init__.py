@@ -8,5 +8,6 @@
 * :mod:`.group` -- the node on a bus, with its operational record (clock and bus passed in);
 * :mod:`.hub` -- bus events and an in-process bus (batch mode; pure);
 * :mod:`.certs` -- the fleet CA and each group's TLS certificate (``python -m companion certs``);
-* :mod:`.bus` -- the Zenoh session wrapper (the only module that imports ``zenoh``).
+* :mod:`.credentials` -- what a group's sessions present and demand: TLS, user and password, access control;
+* :mod:`.bus` -- the Zenoh session wrapper and the Zenoh configurations of a group's sessions.
 """

@@ -1,4 +1,8 @@
-"""The Zenoh session of one group companion (the only module of the stack that imports ``zenoh``).
+"""The Zenoh session of one group companion, and the Zenoh configurations of a group's sessions.
+
+:func:`zenoh_config` configures group ``g``'s companion (its endpoints, the fleet's settings and
+the group's credentials, :mod:`.credentials`); :func:`peer_config` another session of the same
+computer (its camera stream, a vision consumer) with the same credentials.
 
 :class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
 declares this group's liveliness token, subscribes to the other groups' boundaries and carried
@@ -17,96 +21,68 @@ import logging
 import os
 import queue
 import time
-from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import zenoh
 
 from companion.configfile import ConfigError
-from companion.keyfiles import read_private_text
 from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, MessageError
 
 from . import codec
-from .config import ZenohConfig, group_user, read_users_file
+from .config import ZenohConfig
+from .credentials import ZenohSetting, group_credentials
 from .hub import KINDS, BusEvent
 from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, passive_key, passive_pattern,
                    shift_key, target_key)
 
-__all__ = ["BusEvent", "FleetBus", "zenoh_config"]
+__all__ = ["BusEvent", "FleetBus", "peer_config", "zenoh_config"]
 
 log = logging.getLogger(__name__)
 
 
-def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>") -> zenoh.Config:
-    """The Zenoh configuration of 0-based ``group``'s companion (errors name the config key)."""
-    zc = zenoh.Config()
-
-    def put(key: str, value: Any, where: str, json5_text: bool = False) -> None:
+def _insert(zc: zenoh.Config, settings: list[ZenohSetting]) -> zenoh.Config:
+    for s in settings:
         try:
-            zc.insert_json5(key, value if json5_text else json.dumps(value))
+            zc.insert_json5(s.key, s.json5)
         except Exception as exc:  # zenoh raises ZError with the parser's message
-            raise ConfigError(file, where, f"Zenoh rejected {key}: {exc}") from None
-
-    put("mode", cfg.mode, "zenoh.mode")
-    put("scouting/multicast/enabled", cfg.multicast_scouting, "zenoh.multicast_scouting")
-    put("transport/link/tx/lease", int(cfg.lease_ms), "zenoh.lease_ms")
-    others = [cfg.group_endpoint(g) for g in range(n_groups) if g != group]
-    if cfg.mode == "peer":
-        put("listen/endpoints", [cfg.group_endpoint(group)], "zenoh.endpoints")
-        put("connect/endpoints", others + list(cfg.connect), "zenoh.connect")
-    else:
-        put("connect/endpoints", list(cfg.connect), "zenoh.connect")
-    tls = cfg.tls
-    if tls.certs_dir:
-        _check_certs_dir(cfg, group, n_groups, file)
-    for name, path in tls.files(group).items():
-        where = "zenoh.tls.certs_dir" if tls.certs_dir else f"zenoh.tls.{name}"
-        if not Path(path).is_file():
-            raise ConfigError(file, where, f"no such file: {path}")
-        put(f"transport/link/tls/{name}", path, where)
-    if tls.configured:
-        put("transport/link/tls/enable_mtls", tls.mtls, "zenoh.tls.enable_mtls")
-    if cfg.users_file:
-        try:
-            users = read_users_file(cfg.users_file)
-        except ValueError as exc:
-            raise ConfigError(file, "zenoh.users_file", str(exc)) from None
-        user = group_user(group)
-        if user not in users:
-            raise ConfigError(file, "zenoh.users_file", f"{cfg.users_file} has no user {user} (group {group + 1})")
-        put("transport/auth/usrpwd/user", user, "zenoh.users_file")
-        put("transport/auth/usrpwd/password", users[user], "zenoh.users_file")
-        put("transport/auth/usrpwd/dictionary_file", str(Path(cfg.users_file).resolve()), "zenoh.users_file")
-    if cfg.access_control:
-        try:
-            text = Path(cfg.access_control).read_text()
-        except OSError as exc:
-            raise ConfigError(file, "zenoh.access_control", f"cannot read {cfg.access_control}: {exc.strerror}") from None
-        put("access_control", text, "zenoh.access_control", json5_text=True)
+            raise ConfigError(s.file, s.where, f"Zenoh rejected {s.key}: {exc}") from None
     return zc
 
 
-def _check_certs_dir(cfg: ZenohConfig, group: int, n_groups: int, file: str) -> None:
-    """``ConfigError`` at ``zenoh.tls.certs_dir`` unless 0-based ``group``'s files are there, its key
-    is private, and its certificate is the fleet CA's, valid now, for the host of its endpoint."""
-    from .certs import check_group_certificate  # cryptography: only companions that use certs_dir
+def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>") -> zenoh.Config:
+    """The Zenoh configuration of 0-based ``group``'s companion (errors name the config key)."""
 
-    files = cfg.tls.files(group)
-    make = (f"create them with `python -m companion certs DIR --groups {n_groups} --hosts HOST1 ...` and copy "
-            f"ca.pem, {group_user(group)}.pem and {group_user(group)}.key to this computer")
-    for name, what in (("root_ca_certificate", "the fleet CA certificate"),
-                       ("listen_certificate", f"group {group + 1}'s certificate"),
-                       ("listen_private_key", f"group {group + 1}'s private key")):
-        if not Path(files[name]).is_file():
-            raise ConfigError(file, "zenoh.tls.certs_dir", f"no such file: {files[name]} ({what}); {make}")
-    try:
-        read_private_text(files["listen_private_key"], "TLS private key")
-        host = None
-        if cfg.mode == "peer":
-            host = cfg.group_endpoint(group).split("/", 1)[1].rsplit(":", 1)[0]
-        check_group_certificate(files["listen_certificate"], files["root_ca_certificate"], host)
-    except ValueError as exc:
-        raise ConfigError(file, "zenoh.tls.certs_dir", str(exc)) from None
+    def setting(key: str, value: Any, where: str) -> ZenohSetting:
+        return ZenohSetting(key, json.dumps(value), file, where)
+
+    settings = [setting("mode", cfg.mode, "zenoh.mode"),
+                setting("scouting/multicast/enabled", cfg.multicast_scouting, "zenoh.multicast_scouting"),
+                setting("transport/link/tx/lease", int(cfg.lease_ms), "zenoh.lease_ms")]
+    others = [cfg.group_endpoint(g) for g in range(n_groups) if g != group]
+    if cfg.mode == "peer":
+        settings += [setting("listen/endpoints", [cfg.group_endpoint(group)], "zenoh.endpoints"),
+                     setting("connect/endpoints", others + list(cfg.connect), "zenoh.connect")]
+    else:
+        settings.append(setting("connect/endpoints", list(cfg.connect), "zenoh.connect"))
+    zc = _insert(zenoh.Config(), settings)
+    return _insert(zc, group_credentials(cfg, group, n_groups, file))
+
+
+def peer_config(listen: Sequence[str], connect: Sequence[str], credentials: Sequence[ZenohSetting] = (),
+                multicast_scouting: bool = False, file: str = "<config>") -> zenoh.Config:
+    """A peer session that listens on ``listen`` and connects to ``connect`` only (multicast
+    scouting off unless asked), with ``credentials``: a session beside a group's companion on its
+    computer (its camera stream, a vision consumer) takes the group's
+    (:func:`~.credentials.group_credentials`), so it presents what the companion presents and
+    admits only what the companion admits. Errors name ``file``'s ``zenoh.listen`` or
+    ``zenoh.connect``, or the credentials' own file and key."""
+    settings = [ZenohSetting("mode", '"peer"', file, "zenoh"),
+                ZenohSetting("scouting/multicast/enabled", json.dumps(multicast_scouting), file,
+                             "zenoh.multicast_scouting"),
+                ZenohSetting("listen/endpoints", json.dumps(list(listen)), file, "zenoh.listen"),
+                ZenohSetting("connect/endpoints", json.dumps(list(connect)), file, "zenoh.connect")]
+    return _insert(zenoh.Config(), settings + list(credentials))
 
 
 class FleetBus:

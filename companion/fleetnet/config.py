@@ -44,14 +44,15 @@ from __future__ import annotations
 
 import re
 import secrets
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from companion.configfile import require_positive
+from companion.configfile import build, load_toml, require_positive
 from companion.keyfiles import read_private_text, write_private_text
 
-__all__ = ["CA_CERT", "ZenohTls", "ZenohConfig", "PREFIX_RE", "group_user", "new_users_file", "read_users_file"]
+__all__ = ["CA_CERT", "ZenohTls", "ZenohConfig", "PREFIX_RE", "group_user", "load_zenoh_table", "new_users_file",
+           "read_users_file"]
 
 #: A fleet prefix: one or more key chunks of letters, digits, ``_`` and ``-``, joined by ``/``.
 PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
@@ -174,6 +175,21 @@ class ZenohConfig:
         if not 0 <= self.runtime_threads <= 64:
             raise ValueError(f"runtime_threads must be in 0..64, got {self.runtime_threads}")
 
+    @property
+    def secured(self) -> bool:
+        """Whether sessions of this fleet present credentials (TLS, user and password) or follow access rules."""
+        return bool(self.tls.configured or self.users_file or self.access_control)
+
+    def resolved(self, folder: str | Path) -> ZenohConfig:
+        """This config with a relative ``users_file`` and ``tls.certs_dir`` taken from ``folder``
+        (the config file's)."""
+        cfg, folder = self, Path(folder)
+        if cfg.users_file:
+            cfg = replace(cfg, users_file=str(folder / Path(cfg.users_file).expanduser()))
+        if cfg.tls.certs_dir:
+            cfg = replace(cfg, tls=replace(cfg.tls, certs_dir=str(folder / Path(cfg.tls.certs_dir).expanduser())))
+        return cfg
+
     def runtime_env(self) -> str | None:
         """The ``ZENOH_RUNTIME`` value for ``runtime_threads`` (``None``: Zenoh's defaults)."""
         if not self.runtime_threads:
@@ -202,6 +218,14 @@ class ZenohConfig:
             return tuple(g - 1 for g in self.leader_order)
         mid = (n_groups - 1) / 2
         return tuple(sorted(range(n_groups), key=lambda g: (abs(g - mid), g)))
+
+
+def load_zenoh_table(path: str | Path) -> ZenohConfig:
+    """The ``[zenoh]`` table of a config file (a companion's or a scenario), its ``users_file`` and
+    ``tls.certs_dir`` relative to the file's folder; :class:`~companion.configfile.ConfigError`
+    names the file and key."""
+    table = load_toml(path).get("zenoh", {})
+    return build(ZenohConfig, table, file=str(path), prefix="zenoh").resolved(Path(path).resolve().parent)
 
 
 def group_user(group: int) -> str:

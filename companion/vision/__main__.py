@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
         description=("Camera frames (Zenoh <prefix>/camera/<vehicle>/image, or a cv2.VideoCapture device, file or "
                      "URL) through the marker pipeline (ArUco + PnP + covariance); writes vision_frames.jsonl, "
                      "vision_summary.json and vision.log to the run folder. Config: a TOML file with source = "
-                     "\"zenoh\" ([zenoh] prefix, connect/listen) or \"video\" ([video] device or url, camera, "
+                     "\"zenoh\" ([zenoh] prefix, connect/listen; in a secured fleet fleet = its config and group = "
+                     "whose credentials) or \"video\" ([video] device or url, camera, "
                      "vehicle, width_px, height_px, fx_px.. or fovy_deg, dist_coeffs) and [pipeline] (marker "
                      "sizes, dictionary, PnP method); see companion/vision/node_config.py."),
     )
@@ -75,7 +76,10 @@ def main(argv=None) -> int:
     from .node import open_source, run_node
 
     try:
-        source = open_source(setup)
+        source = open_source(setup, args.config)
+    except ConfigError as exc:  # the fleet's credential files changed since the config was read
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except ImportError as exc:
         print(f"error: {exc} (pip install '.[vision]'; the Zenoh source also needs '.[distributed]')", file=sys.stderr)
         return EXIT_SOURCE

@@ -31,7 +31,7 @@ import numpy as np
 
 from .config import PipelineConfig
 from .frame import CameraFrame, CameraFrameHeader
-from .node_config import VideoCaptureSource, VisionNodeSetup, ZenohCameraSource
+from .node_config import VideoCaptureSource, VisionNodeSetup, ZenohCameraSource, fleet_credentials
 
 __all__ = ["FrameRecord", "VisionNode", "ZenohFrames", "VideoCaptureFrames", "open_source", "run_node",
            "read_frame_log", "FRAMES_FILE", "SUMMARY_FILE"]
@@ -151,33 +151,33 @@ class VisionNode:
 
 
 class ZenohFrames:
-    """Frames from ``<prefix>/camera/*/image`` over a Zenoh session this object opens (peer mode)."""
+    """Frames from ``<prefix>/camera/*/image`` over a Zenoh session this object opens (peer mode;
+    with ``cfg.fleet``, presenting ``cfg.group``'s credentials of that fleet:
+    :func:`~.node_config.fleet_credentials`). ``file``: the consumer's config, for the errors."""
 
     kind = "zenoh"
 
-    def __init__(self, cfg: ZenohCameraSource):
+    def __init__(self, cfg: ZenohCameraSource, file: str = "<config>"):
         env = cfg.runtime_env()
         if env and "ZENOH_RUNTIME" not in os.environ:  # before the first session of this process
             os.environ["ZENOH_RUNTIME"] = env
         import zenoh
 
+        from companion.fleetnet.bus import peer_config
+
         from .camera_wire import CameraSubscriber, vehicle_of_key
 
         self.cfg = cfg
         self._vehicle_of_key = vehicle_of_key
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "true" if cfg.multicast_scouting else "false")
-        c.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
-        c.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
-        self.session = zenoh.open(c)
+        self.session = zenoh.open(peer_config(cfg.listen, cfg.connect, fleet_credentials(cfg, file),
+                                              cfg.multicast_scouting, file))
         try:
             self.subscriber = CameraSubscriber(self.session, cfg.prefix)
         except BaseException:
             self.session.close()
             raise
-        log.info("subscribed to %s/camera/*/image (connect %s, listen %s)", cfg.prefix, list(cfg.connect),
-                 list(cfg.listen))
+        log.info("subscribed to %s/camera/*/image (connect %s, listen %s%s)", cfg.prefix, list(cfg.connect),
+                 list(cfg.listen), f"; group {cfg.group}'s credentials of {cfg.fleet}" if cfg.fleet else "")
 
     def poll(self, timeout_s: float) -> list[tuple[str, object]]:
         """What arrived: ``("frame", CameraFrame)`` or ``("error", reason)``; waits up to ``timeout_s``."""
@@ -268,9 +268,9 @@ class VideoCaptureFrames:
         self.cap.release()
 
 
-def open_source(setup: VisionNodeSetup):
-    """The configured source, opened."""
-    return ZenohFrames(setup.zenoh) if setup.source == "zenoh" else VideoCaptureFrames(setup.video)
+def open_source(setup: VisionNodeSetup, file: str = "<config>"):
+    """The configured source, opened (``file``: the config's, for the errors)."""
+    return ZenohFrames(setup.zenoh, file) if setup.source == "zenoh" else VideoCaptureFrames(setup.video)
 
 
 def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = lambda: False,

@@ -8,6 +8,8 @@ No OpenCV and no Zenoh here: the file loads and is validated on any install. One
     [zenoh]                     # source = "zenoh": frames on <prefix>/camera/<vehicle>/image
     prefix = "three_link_camera"
     connect = ["tcp/127.0.0.1:7450"]   # the publisher's endpoint (the SITL harness writes this file)
+    fleet = "companion.toml"    # a secured fleet: the config whose [zenoh] table has its credentials,
+    group = 2                   # and the group (1-based) whose credentials this consumer presents
 
     [video]                     # source = "video": a cv2.VideoCapture on this computer
     device = 0                  # /dev/video0; or url = "clip.mp4" / "rtsp://..." (not both)
@@ -32,25 +34,34 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from companion.configfile import build, load_toml, require_nonnegative
-from companion.fleetnet.config import PREFIX_RE
+from companion.configfile import ConfigError, build, load_toml, require_nonnegative
+from companion.fleetnet.config import PREFIX_RE, load_zenoh_table
+from companion.fleetnet.credentials import ZenohSetting, group_credentials
 
 from .config import PipelineConfig
 from .geometry import CameraIntrinsics
 
-__all__ = ["ZenohCameraSource", "VideoCaptureSource", "VisionNodeSetup", "load_vision_setup"]
+__all__ = ["ZenohCameraSource", "VideoCaptureSource", "VisionNodeSetup", "fleet_credentials", "load_vision_setup"]
 
-#: plain tcp/udp endpoints (the camera stream runs on the computer's loopback or a trusted link)
-_ENDPOINT_RE = re.compile(r"^(tcp|udp)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+_ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+_SECURE_TRANSPORTS = ("tls/", "quic/")
 _NAME_RE = re.compile(r"[A-Za-z0-9_]{1,64}")
 
 
 @dataclass(frozen=True)
 class ZenohCameraSource:
     """Frames from Zenoh, ``<prefix>/camera/*/image``: a peer session that connects to ``connect``
-    and/or listens on ``listen`` (tcp or udp endpoints), multicast scouting off unless enabled.
+    and/or listens on ``listen``, multicast scouting off unless enabled.
     ``vehicles``: 1-based vehicles whose frames are processed (empty: every vehicle's).
-    ``runtime_threads``: Zenoh worker threads per runtime pool (``ZENOH_RUNTIME``, unless set)."""
+    ``runtime_threads``: Zenoh worker threads per runtime pool (``ZENOH_RUNTIME``, unless set).
+
+    A secured fleet (its ``[zenoh]`` table has ``users_file``, ``[zenoh.tls]`` or
+    ``access_control``): ``fleet`` names that config file (a companion's or a scenario; relative
+    to this file's folder) and ``group`` the 1-based group whose credentials the session presents
+    (the group of the computer it runs on), as that group's companion does: its user and password,
+    its TLS certificate; the endpoints are then ``tls/`` (or ``quic/``) when the fleet's are, else
+    ``tcp/`` (or ``udp/``). Without ``fleet`` the session has no credentials, over tcp or udp.
+    """
 
     prefix: str = ""
     connect: tuple[str, ...] = ()
@@ -58,6 +69,8 @@ class ZenohCameraSource:
     multicast_scouting: bool = False
     vehicles: tuple[int, ...] = ()
     runtime_threads: int = 1
+    fleet: str = ""
+    group: int = 0
 
     def __post_init__(self) -> None:
         if self.prefix and not PREFIX_RE.match(self.prefix):
@@ -66,7 +79,15 @@ class ZenohCameraSource:
             for ep in getattr(self, key):
                 m = _ENDPOINT_RE.match(ep)
                 if not m or not 0 < int(m.group(3)) <= 65535:
-                    raise ValueError(f"{key}: {ep!r} is not a tcp/ or udp/ Zenoh endpoint like tcp/127.0.0.1:7450")
+                    raise ValueError(f"{key}: {ep!r} is not a Zenoh endpoint like tcp/127.0.0.1:7450 "
+                                     "(tcp, udp, tls or quic; port 1..65535)")
+                if ep.startswith(_SECURE_TRANSPORTS) and not self.fleet:
+                    raise ValueError(f"{key}: {ep!r}: tls/ and quic/ need the fleet's credentials (fleet, group)")
+        if self.fleet and not 1 <= self.group <= 0xFFFF:
+            raise ValueError(f"group: with fleet, the 1-based group whose credentials the consumer presents, "
+                             f"got {self.group}")
+        if self.group and not self.fleet:
+            raise ValueError("group: needs fleet, the config that holds the group's credentials")
         if any(v < 1 or v > 0xFFFF for v in self.vehicles):
             raise ValueError(f"vehicles: 1-based vehicle numbers, got {list(self.vehicles)}")
         if not 0 <= self.runtime_threads <= 64:
@@ -167,11 +188,42 @@ class VisionNodeSetup:
                 raise ValueError(f"video: {exc}") from None
 
 
+def fleet_credentials(src: ZenohCameraSource, file: str = "<config>") -> list[ZenohSetting]:
+    """The Zenoh settings of ``src.group``'s credentials in the fleet config ``src.fleet`` (empty
+    without one): :func:`~companion.fleetnet.credentials.group_credentials`, its files checked.
+    :class:`~companion.configfile.ConfigError` names ``file``'s key (the fleet config missing, a
+    group it does not have, an endpoint whose transport is not the fleet's) or the fleet config's
+    own (``zenoh.users_file``, ``zenoh.tls.certs_dir``, ...)."""
+    if not src.fleet:
+        return []
+    if not Path(src.fleet).is_file():
+        raise ConfigError(file, "zenoh.fleet", f"no such file: {src.fleet} (the fleet's config: its [zenoh] table "
+                                               "holds the credentials)")
+    fleet = load_zenoh_table(src.fleet)
+    n_groups = len(fleet.endpoints) or src.group
+    if src.group > n_groups:
+        raise ConfigError(file, "zenoh.group", f"{src.fleet} has {n_groups} groups (zenoh.endpoints), not {src.group}")
+    for key in ("connect", "listen"):
+        for ep in getattr(src, key):
+            if ep.startswith(_SECURE_TRANSPORTS) != fleet.tls.configured:
+                raise ConfigError(file, f"zenoh.{key}", f"{ep!r}: " + (
+                    f"the fleet ({src.fleet}) uses TLS: use tls/ or quic/ endpoints" if fleet.tls.configured
+                    else f"tls/ and quic/ need [zenoh.tls] in the fleet's config ({src.fleet})"))
+    return group_credentials(fleet, src.group - 1, n_groups, src.fleet)
+
+
 def load_vision_setup(path: str | Path) -> VisionNodeSetup:
     """Read a consumer config (:class:`~companion.configfile.ConfigError` naming the key). A
-    relative ``video.url`` that is no URL is resolved against the file's folder."""
+    relative ``video.url`` that is no URL and a relative ``zenoh.fleet`` are resolved against the
+    file's folder; the fleet's credentials are checked (:func:`fleet_credentials`)."""
     setup = build(VisionNodeSetup, load_toml(path), file=str(path))
+    folder = Path(path).resolve().parent
     url = setup.video.url
     if url and "://" not in url and not Path(url).expanduser().is_absolute():
-        setup = replace(setup, video=replace(setup.video, url=str(Path(path).resolve().parent / url)))
+        setup = replace(setup, video=replace(setup.video, url=str(folder / url)))
+    if setup.zenoh.fleet:
+        fleet = str(folder / Path(setup.zenoh.fleet).expanduser())
+        setup = replace(setup, zenoh=replace(setup.zenoh, fleet=fleet))
+        if setup.source == "zenoh":
+            fleet_credentials(setup.zenoh, str(path))
     return setup

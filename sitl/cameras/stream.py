@@ -10,12 +10,19 @@ the fleet harness's lockstep (:meth:`on_tick` is a tick hook of
 the camera's ``wire_format`` (PNG by default: lossless, the consumer sees the pixels batch mode
 sees). It keeps each published frame's ground truth (every marker's pose in the camera at capture).
 
-The Zenoh session: the companions' sessions (``[zenoh]``: group endpoints, a user-password file)
-are theirs; the camera stream has its own. The harness opens a peer session that listens on a
-free loopback port (``tcp/127.0.0.1:<port>``, the OS picks it: parallel runs do not collide),
-multicast scouting off, and writes the consumer's config (``vision.toml``: connect to that
-endpoint, the prefix, the scenario's marker sizes) into the run folder. Nothing leaves loopback,
-and nothing but the consumer is told the port; the consumer checks every payload (the codec).
+The Zenoh sessions: a camera runs on the onboard computer of its vehicle's group, so the harness
+opens one peer session per group that carries a camera (:func:`open_camera_session`), beside the
+companions' sessions, not in their mesh: it listens on a port of 127.0.0.1 the OS picks (parallel
+runs do not collide) and connects nowhere, multicast scouting off. In a secured fleet (the
+companions' ``[zenoh]`` has ``users_file``, ``[zenoh.tls]`` or ``access_control``) it takes the
+group's credentials as the group's companion does (its user and password, the users file as the
+dictionary it checks the consumer against, its certificate with mutual TLS, the access rules;
+:func:`~companion.fleetnet.credentials.group_credentials`), over ``tls/`` on the host of the
+group's endpoint when the fleet uses TLS; a session without the fleet's credentials neither
+receives nor publishes camera frames. The harness writes the consumer's config (``vision.toml``:
+the endpoints, the prefix, the scenario's marker sizes; in a secured fleet the companions' config
+and the group whose credentials the consumer presents, the first camera's) into the run folder.
+The consumer checks every payload (the codec).
 
 :func:`fleet_vision_metrics` joins the consumer's frame log (``vision/vision_frames.jsonl``) with
 the truths by ``(vehicle, camera, seq)``: ``metrics.json["vision"]`` with batch mode's keys
@@ -37,6 +44,7 @@ import numpy as np
 
 from companion.configfile import dump_toml
 from companion.estimation.so3 import quat_to_rotmat
+from companion.fleetnet.config import ZenohConfig
 from companion.vision.config import PipelineConfig
 from companion.vision.geometry import geodesic_angle_rad
 from companion.vision.node import FRAMES_FILE, SUMMARY_FILE, read_frame_log
@@ -44,7 +52,7 @@ from companion.vision.node_config import VisionNodeSetup, ZenohCameraSource
 
 from .rig import CameraRig
 
-__all__ = ["CameraStreamer", "fleet_vision_metrics", "free_loopback_port"]
+__all__ = ["CameraStreamer", "camera_endpoint", "fleet_vision_metrics", "free_loopback_port", "open_camera_session"]
 
 log = logging.getLogger(__name__)
 
@@ -56,15 +64,41 @@ def free_loopback_port() -> int:
         return s.getsockname()[1]
 
 
+def camera_endpoint(fleet: ZenohConfig, group: int) -> str:
+    """Where 0-based ``group``'s camera session listens: a free port of 127.0.0.1 over tcp or, when
+    ``fleet`` uses TLS, over the transport of the group's endpoint on its host (the host the
+    group's certificate names)."""
+    port = free_loopback_port()
+    if not fleet.tls.configured:
+        return f"tcp/127.0.0.1:{port}"
+    transport, address = fleet.group_endpoint(group).split("/", 1)
+    return f"{transport}/{address.rsplit(':', 1)[0]}:{port}"
+
+
+def open_camera_session(fleet: ZenohConfig, group: int, n_groups: int, file: str = "<config>"):
+    """``(endpoint, session)`` of 0-based ``group``'s cameras: a Zenoh peer listening on
+    :func:`camera_endpoint`, connecting nowhere, with the group's credentials of ``fleet`` (the
+    companions' ``[zenoh]``; ``file`` holds it, for the errors)."""
+    import zenoh
+
+    from companion.fleetnet.bus import peer_config
+    from companion.fleetnet.credentials import group_credentials
+
+    endpoint = camera_endpoint(fleet, group)
+    credentials = group_credentials(fleet, group, n_groups, file)
+    return endpoint, zenoh.open(peer_config((endpoint,), (), credentials, file=file))
+
+
 class CameraStreamer:
     """The cameras of a fleet run, published over Zenoh (module docstring). ``model``, ``data``:
-    the plant's MuJoCo model (built with the cameras and markers) and data; ``dt_s`` its step."""
+    the plant's MuJoCo model (built with the cameras and markers) and data; ``dt_s`` its step.
+    ``fleet``: the companions' ``[zenoh]`` (default: the scenario's) and ``fleet_file`` the config
+    file that holds it (the consumer reads the credentials there; needed when ``fleet`` is secured)."""
 
-    def __init__(self, sc, model, data, dt_s: float, runtime_env: str | None = None):
+    def __init__(self, sc, model, data, dt_s: float, runtime_env: str | None = None,
+                 fleet: ZenohConfig | None = None, fleet_file: str = ""):
         if runtime_env and "ZENOH_RUNTIME" not in os.environ:  # before this process's first session
             os.environ["ZENOH_RUNTIME"] = runtime_env
-        import zenoh
-
         from companion.vision.camera_wire import CameraPublisher
 
         from .video import pipeline_config
@@ -72,13 +106,21 @@ class CameraStreamer:
         self.prefix = sc.zenoh_prefix
         self.markers = sc.markers
         self.pipeline: PipelineConfig = pipeline_config(sc.markers)
-        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("listen/endpoints", f'["{self.endpoint}"]')
-        c.insert_json5("connect/endpoints", "[]")
-        self.session = zenoh.open(c)
+        self.fleet = sc.zenoh if fleet is None else fleet
+        if self.fleet.secured and not fleet_file:
+            raise ValueError("fleet_file: a secured fleet's camera consumer reads the credentials from its config")
+        self.fleet_file = fleet_file
+        layout = sc.companion.group_layout(sc.skeleton.n_links)
+        group_of = {v: g for g, links in enumerate(layout) for v in links}  # 0-based vehicle -> its group
+        self.endpoints: dict[int, str] = {}  # by 0-based group: where its camera session listens
+        self.sessions: dict[int, object] = {}
+        try:
+            for g in sorted({group_of[cam.vehicle_index()] for cam in sc.cameras}):
+                self.endpoints[g], self.sessions[g] = open_camera_session(self.fleet, g, len(layout), fleet_file)
+        except BaseException:
+            for session in self.sessions.values():
+                session.close()
+            raise
         self.rig = None
         self.publishers: dict[str, CameraPublisher] = {}  # by camera (cameras of one vehicle share its key)
         self.formats = {cam.name: cam.wire_format for cam in sc.cameras}
@@ -88,7 +130,8 @@ class CameraStreamer:
         try:
             self.rig = CameraRig(model, data, sc.cameras, sc.markers, dt_s, sc.seed)
             for cam in sc.cameras:
-                self.publishers[cam.name] = CameraPublisher(self.session, self.prefix, cam.vehicle_index(),
+                self.publishers[cam.name] = CameraPublisher(self.sessions[group_of[cam.vehicle_index()]], self.prefix,
+                                                            cam.vehicle_index(),
                                                             fmt=cam.wire_format, quality=cam.wire_quality)
         except BaseException:
             self.close()
@@ -96,15 +139,17 @@ class CameraStreamer:
         # (vehicle, camera, seq) -> (t_capture, {marker id: (R_cm, t_cm_m)})
         self.truths: dict[tuple[int, str, int], tuple[float, dict]] = {}
         log.info("cameras: publishing %s on %s/camera/<vehicle>/image from %s", ", ".join(c.name for c in sc.cameras),
-                 self.prefix, self.endpoint)
+                 self.prefix, ", ".join(self.endpoints.values()))
 
     def consumer_setup(self) -> VisionNodeSetup:
-        """The consumer's config: connect to this session, the scenario's markers."""
+        """The consumer's config: connect to these sessions (in a secured fleet with the
+        credentials of the first camera's group), the scenario's markers."""
         pipe = self.pipeline
         if self.markers:
             pipe = replace(pipe, ids=tuple(m.id for m in self.markers))
-        return VisionNodeSetup(name="fleet_cameras", source="zenoh",
-                               zenoh=ZenohCameraSource(prefix=self.prefix, connect=(self.endpoint,)), pipeline=pipe)
+        credentials = dict(fleet=self.fleet_file, group=min(self.endpoints) + 1) if self.fleet.secured else {}
+        source = ZenohCameraSource(prefix=self.prefix, connect=tuple(self.endpoints.values()), **credentials)
+        return VisionNodeSetup(name="fleet_cameras", source="zenoh", zenoh=source, pipeline=pipe)
 
     def write_consumer_config(self, path: Path) -> None:
         path.write_text(dump_toml(self.consumer_setup()))
@@ -137,7 +182,7 @@ class CameraStreamer:
         pubs = self.publishers.values()
         rig = self.rig
         return {
-            "endpoint": self.endpoint, "prefix": self.prefix, "wire_format": self.formats,
+            "endpoints": list(self.endpoints.values()), "prefix": self.prefix, "wire_format": self.formats,
             "published": self.published, "bytes_published": sum(p.bytes_sent for p in pubs),
             "encode_publish_ms_per_frame": round(1e3 * self.publish_s / self.published, 3) if self.published else None,
             "render_ms_per_frame": round(1e3 * rig.render_s / rig.renders, 3) if rig is not None and rig.renders else None,
@@ -155,7 +200,8 @@ class CameraStreamer:
         if self.rig is not None:
             self.rig.close()
             self.rig = None
-        self.session.close()
+        for session in self.sessions.values():
+            session.close()
 
 
 def fleet_vision_metrics(streamer: CameraStreamer, consumer_dir: Path, flight_start_s: float = 0.0

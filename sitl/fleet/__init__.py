@@ -26,9 +26,10 @@ folder gets the same ``metrics.json``, ``log.npz`` and plots as batch mode, plus
 
 A scenario with ``[[cameras]]`` adds the vision consumer (``python -m companion.vision``, folder
 ``vision``): the harness renders the cameras on the simulation clock and publishes their frames
-on ``<prefix>/camera/<vehicle>/image`` from its own Zenoh session on a free loopback port
-(:mod:`sitl.cameras.stream`); the consumer runs the marker pipeline on them, and
-``metrics.json["vision"]`` scores its poses against the truth (``vision.npz``).
+on ``<prefix>/camera/<vehicle>/image`` from a Zenoh session per camera-carrying group on a free
+loopback port, with that group's credentials in a secured fleet (:mod:`sitl.cameras.stream`); the
+consumer runs the marker pipeline on them, and ``metrics.json["vision"]`` scores its poses against
+the truth (``vision.npz``).
 
 The modules: :mod:`.launcher` (:func:`~.launcher.launch`, the run as a :class:`~.launcher.Fleet`),
 :mod:`.layout` (ports, checks, the endpoint table, :class:`~.layout.FleetError`), :mod:`.harness`

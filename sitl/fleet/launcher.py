@@ -171,11 +171,14 @@ class Fleet:
 
     def start_cameras(self) -> None:
         """The camera streamer (renders and publishes; :mod:`sitl.cameras.stream`) and the vision
-        consumer connected to it; returns once the consumer's subscription matches every key."""
+        consumer connected to it, both with the companions' Zenoh credentials (``companion.toml``'s
+        ``[zenoh]``, the run's throwaway users file included); returns once the consumer's
+        subscription matches every key."""
         from sitl.cameras.stream import CameraStreamer  # OpenCV, rendering and Zenoh only for camera scenarios
 
         sc, plant, out_dir = self.sc, self.plant, self.out_dir
-        streamer = CameraStreamer(sc, plant.model.model, plant.model.data, plant.dt, sc.zenoh.runtime_env())
+        streamer = CameraStreamer(sc, plant.model.model, plant.model.data, plant.dt, sc.zenoh.runtime_env(),
+                                  fleet=self.companion_setup.zenoh, fleet_file=str(self.companion_config.resolve()))
         try:
             config = out_dir / "vision.toml"
             streamer.write_consumer_config(config)
@@ -216,8 +219,9 @@ class Fleet:
         print(endpoint_table(replace(sc, zenoh=self.companion_setup.zenoh), instance_offset=k, sim_dir=self.sim_dir,
                              gcs_port=self.gcs_port), flush=True)
         if self.cameras is not None:
-            print(f"cameras: Zenoh {self.cameras.endpoint}, keys {self.cameras.prefix}/camera/<vehicle>/image "
-                  f"(consumer: python -m companion.vision --config {self.out_dir / 'vision.toml'})", flush=True)
+            print(f"cameras: Zenoh {', '.join(self.cameras.endpoints.values())}, keys "
+                  f"{self.cameras.prefix}/camera/<vehicle>/image (consumer: python -m companion.vision --config "
+                  f"{self.out_dir / 'vision.toml'})", flush=True)
         try:
             self.harness = FleetHarness(sc, [self.sim_url(i, "harness") for i in range(n)], self.plant)
         except PortError as exc:
