@@ -23,6 +23,7 @@ from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
 
 from .cameras.config import CameraMount, MarkerMount
+from .cameras.scene import SceneConfig
 from .plant.schedule import rate_divisor
 from .plant.sensors import PROFILES, BaroNoise, MagNoise, SensorSuite
 from .plant.start import StartPose
@@ -278,6 +279,8 @@ class Scenario(CompanionSetup, VehicleSetup):
     # [[cameras]] / [[markers]]: cameras rendered offscreen and ArUco markers (sitl.cameras.rig)
     cameras: tuple[CameraMount, ...] = ()
     markers: tuple[MarkerMount, ...] = ()
+    # [scene]: the ground, the light and the clutter the cameras see (sitl.cameras.scene)
+    scene: SceneConfig = field(default_factory=SceneConfig)
 
     def __post_init__(self) -> None:
         if not self.duration_s > self.flight_start_s:

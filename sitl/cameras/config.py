@@ -36,7 +36,22 @@ class CameraMount:
     scaled by ``1 + N(0, calib_focal_std_frac)``, the principal point moved by ``N(0,
     calib_principal_std_px)`` per axis, each distortion coefficient scaled by ``1 + N(0,
     calib_dist_std_frac)`` (:meth:`true_intrinsics`). ``drop_probability``: each frame is lost
-    before delivery with this probability (seeded; counted)."""
+    before delivery with this probability (seeded; counted).
+
+    Latency jitter: each frame is delivered ``latency_s`` plus a seeded, never negative jitter
+    after capture (:meth:`latency_jitter_draw`): uniform in ``[0, latency_jitter_s]``
+    (``latency_jitter_dist = "uniform"``) or the magnitude of a normal of standard deviation
+    ``latency_jitter_s`` cut at three of them (``"halfnormal"``: mostly short, a tail of late
+    frames). A camera's frames stay in capture order (one link per camera: a frame held back
+    holds back the ones behind it); frames of different cameras may overtake each other. The
+    frame keeps its true capture time.
+
+    The sensor's response (:mod:`sitl.cameras.photometry`), applied to the image through the
+    lens, in this order: ``vignetting``, the fraction of light lost in the image's corners (a
+    cos^4-shaped fall-off from the centre; 0: none); a gain of ``exp(gain_std * x(t))``, ``x`` a
+    seeded unit-variance Gauss-Markov process of time constant ``gain_time_s`` (exposure and gain
+    control drifting: the whole image brighter or darker over seconds; 0: none); the pixel noise;
+    then the tone curve ``255 (v / 255) ** (1 / gamma)`` (1: linear)."""
 
     name: str
     body: str = "link1"
@@ -59,15 +74,27 @@ class CameraMount:
     calib_principal_std_px: float = 0.0
     calib_dist_std_frac: float = 0.0
     drop_probability: float = 0.0
+    latency_jitter_s: float = 0.0
+    latency_jitter_dist: Literal["uniform", "halfnormal"] = "uniform"
+    vignetting: float = 0.0
+    gain_std: float = 0.0
+    gain_time_s: float = 3.0
+    gamma: float = 1.0
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_]+", self.name):
             raise ValueError(f"name: letters, digits and '_' only, got {self.name!r}")
         frame_from_axes(self.optical_axis_b, self.image_right_b)
         self.intrinsics()  # size, field of view and distortion checked there
-        require_positive(self, "rate_hz")
+        require_positive(self, "rate_hz", "gain_time_s", "gamma")
         require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s", "calib_focal_std_frac",
-                            "calib_principal_std_px", "calib_dist_std_frac")
+                            "calib_principal_std_px", "calib_dist_std_frac", "latency_jitter_s", "gain_std")
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
+        if self.gain_std > 1.0:
+            raise ValueError(f"gain_std must be at most 1 (a factor e either way), got {self.gain_std}")
+        if not 0.2 <= self.gamma <= 5.0:
+            raise ValueError(f"gamma must be in [0.2, 5], got {self.gamma}")
         if not 0.0 <= self.drop_probability < 1.0:
             raise ValueError(f"drop_probability must be in [0, 1), got {self.drop_probability}")
         if self.calib_focal_std_frac >= 0.2:
@@ -99,6 +126,28 @@ class CameraMount:
                        cx_px=nom.cx_px + self.calib_principal_std_px * c[0],
                        cy_px=nom.cy_px + self.calib_principal_std_px * c[1],
                        dist_coeffs=tuple(k * (1.0 + self.calib_dist_std_frac * e) for k, e in zip(nom.dist_coeffs, d)))
+
+    @property
+    def photometric(self) -> bool:
+        """Whether the sensor's response does anything (vignetting, gain drift or a tone curve)."""
+        return bool(self.vignetting or self.gain_std or self.gamma != 1.0)
+
+    def latency_jitter_draw(self, rng: np.random.Generator) -> float:
+        """One frame's delivery jitter [s], drawn with ``rng`` (class docstring): never negative,
+        never above ``3 latency_jitter_s``; 0 without jitter (``rng`` untouched)."""
+        s = self.latency_jitter_s
+        if not s:
+            return 0.0
+        if self.latency_jitter_dist == "uniform":
+            return s * float(rng.random())
+        return min(abs(s * float(rng.standard_normal())), 3.0 * s)
+
+    @property
+    def max_latency_s(self) -> float:
+        """The longest a frame takes from capture to delivery: ``latency_s`` plus the largest
+        jitter :meth:`latency_jitter_draw` can give."""
+        cap = 1.0 if self.latency_jitter_dist == "uniform" else 3.0
+        return self.latency_s + cap * self.latency_jitter_s
 
     def R_b_c(self) -> np.ndarray:
         """Camera (OpenCV axes) to body rotation."""

@@ -39,7 +39,7 @@ class FlightCameras:
         model, data = runner.model.model, runner.model.data
         try:
             if sc.cameras:
-                self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed)
+                self.rig = CameraRig(model, data, sc.cameras, sc.markers, runner.dt, sc.seed, scene=sc.scene)
                 self.log = VisionLog(sc.markers)
                 self.frames = FrameArchive([c.name for c in sc.cameras])
                 runner.tick_hooks.append(self._cameras)

@@ -17,8 +17,13 @@ tick of its period (averaged over ``blur_samples`` renders across ``exposure_s``
 blur; stamped mid-exposure), seen through the camera's true lens (its distortion and, with a
 calibration error, its true intrinsics: :meth:`~sitl.cameras.config.CameraMount.true_intrinsics`;
 the frame carries the nominal ones), given Gaussian pixel noise from its own seeded stream, lost
-with the camera's ``drop_probability``, and delivered ``latency_s`` later (:meth:`CameraRig.poll`). Each frame keeps the ground truth
-at capture (camera and marker poses in the world) beside the companion's
+with the camera's ``drop_probability``, and delivered ``latency_s`` plus its seeded jitter later, in
+capture order per camera (:meth:`CameraRig.poll`). The camera's sensor response
+(:class:`~sitl.cameras.photometry.SensorResponse`) puts vignetting and a gain drift before the
+noise and a tone curve after it. With a ``[scene]`` (:mod:`sitl.cameras.scene`), :func:`vision_mjcf`
+adds the ground, the light and the clutter (:mod:`sitl.cameras.backdrop`), and the rig dims the sun
+by its clouds at every render and renders shadows if asked. Each frame keeps the ground truth at
+capture (camera and marker poses in the world) beside the companion's
 :class:`~companion.vision.frame.CameraFrame`.
 
 Rendering needs an OpenGL context without a display, chosen before MuJoCo is imported
@@ -44,16 +49,22 @@ from companion.vision.frame import CameraFrame, CameraFrameHeader
 from companion.vision.geometry import CV_TO_MUJOCO_CAM, CameraIntrinsics
 from companion.vision.markers import marker_image
 
+from .backdrop import scene_mjcf
 from .config import CameraMount, MarkerMount
+from .photometry import SensorResponse, SunSchedule
 from .rendering import require_rendering
+from .scene import SceneConfig, scene_rng
 
-__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig", "pixel_maps",
-           "fast_renderer"]
+__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig", "Delivery",
+           "pixel_maps", "fast_renderer"]
 
 log = logging.getLogger(__name__)
 
 #: thickness of the box that carries a marker [m]
 MARKER_THICKNESS_M = 0.001
+#: a marker's own light (material emission) under MuJoCo's default lighting; with a lit
+#: ``[scene]`` markers are matte paper (0)
+MARKER_EMISSION = 0.3
 
 
 def _fmt(v) -> str:
@@ -83,10 +94,12 @@ def _ensure_offscreen(xml: str, width: int, height: int) -> str:
 
 
 def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...],
-                min_offscreen: tuple[int, int] = (640, 480)) -> tuple[str, dict[str, bytes]]:
+                min_offscreen: tuple[int, int] = (640, 480), scene: SceneConfig | None = None,
+                seed: int = 0) -> tuple[str, dict[str, bytes]]:
     """``xml`` with the cameras (``cam_<name>``), the marker boxes (``marker<id>``, textured) and
-    their sites (``marker<id>``), and an offscreen buffer large enough for every camera; returns
-    the MJCF and the PNG assets it names (pass both to ``MjModel.from_xml_string``)."""
+    their sites (``marker<id>``), an offscreen buffer large enough for every camera and, unless it
+    is the default one, ``scene`` (its random parts from ``seed``: :func:`~sitl.cameras.backdrop.scene_mjcf`);
+    returns the MJCF and the PNG assets it names (pass both to ``MjModel.from_xml_string``)."""
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
         raise ValueError(f"cameras: names must be unique, got {names}")
@@ -95,6 +108,7 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
         raise ValueError(f"markers: ids must be unique, got {ids}")
     assets: dict[str, bytes] = {}
     asset_lines = []
+    emission = 0.0 if scene is not None and scene.lighting.enabled else MARKER_EMISSION
     for m in markers:
         img, fraction = marker_image(m.dictionary, m.id, bit_px=32, quiet_zone_bits=m.quiet_zone_bits)
         ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
@@ -103,7 +117,7 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
         asset_lines += [
             f'    <texture name="marker{m.id}_tex" type="2d" file="marker{m.id}.png"/>',
             f'    <material name="marker{m.id}_mat" texture="marker{m.id}_tex" texrepeat="1 1" texuniform="false" '
-            f'specular="0" shininess="0" reflectance="0" emission="0.3"/>',
+            f'specular="0" shininess="0" reflectance="0" emission="{emission:.9g}"/>',
         ]
         half = 0.5 * m.size_m / fraction
         R = m.R_b_m()
@@ -121,6 +135,9 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
             f'fovy="{c.fovy_deg:.9g}"/>'))
     if asset_lines:
         xml = xml.replace("<worldbody>", "<asset>\n" + "\n".join(asset_lines) + "\n  </asset>\n  <worldbody>", 1)
+    if scene is not None and scene.active:
+        xml, more = scene_mjcf(xml, scene, seed, exclude_ids=tuple(ids), marker_emission=emission)
+        assets.update(more)
     width = max([c.width_px for c in cameras] + [min_offscreen[0]])
     height = max([c.height_px for c in cameras] + [min_offscreen[1]])
     return _ensure_offscreen(xml, width, height), assets
@@ -169,25 +186,44 @@ def pixel_maps(true: CameraIntrinsics, rendered: CameraIntrinsics) -> tuple[np.n
     return und[..., 0].astype(np.float32), und[..., 1].astype(np.float32)
 
 
+class Delivery:
+    """When a camera's frames are delivered: ``latency_s`` plus a jitter drawn with ``rng``
+    (:meth:`~sitl.cameras.config.CameraMount.latency_jitter_draw`) after capture, and never before
+    the camera's previous frame (a camera's frames stay in capture order)."""
+
+    def __init__(self, mount: CameraMount, rng: np.random.Generator):
+        self.mount, self.rng = mount, rng
+        self.last_s = -np.inf
+
+    def available_s(self, t_capture_s: float) -> float:
+        """The delivery time of the next frame, captured at ``t_capture_s``."""
+        m = self.mount
+        self.last_s = max(t_capture_s + m.latency_s + m.latency_jitter_draw(self.rng), self.last_s)
+        return self.last_s
+
+
 class _Camera:
     """One camera's renderer and schedule inside :class:`CameraRig`."""
 
     def __init__(self, model: mujoco.MjModel, mount: CameraMount, index: int, period_ticks: int, dt_s: float,
-                 rng: np.random.Generator, calib_rng: np.random.Generator, drop_rng: np.random.Generator):
+                 seed: int, shadows: bool = False):
         self.mount = mount
         self.index = index
         self.intr = mount.intrinsics()  # what the frames say (the estimator's calibration)
-        self.true_intr = mount.true_intrinsics(calib_rng)  # what the lens does
-        self.drop_rng = drop_rng
+        self.true_intr = mount.true_intrinsics(np.random.default_rng([seed, 0xCA11B, index]))  # what the lens does
+        self.drop_rng = np.random.default_rng([seed, 0xD409, index])
+        self.delivery = Delivery(mount, np.random.default_rng([seed, 0x717E, index]))
+        self.response = (SensorResponse(mount, self.true_intr, np.random.default_rng([seed, 0x6A17, index]))
+                         if mount.photometric else None)
         self.cam_id = model.camera(f"cam_{mount.name}").id
-        self.renderer = fast_renderer(model, mount.height_px, mount.width_px)
+        self.renderer = fast_renderer(model, mount.height_px, mount.width_px, shadows=shadows)
         self.period = period_ticks
         n = mount.blur_samples if mount.exposure_s > 0 else 1
         exposure_ticks = min(int(round(mount.exposure_s / dt_s)), period_ticks - 1)
         # ticks before the capture tick at which the exposure's renders are taken (last: 0)
         self.offsets = sorted({int(round(exposure_ticks * (n - 1 - j) / max(n - 1, 1))) for j in range(n)},
                               reverse=True)
-        self.rng = rng
+        self.rng = np.random.default_rng([seed, 0xCA3E7A, index])
         self.acc: np.ndarray | None = None
         self.first_t = 0.0
         self.n_acc = 0
@@ -200,16 +236,21 @@ class _Camera:
         self.renderer.update_scene(data, camera=self.cam_id)
         return self.renderer.render()
 
-    def finish(self) -> np.ndarray:
-        """The captured image: mean of the exposure's renders, distorted, noisy, uint8 RGB."""
+    def finish(self, t_capture_s: float) -> np.ndarray:
+        """The captured image: mean of the exposure's renders, distorted, through the sensor's
+        response at ``t_capture_s`` (vignetting and gain, noise, tone curve), uint8 RGB."""
         img = self.acc / self.n_acc if self.n_acc > 1 else self.acc
         self.acc, self.n_acc = None, 0
         if self.maps is not None:
             img = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), self.maps[0], self.maps[1],
                             cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if self.response is not None:
+            img = self.response.expose(img, t_capture_s)
         std = self.mount.noise_std_dn
         if std > 0:
             img = img + std * self.rng.standard_normal(img.shape, dtype=np.float32)
+        if self.response is not None:
+            return self.response.tone(img)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
@@ -218,13 +259,22 @@ class CameraRig:
 
     Call :meth:`on_tick` at every physics tick ``k`` once the kinematics of that instant are
     computed (after ``mj_step1``); :meth:`poll` returns the frames available at a time.
-    ``seed``: the pixel noise's streams (one per camera, independent of the other sensors)."""
+    ``seed``: the cameras' random streams (calibration, noise, losses, jitter, gain: each its own
+    per camera, independent of the other sensors). ``scene``: the scenario's ``[scene]`` (the model
+    built with it by :func:`vision_mjcf`): its shadows, and its sun dimmed by clouds at every
+    render (the model's ``sun`` light, which a video rendered from the same model shows too)."""
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, cameras: tuple[CameraMount, ...],
-                 markers: tuple[MarkerMount, ...], dt_s: float, seed: int):
+                 markers: tuple[MarkerMount, ...], dt_s: float, seed: int, scene: SceneConfig | None = None):
         require_rendering()
         self.model, self.data, self.dt = model, data, dt_s
         self.marker_sites = {m.id: model.site(f"marker{m.id}").id for m in markers}
+        self.sun: SunSchedule | None = None
+        if scene is not None and scene.lighting.enabled and scene.lighting.cloud_cover > 0:
+            self.sun = SunSchedule(scene.lighting, scene_rng(seed, "clouds"))
+            self.sun_id = model.light("sun").id
+            self.sun_clear = (model.light_diffuse[self.sun_id].copy(), model.light_specular[self.sun_id].copy())
+        shadows = scene is not None and scene.shadows
         self.cameras: list[_Camera] = []
         try:
             for i, c in enumerate(cameras):
@@ -232,9 +282,7 @@ class CameraRig:
                 if period < 1 or abs(period * c.rate_hz * dt_s - 1.0) > 1e-9:
                     raise ValueError(f"cameras[{i}].rate_hz: {c.rate_hz} Hz is not a whole divisor of the physics "
                                      f"rate {1.0 / dt_s:g} Hz")
-                self.cameras.append(_Camera(model, c, i, period, dt_s, np.random.default_rng([seed, 0xCA3E7A, i]),
-                                            np.random.default_rng([seed, 0xCA11B, i]),
-                                            np.random.default_rng([seed, 0xD409, i])))
+                self.cameras.append(_Camera(model, c, i, period, dt_s, seed, shadows))
         except BaseException:
             self.close()
             raise
@@ -257,6 +305,8 @@ class CameraRig:
                 if (k + off) % cam.period:
                     continue
                 w0 = time.perf_counter()
+                if self.sun is not None:
+                    self.light(t_s)
                 img = cam.render(self.data)
                 self.render_s += time.perf_counter() - w0
                 self.renders += 1
@@ -269,21 +319,28 @@ class CameraRig:
                 if off == 0:
                     self._capture(cam, t_s)
 
+    def light(self, t_s: float) -> None:
+        """The sun as the clouds leave it at ``t_s`` (the model's ``sun`` light)."""
+        f = self.sun.factor(t_s)
+        self.model.light_diffuse[self.sun_id] = f * self.sun_clear[0]
+        self.model.light_specular[self.sun_id] = f * self.sun_clear[1]
+
     def _capture(self, cam: _Camera, t_s: float) -> None:
         m = cam.mount
         t_capture = 0.5 * (cam.first_t + t_s)  # mid-exposure (of the renders taken)
         header = CameraFrameHeader(camera=m.name, vehicle=m.vehicle_index(), seq=cam.seq, t_capture_s=t_capture,
-                                   t_available_s=t_capture + m.latency_s, width_px=m.width_px, height_px=m.height_px,
-                                   encoding="rgb8", intrinsics=cam.intr)
+                                   t_available_s=cam.delivery.available_s(t_capture), width_px=m.width_px,
+                                   height_px=m.height_px, encoding="rgb8", intrinsics=cam.intr)
         cam.seq += 1
-        image = cam.finish()
+        image = cam.finish(t_capture)
         if m.drop_probability and cam.drop_rng.random() < m.drop_probability:
             self.dropped[m.name] += 1  # lost on its way (its sequence number skipped, as on a real link)
             return
         self.pending.append(CapturedFrame(CameraFrame(header, image), self.truth(cam), cam.index))
 
     def poll(self, t_s: float) -> list[CapturedFrame]:
-        """The frames that became available by ``t_s`` (capture time plus latency), oldest first."""
+        """The frames that became available by ``t_s`` (capture time plus latency and jitter), in
+        the order they became available (a camera's in capture order)."""
         out = [f for f in self.pending if f.frame.header.t_available_s <= t_s + 1e-12]
         if out:
             self.pending = deque(f for f in self.pending if f.frame.header.t_available_s > t_s + 1e-12)

@@ -128,7 +128,7 @@ class CameraStreamer:
         self.publish_s = 0.0
         self.final_stats: dict | None = None
         try:
-            self.rig = CameraRig(model, data, sc.cameras, sc.markers, dt_s, sc.seed)
+            self.rig = CameraRig(model, data, sc.cameras, sc.markers, dt_s, sc.seed, scene=sc.scene)
             for cam in sc.cameras:
                 self.publishers[cam.name] = CameraPublisher(self.sessions[group_of[cam.vehicle_index()]], self.prefix,
                                                             cam.vehicle_index(),

@@ -150,15 +150,16 @@ class SkeletonModel:
     """A compiled skeleton with every element resolved by name."""
 
     def __init__(self, cfg: SkeletonConfig, geometry: RotorGeometry, rotors: RotorParams, timestep_s: float = 0.001,
-                 cameras: tuple = (), markers: tuple = ()):
+                 cameras: tuple = (), markers: tuple = (), scene=None, seed: int = 0):
         self.cfg = cfg
         self.geometry = geometry
         self.xml = build_mjcf(cfg, geometry, rotors, timestep_s)
         assets: dict[str, bytes] = {}
-        if cameras or markers:  # cameras and ArUco markers (sitl.cameras.rig; OpenCV only then)
+        if cameras or markers or (scene is not None and scene.active):
+            # cameras, ArUco markers and the [scene] (sitl.cameras.rig; OpenCV only then)
             from sitl.cameras.rig import vision_mjcf
 
-            self.xml, assets = vision_mjcf(self.xml, tuple(cameras), tuple(markers))
+            self.xml, assets = vision_mjcf(self.xml, tuple(cameras), tuple(markers), scene=scene, seed=seed)
         self.model = mujoco.MjModel.from_xml_string(self.xml, assets)
         self.data = mujoco.MjData(self.model)
         m = self.model

@@ -44,7 +44,7 @@ class Plant:
         self.geometry = sc.geometry()
         self.inertia = link_inertia(sc.skeleton, self.geometry)
         self.model = SkeletonModel(sc.skeleton, self.geometry, sc.rotors, self.dt, cameras=sc.cameras,
-                                   markers=sc.markers)
+                                   markers=sc.markers, scene=sc.scene, seed=sc.seed)
         self.model.reset(sc.start)
         self.d = sc.skeleton.d_b_m
         self.rng = np.random.default_rng(sc.seed)

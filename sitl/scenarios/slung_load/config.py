@@ -32,6 +32,9 @@ from .formation import CircleFormationConfig
 
 __all__ = ["LoadConfig", "SlungLoadScenario", "load_slung_scenario"]
 
+#: a margin about the vehicles' nominal places that clutter keeps clear of [m]
+FLIGHT_MARGIN_M = 0.7
+
 
 @dataclass(frozen=True)
 class LoadConfig:
@@ -161,6 +164,21 @@ class SlungLoadScenario(Scenario):
         for i, c in enumerate(self.cameras):
             if not (c.body.startswith("link") and 0 <= c.vehicle_index() < n):
                 raise ValueError(f"cameras[{i}].body: a vehicle (link1..link{n}), got {c.body!r}")
+        clutter = self.scene.clutter
+        if clutter.active:
+            reach = self.flight_reach_m()
+            c = np.asarray(self.load.formation.start_w_m) - (self.load.formation.circle_radius_m, 0.0)
+            if np.linalg.norm(np.asarray(clutter.center_w_m) - c) + reach > clutter.inner_radius_m:
+                raise ValueError(f"scene.clutter: the ring's inside (radius {clutter.inner_radius_m:g} m about "
+                                 f"{list(clutter.center_w_m)}) must hold the flight: {reach:.2f} m about the "
+                                 f"formation's circle centre {c.tolist()}")
+
+    def flight_reach_m(self) -> float:
+        """How far from the formation circle's centre the vehicles fly (horizontally): the circle's
+        radius, the formation's, and a margin of :data:`FLIGHT_MARGIN_M` for tracking errors
+        and the rotors."""
+        f = self.load.formation
+        return f.circle_radius_m + f.formation_radius_m + FLIGHT_MARGIN_M
 
     def marker_in_load(self) -> Pose3:
         m = next(m for m in self.markers if m.id == self.load.marker_id)

@@ -33,6 +33,7 @@ from companion.config import project
 from companion.configfile import dump_toml
 from companion.engine import TargetOut
 from sitl.cameras.flight import FlightCameras
+from sitl.cameras.scene import SceneConfig
 from sitl.runner import BatchRunner
 from sitl.scenario import Scenario
 from sitl.task import Task
@@ -88,9 +89,9 @@ class SlungLoadTask(Task):
 
 
 def slung_load_runner(scenario: SlungLoadScenario) -> BatchRunner:
-    """A runner of the slung-load scenario: built as its vehicles' chain scenario (without cameras),
-    then :class:`SlungLoadTask` puts in the slung-load model."""
-    vehicles = replace(project(scenario, Scenario), kind="chain", cameras=(), markers=())
+    """A runner of the slung-load scenario: built as its vehicles' chain scenario (without cameras
+    nor scene), then :class:`SlungLoadTask` puts in the slung-load model."""
+    vehicles = replace(project(scenario, Scenario), kind="chain", cameras=(), markers=(), scene=SceneConfig())
     return BatchRunner(vehicles, task=SlungLoadTask(scenario))
 
 

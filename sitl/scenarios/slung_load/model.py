@@ -100,10 +100,11 @@ class SlungLoadModel(SkeletonModel):
         self.scenario = sc
         self.xml = slung_load_mjcf(sc, timestep_s)
         assets: dict[str, bytes] = {}
-        if sc.cameras or sc.markers:
+        if sc.cameras or sc.markers or sc.scene.active:
             from sitl.cameras.rig import vision_mjcf
 
-            self.xml, assets = vision_mjcf(self.xml, tuple(sc.cameras), tuple(sc.markers))
+            self.xml, assets = vision_mjcf(self.xml, tuple(sc.cameras), tuple(sc.markers), scene=sc.scene,
+                                           seed=sc.seed)
         self.model = mujoco.MjModel.from_xml_string(self.xml, assets)
         self.data = mujoco.MjData(self.model)
         m = self.model
