@@ -1,10 +1,14 @@
 """The slung load's pose estimator: a load carried by cables from several vehicles, its pose from
 their cameras and their own state estimates (the slung-load report's eq. 4 and eq. 8).
 
-* :mod:`.model`: the load's state on SE(3), its dynamics (eq. 8, cable tensions estimated) and the
-  camera measurement (eq. 4);
-* :mod:`.filter`: the error-state EKF, the UKF with sigma points on the manifold, the unfiltered
-  baseline, late images rolled back and replayed;
+* :mod:`.model`: the load's state on SE(3), its dynamics (eq. 8, cable tensions estimated), the
+  typed inputs (vehicle samples, camera observations);
+* :mod:`.measurements`: eq. 4, the load's attitude the marker shows, the taut cables' lengths;
+* :mod:`.estimate`: the filters' tuning, estimate, prior and process noise;
+* :mod:`.kalman`: the error-state EKF's and the manifold UKF's prediction and correction;
+* :mod:`.filter`: the time line of vehicle samples and images, late images rolled back and
+  replayed;
+* :mod:`.unfiltered`: the camera-only baseline, the pose solved from the latest images;
 * :mod:`.pipeline`: a camera frame through the marker pipeline (:mod:`companion.vision`) to an
   eq. 4 measurement;
 * :mod:`.metrics`: the pose and PnP errors, NEES and timing summaries.

@@ -27,12 +27,9 @@ prediction and the attitude lives on SO(3):
   (8b) uses the body angular velocity ``w`` where the report writes the Euler-angle rate
   ``theta_L'``; the two differ unless the load barely rotates. The vehicles' positions (and
   velocities, to carry them through a prediction step) are inputs.
-* **Measurement, eq. 4**: vehicle ``i``'s position in the load frame,
-  ``y_i = R^T (t_i - p)``, with ``t_i`` the vehicle's GNSS/EKF position;
-  :func:`observation_from_pnp` turns one camera's PnP pose of the load's marker into ``y_i`` and
-  its covariance (the inverse of what PnP measures, with the static camera and marker offsets,
-  as the report says; the vehicle's attitude is not needed).
-* Optional pseudo-measurement: a taut cable's length, ``|t_i - p - R r_i| = L_i``.
+* The measurements (eq. 4, the marker's attitude, the taut cables' lengths) are in
+  :mod:`.measurements`; the typed inputs they take (:class:`VehicleStates`,
+  :class:`LoadObservation`) are here.
 
 Pure numpy: no OpenCV, no clocks. Every model function is vectorised over a leading batch axis
 (the UKF pushes all sigma points through at once).
@@ -55,8 +52,6 @@ from companion.estimation.so3 import (
 )
 from companion.skeleton.body import GRAVITY_M_S2
 
-from companion.vision.geometry import POS as PNP_POS
-from companion.vision.geometry import ROT as PNP_ROT
 
 __all__ = [
     "NOM_POS", "NOM_VEL", "NOM_QUAT", "NOM_OMEGA", "nominal_tension_slice", "nominal_dim",
@@ -64,8 +59,7 @@ __all__ = [
     "LoadParams", "LoadState", "VehicleStates", "LoadObservation", "Pose3",
     "pack_state", "unpack_state", "boxplus", "boxminus",
     "cable_geometry", "load_accelerations", "error_dynamics_jacobian", "propagate_nominal",
-    "static_tensions", "vehicle_in_load", "vehicle_in_load_jacobian",
-    "cable_lengths", "cable_length_jacobian", "observation_from_pnp", "marker_in_camera",
+    "static_tensions",
 ]
 
 # --- named slices -------------------------------------------------------------------------
@@ -219,12 +213,19 @@ class LoadState:
 class VehicleStates:
     """Every carrying vehicle at one time (row ``i`` = the vehicle on cable ``i``): position and
     velocity in the world frame from its own estimator (GNSS-aided EKF), with the position's
-    covariance. ``stamp_s`` is on the filter's clock (the simulation clock in the SITL)."""
+    covariance; optionally its attitude (body to world) with the covariance of the world-frame
+    attitude error (``q = Exp(dtheta) (x) q_hat``, the vehicle EKF's convention), which the
+    marker's attitude measurement needs, and its body angular velocity ``rate_b_rad_s`` (zero if
+    not given) to carry the attitude to an image's capture time. ``stamp_s`` is on the filter's
+    clock (the simulation clock in the SITL)."""
 
     stamp_s: float
     pos_w_m: np.ndarray
     vel_w_m_s: np.ndarray
     pos_cov_m2: np.ndarray
+    q_wxyz: np.ndarray | None = None
+    att_cov_rad2: np.ndarray | None = None
+    rate_b_rad_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.stamp_s):
@@ -236,21 +237,47 @@ class VehicleStates:
         object.__setattr__(self, "pos_w_m", _vec(p, (n, 3), "pos_w_m"))
         object.__setattr__(self, "vel_w_m_s", _vec(self.vel_w_m_s, (n, 3), "vel_w_m_s"))
         object.__setattr__(self, "pos_cov_m2", _cov(self.pos_cov_m2, (n, 3, 3), "pos_cov_m2"))
+        if (self.q_wxyz is None) != (self.att_cov_rad2 is None):
+            raise ValueError("q_wxyz and att_cov_rad2 come together (both or neither)")
+        if self.q_wxyz is not None:
+            q = _vec(self.q_wxyz, (n, 4), "q_wxyz")
+            if np.any(np.abs(np.linalg.norm(q, axis=1) - 1.0) > 1e-6):
+                raise ValueError("q_wxyz must be unit quaternions")
+            object.__setattr__(self, "q_wxyz", q)
+            object.__setattr__(self, "att_cov_rad2", _cov(self.att_cov_rad2, (n, 3, 3), "att_cov_rad2"))
+        rate = np.zeros((n, 3)) if self.rate_b_rad_s is None else self.rate_b_rad_s
+        object.__setattr__(self, "rate_b_rad_s", _vec(rate, (n, 3), "rate_b_rad_s"))
+
+    @property
+    def has_attitude(self) -> bool:
+        return self.q_wxyz is not None
 
     def positions_at(self, t_s: float) -> np.ndarray:
         """Positions extrapolated with the velocities to ``t_s`` (n, 3)."""
         return self.pos_w_m + self.vel_w_m_s * (t_s - self.stamp_s)
 
+    def attitudes_at(self, t_s: float) -> np.ndarray:
+        """Attitudes carried with the body rates to ``t_s``, ``q (x) Exp(w (t - stamp))`` (n, 4);
+        ``ValueError`` without attitudes."""
+        if self.q_wxyz is None:
+            raise ValueError("these vehicle samples carry no attitudes")
+        return quat_normalize(quat_mul(self.q_wxyz, quat_from_rotvec(self.rate_b_rad_s * (t_s - self.stamp_s))))
+
 
 @dataclass(frozen=True)
 class LoadObservation:
-    """Eq. 4's measurement from one camera: vehicle ``vehicle``'s position in the load frame
-    [m] with its covariance [m^2], for the image captured at ``stamp_s`` (filter clock)."""
+    """One camera's measurement of the load, for the image captured at ``stamp_s`` (filter clock):
+    eq. 4's vehicle ``vehicle``'s position in the load frame [m] with its covariance [m^2]; and,
+    optionally, the load's attitude in that vehicle's body frame ``load_in_body_q_wxyz`` with
+    ``joint_cov`` (6, 6), the covariance over ``[dy; dphi]`` (``dphi`` the body-frame rotation
+    vector of ``R_bl = Exp(dphi) R_bl_hat``; its first block is ``cov_m2``)."""
 
     vehicle: int
     stamp_s: float
     vehicle_in_load_m: np.ndarray
     cov_m2: np.ndarray
+    load_in_body_q_wxyz: np.ndarray | None = None
+    joint_cov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if int(self.vehicle) != self.vehicle or self.vehicle < 0:
@@ -262,6 +289,23 @@ class LoadObservation:
         if np.linalg.eigvalsh(cov)[0] <= 0:
             raise ValueError("cov_m2 must be positive definite")
         object.__setattr__(self, "cov_m2", cov)
+        if (self.load_in_body_q_wxyz is None) != (self.joint_cov is None):
+            raise ValueError("load_in_body_q_wxyz and joint_cov come together (both or neither)")
+        if self.joint_cov is not None:
+            q = _vec(self.load_in_body_q_wxyz, (4,), "load_in_body_q_wxyz")
+            if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+                raise ValueError("load_in_body_q_wxyz must be a unit quaternion")
+            joint = _cov(self.joint_cov, (6, 6), "joint_cov")
+            if np.linalg.eigvalsh(joint)[0] <= 0:
+                raise ValueError("joint_cov must be positive definite")
+            if not np.allclose(joint[:3, :3], cov, rtol=1e-9, atol=1e-15):
+                raise ValueError("joint_cov's position block must equal cov_m2")
+            object.__setattr__(self, "load_in_body_q_wxyz", q)
+            object.__setattr__(self, "joint_cov", joint)
+
+    @property
+    def has_attitude(self) -> bool:
+        return self.joint_cov is not None
 
 
 @dataclass(frozen=True)
@@ -439,79 +483,3 @@ def static_tensions(x: np.ndarray, vehicles_w_m: np.ndarray, params: LoadParams)
     b = np.concatenate(([0.0, 0.0, params.mass_kg * params.gravity_m_s2], np.zeros(3)))
     T, *_ = np.linalg.lstsq(A, b, rcond=None)
     return T
-
-
-# --- measurements -------------------------------------------------------------------------------
-
-
-def vehicle_in_load(x: np.ndarray, vehicle_w_m: np.ndarray) -> np.ndarray:
-    """Eq. 4: ``y = R^T (t - p)``, the vehicle's position in the load frame (batched over x)."""
-    x = np.asarray(x, dtype=float)
-    R = quat_to_rotmat(x[..., NOM_QUAT])
-    return np.einsum("...ji,...j->...i", R, np.asarray(vehicle_w_m, dtype=float) - x[..., NOM_POS])
-
-
-def vehicle_in_load_jacobian(x: np.ndarray, vehicle_w_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 4's Jacobians: ``H`` (3, 12 + n) w.r.t. the error state (``-R^T`` on ``dp``,
-    ``R^T S(t - p)`` on ``dtheta``) and ``R^T`` w.r.t. the vehicle's position (its noise)."""
-    x = np.asarray(x, dtype=float)
-    n = x.shape[-1] - 13
-    R = quat_to_rotmat(x[NOM_QUAT])
-    H = np.zeros((3, error_dim(n)))
-    H[:, ERR_POS] = -R.T
-    H[:, ERR_ATT] = R.T @ skew(np.asarray(vehicle_w_m, dtype=float) - x[NOM_POS])
-    return H, R.T
-
-
-def cable_lengths(x: np.ndarray, vehicles_w_m: np.ndarray, params: LoadParams) -> np.ndarray:
-    """``|t_i - p - R r_i|`` per cable (batched): a taut cable's length."""
-    return cable_geometry(np.asarray(x, dtype=float), vehicles_w_m, params)[1]
-
-
-def cable_length_jacobian(x: np.ndarray, vehicles_w_m: np.ndarray, params: LoadParams):
-    """Jacobians of :func:`cable_lengths`: ``H`` (n, 12 + n) (``-u^T`` on ``dp``,
-    ``u^T S(R r)`` on ``dtheta``) and per-cable ``u_i^T`` w.r.t. vehicle ``i``'s position (n, 3)."""
-    _, _, u, _, Rr = cable_geometry(np.asarray(x, dtype=float), vehicles_w_m, params)
-    n = params.n_cables
-    H = np.zeros((n, error_dim(n)))
-    H[:, ERR_POS] = -u
-    H[:, ERR_ATT] = np.einsum("ni,nij->nj", u, skew(Rr))
-    return H, u
-
-
-def observation_from_pnp(vehicle: int, stamp_s: float, R_cm: np.ndarray, t_cm_m: np.ndarray,
-                         cov_pnp: np.ndarray, camera_in_body: Pose3, marker_in_load: Pose3) -> LoadObservation:
-    """One camera's PnP pose of the load's marker -> eq. 4's measurement ``y`` with covariance.
-
-    ``(R_cm, t_cm_m)`` maps marker points into the camera frame (OpenCV, the report's ``T_L^C``);
-    ``cov_pnp`` (6, 6) is its covariance in the error ``[dtheta; dt]`` (slices of
-    ``companion.vision.geometry``: ``R = Exp(dtheta) R_hat`` in the camera frame). The vehicle's
-    origin is ``c = -R_bc^T t_bc`` in the camera frame, so
-    ``y = R_lm R_cm^T (c - t_cm) + t_lm`` with Jacobians
-    ``dy/ddtheta = R_lm R_cm^T S(c - t_cm)`` and ``dy/ddt = -R_lm R_cm^T``.
-    """
-    R_cm = np.asarray(R_cm, dtype=float)
-    t_cm = np.asarray(t_cm_m, dtype=float).reshape(3)
-    cov_pnp = np.asarray(cov_pnp, dtype=float)
-    if R_cm.shape != (3, 3) or cov_pnp.shape != (6, 6):
-        raise ValueError(f"R_cm must be (3, 3) and cov_pnp (6, 6), got {R_cm.shape}, {cov_pnp.shape}")
-    R_bc = camera_in_body.R
-    c = -R_bc.T @ camera_in_body.pos_m
-    R_lm = marker_in_load.R
-    A = R_lm @ R_cm.T
-    y = A @ (c - t_cm) + marker_in_load.pos_m
-    Jy = np.zeros((3, 6))
-    Jy[:, PNP_ROT] = A @ skew(c - t_cm)
-    Jy[:, PNP_POS] = -A
-    cov = Jy @ cov_pnp @ Jy.T
-    return LoadObservation(vehicle, stamp_s, y, 0.5 * (cov + cov.T))
-
-
-def marker_in_camera(load: Pose3, vehicle: Pose3, camera_in_body: Pose3, marker_in_load: Pose3):
-    """The true ``(R_cm, t_cm_m)`` a camera on ``vehicle`` sees of the load's marker (world poses
-    in): ``T_cm = T_cb T_bw T_wl T_lm``. For ground truth of PnP and for synthetic measurements."""
-    R_wm = load.R @ marker_in_load.R
-    t_wm = load.R @ marker_in_load.pos_m + load.pos_m
-    R_wc = vehicle.R @ camera_in_body.R
-    t_wc = vehicle.R @ camera_in_body.pos_m + vehicle.pos_m
-    return R_wc.T @ R_wm, R_wc.T @ (t_wm - t_wc)

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from companion.vision.frame import CameraFrame
 from companion.vision.pnp import MarkerPipeline, MarkerPose, PipelineConfig
 
-from .model import LoadObservation, Pose3, observation_from_pnp
+from .measurements import observation_from_pnp
+from .model import LoadObservation, Pose3
 
 __all__ = ["LoadVisionResult", "LoadVisionPipeline"]
 

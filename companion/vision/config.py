@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -36,7 +37,12 @@ class DetectorConfig:
 class PipelineConfig:
     """The measurement pipeline: detector, marker length [m] (the black square's side; per id in
     ``marker_lengths_m``, keys the ids as strings), PnP method, ambiguity threshold, the
-    covariance's pixel-noise floor [px], LM refinement, and the ids to keep (empty: all)."""
+    covariance's pixel-noise floor [px], LM refinement, and the ids to keep (empty: all).
+
+    The calibration's stated accuracy, which the pose covariance adds to the corners' noise
+    (:func:`~.pnp.pose_covariance`): the focal lengths' relative standard deviation
+    ``calib_focal_std_frac``, the principal point's ``calib_principal_std_px`` per axis and each
+    distortion coefficient's relative ``calib_dist_std_frac`` (all 0: the calibration is exact)."""
 
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     marker_length_m: float = 0.2
@@ -46,6 +52,9 @@ class PipelineConfig:
     sigma_floor_px: float = 0.3
     refine: bool = False
     ids: tuple[int, ...] = ()
+    calib_focal_std_frac: float = 0.0
+    calib_principal_std_px: float = 0.0
+    calib_dist_std_frac: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.marker_length_m > 0:
@@ -59,6 +68,15 @@ class PipelineConfig:
             raise ValueError(f"ambiguity_ratio must be >= 1, got {self.ambiguity_ratio}")
         if not self.sigma_floor_px > 0:
             raise ValueError(f"sigma_floor_px must be positive, got {self.sigma_floor_px}")
+        for name in ("calib_focal_std_frac", "calib_principal_std_px", "calib_dist_std_frac"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be >= 0 and finite, got {v}")
+
+    @property
+    def calibration_std(self) -> tuple[float, float, float]:
+        """``(focal fraction, principal point px, distortion fraction)``."""
+        return (self.calib_focal_std_frac, self.calib_principal_std_px, self.calib_dist_std_frac)
 
     def length_m(self, marker_id: int) -> float:
         return self.marker_lengths_m.get(str(marker_id), self.marker_length_m)

@@ -35,6 +35,7 @@ __all__ = [
     "transform_points",
     "project_points",
     "projection_jacobian",
+    "intrinsics_jacobian",
     "translation_error_m",
     "geodesic_angle_rad",
 ]
@@ -151,6 +152,32 @@ def projection_jacobian(points_m_m: np.ndarray, R_cm: np.ndarray, t_cm_m: np.nda
     dpc[:, :, ROT] = -skew(rp)
     dpc[:, :, POS] = np.eye(3)
     return np.einsum("nij,njk->nik", dpix_dpc, dpc).reshape(2 * n, 6)
+
+
+def intrinsics_jacobian(points_c_m: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """Jacobian (2N, 4 + d) of the stacked pinhole pixels ``[u1, v1, u2, ...]`` of camera-frame
+    points (N, 3), as the detector reports them (undistorted with ``intr``), with respect to an
+    error in ``(fx, fy, cx, cy)`` and in each of the ``d`` distortion coefficients ``(k1, k2, p1,
+    p2[, k3])``: ``du/dfx = x'``, ``du/dcx = 1``; a coefficient's error leaves the distortion it
+    adds in the undistorted point, ``f d(x'_distorted)/dk`` (OpenCV's model, first order). Eight
+    coefficients: the rational and prism terms are left out (zero columns)."""
+    p = np.asarray(points_c_m, dtype=float)
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    n, d = len(p), len(intr.dist_coeffs)
+    J = np.zeros((n, 2, 4 + d))
+    J[:, 0, 0], J[:, 1, 1] = x, y
+    J[:, 0, 2], J[:, 1, 3] = 1.0, 1.0
+    if d:
+        r2 = x * x + y * y
+        ddx = [x * r2, x * r2 * r2, 2 * x * y, r2 + 2 * x * x]  # d x_distorted / d (k1, k2, p1, p2)
+        ddy = [y * r2, y * r2 * r2, r2 + 2 * y * y, 2 * x * y]
+        if d >= 5:
+            ddx.append(x * r2**3)
+            ddy.append(y * r2**3)
+        for j, (gx, gy) in enumerate(zip(ddx, ddy)):
+            J[:, 0, 4 + j] = intr.fx_px * gx
+            J[:, 1, 4 + j] = intr.fy_px * gy
+    return J.reshape(2 * n, 4 + d)
 
 
 def translation_error_m(t_est_m: np.ndarray, t_gt_m: np.ndarray) -> np.ndarray:

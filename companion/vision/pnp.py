@@ -22,7 +22,8 @@ corners (IPPE square, SQPnP, iterative, or ``refine``) removes them.
 pixels (:func:`~.geometry.projection_jacobian`) and ``s^2`` the reprojection residuals' variance
 (``rss / (2N - 6)``), never below ``sigma_floor_px^2`` (the corner detector's own noise). The
 marker's size in pixels enters through ``J``: a marker half the size in the image gives about
-four times the variance along the line of sight.
+four times the variance along the line of sight. With the calibration's stated accuracy in the
+pipeline's config, its error is added, mapped through the same least-squares geometry.
 """
 
 from __future__ import annotations
@@ -35,7 +36,14 @@ import numpy as np
 from companion.estimation.so3 import rotmat_to_quat
 
 from .config import PNP_METHOD_NAMES, PipelineConfig, PnpMethod
-from .geometry import CameraIntrinsics, geodesic_angle_rad, project_points, projection_jacobian, transform_points
+from .geometry import (
+    CameraIntrinsics,
+    geodesic_angle_rad,
+    intrinsics_jacobian,
+    project_points,
+    projection_jacobian,
+    transform_points,
+)
 from .markers import MarkerDetection, detect_markers, make_detector, marker_object_points
 
 __all__ = [
@@ -138,19 +146,34 @@ def resolve_ambiguity(candidates: list[tuple[np.ndarray, np.ndarray, float]], pr
 
 
 def pose_covariance(obj_m: np.ndarray, img_px: np.ndarray, R_cm: np.ndarray, t_cm_m: np.ndarray,
-                    intr: CameraIntrinsics, sigma_floor_px: float) -> np.ndarray:
-    """``s^2 (J^T J)^-1`` (module docstring), symmetric, over ``[dtheta; dt]``."""
+                    intr: CameraIntrinsics, sigma_floor_px: float,
+                    calibration_std: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """``s^2 (J^T J)^-1 + G C G^T`` (module docstring), symmetric, over ``[dtheta; dt]``: the
+    second term the calibration's error, ``C = J_k S_k J_k^T`` the corners' pixel covariance from
+    ``calibration_std`` (focal fraction, principal point px, distortion fraction;
+    :func:`~.geometry.intrinsics_jacobian`), ``G = (J^T J)^-1 J^T`` the least-squares pose's
+    sensitivity to the pixels. The calibration's error moves all corners together, so it does not
+    average out over the corners as their noise does."""
     J = projection_jacobian(obj_m, R_cm, t_cm_m, intr)
-    r = (project_points(transform_points(R_cm, t_cm_m, obj_m), intr) - img_px).ravel()
+    pc = transform_points(R_cm, t_cm_m, obj_m)
+    r = (project_points(pc, intr) - img_px).ravel()
     dof = J.shape[0] - J.shape[1]
     s2 = max(float(r @ r) / dof if dof > 0 else 0.0, sigma_floor_px**2)
-    cov = s2 * np.linalg.pinv(J.T @ J)
+    JtJ_inv = np.linalg.pinv(J.T @ J)
+    cov = s2 * JtJ_inv
+    focal, principal, dist = calibration_std
+    if focal or principal or dist:
+        var = np.concatenate(([(focal * intr.fx_px) ** 2, (focal * intr.fy_px) ** 2, principal**2, principal**2],
+                              (dist * np.asarray(intr.dist_coeffs, dtype=float)) ** 2))
+        G = JtJ_inv @ J.T @ intrinsics_jacobian(pc, intr)
+        cov = cov + (G * var) @ G.T
     return 0.5 * (cov + cov.T)
 
 
 def estimate_marker_pose(det: MarkerDetection, length_m: float, intr: CameraIntrinsics, method: str, *,
                          previous: MarkerPose | None = None, ambiguity_ratio: float = 3.0,
-                         sigma_floor_px: float = 0.3, refine: bool = False) -> MarkerPose | None:
+                         sigma_floor_px: float = 0.3, refine: bool = False,
+                         calibration_std: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> MarkerPose | None:
     """The pose of one detected marker (``None`` if the method finds none in front of the camera)."""
     obj = marker_object_points(length_m)
     cands = pnp_candidates(obj, det.corners_px, intr, method, refine=refine)
@@ -158,7 +181,7 @@ def estimate_marker_pose(det: MarkerDetection, length_m: float, intr: CameraIntr
         return None
     idx, ambiguous, ratio = resolve_ambiguity(cands, None if previous is None else previous.R_cm, ambiguity_ratio)
     R, t, rms = cands[idx]
-    cov = pose_covariance(obj, det.corners_px, R, t, intr, sigma_floor_px)
+    cov = pose_covariance(obj, det.corners_px, R, t, intr, sigma_floor_px, calibration_std)
     return MarkerPose(det.marker_id, method, R, t, cov, rms, det.side_px, ambiguous, ratio)
 
 
@@ -181,11 +204,12 @@ def measure_markers(image: np.ndarray, intr: CameraIntrinsics, cfg: PipelineConf
 def configured_pose(det: MarkerDetection, intr: CameraIntrinsics, cfg: PipelineConfig, method: str | None = None,
                     previous: dict[int, MarkerPose] | None = None) -> MarkerPose | None:
     """:func:`estimate_marker_pose` of one detection with ``cfg``'s marker length, ambiguity
-    ratio, noise floor and refinement (``method`` overrides ``cfg.method``); ``previous``: the last
+    ratio, noise floor, calibration accuracy and refinement (``method`` overrides ``cfg.method``); ``previous``: the last
     pose of each marker id, for the IPPE ambiguity."""
     return estimate_marker_pose(det, cfg.length_m(det.marker_id), intr, method or cfg.method,
                                 previous=(previous or {}).get(det.marker_id), ambiguity_ratio=cfg.ambiguity_ratio,
-                                sigma_floor_px=cfg.sigma_floor_px, refine=cfg.refine)
+                                sigma_floor_px=cfg.sigma_floor_px, refine=cfg.refine,
+                                calibration_std=cfg.calibration_std)
 
 
 class MarkerPipeline:

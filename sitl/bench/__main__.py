@@ -498,7 +498,7 @@ def _add_view_parser(sub) -> None:
 
 
 def _cmd_load_filter(args) -> int:
-    from companion.load.filter import LoadFilterConfig
+    from companion.load.estimate import LoadFilterConfig
     from sitl.scenarios.slung_load.synthetic import SlungLoadSim
 
     from .load_filter import format_load_filter, markdown_load_filter, plot_load_errors, run_load_filter_bench

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from companion.load.filter import LoadFilterConfig
+from companion.load.estimate import LoadFilterConfig
 from companion.load.metrics import pose_error_series
 from sitl.scenarios.slung_load.synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
 

@@ -79,12 +79,12 @@ def test_config_loads_and_validates(tmp_path):
     bad.write_text(CONFIG.read_text().replace("cable_length_m = [1.5, 1.5, 1.5]", "cable_length_m = [1.5, 1.5]"))
     with pytest.raises(ConfigError, match="cable_length_m"):
         load_slung_scenario(bad)
-    bad.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.3", "sigma_floor_px = 0.0"))
+    bad.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.1", "sigma_floor_px = 0.0"))
     with pytest.raises(ConfigError, match="sigma_floor_px"):
         load_slung_scenario(bad)
     good = tmp_path / "floor.toml"
-    good.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.3", "sigma_floor_px = 0.1"))
-    assert load_slung_scenario(good).load.sigma_floor_px == 0.1
+    good.write_text(CONFIG.read_text().replace("sigma_floor_px = 0.1", "sigma_floor_px = 0.2"))
+    assert load_slung_scenario(good).load.sigma_floor_px == 0.2
 
 
 @pytest.mark.rendering
@@ -100,7 +100,7 @@ def test_short_flight_estimates_the_load(tmp_path):
     m = fly_slung_load(sc, tmp_path, plots=False)
     assert not m["crashed"], m["crash_reason"]
     err = m["load_pose_err"]
-    for kind in ("ekf", "ukf", "unfiltered"):
+    for kind in ("ekf", "ukf", "unfiltered", "ekf_fixed_lag", "ukf_fixed_lag"):
         assert err[kind]["n_samples"] > 0, kind
         assert err[kind]["pos_rms_m"] < 0.1, (kind, err[kind])
         assert err[kind]["att_rms_deg"] < 5.0, (kind, err[kind])
@@ -112,6 +112,8 @@ def test_short_flight_estimates_the_load(tmp_path):
         assert nees["mean"] > 0 and nees["effective_samples"] >= 1 and lo < 6.0 < hi
         assert nees["inside95"] == (lo <= nees["mean"] <= hi)
     assert m["load_filter_stats"]["ekf"]["accepted"] > 0
+    assert m["load_filter_stats"]["ekf"]["mean_dof"] == 6.0  # eq. 4 and the marker's attitude in every image
+    assert m["load_fixed_lag_s"] >= max(c.latency_s for c in sc.cameras)
     assert m["load_filter_stats"]["ekf"]["late"] > 0  # the 50 ms camera latency: out-of-sequence updates
     assert min(m["load_vision"]["detection_rate"].values()) > 0.5
     load = np.load(tmp_path / "load.npz")

@@ -12,9 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.estimation.so3 import attitude_error, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat, skew
+from companion.load import estimate as le
 from companion.load import filter as lf
+from companion.load import kalman as lk
+from companion.load import measurements as ms
 from companion.load import metrics as lm
 from companion.load import model as m
+from companion.load import unfiltered as lu
 from sitl.scenarios.slung_load.synthetic import SlungLoadSim, run_estimators, simulate_truth, summarize, synthesize
 
 SIM = SlungLoadSim(duration_s=4.0, sim_dt_s=0.005)
@@ -79,20 +83,20 @@ def test_measurement_jacobians_match_finite_differences(seed):
     rng = np.random.default_rng(10 + seed)
     x, pv = _random_state(rng)
     N, eps = m.error_dim(3), 1e-6
-    H, Ht = m.vehicle_in_load_jacobian(x, pv[1])
-    HL, U = m.cable_length_jacobian(x, pv, PARAMS)
+    H, Ht = ms.vehicle_in_load_jacobian(x, pv[1])
+    HL, U = ms.cable_length_jacobian(x, pv, PARAMS)
     for j in range(N):
         dx = np.zeros(N)
         dx[j] = eps
         xp, xm = m.boxplus(x, dx), m.boxplus(x, -dx)
-        np.testing.assert_allclose(H[:, j], (m.vehicle_in_load(xp, pv[1]) - m.vehicle_in_load(xm, pv[1])) / (2 * eps),
+        np.testing.assert_allclose(H[:, j], (ms.vehicle_in_load(xp, pv[1]) - ms.vehicle_in_load(xm, pv[1])) / (2 * eps),
                                    atol=1e-7)
-        np.testing.assert_allclose(HL[:, j], (m.cable_lengths(xp, pv, PARAMS) - m.cable_lengths(xm, pv, PARAMS)) / (2 * eps),
+        np.testing.assert_allclose(HL[:, j], (ms.cable_lengths(xp, pv, PARAMS) - ms.cable_lengths(xm, pv, PARAMS)) / (2 * eps),
                                    atol=1e-7)
     for j in range(3):  # w.r.t. the vehicle's position
         dt = np.zeros(3)
         dt[j] = eps
-        np.testing.assert_allclose(Ht[:, j], (m.vehicle_in_load(x, pv[1] + dt) - m.vehicle_in_load(x, pv[1] - dt)) / (2 * eps),
+        np.testing.assert_allclose(Ht[:, j], (ms.vehicle_in_load(x, pv[1] + dt) - ms.vehicle_in_load(x, pv[1] - dt)) / (2 * eps),
                                    atol=1e-7)
 
 
@@ -102,15 +106,74 @@ def test_observation_from_pnp_inverts_marker_in_camera_and_its_covariance_is_fir
     load = m.Pose3(x[m.NOM_POS], x[m.NOM_QUAT])
     vehicle = m.Pose3(pv[0], quat_from_rotvec(rng.normal(0, 0.2, 3)))
     cam, marker = SIM.camera_in_body(), m.Pose3([0.05, -0.02, 0.1], quat_from_rotvec([0.0, 0.0, 0.4]))
-    R_cm, t_cm = m.marker_in_camera(load, vehicle, cam, marker)
+    R_cm, t_cm = ms.marker_in_camera(load, vehicle, cam, marker)
     cov6 = np.diag([1e-4, 2e-4, 5e-5, 1e-6, 2e-6, 4e-6])
-    obs = m.observation_from_pnp(0, 0.0, R_cm, t_cm, cov6, cam, marker)
-    np.testing.assert_allclose(obs.vehicle_in_load_m, m.vehicle_in_load(x, pv[0]), atol=1e-12)  # eq. 4
-    # covariance: Monte Carlo of the exact map agrees with the first-order one
-    e = rng.multivariate_normal(np.zeros(6), cov6, size=4000)
-    ys = np.array([m.observation_from_pnp(0, 0.0, quat_to_rotmat(quat_from_rotvec(ei[:3])) @ R_cm, t_cm + ei[3:],
-                                          cov6, cam, marker).vehicle_in_load_m for ei in e[:1500]])
-    np.testing.assert_allclose(np.cov(ys.T), obs.cov_m2, rtol=0.15, atol=2e-6)
+    obs = ms.observation_from_pnp(0, 0.0, R_cm, t_cm, cov6, cam, marker)
+    np.testing.assert_allclose(obs.vehicle_in_load_m, ms.vehicle_in_load(x, pv[0]), atol=1e-12)  # eq. 4
+    # the load's attitude in the body frame, with the vehicle's attitude, is the load's in the world
+    np.testing.assert_allclose(attitude_error(quat_mul(vehicle.q_wxyz, obs.load_in_body_q_wxyz), load.q_wxyz), 0.0,
+                               atol=1e-12)
+    # covariance: Monte Carlo of the exact map agrees with the first-order one, [dy; dphi] jointly
+    e = rng.multivariate_normal(np.zeros(6), cov6, size=1000)
+    samples = []
+    for ei in e:
+        o = ms.observation_from_pnp(0, 0.0, quat_to_rotmat(quat_from_rotvec(ei[:3])) @ R_cm, t_cm + ei[3:], cov6, cam,
+                                    marker)
+        samples.append(np.r_[o.vehicle_in_load_m, attitude_error(o.load_in_body_q_wxyz, obs.load_in_body_q_wxyz)])
+    _assert_cov_close(np.cov(np.array(samples).T), obs.joint_cov, 0.15)  # 1000 samples: ~0.03 sampling error
+    np.testing.assert_array_equal(obs.joint_cov[:3, :3], obs.cov_m2)
+
+
+def _vehicles_with_attitude(rng, pv, stamp=0.0):
+    n = len(pv)
+    return m.VehicleStates(stamp, pv, rng.normal(0, 0.3, (n, 3)), np.broadcast_to(np.eye(3) * 4e-4, (n, 3, 3)),
+                           quat_from_rotvec(rng.normal(0, 0.3, (n, 3))), np.broadcast_to(np.eye(3) * 1e-5, (n, 3, 3)),
+                           rng.normal(0, 0.5, (n, 3)))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_image_and_cable_measurement_jacobians_match_finite_differences(seed):
+    """The assembled measurements (eq. 4 with the marker's attitude; the taut cables) against
+    their own models: ``H`` is the derivative of ``h(x [+] dx)`` at ``dx = 0``, and the attitude
+    rows are zero at the estimate."""
+    rng = np.random.default_rng(20 + seed)
+    x, pv = _random_state(rng)
+    vehicles = _vehicles_with_attitude(rng, pv, stamp=-0.01)
+    load = m.Pose3(x[m.NOM_POS], x[m.NOM_QUAT])
+    R_cm, t_cm = ms.marker_in_camera(load, m.Pose3(pv[2], vehicles.q_wxyz[2]), SIM.camera_in_body(),
+                                     SIM.marker_in_load())
+    obs = ms.observation_from_pnp(2, 0.0, R_cm, t_cm, np.eye(6) * 1e-5, SIM.camera_in_body(), SIM.marker_in_load())
+    image = ms.image_measurement(x, obs, vehicles)
+    cables = ms.cable_measurement(x, vehicles, 0.0, PARAMS, 0.005, 0.0)
+    assert image.dof == 6 and cables.dof == 3
+    np.testing.assert_allclose(image.h(x)[3:], 0.0, atol=1e-15)
+    N, eps = m.error_dim(3), 1e-6
+    for meas in (image, cables):
+        for j in range(N):
+            dx = np.zeros(N)
+            dx[j] = eps
+            fd = (meas.h(m.boxplus(x, dx)) - meas.h(m.boxplus(x, -dx))) / (2 * eps)
+            np.testing.assert_allclose(meas.H[:, j], fd, atol=1e-7)
+        assert np.all(np.linalg.eigvalsh(meas.R) > 0)
+    # without attitudes (or switched off): eq. 4 alone
+    assert ms.image_measurement(x, obs, vehicles, attitude=False).dof == 3
+    plain = m.VehicleStates(vehicles.stamp_s, vehicles.pos_w_m, vehicles.vel_w_m_s, vehicles.pos_cov_m2)
+    assert ms.image_measurement(x, obs, plain).dof == 3
+
+
+def test_vehicle_attitudes_are_carried_to_the_capture_time_and_validated():
+    rng = np.random.default_rng(4)
+    _, pv = _random_state(rng)
+    v = _vehicles_with_attitude(rng, pv)
+    dt = 0.02
+    np.testing.assert_allclose(v.attitudes_at(dt), quat_mul(v.q_wxyz, quat_from_rotvec(v.rate_b_rad_s * dt)), atol=1e-12)
+    np.testing.assert_allclose(v.attitudes_at(v.stamp_s), v.q_wxyz, atol=1e-15)
+    with pytest.raises(ValueError, match="both or neither"):
+        m.VehicleStates(0.0, pv, np.zeros((3, 3)), v.pos_cov_m2, v.q_wxyz)
+    with pytest.raises(ValueError, match="unit"):
+        m.VehicleStates(0.0, pv, np.zeros((3, 3)), v.pos_cov_m2, 2 * v.q_wxyz, v.att_cov_rad2)
+    with pytest.raises(ValueError, match="no attitudes"):
+        m.VehicleStates(0.0, pv, np.zeros((3, 3)), v.pos_cov_m2).attitudes_at(0.0)
 
 
 @given(st.integers(0, 10_000))
@@ -163,11 +226,30 @@ def test_load_params_validate(bad):
         m.LoadParams(**{**good, **bad})
 
 
-@pytest.mark.parametrize("bad", [dict(accel_noise_m_s2_rthz=-1.0), dict(max_step_s=0.0), dict(gate_chi2=0.0),
-                                 dict(cable_length_sigma_m=float("nan"))])
+@pytest.mark.parametrize("bad", [dict(accel_noise_m_s2_rthz=-1.0), dict(max_step_s=0.0), dict(gate_probability=0.0),
+                                 dict(gate_probability=1.0), dict(cable_length_sigma_m=float("nan")),
+                                 dict(cable_taut_fraction=1.0), dict(vehicle_bias_std_m=(0.01, -0.01)),
+                                 dict(vehicle_bias_std_m=(0.01,))])
 def test_filter_config_validates(bad):
-    with pytest.raises(ValueError):
-        lf.LoadFilterConfig(**bad)
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        le.LoadFilterConfig(**bad)
+
+
+def test_gate_follows_the_measurements_degrees_of_freedom():
+    cfg = le.LoadFilterConfig()
+    assert cfg.gate_chi2(3) == pytest.approx(16.266, abs=1e-3) and cfg.gate_chi2(6) == pytest.approx(22.458, abs=1e-3)
+    assert le.LoadFilterConfig(gate_probability=None).gate_chi2(6) is None
+
+
+def test_the_vehicles_common_bias_adds_to_the_position_covariance_only(truth):
+    est, _ = _start(truth, k=100)
+    cfg = le.LoadFilterConfig(vehicle_bias_std_m=(0.03, 0.06))
+    out = le.with_vehicle_bias(est, cfg)
+    added = out.P - est.P
+    np.testing.assert_allclose(added[m.ERR_POS, m.ERR_POS], np.diag([0.03**2, 0.03**2, 0.06**2]) / 3)
+    added[m.ERR_POS, m.ERR_POS] = 0.0
+    assert not added.any() and np.array_equal(out.x, est.x)
+    assert le.with_vehicle_bias(est, le.LoadFilterConfig()) is est
 
 
 # --- filters ------------------------------------------------------------------------------------
@@ -176,10 +258,16 @@ def test_filter_config_validates(bad):
 def _start(truth, k=0, sigma_pos=1e-4, sigma_att=1e-4):
     v = m.VehicleStates(float(truth.t_s[k]), truth.vehicle_pos_w_m[k], truth.vehicle_vel_w_m_s[k],
                         np.broadcast_to(np.eye(3) * 1e-4, (3, 3, 3)))
-    est = lf.initial_estimate(v.stamp_s, truth.x[k, m.NOM_POS], truth.x[k, m.NOM_QUAT], v, PARAMS,
+    est = le.initial_estimate(v.stamp_s, truth.x[k, m.NOM_POS], truth.x[k, m.NOM_QUAT], v, PARAMS,
                               pos_sigma_m=sigma_pos, vel_sigma_m_s=sigma_pos, att_sigma_rad=sigma_att,
                               omega_sigma_rad_s=sigma_att, tension_sigma_n=1e-3)
     return est, v
+
+
+def _update(kind, est, obs, vehicles, cfg):
+    """One image's update as the time line applies it."""
+    meas = ms.image_measurement(est.x, obs, vehicles, attitude=cfg.marker_attitude)
+    return lk.correct(kind, est, meas, cfg, cfg.gate_chi2(meas.dof))
 
 
 def _assert_cov_close(Pa, Pb, tol):
@@ -189,34 +277,38 @@ def _assert_cov_close(Pa, Pb, tol):
 
 
 def test_ekf_and_ukf_agree_when_nearly_linear(truth):
-    cfg = lf.LoadFilterConfig(max_step_s=0.02)
+    cfg = le.LoadFilterConfig(max_step_s=0.02)
     est, v = _start(truth, k=200)
-    pe = lf.ekf_predict(est, v, est.stamp_s + 0.02, PARAMS, cfg)
-    pu = lf.ukf_predict(est, v, est.stamp_s + 0.02, PARAMS, cfg)
+    pe = lk.ekf_predict(est, v, est.stamp_s + 0.02, PARAMS, cfg)
+    pu = lk.ukf_predict(est, v, est.stamp_s + 0.02, PARAMS, cfg)
     np.testing.assert_allclose(m.boxminus(pu.x, pe.x), 0.0, atol=1e-7)  # second order in the 1e-4 spread
     _assert_cov_close(pu.P, pe.P, 1e-3)  # F from A at the start vs the midpoint step's exact Jacobian
-    y = m.vehicle_in_load(pe.x, v.positions_at(pe.stamp_s)[1]) + [0.01, -0.02, 0.005]
+    y = ms.vehicle_in_load(pe.x, v.positions_at(pe.stamp_s)[1]) + [0.01, -0.02, 0.005]
     obs = m.LoadObservation(1, pe.stamp_s, y, np.eye(3) * 4e-4)
-    ue, nis_e, ok_e = lf.ekf_update(pe, obs, v, cfg)
-    uu, nis_u, ok_u = lf.ukf_update(pu, obs, v, cfg)
+    ue, nis_e, ok_e = _update("ekf", pe, obs, v, cfg)
+    uu, nis_u, ok_u = _update("ukf", pu, obs, v, cfg)
     assert ok_e and ok_u
     assert nis_u == pytest.approx(nis_e, rel=1e-4)
     np.testing.assert_allclose(m.boxminus(uu.x, ue.x), 0.0, atol=1e-7)
     _assert_cov_close(uu.P, ue.P, 1e-3)
     # and they are different filters once the spread is not small (the report's were identical)
     wide, _ = _start(truth, k=200, sigma_pos=0.3, sigma_att=0.5)
-    de = m.boxminus(lf.ukf_predict(wide, v, wide.stamp_s + 0.2, PARAMS, cfg).x,
-                    lf.ekf_predict(wide, v, wide.stamp_s + 0.2, PARAMS, cfg).x)
+    de = m.boxminus(lk.ukf_predict(wide, v, wide.stamp_s + 0.2, PARAMS, cfg).x,
+                    lk.ekf_predict(wide, v, wide.stamp_s + 0.2, PARAMS, cfg).x)
     assert np.abs(de).max() > 1e-4
 
 
 def test_class_matches_the_functional_api_in_order(truth):
-    cfg = lf.LoadFilterConfig()
+    cfg = le.LoadFilterConfig()
     meas = synthesize(truth, dataclasses.replace(SIM, latency_s=0.0, latency_jitter_s=0.0), seed=5)
     est, _ = _start(truth, sigma_pos=0.05, sigma_att=0.05)
     vehicles = meas.vehicles[:40]
     images = [o for _, o in meas.images if o.stamp_s < vehicles[-1].stamp_s]
     f = lf.LoadPoseFilter("ekf", PARAMS, cfg, dataclasses.replace(est, stamp_s=vehicles[0].stamp_s))
+    def cables(est, v):  # after every accepted image: the taut cables' lengths
+        meas = ms.cable_measurement(est.x, v, est.stamp_s, PARAMS, cfg.cable_length_sigma_m, cfg.cable_taut_fraction)
+        return lk.ekf_correct(est, meas, None)[0]
+
     manual = f.estimate
     pending = list(images)
     f.push_vehicles(vehicles[0])
@@ -224,14 +316,44 @@ def test_class_matches_the_functional_api_in_order(truth):
         for o in [o for o in pending if o.stamp_s <= v.stamp_s]:
             pending.remove(o)
             f.push_observation(o)
-            manual = lf.ekf_predict(manual, prev, o.stamp_s, PARAMS, cfg)
+            manual = lk.ekf_predict(manual, prev, o.stamp_s, PARAMS, cfg)
             # an image at a sample's stamp is applied with that sample (images first at equal stamps)
-            manual, _, _ = lf.ekf_update(manual, o, v if o.stamp_s >= v.stamp_s else prev, cfg)
-        manual = lf.ekf_predict(manual, prev, v.stamp_s, PARAMS, cfg)
+            sample = v if o.stamp_s >= v.stamp_s else prev
+            manual, _, ok = _update("ekf", manual, o, sample, cfg)
+            manual = cables(manual, sample) if ok else manual
+        manual = lk.ekf_predict(manual, prev, v.stamp_s, PARAMS, cfg)
         got = f.push_vehicles(v)
     assert f.stats.late == 0 and f.stats.accepted > 20
     np.testing.assert_array_equal(got.x, manual.x)
     np.testing.assert_array_equal(got.P, manual.P)
+
+
+def test_the_fixed_lag_estimate_is_the_estimate_of_that_time_with_the_late_images_in(truth):
+    """In order, ``estimate_at`` a past sample's time is what the filter said then; with late
+    images, it has them in; beyond the kept history it refuses."""
+    cfg = le.LoadFilterConfig(vehicle_bias_std_m=(0.01, 0.015))
+    meas = synthesize(truth, dataclasses.replace(SIM, latency_s=0.1, latency_jitter_s=0.0), seed=3)
+    est, _ = _start(truth, sigma_pos=0.05, sigma_att=0.05)
+    vehicles = meas.vehicles[:40]
+    f = lf.LoadPoseFilter("ekf", PARAMS, cfg, dataclasses.replace(est, stamp_s=vehicles[0].stamp_s))
+    said, arrivals = {}, list(meas.images)
+    for v in vehicles:
+        while arrivals and arrivals[0][0] <= v.stamp_s:
+            f.push_observation(arrivals.pop(0)[1])
+        said[v.stamp_s] = f.push_vehicles(v)
+    t_last, t_past = vehicles[-1].stamp_s, vehicles[-11].stamp_s  # 0.2 s ago: the 0.1 s late images are in
+    np.testing.assert_array_equal(f.estimate_at(t_last).x, said[t_last].x)
+    np.testing.assert_array_equal(f.estimate_at(t_last).P, said[t_last].P)
+    late = f.estimate_at(t_past)
+    assert f.stats.late > 0 and not np.array_equal(late.x, said[t_past].x)
+    err = lambda e, t: np.linalg.norm(e.pos_w_m - truth.x[truth.index(t), m.NOM_POS])  # noqa: E731
+    assert np.trace(late.pos_cov_m2) < np.trace(said[t_past].pos_cov_m2)  # the images of that time are in
+    assert np.all(np.diag(late.pos_cov_m2) >= np.array([0.01**2, 0.01**2, 0.015**2]) / 3)  # the vehicles' bias
+    assert err(late, t_past) < 0.1
+    with pytest.raises(ValueError, match="outside the kept history"):
+        f.estimate_at(t_last + 0.1)
+    with pytest.raises(ValueError, match="outside the kept history"):
+        f.estimate_at(vehicles[0].stamp_s - 1.0)
 
 
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
@@ -240,7 +362,7 @@ def test_late_images_give_the_in_order_result(truth, kind):
     meas = synthesize(truth, sim, seed=2)
     n_samples = 60 if kind == "ekf" else 30  # 1.2 s / 0.6 s
     meas = dataclasses.replace(meas, vehicles=meas.vehicles[:n_samples])
-    cfg = lf.LoadFilterConfig()
+    cfg = le.LoadFilterConfig()
     kw = dict(kinds=(kind,), open_loop=False, unfiltered=False)
     late = run_estimators(truth, meas, sim, cfg, seed=2, **kw)
     in_order = run_estimators(truth, meas, sim, cfg, seed=2, deliver_in_order=True, **kw)
@@ -258,7 +380,7 @@ def test_late_images_give_the_in_order_result(truth, kind):
 @pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_filters_beat_unfiltered_and_are_consistent(truth, seed):
     """Images delivered in order here (late delivery: the test above); EKF on two seeds, UKF on one."""
-    cfg = lf.LoadFilterConfig()
+    cfg = le.LoadFilterConfig()
     meas = synthesize(truth, SIM, seed)
     run = run_estimators(truth, meas, SIM, cfg, seed, kinds=("ekf", "ukf") if seed == 0 else ("ekf",),
                          deliver_in_order=True)
@@ -285,8 +407,8 @@ def test_gate_rejects_pnp_spikes(truth):
     meas = synthesize(truth, sim, seed=4)
     assert meas.outliers > 5
     kw = dict(kinds=("ekf",), open_loop=False, unfiltered=False, deliver_in_order=True)
-    gated = run_estimators(truth, meas, sim, lf.LoadFilterConfig(), 4, **kw)
-    raw = run_estimators(truth, meas, sim, lf.LoadFilterConfig(gate_chi2=None), 4, **kw)
+    gated = run_estimators(truth, meas, sim, le.LoadFilterConfig(), 4, **kw)
+    raw = run_estimators(truth, meas, sim, le.LoadFilterConfig(gate_probability=None), 4, **kw)
     assert gated.stats["ekf"]["rejected"] >= meas.outliers
     assert gated.stats["ekf"]["rejected"] < 2 * meas.outliers + 5
     e_g = summarize(gated)["load_pose_err"]["ekf"]
@@ -305,7 +427,7 @@ def test_solve_load_pose_recovers_the_pose(seed):
     p = rng.normal(0, 2, 3)
     y = rng.normal(0, 1, (4, 3))
     t = y @ quat_to_rotmat(q).T + p
-    p_hat, q_hat = lf.solve_load_pose(y, t, rng.uniform(0.5, 2.0, 4))
+    p_hat, q_hat = lu.solve_load_pose(y, t, rng.uniform(0.5, 2.0, 4))
     np.testing.assert_allclose(p_hat, p, atol=1e-8)
     assert lm.pose_error_series(p_hat[None], q_hat[None], p[None], q[None])[1][0] < 1e-5
 
@@ -313,9 +435,9 @@ def test_solve_load_pose_recovers_the_pose(seed):
 def test_solve_load_pose_rejects_collinear_vehicles():
     y = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
     with pytest.raises(ValueError, match="collinear"):
-        lf.solve_load_pose(y, y + 1.0)
+        lu.solve_load_pose(y, y + 1.0)
     with pytest.raises(ValueError, match="three"):
-        lf.solve_load_pose(y[:2], y[:2])
+        lu.solve_load_pose(y[:2], y[:2])
 
 
 def test_pose_error_series_and_load_pose_err():

@@ -3,6 +3,8 @@ covariance, on synthetic images (a cv2-drawn marker warped to a known pose). No 
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat
 from companion.vision.config import PNP_METHOD_NAMES, DetectorConfig, PipelineConfig
 from companion.vision.dictionaries import ARUCO_DICTIONARY_IDS
 from companion.vision.frame import CameraFrame, CameraFrameHeader
-from companion.vision.geometry import (POS, ROT, CameraIntrinsics, frame_from_axes, geodesic_angle_rad,
+from companion.vision.geometry import (POS, ROT, CameraIntrinsics, frame_from_axes, geodesic_angle_rad, intrinsics_jacobian,
                                        project_points, projection_jacobian, transform_points, translation_error_m)
 from companion.vision.markers import marker_image, marker_object_points
 from companion.vision.pnp import MarkerPipeline, measure_markers, resolve_ambiguity
@@ -131,6 +133,43 @@ def test_covariance_grows_as_the_marker_shrinks_in_the_image():
     (side_near, std_near), (side_far, std_far) = stds
     assert side_far < 0.6 * side_near
     assert std_far > 3.0 * std_near  # range variance ~ z^4 / size: twice as far, about 4x the std
+
+
+def test_the_intrinsics_jacobian_is_what_a_calibration_error_does_to_the_undistorted_corners():
+    """Pixels seen through a perturbed calibration and undistorted with the nominal one move by
+    ``J_k dk`` (first order), for the focal lengths, the principal point and every distortion
+    coefficient."""
+    nominal = CameraIntrinsics(320, 240, 210.0, 212.0, 160.5, 118.0, (-0.12, 0.04, 0.001, -0.0008, 0.01))
+    rng = np.random.default_rng(1)
+    pc = np.column_stack((rng.uniform(-0.5, 0.5, (12, 2)), rng.uniform(1.0, 2.0, 12)))
+    J = intrinsics_jacobian(pc, nominal)
+    k0 = np.array([nominal.fx_px, nominal.fy_px, nominal.cx_px, nominal.cy_px, *nominal.dist_coeffs])
+    pinhole = project_points(pc, nominal)
+    for j, step in enumerate([0.05, 0.05, 0.05, 0.05, 1e-5, 1e-5, 1e-6, 1e-6, 1e-5]):
+        k = k0.copy()
+        k[j] += step
+        true = CameraIntrinsics(320, 240, *k[:4], tuple(k[4:]))
+        seen, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), true.K, true.dist)
+        undist = cv2.undistortPoints(seen, nominal.K, nominal.dist, P=nominal.K).reshape(-1, 2)
+        # first order, leaving out the distortion's own slope: a few per cent near the image's edges
+        expected = J[:, j] * step
+        np.testing.assert_allclose((undist - pinhole).ravel(), expected, atol=0.1 * np.abs(expected).max())
+
+
+def test_the_calibrations_accuracy_widens_the_pose_covariance():
+    img = synthetic_image(POSE_R, np.array([0.1, -0.1, 1.5]), 0.4)
+    plain = PipelineConfig(marker_length_m=0.4)
+    (p0,) = measure_markers(img, INTR, plain)[1]
+    (p1,) = measure_markers(img, INTR, dataclasses.replace(plain, calib_principal_std_px=2.0))[1]
+    (p2,) = measure_markers(img, INTR, dataclasses.replace(plain, calib_focal_std_frac=0.01))[1]
+    assert np.all(np.linalg.eigvalsh(p1.cov - p0.cov) > -1e-15) and np.all(np.linalg.eigvalsh(p2.cov - p0.cov) > -1e-15)
+    # a principal point error is a common image shift: it tilts the pose by about 2 px / f
+    tilt = np.sqrt(np.linalg.eigvalsh(p1.cov[ROT, ROT] - p0.cov[ROT, ROT])[-1])
+    assert tilt == pytest.approx(2.0 / INTR.fx_px, rel=0.3)
+    # a focal error scales the range (fx and fy independent: half of it each)
+    assert np.sqrt(p2.cov[POS, POS][2, 2] - p0.cov[POS, POS][2, 2]) == pytest.approx(0.01 * 1.5 / np.sqrt(2), rel=0.2)
+    with pytest.raises(ValueError, match="calib_focal_std_frac"):
+        PipelineConfig(calib_focal_std_frac=-0.1)
 
 
 def test_ambiguity_keeps_the_residual_winner_or_the_continuous_candidate():

@@ -6,7 +6,7 @@ validates on any install.
 (one length per vehicle; attached on the box's top face at ``attach_radius_m`` from its centre,
 towards each vehicle, and at ``vehicle_attach_b_m`` on each vehicle), the marker on the load
 (``marker_id``: one of ``[[markers]]``, on body ``"load"``), the PnP method the filters use,
-the filters' tuning (``[load.filter]``, :class:`~companion.load.filter.LoadFilterConfig`)
+the filters' tuning (``[load.filter]``, :class:`~companion.load.estimate.LoadFilterConfig`)
 and the formation's circle (``[load.formation]``,
 :class:`~.formation.CircleFormationConfig`).
 """
@@ -23,7 +23,7 @@ import numpy as np
 from companion.config import load_setup
 from companion.configfile import require_positive
 from companion.estimation.so3 import rotmat_to_quat
-from companion.load.filter import LoadFilterConfig
+from companion.load.estimate import LoadFilterConfig
 from companion.load.model import LoadParams, Pose3
 from companion.vision.config import PNP_METHOD_NAMES, CornerRefinement, PnpMethod
 from sitl.scenario import Scenario, with_rate_noise

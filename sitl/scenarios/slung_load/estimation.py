@@ -4,25 +4,35 @@ Every delivered camera frame goes through :class:`~companion.load.pipeline.LoadV
 (ArUco, PnP with ``load.pnp_method``, covariance, eq. 4's observation), into an EKF and a UKF
 (:class:`~companion.load.filter.LoadPoseFilter`; frames arrive ``latency_s`` after capture: the
 filters roll back and replay) and the unfiltered solve
-(:class:`~companion.load.filter.UnfilteredLoadPose`); the vehicles' own EKF states (GNSS aided,
-position covariance) are the filters' vehicle samples at ``load.vehicle_rate_hz``. The filters
+(:class:`~companion.load.unfiltered.UnfilteredLoadPose`); the vehicles' own EKF states (GNSS-aided
+position and attitude with their covariances) are the filters' vehicle samples at
+``load.vehicle_rate_hz``. The filters
 start from the rigging's prior (the load hanging level below the formation, 0.1 m and 0.1 rad),
 not from the truth.
+
+Each filter is scored twice: in real time (its estimate at every vehicle sample, what a
+controller would get, predicted past the images still on their way) and at a fixed lag (its
+estimate of the instant the cameras' longest delivery delay ago, ``load_fixed_lag_s``, with every
+image of that instant in: comparable with the camera-only solve, which refers to its images'
+capture times).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
 import numpy as np
 
-from companion.load.filter import LoadPoseFilter, UnfilteredLoadPose, initial_estimate
+from companion.load.estimate import initial_estimate
+from companion.load.filter import LoadPoseFilter
 from companion.load.metrics import (error_summary, load_pose_err, pose_error_series, pose_error_whitened,
                                     timing_summary_ms)
 from companion.load.model import ERR_ATT, ERR_POS, VehicleStates
 from companion.load.pipeline import LoadVisionPipeline
-from link_firmware_sim.estimators.ekf import E_P
+from companion.load.unfiltered import UnfilteredLoadPose
+from link_firmware_sim.estimators.ekf import E_P, E_TH
 from sitl.cameras.rig import CapturedFrame
 from sitl.cameras.video import pipeline_config
 from sitl.metrics import correlation_time, nees_bounds95
@@ -44,8 +54,12 @@ class LoadEstimation:
         self.runner, self.sc, self.load = runner, sc, sc.load
         self.params = sc.load.params()
         cfg = pipeline_config(sc.markers)
+        # the calibration's stated accuracy: the spread the cameras' true intrinsics were drawn with
+        focal, principal, dist = (max(getattr(c, k) for c in sc.cameras) for k in (
+            "calib_focal_std_frac", "calib_principal_std_px", "calib_dist_std_frac"))
         cfg = replace(cfg, method=sc.load.pnp_method, ids=(sc.load.marker_id,), sigma_floor_px=sc.load.sigma_floor_px,
-                      detector=replace(cfg.detector, corner_refinement=sc.load.corner_refinement))
+                      detector=replace(cfg.detector, corner_refinement=sc.load.corner_refinement),
+                      calib_focal_std_frac=focal, calib_principal_std_px=principal, calib_dist_std_frac=dist)
         self.pipeline = LoadVisionPipeline(cfg, sc.cameras_in_body(), sc.load.marker_id, sc.marker_in_load())
         self.dt = runner.dt
         self.v_div = max(1, int(round(1.0 / (sc.load.vehicle_rate_hz * runner.dt))))
@@ -56,8 +70,15 @@ class LoadEstimation:
         self.filters: dict[str, LoadPoseFilter] = {}
         self.unfiltered = UnfilteredLoadPose(sc.load.n, window_s=0.5 / max(c.rate_hz for c in sc.cameras))
         self.vehicles: list[VehicleStates] = []
-        self.rows: dict[str, list] = {"t": [], "p_true": [], "q_true": [], "ekf_p": [], "ekf_q": [], "ekf_P": [],
-                                      "ukf_p": [], "ukf_q": [], "ukf_P": [], "camera_free_p": [], "camera_free_q": []}
+        period = self.v_div * runner.dt
+        # the fixed-lag estimates: every image captured before t - lag has arrived by t
+        self.lag_s = period * math.ceil(max(c.max_latency_s for c in sc.cameras) / period - 1e-9)
+        if self.lag_s >= sc.load.filter.lag_s:
+            raise ValueError(f"the cameras' latency ({self.lag_s} s) must be shorter than load.filter.lag_s")
+        self.rows: dict[str, list] = {k: [] for k in (
+            "t", "p_true", "q_true", "ekf_p", "ekf_q", "ekf_P", "ukf_p", "ukf_q", "ukf_P", "camera_free_p",
+            "camera_free_q", "lag_t", "lag_p_true", "lag_q_true", "ekf_fixed_lag_p", "ekf_fixed_lag_q",
+            "ekf_fixed_lag_P", "ukf_fixed_lag_p", "ukf_fixed_lag_q", "ukf_fixed_lag_P")}
         self.solves: list[tuple] = []  # (t, p, q, p_true, q_true)
         self.frames: dict[str, int] = {}
         self.detected: dict[str, int] = {}
@@ -74,7 +95,9 @@ class LoadEstimation:
             return
         fws = self.runner.firmware
         veh = VehicleStates(t, np.stack([fw.ekf.p_w_m for fw in fws]), np.stack([fw.ekf.v_w_m_s for fw in fws]),
-                            np.stack([fw.ekf.P[E_P, E_P] for fw in fws]))
+                            np.stack([fw.ekf.P[E_P, E_P] for fw in fws]), np.stack([fw.ekf.q_wxyz for fw in fws]),
+                            np.stack([fw.ekf.P[E_TH, E_TH] for fw in fws]),
+                            np.stack([fw.ekf.sckf_view()[3] for fw in fws]))
         self.vehicles.append(veh)
         del self.vehicles[:-200]
         w0 = time.perf_counter()
@@ -93,6 +116,17 @@ class LoadEstimation:
             r[f"{kind}_p"].append(est.pos_w_m.copy())
             r[f"{kind}_q"].append(est.q_wxyz.copy())
             r[f"{kind}_P"].append(est.P[np.ix_(sl, sl)])
+        t_lag = t - self.lag_s
+        if t_lag >= self.rows["t"][0] - 1e-9:
+            r["lag_t"].append(t_lag)
+            p_true, q_true = self._truth_at(t_lag)
+            r["lag_p_true"].append(p_true)
+            r["lag_q_true"].append(q_true)
+            for kind, filt in self.filters.items():
+                est = filt.estimate_at(t_lag)
+                r[f"{kind}_fixed_lag_p"].append(est.pos_w_m.copy())
+                r[f"{kind}_fixed_lag_q"].append(est.q_wxyz.copy())
+                r[f"{kind}_fixed_lag_P"].append(est.P[np.ix_(sl, sl)])
         free = self.load.camera_free_pose(veh.pos_w_m)  # the baseline without cameras
         r["camera_free_p"].append(free.pos_m)
         r["camera_free_q"].append(free.q_wxyz)
@@ -159,6 +193,16 @@ class LoadEstimation:
             out["load_pose_nees"] = {k: _nees_check(pose_error_whitened(
                 a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep], a["load_p_true"][keep],
                 a["load_q_true"][keep])) for k in self.filters}
+        if "load_lag_t" in a and np.any(a["load_lag_t"] >= settle):
+            keep = a["load_lag_t"] >= settle
+            names = [f"{k}_fixed_lag" for k in self.filters]
+            est = {k: (a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep]) for k in names}
+            out.setdefault("load_pose_err", {}).update(load_pose_err(est, a["load_lag_p_true"][keep],
+                                                                     a["load_lag_q_true"][keep]))
+            out.setdefault("load_pose_nees", {}).update({k: _nees_check(pose_error_whitened(
+                a[f"load_{k}_p"][keep], a[f"load_{k}_q"][keep], a[f"load_{k}_P"][keep], a["load_lag_p_true"][keep],
+                a["load_lag_q_true"][keep])) for k in names})
+            out["load_fixed_lag_s"] = self.lag_s
         if "load_unf_t" in a and np.any(a["load_unf_t"] >= settle):
             k = a["load_unf_t"] >= settle
             out.setdefault("load_pose_err", {})["unfiltered"] = error_summary(*pose_error_series(
@@ -168,7 +212,8 @@ class LoadEstimation:
         out["load_filter_stats"] = {k: {"images": f.stats.images, "accepted": f.stats.accepted,
                                         "rejected": f.stats.rejected, "late": f.stats.late,
                                         "dropped_too_late": f.stats.dropped_too_late,
-                                        "replayed_events": f.stats.replayed_events, "mean_nis": f.stats.mean_nis}
+                                        "replayed_events": f.stats.replayed_events, "mean_nis": f.stats.mean_nis,
+                                        "mean_dof": f.stats.mean_dof}
                                     for k, f in self.filters.items()}
         n_frames = sum(self.frames.values())
         out["load_vision"] = {

@@ -10,12 +10,13 @@ load_accelerations`) with each cable a one-sided spring-damper
 tensions, no cable elasticity) therefore differs from the truth, as it would in flight.
 
 Measurements (every random draw from one seed): vehicle samples at ``vehicle_rate_hz`` (position
-with white noise ``gnss_sigma_m`` and its covariance, velocity); per vehicle a downward camera at
+with white noise ``gnss_sigma_m`` and its covariance, velocity, attitude with white noise
+``vehicle_att_sigma_rad`` and its covariance, the formation's yaw rate); per vehicle a downward camera at
 ``camera_rate_hz`` (staggered), detecting the marker on the load's top face with probability
 ``detection_prob``; its PnP pose is the true one perturbed in ``[dtheta; dt]`` by a covariance
 that grows with distance (rotation and lateral linearly, depth quadratically), optionally with
 P3P-like spikes (``outlier_prob``: ``outlier_m`` along the optical axis), turned into eq. 4's
-measurement by :func:`~companion.load.model.observation_from_pnp`, and delivered
+measurement by :func:`~companion.load.measurements.observation_from_pnp`, and delivered
 ``latency_s`` + U(0, ``latency_jitter_s``) after capture.
 
 This replaces neither MuJoCo nor the real camera pipeline (:mod:`.flight` flies both); it is the
@@ -33,13 +34,9 @@ from companion.configfile import require_nonnegative, require_positive
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotmat
 from companion.vision.geometry import POS as PNP_POS
 from companion.vision.geometry import ROT as PNP_ROT
-from companion.load.filter import (
-    LoadEstimate,
-    LoadFilterConfig,
-    LoadPoseFilter,
-    UnfilteredLoadPose,
-    initial_estimate,
-)
+from companion.load.estimate import LoadEstimate, LoadFilterConfig, initial_estimate
+from companion.load.filter import LoadPoseFilter
+from companion.load.measurements import marker_in_camera, observation_from_pnp
 from companion.load.metrics import load_pose_err, pose_nees
 from companion.load.model import (
     ERR_ATT,
@@ -55,9 +52,8 @@ from companion.load.model import (
     cable_geometry,
     cross,
     load_accelerations,
-    marker_in_camera,
-    observation_from_pnp,
 )
+from companion.load.unfiltered import UnfilteredLoadPose
 
 from .formation import arc_length
 
@@ -88,6 +84,7 @@ class SlungLoadSim:
     latency_jitter_s: float = 0.04
     gnss_sigma_m: float = 0.02
     vel_sigma_m_s: float = 0.05
+    vehicle_att_sigma_rad: float = 0.005
     pnp_rot_sigma_deg_at_1m: float = 1.0
     pnp_roll_sigma_deg_at_1m: float = 0.3
     pnp_lateral_sigma_m_at_1m: float = 0.003
@@ -101,7 +98,7 @@ class SlungLoadSim:
         require_positive(self, "mass_kg", "attach_radius_m", "formation_radius_m", "cable_length_m", "circle_radius_m",
                          "ramp_s", "duration_s", "cable_stiffness_n_m", "sim_dt_s", "vehicle_rate_hz", "camera_rate_hz",
                          "pnp_rot_sigma_deg_at_1m", "pnp_roll_sigma_deg_at_1m", "pnp_lateral_sigma_m_at_1m",
-                         "pnp_depth_sigma_m_at_1m", "gnss_sigma_m", "vel_sigma_m_s")
+                         "pnp_depth_sigma_m_at_1m", "gnss_sigma_m", "vel_sigma_m_s", "vehicle_att_sigma_rad")
         require_nonnegative(self, "speed_m_s", "cable_damping_n_s_m", "latency_s", "latency_jitter_s", "outlier_m")
         if not 0.0 < self.detection_prob <= 1.0 or not 0.0 <= self.outlier_prob < 1.0:
             raise ValueError("detection_prob must be in (0, 1] and outlier_prob in [0, 1)")
@@ -237,19 +234,29 @@ def _pnp_cov(distance_m: float, sim: SlungLoadSim) -> np.ndarray:
     return cov
 
 
+def _yaw_quat(yaw_rad: float) -> np.ndarray:
+    return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
+
+
 def synthesize(truth: LoadTruth, sim: SlungLoadSim, seed: int) -> LoadMeasurements:
     """Draw the vehicle samples and the camera images for one seed (module docstring)."""
     rng = np.random.default_rng(seed)
     n = sim.n_vehicles
     cam, marker = sim.camera_in_body(), sim.marker_in_load()
     vehicles = []
+    yaw_rate = np.gradient(truth.vehicle_yaw_rad, truth.t_s)
     for t in np.arange(0.0, truth.t_s[-1] + 1e-9, 1.0 / sim.vehicle_rate_hz):
         k = truth.index(t)
+        q_true = _yaw_quat(truth.vehicle_yaw_rad[k])
+        q_est = quat_mul(quat_from_rotvec(rng.normal(0.0, sim.vehicle_att_sigma_rad, (n, 3))), q_true)
         vehicles.append(VehicleStates(
             float(truth.t_s[k]),
             truth.vehicle_pos_w_m[k] + rng.normal(0.0, sim.gnss_sigma_m, (n, 3)),
             truth.vehicle_vel_w_m_s[k] + rng.normal(0.0, sim.vel_sigma_m_s, (n, 3)),
             np.broadcast_to(np.eye(3) * sim.gnss_sigma_m**2, (n, 3, 3)),
+            q_est,
+            np.broadcast_to(np.eye(3) * sim.vehicle_att_sigma_rad**2, (n, 3, 3)),
+            np.broadcast_to([0.0, 0.0, yaw_rate[k]], (n, 3)),
         ))
     images = []
     frames = outliers = 0
@@ -262,8 +269,7 @@ def synthesize(truth: LoadTruth, sim: SlungLoadSim, seed: int) -> LoadMeasuremen
                 continue
             x = truth.x[k]
             load = Pose3(x[NOM_POS], x[NOM_QUAT])
-            vehicle = Pose3(truth.vehicle_pos_w_m[k, i], [math.cos(truth.vehicle_yaw_rad[k] / 2), 0.0, 0.0,
-                                                          math.sin(truth.vehicle_yaw_rad[k] / 2)])
+            vehicle = Pose3(truth.vehicle_pos_w_m[k, i], _yaw_quat(truth.vehicle_yaw_rad[k]))
             R_cm, t_cm = marker_in_camera(load, vehicle, cam, marker)
             cov = _pnp_cov(float(np.linalg.norm(t_cm)), sim)
             e = rng.multivariate_normal(np.zeros(6), cov)
