@@ -6,6 +6,9 @@
   -1: off);
 * MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: one message now;
 * the dialect's MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact, or its release;
+* MAV_CMD_INJECT_FAILURE: a failure injected into the vehicle's sensors or motors
+  (:mod:`.failures`), acknowledged as PX4 does: DENIED while ``SYS_FAILURE_EN`` is 0 or for a
+  param that is not a number in range, UNSUPPORTED for a unit, type or instance not simulated;
 * anything else: MAV_RESULT_UNSUPPORTED.
 
 A parameter read as a number (a message id, an interval, the force value) that is not finite
@@ -22,6 +25,7 @@ import numpy as np
 from companion.mavlink.codec import MessageError, decode_contact_command
 from companion.mavlink.dialect import load_dialect
 
+from .failures import OK, parse_failure
 from .links import Endpoint, statustext
 from .streams.schedule import BUILDERS
 
@@ -59,6 +63,8 @@ def on_command(v, ep: Endpoint, msg) -> None:
         _request_message(v, ep, msg)
     elif cmd == D.MAV_CMD_SKELETON_SET_CONTACT:
         _set_contact(v, ep, msg)
+    elif cmd == D.MAV_CMD_INJECT_FAILURE:
+        _inject_failure(v, ep, msg)
     else:
         ack(ep, msg, D.MAV_RESULT_UNSUPPORTED)
 
@@ -119,3 +125,32 @@ def _set_contact(v, ep: Endpoint, msg) -> None:
     log.warning("link %d: %s", v.system_id, reason)
     statustext(ep, D.MAV_SEVERITY_WARNING, reason)
     ack(ep, msg, D.MAV_RESULT_DENIED)
+
+
+def _inject_failure(v, ep: Endpoint, msg) -> None:
+    """MAV_CMD_INJECT_FAILURE (param1 FAILURE_UNIT, param2 FAILURE_TYPE, param3 instance, 0: all):
+    applied to the vehicle's :class:`~.failures.FailureInjector`, reported to every link as a
+    STATUSTEXT and in the log; refused with a STATUSTEXT to the sender when ``SYS_FAILURE_EN`` is 0
+    or a param is not a number in range (DENIED), or when it is not simulated (UNSUPPORTED)."""
+    if not v.params.values["SYS_FAILURE_EN"]:
+        reason, result = "Failure injection disabled (SYS_FAILURE_EN 0)", D.MAV_RESULT_DENIED
+    else:
+        try:
+            unit, ftype, instance = parse_failure(msg.param1, msg.param2, msg.param3)
+        except ValueError as exc:
+            reason, result = f"Failure injection refused: {exc}", D.MAV_RESULT_DENIED
+        else:
+            what = v.failures.inject(unit, ftype, instance)
+            if what is not None:
+                text = f"Failure injection: {what}"
+                log.warning("link %d at %.2f s: %s", v.system_id, v.fc_time_s, text)
+                severity = D.MAV_SEVERITY_INFO if ftype == OK else D.MAV_SEVERITY_WARNING
+                v.recorder.statustext(v.fc_time_s, severity, text)
+                v.status_all(severity, text)
+                ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+                return
+            reason = f"Failure unsupported: unit {unit} type {ftype} inst {instance}"
+            result = D.MAV_RESULT_UNSUPPORTED
+    log.warning("link %d: %s", v.system_id, reason)
+    statustext(ep, D.MAV_SEVERITY_WARNING, reason)
+    ack(ep, msg, result)

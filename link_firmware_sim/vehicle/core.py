@@ -43,6 +43,7 @@ from ..config import VehicleSetup
 from ..events import SEVERITY
 from ..firmware import CorrectionRejected, LinkFirmware
 from .commands import on_command
+from .failures import FailureInjector
 from .ftp import on_ftp
 from .links import Endpoint, VehiclePorts, open_endpoints, statustext
 from .lockstep import Lockstep
@@ -82,6 +83,8 @@ class Vehicle:
         self.fc_time_us = 0
         self.errors = {"hil": 0, "mavlink": 0, "correction_rejected": 0, "disarm_refused": 0, "setup_signing_refused": 0,
                        "hil_baro": 0, "hil_mag": 0}
+        #: failures injected by MAV_CMD_INJECT_FAILURE, applied to the samples the lockstep takes in
+        self.failures = FailureInjector(seed=instance)
         self.lockstep = Lockstep(self, ports.sim, thrust_max_n)
         self.sim = self.lockstep.sim
         try:
@@ -241,8 +244,8 @@ class Vehicle:
 
     def close(self) -> None:
         """The flight log saved and the link's counters written (``link<i>_ports.json``: every
-        port's, the errors, the GPS health, the thrust limit, the EKF's fused and gated
-        measurements), then every port closed."""
+        port's, the errors, the GPS health, the thrust limit, the injected failures, the EKF's
+        fused and gated measurements), then every port closed."""
         if self._closed:
             return
         self._closed = True
@@ -253,6 +256,7 @@ class Vehicle:
             stats["errors"] = self.errors
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
             stats["thrust_limit"] = self.fw.thrust_limit.report()
+            stats["failures"] = self.failures.report()
             if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)
                 stats["ekf"] = {"accepted": self.fw.ekf.accepted, "rejected": self.fw.ekf.rejected}
             (self.out_dir / f"link{self.system_id}_ports.json").write_text(json.dumps(stats, indent=1, default=str))

@@ -1,6 +1,8 @@
 """The vehicle's side of the simulator link, in lockstep: every HIL_SENSOR gets exactly one
 HIL_ACTUATOR_CONTROLS answer, echoing its ``time_usec``; HIL_GPS and SKELETON_AHRS_REFERENCE
-start the EKF, then feed it. The simulator's ticks are the flight controller's clock.
+start the EKF, then feed it. The simulator's ticks are the flight controller's clock. Injected
+failures (:mod:`.failures`) apply to the GPS fixes, IMU samples and rotor commands here; while an
+IMU or motor failure is in effect every tick takes the decoders' path.
 
 Three paths, with the same numbers (``tests/integration/test_lockstep.py``):
 
@@ -92,6 +94,10 @@ class Lockstep:
                 self._on_hil_sensor(msg)
             elif kind == "HIL_GPS":
                 t, p, vel = decode_hil_gps(msg, v.origin)
+                fix = v.failures.gps(p, vel)
+                if fix is None:  # an injected GPS failure: no fix reaches the firmware
+                    return
+                p, vel = fix
                 self.last_gps = (t, p, vel)
                 if fw.initialized:
                     fw.on_gps(t, p, vel)
@@ -125,7 +131,12 @@ class Lockstep:
             # rotors stay off, but the simulator still gets its answer.
             self._answer(np.zeros(8))
             return
-        self._answer(v.fw.on_imu(t, gyro, accel))
+        failures = v.failures
+        if failures.imu_or_motor:
+            gyro, accel = failures.imu(gyro, accel)
+            self._answer(failures.thrust(v.fw.on_imu(t, gyro, accel)))
+        else:
+            self._answer(v.fw.on_imu(t, gyro, accel))
         v.after_tick()
 
     def _on_baro_mag(self, t: float, msg) -> None:
@@ -155,6 +166,8 @@ class Lockstep:
         message object on the way. ``False`` (nothing changed) for any other packet: the caller
         decodes it."""
         v = self.vehicle
+        if v.failures.imu_or_motor:
+            return False  # (an injected IMU or motor failure is applied on the decoding path)
         rec = np.frombuffer(data, dtype=np.uint8)
         at = sensor_record_at(rec, len(rec))
         if at < 0:
@@ -188,6 +201,8 @@ class Lockstep:
         ``False`` (nothing waited for) when the case does not hold; the caller then waits as
         usual."""
         v = self.vehicle
+        if v.failures.imu_or_motor:
+            return False  # (an injected IMU or motor failure is applied on the decoding path)
         hil = self.buffers
         framing = hil.framing
         if self.records:

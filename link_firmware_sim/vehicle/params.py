@@ -76,6 +76,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_GPS_RECOV", "float", 0.0, 60.0, "GPS fault cleared after fixes accepted for [s]"),
     ParamSpec("SKL_GPS_DRIFT", "float", 0.05, 50.0, "GPS fault when positions drift from velocity by [m/s]"),
     ParamSpec("SKL_GPS_RST_T", "float", 0.5, 120.0, "Position reset to GPS after rejected for [s] (no aiding)"),
+    ParamSpec("SYS_FAILURE_EN", "int", 0, 1, "Failure injection (MAV_CMD_INJECT_FAILURE): 0 off (denied), 1 on"),
 )
 #: SKL_CTRL's values, in order (FirmwareConfig.controller)
 CONTROLLERS = ("impedance", "se3_pid", "hybrid")
@@ -136,6 +137,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_GPS_RECOV": config.gps.recover_s,
         "SKL_GPS_DRIFT": config.gps.drift_max_m_s,
         "SKL_GPS_RST_T": config.gps.reset_s,
+        "SYS_FAILURE_EN": 0,
     }
 
 
