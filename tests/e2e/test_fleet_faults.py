@@ -14,6 +14,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -174,3 +175,63 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     texts = list(zip(log["statustext_link"].tolist(), log["statustext_text"].tolist()))
     assert any(link == 3 and "GPS" in text for link, text in texts), texts
     assert {link for link, _ in texts} <= {1, 2, 3} and np.all(np.diff(log["statustext_t"]) >= 0)
+
+
+@pytest.mark.slow
+def test_mavsdk_injects_a_gps_failure_into_link_2_of_a_running_fleet(tmp_path, fleet_ports):
+    """PX4's way at run time: with SYS_FAILURE_EN 0 the vehicle denies MAV_CMD_INJECT_FAILURE
+    (pymavlink, from the ground-station port); MAVSDK's Param and Failure plugins (their own
+    process, on the same port) then enable it and inject GPS off into link 2 in the hover for 3 s,
+    and clear it. Link 2's firmware flags its GPS, its neighbours and the companion carry it
+    through as through the scripted outage, and the flight goes on without a crash."""
+    from companion.mavlink.dialect import load_dialect
+    from companion.mavlink.port import MavlinkPort
+    from companion.mavlink.transport import wait_readable
+
+    D = load_dialect()
+    sc = load_scenario(THREE_LINK, duration_s=20.0)
+    got: dict = {}
+
+    def ground_station(stop):
+        gcs = MavlinkPort(f"udpin://127.0.0.1:{fleet_ports.gcs_port}", system_id=254, component_id=190)
+        try:
+            boot_s: dict[int, float] = {}
+            deadline = time.monotonic() + 60
+            while boot_s.get(2, 0.0) < 8.0 and time.monotonic() < deadline and not stop.is_set():
+                wait_readable([gcs], 0.2)
+                for m in gcs.read():
+                    if getattr(m, "time_boot_ms", None) is not None:
+                        boot_s[m.get_srcSystem()] = m.time_boot_ms * 1e-3
+            gcs.transport.learn_peer(("127.0.0.1", fleet_ports.gcs_from(1)))
+            gcs.send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_INJECT_FAILURE, 0, D.FAILURE_UNIT_SENSOR_GPS,
+                                                    D.FAILURE_TYPE_OFF, 0, 0, 0, 0, 0))
+            end = time.monotonic() + 2.0
+            while "denied" not in got and time.monotonic() < end:
+                wait_readable([gcs], 0.1)
+                for m in gcs.read():
+                    if m.get_type() == "COMMAND_ACK" and m.command == D.MAV_CMD_INJECT_FAILURE and m.get_srcSystem() == 2:
+                        got["denied"] = m.result
+        finally:
+            gcs.close()
+        client = subprocess.run([sys.executable, str(ROOT / "tests" / "mavsdk_failure.py"),
+                                 f"udpin://127.0.0.1:{fleet_ports.gcs_port}", "2", "--off-s", "3", "--timeout", "15"],
+                                capture_output=True, text=True, timeout=60)
+        got["client"] = client
+
+    worker = threading.Thread(target=ground_station, args=(threading.Event(),), daemon=True)
+    worker.start()
+    m = launch(sc, tmp_path, speed=1.0, **fleet_ports.launch_kwargs)
+    worker.join(60)
+    client = got["client"]
+    out = json.loads(client.stdout.strip().splitlines()[-1])
+    assert got["denied"] == D.MAV_RESULT_DENIED
+    assert client.returncode == 0 and out["SYS_FAILURE_EN"] == 1, client.stderr[-2000:]
+    assert out["off"]["result"] == "SUCCESS" and out["ok"]["result"] == "SUCCESS", out
+    assert not m["crashed"] and m["min_altitude_m"] > 1.8, (m.get("crash_reason"), m["min_altitude_m"])
+    report = json.loads((tmp_path / "link2" / "link2_ports.json").read_text())
+    assert report["gps"]["faults"] >= 1 and 2.0 < report["gps"]["fault_s"] < 8.0, report["gps"]
+    log = np.load(tmp_path / "log.npz")
+    texts = [(link, text) for link, text in zip(log["statustext_link"].tolist(), log["statustext_text"].tolist())]
+    assert (2, "Failure injection: gps off") in texts and (2, "Failure injection: gps ok") in texts, texts
+    assert any(link == 2 and text.startswith("GPS lost") for link, text in texts), texts
+    assert_ports_released(fleet_ports, 3)
