@@ -3,7 +3,8 @@ user to connect: the launcher's printed ``signing key`` line typed at MAVProxy's
 dialect's environment from ``python -m companion dialect``.
 
 With the key: every vehicle's parameter list completes, an integer parameter is set and read back,
-a vehicle arms and disarms on the ground. Without it: the telemetry is readable (it is signed, not
+a vehicle arms and disarms on the ground, and a GPS failure is injected with MAVProxy's `long`
+command once SYS_FAILURE_EN allows it. Without it: the telemetry is readable (it is signed, not
 encrypted) but nothing is answered. Neither session prints a traceback."""
 
 from __future__ import annotations
@@ -190,6 +191,24 @@ def test_mavproxy_on_a_signed_fleet_as_the_manual_says(tmp_path, fleet_ports):
         mark = gcs.send("disarm")
         assert gcs.expect(r"COMPONENT_ARM_DISARM: ACCEPTED", 15, mark), gcs.output()[-2000:]
         assert gcs.expect(r"DISARMED", 15, mark), gcs.output()[-2000:]
+        # Failure injection the PX4 way, with MAVProxy's generic `long` command: denied until
+        # SYS_FAILURE_EN is set, then GPS off accepted (and announced), then cleared
+        mark = gcs.send("long INJECT_FAILURE 4 1 0")
+        assert gcs.expect(r"COMMAND_ACK: INJECT_FAILURE: DENIED", 10, mark), gcs.output()[-2000:]
+        gcs.send("param set SYS_FAILURE_EN 1")  # (MAVProxy sends it from its idle loop: wait for it)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            mark = gcs.send("param show SYS_FAILURE_EN")
+            shown = gcs.expect(r"SYS_FAILURE_EN\s+(-?\d+(?:\.\d+)?)", 5, mark)
+            if shown and float(shown.group(1)) == 1:
+                break
+        else:
+            pytest.fail(f"SYS_FAILURE_EN never read back as 1:\n{gcs.output()[-2000:]}")
+        mark = gcs.send("long INJECT_FAILURE 4 1 0")
+        assert gcs.expect(r"COMMAND_ACK: INJECT_FAILURE: ACCEPTED", 10, mark), gcs.output()[-2000:]
+        assert gcs.expect(r"Failure injection: gps off", 10, mark), gcs.output()[-2000:]
+        mark = gcs.send("long INJECT_FAILURE 4 0 0")
+        assert gcs.expect(r"COMMAND_ACK: INJECT_FAILURE: ACCEPTED", 10, mark), gcs.output()[-2000:]
         mark = gcs.send("status SKELETON_LINK_STATE")  # the dialect's own message, decoded
         assert gcs.expect(r"SKELETON_LINK_STATE \{time_usec", 10, mark), gcs.output()[-2000:]
         text = gcs.output()
