@@ -28,6 +28,7 @@ __all__ = [
     "STATE_FLAG_GPS_FAULT",
     "MessageError",
     "check_finite",
+    "check_bounded",
     "check_unit_quat",
     "check_pd",
     "check_psd",
@@ -61,6 +62,16 @@ def check_finite(name: str, values) -> np.ndarray:
     a = np.asarray(values, dtype=float)
     if not np.isfinite(a).all():
         raise MessageError(f"{name}: non-finite value")
+    return a
+
+
+def check_bounded(name: str, values, limit: float) -> np.ndarray:
+    """``values`` as a finite float array whose Euclidean norm is at most ``limit``;
+    :class:`MessageError` naming ``name`` otherwise (a corrupt or mis-scaled field)."""
+    a = check_finite(name, values)
+    norm = float(np.linalg.norm(a))
+    if norm > limit:
+        raise MessageError(f"{name}: magnitude {norm:.4g} exceeds {limit:g}")
     return a
 
 

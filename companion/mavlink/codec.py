@@ -22,6 +22,7 @@ from companion.messages import (
     LinkState,
     MessageError,
     PoseTarget,
+    check_bounded,
     check_finite,
     check_pd,
     check_unit_quat,
@@ -134,29 +135,26 @@ def encode_target_feedforward(target: PoseTarget, time_boot_ms: int, target_syst
         torque_frd=flu_frd(target.torque_ff_b_nm).tolist())
 
 
-def decode_target_feedforward(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(omega_dot_d FLU, force_ff world ENU, torque_ff FLU)`` of a SKELETON_TARGET_FEEDFORWARD."""
-    return (flu_frd(check_finite("ang_accel_frd", msg.ang_accel_frd)), enu_ned(check_finite("force_ned", msg.force_ned)),
-            flu_frd(check_finite("torque_frd", msg.torque_frd)))
-
-
-#: Plausibility bounds of the decoders below (a corrupt or mis-scaled field, not a control limit:
+#: Plausibility bounds of the decoders here (a corrupt or mis-scaled field, not a control limit:
 #: the firmware's own bound on a commanded contact force is SKL_CT_FMAX)
 WRENCH_FORCE_LIMIT_N = 1e4
 WRENCH_TORQUE_LIMIT_NM = 1e4
+ANG_ACCEL_LIMIT_RAD_S2 = 1e4
 CONTACT_FORCE_LIMIT_N = 1e3
 CONTACT_POINT_LIMIT_M = 10.0
+
+
+def decode_target_feedforward(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(omega_dot_d FLU, force_ff world ENU, torque_ff FLU)`` of a SKELETON_TARGET_FEEDFORWARD;
+    :class:`MessageError` on a non-finite value or one beyond its plausibility bound."""
+    return (flu_frd(check_bounded("ang_accel_frd", msg.ang_accel_frd, ANG_ACCEL_LIMIT_RAD_S2)),
+            enu_ned(check_bounded("force_ned", msg.force_ned, WRENCH_FORCE_LIMIT_N)),
+            flu_frd(check_bounded("torque_frd", msg.torque_frd, WRENCH_TORQUE_LIMIT_NM)))
+
+
 #: MAV_CMD_SKELETON_SET_CONTACT param1 that releases the contact (pose control only)
 CONTACT_RELEASE = -1.0
 _UNIT_TOL = 1e-3  # float32 on the wire: a normal within this of unit length is renormalised
-
-
-def _bounded(name: str, values, limit: float) -> np.ndarray:
-    v = check_finite(name, values)
-    norm = float(np.linalg.norm(v))
-    if norm > limit:
-        raise MessageError(f"{name}: magnitude {norm:.4g} exceeds {limit:g}")
-    return v
 
 
 def _contact_pair(force_n: float, setpoint_n: float) -> tuple[float, float]:
@@ -176,8 +174,8 @@ def _contact_pair(force_n: float, setpoint_n: float) -> tuple[float, float]:
 def encode_external_wrench(wrench: ExternalWrench):
     """SKELETON_EXTERNAL_WRENCH of an :class:`ExternalWrench` (world ENU / body FLU inside, NED / FRD
     out); :class:`MessageError` on non-finite or implausible values (nothing is sent)."""
-    f = _bounded("force_w_n", wrench.force_w_n, WRENCH_FORCE_LIMIT_N)
-    tau = _bounded("torque_b_nm", wrench.torque_b_nm, WRENCH_TORQUE_LIMIT_NM)
+    f = check_bounded("force_w_n", wrench.force_w_n, WRENCH_FORCE_LIMIT_N)
+    tau = check_bounded("torque_b_nm", wrench.torque_b_nm, WRENCH_TORQUE_LIMIT_NM)
     lam, lam_d = _contact_pair(wrench.contact_force_n, wrench.contact_force_cmd_n)
     return _D.MAVLink_skeleton_external_wrench_message(
         time_usec=usec(wrench.time_s), force_ned=enu_ned(f).tolist(), torque_frd=flu_frd(tau).tolist(),
@@ -189,8 +187,8 @@ def decode_external_wrench(msg, link: int) -> ExternalWrench:
     lam, lam_d = _contact_pair(msg.contact_force, msg.contact_force_setpoint)
     return ExternalWrench(
         link=link, time_s=seconds(msg.time_usec),
-        force_w_n=enu_ned(_bounded("force_ned", msg.force_ned, WRENCH_FORCE_LIMIT_N)),
-        torque_b_nm=flu_frd(_bounded("torque_frd", msg.torque_frd, WRENCH_TORQUE_LIMIT_NM)),
+        force_w_n=enu_ned(check_bounded("force_ned", msg.force_ned, WRENCH_FORCE_LIMIT_N)),
+        torque_b_nm=flu_frd(check_bounded("torque_frd", msg.torque_frd, WRENCH_TORQUE_LIMIT_NM)),
         contact_force_n=lam, contact_force_cmd_n=lam_d)
 
 
@@ -223,5 +221,5 @@ def decode_contact_command(msg) -> ContactTarget | None:
     norm = float(np.linalg.norm(n))
     if abs(norm - 1.0) > _UNIT_TOL:
         raise MessageError(f"param2-4 (normal): length {norm:.4g} is not 1")
-    r = _bounded("param5-7 (contact point)", [msg.param5, msg.param6, msg.param7], CONTACT_POINT_LIMIT_M)
+    r = check_bounded("param5-7 (contact point)", [msg.param5, msg.param6, msg.param7], CONTACT_POINT_LIMIT_M)
     return ContactTarget(enu_ned(n / norm), flu_frd(r), force)

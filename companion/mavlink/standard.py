@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.estimation.chain import ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import quat_from_euler_zyx, quat_to_rotmat
-from companion.messages import LinkState, MessageError, PoseTarget, check_finite, check_pd, check_unit_quat
+from companion.messages import LinkState, MessageError, PoseTarget, check_bounded, check_finite, check_pd, check_unit_quat
 
 from .dialect import load_dialect
 from .frames import enu_ned, error_cov_enu_ned, flu_frd, quat_enu_flu_to_ned_frd, quat_ned_frd_to_enu_flu
@@ -60,6 +60,12 @@ _MASK_VEL = 0b0000_0011_1000
 _MASK_ACC = 0b0001_1100_0000
 _MASK_RATES = 0b0000_0111
 _MASK_ATTITUDE = 0b1000_0000
+#: Plausibility bounds of a decoded target, each a vector's norm (a corrupt or mis-scaled field,
+#: not a control limit): position from the local origin, velocity, acceleration, body rates
+TARGET_POSITION_LIMIT_M = 1e5
+TARGET_VELOCITY_LIMIT_M_S = 1e3
+TARGET_ACCEL_LIMIT_M_S2 = 1e3
+TARGET_RATE_LIMIT_RAD_S = 1e3
 
 
 def _upper6(M: np.ndarray) -> list[float]:
@@ -142,13 +148,16 @@ def decode_odometry(msg, link: int) -> LinkState:
 
 def decode_external_pose(msg) -> ExternalPose:
     """The pose of an external-vision ODOMETRY or VISION_POSITION_ESTIMATE (no covariance needed;
-    VISION_POSITION_ESTIMATE has no velocity: ``v`` is ``None``)."""
+    VISION_POSITION_ESTIMATE has no velocity: ``v`` is ``None``); :class:`MessageError` on a
+    non-finite value, a non-unit quaternion or an angle beyond 2 pi."""
     if msg.get_type() == "ODOMETRY":
         p, v, q, _ = _odometry_kinematics(msg)
         return ExternalPose(msg.time_usec * 1e-6, p, v, q)
     if msg.get_type() == "VISION_POSITION_ESTIMATE":
         p = check_finite("VISION_POSITION_ESTIMATE.x/y/z", (msg.x, msg.y, msg.z))
         rpy = check_finite("VISION_POSITION_ESTIMATE.roll/pitch/yaw", (msg.roll, msg.pitch, msg.yaw))
+        if np.any(np.abs(rpy) > 2.0 * math.pi):
+            raise MessageError(f"VISION_POSITION_ESTIMATE.roll/pitch/yaw: {rpy.tolist()} beyond 2 pi")
         q_ned = quat_from_euler_zyx(rpy[2], rpy[1], rpy[0])
         return ExternalPose(msg.usec * 1e-6, enu_ned(p), None, quat_ned_frd_to_enu_flu(q_ned))
     raise MessageError(f"{msg.get_type()}: not an external-vision message")
@@ -178,16 +187,17 @@ def encode_position_target(target: PoseTarget, time_boot_ms: int, target_system:
 
 
 def decode_position_target(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(p, v, a)`` ENU of a SET_POSITION_TARGET_LOCAL_NED (masked-out velocity or acceleration: 0)."""
+    """``(p, v, a)`` ENU of a SET_POSITION_TARGET_LOCAL_NED (masked-out velocity or acceleration: 0);
+    :class:`MessageError` on a non-finite value or one beyond its ``TARGET_*_LIMIT``, masked or not."""
     if msg.coordinate_frame != _D.MAV_FRAME_LOCAL_NED:
         raise MessageError(f"SET_POSITION_TARGET_LOCAL_NED.coordinate_frame: {msg.coordinate_frame} (LOCAL_NED only)")
-    vals = check_finite("SET_POSITION_TARGET_LOCAL_NED", (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz,
-                                                          msg.afx, msg.afy, msg.afz))
+    name = "SET_POSITION_TARGET_LOCAL_NED"
+    p = check_bounded(f"{name}.x/y/z", (msg.x, msg.y, msg.z), TARGET_POSITION_LIMIT_M)
+    v = check_bounded(f"{name}.vx/vy/vz", (msg.vx, msg.vy, msg.vz), TARGET_VELOCITY_LIMIT_M_S)
+    a = check_bounded(f"{name}.afx/afy/afz", (msg.afx, msg.afy, msg.afz), TARGET_ACCEL_LIMIT_M_S2)
     mask = msg.type_mask
-    p = enu_ned(vals[0:3])
-    v = enu_ned(vals[3:6]) if not mask & _MASK_VEL else np.zeros(3)
-    a = enu_ned(vals[6:9]) if not mask & _MASK_ACC else np.zeros(3)
-    return p, v, a
+    return (enu_ned(p), enu_ned(v) if not mask & _MASK_VEL else np.zeros(3),
+            enu_ned(a) if not mask & _MASK_ACC else np.zeros(3))
 
 
 def encode_attitude_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):
@@ -200,13 +210,14 @@ def encode_attitude_target(target: PoseTarget, time_boot_ms: int, target_system:
 
 
 def decode_attitude_target(msg) -> tuple[np.ndarray, np.ndarray]:
-    """``(q, omega)`` ENU/FLU of a SET_ATTITUDE_TARGET (rates masked out: 0)."""
+    """``(q, omega)`` ENU/FLU of a SET_ATTITUDE_TARGET (rates masked out: 0); :class:`MessageError`
+    on a non-finite or non-unit quaternion, or rates beyond ``TARGET_RATE_LIMIT_RAD_S``."""
     if msg.type_mask & _MASK_ATTITUDE:
         raise MessageError("SET_ATTITUDE_TARGET.type_mask: the attitude is masked out (rate-only targets are not "
                            "supported)")
     q = check_unit_quat("SET_ATTITUDE_TARGET.q", msg.q)
-    rates = check_finite("SET_ATTITUDE_TARGET body rates", (msg.body_roll_rate, msg.body_pitch_rate,
-                                                             msg.body_yaw_rate))
+    rates = check_bounded("SET_ATTITUDE_TARGET body rates", (msg.body_roll_rate, msg.body_pitch_rate,
+                                                              msg.body_yaw_rate), TARGET_RATE_LIMIT_RAD_S)
     if msg.type_mask & _MASK_RATES:
         rates = np.zeros(3)
     return quat_ned_frd_to_enu_flu(q), flu_frd(rates)

@@ -15,6 +15,7 @@ from companion.kernels.jit import jit
 from companion.kernels.so3 import quat_mul
 
 __all__ = ["HIL_SENSOR_RECORD", "HIL_ACTUATOR_RECORD", "HIL_AHRS_RECORD", "AHRS_NORM_TOLERANCE", "HIL_BARO_MAG_BITS",
+           "IMU_ACCEL_MAX_M_S2", "IMU_GYRO_MAX_RAD_S",
            "sensor_record_at", "ahrs_record", "record_time_us"]
 
 #: the records as :func:`.tick.hil_tick_kernel` reads and writes them. They are literals in this
@@ -38,6 +39,10 @@ AHRS_NORM_TOLERANCE = 1e-3
 #: HIL_SENSOR_MAG, abs_pressure, pressure_alt; a literal for the same reason, and
 #: ``tests/unit/test_fast_paths.py`` checks it is hil's): such a tick takes the decoding path
 HIL_BARO_MAG_BITS = 0x1C0 | (1 << 9) | (1 << 11)
+#: ``hil.decode_hil_sensor``'s bounds on each component of an IMU sample, accelerometer [m/s^2] and
+#: gyro [rad/s] (literals for the same reason; ``tests/unit/test_fast_paths.py`` checks they are hil's)
+IMU_ACCEL_MAX_M_S2 = 2000.0
+IMU_GYRO_MAX_RAD_S = 100.0
 
 
 @jit

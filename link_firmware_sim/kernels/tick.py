@@ -25,8 +25,8 @@ from companion.kernels.so3 import retract, rotmat_unit
 
 from .allocation import ALLOC_META, allocate_kernel
 from .ekf import attitude_update_kernel, ekf_predict_kernel
-from .hil_records import (HIL_ACTUATOR_RECORD, HIL_BARO_MAG_BITS, HIL_SENSOR_RECORD, ahrs_record, record_time_us,
-                          sensor_record_at)
+from .hil_records import (HIL_ACTUATOR_RECORD, HIL_BARO_MAG_BITS, HIL_SENSOR_RECORD, IMU_ACCEL_MAX_M_S2,
+                          IMU_GYRO_MAX_RAD_S, ahrs_record, record_time_us, sensor_record_at)
 from .impedance import impedance_kernel
 from .layouts import (CTL_GRAVITY, CTL_MASS, IN_CORRECTION, IN_TARGET, IN_WEIGHT, IO_AHRS_ACCEPTED, IO_AHRS_Q,
                       IO_AHRS_REJECTED, IO_AHRS_T_US, IO_FRAME, IO_GYRO, IO_MODE, IO_THRUST_MAX, OUT_COMMAND,
@@ -125,9 +125,9 @@ def attitude_tick_kernel(x, P, q_meas, imu, dt_s, ekf_par, cmd, ctl, alloc, out)
 def hil_tick_kernel(rec, answer, x, P, dt_s, ekf_par, cmd, ctl, alloc, io):
     """The vehicle's common lockstep tick from bytes to bytes: a same-host simulator-link packet
     ``rec`` (uint8) holding one HIL_SENSOR record with an IMU sample only (no barometer or
-    magnetometer bits) and finite accelerations and rates, after a SKELETON_AHRS_REFERENCE record
-    on the attitude reference's ticks, to its HIL_ACTUATOR_CONTROLS record in ``answer`` (uint8,
-    ``HIL_ACTUATOR_RECORD``'s size).
+    magnetometer bits) and finite accelerations and rates within the decoder's bounds
+    (``IMU_*_MAX``), after a SKELETON_AHRS_REFERENCE record on the attitude reference's ticks, to
+    its HIL_ACTUATOR_CONTROLS record in ``answer`` (uint8, ``HIL_ACTUATOR_RECORD``'s size).
 
     The steps of the decoding path, with the same numbers: ``hil.decode_hil_sensor`` (body FRD to
     FLU), :func:`tick_kernel` with the propagation, ``hil.encode_actuators`` (each command over
@@ -137,10 +137,11 @@ def hil_tick_kernel(rec, answer, x, P, dt_s, ekf_par, cmd, ctl, alloc, io):
     the tick without the propagation, as the firmware runs a queued measurement; ``io`` counts it
     (``IO_AHRS_ACCEPTED`` / ``IO_AHRS_REJECTED``, added to) and holds its time and quaternion.
     ``io[IO_GYRO]`` gets the body rate (FLU), ``io[:OUT_SIZE]`` the tick's results. Returns ``(x,
-    P, taken)``: with ``taken`` false (another kind or size, baro/mag bits, a non-finite value, a
-    reference the decoder rejects, an answer buffer of another size) nothing was changed or written
-    and the caller decodes the packet the general way. The fields sit at odd offsets: they are
-    copied byte-wise into aligned arrays, never read or written through a misaligned view."""
+    P, taken)``: with ``taken`` false (another kind or size, baro/mag bits, a non-finite or
+    out-of-range value, a reference the decoder rejects, an answer buffer of another size) nothing
+    was changed or written and the caller decodes the packet the general way. The fields sit at odd
+    offsets: they are copied byte-wise into aligned arrays, never read or written through a
+    misaligned view."""
     s0 = sensor_record_at(rec, rec.shape[0])
     if s0 < 0 or answer.shape[0] != _ACT_SIZE:
         return x, P, False  # (the answer's size checked too: numba does not check the writes' bounds)
@@ -150,8 +151,8 @@ def hil_tick_kernel(rec, answer, x, P, dt_s, ekf_par, cmd, ctl, alloc, io):
         return x, P, False
     imu = np.empty(6, np.float32)  # xacc, yacc, zacc, xgyro, ygyro, zgyro: adjacent in the record
     imu.view(np.uint8)[:] = rec[s0 + _SENSOR_ACC:s0 + _SENSOR_ACC + 24]
-    for i in range(6):
-        if not math.isfinite(imu[i]):
+    for i in range(6):  # (NaN fails the comparison)
+        if not abs(np.float64(imu[i])) <= (IMU_ACCEL_MAX_M_S2 if i < 3 else IMU_GYRO_MAX_RAD_S):
             return x, P, False
     accel = np.empty(3)
     g = np.empty(3)

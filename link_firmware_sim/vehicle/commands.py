@@ -1,7 +1,8 @@
 """COMMAND_LONG and COMMAND_INT, each answered with a COMMAND_ACK:
 
 * MAV_CMD_COMPONENT_ARM_DISARM: arm (refused while the EKF is not running), disarm (refused in
-  flight unless param2 is PX4's force value :data:`FORCE_DISARM`);
+  flight unless param2 is PX4's force value :data:`FORCE_DISARM`); a param1 that does not round
+  to 0 or 1 is DENIED;
 * MAV_CMD_SET_MESSAGE_INTERVAL: a stream's interval on the link it came from (0: the default,
   -1: off);
 * MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: one message now;
@@ -71,7 +72,13 @@ def on_command(v, ep: Endpoint, msg) -> None:
 
 def _arm_disarm(v, ep: Endpoint, msg) -> None:
     fw = v.fw
-    if _finite(msg, "param1") >= 0.5:
+    action = _finite(msg, "param1")
+    if not -0.5 <= action < 1.5:  # PX4 rounds it: 1 arms, 0 disarms, anything else is refused
+        log.warning("link %d: ARM_DISARM param1 %g is neither 0 nor 1", v.system_id, action)
+        statustext(ep, D.MAV_SEVERITY_ERROR, f"Unsupported ARM_DISARM param: {action:.3g}")
+        ack(ep, msg, D.MAV_RESULT_DENIED)
+        return
+    if action >= 0.5:
         result = D.MAV_RESULT_ACCEPTED if fw.arm(v.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
     elif fw.armed and not fw.landed(v.fc_time_s) and int(round(_finite(msg, "param2"))) != FORCE_DISARM:
         # PX4: disarming in flight needs the force value (the link would fall)

@@ -35,7 +35,7 @@ import numpy as np
 from companion.mavlink.codec import MessageError, decode_correction
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.signing import SigningConfig
-from companion.mavlink.standard import decode_external_pose
+from companion.mavlink.standard import ExternalPose, decode_external_pose
 from companion.mavlink.transport import wait_readable
 from companion.messages import Correction
 
@@ -208,7 +208,7 @@ class Vehicle:
                 self._on_correction(decode_correction(msg, self.instance))
             elif kind in ("ODOMETRY", "VISION_POSITION_ESTIMATE"):
                 pose = decode_external_pose(msg)  # standard-messages mode: the companion's corrected pose
-                self.fw.on_external_pose(self.fc_time_s, pose.p_w_m, pose.v_w_m_s, pose.q_wxyz)
+                self._on_external_pose(pose)
             elif kind == "SET_POSITION_TARGET_LOCAL_NED":
                 self.targets.on_position_target(msg)
             elif kind == "SET_ATTITUDE_TARGET":
@@ -233,10 +233,21 @@ class Vehicle:
         try:
             self.fw.on_correction(self.fc_time_s, corr)
         except CorrectionRejected as exc:
-            self.errors["correction_rejected"] += 1
-            log.warning("link %d: %s (SKL_CORR_MAX*; rejected so far: %d)", self.system_id, exc,
-                        self.errors["correction_rejected"])
-            self.status_all(D.MAV_SEVERITY_WARNING, "Correction rejected: out of bounds", every_s=5.0)
+            self._correction_rejected(exc)
+
+    def _on_external_pose(self, pose: ExternalPose) -> None:
+        """An external-vision pose as the correction (the firmware's bounds apply as to a
+        SKELETON_CORRECTION: one out of them is rejected, counted and reported)."""
+        try:
+            self.fw.on_external_pose(self.fc_time_s, pose.p_w_m, pose.v_w_m_s, pose.q_wxyz)
+        except CorrectionRejected as exc:
+            self._correction_rejected(exc)
+
+    def _correction_rejected(self, exc: CorrectionRejected) -> None:
+        self.errors["correction_rejected"] += 1
+        log.warning("link %d: %s (SKL_CORR_MAX*; rejected so far: %d)", self.system_id, exc,
+                    self.errors["correction_rejected"])
+        self.status_all(D.MAV_SEVERITY_WARNING, "Correction rejected: out of bounds", every_s=5.0)
 
     # -- the end ---------------------------------------------------------------------------------
     def flight_log(self) -> dict[str, np.ndarray]:

@@ -71,6 +71,13 @@ _HIL_PRESSURE_ALT = 1 << 11
 #: (the earth's field is under 0.7 G; a reading beyond 4 G is a saturated or broken sensor)
 BARO_RANGE_HPA = (10.0, 1200.0)
 MAG_MAX_GAUSS = 4.0
+#: and an IMU's, per component: beyond a high-g accelerometer's 200 g or 100 rad/s (no MEMS gyro
+#: measures 4000 deg/s) the sample is corrupt, not a reading
+IMU_ACCEL_MAX_M_S2 = 2000.0
+IMU_GYRO_MAX_RAD_S = 100.0
+#: the latest simulation time a HIL message may carry [us] (35 years): the flight controller's
+#: clock in float seconds keeps the microsecond up to it
+HIL_TIME_MAX_US = 2**50
 _BARO_TEMPERATURE_C = 20.0
 _GPS_FIX_3D = 3
 
@@ -80,11 +87,21 @@ def sitl_gps_time_us(sim_time_us: int) -> int:
     return SITL_GPS_EPOCH_US + int(sim_time_us)
 
 
-def _check(name: str, values) -> np.ndarray:
-    """``values`` (a message's numbers) as a float array; :class:`MessageError` if one is not finite."""
+def _check(name: str, values, limit: float = math.inf) -> np.ndarray:
+    """``values`` (a message's numbers) as a float array; :class:`MessageError` if one is not finite
+    or, in magnitude, beyond ``limit``."""
     if not all(map(math.isfinite, values)):
         raise MessageError(f"{name}: non-finite value")
+    if not all(abs(x) <= limit for x in values):
+        raise MessageError(f"{name}: a component beyond {limit:g}")
     return np.array(values, dtype=float)
+
+
+def _time_s(name: str, time_usec: int) -> float:
+    """A HIL message's ``time_usec`` in seconds; :class:`MessageError` beyond :data:`HIL_TIME_MAX_US`."""
+    if time_usec > HIL_TIME_MAX_US:
+        raise MessageError(f"{name}.time_usec: {time_usec} is beyond {HIL_TIME_MAX_US}")
+    return seconds(time_usec)
 
 
 def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None,
@@ -119,10 +136,12 @@ def encode_hil_sensors(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_ga
 
 
 def decode_hil_sensor(msg) -> tuple[float, np.ndarray, np.ndarray]:
-    """``(t_s, gyro_flu, accel_flu)``."""
-    acc = _check("HIL_SENSOR.acc", (msg.xacc, msg.yacc, msg.zacc))
-    gyr = _check("HIL_SENSOR.gyro", (msg.xgyro, msg.ygyro, msg.zgyro))
-    return seconds(msg.time_usec), flu_frd(gyr), flu_frd(acc)
+    """``(t_s, gyro_flu, accel_flu)``; :class:`MessageError` for a time beyond
+    :data:`HIL_TIME_MAX_US` or an IMU component that is not finite or beyond ``IMU_*_MAX``."""
+    t = _time_s("HIL_SENSOR", msg.time_usec)
+    acc = _check("HIL_SENSOR.acc", (msg.xacc, msg.yacc, msg.zacc), IMU_ACCEL_MAX_M_S2)
+    gyr = _check("HIL_SENSOR.gyro", (msg.xgyro, msg.ygyro, msg.zgyro), IMU_GYRO_MAX_RAD_S)
+    return t, flu_frd(gyr), flu_frd(acc)
 
 
 @dataclass(frozen=True)
@@ -192,7 +211,7 @@ def decode_hil_gps(msg, origin: GeoOrigin) -> tuple[float, np.ndarray, np.ndarra
         raise MessageError(f"HIL_GPS.fix_type: {msg.fix_type} (no 3D fix)")
     p = origin.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
     v = enu_ned(np.array([msg.vn, msg.ve, msg.vd], dtype=float) * 0.01)
-    return seconds(msg.time_usec), p, v
+    return _time_s("HIL_GPS", msg.time_usec), p, v
 
 
 def encode_ahrs(t_s: float, q_enu_flu):
@@ -212,16 +231,18 @@ def decode_ahrs(msg) -> tuple[float, np.ndarray]:
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if abs(n - 1.0) > AHRS_NORM_TOLERANCE:
         raise MessageError(f"SKELETON_AHRS_REFERENCE.q: norm {n:.6g} is not 1")
-    return seconds(msg.time_usec), quat_ned_frd_to_enu_flu(q / n)
+    return _time_s("SKELETON_AHRS_REFERENCE", msg.time_usec), quat_ned_frd_to_enu_flu(q / n)
 
 
-def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool):
+def encode_actuators(t_s: float, thrust_n, thrust_max_n: float, armed: bool, time_usec: int | None = None):
+    """HIL_ACTUATOR_CONTROLS of rotor thrusts [N] at ``t_s`` (``time_usec``: the time to echo as it
+    came, for an answer to a sample whose time is refused)."""
     controls = [0.0] * 16
     # clipped to -1..1 (NaN stays NaN, as np.clip): plain floats, numpy's per-call cost at 500 Hz is not
     u = (np.asarray(thrust_n, dtype=float) / thrust_max_n).tolist()
     controls[:ROTORS_PER_LINK] = [min(max(x, -1.0), 1.0) for x in u]
     mode = _D.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
-    return _D.MAVLink_hil_actuator_controls_message(usec(t_s), controls, mode, 0)
+    return _D.MAVLink_hil_actuator_controls_message(usec(t_s) if time_usec is None else time_usec, controls, mode, 0)
 
 
 def decode_actuators(msg, thrust_max_n: float) -> tuple[int, np.ndarray]:

@@ -116,15 +116,19 @@ class Lockstep:
             log.warning("link %d: rejected %s: %s", v.system_id, kind, exc)
 
     def _on_hil_sensor(self, msg) -> None:
-        """One lockstep tick: every HIL_SENSOR gets exactly one HIL_ACTUATOR_CONTROLS answer."""
+        """One lockstep tick: every HIL_SENSOR gets exactly one HIL_ACTUATOR_CONTROLS answer. A
+        sample the decoder refuses is answered with zero thrust at its own ``time_usec`` (the
+        lockstep goes on) and moves nothing: not the clock, not the estimate."""
         v = self.vehicle
-        v.fc_time_us = int(msg.time_usec)
-        v.fc_time_s = v.fc_time_us * 1e-6
         try:
             t, gyro, accel = decode_hil_sensor(msg)
         except MessageError:
-            self._answer(np.zeros(8))  # keep the lockstep going; the caller logs the rejection
+            # keep the lockstep going; the caller logs the rejection
+            self.sim.send(encode_actuators(0.0, np.zeros(8), self.thrust_max_n, v.fw.armed,
+                                                 time_usec=int(msg.time_usec)))
             raise
+        v.fc_time_us = int(msg.time_usec)
+        v.fc_time_s = t
         self._on_baro_mag(t, msg)
         if not v.fw.initialized:
             # The EKF starts at the first GPS fix with an attitude reference; until then the

@@ -17,12 +17,15 @@ __all__ = ["on_setup_signing"]
 
 log = logging.getLogger(__name__)
 D = load_dialect()
+#: the largest signing timestamp (48 bits on the wire; a larger one could not be sent)
+TIMESTAMP_MAX = 2**48 - 1
 
 
 def on_setup_signing(v, ep: Endpoint, msg) -> None:
     """SETUP_SIGNING ``msg`` to vehicle ``v`` from link ``ep``: refused (counted in
     ``errors["setup_signing_refused"]``, answered with a STATUSTEXT) on an untrusted link;
-    :class:`MessageError` for a key of the wrong length."""
+    :class:`MessageError` for a key of the wrong length or a timestamp beyond 48 bits (nothing
+    changed)."""
     if msg.target_system not in (0, v.system_id):
         return
     if not ep.trusted:
@@ -33,6 +36,8 @@ def on_setup_signing(v, ep: Endpoint, msg) -> None:
     key = bytes(msg.secret_key)
     if len(key) != KEY_LEN:
         raise MessageError(f"SETUP_SIGNING key of {len(key)} bytes")
+    if msg.initial_timestamp > TIMESTAMP_MAX:
+        raise MessageError(f"SETUP_SIGNING initial_timestamp {msg.initial_timestamp} does not fit the 48-bit timestamp")
     disable = not any(key) and msg.initial_timestamp == 0
     for other in v.endpoints:
         mode = "off" if disable else (v.signing.link_mode(other.name) if v.signing.active else "required")

@@ -340,7 +340,7 @@ def test_record_tick_matches_the_decoding_path():
     rejected by the gate), new targets, one 30 m off (the rotors at their limit, the controls
     clipped to -1..1): the answer byte for byte, the commands, the state and the EKF's counts bit
     for bit. Then what the kernel must leave to the decoders, with nothing changed or written: a
-    non-finite sample, a barometer or magnetometer sample, another kind, a reference not finite, not
+    non-finite or out-of-range sample, a barometer or magnetometer sample, another kind, a reference not finite, not
     of norm 1 or without its sample, the records in another order or with a GPS fix, a cut packet,
     the fused tick off."""
     from companion.estimation.so3 import quat_from_rotvec, quat_mul
@@ -350,6 +350,8 @@ def test_record_tick_matches_the_decoding_path():
 
     assert hil_records.HIL_BARO_MAG_BITS == hil._BARO_MAG_BITS
     assert hil_records.AHRS_NORM_TOLERANCE == hil.AHRS_NORM_TOLERANCE
+    assert (hil_records.IMU_ACCEL_MAX_M_S2, hil_records.IMU_GYRO_MAX_RAD_S) == (hil.IMU_ACCEL_MAX_M_S2,
+                                                                              hil.IMU_GYRO_MAX_RAD_S)
     rng = np.random.default_rng(29)
     record, decoding = _firmware_pair()
     decoding.fused_tick = True  # its ticks through on_imu (fused when it can: the same kernel's numbers)
@@ -426,10 +428,12 @@ def test_record_tick_matches_the_decoding_path():
     sample = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3))
     nan = hil.encode_hil_sensor(t, np.array([0.0, np.nan, 9.81]), np.zeros(3))
     inf = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.array([0.0, 0.0, np.inf]))
+    huge = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 1e30]), np.zeros(3))  # beyond the IMU bounds
+    spin = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.array([0.0, 1.5 * hil.IMU_GYRO_MAX_RAD_S, 0.0]))
     baro = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3), baro_alt_m=120.0)
     mag = hil.encode_hil_sensor(t, np.array([0.0, 0.0, 9.81]), np.zeros(3), mag_flu_gauss=np.array([0.2, 0.0, -0.4]))
     gps = hil.encode_hil_gps(t, p0, np.zeros(3), hil.GeoOrigin())
-    left = [encode_packet([m]) for m in (nan, inf, baro, mag, gps)]
+    left = [encode_packet([m]) for m in (nan, inf, huge, spin, baro, mag, gps)]
     ahrs = hil.encode_ahrs(t, q0)
     left += [encode_packet(m) for m in ([ahrs], [sample, ahrs], [gps, ahrs, sample], [ahrs, baro], [ahrs, nan])]
     for q in ([np.nan, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.05], [0.0, 0.0, 0.0, 0.0]):  # the decoder rejects
