@@ -22,6 +22,27 @@ from mavsdk.plugins.param import Param, ParamError
 from mavsdk.plugins.telemetry import Telemetry
 
 
+def ground_station(url: str) -> Mavsdk:
+    """A MAVSDK instance as a ground station, listening on ``url``."""
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    mav = Mavsdk(cfg)
+    cfg.destroy()
+    mav.add_any_connection(url)
+    return mav
+
+
+def find_autopilot(mav: Mavsdk, sysid: int, timeout_s: float):
+    """The system ``sysid`` among those ``mav`` discovers within ``timeout_s`` (several vehicles
+    may send to one port), or ``None``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = next((s for s in mav.get_systems() if s.get_system_id() == sysid), None)
+        if found is not None:
+            return found
+        time.sleep(0.1)
+    return None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("url")
@@ -31,18 +52,12 @@ def main() -> int:
     ap.add_argument("--set-float", action="append", default=[], metavar="NAME=V")
     args = ap.parse_args()
 
-    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
-    mav = Mavsdk(cfg)
-    cfg.destroy()
+    mav = ground_station(args.url)
     out: dict = {"discovered": False}
     try:
-        mav.add_any_connection(args.url)
-        deadline = time.monotonic() + args.timeout
-        system = None
-        while system is None and time.monotonic() < deadline:
-            system = mav.first_autopilot(1.0)
-        if system is None or system.get_system_id() != args.sysid:
-            out["seen_sysid"] = None if system is None else system.get_system_id()
+        system = find_autopilot(mav, args.sysid, args.timeout)
+        if system is None:
+            out["seen"] = [s.get_system_id() for s in mav.get_systems()]
             return 1
         out["discovered"] = True
         out["sysid"] = system.get_system_id()

@@ -17,9 +17,9 @@ import json
 import sys
 import time
 
-from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.failure import Failure, FailureError, FailureType, FailureUnit
 from mavsdk.plugins.param import Param
+from mavsdk_client import find_autopilot, ground_station  # (this folder: the script's own)
 
 
 def _inject(failure: Failure, ftype) -> dict:
@@ -39,17 +39,10 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=20.0)
     args = ap.parse_args()
 
-    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
-    mav = Mavsdk(cfg)
-    cfg.destroy()
+    mav = ground_station(args.url)
     out: dict = {"discovered": False}
     try:
-        mav.add_any_connection(args.url)
-        deadline = time.monotonic() + args.timeout
-        system = None
-        while system is None and time.monotonic() < deadline:
-            system = next((s for s in mav.get_systems() if s.get_system_id() == args.sysid), None)
-            time.sleep(0.1)
+        system = find_autopilot(mav, args.sysid, args.timeout)
         if system is None:
             out["seen"] = [s.get_system_id() for s in mav.get_systems()]
             return 1
