@@ -27,6 +27,8 @@ import logging
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from .estimate import LoadEstimate, LoadFilterConfig, with_vehicle_bias
 from .kalman import FILTER_KINDS, FilterKind, correct, predict
 from .measurements import cable_measurement, image_measurement
@@ -145,7 +147,11 @@ class LoadPoseFilter:
         obs: LoadObservation = ev.payload  # type: ignore[assignment]
         vehicles = self._vehicles_at(obs.stamp_s)
         m = image_measurement(est.x, obs, vehicles, attitude=self.cfg.marker_attitude)
-        est, nis, ok = correct(self.kind, est, m, self.cfg, self.cfg.gate_chi2(m.dof))
+        try:
+            est, nis, ok = correct(self.kind, est, m, self.cfg, self.cfg.gate_chi2(m.dof))
+        except np.linalg.LinAlgError as exc:  # a singular innovation: the image is refused, not fatal
+            nis, ok = math.inf, False
+            log.warning("image of vehicle %d at %.3f s refused: %s", obs.vehicle, obs.stamp_s, exc)
         ev.nis, ev.dof, ev.accepted = nis, m.dof, ok
         self.stats.nis_sum += nis
         self.stats.dof_sum += m.dof
@@ -166,7 +172,13 @@ class LoadPoseFilter:
             return est
         m = cable_measurement(est.x, vehicles, est.stamp_s, self.params, self.cfg.cable_length_sigma_m,
                               self.cfg.cable_taut_fraction)
-        return est if m is None else correct(self.kind, est, m, self.cfg, None)[0]
+        if m is None:
+            return est
+        try:
+            return correct(self.kind, est, m, self.cfg, None)[0]
+        except np.linalg.LinAlgError as exc:
+            log.warning("cable lengths at %.3f s not applied: %s", est.stamp_s, exc)
+            return est
 
     def _process(self, events: list[_Event]) -> None:
         est = self._latest

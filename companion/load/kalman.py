@@ -131,8 +131,11 @@ def ukf_predict(est: LoadEstimate, vehicles: VehicleStates, t_to_s: float, param
 def ukf_correct(est: LoadEstimate, m: Measurement, cfg: LoadFilterConfig,
                 gate_chi2: float | None) -> tuple[LoadEstimate, float, bool]:
     """The UKF update with ``m``: the sigma points through ``m.h`` (``m.H`` unused), the
-    measurement's mean and covariance, the cross covariance with the state's tangent errors.
-    Returns as :func:`ekf_correct`."""
+    measurement's mean and covariance, the cross covariance with the state's tangent errors. The
+    posterior is ``Pxx - K S K^T`` with ``Pxx`` the sigma points' own covariance in the tangent
+    space (``P`` itself while every point maps back exactly; not when an attitude spread passes
+    pi and wraps): the joint covariance of the points is positive semi-definite, so the
+    posterior is too, whatever the data. Returns as :func:`ekf_correct`."""
     chi, Wm, Wc = _sigma_points(est, cfg)
     Z = m.h(chi)
     z_hat = Wm @ Z
@@ -146,7 +149,8 @@ def ukf_correct(est: LoadEstimate, m: Measurement, cfg: LoadFilterConfig,
     if gate_chi2 is not None and nis > gate_chi2:
         return est, nis, False
     K = Pxz @ S_inv
-    P_new = symmetrised(est.P - K @ S @ K.T)
+    Pxx = (dx * Wc[:, None]).T @ dx
+    P_new = symmetrised(Pxx - K @ S @ K.T)
     return LoadEstimate(est.stamp_s, boxplus(est.x, K @ innov), P_new), nis, True
 
 
