@@ -7,8 +7,8 @@ filters roll back and replay) and the unfiltered solve
 (:class:`~companion.load.unfiltered.UnfilteredLoadPose`); the vehicles' own EKF states (GNSS-aided
 position and attitude with their covariances) are the filters' vehicle samples at
 ``load.vehicle_rate_hz``. The filters
-start from the rigging's prior (the load hanging level below the formation, 0.1 m and 0.1 rad),
-not from the truth.
+start from the rigging's prior below the vehicles' own estimated positions (the camera-free
+pose, 0.1 m and 0.1 rad), not from the truth or the formation's targets.
 
 Each filter is scored twice: in real time (its estimate at every vehicle sample, what a
 controller would get, predicted past the images still on their way) and at a fixed lag (its
@@ -38,7 +38,6 @@ from sitl.cameras.video import pipeline_config
 from sitl.metrics import correlation_time, nees_bounds95
 
 from .config import SlungLoadScenario
-from .formation import formation_state
 from .model import SlungLoadModel
 
 __all__ = ["LoadEstimation"]
@@ -102,8 +101,7 @@ class LoadEstimation:
         del self.vehicles[:-200]
         w0 = time.perf_counter()
         if not self.filters:
-            f = formation_state(t, self.load.formation)
-            prior = self.load.nominal_pose(f.center_w_m, f.phi_rad)
+            prior = self.load.camera_free_pose(veh.pos_w_m)  # the rigging below the vehicles' own estimates
             init = initial_estimate(t, prior.pos_m, prior.q_wxyz, veh, self.params, pos_sigma_m=0.1, att_sigma_rad=0.1)
             self.filters = {kind: LoadPoseFilter(kind, self.params, self.load.filter, init) for kind in ("ekf", "ukf")}
         r = self.rows
