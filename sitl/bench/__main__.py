@@ -11,6 +11,7 @@
     python -m sitl.bench sitl [--duration S] [--fleet-duration S] [--batch A,B] [--fleet A,B] [--out DIR]
     python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
     python -m sitl.bench view [--config TOML] [--duration S] [--repeat N] [--modes off,on,browser] [--out DIR]
+    python -m sitl.bench soak [--config NAME|PATH] [--duration S] [--sample-s S] [--out DIR]
     (every bench also takes [--doc [PATH] | --no-doc], below)
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
@@ -59,6 +60,8 @@ DOCS = {
              ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
     "controllers": ("One link's pose controllers on one scenario: tracking", ("numpy", "mujoco", "numba")),
     "view": ("The live 3D view's cost: a batch flight with and without --view", ("numpy", "mujoco", "numba", "viser")),
+    "soak": ("Soak: an unpaced fleet's memory, descriptors and disk over a long flight",
+             ("numpy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
 }
 
 
@@ -282,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.set_defaults(func=_cmd_seeds, bench=name)
     _add_sitl_parser(sub)
     _add_view_parser(sub)
+    _add_soak_parser(sub)
     lfb = sub.add_parser(
         "load_filter",
         help="slung load pose: EKF vs UKF vs unfiltered on the synthetic scenario, N seeds",
@@ -495,6 +499,42 @@ def _add_view_parser(sub) -> None:
     vp.add_argument("--quiet", action="store_true", help="no progress bar")
     add_doc_options(vp, "view")
     vp.set_defaults(func=_cmd_view)
+
+
+def _cmd_soak(args) -> int:
+    from .soak import format_soak, markdown_soak, resolve_config, run_soak
+
+    try:
+        if args.duration <= 0 or args.sample_s <= 0:
+            raise ValueError("--duration and --sample-s must be positive")
+        resolve_config(args.config)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir("soak", args.out)
+    with tqdm(total=args.duration, desc="soak", unit="sim s", disable=args.quiet, file=sys.stderr) as bar:
+        result = run_soak(args.config, args.duration, args.sample_s, run_dir,
+                          progress=lambda t: bar.update(max(0.0, min(t, bar.total) - bar.n)))
+    path = _write_json(result, args.json, run_dir, "soak.json")
+    text = format_soak(result)
+    print(text)
+    print(f"\nwrote {path}; the flight in {run_dir / 'fleet'}, its console in {run_dir / 'fleet.log'}")
+    _write_doc(args, run_dir, markdown_soak(result), text, [path])
+    return 0 if result["exit_code"] == 0 else 1
+
+
+def _add_soak_parser(sub) -> None:
+    sp = sub.add_parser("soak", help="an unpaced fleet's RSS, open fds and run folder size over a long flight",
+                        description=("Fly one fleet unpaced and sample /proc (current RSS, open fds per process by "
+                                     "role) and the run folder's size; report each one's growth per simulated hour."))
+    sp.add_argument("--config", default="three_link", help="scenario name or file (default three_link)")
+    sp.add_argument("--duration", type=float, default=3600.0, help="simulated seconds (default 3600)")
+    sp.add_argument("--sample-s", type=float, default=5.0, help="wall seconds between samples (default 5)")
+    sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/soak-<UTC time>)")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(sp, "soak")
+    sp.set_defaults(func=_cmd_soak)
 
 
 def _cmd_load_filter(args) -> int:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
+from .procfs import descendants as _descendants, role as _role, sample as _sample
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
            "run_speed", "format_speed", "markdown_speed"]
@@ -49,7 +50,6 @@ CONFIG_DIR = Path("configs/sitl")
 RTF_TARGETS = {("batch", "three_link"): 10.0, ("batch", "seven_link"): 5.0, ("fleet", "three_link"): 3.0,
                ("fleet", "seven_link"): 1.5}
 TICK_TARGET_US = 30.0
-_TICK_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def _config(name: str) -> Path:
@@ -164,55 +164,6 @@ def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
     return {"scenario": name, "mode": "batch", "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
             "cpu_s_per_sim_s": cpu / sim, "peak_rss_mb": rss / 1024.0, "crashed": metrics.get("crashed")}
-
-
-def _descendants(pid: int) -> set[int]:
-    children: dict[int, list[int]] = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, ValueError, IndexError):
-            continue
-        children.setdefault(ppid, []).append(int(entry))
-    out, todo = set(), [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            out.add(c)
-            todo.append(c)
-    return out
-
-
-def _sample(pid: int) -> tuple[str, float, int] | None:
-    """(command line, CPU seconds, peak RSS [kB]) of a live process."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rsplit(")", 1)[1].split()
-        cpu = (int(fields[11]) + int(fields[12])) / _TICK_S  # utime, stime
-        with open(f"/proc/{pid}/cmdline", "rb") as fh:
-            cmd = fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
-        hwm = 0
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmHWM:"):
-                    hwm = int(line.split()[1])
-        return cmd, cpu, hwm
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def _role(cmd: str) -> str | None:
-    """A fleet process's role from its command line: ``vehicle <i>``, ``companion[ g<G>]``, ``wire``."""
-    parts = cmd.split()
-    if "link_firmware_sim" in parts:
-        return f"vehicle {int(parts[parts.index('--instance') + 1]) + 1}" if "--instance" in parts else "vehicle"
-    if "companion" in parts:
-        return f"companion g{parts[parts.index('--group') + 1]}" if "--group" in parts else "companion"
-    if "sitl.fleet.wire" in parts:
-        return "wire"
-    return None
 
 
 def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp") -> list[str]:
