@@ -89,6 +89,17 @@ def _write_doc(args, run_dir: Path, body: str, console: str, outputs) -> None:
     print(f"wrote the Markdown report {path}")
 
 
+def _publish(args, run_dir: Path, result: dict, json_name: str, text: str, body: str, also: str = "",
+             outputs=()) -> None:
+    """The end of every bench: the result's JSON (``--json`` or ``json_name`` in the run folder),
+    the console table ``text`` and where everything went (``also``: the other outputs), and the
+    Markdown report of ``body`` with ``outputs`` (:func:`_write_doc`)."""
+    path = _write_json(result, args.json, run_dir, json_name)
+    print(text)
+    print(f"\nwrote {path}{also}")
+    _write_doc(args, run_dir, body, text, [path, *outputs])
+
+
 def _params(args) -> CAParams | None:
     """The CA parameters from the options, or ``None`` after printing what is wrong."""
     try:
@@ -141,12 +152,9 @@ def _cmd_table2(args) -> int:
         return 1
     results = {name: [r["result"][name] for r in campaign.records] for name in configs}
     result = combine_configs({name: aggregate_seeds(res) for name, res in results.items()})
-    path = _write_json(result, args.json, run_dir, "table2.json")
-    text = format_table2_configs(result)
-    print(text)
     streams = ", ".join(f"ekf_stream{'' if n == 'paper' else '_' + n}.npz ({n})" for n in configs)
-    print(f"\nwrote {path} and in {run_dir}: {streams}, replay inputs of seed {args.seed}")
-    _write_doc(args, run_dir, markdown_table2(result), text, [path])
+    _publish(args, run_dir, result, "table2.json", format_table2_configs(result), markdown_table2(result),
+             f" and in {run_dir}: {streams}, replay inputs of seed {args.seed}")
     return 0
 
 
@@ -157,11 +165,7 @@ def _cmd_scaling(args) -> int:
     run_dir = make_run_dir("scaling", args.out)
     with tqdm(total=len(LINK_COUNTS), desc="chain lengths", unit="n", disable=args.quiet, file=sys.stderr) as bar:
         result = run_scaling(args.seed, LINK_COUNTS, params=params, progress=bar.update)
-    path = _write_json(result, args.json, run_dir, "scaling.json")
-    text = format_scaling(result)
-    print(text)
-    print(f"\nwrote {path}")
-    _write_doc(args, run_dir, markdown_scaling(result), text, [path])
+    _publish(args, run_dir, result, "scaling.json", format_scaling(result), markdown_scaling(result))
     return 0
 
 
@@ -178,11 +182,7 @@ def _cmd_zenoh(args) -> int:
     run_dir = make_run_dir("zenoh", args.out)
     print(f"{args.duration:g} s of global steps over Zenoh on loopback ...", file=sys.stderr)
     result = run_zenoh_rtt(groups, args.duration, seed=args.seed, base_port=args.base_port)
-    path = _write_json(result, args.json, run_dir, "zenoh.json")
-    text = format_zenoh_rtt(result)
-    print(text)
-    print(f"\nwrote {path}")
-    _write_doc(args, run_dir, markdown_zenoh_rtt(result), text, [path])
+    _publish(args, run_dir, result, "zenoh.json", format_zenoh_rtt(result), markdown_zenoh_rtt(result))
     return 0
 
 
@@ -346,11 +346,9 @@ def _cmd_controllers(args) -> int:
     with tqdm(total=len(controllers) * sc.duration_s, desc="controllers", unit="sim s", disable=args.quiet,
               file=sys.stderr) as bar:
         result = compare_controllers(sc, run_dir, controllers, progress=bar.update)
-    path = _write_json(result, args.json, run_dir, "controllers.json")
-    text = format_controllers(result)
-    print(text)
-    print(f"\nwrote {path}, {run_dir / 'compare_tracking.png'} and each controller's log.npz in {run_dir}")
-    _write_doc(args, run_dir, markdown_controllers(result), text, [path, run_dir / "compare_tracking.png"])
+    _publish(args, run_dir, result, "controllers.json", format_controllers(result), markdown_controllers(result),
+             f", {run_dir / 'compare_tracking.png'} and each controller's log.npz in {run_dir}",
+             [run_dir / "compare_tracking.png"])
     return 0 if not any(m["crashed"] for m in result["controllers"].values()) else 1
 
 
@@ -398,11 +396,9 @@ def _cmd_seeds(args) -> int:
         return 1
     result["profile"] = args.profile or sc.sensors.profile
     result["duration_s"] = sc.duration_s
-    path = _write_json(result, args.json, run_dir, f"{args.bench}.json")
-    text = (format_nees if args.bench == "nees" else format_static)(result)
-    print(text)
-    print(f"\nwrote {path} and one folder per seed in {run_dir}")
-    _write_doc(args, run_dir, (markdown_nees if args.bench == "nees" else markdown_static)(result), text, [path])
+    fmt, markdown = (format_nees, markdown_nees) if args.bench == "nees" else (format_static, markdown_static)
+    _publish(args, run_dir, result, f"{args.bench}.json", fmt(result), markdown(result),
+             f" and one folder per seed in {run_dir}")
     return 0
 
 
@@ -429,11 +425,8 @@ def _cmd_sitl(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     result.update(batch_duration_s=args.duration, fleet_duration_s=args.fleet_duration)
-    path = _write_json(result, args.json, run_dir, "speed.json")
-    text = format_speed(result)
-    print(text)
-    print(f"\nwrote {path}; every flight's folder and console log in {run_dir}")
-    _write_doc(args, run_dir, markdown_speed(result), text, [path])
+    _publish(args, run_dir, result, "speed.json", format_speed(result), markdown_speed(result),
+             f"; every flight's folder and console log in {run_dir}")
     return 0 if all(r["exit_code"] == 0 for r in result["runs"]) else 1
 
 
@@ -478,11 +471,7 @@ def _cmd_view(args) -> int:
     run_dir = make_run_dir("view-cost", args.out)
     with tqdm(total=args.repeat * len(modes), desc="flights", disable=args.quiet, file=sys.stderr) as bar:
         result = run_view_cost(args.config, args.duration, args.repeat, run_dir, modes, progress=bar.update)
-    path = _write_json(result, args.json, run_dir, "view_cost.json")
-    text = format_view_cost(result)
-    print(text)
-    print(f"\nwrote {path}")
-    _write_doc(args, run_dir, markdown_view_cost(result), text, [path])
+    _publish(args, run_dir, result, "view_cost.json", format_view_cost(result), markdown_view_cost(result))
     return 0 if all(r["exit_code"] == 0 and not r["browser_error"] for r in result["runs"]) else 1
 
 
@@ -515,11 +504,8 @@ def _cmd_soak(args) -> int:
     with tqdm(total=args.duration, desc="soak", unit="sim s", disable=args.quiet, file=sys.stderr) as bar:
         result = run_soak(args.config, args.duration, args.sample_s, run_dir,
                           progress=lambda t: bar.update(max(0.0, min(t, bar.total) - bar.n)))
-    path = _write_json(result, args.json, run_dir, "soak.json")
-    text = format_soak(result)
-    print(text)
-    print(f"\nwrote {path}; the flight in {run_dir / 'fleet'}, its console in {run_dir / 'fleet.log'}")
-    _write_doc(args, run_dir, markdown_soak(result), text, [path])
+    _publish(args, run_dir, result, "soak.json", format_soak(result), markdown_soak(result),
+             f"; the flight in {run_dir / 'fleet'}, its console in {run_dir / 'fleet.log'}")
     return 0 if result["exit_code"] == 0 else 1
 
 
@@ -555,12 +541,9 @@ def _cmd_load_filter(args) -> int:
     seeds = range(args.seed, args.seed + args.seeds)
     with tqdm(total=len(seeds), desc="load filters x seeds", unit="seed", disable=args.quiet, file=sys.stderr) as bar:
         result, first = run_load_filter_bench(seeds, sim, cfg, progress=bar.update)
-    path = _write_json(result, args.json, run_dir, "load_filter.json")
     plot_load_errors(first, run_dir / "load_pose_error.png")
-    text = format_load_filter(result)
-    print(text)
-    print(f"\nwrote {path} and {run_dir / 'load_pose_error.png'}")
-    _write_doc(args, run_dir, markdown_load_filter(result), text, [path, run_dir / "load_pose_error.png"])
+    _publish(args, run_dir, result, "load_filter.json", format_load_filter(result), markdown_load_filter(result),
+             f" and {run_dir / 'load_pose_error.png'}", [run_dir / "load_pose_error.png"])
     return 0
 
 
@@ -576,11 +559,8 @@ def _cmd_corners(args) -> int:
     except (ConfigError, ValueError, RuntimeError) as exc:  # (RuntimeError: nothing renders on this machine)
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    path = _write_json(result, args.json, run_dir, "corners.json")
-    text = format_corners(result)
-    print(text)
-    print(f"\nwrote {path} and the flight in {run_dir}")
-    _write_doc(args, run_dir, markdown_corners(result), text, [path])
+    _publish(args, run_dir, result, "corners.json", format_corners(result), markdown_corners(result),
+             f" and the flight in {run_dir}")
     return 0
 
 
