@@ -186,15 +186,21 @@ def _cmd_zenoh(args) -> int:
     return 0
 
 
+def _output_args(p: argparse.ArgumentParser, name: str, folder: str | None = None) -> None:
+    """The outputs every bench takes: ``--json``, ``--out`` (default ``runs/<folder>-<UTC time>``,
+    ``folder`` defaulting to the bench's name), ``--quiet`` and the Markdown report's options."""
+    p.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
+    p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{folder or name}-<UTC time>)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_doc_options(p, name)
+
+
 def _flight_bench_args(p: argparse.ArgumentParser, name: str, config: str, what: str) -> None:
     """The options of a bench that flies one scenario: its file, length, seed, outputs."""
     p.add_argument("--config", default=config, help=f"{what} (default {config})")
     p.add_argument("--duration", type=float, help="simulated seconds per flight (default: the scenario's)")
     p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
-    p.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    p.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(p, name)
+    _output_args(p, name)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -278,10 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "this process; default 2)")
         sp.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                         help="fly on this running Dask scheduler's workers instead (python -m sitl campaign's engine)")
-        sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-        sp.add_argument("--out", metavar="DIR", help=f"run folder (default: runs/{name}-<UTC time>)")
-        sp.add_argument("--quiet", action="store_true", help="no progress bar")
-        add_doc_options(sp, name)
+        _output_args(sp, name)
         sp.set_defaults(func=_cmd_seeds, bench=name)
     _add_sitl_parser(sub)
     _add_view_parser(sub)
@@ -297,10 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     lfb.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     lfb.add_argument("--duration", type=float, default=12.0, help="simulated seconds per seed (default 12)")
     lfb.add_argument("--latency", type=float, default=0.08, help="image latency before jitter [s] (default 0.08)")
-    lfb.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    lfb.add_argument("--out", metavar="DIR", help="run folder (default: runs/load_filter-<UTC time>)")
-    lfb.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(lfb, "load_filter")
+    _output_args(lfb, "load_filter")
     lfb.set_defaults(func=_cmd_load_filter)
     co = sub.add_parser(
         "corners",
@@ -453,10 +453,7 @@ def _add_sitl_parser(sub) -> None:
     sp.add_argument("--repeat", type=int, default=1,
                     help="measure every figure (MuJoCo ceilings, batch flights, fleets) N times, interleaved, and "
                          "report the median run with every run's real-time factor (default 1; a VM's speed drifts)")
-    sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/sitl-speed-<UTC time>)")
-    sp.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(sp, "sitl")
+    _output_args(sp, "sitl", folder="sitl-speed")
     sp.set_defaults(func=_cmd_sitl)
 
 
@@ -483,10 +480,7 @@ def _add_view_parser(sub) -> None:
     vp.add_argument("--duration", type=float, default=30.0, help="simulated seconds per flight (default 30)")
     vp.add_argument("--repeat", type=int, default=3, help="rounds (default 3)")
     vp.add_argument("--modes", default="off,on,browser", help="view modes, comma-separated (default off,on,browser)")
-    vp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    vp.add_argument("--out", metavar="DIR", help="run folder (default: runs/view-cost-<UTC time>)")
-    vp.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(vp, "view")
+    _output_args(vp, "view", folder="view-cost")
     vp.set_defaults(func=_cmd_view)
 
 
@@ -516,10 +510,7 @@ def _add_soak_parser(sub) -> None:
     sp.add_argument("--config", default="three_link", help="scenario name or file (default three_link)")
     sp.add_argument("--duration", type=float, default=3600.0, help="simulated seconds (default 3600)")
     sp.add_argument("--sample-s", type=float, default=5.0, help="wall seconds between samples (default 5)")
-    sp.add_argument("--json", metavar="PATH", help="write the JSON result here (default: inside the run folder)")
-    sp.add_argument("--out", metavar="DIR", help="run folder (default: runs/soak-<UTC time>)")
-    sp.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_doc_options(sp, "soak")
+    _output_args(sp, "soak")
     sp.set_defaults(func=_cmd_soak)
 
 
