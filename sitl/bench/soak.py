@@ -44,10 +44,10 @@ _AT_T = re.compile(rb"at t = (-?\d+(?:\.\d+)?) s")
 
 def resolve_config(config: str) -> Path:
     """A scenario file: ``config`` itself if it is a file, else the scenario of that name."""
-    from .speed import _config
+    from .speed import scenario_file
 
     path = Path(config)
-    return path if path.is_file() else _config(config)
+    return path if path.is_file() else scenario_file(config)
 
 
 # -- the pure parts --------------------------------------------------------------------------------

@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
-from .procfs import descendants as _descendants, role as _role, sample as _sample
+from . import procfs
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
-           "run_speed", "format_speed", "markdown_speed"]
+           "run_speed", "format_speed", "markdown_speed", "scenario_file"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ RTF_TARGETS = {("batch", "three_link"): 10.0, ("batch", "seven_link"): 5.0, ("fl
 TICK_TARGET_US = 30.0
 
 
-def _config(name: str) -> Path:
+def scenario_file(name: str) -> Path:
     """The scenario file named ``name`` (``configs/sitl/*/<name>.toml``)."""
     paths = sorted(CONFIG_DIR.glob(f"*/{name}.toml"))
     if len(paths) != 1:
@@ -68,7 +68,7 @@ def mujoco_ceiling(name: str, duration_s: float) -> dict:
     from sitl.plant.plant import Plant
     from sitl.scenario import load_scenario
 
-    sc = load_scenario(_config(name))
+    sc = load_scenario(scenario_file(name))
     plant = Plant(sc)
     model = plant.model
     allocator = Allocator(plant.geometry, sc.firmware.allocation)
@@ -110,7 +110,7 @@ def _firmware_tick_once(n_ticks: int, seed: int) -> dict:
 
     if n_ticks < 1:
         raise ValueError(f"n_ticks must be at least 1, got {n_ticks}")
-    sc = load_scenario(_config("three_link"))
+    sc = load_scenario(scenario_file("three_link"))
     plant_inertia = link_inertia(sc.skeleton, sc.geometry())
     out = {}
     for label, fused in (("fused", True), ("step_by_step", False)):
@@ -149,7 +149,7 @@ def _wait_child(proc: subprocess.Popen) -> tuple[int, float, int]:
 def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.executable, tag: str = "") -> dict:
     """One batch flight (``python -m sitl fly``) as a child process (``tag``: its folder's suffix)."""
     folder = out_dir / f"batch-{name}{tag}"
-    argv = [python, "-m", "sitl", "fly", "--config", str(_config(name)), "--duration", f"{duration_s:g}",
+    argv = [python, "-m", "sitl", "fly", "--config", str(scenario_file(name)), "--duration", f"{duration_s:g}",
             "--no-plots", "--quiet", "--out", str(folder)]
     wall0 = time.perf_counter()
     with open(out_dir / f"batch-{name}{tag}.log", "wb") as fh:
@@ -169,7 +169,7 @@ def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
 def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp") -> list[str]:
     """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
     the lockstep's, not matplotlib's) over ``sim_link``."""
-    return ["launch", "--config", str(_config(name)), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
+    return ["launch", "--config", str(scenario_file(name)), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
             "--no-plots", "--sim-link", sim_link, "--out", str(folder)]
 
 
@@ -201,9 +201,9 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
                 text = text[-200:] + chunk.decode(errors="replace")
                 due = [m for m, line in (("start", LOCKSTEP_STARTED), ("end", LOCKSTEP_ENDED))
                        if m not in marks and line in text]
-                for pid in _descendants(proc.pid) | {proc.pid}:
-                    s = _sample(pid)
-                    if s is not None and (pid == proc.pid or _role(s[0]) is not None):
+                for pid in procfs.descendants(proc.pid) | {proc.pid}:
+                    s = procfs.sample(pid)
+                    if s is not None and (pid == proc.pid or procfs.role(s[0]) is not None):
                         latest[pid] = s[1]
                         if pid != proc.pid:
                             seen[pid] = s
@@ -226,7 +226,7 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
     # The launcher's own rusage covers it and its waited-for children: its own CPU is what is left.
     children_cpu = 0.0
     for cmd, c, hwm in seen.values():
-        role = _role(cmd)
+        role = procfs.role(cmd)
         processes[role] = {"cpu_s_per_sim_s": c / sim, "peak_rss_mb": hwm / 1024.0}
         children_cpu += c
     processes["harness"]["cpu_s_per_sim_s"] = max(cpu - children_cpu, 0.0) / sim
@@ -237,7 +237,7 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
         loop_total = 0.0
         for pid, c_end in marks["end"].items():
             c = c_end - marks["start"].get(pid, 0.0)
-            role = "harness" if pid == proc.pid else _role(seen[pid][0]) if pid in seen else None
+            role = "harness" if pid == proc.pid else procfs.role(seen[pid][0]) if pid in seen else None
             if role in processes:
                 processes[role]["loop_cpu_s_per_sim_s"] = c / sim
                 loop_total += c
@@ -280,7 +280,7 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
     from ..runner import warm_up_kernels
 
     for name in {*batch, *fleet}:
-        _config(name)  # a clear error before anything runs
+        scenario_file(name)  # a clear error before anything runs
     # compiled (or loaded) once, before the flights load the cache
     compile_s = warm_up_kernels()
     tick = firmware_tick()

@@ -64,7 +64,7 @@ def test_sample_times_from_progress_else_the_lockstep_markers():
 
 
 def test_process_keys_reuse_the_fleet_roles():
-    assert speed._role is procfs.role and speed._sample is procfs.sample  # one sampler, shared
+    assert speed.procfs is procfs  # one sampler, shared
     cmds = {10: "python -m sitl launch", 11: "python -m link_firmware_sim --instance 0", 12: "python -m companion --c x",
             13: "python -m sitl.fleet.wire a", 14: "python -m sitl.fleet.wire b", 15: "sh -c true",
             16: "python -m link_firmware_sim --instance 0"}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sitl.bench import speed
+from sitl.bench import procfs, speed
 from sitl.bench.__main__ import main as bench_main
 
 
@@ -66,13 +66,13 @@ def test_fleet_flight_arguments_are_the_launch_clis(tmp_path):
 
 
 def test_proc_sampling_and_roles():
-    cmd, cpu, hwm = speed._sample(os.getpid())
+    cmd, cpu, hwm = procfs.sample(os.getpid())
     assert "python" in cmd and cpu > 0 and hwm > 0
-    assert speed._sample(2**22 + 12345) is None  # no such process
-    assert speed._role("python -m link_firmware_sim --config x --instance 2 --out y") == "vehicle 3"
-    assert speed._role("python -m companion --config c --out d --group 2") == "companion g2"
-    assert speed._role("python -m companion --config c --out d") == "companion"
-    assert speed._role("python -m pytest") is None
+    assert procfs.sample(2**22 + 12345) is None  # no such process
+    assert procfs.role("python -m link_firmware_sim --config x --instance 2 --out y") == "vehicle 3"
+    assert procfs.role("python -m companion --config c --out d --group 2") == "companion g2"
+    assert procfs.role("python -m companion --config c --out d") == "companion"
+    assert procfs.role("python -m pytest") is None
 
 
 def test_format_and_cli_errors(tmp_path, capsys):
