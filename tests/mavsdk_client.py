@@ -31,15 +31,19 @@ def ground_station(url: str) -> Mavsdk:
     return mav
 
 
-def find_autopilot(mav: Mavsdk, sysid: int, timeout_s: float):
+def find_autopilot(mav: Mavsdk, sysid: int, timeout_s: float, out: dict):
     """The system ``sysid`` among those ``mav`` discovers within ``timeout_s`` (several vehicles
-    may send to one port), or ``None``."""
+    may send to one port), or ``None``; ``out["discovered"]`` says which, and without it
+    ``out["seen"]`` lists the system ids heard."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         found = next((s for s in mav.get_systems() if s.get_system_id() == sysid), None)
         if found is not None:
+            out["discovered"] = True
             return found
         time.sleep(0.1)
+    out["discovered"] = False
+    out["seen"] = [s.get_system_id() for s in mav.get_systems()]
     return None
 
 
@@ -55,11 +59,9 @@ def main() -> int:
     mav = ground_station(args.url)
     out: dict = {"discovered": False}
     try:
-        system = find_autopilot(mav, args.sysid, args.timeout)
+        system = find_autopilot(mav, args.sysid, args.timeout, out)
         if system is None:
-            out["seen"] = [s.get_system_id() for s in mav.get_systems()]
             return 1
-        out["discovered"] = True
         out["sysid"] = system.get_system_id()
         param = Param(system)
         try:

@@ -42,11 +42,9 @@ def main() -> int:
     mav = ground_station(args.url)
     out: dict = {"discovered": False}
     try:
-        system = find_autopilot(mav, args.sysid, args.timeout)
+        system = find_autopilot(mav, args.sysid, args.timeout, out)
         if system is None:
-            out["seen"] = [s.get_system_id() for s in mav.get_systems()]
             return 1
-        out["discovered"] = True
         param = Param(system)
         param.set_param_int("SYS_FAILURE_EN", 1)  # before the Failure plugin starts: it reads it then
         out["SYS_FAILURE_EN"] = param.get_param_int("SYS_FAILURE_EN")
