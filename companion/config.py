@@ -35,6 +35,7 @@ from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
 from .fleetnet.config import PREFIX_RE, ZenohConfig
 from .mavlink.signing import SigningConfig
+from .mavlink.tlog import TLOG_KEEP, TLOG_MAX_MB
 from .motion.inverse import InverseModel
 from .motion.schedule import MotionConfig
 from .plausibility import StampWindow
@@ -132,6 +133,10 @@ class CompanionConfig:
     carried from 0.25 s, 16 deg from 0.1 s. A link alive but unheard that long is carried too:
     its neighbours push up by its weight until it is heard again (three states in a row lost on a
     10 % lossy wire: about once in 20 s, for a target period).
+
+    Disk: each link's tlog is rotated when it reaches ``tlog_max_mb`` (0: never), keeping
+    ``tlog_keep`` older files (:mod:`companion.mavlink.tlog`), so a daemon left running keeps at
+    most ``(tlog_keep + 1) tlog_max_mb`` per link.
     """
 
     enabled: bool = True
@@ -160,12 +165,14 @@ class CompanionConfig:
     gate_threshold: float = CHI2_6_1E6
     gate_pos_m: float = 0.05
     gate_vel_m_s: float = 0.25
+    tlog_max_mb: float = TLOG_MAX_MB
+    tlog_keep: int = TLOG_KEEP
 
     def __post_init__(self) -> None:
         self.params
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
                          "clock_rate_max", "reboot_silence_s", "reboot_frames", "carry_silence_s")
-        require_nonnegative(self, "carry_spinup_s")
+        require_nonnegative(self, "carry_spinup_s", "tlog_max_mb", "tlog_keep")
         self.gate
         c = self.gnss_common_pos_var_m2
         if c is not None and (len(c) != 2 or not all(math.isfinite(x) and x >= 0.0 for x in c)):

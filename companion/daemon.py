@@ -26,9 +26,9 @@ Bad input never stops the daemon: unparseable bytes and unknown ids are counted 
 invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog`` (one per link),
 ``companion.log`` (by the
 CLI), ``companion_log.stream`` (the engine's step log, appended every second with the rows since
-the last flush: a companion killed in flight keeps all but its last second; read it with
-:func:`companion.logstream.read_log_stream`), ``companion_log.npz`` (the whole step log, at the
-end), ``companion.mcap`` (the step log, the health reports and the links' STATUSTEXTs for Foxglove
+the last flush, which then leave memory: a companion killed in flight keeps all but its last
+second; read it with :func:`companion.logstream.read_log_stream`), ``companion_log.npz`` (the
+whole step log, read back from the stream at the end), ``companion.mcap`` (the step log, the health reports and the links' STATUSTEXTs for Foxglove
 and Lichtblick, at the end, when the ``mcap`` package is installed:
 :mod:`companion.recording.companion_mcap`) and ``companion_summary.json``.
 """
@@ -46,7 +46,7 @@ import numpy as np
 
 from .kernels import warm as _kernels
 from .config import CompanionSetup
-from .logstream import LogStream
+from .logstream import LogStream, read_log_stream
 from .engine import (
     Command,
     CommandOut,
@@ -122,7 +122,8 @@ class CompanionDaemon:
         try:
             for i in members:
                 sysid = endpoints[i].system_id
-                tlog = (TlogWriter(out_dir / f"companion_link{sysid}.tlog", wall_clock=wall_clock)
+                tlog = (TlogWriter(out_dir / f"companion_link{sysid}.tlog", wall_clock=wall_clock,
+                                   max_mb=self.cfg.tlog_max_mb or None, keep=self.cfg.tlog_keep)
                         if out_dir is not None else None)
                 self.ports.append(MavlinkPort(endpoints[i].url, COMPANION_SYSTEM_ID, COMPANION_COMPONENT_ID, _ACCEPT,
                                               tlog, peer_system_id=endpoints[i].system_id, signing=mode, key=key,
@@ -230,7 +231,7 @@ class CompanionDaemon:
                     queue(row, D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
                                                            0, 0, D.MAV_STATE_ACTIVE, 3))
                 if self._log_stream is not None:  # once a second, like the heartbeat
-                    self._log_stream.flush(self.engine.log)
+                    self._log_stream.flush(self.engine.log, keep=0)
             elif isinstance(out, HealthDue):
                 log.info("health (last %.0f s):\n%s", out.period_s, self.health_table(out.period_s, now_s))
                 if self.net is not None:
@@ -296,21 +297,29 @@ class CompanionDaemon:
             out["links"][str(lk.system_id)].update(vars(port.stats))
         return out
 
+    def step_log(self) -> dict[str, np.ndarray]:
+        """The whole step log so far: read back from ``companion_log.stream`` (which first gets the
+        newest rows), or the engine's in memory without an output folder."""
+        if self._log_stream is None:
+            return self.engine.log_arrays()
+        if not self._log_stream.closed:
+            self._log_stream.flush(self.engine.log, keep=0)
+        return read_log_stream(self._log_stream.path)
+
     def write_log(self) -> None:
         """The whole step log (``companion_log.npz``; the stream gets its last rows)."""
         if self.out_dir is None:
             return
-        self._log_stream.flush(self.engine.log)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.out_dir / "companion_log.tmp.npz"
-        steps = self.engine.log_arrays()
+        steps = self.step_log()
         np.savez(tmp, **steps)
         tmp.replace(self.out_dir / "companion_log.npz")
         self.write_mcap(steps)
 
     def write_mcap(self, steps: dict | None = None) -> Path | None:
         """``companion.mcap`` (:mod:`companion.recording.companion_mcap`): the step log (``steps``,
-        the engine's ``log_arrays()`` when not given), the health reports and the STATUSTEXTs for
+        :meth:`step_log` when not given), the health reports and the STATUSTEXTs for
         Foxglove and Lichtblick; one log line instead when the ``mcap`` package is missing or there
         is nothing to write."""
         if self.out_dir is None:
@@ -319,7 +328,7 @@ class CompanionDaemon:
             from .recording.companion_mcap import COMPANION_MCAP, write_companion_mcap
 
             path = self.out_dir / COMPANION_MCAP
-            steps = self.engine.log_arrays() if steps is None else steps
+            steps = self.step_log() if steps is None else steps
             write_companion_mcap(path, steps, self.setup.skeleton.d_b_m[list(self._members)],
                                  first_link=self._members[0] + 1, health=self.health_log,
                                  statustext=self.statustext_log)

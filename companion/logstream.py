@@ -7,7 +7,9 @@ flush as one chunk: a header (the keys) and one ``.npy`` record per key, written
 :func:`numpy.save` to one open file and flushed to the OS, so a killed process loses at most the
 rows since its last flush. :func:`read_log_stream` concatenates the chunks per key and stops at
 a truncated last chunk (the process died while writing it); :class:`LogStreamReader` reads the
-chunks as they come. No pickles: keys are a unicode array,
+chunks as they come. A long flight keeps its memory flat by flushing with ``keep``: the rows
+written out leave the lists but for the newest ``keep``, and the whole log is read back from the
+file at the end. No pickles: keys are a unicode array,
 values numeric arrays, read with ``allow_pickle=False``.
 """
 
@@ -26,8 +28,8 @@ log = logging.getLogger(__name__)
 class LogStream:
     """Chunks of rows appended to ``path`` (created, or truncated if it exists).
 
-    ``flush(rows)`` takes the whole log as ``{key: list of rows}`` and writes the rows of every
-    key that were not written yet; the lists are not modified."""
+    ``flush(rows)`` takes the log as ``{key: list of rows}`` and writes the rows of every key
+    that were not written yet; the lists are not modified unless ``keep`` is given."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -36,24 +38,37 @@ class LogStream:
         self._written: dict[str, int] = {}
         self.chunks = 0
 
-    def flush(self, rows: dict[str, list]) -> int:
-        """Append the new rows as one chunk; returns the number of keys written (0: nothing new)."""
+    def flush(self, rows: dict[str, list], keep: int | None = None) -> int:
+        """Append the new rows as one chunk; returns the number of keys written (0: nothing new).
+        ``keep``: then trim every list in place to its newest ``keep`` rows (0: empty), the rows
+        dropped being in the file; the lists must keep growing only by appends."""
         if self._fh.closed:
             raise ValueError(f"{self.path}: log stream closed")
+        if keep is not None and keep < 0:
+            raise ValueError(f"keep must be >= 0, got {keep}")
         fresh = {}
         for key, values in rows.items():
             start = self._written.get(key, 0)
             if len(values) > start:
                 fresh[key] = np.asarray(values[start:])
-        if not fresh:
-            return 0
-        np.save(self._fh, np.array(list(fresh), dtype=np.str_), allow_pickle=False)
-        for key, arr in fresh.items():
-            np.save(self._fh, arr, allow_pickle=False)
-            self._written[key] = self._written.get(key, 0) + len(arr)
-        self._fh.flush()
-        self.chunks += 1
+        if fresh:
+            np.save(self._fh, np.array(list(fresh), dtype=np.str_), allow_pickle=False)
+            for key, arr in fresh.items():
+                np.save(self._fh, arr, allow_pickle=False)
+                self._written[key] = self._written.get(key, 0) + len(arr)
+            self._fh.flush()
+            self.chunks += 1
+        if keep is not None:
+            for key, values in rows.items():
+                excess = len(values) - keep
+                if excess > 0:
+                    del values[:excess]
+                    self._written[key] = self._written.get(key, 0) - excess
         return len(fresh)
+
+    @property
+    def closed(self) -> bool:
+        return self._fh.closed
 
     def close(self) -> None:
         if not self._fh.closed:

@@ -146,7 +146,8 @@ class LinkFirmware(FusedTicks):
         #: computed against) [us]: reported back in the link state
         self.correction_seq = 0
         self.correction_latency_us = 0
-        #: (arrival time, latency) of every correction [s]
+        #: (arrival time, latency) of the corrections [s] (a vehicle's flight log moves them to its
+        #: file every second)
         self.latency_log: list[tuple[float, float]] = []
         self.time_s = 0.0
         self._zero = np.zeros(8)

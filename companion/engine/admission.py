@@ -107,7 +107,7 @@ class Admission:
                         now_s - lk.last_state_s, READMIT_CYCLES)
         if correction_seq != lk.correction_seq and correction_seq > 0:
             lk.correction_seq = correction_seq
-            lk.latencies_ms.append(correction_latency_us * 1e-3)
+            lk.latencies_ms.add(correction_latency_us * 1e-3)
             lk.latency_window_ms.append(correction_latency_us * 1e-3)
         lk.flags = flags
         lk.disarmed_states = 0 if flags & STATE_FLAG_ARMED else lk.disarmed_states + 1

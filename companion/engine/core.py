@@ -12,6 +12,7 @@ when, on the links' flight-controller time.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
@@ -20,6 +21,7 @@ import numpy as np
 from ..config import CompanionSetup
 from ..messages import LinkState
 from ..plausibility import StampGate
+from ..quantiles import Quantiles
 from ..trajectory import chain_model
 from .admission import Admission
 from .arming import RETRY_S, Arming
@@ -265,17 +267,17 @@ class CompanionEngine:
         """The run's totals: steps, withheld and degraded steps, step compute time, correction
         latency, per link its counters, carried time and exclusions; in distributed mode the group
         link's figures, the CPG targets' counts and the other groups' carried links."""
-        lat = np.concatenate([np.asarray(lk.latencies_ms) for lk in self.links]) if self.links else np.zeros(0)
-        steps = np.asarray(self.step.step_times_ms)
+        lat = functools.reduce(Quantiles.merge, [lk.latencies_ms for lk in self.links], Quantiles())
+        steps = self.step.step_times_ms
         t_s = self.fc_time_us * 1e-6
         return {
-            "steps": int(steps.size),
+            "steps": steps.count,
             "withheld_steps": self.selection.withheld,
             "degraded_steps": self.selection.degraded,
             "common_mode_kept": self.selection.common_mode_kept,
-            "step_ms": {"p50": float(np.percentile(steps, 50)), "p99": float(np.percentile(steps, 99))} if steps.size else None,
-            "correction_latency_ms": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                                      "samples": int(lat.size)} if lat.size else None,
+            "step_ms": {"p50": steps.percentile(50), "p99": steps.percentile(99)} if steps.count else None,
+            "correction_latency_ms": {"p50": lat.percentile(50), "p99": lat.percentile(99),
+                                      "samples": lat.count} if lat.count else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..messages import LinkState
 from ..plausibility import StampGate
+from ..quantiles import Quantiles
 
 __all__ = ["CarryClock", "LinkTrack", "LinkWarnings", "usec"]
 
@@ -68,7 +69,8 @@ class LinkTrack:
     stream_sent_s: float = -np.inf
     stream_acked: bool = False
     correction_seq: int = -1
-    latencies_ms: list = field(default_factory=list)
+    #: every correction latency it reported [ms], in fixed memory
+    latencies_ms: Quantiles = field(default_factory=Quantiles)
     latency_window_ms: list = field(default_factory=list)
     clock_samples_us: list = field(default_factory=list)
     gps_wait_logged: bool = False

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..corrections import compute_corrections, finish_step, local_step
 from ..messages import LinkState
+from ..quantiles import Quantiles
 from .links import LinkTrack, usec
 from .outputs import CorrectionOut
 from .selection import LinkSelection
@@ -75,7 +76,7 @@ class ChainStep:
         self.seq = 0
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
-        self.step_times_ms: list[float] = []
+        self.step_times_ms = Quantiles()
 
     def run(self, now_s: float, t_us: int, cycle_us: int) -> None:
         """The step due at ``now_s``: at ``t_us`` (the cycle clock), or at the cycle ``cycle_us``
@@ -136,7 +137,7 @@ class ChainStep:
             corrected[rows] = True
             iterations = max(iterations, int(result.iterations.max()))
             done.append((seg, corrections, (result.p, result.v, result.q, P_seg)))
-        self.step_times_ms.append((self._timer() - t0) * 1e3)
+        self.step_times_ms.add((self._timer() - t0) * 1e3)
         for seg, corrections, result in done:
             self._send_corrections(seg, corrections, result)
         if done:
@@ -168,7 +169,7 @@ class ChainStep:
         except (ValueError, np.linalg.LinAlgError) as exc:
             log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
             return
-        self.step_times_ms.append((self._timer() - t0) * 1e3)
+        self.step_times_ms.add((self._timer() - t0) * 1e3)
         # (the links' reported covariances, for the log and the common GNSS error to put back)
         self._local[cycle] = (states, step, nis_max, np.array([lk.state.P for lk in self.links]))
         b = step.boundary

@@ -2,7 +2,8 @@
 control estimate (with the companion's correction), the active target, PSPM's reservoirs (NaN
 while PSPM is off) and the correction latencies; streamed to ``link<i>_firmware.stream`` every
 second (a killed vehicle keeps what it flew) and saved as ``link<i>_firmware.npz`` at the end.
-Without an output folder nothing is recorded."""
+Rows leave memory once they are in the stream (a long flight's memory stays flat); the whole
+log is read back from it. Without an output folder nothing is recorded."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.logstream import LogStream
+from companion.logstream import LogStream, read_log_stream
 
 from .streams.schedule import Stream
 
@@ -28,10 +29,10 @@ class FlightRecorder:
         self.out_dir = out_dir
         self.system_id = system_id
         self._grid = Stream.at_rate(rate_hz)
-        #: the log's columns; pspm: PSPM's reservoirs E_t, E_r [J] and the set position's lag [m];
-        #: flags: the state flags it reports (SKELETON_STATE_FLAGS)
+        #: the log's columns since the last flush; pspm: PSPM's reservoirs E_t, E_r [J] and the set
+        #: position's lag [m]; flags: the state flags it reports (SKELETON_STATE_FLAGS)
         self.rows: dict[str, list] = {k: [] for k in _COLUMNS}
-        #: the STATUSTEXTs the vehicle sent: time [s], MAV_SEVERITY, text
+        #: the STATUSTEXTs the vehicle sent since the last flush: time [s], MAV_SEVERITY, text
         self.texts: dict[str, list] = {"statustext_t": [], "statustext_severity": [], "statustext_text": []}
         self._stream = LogStream(out_dir / f"link{system_id}_firmware.stream") if out_dir is not None else None
 
@@ -73,16 +74,21 @@ class FlightRecorder:
         return {**self.rows, **self.texts, "correction_latency": self.fw.latency_log}
 
     def flush(self) -> None:
-        """The rows so far to the stream file (every second)."""
+        """The rows since the last flush to the stream file, and out of memory (every second)."""
         if self._stream is not None:
-            self._stream.flush(self._lists())
+            self._stream.flush(self._lists(), keep=0)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        out = {k: np.asarray(v) for k, v in self.rows.items()}
-        out["correction_latency"] = np.asarray(self.fw.latency_log).reshape(-1, 2)
-        out["statustext_t"] = np.asarray(self.texts["statustext_t"], dtype=float)
-        out["statustext_severity"] = np.asarray(self.texts["statustext_severity"], dtype=np.int64)
-        out["statustext_text"] = np.asarray(self.texts["statustext_text"], dtype=np.str_)
+        """The whole log so far (read back from the stream file; empty without an output folder)."""
+        got: dict[str, np.ndarray] = {}
+        if self._stream is not None:
+            if not self._stream.closed:
+                self.flush()
+            got = read_log_stream(self._stream.path)
+        out = {k: got.get(k, np.zeros(0)) for k in _COLUMNS}
+        out["correction_latency"] = np.asarray(got.get("correction_latency", np.zeros(0)), dtype=float).reshape(-1, 2)
+        for key, dtype in (("statustext_t", float), ("statustext_severity", np.int64), ("statustext_text", np.str_)):
+            out[key] = np.asarray(got.get(key, np.zeros(0, dtype)), dtype=dtype)
         return out
 
     def save(self) -> None:
@@ -90,6 +96,6 @@ class FlightRecorder:
         if self.out_dir is None:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self._stream.flush(self._lists())
+        self.flush()
         self._stream.close()
         np.savez_compressed(self.out_dir / f"link{self.system_id}_firmware.npz", **self.arrays())

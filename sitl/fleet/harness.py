@@ -4,16 +4,23 @@ At every firmware tick the harness sends HIL_GPS / SKELETON_AHRS_REFERENCE (when
 HIL_SENSOR to every vehicle, waits until every vehicle has answered with HIL_ACTUATOR_CONTROLS for
 that time, then advances the physics; ``speed`` paces it at that many times real time (0: as fast
 as the lockstep goes).
+
+The truth is logged at the log rate. With a ``truth_stream`` file the rows go to it every
+simulated second (:mod:`companion.logstream`) and only the newest :data:`TRUTH_KEEP_S` stay in
+memory (what the live view shows), so a long flight's memory stays flat; :meth:`FleetHarness.truth_log`
+reads the whole log back.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
 from companion.estimation.so3 import quat_to_rotmat
+from companion.logstream import LogStream, read_log_stream
 from companion.mavlink.codec import MessageError, usec
 from companion.mavlink.transport import wait_readable
 from companion.skeleton.kinematics import tension
@@ -30,11 +37,13 @@ from sitl.watch import announce
 from .layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, FleetError
 from .processes import STARTUP_TIMEOUT_S
 
-__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S"]
+__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S", "TRUTH_KEEP_S"]
 
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
+#: simulated seconds of truth rows kept in memory when they are streamed to a file
+TRUTH_KEEP_S = 20.0
 #: the harness's log lines where the lockstep starts and ends (``bench sitl`` times the loop by them)
 
 
@@ -49,7 +58,8 @@ def _sim_port(url: str):
 class FleetHarness:
     """The physics of a scenario in lockstep with vehicles behind simulator links."""
 
-    def __init__(self, sc: Scenario, sim_urls: list[str], plant: Plant | None = None):
+    def __init__(self, sc: Scenario, sim_urls: list[str], plant: Plant | None = None,
+                 truth_stream: Path | None = None):
         self.scenario = sc
         self.plant = plant if plant is not None else Plant(sc)
         self.schedule = Schedule.of(sc)
@@ -59,8 +69,13 @@ class FleetHarness:
             self._prime_hover()
         self.gps_fault = sc.faults.gps
         self.down: set[int] = set()  # links whose vehicle process is gone (rotors stopped)
+        #: the truth at the log rate (the newest ``TRUTH_KEEP_S`` with a ``truth_stream``)
         self.rows: dict[str, list] = {k: [] for k in ("t", "p_true", "v_true", "q_true", "thrust", "joint_force_true",
                                                       "tension_true")}
+        self._stream = LogStream(truth_stream) if truth_stream is not None else None
+        log_dt = self.plant.dt * self.schedule.log
+        self._keep_rows = int(round(TRUTH_KEEP_S / log_dt))
+        self._flush_every = max(1, int(round(1.0 / log_dt)))  # log ticks: a simulated second
         self.wall_s = 0.0
         self.sim_s = 0.0
         # Called as hook(k, t) at every physics tick after the kinematics (the cameras, sitl.cameras.stream).
@@ -164,6 +179,8 @@ class FleetHarness:
                     r["joint_force_true"].append(truth.joint_force_w_n)
                     r["tension_true"].append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
                     plant.check_crash(t, truth, None)
+                    if self._stream is not None and len(r["t"]) % self._flush_every == 0:
+                        self._stream.flush(r, keep=self._keep_rows)
                 for hook in self.tick_hooks:
                     hook(k, t)
                 plant.end_tick()
@@ -175,11 +192,23 @@ class FleetHarness:
             log.info("%s at t = %.3f s", LOCKSTEP_ENDED, plant.time_s)
 
     def truth_log(self) -> dict[str, np.ndarray]:
-        """The log-rate truth, one row per log tick; a row an interruption (Ctrl-C) cut short is
-        left out, so that every series has the same rows."""
-        n = min(len(v) for v in self.rows.values())
-        return {k: np.asarray(v[:n]) for k, v in self.rows.items()}
+        """The log-rate truth, one row per log tick (read back from the stream file, which first
+        gets the newest rows); a row an interruption (Ctrl-C) cut short is left out, so that every
+        series has the same rows."""
+        if self._stream is None:
+            got = {k: np.asarray(v) for k, v in self.rows.items()}
+        else:
+            if not self._stream.closed:
+                self._stream.flush(self.rows, keep=self._keep_rows)
+            got = read_log_stream(self._stream.path)
+        if any(k not in got for k in self.rows):
+            return {k: np.zeros(0) for k in self.rows}
+        n = min(len(v) for v in got.values())
+        return {k: v[:n] for k, v in got.items()}
 
     def close(self) -> None:
+        if self._stream is not None and not self._stream.closed:
+            self._stream.flush(self.rows, keep=self._keep_rows)
+            self._stream.close()
         for port in self.ports:
             port.close()

@@ -223,7 +223,8 @@ class Fleet:
                   f"{self.cameras.prefix}/camera/<vehicle>/image (consumer: python -m companion.vision --config "
                   f"{self.out_dir / 'vision.toml'})", flush=True)
         try:
-            self.harness = FleetHarness(sc, [self.sim_url(i, "harness") for i in range(n)], self.plant)
+            self.harness = FleetHarness(sc, [self.sim_url(i, "harness") for i in range(n)], self.plant,
+                                        truth_stream=self.out_dir / "truth.stream")
         except PortError as exc:
             self.procs.check()
             raise FleetError(str(exc)) from None

@@ -276,7 +276,7 @@ def test_the_daemon_leaves_its_flight_as_mcap(fleet):
     fleet.fcs[1].send(D.MAVLink_statustext_message(D.MAV_SEVERITY_WARNING, b"GPS glitch: position rejected"))
     fleet.pump()
     fleet.daemon.health_table(5.0)
-    steps = fleet.daemon.engine.log_arrays()
+    steps = fleet.daemon.step_log()
     fleet.daemon.write_log()
     with open(fleet.daemon.out_dir / "companion.mcap", "rb") as f:
         messages = [(ch.topic, m.log_time, _json.loads(m.data)) for _, ch, m in make_reader(f).iter_messages()]

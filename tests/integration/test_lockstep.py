@@ -180,8 +180,8 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
     fw, st = v.fw, v.sim.stats
     return {"thrusts": np.array(thrusts), "x": fw.ekf.x, "P": fw.ekf.P, "pos_int": fw.integrals.pos,
             "att_int": fw.integrals.att, "xi_pre": fw.allocator.xi_pre, "time": (fw.time_s, v.fc_time_us),
-            "airborne": fw.airborne, "thrust_n": fw.thrust_total_n, "log_t": v.recorder.rows["t"],
-            "log_p": v.recorder.rows["p_ctrl"], "counts": (dict(st.per_type), st.rx_messages, st.tx_messages, st.rx_bytes),
+            "airborne": fw.airborne, "thrust_n": fw.thrust_total_n, "log_t": v.flight_log()["t"],
+            "log_p": v.flight_log()["p_ctrl"], "counts": (dict(st.per_type), st.rx_messages, st.tx_messages, st.rx_bytes),
             "dropped": (st.dropped_frames, st.dropped_bytes, st.seq_lost), "seq": _seq_numbers(v.sim, rig.sim),
             "calls": [c for c in calls if c is not None]}
 

@@ -220,7 +220,7 @@ def test_a_rejected_state_changes_no_flag_and_no_latency():
     feed(engine, 0.0, 0.0)
     feed(engine, 0.02, 0.02)
     engine.on_state(1, straight_state(1, 3, 0.0), 0, 0.03, correction_seq=99, correction_latency_us=9_000_000)
-    assert engine.links[1].flags == STATE_FLAG_EKF_OK and engine.links[1].latencies_ms == []
+    assert engine.links[1].flags == STATE_FLAG_EKF_OK and engine.links[1].latencies_ms.count == 0
 
 
 def test_a_group_with_a_link_left_out_corrects_its_segments_alone_and_publishes_no_boundary():

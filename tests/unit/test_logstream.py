@@ -49,3 +49,24 @@ def test_no_pickles(tmp_path):
     stream = LogStream(path)
     with pytest.raises(ValueError):
         stream.flush({"obj": [object()]})  # object arrays are refused, never pickled
+
+
+@pytest.mark.parametrize("keep", [0, 1, 5])
+def test_flushing_with_keep_holds_the_lists_short_and_loses_no_row(tmp_path, keep):
+    rows = {"t": [], "text": []}
+    stream = LogStream(tmp_path / "x.stream")
+    for k in range(40):
+        rows["t"].append(float(k))
+        if k % 9 == 0:
+            rows["text"].append(f"event {k}")
+        if k % 4 == 3:
+            stream.flush(rows, keep=keep)
+            assert len(rows["t"]) == min(keep, k + 1)
+            assert rows["t"][-1:] == ([float(k)] if keep else [])
+    stream.flush(rows, keep=keep)
+    stream.close()
+    got = read_log_stream(tmp_path / "x.stream")
+    np.testing.assert_array_equal(got["t"], np.arange(40.0))
+    assert got["text"].tolist() == [f"event {k}" for k in range(0, 40, 9)]
+    with pytest.raises(ValueError, match="keep"):
+        LogStream(tmp_path / "y.stream").flush(rows, keep=-1)
