@@ -189,13 +189,16 @@ class PoseTarget:
 
 @dataclass(frozen=True)
 class GroupBoundaryReport:
-    """What a group companion publishes after its local step (Alg. 2) for the global step (eq. 6).
+    """What a group companion publishes after its local step (Alg. 2) for the global step (eq. 6):
+    one report per part of the group. A group whose links all take part is one part; a link down
+    or left out, or a joint the gate cut, splits it, and each part takes part in the global step
+    as a group of its own.
 
     Attributes:
         group: 0-based group index in chain order.
         cycle_us: the step time on the flight-controller clock (a multiple of the step period):
             the cycle this boundary belongs to.
-        left_tip_pv_w: (6,) [position m; velocity m/s] of the left tip of the group's first link.
+        left_tip_pv_w: (6,) [position m; velocity m/s] of the left tip of the part's first link.
         right_tip_pv_w: (6,) the same for the right tip of its last link.
         info_pv: (6, 6) ``Lambda_g = sum_i Pbar_i^-1``, the summed inverse [p; v] covariance.
         round_trip_us: this group's round trip (boundary published -> shift received, wall
@@ -205,6 +208,11 @@ class GroupBoundaryReport:
         tip_cov_pv: (12, 12) covariance of the ``[left tip; right tip]`` errors after the local
             step, or ``None``: with it every group derives the covariance of its shifted estimate
             (:mod:`companion.estimation.semi`).
+        part, parts: this part's index (chain order) and how many parts the group reports this
+            cycle (0 and 1: the whole group).
+        joins_left, joins_right: whether the part's first link is the group's first (its left
+            tip meets the previous group's right tip) and its last link the group's last; the
+            global step joins two parts only across such ends of neighbouring groups.
     """
 
     group: int
@@ -215,23 +223,35 @@ class GroupBoundaryReport:
     round_trip_us: int = -1
     network_round_trip_us: int = -1
     tip_cov_pv: np.ndarray | None = None
+    part: int = 0
+    parts: int = 1
+    joins_left: bool = True
+    joins_right: bool = True
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """``(group, part)``: what the global step's entries are keyed by."""
+        return self.group, self.part
 
 
 @dataclass(frozen=True)
 class GlobalShift:
-    """The leader's solution of eq. 6 for one cycle: one [dp; dv] shift per group.
+    """The leader's solution of eq. 6 for one cycle: one [dp; dv] shift per part of a group
+    (:class:`GroupBoundaryReport`).
 
     Attributes:
         leader_group: 0-based group index of the companion that solved it.
         cycle_us: the cycle (see :class:`GroupBoundaryReport`).
-        groups: the 0-based groups solved, in chain order (groups that did not report in time
-            are absent; each run of consecutive groups is solved on its own).
-        shift_pv_w: (len(groups), 6) [dp m; dv m/s] per listed group.
+        groups: the 0-based group of each entry solved, in chain order (groups that did not
+            report in time are absent; a group split into parts is listed once per part; each run
+            of joined parts is solved on its own).
+        shift_pv_w: (len(groups), 6) [dp m; dv m/s] per entry.
         handover_group: a group the leader hands leadership to (a returning preferred leader),
             -1 for none; it leads from ``handover_cycle_us`` on.
         handover_cycle_us: first cycle of the new leader.
-        hold_us: per listed group, how long the leader held its boundary (arrival to this
-            shift's publication) [us]; the group subtracts it from its round trip.
+        hold_us: per entry, how long the leader held its boundary (arrival to this shift's
+            publication) [us]; the group subtracts it from its round trip.
+        parts: the part of its group each entry is (``()``: all 0, whole groups).
     """
 
     leader_group: int
@@ -241,20 +261,32 @@ class GlobalShift:
     handover_group: int = -1
     handover_cycle_us: int = 0
     hold_us: tuple[int, ...] = ()
+    parts: tuple[int, ...] = ()
 
-    def shift_for(self, group: int) -> np.ndarray | None:
-        """The shift of ``group``, or ``None`` if it was not solved this cycle."""
+    def __post_init__(self) -> None:
+        if not self.parts:
+            object.__setattr__(self, "parts", (0,) * len(self.groups))
+
+    @property
+    def keys(self) -> tuple[tuple[int, int], ...]:
+        """``(group, part)`` of every entry."""
+        return tuple(zip(self.groups, self.parts))
+
+    def _index(self, group: int, part: int) -> int | None:
         try:
-            return self.shift_pv_w[self.groups.index(group)]
+            return self.keys.index((group, part))
         except ValueError:
             return None
 
-    def hold_for(self, group: int) -> int | None:
-        """The leader's hold time of ``group``'s boundary [us], if listed."""
-        try:
-            return self.hold_us[self.groups.index(group)]
-        except (ValueError, IndexError):
-            return None
+    def shift_for(self, group: int, part: int = 0) -> np.ndarray | None:
+        """The shift of ``group``'s ``part``, or ``None`` if it was not solved this cycle."""
+        k = self._index(group, part)
+        return None if k is None else self.shift_pv_w[k]
+
+    def hold_for(self, group: int, part: int = 0) -> int | None:
+        """The leader's hold time of that part's boundary [us], if listed."""
+        k = self._index(group, part)
+        return None if k is None or k >= len(self.hold_us) else self.hold_us[k]
 
 
 @dataclass(frozen=True)

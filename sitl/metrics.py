@@ -282,8 +282,13 @@ def flag_windows(t: np.ndarray, out: np.ndarray) -> list[dict]:
 def outage_split(log: dict[str, np.ndarray], flight_start_s: float, windows: list[dict]) -> dict:
     """The flight figures inside every outage window (any link out, any kind) and outside them:
     true and estimated tracking RMS per link, constraint p95 after the SCKF. The windows are
-    those of :func:`flag_windows` and the fleet's scripted faults (``kind`` names which)."""
+    those of :func:`flag_windows` and the fleet's scripted faults (``kind`` names which); each
+    gets ``corrected_fraction``: per link, the fraction of the companions' steps in it that
+    corrected that link (``None`` for the window's own links and where no step fell in it)."""
     t = log["t"]
+    if "t_sckf" in log and "corrected_sckf" in log:
+        windows = [{**w, "corrected_fraction": _corrected_fraction(log["t_sckf"], log["corrected_sckf"], w)}
+                   for w in windows]
     flight = t >= flight_start_s
 
     def inside(times: np.ndarray) -> np.ndarray:
@@ -310,6 +315,15 @@ def outage_split(log: dict[str, np.ndarray], flight_start_s: float, windows: lis
             part["constraint_pos_p95_m_after"] = _p95(log["con_pos_after"][ws]) if np.any(ws) else None
         out[name] = part
     return out
+
+
+def _corrected_fraction(t_steps: np.ndarray, corrected: np.ndarray, window: dict) -> list[float | None]:
+    sel = (t_steps >= window["start_s"]) & (t_steps <= window["end_s"])
+    own = set(window.get("links") or ())
+    if not np.any(sel):
+        return [None] * corrected.shape[1]
+    frac = np.asarray(corrected, dtype=bool)[sel].mean(axis=0)
+    return [None if i + 1 in own else round(float(f), 4) for i, f in enumerate(frac)]
 
 
 def _p95(values: list | np.ndarray) -> float | None:

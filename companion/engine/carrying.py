@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 DISARMED_STATES = 3
 #: Distributed mode: a group publishes its carried links when they change and at least this
 #: often [us]; the others take a group's newest one within :data:`PASSIVE_STALE_US` of their own
-#: cycle clock (and while its companion is up).
+#: cycle clock, also after its companion left (a dying group's carried link is still dead: its claim
+#: holds until it goes stale).
 PASSIVE_REPEAT_US = 1_000_000
 PASSIVE_STALE_US = 2_500_000
 
@@ -162,11 +163,12 @@ class Carrying:
         return bool(t_us) and abs(msg.time_us - t_us) <= PASSIVE_STALE_US
 
     def remote(self, t_us: int) -> frozenset[int]:
-        """The links the other groups' companions carry (their newest messages, not stale, while
-        they are up); each carried stretch is logged and timed (``remote_carried``)."""
+        """The links the other groups' companions carry (their newest messages while not stale,
+        whether or not the group's companion is still up); each carried stretch is logged and timed
+        (``remote_carried``)."""
         out: set[int] = set()
         for g, msg in self._remote.items():
-            if self.net.alive(g) and self._current(msg, t_us):
+            if self._current(msg, t_us):
                 out.update(msg.links)
         t = t_us * 1e-6
         for i in out | {i for i, clock in self.remote_carried.items() if clock.on}:

@@ -71,10 +71,12 @@ class LinkSelection:
         self.degraded = 0
         self.one_way: set[int] = set()
 
-    def plan(self, t_us: int, now_s: float) -> tuple[list[tuple[int, ...]], bool, float]:
+    def plan(self, t_us: int, now_s: float, singles: bool = False) -> tuple[list[tuple[int, ...]], bool, float]:
         """Which of the links the step at ``t_us`` uses (see the module docstring). Returns the
-        segments (rows, at least two consecutive links each), whether every link is usable with
-        no joint cut (``whole``), and the largest joint NIS. Each link's
+        segments (rows, at least two consecutive links each; ``singles``: a usable link alone
+        between links left out or cut joints is a segment too, for the global step of a group
+        companion to join to the neighbouring group), whether every link is usable with no joint
+        cut (``whole``), and the largest joint NIS. Each link's
         :attr:`~companion.engine.links.LinkTrack.status` says why it is out ("" if it is in)."""
         usable = []
         for lk in self.links:
@@ -120,7 +122,7 @@ class LinkSelection:
         for r in self.one_way:
             self.links[r].gps_fault_steps += 1
         whole = all(usable) and not any(cut)
-        segs = segments(usable, cut)
+        segs = segments(usable, cut, 1 if singles else 2)
         in_segment = {r for seg in segs for r in seg}
         for lk in self.links:
             if not lk.status and lk.row not in in_segment and not whole:

@@ -10,8 +10,10 @@ Distributed mode (one engine per group, ``net`` a :class:`~companion.fleetnet.gr
 the step is the group's local half at the cycle time (a multiple of the step period, the same
 instant in every group); the boundary goes to the leader and the corrections go out when the
 leader's shift arrives or its deadline passes (:meth:`ChainStep.finish`). A group with a link
-left out publishes no boundary that cycle: each of its segments gets its local-only corrections
-at once.
+left out (or a joint cut) is split into parts, a part being as little as one link: each part
+gets its local step and publishes its own boundary, and the global step joins the part that
+touches a neighbouring group to that group, so every live link keeps being corrected. A
+one-link part that no neighbouring group joins gets no correction (nothing constrains it).
 
 The step log keeps one row per step (per cycle in distributed mode), every array on the time
 base (:data:`STEP_LOG_KEYS`).
@@ -26,6 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..corrections import compute_corrections, finish_step, local_step
+from ..fleetnet.outcomes import PartBoundary, PartShift
 from ..messages import LinkState
 from ..quantiles import Quantiles
 from .links import LinkTrack, usec
@@ -107,11 +110,7 @@ class ChainStep:
         is what the links reported, P_corr the constraint application's covariance). ``t_us``: the
         cycle clock, for the warnings."""
         states = [self.selection.step_state(lk) for lk in self.links]
-        ekf = _stacked(states)
-        for lk in self.links:
-            if lk.status == "stale":
-                for a in ekf:
-                    a[lk.row] = np.nan
+        ekf = self._logged_states(states)
         p, v, q = (a.copy() for a in ekf[:3])
         P_ekf = np.array([lk.state.P for lk in self.links])
         P_corr = P_ekf.copy()
@@ -144,6 +143,16 @@ class ChainStep:
             self.seq = (self.seq + 1) & 0xFFFF or 1
         return ekf, p, v, q, p_local, iterations, corrected, (P_ekf, P_corr)
 
+    def _logged_states(self, states: list[LinkState]):
+        """``(p, v, q, w)`` of the links' states for the log: NaN for a silent link (its newest
+        state is too old to say where it is)."""
+        ekf = _stacked(states)
+        for lk in self.links:
+            if lk.status == "stale":
+                for a in ekf:
+                    a[lk.row] = np.nan
+        return ekf
+
     def _observe(self, t_us: int, cycle_us: int) -> None:
         """``enabled = false``: log the links' EKF states at the step time, correct nothing."""
         ekf = _stacked([lk.state for lk in self.links])
@@ -154,27 +163,34 @@ class ChainStep:
                      np.zeros(len(self.links), dtype=bool), float("nan"), (P, P))
 
     def _local_half(self, now_s: float, cycle: int) -> None:
-        """Distributed mode: local constraint application at the cycle time, boundary out. A group
-        with a link left out publishes no boundary that cycle (its chain is cut anyway): each of
-        its segments gets its local-only corrections at once."""
-        segs, whole, nis_max = self.selection.plan(cycle, now_s)
-        if not whole:
-            ekf, p, v, q, _, iterations, corrected, P = self._correct_segments(segs, cycle * 1e-6, False, cycle)
-            self._record(cycle, cycle, ekf, p, v, q, p, iterations, False, -1, corrected, nis_max, P)
-            return
+        """Distributed mode: local constraint application at the cycle time on every part of the
+        group (the whole group, or what a link left out or a cut joint left of it), the parts'
+        boundaries out."""
+        segs, _, nis_max = self.selection.plan(cycle, now_s, singles=True)
         states = [self.selection.step_state(lk) for lk in self.links]
+        if not segs:  # no link usable: nothing to publish, every link on its own EKF
+            ekf = self._logged_states(states)
+            P = np.array([lk.state.P for lk in self.links])
+            self._record(cycle, cycle, ekf, *ekf[:3], ekf[0], 0, False, -1, np.zeros(len(self.links), dtype=bool),
+                         nis_max, (P, P))
+            return
         t0 = self._timer()
+        parts = []
         try:
-            step = local_step(states, self.d, self.params, t=cycle * 1e-6)
+            for seg in segs:
+                rows = list(seg)
+                parts.append((rows, local_step([states[r] for r in rows], self.d[rows], self.params, t=cycle * 1e-6)))
         except (ValueError, np.linalg.LinAlgError) as exc:
             log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
             return
         self.step_times_ms.add((self._timer() - t0) * 1e3)
         # (the links' reported covariances, for the log and the common GNSS error to put back)
-        self._local[cycle] = (states, step, nis_max, np.array([lk.state.P for lk in self.links]))
-        b = step.boundary
-        # stamped when it goes out, after the computation (the shift deadline runs from there)
-        self.finish(self.net.local_step(b.left_tip, b.right_tip, b.info_pv, cycle, self.net.clock(), b.tip_cov))
+        self._local[cycle] = (states, parts, nis_max, np.array([lk.state.P for lk in self.links]))
+        last = len(self.links) - 1
+        bounds = [PartBoundary(s.boundary.left_tip, s.boundary.right_tip, s.boundary.info_pv, s.boundary.tip_cov,
+                               joins_left=rows[0] == 0, joins_right=rows[-1] == last) for rows, s in parts]
+        # stamped when they go out, after the computation (the shift deadline runs from there)
+        self.finish(self.net.local_parts(bounds, cycle, self.net.clock()))
 
     def finish(self, resolved) -> None:
         """Distributed mode: corrections for the cycles that ended (``resolved``, from the group
@@ -185,17 +201,42 @@ class ChainStep:
                 del self._local[old]
             if entry is None:
                 continue
-            states, step, nis_max, P_reported = entry
-            if res.shift is None and res.reason:
-                log.debug("cycle t = %.3f s: local-only corrections (%s)", res.cycle_us * 1e-6, res.reason)
-            p, v, q, P, corrections = finish_step(states, step, res.shift, self.seq, res.shift_gain, res.shift_cov)
-            P = self.selection.restore_common(P_reported, P)
-            self.seq = (self.seq + 1) & 0xFFFF or 1
-            self._send_corrections(tuple(range(len(self.links))), corrections, (p, v, q, P))
-            self._record(res.cycle_us, res.cycle_us, (step.p, step.v, step.q, step.w), p, v, q, step.result.p,
-                         int(step.result.iterations),
-                         res.shift is not None, -1 if res.leader_group is None else res.leader_group + 1,
-                         np.ones(len(self.links), dtype=bool), nis_max, (P_reported, P))
+            states, parts, nis_max, P_reported = entry
+            if len(res.parts) != len(parts):
+                log.warning("cycle t = %.3f s: %d part(s) resolved for %d published; local-only", res.cycle_us * 1e-6,
+                            len(res.parts), len(parts))
+                res = replace(res, parts=tuple(PartShift(None, "parts mismatch") for _ in parts))
+            ekf = self._logged_states(states)
+            p, v, q = (a.copy() for a in ekf[:3])
+            p_local = p.copy()
+            P = P_reported.copy()
+            corrected = np.zeros(len(self.links), dtype=bool)
+            iterations = 0
+            out = []
+            for (rows, step), part in zip(parts, res.parts):
+                if part.shift is None and part.reason:
+                    log.debug("cycle t = %.3f s: links %s local-only (%s)", res.cycle_us * 1e-6,
+                              [self.links[r].index + 1 for r in rows], part.reason)
+                for a, b in zip(ekf, (step.p, step.v, step.q, step.w)):
+                    a[rows] = b
+                if len(rows) == 1 and part.shift is None:  # alone, and no neighbouring group joined it
+                    lk = self.links[rows[0]]
+                    lk.status = "alone"
+                    lk.excluded["alone"] = lk.excluded.get("alone", 0) + 1
+                    continue
+                pp, vv, qq, PP, corrections = finish_step([states[r] for r in rows], step, part.shift, self.seq,
+                                                          part.gain, part.cov)
+                PP = self.selection.restore_common(P_reported[rows], PP)
+                p[rows], v[rows], q[rows], P[rows], p_local[rows] = pp, vv, qq, PP, step.result.p
+                corrected[rows] = True
+                iterations = max(iterations, int(step.result.iterations))
+                out.append((tuple(rows), corrections, (pp, vv, qq, PP)))
+            for rows, corrections, result in out:
+                self._send_corrections(rows, corrections, result)
+            if out:
+                self.seq = (self.seq + 1) & 0xFFFF or 1
+            self._record(res.cycle_us, res.cycle_us, ekf, p, v, q, p_local, iterations, res.global_applied,
+                         -1 if res.leader_group is None else res.leader_group + 1, corrected, nis_max, (P_reported, P))
 
     def _record(self, t_us: int, cycle_us: int, ekf, p, v, q, p_local, iterations: int, global_applied: bool,
                 leader: int, corrected: np.ndarray, nis_max: float, P) -> None:

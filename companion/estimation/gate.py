@@ -114,8 +114,8 @@ def gate_chain(p, v, q, w, d, P, params: GateParams = GateParams()) -> GateResul
     return GateResult(nis, cut, tuple(excluded))
 
 
-def segments(usable: Sequence[bool], cut: Sequence[bool] | None = None) -> list[tuple[int, ...]]:
-    """Runs of at least two consecutive usable links not separated by a cut joint.
+def segments(usable: Sequence[bool], cut: Sequence[bool] | None = None, min_links: int = 2) -> list[tuple[int, ...]]:
+    """Runs of at least ``min_links`` consecutive usable links not separated by a cut joint.
 
     ``usable`` (n,) per link; ``cut`` (n-1,) per joint (default none cut).
     """
@@ -127,9 +127,9 @@ def segments(usable: Sequence[bool], cut: Sequence[bool] | None = None) -> list[
         if usable[k] and run and not cut[k - 1]:
             run.append(k)
             continue
-        if len(run) >= 2:
+        if len(run) >= min_links:
             out.append(tuple(run))
         run = [k] if usable[k] else []
-    if len(run) >= 2:
+    if run and len(run) >= min_links:
         out.append(tuple(run))
     return out

@@ -4,6 +4,7 @@
 * :mod:`.codec` -- typed, versioned binary payloads of :mod:`companion.messages` (pure);
 * :mod:`.keys` -- the key expressions under the fleet prefix (pure);
 * :mod:`.leader` -- leader election and the global-step collector (pure, no clocks or I/O);
+* :mod:`.outcomes` -- what the collector takes in and gives out per part of a group (pure);
 * :mod:`.solve` -- eq. 6 over the groups' reported boundaries, and each group's covariance terms (pure);
 * :mod:`.group` -- the node on a bus, with its operational record (clock and bus passed in);
 * :mod:`.hub` -- bus events and an in-process bus (batch mode; pure);

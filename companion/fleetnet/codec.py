@@ -40,8 +40,9 @@ __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
 
 MAGIC = b"ASKZ"
 # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance;
-# 4: GroupPassiveLinks (a group's links carried by their neighbours)
-VERSION = 4
+# 4: GroupPassiveLinks (a group's links carried by their neighbours); 5: a group split by a link
+# down reports each part (boundaries: part, parts, joins_left / joins_right; shifts: each entry's part)
+VERSION = 5
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -59,9 +60,11 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                       ("dtheta_w_rad", ("vec", 3)), ("seq", "u16"))),
     GroupBoundaryReport: (3, (("group", "u8"), ("cycle_us", "i64"), ("left_tip_pv_w", ("vec", 6)),
                               ("right_tip_pv_w", ("vec", 6)), ("info_pv", ("sym", 6)), ("round_trip_us", "i32"),
-                              ("network_round_trip_us", "i32"), ("tip_cov_pv", ("optsym", 12)))),
-    GlobalShift: (4, (("leader_group", "u8"), ("cycle_us", "i64"), ("groups", "ids"), ("shift_pv_w", ("rows", 6)),
-                      ("handover_group", "i8"), ("handover_cycle_us", "i64"), ("hold_us", "per_id"))),
+                              ("network_round_trip_us", "i32"), ("tip_cov_pv", ("optsym", 12)), ("part", "u8"),
+                              ("parts", "u8"), ("joins_left", "u8"), ("joins_right", "u8"))),
+    GlobalShift: (4, (("leader_group", "u8"), ("cycle_us", "i64"), ("groups", "ids"), ("parts", "per_id"),
+                      ("shift_pv_w", ("rows", 6)), ("handover_group", "i8"), ("handover_cycle_us", "i64"),
+                      ("hold_us", "per_id"))),
     ChainTargets: (5, (("leader_group", "u8"), ("time_us", "i64"), ("seq", "u32"), ("links", "ids"),
                        ("p_w_m", ("rows", 3)), ("q_wxyz", ("rows", 4)), ("v_w_m_s", ("rows", 3)),
                        ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)),
@@ -197,6 +200,13 @@ def _correction(v: dict[str, Any]) -> Correction:
 
 def _boundary(v: dict[str, Any]) -> GroupBoundaryReport:
     _finite_all(GroupBoundaryReport, v)
+    if not 0 <= v["part"] < v["parts"]:
+        raise MessageError(f"GroupBoundaryReport.part: part {v['part']} of {v['parts']}")
+    for side, inner in (("joins_left", v["part"] > 0), ("joins_right", v["part"] < v["parts"] - 1)):
+        if v[side] not in (0, 1) or (inner and v[side]):
+            raise MessageError(f"GroupBoundaryReport.{side}: {v[side]} for part {v['part']} of {v['parts']} (an inner "
+                               f"end of a split group joins no other group)")
+        v[side] = bool(v[side])
     v["info_pv"] = check_pd("GroupBoundaryReport.info_pv", v["info_pv"])
     if v["tip_cov_pv"] is not None:
         v["tip_cov_pv"] = check_psd("GroupBoundaryReport.tip_cov_pv", v["tip_cov_pv"])
@@ -205,7 +215,9 @@ def _boundary(v: dict[str, Any]) -> GroupBoundaryReport:
 
 def _shift(v: dict[str, Any]) -> GlobalShift:
     _finite_all(GlobalShift, v)
-    _check_increasing("GlobalShift.groups", v["groups"], "groups")
+    keys = list(zip(v["groups"], v["parts"]))
+    if not keys or keys != sorted(set(keys)) or min(v["parts"]) < 0:
+        raise MessageError(f"GlobalShift.groups: (group, part) {keys} is not a non-empty increasing list of parts")
     if v["handover_group"] < -1:
         raise MessageError(f"GlobalShift.handover_group: {v['handover_group']}")
     return GlobalShift(**v)

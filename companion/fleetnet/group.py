@@ -15,23 +15,24 @@ import logging
 import time
 from dataclasses import replace
 
-import numpy as np
 
 from companion.messages import ChainTargets, GroupPassiveLinks
+from companion.quantiles import Quantiles
 
-from .leader import Actions, GlobalStepNode, Resolution
+from .leader import GlobalStepNode
+from .outcomes import Actions, PartBoundary, Resolution
 
 __all__ = ["GroupLink", "percentiles"]
 
 log = logging.getLogger(__name__)
 
 
-def percentiles(values_ms) -> dict | None:
-    a = np.asarray(values_ms, dtype=float)
-    if not a.size:
+def percentiles(values_ms: Quantiles) -> dict | None:
+    """p50, p99, max and the count of a sketch's samples (``None`` without any)."""
+    if not values_ms.count:
         return None
-    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
-            "samples": int(a.size)}
+    return {"p50": values_ms.percentile(50), "p99": values_ms.percentile(99), "max": values_ms.max,
+            "samples": values_ms.count}
 
 
 class GroupLink:
@@ -44,8 +45,9 @@ class GroupLink:
         self.errors: dict[str, int] = {}
         self.failovers: list[dict] = []
         self._failover: dict | None = None
-        self.round_trips_ms: list[float] = []
-        self.network_round_trips_ms: list[float] = []
+        #: the round trips the groups reported while this one led [ms], in fixed memory
+        self.round_trips_ms = Quantiles()
+        self.network_round_trips_ms = Quantiles()
         self._targets_in: list[ChainTargets] = []
         self._passive_in: list[GroupPassiveLinks] = []
 
@@ -94,6 +96,11 @@ class GroupLink:
         return self._carry_out(self.node.local_step(left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us, now_s,
                                                     tip_cov_pv), now_s)
 
+    def local_parts(self, parts: list[PartBoundary], cycle_us: int, now_s: float) -> list[Resolution]:
+        """This group's boundaries for ``cycle_us``, one per part (a link down or left out split
+        it): publish them (and solve, if leading)."""
+        return self._carry_out(self.node.local_parts(parts, cycle_us, now_s), now_s)
+
     def pump(self, now_s: float) -> list[Resolution]:
         """Everything that arrived, then the deadlines; the cycles that ended."""
         resolved = []
@@ -123,8 +130,8 @@ class GroupLink:
         return resolved + self._carry_out(self.node.tick(now_s), now_s)
 
     def _carry_out(self, actions: Actions, now_s: float) -> list[Resolution]:
-        if actions.boundary is not None:
-            self.bus.publish_boundary(actions.boundary)
+        for boundary in actions.boundaries:
+            self.bus.publish_boundary(boundary)
         for shift in actions.shifts:
             # the node measured its hold up to ``now_s``; the groups subtract it up to the put
             extra_us = int(round((self.clock() - now_s) * 1e6))
@@ -146,8 +153,10 @@ class GroupLink:
             elif res.shift is None:
                 fo["cycles_without_global"] += 1
         node = self.node
-        self.round_trips_ms += [x * 1e-3 for x in node.round_trips_us]
-        self.network_round_trips_ms += [x * 1e-3 for x in node.network_round_trips_us]
+        for x in node.round_trips_us:
+            self.round_trips_ms.add(x * 1e-3)
+        for x in node.network_round_trips_us:
+            self.network_round_trips_ms.add(x * 1e-3)
         node.round_trips_us, node.network_round_trips_us = [], []
         return actions.resolved
 

@@ -6,13 +6,16 @@ out the :class:`Actions` it returns. Per cycle (one 20 Hz step, identified by it
 the flight-controller clock):
 
 1. every group, after its local constraint application (Alg. 2), publishes its
-   :class:`~companion.messages.GroupBoundaryReport` (:meth:`GlobalStepNode.local_step`);
-2. the leader solves eq. 6 (:func:`~companion.fleetnet.solve.solve_cycle`) once every live group has reported, or
-   ``leader_wait_s`` after the first report of the cycle with the groups it has (each run of
-   consecutive groups is solved on its own: a missing group splits the chain), and publishes
-   one :class:`~companion.messages.GlobalShift`;
-3. each group applies its shift; if none has arrived ``shift_deadline_s`` after it published
-   its boundary, it sends its local-only corrections for that cycle (degrades, never stalls).
+   :class:`~companion.messages.GroupBoundaryReport` (:meth:`GlobalStepNode.local_step`), or one
+   per part when a link down or left out splits it (:meth:`GlobalStepNode.local_parts`);
+2. the leader solves eq. 6 (:func:`~companion.fleetnet.solve.solve_cycle`) once every part of
+   every live group has reported, or ``leader_wait_s`` after the first report of the cycle with
+   the parts it has (each run of joined parts is solved on its own: a missing group or a link
+   down splits the chain, and each part of a split group is joined to the neighbouring group it
+   touches), and publishes one :class:`~companion.messages.GlobalShift`;
+3. each group applies its parts' shifts; if none has arrived ``shift_deadline_s`` after it
+   published its boundaries, it sends its local-only corrections for that cycle (degrades,
+   never stalls).
 
 Leadership. Groups are ranked by a configured preference order; each companion holds a
 liveliness token. The *acting* leader is the one whose shifts are being received. When the
@@ -51,17 +54,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from companion.messages import GlobalShift, GroupBoundaryReport
 
-from .solve import shift_covariance_terms, solve_cycle
+from .outcomes import Actions, PartBoundary, PartShift, Resolution
+from .solve import runs, shift_covariance_terms, solve_cycle
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Resolution", "Actions", "GlobalStepNode"]
+__all__ = ["PartBoundary", "PartShift", "Resolution", "Actions", "GlobalStepNode"]
 
 #: Cycles of history kept for late boundaries and duplicate shifts.
 _KEEP_CYCLES = 8
@@ -73,43 +77,15 @@ def _same_report(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
     return (np.array_equal(a.left_tip_pv_w, b.left_tip_pv_w) and np.array_equal(a.right_tip_pv_w, b.right_tip_pv_w)
             and np.array_equal(a.info_pv, b.info_pv)
             and (a.tip_cov_pv is None) == (b.tip_cov_pv is None)
-            and (a.tip_cov_pv is None or np.array_equal(a.tip_cov_pv, b.tip_cov_pv)))
-
-
-@dataclass(frozen=True)
-class Resolution:
-    """How this group's pending cycle ended: ``shift`` (6,) from the leader, or ``None``
-    (local-only: ``reason`` says why). ``shift_gain`` (6, 12) and ``shift_cov`` (6, 6): the
-    covariance terms of the shift (:func:`~companion.estimation.semi.shifted_covariance`), derived
-    by this group from the boundaries it checked the shift against; ``None`` without them."""
-
-    cycle_us: int
-    shift: np.ndarray | None
-    leader_group: int | None
-    reason: str = ""
-    shift_gain: np.ndarray | None = None
-    shift_cov: np.ndarray | None = None
-
-
-@dataclass
-class Actions:
-    """What the daemon must do: publish ``boundary`` / ``shifts``, finish ``resolved`` cycles."""
-
-    boundary: GroupBoundaryReport | None = None
-    shifts: list[GlobalShift] = field(default_factory=list)
-    resolved: list[Resolution] = field(default_factory=list)
-
-    def merge(self, other: Actions) -> Actions:
-        self.boundary = other.boundary or self.boundary
-        self.shifts += other.shifts
-        self.resolved += other.resolved
-        return self
+            and (a.tip_cov_pv is None or np.array_equal(a.tip_cov_pv, b.tip_cov_pv))
+            and (a.parts, a.joins_left, a.joins_right) == (b.parts, b.joins_left, b.joins_right))
 
 
 @dataclass
 class _Pending:
     cycle_us: int
     published_s: float
+    parts: int = 1
 
 
 class GlobalStepNode:
@@ -144,7 +120,7 @@ class GlobalStepNode:
         self._last_cycle_us = -1  # the newest cycle this group published a boundary for
         self._heard_cycle_us = -1  # the newest cycle the elected leader sent a shift for
         self._held: list[tuple[GlobalShift, float]] = []  # shifts of the pending cycle awaiting a boundary
-        self.conflicted: dict[int, set[int]] = {}  # cycle -> groups with two different boundaries
+        self.conflicted: dict[int, set[int]] = {}  # cycle -> groups with two different boundaries of a part
         self.live: set[int] = {group}
         self.reporting: set[int] = set()  # groups whose boundaries have arrived
         self.acting: int | None = None
@@ -153,12 +129,12 @@ class GlobalStepNode:
         #: is still open here (this group lags) stays that leader's, never the new one's
         self._handed: tuple[int, int] | None = None
         self.pending: _Pending | None = None
-        self.reports: dict[int, dict[int, GroupBoundaryReport]] = {}
+        self.reports: dict[int, dict[tuple[int, int], GroupBoundaryReport]] = {}  # cycle -> (group, part) ->
         self.first_report_s: dict[int, float] = {}
         self.settled: dict[int, int] = {}  # cycle -> leader whose shift was applied / published
         self.last_round_trip_us = -1
         self.last_network_round_trip_us = -1
-        self.received_s: dict[int, dict[int, float]] = {}  # cycle -> group -> arrival of its boundary
+        self.received_s: dict[int, dict[tuple[int, int], float]] = {}  # cycle -> (group, part) -> its arrival
         #: round trips reported by the groups while this node led [us]: end to end (incl. the
         #: leader's wait for the other groups) and network only (less the leader's hold time)
         self.round_trips_us: list[int] = []
@@ -216,27 +192,43 @@ class GlobalStepNode:
     # -- inputs -----------------------------------------------------------------------------------------
     def local_step(self, left_tip_pv_w, right_tip_pv_w, info_pv, cycle_us: int, now_s: float,
                    tip_cov_pv=None) -> Actions:
-        """This group's boundary for ``cycle_us`` is ready: publish it and wait for the shift."""
+        """This group's boundary for ``cycle_us`` is ready (the whole group): publish it and wait
+        for the shift."""
+        return self.local_parts([PartBoundary(left_tip_pv_w, right_tip_pv_w, info_pv, tip_cov_pv)], cycle_us, now_s)
+
+    def local_parts(self, parts: Sequence[PartBoundary], cycle_us: int, now_s: float) -> Actions:
+        """This group's boundaries for ``cycle_us``, one per part in chain order (the first
+        joining the previous group only if it starts with the group's first link, the last the
+        next group only if it ends with its last): publish them and wait for the shift."""
+        if not parts:
+            raise ValueError("a group reports at least one part")
         out = Actions()
         if self.pending is not None:  # a new cycle overtook the old one: the old one ends local-only
-            out.resolved.append(self._resolve(None, None, "overtaken by the next cycle"))
-        report = GroupBoundaryReport(self.group, int(cycle_us), np.asarray(left_tip_pv_w, float),
-                                     np.asarray(right_tip_pv_w, float), np.asarray(info_pv, float),
-                                     self.last_round_trip_us, self.last_network_round_trip_us,
-                                     None if tip_cov_pv is None else np.asarray(tip_cov_pv, float))
-        out.boundary = report
-        self.pending = _Pending(int(cycle_us), now_s)
+            out.resolved.append(self._resolve(None, "overtaken by the next cycle"))
+        reports = [GroupBoundaryReport(self.group, int(cycle_us), np.asarray(b.left_tip_pv_w, float),
+                                       np.asarray(b.right_tip_pv_w, float), np.asarray(b.info_pv, float),
+                                       self.last_round_trip_us, self.last_network_round_trip_us,
+                                       None if b.tip_cov_pv is None else np.asarray(b.tip_cov_pv, float),
+                                       k, len(parts), bool(b.joins_left and k == 0),
+                                       bool(b.joins_right and k == len(parts) - 1))
+                   for k, b in enumerate(parts)]
+        out.boundaries = reports
+        self.pending = _Pending(int(cycle_us), now_s, len(parts))
         self._held = []
         self._last_cycle_us = max(self._last_cycle_us, int(cycle_us))
         settled = self.settled.get(int(cycle_us))
         if settled is not None:  # the leader solved this cycle without us
-            out.resolved.append(self._resolve(None, settled, "the leader solved this cycle without this group"))
+            out.resolved.append(self._resolve(settled, "the leader solved this cycle without this group"))
             return out
-        return out.merge(self._add_report(report, now_s, now_s))
+        for report in reports:
+            out.merge(self._add_report(report, now_s, now_s))
+            if self.pending is None:  # solved (this group leads and every part is in)
+                break
+        return out
 
     def on_boundary(self, report: GroupBoundaryReport, now_s: float, arrived_s: float | None = None) -> Actions:
-        """Another group's boundary, handled at ``now_s``; ``arrived_s``: when it came off the wire
-        (default ``now_s``), the start of the leader's hold time."""
+        """Another group's boundary (of one of its parts), handled at ``now_s``; ``arrived_s``: when
+        it came off the wire (default ``now_s``), the start of the leader's hold time."""
         if report.group == self.group or not 0 <= report.group < self.n_groups:
             return Actions()
         self.reporting.add(report.group)
@@ -295,10 +287,10 @@ class GlobalStepNode:
             # checked. It may be the leader's: a forged boundary must not make it look silent.
             self._heard_cycle_us = max(self._heard_cycle_us, cycle)
             return self._reject("conflicted", shift)
-        own = shift.shift_for(self.group)
-        if own is not None and (not np.isfinite(own).all() or np.linalg.norm(own[:3]) > self.max_shift_p_m
-                                or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
-            return self._reject("bounds", shift)
+        for own in (s for (g, _), s in zip(shift.keys, np.asarray(shift.shift_pv_w)) if g == self.group):
+            if (not np.isfinite(own).all() or np.linalg.norm(own[:3]) > self.max_shift_p_m
+                    or np.linalg.norm(own[3:]) > self.max_shift_v_m_s):
+                return self._reject("bounds", shift)
         verdict = self._verify(shift)
         if verdict is None:  # a listed group's boundary has not reached us yet: check it when it does
             if len(self._held) >= _MAX_HELD:  # a flood of uncheckable shifts: keep the first few only
@@ -320,7 +312,7 @@ class GlobalStepNode:
         self.muted.discard(shift.leader_group)
         self._take_handover(shift)
         rt = int(round((arrived - self.pending.published_s) * 1e6))
-        hold = shift.hold_for(self.group)
+        hold = next((shift.hold_for(g, k) for g, k in shift.keys if g == self.group), None)
         self.last_round_trip_us = rt
         self.last_network_round_trip_us = rt - hold if hold is not None else -1
         out.resolved.append(self._resolve_shift(shift))
@@ -358,13 +350,14 @@ class GlobalStepNode:
         reports = self.reports.get(shift.cycle_us, {})
         if self.conflicted.get(shift.cycle_us, set()) & set(shift.groups):
             return False
-        if (len(shift.groups) != len(set(shift.groups)) or np.shape(shift.shift_pv_w) != (len(shift.groups), 6)
-                or not np.isfinite(shift.shift_pv_w).all()):
+        keys = shift.keys
+        if (len(keys) != len(set(keys)) or len(shift.parts) != len(shift.groups)
+                or np.shape(shift.shift_pv_w) != (len(keys), 6) or not np.isfinite(shift.shift_pv_w).all()):
             return False
-        if not all(g in reports for g in shift.groups):
+        if not all(key in reports for key in keys):
             return None
-        groups, shifts = solve_cycle([reports[g] for g in shift.groups])
-        want = shifts[[groups.index(g) for g in shift.groups]]
+        solved, shifts = solve_cycle([reports[key] for key in keys])
+        want = shifts[[solved.index(key) for key in keys]]
         return bool(np.allclose(want, shift.shift_pv_w, rtol=1e-9, atol=1e-9))
 
     def tick(self, now_s: float) -> Actions:
@@ -381,7 +374,7 @@ class GlobalStepNode:
                 self.counts["rejected_shift"] += len(self._held)
                 self.rejections["unverifiable"] = self.rejections.get("unverifiable", 0) + len(self._held)
                 self._held = []
-            out.resolved.append(self._resolve(None, None, "no shift before the deadline"))
+            out.resolved.append(self._resolve(None, "no shift before the deadline"))
             if heard:
                 self._silent_cycles = 0
             elif (leader is not None and leader != self.group
@@ -429,20 +422,33 @@ class GlobalStepNode:
         held = self.reports.setdefault(cycle, {})
         if report.group in self.conflicted.get(cycle, ()):
             return Actions()
-        old = held.get(report.group)
-        if old is not None and not _same_report(old, report):
-            # two different boundaries under one name: neither can be trusted this cycle
+        old = held.get(report.key)
+        siblings = [r for key, r in held.items() if key[0] == report.group and key != report.key]
+        if (old is not None and not _same_report(old, report)) or any(r.parts != report.parts for r in siblings):
+            # two different boundaries under one name (or parts that disagree on how many there
+            # are): none of the group's can be trusted this cycle
             self.counts["conflicting_boundary"] += 1
             self.conflicted.setdefault(cycle, set()).add(report.group)
-            del held[report.group]
+            for key in [key for key in held if key[0] == report.group]:
+                del held[key]
             return Actions()
-        held[report.group] = report
-        self.received_s.setdefault(cycle, {})[report.group] = arrived_s
+        held[report.key] = report
+        self.received_s.setdefault(cycle, {})[report.key] = arrived_s
         self.first_report_s.setdefault(cycle, now_s)
         self._prune(cycle)
-        if self._leads(cycle, now_s) and self.live <= set(self.reports[cycle]):
+        if self._leads(cycle, now_s) and self._complete(cycle):
             return self._solve(cycle, now_s)
         return self._recheck_held(cycle)
+
+    def _complete(self, cycle: int) -> bool:
+        """Every part of every live group has reported ``cycle``."""
+        held = self.reports.get(cycle, {})
+        counts: dict[int, int] = {}
+        declared: dict[int, int] = {}
+        for (g, _), r in held.items():
+            counts[g] = counts.get(g, 0) + 1
+            declared[g] = r.parts
+        return all(g in counts and counts[g] == declared[g] for g in self.live)
 
     def _solve(self, cycle: int, now_s: float) -> Actions:
         reports = list(self.reports.get(cycle, {}).values())
@@ -450,8 +456,9 @@ class GlobalStepNode:
         if not reports:
             return out
         self._commit_handover(cycle, self.group)
-        groups, shifts = solve_cycle(reports)
-        if len(groups) < len(self.live):
+        keys, shifts = solve_cycle(reports)
+        groups = tuple(g for g, _ in keys)
+        if len(set(groups)) < len(self.live):
             self.counts["partial"] += 1
         self.counts["led"] += 1
         if self.acting != self.group:
@@ -459,18 +466,18 @@ class GlobalStepNode:
                      cycle * 1e-6, None if self.acting is None else self.acting + 1, sorted(g + 1 for g in self.live),
                      sorted(g + 1 for g in self.muted), self.handover)
         self.acting = self.group
-        others = [r for r in reports if r.group != self.group]
+        others = [r for r in reports if r.group != self.group and r.part == 0]  # one round trip per group
         self.round_trips_us += [r.round_trip_us for r in others if r.round_trip_us >= 0]
         self.network_round_trips_us += [r.network_round_trip_us for r in others if r.network_round_trip_us >= 0]
         received = self.received_s.get(cycle, {})
-        hold = tuple(int(round((now_s - received.get(g, now_s)) * 1e6)) for g in groups)
+        hold = tuple(int(round((now_s - received.get(key, now_s)) * 1e6)) for key in keys)
         if self.handover is None:
             preferred = next(g for g in self.order if g in self.live and g not in self.muted
                              and (g in self.reporting or g == self.group))
             if self.rank[preferred] < self.rank[self.group]:
                 self.handover = (preferred, cycle + self.handover_cycles * self.period_us)
         hg, hc = self.handover if self.handover is not None else (-1, 0)
-        msg = GlobalShift(self.group, cycle, groups, shifts, hg, hc, hold)
+        msg = GlobalShift(self.group, cycle, groups, shifts, hg, hc, hold, tuple(k for _, k in keys))
         out.shifts.append(msg)
         self._settle(cycle, self.group)
         if self.pending is not None and self.pending.cycle_us == cycle:
@@ -508,23 +515,30 @@ class GlobalStepNode:
                 del table[old]
 
     def _resolve_shift(self, shift: GlobalShift) -> Resolution:
-        """The pending cycle ends with ``shift``: a global step only if this group was solved
-        together with a neighbour (a group alone in its run of the solution gets a zero shift:
-        that is local-only, and counted so)."""
-        if self.group not in shift.groups:
-            return self._resolve(None, shift.leader_group, "not in the leader's solution")
-        k = shift.groups.index(self.group)
-        joined = (k > 0 and shift.groups[k - 1] == self.group - 1) or (
-            k + 1 < len(shift.groups) and shift.groups[k + 1] == self.group + 1)
-        if not joined:
-            return self._resolve(None, shift.leader_group, "no neighbouring group in the leader's solution")
+        """The pending cycle ends with ``shift``: per part, a global step only if it was solved
+        together with a neighbour (a part alone in its run of the solution gets a zero shift: that
+        is local-only, and counted so)."""
         reports = self.reports.get(shift.cycle_us, {})
-        terms = shift_covariance_terms([reports[g] for g in shift.groups if g in reports], self.group)
-        return self._resolve(shift.shift_for(self.group), shift.leader_group, "", terms)
+        solved = [reports[key] for key in shift.keys if key in reports]
+        run_of = {r.key: run for run in runs(solved) for r in run}
+        parts = []
+        for k in range(self.pending.parts):
+            key = (self.group, k)
+            if key not in shift.keys:
+                parts.append(PartShift(None, "not in the leader's solution"))
+            elif len(run_of.get(key, ())) < 2:
+                parts.append(PartShift(None, "no neighbouring group in the leader's solution"))
+            else:
+                gain, cov = shift_covariance_terms(run_of[key], key) or (None, None)
+                parts.append(PartShift(np.asarray(shift.shift_for(*key), float), "", gain, cov))
+        return self._finish(shift.leader_group, tuple(parts))
 
-    def _resolve(self, shift: np.ndarray | None, leader: int | None, reason: str, terms=None) -> Resolution:
+    def _resolve(self, leader: int | None, reason: str) -> Resolution:
+        """The pending cycle ends local-only for every part (``reason``)."""
+        return self._finish(leader, tuple(PartShift(None, reason) for _ in range(self.pending.parts)))
+
+    def _finish(self, leader: int | None, parts: tuple[PartShift, ...]) -> Resolution:
         pending, self.pending = self.pending, None
-        self.counts["global" if shift is not None else "local_only"] += 1
-        gain, cov = terms if terms is not None else (None, None)
-        return Resolution(pending.cycle_us, None if shift is None else np.asarray(shift, float), leader, reason,
-                          gain, cov)
+        res = Resolution(pending.cycle_us, leader, parts)
+        self.counts["global" if res.global_applied else "local_only"] += 1
+        return res

@@ -1,8 +1,12 @@
 """Eq. 6 over the boundaries the groups reported for one cycle: the leader's shifts, and the
 covariance terms each group derives from the same boundaries (pure).
 
-:func:`solve_cycle` solves each run of consecutive groups on its own (a missing group splits the
-chain); :func:`shift_covariance_terms` gives one group its ``(Gamma_g, V_g)``. One cycle's
+:func:`solve_cycle` solves each run of joined parts on its own: the entries are the groups' parts
+(:class:`~companion.messages.GroupBoundaryReport`, a whole group being one part), and two entries
+are joined when they are neighbouring groups' parts that meet at the joint between the groups
+(``joins_right`` of the first, ``joins_left`` of the second). A missing group, a link down or a
+joint cut inside a group splits the chain there. :func:`shift_covariance_terms` gives one part its
+``(Gamma_g, V_g)``. One cycle's
 boundaries are solved by the leader, checked by each follower against its shift and used by each
 group for its covariance terms, so the solutions are kept by the content of their boundaries and
 computed once per content.
@@ -18,24 +22,37 @@ import numpy as np
 from companion.estimation.semi import GlobalSolution, GroupBoundary, global_solution
 from companion.messages import GroupBoundaryReport
 
-__all__ = ["solve_cycle", "shift_covariance_terms"]
+__all__ = ["joined", "runs", "solve_cycle", "shift_covariance_terms"]
 
 
-def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[int, ...], np.ndarray]:
-    """Eq. 6 over the groups that reported: ``(groups, shifts (len(groups), 6))``.
+def joined(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
+    """Whether entry ``b`` follows ``a`` across the joint between two neighbouring groups."""
+    return b.group == a.group + 1 and a.joins_right and b.joins_left
 
-    Groups are sorted; each run of consecutive group indices is one chain segment solved by
-    :func:`~companion.estimation.semi.global_step` (a segment of one group gets a zero shift).
+
+def runs(reports: Sequence[GroupBoundaryReport]) -> list[list[GroupBoundaryReport]]:
+    """The reports in chain order (by ``(group, part)``), cut into runs of joined entries."""
+    ordered = [r for _, r in sorted({r.key: r for r in reports}.items())]
+    out: list[list[GroupBoundaryReport]] = []
+    for r in ordered:
+        if out and joined(out[-1][-1], r):
+            out[-1].append(r)
+        else:
+            out.append([r])
+    return out
+
+
+def solve_cycle(reports: Sequence[GroupBoundaryReport]) -> tuple[tuple[tuple[int, int], ...], np.ndarray]:
+    """Eq. 6 over the parts that reported: ``(keys, shifts (len(keys), 6))``, ``keys`` the
+    ``(group, part)`` of each entry in chain order. Each run of joined entries is one chain segment
+    solved by :func:`~companion.estimation.semi.global_step` (a run of one entry gets a zero shift).
     """
-    by_group = {r.group: r for r in reports}
-    groups = tuple(sorted(by_group))
-    shifts = np.zeros((len(groups), 6))
-    start = 0
-    for k in range(1, len(groups) + 1):
-        if k == len(groups) or groups[k] != groups[k - 1] + 1:
-            shifts[start:k] = _solution([by_group[g] for g in groups[start:k]]).shifts
-            start = k
-    return groups, shifts
+    keys: list[tuple[int, int]] = []
+    blocks = []
+    for run in runs(reports):
+        keys += [r.key for r in run]
+        blocks.append(_solution(run).shifts)
+    return tuple(keys), (np.concatenate(blocks) if blocks else np.zeros((0, 6)))
 
 
 #: The latest eq. 6 solutions, by the content of their boundaries. One cycle's boundaries are
@@ -76,17 +93,19 @@ def _boundary(report: GroupBoundaryReport) -> GroupBoundary:
     return GroupBoundary(report.left_tip_pv_w, report.right_tip_pv_w, report.info_pv, report.tip_cov_pv)
 
 
-def shift_covariance_terms(reports: Sequence[GroupBoundaryReport], group: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(Gamma_g, V_g)`` of ``group`` (:class:`~companion.estimation.semi.GlobalSolution`) from
-    the boundaries of its run of consecutive groups in ``reports`` (the groups solved together);
-    ``None`` if a group of that run sent no tip covariance."""
-    by_group = {r.group: r for r in reports}
-    lo = hi = group
-    while lo - 1 in by_group:
-        lo -= 1
-    while hi + 1 in by_group:
-        hi += 1
-    solution = _solution([by_group[g] for g in range(lo, hi + 1)])
-    if solution.gains is None:
-        return None
-    return solution.gains[group - lo], solution.shift_cov[group - lo]
+def shift_covariance_terms(reports: Sequence[GroupBoundaryReport], key: tuple[int, int] | int,
+                           ) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(Gamma_g, V_g)`` of the entry ``key`` (``(group, part)``, or a whole group's index;
+    :class:`~companion.estimation.semi.GlobalSolution`) from the boundaries of its run of joined
+    entries in ``reports`` (the entries solved together); ``None`` if an entry of that run sent no
+    tip covariance, or ``key`` is not among them."""
+    key = (key, 0) if isinstance(key, int) else tuple(key)
+    for run in runs(reports):
+        keys = [r.key for r in run]
+        if key in keys:
+            solution = _solution(run)
+            if solution.gains is None:
+                return None
+            k = keys.index(key)
+            return solution.gains[k], solution.shift_cov[k]
+    return None

@@ -193,6 +193,12 @@ def test_flag_windows_and_the_outage_split():
     assert np.isnan(res["during_outages"]["rms_track_est_m"][1])  # no estimate at all in there
     assert res["during_outages"]["constraint_pos_p95_m_after"] == pytest.approx(0.2)
     assert res["outside_outages"]["constraint_pos_p95_m_after"] == pytest.approx(0.001)
+    corrected = np.ones((10, n), dtype=bool)
+    corrected[3:6, 1] = False
+    corrected[4, 2] = False  # link 3 missed one of the window's three steps
+    res = outage_split({**log, "corrected_sckf": corrected}, 1.0,
+                       [{"kind": "vehicle_down", "start_s": 3.0, "end_s": 5.0, "links": [2]}])
+    assert res["windows"][0]["corrected_fraction"] == [1.0, None, pytest.approx(2 / 3, abs=1e-4)]
 
 
 def _group_log(cycles, links, global_applied=True):
@@ -262,7 +268,10 @@ def test_batch_link_reboot_its_neighbours_carry_it_and_the_chain_recovers(tmp_pa
     assert reboot["killed_at_s"] == 9.0 and reboot["restarted_at_s"] == reboot["rejoined_at_s"] == 9.0 + restart_after_s
     assert 9.0 + restart_after_s < reboot["rotors_on_at_s"] < 9.0 + restart_after_s + 0.1
     assert reboot["readmitted_at_s"] is not None and reboot["readmitted_at_s"] < 9.0 + restart_after_s + 1.0
-    assert {"kind": "vehicle_down", "start_s": 9.0, "end_s": 9.0 + restart_after_s, "links": [2]} in m["outages"]["windows"]
+    (down_window,) = [w for w in m["outages"]["windows"] if w["kind"] == "vehicle_down"]
+    assert {k: down_window[k] for k in ("start_s", "end_s", "links")} == {"start_s": 9.0, "end_s": 9.0 + restart_after_s,
+                                                                         "links": [2]}
+    assert down_window["corrected_fraction"][1] is None  # its own link: not counted
     t = log["t"]
     down = (t >= 9.0) & (t < 9.0 + restart_after_s)
     assert np.all(np.isnan(log["p_ekf"][down, 1])) and np.all(np.isfinite(log["p_ekf"][~down, 1]))

@@ -172,6 +172,55 @@ def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(grou
     assert len({e.log["leader"][-1] for e in engines}) == 1
 
 
+@pytest.mark.parametrize("down, parts, joined", [
+    # the middle of group 2: two one-link parts, each joined to its neighbouring group
+    (3, {(0, 1, 2): ((0, 1), (2,)), (4, 5, 6): ((0,), (1, 2))}, [True, True, True]),
+    # its first link: group 2's rest joins group 3; group 1 is alone (Alg. 1 on its own)
+    (2, {(0, 1): ((0, 1),), (3, 4, 5, 6): ((0, 1), (2, 3))}, [False, True, True]),
+])
+def test_a_holed_group_takes_part_in_the_global_step_part_by_part(down, parts, joined):
+    """Distributed, 7 links in groups (1, 2), (3, 4, 5), (6, 7), link ``down`` silent: each part
+    of group 2 takes part in the global step joined to the group it touches, so every live link
+    is corrected, as Alg. 2 + eq. 6 in one process on each side of the hole (with those parts
+    as groups); a part that touches no group is corrected alone."""
+    n, groups = 7, ((1, 2), (3, 4, 5), (6, 7))
+    rng = np.random.default_rng(5)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    setup = setup_for(n, groups, distributed=True)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+    clock = [0.0]
+    hub = LocalHub(len(groups), lambda: clock[0])
+    engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
+                               net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
+                                                            shift_deadline_s=0.035, leader_wait_s=0.025),
+                                             hub.join(g), lambda: clock[0]))
+               for g in range(len(groups))]
+    states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
+    got = {}
+    for k in range(16):
+        t = clock[0] = 0.05 * k
+        for e in engines:
+            for lk in e.links:
+                if lk.index != down or k == 0:
+                    e.on_state(lk.row, states_at(t)[lk.index], STATE_FLAG_EKF_OK, t)
+        for _ in range(6):
+            for e in engines:
+                for out in of(CorrectionOut, e.poll(t)):
+                    got[(k, e.links[out.row].index)] = out.correction
+    live = [i for i in range(n) if i != down]
+    k = max(k for k in range(16) if all((k, i) in got for i in live))
+    assert k >= 12 and (k, down) not in got
+    for seg, layout in parts.items():
+        _, want = compute_corrections([states_at(0.05 * k)[i] for i in seg], setup.skeleton.d_b_m[list(seg)], layout,
+                                      setup.companion.params)
+        for i, c in zip(seg, want):
+            np.testing.assert_allclose(got[(k, i)].dp_w_m, c.dp_w_m, atol=1e-9)
+            np.testing.assert_allclose(got[(k, i)].dv_w_m_s, c.dv_w_m_s, atol=1e-9)
+            np.testing.assert_allclose(got[(k, i)].dtheta_w_rad, c.dtheta_w_rad, atol=1e-9)
+    assert [bool(e.log["global_applied"][-1]) for e in engines] == joined
+    assert np.asarray(engines[1].log["corrected_sckf"][-1]).tolist() == [i != down for i in (2, 3, 4)]
+
+
 @pytest.mark.parametrize("distributed", [False, True])
 def test_the_common_gnss_error_stays_out_of_the_step_and_back_in_the_covariance(distributed):
     """gnss_common_pos_var_m2: links whose reported position covariance includes the receivers'

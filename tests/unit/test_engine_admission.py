@@ -16,6 +16,7 @@ from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT
 
+from ..clocks import FakeClock
 from ..engine_cases import feed, of, setup_for, straight_state
 
 
@@ -223,25 +224,30 @@ def test_a_rejected_state_changes_no_flag_and_no_latency():
     assert engine.links[1].flags == STATE_FLAG_EKF_OK and engine.links[1].latencies_ms.count == 0
 
 
-def test_a_group_with_a_link_left_out_corrects_its_segments_alone_and_publishes_no_boundary():
-    """Distributed: group 2 (links 3, 4, 5) with link 3 stale: links 4 and 5 get Alg. 1 on the two
-    of them (local-only, no global step), link 3 none, and no boundary of group 2 goes out."""
+def test_a_group_with_a_link_left_out_publishes_its_part_and_corrects_it_alone_without_a_neighbour():
+    """Distributed: group 2 (links 3, 4, 5) with link 3 stale: links 4 and 5 are one part, its
+    boundary goes out as part 0 of 1 that joins the next group only; with no other group
+    reporting, they get Alg. 1 on the two of them (local-only) and link 3 none."""
     n, groups = 7, ((1, 2), (3, 4, 5), (6, 7))
     setup = setup_for(n, groups, distributed=True)
-    hub = LocalHub(3, lambda: 1.0)
+    clock = FakeClock(0.5)
+    hub = LocalHub(3, clock)
     node = GlobalStepNode(1, 3, setup.zenoh.order(3), 50_000, startup_s=0.0)
-    engine = CompanionEngine(setup, group=1, start_center=(0.0, 0.0, 2.0), net=GroupLink(node, hub.join(1), lambda: 1.0))
+    engine = CompanionEngine(setup, group=1, start_center=(0.0, 0.0, 2.0), net=GroupLink(node, hub.join(1), clock))
     watcher = hub.join(0)
     dx = {2: 0.0, 3: 0.1, 4: -0.1}
     for lk in engine.links:  # all three report at 0 s, then link 3 falls silent
         engine.on_state(lk.row, straight_state(lk.index, n, 0.0, dx[lk.index]), STATE_FLAG_EKF_OK, 0.0)
     for lk in engine.links[1:]:
         engine.on_state(lk.row, straight_state(lk.index, n, 0.5, dx[lk.index]), STATE_FLAG_EKF_OK, 0.5)
-    got = {engine.links[c.row].index: c.correction for c in of(CorrectionOut, engine.poll(0.5))}
+    assert not of(CorrectionOut, engine.poll(0.5))  # waiting for the leader
+    (b,) = [e.value for e in watcher.drain() if e.kind == "boundary"]
+    assert (b.group, b.part, b.parts, b.joins_left, b.joins_right) == (1, 0, 1, False, True)
+    clock.t = 0.55  # the shift's deadline passed
+    got = {engine.links[c.row].index: c.correction for c in of(CorrectionOut, engine.poll(0.55))}
     assert set(got) == {3, 4} and engine.links[0].status == "stale"
     states = [straight_state(i, n, 0.5, dx[i]) for i in (3, 4)]
     _, want = compute_corrections(states, setup.skeleton.d_b_m[[3, 4]], [(0, 1)], setup.companion.params)
     for i, w in zip((3, 4), want):
         np.testing.assert_allclose(got[i].dp_w_m, w.dp_w_m, atol=1e-12)
     assert not engine.log["global_applied"][-1] and engine.log["corrected_sckf"][-1].tolist() == [False, True, True]
-    assert not [e for e in watcher.drain() if e.kind == "boundary"]

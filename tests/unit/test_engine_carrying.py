@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from companion.engine import CompanionEngine, TargetOut
+from companion.engine.carrying import PASSIVE_STALE_US
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
@@ -131,7 +132,8 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
     group's companion publishes it as carried (GroupPassiveLinks) and the other companions carry it
     too: each group's neighbour of it gets its share of the weight within two target periods, and
     the shares are those of the single-engine feed-forward. A group's claim about links that are
-    not its own, or a stale one, is counted and dropped; a group that leaves takes its claim with it."""
+    not its own, or a stale one, is counted and dropped; the claim of a group that leaves holds until
+    it goes stale."""
     pytest.importorskip("pinocchio")
     n = max(max(g) for g in groups)
     setup = setup_for(n, groups, distributed=True)
@@ -200,9 +202,12 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
                 GroupPassiveLinks(g_down, int((t + 60.0) * 1e6), (down,))):     # far ahead
         e.carrying.on_remote(msg, e.fc_time_us)
     assert e.summary()["carried_links_messages"]["rejected"] == 4
-    # its group's companion leaves: its claim goes with it (the link is back to flying itself here)
+    # its group's companion leaves: its claim holds (the dead link is still dead) until it goes stale
     hub.buses[g_down].close()
     t = round(t + 0.02, 6)
+    tick(t, [i for i in range(n) if i != down and i not in layout[g_down]])
+    np.testing.assert_allclose(ff[healthy], ref[healthy], atol=1e-6 * weight)
+    t = round(t + PASSIVE_STALE_US * 1e-6 + 0.1, 6)
     tick(t, [i for i in range(n) if i != down and i not in layout[g_down]])
     assert abs(ff[healthy][2]) < 1e-6 * weight
 

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.fleetnet.leader import GlobalStepNode
+from companion.estimation.semi import GroupBoundary, global_step
+from companion.fleetnet.leader import GlobalStepNode, PartBoundary
 from companion.fleetnet.solve import solve_cycle
 from companion.messages import GlobalShift, GroupBoundaryReport
 
@@ -46,8 +47,8 @@ def _cycle(nodes, k, rng, rogue_before=(), rogue_after=()):
     deliver(real, now + 0.002)
     for node in nodes:
         resolved[node.group] += node.tick(now + 0.03).resolved
-    groups, truth = solve_cycle(published)
-    return resolved, dict(zip(groups, truth))
+    keys, truth = solve_cycle(published)
+    return resolved, {g: shift for (g, _), shift in zip(keys, truth)}
 
 
 def _fake(leader, cycle, groups, rng, scale=0.3):
@@ -195,3 +196,48 @@ def test_forged_shifts_do_not_hide_a_silent_leader():
         nodes[1].tick(now + 0.04)
         del act
     assert 0 in nodes[1].muted and frozen.group == 0
+
+
+def test_a_split_group_is_solved_part_by_part_and_a_forged_part_count_leaves_it_out():
+    """Three groups; group 2 reports two parts (a link down between them): the leader waits for
+    both, joins the first to group 1 and the second to group 3, and each part gets its own shift
+    (eq. 6 of its run). A report in group 2's name that disagrees on the number of parts is a
+    conflict: group 2 is left out of that cycle."""
+    nodes = [GlobalStepNode(g, 3, (0, 1, 2), PERIOD_US, startup_s=0.0) for g in range(3)]
+    for a in nodes:
+        for b in nodes:
+            a.on_liveliness(b.group, True, 0.0)
+    rng = np.random.default_rng(6)
+    tip = lambda: rng.normal(0, 0.05, 6)  # noqa: E731
+    left_part = PartBoundary(tip(), tip(), 2.0 * np.eye(6), joins_right=False)
+    right_part = PartBoundary(tip(), tip(), 3.0 * np.eye(6), joins_left=False)
+    cycle, now = PERIOD_US, 1.0
+    a0 = nodes[0].local_step(tip(), tip(), np.eye(6), cycle, now)
+    a2 = nodes[2].local_step(tip(), tip(), 4.0 * np.eye(6), cycle, now)
+    a1 = nodes[1].local_parts([left_part, right_part], cycle, now)
+    assert [(b.part, b.parts, b.joins_left, b.joins_right) for b in a1.boundaries] == [(0, 2, True, False),
+                                                                                      (1, 2, False, True)]
+    leader = nodes[0]
+    for b in a2.boundaries + a1.boundaries[:1]:
+        assert not leader.on_boundary(b, now + 0.001).shifts  # group 2's second part still missing
+    (shift,) = leader.on_boundary(a1.boundaries[1], now + 0.001).shifts
+    assert shift.keys == ((0, 0), (1, 0), (1, 1), (2, 0))
+    runs = [[a0.boundary, a1.boundaries[0]], [a1.boundaries[1], a2.boundary]]
+    want = np.concatenate([global_step([GroupBoundary(r.left_tip_pv_w, r.right_tip_pv_w, r.info_pv) for r in run])
+                           for run in runs])
+    np.testing.assert_allclose(shift.shift_pv_w, want, atol=1e-12)
+    for node in nodes[1:]:
+        for b in a0.boundaries + (a2.boundaries if node.group == 1 else a1.boundaries):
+            node.on_boundary(b, now + 0.002)
+    (res,) = nodes[1].on_shift(shift, now + 0.003).resolved
+    assert res.global_applied and len(res.parts) == 2
+    np.testing.assert_allclose(res.parts[0].shift, want[1], atol=1e-12)
+    np.testing.assert_allclose(res.parts[1].shift, want[2], atol=1e-12)
+    # next cycle: a forged one-part report in group 2's name beside its two parts
+    cycle, now = 2 * PERIOD_US, 1.05
+    a1 = nodes[1].local_parts([left_part, right_part], cycle, now)
+    nodes[0].local_step(tip(), tip(), np.eye(6), cycle, now)
+    forged = GroupBoundaryReport(1, cycle, np.zeros(6), np.zeros(6), np.eye(6))
+    for b in [forged, *a1.boundaries]:
+        leader.on_boundary(b, now + 0.001)
+    assert leader.counts["conflicting_boundary"] == 1 and 1 in leader.conflicted[cycle]

@@ -29,6 +29,9 @@ def _messages(rng):
                             _psd12(rng)),
         GlobalShift(1, 1_250_000, (0, 1, 3), rng.normal(size=(3, 6)), 0, 1_400_000, (10, 20, 30)),
         GlobalShift(2, 50_000, (2,), np.zeros((1, 6)), hold_us=(0,)),
+        GlobalShift(0, 50_000, (0, 1, 1, 2), rng.normal(size=(4, 6)), hold_us=(1, 2, 3, 4), parts=(0, 0, 1, 0)),
+        GroupBoundaryReport(1, 1_300_000, rng.normal(size=6), rng.normal(size=6), 0.5 * (info + info.T), part=1,
+                            parts=2, joins_left=False, joins_right=True),
         targets(rng, (0, 1, 2, 3, 4, 5, 6)),
         targets(rng, (2, 5)),
         GroupPassiveLinks(1, 20_060_000, (2,)),
@@ -67,6 +70,8 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         b"": "shorter than",
         b"XXXX" + good[4:]: "magic",
         good[:4] + bytes([9]) + good[5:]: "version 9",
+        good[:4] + bytes([codec.VERSION - 1]) + good[5:]:  # an older peer is refused, naming both versions
+            f"version {codec.VERSION - 1}, this companion speaks version {codec.VERSION}",
         good[:5] + bytes([77]) + good[6:]: "unknown message type 77",
         good[:-3]: "truncated",
         good + b"\0": "trailing",
@@ -76,7 +81,14 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
             "tip_cov_pv: not positive semidefinite",
         codec.encode(replace(nan_tip, left_tip_pv_w=np.zeros(6), tip_cov_pv=np.full((12, 12), np.nan))):
             "tip_cov_pv: non-finite",
-        good[:-1] + bytes([2]): "tip_cov_pv: presence flag 2",  # (good has no tip covariance: flag 0 last)
+        # (good has no tip covariance: flag 0, then part, parts, joins_left, joins_right)
+        good[:-5] + bytes([2]) + good[-4:]: "tip_cov_pv: presence flag 2",
+        good[:-4] + bytes([1, 1, 1, 1]): "part 1 of 1",
+        good[:-4] + bytes([0, 2, 1, 1]): "joins_right: 1 for part 0 of 2",
+        good[:-4] + bytes([1, 2, 1, 1]): "joins_left: 1 for part 1 of 2",
+        good[:-4] + bytes([0, 1, 3, 1]): "joins_left: 3",
+        codec.encode(GlobalShift(0, 0, (1, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
+        codec.encode(GlobalShift(0, 0, (1, 1), np.zeros((2, 6)), hold_us=(0, 0), parts=(1, 0))): "increasing",
         codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
         codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), links=(1, 1))): "ChainTargets.links",
         codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
