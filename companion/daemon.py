@@ -351,9 +351,10 @@ class CompanionDaemon:
             if k in summary}))
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
+            # the summary first: it is small, and what a launcher that runs out of patience reads
+            (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
             self.write_log()
             self._log_stream.close()
-            (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
         self._close_ports()
         if self.net is not None:
             self.net.close()

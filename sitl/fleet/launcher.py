@@ -312,7 +312,7 @@ class Fleet:
         if self.harness is not None:
             self.harness.close()
         try:
-            self.procs.stop()
+            self.procs.stop(self.harness.sim_s if self.harness is not None else 0.0)
         finally:
             if self.cameras is not None:
                 self.cameras.close()

@@ -15,12 +15,15 @@ from pathlib import Path
 
 from .layout import FleetError
 
-__all__ = ["Processes", "STOP_GRACE_S", "STARTUP_TIMEOUT_S", "enter_batch_scheduling", "restore_scheduling",
+__all__ = ["Processes", "STOP_GRACE_S", "STOP_GRACE_PER_FLIGHT_S", "STARTUP_TIMEOUT_S", "enter_batch_scheduling", "restore_scheduling",
            "bound_ports", "listening_unix_paths", "wait_udp_listening"]
 
 log = logging.getLogger(__name__)
 
 STOP_GRACE_S = 10.0
+#: ... and this much more per simulated second flown: a long flight's processes have long logs to
+#: write at the end (a companion's step log and its MCAP: a minute for an hour's flight)
+STOP_GRACE_PER_FLIGHT_S = 1.0 / 60.0
 STARTUP_TIMEOUT_S = 30.0
 
 
@@ -110,16 +113,19 @@ class Processes:
             if name not in self.killed and proc.poll() is not None:
                 raise FleetError(f"{name} exited with code {proc.returncode} (see its console log)")
 
-    def stop(self) -> None:
+    def stop(self, flown_s: float = 0.0) -> None:
+        """SIGTERM to every process, SIGKILL to those still up :data:`STOP_GRACE_S` later, plus
+        :data:`STOP_GRACE_PER_FLIGHT_S` per simulated second ``flown_s``."""
         for _, proc in self.procs:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
+        grace = STOP_GRACE_S + STOP_GRACE_PER_FLIGHT_S * max(flown_s, 0.0)
+        deadline = time.monotonic() + grace
         for name, proc in self.procs:
             try:
                 proc.wait(max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop in %.0f s: killing it", name, STOP_GRACE_S)
+                log.warning("%s did not stop in %.0f s: killing it", name, grace)
                 proc.kill()
                 proc.wait()
 
