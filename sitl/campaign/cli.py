@@ -3,6 +3,8 @@
     python -m sitl campaign run --config FILE [--config FILE ...] [--set KEY=V1,V2 ...] --seeds 0-9
         [--mode batch|fleet] [--duration S] [--out DIR] [--scheduler tcp://HOST:PORT | --workers N | --serial]
         [--retries R] [--worker-dir DIR] [--plot METRIC,...] [--quiet]
+    python -m sitl campaign faults --config FILE --flights N [--seed S] [--mode batch|fleet] [--duration S]
+        [--out DIR] [--scheduler tcp://HOST:PORT | --workers N | --serial] [--quiet]
     python -m sitl campaign diff A/results.csv B/results.csv
 """
 
@@ -58,8 +60,7 @@ def _grid(args):
 
 
 def _cmd_run(args) -> int:
-    from .cluster import open_executor
-    from .flights import RESULTS_FILE, check_specs, run_flights, write_summaries
+    from .flights import RESULTS_FILE, check_specs, write_summaries
 
     try:
         specs = _grid(args)
@@ -74,29 +75,9 @@ def _cmd_run(args) -> int:
     (root / "campaign.json").write_text(json.dumps({
         "configs": [str(c) for c in args.config], "set": args.set, "seeds": args.seeds, "mode": args.mode,
         "duration_s": args.duration, "runs": len(specs)}, indent=1) + "\n")
-    where = "serially in this process" if args.serial else (args.scheduler or f"a local cluster of "
-                                                             f"{args.workers or 'one worker per core'}")
-    print(f"campaign: {len(specs)} runs in {root} ({where})", file=sys.stderr)
-    bar = _Bar(len(specs), args.quiet)
-    signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / a batch system's stop: as Ctrl-C
-    try:
-        result = run_flights(root, specs, lambda: open_executor(args.scheduler, args.workers, args.serial, args.retries),
-                             renders=renders, progress=bar,
-                             worker_root=str(Path(args.worker_dir).resolve()) if args.worker_dir else None)
-    except KeyboardInterrupt:
-        bar.close()
-        print(f"interrupted: the finished runs are in {root / 'results.csv'}; the same command goes on where "
-              "this one stopped", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except ImportError as exc:
-        bar.close()
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_CONFIG
-    except OSError as exc:  # e.g. no scheduler at --scheduler
-        bar.close()
-        print(f"error: {args.scheduler or 'local cluster'}: {exc}", file=sys.stderr)
-        return EXIT_BAD_CONFIG
-    bar.close()
+    result = _fly(args, root, specs, renders)
+    if isinstance(result, int):
+        return result
     files = [root / RESULTS_FILE] + write_summaries(root, [r for r in result.records if r], f"Campaign {root.name}",
                                                     [p for p in args.plot.split(",") if p] if args.plot else None)
     counts = result.counts()
@@ -104,6 +85,58 @@ def _cmd_run(args) -> int:
           f"({counts['ok']} ok, {counts['failed']} failed, {counts['lost']} lost) in {result.wall_s:.1f} s")
     print(f"wrote {', '.join(str(p.relative_to(root)) for p in files[:4])}{' and plots/' if len(files) > 4 else ''} "
           f"in {root}")
+    return 0 if counts["failed"] == counts["lost"] == 0 else EXIT_FAILED_RUNS
+
+
+def _fly(args, root: Path, specs, renders: bool):
+    """Fly ``specs`` in ``root`` where ``args`` say (a cluster, a scheduler, serially); the
+    :class:`~sitl.campaign.engine.CampaignResult`, or the exit code of an interrupt or error."""
+    from .cluster import open_executor
+    from .flights import run_flights
+
+    where = "serially in this process" if args.serial else (args.scheduler or f"a local cluster of "
+                                                             f"{args.workers or 'one worker per core'}")
+    print(f"campaign: {len(specs)} runs in {root} ({where})", file=sys.stderr)
+    bar = _Bar(len(specs), args.quiet)
+    signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` / a batch system's stop: as Ctrl-C
+    try:
+        return run_flights(root, specs, lambda: open_executor(args.scheduler, args.workers, args.serial, args.retries),
+                           renders=renders, progress=bar,
+                           worker_root=str(Path(args.worker_dir).resolve()) if args.worker_dir else None)
+    except KeyboardInterrupt:
+        print(f"interrupted: the finished runs are in {root / 'results.csv'}; the same command goes on where "
+              "this one stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except ImportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    except OSError as exc:  # e.g. no scheduler at --scheduler
+        print(f"error: {args.scheduler or 'local cluster'}: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    finally:
+        bar.close()
+
+
+def _cmd_faults(args) -> int:
+    from .fault_campaign import fault_specs, write_fault_report
+
+    if args.workers is not None and args.workers < 1:
+        print("error: --workers must be >= 1", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    try:
+        specs, events = fault_specs(str(Path(args.config).resolve()), args.flights, args.seed, args.mode, args.duration)
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_CONFIG
+    root = make_run_dir("faults", args.out)
+    result = _fly(args, root, specs, False)
+    if isinstance(result, int):
+        return result
+    table, crashes, text = write_fault_report(root, specs, events, result.records, args)
+    print(text, end="")
+    counts = result.counts()
+    print(f"{len(specs)} flights: {counts['ok']} flown, {counts['failed']} failed, {counts['lost']} lost; "
+          f"{len(crashes)} crashed; wrote faults.md and faults.json in {root}")
     return 0 if counts["failed"] == counts["lost"] == 0 else EXIT_FAILED_RUNS
 
 
@@ -125,8 +158,22 @@ def _cmd_diff(args) -> int:
     return 0 if not diffs else 1
 
 
+def _where_args(parser) -> None:
+    """Where a campaign's runs fly: a scheduler, a local cluster or serially; retries, worker folder, bar."""
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (dask scheduler)")
+    where.add_argument("--workers", type=int, metavar="N", help="local cluster of N worker processes (default: one "
+                                                                "per core)")
+    where.add_argument("--serial", action="store_true", help="no cluster: the runs one after another in this process")
+    parser.add_argument("--retries", type=int, default=2, metavar="R",
+                        help="local cluster: give a run whose worker died to another up to R times (default 2)")
+    parser.add_argument("--worker-dir", metavar="DIR", help="where the workers write the run folders (default: the "
+                                                            "campaign folder; for workers that do not share it)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def add_campaign_parser(sub) -> None:
-    """``campaign run`` and ``campaign diff`` on ``python -m sitl``'s subcommands."""
+    """``campaign run``, ``campaign faults`` and ``campaign diff`` on ``python -m sitl``'s subcommands."""
     cp = sub.add_parser("campaign", help="fly many runs (scenarios x settings x seeds) on Dask; one results table",
                         description="Campaigns: a grid of scenarios x parameter settings x seeds on a Dask cluster "
                                     "(local by default), resumable, with one results table and its summaries.")
@@ -148,19 +195,30 @@ def add_campaign_parser(sub) -> None:
     run.add_argument("--duration", type=float, metavar="S", help="simulated seconds per run (default: the scenario's)")
     run.add_argument("--out", metavar="DIR", help="campaign folder (default: runs/campaign-<UTC time>); "
                                                   "an existing one goes on where it stopped")
-    where = run.add_mutually_exclusive_group()
-    where.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (dask scheduler)")
-    where.add_argument("--workers", type=int, metavar="N", help="local cluster of N worker processes (default: one "
-                                                                "per core)")
-    where.add_argument("--serial", action="store_true", help="no cluster: the runs one after another in this process")
-    run.add_argument("--retries", type=int, default=2, metavar="R",
-                     help="local cluster: give a run whose worker died to another up to R times (default 2)")
-    run.add_argument("--worker-dir", metavar="DIR", help="where the workers write the run folders (default: the "
-                                                         "campaign folder; for workers that do not share it)")
+    _where_args(run)
     run.add_argument("--plot", metavar="METRICS", help="box plots of these metrics, comma-separated "
                                                        "(default: the headline metrics)")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=_cmd_run)
+    faults = csub.add_parser(
+        "faults", help="fly random fault schedules drawn from a seed and report per kind of fault",
+        description="Draw --flights fault schedules from --seed (link reboots, GPS steps, ramps and outages; in "
+                    "fleet mode also lossy wires and, in distributed scenarios, companion kills: kind, link, start, "
+                    "length, overlaps), fly them as a campaign and write faults.md / faults.json: per kind the "
+                    "crashes, lowest altitude, worst tracking and constraint error during the outages and outside "
+                    "them, corrections lost and time to recover, and every crash with its settings and seed. The "
+                    "same command again goes on where it stopped.")
+    faults.add_argument("--config", required=True, metavar="FILE", help="scenario file the faults are added to")
+    faults.add_argument("--flights", type=int, required=True, metavar="N", help="how many flights")
+    faults.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the schedules and the flights "
+                                                                          "(default 0)")
+    faults.add_argument("--mode", choices=MODES, default="fleet",
+                        help="fleet (default: every kind of fault) or batch (link reboots and GPS faults only)")
+    faults.add_argument("--duration", type=float, metavar="S", help="simulated seconds per flight (default: the "
+                                                                     "scenario's)")
+    faults.add_argument("--out", metavar="DIR", help="campaign folder (default: runs/faults-<UTC time>); an "
+                                                     "existing one goes on where it stopped")
+    _where_args(faults)
+    faults.set_defaults(func=_cmd_faults)
     diff = csub.add_parser("diff", help="compare two results tables (timing columns aside)",
                            description="Print the runs and values in which two results.csv differ; exit 0 when "
                                        "identical (wall time, worker, host, attempts and real-time factor aside).")

@@ -170,3 +170,26 @@ def test_a_campaign_with_a_bad_setting_stops_before_anything_flies(tmp_path):
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "firmware.ekf.gate_sigm: unknown key (did you mean 'gate_sigma'?)" in res.stderr
     assert not (tmp_path / "c").exists()
+
+
+def test_a_random_fault_campaign_flies_its_schedules_and_reports_per_kind(tmp_path):
+    """python -m sitl campaign faults in batch mode: two three_link flights with schedules drawn
+    from the seed, faults.json with every flight's events and figures, faults.md with the per-kind
+    table and each crash's replay command; the same command again flies nothing."""
+    out = tmp_path / "faults"
+    cmd = [sys.executable, "-m", "sitl", "campaign", "faults", "--config", "configs/sitl/chain/three_link.toml",
+           "--flights", "2", "--seed", "1", "--mode", "batch", "--serial", "--duration", "18", "--quiet",
+           "--out", str(out)]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    report = json.loads((out / "faults.json").read_text())
+    assert report["flights"] == 2 and [r["status"] for r in report["runs"]] == ["ok", "ok"]
+    kinds = {e["kind"] for r in report["runs"] for e in r["events"]}
+    assert kinds and kinds <= {"link_reboot", "gps_step", "gps_ramp", "gps_outage"} and set(report["table"]) == kinds
+    for r in report["runs"]:
+        assert (out / r["folder"] / "metrics.json").exists() and f"--seed {r['seed']}" in r["replay"]
+        assert all("track_during_m" in e for e in r["events"])
+    text = (out / "faults.md").read_text()
+    assert "| kind | flights |" in text and f"## Crashes ({sum(r['crashed'] for r in report['runs'])})" in text
+    again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and json.loads((out / "faults.json").read_text())["table"] == report["table"]
