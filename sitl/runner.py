@@ -38,6 +38,7 @@ from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim.events import SEVERITY, statustext_arrays
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
+from link_firmware_sim.vehicle.failures import OK, FailureInjector
 from link_firmware_sim.vehicle.hil import sitl_gps_time_us
 
 from .plant.plant import Plant
@@ -156,6 +157,11 @@ class BatchRunner:
             raise ValueError(f"{', '.join(sc.faults.fleet_only)}: fleet mode only (python -m sitl launch)")
         self.gps_fault = sc.faults.gps
         self.reboot = sc.faults.link
+        self.inject = sc.faults.inject
+        #: ``[faults.inject]``: the injected link's failure filter, as its vehicle runs one
+        self.failures = FailureInjector(seed=sc.seed) if self.inject.link else None
+        #: what the injection did (metrics ``faults.inject``): when it started and ended, the filter's report
+        self.inject_log: dict = {}
         #: the link reboot's timeline (metrics ``faults.link_reboot``), as the fleet reports it
         self.link_fault: dict = {}
         self._down: set[int] = set()  # links whose firmware is off (killed, not yet powered on)
@@ -222,6 +228,19 @@ class BatchRunner:
     @property
     def crash_reason(self) -> str:
         return self.plant.crash_reason
+
+    def _inject_failure(self, t: float) -> None:
+        """``[faults.inject]`` in batch mode: the failure set and cleared at its times, announced as
+        the vehicle does (STATUSTEXT "Failure injection: ...")."""
+        inj, log_ = self.inject, self.inject_log
+        on = inj.active(t)
+        if on == ("injected_at_s" in log_ and "cleared_at_s" not in log_):
+            return
+        what = self.failures.inject(inj.unit_id, inj.type_id if on else OK, inj.instance)
+        log_["cleared_at_s" if not on else "injected_at_s"] = round(t, 3)
+        text = f"Failure injection: {what}"
+        log.warning("link %d at %.2f s: %s", inj.link, t, text)
+        self.statustext.append((t, inj.link, SEVERITY["fault" if on else "recovered"], text))
 
     def _link_reboot(self, t: float, commands: np.ndarray) -> None:
         """``[faults.link]`` in batch mode: link ``kill``'s firmware loses power at ``kill_at_s`` (its
@@ -401,10 +420,20 @@ class BatchRunner:
                     break
                 if self.reboot.kill:
                     self._link_reboot(t, commands)
+                failures = self.failures
+                if failures is not None:
+                    self._inject_failure(t)
+                j = self.inject.link - 1  # the injected link (-1: none)
                 down, booting = self._down, self._boot_fix  # no power; powered, no EKF yet
                 if k % sch.gps == 0:
                     pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
                     pos, has_fix = self.gps_fault.apply(t, pos)
+                    if failures is not None:
+                        fix = failures.gps(pos[j], vel[j])
+                        has_fix[j] = has_fix[j] and fix is not None
+                        if fix is not None:
+                            pos, vel = pos.copy(), vel.copy()
+                            pos[j], vel[j] = fix
                     for i, fw in enumerate(self.firmware):
                         if has_fix[i] and i not in down and not self._boot(i, t, fix=(pos[i], vel[i])):
                             fw.on_gps(t, pos[i], vel[i])
@@ -423,8 +452,13 @@ class BatchRunner:
                         if i not in down and i not in booting:
                             fw.on_mag(t, mag[i])
                 gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
+                if failures is not None and failures.imu_or_motor:
+                    gyro, accel = gyro.copy(), accel.copy()
+                    gyro[j], accel[j] = failures.imu(gyro[j], accel[j])
                 for i, fw in enumerate(self.firmware):
                     commands[i] = 0.0 if i in self._down else fw.on_imu(t, gyro[i], accel[i])
+                    if i == j and failures.imu_or_motor:
+                        commands[i] = failures.thrust(commands[i])
                     if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
                         for ev in fw.events:
                             log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)

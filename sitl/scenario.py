@@ -21,6 +21,7 @@ from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
+from link_firmware_sim.vehicle.failures import SUPPORTED, TYPE_NAMES, UNIT_NAMES
 
 from .cameras.config import CameraMount, MarkerMount
 from .cameras.scene import SceneConfig
@@ -35,6 +36,7 @@ __all__ = [
     "LinkRebootFault",
     "MavlinkWireFault",
     "GpsFault",
+    "InjectFault",
     "FaultConfig",
     "Scenario",
     "load_scenario",
@@ -222,6 +224,47 @@ class GpsFault:
 
 
 @dataclass(frozen=True)
+class InjectFault:
+    """``[faults.inject]``: a failure injected into link ``link``'s vehicle (1-based; 0: none) at
+    ``at_s`` and cleared ``duration_s`` later (0: never), as PX4's MAV_CMD_INJECT_FAILURE does
+    (:mod:`link_firmware_sim.vehicle.failures`): ``unit`` ``gps`` (``type`` ``off``, ``stuck`` or
+    ``wrong``), ``gyro`` or ``accel`` (``stuck``, ``garbage``) or ``motor`` (``off``), ``instance``
+    as PX4 numbers them (0: every one; motors 1-8). Batch mode applies it through the same failure
+    filter the vehicle runs; fleet mode sends the vehicle the command over its ground-station link,
+    with SYS_FAILURE_EN set in its parameters."""
+
+    link: int = 0
+    unit: Literal["gps", "gyro", "accel", "motor"] = "gps"
+    type: Literal["off", "stuck", "garbage", "wrong"] = "off"
+    instance: int = 0
+    at_s: float = 0.0
+    duration_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "link", "instance", "at_s", "duration_s")
+        most = 8 if self.unit == "motor" else 1  # an ODAR link's rotors; one GPS, gyro, accelerometer
+        if self.instance > most:
+            raise ValueError(f"instance {self.instance}: the {self.unit} instances are 1-{most} (0: all)")
+        if self.type_id not in SUPPORTED[self.unit_id]:
+            raise ValueError(f"type {self.type!r} is not a failure of the {self.unit} (it can be: "
+                             f"{', '.join(TYPE_NAMES[t] for t in sorted(SUPPORTED[self.unit_id]) if t)})")
+
+    @property
+    def unit_id(self) -> int:
+        """FAILURE_UNIT of MAVLink's common.xml."""
+        return next(k for k, v in UNIT_NAMES.items() if v == self.unit)
+
+    @property
+    def type_id(self) -> int:
+        """FAILURE_TYPE of MAVLink's common.xml."""
+        return next(k for k, v in TYPE_NAMES.items() if v == self.type)
+
+    def active(self, t_s: float) -> bool:
+        """Whether the failure is in effect at ``t_s``."""
+        return bool(self.link) and self.at_s <= t_s and (not self.duration_s or t_s < self.at_s + self.duration_s)
+
+
+@dataclass(frozen=True)
 class FaultConfig:
     """Scripted faults (times in simulation seconds).
 
@@ -229,7 +272,7 @@ class FaultConfig:
     ``kill_at_s``, as if its onboard computer lost power; ``restart_after_s`` later a new one
     starts (0: never). Needs ``companion.distributed``. Fleet mode only. The sub-sections:
     ``[faults.link]`` (:class:`LinkRebootFault`), ``[faults.mavlink]`` (:class:`MavlinkWireFault`),
-    ``[faults.gps]`` (:class:`GpsFault`).
+    ``[faults.gps]`` (:class:`GpsFault`), ``[faults.inject]`` (:class:`InjectFault`).
     """
 
     kill_companion_group: int = 0
@@ -238,6 +281,7 @@ class FaultConfig:
     link: LinkRebootFault = field(default_factory=LinkRebootFault)
     mavlink: MavlinkWireFault = field(default_factory=MavlinkWireFault)
     gps: GpsFault = field(default_factory=GpsFault)
+    inject: InjectFault = field(default_factory=InjectFault)
 
     def __post_init__(self) -> None:
         require_nonnegative(self, "kill_companion_group", "kill_at_s", "restart_after_s")
@@ -245,6 +289,7 @@ class FaultConfig:
     def check_links(self, n_links: int) -> None:
         """``ValueError`` for a fault on a link the skeleton does not have."""
         for where, i in (("faults.link.kill", self.link.kill), ("faults.gps.link", self.gps.link),
+                         ("faults.inject.link", self.inject.link),
                          *(("faults.mavlink.links", i) for i in self.mavlink.links)):
             if i > n_links:
                 raise ValueError(f"{where}: the skeleton has links 1..{n_links}, got {i}")

@@ -201,8 +201,9 @@ def add_campaign_parser(sub) -> None:
     run.set_defaults(func=_cmd_run)
     faults = csub.add_parser(
         "faults", help="fly random fault schedules drawn from a seed and report per kind of fault",
-        description="Draw --flights fault schedules from --seed (link reboots, GPS steps, ramps and outages; in "
-                    "fleet mode also lossy wires and, in distributed scenarios, companion kills: kind, link, start, "
+        description="Draw --flights fault schedules from --seed (link reboots; GPS steps, ramps and outages; injected "
+                    "GPS, IMU and motor failures; in fleet mode also lossy wires and, in distributed scenarios, "
+                    "companion kills: kind, link, start, "
                     "length, overlaps), fly them as a campaign and write faults.md / faults.json: per kind the "
                     "crashes, lowest altitude, worst tracking and constraint error during the outages and outside "
                     "them, corrections lost and time to recover, and every crash with its settings and seed. The "
@@ -212,7 +213,7 @@ def add_campaign_parser(sub) -> None:
     faults.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the schedules and the flights "
                                                                           "(default 0)")
     faults.add_argument("--mode", choices=MODES, default="fleet",
-                        help="fleet (default: every kind of fault) or batch (link reboots and GPS faults only)")
+                        help="fleet (default: every kind of fault) or batch (no lossy wires, no companion kills)")
     faults.add_argument("--duration", type=float, metavar="S", help="simulated seconds per flight (default: the "
                                                                      "scenario's)")
     faults.add_argument("--out", metavar="DIR", help="campaign folder (default: runs/faults-<UTC time>); an "

@@ -4,7 +4,8 @@
 the flight with probability :data:`P_KIND` (at least one is), on a random link (or group), at a
 random time after the take-off and with a random length, so faults overlap as they happen to
 (a GPS glitch while a neighbour reboots over a lossy wire, a companion killed while another
-link is down). A schedule is a set of scenario settings (``faults.*`` keys of
+link is down). A flight has at most one GPS glitch and one injected failure (the scenario scripts
+one of each). A schedule is a set of scenario settings (``faults.*`` keys of
 :class:`sitl.scenario.FaultConfig`), so each flight's ``scenario.toml`` replays it.
 
 =================  =====================================================================
@@ -14,6 +15,10 @@ kind               what
 ``gps_step``       a link's GPS position jumps 2-10 m for 1-5 s (multipath)
 ``gps_ramp``       it drifts to 2-10 m over 2-8 s, holds 0-4 s, then snaps back (spoofing)
 ``gps_outage``     it has no fix for 2-15 s
+``gps_failure``    its GPS receiver fails for 2-10 s: stuck on its last fix, or 50 m off
+                   (MAV_CMD_INJECT_FAILURE, ``[faults.inject]``)
+``imu_failure``    its gyro or accelerometer is stuck or outputs garbage for 1-5 s (injected)
+``motor_off``      one of its eight rotors stops for 1-5 s (injected)
 ``mavlink_loss``   the wires of 1..n links lose 2-15 % of their datagrams, with 0-20 ms of
                    delay and 0-10 ms of jitter, all flight long (fleet mode)
 ``companion_kill`` a group's companion is killed and restarted 1-5 s later (fleet mode,
@@ -38,10 +43,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["KINDS", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule", "recovery_s",
+__all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule", "recovery_s",
            "event_figures", "flight_row", "fault_table", "markdown_fault_table"]
 
-KINDS = ("link_reboot", "gps_step", "gps_ramp", "gps_outage", "mavlink_loss", "companion_kill")
+KINDS = ("link_reboot", "gps_step", "gps_ramp", "gps_outage", "gps_failure", "imu_failure", "motor_off",
+         "mavlink_loss", "companion_kill")
+#: the kinds scripted by ``[faults.inject]`` (one per flight)
+INJECTED = ("gps_failure", "imu_failure", "motor_off")
 #: the kinds only a fleet can play (processes, wires)
 FLEET_ONLY = ("mavlink_loss", "companion_kill")
 #: the probability that a flight has a given kind (of those its mode and scenario allow)
@@ -96,12 +104,13 @@ def draw_schedule(rng: np.random.Generator, n_links: int, flight_start_s: float,
         raise ValueError(f"no room for faults: the take-off ends at {flight_start_s:g} s and the flight at "
                          f"{duration_s:g} s (faults need {_MARGIN_AFTER_TAKEOFF_S + _MARGIN_AT_END_S:g} s more)")
     allowed = [k for k in KINDS if (fleet or k not in FLEET_ONLY) and (k != "companion_kill" or n_groups > 1)]
-    gps_kinds = [k for k in allowed if k.startswith("gps_")]
+    gps_kinds = [k for k in allowed if k.startswith("gps_") and k not in INJECTED]
     chosen = [k for k in allowed if rng.random() < P_KIND]
-    gps = [k for k in chosen if k.startswith("gps_")]
-    if len(gps) > 1:  # one GPS fault per flight (the scenario scripts one link's glitches)
-        keep = gps[int(rng.integers(len(gps)))]
-        chosen = [k for k in chosen if not k.startswith("gps_") or k == keep]
+    for family in (gps_kinds, INJECTED):  # one GPS glitch and one injected failure per flight
+        drawn = [k for k in chosen if k in family]
+        if len(drawn) > 1:
+            keep = drawn[int(rng.integers(len(drawn)))]
+            chosen = [k for k in chosen if k not in family or k == keep]
     if not chosen:
         chosen = [allowed[int(rng.integers(len(allowed)))]]
     events: list[FaultEvent] = []
@@ -132,6 +141,20 @@ def draw_schedule(rng: np.random.Generator, n_links: int, flight_start_s: float,
             else:
                 length = min(float(rng.uniform(2.0, 15.0)), room)
                 settings += [("faults.gps.outage_at_s", _r(start)), ("faults.gps.outage_s", _r(length))]
+            events.append(FaultEvent(kind, link, start, start + length))
+        elif kind in INJECTED:
+            link = int(rng.integers(1, n_links + 1))
+            if kind == "gps_failure":
+                unit, ftype, instance, length = "gps", ("stuck", "wrong")[int(rng.integers(2))], 0, rng.uniform(2, 10)
+            elif kind == "imu_failure":
+                unit, ftype, instance = ("gyro", "accel")[int(rng.integers(2))], ("stuck", "garbage")[int(rng.integers(2))], 0
+                length = rng.uniform(1.0, 5.0)
+            else:
+                unit, ftype, instance, length = "motor", "off", int(rng.integers(1, 9)), rng.uniform(1.0, 5.0)
+            length = min(float(length), room)
+            settings += [("faults.inject.link", link), ("faults.inject.unit", unit), ("faults.inject.type", ftype),
+                         ("faults.inject.instance", instance), ("faults.inject.at_s", _r(start)),
+                         ("faults.inject.duration_s", _r(length))]
             events.append(FaultEvent(kind, link, start, start + length))
         elif kind == "mavlink_loss":
             count = int(rng.integers(1, n_links + 1))

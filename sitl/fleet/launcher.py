@@ -35,6 +35,7 @@ from companion.recording.mcap_log import write_beside_log
 from sitl.scenario import Scenario
 
 from .harness import FleetHarness
+from .inject import FailureCommander, enable_failure_injection
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
                      check_instance_offset, endpoint_table, impaired_links)
 from .logs import (companion_summaries, distributed_metrics, fault_report, fault_windows, mavlink_counters,
@@ -79,6 +80,7 @@ class Fleet:
         self.aborted = ""  # why the fleet stopped early (a process died)
         self.fault_log: dict = {}  # the companion kill
         self.link_fault: dict = {}  # the vehicle reboot
+        self.commander = None  # sitl.fleet.inject.FailureCommander of [faults.inject]
 
     # -- the run folder's configs ----------------------------------------------------------------
     def prepare(self) -> None:
@@ -199,6 +201,9 @@ class Fleet:
         sc, k, n = self.sc, self.k, self.n
         if self.wired:
             self.start_wire()
+        inject = sc.faults.inject
+        if inject.link:  # the operator enabled failure injection on that vehicle (PX4: SYS_FAILURE_EN)
+            enable_failure_injection(self.out_dir / f"link{inject.link}" / f"link{inject.link}_params.json")
         for i in range(n):
             self.start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         reboot = sc.faults.link
@@ -230,6 +235,8 @@ class Fleet:
             raise FleetError(str(exc)) from None
         if self.cameras is not None:
             self.harness.tick_hooks.append(self.cameras.on_tick)
+        if inject.link:
+            self.commander = FailureCommander(sc, 18570 + k + inject.link - 1)
 
     # -- the flight and its scripted faults ------------------------------------------------------
     def link_reboot(self, t: float) -> None:
@@ -290,6 +297,8 @@ class Fleet:
             self.link_reboot(t)
         if faults.kill_companion_group and self.companion:
             self.companion_kill(t)
+        if self.commander is not None:
+            self.commander.tick(t)
         self.procs.check(every_s=0.02)
         return False
 
@@ -311,6 +320,8 @@ class Fleet:
         scheduling policy restored."""
         if self.harness is not None:
             self.harness.close()
+        if self.commander is not None:
+            self.commander.close()
         try:
             self.procs.stop(self.harness.sim_s if self.harness is not None else 0.0)
         finally:
@@ -373,7 +384,8 @@ class Fleet:
         if sc.trajectory.feedforward and self.companion:
             metrics["carrying"] = carrying_metrics(companion_summaries(out_dir))
         metrics["mavlink"] = mavlink_counters(out_dir)
-        report = fault_report(sc, merged, out_dir, self.link_fault, self.wired)
+        report = fault_report(sc, merged, out_dir, self.link_fault, self.wired,
+                              self.commander.sent if self.commander is not None else None)
         if report:
             metrics["faults"] = report
         if n == 3:

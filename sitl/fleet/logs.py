@@ -213,11 +213,21 @@ def fault_windows(sc: Scenario, fault_log: dict, link_fault: dict, end_s: float)
     return out
 
 
-def fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, wired: list[int]) -> dict:
+def fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, wired: list[int],
+                 inject_sent: dict | None = None) -> dict:
     """What the scripted faults did (metrics.json ``faults``): the vehicle reboot's timeline (killed,
     restarted, back in the lockstep, rotors on, first corrected by the companion), the impaired
-    wires' counters, and the GPS glitch as the firmware reported it."""
+    wires' counters, the GPS glitch as the firmware reported it, and the injected failure (when the
+    launcher sent its commands, ``inject_sent``, and what the vehicle's failure filter reported)."""
     out: dict = {}
+    if sc.faults.inject.link:
+        i = sc.faults.inject.link
+        entry = {"link": i, **(inject_sent or {})}
+        try:
+            entry.update(json.loads((out_dir / f"link{i}" / f"link{i}_ports.json").read_text()).get("failures", {}))
+        except (OSError, ValueError):
+            pass
+        out["inject"] = entry
     if link_fault:
         out["link_reboot"] = reboot_timeline(link_fault, merged)
     if wired:

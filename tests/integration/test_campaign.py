@@ -185,7 +185,7 @@ def test_a_random_fault_campaign_flies_its_schedules_and_reports_per_kind(tmp_pa
     report = json.loads((out / "faults.json").read_text())
     assert report["flights"] == 2 and [r["status"] for r in report["runs"]] == ["ok", "ok"]
     kinds = {e["kind"] for r in report["runs"] for e in r["events"]}
-    assert kinds and kinds <= {"link_reboot", "gps_step", "gps_ramp", "gps_outage"} and set(report["table"]) == kinds
+    assert kinds and not kinds & {"mavlink_loss", "companion_kill"} and set(report["table"]) == kinds
     for r in report["runs"]:
         assert (out / r["folder"] / "metrics.json").exists() and f"--seed {r['seed']}" in r["replay"]
         assert all("track_during_m" in e for e in r["events"])

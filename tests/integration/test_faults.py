@@ -17,7 +17,7 @@ from companion.estimation.so3 import attitude_error
 from companion.linkstate import CARRIED, DOWN
 from sitl.scenarios.chain.flight import fly
 from sitl.metrics import flag_windows, outage_split
-from sitl.scenario import GpsFault, LinkRebootFault, MavlinkWireFault, load_scenario
+from sitl.scenario import GpsFault, InjectFault, LinkRebootFault, MavlinkWireFault, load_scenario
 from sitl.steplog import merge_step_logs
 from sitl.fleet.wire import Impairment, WireProxy
 
@@ -363,3 +363,34 @@ def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     m, _, tilt = _reboot_flight(tmp_path, 0.5, carry_silence_s=100.0, carry_spinup_s=0.0)
     assert m["crashed"] and "attitude error" in m["crash_reason"], m["crash_reason"]
     assert np.nanmax(tilt[:, [0, 2]]) > 55.0
+
+
+@pytest.mark.parametrize("unit, ftype, instance, changed", [
+    ("gps", "off", 0, 10),         # 10 Hz fixes for 1 s
+    ("gyro", "garbage", 0, 500),   # every 500 Hz IMU sample
+    ("motor", "off", 3, 500),      # every rotor command of the tick
+])
+def test_batch_injected_failures_go_through_the_vehicles_failure_filter(tmp_path, unit, ftype, instance, changed):
+    """[faults.inject] in batch mode: link 2's samples or rotor commands changed by the vehicle's
+    own failure filter for exactly the scripted second, announced as the vehicle announces a
+    MAV_CMD_INJECT_FAILURE, and the chain flies through it."""
+    sc = load_scenario("configs/sitl/chain/three_link.toml", duration_s=11.0)
+    sc = replace(sc, faults=replace(sc.faults, inject=InjectFault(link=2, unit=unit, type=ftype, instance=instance,
+                                                                  at_s=8.0, duration_s=1.0)))
+    m = fly(sc, tmp_path, plots=False)
+    inj = m["faults"]["inject"]
+    assert (inj["injected_at_s"], inj["cleared_at_s"], inj["active"]) == (8.0, 9.0, [])
+    assert inj["changed"] == {unit: changed}
+    log = np.load(tmp_path / "log.npz")
+    texts = [(float(t), int(i), str(s)) for t, i, s in zip(log["statustext_t"], log["statustext_link"],
+                                                            log["statustext_text"]) if "Failure injection" in str(s)]
+    name = unit + (f" {instance}" if unit == "motor" else "")
+    assert texts == [(8.0, 2, f"Failure injection: {name} {ftype}"), (9.0, 2, f"Failure injection: {name} ok")]
+    assert not m["crashed"] and m["min_altitude_m"] > 1.8
+
+
+def test_an_injected_failure_the_unit_cannot_have_is_a_config_error():
+    with pytest.raises(ValueError, match="type 'garbage' is not a failure of the gps"):
+        InjectFault(link=1, unit="gps", type="garbage")
+    with pytest.raises(ValueError, match="instance 9: the motor instances are 1-8"):
+        InjectFault(link=1, unit="motor", type="off", instance=9)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sitl.campaign.fault_campaign import fault_specs, replay_command
-from sitl.campaign.faults import (FLEET_ONLY, KINDS, FaultEvent, draw_schedule, event_figures, fault_table,
+from sitl.campaign.faults import (FLEET_ONLY, INJECTED, KINDS, FaultEvent, draw_schedule, event_figures, fault_table,
                                   markdown_fault_table, recovery_s)
 from sitl.scenarios import load
 
@@ -22,7 +22,8 @@ def test_schedules_are_seeded_inside_the_flight_and_only_of_kinds_the_mode_can_p
     assert kinds == allowed  # every allowed kind drawn somewhere in 200 flights, no other
     for events, settings in draws:
         assert events and len({k for k, _ in settings}) == len(settings)
-        assert sum(e.kind.startswith("gps_") for e in events) <= 1
+        assert sum(e.kind in ("gps_step", "gps_ramp", "gps_outage") for e in events) <= 1
+        assert sum(e.kind in INJECTED for e in events) <= 1
         for e in events:
             assert 7.0 <= e.start_s < e.end_s <= 40.0
             assert e.end_s <= 37.0 or e.kind == "mavlink_loss"
@@ -54,6 +55,8 @@ def test_every_drawn_schedule_loads_as_a_scenario(name, mode):
             assert sc.faults.link.kill == reboot[0].target
             assert sc.faults.link.kill_at_s == pytest.approx(reboot[0].start_s, abs=1e-3)
         assert bool(sc.faults.fleet_only) == any(e.kind in FLEET_ONLY for e in ev)
+        injected = [e for e in ev if e.kind in INJECTED]
+        assert sc.faults.inject.link == (injected[0].target if injected else 0)
         assert f"--seed {spec.seed}" in replay_command(spec)
 
 

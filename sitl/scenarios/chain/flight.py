@@ -79,6 +79,9 @@ def fly(
             "link": sc.faults.gps.link, "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}
     if runner.link_fault:
         metrics.setdefault("faults", {})["link_reboot"] = reboot_timeline(runner.link_fault, arrays)
+    if runner.failures is not None:  # what the vehicle's failure filter did ([faults.inject])
+        metrics.setdefault("faults", {})["inject"] = {"link": sc.faults.inject.link, **runner.inject_log,
+                                                      **runner.failures.report()}
     if sc.trajectory.feedforward and sc.companion.enabled:
         metrics["carrying"] = carrying_metrics({"companion" if e.group is None else f"companion-g{e.group + 1}": e.summary()
                                                 for e in runner.engines})
