@@ -40,7 +40,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   last boot: ``at_limit_s``, ``episodes`` (each announced by STATUSTEXT after ``SKL_TLIM_WARN``),
   ``min_scale``, ``at_limit_now``;
 * ``min_altitude_m``: lowest true link-centre altitude; ``took_off`` (whether every link ever
-  cleared the ground: a chain nobody armed stays on it, and that is not a crash); ``crashed``;
+  cleared the ground: a chain nobody armed stays on it, and that is not a crash); ``crashed``,
+  ``crash_reason`` and ``crash_time_s`` (simulated time of the crash; ``None`` without one);
 * ``nees``: per link and 3-dof block (position, velocity, attitude) the time-averaged normalised
   estimation error squared of the links' EKF estimates (``ekf``) and of the corrected ones
   (``corrected``: the constraint application's covariance), against the truth at the companion's
@@ -406,6 +407,7 @@ def compute_metrics(
     fault_windows: list[dict] | None = None,
     rotor_limit_s: np.ndarray | None = None,
     took_off: bool = True,
+    crash_time_s: float | None = None,
 ) -> dict:
     """The figures of the module docstring; ``fault_windows``: outage windows the run knows of
     besides the step log's (fleet mode's scripted faults, each with its ``kind``); ``took_off``:
@@ -456,6 +458,7 @@ def compute_metrics(
         "took_off": bool(took_off),
         "crashed": bool(crashed),
         "crash_reason": crash_reason,
+        "crash_time_s": None if crash_time_s is None else round(float(crash_time_s), 3),
         "realtime_factor": float(realtime_factor),
         "sckf": bool(sckf_enabled),
     }

@@ -30,8 +30,10 @@ RMS and the constraint p95 after the SCKF during the fault and in the :data:`AFT
 the largest fraction of steps a link it did not hit went uncorrected during it, and the time to
 recover (:func:`recovery_s`: from the fault's end until every link tracks within
 :data:`RECOVERED_M` of its target again). :func:`fault_table` reduces the flights to one row per
-kind (the faults of that kind): flights, crashes and lowest altitude (of the flights that had it),
-and the worst of each figure.
+kind: the flights that had it, their crashes, the crashes *near* a fault of that kind (from its
+start to :data:`AFTER_S` after its end: the crashes it may have caused), the lowest altitude, and
+the worst of each figure over the flights that did not crash (a crashed flight's figures measure
+the wreck).
 """
 
 from __future__ import annotations
@@ -257,7 +259,8 @@ def flight_row(events: Sequence[FaultEvent], metrics: dict | None, log: dict | N
     if metrics is None:
         return row
     row.update(took_off=bool(metrics.get("took_off", True)), crashed=bool(metrics.get("crashed")),
-               crash_reason=metrics.get("crash_reason") or "", min_altitude_m=metrics.get("min_altitude_m"))
+               crash_reason=metrics.get("crash_reason") or "", crash_time_s=metrics.get("crash_time_s"),
+               min_altitude_m=metrics.get("min_altitude_m"))
     if log is not None and {"t", "p_target", "p_true"} <= set(log) and len(log["t"]):
         n = np.asarray(log["p_true"]).shape[1]
         for e, entry in zip(events, row["events"]):
@@ -270,9 +273,10 @@ _FIGURES = ("track_during_m", "track_after_m", "constraint_during_m", "constrain
 
 def fault_table(rows: Sequence[dict]) -> dict[str, dict]:
     """Per kind, over the flights that had it: ``flights``, ``failed`` (runs that did not finish),
-    ``crashes``, ``min_altitude_m`` (lowest), the worst of each of :func:`event_figures`' figures
-    over the faults of that kind, ``recovery_s_max`` (the slowest recovery) and ``not_recovered``
-    (faults after which the chain never tracked again, the flights that crashed included)."""
+    ``crashes``, ``crashes_near`` (a crash from a fault's start to :data:`AFTER_S` after its end),
+    ``min_altitude_m`` (lowest), and over the flights that did not crash the worst of each of
+    :func:`event_figures`' figures, ``recovery_s_max`` (the slowest recovery) and
+    ``not_recovered`` (faults after which the chain never tracked again)."""
     table: dict[str, dict] = {}
     for kind in KINDS:
         mine = [(r, [e for e in r["events"] if e["kind"] == kind]) for r in rows]
@@ -280,12 +284,14 @@ def fault_table(rows: Sequence[dict]) -> dict[str, dict]:
         if not mine:
             continue
         done = [(r, evs) for r, evs in mine if "crashed" in r]
-        evs = [e for _, es in done for e in es]
+        evs = [e for r, es in done if not r["crashed"] for e in es]
         lows = [r["min_altitude_m"] for r, _ in done if r.get("min_altitude_m") is not None]
         rec = [e["recovery_s"] for e in evs if "recovery_s" in e]
+        near = sum(1 for r, es in done if r["crashed"] and r.get("crash_time_s") is not None
+                   and any(e["start_s"] <= r["crash_time_s"] <= e["end_s"] + AFTER_S for e in es))
         table[kind] = {
             "flights": len(mine), "failed": len(mine) - len(done),
-            "crashes": sum(1 for r, _ in done if r["crashed"]),
+            "crashes": sum(1 for r, _ in done if r["crashed"]), "crashes_near": near,
             "min_altitude_m": min(lows) if lows else None,
             **{key: _max(e.get(key) for e in evs) for key in _FIGURES},
             "recovery_s_max": _max(rec), "not_recovered": sum(1 for x in rec if x is None),
@@ -300,12 +306,14 @@ def _fmt(value, digits: int = 3) -> str:
 
 
 def markdown_fault_table(table: dict[str, dict]) -> str:
-    """:func:`fault_table` as a Markdown table."""
-    head = ("| kind | flights | failed | crashes | lowest m | track during m | track after m | constraint during m "
-            "| constraint after m | uncorrected max | recovery max s | not recovered |")
-    lines = [head, "| :--- " + "| ---: " * 11 + "|"]
+    """:func:`fault_table` as a Markdown table (the figures from ``track during`` on: the flights
+    that did not crash)."""
+    head = ("| kind | flights | failed | crashes | crashes near | lowest m | track during m | track after m "
+            "| constraint during m | constraint after m | uncorrected max | recovery max s | not recovered |")
+    lines = [head, "| :--- " + "| ---: " * 12 + "|"]
     for kind, r in table.items():
-        lines.append(f"| {kind} | {r['flights']} | {r['failed']} | {r['crashes']} | {_fmt(r['min_altitude_m'], 2)} | "
+        lines.append(f"| {kind} | {r['flights']} | {r['failed']} | {r['crashes']} | {r['crashes_near']} | "
+                     f"{_fmt(r['min_altitude_m'], 2)} | "
                      f"{_fmt(r['track_during_m'])} | {_fmt(r['track_after_m'])} | {_fmt(r['constraint_during_m'])} | "
                      f"{_fmt(r['constraint_after_m'])} | {_fmt(r['uncorrected_max'])} | {_fmt(r['recovery_s_max'], 2)} | "
                      f"{r['not_recovered']} |")

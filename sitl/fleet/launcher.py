@@ -370,7 +370,8 @@ class Fleet:
                                   groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
                                   motion=sc.motion if sc.trajectory.kind == "cpg" else None,
                                   fault_windows=fault_windows(sc, self.fault_log, self.link_fault, harness.sim_s),
-                                  rotor_limit_s=plant.rotors.limit_s, took_off=plant.took_off)
+                                  rotor_limit_s=plant.rotors.limit_s, took_off=plant.took_off,
+                                  crash_time_s=plant.crash_time_s)
         lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
         metrics["correction_latency_ms"] = (
             {"p50": round(float(np.percentile(lat, 50) * 1e3), 3), "p99": round(float(np.percentile(lat, 99) * 1e3), 3),

@@ -56,6 +56,7 @@ class Plant:
         self._fresh = True  # begin_step already done for the current instant
         self.crashed = False
         self.crash_reason = ""
+        self.crash_time_s: float | None = None
         # whether the chain ever flew (every link clear of the ground): a chain that never took off
         # (nobody armed it) rests on the ground without having crashed
         self.took_off = False
@@ -109,7 +110,7 @@ class Plant:
         if self.crashed:
             return
         if not np.all(np.isfinite(truth.p_w_m)):
-            self.crashed, self.crash_reason = True, f"simulation diverged at t = {t:.3f} s"
+            self.crashed, self.crash_reason, self.crash_time_s = True, f"simulation diverged at t = {t:.3f} s", t
             return
         floor = self.scenario.skeleton.bar_radius_m + 0.05
         lowest = truth.p_w_m[:, 2].min()
@@ -118,7 +119,7 @@ class Plant:
         if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest" or not self.took_off:
             return
         if lowest < floor:
-            self.crashed, self.crash_reason = True, f"link below {floor:.2f} m at t = {t:.2f} s"
+            self.crashed, self.crash_reason, self.crash_time_s = True, f"link below {floor:.2f} m at t = {t:.2f} s", t
             return
         if target_q is None:
             return
@@ -130,5 +131,5 @@ class Plant:
         tilt = np.zeros(len(ok))
         tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
         if tilt.max() > CRASH_TILT_DEG:
-            self.crashed = True
+            self.crashed, self.crash_time_s = True, t
             self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"

@@ -94,18 +94,20 @@ def test_the_table_counts_per_kind_and_keeps_failed_runs():
     reboot = {**FaultEvent("link_reboot", 2, 10.0, 13.0).as_dict(), "track_during_m": 0.9, "track_after_m": 0.2,
               "constraint_during_m": 0.3, "constraint_after_m": 0.01, "uncorrected_max": 0.2, "recovery_s": None}
     gps = {**FaultEvent("gps_step", 1, 12.0, 14.0).as_dict(), "track_during_m": 0.5, "recovery_s": 2.0}
-    rows = [
-        {"events": [reboot, gps], "status": "ok", "crashed": True, "min_altitude_m": 0.1},
+    rows = [  # a crash at 30 s: 17 s after the reboot's end (not near it), during the GPS step
+        {"events": [reboot, {**gps, "start_s": 29.0, "end_s": 31.0}], "status": "ok", "crashed": True,
+         "crash_time_s": 30.0, "min_altitude_m": 0.1},
         {"events": [{**reboot, "track_during_m": 0.3, "constraint_after_m": 0.02, "recovery_s": 1.0}], "status": "ok",
          "crashed": False, "min_altitude_m": 1.5},
+        {"events": [reboot, gps], "status": "ok", "crashed": False, "min_altitude_m": 2.0},
         {"events": [FaultEvent("gps_step", 1, 12.0, 14.0).as_dict()], "status": "failed"},
     ]
     table = fault_table(rows)
     assert set(table) == {"link_reboot", "gps_step"}
-    r = table["link_reboot"]
-    assert (r["flights"], r["failed"], r["crashes"], r["min_altitude_m"]) == (2, 0, 1, 0.1)
+    r = table["link_reboot"]  # the figures: of the flights that did not crash
+    assert (r["flights"], r["failed"], r["crashes"], r["crashes_near"], r["min_altitude_m"]) == (3, 0, 1, 0, 0.1)
     assert (r["track_during_m"], r["constraint_after_m"], r["recovery_s_max"], r["not_recovered"]) == (0.9, 0.02, 1.0, 1)
     g = table["gps_step"]
-    assert (g["flights"], g["failed"], g["crashes"], g["track_during_m"], g["recovery_s_max"]) == (2, 1, 1, 0.5, 2.0)
-    assert g["track_after_m"] is None
-    assert "| link_reboot | 2 | 0 | 1 | 0.10 | 0.900 |" in markdown_fault_table(table)
+    assert (g["flights"], g["failed"], g["crashes"], g["crashes_near"]) == (3, 1, 1, 1)
+    assert (g["track_during_m"], g["recovery_s_max"], g["track_after_m"]) == (0.5, 2.0, None)
+    assert "| link_reboot | 3 | 0 | 1 | 0 | 0.10 | 0.900 |" in markdown_fault_table(table)

@@ -66,6 +66,7 @@ def fly(
         fault_windows=vehicle_down_windows(runner.link_fault, runner.sim_s),
         rotor_limit_s=runner.rotors.limit_s,
         took_off=runner.plant.took_off,
+        crash_time_s=runner.plant.crash_time_s,
     )
     metrics["scenario"] = sc.name
     metrics["seed"] = sc.seed
