@@ -37,7 +37,7 @@ from sitl.watch import announce
 from .layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, FleetError
 from .processes import STARTUP_TIMEOUT_S
 
-__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S", "TRUTH_KEEP_S"]
+__all__ = ["FleetHarness", "ANSWER_TIMEOUT_S", "TRUTH_KEEP_S", "complete_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,13 @@ def _sim_port(url: str):
     vehicle as long as a process may take to start (it loads its compiled kernels first)."""
     return open_sim_port(url, system_id=255, component_id=190, accept=frozenset({"HIL_ACTUATOR_CONTROLS"}),
                          connect_timeout_s=STARTUP_TIMEOUT_S, simulator=True)
+
+
+def complete_rows(rows: dict) -> dict[str, np.ndarray]:
+    """Each series of ``rows`` (lists or arrays by key) cut to the rows every series has: a row an
+    interruption (Ctrl-C) cut short between its appends is left out."""
+    n = min(len(v) for v in rows.values())
+    return {k: np.asarray(v[:n]) for k, v in rows.items()}
 
 
 class FleetHarness:
@@ -196,15 +203,13 @@ class FleetHarness:
         gets the newest rows); a row an interruption (Ctrl-C) cut short is left out, so that every
         series has the same rows."""
         if self._stream is None:
-            got = {k: np.asarray(v) for k, v in self.rows.items()}
-        else:
-            if not self._stream.closed:
-                self._stream.flush(self.rows, keep=self._keep_rows)
-            got = read_log_stream(self._stream.path)
+            return complete_rows(self.rows)
+        if not self._stream.closed:
+            self._stream.flush(self.rows, keep=self._keep_rows)
+        got = read_log_stream(self._stream.path)
         if any(k not in got for k in self.rows):
             return {k: np.zeros(0) for k in self.rows}
-        n = min(len(v) for v in got.values())
-        return {k: v[:n] for k, v in got.items()}
+        return complete_rows(got)
 
     def close(self) -> None:
         if self._stream is not None and not self._stream.closed:

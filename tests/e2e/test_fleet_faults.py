@@ -65,15 +65,13 @@ def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path, fleet_po
 def test_a_truth_row_cut_short_by_an_interruption_is_left_out():
     """Ctrl-C can land between the appends of one log row (401 times, 400 cable forces: the log
     merge would fail on the metrics): the truth log keeps the complete rows only."""
-    from types import SimpleNamespace
-
-    from sitl.fleet.harness import FleetHarness
+    from sitl.fleet.harness import complete_rows
 
     rows = {"t": [0.0, 0.02, 0.04], "p_true": [np.zeros((3, 3))] * 3, "joint_force_true": [np.ones((2, 3))] * 2}
-    truth = FleetHarness.truth_log(SimpleNamespace(rows=rows))
+    truth = complete_rows(rows)
     assert {k: v.shape[0] for k, v in truth.items()} == {"t": 2, "p_true": 2, "joint_force_true": 2}
     np.testing.assert_array_equal(truth["t"], [0.0, 0.02])
-    whole = FleetHarness.truth_log(SimpleNamespace(rows={k: v[:2] for k, v in rows.items()}))
+    whole = complete_rows({k: v[:2] for k, v in rows.items()})
     assert all(np.array_equal(whole[k], truth[k]) for k in rows)
 
 
