@@ -1,12 +1,17 @@
 """Inputs shared by the tests of the companion engine (tests/unit/test_engine*.py): a companion
-setup, a straight chain's link states, and feeding them to an engine."""
+setup, a straight chain's link states, feeding them to an engine, and a distributed setup's group
+engines on one in-process bus."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from companion.config import CompanionConfig, CompanionSetup, LinkEndpoint
+from companion.engine import CompanionEngine
 from companion.estimation.so3 import quat_from_euler_zyx
+from companion.fleetnet.group import GroupLink
+from companion.fleetnet.hub import LocalHub
+from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import STATE_FLAG_EKF_OK, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
@@ -36,3 +41,17 @@ def feed(engine, t, now, dx=None, flags=STATE_FLAG_EKF_OK, offsets=None):
         engine.on_state(lk.row, straight_state(lk.index, engine.n, t + off, 0.0 if dx is None else dx[lk.row]), flags,
                         now)
     return engine.poll(now)
+
+
+def group_engines(setup: CompanionSetup, clock, **node) -> tuple[LocalHub, list[CompanionEngine]]:
+    """One engine per group of a distributed ``setup``, joined by a :class:`LocalHub` (batch mode's
+    bus) on ``clock``; ``node``: the global step's settings (default: a 35 ms shift deadline, the
+    leader waiting 25 ms)."""
+    n_groups = len(setup.companion.group_layout(setup.skeleton.n_links))
+    hub = LocalHub(n_groups, clock)
+    settings = {"shift_deadline_s": 0.035, "leader_wait_s": 0.025, **node}
+    engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
+                               net=GroupLink(GlobalStepNode(g, n_groups, setup.zenoh.order(n_groups), 50_000, **settings),
+                                             hub.join(g), clock))
+               for g in range(n_groups)]
+    return hub, engines

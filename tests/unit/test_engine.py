@@ -18,7 +18,7 @@ from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState
 
 from ..chains import perturbed_chain
-from ..engine_cases import feed, of, setup_for, straight_state
+from ..engine_cases import feed, group_engines, of, setup_for, straight_state
 
 
 def test_step_on_flight_controller_time_sends_corrections_targets_and_arm():
@@ -84,13 +84,7 @@ def test_needs_poll_leaves_out_only_polls_that_would_do_nothing():
 
     def system():
         clock = [0.0]
-        hub = LocalHub(len(groups), lambda: clock[0])
-        engines = []
-        for g in range(len(groups)):
-            node = GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000, startup_s=0.1,
-                                  shift_deadline_s=0.035, leader_wait_s=0.025)
-            engines.append(CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
-                                           net=GroupLink(node, hub.join(g), lambda: clock[0])))
+        hub, engines = group_engines(setup, lambda: clock[0], startup_s=0.1)
         return clock, hub, engines
 
     runs = {}
@@ -141,14 +135,8 @@ def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(grou
     setup = setup_for(n, groups, distributed=True)
     setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
     clock = [0.0]
-    hub = LocalHub(len(groups), lambda: clock[0])
     layout = setup.companion.group_layout(n)
-    engines = []
-    for g in range(len(groups)):
-        node = GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
-                              shift_deadline_s=0.035, leader_wait_s=0.025)
-        engines.append(CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
-                                       net=GroupLink(node, hub.join(g), lambda: clock[0])))
+    _, engines = group_engines(setup, lambda: clock[0])
     states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
     got = {}
     for k in range(16):  # 0.8 s: the first cycles fall in the 0.5 s start-up listening
@@ -189,12 +177,7 @@ def test_a_holed_group_takes_part_in_the_global_step_part_by_part(down, parts, j
     setup = setup_for(n, groups, distributed=True)
     setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
     clock = [0.0]
-    hub = LocalHub(len(groups), lambda: clock[0])
-    engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
-                               net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
-                                                            shift_deadline_s=0.035, leader_wait_s=0.025),
-                                             hub.join(g), lambda: clock[0]))
-               for g in range(len(groups))]
+    _, engines = group_engines(setup, lambda: clock[0])
     states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
     got = {}
     for k in range(16):
@@ -246,12 +229,7 @@ def test_the_common_gnss_error_stays_out_of_the_step_and_back_in_the_covariance(
             got = {i: c.correction for c in of(CorrectionOut, engine.poll(0.0)) for i in [c.row]}
             return got, np.asarray(engine.log["P_corr_sckf"][-1]), np.asarray(engine.log["P_ekf_sckf"][-1]), [engine]
         clock = [0.0]
-        hub = LocalHub(len(groups), lambda: clock[0])
-        engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
-                                   net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
-                                                                shift_deadline_s=0.035, leader_wait_s=0.025),
-                                                 hub.join(g), lambda: clock[0]))
-                   for g in range(len(groups))]
+        _, engines = group_engines(setup, lambda: clock[0])
         got = {}
         for k in range(14):
             t = clock[0] = 0.05 * k

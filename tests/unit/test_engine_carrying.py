@@ -16,7 +16,7 @@ from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, GroupPassiveLinks
 
-from ..engine_cases import of, setup_for, straight_state
+from ..engine_cases import group_engines, of, setup_for, straight_state
 
 
 @pytest.mark.parametrize("n, down", [(3, 1), (5, 2), (7, 3)])
@@ -140,13 +140,8 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
     # a hover at the start's height: the targets do not depend on when each engine computes them
     setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0))
     clock = [0.0]
-    hub = LocalHub(len(groups), lambda: clock[0])
     layout = setup.companion.group_layout(n)
-    engines = [CompanionEngine(setup, group=g, start_center=(0.0, 0.0, 2.0),
-                               net=GroupLink(GlobalStepNode(g, len(groups), setup.zenoh.order(len(groups)), 50_000,
-                                                            shift_deadline_s=0.035, leader_wait_s=0.025),
-                                             hub.join(g), lambda: clock[0]))
-               for g in range(len(groups))]
+    hub, engines = group_engines(setup, lambda: clock[0])
     # one engine over the whole chain: the reference shares
     whole = CompanionEngine(replace(setup_for(n), trajectory=setup.trajectory), start_center=(0.0, 0.0, 2.0))
     flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
