@@ -46,7 +46,7 @@ import numpy as np
 
 from .kernels import warm as _kernels
 from .config import CompanionSetup
-from .logstream import LogStream, read_log_stream
+from .logstream import LogStream
 from .engine import (
     Command,
     CommandOut,
@@ -302,9 +302,7 @@ class CompanionDaemon:
         newest rows), or the engine's in memory without an output folder."""
         if self._log_stream is None:
             return self.engine.log_arrays()
-        if not self._log_stream.closed:
-            self._log_stream.flush(self.engine.log, keep=0)
-        return read_log_stream(self._log_stream.path)
+        return self._log_stream.read_back(self.engine.log, keep=0)
 
     def write_log(self) -> None:
         """The whole step log (``companion_log.npz``; the stream gets its last rows)."""

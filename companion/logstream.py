@@ -70,6 +70,13 @@ class LogStream:
     def closed(self) -> bool:
         return self._fh.closed
 
+    def read_back(self, rows: dict[str, list], keep: int | None = None) -> dict[str, np.ndarray]:
+        """The whole log: ``rows`` not written yet flushed first (with ``keep``, while the stream is
+        open), then every chunk read back from the file (:func:`read_log_stream`)."""
+        if not self.closed:
+            self.flush(rows, keep=keep)
+        return read_log_stream(self.path)
+
     def close(self) -> None:
         if not self._fh.closed:
             self._fh.close()

@@ -67,7 +67,7 @@ from companion.estimation.so3 import attitude_error
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
            "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
-           "correlation_time", "static_metrics", "carrying_metrics"]
+           "correlation_time", "static_metrics", "carrying_metrics", "rms", "p95"]
 
 #: Paper sec. V (outdoor, three links): RMS desired vs estimated position per link [m], and
 #: the constraint error after SCKF ("under 5 cm and 2 cm/s").
@@ -132,7 +132,7 @@ def cable_metrics(tension_true: np.ndarray, tension_model: np.ndarray | None = N
     return out
 
 
-def _rms(x: np.ndarray, axis=0) -> np.ndarray:
+def rms(x: np.ndarray, axis=0) -> np.ndarray:
     """RMS over the rows that hold a value (NaN rows: a link not flying its firmware then, a
     vehicle killed or rebooting; its ``coverage`` says how many)."""
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
@@ -309,11 +309,11 @@ def outage_split(log: dict[str, np.ndarray], flight_start_s: float, windows: lis
         w = flight & sel
         part: dict = {"samples": int(np.sum(w))}
         if np.any(w):
-            part["rms_track_true_m"] = _rms(np.linalg.norm(log["p_target"][w] - log["p_true"][w], axis=-1)).tolist()
-            part["rms_track_est_m"] = _rms(np.linalg.norm(log["p_target"][w] - log["p_ctrl"][w], axis=-1)).tolist()
+            part["rms_track_true_m"] = rms(np.linalg.norm(log["p_target"][w] - log["p_true"][w], axis=-1)).tolist()
+            part["rms_track_est_m"] = rms(np.linalg.norm(log["p_target"][w] - log["p_ctrl"][w], axis=-1)).tolist()
         if steps is not None:
             ws = steps & (in_steps if name == "during_outages" else ~in_steps)
-            part["constraint_pos_p95_m_after"] = _p95(log["con_pos_after"][ws]) if np.any(ws) else None
+            part["constraint_pos_p95_m_after"] = p95(log["con_pos_after"][ws]) if np.any(ws) else None
         out[name] = part
     return out
 
@@ -327,7 +327,8 @@ def _corrected_fraction(t_steps: np.ndarray, corrected: np.ndarray, window: dict
     return [None if i + 1 in own else round(float(f), 4) for i, f in enumerate(frac)]
 
 
-def _p95(values: list | np.ndarray) -> float | None:
+def p95(values: list | np.ndarray) -> float | None:
+    """The 95th percentile of the finite values (``None``: none)."""
     a = np.asarray(values, dtype=float)
     a = a[np.isfinite(a)]  # NaN: a joint of a group whose companion was down (an outage window)
     return float(np.percentile(a, 95)) if a.size else None
@@ -434,8 +435,8 @@ def compute_metrics(
     pose = {}
     if np.any(pw):
         for tag, (pk, qk) in (("", ("p_ctrl", "q_ctrl")), ("true_", ("p_true", "q_true"))):
-            pos = _rms(np.linalg.norm(log["p_target"][pw] - log[pk][pw], axis=-1))
-            att = _rms(np.degrees(np.linalg.norm(attitude_error(log[qk][pw], log["q_target"][pw]), axis=-1)))
+            pos = rms(np.linalg.norm(log["p_target"][pw] - log[pk][pw], axis=-1))
+            att = rms(np.degrees(np.linalg.norm(attitude_error(log[qk][pw], log["q_target"][pw]), axis=-1)))
             pose[f"rms_pose_track_{tag}pos_m"] = float(pos.mean())
             pose[f"rms_pose_track_{tag}att_deg"] = float(att.mean())
         pose["pose_track_window_s"] = [float(pose_start), float(t[-1])]
@@ -443,10 +444,10 @@ def compute_metrics(
         "n_links": n,
         **pose,
         "flight_window_s": [float(flight_start_s), float(t[-1])],
-        "rms_track_est_m": _rms(err_est).tolist(),
-        "rms_track_true_m": _rms(err_true).tolist(),
-        "rms_att_track_true_deg": _rms(att_err).tolist(),
-        "rms_est_err_m": {"ekf": _rms(ekf_err).tolist()},
+        "rms_track_est_m": rms(err_est).tolist(),
+        "rms_track_true_m": rms(err_true).tolist(),
+        "rms_att_track_true_deg": rms(att_err).tolist(),
+        "rms_est_err_m": {"ekf": rms(ekf_err).tolist()},
         "constraint_pos_p95_m": {},
         "constraint_vel_p95_m_s": {},
         "rotor_zero_crossings": int(np.sum(zero_crossings)),
@@ -463,18 +464,18 @@ def compute_metrics(
         "sckf": bool(sckf_enabled),
     }
     if n > 1 and has_steps:
-        metrics["constraint_pos_p95_m"]["before"] = _p95(log["con_pos_before"][wins])
-        metrics["constraint_vel_p95_m_s"]["before"] = _p95(log["con_vel_before"][wins])
+        metrics["constraint_pos_p95_m"]["before"] = p95(log["con_pos_before"][wins])
+        metrics["constraint_vel_p95_m_s"]["before"] = p95(log["con_vel_before"][wins])
     if sckf_enabled and has_steps and "corrected_sckf" in log:
         metrics["uncorrected"] = uncorrected_metrics(log["t_sckf"][wins], log["corrected_sckf"][wins],
                                                      log["nis_max_sckf"][wins] if "nis_max_sckf" in log else None)
     if sckf_enabled and has_steps:
         corr_err = np.linalg.norm(log["p_corr_sckf"][wins] - log["p_true_sckf"][wins], axis=-1)
-        metrics["rms_est_err_m"]["sckf"] = _rms(corr_err).tolist()
+        metrics["rms_est_err_m"]["sckf"] = rms(corr_err).tolist()
         metrics["sckf_iterations_mean"] = float(np.mean(log["iterations"][wins]))
         if n > 1:
-            metrics["constraint_pos_p95_m"]["after"] = _p95(log["con_pos_after"][wins])
-            metrics["constraint_vel_p95_m_s"]["after"] = _p95(log["con_vel_after"][wins])
+            metrics["constraint_pos_p95_m"]["after"] = p95(log["con_pos_after"][wins])
+            metrics["constraint_vel_p95_m_s"]["after"] = p95(log["con_vel_after"][wins])
             metrics["constraint_pos_max_m"] = {"after": float(np.nanmax(log["con_pos_after"][wins]))}
             metrics["constraint_vel_max_m_s"] = {"after": float(np.nanmax(log["con_vel_after"][wins]))}
             if groups is not None and len(groups) > 1:
@@ -482,8 +483,8 @@ def compute_metrics(
                 between[[g[-1] for g in groups[:-1]]] = True
                 for key, name in (("constraint_pos_p95_m", "con_pos_after"), ("constraint_vel_p95_m_s", "con_vel_after")):
                     values = log[name][wins]
-                    metrics[key]["after_within_groups"] = _p95(values[:, ~between]) if np.any(~between) else None
-                    metrics[key]["after_between_groups"] = _p95(values[:, between])
+                    metrics[key]["after_within_groups"] = p95(values[:, ~between]) if np.any(~between) else None
+                    metrics[key]["after_between_groups"] = p95(values[:, between])
     nees = nees_metrics(log, flight_start_s) if has_steps else None
     if nees is not None:
         metrics["nees"] = nees
@@ -529,6 +530,6 @@ def static_metrics(log: dict[str, np.ndarray], wins: np.ndarray, sckf_enabled: b
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             out["std_m"][name] = np.nanstd(est, axis=0).tolist()
-        out["rms_err_m"][name] = _rms(est - truth).tolist()
+        out["rms_err_m"][name] = rms(est - truth).tolist()
     out["std_m"]["truth"] = np.std(truth, axis=0).tolist()
     return out

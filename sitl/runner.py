@@ -232,15 +232,13 @@ class BatchRunner:
     def _inject_failure(self, t: float) -> None:
         """``[faults.inject]`` in batch mode: the failure set and cleared at its times, announced as
         the vehicle does (STATUSTEXT "Failure injection: ...")."""
-        inj, log_ = self.inject, self.inject_log
-        on = inj.active(t)
-        if on == ("injected_at_s" in log_ and "cleared_at_s" not in log_):
+        inj = self.inject
+        ftype = inj.due(t, self.inject_log)
+        if ftype is None:
             return
-        what = self.failures.inject(inj.unit_id, inj.type_id if on else OK, inj.instance)
-        log_["cleared_at_s" if not on else "injected_at_s"] = round(t, 3)
-        text = f"Failure injection: {what}"
+        text = f"Failure injection: {self.failures.inject(inj.unit_id, ftype, inj.instance)}"
         log.warning("link %d at %.2f s: %s", inj.link, t, text)
-        self.statustext.append((t, inj.link, SEVERITY["fault" if on else "recovered"], text))
+        self.statustext.append((t, inj.link, SEVERITY["recovered" if ftype == OK else "fault"], text))
 
     def _link_reboot(self, t: float, commands: np.ndarray) -> None:
         """``[faults.link]`` in batch mode: link ``kill``'s firmware loses power at ``kill_at_s`` (its

@@ -21,7 +21,7 @@ from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
-from link_firmware_sim.vehicle.failures import SUPPORTED, TYPE_NAMES, UNIT_NAMES
+from link_firmware_sim.vehicle.failures import OK, SUPPORTED, TYPE_NAMES, UNIT_NAMES
 
 from .cameras.config import CameraMount, MarkerMount
 from .cameras.scene import SceneConfig
@@ -262,6 +262,16 @@ class InjectFault:
     def active(self, t_s: float) -> bool:
         """Whether the failure is in effect at ``t_s``."""
         return bool(self.link) and self.at_s <= t_s and (not self.duration_s or t_s < self.at_s + self.duration_s)
+
+    def due(self, t_s: float, done: dict) -> int | None:
+        """The FAILURE_TYPE to apply at ``t_s`` (the failure's, or FAILURE_TYPE_OK to clear it),
+        or ``None`` when nothing changes; ``done`` records when each change was applied
+        (``injected_at_s``, ``cleared_at_s``) and is updated."""
+        on = self.active(t_s)
+        if on == ("injected_at_s" in done and "cleared_at_s" not in done):
+            return None
+        done["injected_at_s" if on else "cleared_at_s"] = round(t_s, 3)
+        return self.type_id if on else OK
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.logstream import LogStream, read_log_stream
+from companion.logstream import LogStream
 
 from .streams.schedule import Stream
 
@@ -82,9 +82,7 @@ class FlightRecorder:
         """The whole log so far (read back from the stream file; empty without an output folder)."""
         got: dict[str, np.ndarray] = {}
         if self._stream is not None:
-            if not self._stream.closed:
-                self.flush()
-            got = read_log_stream(self._stream.path)
+            got = self._stream.read_back(self._lists(), keep=0)
         out = {k: got.get(k, np.zeros(0)) for k in _COLUMNS}
         out["correction_latency"] = np.asarray(got.get("correction_latency", np.zeros(0)), dtype=float).reshape(-1, 2)
         for key, dtype in (("statustext_t", float), ("statustext_severity", np.int64), ("statustext_text", np.str_)):

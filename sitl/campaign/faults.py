@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from ..metrics import p95, rms
+
 __all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule", "recovery_s",
            "event_figures", "flight_row", "fault_table", "markdown_fault_table"]
 
@@ -200,17 +202,7 @@ def _max(values: Iterable) -> float | None:
 
 def _worst_rms(err: np.ndarray) -> float | None:
     """The largest per-link RMS of ``err`` (k, n) over its finite samples (``None``: none)."""
-    if not err.size:
-        return None
-    with np.errstate(invalid="ignore"):
-        rms = np.sqrt(np.nanmean(err ** 2, axis=0)) if np.isfinite(err).any() else np.full(err.shape[1], np.nan)
-    return _max(rms)
-
-
-def _p95(values: np.ndarray) -> float | None:
-    a = np.asarray(values, dtype=float).ravel()
-    a = a[np.isfinite(a)]
-    return float(np.percentile(a, 95)) if a.size else None
+    return _max(rms(err)) if err.size else None
 
 
 def event_figures(event: FaultEvent, log: dict, kind_links: Sequence[int] = ()) -> dict:
@@ -231,8 +223,8 @@ def event_figures(event: FaultEvent, log: dict, kind_links: Sequence[int] = ()) 
     if "t_sckf" in log and "con_pos_after" in log:
         ts = np.asarray(log["t_sckf"], dtype=float)
         sd, sa = (ts >= event.start_s) & (ts <= event.end_s), (ts > event.end_s) & (ts <= event.end_s + AFTER_S)
-        out["constraint_during_m"] = _p95(np.asarray(log["con_pos_after"])[sd])
-        out["constraint_after_m"] = _p95(np.asarray(log["con_pos_after"])[sa])
+        out["constraint_during_m"] = p95(np.asarray(log["con_pos_after"])[sd])
+        out["constraint_after_m"] = p95(np.asarray(log["con_pos_after"])[sa])
         if "corrected_sckf" in log and np.any(sd):
             corrected = np.asarray(log["corrected_sckf"], dtype=bool)[sd]
             live = [i for i in range(corrected.shape[1]) if i + 1 not in set(kind_links)]

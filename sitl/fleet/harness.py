@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.estimation.so3 import quat_to_rotmat
-from companion.logstream import LogStream, read_log_stream
+from companion.logstream import LogStream
 from companion.mavlink.codec import MessageError, usec
 from companion.mavlink.transport import wait_readable
 from companion.skeleton.kinematics import tension
@@ -204,9 +204,7 @@ class FleetHarness:
         series has the same rows."""
         if self._stream is None:
             return complete_rows(self.rows)
-        if not self._stream.closed:
-            self._stream.flush(self.rows, keep=self._keep_rows)
-        got = read_log_stream(self._stream.path)
+        got = self._stream.read_back(self.rows, keep=self._keep_rows)
         if any(k not in got for k in self.rows):
             return {k: np.zeros(0) for k in self.rows}
         return complete_rows(got)

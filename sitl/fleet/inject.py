@@ -56,17 +56,15 @@ class FailureCommander:
 
     def tick(self, t: float) -> None:
         """The command due at simulated time ``t``, if one is."""
-        f, D = self.fault, load_dialect()
-        on = f.active(t)
-        if on == ("injected_at_s" in self.sent and "cleared_at_s" not in self.sent):
+        f = self.fault
+        ftype = f.due(t, self.sent)
+        if ftype is None:
             return
-        key = "injected_at_s" if on else "cleared_at_s"
-        ftype = f.type_id if on else OK
+        D = load_dialect()
         self.port.send(D.MAVLink_command_long_message(f.link, 1, D.MAV_CMD_INJECT_FAILURE, 0, f.unit_id, ftype,
                                                       f.instance, 0, 0, 0, 0))
-        self.sent[key] = round(t, 3)
         log.warning("fault: MAV_CMD_INJECT_FAILURE %s %s (instance %d) to link %d at t = %.2f s", f.unit,
-                    f.type if on else "ok", f.instance, f.link, t)
+                    "ok" if ftype == OK else f.type, f.instance, f.link, t)
 
     def close(self) -> None:
         self.port.close()
