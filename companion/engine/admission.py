@@ -14,8 +14,10 @@ Every state is moved onto the engine's time base and checked before anything use
   a link back from a silence (or a reboot) is re-admitted after :data:`READMIT_CYCLES` usable
   cycles (the step counts them down).
 
-:class:`Admission` owns the cycle clock (:attr:`Admission.fc_time_us`): the newest plausible
-stamp received, on the time base, which every decision of the engine runs on.
+:class:`Admission` owns the cycle clock (:attr:`Admission.fc_time_us`), which every decision of
+the engine runs on: the second newest of the links' newest stamps on the time base (the newest
+while one link is heard), so that no single link, whose states may be forged ahead or whose
+clock may be off the time base, moves it for the others.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..messages import STATE_FLAG_ARMED, LinkState
-from ..plausibility import StampGate, StampVerdict
+from ..plausibility import StampVerdict
 from .links import LinkTrack, LinkWarnings, usec
 
 __all__ = ["READMIT_CYCLES", "CLOCK_SAMPLES", "Admission"]
@@ -44,11 +46,11 @@ class Admission:
     """The time base and the plausibility checks of ``cfg`` (a
     :class:`~companion.config.CompanionConfig`), rejections warned through ``warnings``."""
 
-    def __init__(self, cfg, warnings: LinkWarnings):
+    def __init__(self, cfg, warnings: LinkWarnings, links: list[LinkTrack]):
         self.cfg = cfg
         self.warnings = warnings
-        self._cycle_clock = StampGate(cfg.stamp_window)  # what moves fc_time_us
-        #: the cycle clock: the newest plausible stamp, on the time base [us]
+        self.links = links
+        #: the cycle clock on the time base [us] (:meth:`_move_cycle_clock`)
         self.fc_time_us = 0
 
     def on_system_time(self, lk: LinkTrack, time_unix_us: int, time_boot_ms: int) -> None:
@@ -114,6 +116,18 @@ class Admission:
         lk.state = state
         lk.states += 1
         lk.last_state_s = now_s
-        if self._cycle_clock.check(stamp_us, now_s) in (StampVerdict.ACCEPTED, StampVerdict.REBASED):
-            self.fc_time_us = stamp_us
+        self._move_cycle_clock(now_s)
+        return True
+
+    def _move_cycle_clock(self, now_s: float) -> None:
+        """The cycle clock to the second newest of the newest stamps of the links heard within
+        ``carry_silence_s`` (on the companion's clock; the newest while only one is heard), if
+        that is later: a link whose stamps are forged ahead, a frame at a time within the stamp
+        margin or on another clock, moves it no further than the newest of the others."""
+        cfg = self.cfg
+        heard = sorted((usec(lk.state.time_s) for lk in self.links
+                        if lk.state is not None and not lk.quiet(now_s, cfg.carry_silence_s, cfg.clock_rate_max)),
+                       reverse=True)
+        if heard:
+            self.fc_time_us = max(self.fc_time_us, heard[min(1, len(heard) - 1)])
         return True

@@ -82,10 +82,9 @@ class Carrying:
         # forged ahead (within the stamp margin) does not move for the others; with fewer than
         # three links (a group's engine) the cycle clock, the newest stamp
         t = median(heard) if len(heard) >= 3 else t_us * 1e-6
-        quiet_s = cfg.carry_silence_s / cfg.clock_rate_max  # the same silence, on the companion's clock
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s
-            silent = lag >= cfg.carry_silence_s and (lk.last_state_s is None or now_s - lk.last_state_s >= quiet_s)
+            silent = lag >= cfg.carry_silence_s and lk.quiet(now_s, cfg.carry_silence_s, cfg.clock_rate_max)
             # disarmed: the first report after a silence says, otherwise DISARMED_STATES reports in
             # a row (a lone forged one on an unsigned wire does not)
             # (not while its stream carries replayed or future stamps: then some of it is forged)

@@ -83,7 +83,7 @@ class CompanionEngine:
                       for row, i in enumerate(members)]
         self._out: list = []
         warnings = LinkWarnings()
-        self.admission = Admission(cfg, warnings)
+        self.admission = Admission(cfg, warnings, self.links)
         self.selection = LinkSelection(cfg, self.links, d, warnings)
         self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)

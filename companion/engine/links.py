@@ -13,9 +13,13 @@ from ..messages import LinkState
 from ..plausibility import StampGate
 from ..quantiles import Quantiles
 
-__all__ = ["CarryClock", "LinkTrack", "LinkWarnings", "usec"]
+__all__ = ["LAG_LIMIT_US", "CarryClock", "LinkTrack", "LinkWarnings", "usec"]
 
 log = logging.getLogger(__name__)
+
+#: A link whose newest state is this far behind the step time, and that has sent nothing for as
+#: long, is silent: not waited for, and not used.
+LAG_LIMIT_US = 100_000
 
 
 def usec(t_s: float) -> int:
@@ -100,6 +104,12 @@ class LinkTrack:
 
     def to_link_clock_us(self, t_us: int) -> int:
         return t_us - (self.offset_us or 0)
+
+    def quiet(self, now_s: float, silence_s: float, clock_rate_max: float) -> bool:
+        """Nothing accepted from it for ``silence_s`` of the time base, measured on the
+        companion's own clock ``now_s`` (``silence_s / clock_rate_max``, the time base running at
+        most that much faster): what no stamp, forged or not, can move."""
+        return self.last_state_s is None or now_s - self.last_state_s >= silence_s / clock_rate_max
 
 
 class LinkWarnings:

@@ -1,7 +1,10 @@
 """Which links a step uses, and the state each takes part with (withholding before use).
 
-A link is left out of a step when its newest state is more than :data:`LAG_LIMIT_US` from the
-step time (silent, or a clock that does not share the time base), its EKF is not usable, it is
+A link is left out of a step when it is silent (its newest state more than :data:`LAG_LIMIT_US`
+behind the step time, and nothing from it for that long on the companion's own clock: a link
+whose states keep arriving is not silent because another link's stamps were forged ahead), on a
+clock that does not share the time base (its newest state more than :data:`LAG_LIMIT_US` ahead of
+the step time or :data:`OFF_BASE_LIMIT_US` behind it, however often it sends), its EKF is not usable, it is
 back from a silence or a reboot and still waits its re-admission cycles, or the joint chi-square
 gate (:mod:`companion.estimation.gate`) finds it inconsistent with its neighbours; the gate also
 cuts inconsistent joints. The chain splits where links are left out or joints cut; every segment
@@ -29,16 +32,17 @@ from ..corrections import align_states
 from ..estimation.chain import ERR_P
 from ..estimation.gate import gate_chain, segments
 from ..messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, LinkState
-from .links import LinkTrack, LinkWarnings, usec
+from .links import LAG_LIMIT_US, LinkTrack, LinkWarnings, usec
 
-__all__ = ["LAG_LIMIT_US", "EXCLUSION_REASONS", "GPS_FAULT_POS_VAR_M2", "LinkSelection"]
+__all__ = ["LAG_LIMIT_US", "OFF_BASE_LIMIT_US", "EXCLUSION_REASONS", "GPS_FAULT_POS_VAR_M2", "LinkSelection"]
 
 log = logging.getLogger(__name__)
 
-#: A link whose newest state is this far behind the newest of the chain is not waited for.
-LAG_LIMIT_US = 100_000
-#: Why a link took no part in a step: its newest state is more than LAG_LIMIT_US from the step
-#: time (silent, or a clock that does not share the time base); its EKF is not usable; it is
+#: A link whose newest state is this far behind the step time is on another clock even if it keeps
+#: sending (a stamp forged ahead moves the step time by at most the stamp margin, 0.25 s).
+OFF_BASE_LIMIT_US = 1_000_000
+#: Why a link took no part in a step: it is silent, or on a clock that does not share the time
+#: base (``stale``: see the module docstring); its EKF is not usable; it is
 #: back after a silence or a reboot and waits READMIT_CYCLES usable cycles; the joint gate found
 #: it inconsistent with its neighbours (:mod:`companion.estimation.gate`); or it is usable but
 #: alone in its segment.
@@ -62,6 +66,7 @@ class LinkSelection:
         self.links = links
         self.d = d
         self.gate_params = cfg.gate
+        self.clock_rate_max = cfg.clock_rate_max
         self.warnings = warnings
         c = cfg.gnss_common_pos_var_m2
         #: the GNSS error common to every link (CompanionConfig.gnss_common_pos_var_m2), or None
@@ -81,7 +86,8 @@ class LinkSelection:
         usable = []
         for lk in self.links:
             off_us = usec(lk.state.time_s) - t_us
-            if abs(off_us) > LAG_LIMIT_US:
+            if (off_us > LAG_LIMIT_US or -off_us > OFF_BASE_LIMIT_US
+                    or (-off_us > LAG_LIMIT_US and lk.quiet(now_s, LAG_LIMIT_US * 1e-6, self.clock_rate_max))):
                 why = "stale"
                 self.warnings.warn(lk, "stale", now_s, "newest state %.3f s from the step time: it stopped streaming, "
                                    "or its clock does not share the chain's time base; left out, the others go on",

@@ -157,6 +157,31 @@ def test_a_flagged_link_that_agrees_with_its_neighbours_takes_part_as_usual():
     assert np.linalg.norm(got[0].dp_w_m) > 0.005  # its dead-reckoned position still counts
 
 
+@pytest.mark.parametrize("n", [2, 3])
+@pytest.mark.parametrize("burst", [1, 5])
+def test_states_forged_ahead_leave_no_streaming_link_out(n, burst):
+    """An unsigned wire's forger sends states of link 2 stamped ahead, ``burst`` at a time each
+    0.24 s further (walking its stamps forward within the stamp margin), between its real ones:
+    the cycle clock moves at most once by the margin (then link 2's stream holds replays and its
+    stamps move it no more), and link 1, whose states keep arriving, is never left out as silent;
+    the forged link is."""
+    engine = CompanionEngine(setup_for(n))
+    t = 0.0
+    for k in range(100):
+        t = round(t + 0.02, 6)
+        for r in range(n):
+            engine.on_state(r, straight_state(r, n, t), STATE_FLAG_EKF_OK, t)
+        if k >= 30 and k % 10 == 0:
+            for b in range(burst):
+                engine.on_state(1, straight_state(1, n, t + 0.24 * (b + 1)), STATE_FLAG_EKF_OK, t)
+        engine.poll(t)
+        assert engine.fc_time_us * 1e-6 - t < 0.25 * burst + 0.01 if k == 30 else True
+        assert engine.links[0].status != "stale", k
+    assert engine.fc_time_us * 1e-6 - t < 0.25 * burst + 0.01
+    assert "stale" not in engine.summary()["links"]["1"]["excluded_steps"]
+    assert engine.links[1].replayed > 0
+
+
 def test_a_silent_link_splits_the_chain_and_the_others_keep_their_corrections():
     engine = CompanionEngine(setup_for(5))
     rows = range(5)
