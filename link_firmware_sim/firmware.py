@@ -263,17 +263,28 @@ class LinkFirmware(FusedTicks):
             if kind == "gps":
                 self._fuse_gps(*args)
             elif kind == "att":
-                ekf.update_attitude(args[0])
+                self._fuse_attitude(args[0])
             elif kind == "baro":
                 ekf.update_baro(args[0], ground_effect=self.in_ground_effect())
             else:
                 ekf.update_mag(args[0])
         self._pending.clear()
 
+    def _fuse_attitude(self, q_wxyz) -> None:
+        """An attitude reference, or the attitude reset to it once the gate has rejected
+        ``att_reset_rejections`` in a row (the estimate ran off: a stuck gyro, say)."""
+        ekf = self.ekf
+        if ekf.attitude_reset_due:
+            jump = ekf.reset_attitude(q_wxyz)
+            self.events.append(StatusEvent("reset", f"EKF attitude reset: jumped {math.degrees(jump):.0f} deg"))
+        else:
+            ekf.update_attitude(q_wxyz)
+
     def _fuse_gps(self, pos_w_m, vel_w_m_s) -> None:
         """A GPS fix through the health checks (:mod:`.gps_health`): its position is fused
         only while the GPS is healthy and the fix passes the EKF's gate and the consistency
-        test; in a fault it is only tested (the estimate dead-reckons). The velocity is fused."""
+        test; in a fault it is only tested (the estimate dead-reckons). The velocity is fused (or,
+        after ``vel_reset_rejections`` rejected in a row, the velocity reset to it)."""
         ekf, health, t = self.ekf, self.gps_health, self.time_s
         consistent = health.consistent(t, pos_w_m, vel_w_m_s)
         if not consistent:
@@ -291,7 +302,11 @@ class LinkFirmware(FusedTicks):
             self.events.append(ev)
         if was_fault and not health.fault:  # recovered: this fix is fused again
             ekf.update_position(pos_w_m)
-        ekf.update_velocity(vel_w_m_s)
+        if ekf.velocity_reset_due:
+            jump = ekf.reset_velocity(vel_w_m_s)
+            self.events.append(StatusEvent("reset", f"EKF velocity reset: jumped {jump:.1f} m/s"))
+        else:
+            ekf.update_velocity(vel_w_m_s)
 
     # -- companion and targets ---------------------------------------------------------
     def on_correction(self, t_s: float, correction: Correction | None) -> None:

@@ -155,10 +155,12 @@ class FusedTicks:
         return self._fused_done(t_s, dt, gyro, out)
 
     def _fused_applies(self, t_s: float) -> bool:
-        """The fused tick's case: armed, eq. 1's controller (compiled), a fresh target."""
+        """The fused tick's case: armed, eq. 1's controller (compiled), a fresh target, no attitude
+        reset due (the next attitude reference takes the step-by-step path, which resets)."""
         target = self.target
         return (self.fused_tick and self.armed and self._controller.tick_state is not None and target is not None
-                and t_s - self._target_time_s <= self.config.target_stale_s)
+                and t_s - self._target_time_s <= self.config.target_stale_s
+                and not (self.ekf is not None and self.ekf.attitude_reset_due))
 
     def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The state the fused tick leaves outside the kernels' arrays (from its results ``out``,

@@ -56,7 +56,7 @@ __all__ = ["GRAVITY_W_M_S2", "Measurement", "ekf_init", "ekf_predict", "error_tr
            "innovation_test", "kalman_update", "kalman_update_block", "kalman_apply", "as_covariance",
            "attitude_variance", "position_measurement", "velocity_measurement", "attitude_measurement",
            "heading_measurement", "baro_measurement", "mag_heading_measurement", "ekf_update_position",
-           "ekf_reset_position", "ekf_update_velocity", "ekf_update_attitude", "ekf_update_heading",
+           "ekf_reset_position", "ekf_reset_velocity", "ekf_reset_attitude", "ekf_update_velocity", "ekf_update_attitude", "ekf_update_heading",
            "heading_jacobian", "ekf_add_baro_offset", "ekf_remove_baro_offset", "ekf_update_baro",
            "ekf_update_mag_heading", "mag_heading_jacobian", "sckf_view"]
 
@@ -353,16 +353,42 @@ def ekf_update_mag_heading(x, P, mag_b_gauss, declination_rad: float, var_rad2: 
     return kalman_apply(x, P, mag_heading_measurement(x, mag_b_gauss, declination_rad, var_rad2), gate_sigma)
 
 
+def _reset_block(x, P, xs: slice, es: slice, value, var):
+    """``x[xs] = value``; the error block ``es`` of ``P`` the variance ``var``, uncorrelated."""
+    x = np.array(x, dtype=float)
+    P = np.array(P, dtype=float)
+    x[xs] = value
+    P[es, :] = 0.0
+    P[:, es] = 0.0
+    P[es, es] = as_covariance(var, 3)
+    return x, P
+
+
 def ekf_reset_position(x, P, pos_w_m, var_m2):
     """Reset the position to a fix (a discontinuity, as EKF2's ``resetHorizontalPositionTo``):
     ``p = pos``, its covariance the fix's, its correlations with the rest of the state zero."""
-    x = np.array(x, dtype=float)
-    P = np.array(P, dtype=float)
-    x[X_P] = np.asarray(pos_w_m, dtype=float)
-    P[E_P, :] = 0.0
-    P[:, E_P] = 0.0
-    P[E_P, E_P] = as_covariance(var_m2, 3)
-    return x, P
+    return _reset_block(x, P, X_P, E_P, np.asarray(pos_w_m, dtype=float), var_m2)
+
+
+def ekf_reset_velocity(x, P, vel_w_m_s, var_m2_s2):
+    """Reset the velocity to a GPS velocity (as EKF2's ``resetVelocityToGnss``): ``v = vel``, its
+    covariance the fix's, its correlations with the rest of the state zero. ``ValueError`` for a
+    velocity that is not 3 finite numbers."""
+    v = np.asarray(vel_w_m_s, dtype=float)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"velocity reset: expected 3 finite numbers, got {vel_w_m_s!r}")
+    return _reset_block(x, P, X_V, E_V, v, var_m2_s2)
+
+
+def ekf_reset_attitude(x, P, q_wxyz, var_rad2):
+    """Reset the attitude to a reference (a discontinuity, as EKF2's yaw reset): ``q = q_ref``
+    (normalised), its error's covariance the reference's (``var_rad2``: scalar or per world
+    axis, as :func:`attitude_variance` gives it), its correlations with the rest of the state
+    zero. ``ValueError`` for a quaternion that is not 4 finite numbers of nonzero norm."""
+    q = np.asarray(q_wxyz, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+        raise ValueError(f"attitude reset: expected a quaternion of 4 finite numbers, got {q_wxyz!r}")
+    return _reset_block(x, P, X_Q, E_TH, quat_normalize(q), var_rad2)
 
 
 def ekf_add_baro_offset(x, P, baro_height_m: float, var_m2: float):

@@ -109,6 +109,11 @@ class EkfConfig:
     agreeing with it, a lower one as that much higher (PX4's EKF2_GND_EFF_DZ).
     ``mag_heading_var_rad2`` is the variance of the magnetometer's heading, ``mag_declination_rad``
     the declination of the earth's field (east of north; PX4's EKF2_MAG_DECL).
+
+    ``att_reset_rejections`` / ``vel_reset_rejections``: after that many attitude references /
+    GPS velocities in a row rejected by the gate, the next one resets the attitude / velocity to
+    it (the estimate has run off, e.g. on a stuck gyro, and would reject every one from then on;
+    EKF2 resets the velocity to GNSS when its fusion times out, ``resetVelocityToGnss``); 0: never.
     """
 
     noise: EkfNoise = field(default_factory=EkfNoise)
@@ -134,6 +139,8 @@ class EkfConfig:
     #: vertical: the filter follows the receiver, bias and all, and this is added to the position
     #: covariance it reports (a "consider" state, marginalised; the filter's gains do not see it)
     gps_bias_var_m2: tuple[float, float] = (0.0, 0.0)
+    att_reset_rejections: int = 25
+    vel_reset_rejections: int = 10
 
     def __post_init__(self) -> None:
         for name in (
@@ -161,6 +168,10 @@ class EkfConfig:
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0.0):
                 raise ValueError(f"EkfConfig.{name} must be a finite non-negative number, got {val!r}")
+        for name in ("att_reset_rejections", "vel_reset_rejections"):
+            val = getattr(self, name)
+            if isinstance(val, bool) or not isinstance(val, int) or val < 0:
+                raise ValueError(f"EkfConfig.{name} must be a whole number >= 0, got {val!r}")
         if not (math.isfinite(self.mag_declination_rad) and abs(self.mag_declination_rad) <= math.pi):
             raise ValueError(f"EkfConfig.mag_declination_rad must be within +-pi, got {self.mag_declination_rad!r}")
 

@@ -9,13 +9,14 @@ from functools import lru_cache
 
 import numpy as np
 
+from companion.estimation.so3 import attitude_error
 from companion.kernels.jit import ENABLED
 
 from ..kernels.ekf import attitude_update_kernel, ekf_predict_kernel, update_block_kernel, update_rows_kernel
 from ..kernels.layouts import EKF_ATT_COV, EKF_BARO_DENSITY, EKF_DENSITIES, EKF_GATE_SIGMA, EKF_GRAVITY_W, EKF_SIZE
 from .ekf import (GRAVITY_W_M_S2, Measurement, as_covariance, attitude_measurement, attitude_variance,
                   baro_measurement, ekf_add_baro_offset, ekf_init, ekf_predict, ekf_remove_baro_offset,
-                  ekf_reset_position, heading_measurement, innovation_test, kalman_apply, mag_heading_measurement,
+                  ekf_reset_attitude, ekf_reset_position, ekf_reset_velocity, heading_measurement, innovation_test, kalman_apply, mag_heading_measurement,
                   position_measurement, sckf_view, velocity_measurement)
 from .ekf_config import E_P, NE, NX_BARO, X_P, X_Q, X_V, EkfConfig, UpdateInfo
 
@@ -85,6 +86,9 @@ class LinkEkf:
         self.rejected: dict[str, int] = dict.fromkeys(kinds, 0)
         #: state resets (discontinuities), reported as the link state's reset_counter
         self.resets = 0
+        #: per kind, measurements rejected since the last one accepted (a fused call's count of
+        #: attitude references, when it accepted none, adds to it)
+        self.rejected_run: dict[str, int] = dict.fromkeys(kinds, 0)
 
     def predict(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float) -> None:
         self.x, self.P = predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config, self.compiled,
@@ -97,6 +101,7 @@ class LinkEkf:
     def _record(self, kind: str, result) -> UpdateInfo:
         self.x, self.P, info = result
         (self.accepted if info.accepted else self.rejected)[kind] += 1
+        self.rejected_run[kind] = 0 if info.accepted else self.rejected_run[kind] + 1
         return info
 
     def update_position(self, pos_w_m) -> UpdateInfo:
@@ -158,6 +163,39 @@ class LinkEkf:
         counts them."""
         self.accepted["att"] += accepted
         self.rejected["att"] += rejected
+        self.rejected_run["att"] = 0 if accepted else self.rejected_run["att"] + rejected
+
+    @property
+    def attitude_reset_due(self) -> bool:
+        """``att_reset_rejections`` attitude references in a row rejected: the next one resets
+        the attitude (:meth:`reset_attitude`)."""
+        n = self.config.att_reset_rejections
+        return n > 0 and self.rejected_run["att"] >= n
+
+    @property
+    def velocity_reset_due(self) -> bool:
+        """``vel_reset_rejections`` GPS velocities in a row rejected: the next one resets the
+        velocity (:meth:`reset_velocity`)."""
+        n = self.config.vel_reset_rejections
+        return n > 0 and self.rejected_run["vel"] >= n
+
+    def reset_attitude(self, q_wxyz) -> float:
+        """Reset the attitude to the reference ``q_wxyz`` (:func:`~.ekf.ekf_reset_attitude`, with the
+        reference's variance); returns the jump [rad]."""
+        before = self.x[X_Q].copy()
+        self.x, self.P = ekf_reset_attitude(self.x, self.P, q_wxyz, attitude_variance(self.config))
+        self.resets += 1
+        self.rejected_run["att"] = 0
+        return float(np.linalg.norm(attitude_error(self.x[X_Q], before)))
+
+    def reset_velocity(self, vel_w_m_s) -> float:
+        """Reset the velocity to the GPS velocity ``vel_w_m_s`` (:func:`~.ekf.ekf_reset_velocity`,
+        with its variance); returns the jump [m/s]."""
+        before = self.x[X_V].copy()
+        self.x, self.P = ekf_reset_velocity(self.x, self.P, vel_w_m_s, self.config.gps_vel_var_m2_s2)
+        self.resets += 1
+        self.rejected_run["vel"] = 0
+        return float(np.linalg.norm(self.x[X_V] - before))
 
     def update_heading(self, yaw_rad: float) -> UpdateInfo:
         cfg = self.config
