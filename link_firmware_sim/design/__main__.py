@@ -1,6 +1,7 @@
 """ODAR design optimisation tool (thesis sec. 2.2.2).
 
     python -m link_firmware_sim.design evaluate [--config FILE] [--json PATH] [--plot] [--out DIR]
+    python -m link_firmware_sim.design carry --config FILE [--json PATH]
     python -m link_firmware_sim.design search [--config FILE] [--fine] [--no-refine] [--tie-tolerance FRAC]
                                               [--scenario FILE] [--out DIR] [--json PATH]
 
@@ -12,6 +13,12 @@ config or SITL scenario (without one: the Table 2.1 geometry such a config flies
 ``sigma_1 = -1``), its ``[rotors] drag_ratio_m``, ``[skeleton] rotor_x_scale`` and an optional
 ``[design]`` table (:class:`~link_firmware_sim.design.metrics.DesignProblem`: R_max, L_max, W, V,
 D, lambda_max, mass, ``[design.flow]``).
+
+``carry --config FILE`` prints, for a scenario's (or firmware config's) links, the largest rotor
+thrust a link needs to hover alone, holding half a dead neighbour's weight at a tip (a link inside
+the chain lost power) and all of it (an end link did), level and at its best pitch, against
+``[rotors] thrust_max_n`` (:mod:`~link_firmware_sim.design.carry`): whether the chain can hold a
+link that loses power in flight.
 
 ``search`` runs the sequential grid search (2.4)-(2.6) (step 1's directions then refined
 continuously, near-ties of ``F_min^W`` broken by the larger ``F_min``; ``--no-refine``,
@@ -38,6 +45,7 @@ from companion.configfile import ConfigError, build, dump_toml, load_toml, to_di
 from companion.skeleton.body import SkeletonConfig
 from companion.skeleton.rotors import RotorGeometry, RotorGeometryConfig, RotorParams
 
+from .carry import carry_cases
 from .metrics import DesignProblem, OdarDesign, evaluate
 from .search import SearchGrid, n_position_steps, search
 
@@ -88,6 +96,24 @@ def _cmd_evaluate(args) -> int:
         _write_json(result, run / "metrics.json")
         plot_volumes({what: OdarDesign(geometry, problem)}, run / "volumes.png")
         log.info("wrote %s", run)
+    return 0
+
+
+def _cmd_carry(args) -> int:
+    try:
+        geometry, _, what = _load(args.config)
+        data = load_toml(args.config)
+        rotors = build(RotorParams, data.get("rotors", {}), file=args.config, prefix="rotors")
+        skeleton = build(SkeletonConfig, data.get("skeleton", {}), file=args.config, prefix="skeleton")
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    cases = carry_cases(geometry, skeleton.link_mass_kg, skeleton.link_length_m, rotors.thrust_max_n)
+    result = {"geometry": what, "link_mass_kg": skeleton.link_mass_kg, "link_length_m": skeleton.link_length_m,
+              "cases": [c.as_dict() for c in cases]}
+    print(json.dumps(result, indent=2))
+    if args.json:
+        _write_json(result, args.json)
     return 0
 
 
@@ -217,6 +243,13 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--plot", action="store_true", help="write Fig. 2-2 (volumes.png) and metrics.json to a run folder")
     ev.add_argument("--out", metavar="DIR", help="run folder for --plot (default runs/design-evaluate-<UTC time>)")
     ev.set_defaults(func=_cmd_evaluate)
+    ca = sub.add_parser("carry", help="can a link hold a neighbour that lost power? (thrust needed vs thrust_max_n)",
+                        description="Print the rotor thrust a link needs to hover holding half or all of a dead "
+                                    "neighbour's weight at a tip, level and at its best pitch, as JSON.")
+    ca.add_argument("--config", metavar="FILE", required=True,
+                    help="SITL scenario or firmware config ([skeleton], [rotors], optional [rotors.geometry])")
+    ca.add_argument("--json", metavar="PATH", help="also write the JSON here")
+    ca.set_defaults(func=_cmd_carry)
     se = sub.add_parser("search", help="grid search (2.4)-(2.6); writes a [rotors.geometry] table",
                         description="Sequential grid search of (2.4)-(2.6): directions U, then positions R and types S.")
     se.add_argument("--config", metavar="FILE", help="TOML whose [design] table sets the problem (default Table 2.1's)")

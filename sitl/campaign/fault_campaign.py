@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from link_firmware_sim.design.carry import carry_cases
+
 from .faults import FaultEvent, draw_schedule, fault_table, flight_row, markdown_fault_table
 from .grid import RunSpec, format_value
 
@@ -76,10 +78,12 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
     from sitl.scenarios import load
 
     root = Path(root)
-    groups = ()
+    groups, carry = (), []
     if specs:
         _, sc = load(specs[0].config)
         groups = sc.companion.group_layout(sc.skeleton.n_links) if sc.companion.distributed else ()
+        carry = [c.as_dict() for c in carry_cases(sc.vehicle_setup().geometry(), sc.skeleton.link_mass_kg,
+                                                  sc.skeleton.link_length_m, sc.rotors.thrust_max_n)]
     rows = []
     for spec, ev, rec in zip(specs, events, records):
         status = rec["status"] if rec else "not run"
@@ -95,7 +99,7 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
     failed = [r for r in rows if r["status"] != "ok"]
     (root / "faults.json").write_text(json.dumps({
         "config": specs[0].config if specs else None, "flights": len(specs), "seed": args.seed, "mode": args.mode,
-        "table": table, "runs": rows}, indent=1, default=str) + "\n")
+        "table": table, "carry": carry, "runs": rows}, indent=1, default=str) + "\n")
     lines = [f"# Random faults: {Path(specs[0].config).stem if specs else ''}, {len(specs)} flights, seed {args.seed}, "
              f"{args.mode} mode", "", "Written by `python -m sitl campaign faults`; each flight's schedule and figures "
              "are in faults.json.", "", markdown_fault_table(table), f"## Crashes ({len(crashes)})", ""]
@@ -103,6 +107,14 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
         lines += [f"- `{r['key']}`: {r.get('crash_reason') or 'crashed'}; events "
                   f"{', '.join(e['kind'] + ' ' + str(e['target']) + ' at ' + str(e['start_s']) + ' s' for e in r['events'])}",
                   f"  `{r['replay']}`"]
+    if carry:
+        lines += ["", "## Holding a link that loses power", "",
+                  "The largest rotor thrust a neighbour needs to hover holding a powerless link's weight at its tip, "
+                  "static (`python -m link_firmware_sim.design carry`); the fall and the swing come on top:", "",
+                  "| case | level N | best pitch deg | there N | thrust_max N | level / max |",
+                  "| :--- | ---: | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {c['case']} | {c['level_thrust_n']:.2f} | {c['best_pitch_deg']:g} | {c['best_thrust_n']:.2f} | "
+                  f"{c['thrust_max_n']:g} | {c['level_ratio']:.2f} |" for c in carry]
     lines += ["", f"## Runs that did not finish ({len(failed)})", ""]
     for r in failed:
         lines += [f"- `{r['key']}` ({r['status']}): {r.get('error', '')}", f"  `{r['replay']}`"]
