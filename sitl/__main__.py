@@ -5,6 +5,7 @@
     python -m sitl mcap RUN_DIR [--out FILE]
     python -m sitl view RUN_DIR [--view-port P] [--at S] [--screenshot PNG]
     python -m sitl campaign run --config FILE --set KEY=V1,V2 --seeds 0-9 [--scheduler tcp://HOST:PORT]
+    python -m sitl fault vehicle-off RUN_DIR --link N [--restart-after S]
 
 ``fly`` is batch mode: MuJoCo physics at 1 kHz, link firmware at 500 Hz and the companion SCKF at
 20 Hz, in one process on one clock; it flies every kind. ``launch`` is fleet mode: one MAVLink
@@ -13,7 +14,9 @@ PX4-style simulator links; it flies the kinds that have a fleet form and refuses
 leave ``run.mcap`` (:mod:`companion.recording.mcap_log`) beside ``log.npz``; ``mcap`` writes it for an
 existing run folder. ``view`` replays a run folder in the browser 3D view (:mod:`sitl.view`);
 ``fly --view`` and ``launch --view`` show the run as it flies. ``campaign`` flies a grid of
-scenarios x settings x seeds on Dask (:mod:`sitl.campaign`).
+scenarios x settings x seeds on Dask (:mod:`sitl.campaign`). ``fault`` switches a vehicle or a
+companion of a running fleet off (and on again), as the scenario's ``[faults]`` table does
+(:mod:`sitl.fleet.fault_cli`).
 Exit codes: 0 success, 1 the skeleton crashed, 2 bad configuration (the message names the file,
 key and reason; also an option or a mode the scenario's kind does not have), 3 the fleet failed
 (a process died), 130 interrupted (Ctrl-C or SIGTERM; fleet mode still writes the metrics when
@@ -35,6 +38,7 @@ from companion.cli import make_run_dir, run_subcommand
 from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 
 from .campaign.cli import add_campaign_parser
+from .fleet.fault_cli import add_fault_parser
 from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
 from .scenario import with_options
 from .scenarios import load as load_scenario_file
@@ -264,6 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     mc.set_defaults(func=_cmd_mcap)
     add_view_parser(sub)
     add_campaign_parser(sub)
+    add_fault_parser(sub)
     return parser
 
 

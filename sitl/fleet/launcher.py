@@ -16,7 +16,6 @@ import os
 import shutil
 import sys
 import tempfile
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -34,22 +33,19 @@ from sitl.plant.plant import Plant
 from companion.recording.mcap_log import write_beside_log
 from sitl.scenario import Scenario
 
+from .fault_socket import FaultSocket
+from .faults import FleetFaults, HarnessFault, scripted_faults
 from .harness import FleetHarness
 from .inject import FailureCommander, enable_failure_injection
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
                      check_instance_offset, endpoint_table, impaired_links)
-from .logs import (companion_summaries, distributed_metrics, fault_report, fault_windows, mavlink_counters,
-                   merge_logs)
+from .logs import companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs
 from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, enter_batch_scheduling, listening_unix_paths,
                         restore_scheduling, wait_udp_listening)
 
 __all__ = ["Fleet", "launch"]
 
 log = logging.getLogger(__name__)
-
-
-def _companion_name(group: int | None) -> str:
-    return "companion" if group is None else f"companion of group {group + 1}"
 
 
 class Fleet:
@@ -78,8 +74,8 @@ class Fleet:
         self.policy_before: int | None = None  # the scheduling policy before SCHED_BATCH
         self.interrupted = False
         self.aborted = ""  # why the fleet stopped early (a process died)
-        self.fault_log: dict = {}  # the companion kill
-        self.link_fault: dict = {}  # the vehicle reboot
+        self.faults: FleetFaults | None = None  # the harness's faults (scripted and asked for at run time)
+        self.fault_socket: FaultSocket | None = None  # run-time fault requests (RUN_DIR/faults.sock)
         self.commander = None  # sitl.fleet.inject.FailureCommander of [faults.inject]
 
     # -- the run folder's configs ----------------------------------------------------------------
@@ -152,12 +148,22 @@ class Fleet:
         self.procs.start(name, argv + (["--standby"] if standby else []), out_dir / folder / "console.log",
                          stdin_pipe=standby)
 
+    @staticmethod
+    def companion_name(group: int | None) -> str:
+        """The process name of group ``group``'s companion (0-based; ``None``: the one companion)."""
+        return "companion" if group is None else f"companion of group {group + 1}"
+
+    @staticmethod
+    def companion_folder(group: int | None) -> str:
+        """The run folder of group ``group``'s companion (0-based; ``None``: the one companion)."""
+        return "companion" if group is None else f"companion-g{group + 1}"
+
     def start_companion(self, group: int | None, folder: str, name: str | None = None) -> None:
         argv = [self.python, "-m", "companion", "--config", str(self.companion_config), "--out",
                 str(self.out_dir / folder)]
         # The companions stand in for the onboard computers, which have no numba: the numpy path
         # (the compiled kernels off), their start-up and their memory as there.
-        self.procs.start(name or _companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
+        self.procs.start(name or self.companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
                          self.out_dir / folder / "console.log", env=dict(os.environ, SKELETON_JIT="0"))
 
     def start_wire(self) -> None:
@@ -206,17 +212,15 @@ class Fleet:
             enable_failure_injection(self.out_dir / f"link{inject.link}" / f"link{inject.link}_params.json")
         for i in range(n):
             self.start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
-        reboot = sc.faults.link
-        if reboot.kill and reboot.restart_after_s:
-            # The replacement, loaded now and released at the kill: its start-up is not the host's
-            self.start_vehicle(reboot.kill - 1, f"link {reboot.kill} (restarted)", f"link{reboot.kill}-restart",
-                               standby=True)
+        self.faults = FleetFaults(self)
+        for fault in scripted_faults(sc):  # (a scripted restart's vehicle process is loaded now)
+            self.faults.add(fault, 0.0)
         if self.companion:
             if sc.companion.distributed:
                 for g in range(len(sc.companion.group_layout(n))):
-                    self.start_companion(g, f"companion-g{g + 1}")
+                    self.start_companion(g, self.companion_folder(g))
             else:
-                self.start_companion(None, "companion")
+                self.start_companion(None, self.companion_folder(None))
             # Lockstep starts once the companion listens, so that it sees the flight from t = 0.
             wait_udp_listening([SITL_STATE_PORT + k + i for i in range(n)], self.procs)
         if sc.cameras:
@@ -237,70 +241,37 @@ class Fleet:
             self.harness.tick_hooks.append(self.cameras.on_tick)
         if inject.link:
             self.commander = FailureCommander(sc, 18570 + k + inject.link - 1)
+        try:
+            self.fault_socket = FaultSocket(self.out_dir / "faults.sock")
+        except OSError as exc:  # (a run folder whose path is too long for a socket's)
+            log.warning("no run-time faults for this fleet: %s: %s", self.out_dir / "faults.sock", exc)
+        else:
+            print(f"faults at run time: python -m sitl fault vehicle-off {self.out_dir} --link N "
+                  "[--restart-after S]", flush=True)
 
-    # -- the flight and its scripted faults ------------------------------------------------------
-    def link_reboot(self, t: float) -> None:
-        """``[faults.link]`` at ``t``: the vehicle killed, its replacement released, powered on and
-        connected when it listens; the timeline in :attr:`link_fault`."""
-        reboot, lf, harness = self.sc.faults.link, self.link_fault, self.harness
-        i = reboot.kill - 1
-        if "killed_at_s" not in lf and t >= reboot.kill_at_s:
-            self.procs.kill(f"link {i + 1}")
-            harness.detach(i)
-            lf.update(link=i + 1, killed_at_s=round(t, 3))
-            log.warning("fault: killed link %d's firmware at t = %.2f s (rotors stopped)", i + 1, t)
-            if reboot.restart_after_s:
-                # The replacement (started with the fleet, loaded, waiting in --standby) opens its
-                # ports now and then waits for the simulator like PX4's SITL (silent until the
-                # lockstep connects): its power comes back when the harness attaches it,
-                # restart_after_s of simulated time after the kill. The physics does not wait for
-                # it (the companion, on wall time, would take the other links' silence for an
-                # outage): a host slower than that lengthens the outage, and says so.
-                self.procs.release(f"link {i + 1} (restarted)")
-        if (reboot.restart_after_s and "killed_at_s" in lf and "restarted_at_s" not in lf
-                and t >= reboot.kill_at_s + reboot.restart_after_s):
-            lf.update(restarted_at_s=round(t, 3))
-            log.warning("fault: link %d's firmware powered on again at t = %.2f s", i + 1, t)
-        if "restarted_at_s" in lf and "rejoined_at_s" not in lf and self.sim_listening(i):
-            harness.attach(i, self.sim_url(i, "harness"))
-            lf.update(rejoined_at_s=round(t, 3))
-            late = t - lf["restarted_at_s"]
-            (log.warning if late > 0.05 else log.info)(
-                "fault: link %d re-joined the lockstep at t = %.2f s%s", i + 1, t,
-                f" ({late:.2f} s of simulated time after its power-on: its process was still starting)"
-                if late > 0.05 else "")
-        if "rejoined_at_s" in lf and "rotors_on_at_s" not in lf and np.any(
-                self.plant.rotors.command_n.reshape(self.n, -1)[i] != 0):
-            lf.update(rotors_on_at_s=round(t, 3))
-
-    def companion_kill(self, t: float) -> None:
-        """``faults.kill_companion_group`` at ``t``: the group's companion killed, a new one started
-        ``restart_after_s`` later; the timeline in :attr:`fault_log`."""
-        faults, fl = self.sc.faults, self.fault_log
-        g = faults.kill_companion_group - 1
-        if "killed_at_s" not in fl and t >= faults.kill_at_s:
-            self.procs.kill(_companion_name(g))
-            fl.update(group=g + 1, killed_at_s=round(t, 3), killed_at_monotonic=time.monotonic())
-            log.warning("fault: killed the companion of group %d at t = %.2f s", g + 1, t)
-        if (faults.restart_after_s and "killed_at_s" in fl and "restarted_at_s" not in fl
-                and t >= faults.kill_at_s + faults.restart_after_s):
-            self.start_companion(g, f"companion-g{g + 1}-restart", f"{_companion_name(g)} (restarted)")
-            fl.update(restarted_at_s=round(t, 3), restarted_at_monotonic=time.monotonic())
-            log.warning("fault: restarted the companion of group %d at t = %.2f s", g + 1, t)
-
+    # -- the flight and its faults --------------------------------------------------------------
     def on_firmware_tick(self) -> bool:
         """Every firmware tick of the lockstep: the scripted faults due, then the processes checked
         (:class:`FleetError` if one died, noticed within 20 ms); never asks the lockstep to stop."""
         t = self.plant.time_s
-        faults = self.sc.faults
-        if faults.link.kill:
-            self.link_reboot(t)
-        if faults.kill_companion_group and self.companion:
-            self.companion_kill(t)
+        if self.fault_socket is not None:
+            self.fault_socket.serve(self._fault_request, t)
+        self.faults.tick(t)
         if self.commander is not None:
             self.commander.tick(t)
         self.procs.check(every_s=0.02)
         return False
+
+    def _fault_request(self, request, t: float) -> dict:
+        """A run-time fault request (:mod:`.fault_socket`): played through :attr:`faults` as the
+        scripted ones are; the reply says so or why not."""
+        try:
+            tl = self.faults.add(HarnessFault.from_request(request), t)
+        except ValueError as exc:
+            log.warning("fault request refused at t = %.2f s: %s", t, exc)
+            return {"accepted": False, "error": str(exc), "t_s": round(t, 3)}
+        log.warning("fault request at t = %.2f s: %s", t, {k: v for k, v in tl.items() if k != "source"})
+        return {"accepted": True, "t_s": round(t, 3), **tl}
 
     def fly(self, progress=None) -> None:
         """The lockstep for the scenario's duration; a Ctrl-C or a process that died ends it early
@@ -322,6 +293,8 @@ class Fleet:
             self.harness.close()
         if self.commander is not None:
             self.commander.close()
+        if self.fault_socket is not None:
+            self.fault_socket.close()
         try:
             self.procs.stop(self.harness.sim_s if self.harness is not None else 0.0)
         finally:
@@ -369,7 +342,7 @@ class Fleet:
                                   sc.companion.enabled and "p_corr_sckf" in merged,
                                   groups=sc.companion.group_layout(n), resting=sc.trajectory.kind == "rest",
                                   motion=sc.motion if sc.trajectory.kind == "cpg" else None,
-                                  fault_windows=fault_windows(sc, self.fault_log, self.link_fault, harness.sim_s),
+                                  fault_windows=self.faults.windows(harness.sim_s),
                                   rotor_limit_s=plant.rotors.limit_s, took_off=plant.took_off,
                                   crash_time_s=plant.crash_time_s)
         lat = latency[latency[:, 0] >= sc.flight_start_s, 1] if latency.size else np.zeros(0)
@@ -381,12 +354,14 @@ class Fleet:
                        sim_link=self.sim_link, scheduling="batch" if self.policy_before is not None else "default",
                        interrupted=self.interrupted, aborted=aborted or None, missing_flight_logs=missing)
         if sc.companion.distributed and self.companion:
-            metrics["distributed"] = distributed_metrics(sc, merged, companion_summaries(out_dir), self.fault_log)
+            metrics["distributed"] = distributed_metrics(sc, merged, companion_summaries(out_dir),
+                                                         self.faults.first("companion_off"))
         if sc.trajectory.feedforward and self.companion:
             metrics["carrying"] = carrying_metrics(companion_summaries(out_dir))
         metrics["mavlink"] = mavlink_counters(out_dir)
-        report = fault_report(sc, merged, out_dir, self.link_fault, self.wired,
-                              self.commander.sent if self.commander is not None else None)
+        report = fault_report(sc, merged, out_dir, self.faults, self.wired,
+                              self.commander.sent if self.commander is not None else None,
+                              self.fault_socket.counts if self.fault_socket is not None else None)
         if report:
             metrics["faults"] = report
         if n == 3:

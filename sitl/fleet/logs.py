@@ -16,10 +16,11 @@ from companion.logstream import read_log_stream
 from link_firmware_sim.events import statustext_arrays
 from link_firmware_sim.vehicle.hil import SITL_GPS_EPOCH_US
 from link_firmware_sim.vehicle.simlink import is_simlink_url
-from sitl.metrics import reboot_timeline, vehicle_down_windows
+from sitl.metrics import reboot_timeline
 from sitl.scenario import Scenario
 from sitl.steplog import attach_truth, merge_step_logs
 
+from .faults import restart_folder
 from .layout import FleetError
 
 __all__ = ["load_run_log", "merge_logs", "vehicle_log", "companion_log", "companion_summaries", "mavlink_counters",
@@ -128,11 +129,22 @@ def _link_states(merged: dict, fw: list, fw_rows: list) -> dict[str, np.ndarray]
     return {"link_state": words, "correction_latency_ms": latency}
 
 
+def process_folders(out_dir: Path, base: str) -> list[str]:
+    """The run folders of the process in ``base`` and of its restarts that exist (``base-restart``,
+    ``base-restart2``...: :func:`~sitl.fleet.faults.restart_folder`), in order."""
+    out = [base]
+    k = 1
+    while (out_dir / restart_folder(base, k)).is_dir():
+        out.append(restart_folder(base, k))
+        k += 1
+    return out
+
+
 def vehicle_log(out_dir: Path, i: int) -> dict[str, np.ndarray] | None:
-    """0-based link ``i``'s flight log: its first process's and, after a scripted reboot, its
-    restarted process's (folder ``link<i+1>-restart``), one after the other."""
+    """0-based link ``i``'s flight log: its first process's and, after reboots, its restarted
+    processes' (:func:`process_folders`), one after the other."""
     parts = [lg for lg in (load_run_log(out_dir / folder, f"link{i + 1}_firmware")
-                           for folder in (f"link{i + 1}", f"link{i + 1}-restart")) if lg is not None and "t" in lg]
+                           for folder in process_folders(out_dir, f"link{i + 1}")) if lg is not None and "t" in lg]
     if not parts:
         return None
     for p in parts:  # a stream holds the latencies only once a correction arrived, the texts once one was sent
@@ -151,9 +163,9 @@ def companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
         return [lg for lg in (load_run_log(out_dir / f, "companion_log") for f in folders) if lg is not None]
 
     if not sc.companion.distributed:
-        logs = [parts("companion")]
+        logs = [parts(*process_folders(out_dir, "companion"))]
     else:
-        logs = [parts(f"companion-g{g + 1}", f"companion-g{g + 1}-restart")
+        logs = [parts(*process_folders(out_dir, f"companion-g{g + 1}"))
                 for g in range(len(sc.companion.group_layout(sc.skeleton.n_links)))]
     return merge_step_logs(logs, sc.skeleton.d_b_m, sc.companion.distributed)
 
@@ -202,24 +214,23 @@ def mavlink_counters(out_dir: Path) -> dict:
     return out
 
 
-def fault_windows(sc: Scenario, fault_log: dict, link_fault: dict, end_s: float) -> list[dict]:
-    """The scripted faults' outage windows: a vehicle down (killed until back in the lockstep),
-    a companion down (killed until restarted, or the end of the run)."""
-    out = vehicle_down_windows(link_fault, end_s)
-    if "killed_at_s" in fault_log:
-        group = sc.companion.group_layout(sc.skeleton.n_links)[fault_log["group"] - 1]
-        out.append({"kind": "companion_down", "start_s": fault_log["killed_at_s"],
-                    "end_s": fault_log.get("restarted_at_s", end_s), "links": [i + 1 for i in group]})
-    return out
-
-
-def fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, wired: list[int],
-                 inject_sent: dict | None = None) -> dict:
-    """What the scripted faults did (metrics.json ``faults``): the vehicle reboot's timeline (killed,
-    restarted, back in the lockstep, rotors on, first corrected by the companion), the impaired
-    wires' counters, the GPS glitch as the firmware reported it, and the injected failure (when the
-    launcher sent its commands, ``inject_sent``, and what the vehicle's failure filter reported)."""
+def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[int],
+                 inject_sent: dict | None = None, requests: dict | None = None) -> dict:
+    """What the faults did (metrics.json ``faults``): every harness fault's timeline (``harness``,
+    scripted and asked for at run time, :class:`~sitl.fleet.faults.FleetFaults` ``faults``; a
+    vehicle's: killed, restarted, back in the lockstep, rotors on, first corrected by the
+    companion; the scripted reboot's also as ``link_reboot``) and the fault socket's ``requests``
+    counts, the impaired wires' counters, the GPS glitch as the firmware reported it, and the
+    injected failure (when the launcher sent its commands, ``inject_sent``, and what the vehicle's
+    failure filter reported)."""
     out: dict = {}
+    if faults.timelines:
+        out["harness"] = [reboot_timeline(tl, merged) if tl["kind"] == "vehicle_off"
+                          else {k: v for k, v in tl.items() if not k.endswith("_monotonic")}
+                          for tl in faults.timelines]
+    link_fault = faults.first("vehicle_off", "scenario")
+    if requests:
+        out["requests"] = requests
     if sc.faults.inject.link:
         i = sc.faults.inject.link
         entry = {"link": i, **(inject_sent or {})}
@@ -243,7 +254,7 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, link_fault: dict, wi
         g = sc.faults.gps
         i = g.link - 1
         entry = {"link": g.link}
-        for folder in (f"link{i + 1}", f"link{i + 1}-restart"):
+        for folder in process_folders(out_dir, f"link{i + 1}"):
             try:
                 ports = json.loads((out_dir / folder / f"link{i + 1}_ports.json").read_text())
             except (OSError, ValueError):

@@ -175,6 +175,56 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert {link for link, _ in texts} <= {1, 2, 3} and np.all(np.diff(log["statustext_t"]) >= 0)
 
 
+def test_faults_asked_for_at_run_time_are_played_like_the_scripted_ones(tmp_path, fleet_ports):
+    """A running fleet (``python -m sitl launch``) is asked, through ``python -m sitl fault`` and
+    its socket, to switch link 2's Pixhawk off at 9 s and on again 1 s later, and the companion off
+    at 12 s and on again 1 s later; a fault on a link it does not have is refused (exit 2). Both
+    are played, timed and measured as the scripted ones are: timelines, outage windows, the
+    restarted processes' folders, the request counts."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "sitl", "launch", "--config", str(THREE_LINK), "--duration", "16",
+                             "--speed", "0", "--out", str(out), "--quiet", *fleet_ports.cli_args], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "faults.sock").exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        asked = subprocess.run([sys.executable, "-m", "sitl", "fault", "vehicle-off", str(out), "--link", "2",
+                                "--restart-after", "1", "--at", "9"], cwd=ROOT, capture_output=True, text=True,
+                               timeout=60)
+        assert asked.returncode == 0 and json.loads(asked.stdout)["off_at_s"] == 9.0, asked.stdout + asked.stderr
+        from sitl.fleet.fault_socket import send_request
+
+        reply = send_request(out / "faults.sock", {"kind": "companion_off", "target": 1, "restart_after_s": 1.0,
+                                                   "at_s": 12.0})
+        assert reply["accepted"] and reply["t_s"] < 9.0, reply
+        refused = subprocess.run([sys.executable, "-m", "sitl", "fault", "vehicle-off", str(out), "--link", "5"],
+                                 cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 2 and "links 1..3" in refused.stdout
+        _, err = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err.decode(errors="replace")[-3000:]
+    assert_ports_released(fleet_ports, 3)
+    m = json.loads((out / "metrics.json").read_text())
+    vehicle, companion = m["faults"]["harness"]
+    assert vehicle["killed_at_s"] == pytest.approx(9.0, abs=0.01) and vehicle["restarted_at_s"] == pytest.approx(10.0, abs=0.01)
+    assert vehicle["rejoined_at_s"] < 12.0 and vehicle["rotors_on_at_s"] < 13.0 and vehicle["source"] == "request"
+    assert companion["killed_at_s"] == pytest.approx(12.0, abs=0.01) and companion["restarted_at_s"] == pytest.approx(13.0, abs=0.01)
+    assert m["faults"]["requests"] == {"accepted": 2, "refused": 1, "malformed": 0}
+    assert "link_reboot" not in m["faults"]  # (the scenario's own reboot: none)
+    windows = [{k: w[k] for k in ("kind", "start_s", "end_s", "links")} for w in m["outages"]["windows"]
+               if w["kind"] != "uncorrected"]
+    assert windows == [
+        {"kind": "vehicle_down", "start_s": vehicle["killed_at_s"], "end_s": vehicle["rejoined_at_s"], "links": [2]},
+        {"kind": "companion_down", "start_s": companion["killed_at_s"], "end_s": companion["restarted_at_s"],
+         "links": [1, 2, 3]}]
+    assert (out / "link2-restart" / "link2_firmware.npz").exists()
+    assert (out / "companion-restart" / "companion_summary.json").exists()
+    assert not m["crashed"], m["crash_reason"]
+
+
 @pytest.mark.slow
 def test_mavsdk_injects_a_gps_failure_into_link_2_of_a_running_fleet(tmp_path, fleet_ports):
     """PX4's way at run time: with SYS_FAILURE_EN 0 the vehicle denies MAV_CMD_INJECT_FAILURE
