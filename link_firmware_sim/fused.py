@@ -160,7 +160,7 @@ class FusedTicks:
         target = self.target
         return (self.fused_tick and self.armed and self._controller.tick_state is not None and target is not None
                 and t_s - self._target_time_s <= self.config.target_stale_s
-                and not (self.ekf is not None and self.ekf.attitude_reset_due))
+                and not (self.ekf is not None and self.ekf.attitude_reset_due) and not self.gyro_health.stale)
 
     def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The state the fused tick leaves outside the kernels' arrays (from its results ``out``,
@@ -168,6 +168,7 @@ class FusedTicks:
         self.ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
         self.events.extend(self.gps_health.on_tick(t_s))
+        self.gyro_sample = gyro
         if not out[OUT_FINITE]:
             raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[OUT_U:OUT_U + 6]!r}")
         self._thrust_total_n = float(out[OUT_FORCE_NORM])

@@ -5,6 +5,7 @@ compiled kernels (:mod:`link_firmware_sim.kernels.ekf`): :func:`predict` and :fu
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -20,7 +21,11 @@ from .ekf import (GRAVITY_W_M_S2, Measurement, as_covariance, attitude_measureme
                   position_measurement, sckf_view, velocity_measurement)
 from .ekf_config import E_P, NE, NX_BARO, X_P, X_Q, X_V, EkfConfig, UpdateInfo
 
-__all__ = ["ekf_parameters", "predict", "fuse", "LinkEkf"]
+__all__ = ["NO_GYRO_ATT_RAD2_S", "ekf_parameters", "predict", "fuse", "LinkEkf"]
+
+#: the attitude's process noise density while no gyro is used [rad^2/s]: in the 20 ms between two
+#: 50 Hz attitude references its variance grows by half the reference's (0.04 rad^2)
+NO_GYRO_ATT_RAD2_S = 1.0
 
 
 @lru_cache(maxsize=32)
@@ -94,6 +99,13 @@ class LinkEkf:
         self.x, self.P = predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, self.config, self.compiled,
                                  self.par)
         self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
+
+    def predict_without_gyro(self, accel_b_m_s2, dt_s: float) -> None:
+        """:meth:`predict` with no rotation measured (the gyro stale): the attitude held, its
+        density :data:`NO_GYRO_ATT_RAD2_S` so that the attitude reference carries it."""
+        noise = replace(self.config.noise, att_rad2_s=NO_GYRO_ATT_RAD2_S, att_yaw_rad2_s=None)
+        self.x, self.P = ekf_predict(self.x, self.P, np.zeros(3), accel_b_m_s2, dt_s, noise)
+        self.last_gyro_b_rad_s = np.zeros(3)
 
     def _fuse(self, kind: str, m: Measurement | None) -> UpdateInfo:
         return self._record(kind, fuse(self.x, self.P, m, self.config.gate_sigma, self.compiled))

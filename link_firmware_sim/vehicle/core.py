@@ -159,7 +159,10 @@ class Vehicle:
             self.close()
 
     def after_tick(self) -> None:
-        """A tick's bookkeeping: the firmware's events, the streams due, the flight log's row."""
+        """A tick's bookkeeping: on a stream or log row, the gyro watched; the firmware's events,
+        the streams due, the flight log's row."""
+        if self.fc_time_us >= min(self.streams.due_us, self.recorder.due_us):
+            self.fw.watch_gyro(self.fc_time_s)
         if self.fw.events:
             self._report_events()
         self.streams.send_due()
@@ -267,6 +270,7 @@ class Vehicle:
             stats["errors"] = self.errors
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
             stats["thrust_limit"] = self.fw.thrust_limit.report()
+            stats["gyro"] = self.fw.gyro_health.report(self.fc_time_s)
             stats["failures"] = self.failures.report()
             if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)
                 stats["ekf"] = {"accepted": self.fw.ekf.accepted, "rejected": self.fw.ekf.rejected}

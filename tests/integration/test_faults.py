@@ -22,6 +22,7 @@ from sitl.steplog import merge_step_logs
 from sitl.fleet.wire import Impairment, WireProxy
 
 from ..flights import seeded_metrics
+from ..paths import ROOT
 from ..ports import free_ports
 from ..waits import wait_for
 
@@ -396,21 +397,23 @@ def test_an_injected_failure_the_unit_cannot_have_is_a_config_error():
         InjectFault(link=1, unit="motor", type="off", instance=9)
 
 
-#: crashes the random fault campaign found (python -m sitl campaign faults), each a seeded scenario
-#: of configs/sitl/faults/ that still crashes: the test expects that, and fails once the chain
-#: survives one (strict), so that the expectation goes and the file becomes a plain regression
+#: the crashes the random fault campaign found (python -m sitl campaign faults), each a seeded
+#: scenario configs/sitl/faults/regression_*.toml. Those that still crash are here with the reason:
+#: the test expects their crash and fails once the chain survives one (strict), so that the
+#: expectation goes; the others must fly through.
 REGRESSIONS = {
     "regression_end_link_reboot": ("a dead end link hangs on one neighbour, which would need 152 % of its rotor thrust to hold "
                                    "it level (python -m link_firmware_sim.design carry)"),
-    "regression_gyro_stuck": ("a gyro stuck on every instance turns the attitude estimate 50 deg before the gate "
-                              "rejects the reference; the resets put it back, the link is by then too far off"),
 }
+SEEDED = sorted(p.stem for p in (ROOT / FAULTS).glob("regression_*.toml"))
 
 
-@pytest.mark.parametrize("name", sorted(REGRESSIONS))
+@pytest.mark.parametrize("name", SEEDED)
 def test_the_crashes_the_fault_campaign_found_are_kept_as_seeded_scenarios(tmp_path, name):
     sc = load_scenario(f"{FAULTS}/{name}.toml")
     m = fly(sc, tmp_path, plots=False)
-    if m["crashed"]:
-        pytest.xfail(f"{name}: {m['crash_reason']}: {REGRESSIONS[name]}")
-    pytest.fail(f"{name} flies through now: drop its expected crash from REGRESSIONS and keep it as a regression")
+    if name in REGRESSIONS:
+        if m["crashed"]:
+            pytest.xfail(f"{name}: {m['crash_reason']}: {REGRESSIONS[name]}")
+        pytest.fail(f"{name} flies through now: drop its expected crash from REGRESSIONS and keep it as a regression")
+    assert not m["crashed"], f"{name}: {m['crash_reason']}"

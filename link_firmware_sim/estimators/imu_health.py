@@ -1,0 +1,69 @@
+"""Is an IMU sensor still alive? A stuck sensor repeats one sample exactly (pure).
+
+A MEMS gyro or accelerometer always reads some noise: the same sample, bit for bit, for a while
+means the sensor (or its bus) stopped and something repeats its last value. PX4 flags such a
+sensor stale (its ``DataValidator`` counts equal samples) and stops using it. :class:`StaleSensor`
+does the same on one sensor's samples: stale once the sample has not changed for ``stale_s`` of
+the caller's time (the caller may see one sample per tick or one per batch of ticks, as the
+compiled lockstep loop returns); alive again at the first sample that differs. Each transition is
+a :class:`~link_firmware_sim.events.StatusEvent` for the shell to report.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..events import StatusEvent
+
+__all__ = ["STALE_S", "StaleSensor"]
+
+#: a sample unchanged this long [s] is a stuck sensor (PX4: 100 equal samples at its rate)
+STALE_S = 0.2
+
+
+class StaleSensor:
+    """One sensor's staleness (see the module docstring); ``name`` for the reports."""
+
+    def __init__(self, name: str, stale_s: float = STALE_S):
+        if not stale_s > 0.0:
+            raise ValueError(f"stale_s must be positive, got {stale_s!r}")
+        self.name = name
+        self.stale_s = stale_s
+        self._last: np.ndarray | None = None
+        self._since_s = 0.0
+        self.stale = False
+        #: times it went stale, and for how long in all [s]
+        self.episodes = 0
+        self.stale_time_s = 0.0
+        self._stale_at_s = 0.0
+
+    def on_sample(self, t_s: float, sample) -> list[StatusEvent]:
+        """A sample at ``t_s``; the transition it causes, if any."""
+        s = np.asarray(sample, dtype=float)
+        same = self._last is not None and np.array_equal(s, self._last)
+        if not same:
+            self._last = s.copy()
+            self._since_s = t_s
+            if self.stale:
+                self.stale = False
+                self.stale_time_s += t_s - self._stale_at_s
+                return [StatusEvent("recovered", f"{self.name} ok again after {t_s - self._stale_at_s:.1f} s"[:50])]
+            return []
+        if not self.stale and t_s - self._since_s >= self.stale_s:
+            self.stale = True
+            self.episodes += 1
+            self._stale_at_s = t_s
+            return [StatusEvent("fault", f"{self.name} stale: no change for {self.stale_s:g} s"[:50])]
+        return []
+
+    def stop(self, t_s: float) -> None:
+        """Stop watching at ``t_s`` (a stale episode going on ends there, unreported); the next
+        sample starts afresh."""
+        if self.stale:
+            self.stale_time_s += t_s - self._stale_at_s
+        self.stale = False
+        self._last = None
+
+    def report(self, t_s: float) -> dict:
+        return {"episodes": self.episodes, "stale_now": self.stale,
+                "stale_s": round(self.stale_time_s + (t_s - self._stale_at_s if self.stale else 0.0), 3)}

@@ -1,0 +1,78 @@
+"""A stuck gyro (link_firmware_sim.estimators.imu_health) and the firmware without it: stale after
+0.2 s of one repeated sample, alive at the first that differs; in flight the EKF then holds the
+attitude on its reference and the controller damps with the rate of the attitude estimate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.messages import PoseTarget
+from link_firmware_sim.estimators.imu_health import STALE_S, StaleSensor
+
+from .test_gps_health import GRAVITY_UP, _hovering_firmware
+
+
+@pytest.mark.parametrize("step_s", [0.002, 0.02])  # every tick, or a sample per compiled loop's return
+def test_a_repeated_sample_is_stale_after_stale_s_and_alive_at_the_next_change(step_s):
+    s = StaleSensor("Gyro")
+    rng = np.random.default_rng(0)
+    t, events = 0.0, []
+    for _ in range(50):
+        events += s.on_sample(t, rng.normal(0, 0.01, 3))
+        t += step_s
+    stuck = np.array([0.01, -0.02, 0.03])
+    t_stuck = t
+    while t < t_stuck + STALE_S + 0.1:
+        events += s.on_sample(t, stuck)
+        if t < t_stuck + STALE_S - 1e-9:
+            assert not s.stale
+        t += step_s
+    assert s.stale and [e.kind for e in events] == ["fault"] and events[0].text == "Gyro stale: no change for 0.2 s"
+    events = s.on_sample(t, stuck + 1e-9)
+    assert not s.stale and [e.kind for e in events] == ["recovered"]
+    report = s.report(t)
+    assert report["episodes"] == 1 and report["stale_s"] == pytest.approx(t - t_stuck - STALE_S, abs=step_s)
+
+
+def test_stop_ends_an_episode_quietly():
+    s = StaleSensor("Gyro")
+    for k in range(200):
+        s.on_sample(k * 0.002, np.zeros(3))
+    assert s.stale
+    s.stop(0.5)
+    assert not s.stale and s.on_sample(0.6, np.zeros(3)) == [] and s.report(0.6)["stale_s"] > 0.0
+    with pytest.raises(ValueError):
+        StaleSensor("Gyro", stale_s=0.0)
+
+
+@pytest.mark.parametrize("stale", [False, True])
+def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
+    """An armed, still link whose gyro reads a constant 0.5 rad/s about z (stuck; ``stale``) or
+    whose samples vary by a hair around it (``not stale``: a live gyro, believed): the stale
+    gyro's rate is never integrated once it is found stale (watched every 20 ms, as a shell does),
+    so the attitude stays on the reference; the believed one turns the estimate. The controller
+    damps with the attitude estimate's rate, near zero here."""
+    fw, q = _hovering_firmware()
+    assert fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget.hold(np.zeros(3), q))
+    rng = np.random.default_rng(1)
+    rate = np.array([0.0, 0.0, 0.5])
+    for k in range(1, 751):
+        t = k / 500
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if k % 50 == 0:
+            fw.on_gps(t, rng.normal(0, 0.05, 3), np.zeros(3))
+        fw.on_imu(t, rate if stale else rate + rng.normal(0, 1e-6, 3), GRAVITY_UP)
+        if k % 10 == 0:  # as a shell does on its log rows
+            fw.watch_gyro(t)
+    yaw_err = np.degrees(2 * np.arccos(min(1.0, abs(float(fw.ekf.q_wxyz @ q)))))
+    assert fw.gyro_health.stale == stale
+    if stale:
+        assert yaw_err < 3.0 and [e.text for e in fw.events if e.kind == "fault"] == ["Gyro stale: no change for 0.2 s"]
+        assert np.linalg.norm(fw._rate_lp) < 0.2
+    else:
+        assert yaw_err > 5.0
+    fw.disarm()
+    assert not fw.gyro_health.stale
