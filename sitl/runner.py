@@ -279,6 +279,11 @@ class BatchRunner:
             del self._boot_fix[i]
         return True
 
+    def _unheard(self, i: int) -> bool:
+        """0-based link ``i`` exchanges nothing with the companion: powered off, or its MAVLink
+        signal failed (``[faults.inject] unit = "mavlink_signal"``)."""
+        return i in self._down or (self.failures is not None and self.failures.link_off and i == self.inject.link - 1)
+
     def _companion_exchange(self, t: float, t_us: int) -> None:
         """Link states (at the stream rate), heartbeats and SYSTEM_TIME (1 Hz) to the engines; their
         outputs to the firmware; repeated while the in-process bus carries messages."""
@@ -288,8 +293,10 @@ class BatchRunner:
         for engine in self.engines if second or states else ():
             for lk in engine.links:
                 fw = self.firmware[lk.index]
-                if lk.index in self._down:
-                    continue  # no power: silent
+                if self._unheard(lk.index):
+                    if lk.index not in self._down and states:
+                        self.failures.changed["mavlink_signal"] += 1  # (a state report not sent)
+                    continue  # no power, or its MAVLink signal off: silent
                 if second:
                     engine.on_heartbeat(lk.row, t)
                     engine.on_system_time(lk.row, sitl_gps_time_us(t_us) if fw.initialized else 0, t_us // 1000)
@@ -313,8 +320,8 @@ class BatchRunner:
     def _apply(self, engine: CompanionEngine, outputs, t: float) -> None:
         standard = self.scenario.companion.mode == "standard"
         for out in outputs:
-            if hasattr(out, "row") and engine.links[out.row].index in self._down:
-                continue  # a firmware without power hears nothing (and acknowledges nothing)
+            if hasattr(out, "row") and self._unheard(engine.links[out.row].index):
+                continue  # a firmware without power (or signal) hears nothing (and acknowledges nothing)
             if isinstance(out, CorrectionOut):
                 fw = self.firmware[engine.links[out.row].index]
                 if standard:

@@ -228,13 +228,14 @@ class InjectFault:
     """``[faults.inject]``: a failure injected into link ``link``'s vehicle (1-based; 0: none) at
     ``at_s`` and cleared ``duration_s`` later (0: never), as PX4's MAV_CMD_INJECT_FAILURE does
     (:mod:`link_firmware_sim.vehicle.failures`): ``unit`` ``gps`` (``type`` ``off``, ``stuck`` or
-    ``wrong``), ``gyro`` or ``accel`` (``stuck``, ``garbage``) or ``motor`` (``off``), ``instance``
+    ``wrong``), ``gyro`` or ``accel`` (``stuck``, ``garbage``), ``motor`` (``off``) or
+    ``mavlink_signal`` (``off``: the link to the companion dead both ways), ``instance``
     as PX4 numbers them (0: every one; motors 1-8). Batch mode applies it through the same failure
     filter the vehicle runs; fleet mode sends the vehicle the command over its ground-station link,
     with SYS_FAILURE_EN set in its parameters."""
 
     link: int = 0
-    unit: Literal["gps", "gyro", "accel", "motor"] = "gps"
+    unit: Literal["gps", "gyro", "accel", "motor", "mavlink_signal"] = "gps"
     type: Literal["off", "stuck", "garbage", "wrong"] = "off"
     instance: int = 0
     at_s: float = 0.0

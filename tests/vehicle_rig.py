@@ -24,14 +24,22 @@ LEVEL = quat_from_euler_zyx(0.0, 0.0, 0.0)
 class Rig:
     """A vehicle (sysid 2) plus a fake simulator (TCP) and a fake GCS (UDP)."""
 
-    def __init__(self, tmp_path, params_file=None, signing=None, key=None, gcs_key=None, sim_link="tcp"):
+    def __init__(self, tmp_path, params_file=None, signing=None, key=None, gcs_key=None, sim_link="tcp",
+                 companion=False):
+        """``companion``: the vehicle's onboard link goes to :attr:`companion` (a second fake) and
+        its ground-station link to :attr:`gcs`; without, both are :attr:`gcs`'s onboard link."""
         self.gcs = MavlinkPort("udpin://127.0.0.1:0", system_id=255, component_id=190,
                                signing="required" if gcs_key else "off", key=gcs_key)
         gcs_port = self.gcs.transport.local_port()
+        self.companion = MavlinkPort("udpin://127.0.0.1:0", system_id=254, component_id=191) if companion else None
         fw = LinkFirmware(1, FirmwareConfig(), LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
         params = ParamTable(2, FirmwareConfig(), ORIGIN, StreamRates(50.0, 0.0), params_file or tmp_path / "p.json")
         sim = "tcpin://127.0.0.1:0" if sim_link == "tcp" else f"unixin://{tmp_path / 'sim.sock'}"
-        ports = VehiclePorts(sim=sim, onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
+        if companion:
+            ports = VehiclePorts(sim=sim, onboard=f"udpout://127.0.0.1:{self.companion.transport.local_port()}",
+                                 gcs=f"udpout://127.0.0.1:{gcs_port}")
+        else:
+            ports = VehiclePorts(sim=sim, onboard=f"udpout://127.0.0.1:{gcs_port}", gcs=None)
         self.vehicle = Vehicle(1, fw, params, ports, tmp_path / "out", signing=signing, key=key,
                                key_path=tmp_path / "vehicle.key")
         if sim_link == "tcp":
@@ -94,4 +102,6 @@ class Rig:
         self.vehicle.close()
         self.sim.close()
         self.gcs.close()
+        if self.companion is not None:
+            self.companion.close()
 

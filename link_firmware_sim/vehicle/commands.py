@@ -155,6 +155,7 @@ def _inject_failure(v, ep: Endpoint, msg) -> None:
                 v.recorder.statustext(v.fc_time_s, severity, text)
                 v.status_all(severity, text)
                 ack(ep, msg, D.MAV_RESULT_ACCEPTED)
+                v.apply_link_failure()  # (after the acknowledgement: it may have come on that link)
                 return
             reason = f"Failure unsupported: unit {unit} type {ftype} inst {instance}"
             result = D.MAV_RESULT_UNSUPPORTED

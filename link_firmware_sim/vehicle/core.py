@@ -43,7 +43,7 @@ from ..config import VehicleSetup
 from ..events import SEVERITY
 from ..firmware import CorrectionRejected, LinkFirmware
 from .commands import on_command
-from .failures import FailureInjector
+from .failures import FailureInjector, SeveredTransport
 from .ftp import on_ftp
 from .links import Endpoint, VehiclePorts, open_endpoints, statustext
 from .lockstep import Lockstep
@@ -157,6 +157,18 @@ class Vehicle:
                 self.poll(0.2)
         finally:
             self.close()
+
+    def apply_link_failure(self) -> None:
+        """The onboard link severed while the MAVLink signal failure is on
+        (:class:`~.failures.SeveredTransport` under its port), whole again once it is cleared."""
+        ep = next((e for e in self.endpoints if e.name == "onboard"), None)
+        if ep is None:
+            return
+        severed = isinstance(ep.port.transport, SeveredTransport)
+        if self.failures.link_off and not severed:
+            ep.port.transport = SeveredTransport(ep.port.transport, self.failures.changed)
+        elif not self.failures.link_off and severed:
+            ep.port.transport = ep.port.transport.inner
 
     def after_tick(self) -> None:
         """A tick's bookkeeping: on a stream or log row, the gyro watched; the firmware's events,

@@ -17,7 +17,11 @@ MAV_RESULT_UNSUPPORTED):
   :data:`ACCEL_GARBAGE_STD_M_S2` per axis added). Not ``off``: the IMU sample is the lockstep tick
   itself, the firmware has no clock without it;
 * FAILURE_UNIT_SYSTEM_MOTOR: ``ok``, ``off`` (that rotor's thrust command zero; the firmware does
-  not know).
+  not know);
+* FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL: ``ok``, ``off`` (the onboard link to the companion goes
+  dead both ways: nothing sent on it, whatever arrives on it dropped, each counted; the
+  ground-station link stays up, so a ground station can clear it). :class:`SeveredTransport` is
+  what the vehicle puts under that link's port meanwhile.
 
 Instance 0 is every instance of the unit (one GPS, one gyro, one accelerometer, ``n_motors``
 motors numbered from 1), as on PX4; an instance the vehicle does not have is unsupported.
@@ -30,17 +34,18 @@ from collections import Counter
 
 import numpy as np
 
-__all__ = ["GPS", "GYRO", "ACCEL", "MOTOR", "OK", "OFF", "STUCK", "GARBAGE", "WRONG", "GPS_WRONG_OFFSET_ENU_M",
+__all__ = ["GPS", "GYRO", "ACCEL", "MOTOR", "MAVLINK", "OK", "OFF", "STUCK", "GARBAGE", "WRONG", "GPS_WRONG_OFFSET_ENU_M",
            "GYRO_GARBAGE_STD_RAD_S", "ACCEL_GARBAGE_STD_M_S2", "UNIT_NAMES", "TYPE_NAMES", "parse_failure",
-           "FailureInjector"]
+           "FailureInjector", "SeveredTransport"]
 
 # FAILURE_UNIT and FAILURE_TYPE of MAVLink's common.xml
-GYRO, ACCEL, GPS, MOTOR = 0, 1, 4, 101
+GYRO, ACCEL, GPS, MOTOR, MAVLINK = 0, 1, 4, 101, 105
 OK, OFF, STUCK, GARBAGE, WRONG = 0, 1, 2, 3, 4
-UNIT_NAMES = {GYRO: "gyro", ACCEL: "accel", GPS: "gps", MOTOR: "motor"}
+UNIT_NAMES = {GYRO: "gyro", ACCEL: "accel", GPS: "gps", MOTOR: "motor", MAVLINK: "mavlink_signal"}
 TYPE_NAMES = {OK: "ok", OFF: "off", STUCK: "stuck", GARBAGE: "garbage", WRONG: "wrong"}
 #: the failure types each unit supports
-SUPPORTED = {GPS: {OK, OFF, STUCK, WRONG}, GYRO: {OK, STUCK, GARBAGE}, ACCEL: {OK, STUCK, GARBAGE}, MOTOR: {OK, OFF}}
+SUPPORTED = {GPS: {OK, OFF, STUCK, WRONG}, GYRO: {OK, STUCK, GARBAGE}, ACCEL: {OK, STUCK, GARBAGE}, MOTOR: {OK, OFF},
+             MAVLINK: {OK, OFF}}
 
 #: a ``wrong`` GPS's position offset, world ENU [m]
 GPS_WRONG_OFFSET_ENU_M = np.array([50.0, 0.0, 0.0])
@@ -69,7 +74,7 @@ class FailureInjector:
     how many samples or commands each unit's failures changed (:attr:`changed`)."""
 
     def __init__(self, n_motors: int = 8, seed: int = 0):
-        self.instances = {GPS: 1, GYRO: 1, ACCEL: 1, MOTOR: n_motors}
+        self.instances = {GPS: 1, GYRO: 1, ACCEL: 1, MOTOR: n_motors, MAVLINK: 1}
         #: ``(unit, instance) -> failure type`` of every failure in effect
         self.active: dict[tuple[int, int], int] = {}
         #: samples dropped or altered (rotor commands zeroed) so far, by unit name
@@ -108,7 +113,12 @@ class FailureInjector:
     def imu_or_motor(self) -> bool:
         """A gyro, accelerometer or motor failure is in effect: the ticks must go through
         :meth:`imu` and :meth:`thrust` (the compiled lockstep paths do not)."""
-        return any(unit != GPS for unit, _ in self.active)
+        return any(unit not in (GPS, MAVLINK) for unit, _ in self.active)
+
+    @property
+    def link_off(self) -> bool:
+        """The onboard link's MAVLink signal is off."""
+        return self.failure(MAVLINK) == OFF
 
     # -- the samples ---------------------------------------------------------------------------
     def gps(self, pos_w_m, vel_w_m_s) -> tuple[np.ndarray, np.ndarray] | None:
@@ -158,3 +168,25 @@ class FailureInjector:
         """What the vehicle's stats show: the failures in effect, the commands applied, the samples changed."""
         return {"active": sorted(f"{UNIT_NAMES[u]} {k} {TYPE_NAMES[t]}" for (u, k), t in self.active.items()),
                 "injected": self.injected, "changed": dict(self.changed)}
+
+
+class SeveredTransport:
+    """A MAVLink port's transport with its signal off: ``inner``'s socket stays open (and is
+    drained), nothing is sent on it and nothing it receives is handed on; both are counted in
+    ``counts`` (``{"mavlink_sent": ..., "mavlink_received": ...}``, the failure filter's
+    :attr:`FailureInjector.changed`)."""
+
+    def __init__(self, inner, counts: Counter):
+        self.inner = inner
+        self.counts = counts
+
+    def send(self, data: bytes) -> None:
+        self.counts["mavlink_signal"] += 1
+
+    def recv_chunks(self) -> list:
+        if self.inner.recv_chunks():
+            self.counts["mavlink_signal"] += 1
+        return []
+
+    def __getattr__(self, name):  # fileno, datagram, connected, close ...: the socket's own
+        return getattr(self.inner, name)

@@ -162,6 +162,35 @@ def test_motor_and_gyro_failures_take_the_ticks_off_the_compiled_path(tmp_path):
         rig.close()
 
 
+def test_mavlink_signal_off_cuts_the_link_to_the_companion_both_ways_until_cleared(tmp_path):
+    """FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL off from the ground station: the vehicle acknowledges, then
+    sends nothing on its onboard link and drops what arrives there (counted), while the
+    ground-station link stays up (the ok command arrives and is acknowledged on it), and the
+    onboard link is whole again."""
+    rig = Rig(tmp_path, companion=True)
+    v = rig.vehicle
+    try:
+        rig.start()
+        v.set_param("SYS_FAILURE_EN", 1)
+        _fly(rig, 0.1)
+        assert [m for m in rig.companion.read() if m.get_type() == "SKELETON_LINK_STATE"]
+        rig.gcs_send(_inject(D.FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL, D.FAILURE_TYPE_OFF))
+        msgs = _fly(rig, 0.05)
+        assert _acks(msgs) == [D.MAV_RESULT_ACCEPTED] and "Failure injection: mavlink_signal off" in _texts(msgs)
+        rig.companion.read()  # (what it sent before the command)
+        rig.companion.send(D.MAVLink_heartbeat_message(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID,
+                                                       0, 0, 0, 3))
+        msgs = _fly(rig, 0.3)
+        assert rig.companion.read() == []
+        assert v.failures.changed["mavlink_signal"] > 10  # the states not sent, the heartbeat dropped
+        rig.gcs_send(_inject(D.FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL, D.FAILURE_TYPE_OK))
+        msgs = _fly(rig, 0.1)
+        assert _acks(msgs) == [D.MAV_RESULT_ACCEPTED] and not v.failures.active
+        assert [m for m in rig.companion.read() if m.get_type() == "SKELETON_LINK_STATE"]
+    finally:
+        rig.close()
+
+
 def test_mavsdk_failure_plugin_injects_and_clears_a_gps_failure(tmp_path):
     """MAVSDK's Failure plugin (which reads SYS_FAILURE_EN when it starts, so the parameter is set
     first, through its Param plugin) against one vehicle polling in its own thread."""

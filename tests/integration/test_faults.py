@@ -370,6 +370,7 @@ def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     ("gps", "off", 0, 10),         # 10 Hz fixes for 1 s
     ("gyro", "garbage", 0, 500),   # every 500 Hz IMU sample
     ("motor", "off", 3, 500),      # every rotor command of the tick
+    ("mavlink_signal", "off", 0, 50),  # every 50 Hz state report to the companion
 ])
 def test_batch_injected_failures_go_through_the_vehicles_failure_filter(tmp_path, unit, ftype, instance, changed):
     """[faults.inject] in batch mode: link 2's samples or rotor commands changed by the vehicle's
