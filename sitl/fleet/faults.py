@@ -175,15 +175,23 @@ class FleetFaults:
         self._vehicle[i] = (name, k)
         return new
 
+    def _switched_off(self, tl: dict, t: float, name: str) -> bool:
+        """Process ``name`` SIGKILLed if ``tl``'s fault is due at ``t`` (its ``killed_at_s``, and
+        when on the companion's wall clock); whether it is off."""
+        if "killed_at_s" in tl:
+            return True
+        if t < tl["off_at_s"]:
+            return False
+        self.fleet.procs.kill(name)
+        tl.update(killed_at_s=round(t, 3), killed_at_monotonic=time.monotonic())
+        return True
+
     def _vehicle_tick(self, fault: HarnessFault, tl: dict, t: float) -> bool:
         fleet, i = self.fleet, fault.target - 1
         if "killed_at_s" not in tl:
-            if t < tl["off_at_s"]:
+            if not self._switched_off(tl, t, self._vehicle[i][0]):
                 return False
-            name, k = self._vehicle[i]
-            fleet.procs.kill(name)
             fleet.harness.detach(i)
-            tl["killed_at_s"] = round(t, 3)
             log.warning("fault: killed link %d's firmware at t = %.2f s (rotors stopped)", i + 1, t)
             if not fault.restart_after_s:
                 return True
@@ -221,11 +229,8 @@ class FleetFaults:
     def _companion_tick(self, fault: HarnessFault, tl: dict, t: float) -> bool:
         fleet, g = self.fleet, fault.target - 1
         if "killed_at_s" not in tl:
-            if t < tl["off_at_s"]:
+            if not self._switched_off(tl, t, self._companion[g][0]):
                 return False
-            name, k = self._companion[g]
-            fleet.procs.kill(name)
-            tl.update(killed_at_s=round(t, 3), killed_at_monotonic=time.monotonic())
             log.warning("fault: killed the companion of group %d at t = %.2f s", g + 1, t)
             return not fault.restart_after_s
         if t < tl["killed_at_s"] + fault.restart_after_s:

@@ -224,10 +224,12 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[
     injected failure (when the launcher sent its commands, ``inject_sent``, and what the vehicle's
     failure filter reported)."""
     out: dict = {}
+    def public(tl: dict) -> dict:  # (the wall-clock stamps are the failover figures' own)
+        tl = {k: v for k, v in tl.items() if not k.endswith("_monotonic")}
+        return reboot_timeline(tl, merged) if tl["kind"] == "vehicle_off" else tl
+
     if faults.timelines:
-        out["harness"] = [reboot_timeline(tl, merged) if tl["kind"] == "vehicle_off"
-                          else {k: v for k, v in tl.items() if not k.endswith("_monotonic")}
-                          for tl in faults.timelines]
+        out["harness"] = [public(tl) for tl in faults.timelines]
     link_fault = faults.first("vehicle_off", "scenario")
     if requests:
         out["requests"] = requests
@@ -240,7 +242,7 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[
             pass
         out["inject"] = entry
     if link_fault:
-        out["link_reboot"] = reboot_timeline(link_fault, merged)
+        out["link_reboot"] = public(link_fault)
     if wired:
         path = out_dir / "wire" / "wire_stats.json"
         try:
