@@ -29,7 +29,7 @@ import numpy as np
 
 from ..messages import STATE_FLAG_ARMED, LinkState
 from ..plausibility import StampVerdict
-from .links import LinkTrack, LinkWarnings, usec
+from .links import OFF_BASE_LIMIT_US, LinkTrack, LinkWarnings, usec
 
 __all__ = ["READMIT_CYCLES", "CLOCK_SAMPLES", "Admission"]
 
@@ -123,11 +123,12 @@ class Admission:
         """The cycle clock to the second newest of the newest stamps of the links heard within
         ``carry_silence_s`` (on the companion's clock; the newest while only one is heard), if
         that is later: a link whose stamps are forged ahead, a frame at a time within the stamp
-        margin or on another clock, moves it no further than the newest of the others."""
-        cfg = self.cfg
-        heard = sorted((usec(lk.state.time_s) for lk in self.links
-                        if lk.state is not None and not lk.quiet(now_s, cfg.carry_silence_s, cfg.clock_rate_max)),
+        margin or on another clock, moves it no further than the newest of the others. A link
+        more than :data:`~.links.OFF_BASE_LIMIT_US` behind it (rebooted onto its boot clock)
+        does not hold it back."""
+        cfg, floor = self.cfg, self.fc_time_us - OFF_BASE_LIMIT_US
+        heard = sorted((t for t in (usec(lk.state.time_s) for lk in self.links if lk.state is not None
+                                    and not lk.quiet(now_s, cfg.carry_silence_s, cfg.clock_rate_max)) if t >= floor),
                        reverse=True)
         if heard:
             self.fc_time_us = max(self.fc_time_us, heard[min(1, len(heard) - 1)])
-        return True

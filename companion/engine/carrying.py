@@ -80,7 +80,7 @@ class Carrying:
         heard = [lk.state.time_s for lk in self.links if lk.state is not None]
         # the reference: the median of the links' newest stamps, which a link whose states are
         # forged ahead (within the stamp margin) does not move for the others; with fewer than
-        # three links (a group's engine) the cycle clock, the newest stamp
+        # three links (a group's engine) the cycle clock, which such a link does not move either
         t = median(heard) if len(heard) >= 3 else t_us * 1e-6
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s

@@ -13,13 +13,16 @@ from ..messages import LinkState
 from ..plausibility import StampGate
 from ..quantiles import Quantiles
 
-__all__ = ["LAG_LIMIT_US", "CarryClock", "LinkTrack", "LinkWarnings", "usec"]
+__all__ = ["LAG_LIMIT_US", "OFF_BASE_LIMIT_US", "CarryClock", "LinkTrack", "LinkWarnings", "usec"]
 
 log = logging.getLogger(__name__)
 
 #: A link whose newest state is this far behind the step time, and that has sent nothing for as
 #: long, is silent: not waited for, and not used.
 LAG_LIMIT_US = 100_000
+#: A link whose newest state is this far behind the cycle clock is on another clock (a Pixhawk
+#: rebooted onto its boot clock), even if it keeps sending: not used, and no part of the clock.
+OFF_BASE_LIMIT_US = 1_000_000
 
 
 def usec(t_s: float) -> int:

@@ -32,15 +32,12 @@ from ..corrections import align_states
 from ..estimation.chain import ERR_P
 from ..estimation.gate import gate_chain, segments
 from ..messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, LinkState
-from .links import LAG_LIMIT_US, LinkTrack, LinkWarnings, usec
+from .links import LAG_LIMIT_US, OFF_BASE_LIMIT_US, LinkTrack, LinkWarnings, usec
 
 __all__ = ["LAG_LIMIT_US", "OFF_BASE_LIMIT_US", "EXCLUSION_REASONS", "GPS_FAULT_POS_VAR_M2", "LinkSelection"]
 
 log = logging.getLogger(__name__)
 
-#: A link whose newest state is this far behind the step time is on another clock even if it keeps
-#: sending (a stamp forged ahead moves the step time by at most the stamp margin, 0.25 s).
-OFF_BASE_LIMIT_US = 1_000_000
 #: Why a link took no part in a step: it is silent, or on a clock that does not share the time
 #: base (``stale``: see the module docstring); its EKF is not usable; it is
 #: back after a silence or a reboot and waits READMIT_CYCLES usable cycles; the joint gate found
