@@ -68,11 +68,10 @@ __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
 log = logging.getLogger(__name__)
 
 TAKEOFF_SPEED_M_S = 0.5  # armed faster than this: already in flight
-
-
 #: the low-pass time constant of the body rate taken from the attitude estimate while the gyro is
 #: stale [s]
 STALE_RATE_TAU_S = 0.05
+
 
 @dataclass(frozen=True)
 class FirmwareConfig:

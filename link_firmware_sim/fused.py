@@ -156,7 +156,8 @@ class FusedTicks:
 
     def _fused_applies(self, t_s: float) -> bool:
         """The fused tick's case: armed, eq. 1's controller (compiled), a fresh target, no attitude
-        reset due (the next attitude reference takes the step-by-step path, which resets)."""
+        reset due (the next attitude reference takes the step-by-step path, which resets) and the
+        gyro not stale (the step-by-step path flies without it)."""
         target = self.target
         return (self.fused_tick and self.armed and self._controller.tick_state is not None and target is not None
                 and t_s - self._target_time_s <= self.config.target_stale_s

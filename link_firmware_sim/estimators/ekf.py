@@ -56,7 +56,8 @@ __all__ = ["GRAVITY_W_M_S2", "Measurement", "ekf_init", "ekf_predict", "error_tr
            "innovation_test", "kalman_update", "kalman_update_block", "kalman_apply", "as_covariance",
            "attitude_variance", "position_measurement", "velocity_measurement", "attitude_measurement",
            "heading_measurement", "baro_measurement", "mag_heading_measurement", "ekf_update_position",
-           "ekf_reset_position", "ekf_reset_velocity", "ekf_reset_attitude", "ekf_update_velocity", "ekf_update_attitude", "ekf_update_heading",
+           "ekf_reset_position", "ekf_reset_velocity", "ekf_reset_attitude", "ekf_update_velocity",
+           "ekf_update_attitude", "ekf_update_heading",
            "heading_jacobian", "ekf_add_baro_offset", "ekf_remove_baro_offset", "ekf_update_baro",
            "ekf_update_mag_heading", "mag_heading_jacobian", "sckf_view"]
 

@@ -17,8 +17,8 @@ from ..kernels.ekf import attitude_update_kernel, ekf_predict_kernel, update_blo
 from ..kernels.layouts import EKF_ATT_COV, EKF_BARO_DENSITY, EKF_DENSITIES, EKF_GATE_SIGMA, EKF_GRAVITY_W, EKF_SIZE
 from .ekf import (GRAVITY_W_M_S2, Measurement, as_covariance, attitude_measurement, attitude_variance,
                   baro_measurement, ekf_add_baro_offset, ekf_init, ekf_predict, ekf_remove_baro_offset,
-                  ekf_reset_attitude, ekf_reset_position, ekf_reset_velocity, heading_measurement, innovation_test, kalman_apply, mag_heading_measurement,
-                  position_measurement, sckf_view, velocity_measurement)
+                  ekf_reset_attitude, ekf_reset_position, ekf_reset_velocity, heading_measurement, innovation_test,
+                  kalman_apply, mag_heading_measurement, position_measurement, sckf_view, velocity_measurement)
 from .ekf_config import E_P, NE, NX_BARO, X_P, X_Q, X_V, EkfConfig, UpdateInfo
 
 __all__ = ["NO_GYRO_ATT_RAD2_S", "ekf_parameters", "predict", "fuse", "LinkEkf"]

@@ -214,6 +214,9 @@ class Fleet:
             self.start_vehicle(i, f"link {i + 1}", f"link{i + 1}")
         self.faults = FleetFaults(self)
         for fault in scripted_faults(sc):  # (a scripted restart's vehicle process is loaded now)
+            if fault.kind == "companion_off" and not self.companion:
+                log.info("launched without the companion: faults.kill_companion_group is not played")
+                continue
             self.faults.add(fault, 0.0)
         if self.companion:
             if sc.companion.distributed:
