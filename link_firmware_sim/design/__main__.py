@@ -14,11 +14,11 @@ config or SITL scenario (without one: the Table 2.1 geometry such a config flies
 ``[design]`` table (:class:`~link_firmware_sim.design.metrics.DesignProblem`: R_max, L_max, W, V,
 D, lambda_max, mass, ``[design.flow]``).
 
-``carry --config FILE`` prints, for a scenario's (or firmware config's) links, the largest rotor
-thrust a link needs to hover alone, holding half a dead neighbour's weight at a tip (a link inside
-the chain lost power) and all of it (an end link did), level and at its best pitch, against
-``[rotors] thrust_max_n`` (:mod:`~link_firmware_sim.design.carry`): whether the chain can hold a
-link that loses power in flight.
+``carry --config FILE`` prints, for a scenario's (or firmware config's) chain, the largest rotor
+thrust a link needs to hover with no link dead, with a dead link inside the chain and with a dead
+end link: a neighbour alone (level and at its best pitch) and the whole level chain sharing the
+load, against ``[rotors] thrust_max_n`` (:mod:`~link_firmware_sim.design.carry`): whether the
+chain can hold a link that loses power in flight.
 
 ``search`` runs the sequential grid search (2.4)-(2.6) (step 1's directions then refined
 continuously, near-ties of ``F_min^W`` broken by the larger ``F_min``; ``--no-refine``,
@@ -108,9 +108,9 @@ def _cmd_carry(args) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    cases = carry_cases(geometry, skeleton.link_mass_kg, skeleton.link_length_m, rotors.thrust_max_n)
-    result = {"geometry": what, "link_mass_kg": skeleton.link_mass_kg, "link_length_m": skeleton.link_length_m,
-              "cases": [c.as_dict() for c in cases]}
+    cases = carry_cases(geometry, skeleton.n_links, skeleton.link_mass_kg, skeleton.link_length_m, rotors.thrust_max_n)
+    result = {"geometry": what, "n_links": skeleton.n_links, "link_mass_kg": skeleton.link_mass_kg,
+              "link_length_m": skeleton.link_length_m, "cases": [c.as_dict() for c in cases]}
     print(json.dumps(result, indent=2))
     if args.json:
         _write_json(result, args.json)
@@ -244,8 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", metavar="DIR", help="run folder for --plot (default runs/design-evaluate-<UTC time>)")
     ev.set_defaults(func=_cmd_evaluate)
     ca = sub.add_parser("carry", help="can a link hold a neighbour that lost power? (thrust needed vs thrust_max_n)",
-                        description="Print the rotor thrust a link needs to hover holding half or all of a dead "
-                                    "neighbour's weight at a tip, level and at its best pitch, as JSON.")
+                        description="Print the rotor thrust a chain's links need to hover with a dead link inside "
+                                    "the chain or at its end: one neighbour alone (level, best pitch) and the whole "
+                                    "level chain, as JSON.")
     ca.add_argument("--config", metavar="FILE", required=True,
                     help="SITL scenario or firmware config ([skeleton], [rotors], optional [rotors.geometry])")
     ca.add_argument("--json", metavar="PATH", help="also write the JSON here")

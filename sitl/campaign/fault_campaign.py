@@ -82,8 +82,9 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
     if specs:
         _, sc = load(specs[0].config)
         groups = sc.companion.group_layout(sc.skeleton.n_links) if sc.companion.distributed else ()
-        carry = [c.as_dict() for c in carry_cases(sc.vehicle_setup().geometry(), sc.skeleton.link_mass_kg,
-                                                  sc.skeleton.link_length_m, sc.rotors.thrust_max_n)]
+        carry = [c.as_dict() for c in carry_cases(sc.vehicle_setup().geometry(), sc.skeleton.n_links,
+                                                  sc.skeleton.link_mass_kg, sc.skeleton.link_length_m,
+                                                  sc.rotors.thrust_max_n)]
     rows = []
     for spec, ev, rec in zip(specs, events, records):
         status = rec["status"] if rec else "not run"
@@ -109,12 +110,13 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
                   f"  `{r['replay']}`"]
     if carry:
         lines += ["", "## Holding a link that loses power", "",
-                  "The largest rotor thrust a neighbour needs to hover holding a powerless link's weight at its tip, "
-                  "static (`python -m link_firmware_sim.design carry`); the fall and the swing come on top:", "",
-                  "| case | level N | best pitch deg | there N | thrust_max N | level / max |",
-                  "| :--- | ---: | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {c['case']} | {c['level_thrust_n']:.2f} | {c['best_pitch_deg']:g} | {c['best_thrust_n']:.2f} | "
-                  f"{c['thrust_max_n']:g} | {c['level_ratio']:.2f} |" for c in carry]
+                  "The largest rotor thrust the links need to hover with a powerless link: a neighbour holding it "
+                  "alone, and the whole level chain sharing the load; static (`python -m link_firmware_sim.design "
+                  "carry`), the fall and the swing come on top:", "",
+                  "| case | neighbour alone N | chain N | thrust_max N | chain / max |",
+                  "| :--- | ---: | ---: | ---: | ---: |"]
+        lines += [f"| {c['case']} | {c['level_thrust_n']:.2f} | {c['chain_thrust_n']:.2f} | {c['thrust_max_n']:g} | "
+                  f"{c['chain_ratio']:.2f} |" for c in carry]
     lines += ["", f"## Runs that did not finish ({len(failed)})", ""]
     for r in failed:
         lines += [f"- `{r['key']}` ({r['status']}): {r.get('error', '')}", f"  `{r['replay']}`"]

@@ -403,8 +403,9 @@ def test_an_injected_failure_the_unit_cannot_have_is_a_config_error():
 #: the test expects their crash and fails once the chain survives one (strict), so that the
 #: expectation goes; the others must fly through.
 REGRESSIONS = {
-    "regression_end_link_reboot": ("a dead end link hangs on one neighbour, which would need 152 % of its rotor thrust to hold "
-                                   "it level (python -m link_firmware_sim.design carry)"),
+    "regression_end_link_reboot": ("no level chain of these links holds a dead end link: 122 % of the rotors' thrust with the "
+                                   "whole chain sharing, 152 % for its neighbour alone (python -m link_firmware_sim.design "
+                                   "carry)"),
 }
 SEEDED = sorted(p.stem for p in (ROOT / FAULTS).glob("regression_*.toml"))
 
