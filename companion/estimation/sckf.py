@@ -160,7 +160,9 @@ def constraint_apply_dense(p, v, q, w, d, P, params: CAParams = CAParams(), comp
     Args:
         p, v, q, w, d: (n, 3), (n, 3), (n, 4), (n, 3), (n, 3) EKF positions, velocities,
             attitudes, body angular velocities and centre-to-right-tip vectors.
-        P: (n, 9, 9) EKF covariance blocks (the block-diagonal ``P^E``).
+        P: (n, 9, 9) EKF covariance blocks (the block-diagonal ``P^E`` of independent links),
+            or the whole (9n, 9n) ``P^E`` (links correlated by a measurement between them before
+            the constraint, :mod:`.neighbour`).
         params: :class:`CAParams`.
         compiled: see :func:`constraint_apply_dense_batched`.
     """
@@ -175,15 +177,16 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
     Each chain keeps its own iteration counter ``j`` (in ``P^w_j``) and stops on its own
     ``||c|| <= eps``; the results equal running :func:`constraint_apply_dense` per chain. Used
     for the many small groups of the semi-distributed step, where per-call overhead dominates.
+    ``P``: (G, n, 9, 9) blocks or (G, 9n, 9n) whole covariances (:func:`dense_prior`).
 
     The numpy code below is the specification. ``compiled`` (default: when numba is installed)
     runs each chain through :func:`companion.kernels.sckf.constraint_apply_kernel` instead, the same
     iterates in plain loops (``tests/unit/test_fast_paths.py``: agreement to 1e-12).
     """
+    PE = dense_prior(P, p.shape[1])
     if _COMPILED if compiled is None else compiled:
-        return _constraint_apply_compiled(p, v, q, w, d, P, params)
+        return _constraint_apply_compiled(p, v, q, w, d, PE, params)
     G, n = p.shape[:2]
-    PE = block_diag_covariance(P)
     Pc = PE
     eye = np.eye(ERR_DIM * n)
     body = body_tip_vectors(w, d)
@@ -217,11 +220,22 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
         active = active & (norms > params.eps) & (j < params.max_iter)
     KD = None
     if params.omega_std_rad_s > 0.0 and n > 1:  # (a chain that needed no correction took none)
-        KD = (j > 0)[:, None, None] * _rate_noise_gain(q, w, d, P)
+        KD = (j > 0)[:, None, None] * _rate_noise_gain(q, w, d, PE)
     return _ca_results(p, v, q, Pc, j, history, KD, params)
 
 
-def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CAResult]:
+def dense_prior(P: np.ndarray, n: int) -> np.ndarray:
+    """The whole ``(..., 9n, 9n)`` prior ``P^E`` of ``n`` links from their ``(..., n, 9, 9)``
+    blocks or as given whole; ``ValueError`` for another shape."""
+    P = np.asarray(P, dtype=float)
+    if P.shape[-3:] == (n, ERR_DIM, ERR_DIM):
+        return block_diag_covariance(P)
+    if P.shape[-2:] == (ERR_DIM * n, ERR_DIM * n):
+        return P
+    raise ValueError(f"P must be ({n}, 9, 9) blocks or a ({9 * n}, {9 * n}) covariance, got shape {P.shape}")
+
+
+def _constraint_apply_compiled(p, v, q, w, d, PE, params: CAParams) -> list[CAResult]:
     """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain)."""
     G, n = p.shape[:2]
     N = ERR_DIM * n
@@ -230,8 +244,8 @@ def _constraint_apply_compiled(p, v, q, w, d, P, params: CAParams) -> list[CARes
     history = np.empty((G, params.max_iter + 1))
     Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
     rate = params.omega_std_rad_s > 0.0 and n > 1
-    P = as_kernel_array(P, (G, n, ERR_DIM, ERR_DIM))
-    constraint_apply_batched_kernel((p, v, q, w, d), P, (float(params.alpha), float(params.eps), int(params.max_iter),
+    PE = as_kernel_array(PE, (G, N, N))
+    constraint_apply_batched_kernel((p, v, q, w, d), PE, (float(params.alpha), float(params.eps), int(params.max_iter),
                                                          rate), history, (Pc, j, KD))
     return _ca_results(p, v, q, Pc, j, [history[g, :j[g] + 1] for g in range(G)], KD if rate else None, params)
 
@@ -274,8 +288,8 @@ def rate_noise_covariance(q, w, d, P, omega_std_rad_s: float) -> np.ndarray:
     R_{i+1} S(d_{i+1}) dw_{i+1}``), and Alg. 1, converged, removes the residual it sees by the
     projection ``K = P^E C^T (C P^E C^T)^-1`` (the weakening has faded): the estimate takes
     ``-K D dw`` with it. Returns ``sigma^2 K D D^T K^T`` at the attitudes ``q`` (the corrected
-    ones), with ``P`` (..., n, 9, 9) the EKF blocks ``P^E``."""
-    return omega_std_rad_s**2 * _outer(_rate_noise_gain(q, w, d, P))
+    ones), with ``P`` (..., n, 9, 9) the EKF blocks ``P^E`` (or the whole ``P^E``)."""
+    return omega_std_rad_s**2 * _outer(_rate_noise_gain(q, w, d, dense_prior(P, q.shape[-2])))
 
 
 def _outer(A: np.ndarray) -> np.ndarray:
@@ -283,8 +297,8 @@ def _outer(A: np.ndarray) -> np.ndarray:
     return 0.5 * (Q + np.swapaxes(Q, -1, -2))
 
 
-def _rate_noise_gain(q, w, d, P) -> np.ndarray:
-    """``K D`` (..., 9n, 3n) of :func:`rate_noise_covariance`."""
+def _rate_noise_gain(q, w, d, PE) -> np.ndarray:
+    """``K D`` (..., 9n, 3n) of :func:`rate_noise_covariance` (``PE`` the whole prior)."""
     n = q.shape[-2]
     C = dense_jacobian_from_blocks(*jacobian_blocks_from_tips(*tips_from_body(q, body_tip_vectors(w, d))))
     B = -quat_to_rotmat(q) @ skew(d)  # (..., n, 3, 3): d(tip velocity offset)/d(w)
@@ -293,7 +307,7 @@ def _rate_noise_gain(q, w, d, P) -> np.ndarray:
         D[..., i, CON_VEL, i, :] = B[..., i, :, :]
         D[..., i, CON_VEL, i + 1, :] = B[..., i + 1, :, :]
     D = D.reshape(q.shape[:-2] + (CON_DIM * (n - 1), 3 * n))
-    PCt = block_diag_covariance(P) @ np.swapaxes(C, -1, -2)
+    PCt = PE @ np.swapaxes(C, -1, -2)
     return PCt @ np.linalg.solve(C @ PCt, D)
 
 
@@ -453,7 +467,7 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
     ends = _posterior_end_columns(P, system, Lf, Rf, LPf, RPf)
     W_ends = None
     if params.omega_std_rad_s > 0.0:
-        KD = _rate_noise_gain(q, w, d, P)
+        KD = _rate_noise_gain(q, w, d, block_diag_covariance(P))
         Q = params.omega_std_rad_s**2 * _outer(KD)
         PC = PC + diagonal_blocks(Q)
         ends = ends + _end_columns(Q, n)
@@ -521,11 +535,12 @@ def constraint_apply(p, v, q, w, d, P, params: CAParams = CAParams(), method: st
     """Constraint application (Alg. 1) on one chain or group.
 
     ``method`` is ``"dense"``, ``"structured"`` or ``"auto"`` (dense up to
-    :data:`DENSE_MAX_LINKS` links). Both give the same iterates; inputs are assumed
-    validated (see :func:`companion.estimation.chain.check_chain`).
+    :data:`DENSE_MAX_LINKS` links, and for a whole (9n, 9n) covariance ``P``, which only the
+    dense path takes). Both give the same iterates; inputs are assumed validated (see
+    :func:`companion.estimation.chain.check_chain`).
     """
     if method == "auto":
-        method = "dense" if p.shape[0] <= DENSE_MAX_LINKS else "structured"
+        method = "dense" if p.shape[0] <= DENSE_MAX_LINKS or np.ndim(P) == 2 else "structured"
     if method == "dense":
         return constraint_apply_dense(p, v, q, w, d, P, params)
     if method == "structured":

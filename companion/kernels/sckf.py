@@ -51,10 +51,10 @@ def _rate_noise_gain(q, d, a, b, C, PE):
 
 
 @jit
-def constraint_apply_kernel(chain, P, settings, history):
+def constraint_apply_kernel(chain, PE, settings, history):
     """Alg. 1 on one chain. ``chain = (p, v, q, w, d)``: the EKF states ``p``, ``v`` (n, 3), ``q``
     (n, 4), updated in place, the body rates ``w`` and the centre-to-right-tip vectors ``d`` (n,
-    3); ``P`` (n, 9, 9) the EKF blocks; ``settings = (alpha, eps, max_iter, rate_gain)``: Alg. 1's
+    3); ``PE`` (9n, 9n) the EKF covariance (block-diagonal for independent links); ``settings = (alpha, eps, max_iter, rate_gain)``: Alg. 1's
     weakening, tolerance and iteration limit, and whether to compute the rate-noise gain.
     ``history`` (max_iter + 1,) takes ``||c||`` before the first iteration and after each. Returns
     ``(Pc, iterations, KD)``: the corrected ``9n x 9n`` covariance (before the rate noise), the
@@ -65,9 +65,6 @@ def constraint_apply_kernel(chain, P, settings, history):
     n = p.shape[0]
     N, M = ED * n, CD * (n - 1)
     body_wd = body_tip_rates(w, d)
-    PE = np.zeros((N, N))
-    for i in range(n):
-        PE[ED * i:ED * (i + 1), ED * i:ED * (i + 1)] = P[i]
     Pc = PE.copy()
     a, b = np.empty((n, 3)), np.empty((n, 3))
     c = np.empty(M)
@@ -99,13 +96,13 @@ def constraint_apply_kernel(chain, P, settings, history):
 
 
 @jit
-def constraint_apply_batched_kernel(chains, P, settings, history, out):
+def constraint_apply_batched_kernel(chains, PE, settings, history, out):
     """:func:`constraint_apply_kernel` on ``G`` chains of equal length: ``chains`` its ``chain``
-    with a leading axis ``G`` on every array, as ``P`` (G, n, 9, 9) and ``history`` (G, max_iter +
+    with a leading axis ``G`` on every array, as ``PE`` (G, 9n, 9n) and ``history`` (G, max_iter +
     1); ``out = (Pc, iterations, KD)`` gets each chain's corrected covariance (G, 9n, 9n),
     iterations (G,) and rate-noise gain (G, 9n, 3n)."""
     p, v, q, w, d = chains
     Pc, iterations, KD = out
     for g in range(p.shape[0]):
-        Pc[g], iterations[g], KD[g] = constraint_apply_kernel((p[g], v[g], q[g], w[g], d[g]), P[g], settings,
+        Pc[g], iterations[g], KD[g] = constraint_apply_kernel((p[g], v[g], q[g], w[g], d[g]), PE[g], settings,
                                                               history[g])

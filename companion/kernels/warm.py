@@ -43,7 +43,7 @@ def warm_up() -> float:
     load(feedforward_kernel, (v3, v3, v3, v3), m3, np.zeros((n - 1, 3)), (np.zeros(3), np.zeros(3), 1.0, 9.8, 2.0),
          np.ones(n), (v3, v3, np.zeros((n - 1, 3)), np.zeros((n, 6))))
     stacked = tuple(a[None].copy() for a in chain)
-    load(constraint_apply_batched_kernel, stacked, P[None].copy(), (1.0, 1e-9, 20, True), np.zeros((G, 21)),
+    load(constraint_apply_batched_kernel, stacked, np.zeros((G, 9 * n, 9 * n)), (1.0, 1e-9, 20, True), np.zeros((G, 21)),
          (np.zeros((G, 9 * n, 9 * n)), np.zeros(G, dtype=np.int64), np.zeros((G, 9 * n, 3 * n))))
     load(joint_nis_kernel, chain, P, 0.01, 0.01, np.zeros(n - 1))
     load(group_terms_kernel, chain, P, (np.zeros((2, n, 9, 9)), np.zeros((2, n, 9, 3))), True, 1e-4,

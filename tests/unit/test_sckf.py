@@ -170,14 +170,14 @@ def test_rate_noise_gain_is_the_corrected_estimates_derivative(method):
     """``-K D`` of :func:`rate_noise_covariance` is how the converged estimate moves with the
     reported body rates: central differences of the whole constraint application (the weakening
     makes the iterates differ from the exact projection by about 1 %)."""
-    from companion.estimation.sckf import _rate_noise_gain
+    from companion.estimation.sckf import _rate_noise_gain, block_diag_covariance
     from companion.estimation.so3 import attitude_error
 
     n = 4
     p, v, q, w, d, P = perturbed_chain(np.random.default_rng(2), n, pos_sigma=0.02, att_sigma=0.01)
     params = CAParams(eps=1e-12, max_iter=60)
     base = constraint_apply(p, v, q, w, d, P, params, method)
-    KD = _rate_noise_gain(base.q, w, d, P)
+    KD = _rate_noise_gain(base.q, w, d, block_diag_covariance(P))
     h = 1e-5
     for k in range(n):
         for j in range(3):
