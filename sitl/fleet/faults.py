@@ -176,10 +176,8 @@ class FleetFaults:
         return new
 
     def _switched_off(self, tl: dict, t: float, name: str) -> bool:
-        """Process ``name`` SIGKILLed if ``tl``'s fault is due at ``t`` (its ``killed_at_s``, and
-        when on the companion's wall clock); whether it is off."""
-        if "killed_at_s" in tl:
-            return True
+        """Process ``name`` SIGKILLed if ``tl``'s fault (not yet played) is due at ``t`` (its
+        ``killed_at_s``, and when on the companion's wall clock); whether it was."""
         if t < tl["off_at_s"]:
             return False
         self.fleet.procs.kill(name)
