@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.estimation.so3 import skew
 from companion.skeleton.rotors import RotorGeometry
 
 from ..allocation.mapping import infinity_norm_allocation, pseudo_inverse
@@ -59,10 +60,6 @@ def tip_load_thrust_n(geometry: RotorGeometry, mass_kg: float, length_m: float, 
     return float(np.max(np.abs(lam)))
 
 
-def _skew(r: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-
-
 def chain_hold_thrust_n(geometry: RotorGeometry, n_links: int, mass_kg: float, length_m: float,
                         dead: tuple[int, ...] = ()) -> float:
     """The largest rotor thrust magnitude [N] with which a level chain of ``n_links`` links (in a
@@ -84,10 +81,10 @@ def chain_hold_thrust_n(geometry: RotorGeometry, n_links: int, mass_kg: float, l
         force, moment = np.zeros((3, nv)), np.zeros((3, nv))
         if i > 0:  # joint i - 1 at the left tip pushes with +F
             force[:, jf + 3 * (i - 1):jf + 3 * i] += np.eye(3)
-            moment[:, jf + 3 * (i - 1):jf + 3 * i] += _skew(tips[0])
+            moment[:, jf + 3 * (i - 1):jf + 3 * i] += skew(tips[0])
         if i < n - 1:  # joint i at the right tip pushes with -F
             force[:, jf + 3 * i:jf + 3 * i + 3] -= np.eye(3)
-            moment[:, jf + 3 * i:jf + 3 * i + 3] -= _skew(tips[1])
+            moment[:, jf + 3 * i:jf + 3 * i + 3] -= skew(tips[1])
         if i in live:
             k = 8 * live.index(i)
             force[:, k:k + 8] += B[:3]

@@ -172,8 +172,8 @@ class FailureInjector:
 
 class SeveredTransport:
     """A MAVLink port's transport with its signal off: ``inner``'s socket stays open (and is
-    drained), nothing is sent on it and nothing it receives is handed on; both are counted in
-    ``counts`` (``{"mavlink_sent": ..., "mavlink_received": ...}``, the failure filter's
+    drained), nothing is sent on it and nothing it receives is handed on; each write dropped and
+    each read drained counts one in ``counts["mavlink_signal"]`` (the failure filter's
     :attr:`FailureInjector.changed`)."""
 
     def __init__(self, inner, counts: Counter):
