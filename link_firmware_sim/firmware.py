@@ -62,6 +62,7 @@ from .estimators.imu_health import StaleSensor
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
+from .wrench_guard import WrenchGuard
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
 
@@ -163,6 +164,8 @@ class LinkFirmware(FusedTicks):
         #: (:mod:`.estimators.imu_health`; armed only: at rest a noise-free simulated gyro repeats itself)
         self.gyro_health = StaleSensor("Gyro")
         self.gyro_sample = np.zeros(3)  # the newest tick's gyro sample, as it came
+        #: a non-finite wrench from the controller: refused, the last finite commands held
+        self.wrench_guard = WrenchGuard()
         self._q_prev: np.ndarray | None = None
         self._rate_lp = np.zeros(3)
         #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
@@ -455,6 +458,7 @@ class LinkFirmware(FusedTicks):
         self.armed = True
         self._controller.reset()
         self.allocator.reset()
+        self.wrench_guard.passed(self._zero)  # (nothing from an earlier flight is held)
         p, v, _ = self.control_estimate(t_s)
         self._arm_height_m = float(p[2])
         self._thrust_total_n = 0.0
@@ -539,6 +543,8 @@ class LinkFirmware(FusedTicks):
         target = self._active_target(t_s, p)
         ctrl = self._controller
         U = ctrl(p, v, q, omega, target, dt)  # eq. 1 (default), sec. 2.3.2, 2.3.3 or 2.3.4's slave law
+        if not math.isfinite(float(np.sum(U))):
+            return self._refuse_wrench(t_s)
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)
         if not self._airborne and p[2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True  # take-off detected: a disarm now needs the force value
@@ -546,6 +552,15 @@ class LinkFirmware(FusedTicks):
         self.events.extend(self.thrust_limit.on_tick(t_s, dt, self.allocator.saturated, self.allocator.scale))
         if ctrl.observer is not None:  # with the wrench the clipped commands produce
             ctrl.observe(v, q, omega, self.allocator.mapping_matrix @ command, dt)
+        self.wrench_guard.passed(command)
+        return command
+
+    def _refuse_wrench(self, t_s: float) -> np.ndarray:
+        """A tick whose wrench is not finite (:mod:`.wrench_guard`): the last finite commands held,
+        the controller reset, the refusal counted and reported."""
+        command, events = self.wrench_guard.refuse(t_s)
+        self.events.extend(events)
+        self._controller.reset()
         return command
 
     def watch_gyro(self, t_s: float) -> None:

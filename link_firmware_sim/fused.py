@@ -32,7 +32,7 @@ from .kernels.layouts import (IN_CORRECTION, IN_SIZE, IN_TARGET, IN_WEIGHT, IO_A
                               IO_MODE, IO_N_FDS, IO_PACKET, IO_SENT, IO_SIZE, IO_STATUS, IO_T_PREV, IO_T_US,
                               IO_TAKEN_BYTES, IO_TAKEOFF, IO_TARGET_STALE, IO_TARGET_TIME, IO_THRUST_MAX, IO_TICKS,
                               IO_TIMEOUT_MS, OUT_COMMAND, OUT_FINITE, OUT_FORCE_NORM, OUT_P_CTRL, OUT_SATURATED,
-                              OUT_SCALE, OUT_SIZE, OUT_U)
+                              OUT_SCALE, OUT_SIZE)
 from .kernels.lockstep import hil_loop_kernel
 from .kernels.mavlink_frames import FRAME_BYTES, FRAMING_SIZE
 from .kernels.tick import attitude_tick_kernel, hil_tick_kernel, tick_kernel
@@ -165,13 +165,15 @@ class FusedTicks:
 
     def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The state the fused tick leaves outside the kernels' arrays (from its results ``out``,
-        ``OUT_*``); returns the thrust commands."""
+        ``OUT_*``); returns the thrust commands (with a wrench that is not finite: the held ones,
+        :mod:`.wrench_guard`; the compiled paths then sent no answer)."""
         self.ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
         self.events.extend(self.gps_health.on_tick(t_s))
         self.gyro_sample = gyro
         if not out[OUT_FINITE]:
-            raise ValueError(f"U must be 6 finite numbers [force (N); torque (Nm)]; got {out[OUT_U:OUT_U + 6]!r}")
+            return self._refuse_wrench(t_s)
+        self.wrench_guard.passed(out[_COMMAND])
         self._thrust_total_n = float(out[OUT_FORCE_NORM])
         if not self._airborne and out[OUT_P_CTRL + 2] - self._arm_height_m > TAKEOFF_HEIGHT_M:
             self._airborne = True

@@ -270,8 +270,8 @@ class Vehicle:
 
     def close(self) -> None:
         """The flight log saved and the link's counters written (``link<i>_ports.json``: every
-        port's, the errors, the GPS health, the thrust limit, the injected failures, the EKF's
-        fused and gated measurements), then every port closed."""
+        port's, the errors, the GPS health, the thrust limit, the gyro, the wrenches refused, the
+        injected failures, the EKF's fused and gated measurements), then every port closed."""
         if self._closed:
             return
         self._closed = True
@@ -283,6 +283,7 @@ class Vehicle:
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
             stats["thrust_limit"] = self.fw.thrust_limit.report()
             stats["gyro"] = self.fw.gyro_health.report(self.fc_time_s)
+            stats["wrench"] = self.fw.wrench_guard.report()
             stats["failures"] = self.failures.report()
             if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)
                 stats["ekf"] = {"accepted": self.fw.ekf.accepted, "rejected": self.fw.ekf.rejected}

@@ -179,9 +179,12 @@ class Lockstep:
         t_us = int.from_bytes(data[at + _SENSOR_TIME:at + _SENSOR_TIME + 8], "little")
         t_s = seconds(t_us)
         # (a record it takes is answered through send_packet before the tick's bookkeeping)
-        if v.fw.on_hil_record(t_s, rec, self.buffers, answered=self.sim.send_packet) is None:
+        command = v.fw.on_hil_record(t_s, rec, self.buffers, answered=self.sim.send_packet)
+        if command is None:
             return False
         v.fc_time_us, v.fc_time_s = t_us, t_s
+        if v.fw.wrench_guard.holding:  # (a refused wrench: the kernel sent nothing)
+            self._answer(command)
         self.sim.count("HIL_SENSOR")
         self._ahrs_fused()
         v.after_tick()
@@ -245,6 +248,8 @@ class Lockstep:
             self._ahrs_fused()
             self.sim.sent(sent)
             v.fc_time_us, v.fc_time_s = t_us, seconds(t_us)
+            if v.fw.wrench_guard.holding:  # (the last tick's wrench refused: the kernel sent nothing)
+                self._answer(v.fw.wrench_guard.command)
             v.after_tick()
         if status == LOOP_PACKET:  # received, not taken: as poll takes a packet
             data = hil.buf[:packet].tobytes()

@@ -6,6 +6,7 @@ at once."""
 
 from __future__ import annotations
 
+import json
 import socket
 import threading
 import time
@@ -21,6 +22,7 @@ from companion.mavlink.transport import wait_readable
 from companion.messages import Correction, PoseTarget
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.kernels import mavlink_frames as frames
+from link_firmware_sim.kernels.layouts import CTL_POS_INT
 from link_firmware_sim.kernels.lockstep import LOOP_PACKET, LOOP_TICKED
 from link_firmware_sim.vehicle.hil import decode_actuators, encode_actuators, encode_ahrs, encode_hil_gps, encode_hil_sensor
 from link_firmware_sim.vehicle.simlink import encode_packet
@@ -216,6 +218,36 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     assert ticks >= 300 and max(c[1] for c in calls) >= 5, (ticks, max(c[1] for c in calls))
     statuses = {c[0] for c in calls}
     assert {LOOP_TICKED, LOOP_PACKET} <= statuses, statuses
+
+
+
+@pytest.mark.parametrize("link", ["unix", "tcp"])
+@pytest.mark.parametrize("loop", [True, False], ids=["loop", "record_tick"])
+def test_a_wrench_that_is_not_finite_is_answered_with_the_held_commands(tmp_path, link, loop):
+    """A controller integral turned NaN between two ticks (a numerical failure inside the
+    firmware), on the compiled paths (the lockstep loop, the record tick or the decoders): that
+    tick is answered all the same, with the previous tick's thrusts, the refusal is counted and
+    reported, the vehicle flies on with finite thrusts and writes the count at the end."""
+    if not COMPILED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    rig = Rig(tmp_path, sim_link=link)
+    v = rig.vehicle
+
+    def corrupt(k):
+        if k == 150:
+            v.fw.controller.state[CTL_POS_INT] = np.nan
+
+    try:
+        flight = _lockstep_flight(rig, 300, loop, on_tick=corrupt)
+        texts = [str(t) for t in v.flight_log()["statustext_text"]]
+    finally:
+        rig.close()
+    thrusts = flight["thrusts"]
+    np.testing.assert_allclose(thrusts[151], thrusts[150], atol=1e-4)
+    assert np.isfinite(thrusts).all() and np.abs(thrusts[152:]).sum(axis=1).min() > 10.0
+    assert v.fw.wrench_guard.refused == 1 and "Wrench not finite: command held (1)" in texts
+    ports = json.loads((tmp_path / "out" / "link2_ports.json").read_text())
+    assert ports["wrench"] == {"refused": 1, "holding": False}
 
 
 

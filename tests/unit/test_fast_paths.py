@@ -326,9 +326,11 @@ def test_fused_tick_matches_step_by_step(monkeypatch):
     n_fused = sum(taken)
     assert 300 < n_fused < len(taken)  # most ticks fused, the stale-target ones through the fallback
     assert len(by_attitude_kernel) > 150, len(by_attitude_kernel)  # ticks 2, 4, 6, 8 of every 10 while fused
-    with pytest.raises(ValueError, match="finite"):  # the allocator's check, on the fused path too
-        fused.set_target(t, PoseTarget.hold(np.full(3, np.nan), q0))
-        fused.on_imu(t + 0.002, gyro, accel)
+    last = fused.wrench_guard.command.copy()
+    for fw in (fused, stepwise):  # a wrench that is not finite: refused on both paths, the commands held
+        fw.set_target(t, PoseTarget.hold(np.full(3, np.nan), q0))
+        np.testing.assert_allclose(fw.on_imu(t + 0.002, gyro, accel), last, **TOL)
+        assert fw.wrench_guard.refused == 1 and fw.wrench_guard.holding
 
 
 def test_record_tick_matches_the_decoding_path():
