@@ -202,7 +202,7 @@ def add_campaign_parser(sub) -> None:
     faults = csub.add_parser(
         "faults", help="fly random fault schedules drawn from a seed and report per kind of fault",
         description="Draw --flights fault schedules from --seed (link reboots; GPS steps, ramps and outages; injected "
-                    "GPS, IMU and motor failures; in fleet mode also lossy wires and, in distributed scenarios, "
+                    "GPS, IMU, motor and MAVLink link failures; in fleet mode also lossy wires and, in distributed scenarios, "
                     "companion kills: kind, link, start, "
                     "length, overlaps), fly them as a campaign and write faults.md / faults.json: per kind the "
                     "crashes, lowest altitude, worst tracking and constraint error during the outages and outside "

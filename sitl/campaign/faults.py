@@ -19,6 +19,8 @@ kind               what
                    (MAV_CMD_INJECT_FAILURE, ``[faults.inject]``)
 ``imu_failure``    its gyro or accelerometer is stuck or outputs garbage for 1-5 s (injected)
 ``motor_off``      one of its eight rotors stops for 1-5 s (injected)
+``mavlink_off``    its MAVLink link to the companion is lost both ways for 1-5 s (injected,
+                   PX4's MAVLink signal failure)
 ``mavlink_loss``   the wires of 1..n links lose 2-15 % of their datagrams, with 0-20 ms of
                    delay and 0-10 ms of jitter, all flight long (fleet mode)
 ``companion_kill`` a group's companion is killed and restarted 1-5 s later (fleet mode,
@@ -51,9 +53,9 @@ __all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S"
            "event_figures", "flight_row", "fault_table", "markdown_fault_table"]
 
 KINDS = ("link_reboot", "gps_step", "gps_ramp", "gps_outage", "gps_failure", "imu_failure", "motor_off",
-         "mavlink_loss", "companion_kill")
+         "mavlink_off", "mavlink_loss", "companion_kill")
 #: the kinds scripted by ``[faults.inject]`` (one per flight)
-INJECTED = ("gps_failure", "imu_failure", "motor_off")
+INJECTED = ("gps_failure", "imu_failure", "motor_off", "mavlink_off")
 #: the kinds only a fleet can play (processes, wires)
 FLEET_ONLY = ("mavlink_loss", "companion_kill")
 #: the probability that a flight has a given kind (of those its mode and scenario allow)
@@ -153,8 +155,10 @@ def draw_schedule(rng: np.random.Generator, n_links: int, flight_start_s: float,
             elif kind == "imu_failure":
                 unit, ftype, instance = ("gyro", "accel")[int(rng.integers(2))], ("stuck", "garbage")[int(rng.integers(2))], 0
                 length = rng.uniform(1.0, 5.0)
-            else:
+            elif kind == "motor_off":
                 unit, ftype, instance, length = "motor", "off", int(rng.integers(1, 9)), rng.uniform(1.0, 5.0)
+            else:
+                unit, ftype, instance, length = "mavlink_signal", "off", 0, rng.uniform(1.0, 5.0)
             length = min(float(length), room)
             settings += [("faults.inject.link", link), ("faults.inject.unit", unit), ("faults.inject.type", ftype),
                          ("faults.inject.instance", instance), ("faults.inject.at_s", _r(start)),
@@ -233,9 +237,10 @@ def event_figures(event: FaultEvent, log: dict, kind_links: Sequence[int] = ()) 
 
 
 def _hit_links(event: FaultEvent, n_links: int, groups: Sequence[Sequence[int]] = ()) -> list[int]:
-    """The links (1-based) a fault takes out by itself: the rebooted link, a killed companion's
-    group; none for the others (a glitching GPS or a lossy wire leaves the link in the chain)."""
-    if event.kind == "link_reboot":
+    """The links (1-based) a fault takes out by itself: the rebooted link, the link whose MAVLink
+    link is lost, a killed companion's group; none for the others (a glitching GPS or a lossy wire
+    leaves the link in the chain)."""
+    if event.kind in ("link_reboot", "mavlink_off"):
         return [event.target]
     if event.kind == "companion_kill" and groups:
         return [i + 1 for i in groups[event.target - 1]]
