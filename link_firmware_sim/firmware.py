@@ -21,8 +21,9 @@ no wall clock; the SITL harness or, later, the MAVLink shell calls it):
 * ``arm`` / ``disarm``.
 
 Control runs on the EKF output plus the latest correction delta, never feeding the delta into
-the EKF (paper sec. III-A). The delta is held at full weight for ``correction_hold_s`` after it
-arrives and then fades linearly to zero at ``correction_stale_s`` (control on the raw EKF, like
+the EKF (paper sec. III-A), except while the GPS is in fault: then the corrected position aids
+the EKF (:mod:`.estimators.correction_aid`). The delta is held at full weight for
+``correction_hold_s`` after it arrives and then fades linearly to zero at ``correction_stale_s`` (control on the raw EKF, like
 a lost companion). A target older than ``target_stale_s`` is replaced by holding the current
 estimated position at the last target attitude (PX4's offboard-loss hold).
 """
@@ -58,6 +59,7 @@ from .controllers.hybrid import ContactTarget, HybridGains, ObserverConfig
 from .controllers.pspm import PspmGains, PspmModulator
 from .controllers.se3_control import Se3PidGains
 from .estimators import X_BG, X_P, EkfConfig, GpsHealth, GpsHealthConfig, LinkEkf, outdoor_ekf_config
+from .estimators.correction_aid import CorrectionAid
 from .estimators.imu_health import StaleSensor
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
@@ -158,6 +160,8 @@ class LinkFirmware(FusedTicks):
         self._zero = np.zeros(8)
         self._pending: list[tuple[str, tuple]] = []
         self.gps_health = GpsHealth(config.gps)
+        #: while the GPS is in fault: the companion's corrected position fused into the EKF
+        self.correction_aid = CorrectionAid(config.gps.aid_std_m)
         #: the rotors' thrust limit: time at it, episodes (reported as events)
         self.thrust_limit = ThrustLimit(config.thrust_limit)
         #: a gyro that repeats one sample in flight (stuck): not used while it does
@@ -339,11 +343,20 @@ class LinkFirmware(FusedTicks):
             norm = float(np.linalg.norm(value))
             if not norm <= bound:
                 raise CorrectionRejected(f"correction {name} {norm:.3g} {unit} exceeds the bound {bound:g} {unit}")
-        self.correction = correction
+        self.correction = self._aided(correction)
         self._correction_time_s = t_s
         self.correction_seq = correction.seq
         self.correction_latency_us = int(round((t_s - correction.ekf_time_s) * 1e6))
         self.latency_log.append((t_s, t_s - correction.ekf_time_s))
+
+    def _aided(self, correction: Correction) -> Correction:
+        """``correction`` against the EKF as it now is and, while the GPS is in fault, fused into
+        it (:mod:`.estimators.correction_aid`): what control adds to the EKF's output."""
+        aid = self.correction_aid
+        correction = aid.rebase(correction)
+        if aid.enabled and self.ekf is not None and self.gps_health.fault:
+            correction = aid.fuse(self.ekf, self.time_s, correction)
+        return correction
 
     def on_external_pose(self, t_s: float, p_w_m, v_w_m_s, q_wxyz) -> None:
         """Standard-messages mode: an external pose (the companion's corrected estimate) becomes

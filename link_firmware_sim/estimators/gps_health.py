@@ -42,17 +42,20 @@ class GpsHealthConfig:
     aiding resets the position to GPS (SKL_GPS_RST_T; EKF2's reset_timeout_max is 7 s);
     ``drift_max_m_s`` / ``drift_window_s``: the position-velocity consistency test
     (SKL_GPS_DRIFT; the outdoor profile's slow GPS drift moves at most about 0.3 m/s, the
-    window's slope noise is about 0.06 m/s)."""
+    window's slope noise is about 0.06 m/s); ``aid_std_m``: while in fault, the companion's
+    corrected position is fused with this standard deviation (SKL_GPS_AID; 0: never,
+    :mod:`.correction_aid`)."""
 
     timeout_s: float = 1.0
     recover_s: float = 2.0
     reset_s: float = 7.0
     drift_max_m_s: float = 0.5
     drift_window_s: float = 2.0
+    aid_std_m: float = 0.2
 
     def __post_init__(self) -> None:
         require_positive(self, "timeout_s", "reset_s", "drift_max_m_s", "drift_window_s")
-        require_nonnegative(self, "recover_s")
+        require_nonnegative(self, "recover_s", "aid_std_m")
 
 
 class GpsHealth:

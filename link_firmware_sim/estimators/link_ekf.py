@@ -86,7 +86,7 @@ class LinkEkf:
         self.par = ekf_parameters(config)
         self.x, self.P = ekf_init(p_w_m, v_w_m_s, q_wxyz, config)
         self.last_gyro_b_rad_s = np.zeros(3)
-        kinds = ("pos", "vel", "att", "heading", "baro", "mag")
+        kinds = ("pos", "vel", "att", "heading", "baro", "mag", "ext_pos")
         self.accepted: dict[str, int] = dict.fromkeys(kinds, 0)
         self.rejected: dict[str, int] = dict.fromkeys(kinds, 0)
         #: state resets (discontinuities), reported as the link state's reset_counter
@@ -119,6 +119,11 @@ class LinkEkf:
     def update_position(self, pos_w_m) -> UpdateInfo:
         cfg = self.config
         return self._fuse("pos", position_measurement(self.x, pos_w_m, cfg.gps_pos_var_m2))
+
+    def update_external_position(self, pos_w_m, var_m2: float) -> UpdateInfo:
+        """An external position (not the GPS: :mod:`.correction_aid`) of variance ``var_m2`` per
+        axis, through the gate."""
+        return self._fuse("ext_pos", position_measurement(self.x, pos_w_m, var_m2))
 
     def position_test_ratio(self, pos_w_m) -> float:
         """The gate's test ratio of a position fix (above 1: it would be rejected), no update."""

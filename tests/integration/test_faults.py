@@ -406,8 +406,6 @@ REGRESSIONS = {
     "regression_end_link_reboot": ("no level chain of these links holds a dead end link: 122 % of the rotors' thrust with the "
                                    "whole chain sharing, 152 % for its neighbour alone (python -m link_firmware_sim.design "
                                    "carry)"),
-    "regression_end_gps_outage": ("an end link's estimate dead-reckons through a 9 s GPS outage until the companion's "
-                                  "correction passes the firmware's 2 m bound and is refused"),
 }
 SEEDED = sorted(p.stem for p in (ROOT / FAULTS).glob("regression_*.toml"))
 

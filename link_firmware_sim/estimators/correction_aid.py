@@ -1,0 +1,77 @@
+"""While a link's GPS is in fault, the companion's corrected position aids its EKF.
+
+The companion's correction is the chain's view of where the link is; for a link that reports a GPS
+fault it is its neighbours' view alone (such a link takes part one way). Control adds the
+correction to the EKF's output and, in normal flight, never feeds it to the EKF (paper
+sec. III-A). A link without GPS, though, dead-reckons: its EKF drifts and the correction grows
+with the drift until the firmware's bound (``correction_max_dp_m``) refuses it and the link flies
+on its raw estimate.
+
+So while the GPS is in fault, :class:`CorrectionAid` fuses each correction's position, the EKF's
+position plus ``dp``, as an external position of standard deviation ``std_m`` (as PX4's EKF2 fuses
+an external vision position), through the EKF's gate. What the update moved is taken off the
+correction, so control sees the same estimate at that instant (``EKF' + dp' = EKF + dp``), and
+off every later correction computed against a state from before the move (the corrections still
+on their way): the EKF stays near where the chain puts the link, and the correction stays small.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import replace
+
+import numpy as np
+
+from companion.messages import Correction
+
+from .ekf_config import X_P, X_V
+
+__all__ = ["CorrectionAid"]
+
+#: how long a move of the EKF is remembered for the corrections computed before it [s]: longer
+#: than any correction's way (a correction older than ``correction_stale_s`` no longer counts)
+SHIFT_MEMORY_S = 2.0
+
+
+class CorrectionAid:
+    """The moves a fused correction made (time, position, velocity), kept for
+    :data:`SHIFT_MEMORY_S` (the EKF counts the updates, fused and gated, as ``ext_pos``).
+    ``std_m``: the corrected position's standard deviation per axis [m]; 0 turns the aid off."""
+
+    def __init__(self, std_m: float):
+        if not (np.isfinite(std_m) and std_m >= 0.0):
+            raise ValueError(f"the correction aid's std_m must be >= 0 (0: off), got {std_m!r}")
+        self.var_m2 = float(std_m) ** 2
+        self._shifts: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+
+    @property
+    def enabled(self) -> bool:
+        return self.var_m2 > 0.0
+
+    def rebase(self, correction: Correction) -> Correction:
+        """``correction`` against the EKF as it is now: less the moves made since the state it was
+        computed against (``ekf_time_s``; a move at that same EKF time came after the state was
+        reported: states are reported after their tick, corrections fused between ticks)."""
+        if not self._shifts:
+            return correction
+        dp, dv = np.zeros(3), np.zeros(3)
+        for t_s, sp, sv in self._shifts:
+            if t_s >= correction.ekf_time_s:
+                dp += sp
+                dv += sv
+        if not dp.any() and not dv.any():
+            return correction
+        return replace(correction, dp_w_m=correction.dp_w_m - dp, dv_w_m_s=correction.dv_w_m_s - dv)
+
+    def fuse(self, ekf, t_s: float, correction: Correction) -> Correction:
+        """The corrected position fused into ``ekf`` (a :class:`~.link_ekf.LinkEkf`) at its time
+        ``t_s``; returns the correction less what the update moved (``correction`` itself if the gate
+        rejected it)."""
+        while self._shifts and self._shifts[0][0] < t_s - SHIFT_MEMORY_S:
+            self._shifts.popleft()
+        p0, v0 = ekf.x[X_P].copy(), ekf.x[X_V].copy()
+        if not ekf.update_external_position(p0 + correction.dp_w_m, self.var_m2).accepted:
+            return correction
+        sp, sv = ekf.x[X_P] - p0, ekf.x[X_V] - v0
+        self._shifts.append((t_s, sp, sv))
+        return replace(correction, dp_w_m=correction.dp_w_m - sp, dv_w_m_s=correction.dv_w_m_s - sv)
