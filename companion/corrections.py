@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .estimation.chain import CON_POS, CON_VEL
+from .estimation.neighbour import NeighbourMeasurement
 from .estimation.sckf import CAParams, CAResult, constraint_apply
 from .estimation.semi import (
     GroupBoundary,
@@ -59,17 +60,20 @@ def compute_corrections(
     params: CAParams = CAParams(),
     seq: int = 0,
     t: float | None = None,
+    neighbours: Sequence[NeighbourMeasurement] = (),
 ) -> tuple[SemiResult, list[Correction]]:
     """Constraint application on one snapshot of the chain, or of a segment of it: ``states`` of
     consecutive links in chain order, ``d_b_m`` and ``groups`` (numbered from the first) theirs,
-    aligned to time ``t`` (default: their newest stamp)."""
+    aligned to time ``t`` (default: their newest stamp); ``neighbours``: camera measurements
+    between its links (numbered from the first), applied before the constraint (the
+    corrections carry them)."""
     links = [s.link for s in states]
     if not links or links != list(range(links[0], links[0] + len(links))):
         raise ValueError(f"states must be consecutive links in chain order, got {links}")
     _, p, v, q = align_states(states, t)
     w = np.array([s.omega_b_rad_s for s in states])
     P = np.array([s.P for s in states])
-    result = semi_distributed_apply(p, v, q, w, d_b_m, P, groups, params)
+    result = semi_distributed_apply(p, v, q, w, d_b_m, P, groups, params, neighbours=neighbours)
     return result, _deltas(states, p, v, q, result.p, result.v, result.q, seq)
 
 

@@ -21,9 +21,11 @@ The residual is ``[Log(R_cm_meas R_cm^T); t_cm_meas - t_cm]``: it is zero at the
 covariance is the PnP's. Unlike the chain constraint, it measures the relative attitude too, and
 it needs no absolute position: common-mode GNSS errors cancel in it.
 
-:func:`relative_pose_update` applies one such measurement to the two links' EKF estimates as a
-Kalman update on their stacked state (independent estimates before it, correlated after: the
-18 x 18 covariance is returned whole). Pure numpy.
+:func:`neighbour_updates` applies such measurements (:class:`NeighbourMeasurement`) to a chain's
+EKF estimates as Kalman updates on their stacked state, before the constraint application:
+independent estimates before them, correlated after (the covariance is returned whole, as
+:func:`~.sckf.constraint_apply_dense` takes it). :func:`relative_pose_update` is one measurement
+of one pair. Pure numpy.
 """
 
 from __future__ import annotations
@@ -33,10 +35,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from .chain import ERR_DIM, ERR_P, ERR_TH, ERR_V, ChainInputError
+from .sckf import block_diag_covariance
 from .so3 import quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
 
-__all__ = ["NeighbourView", "marker_in_camera", "relative_pose_residual", "relative_pose_jacobian",
-           "RelativePoseUpdate", "relative_pose_update"]
+__all__ = ["NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual", "relative_pose_jacobian",
+           "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates", "RelativePoseUpdate",
+           "relative_pose_update"]
+
+#: the gate of a neighbour measurement: chi-square with 6 degrees of freedom at 0.999
+NEIGHBOUR_GATE_CHI2 = 22.46
 
 #: rows of the residual: the camera-frame rotation error, then the translation error (as
 #: :data:`companion.vision.geometry.ROT` / ``POS``)
@@ -106,6 +113,98 @@ def relative_pose_jacobian(p_i, q_i, p_j, q_j, view: NeighbourView) -> tuple[np.
 
 
 @dataclass(frozen=True)
+class NeighbourMeasurement:
+    """One camera measurement inside a chain (or a group of it): link ``observer`` (0-based)
+    sees the marker of link ``observed`` at ``(R_cm, t_cm_m)`` (the PnP pose, camera frame) with
+    covariance ``cov`` (6, 6) over ``[dtheta_c; dt]``, through ``view``. ``ChainInputError``
+    for shapes, non-finite values, one link seeing itself or a covariance that is not positive
+    definite."""
+
+    observer: int
+    observed: int
+    R_cm: np.ndarray
+    t_cm_m: np.ndarray
+    cov: np.ndarray
+    view: NeighbourView
+
+    def __post_init__(self) -> None:
+        if int(self.observer) == int(self.observed) or min(int(self.observer), int(self.observed)) < 0:
+            raise ChainInputError(f"a link sees another's marker: got observer {self.observer}, observed "
+                                  f"{self.observed}", field="observed")
+        for name, shape in (("R_cm", (3, 3)), ("t_cm_m", (3,)), ("cov", (6, 6))):
+            arr = np.asarray(getattr(self, name), dtype=float)
+            if arr.shape != shape or not np.all(np.isfinite(arr)):
+                raise ChainInputError(f"{name} must be finite with shape {shape}, got {arr.shape}", field=name)
+            object.__setattr__(self, name, arr)
+        cov = 0.5 * (self.cov + self.cov.T)
+        if np.linalg.eigvalsh(cov)[0] <= 0.0:
+            raise ChainInputError("cov must be positive definite", field="cov")
+        object.__setattr__(self, "cov", cov)
+
+
+@dataclass(frozen=True)
+class NeighbourUpdates:
+    """The links after the measurements: positions, velocities, attitudes ((n, 3), (n, 3),
+    (n, 4)), their whole (9n, 9n) covariance (correlated by the measurements), and per
+    measurement its normalised innovation squared and whether it passed the gate."""
+
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    P: np.ndarray
+    nis: np.ndarray
+    accepted: np.ndarray
+
+
+def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None) -> NeighbourUpdates:
+    """Kalman updates of ``n`` links (``p``, ``v`` (n, 3), ``q`` (n, 4); ``P`` their (n, 9, 9)
+    independent EKF covariances or a whole (9n, 9n) one) with each of ``measurements``
+    (:class:`NeighbourMeasurement`) in turn, on the stacked state: each moves every link its
+    pair is correlated with, and the covariance comes back whole, ready for the constraint
+    application (:func:`~.sckf.constraint_apply_dense`). Joseph form; the error is injected as
+    the chain's estimators do (positions and velocities added, attitudes by
+    :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof) is rejected and
+    changes nothing. ``ChainInputError`` for shapes, non-finite values or a link out of range."""
+    p, v, q = (np.array(a, dtype=float) for a in (p, v, q))
+    n = p.shape[0] if p.ndim == 2 else -1
+    for name, arr, shape in (("p", p, (n, 3)), ("v", v, (n, 3)), ("q", q, (n, 4))):
+        if n < 2 or arr.shape != shape or not np.all(np.isfinite(arr)):
+            raise ChainInputError(f"{name} must be finite with shape {shape} (n >= 2), got {arr.shape}", field=name)
+    P = np.asarray(P, dtype=float)
+    N = ERR_DIM * n
+    if P.shape == (n, ERR_DIM, ERR_DIM):
+        P = block_diag_covariance(P)
+    elif P.shape != (N, N):
+        raise ChainInputError(f"P must be ({n}, 9, 9) blocks or ({N}, {N}), got {P.shape}", field="P")
+    if not np.all(np.isfinite(P)):
+        raise ChainInputError("P must be finite", field="P")
+    nis, accepted = np.zeros(len(measurements)), np.zeros(len(measurements), dtype=bool)
+    for k, m in enumerate(measurements):
+        i, j = int(m.observer), int(m.observed)
+        if max(i, j) >= n:
+            raise ChainInputError(f"measurement {k}: links {i} and {j} of {n}", field="measurements", index=max(i, j))
+        r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)
+        H = np.zeros((6, N))
+        H[:, ERR_DIM * i:ERR_DIM * (i + 1)], H[:, ERR_DIM * j:ERR_DIM * (j + 1)] = \
+            relative_pose_jacobian(p[i], q[i], p[j], q[j], m.view)
+        PHt = P @ H.T
+        S = H @ PHt + m.cov
+        S_inv = np.linalg.inv(0.5 * (S + S.T))
+        nis[k] = float(r @ S_inv @ r)
+        if gate_chi2 is not None and nis[k] > gate_chi2:
+            continue
+        accepted[k] = True
+        K = PHt @ S_inv
+        A = np.eye(N) - K @ H
+        P = A @ P @ A.T + K @ m.cov @ K.T
+        P = 0.5 * (P + P.T)
+        dx = (K @ r).reshape(n, ERR_DIM)
+        p, v = p + dx[:, ERR_P], v + dx[:, ERR_V]
+        q = np.stack([retract(q[k2], dx[k2, ERR_TH]) for k2 in range(n)])
+    return NeighbourUpdates(p, v, q, P, nis, accepted)
+
+
+@dataclass(frozen=True)
 class RelativePoseUpdate:
     """One relative-pose update of links ``i`` and ``j``: their corrected positions, velocities
     and attitudes (each (2, 3) / (2, 4), ``i`` first), the stacked 18 x 18 covariance after it,
@@ -122,34 +221,12 @@ class RelativePoseUpdate:
 
 def relative_pose_update(p, v, q, P_blocks, R_cm_meas, t_cm_meas, cov_pnp, view: NeighbourView,
                          gate_chi2: float | None = None) -> RelativePoseUpdate:
-    """Kalman update of two links (rows 0 = observing ``i``, 1 = observed ``j``: ``p``, ``v``
-    (2, 3), ``q`` (2, 4), ``P_blocks`` (2, 9, 9), their independent EKF covariances) with one
-    PnP pose of the marker and its covariance ``cov_pnp`` (6, 6). Joseph form; the error is
-    injected as the chain's estimators do (positions and velocities added, attitudes by
-    :func:`~.so3.retract`). ``gate_chi2``: reject above this NIS (6 dof). ``ChainInputError``
-    for shapes or non-finite values."""
-    p, v, q = (np.asarray(a, dtype=float) for a in (p, v, q))
+    """:func:`neighbour_updates` of two links (rows 0 = observing ``i``, 1 = observed ``j``:
+    ``p``, ``v`` (2, 3), ``q`` (2, 4), ``P_blocks`` (2, 9, 9), their independent EKF
+    covariances) with one PnP pose of the marker and its covariance ``cov_pnp`` (6, 6)."""
     P_blocks = np.asarray(P_blocks, dtype=float)
-    cov = np.asarray(cov_pnp, dtype=float)
-    for name, arr, shape in (("p", p, (2, 3)), ("v", v, (2, 3)), ("q", q, (2, 4)), ("P", P_blocks, (2, 9, 9)),
-                             ("cov_pnp", cov, (6, 6)), ("t_cm_meas", np.asarray(t_cm_meas, dtype=float), (3,)),
-                             ("R_cm_meas", np.asarray(R_cm_meas, dtype=float), (3, 3))):
-        if arr.shape != shape or not np.all(np.isfinite(arr)):
-            raise ChainInputError(f"{name} must be finite with shape {shape}, got {arr.shape}", field=name)
-    r = relative_pose_residual(R_cm_meas, t_cm_meas, p[0], q[0], p[1], q[1], view)
-    H_i, H_j = relative_pose_jacobian(p[0], q[0], p[1], q[1], view)
-    H = np.hstack((H_i, H_j))
-    P = np.zeros((2 * ERR_DIM, 2 * ERR_DIM))
-    P[:ERR_DIM, :ERR_DIM], P[ERR_DIM:, ERR_DIM:] = P_blocks[0], P_blocks[1]
-    S = H @ P @ H.T + cov
-    S = 0.5 * (S + S.T)
-    S_inv = np.linalg.inv(S)
-    nis = float(r @ S_inv @ r)
-    if gate_chi2 is not None and nis > gate_chi2:
-        return RelativePoseUpdate(p, v, q, P, nis, False)
-    K = P @ H.T @ S_inv
-    I_KH = np.eye(2 * ERR_DIM) - K @ H
-    P_new = I_KH @ P @ I_KH.T + K @ cov @ K.T
-    dx = (K @ r).reshape(2, ERR_DIM)
-    q_new = np.stack([retract(q[k], dx[k, ERR_TH]) for k in range(2)])
-    return RelativePoseUpdate(p + dx[:, ERR_P], v + dx[:, ERR_V], q_new, 0.5 * (P_new + P_new.T), nis, True)
+    if P_blocks.shape != (2, ERR_DIM, ERR_DIM):
+        raise ChainInputError(f"P must be finite with shape (2, 9, 9), got {P_blocks.shape}", field="P")
+    up = neighbour_updates(p, v, q, P_blocks, [NeighbourMeasurement(0, 1, R_cm_meas, t_cm_meas, cov_pnp, view)],
+                           gate_chi2)
+    return RelativePoseUpdate(up.p, up.v, up.q, up.P, float(up.nis[0]), bool(up.accepted[0]))

@@ -37,7 +37,7 @@ with ``E`` the [p; v] rows of the 9-dim error state. A group that reports no tip
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,6 +45,7 @@ from ..kernels.jit import ENABLED as _COMPILED, as_kernel_array
 from ..kernels.semi import group_terms_kernel
 from .chain import CON_DIM, CON_POS, CON_VEL, ERR_DIM, ERR_PV
 from .constraints import left_tip, right_tip, tip_jacobians
+from .neighbour import NEIGHBOUR_GATE_CHI2, NeighbourMeasurement, neighbour_updates
 from .sckf import CAParams, CAResult, constraint_apply, constraint_apply_dense_batched
 from .so3 import quat_to_rotmat, skew
 
@@ -316,6 +317,10 @@ class SemiResult:
         local: the per-group :class:`CAResult` of Alg. 2.
         boundaries: the per-group :class:`GroupBoundary` fed to eq. 6; none with a single group
             (no joint between groups for eq. 6 to close: its shift is zero).
+        neighbour_nis, neighbour_accepted: per neighbour camera measurement given, its
+            normalised innovation squared and whether it was applied (NaN and ``False`` for one
+            between two groups, which the local steps cannot take; gated: a finite NIS,
+            ``False``).
     """
 
     p: np.ndarray
@@ -325,6 +330,8 @@ class SemiResult:
     shifts: np.ndarray
     local: tuple[CAResult, ...]
     boundaries: tuple[GroupBoundary, ...]
+    neighbour_nis: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    neighbour_accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
     def iterations(self) -> np.ndarray:
@@ -333,17 +340,25 @@ class SemiResult:
 
 
 def local_constraint_apply(
-    p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto"
+    p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto",
+    whole: dict[int, np.ndarray] | None = None,
 ) -> tuple[CAResult, ...]:
     """Alg. 2: Alg. 1 inside every group, independently.
 
     Groups of the same size up to :data:`BATCH_DENSE_MAX_LINKS` links go through one batched
     dense CA (same iterates as one call per group, without the per-call overhead); larger
-    groups use :func:`constraint_apply` (``method`` as there).
+    groups use :func:`constraint_apply` (``method`` as there). ``whole``: by group index, a
+    group's whole covariance (its links correlated by neighbour measurements) instead of its
+    links' blocks in ``P``; such a group takes the dense CA on it.
     """
+    whole = whole or {}
     results: list[CAResult | None] = [None] * len(groups)
     by_size: dict[int, list[int]] = {}
     for k, g in enumerate(groups):
+        sl = slice(g[0], g[-1] + 1)
+        if k in whole:
+            results[k] = constraint_apply(p[sl], v[sl], q[sl], w[sl], d[sl], whole[k], params, "dense")
+            continue
         by_size.setdefault(len(g), []).append(k)
     for size, members in by_size.items():
         if method == "dense" or (method == "auto" and size <= BATCH_DENSE_MAX_LINKS):
@@ -358,21 +373,47 @@ def local_constraint_apply(
     return tuple(results)
 
 
+def neighbour_step(p, v, q, P, groups: Groups, neighbours: Sequence[NeighbourMeasurement],
+                   gate_chi2: float | None = NEIGHBOUR_GATE_CHI2):
+    """The neighbour camera measurements (:mod:`.neighbour`) applied inside each group before its
+    constraint application: ``(p, v, q, whole, nis, accepted)``, the states after them, each
+    updated group's whole covariance by group index, and per measurement its NIS and whether it
+    was applied (one between two groups is not: NaN, ``False``)."""
+    p, v, q = p.copy(), v.copy(), q.copy()
+    nis, accepted = np.full(len(neighbours), np.nan), np.zeros(len(neighbours), dtype=bool)
+    whole: dict[int, np.ndarray] = {}
+    for k, g in enumerate(groups):
+        mine = [(m_idx, m) for m_idx, m in enumerate(neighbours) if m.observer in g and m.observed in g]
+        if not mine:
+            continue
+        sl = slice(g[0], g[-1] + 1)
+        local = [NeighbourMeasurement(m.observer - g[0], m.observed - g[0], m.R_cm, m.t_cm_m, m.cov, m.view)
+                 for _, m in mine]
+        up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2)
+        p[sl], v[sl], q[sl], whole[k] = up.p, up.v, up.q, up.P
+        for (m_idx, _), x, ok in zip(mine, up.nis, up.accepted):
+            nis[m_idx], accepted[m_idx] = x, ok
+    return p, v, q, whole, nis, accepted
+
+
 def semi_distributed_apply(
-    p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto"
+    p, v, q, w, d, P, groups: Groups, params: CAParams = CAParams(), method: str = "auto",
+    neighbours: Sequence[NeighbourMeasurement] = (),
 ) -> SemiResult:
-    """Local CA in every group (Alg. 2), then the global shift of eq. 6.
+    """Local CA in every group (Alg. 2), then the global shift of eq. 6; ``neighbours``: camera
+    measurements between links, applied inside each group first (:func:`neighbour_step`).
 
     With a single group this is exactly Alg. 1 on the whole chain (no boundaries, a zero shift).
     """
     groups = validate_groups(groups, p.shape[0])
-    local = local_constraint_apply(p, v, q, w, d, P, groups, params, method)
+    p, v, q, whole, nis, accepted = neighbour_step(p, v, q, P, groups, neighbours)
+    local = local_constraint_apply(p, v, q, w, d, P, groups, params, method, whole)
     p_out = np.concatenate([r.p for r in local])
     v_out = np.concatenate([r.v for r in local])
     q_out = np.concatenate([r.q for r in local])
     P_out = np.concatenate([r.P for r in local])
     if len(groups) == 1:
-        return SemiResult(p_out, v_out, q_out, P_out, np.zeros((1, CON_DIM)), local, ())
+        return SemiResult(p_out, v_out, q_out, P_out, np.zeros((1, CON_DIM)), local, (), nis, accepted)
     terms = [group_tip_terms(q_out[g[0]:g[-1] + 1], w[g[0]:g[-1] + 1], d[g[0]:g[-1] + 1], r)
              for g, r in zip(groups, local)]
     boundaries = group_boundaries(p_out, v_out, q_out, w, d, P_out, groups, [T for T, _ in terms])
@@ -384,4 +425,4 @@ def semi_distributed_apply(
         P_out[sl] = shifted_covariance(P_out[sl], terms[k][1], solution.gains[k], solution.shift_cov[k])
     p_out += np.repeat(shifts[:, CON_POS], sizes, axis=0)
     v_out += np.repeat(shifts[:, CON_VEL], sizes, axis=0)
-    return SemiResult(p_out, v_out, q_out, P_out, shifts, local, boundaries)
+    return SemiResult(p_out, v_out, q_out, P_out, shifts, local, boundaries, nis, accepted)

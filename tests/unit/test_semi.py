@@ -5,6 +5,8 @@ import pytest
 
 from companion.estimation.chain import CON_POS, CON_VEL, ERR_PV
 from companion.estimation.constraints import constraint_residual, left_tip, right_tip
+from companion.corrections import compute_corrections
+from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView, marker_in_camera, neighbour_updates
 from companion.estimation.sckf import CAParams, constraint_apply
 from companion.estimation.semi import (
     GroupBoundary,
@@ -19,6 +21,7 @@ from companion.estimation.semi import (
 )
 
 from companion.estimation.so3 import attitude_error, retract
+from companion.messages import LinkState
 
 from ..chains import consistent_chain, perturbed_chain, random_covariances
 
@@ -249,3 +252,41 @@ def test_semi_distributed_covariance_is_consistent_after_the_global_step():
     assert abs(carried.mean() - whole.mean()) < 0.15, (carried.mean(), whole.mean())
     assert local[:, :2].mean() < 2.4 and np.all(local[1:-1, :2] < 2.5), local  # the old, conservative report
     np.testing.assert_allclose(local[:, 2], carried[:, 2])  # attitude: eq. 6 does not move it
+
+
+def test_neighbour_measurements_go_into_their_groups_before_the_constraint():
+    """A camera measurement inside a group is applied to that group before its constraint
+    application (the same as the update and a dense CA on the whole covariance it leaves), one
+    between two groups is left out and said so (NaN, not accepted), and with none the step is
+    the plain one."""
+    rng = np.random.default_rng(31)
+    p, v, q, w, d, P = perturbed_chain(rng, 6)
+    groups = parse_groups("1,2,3/4,5,6", 6)
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
+    R_cm, t_cm = marker_in_camera(p[1], q[1], p[2], q[2], view)
+    inside = NeighbourMeasurement(1, 2, R_cm, t_cm + [0.05, 0.0, -0.03], np.eye(6) * 1e-3, view)
+    across = NeighbourMeasurement(2, 3, R_cm, t_cm, np.eye(6) * 1e-3, view)
+    res = semi_distributed_apply(p, v, q, w, d, P, groups, neighbours=[inside, across])
+    assert res.neighbour_accepted.tolist() == [True, False] and np.isfinite(res.neighbour_nis[0])
+    assert np.isnan(res.neighbour_nis[1])
+    up = neighbour_updates(p[:3], v[:3], q[:3], P[:3], [inside])
+    first = constraint_apply(up.p, up.v, up.q, w[:3], d[:3], up.P, method="dense")
+    np.testing.assert_allclose(res.local[0].p, first.p, atol=1e-12)
+    np.testing.assert_allclose(res.local[1].p, semi_distributed_apply(p, v, q, w, d, P, groups).local[1].p, atol=1e-15)
+    plain = semi_distributed_apply(p, v, q, w, d, P, groups)
+    assert plain.neighbour_nis.shape == (0,)
+    assert not np.allclose(res.p[:3], plain.p[:3], atol=1e-6)
+
+
+def test_the_companion_step_carries_the_neighbour_measurements_into_its_corrections():
+    rng = np.random.default_rng(32)
+    p, v, q, w, d, P = perturbed_chain(rng, 4)
+    states = [LinkState(i, 1.0, p[i], v[i], q[i], w[i], P[i]) for i in range(4)]
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
+    R_cm, t_cm = marker_in_camera(p[0], q[0], p[1], q[1], view)
+    m = NeighbourMeasurement(0, 1, R_cm, t_cm + [0.04, 0.02, 0.0], np.eye(6) * 1e-3, view)
+    groups = make_groups(4, 4)
+    result, corrections = compute_corrections(states, d, groups, neighbours=[m])
+    want = semi_distributed_apply(p, v, q, w, d, P, groups, neighbours=[m])
+    assert result.neighbour_accepted.tolist() == [True]
+    np.testing.assert_allclose([c.dp_w_m for c in corrections], want.p - p, atol=1e-12)
