@@ -343,20 +343,12 @@ class LinkFirmware(FusedTicks):
             norm = float(np.linalg.norm(value))
             if not norm <= bound:
                 raise CorrectionRejected(f"correction {name} {norm:.3g} {unit} exceeds the bound {bound:g} {unit}")
-        self.correction = self._aided(correction)
+        # against the EKF as it now is and, in a GPS fault, fused into it (estimators.correction_aid)
+        self.correction = self.correction_aid.apply(correction, self.ekf, self.time_s, self.gps_health.fault)
         self._correction_time_s = t_s
         self.correction_seq = correction.seq
         self.correction_latency_us = int(round((t_s - correction.ekf_time_s) * 1e6))
         self.latency_log.append((t_s, t_s - correction.ekf_time_s))
-
-    def _aided(self, correction: Correction) -> Correction:
-        """``correction`` against the EKF as it now is and, while the GPS is in fault, fused into
-        it (:mod:`.estimators.correction_aid`): what control adds to the EKF's output."""
-        aid = self.correction_aid
-        correction = aid.rebase(correction)
-        if aid.enabled and self.ekf is not None and self.gps_health.fault:
-            correction = aid.fuse(self.ekf, self.time_s, correction)
-        return correction
 
     def on_external_pose(self, t_s: float, p_w_m, v_w_m_s, q_wxyz) -> None:
         """Standard-messages mode: an external pose (the companion's corrected estimate) becomes

@@ -48,6 +48,15 @@ class CorrectionAid:
     def enabled(self) -> bool:
         return self.var_m2 > 0.0
 
+    def apply(self, correction: Correction, ekf, t_s: float, gps_fault: bool) -> Correction:
+        """What control adds to the EKF's output: ``correction`` rebased (:meth:`rebase`) and,
+        while the GPS is in fault (``gps_fault``) and the aid is on, fused into ``ekf`` at its
+        time ``t_s`` (:meth:`fuse`; ``ekf`` ``None``: not yet initialised, nothing fused)."""
+        correction = self.rebase(correction)
+        if self.enabled and ekf is not None and gps_fault:
+            correction = self.fuse(ekf, t_s, correction)
+        return correction
+
     def rebase(self, correction: Correction) -> Correction:
         """``correction`` against the EKF as it is now: less the moves made since the state it was
         computed against (``ekf_time_s``; a move at that same EKF time came after the state was
