@@ -134,6 +134,11 @@ class CompanionConfig:
     its neighbours push up by its weight until it is heard again (three states in a row lost on a
     10 % lossy wire: about once in 20 s, for a target period).
 
+    ``neighbour_cameras``: apply the camera measurements between neighbouring links that reach
+    the companion (a camera on one link seeing its neighbour's marker:
+    :mod:`companion.engine.neighbours`) in the step, before the constraint; ``false`` counts and
+    drops them (the comparison flight).
+
     Disk: each link's tlog is rotated when it reaches ``tlog_max_mb`` (0: never), keeping
     ``tlog_keep`` older files (:mod:`companion.mavlink.tlog`), so a daemon left running keeps at
     most ``(tlog_keep + 1) tlog_max_mb`` per link.
@@ -167,6 +172,7 @@ class CompanionConfig:
     gate_vel_m_s: float = 0.25
     tlog_max_mb: float = TLOG_MAX_MB
     tlog_keep: int = TLOG_KEEP
+    neighbour_cameras: bool = True
 
     def __post_init__(self) -> None:
         self.params

@@ -8,6 +8,9 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``rms_att_track_true_deg`` per link: RMS attitude angle between target and truth;
 * ``rms_est_err_m``: per link, RMS of ``|p_estimate - p_true|`` at the companion ticks, for the
   EKF alone (``ekf``) and for the SCKF-corrected estimate (``sckf``, absent without SCKF);
+* ``rms_rel_err`` (two links or more): per joint, the RMS error of the neighbours' relative
+  position and relative attitude at the companion ticks, EKF alone and corrected
+  (:func:`relative_error_metrics`);
 * ``constraint_pos_p95_m`` / ``constraint_vel_p95_m_s``: 95th percentile over joints and
   companion ticks of the eq. 3 tip position / velocity error, ``before`` (EKF states) and
   ``after`` the constraint application;
@@ -63,7 +66,7 @@ import warnings
 
 import numpy as np
 
-from companion.estimation.so3 import attitude_error
+from companion.estimation.so3 import attitude_error, quat_conj, quat_mul
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
            "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
@@ -218,6 +221,27 @@ def nees_bounds95(samples: np.ndarray | float, dof: int = 3) -> np.ndarray:
 
     k = np.asarray(samples, dtype=float)
     return np.stack([chi2.ppf(0.025, dof * k) / k, chi2.ppf(0.975, dof * k) / k], axis=-1)
+
+
+def relative_error_metrics(log: dict, rows: np.ndarray, sckf: bool) -> dict:
+    """Per joint, the RMS error at the companion steps ``rows`` of the neighbours' relative
+    position (``pos_m``: of ``p_{i+1} - p_i``) and relative attitude (``att_deg``: the angle of
+    ``R_i^T R_{i+1}``'s error), for the EKF states and, with the SCKF, the corrected ones: what a
+    measurement between neighbours (a camera seeing its neighbour) improves."""
+    def rel_q(q):
+        return quat_mul(quat_conj(q[:, :-1]), q[:, 1:])
+
+    p_true, q_true = log["p_true_sckf"][rows], log["q_true_sckf"][rows]
+    d_true, r_true = np.diff(p_true, axis=1), rel_q(q_true)
+    out: dict = {"pos_m": {}, "att_deg": {}}
+    for tag, (pk, qk) in (("ekf", ("p_ekf_sckf", "q_ekf_sckf")), ("sckf", ("p_corr_sckf", "q_corr_sckf"))):
+        if tag == "sckf" and not sckf:
+            continue
+        d_err = np.linalg.norm(np.diff(log[pk][rows], axis=1) - d_true, axis=-1)
+        a_err = np.degrees(np.linalg.norm(attitude_error(rel_q(log[qk][rows]), r_true), axis=-1))
+        out["pos_m"][tag] = rms(d_err).tolist()
+        out["att_deg"][tag] = rms(a_err).tolist()
+    return out
 
 
 def nees_metrics(log: dict[str, np.ndarray], flight_start_s: float) -> dict | None:
@@ -485,6 +509,8 @@ def compute_metrics(
                     values = log[name][wins]
                     metrics[key]["after_within_groups"] = p95(values[:, ~between]) if np.any(~between) else None
                     metrics[key]["after_between_groups"] = p95(values[:, between])
+    if n > 1 and has_steps and {"p_true_sckf", "q_true_sckf", "q_ekf_sckf", "q_corr_sckf"} <= set(log):
+        metrics["rms_rel_err"] = relative_error_metrics(log, wins, sckf_enabled)
     nees = nees_metrics(log, flight_start_s) if has_steps else None
     if nees is not None:
         metrics["nees"] = nees

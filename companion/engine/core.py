@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from ..config import CompanionSetup
+from ..estimation.neighbour import NeighbourMeasurement
 from ..messages import LinkState
 from ..plausibility import StampGate
 from ..quantiles import Quantiles
@@ -158,6 +159,19 @@ class CompanionEngine:
         lk.rejected += 1
         log.warning("link %d: rejected %s: %s", lk.index + 1, kind, reason)
 
+    def on_neighbour(self, t_capture_s: float, measurement: NeighbourMeasurement) -> None:
+        """A camera measurement between two of this engine's links (``observer`` and ``observed``
+        are rows), captured at ``t_capture_s`` on the observing link's clock: applied at the next
+        step that holds both (:mod:`.neighbours`). Centralised steps take them; a distributed
+        group's local half does not yet (they are counted as left out there, as they are with
+        ``neighbour_cameras`` off)."""
+        if (not self.cfg.neighbour_cameras or self.net is not None
+                or max(measurement.observer, measurement.observed) >= len(self.links)):
+            self.step.neighbours.refuse()
+            return
+        offset_us = self.links[measurement.observer].offset_us or 0  # (the link's clock to the time base)
+        self.step.neighbours.add((usec(t_capture_s) + offset_us) * 1e-6, measurement)
+
     def on_state(self, row: int, state: LinkState, flags: int, now_s: float, correction_seq: int = 0,
                  correction_latency_us: int = 0) -> bool:
         """A validated state of link ``row`` (``state.link`` its chain index, stamped on the link's
@@ -275,6 +289,7 @@ class CompanionEngine:
             "withheld_steps": self.selection.withheld,
             "degraded_steps": self.selection.degraded,
             "common_mode_kept": self.selection.common_mode_kept,
+            "neighbour_measurements": self.step.neighbours.counts(),
             "step_ms": {"p50": steps.percentile(50), "p99": steps.percentile(99)} if steps.count else None,
             "correction_latency_ms": {"p50": lat.percentile(50), "p99": lat.percentile(99),
                                       "samples": lat.count} if lat.count else None,

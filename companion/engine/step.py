@@ -32,6 +32,7 @@ from ..fleetnet.outcomes import PartBoundary, PartShift
 from ..messages import LinkState
 from ..quantiles import Quantiles
 from .links import LinkTrack, usec
+from .neighbours import NeighbourQueue
 from .outputs import CorrectionOut
 from .selection import LinkSelection
 
@@ -78,6 +79,8 @@ class ChainStep:
         self._timer = timer
         self.seq = 0
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
+        #: neighbour camera measurements for the next step (applied before the constraint)
+        self.neighbours = NeighbourQueue()
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
 
@@ -119,12 +122,14 @@ class ChainStep:
         iterations = 0
         t0 = self._timer()
         done = []
-        for seg in segs:
+        seen = self.neighbours.take(segs, t_us * 1e-6 if t_s is None else t_s)
+        for seg, neighbours in zip(segs, seen):
             rows = list(seg)
             groups = self._segment_groups(seg) if split_groups else [tuple(range(len(rows)))]
             try:
                 result, corrections = compute_corrections([states[r] for r in rows], self.d[rows], groups,
-                                                          self.params, self.seq, t_s)
+                                                          self.params, self.seq, t_s, neighbours)
+                self.neighbours.applied(result.neighbour_accepted)
             except (ValueError, np.linalg.LinAlgError) as exc:
                 log.warning("constraint application failed at t = %.3f s (links %s): %s",
                             t_us * 1e-6 if t_s is None else t_s, [self.links[r].index + 1 for r in rows], exc)

@@ -36,7 +36,7 @@ import numpy as np
 
 from .chain import ERR_DIM, ERR_P, ERR_TH, ERR_V, ChainInputError
 from .sckf import block_diag_covariance
-from .so3 import quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
+from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
 
 __all__ = ["NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual", "relative_pose_jacobian",
            "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates", "RelativePoseUpdate",
@@ -116,9 +116,11 @@ def relative_pose_jacobian(p_i, q_i, p_j, q_j, view: NeighbourView) -> tuple[np.
 class NeighbourMeasurement:
     """One camera measurement inside a chain (or a group of it): link ``observer`` (0-based)
     sees the marker of link ``observed`` at ``(R_cm, t_cm_m)`` (the PnP pose, camera frame) with
-    covariance ``cov`` (6, 6) over ``[dtheta_c; dt]``, through ``view``. ``ChainInputError``
-    for shapes, non-finite values, one link seeing itself or a covariance that is not positive
-    definite."""
+    covariance ``cov`` (6, 6) over ``[dtheta_c; dt]``, through ``view``; ``age_s``: how long
+    before the states it updates it was captured (the model is then evaluated at the states
+    taken back that long: :func:`neighbour_updates`). ``ChainInputError`` for shapes,
+    non-finite values, one link seeing itself, a covariance that is not positive definite or a
+    negative age."""
 
     observer: int
     observed: int
@@ -126,6 +128,7 @@ class NeighbourMeasurement:
     t_cm_m: np.ndarray
     cov: np.ndarray
     view: NeighbourView
+    age_s: float = 0.0
 
     def __post_init__(self) -> None:
         if int(self.observer) == int(self.observed) or min(int(self.observer), int(self.observed)) < 0:
@@ -140,6 +143,8 @@ class NeighbourMeasurement:
         if np.linalg.eigvalsh(cov)[0] <= 0.0:
             raise ChainInputError("cov must be positive definite", field="cov")
         object.__setattr__(self, "cov", cov)
+        if not (np.isfinite(self.age_s) and self.age_s >= 0.0):
+            raise ChainInputError(f"age_s must be finite and >= 0, got {self.age_s!r}", field="age_s")
 
 
 @dataclass(frozen=True)
@@ -156,7 +161,7 @@ class NeighbourUpdates:
     accepted: np.ndarray
 
 
-def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None) -> NeighbourUpdates:
+def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, w=None) -> NeighbourUpdates:
     """Kalman updates of ``n`` links (``p``, ``v`` (n, 3), ``q`` (n, 4); ``P`` their (n, 9, 9)
     independent EKF covariances or a whole (9n, 9n) one) with each of ``measurements``
     (:class:`NeighbourMeasurement`) in turn, on the stacked state: each moves every link its
@@ -164,7 +169,11 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None) 
     application (:func:`~.sckf.constraint_apply_dense`). Joseph form; the error is injected as
     the chain's estimators do (positions and velocities added, attitudes by
     :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof) is rejected and
-    changes nothing. ``ChainInputError`` for shapes, non-finite values or a link out of range."""
+    changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s`` old is then
+    compared with the model at the pair's states taken back that long (``p - v age``,
+    ``q (x) Exp(-w age)``, as the step aligns states forward), its Jacobian at the states
+    themselves; without ``w`` the age is not used. ``ChainInputError`` for shapes, non-finite
+    values or a link out of range."""
     p, v, q = (np.array(a, dtype=float) for a in (p, v, q))
     n = p.shape[0] if p.ndim == 2 else -1
     for name, arr, shape in (("p", p, (n, 3)), ("v", v, (n, 3)), ("q", q, (n, 4))):
@@ -183,7 +192,12 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None) 
         i, j = int(m.observer), int(m.observed)
         if max(i, j) >= n:
             raise ChainInputError(f"measurement {k}: links {i} and {j} of {n}", field="measurements", index=max(i, j))
-        r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)
+        if w is not None and m.age_s > 0.0:  # the model at the capture time
+            (pi, qi), (pj, qj) = ((p[k] - v[k] * m.age_s, quat_mul(q[k], quat_from_rotvec(-w[k] * m.age_s)))
+                                  for k in (i, j))
+            r = relative_pose_residual(m.R_cm, m.t_cm_m, pi, qi, pj, qj, m.view)
+        else:
+            r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)
         H = np.zeros((6, N))
         H[:, ERR_DIM * i:ERR_DIM * (i + 1)], H[:, ERR_DIM * j:ERR_DIM * (j + 1)] = \
             relative_pose_jacobian(p[i], q[i], p[j], q[j], m.view)

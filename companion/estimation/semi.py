@@ -37,7 +37,7 @@ with ``E`` the [p; v] rows of the 9-dim error state. A group that reports no tip
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -373,10 +373,11 @@ def local_constraint_apply(
     return tuple(results)
 
 
-def neighbour_step(p, v, q, P, groups: Groups, neighbours: Sequence[NeighbourMeasurement],
+def neighbour_step(p, v, q, w, P, groups: Groups, neighbours: Sequence[NeighbourMeasurement],
                    gate_chi2: float | None = NEIGHBOUR_GATE_CHI2):
-    """The neighbour camera measurements (:mod:`.neighbour`) applied inside each group before its
-    constraint application: ``(p, v, q, whole, nis, accepted)``, the states after them, each
+    """The neighbour camera measurements (:mod:`.neighbour`; ``w`` the body rates that take the
+    states back to a measurement's capture) applied inside each group before its constraint
+    application: ``(p, v, q, whole, nis, accepted)``, the states after them, each
     updated group's whole covariance by group index, and per measurement its NIS and whether it
     was applied (one between two groups is not: NaN, ``False``)."""
     p, v, q = p.copy(), v.copy(), q.copy()
@@ -387,9 +388,8 @@ def neighbour_step(p, v, q, P, groups: Groups, neighbours: Sequence[NeighbourMea
         if not mine:
             continue
         sl = slice(g[0], g[-1] + 1)
-        local = [NeighbourMeasurement(m.observer - g[0], m.observed - g[0], m.R_cm, m.t_cm_m, m.cov, m.view)
-                 for _, m in mine]
-        up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2)
+        local = [replace(m, observer=m.observer - g[0], observed=m.observed - g[0]) for _, m in mine]
+        up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2, w[sl])
         p[sl], v[sl], q[sl], whole[k] = up.p, up.v, up.q, up.P
         for (m_idx, _), x, ok in zip(mine, up.nis, up.accepted):
             nis[m_idx], accepted[m_idx] = x, ok
@@ -406,7 +406,7 @@ def semi_distributed_apply(
     With a single group this is exactly Alg. 1 on the whole chain (no boundaries, a zero shift).
     """
     groups = validate_groups(groups, p.shape[0])
-    p, v, q, whole, nis, accepted = neighbour_step(p, v, q, P, groups, neighbours)
+    p, v, q, whole, nis, accepted = neighbour_step(p, v, q, w, P, groups, neighbours)
     local = local_constraint_apply(p, v, q, w, d, P, groups, params, method, whole)
     p_out = np.concatenate([r.p for r in local])
     v_out = np.concatenate([r.v for r in local])

@@ -12,6 +12,7 @@ import pytest
 from companion.config import CompanionConfig
 from companion.corrections import compute_corrections
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
+from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView, marker_in_camera
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
@@ -69,6 +70,36 @@ def test_one_engine_equals_the_in_process_step(n, groups):
     for g, c in zip(got, want):
         np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
         np.testing.assert_allclose(g.correction.dtheta_w_rad, c.dtheta_w_rad, atol=1e-12)
+
+
+def test_neighbour_measurements_reach_the_next_step_and_are_counted():
+    """A camera measurement between links 2 and 3 given to the engine goes into its next step as
+    compute_corrections takes it, with its age at the step; one captured too long before the
+    step, and one on a row the engine does not have, are dropped and counted; each is used once."""
+    n = 4
+    rng = np.random.default_rng(40)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    setup = setup_for(n)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+    states = [LinkState(i, 1.0, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
+    R_cm, t_cm = marker_in_camera(p[1], q[1], p[2], q[2], view)
+    m = NeighbourMeasurement(1, 2, R_cm, t_cm + [0.05, 0.0, 0.02], np.eye(6) * 1e-3, view)
+    engine = CompanionEngine(setup)
+    engine.on_neighbour(0.95, m)
+    engine.on_neighbour(0.5, m)  # captured 0.5 s before the step
+    engine.on_neighbour(0.95, replace(m, observed=4))  # no such row
+    for i, st in enumerate(states):
+        engine.on_state(i, st, STATE_FLAG_EKF_OK, 1.0)
+    got = of(CorrectionOut, engine.poll(1.0))
+    _, want = compute_corrections(states, setup.skeleton.d_b_m, setup.companion.group_layout(n),
+                                  setup.companion.params, neighbours=[replace(m, age_s=0.05)])
+    _, plain = compute_corrections(states, setup.skeleton.d_b_m, setup.companion.group_layout(n), setup.companion.params)
+    for g, c in zip(got, want):
+        np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
+    assert not np.allclose(want[1].dp_w_m, plain[1].dp_w_m, atol=1e-4)
+    assert engine.summary()["neighbour_measurements"] == {"received": 3, "applied": 1, "not_applied": 0,
+                                                          "too_old": 1, "left_out": 1}
 
 
 def test_needs_poll_leaves_out_only_polls_that_would_do_nothing():

@@ -14,7 +14,8 @@ from companion.estimation.neighbour import (NeighbourMeasurement, NeighbourView,
                                             neighbour_updates, relative_pose_jacobian, relative_pose_residual,
                                             relative_pose_update)
 from companion.estimation.sckf import CAParams, constraint_apply_dense, diagonal_blocks
-from companion.estimation.so3 import attitude_error, quat_from_rotvec, quat_to_rotmat, retract, rotmat_to_quat
+from companion.estimation.so3 import (attitude_error, quat_from_rotvec, quat_mul, quat_to_rotmat, retract,
+                                     rotmat_to_quat)
 from companion.vision.geometry import frame_from_axes
 
 #: a camera at link 1's right tip looking along +x (its neighbour), a marker on top of link 2's
@@ -212,3 +213,24 @@ def test_neighbour_measurements_refuse_bad_input():
         neighbour_updates(p, v, q, P[:2], [])
     with pytest.raises(ChainInputError, match="p must be finite"):
         neighbour_updates(p + np.nan, v, q, P, [])
+
+
+def test_a_measurement_is_compared_with_the_states_at_its_capture():
+    """Two links moving and turning (constant velocity and body rate), their states exact at the
+    step; a noise-free measurement captured 0.1 s before it: taken back by its age the model
+    agrees with it (NIS near 0, the states barely move); taken as of the step it does not."""
+    rng = np.random.default_rng(9)
+    p, v, q, _ = _chain(rng, 2)
+    P = np.stack([np.diag(np.r_[[0.005**2] * 3, [0.05**2] * 3, [np.radians(0.3) ** 2] * 3])] * 2)
+    v = np.array([[0.5, 0.2, 0.0], [-0.3, 0.4, 0.1]])
+    w = np.array([[0.0, 0.3, 0.5], [0.4, -0.2, 0.0]])
+    age = 0.1
+    back = [(p[k] - v[k] * age, quat_mul(q[k], quat_from_rotvec(-w[k] * age))) for k in range(2)]
+    R_cm, t_cm = marker_in_camera(back[0][0], back[0][1], back[1][0], back[1][1], VIEW)
+    cov = np.diag(np.r_[[np.radians(0.5) ** 2] * 3, [0.003**2] * 3])
+    aged = neighbour_updates(p, v, q, P, [NeighbourMeasurement(0, 1, R_cm, t_cm, cov, VIEW, age_s=age)], w=w)
+    as_now = neighbour_updates(p, v, q, P, [NeighbourMeasurement(0, 1, R_cm, t_cm, cov, VIEW)], w=w)
+    assert aged.nis[0] < 1e-6 and np.abs(aged.p - p).max() < 1e-6
+    assert as_now.nis[0] > 20.0 and np.abs(as_now.p - p).max() > 0.01
+    with pytest.raises(ChainInputError, match="age_s"):
+        NeighbourMeasurement(0, 1, R_cm, t_cm, cov, VIEW, age_s=-0.1)

@@ -45,11 +45,13 @@ def fly(
 
     ``video``: write an MP4 of the flight there (:mod:`sitl.cameras.video`). A scenario with cameras
     renders them and runs the vision pipeline on their frames (:mod:`sitl.cameras.vision_log`):
-    ``metrics["vision"]`` and ``vision.npz``. ``sckf``, ``selective_mapping``: the command line's
+    ``metrics["vision"]`` and ``vision.npz``; a camera seeing a neighbouring link's marker feeds the
+    companion's step (``metrics["neighbour_cameras"]``). ``sckf``, ``selective_mapping``: the command line's
     flight options (:func:`~sitl.scenario.with_options`)."""
     runner = BatchRunner(scenario, sckf=sckf, selective_mapping=selective_mapping)
     sc = runner.scenario
-    with FlightCameras(runner, video) as vision:
+    neighbours = _neighbour_cameras(sc, runner)
+    with FlightCameras(runner, video, consumers=(neighbours.on_frame,) if neighbours else ()) as vision:
         runner.run(sc.duration_s, progress=progress)
     arrays = runner.arrays()
     metrics = compute_metrics(
@@ -89,6 +91,8 @@ def fly(
     if sc.skeleton.n_links == 3:
         metrics["paper_reference"] = PAPER_THREE_LINK
     metrics.update(vision.metrics())
+    if neighbours:
+        metrics["neighbour_cameras"] = neighbours.metrics()
     if runner.crashed:
         log.warning("crash: %s", runner.crash_reason)
     elif not runner.plant.took_off and sc.trajectory.kind != "rest":
@@ -109,3 +113,14 @@ def fly(
             write_plots(arrays, out_dir, motion=sc.motion if cpg else None,
                         period_s=runner.trajectory.generator.period_s if cpg else 4.0)
     return metrics
+
+
+def _neighbour_cameras(sc: Scenario, runner: BatchRunner):
+    """The chain cameras that see a neighbour's marker, feeding the companion's step
+    (:mod:`sitl.cameras.neighbours`), when the scenario has any (else ``None``: OpenCV is not
+    imported for a flight without cameras)."""
+    if not sc.cameras or not sc.companion.enabled:
+        return None
+    from sitl.cameras.neighbours import NeighbourCameras
+
+    return NeighbourCameras(sc.cameras, sc.markers, runner.engines) or None
