@@ -56,9 +56,7 @@ class NeighbourQueue:
                 continue
             for k, seg in enumerate(segments):
                 if m.observer in seg and m.observed in seg:
-                    first = seg[0]
-                    out[k].append(replace(m, observer=m.observer - first, observed=m.observed - first,
-                                          age_s=max(t_s - t_capture, 0.0)))
+                    out[k].append(replace(m.numbered_from(seg[0]), age_s=max(t_s - t_capture, 0.0)))
                     break
             else:
                 self._counts["left_out"] += 1

@@ -131,6 +131,7 @@ class ChainStep:
                                                           self.params, self.seq, t_s, neighbours)
                 self.neighbours.applied(result.neighbour_accepted)
             except (ValueError, np.linalg.LinAlgError) as exc:
+                self.neighbours.applied(np.zeros(len(neighbours), dtype=bool))
                 log.warning("constraint application failed at t = %.3f s (links %s): %s",
                             t_us * 1e-6 if t_s is None else t_s, [self.links[r].index + 1 for r in rows], exc)
                 continue

@@ -30,7 +30,7 @@ of one pair. Pure numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -145,6 +145,11 @@ class NeighbourMeasurement:
         object.__setattr__(self, "cov", cov)
         if not (np.isfinite(self.age_s) and self.age_s >= 0.0):
             raise ChainInputError(f"age_s must be finite and >= 0, got {self.age_s!r}", field="age_s")
+
+    def numbered_from(self, first: int) -> NeighbourMeasurement:
+        """The same measurement with its links numbered from link ``first`` (a segment's or a
+        group's first)."""
+        return replace(self, observer=self.observer - first, observed=self.observed - first)
 
 
 @dataclass(frozen=True)

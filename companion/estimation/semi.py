@@ -37,7 +37,7 @@ with ``E`` the [p; v] rows of the 9-dim error state. A group that reports no tip
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -388,7 +388,7 @@ def neighbour_step(p, v, q, w, P, groups: Groups, neighbours: Sequence[Neighbour
         if not mine:
             continue
         sl = slice(g[0], g[-1] + 1)
-        local = [replace(m, observer=m.observer - g[0], observed=m.observed - g[0]) for _, m in mine]
+        local = [m.numbered_from(g[0]) for _, m in mine]
         up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2, w[sl])
         p[sl], v[sl], q[sl], whole[k] = up.p, up.v, up.q, up.P
         for (m_idx, _), x, ok in zip(mine, up.nis, up.accepted):
