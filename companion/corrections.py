@@ -20,7 +20,7 @@ the network: its own links' Alg. 1 and boundary, then the leader's shift (or non
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from .estimation.semi import (
     Groups,
     SemiResult,
     local_boundary,
+    neighbour_step,
     semi_distributed_apply,
     shifted_covariance,
 )
@@ -101,21 +102,25 @@ class LocalStep:
     result: CAResult
     boundary: GroupBoundary
     tip_cross: np.ndarray
+    neighbour_accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams = CAParams(),
-               t: float | None = None) -> LocalStep:
+               t: float | None = None, neighbours: Sequence[NeighbourMeasurement] = ()) -> LocalStep:
     """Align a group's link states (consecutive links of the chain, in order) to ``t`` and apply
-    the constraints among them; ``d_b_m`` is (len(states), 3)."""
+    the constraints among them; ``d_b_m`` is (len(states), 3); ``neighbours``: camera
+    measurements between them (numbered from the first), applied first (:func:`neighbour_step`;
+    ``neighbour_accepted`` says which were)."""
     links = [s.link for s in states]
     if links != list(range(links[0], links[0] + len(links))):
         raise ValueError(f"a group's states must be consecutive links in chain order, got {links}")
     t, p, v, q = align_states(states, t)
     w = np.array([s.omega_b_rad_s for s in states])
     P = np.array([s.P for s in states])
-    result = constraint_apply(p, v, q, w, d_b_m, P, params)
+    pn, vn, qn, whole, _, accepted = neighbour_step(p, v, q, w, P, (tuple(range(len(states))),), neighbours)
+    result = constraint_apply(pn, vn, qn, w, d_b_m, whole.get(0, P), params)
     boundary, tip_cross = local_boundary(result.p, result.v, result.q, w, d_b_m, result)
-    return LocalStep(t, p, v, q, w, result, boundary, tip_cross)
+    return LocalStep(t, p, v, q, w, result, boundary, tip_cross, accepted)
 
 
 def finish_step(states: Sequence[LinkState], step: LocalStep, shift_pv: np.ndarray | None, seq: int,

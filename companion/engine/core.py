@@ -162,11 +162,10 @@ class CompanionEngine:
     def on_neighbour(self, t_capture_s: float, measurement: NeighbourMeasurement) -> None:
         """A camera measurement between two of this engine's links (``observer`` and ``observed``
         are rows), captured at ``t_capture_s`` on the observing link's clock: applied at the next
-        step that holds both (:mod:`.neighbours`). Centralised steps take them; a distributed
-        group's local half does not yet (they are counted as left out there, as they are with
-        ``neighbour_cameras`` off)."""
-        if (not self.cfg.neighbour_cameras or self.net is not None
-                or max(measurement.observer, measurement.observed) >= len(self.links)):
+        step (a distributed group's local half) that holds both (:mod:`.neighbours`). With
+        ``neighbour_cameras`` off, or for a row the engine does not have, it is counted as left
+        out."""
+        if not self.cfg.neighbour_cameras or max(measurement.observer, measurement.observed) >= len(self.links):
             self.step.neighbours.refuse()
             return
         offset_us = self.links[measurement.observer].offset_us or 0  # (the link's clock to the time base)

@@ -182,11 +182,15 @@ class ChainStep:
             return
         t0 = self._timer()
         parts = []
+        seen = self.neighbours.take(segs, cycle * 1e-6)
         try:
-            for seg in segs:
+            for seg, neighbours in zip(segs, seen):
                 rows = list(seg)
-                parts.append((rows, local_step([states[r] for r in rows], self.d[rows], self.params, t=cycle * 1e-6)))
+                parts.append((rows, local_step([states[r] for r in rows], self.d[rows], self.params, t=cycle * 1e-6,
+                                               neighbours=neighbours)))
+                self.neighbours.applied(parts[-1][1].neighbour_accepted)
         except (ValueError, np.linalg.LinAlgError) as exc:
+            self.neighbours.applied(np.zeros(sum(len(m) for m in seen[len(parts):]), dtype=bool))
             log.warning("local constraint application failed at t = %.3f s: %s", cycle * 1e-6, exc)
             return
         self.step_times_ms.add((self._timer() - t0) * 1e3)

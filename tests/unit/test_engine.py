@@ -191,6 +191,41 @@ def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(grou
     assert len({e.log["leader"][-1] for e in engines}) == 1
 
 
+def test_a_group_engine_applies_its_neighbour_measurements_in_its_local_half():
+    """Distributed, 7 links in groups (1, 2), (3, 4, 5), (6, 7); group 2's engine is given a camera
+    measurement between links 3 and 4 every cycle, captured at the cycle: the corrections equal
+    Alg. 2 + eq. 6 in one process with the measurement in group 2, and each was applied."""
+    n, groups = 7, ((1, 2), (3, 4, 5), (6, 7))
+    rng = np.random.default_rng(41)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    setup = setup_for(n, groups, distributed=True)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
+    R_cm, t_cm = marker_in_camera(p[2], q[2], p[3], q[3], view)
+    m = NeighbourMeasurement(2, 3, R_cm, t_cm + [0.04, -0.02, 0.01], np.eye(6) * 1e-3, view)
+    clock = [0.0]
+    _, engines = group_engines(setup, lambda: clock[0])
+    states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
+    got = {}
+    for k in range(16):
+        t = clock[0] = 0.05 * k
+        engines[1].on_neighbour(t, m.numbered_from(2))
+        for e in engines:
+            for lk in e.links:
+                e.on_state(lk.row, states_at(t)[lk.index], STATE_FLAG_EKF_OK, t)
+        for _ in range(6):
+            for e in engines:
+                for out in of(CorrectionOut, e.poll(t)):
+                    got[(k, e.links[out.row].index)] = out.correction
+    k = [k for k in range(16) if all((k, i) in got for i in range(n))][-1]
+    _, want = compute_corrections(states_at(0.0), setup.skeleton.d_b_m, setup.companion.group_layout(n),
+                                  setup.companion.params, neighbours=[m])
+    for i in range(n):
+        np.testing.assert_allclose(got[(k, i)].dp_w_m, want[i].dp_w_m, atol=1e-9)
+    counts = engines[1].summary()["neighbour_measurements"]
+    assert counts["received"] == 16 and counts["applied"] >= 5 and counts["not_applied"] == 0
+
+
 @pytest.mark.parametrize("down, parts, joined", [
     # the middle of group 2: two one-link parts, each joined to its neighbouring group
     (3, {(0, 1, 2): ((0, 1), (2,)), (4, 5, 6): ((0,), (1, 2))}, [True, True, True]),
