@@ -17,7 +17,7 @@ import numpy as np
 
 from link_firmware_sim.design.carry import carry_cases
 
-from .faults import FaultEvent, draw_schedule, fault_table, flight_row, markdown_fault_table
+from .faults import AFTER_S, FaultEvent, draw_schedule, fault_table, flight_row, markdown_fault_table, power_loss_near
 from .grid import RunSpec, format_value
 
 __all__ = ["fault_specs", "write_fault_report", "replay_command"]
@@ -104,8 +104,15 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
     lines = [f"# Random faults: {Path(specs[0].config).stem if specs else ''}, {len(specs)} flights, seed {args.seed}, "
              f"{args.mode} mode", "", "Written by `python -m sitl campaign faults`; each flight's schedule and figures "
              "are in faults.json.", "", markdown_fault_table(table), f"## Crashes ({len(crashes)})", ""]
+    powerless = [r for r in crashes if power_loss_near(r) is not None]
+    if crashes:
+        lines += [f"{len(powerless)} with a link without power (a reboot from its start to {AFTER_S:g} s after its "
+                  f"end), {len(crashes) - len(powerless)} without.", ""]
     for r in crashes:
-        lines += [f"- `{r['key']}`: {r.get('crash_reason') or 'crashed'}; events "
+        e = power_loss_near(r)
+        near = (f" (link {e['target']} without power from {e['start_s']} to {e['end_s']} s)" if e is not None
+                else " (no link without power)")
+        lines += [f"- `{r['key']}`: {r.get('crash_reason') or 'crashed'}{near}; events "
                   f"{', '.join(e['kind'] + ' ' + str(e['target']) + ' at ' + str(e['start_s']) + ' s' for e in r['events'])}",
                   f"  `{r['replay']}`"]
     if carry:

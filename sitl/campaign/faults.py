@@ -49,7 +49,8 @@ import numpy as np
 
 from ..metrics import p95, rms
 
-__all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule", "recovery_s",
+__all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule",
+           "power_loss_near", "recovery_s",
            "event_figures", "flight_row", "fault_table", "markdown_fault_table"]
 
 KINDS = ("link_reboot", "gps_step", "gps_ramp", "gps_outage", "gps_failure", "imu_failure", "motor_off",
@@ -178,6 +179,19 @@ def draw_schedule(rng: np.random.Generator, n_links: int, flight_start_s: float,
                          ("faults.restart_after_s", _r(length))]
             events.append(FaultEvent(kind, group, start, start + length))
     return events, tuple(settings)
+
+
+def power_loss_near(row: dict) -> dict | None:
+    """A crashed flight's (:func:`flight_row`) power loss, a ``link_reboot`` whose window (from its
+    start to :data:`AFTER_S` after its end) holds the crash, else ``None``: the crashes to read
+    against what the rotors can carry (the campaign report's carry table)."""
+    t = row.get("crash_time_s")
+    if not row.get("crashed") or t is None:
+        return None
+    for e in row["events"]:
+        if e["kind"] == "link_reboot" and e["start_s"] <= t <= e["end_s"] + AFTER_S:
+            return e
+    return None
 
 
 def recovery_s(t: np.ndarray, err_m: np.ndarray, end_s: float, threshold_m: float = RECOVERED_M) -> float | None:

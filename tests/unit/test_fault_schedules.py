@@ -6,7 +6,7 @@ import pytest
 
 from sitl.campaign.fault_campaign import fault_specs, replay_command
 from sitl.campaign.faults import (FLEET_ONLY, INJECTED, KINDS, FaultEvent, draw_schedule, event_figures, fault_table,
-                                  markdown_fault_table, recovery_s)
+                                  markdown_fault_table, power_loss_near, recovery_s)
 from sitl.scenarios import load
 
 from ..paths import SITL_CONFIGS
@@ -111,3 +111,12 @@ def test_the_table_counts_per_kind_and_keeps_failed_runs():
     assert (g["flights"], g["failed"], g["crashes"], g["crashes_near"]) == (3, 1, 1, 1)
     assert (g["track_during_m"], g["recovery_s_max"], g["track_after_m"]) == (0.5, 2.0, None)
     assert "| link_reboot | 3 | 0 | 1 | 0 | 0.10 | 0.900 |" in markdown_fault_table(table)
+
+
+def test_a_crash_is_read_against_the_power_loss_near_it():
+    reboot = {"kind": "link_reboot", "target": 3, "start_s": 10.0, "end_s": 13.0}
+    gps = {"kind": "gps_outage", "target": 1, "start_s": 20.0, "end_s": 30.0}
+    row = {"crashed": True, "crash_time_s": 22.9, "events": [reboot, gps]}
+    assert power_loss_near(row) is reboot  # within AFTER_S of the reboot's end
+    assert power_loss_near(dict(row, crash_time_s=23.1)) is None  # after it: the outage's
+    assert power_loss_near(dict(row, crashed=False)) is None and power_loss_near(dict(row, crash_time_s=None)) is None
