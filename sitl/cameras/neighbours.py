@@ -19,6 +19,7 @@ import re
 import numpy as np
 
 from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView
+from companion.estimation.so3 import quat_to_rotvec, rotmat_to_quat
 from companion.vision.geometry import geodesic_angle_rad
 from companion.vision.pnp import MarkerPipeline
 
@@ -63,7 +64,8 @@ class NeighbourCameras:
         self.pipelines = {name: MarkerPipeline(cfg) for name in self.views}
         self.engines = list(engines)
         self.frames = 0
-        self.rows: list[tuple] = []  # (t_capture, observer, observed, pos err [m], att err [deg], range [m])
+        #: (t_capture, observer, observed, pos err [m], att err [deg], range [m], NEES of the pose's covariance)
+        self.rows: list[tuple] = []
         self.no_engine = 0
 
     def __bool__(self) -> bool:
@@ -87,8 +89,10 @@ class NeighbourCameras:
                 continue
             i, j, view = views[pose.marker_id]
             R_true, t_true = f.truth.marker_in_camera(pose.marker_id)
+            err = np.r_[quat_to_rotvec(rotmat_to_quat(pose.R_cm @ R_true.T)), pose.t_cm_m - t_true]
             self.rows.append((h.t_capture_s, i, j, float(np.linalg.norm(pose.t_cm_m - t_true)),
-                              float(np.degrees(geodesic_angle_rad(pose.R_cm, R_true))), float(np.linalg.norm(t_true))))
+                              float(np.degrees(geodesic_angle_rad(pose.R_cm, R_true))), float(np.linalg.norm(t_true)),
+                              float(err @ np.linalg.solve(pose.cov, err))))
             target = self._engine_rows(i, j)
             if target is None:
                 self.no_engine += 1
@@ -98,13 +102,14 @@ class NeighbourCameras:
 
     def metrics(self) -> dict:
         """``metrics.json``'s ``neighbour_cameras``: frames, poses of neighbour markers, their
-        errors (RMS, max) against the truth at capture, those no engine could take, and each
-        engine's count of what its steps did with them."""
-        r = np.array(self.rows, dtype=float).reshape(-1, 6)
+        errors (RMS, max) against the truth at capture and the mean NEES of their covariances (6
+        degrees of freedom: about 6 when the covariance is right), those no engine could take, and
+        each engine's count of what its steps did with them."""
+        r = np.array(self.rows, dtype=float).reshape(-1, 7)
         out = {"frames": self.frames, "poses": int(r.shape[0]), "no_engine": self.no_engine}
         if r.shape[0]:
             out.update(pos_err_rms_m=float(np.sqrt(np.mean(r[:, 3] ** 2))), pos_err_max_m=float(r[:, 3].max()),
                        att_err_rms_deg=float(np.sqrt(np.mean(r[:, 4] ** 2))), att_err_max_deg=float(r[:, 4].max()),
-                       range_mean_m=float(r[:, 5].mean()))
+                       range_mean_m=float(r[:, 5].mean()), pose_nees_mean=float(r[:, 6].mean()))
         out["steps"] = [e.summary()["neighbour_measurements"] for e in self.engines]
         return out
