@@ -23,8 +23,8 @@ no wall clock; the SITL harness or, later, the MAVLink shell calls it):
 Control runs on the EKF output plus the latest correction delta, never feeding the delta into
 the EKF (paper sec. III-A), except while the GPS is in fault: then the corrected position aids
 the EKF (:mod:`.estimators.correction_aid`). The delta is held at full weight for
-``correction_hold_s`` after it arrives and then fades linearly to zero at ``correction_stale_s`` (control on the raw EKF, like
-a lost companion). A target older than ``target_stale_s`` is replaced by holding the current
+``correction_hold_s`` after it arrives and then fades linearly to zero at ``correction_stale_s``
+(control on the raw EKF, like a lost companion). A target older than ``target_stale_s`` is replaced by holding the current
 estimated position at the last target attitude (PX4's offboard-loss hold).
 """
 
@@ -38,7 +38,7 @@ from typing import Literal
 import numpy as np
 
 from companion.configfile import require_positive
-from companion.estimation.so3 import attitude_error, quat_conj, quat_mul, quat_to_rotvec, retract
+from companion.estimation.so3 import attitude_error, retract
 from companion.messages import (
     STATE_FLAG_ARMED,
     STATE_FLAG_CORRECTION_ACTIVE,
@@ -60,7 +60,7 @@ from .controllers.pspm import PspmGains, PspmModulator
 from .controllers.se3_control import Se3PidGains
 from .estimators import X_BG, X_P, EkfConfig, GpsHealth, GpsHealthConfig, LinkEkf, outdoor_ekf_config
 from .estimators.correction_aid import CorrectionAid
-from .estimators.imu_health import StaleSensor
+from .estimators.imu_health import ImuHealth
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
@@ -71,9 +71,6 @@ __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
 log = logging.getLogger(__name__)
 
 TAKEOFF_SPEED_M_S = 0.5  # armed faster than this: already in flight
-#: the low-pass time constant of the body rate taken from the attitude estimate while the gyro is
-#: stale [s]
-STALE_RATE_TAU_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -164,14 +161,12 @@ class LinkFirmware(FusedTicks):
         self.correction_aid = CorrectionAid(config.gps.aid_std_m)
         #: the rotors' thrust limit: time at it, episodes (reported as events)
         self.thrust_limit = ThrustLimit(config.thrust_limit)
-        #: a gyro that repeats one sample in flight (stuck): not used while it does
-        #: (:mod:`.estimators.imu_health`; armed only: at rest a noise-free simulated gyro repeats itself)
-        self.gyro_health = StaleSensor("Gyro")
-        self.gyro_sample = np.zeros(3)  # the newest tick's gyro sample, as it came
+        #: a gyro or an accelerometer that repeats one sample in flight (stuck): not used while it
+        #: does (:mod:`.estimators.imu_health`; armed only: at rest a noise-free simulated IMU
+        #: repeats itself)
+        self.imu_health = ImuHealth()
         #: a non-finite wrench from the controller: refused, the last finite commands held
         self.wrench_guard = WrenchGuard()
-        self._q_prev: np.ndarray | None = None
-        self._rate_lp = np.zeros(3)
         #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
         self.events: list[StatusEvent] = []
         self._init_fused()
@@ -499,7 +494,7 @@ class LinkFirmware(FusedTicks):
 
     def disarm(self) -> None:
         self.armed = False
-        self.gyro_health.stop(self.time_s)  # (watched in flight only)
+        self.imu_health.stop(self.time_s)  # (watched in flight only)
 
     def active_target(self, t_s: float, estimate: tuple | None = None) -> PoseTarget:
         """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate);
@@ -523,13 +518,16 @@ class LinkFirmware(FusedTicks):
         if self.ekf is None:
             return self._zero
         dt = self._tick_dt(t_s)
-        self.gyro_sample = gyro_b_rad_s
+        imu = self.imu_health
+        imu.sample(gyro_b_rad_s, accel_b_m_s2)
         command = self._tick_fused(t_s, dt, gyro_b_rad_s, accel_b_m_s2)  # the steps below in one kernel
         if command is not None:
             return command
-        if self.gyro_health.stale:  # no rotation measured: the attitude follows its reference
-            gyro_b_rad_s = np.zeros(3)
-            self.ekf.predict_without_gyro(accel_b_m_s2, dt)
+        if imu.stale:  # no rotation measured: the attitude follows its reference; no specific force:
+            if imu.accel.stale:  # the commanded thrust's stands in
+                accel_b_m_s2 = imu.thrust_specific_force(self.allocator.mapping_matrix, self.wrench_guard.command,
+                                                         self.inertia.mass_kg)
+            self.ekf.predict_stale(gyro_b_rad_s, accel_b_m_s2, dt, imu.gyro.stale, imu.accel.stale)
         else:
             self.ekf.predict(gyro_b_rad_s, accel_b_m_s2, dt)
         self.time_s = t_s
@@ -540,11 +538,11 @@ class LinkFirmware(FusedTicks):
             self.events.extend(self.thrust_limit.on_tick(t_s, dt, False))
             return self._zero
         p, v, q = self.control_estimate(t_s)
-        if self.gyro_health.stale:
-            omega = self._rate_from_attitude(q, dt)
+        if imu.gyro.stale:
+            omega = imu.rate_from_attitude(q, dt)
         else:
             omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
-            self._q_prev = None
+            imu.gyro_used()
         target = self._active_target(t_s, p)
         ctrl = self._controller
         U = ctrl(p, v, q, omega, target, dt)  # eq. 1 (default), sec. 2.3.2, 2.3.3 or 2.3.4's slave law
@@ -568,23 +566,12 @@ class LinkFirmware(FusedTicks):
         self._controller.reset()
         return command
 
-    def watch_gyro(self, t_s: float) -> None:
-        """The newest tick's gyro sample to the stuck-gyro watch (armed only). The shell calls it
-        on a fixed grid of simulated time, its log or stream rows: the compiled lockstep loop
-        returns on them, so both paths see the same samples."""
+    def watch_imu(self, t_s: float) -> None:
+        """The newest tick's gyro and accelerometer samples to the stuck-sensor watch (armed
+        only). The shell calls it on a fixed grid of simulated time, its log or stream rows: the
+        compiled lockstep loop returns on them, so both paths see the same samples."""
         if self.armed:
-            self.events.extend(self.gyro_health.on_sample(t_s, self.gyro_sample))
-
-    def _rate_from_attitude(self, q: np.ndarray, dt: float) -> np.ndarray:
-        """The body rate from the change of the attitude estimate, low-passed over
-        :data:`STALE_RATE_TAU_S` (what damps the attitude loop while the gyro is stale)."""
-        prev, self._q_prev = self._q_prev, q.copy()
-        if prev is None:
-            self._rate_lp = np.zeros(3)
-            return self._rate_lp
-        raw = quat_to_rotvec(quat_mul(quat_conj(prev), q)) / dt  # body frame
-        self._rate_lp = self._rate_lp + dt / (STALE_RATE_TAU_S + dt) * (raw - self._rate_lp)
-        return self._rate_lp
+            self.events.extend(self.imu_health.watch(t_s))
 
     def _tick_dt(self, t_s: float) -> float:
         """The step since the last tick; the nominal ``1 / rate_hz`` when not positive (the first

@@ -26,8 +26,9 @@ from companion.messages import Correction
 
 from .controllers.impedance import pack_target
 from .kernels.hil_records import HIL_ACTUATOR_RECORD
-from .kernels.layouts import (IN_CORRECTION, IN_SIZE, IN_TARGET, IN_WEIGHT, IO_AHRS_ACCEPTED, IO_AHRS_Q,
-                              IO_AHRS_REJECTED, IO_AHRS_T_US, IO_ARM_HEIGHT, IO_CORR_HOLD, IO_CORR_STALE, IO_CORR_TIME, IO_DT,
+from .kernels.layouts import (IN_CORRECTION, IN_SIZE, IN_TARGET, IN_WEIGHT, IO_ACCEL, IO_AHRS_ACCEPTED,
+                              IO_AHRS_Q, IO_AHRS_REJECTED, IO_AHRS_T_US, IO_ARM_HEIGHT, IO_CORR_HOLD, IO_CORR_STALE,
+                              IO_CORR_TIME, IO_DT,
                               IO_DT_DEFAULT, IO_DUE_US, IO_FRAME, IO_GPS_FIX, IO_GPS_TIMEOUT, IO_GYRO, IO_MAX_TICKS,
                               IO_MODE, IO_N_FDS, IO_PACKET, IO_SENT, IO_SIZE, IO_STATUS, IO_T_PREV, IO_T_US,
                               IO_TAKEN_BYTES, IO_TAKEOFF, IO_TARGET_STALE, IO_TARGET_TIME, IO_THRUST_MAX, IO_TICKS,
@@ -42,6 +43,7 @@ __all__ = ["TAKEOFF_HEIGHT_M", "pack_correction", "HilBuffers", "FusedTicks"]
 TAKEOFF_HEIGHT_M = 0.15  # above the arming height: the land detector's take-off
 _COMMAND = slice(OUT_COMMAND, OUT_COMMAND + 8)
 _GYRO = slice(IO_GYRO, IO_GYRO + 3)
+_ACCEL = slice(IO_ACCEL, IO_ACCEL + 3)
 _AHRS = slice(IO_AHRS_ACCEPTED, IO_AHRS_Q + 4)
 
 
@@ -147,30 +149,30 @@ class FusedTicks:
                         ekf.x, ekf.P = x, P
                         ekf.count_attitude(int(status == 1), int(status == 0))
                         pending.clear()
-                        return self._fused_done(t_s, dt, gyro, out)
+                        return self._fused_done(t_s, dt, gyro, imu[1], out)
             ekf.predict(*imu, dt)
             self.time_s = t_s
             self._apply_pending()
         ekf.x, ekf.P = tick_kernel(ekf.x, ekf.P, predict, imu, dt, ekf.par, self._tick_inputs(t_s), ctl, alloc, out)
-        return self._fused_done(t_s, dt, gyro, out)
+        return self._fused_done(t_s, dt, gyro, imu[1], out)
 
     def _fused_applies(self, t_s: float) -> bool:
         """The fused tick's case: armed, eq. 1's controller (compiled), a fresh target, no attitude
         reset due (the next attitude reference takes the step-by-step path, which resets) and the
-        gyro not stale (the step-by-step path flies without it)."""
+        gyro and the accelerometer not stale (the step-by-step path flies without them)."""
         target = self.target
         return (self.fused_tick and self.armed and self._controller.tick_state is not None and target is not None
                 and t_s - self._target_time_s <= self.config.target_stale_s
-                and not (self.ekf is not None and self.ekf.attitude_reset_due) and not self.gyro_health.stale)
+                and not (self.ekf is not None and self.ekf.attitude_reset_due) and not self.imu_health.stale)
 
-    def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, out: np.ndarray) -> np.ndarray:
+    def _fused_done(self, t_s: float, dt: float, gyro: np.ndarray, accel: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The state the fused tick leaves outside the kernels' arrays (from its results ``out``,
         ``OUT_*``); returns the thrust commands (with a wrench that is not finite: the held ones,
         :mod:`.wrench_guard`; the compiled paths then sent no answer)."""
         self.ekf.last_gyro_b_rad_s = gyro
         self.time_s = t_s
         self.events.extend(self.gps_health.on_tick(t_s))
-        self.gyro_sample = gyro
+        self.imu_health.sample(gyro, accel)
         if not out[OUT_FINITE]:
             return self._refuse_wrench(t_s)
         self.wrench_guard.passed(out[_COMMAND])
@@ -209,7 +211,7 @@ class FusedTicks:
         ekf.count_attitude(int(io[IO_AHRS_ACCEPTED]), int(io[IO_AHRS_REJECTED]))
         if answered is not None and io[OUT_FINITE]:
             answered(hil.answer)
-        return self._fused_done(t_s, dt, io[_GYRO].copy(), io[:OUT_SIZE]).copy()
+        return self._fused_done(t_s, dt, io[_GYRO].copy(), io[_ACCEL].copy(), io[:OUT_SIZE]).copy()
 
     def on_hil_loop(self, hil: HilBuffers, n_fds: int, timeout_ms: int, max_ticks: int, due_us: int, answered,
                     frames: bool = False) -> tuple | None:
@@ -251,5 +253,5 @@ class FusedTicks:
             ekf.count_attitude(int(io[IO_AHRS_ACCEPTED]), int(io[IO_AHRS_REJECTED]))
             if sent < ticks and io[OUT_FINITE]:
                 answered(hil.answer)
-            self._fused_done(t_us * 1e-6, float(io[IO_DT]), io[_GYRO].copy(), io[:OUT_SIZE])
+            self._fused_done(t_us * 1e-6, float(io[IO_DT]), io[_GYRO].copy(), io[_ACCEL].copy(), io[:OUT_SIZE])
         return status, ticks, sent, t_us, packet, taken_bytes

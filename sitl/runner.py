@@ -463,7 +463,7 @@ class BatchRunner:
                 for i, fw in enumerate(self.firmware):
                     commands[i] = 0.0 if i in self._down else fw.on_imu(t, gyro[i], accel[i])
                     if k % sch.log == 0 and i not in self._down:  # (a vehicle: on its stream and log rows)
-                        fw.watch_gyro(t)
+                        fw.watch_imu(t)
                     if i == j and failures.imu_or_motor:
                         commands[i] = failures.thrust(commands[i])
                     if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)

@@ -21,11 +21,14 @@ from .ekf import (GRAVITY_W_M_S2, Measurement, as_covariance, attitude_measureme
                   kalman_apply, mag_heading_measurement, position_measurement, sckf_view, velocity_measurement)
 from .ekf_config import E_P, NE, NX_BARO, X_P, X_Q, X_V, EkfConfig, UpdateInfo
 
-__all__ = ["NO_GYRO_ATT_RAD2_S", "ekf_parameters", "predict", "fuse", "LinkEkf"]
+__all__ = ["NO_GYRO_ATT_RAD2_S", "NO_ACCEL_VEL_M2_S3", "ekf_parameters", "predict", "fuse", "LinkEkf"]
 
 #: the attitude's process noise density while no gyro is used [rad^2/s]: in the 20 ms between two
 #: 50 Hz attitude references its variance grows by half the reference's (0.04 rad^2)
 NO_GYRO_ATT_RAD2_S = 1.0
+#: the velocity's process noise density while the specific force is modelled, not measured (the
+#: accelerometer stale) [(m/s)^2/s]: 1 m/s^2 of model error over a second
+NO_ACCEL_VEL_M2_S3 = 1.0
 
 
 @lru_cache(maxsize=32)
@@ -100,12 +103,20 @@ class LinkEkf:
                                  self.par)
         self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
 
-    def predict_without_gyro(self, accel_b_m_s2, dt_s: float) -> None:
-        """:meth:`predict` with no rotation measured (the gyro stale): the attitude held, its
-        density :data:`NO_GYRO_ATT_RAD2_S` so that the attitude reference carries it."""
-        noise = replace(self.config.noise, att_rad2_s=NO_GYRO_ATT_RAD2_S, att_yaw_rad2_s=None)
-        self.x, self.P = ekf_predict(self.x, self.P, np.zeros(3), accel_b_m_s2, dt_s, noise)
-        self.last_gyro_b_rad_s = np.zeros(3)
+    def predict_stale(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float, gyro_stale: bool, accel_stale: bool) -> None:
+        """:meth:`predict` with a stale sensor. No rotation measured (``gyro_stale``): the attitude
+        held, its density :data:`NO_GYRO_ATT_RAD2_S` so that the attitude reference carries it.
+        No specific force measured (``accel_stale``): ``accel_b_m_s2`` is the caller's model of it
+        (the commanded thrust's), the velocity's density :data:`NO_ACCEL_VEL_M2_S3` so that the
+        GPS and the companion's corrections carry it."""
+        noise = self.config.noise
+        if gyro_stale:
+            noise = replace(noise, att_rad2_s=NO_GYRO_ATT_RAD2_S, att_yaw_rad2_s=None)
+            gyro_b_rad_s = np.zeros(3)
+        if accel_stale:
+            noise = replace(noise, vel_m2_s3=NO_ACCEL_VEL_M2_S3)
+        self.x, self.P = ekf_predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, noise)
+        self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
 
     def _fuse(self, kind: str, m: Measurement | None) -> UpdateInfo:
         return self._record(kind, fuse(self.x, self.P, m, self.config.gate_sigma, self.compiled))

@@ -62,4 +62,6 @@ IO_ARM_HEIGHT, IO_TAKEOFF = 54, 55
 # ... and what it reports: why it returned (LOOP_* of .lockstep), the ticks it computed, the answers
 # it sent, the newest tick's time [us] and step [s], the length of a packet it left to the caller,
 # the bytes of the packets it took
-IO_STATUS, IO_TICKS, IO_SENT, IO_T_US, IO_DT, IO_PACKET, IO_TAKEN_BYTES, IO_SIZE = 56, 57, 58, 59, 60, 61, 62, 63
+IO_STATUS, IO_TICKS, IO_SENT, IO_T_US, IO_DT, IO_PACKET, IO_TAKEN_BYTES = 56, 57, 58, 59, 60, 61, 62
+# ... and the newest tick's specific force (FLU, 3)
+IO_ACCEL, IO_SIZE = 63, 66

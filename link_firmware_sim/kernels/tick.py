@@ -29,7 +29,7 @@ from .hil_records import (HIL_ACTUATOR_RECORD, HIL_BARO_MAG_BITS, HIL_SENSOR_REC
                           IMU_GYRO_MAX_RAD_S, ahrs_record, record_time_us, sensor_record_at)
 from .impedance import impedance_kernel
 from .layouts import (CTL_GRAVITY, CTL_MASS, IN_CORRECTION, IN_TARGET, IN_WEIGHT, IO_AHRS_ACCEPTED, IO_AHRS_Q,
-                      IO_AHRS_REJECTED, IO_AHRS_T_US, IO_FRAME, IO_GYRO, IO_MODE, IO_THRUST_MAX, OUT_COMMAND,
+                      IO_AHRS_REJECTED, IO_AHRS_T_US, IO_ACCEL, IO_FRAME, IO_GYRO, IO_MODE, IO_THRUST_MAX, OUT_COMMAND,
                       OUT_FINITE, OUT_FORCE_NORM, OUT_P_CTRL, OUT_SATURATED, OUT_SCALE, OUT_SIZE, OUT_U, TGT_SIZE)
 
 __all__ = ["tick_kernel", "attitude_tick_kernel", "hil_tick_kernel"]
@@ -136,7 +136,8 @@ def hil_tick_kernel(rec, answer, x, P, dt_s, ekf_par, cmd, ctl, alloc, io):
     frame change ``io[IO_FRAME]``) the propagation, then :func:`.ekf.attitude_update_kernel`, then
     the tick without the propagation, as the firmware runs a queued measurement; ``io`` counts it
     (``IO_AHRS_ACCEPTED`` / ``IO_AHRS_REJECTED``, added to) and holds its time and quaternion.
-    ``io[IO_GYRO]`` gets the body rate (FLU), ``io[:OUT_SIZE]`` the tick's results. Returns ``(x,
+    ``io[IO_GYRO]`` gets the body rate (FLU), ``io[IO_ACCEL]`` the specific force (FLU),
+    ``io[:OUT_SIZE]`` the tick's results. Returns ``(x,
     P, taken)``: with ``taken`` false (another kind or size, baro/mag bits, a non-finite or
     out-of-range value, a reference the decoder rejects, an answer buffer of another size) nothing
     was changed or written and the caller decodes the packet the general way. The fields sit at odd
@@ -178,6 +179,7 @@ def hil_tick_kernel(rec, answer, x, P, dt_s, ekf_par, cmd, ctl, alloc, io):
             io[IO_AHRS_Q + i] = qm[i]
     for i in range(3):
         io[IO_GYRO + i] = g[i]
+        io[IO_ACCEL + i] = accel[i]
     controls = np.zeros(16, np.float32)
     thrust_max_n = io[IO_THRUST_MAX]
     for i in range(8):

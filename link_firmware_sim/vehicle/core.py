@@ -171,10 +171,10 @@ class Vehicle:
             ep.port.transport = ep.port.transport.inner
 
     def after_tick(self) -> None:
-        """A tick's bookkeeping: on a stream or log row, the gyro watched; the firmware's events,
+        """A tick's bookkeeping: on a stream or log row, the IMU watched; the firmware's events,
         the streams due, the flight log's row."""
         if self.fc_time_us >= min(self.streams.due_us, self.recorder.due_us):
-            self.fw.watch_gyro(self.fc_time_s)
+            self.fw.watch_imu(self.fc_time_s)
         if self.fw.events:
             self._report_events()
         self.streams.send_due()
@@ -270,8 +270,9 @@ class Vehicle:
 
     def close(self) -> None:
         """The flight log saved and the link's counters written (``link<i>_ports.json``: every
-        port's, the errors, the GPS health, the thrust limit, the gyro, the wrenches refused, the
-        injected failures, the EKF's fused and gated measurements), then every port closed."""
+        port's, the errors, the GPS health, the thrust limit, the gyro and the accelerometer, the
+        wrenches refused, the injected failures, the EKF's fused and gated measurements), then
+        every port closed."""
         if self._closed:
             return
         self._closed = True
@@ -282,7 +283,7 @@ class Vehicle:
             stats["errors"] = self.errors
             stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
             stats["thrust_limit"] = self.fw.thrust_limit.report()
-            stats["gyro"] = self.fw.gyro_health.report(self.fc_time_s)
+            stats.update(self.fw.imu_health.report(self.fc_time_s))  # "gyro", "accel"
             stats["wrench"] = self.fw.wrench_guard.report()
             stats["failures"] = self.failures.report()
             if self.fw.ekf is not None:  # measurements fused / gated per kind (barometer, magnetometer too)

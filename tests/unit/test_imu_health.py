@@ -64,15 +64,44 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
             fw.on_attitude(t, q)
         if k % 50 == 0:
             fw.on_gps(t, rng.normal(0, 0.05, 3), np.zeros(3))
-        fw.on_imu(t, rate if stale else rate + rng.normal(0, 1e-6, 3), GRAVITY_UP)
+        fw.on_imu(t, rate if stale else rate + rng.normal(0, 1e-6, 3), GRAVITY_UP + rng.normal(0, 1e-4, 3))
         if k % 10 == 0:  # as a shell does on its log rows
-            fw.watch_gyro(t)
+            fw.watch_imu(t)
     yaw_err = np.degrees(2 * np.arccos(min(1.0, abs(float(fw.ekf.q_wxyz @ q)))))
-    assert fw.gyro_health.stale == stale
+    assert fw.imu_health.gyro.stale == stale
     if stale:
         assert yaw_err < 3.0 and [e.text for e in fw.events if e.kind == "fault"] == ["Gyro stale: no change for 0.2 s"]
-        assert np.linalg.norm(fw._rate_lp) < 0.2
+        assert np.linalg.norm(fw.imu_health.rate_lp) < 0.2
     else:
         assert yaw_err > 5.0
     fw.disarm()
-    assert not fw.gyro_health.stale
+    assert not fw.imu_health.gyro.stale
+
+
+@pytest.mark.parametrize("stale", [False, True])
+def test_in_flight_a_stuck_accelerometer_is_replaced_by_the_commanded_thrust(stale):
+    """An armed, still link without GPS whose accelerometer reads 0.5 m/s^2 off its true specific
+    force: stuck on that value (``stale``), it is found stale and the commanded thrust's specific
+    force stands in (the velocity stays near zero, SYS-status-worthy event reported); varying by a
+    hair around it (a live sensor, believed), the velocity estimate runs off at 0.5 m/s^2."""
+    fw, q = _hovering_firmware()
+    assert fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget.hold(np.zeros(3), q))
+    rng = np.random.default_rng(2)
+    off = GRAVITY_UP + np.array([0.5, 0.0, 0.0])
+    for k in range(1, 1001):
+        t = k / 500
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if k <= 100:  # 0.2 s live, then the reading goes off (and, stale, stays bit for bit)
+            fw.on_imu(t, rng.normal(0, 1e-4, 3), GRAVITY_UP + rng.normal(0, 1e-4, 3))
+        else:
+            fw.on_imu(t, rng.normal(0, 1e-4, 3), off if stale else off + rng.normal(0, 1e-6, 3))
+        if k % 10 == 0:
+            fw.watch_imu(t)
+    speed = float(np.linalg.norm(fw.ekf.v_w_m_s))
+    assert fw.imu_health.accel.stale == stale and not fw.imu_health.gyro.stale
+    if stale:
+        assert speed < 0.2 and "Accel stale: no change for 0.2 s" in [e.text for e in fw.events if e.kind == "fault"]
+    else:
+        assert speed > 0.6

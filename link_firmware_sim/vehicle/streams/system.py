@@ -36,11 +36,14 @@ def heartbeat(v):
 
 def sys_status(v):
     """The sensors present, enabled and healthy (GPS unhealthy while the EKF has no fix or the
-    firmware reports a GPS fault; the gyro while it is stale), and the frames the links dropped."""
+    firmware reports a GPS fault; the gyro or the accelerometer while it is stale), and the frames
+    the links dropped."""
     gps_ok = v.fw.initialized and not v.fw.gps_health.fault
     health = _SENSORS if gps_ok else _SENSORS & ~D.MAV_SYS_STATUS_SENSOR_GPS
-    if v.fw.gyro_health.stale:
+    if v.fw.imu_health.gyro.stale:
         health &= ~D.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    if v.fw.imu_health.accel.stale:
+        health &= ~D.MAV_SYS_STATUS_SENSOR_3D_ACCEL
     health |= D.MAV_SYS_STATUS_GEOFENCE  # no fence, so none breached (a ground station reads 0 as a breach)
     dropped = sum(ep.port.stats.dropped for ep in v.endpoints)
     return D.MAVLink_sys_status_message(_SENSORS, _SENSORS, health, 0, 16200, -1, 100, 0, min(dropped, 65535),
