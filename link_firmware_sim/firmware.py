@@ -24,8 +24,9 @@ Control runs on the EKF output plus the latest correction delta, never feeding t
 the EKF (paper sec. III-A), except while the GPS is in fault: then the corrected position aids
 the EKF (:mod:`.estimators.correction_aid`). The delta is held at full weight for
 ``correction_hold_s`` after it arrives and then fades linearly to zero at ``correction_stale_s``
-(control on the raw EKF, like a lost companion). A target older than ``target_stale_s`` is replaced by holding the current
-estimated position at the last target attitude (PX4's offboard-loss hold).
+(control on the raw EKF, like a lost companion). A target older than ``target_stale_s`` is
+replaced by holding the current estimated position at the last target attitude (PX4's
+offboard-loss hold).
 """
 
 from __future__ import annotations
@@ -523,8 +524,8 @@ class LinkFirmware(FusedTicks):
         command = self._tick_fused(t_s, dt, gyro_b_rad_s, accel_b_m_s2)  # the steps below in one kernel
         if command is not None:
             return command
-        if imu.stale:  # no rotation measured: the attitude follows its reference; no specific force:
-            if imu.accel.stale:  # the commanded thrust's stands in
+        if imu.stale:  # a stale gyro: no rotation; a stale accelerometer: the last commanded thrust's force
+            if imu.accel.stale:
                 accel_b_m_s2 = imu.thrust_specific_force(self.allocator.mapping_matrix, self.wrench_guard.command,
                                                          self.inertia.mass_kg)
             self.ekf.predict_stale(gyro_b_rad_s, accel_b_m_s2, dt, imu.gyro.stale, imu.accel.stale)

@@ -26,14 +26,13 @@ from companion.messages import Correction
 
 from .controllers.impedance import pack_target
 from .kernels.hil_records import HIL_ACTUATOR_RECORD
-from .kernels.layouts import (IN_CORRECTION, IN_SIZE, IN_TARGET, IN_WEIGHT, IO_ACCEL, IO_AHRS_ACCEPTED,
-                              IO_AHRS_Q, IO_AHRS_REJECTED, IO_AHRS_T_US, IO_ARM_HEIGHT, IO_CORR_HOLD, IO_CORR_STALE,
-                              IO_CORR_TIME, IO_DT,
-                              IO_DT_DEFAULT, IO_DUE_US, IO_FRAME, IO_GPS_FIX, IO_GPS_TIMEOUT, IO_GYRO, IO_MAX_TICKS,
-                              IO_MODE, IO_N_FDS, IO_PACKET, IO_SENT, IO_SIZE, IO_STATUS, IO_T_PREV, IO_T_US,
-                              IO_TAKEN_BYTES, IO_TAKEOFF, IO_TARGET_STALE, IO_TARGET_TIME, IO_THRUST_MAX, IO_TICKS,
-                              IO_TIMEOUT_MS, OUT_COMMAND, OUT_FINITE, OUT_FORCE_NORM, OUT_P_CTRL, OUT_SATURATED,
-                              OUT_SCALE, OUT_SIZE)
+from .kernels.layouts import (IN_CORRECTION, IN_SIZE, IN_TARGET, IN_WEIGHT, IO_ACCEL, IO_AHRS_ACCEPTED, IO_AHRS_Q,
+                              IO_AHRS_REJECTED, IO_AHRS_T_US, IO_ARM_HEIGHT, IO_CORR_HOLD, IO_CORR_STALE,
+                              IO_CORR_TIME, IO_DT, IO_DT_DEFAULT, IO_DUE_US, IO_FRAME, IO_GPS_FIX, IO_GPS_TIMEOUT,
+                              IO_GYRO, IO_MAX_TICKS, IO_MODE, IO_N_FDS, IO_PACKET, IO_SENT, IO_SIZE, IO_STATUS,
+                              IO_T_PREV, IO_T_US, IO_TAKEN_BYTES, IO_TAKEOFF, IO_TARGET_STALE, IO_TARGET_TIME,
+                              IO_THRUST_MAX, IO_TICKS, IO_TIMEOUT_MS, OUT_COMMAND, OUT_FINITE, OUT_FORCE_NORM,
+                              OUT_P_CTRL, OUT_SATURATED, OUT_SCALE, OUT_SIZE)
 from .kernels.lockstep import hil_loop_kernel
 from .kernels.mavlink_frames import FRAME_BYTES, FRAMING_SIZE
 from .kernels.tick import attitude_tick_kernel, hil_tick_kernel, tick_kernel
