@@ -1,13 +1,13 @@
 """Inputs shared by the tests of the companion engine (tests/unit/test_engine*.py): a companion
 setup, a straight chain's link states, feeding them to an engine, and a distributed setup's group
-engines on one in-process bus."""
+engines on one in-process bus, and flying them on it."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from companion.config import CompanionConfig, CompanionSetup, LinkEndpoint
-from companion.engine import CompanionEngine
+from companion.engine import CompanionEngine, CorrectionOut
 from companion.estimation.so3 import quat_from_euler_zyx
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
@@ -55,3 +55,26 @@ def group_engines(setup: CompanionSetup, clock, **node) -> tuple[LocalHub, list[
                                              hub.join(g), clock))
                for g in range(n_groups)]
     return hub, engines
+
+
+def fly_group_engines(engines, clock, states_at, cycles: int = 16, heard=lambda k, i: True,
+                      before=None) -> dict:
+    """Distributed ``engines`` on their bus for ``cycles`` companion periods of 50 ms on ``clock``
+    (a one-element list): each period ``before(k, t)`` first (when given), every link's state
+    from ``states_at(t)`` (those ``heard(k, link index)``), then six polls of every engine; the
+    corrections by ``(period, link index)``."""
+    got = {}
+    for k in range(cycles):
+        t = clock[0] = 0.05 * k
+        if before is not None:
+            before(k, t)
+        states = states_at(t)
+        for e in engines:
+            for lk in e.links:
+                if heard(k, lk.index):
+                    e.on_state(lk.row, states[lk.index], STATE_FLAG_EKF_OK, t)
+        for _ in range(6):
+            for e in engines:
+                for out in of(CorrectionOut, e.poll(t)):
+                    got[(k, e.links[out.row].index)] = out.correction
+    return got

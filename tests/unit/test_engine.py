@@ -19,7 +19,7 @@ from companion.fleetnet.leader import GlobalStepNode
 from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState
 
 from ..chains import perturbed_chain
-from ..engine_cases import feed, group_engines, of, setup_for, straight_state
+from ..engine_cases import feed, fly_group_engines, group_engines, of, setup_for, straight_state
 
 
 def test_step_on_flight_controller_time_sends_corrections_targets_and_arm():
@@ -169,17 +169,7 @@ def test_distributed_engines_on_an_in_process_bus_equal_the_in_process_step(grou
     layout = setup.companion.group_layout(n)
     _, engines = group_engines(setup, lambda: clock[0])
     states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
-    got = {}
-    for k in range(16):  # 0.8 s: the first cycles fall in the 0.5 s start-up listening
-        t = 0.05 * k
-        clock[0] = t
-        for e in engines:
-            for lk in e.links:
-                e.on_state(lk.row, states_at(t)[lk.index], STATE_FLAG_EKF_OK, t)
-        for _ in range(6):
-            for e in engines:
-                for out in of(CorrectionOut, e.poll(t)):
-                    got[(k, e.links[out.row].index)] = out.correction
+    got = fly_group_engines(engines, clock, states_at)  # 0.8 s: the first cycles fall in the start-up listening
     late = [k for k in range(16) if all((k, i) in got for i in range(n))]
     assert len(late) >= 5
     _, want = compute_corrections(states_at(0.0), setup.skeleton.d_b_m, layout, setup.companion.params)
@@ -206,17 +196,8 @@ def test_a_group_engine_applies_its_neighbour_measurements_in_its_local_half():
     clock = [0.0]
     _, engines = group_engines(setup, lambda: clock[0])
     states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
-    got = {}
-    for k in range(16):
-        t = clock[0] = 0.05 * k
-        engines[1].on_neighbour(t, m.numbered_from(2))
-        for e in engines:
-            for lk in e.links:
-                e.on_state(lk.row, states_at(t)[lk.index], STATE_FLAG_EKF_OK, t)
-        for _ in range(6):
-            for e in engines:
-                for out in of(CorrectionOut, e.poll(t)):
-                    got[(k, e.links[out.row].index)] = out.correction
+    got = fly_group_engines(engines, clock, states_at,
+                            before=lambda k, t: engines[1].on_neighbour(t, m.numbered_from(2)))
     k = [k for k in range(16) if all((k, i) in got for i in range(n))][-1]
     _, want = compute_corrections(states_at(0.0), setup.skeleton.d_b_m, setup.companion.group_layout(n),
                                   setup.companion.params, neighbours=[m])
@@ -245,17 +226,7 @@ def test_a_holed_group_takes_part_in_the_global_step_part_by_part(down, parts, j
     clock = [0.0]
     _, engines = group_engines(setup, lambda: clock[0])
     states_at = lambda t: [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]  # noqa: E731
-    got = {}
-    for k in range(16):
-        t = clock[0] = 0.05 * k
-        for e in engines:
-            for lk in e.links:
-                if lk.index != down or k == 0:
-                    e.on_state(lk.row, states_at(t)[lk.index], STATE_FLAG_EKF_OK, t)
-        for _ in range(6):
-            for e in engines:
-                for out in of(CorrectionOut, e.poll(t)):
-                    got[(k, e.links[out.row].index)] = out.correction
+    got = fly_group_engines(engines, clock, states_at, heard=lambda k, i: i != down or k == 0)
     live = [i for i in range(n) if i != down]
     k = max(k for k in range(16) if all((k, i) in got for i in live))
     assert k >= 12 and (k, down) not in got
