@@ -15,7 +15,13 @@ from companion.configfile import require_nonnegative, require_positive
 from companion.vision.dictionaries import check_marker
 from companion.vision.geometry import CameraIntrinsics, frame_from_axes
 
-__all__ = ["CameraMount", "MarkerMount"]
+__all__ = ["CameraMount", "MarkerMount", "link_of"]
+
+
+def link_of(body: str) -> int | None:
+    """The 0-based link a body name is (``link<i>``), else ``None`` (the world, a load)."""
+    m = re.fullmatch(r"link(\d+)", body)
+    return int(m.group(1)) - 1 if m else None
 
 
 @dataclass(frozen=True)
@@ -156,8 +162,8 @@ class CameraMount:
     def vehicle_index(self) -> int:
         if self.vehicle >= 0:
             return self.vehicle
-        m = re.fullmatch(r"link(\d+)", self.body)
-        return int(m.group(1)) - 1 if m else 0
+        link = link_of(self.body)
+        return 0 if link is None else link
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,6 @@ errors against the truth at capture.
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView
@@ -23,17 +21,11 @@ from companion.estimation.so3 import quat_to_rotvec, rotmat_to_quat
 from companion.vision.geometry import geodesic_angle_rad
 from companion.vision.pnp import MarkerPipeline
 
-from .config import CameraMount, MarkerMount
+from .config import CameraMount, MarkerMount, link_of
 from .rig import CapturedFrame
 from .video import pipeline_config
 
 __all__ = ["neighbour_views", "NeighbourCameras"]
-
-
-def _link_of(body: str) -> int | None:
-    """The 0-based link a body name is (``link<i>``), else ``None``."""
-    m = re.fullmatch(r"link(\d+)", body)
-    return int(m.group(1)) - 1 if m else None
 
 
 def neighbour_views(cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...]
@@ -42,11 +34,11 @@ def neighbour_views(cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount
     link, observed link, view)`` (0-based links)."""
     out: dict[str, dict[int, tuple[int, int, NeighbourView]]] = {}
     for cam in cameras:
-        i = _link_of(cam.body)
+        i = link_of(cam.body)
         if i is None:
             continue
         for mk in markers:
-            j = _link_of(mk.body)
+            j = link_of(mk.body)
             if j is not None and abs(i - j) == 1:
                 view = NeighbourView(np.asarray(cam.pos_b_m, dtype=float), cam.R_b_c(),
                                      np.asarray(mk.pos_b_m, dtype=float), mk.R_b_m())
