@@ -43,14 +43,28 @@ def _at_cycles(log: dict[str, np.ndarray], cycles: np.ndarray) -> dict[str, np.n
     return out
 
 
-def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, distributed: bool) -> dict | None:
+def _with_skipped(cycles: np.ndarray, period_us: int | None) -> np.ndarray:
+    """``cycles`` (sorted) and the cycles of the ``period_us`` grid inside every longer gap."""
+    if period_us is None or cycles.size < 2:
+        return cycles
+    gaps = np.flatnonzero(np.diff(cycles) > 1.5 * period_us)
+    if gaps.size == 0:
+        return cycles
+    filled = [np.arange(cycles[k] + period_us, cycles[k + 1] - period_us // 2, period_us) for k in gaps]
+    return np.unique(np.concatenate([cycles, *filled]))
+
+
+def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, distributed: bool,
+                    period_us: int | None = None) -> dict | None:
     """One step log of the whole chain, or ``None`` when a companion has logged no step.
 
     ``logs``: per companion (per group in distributed mode, in group order) the parts of its log
     in time order (a companion restarted after a fault continues its log in a second part).
-    Distributed logs are joined on the cycles any group logged: a group that logged no step in a
-    cycle (its companion down) has NaN states there, ``corrected_sckf`` and ``global_applied``
-    false and ``leader`` -1, so the window stays in the log as the outage it was;
+    Distributed logs are joined on the cycles any group logged and, given the step period
+    ``period_us``, the cycles no group logged between them (every companion down, or every one
+    skipped the cycle on a host too busy to run it): a group that logged no step in a
+    cycle has NaN states there, ``corrected_sckf`` and ``global_applied`` false and ``leader``
+    -1, so the window stays in the log as the outage it was;
     ``global_applied`` becomes (steps, groups). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
     ``con_vel_after`` (steps, n - 1): the eq. 3 tip position and velocity errors per joint.
     """
@@ -68,7 +82,7 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
         # from the first cycle every group logged (the start-up), every cycle any group logged
         first = max(lg["cycle_us"][0] for lg in per)
         cycles = np.unique(np.concatenate([lg["cycle_us"] for lg in per]))
-        cycles = cycles[cycles >= first]
+        cycles = _with_skipped(cycles[cycles >= first], period_us)
         merged = {"t_sckf": cycles * 1e-6, "cycle_us": cycles}
         taken = [_at_cycles(lg, cycles) for lg in per]
         for key in _CHAIN_KEYS:

@@ -41,6 +41,12 @@ __all__ = ["BusEvent", "FleetBus", "peer_config", "zenoh_config"]
 log = logging.getLogger(__name__)
 
 
+#: How a session retries a peer endpoint it could not reach: after 0.1 s, backing off to 1 s
+#: (Zenoh's default starts at 1 s and backs off to 4 s, so companions started together could
+#: lead alone for seconds before they meet).
+CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
 def _insert(zc: zenoh.Config, settings: list[ZenohSetting]) -> zenoh.Config:
     for s in settings:
         try:
@@ -65,6 +71,7 @@ def zenoh_config(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<conf
                      setting("connect/endpoints", others + list(cfg.connect), "zenoh.connect")]
     else:
         settings.append(setting("connect/endpoints", list(cfg.connect), "zenoh.connect"))
+    settings.append(setting("connect/retry", CONNECT_RETRY, "zenoh.connect"))
     zc = _insert(zenoh.Config(), settings)
     return _insert(zc, group_credentials(cfg, group, n_groups, file))
 
@@ -81,7 +88,8 @@ def peer_config(listen: Sequence[str], connect: Sequence[str], credentials: Sequ
                 ZenohSetting("scouting/multicast/enabled", json.dumps(multicast_scouting), file,
                              "zenoh.multicast_scouting"),
                 ZenohSetting("listen/endpoints", json.dumps(list(listen)), file, "zenoh.listen"),
-                ZenohSetting("connect/endpoints", json.dumps(list(connect)), file, "zenoh.connect")]
+                ZenohSetting("connect/endpoints", json.dumps(list(connect)), file, "zenoh.connect"),
+                ZenohSetting("connect/retry", json.dumps(CONNECT_RETRY), file, "zenoh.connect")]
     return _insert(zenoh.Config(), settings + list(credentials))
 
 

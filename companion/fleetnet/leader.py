@@ -21,8 +21,9 @@ Leadership. Groups are ranked by a configured preference order; each companion h
 liveliness token. The *acting* leader is the one whose shifts are being received. When the
 acting leader's token disappears, the first live group in the order leads from the next cycle
 (failover takes the token's disappearance plus at most one cycle). A companion that (re)joins
-first listens for ``startup_s``: if shifts are flowing it follows the acting leader, even if
-it ranks higher; the acting leader then names it in its shifts as ``handover_group`` with a
+first listens for ``startup_s`` (and, with no acting leader, again for ``startup_s`` after
+each group it sees come up, before it leads itself: its session may reach the others only
+later): if shifts are flowing it follows the acting leader, even if it ranks higher; the acting leader then names it in its shifts as ``handover_group`` with a
 ``handover_cycle_us`` ``handover_cycles`` cycles ahead, and leads up to the cycle before.
 Leadership thus only changes at a cycle both sides agreed on, so a returning leader never
 makes two leaders in one cycle: asking who leads a later cycle changes nothing, the hand-over
@@ -71,6 +72,8 @@ __all__ = ["PartBoundary", "PartShift", "Resolution", "Actions", "GlobalStepNode
 _KEEP_CYCLES = 8
 #: Shifts of the pending cycle held for a boundary still on its way (more are dropped, counted).
 _MAX_HELD = 4
+#: Duplicate shifts kept with their leaders for the summary (all are counted).
+_MAX_DUPLICATES_KEPT = 16
 
 
 def _same_report(a: GroupBoundaryReport, b: GroupBoundaryReport) -> bool:
@@ -141,6 +144,9 @@ class GlobalStepNode:
         self.network_round_trips_us: list[int] = []
         self.counts = {"global": 0, "local_only": 0, "led": 0, "late_shift": 0, "duplicate_shift": 0,
                        "yielded": 0, "partial": 0, "rejected_shift": 0, "conflicting_boundary": 0, "muted": 0}
+        #: (cycle_us, leader whose shift settled it, leader of the second shift, that one live) per
+        #: duplicate shift, the first :data:`_MAX_DUPLICATES_KEPT`
+        self.duplicates: list[tuple[int, int, int, bool]] = []
         #: rejected shifts by reason (see the module docstring)
         self.rejections: dict[str, int] = {}
         #: (cycle_us, leader group) at every change of the leader whose shifts were applied
@@ -184,7 +190,11 @@ class GlobalStepNode:
             return self.acting
         if now_s - self.started_s < self.startup_s:
             return None  # still listening for an acting leader
-        return next((g for g in self.order if g in self.live and g not in self.muted), self.group)
+        elected = next((g for g in self.order if g in self.live and g not in self.muted), self.group)
+        if elected == self.group and any(now_s - self._live_since.get(g, -np.inf) < self.startup_s
+                                         for g in self.live if g != self.group):
+            return None  # a group just came up (or this one just reached it): listen for its shifts first
+        return elected
 
     def _leads(self, cycle_us: int, now_s: float) -> bool:
         return self.leader_for(cycle_us, now_s) == self.group
@@ -247,6 +257,11 @@ class GlobalStepNode:
         settled = self.settled.get(cycle)
         if settled is not None:
             self.counts["duplicate_shift"] += 1
+            live = shift.leader_group in self.live
+            if len(self.duplicates) < _MAX_DUPLICATES_KEPT:
+                self.duplicates.append((cycle, settled, shift.leader_group, live))
+            log.warning("cycle %.3f s: a second shift, from group %d (%s), after group %d's", cycle * 1e-6,
+                        shift.leader_group + 1, "live" if live else "its token gone", settled + 1)
             if (settled == self.group and self.rank[shift.leader_group] < self.rank[self.group]
                     and shift.leader_group in self.live and self._verify(shift) is not False):
                 self.counts["yielded"] += 1  # two leaders met: the lower-ranked one yields

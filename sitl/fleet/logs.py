@@ -167,7 +167,8 @@ def companion_log(sc: Scenario, out_dir: Path) -> dict[str, np.ndarray] | None:
     else:
         logs = [parts(*process_folders(out_dir, f"companion-g{g + 1}"))
                 for g in range(len(sc.companion.group_layout(sc.skeleton.n_links)))]
-    return merge_step_logs(logs, sc.skeleton.d_b_m, sc.companion.distributed)
+    return merge_step_logs(logs, sc.skeleton.d_b_m, sc.companion.distributed,
+                           int(round(1e6 / sc.companion.rate_hz)))
 
 
 def companion_summaries(out_dir: Path) -> dict[str, dict]:

@@ -270,9 +270,13 @@ def test_distributed_companions_fail_over_and_hand_back(tmp_path, fleet_ports):
     # first cycles too, if group 1's companion came up later: then it hands over at once)
     assert leaders in ([1, 2, 1], [2, 1, 2, 1])
     # one leader per cycle through the hand-back (a returning group that lags a cycle behind used
-    # to lead before the agreed hand-over cycle: test_fleetnet_election's lagging-group test)
+    # to lead before the agreed hand-over cycle: test_fleetnet_election's lagging-group test).
+    # Before the take-off two companions that found each other late (each led alone, a partition
+    # that healed) may both have led a cycle: the lower-ranked one yielded.
     for c in comps.values():
-        assert c["global_step"]["duplicate_shift"] == 0 and c["global_step"]["yielded"] == 0, c["global_step"]
+        gs = c["global_step"]
+        assert gs["duplicate_shift"] == len(gs["duplicates"]), gs
+        assert all(dup["cycle_s"] < sc.flight_start_s and dup["second_live"] for dup in gs["duplicates"]), gs
     cp = m["constraint_pos_p95_m"]
     assert cp["after_between_groups"] <= max(cp["after_within_groups"], 0.01)
     # Every cycle of the window counts, those of the outage too (group 2 alone has no global step

@@ -236,6 +236,22 @@ def test_merged_step_log_keeps_a_dead_companions_cycles_as_an_outage():
     assert late["cycle_us"][0] == all_cycles[4]
 
 
+def test_merged_step_log_keeps_cycles_no_group_logged_as_an_outage():
+    """Cycles every group skipped (a host too busy to run them) are rows without a step, not left out."""
+    d = np.array([[0.5, 0, 0]] * 3)
+    all_cycles = [k * 50_000 for k in range(12)]
+    skipped = {200_000, 250_000, 300_000, 450_000}
+    logged = [c for c in all_cycles if c not in skipped]
+    merged = merge_step_logs([[_group_log(logged, [0, 1])], [_group_log(logged, [2])]], d, True, period_us=50_000)
+    assert merged["cycle_us"].tolist() == all_cycles
+    gone = np.isin(merged["cycle_us"], sorted(skipped))
+    assert not merged["global_applied"][gone].any() and merged["global_applied"][~gone].all()
+    assert not merged["corrected_sckf"][gone].any() and np.all(np.isnan(merged["p_corr_sckf"][gone]))
+    assert np.mean(np.all(merged["global_applied"], axis=1)) == pytest.approx(8 / 12)
+    # without the period the merged log holds the logged cycles only
+    assert merge_step_logs([[_group_log(logged, [0, 1])], [_group_log(logged, [2])]], d, True)["cycle_us"].size == 8
+
+
 def test_fault_sections_round_trip_through_the_run_folder_copy(tmp_path):
     from companion.configfile import dump_toml
     sc = load_scenario(f"{FAULTS}/gps_glitch.toml")

@@ -88,6 +88,7 @@ def test_deadline_gives_local_only_and_two_leaders_resolve_to_the_preferred():
     assert own and own[0].leader_group == 0
     lower.on_shift(GlobalShift(1, 2 * PERIOD_US, (0,), np.zeros((1, 6)), hold_us=(0,)), 1.11)
     assert lower.counts["yielded"] == 1 and lower.leader_for(3 * PERIOD_US, 1.2) == 1
+    assert lower.duplicates == [(2 * PERIOD_US, 0, 1, True)]  # the cycle, whose shift it applied, the second's
 
 
 def test_a_restarted_group_that_has_not_stepped_yet_follows_the_acting_leader():
@@ -109,6 +110,50 @@ def test_a_restarted_group_that_has_not_stepped_yet_follows_the_acting_leader():
         for shift in act.shifts:
             g1.on_shift(shift, now + 0.031)
     assert g1.leader_for(212 * PERIOD_US, 10.6) == 1 and g1.acting == 1
+
+
+def test_a_restarted_group_that_reaches_the_others_late_listens_before_it_leads():
+    """Group 1 (preferred) restarts and steps alone, its session reaching group 2 (which leads)
+    only after its own start-up listening is over: it listens again from group 2's coming up, so
+    it follows group 2 instead of leading the next cycle beside it."""
+    rng = np.random.default_rng(7)
+    g2 = GlobalStepNode(1, 2, (0, 1), PERIOD_US, startup_s=0.0)
+    g2.on_liveliness(1, True, 0.0)
+    g2.acting = 1  # it led while group 1 was away
+    g1 = GlobalStepNode(0, 2, (0, 1), PERIOD_US, startup_s=0.5)
+    g1.start(10.0)
+    g1.on_liveliness(1, True, 11.2)  # 1.2 s after it started
+    g2.on_liveliness(0, True, 11.2)
+    assert g1.leader_for(300 * PERIOD_US, 11.3) is None  # not itself: group 2 may be acting
+    led = []
+
+    def send(actions, node, now):
+        for shift in actions.shifts:
+            led.append((shift.cycle_us, shift.leader_group))
+            (g2 if node is g1 else g1).on_shift(shift, now)
+
+    for k in range(1, 8):
+        cycle, now = (300 + k) * PERIOD_US, 11.2 + 0.05 * k
+        a2 = g2.local_step(rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6), cycle, now)
+        a1 = g1.local_step(rng.normal(0, 0.01, 6), rng.normal(0, 0.01, 6), np.eye(6), cycle, now + 0.002)
+        send(a2, g2, now + 0.003)
+        send(a1, g1, now + 0.003)
+        send(g1.on_boundary(a2.boundary, now + 0.003), g1, now + 0.004)
+        send(g2.on_boundary(a1.boundary, now + 0.003), g2, now + 0.004)
+        for node in (g1, g2):
+            send(node.tick(now + 0.013), node, now + 0.014)
+    # one leader per cycle: group 2, then group 1 from the cycle group 2 agreed to hand back at
+    cycles = [c for c, _ in led]
+    assert sorted(cycles) == [(300 + k) * PERIOD_US for k in range(1, 8)]
+    leaders = [g for _, g in sorted(led)]
+    assert leaders[0] == 1 and leaders[-1] == 0 and leaders == sorted(leaders, reverse=True)
+    assert g1.counts["duplicate_shift"] == g2.counts["duplicate_shift"] == 0
+    assert g1.counts["led"] + g2.counts["led"] == 7
+    # with no group acting, a lone group that just met another leads after the listening
+    alone = GlobalStepNode(0, 2, (0, 1), PERIOD_US, startup_s=0.5)
+    alone.start(10.0)
+    alone.on_liveliness(1, True, 11.2)
+    assert alone.leader_for(300 * PERIOD_US, 11.5) is None and alone.leader_for(300 * PERIOD_US, 11.71) == 0
 
 
 def test_a_returning_group_one_cycle_behind_does_not_lead_before_the_agreed_hand_over():
