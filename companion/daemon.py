@@ -22,6 +22,12 @@ Distributed mode (``companion.distributed``, one daemon per group, ``--group``):
 (:class:`~companion.fleetnet.bus.FleetBus`, imported only in this mode); malformed Zenoh payloads
 are counted per key and logged.
 
+Neighbour cameras (``companion.neighbour_cameras``): the vision consumer's
+:class:`~companion.messages.NeighbourPose` messages arrive on the fleet session (distributed) or
+on a session of the daemon's own (centralised, ``[zenoh] neighbour_poses``)
+(:class:`~companion.fleetnet.neighbour_inbox.NeighbourInbox`) and go to the engine before its
+next poll; the summary's ``neighbour_poses_wire`` counts what arrived and what was dropped.
+
 Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
 invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog`` (one per link),
 ``companion.log`` (by the
@@ -137,6 +143,13 @@ class CompanionDaemon:
                 net.close()
             raise
         self.net = net
+        try:
+            self.neighbour_inbox = self._neighbour_inbox(setup, net, config_file)
+        except Exception:
+            self._close_ports()
+            if net is not None:
+                net.close()
+            raise
         self._stop = False
         self._log_stream = LogStream(out_dir / "companion_log.stream") if out_dir is not None else None
         self._members = members
@@ -162,6 +175,27 @@ class CompanionDaemon:
                                  "'aerial-skeleton-stack[distributed]'") from None
             bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file, clock=self.clock)
         return GroupLink(node, bus, self.clock)
+
+    @staticmethod
+    def _neighbour_inbox(setup: CompanionSetup, net, config_file: str):
+        """Where the vision consumer's neighbour poses arrive (``None``: nowhere): the fleet
+        session of a distributed companion; a session of its own for a centralised one with
+        ``[zenoh] neighbour_poses``."""
+        if not setup.companion.neighbour_cameras:
+            return None
+        session = getattr(getattr(net, "bus", None), "session", None)
+        if net is None and setup.zenoh.neighbour_poses:
+            try:
+                from .fleetnet.neighbour_inbox import NeighbourInbox  # Zenoh: the distributed extra
+                return NeighbourInbox.open(setup.zenoh, setup.zenoh_prefix, config_file)
+            except ImportError as exc:
+                raise ValueError(f"zenoh.neighbour_poses needs Eclipse Zenoh ({exc}): pip install "
+                                 "'aerial-skeleton-stack[distributed]'") from None
+        if session is None:
+            return None
+        from .fleetnet.neighbour_inbox import NeighbourInbox
+
+        return NeighbourInbox(session, setup.zenoh_prefix)
 
     # -- input ---------------------------------------------------------------------------------------
     def _on_message(self, row: int, msg, now_s: float) -> None:
@@ -266,6 +300,9 @@ class CompanionDaemon:
             if port in ready:
                 for msg in port.read():
                     self._on_message(row, msg, self.clock())
+        if self.neighbour_inbox is not None:
+            for pose in self.neighbour_inbox.drain():
+                self.engine.on_neighbour_pose(pose)
         now = self.clock()
         self._carry_out(self.engine.poll(now), now)
 
@@ -295,6 +332,8 @@ class CompanionDaemon:
         out = self.engine.summary()
         for lk, port in zip(self.engine.links, self.ports):
             out["links"][str(lk.system_id)].update(vars(port.stats))
+        if self.neighbour_inbox is not None:
+            out["neighbour_poses_wire"] = self.neighbour_inbox.summary()
         return out
 
     def step_log(self) -> dict[str, np.ndarray]:
@@ -354,5 +393,7 @@ class CompanionDaemon:
             self.write_log()
             self._log_stream.close()
         self._close_ports()
+        if self.neighbour_inbox is not None:
+            self.neighbour_inbox.close()
         if self.net is not None:
             self.net.close()

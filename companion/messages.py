@@ -38,6 +38,7 @@ __all__ = [
     "GlobalShift",
     "ChainTargets",
     "GroupPassiveLinks",
+    "NeighbourPose",
     "PoseTarget",
     "ContactTarget",
     "ExternalWrench",
@@ -353,6 +354,41 @@ class GroupPassiveLinks:
     group: int
     time_us: int
     links: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class NeighbourPose:
+    """A camera on chain link ``observer`` sees the marker on the neighbouring link ``observed``:
+    the marker's pose in the camera frame with its covariance, and where the camera and the
+    marker sit on their links, so that the companion that takes it needs no camera configuration
+    of its own (published by the vision consumer, :mod:`companion.vision`).
+
+    Attributes:
+        observer: 0-based chain index of the link that carries the camera.
+        observed: 0-based chain index of the link that carries the marker (a neighbour: the
+            indices differ by one).
+        t_capture_s: when the frame was captured, on the observing link's flight-controller clock [s].
+        seq: the camera's frame number.
+        q_cm_wxyz: marker to camera rotation (unit quaternion).
+        t_cm_m: the marker's centre in the camera frame [m].
+        cov_c: (6, 6) covariance of ``[dtheta_c (rad); dt_c (m)]``, camera frame.
+        camera_pos_b_m, q_bc_wxyz: the camera on the observer (its centre in the body frame [m],
+            camera to body rotation).
+        marker_pos_b_m, q_bm_wxyz: the marker on the observed link (its centre in the body frame
+            [m], marker to body rotation).
+    """
+
+    observer: int
+    observed: int
+    t_capture_s: float
+    seq: int
+    q_cm_wxyz: np.ndarray
+    t_cm_m: np.ndarray
+    cov_c: np.ndarray
+    camera_pos_b_m: np.ndarray
+    q_bc_wxyz: np.ndarray
+    marker_pos_b_m: np.ndarray
+    q_bm_wxyz: np.ndarray
 
 
 @dataclass(frozen=True)

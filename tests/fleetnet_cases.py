@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.estimation.semi import semi_distributed_apply
-from companion.messages import ChainTargets, GroupBoundaryReport
+from companion.messages import ChainTargets, GroupBoundaryReport, NeighbourPose
 
 from .chains import perturbed_chain
 
@@ -20,6 +20,16 @@ def targets(rng, links, time_us=12_340_000, seq=7) -> ChainTargets:
     q = rng.normal(size=(k, 4))
     return ChainTargets(1, time_us, seq, tuple(links), rng.normal(size=(k, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
                         *(rng.normal(size=(k, 3)) for _ in range(6)))
+
+
+def neighbour_pose(rng, observer: int = 1, observed: int = 2, t_capture_s: float = 3.25) -> NeighbourPose:
+    """A random neighbour pose (unit quaternions, a positive-definite covariance, mounts near the link)."""
+    def unit():
+        q = rng.normal(size=4)
+        return q / np.linalg.norm(q)
+    A = rng.normal(size=(6, 6))
+    return NeighbourPose(observer, observed, t_capture_s, 42, unit(), rng.normal(0.0, 0.5, 3), A @ A.T + 1e-3 * np.eye(6),
+                         rng.normal(0.0, 0.3, 3), unit(), rng.normal(0.0, 0.3, 3), unit())
 
 
 def equal(a, b) -> bool:

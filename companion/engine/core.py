@@ -19,8 +19,9 @@ import time
 import numpy as np
 
 from ..config import CompanionSetup
-from ..estimation.neighbour import NeighbourMeasurement
-from ..messages import LinkState
+from ..estimation.neighbour import NeighbourMeasurement, NeighbourView
+from ..estimation.so3 import quat_to_rotmat
+from ..messages import LinkState, NeighbourPose
 from ..plausibility import StampGate
 from ..quantiles import Quantiles
 from ..trajectory import chain_model
@@ -170,6 +171,24 @@ class CompanionEngine:
             return
         offset_us = self.links[measurement.observer].offset_us or 0  # (the link's clock to the time base)
         self.step.neighbours.add((usec(t_capture_s) + offset_us) * 1e-6, measurement)
+
+    def on_neighbour_pose(self, pose: NeighbourPose) -> None:
+        """A neighbour pose off the wire (chain indices, :class:`~companion.messages.NeighbourPose`):
+        :meth:`on_neighbour` between the rows of its links, or counted as left out when this
+        engine does not step both (another group's pair, a pair across two groups)."""
+        row_of = {lk.index: lk.row for lk in self.links}
+        if pose.observer not in row_of or pose.observed not in row_of:
+            self.step.neighbours.refuse()
+            return
+        try:
+            view = NeighbourView(pose.camera_pos_b_m, quat_to_rotmat(pose.q_bc_wxyz), pose.marker_pos_b_m,
+                                 quat_to_rotmat(pose.q_bm_wxyz))
+            m = NeighbourMeasurement(row_of[pose.observer], row_of[pose.observed], quat_to_rotmat(pose.q_cm_wxyz),
+                                     pose.t_cm_m, pose.cov_c, view)
+        except ValueError:  # shapes, a covariance not positive definite: a message not from the wire's decoder
+            self.step.neighbours.refuse()
+            return
+        self.on_neighbour(pose.t_capture_s, m)
 
     def on_state(self, row: int, state: LinkState, flags: int, now_s: float, correction_seq: int = 0,
                  correction_latency_us: int = 0) -> bool:

@@ -72,5 +72,6 @@ class NeighbourQueue:
 
     def counts(self) -> dict[str, int]:
         """``received``; ``applied``; ``not_applied`` (given to a step: gated, or between two of
-        its groups); ``too_old`` at the step; ``left_out`` (no segment held both links)."""
-        return dict(self._counts)
+        its groups); ``too_old`` at the step; ``left_out`` (no segment held both links);
+        ``pending``: received and waiting for the next step (at the end of a run: never applied)."""
+        return {**self._counts, "pending": len(self._pending)}

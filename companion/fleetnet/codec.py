@@ -30,19 +30,23 @@ from companion.messages import (
     GroupPassiveLinks,
     LinkState,
     MessageError,
+    NeighbourPose,
+    check_bounded,
     check_finite,
     check_pd,
     check_psd,
     check_unit_quat,
 )
 
-__all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError"]
+__all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError", "MAX_NEIGHBOUR_RANGE_M",
+           "MAX_MOUNT_OFFSET_M"]
 
 MAGIC = b"ASKZ"
 # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance;
 # 4: GroupPassiveLinks (a group's links carried by their neighbours); 5: a group split by a link
-# down reports each part (boundaries: part, parts, joins_left / joins_right; shifts: each entry's part)
-VERSION = 5
+# down reports each part (boundaries: part, parts, joins_left / joins_right; shifts: each entry's part);
+# 6: NeighbourPose (a chain camera's view of its neighbour's marker)
+VERSION = 6
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -70,7 +74,15 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                        ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)),
                        ("force_ff_w_n", ("rows", 3)), ("torque_ff_b_nm", ("rows", 3)))),
     GroupPassiveLinks: (6, (("group", "u8"), ("time_us", "i64"), ("links", "ids"))),
+    NeighbourPose: (7, (("observer", "u16"), ("observed", "u16"), ("t_capture_s", "f64"), ("seq", "u32"),
+                        ("q_cm_wxyz", ("vec", 4)), ("t_cm_m", ("vec", 3)), ("cov_c", ("sym", 6)),
+                        ("camera_pos_b_m", ("vec", 3)), ("q_bc_wxyz", ("vec", 4)), ("marker_pos_b_m", ("vec", 3)),
+                        ("q_bm_wxyz", ("vec", 4)))),
 }
+#: Largest camera range and mount offset a :class:`NeighbourPose` may carry [m] (a chain link
+#: is about a metre long; anything beyond is a corrupt or hostile payload).
+MAX_NEIGHBOUR_RANGE_M = 20.0
+MAX_MOUNT_OFFSET_M = 5.0
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 
 
@@ -239,5 +251,21 @@ def _passive(v: dict[str, Any]) -> GroupPassiveLinks:
     return GroupPassiveLinks(**v)
 
 
+def _neighbour_pose(v: dict[str, Any]) -> NeighbourPose:
+    _finite_all(NeighbourPose, v)
+    if abs(v["observer"] - v["observed"]) != 1:
+        raise MessageError(f"NeighbourPose.observed: link {v['observed'] + 1} is not a neighbour of link "
+                           f"{v['observer'] + 1}")
+    if v["t_capture_s"] < 0.0:
+        raise MessageError(f"NeighbourPose.t_capture_s: {v['t_capture_s']:g} s is before the clock's start")
+    for name in ("q_cm_wxyz", "q_bc_wxyz", "q_bm_wxyz"):
+        v[name] = check_unit_quat(f"NeighbourPose.{name}", v[name])
+    check_bounded("NeighbourPose.t_cm_m", v["t_cm_m"], MAX_NEIGHBOUR_RANGE_M)
+    for name in ("camera_pos_b_m", "marker_pos_b_m"):
+        check_bounded(f"NeighbourPose.{name}", v[name], MAX_MOUNT_OFFSET_M)
+    v["cov_c"] = check_pd("NeighbourPose.cov_c", v["cov_c"])
+    return NeighbourPose(**v)
+
+
 _VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift,
-             ChainTargets: _targets, GroupPassiveLinks: _passive}
+             ChainTargets: _targets, GroupPassiveLinks: _passive, NeighbourPose: _neighbour_pose}

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key"]
+__all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key",
+           "neighbour_key", "neighbour_pattern"]
 
 
 def boundary_key(prefix: str, group: int) -> str:
@@ -50,3 +51,13 @@ def group_of_key(prefix: str, key: str) -> int | None:
         return None
     chunk = key[len(head):].split("/", 1)[0]
     return int(chunk) - 1 if chunk.isdigit() and int(chunk) >= 1 else None
+
+
+def neighbour_key(prefix: str, link: int) -> str:
+    """Where the camera of 0-based chain ``link`` publishes what it sees of its neighbours
+    (:class:`~companion.messages.NeighbourPose`)."""
+    return f"{prefix}/link/{link + 1}/neighbour"
+
+
+def neighbour_pattern(prefix: str) -> str:
+    return f"{prefix}/link/*/neighbour"

@@ -10,7 +10,8 @@
   frames, or an onboard camera process's) and :class:`VideoCaptureFrames` (``cv2.VideoCapture``:
   a camera device, a file or a stream URL on this computer).
 * :func:`run_node`: the loop; writes ``vision_frames.jsonl`` (one line per frame, flushed: what a
-  killed consumer leaves is readable) and, at the end, ``vision_summary.json``.
+  killed consumer leaves is readable) and, at the end, ``vision_summary.json``; with
+  ``[[neighbours]]`` it publishes each frame's neighbour poses (:mod:`.neighbour_wire`).
 
 OpenCV (the ``vision`` extra) through :mod:`.pnp`, ``zenoh`` (the ``distributed`` extra) for the
 Zenoh source only; neither belongs to the onboard base install, and both are imported when a
@@ -275,16 +276,26 @@ def open_source(setup: VisionNodeSetup, file: str = "<config>"):
 
 def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = lambda: False,
              duration_s: float | None = None, drain_s: float = 0.5, drain_max_s: float = 5.0, source=None,
-             clock: Callable[[], float] = time.monotonic) -> dict:
+             clock: Callable[[], float] = time.monotonic, publish: Callable | None = None) -> dict:
     """Process frames until ``stop()``, ``duration_s`` of wall time, the end of a video or
     ``idle_timeout_s`` without frames; writes the frame log and the summary into ``out_dir`` and
     returns the summary. After ``stop()``, a Zenoh source is drained until nothing has arrived
     for ``drain_s`` (the frames in flight when the publisher stopped), at most ``drain_max_s``.
-    ``clock`` (monotonic seconds) times all of these."""
+    ``clock`` (monotonic seconds) times all of these. With ``setup.neighbours``, each frame's
+    neighbour poses go to ``publish`` (default: a :class:`~.neighbour_wire.NeighbourPublisher` on
+    the Zenoh source's session)."""
+    from .neighbour_wire import NeighbourPublisher, neighbour_poses
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     node = VisionNode(setup.pipeline)
     src = open_source(setup) if source is None else source
+    cameras = {(n.camera, n.marker_id): n for n in setup.neighbours}
+    publisher = None
+    if cameras and publish is None:
+        publisher = NeighbourPublisher(src.session, setup.zenoh.prefix)
+        publish = publisher.publish
+    sent = {"published": 0, "wrong_vehicle": 0}
     wall0 = clock()
     last_frame = wall0
     reason = "stopped"
@@ -317,12 +328,23 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
                             log.warning("rejected #%d: %s", node.rejected, item)
                         continue
                     last_frame = clock()
-                    fh.write(json.dumps(node.on_frame(item).to_json()) + "\n")
+                    record = node.on_frame(item)
+                    fh.write(json.dumps(record.to_json()) + "\n")
+                    if cameras:
+                        poses, wrong = neighbour_poses(record, cameras)
+                        sent["wrong_vehicle"] += wrong
+                        for pose in poses:
+                            publish(pose)
+                            sent["published"] += 1
     finally:
+        if publisher is not None:
+            publisher.close()
         src.close()
     wall = clock() - wall0
     summary = {"name": setup.name, "source": setup.source, "ended_by": reason, "wall_s": round(wall, 3), **node.summary()}
     summary["frames_per_s"] = round(summary["frames_total"] / wall, 3) if wall > 0 else None
+    if cameras:
+        summary["neighbour_poses"] = sent
     (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
     log.info("%d frames (%d with a marker), %d rejected; detection + PnP %s ms per frame; ended by %s",
              summary["frames_total"], summary["frames_detected"], summary["rejected_payloads"],

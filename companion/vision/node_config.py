@@ -24,24 +24,42 @@ No OpenCV and no Zenoh here: the file loads and is validated on any install. One
     marker_length_m = 0.5
     ids = [7]
 
+    [[neighbours]]              # a chain camera seeing its neighbour's marker (source = "zenoh")
+    camera = "tip2"             # the camera's name in the frames' headers
+    observer = 2                # the 1-based link that carries it
+    observed = 3                # the neighbouring link that carries the marker
+    marker_id = 12
+    camera_pos_b_m = [0.45, 0.0, 0.05]        # the camera on the observer, body frame
+    camera_q_bc_wxyz = [0.5, -0.5, 0.5, -0.5] # camera to body
+    marker_pos_b_m = [-0.45, 0.0, 0.06]       # the marker on the observed link
+    marker_q_bm_wxyz = [1.0, 0.0, 0.0, 0.0]   # marker to body
+
+Each pose of a ``[[neighbours]]`` marker in that camera's frames goes out, with its covariance
+and the two mounts, as a :class:`~companion.messages.NeighbourPose` on
+``<prefix>/link/<observer>/neighbour`` for the companion that steps both links (the frames'
+capture times must be on the observing link's flight-controller clock, as the SITL harness
+stamps them).
+
 Every key is checked (unknown keys, types, ranges: :mod:`companion.configfile`).
 """
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 from companion.configfile import ConfigError, build, load_toml, require_nonnegative
+from companion.fleetnet.codec import MAX_MOUNT_OFFSET_M
 from companion.fleetnet.config import PREFIX_RE, load_zenoh_table
 from companion.fleetnet.credentials import ZenohSetting, group_credentials
 
 from .config import PipelineConfig
 from .geometry import CameraIntrinsics
 
-__all__ = ["ZenohCameraSource", "VideoCaptureSource", "VisionNodeSetup", "fleet_credentials", "load_vision_setup"]
+__all__ = ["ZenohCameraSource", "VideoCaptureSource", "NeighbourCamera", "VisionNodeSetup", "fleet_credentials", "load_vision_setup"]
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
 _SECURE_TRANSPORTS = ("tls/", "quic/")
@@ -160,9 +178,46 @@ class VideoCaptureSource:
 
 
 @dataclass(frozen=True)
+class NeighbourCamera:
+    """A camera (``camera``) on 1-based chain link ``observer`` that may see the marker
+    ``marker_id`` on the neighbouring link ``observed``; the camera's mount on the observer
+    (``camera_pos_b_m``, ``camera_q_bc_wxyz``: camera to body) and the marker's on the observed
+    link (``marker_pos_b_m``, ``marker_q_bm_wxyz``: marker to body), body frames, metres."""
+
+    camera: str
+    observer: int
+    observed: int
+    marker_id: int
+    camera_pos_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    camera_q_bc_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    marker_pos_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    marker_q_bm_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not _NAME_RE.fullmatch(self.camera):
+            raise ValueError(f"camera {self.camera!r}: 1-64 letters, digits or '_'")
+        if not 1 <= self.observer <= 0xFFFF:
+            raise ValueError(f"observer: a 1-based link, got {self.observer}")
+        if abs(self.observed - self.observer) != 1:
+            raise ValueError(f"observed: a neighbour of link {self.observer} ({self.observer - 1} or "
+                             f"{self.observer + 1}), got {self.observed}")
+        if self.marker_id < 0:
+            raise ValueError(f"marker_id must be >= 0, got {self.marker_id}")
+        for name in ("camera_pos_b_m", "marker_pos_b_m"):
+            v = getattr(self, name)
+            if not all(math.isfinite(x) for x in v) or math.hypot(*v) > MAX_MOUNT_OFFSET_M:
+                raise ValueError(f"{name}: finite and within {MAX_MOUNT_OFFSET_M:g} m of the link's centre, got {list(v)}")
+        for name in ("camera_q_bc_wxyz", "marker_q_bm_wxyz"):
+            q = getattr(self, name)
+            if not all(math.isfinite(x) for x in q) or abs(math.hypot(*q) - 1.0) > 1e-3:
+                raise ValueError(f"{name}: a unit quaternion (w, x, y, z), got {list(q)}")
+
+
+@dataclass(frozen=True)
 class VisionNodeSetup:
     """The consumer's whole config (module docstring). ``idle_timeout_s``: stop when no frame has
-    arrived for that long (0: never; the SITL stops the consumer with SIGTERM)."""
+    arrived for that long (0: never; the SITL stops the consumer with SIGTERM). ``neighbours``:
+    the chain cameras whose neighbour markers go out as neighbour poses."""
 
     name: str = "vision"
     source: Literal["zenoh", "video"] = "zenoh"
@@ -170,6 +225,7 @@ class VisionNodeSetup:
     video: VideoCaptureSource = field(default_factory=VideoCaptureSource)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     idle_timeout_s: float = 0.0
+    neighbours: tuple[NeighbourCamera, ...] = ()
 
     def __post_init__(self) -> None:
         if not _NAME_RE.fullmatch(self.name):
@@ -186,6 +242,12 @@ class VisionNodeSetup:
                 self.video.check_source()
             except ValueError as exc:
                 raise ValueError(f"video: {exc}") from None
+            if self.neighbours:
+                raise ValueError("neighbours: need source = 'zenoh' (the poses go out on its session, and a "
+                                 "device's frames are stamped on this computer's clock, not the links')")
+        pairs = [(n.camera, n.marker_id) for n in self.neighbours]
+        if len(set(pairs)) != len(pairs):
+            raise ValueError(f"neighbours: each (camera, marker_id) once, got {pairs}")
 
 
 def fleet_credentials(src: ZenohCameraSource, file: str = "<config>") -> list[ZenohSetting]:

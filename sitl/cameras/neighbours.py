@@ -19,13 +19,14 @@ import numpy as np
 from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView
 from companion.estimation.so3 import quat_to_rotvec, rotmat_to_quat
 from companion.vision.geometry import geodesic_angle_rad
+from companion.vision.node_config import NeighbourCamera
 from companion.vision.pnp import MarkerPipeline
 
 from .config import CameraMount, MarkerMount, link_of
 from .rig import CapturedFrame
 from .video import pipeline_config
 
-__all__ = ["neighbour_views", "NeighbourCameras"]
+__all__ = ["neighbour_views", "neighbour_cameras", "NeighbourCameras"]
 
 
 def neighbour_views(cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...]
@@ -44,6 +45,16 @@ def neighbour_views(cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount
                                      np.asarray(mk.pos_b_m, dtype=float), mk.R_b_m())
                 out.setdefault(cam.name, {})[mk.id] = (i, j, view)
     return out
+
+
+def neighbour_cameras(cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...]) -> tuple[NeighbourCamera, ...]:
+    """The vision consumer's ``[[neighbours]]`` list of these mounts (fleet mode: the consumer
+    publishes what :func:`neighbour_views` would feed the engines in batch mode)."""
+    return tuple(NeighbourCamera(name, i + 1, j + 1, marker_id, tuple(map(float, view.camera_pos_b_m)),
+                                 tuple(map(float, rotmat_to_quat(view.R_b_c))), tuple(map(float, view.marker_pos_b_m)),
+                                 tuple(map(float, rotmat_to_quat(view.R_b_m))))
+                 for name, views in neighbour_views(cameras, markers).items()
+                 for marker_id, (i, j, view) in sorted(views.items()))
 
 
 class NeighbourCameras:

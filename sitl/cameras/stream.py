@@ -50,6 +50,7 @@ from companion.vision.geometry import geodesic_angle_rad
 from companion.vision.node import FRAMES_FILE, SUMMARY_FILE, read_frame_log
 from companion.vision.node_config import VisionNodeSetup, ZenohCameraSource
 
+from .neighbours import neighbour_cameras
 from .rig import CameraRig
 
 __all__ = ["CameraStreamer", "camera_endpoint", "fleet_vision_metrics", "free_loopback_port", "open_camera_session"]
@@ -96,7 +97,7 @@ class CameraStreamer:
     file that holds it (the consumer reads the credentials there; needed when ``fleet`` is secured)."""
 
     def __init__(self, sc, model, data, dt_s: float, runtime_env: str | None = None,
-                 fleet: ZenohConfig | None = None, fleet_file: str = ""):
+                 fleet: ZenohConfig | None = None, fleet_file: str = "", neighbour_endpoints: tuple[str, ...] = ()):
         if runtime_env and "ZENOH_RUNTIME" not in os.environ:  # before this process's first session
             os.environ["ZENOH_RUNTIME"] = runtime_env
         from companion.vision.camera_wire import CameraPublisher
@@ -110,6 +111,8 @@ class CameraStreamer:
         if self.fleet.secured and not fleet_file:
             raise ValueError("fleet_file: a secured fleet's camera consumer reads the credentials from its config")
         self.fleet_file = fleet_file
+        self.cameras = sc.cameras
+        self.neighbour_endpoints = tuple(neighbour_endpoints)
         layout = sc.companion.group_layout(sc.skeleton.n_links)
         group_of = {v: g for g, links in enumerate(layout) for v in links}  # 0-based vehicle -> its group
         self.endpoints: dict[int, str] = {}  # by 0-based group: where its camera session listens
@@ -143,13 +146,17 @@ class CameraStreamer:
 
     def consumer_setup(self) -> VisionNodeSetup:
         """The consumer's config: connect to these sessions (in a secured fleet with the
-        credentials of the first camera's group), the scenario's markers."""
+        credentials of the first camera's group), the scenario's markers; with
+        ``neighbour_endpoints`` (the companions that take neighbour poses), the chain cameras'
+        views of their neighbours' markers, published to them."""
         pipe = self.pipeline
         if self.markers:
             pipe = replace(pipe, ids=tuple(m.id for m in self.markers))
         credentials = dict(fleet=self.fleet_file, group=min(self.endpoints) + 1) if self.fleet.secured else {}
-        source = ZenohCameraSource(prefix=self.prefix, connect=tuple(self.endpoints.values()), **credentials)
-        return VisionNodeSetup(name="fleet_cameras", source="zenoh", zenoh=source, pipeline=pipe)
+        neighbours = neighbour_cameras(self.cameras, self.markers) if self.neighbour_endpoints else ()
+        source = ZenohCameraSource(prefix=self.prefix, connect=tuple(self.endpoints.values()) + (
+            self.neighbour_endpoints if neighbours else ()), **credentials)
+        return VisionNodeSetup(name="fleet_cameras", source="zenoh", zenoh=source, pipeline=pipe, neighbours=neighbours)
 
     def write_consumer_config(self, path: Path) -> None:
         path.write_text(dump_toml(self.consumer_setup()))

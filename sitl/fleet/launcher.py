@@ -39,7 +39,8 @@ from .harness import FleetHarness
 from .inject import FailureCommander, enable_failure_injection
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
                      check_instance_offset, endpoint_table, impaired_links)
-from .logs import companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs
+from .logs import (companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs,
+                   neighbour_camera_metrics)
 from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, enter_batch_scheduling, listening_unix_paths,
                         restore_scheduling, wait_udp_listening)
 
@@ -106,9 +107,23 @@ class Fleet:
             zc = setup.zenoh
             setup = replace(setup, companion=replace(cfg, links=links),
                             zenoh=zc if zc.endpoints else replace(zc, base_port=zc.base_port + k))
-        if sc.companion.distributed and not sc.zenoh.users_file:
-            # The companions authenticate to each other with throwaway credentials of this run: another
-            # process on this host cannot join their Zenoh session (zenoh.users_file).
+        # Chain cameras that see their neighbours' markers: the vision consumer publishes the poses to
+        # the companions (a centralised one opens a Zenoh session for them).
+        self.neighbour_endpoints: tuple[str, ...] = ()
+        if sc.cameras and sc.companion.neighbour_cameras and self.companion:
+            from sitl.cameras.neighbours import neighbour_views  # OpenCV: camera scenarios only
+
+            if neighbour_views(sc.cameras, sc.markers):
+                zc = setup.zenoh
+                if sc.companion.distributed:
+                    self.neighbour_endpoints = tuple(zc.group_endpoint(g)
+                                                     for g in range(len(sc.companion.group_layout(self.n))))
+                else:
+                    setup = replace(setup, zenoh=replace(zc, neighbour_poses=True))
+                    self.neighbour_endpoints = (zc.group_endpoint(0),)
+        if (sc.companion.distributed or self.neighbour_endpoints) and not sc.zenoh.users_file:
+            # The companions (and the vision consumer) authenticate to each other with throwaway credentials
+            # of this run: another process on this host cannot join their Zenoh session (zenoh.users_file).
             users_file = out_dir / "zenoh_users.txt"
             new_users_file(users_file, len(sc.companion.group_layout(self.n)), overwrite=True)
             setup = replace(setup, zenoh=replace(setup.zenoh, users_file=str(users_file.resolve())))
@@ -186,7 +201,8 @@ class Fleet:
 
         sc, plant, out_dir = self.sc, self.plant, self.out_dir
         streamer = CameraStreamer(sc, plant.model.model, plant.model.data, plant.dt, sc.zenoh.runtime_env(),
-                                  fleet=self.companion_setup.zenoh, fleet_file=str(self.companion_config.resolve()))
+                                  fleet=self.companion_setup.zenoh, fleet_file=str(self.companion_config.resolve()),
+                                  neighbour_endpoints=self.neighbour_endpoints)
         try:
             config = out_dir / "vision.toml"
             streamer.write_consumer_config(config)
@@ -374,6 +390,8 @@ class Fleet:
 
             metrics["vision"], vision_arrays = fleet_vision_metrics(self.cameras, out_dir / "vision", sc.flight_start_s)
             np.savez_compressed(out_dir / "vision.npz", **vision_arrays)
+        if self.neighbour_endpoints:
+            metrics["neighbour_cameras"] = neighbour_camera_metrics(out_dir, companion_summaries(out_dir))
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         np.savez_compressed(out_dir / "log.npz", **merged)
         write_beside_log(out_dir)

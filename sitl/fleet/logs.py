@@ -267,6 +267,20 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[
     return out
 
 
+def neighbour_camera_metrics(out_dir: Path, summaries: dict[str, dict]) -> dict:
+    """``metrics.json["neighbour_cameras"]`` of a fleet run: the neighbour poses the vision
+    consumer published (and those of a camera on another vehicle than configured) and, per
+    companion, what reached it over Zenoh (delivered, rejected by reason) and what its steps did
+    with them (:meth:`companion.engine.CompanionEngine.on_neighbour_pose`)."""
+    try:
+        vision = json.loads((out_dir / "vision" / "vision_summary.json").read_text())
+    except (OSError, ValueError):
+        vision = {}
+    return {"consumer": vision.get("neighbour_poses"),
+            "companions": {name: {"wire": summ.get("neighbour_poses_wire"), "steps": summ.get("neighbour_measurements")}
+                           for name, summ in summaries.items()}}
+
+
 def distributed_metrics(sc: Scenario, merged: dict, summaries: dict[str, dict], faults: dict) -> dict:
     """Global-step figures of a distributed fleet run: per companion its counts, leaders and
     round trips; the leader failover after a scripted kill, measured by the surviving groups."""

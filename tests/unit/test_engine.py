@@ -16,7 +16,9 @@ from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView, 
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
-from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState
+from companion.estimation.so3 import rotmat_to_quat
+from companion.fleetnet import codec
+from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState, NeighbourPose
 
 from ..chains import perturbed_chain
 from ..engine_cases import feed, fly_group_engines, group_engines, of, setup_for, straight_state
@@ -99,7 +101,51 @@ def test_neighbour_measurements_reach_the_next_step_and_are_counted():
         np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
     assert not np.allclose(want[1].dp_w_m, plain[1].dp_w_m, atol=1e-4)
     assert engine.summary()["neighbour_measurements"] == {"received": 3, "applied": 1, "not_applied": 0,
-                                                          "too_old": 1, "left_out": 1}
+                                                          "too_old": 1, "left_out": 1, "pending": 0}
+
+
+def test_a_neighbour_pose_off_the_wire_is_the_measurement_between_the_links_it_names():
+    """A NeighbourPose (chain indices, quaternions, through the Zenoh codec) gives the engine the
+    same step as the NeighbourMeasurement it stands for; a distributed group's engine takes the
+    poses between its own links only and counts the others (another group's pair, a pair across
+    two groups) as left out."""
+    n = 4
+    rng = np.random.default_rng(42)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), rot_z(0.3), np.array([0.0, 0.0, 0.08]),
+                         rot_z(-0.2))
+    R_cm, t_cm = marker_in_camera(p[1], q[1], p[2], q[2], view)
+    cov = np.diag([1e-3, 2e-3, 1e-3, 4e-4, 4e-4, 9e-4])
+    m = NeighbourMeasurement(1, 2, R_cm, t_cm + [0.05, 0.0, 0.02], cov, view)
+    pose = codec.decode(codec.encode(NeighbourPose(1, 2, 0.95, 7, rotmat_to_quat(R_cm), m.t_cm_m, cov,
+                                                   view.camera_pos_b_m, rotmat_to_quat(view.R_b_c),
+                                                   view.marker_pos_b_m, rotmat_to_quat(view.R_b_m))))
+    setup = setup_for(n)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+    states = [LinkState(i, 1.0, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]
+    got = []
+    for give in (lambda e: e.on_neighbour_pose(pose), lambda e: e.on_neighbour(0.95, m)):
+        engine = CompanionEngine(setup)
+        give(engine)
+        for i, st in enumerate(states):
+            engine.on_state(i, st, STATE_FLAG_EKF_OK, 1.0)
+        got.append([c.correction.dp_w_m for c in of(CorrectionOut, engine.poll(1.0))])
+        assert engine.summary()["neighbour_measurements"]["applied"] == 1
+    np.testing.assert_allclose(got[0], got[1], atol=1e-12)
+    # groups (1, 2) and (3, 4) in two engines: the pose between links 2 and 3 crosses them
+    setup = setup_for(n, ((1, 2), (3, 4)), distributed=True)
+    _, engines = group_engines(setup, lambda: 1.0)
+    for e in engines:
+        e.on_neighbour_pose(pose)
+        e.on_neighbour_pose(replace(pose, observer=3, observed=2))
+    assert [e.step.neighbours.counts()["left_out"] for e in engines] == [2, 1]
+    assert engines[1].step.neighbours.counts()["received"] == 2
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """A rotation about z (a camera or marker mount turned on its link)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def test_needs_poll_leaves_out_only_polls_that_would_do_nothing():

@@ -13,7 +13,7 @@ from companion.fleetnet import codec
 from companion.messages import Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState, MessageError
 
 from ..chains import random_covariances
-from ..fleetnet_cases import equal, targets
+from ..fleetnet_cases import equal, neighbour_pose, targets
 
 
 # -- codec --------------------------------------------------------------------------------------------------
@@ -60,6 +60,34 @@ def test_codec_round_trip_is_exact(seed):
             assert equal(replace(out, tip_cov_pv=None), replace(msg, tip_cov_pv=None))
         else:
             assert equal(out, msg), msg
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_neighbour_pose_round_trips_to_the_bit(seed):
+    msg = neighbour_pose(np.random.default_rng(seed))
+    out = codec.decode(codec.encode(msg))
+    for name in ("q_cm_wxyz", "q_bc_wxyz", "q_bm_wxyz"):  # renormalised
+        np.testing.assert_allclose(getattr(out, name), getattr(msg, name), atol=1e-15)
+    np.testing.assert_array_equal(out.cov_c, 0.5 * (msg.cov_c + msg.cov_c.T))
+    assert equal(replace(out, q_cm_wxyz=msg.q_cm_wxyz, q_bc_wxyz=msg.q_bc_wxyz, q_bm_wxyz=msg.q_bm_wxyz,
+                         cov_c=msg.cov_c), msg)
+
+
+@pytest.mark.parametrize("change, reason", [
+    (dict(observed=3), "link 4 is not a neighbour of link 2"),
+    (dict(observed=1), "link 2 is not a neighbour of link 2"),
+    (dict(t_capture_s=-1.0), "before the clock's start"),
+    (dict(t_capture_s=float("nan")), "t_capture_s: non-finite"),
+    (dict(q_cm_wxyz=np.array([1.0, 0.1, 0.0, 0.0])), "q_cm_wxyz: quaternion norm"),
+    (dict(q_bm_wxyz=np.zeros(4)), "q_bm_wxyz: quaternion norm"),
+    (dict(t_cm_m=np.array([0.0, 0.0, 25.0])), "t_cm_m: magnitude 25"),
+    (dict(camera_pos_b_m=np.array([6.0, 0.0, 0.0])), "camera_pos_b_m: magnitude 6"),
+    (dict(marker_pos_b_m=np.array([np.inf, 0.0, 0.0])), "marker_pos_b_m: non-finite"),
+    (dict(cov_c=-np.eye(6)), "cov_c: not positive definite"),
+])
+def test_a_neighbour_pose_that_is_not_one_is_refused_with_the_reason(change, reason):
+    with pytest.raises(MessageError, match=reason):
+        codec.decode(codec.encode(replace(neighbour_pose(np.random.default_rng(0)), **change)))
 
 
 def test_codec_rejects_malformed_payloads_with_the_reason():
