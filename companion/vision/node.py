@@ -83,9 +83,9 @@ class VisionNode:
 
     def __init__(self, cfg: PipelineConfig, clock: Callable[[], float] = time.perf_counter):
         from .markers import detect_markers  # OpenCV: the vision extra
-        from .pnp import MarkerPipeline, estimate_marker_pose
+        from .pnp import MarkerPipeline, configured_pose
 
-        self._detect, self._estimate, self._pipeline = detect_markers, estimate_marker_pose, MarkerPipeline
+        self._detect, self._estimate, self._pipeline = detect_markers, configured_pose, MarkerPipeline
         self.cfg = cfg
         self.clock = clock
         self._pipes: dict[tuple[int, str], object] = {}
@@ -111,9 +111,7 @@ class VisionNode:
         w1 = self.clock()
         poses = []
         for d in dets:
-            pose = self._estimate(d, cfg.length_m(d.marker_id), h.intrinsics, pipe.method,
-                                  previous=pipe.previous.get(d.marker_id), ambiguity_ratio=cfg.ambiguity_ratio,
-                                  sigma_floor_px=cfg.sigma_floor_px, refine=cfg.refine)
+            pose = self._estimate(d, h.intrinsics, cfg, pipe.method, pipe.previous)
             if pose is not None:
                 pipe.previous[d.marker_id] = pose
                 poses.append(pose)
