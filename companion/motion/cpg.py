@@ -27,6 +27,9 @@ bias bends the chain into an arc (weights -1 at the head to +1 at the tail).
 The output is the body-frame attitude of every link ``R_BLi`` and its body rate
 ``omega_BLi^Li = (R^T R')^v = J_r(w_i) w_i'`` (the right Jacobian of SO(3)), as sec. 4.4 needs.
 
+The filters, the phase coupling and the integration are the chapter's common oscillator core
+(:mod:`.oscillators`, shared with the snake's and the pivotboard's CPGs, :mod:`.ground_cpgs`).
+
 Functional API: :func:`cpg_derivative`, :func:`cpg_step` (classical RK4), :func:`cpg_output`;
 :class:`Cpg` is a thin stateful wrapper with the same numbers.
 """
@@ -41,6 +44,8 @@ import numpy as np
 
 from companion.configfile import require_positive
 from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat, skew
+
+from .oscillators import Coupling, chain_coupling, filter_acceleration, rk4_step
 
 __all__ = ["CpgParams", "CpgState", "eel_shaping", "cpg_initial_state", "cpg_derivative", "cpg_step",
            "cpg_output", "so3_exp", "so3_right_jacobian", "Cpg"]
@@ -111,14 +116,10 @@ class CpgParams:
         return _frozen(phi)
 
     @cached_property
-    def coupled_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:attr:`coupling` as a list of its P coupled pairs ``(i (P,), j (P,), phi_ij (P,),
-        incidence (P, n))``, ``incidence[p, i[p]] = 1``: a sum over each link's pairs is one
-        product with it (read-only)."""
-        i, j = np.nonzero(~np.isnan(self.coupling))
-        incidence = np.zeros((len(i), self.n_links))
-        incidence[np.arange(len(i)), i] = 1.0
-        return _frozen(i), _frozen(j), _frozen(self.coupling[i, j]), _frozen(incidence)
+    def coupled_pairs(self) -> Coupling:
+        """:attr:`coupling` as the list of its coupled pairs (:class:`~.oscillators.Coupling`:
+        nearest neighbours, the lag towards the tail)."""
+        return chain_coupling(self.n_links, self.shaping[2])
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -163,23 +164,15 @@ def cpg_derivative(state: CpgState, params: CpgParams, A, B) -> CpgState:
     sigma_a, sigma_b, _ = params.shaping
     A = np.asarray(A, dtype=float)[..., None, :]
     B = np.asarray(B, dtype=float)[..., None, :]
-    a_dd = params.k_a * (params.k_a / 4.0 * (sigma_a[:, None] * A - state.a) - state.a_dot)
-    b_dd = params.k_b * (params.k_b / 4.0 * (sigma_b[:, None] * B - state.b) - state.b_dot)
-    # sum over the coupled j of sin(phi_j - phi_i - phi_ij), one term per coupled pair (i, j)
-    i, j, phi_ij, incidence = params.coupled_pairs
-    coupling = np.sin(state.phi[..., j] - state.phi[..., i] - phi_ij) @ incidence
-    phi_dot = 2.0 * math.pi * params.frequency_hz + params.k_phi * coupling
+    a_dd = filter_acceleration(state.a, state.a_dot, sigma_a[:, None] * A, params.k_a)
+    b_dd = filter_acceleration(state.b, state.b_dot, sigma_b[:, None] * B, params.k_b)
+    phi_dot = 2.0 * math.pi * params.frequency_hz + params.k_phi * params.coupled_pairs.sum_sin(state.phi)
     return CpgState(state.a_dot, a_dd, state.b_dot, b_dd, phi_dot)
 
 
 def cpg_step(state: CpgState, params: CpgParams, A, B, dt_s: float) -> CpgState:
     """One classical Runge-Kutta step of ``dt_s`` with ``A``, ``B`` held over the step."""
-    k1 = cpg_derivative(state, params, A, B)
-    k2 = cpg_derivative(state.plus(0.5 * dt_s, k1), params, A, B)
-    k3 = cpg_derivative(state.plus(0.5 * dt_s, k2), params, A, B)
-    k4 = cpg_derivative(state.plus(dt_s, k3), params, A, B)
-    h = dt_s / 6.0
-    return state.plus(h, k1).plus(2 * h, k2).plus(2 * h, k3).plus(h, k4)
+    return rk4_step(lambda x: cpg_derivative(x, params, A, B), state, dt_s)
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:

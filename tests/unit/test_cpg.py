@@ -62,7 +62,8 @@ def test_phase_coupling_over_the_pair_list_is_the_dense_sum(n):
     dense = np.sum(np.where(coupled, np.sin(diff), 0.0), axis=-1)
     np.testing.assert_array_equal(d.phi, 2 * math.pi * params.frequency_hz + params.k_phi * dense)
     assert params.shaping[0] is params.shaping[0]  # computed once per instance
-    for a in (*params.shaping[:2], params.coupling, *params.coupled_pairs):
+    pairs = params.coupled_pairs
+    for a in (*params.shaping[:2], params.coupling, pairs.i, pairs.j, pairs.phi_ij, pairs.incidence):
         with pytest.raises(ValueError):
             a[...] = 0
 
