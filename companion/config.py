@@ -137,7 +137,10 @@ class CompanionConfig:
     ``neighbour_cameras``: apply the camera measurements between neighbouring links that reach
     the companion (a camera on one link seeing its neighbour's marker:
     :mod:`companion.engine.neighbours`) in the step, before the constraint; ``false`` counts and
-    drops them (the comparison flight).
+    drops them (the comparison flight). ``neighbour_mount_std_m`` / ``neighbour_mount_std_deg``:
+    how well the cameras' and markers' mounts on their links are known (each position per axis,
+    each orientation per axis); their share of a measurement's covariance
+    (:func:`~companion.estimation.neighbour.mount_covariance`) is added to the PnP's.
 
     Disk: each link's tlog is rotated when it reaches ``tlog_max_mb`` (0: never), keeping
     ``tlog_keep`` older files (:mod:`companion.mavlink.tlog`), so a daemon left running keeps at
@@ -173,12 +176,15 @@ class CompanionConfig:
     tlog_max_mb: float = TLOG_MAX_MB
     tlog_keep: int = TLOG_KEEP
     neighbour_cameras: bool = True
+    neighbour_mount_std_m: float = 0.006
+    neighbour_mount_std_deg: float = 0.2
 
     def __post_init__(self) -> None:
         self.params
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
                          "clock_rate_max", "reboot_silence_s", "reboot_frames", "carry_silence_s")
-        require_nonnegative(self, "carry_spinup_s", "tlog_max_mb", "tlog_keep")
+        require_nonnegative(self, "carry_spinup_s", "tlog_max_mb", "tlog_keep", "neighbour_mount_std_m",
+                            "neighbour_mount_std_deg")
         self.gate
         c = self.gnss_common_pos_var_m2
         if c is not None and (len(c) != 2 or not all(math.isfinite(x) and x >= 0.0 for x in c)):

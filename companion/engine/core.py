@@ -15,11 +15,12 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from ..config import CompanionSetup
-from ..estimation.neighbour import NeighbourMeasurement, NeighbourView
+from ..estimation.neighbour import NeighbourMeasurement, NeighbourView, mount_covariance
 from ..estimation.so3 import quat_to_rotmat
 from ..messages import LinkState, NeighbourPose
 from ..plausibility import StampGate
@@ -165,12 +166,16 @@ class CompanionEngine:
         are rows), captured at ``t_capture_s`` on the observing link's clock: applied at the next
         step (a distributed group's local half) that holds both (:mod:`.neighbours`). With
         ``neighbour_cameras`` off, or for a row the engine does not have, it is counted as left
-        out."""
+        out. Its covariance gets the mounts' share (``neighbour_mount_std_m`` / ``_deg``:
+        :func:`~companion.estimation.neighbour.mount_covariance`)."""
         if not self.cfg.neighbour_cameras or max(measurement.observer, measurement.observed) >= len(self.links):
             self.step.neighbours.refuse()
             return
         offset_us = self.links[measurement.observer].offset_us or 0  # (the link's clock to the time base)
-        self.step.neighbours.add((usec(t_capture_s) + offset_us) * 1e-6, measurement)
+        mounts = mount_covariance(measurement.t_cm_m, self.cfg.neighbour_mount_std_m,
+                                  np.radians(self.cfg.neighbour_mount_std_deg))
+        self.step.neighbours.add((usec(t_capture_s) + offset_us) * 1e-6,
+                                 replace(measurement, cov=measurement.cov + mounts))
 
     def on_neighbour_pose(self, pose: NeighbourPose) -> None:
         """A neighbour pose off the wire (chain indices, :class:`~companion.messages.NeighbourPose`):

@@ -18,7 +18,10 @@ With the chain's world-frame attitude errors ``R = (I + S(dtheta)) R_hat`` (:mod
     d(t_cm)     = M (dp_j - dp_i) + M S(w) dtheta_i - M S(R_j m) dtheta_j
 
 The residual is ``[Log(R_cm_meas R_cm^T); t_cm_meas - t_cm]``: it is zero at the truth and its
-covariance is the PnP's. Unlike the chain constraint, it measures the relative attitude too, and
+covariance is the PnP's plus the mounts' (:func:`mount_covariance`: ``c``, ``m``, ``R_bc`` and
+``R_bm`` are known to a calibration's accuracy only; PnP alone puts the marker's centre to a
+fraction of a millimetre, and the lever arm of the camera to the marker turns that into an
+attitude measurement the mounts cannot back). Unlike the chain constraint, it measures the relative attitude too, and
 it needs no absolute position: common-mode GNSS errors cancel in it.
 
 :func:`neighbour_updates` applies such measurements (:class:`NeighbourMeasurement`) to a chain's
@@ -39,6 +42,7 @@ from .sckf import block_diag_covariance
 from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
 
 __all__ = ["NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual", "relative_pose_jacobian",
+           "mount_covariance",
            "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates", "RelativePoseUpdate",
            "relative_pose_update"]
 
@@ -110,6 +114,21 @@ def relative_pose_jacobian(p_i, q_i, p_j, q_j, view: NeighbourView) -> tuple[np.
     H_i[RES_POS, ERR_TH] = M @ skew(w)
     H_j[RES_POS, ERR_TH] = -M @ skew(Rm)
     return H_i, H_j
+
+
+def mount_covariance(t_cm_m, std_m: float, std_rad: float) -> np.ndarray:
+    """(6, 6) covariance over ``[dtheta_c; dt]`` of a pose measured at ``t_cm_m`` from the mounts'
+    calibration errors: each of the two mounts' positions off by ``std_m`` per axis, each of their
+    orientations by ``std_rad`` per axis, all independent. With the camera turned by ``phi``
+    (camera frame) the measured pose is ``(Exp(-phi) R_cm, Exp(-phi) t_cm)``: ``dtheta_c = -phi``,
+    ``dt = S(t_cm) phi``; the marker turned by ``psi`` turns the measured attitude by ``R_cm psi``
+    (isotropic: ``std_rad^2 I``) and leaves its centre; a mount moved moves the centre
+    (``std_m^2 I`` each)."""
+    J = np.vstack([-np.eye(3), skew(np.asarray(t_cm_m, dtype=float))])  # camera orientation
+    cov = std_rad**2 * (J @ J.T)
+    cov[RES_ROT, RES_ROT] += std_rad**2 * np.eye(3)  # marker orientation
+    cov[RES_POS, RES_POS] += 2.0 * std_m**2 * np.eye(3)  # camera and marker positions
+    return cov
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import pytest
 from companion.config import CompanionConfig
 from companion.corrections import compute_corrections
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
-from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView, marker_in_camera
+from companion.estimation.neighbour import NeighbourMeasurement, NeighbourView, marker_in_camera, mount_covariance
 from companion.fleetnet.group import GroupLink
 from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
@@ -94,8 +94,11 @@ def test_neighbour_measurements_reach_the_next_step_and_are_counted():
     for i, st in enumerate(states):
         engine.on_state(i, st, STATE_FLAG_EKF_OK, 1.0)
     got = of(CorrectionOut, engine.poll(1.0))
+    # (the engine adds the mounts' calibration error to the PnP's covariance)
+    mounts = mount_covariance(m.t_cm_m, setup.companion.neighbour_mount_std_m,
+                              np.radians(setup.companion.neighbour_mount_std_deg))
     _, want = compute_corrections(states, setup.skeleton.d_b_m, setup.companion.group_layout(n),
-                                  setup.companion.params, neighbours=[replace(m, age_s=0.05)])
+                                  setup.companion.params, neighbours=[replace(m, age_s=0.05, cov=m.cov + mounts)])
     _, plain = compute_corrections(states, setup.skeleton.d_b_m, setup.companion.group_layout(n), setup.companion.params)
     for g, c in zip(got, want):
         np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
@@ -234,7 +237,7 @@ def test_a_group_engine_applies_its_neighbour_measurements_in_its_local_half():
     n, groups = 7, ((1, 2), (3, 4, 5), (6, 7))
     rng = np.random.default_rng(41)
     p, v, q, w, d, P = perturbed_chain(rng, n)
-    setup = setup_for(n, groups, distributed=True)
+    setup = setup_for(n, groups, distributed=True, neighbour_mount_std_m=0.0, neighbour_mount_std_deg=0.0)
     setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
     view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
     R_cm, t_cm = marker_in_camera(p[2], q[2], p[3], q[3], view)

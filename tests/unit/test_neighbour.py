@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ChainInputError
 from companion.estimation.neighbour import (NeighbourMeasurement, NeighbourView, marker_in_camera,
-                                            neighbour_updates, relative_pose_jacobian, relative_pose_residual,
-                                            relative_pose_update)
+                                            mount_covariance, neighbour_updates, relative_pose_jacobian,
+                                            relative_pose_residual, relative_pose_update)
 from companion.estimation.sckf import CAParams, constraint_apply_dense, diagonal_blocks
 from companion.estimation.so3 import (attitude_error, quat_from_rotvec, quat_mul, quat_to_rotmat, retract,
                                      rotmat_to_quat)
@@ -66,6 +66,29 @@ def test_the_jacobians_match_finite_differences(seed):
         d = np.zeros(2 * ERR_DIM)
         d[col] = eps
         np.testing.assert_allclose((model(d) - model(-d)) / (2 * eps), H[:, col], atol=1e-7)
+
+
+@pytest.mark.parametrize("std_m, std_deg", [(0.003, 0.0), (0.0, 0.5), (0.002, 0.3)])
+def test_the_mounts_covariance_is_the_spread_of_poses_seen_through_miscalibrated_mounts(std_m, std_deg):
+    """Monte Carlo: the camera and the marker mounted off their nominal positions and
+    orientations by the given errors; the residual of the pose the true mounts give, against the
+    model with the nominal mounts, has the covariance mount_covariance says (4000 draws)."""
+    rng = np.random.default_rng(7)
+    p, _, q = _pair(rng)
+    std_rad = np.radians(std_deg)
+    res = []
+    for _ in range(4000):
+        true = NeighbourView(VIEW.camera_pos_b_m + std_m * rng.normal(size=3),
+                             VIEW.R_b_c @ quat_to_rotmat(quat_from_rotvec(std_rad * rng.normal(size=3))),
+                             VIEW.marker_pos_b_m + std_m * rng.normal(size=3),
+                             VIEW.R_b_m @ quat_to_rotmat(quat_from_rotvec(std_rad * rng.normal(size=3))))
+        R_cm, t_cm = marker_in_camera(p[0], q[0], p[1], q[1], true)
+        res.append(relative_pose_residual(R_cm, t_cm, p[0], q[0], p[1], q[1], VIEW))
+    res = np.array(res)
+    want = mount_covariance(marker_in_camera(p[0], q[0], p[1], q[1], VIEW)[1], std_m, std_rad)
+    got = np.cov(res.T)
+    scale = np.sqrt(np.outer(np.diag(want), np.diag(want))) + 1e-30
+    np.testing.assert_allclose(got / scale, want / scale, atol=0.1)  # 4000 draws: about 0.03 sampling error
 
 
 @given(st.lists(st.floats(-50.0, 50.0), min_size=3, max_size=3), st.integers(0, 1000))
