@@ -44,23 +44,30 @@ def neighbour_poses(record, cameras: dict[tuple[str, int], NeighbourCamera]) -> 
 
 
 class NeighbourPublisher:
-    """Publishes neighbour poses on ``session`` under ``prefix``, one publisher per observing link."""
+    """Publishes neighbour poses on ``session`` under ``prefix``: one publisher per observing link
+    of ``observers`` (0-based), declared at once so that :attr:`matched` can say whether a
+    companion takes them before the first frame; a pose of another link is refused."""
 
-    def __init__(self, session, prefix: str):
+    def __init__(self, session, prefix: str, observers):
+        import zenoh
+
         self.session = session
         self.prefix = prefix
-        self._pubs: dict[int, object] = {}
+        # a pose is small and a late one is useless: sent at once, never queued behind frames
+        self._pubs = {i: session.declare_publisher(neighbour_key(prefix, i), congestion_control=zenoh.CongestionControl.DROP,
+                                                   priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+                      for i in sorted(set(observers))}
         self.published = 0
+
+    @property
+    def matched(self) -> bool:
+        """Whether every observer's key has a subscriber now (a companion that takes its poses)."""
+        return all(bool(p.matching_status.matching) for p in self._pubs.values())
 
     def publish(self, pose: NeighbourPose) -> None:
         pub = self._pubs.get(pose.observer)
         if pub is None:
-            import zenoh
-
-            # a pose is small and late ones are useless: sent at once, never queued behind frames
-            pub = self._pubs[pose.observer] = self.session.declare_publisher(
-                neighbour_key(self.prefix, pose.observer), congestion_control=zenoh.CongestionControl.DROP,
-                priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+            raise ValueError(f"link {pose.observer + 1} is not an observer of this publisher")
         pub.put(codec.encode(pose))
         self.published += 1
 

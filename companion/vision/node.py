@@ -274,14 +274,16 @@ def open_source(setup: VisionNodeSetup, file: str = "<config>"):
 
 def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = lambda: False,
              duration_s: float | None = None, drain_s: float = 0.5, drain_max_s: float = 5.0, source=None,
-             clock: Callable[[], float] = time.monotonic, publish: Callable | None = None) -> dict:
+             clock: Callable[[], float] = time.monotonic, publish: Callable | None = None,
+             match_timeout_s: float = 5.0) -> dict:
     """Process frames until ``stop()``, ``duration_s`` of wall time, the end of a video or
     ``idle_timeout_s`` without frames; writes the frame log and the summary into ``out_dir`` and
     returns the summary. After ``stop()``, a Zenoh source is drained until nothing has arrived
     for ``drain_s`` (the frames in flight when the publisher stopped), at most ``drain_max_s``.
     ``clock`` (monotonic seconds) times all of these. With ``setup.neighbours``, each frame's
     neighbour poses go to ``publish`` (default: a :class:`~.neighbour_wire.NeighbourPublisher` on
-    the Zenoh source's session)."""
+    the Zenoh source's session, waited for until a companion subscribes to every camera's poses,
+    at most ``match_timeout_s``, before the first frame)."""
     from .neighbour_wire import NeighbourPublisher, neighbour_poses
 
     out_dir = Path(out_dir)
@@ -291,8 +293,15 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
     cameras = {(n.camera, n.marker_id): n for n in setup.neighbours}
     publisher = None
     if cameras and publish is None:
-        publisher = NeighbourPublisher(src.session, setup.zenoh.prefix)
+        publisher = NeighbourPublisher(src.session, setup.zenoh.prefix, [n.observer - 1 for n in setup.neighbours])
         publish = publisher.publish
+        # the frames wait in the source's queue while the companions' subscriptions reach this session
+        deadline = clock() + match_timeout_s
+        while not publisher.matched and clock() < deadline and not stop():
+            time.sleep(0.01)
+        if not publisher.matched:
+            log.warning("no companion takes the neighbour poses of every camera yet (%s/link/*/neighbour): "
+                        "publishing anyway", setup.zenoh.prefix)
     sent = {"published": 0, "wrong_vehicle": 0}
     wall0 = clock()
     last_frame = wall0
