@@ -183,14 +183,16 @@ class CompanionDaemon:
         ``[zenoh] neighbour_poses``."""
         if not setup.companion.neighbour_cameras:
             return None
-        session = getattr(getattr(net, "bus", None), "session", None)
-        if net is None and setup.zenoh.neighbour_poses:
+        if net is None:
+            if not setup.zenoh.neighbour_poses:
+                return None
             try:
                 from .fleetnet.neighbour_inbox import NeighbourInbox  # Zenoh: the distributed extra
                 return NeighbourInbox.open(setup.zenoh, setup.zenoh_prefix, config_file)
             except ImportError as exc:
                 raise ValueError(f"zenoh.neighbour_poses needs Eclipse Zenoh ({exc}): pip install "
                                  "'aerial-skeleton-stack[distributed]'") from None
+        session = getattr(net.bus, "session", None)  # (an in-process bus has none)
         if session is None:
             return None
         from .fleetnet.neighbour_inbox import NeighbourInbox

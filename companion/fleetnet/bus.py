@@ -36,7 +36,7 @@ from .hub import KINDS, BusEvent
 from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, passive_key, passive_pattern,
                    shift_key, target_key)
 
-__all__ = ["BusEvent", "FleetBus", "peer_config", "zenoh_config"]
+__all__ = ["BusEvent", "FleetBus", "open_group_session", "peer_config", "zenoh_config"]
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +93,21 @@ def peer_config(listen: Sequence[str], connect: Sequence[str], credentials: Sequ
     return _insert(zenoh.Config(), settings + list(credentials))
 
 
+def open_group_session(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>"):
+    """0-based ``group``'s companion session (:func:`zenoh_config`), the process's Zenoh runtime
+    sized by ``cfg.runtime_threads`` first; :class:`~companion.configfile.ConfigError` if Zenoh
+    refuses to open it."""
+    zc = zenoh_config(cfg, group, n_groups, file)
+    runtime = cfg.runtime_env()
+    if runtime is not None:
+        # read when Zenoh starts its runtime, at the first session of the process
+        os.environ.setdefault("ZENOH_RUNTIME", runtime)
+    try:
+        return zenoh.open(zc)
+    except Exception as exc:
+        raise ConfigError(file, "zenoh", f"cannot open the Zenoh session: {exc}") from None
+
+
 class FleetBus:
     """Zenoh wires of one group companion; see the module docstring."""
 
@@ -105,16 +120,11 @@ class FleetBus:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
-        zc = zenoh_config(cfg, group, n_groups, file)
-        runtime = cfg.runtime_env()
-        if runtime is not None:
-            # read when Zenoh starts its runtime, at the first session of the process
-            os.environ.setdefault("ZENOH_RUNTIME", runtime)
         try:
-            self.session = zenoh.open(zc)
-        except Exception as exc:
+            self.session = open_group_session(cfg, group, n_groups, file)
+        except Exception:
             self._close_pipe()
-            raise ConfigError(file, "zenoh", f"cannot open the Zenoh session: {exc}") from None
+            raise
         s = self.session
         self._token = s.liveliness().declare_token(alive_key(prefix, group))
         self._subs = [

@@ -45,11 +45,9 @@ class NeighbourInbox:
     @classmethod
     def open(cls, cfg: ZenohConfig, prefix: str, file: str = "<config>") -> NeighbourInbox:
         """A centralised companion's inbox on a session of its own (group 1 of one group)."""
-        import zenoh
+        from .bus import open_group_session
 
-        from .bus import zenoh_config
-
-        session = zenoh.open(zenoh_config(cfg, 0, 1, file))
+        session = open_group_session(cfg, 0, 1, file)
         try:
             inbox = cls(session, prefix, own_session=True)
         except BaseException:
