@@ -7,6 +7,7 @@ from hypothesis import settings
 from companion.cli import single_thread_blas
 from sitl.cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
 
+from .alone import host_turn
 from .ports import FleetPorts, fleet_slot, free_ports, worker_index
 
 # Offscreen rendering (the tests marked `rendering`: cameras, videos): a headless OpenGL backend
@@ -88,6 +89,17 @@ def compiled_kernels() -> None:
     from sitl.runner import warm_up_kernels
 
     warm_up_kernels()
+
+
+@pytest.fixture(autouse=True)
+def _fleets_alone(request, tmp_path_factory):
+    """Under pytest-xdist a fleet test (one that takes ``fleet_ports``) runs with no other test beside
+    it, the others side by side (:mod:`tests.alone`)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    with host_turn(tmp_path_factory.getbasetemp().parent, "fleet_ports" in request.fixturenames):
+        yield
 
 
 @pytest.fixture
