@@ -11,4 +11,6 @@
 * :mod:`.certs` -- the fleet CA and each group's TLS certificate (``python -m companion certs``);
 * :mod:`.credentials` -- what a group's sessions present and demand: TLS, user and password, access control;
 * :mod:`.bus` -- the Zenoh session wrapper and the Zenoh configurations of a group's sessions.
+* :mod:`.payload_queue` -- a subscriber's payloads, queued on Zenoh's thread, taken in the caller's;
+* :mod:`.neighbour_inbox` -- the vision consumer's neighbour poses, taken by a companion.
 """

@@ -5,21 +5,22 @@ arrives on ``<prefix>/link/<i>/neighbour``, ``i`` the 1-based link that carries 
 :class:`NeighbourInbox` subscribes on a session it is given (a distributed companion's fleet
 session) or opens itself (:meth:`NeighbourInbox.open`: a centralised companion with ``[zenoh]
 neighbour_poses``, listening on group 1's endpoint and presenting group 1's credentials, so only
-a session the fleet admits can deliver one). The Zenoh callback only stamps and queues a payload;
-:meth:`NeighbourInbox.drain` decodes them in the daemon's thread. A payload that does not
+a session the fleet admits can deliver one). The Zenoh callback only queues a payload
+(:class:`~.payload_queue.PayloadQueue`); :meth:`NeighbourInbox.drain` decodes them in the
+daemon's thread. A payload that does not
 decode, or a pose published on another link's key, is counted by reason and dropped.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 
 from companion.messages import MessageError, NeighbourPose
 
 from . import codec
 from .config import ZenohConfig
 from .keys import neighbour_key, neighbour_pattern
+from .payload_queue import PayloadQueue
 
 __all__ = ["NeighbourInbox"]
 
@@ -37,10 +38,10 @@ class NeighbourInbox:
         self.prefix = prefix
         self.session = session
         self._own = own_session
-        self._queue: queue.SimpleQueue[tuple[bytes, str]] = queue.SimpleQueue()
-        self.counts = {"received": 0, "delivered": 0, "rejected": 0, "overflow": 0}
+        self._payloads = PayloadQueue(MAX_QUEUED)
+        self.counts = {"received": 0, "delivered": 0, "rejected": 0}
         self.reasons: dict[str, int] = {}
-        self._sub = session.declare_subscriber(neighbour_pattern(prefix), self._on_sample)
+        self._sub = session.declare_subscriber(neighbour_pattern(prefix), self._payloads.on_sample)
 
     @classmethod
     def open(cls, cfg: ZenohConfig, prefix: str, file: str = "<config>") -> NeighbourInbox:
@@ -56,12 +57,6 @@ class NeighbourInbox:
         log.info("neighbour poses: listening on %s for %s", cfg.group_endpoint(0), neighbour_pattern(prefix))
         return inbox
 
-    def _on_sample(self, sample) -> None:  # a Zenoh thread: queue only
-        if self._queue.qsize() >= MAX_QUEUED:
-            self.counts["overflow"] += 1  # (this thread is its only writer)
-            return
-        self._queue.put((sample.payload.to_bytes(), str(sample.key_expr)))
-
     def _reject(self, reason: str, key: str) -> None:
         self.counts["rejected"] += 1
         kind = reason.split(":", 1)[0][:60]
@@ -72,11 +67,7 @@ class NeighbourInbox:
     def drain(self) -> list[NeighbourPose]:
         """The poses that arrived since the last drain, checked (the others counted)."""
         out = []
-        while True:
-            try:
-                payload, key = self._queue.get_nowait()
-            except queue.Empty:
-                return out
+        for payload, key in self._payloads.take():
             self.counts["received"] += 1
             try:
                 msg = codec.decode(payload)
@@ -88,10 +79,11 @@ class NeighbourInbox:
                 continue
             self.counts["delivered"] += 1
             out.append(msg)
+        return out
 
     def summary(self) -> dict:
         """Counts: received, delivered, rejected (with ``reasons``), overflow (queue full)."""
-        return {**self.counts, "reasons": dict(self.reasons)}
+        return {**self.counts, "overflow": self._payloads.overflow, "reasons": dict(self.reasons)}
 
     def close(self) -> None:
         try:

@@ -3,7 +3,8 @@
 :class:`CameraPublisher` puts :func:`~.frame_codec.encode_frame` payloads on a vehicle's key
 (the SITL harness does, for every rendered frame; on an onboard computer the camera's own
 process would). :class:`CameraSubscriber` listens on ``<prefix>/camera/*/image``; Zenoh calls
-back on its own threads, the callback only queues the bytes and their key, and :meth:`drain`
+back on its own threads, the callback only queues the bytes and their key
+(:class:`~companion.fleetnet.payload_queue.PayloadQueue`), and :meth:`drain`
 decodes in the caller's thread: valid frames whose header's vehicle matches the key come out as
 ``("frame", CameraFrame, key)``, anything else as ``("error", reason, key)`` (counted, never
 applied). The caller then runs the same pipeline on them as the SITL does
@@ -17,7 +18,8 @@ opens nothing and owns no clock. ``zenoh`` is the ``distributed`` extra; OpenCV 
 from __future__ import annotations
 
 import logging
-import queue
+
+from companion.fleetnet.payload_queue import PayloadQueue
 
 from .frame import CameraFrame
 from .frame_codec import FrameCodecError, ImageFormat, decode_frame, encode_frame
@@ -84,22 +86,15 @@ class CameraSubscriber:
 
     def __init__(self, session, prefix: str):
         self.prefix = prefix
-        self._queue: queue.SimpleQueue[tuple[bytes, str]] = queue.SimpleQueue()
-        self._sub = session.declare_subscriber(camera_pattern(prefix), self._on_sample)
+        self._payloads = PayloadQueue()
+        self._sub = session.declare_subscriber(camera_pattern(prefix), self._payloads.on_sample)
         self.errors = 0
         self.frames = 0
-
-    def _on_sample(self, sample) -> None:  # Zenoh's thread: queue only
-        self._queue.put((sample.payload.to_bytes(), str(sample.key_expr)))
 
     def drain(self) -> list[tuple[str, object, str]]:
         """Decode what arrived: ``("frame", CameraFrame, key)`` or ``("error", reason, key)``."""
         out = []
-        while True:
-            try:
-                payload, key = self._queue.get_nowait()
-            except queue.Empty:
-                return out
+        for payload, key in self._payloads.take():
             vehicle = vehicle_of_key(self.prefix, key)
             try:
                 frame = decode_frame(payload)
@@ -114,6 +109,7 @@ class CameraSubscriber:
                 continue
             self.frames += 1
             out.append(("frame", frame, key))
+        return out
 
     def close(self) -> None:
         self._sub.undeclare()

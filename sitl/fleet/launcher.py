@@ -305,9 +305,10 @@ class Fleet:
             log.error("the fleet stopped at t = %.2f s: %s", self.harness.sim_s, self.aborted)
 
     def close(self) -> None:
-        """The harness's links closed, every process stopped (the vision consumer drains the frames
-        in flight before it exits), the cameras closed, the sockets' folder removed and the
-        scheduling policy restored."""
+        """The harness's links closed, every process stopped (the vision consumer first: it drains
+        the frames in flight, and the neighbour poses it publishes on its way out still reach the
+        companions), the cameras closed, the sockets' folder removed and the scheduling policy
+        restored."""
         if self.harness is not None:
             self.harness.close()
         if self.commander is not None:
@@ -315,7 +316,7 @@ class Fleet:
         if self.fault_socket is not None:
             self.fault_socket.close()
         try:
-            self.procs.stop(self.harness.sim_s if self.harness is not None else 0.0)
+            self.procs.stop(self.harness.sim_s if self.harness is not None else 0.0, first=("vision consumer",))
         finally:
             if self.cameras is not None:
                 self.cameras.close()

@@ -113,15 +113,22 @@ class Processes:
             if name not in self.killed and proc.poll() is not None:
                 raise FleetError(f"{name} exited with code {proc.returncode} (see its console log)")
 
-    def stop(self, flown_s: float = 0.0) -> None:
+    def stop(self, flown_s: float = 0.0, first: tuple[str, ...] = ()) -> None:
         """SIGTERM to every process, SIGKILL to those still up :data:`STOP_GRACE_S` later, plus
-        :data:`STOP_GRACE_PER_FLIGHT_S` per simulated second ``flown_s``."""
-        for _, proc in self.procs:
+        :data:`STOP_GRACE_PER_FLIGHT_S` per simulated second ``flown_s``. The processes named in
+        ``first`` are stopped (and waited for) before the others: what they send on their way out
+        still has someone to receive it."""
+        if first:
+            self._stop([(n, p) for n, p in self.procs if n in first], flown_s)
+        self._stop(self.procs, flown_s)
+
+    def _stop(self, procs: list[tuple[str, subprocess.Popen]], flown_s: float) -> None:
+        for _, proc in procs:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
         grace = STOP_GRACE_S + STOP_GRACE_PER_FLIGHT_S * max(flown_s, 0.0)
         deadline = time.monotonic() + grace
-        for name, proc in self.procs:
+        for name, proc in procs:
             try:
                 proc.wait(max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:

@@ -47,8 +47,8 @@ def test_neighbour_poses_reach_the_step_and_are_applied(tmp_path):
 @pytest.mark.parametrize("distributed", [False, True])
 def test_in_a_fleet_the_consumers_neighbour_poses_reach_the_companions_step(tmp_path, fleet_ports, distributed):
     """Fleet mode, 4 s: the harness renders both chain cameras and publishes their frames, the
-    vision consumer publishes each neighbour pose over Zenoh, and the companion that steps both
-    links applies it. Centralised (the companion's own Zenoh session): every pose published is
+    vision consumer publishes each neighbour pose over Zenoh (stopped before the companions, so its
+    last poses still reach them), and the companion that steps both links applies it. Centralised (the companion's own Zenoh session): every pose published is
     delivered and applied. Distributed in groups (1, 2) and (3): link 1's view of link 2 is
     applied by group 1's companion; link 2's view of link 3 crosses the groups and is counted as
     left out by both."""

@@ -241,3 +241,21 @@ def test_a_split_group_is_solved_part_by_part_and_a_forged_part_count_leaves_it_
     for b in [forged, *a1.boundaries]:
         leader.on_boundary(b, now + 0.001)
     assert leader.counts["conflicting_boundary"] == 1 and 1 in leader.conflicted[cycle]
+
+
+def test_the_payload_queue_hands_over_in_order_and_counts_what_overflows():
+    """A subscriber's callback queues (payload, key) pairs; take() hands them over oldest first;
+    beyond the limit, samples are dropped and counted."""
+    from types import SimpleNamespace
+
+    from companion.fleetnet.payload_queue import PayloadQueue
+
+    def sample(k: int):
+        return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: bytes([k])), key_expr=f"p/link/{k}/neighbour")
+
+    q = PayloadQueue(limit=2)
+    for k in range(3):
+        q.on_sample(sample(k))
+    assert list(q.take()) == [(b"\x00", "p/link/0/neighbour"), (b"\x01", "p/link/1/neighbour")] and q.overflow == 1
+    q.on_sample(sample(5))
+    assert list(q.take()) == [(b"\x05", "p/link/5/neighbour")] and list(q.take()) == []
