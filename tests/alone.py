@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import fcntl
 import os
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -31,10 +31,7 @@ def _flock(path: Path, mode: int) -> Iterator[None]:
 def host_turn(folder: Path, alone: bool) -> Iterator[None]:
     """The turn of one test: exclusive with ``alone``, shared otherwise (module docstring)."""
     gate, lock = folder / "alone.gate", folder / "alone.lock"
-    with _flock(gate, fcntl.LOCK_EX):
-        held = _flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
-        held.__enter__()
-    try:
+    with ExitStack() as turn:
+        with _flock(gate, fcntl.LOCK_EX):  # the gate is let go once the turn is held
+            turn.enter_context(_flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH))
         yield
-    finally:
-        held.__exit__(None, None, None)

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -111,15 +112,17 @@ class SnakeCpgParams:
     def lag(self) -> float:
         return self.lag_h_rad or 2.0 * math.pi / self.n
 
-    @property
+    # computed once per (frozen) instance: the derivative reads them at every Runge-Kutta stage
+    @cached_property
     def shaping(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(sigma_a, sigma_b, A_v)``, each (n,)."""
-        ones = np.ones(self.n)
-        return (np.asarray(self.sigma_a, dtype=float) if self.sigma_a else ones,
-                np.asarray(self.sigma_b, dtype=float) if self.sigma_b else ones,
-                np.broadcast_to(np.asarray(self.A_v_rad, dtype=float), (self.n,)))
+        """``(sigma_a, sigma_b, A_v)``, each (n,), read-only."""
+        out = (np.array(self.sigma_a or (1.0,) * self.n, dtype=float), np.array(self.sigma_b or (1.0,) * self.n, dtype=float),
+               np.broadcast_to(np.asarray(self.A_v_rad, dtype=float), (self.n,)))
+        for a in out[:2]:
+            a.setflags(write=False)
+        return out
 
-    @property
+    @cached_property
     def couplings(self) -> tuple[Coupling, Coupling]:
         """The horizontal and the vertical chains' couplings (the vertical lag twice the horizontal)."""
         return chain_coupling(self.n, self.lag), chain_coupling(self.n, 2.0 * self.lag)
