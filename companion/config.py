@@ -10,8 +10,9 @@ its run folder) has these sections, each a frozen dataclass validated by
     [[companion.links]]          one flight controller per link (system id and URL)
     [signing]                    MAVLink 2 signing: mode per link, key file (companion.mavlink.signing)
     [zenoh]                      the companions' network (distributed mode)
-    [trajectory]                 the target source (take-off, hover, bending, CPG)
+    [trajectory]                 the target source (take-off, hover, bending, CPG, a formation)
     [motion]                     the CPG motion commands (trajectory.kind = "cpg")
+    [load]                       a slung load and the formation carrying it (trajectory.kind = "formation")
 
 :class:`ChainSetup` holds what every layer shares (name, skeleton); :class:`CompanionSetup`
 adds the companion's sections. The link firmware (:mod:`link_firmware_sim.config`) and a SITL
@@ -34,6 +35,7 @@ from .estimation.gate import CHI2_6_1E6, GateParams
 from .estimation.sckf import CAParams
 from .estimation.semi import Groups, make_groups, validate_groups
 from .fleetnet.config import PREFIX_RE, ZenohConfig
+from .load.config import LoadConfig
 from .mavlink.signing import SigningConfig
 from .mavlink.tlog import TLOG_KEEP, TLOG_MAX_MB
 from .motion.inverse import InverseModel
@@ -238,6 +240,8 @@ class CompanionSetup(ChainSetup):
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    #: ``[load]``: the slung load the vehicles carry in formation (``trajectory.kind = "formation"``)
+    load: LoadConfig | None = None
 
     def __post_init__(self) -> None:
         n_groups = len(self.companion.group_layout(self.skeleton.n_links))
@@ -253,6 +257,21 @@ class CompanionSetup(ChainSetup):
                                  f"take-off ({self.trajectory.takeoff_end_s:g} s)")
             if self.trajectory.pitch_deg != 0.0:
                 raise ValueError("trajectory.pitch_deg must be 0 with kind 'cpg' (the CPG body starts level)")
+        if self.trajectory.kind == "formation" and self.load is None:
+            raise ValueError("trajectory.kind 'formation' needs a [load] table (the load and its [load.formation])")
+        if self.load is not None:
+            if self.trajectory.kind != "formation":
+                raise ValueError(f"trajectory.kind must be 'formation' with a [load] table (the vehicles carry the "
+                                 f"load in formation), got {self.trajectory.kind!r}")
+            if self.load.formation.n_vehicles != self.skeleton.n_links:
+                raise ValueError(f"load.formation.n_vehicles ({self.load.formation.n_vehicles}) must equal "
+                                 f"skeleton.n_links ({self.skeleton.n_links}): one vehicle per cable")
+            if self.companion.enabled:
+                raise ValueError("companion.enabled must be false with trajectory.kind 'formation': the vehicles "
+                                 "are not joined, the chain's constraint (SCKF) does not hold between them")
+            if self.companion.distributed:
+                raise ValueError("companion.distributed must be false with a [load] table: one companion takes "
+                                 "every carrying vehicle's state for the load filter")
         if self.trajectory.kind == "rest" and self.companion.arm:
             raise ValueError("trajectory.kind 'rest' keeps the links on the ground: set companion.arm = false")
         if not self.zenoh.prefix and not PREFIX_RE.match(self.name):

@@ -22,11 +22,15 @@ Distributed mode (``companion.distributed``, one daemon per group, ``--group``):
 (:class:`~companion.fleetnet.bus.FleetBus`, imported only in this mode); malformed Zenoh payloads
 are counted per key and logged.
 
-Neighbour cameras (``companion.neighbour_cameras``): the vision consumer's
-:class:`~companion.messages.NeighbourPose` messages arrive on the fleet session (distributed) or
-on a session of the daemon's own (centralised, ``[zenoh] neighbour_poses``)
-(:class:`~companion.fleetnet.neighbour_inbox.NeighbourInbox`) and go to the engine before its
-next poll; the summary's ``neighbour_poses_wire`` counts what arrived and what was dropped.
+The vision consumer's messages (:class:`~companion.fleetnet.inbox.MessageInbox`) arrive on the
+fleet session (distributed) or on a session of the daemon's own (centralised, ``[zenoh]
+vision_session``): with neighbour cameras (``companion.neighbour_cameras``) its
+:class:`~companion.messages.NeighbourPose` messages go to the engine before its next poll; with a
+slung load (``[load]``) its :class:`~companion.load.model.LoadObservation` messages go to the load
+filter (:class:`~companion.load.tracker.LoadTracker`), which also takes a sample of every carrying
+vehicle's state at ``load.vehicle_rate_hz`` of the links' time. The summary's
+``neighbour_poses_wire`` and ``load_observations_wire`` count what arrived and what was dropped;
+``load`` the filter's counters.
 
 Bad input never stops the daemon: unparseable bytes and unknown ids are counted by the ports,
 invalid states by the engine. The run folder gets ``companion_link<sysid>.tlog`` (one per link),
@@ -36,7 +40,8 @@ the last flush, which then leave memory: a companion killed in flight keeps all 
 second; read it with :func:`companion.logstream.read_log_stream`), ``companion_log.npz`` (the
 whole step log, read back from the stream at the end), ``companion.mcap`` (the step log, the health reports and the links' STATUSTEXTs for Foxglove
 and Lichtblick, at the end, when the ``mcap`` package is installed:
-:mod:`companion.recording.companion_mcap`) and ``companion_summary.json``.
+:mod:`companion.recording.companion_mcap`), ``companion_summary.json`` and, with a slung load,
+``load.npz`` (the load filter's log, :func:`companion.load.tracker.log_keys`).
 """
 
 from __future__ import annotations
@@ -143,13 +148,23 @@ class CompanionDaemon:
                 net.close()
             raise
         self.net = net
+        self._vision_session = None  # a centralised companion's own session for the vision consumer
+        self.inboxes: dict = {}
         try:
-            self.neighbour_inbox = self._neighbour_inbox(setup, net, config_file)
+            self._open_inboxes(setup, net, config_file)
         except Exception:
+            self._close_inboxes()
             self._close_ports()
             if net is not None:
                 net.close()
             raise
+        self.load_tracker = None
+        self._next_load_sample_s = -np.inf
+        self.load_rejected = 0
+        if setup.load is not None:
+            from .load.tracker import LoadTracker
+
+            self.load_tracker = LoadTracker(setup.load, fixed_lag_s=setup.load.fixed_lag_s)
         self._stop = False
         self._log_stream = LogStream(out_dir / "companion_log.stream") if out_dir is not None else None
         self._members = members
@@ -176,28 +191,50 @@ class CompanionDaemon:
             bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file, clock=self.clock)
         return GroupLink(node, bus, self.clock)
 
-    @staticmethod
-    def _neighbour_inbox(setup: CompanionSetup, net, config_file: str):
-        """Where the vision consumer's neighbour poses arrive (``None``: nowhere): the fleet
-        session of a distributed companion; a session of its own for a centralised one with
-        ``[zenoh] neighbour_poses``."""
-        if not setup.companion.neighbour_cameras:
-            return None
+    def _open_inboxes(self, setup: CompanionSetup, net, config_file: str) -> None:
+        """Where the vision consumer's messages arrive (module docstring): the fleet session of a
+        distributed companion; a session of its own for a centralised one with ``[zenoh]
+        vision_session``; nowhere else."""
+        kinds = (["neighbour pose"] if setup.companion.neighbour_cameras else []) + (
+            ["load observation"] if setup.load is not None else [])
+        if not kinds:
+            return
         if net is None:
-            if not setup.zenoh.neighbour_poses:
-                return None
+            if not setup.zenoh.vision_session:
+                return
             try:
-                from .fleetnet.neighbour_inbox import NeighbourInbox  # Zenoh: the distributed extra
-                return NeighbourInbox.open(setup.zenoh, setup.zenoh_prefix, config_file)
+                from .fleetnet.inbox import open_vision_session  # Zenoh: the distributed extra
             except ImportError as exc:
-                raise ValueError(f"zenoh.neighbour_poses needs Eclipse Zenoh ({exc}): pip install "
+                raise ValueError(f"zenoh.vision_session needs Eclipse Zenoh ({exc}): pip install "
                                  "'aerial-skeleton-stack[distributed]'") from None
-        session = getattr(net.bus, "session", None)  # (an in-process bus has none)
-        if session is None:
-            return None
-        from .fleetnet.neighbour_inbox import NeighbourInbox
+            session = self._vision_session = open_vision_session(setup.zenoh, config_file)
+        else:
+            session = getattr(net.bus, "session", None)  # (an in-process bus has none)
+            if session is None:
+                return
+        from .fleetnet.inbox import MessageInbox
 
-        return NeighbourInbox(session, setup.zenoh_prefix)
+        for kind in kinds:
+            self.inboxes[kind] = MessageInbox(session, setup.zenoh_prefix, kind)
+
+    def _close_inboxes(self) -> None:
+        for inbox in self.inboxes.values():
+            inbox.close()
+        self.inboxes = {}
+        if self._vision_session is not None:
+            self._vision_session.close()
+            self._vision_session = None
+
+    def _sample_load(self) -> None:
+        """A sample of every carrying vehicle for the load filter, when one is due on the links' time."""
+        from .load.tracker import vehicle_states
+
+        veh = vehicle_states([lk.state for lk in self.engine.links])
+        if veh is None or veh.stamp_s < self._next_load_sample_s:
+            return
+        period = 1.0 / self.setup.load.vehicle_rate_hz
+        self._next_load_sample_s = max(self._next_load_sample_s + period, veh.stamp_s + 0.5 * period)
+        self.load_tracker.push_vehicles(veh)
 
     # -- input ---------------------------------------------------------------------------------------
     def _on_message(self, row: int, msg, now_s: float) -> None:
@@ -237,6 +274,8 @@ class CompanionDaemon:
             return
         if not engine.on_state(row, state, *reported):
             self.ports[row].stats.ignored += 1  # no GPS time from this link yet
+        elif self.load_tracker is not None:
+            self._sample_load()
 
     # -- output ------------------------------------------------------------------------------------
     def _carry_out(self, outputs, now_s: float) -> None:
@@ -302,9 +341,19 @@ class CompanionDaemon:
             if port in ready:
                 for msg in port.read():
                     self._on_message(row, msg, self.clock())
-        if self.neighbour_inbox is not None:
-            for pose in self.neighbour_inbox.drain():
+        inbox = self.inboxes.get("neighbour pose")
+        if inbox is not None:
+            for pose in inbox.drain():
                 self.engine.on_neighbour_pose(pose)
+        inbox = self.inboxes.get("load observation")
+        if inbox is not None:
+            for obs in inbox.drain():
+                try:
+                    self.load_tracker.push_observation(obs)
+                except ValueError as exc:  # a vehicle the load has no cable to
+                    self.load_rejected += 1
+                    if self.load_rejected <= 5:
+                        log.warning("load observation dropped: %s", exc)
         now = self.clock()
         self._carry_out(self.engine.poll(now), now)
 
@@ -334,8 +383,11 @@ class CompanionDaemon:
         out = self.engine.summary()
         for lk, port in zip(self.engine.links, self.ports):
             out["links"][str(lk.system_id)].update(vars(port.stats))
-        if self.neighbour_inbox is not None:
-            out["neighbour_poses_wire"] = self.neighbour_inbox.summary()
+        for kind, key in (("neighbour pose", "neighbour_poses_wire"), ("load observation", "load_observations_wire")):
+            if kind in self.inboxes:
+                out[key] = self.inboxes[kind].summary()
+        if self.load_tracker is not None:
+            out["load"] = {**self.load_tracker.stats(), "rejected_observations": self.load_rejected}
         return out
 
     def step_log(self) -> dict[str, np.ndarray]:
@@ -394,8 +446,9 @@ class CompanionDaemon:
             (self.out_dir / "companion_summary.json").write_text(json.dumps(summary, indent=1, default=str))
             self.write_log()
             self._log_stream.close()
+            if self.load_tracker is not None:
+                np.savez_compressed(self.out_dir / "load.npz", **self.load_tracker.arrays())
         self._close_ports()
-        if self.neighbour_inbox is not None:
-            self.neighbour_inbox.close()
+        self._close_inboxes()
         if self.net is not None:
             self.net.close()

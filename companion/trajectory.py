@@ -1,4 +1,5 @@
-"""The companion's target source: every link's pose target for take-off, hover, the paper's bending motion and CPG motion.
+"""The companion's target source: every link's pose target for take-off, hover, the paper's bending motion, CPG motion
+and a formation carrying a slung load.
 
 A chain posture is a set of link attitudes plus the position of the chain's middle point;
 link centres follow from the joints (``p_{i+1} = p_i + R_i d + R_{i+1} d``), so the targets
@@ -26,6 +27,14 @@ motion generation (thesis ch. 4, :class:`CpgChainTrajectory`): the commands of t
 ``[motion]`` section through the inverse model, the CPG and the expected physics, whose body
 starts at the hovering chain's centre with its yaw.
 
+``kind = "formation"``: unjoined vehicles (one per link) carry the ``[load]`` box on cables
+around the ``[load.formation]`` circle (:class:`~companion.load.formation.FormationTrajectory`:
+the formation's own start pose, hold, ramp and yaw, each target with its cable's feed-forward
+force). There is no take-off: the targets hold the formation's start pose from the first
+targets on, so the vehicles start there, hovering. The chain's settings here do not apply
+(``feedforward`` must be false), but the end of the take-off (``takeoff_start_s +
+takeoff_duration_s``) still opens the metrics window.
+
 ``anchor_w_m``: where the chain's middle point starts (the trajectory's origin). Without it the
 companion anchors the trajectory where the chain is when every link first reports; distributed
 companions need one anchor they all share (``python -m sitl launch`` sets it to the start pose).
@@ -51,6 +60,8 @@ from .kernels.jit import ENABLED as _COMPILED
 from .kernels.trajectory import trajectory_kernel
 from .configfile import require_nonnegative, require_positive
 from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
+from .load.config import LoadConfig
+from .load.formation import FormationTrajectory
 from .messages import PoseTarget
 from .motion.expected_physics import BodyState
 from .motion.generator import LinkTargets, MotionGenerator
@@ -70,7 +81,7 @@ def smoothstep5(s: float) -> float:
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    kind: Literal["hover", "bend", "rest", "cpg", "figure8"] = "hover"
+    kind: Literal["hover", "bend", "rest", "cpg", "figure8", "formation"] = "hover"
     takeoff_start_s: float = 1.0
     takeoff_duration_s: float = 5.0
     takeoff_altitude_m: float = 2.0
@@ -92,6 +103,9 @@ class TrajectoryConfig:
         require_positive(self, "bend_period_s", "figure8_period_s")
         if not 0 <= self.bend_amplitude_deg < 90:
             raise ValueError(f"bend_amplitude_deg must be in [0, 90), got {self.bend_amplitude_deg}")
+        if self.kind == "formation" and self.feedforward:
+            raise ValueError("feedforward must be false with kind 'formation': the chain's feed-forward does not "
+                             "apply to unjoined vehicles (the formation's targets carry their cables' own)")
 
     @property
     def takeoff_end_s(self) -> float:
@@ -294,11 +308,17 @@ def chain_model(skeleton: SkeletonConfig):
     return ChainModel(skeleton)
 
 
-def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, skeleton: SkeletonConfig,
-                    start_center_w_m) -> ChainTrajectory | CpgChainTrajectory:
-    """The target source of a configuration: :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its
-    inverse model loaded from ``motion.model``), else :class:`ChainTrajectory`; with
-    ``feedforward`` the chain model of ``skeleton`` computes the targets' feed-forward."""
+def make_trajectory(cfg: TrajectoryConfig, motion: MotionConfig, skeleton: SkeletonConfig, start_center_w_m,
+                    load: LoadConfig | None = None) -> ChainTrajectory | CpgChainTrajectory | FormationTrajectory:
+    """The target source of a configuration: :class:`~companion.load.formation.FormationTrajectory`
+    of ``load`` (the ``[load]`` table; ``ValueError`` without it) for ``kind = "formation"``,
+    :class:`CpgChainTrajectory` for ``kind = "cpg"`` (its inverse model loaded from
+    ``motion.model``), else :class:`ChainTrajectory`; with ``feedforward`` the chain model of
+    ``skeleton`` computes the targets' feed-forward."""
+    if cfg.kind == "formation":
+        if load is None:
+            raise ValueError("trajectory.kind 'formation' needs a [load] table")
+        return FormationTrajectory(load)
     dynamics = chain_model(skeleton) if cfg.feedforward else None
     n, L = skeleton.n_links, skeleton.link_length_m
     if cfg.kind == "cpg":

@@ -205,7 +205,7 @@ class BatchRunner:
         hub = LocalHub(n_groups, clock, sc.zenoh_prefix)
         # The group engines would each compute the same targets from the same deterministic source
         # (fleet companions do, in their own processes): here they share one, computed once per time.
-        shared = _SharedTargets(make_trajectory(sc.trajectory, sc.motion, sc.skeleton, center))
+        shared = _SharedTargets(make_trajectory(sc.trajectory, sc.motion, sc.skeleton, center, load=sc.load))
         engines = []
         for g in range(n_groups):
             node = GlobalStepNode(g, n_groups, zc.order(n_groups), int(round(1e6 / sc.companion.rate_hz)),

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.estimation.semi import semi_distributed_apply
+from companion.load.model import LoadObservation
 from companion.messages import ChainTargets, GroupBoundaryReport, NeighbourPose
 
 from .chains import perturbed_chain
@@ -30,6 +31,14 @@ def neighbour_pose(rng, observer: int = 1, observed: int = 2, t_capture_s: float
     A = rng.normal(size=(6, 6))
     return NeighbourPose(observer, observed, t_capture_s, 42, unit(), rng.normal(0.0, 0.5, 3), A @ A.T + 1e-3 * np.eye(6),
                          rng.normal(0.0, 0.3, 3), unit(), rng.normal(0.0, 0.3, 3), unit())
+
+
+def load_observation(rng, vehicle: int = 1, stamp_s: float = 2.5) -> LoadObservation:
+    """A random load observation with the load's attitude (a unit quaternion, a positive-definite joint covariance)."""
+    q = rng.normal(size=4)
+    A = rng.normal(size=(6, 6))
+    joint = A @ A.T + 1e-3 * np.eye(6)
+    return LoadObservation(vehicle, stamp_s, rng.normal(0.0, 1.0, 3), joint[:3, :3], q / np.linalg.norm(q), joint)
 
 
 def equal(a, b) -> bool:

@@ -74,7 +74,8 @@ class Targets:
             if center is None:
                 center = chain_middle(np.array([lk.state.p_w_m for lk in self.links]),
                                       np.array([lk.state.q_wxyz for lk in self.links]), self.d)
-            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center)
+            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center,
+                                              load=self.setup.load)
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         passive = self.carrying.now(now_s, t_us)

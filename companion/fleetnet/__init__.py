@@ -12,5 +12,5 @@
 * :mod:`.credentials` -- what a group's sessions present and demand: TLS, user and password, access control;
 * :mod:`.bus` -- the Zenoh session wrapper and the Zenoh configurations of a group's sessions.
 * :mod:`.payload_queue` -- a subscriber's payloads, queued on Zenoh's thread, taken in the caller's;
-* :mod:`.neighbour_inbox` -- the vision consumer's neighbour poses, taken by a companion.
+* :mod:`.inbox` -- the vision consumer's neighbour poses and load observations, taken by a companion.
 """

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.load.model import LoadObservation
 from companion.messages import (
     ChainTargets,
     Correction,
@@ -39,14 +40,15 @@ from companion.messages import (
 )
 
 __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError", "MAX_NEIGHBOUR_RANGE_M",
-           "MAX_MOUNT_OFFSET_M"]
+           "MAX_MOUNT_OFFSET_M", "MAX_LOAD_RANGE_M"]
 
 MAGIC = b"ASKZ"
 # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance;
 # 4: GroupPassiveLinks (a group's links carried by their neighbours); 5: a group split by a link
 # down reports each part (boundaries: part, parts, joins_left / joins_right; shifts: each entry's part);
-# 6: NeighbourPose (a chain camera's view of its neighbour's marker)
-VERSION = 6
+# 6: NeighbourPose (a chain camera's view of its neighbour's marker); 7: LoadObservation (a carrying
+# vehicle's camera measurement of a slung load, eq. 4)
+VERSION = 7
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -78,11 +80,17 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                         ("q_cm_wxyz", ("vec", 4)), ("t_cm_m", ("vec", 3)), ("cov_c", ("sym", 6)),
                         ("camera_pos_b_m", ("vec", 3)), ("q_bc_wxyz", ("vec", 4)), ("marker_pos_b_m", ("vec", 3)),
                         ("q_bm_wxyz", ("vec", 4)))),
+    # the position block of ``joint_cov`` is the observation's ``cov_m2`` (sent once); only an
+    # observation with the load's attitude travels
+    LoadObservation: (8, (("vehicle", "u16"), ("stamp_s", "f64"), ("vehicle_in_load_m", ("vec", 3)),
+                          ("load_in_body_q_wxyz", ("vec", 4)), ("joint_cov", ("sym", 6)))),
 }
 #: Largest camera range and mount offset a :class:`NeighbourPose` may carry [m] (a chain link
 #: is about a metre long; anything beyond is a corrupt or hostile payload).
 MAX_NEIGHBOUR_RANGE_M = 20.0
 MAX_MOUNT_OFFSET_M = 5.0
+#: Farthest a carrying vehicle may be from the load it sees [m] (cables are metres long).
+MAX_LOAD_RANGE_M = 50.0
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 
 
@@ -92,6 +100,8 @@ def encode(msg) -> bytes:
         type_id, fields = SCHEMAS[type(msg)]
     except KeyError:
         raise TypeError(f"no Zenoh schema for {type(msg).__name__}") from None
+    if isinstance(msg, LoadObservation) and not msg.has_attitude:
+        raise ValueError("LoadObservation: only an observation with the load's attitude (joint_cov) travels")
     out = [_HEADER.pack(MAGIC, VERSION, type_id)]
     count = 0
     for name, kind in fields:
@@ -267,5 +277,20 @@ def _neighbour_pose(v: dict[str, Any]) -> NeighbourPose:
     return NeighbourPose(**v)
 
 
+def _load_observation(v: dict[str, Any]) -> LoadObservation:
+    _finite_all(LoadObservation, v)
+    if v["stamp_s"] < 0.0:
+        raise MessageError(f"LoadObservation.stamp_s: {v['stamp_s']:g} s is before the clock's start")
+    v["load_in_body_q_wxyz"] = check_unit_quat("LoadObservation.load_in_body_q_wxyz", v["load_in_body_q_wxyz"])
+    check_bounded("LoadObservation.vehicle_in_load_m", v["vehicle_in_load_m"], MAX_LOAD_RANGE_M)
+    joint = check_pd("LoadObservation.joint_cov", v["joint_cov"])
+    try:
+        return LoadObservation(v["vehicle"], v["stamp_s"], v["vehicle_in_load_m"], joint[:3, :3],
+                               v["load_in_body_q_wxyz"], joint)
+    except ValueError as exc:
+        raise MessageError(f"LoadObservation: {exc}") from None
+
+
 _VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift,
-             ChainTargets: _targets, GroupPassiveLinks: _passive, NeighbourPose: _neighbour_pose}
+             ChainTargets: _targets, GroupPassiveLinks: _passive, NeighbourPose: _neighbour_pose,
+             LoadObservation: _load_observation}

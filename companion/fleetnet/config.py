@@ -131,9 +131,10 @@ class ZenohConfig:
     ``ZENOH_RUNTIME`` unless it is set already; 0 keeps Zenoh's defaults). A companion sends a
     few small messages per cycle; on the 2-core development VM one thread per pool cut the
     loopback round trip's p99 from 4-6 ms to 2.5 ms.
-    ``neighbour_poses``: a centralised companion (one group) opens a Zenoh session on group 1's
-    endpoint, with group 1's credentials, for the vision consumer's neighbour poses
-    (``<prefix>/link/<i>/neighbour``); distributed companions take them on their fleet session.
+    ``vision_session``: a centralised companion (one group) opens a Zenoh session on group 1's
+    endpoint, with group 1's credentials, for the vision consumer's messages (neighbour poses on
+    ``<prefix>/link/<i>/neighbour``, load observations on ``<prefix>/vehicle/<i>/load``);
+    distributed companions take them on their fleet session.
     """
 
     prefix: str = ""
@@ -151,7 +152,7 @@ class ZenohConfig:
     leader_wait_ms: float = 25.0
     handover_cycles: int = 3
     runtime_threads: int = 1
-    neighbour_poses: bool = False
+    vision_session: bool = False
 
     def __post_init__(self) -> None:
         if self.prefix and not PREFIX_RE.match(self.prefix):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key",
-           "neighbour_key", "neighbour_pattern"]
+           "neighbour_key", "neighbour_pattern", "load_key", "load_pattern"]
 
 
 def boundary_key(prefix: str, group: int) -> str:
@@ -61,3 +61,13 @@ def neighbour_key(prefix: str, link: int) -> str:
 
 def neighbour_pattern(prefix: str) -> str:
     return f"{prefix}/link/*/neighbour"
+
+
+def load_key(prefix: str, vehicle: int) -> str:
+    """Where the cameras of 0-based carrying ``vehicle`` publish their measurements of the slung load
+    (:class:`~companion.load.model.LoadObservation`)."""
+    return f"{prefix}/vehicle/{vehicle + 1}/load"
+
+
+def load_pattern(prefix: str) -> str:
+    return f"{prefix}/vehicle/*/load"

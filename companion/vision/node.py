@@ -11,7 +11,8 @@
   a camera device, a file or a stream URL on this computer).
 * :func:`run_node`: the loop; writes ``vision_frames.jsonl`` (one line per frame, flushed: what a
   killed consumer leaves is readable) and, at the end, ``vision_summary.json``; with
-  ``[[neighbours]]`` it publishes each frame's neighbour poses (:mod:`.neighbour_wire`).
+  ``[[neighbours]]`` it publishes each frame's neighbour poses, with ``[load]`` its load
+  observations (:mod:`.message_wire`).
 
 OpenCV (the ``vision`` extra) through :mod:`.pnp`, ``zenoh`` (the ``distributed`` extra) for the
 Zenoh source only; neither belongs to the onboard base install, and both are imported when a
@@ -280,29 +281,37 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
     ``idle_timeout_s`` without frames; writes the frame log and the summary into ``out_dir`` and
     returns the summary. After ``stop()``, a Zenoh source is drained until nothing has arrived
     for ``drain_s`` (the frames in flight when the publisher stopped), at most ``drain_max_s``.
-    ``clock`` (monotonic seconds) times all of these. With ``setup.neighbours``, each frame's
-    neighbour poses go to ``publish`` (default: a :class:`~.neighbour_wire.NeighbourPublisher` on
-    the Zenoh source's session, waited for until a companion subscribes to every camera's poses,
-    at most ``match_timeout_s``, before the first frame)."""
-    from .neighbour_wire import NeighbourPublisher, neighbour_poses
+    ``clock`` (monotonic seconds) times all of these. With ``setup.neighbours`` or ``setup.load``,
+    each frame's neighbour poses and load observations go to ``publish(name, msg)`` (``name``:
+    ``("neighbour", observer)`` or ``("load", vehicle)``, 0-based; default: a
+    :class:`~.message_wire.MessagePublisher` on the Zenoh source's session, waited for until a
+    companion subscribes to every key, at most ``match_timeout_s``, before the first frame)."""
+    from companion.fleetnet.keys import load_key, neighbour_key
+
+    from .message_wire import MessagePublisher, load_observations, neighbour_poses
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     node = VisionNode(setup.pipeline)
     src = open_source(setup) if source is None else source
     cameras = {(n.camera, n.marker_id): n for n in setup.neighbours}
+    prefix = setup.zenoh.prefix
+    keys = {("neighbour", n.observer - 1): neighbour_key(prefix, n.observer - 1) for n in setup.neighbours}
+    if setup.load is not None:
+        keys.update({("load", c.vehicle - 1): load_key(prefix, c.vehicle - 1) for c in setup.load.cameras})
     publisher = None
-    if cameras and publish is None:
-        publisher = NeighbourPublisher(src.session, setup.zenoh.prefix, [n.observer - 1 for n in setup.neighbours])
+    if keys and publish is None:
+        publisher = MessagePublisher(src.session, keys)
         publish = publisher.publish
         # the frames wait in the source's queue while the companions' subscriptions reach this session
         deadline = clock() + match_timeout_s
         while not publisher.matched and clock() < deadline and not stop():
             time.sleep(0.01)
         if not publisher.matched:
-            log.warning("no companion takes the neighbour poses of every camera yet (%s/link/*/neighbour): "
-                        "publishing anyway", setup.zenoh.prefix)
+            log.warning("no companion takes every key of the consumer's measurements yet (%s): publishing anyway",
+                        ", ".join(sorted(set(keys.values()))))
     sent = {"published": 0, "wrong_vehicle": 0}
+    sent_load = {"published": 0, "wrong_vehicle": 0}
     wall0 = clock()
     last_frame = wall0
     reason = "stopped"
@@ -341,8 +350,14 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
                         poses, wrong = neighbour_poses(record, cameras)
                         sent["wrong_vehicle"] += wrong
                         for pose in poses:
-                            publish(pose)
+                            publish(("neighbour", pose.observer), pose)
                             sent["published"] += 1
+                    if setup.load is not None:
+                        observations, wrong = load_observations(record, setup.load)
+                        sent_load["wrong_vehicle"] += wrong
+                        for obs in observations:
+                            publish(("load", obs.vehicle), obs)
+                            sent_load["published"] += 1
     finally:
         if publisher is not None:
             publisher.close()
@@ -352,6 +367,8 @@ def run_node(setup: VisionNodeSetup, out_dir: Path, stop: Callable[[], bool] = l
     summary["frames_per_s"] = round(summary["frames_total"] / wall, 3) if wall > 0 else None
     if cameras:
         summary["neighbour_poses"] = sent
+    if setup.load is not None:
+        summary["load_observations"] = sent_load
     (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
     log.info("%d frames (%d with a marker), %d rejected; detection + PnP %s ms per frame; ended by %s",
              summary["frames_total"], summary["frames_detected"], summary["rejected_payloads"],

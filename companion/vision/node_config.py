@@ -34,11 +34,25 @@ No OpenCV and no Zenoh here: the file loads and is validated on any install. One
     marker_pos_b_m = [-0.45, 0.0, 0.06]       # the marker on the observed link
     marker_q_bm_wxyz = [1.0, 0.0, 0.0, 0.0]   # marker to body
 
+    [load]                      # a slung load's marker seen by its carrying vehicles' cameras
+    marker_id = 7
+    marker_pos_b_m = [0.0, 0.0, 0.102]        # the marker on the load, load frame
+    marker_q_bm_wxyz = [1.0, 0.0, 0.0, 0.0]   # marker to load
+
+    [[load.cameras]]
+    camera = "cam1"
+    vehicle = 1                 # the 1-based vehicle that carries it (its cable)
+    camera_pos_b_m = [0.15, 0.0, -0.05]
+    camera_q_bc_wxyz = [0.5, -0.5, 0.5, -0.5]
+
 Each pose of a ``[[neighbours]]`` marker in that camera's frames goes out, with its covariance
 and the two mounts, as a :class:`~companion.messages.NeighbourPose` on
-``<prefix>/link/<observer>/neighbour`` for the companion that steps both links (the frames'
-capture times must be on the observing link's flight-controller clock, as the SITL harness
-stamps them).
+``<prefix>/link/<observer>/neighbour`` for the companion that steps both links. Each pose of the
+``[load]`` marker in a ``[[load.cameras]]`` camera's frames goes out as the slung-load report's
+eq. 4 measurement (:class:`~companion.load.model.LoadObservation`: the vehicle's position in the
+load frame and the load's attitude in the vehicle's, with their covariance) on
+``<prefix>/vehicle/<vehicle>/load`` for the carrying companion's load filter. The frames' capture
+times must be on the observing vehicle's flight-controller clock, as the SITL harness stamps them.
 
 Every key is checked (unknown keys, types, ranges: :mod:`companion.configfile`).
 """
@@ -59,7 +73,7 @@ from companion.fleetnet.credentials import ZenohSetting, group_credentials
 from .config import PipelineConfig
 from .geometry import CameraIntrinsics
 
-__all__ = ["ZenohCameraSource", "VideoCaptureSource", "NeighbourCamera", "VisionNodeSetup", "fleet_credentials", "load_vision_setup"]
+__all__ = ["ZenohCameraSource", "VideoCaptureSource", "NeighbourCamera", "LoadCamera", "LoadMarker", "VisionNodeSetup", "fleet_credentials", "load_vision_setup"]
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
 _SECURE_TRANSPORTS = ("tls/", "quic/")
@@ -203,14 +217,61 @@ class NeighbourCamera:
                              f"{self.observer + 1}), got {self.observed}")
         if self.marker_id < 0:
             raise ValueError(f"marker_id must be >= 0, got {self.marker_id}")
-        for name in ("camera_pos_b_m", "marker_pos_b_m"):
-            v = getattr(self, name)
-            if not all(math.isfinite(x) for x in v) or math.hypot(*v) > MAX_MOUNT_OFFSET_M:
-                raise ValueError(f"{name}: finite and within {MAX_MOUNT_OFFSET_M:g} m of the link's centre, got {list(v)}")
-        for name in ("camera_q_bc_wxyz", "marker_q_bm_wxyz"):
-            q = getattr(self, name)
-            if not all(math.isfinite(x) for x in q) or abs(math.hypot(*q) - 1.0) > 1e-3:
-                raise ValueError(f"{name}: a unit quaternion (w, x, y, z), got {list(q)}")
+        _check_mount(self, "camera_pos_b_m", "camera_q_bc_wxyz")
+        _check_mount(self, "marker_pos_b_m", "marker_q_bm_wxyz")
+
+
+def _check_mount(obj, pos_name: str, q_name: str) -> None:
+    """``ValueError`` unless ``obj``'s mount (position ``pos_name`` within
+    :data:`~companion.fleetnet.codec.MAX_MOUNT_OFFSET_M` of its body's centre, rotation ``q_name`` a
+    unit quaternion) is finite and sane."""
+    v = getattr(obj, pos_name)
+    if not all(math.isfinite(x) for x in v) or math.hypot(*v) > MAX_MOUNT_OFFSET_M:
+        raise ValueError(f"{pos_name}: finite and within {MAX_MOUNT_OFFSET_M:g} m of the body's centre, got {list(v)}")
+    q = getattr(obj, q_name)
+    if not all(math.isfinite(x) for x in q) or abs(math.hypot(*q) - 1.0) > 1e-3:
+        raise ValueError(f"{q_name}: a unit quaternion (w, x, y, z), got {list(q)}")
+
+
+@dataclass(frozen=True)
+class LoadCamera:
+    """A camera (``camera``) on 1-based carrying ``vehicle`` (the vehicle on cable ``vehicle``)
+    that may see the slung load's marker; its mount (``camera_pos_b_m``, ``camera_q_bc_wxyz``:
+    camera to body), body frame, metres."""
+
+    camera: str
+    vehicle: int
+    camera_pos_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    camera_q_bc_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not _NAME_RE.fullmatch(self.camera):
+            raise ValueError(f"camera {self.camera!r}: 1-64 letters, digits or '_'")
+        if not 1 <= self.vehicle <= 0xFFFF:
+            raise ValueError(f"vehicle: a 1-based vehicle, got {self.vehicle}")
+        _check_mount(self, "camera_pos_b_m", "camera_q_bc_wxyz")
+
+
+@dataclass(frozen=True)
+class LoadMarker:
+    """The slung load's marker ``marker_id``, where it sits on the load (``marker_pos_b_m``,
+    ``marker_q_bm_wxyz``: marker to load, load frame) and the carrying vehicles' cameras that may
+    see it (``[[load.cameras]]``)."""
+
+    marker_id: int
+    marker_pos_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    marker_q_bm_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    cameras: tuple[LoadCamera, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.marker_id < 0:
+            raise ValueError(f"marker_id must be >= 0, got {self.marker_id}")
+        _check_mount(self, "marker_pos_b_m", "marker_q_bm_wxyz")
+        if not self.cameras:
+            raise ValueError("cameras: at least one carrying vehicle's camera")
+        names = [c.camera for c in self.cameras]
+        if len(set(names)) != len(names):
+            raise ValueError(f"cameras: each camera once, got {names}")
 
 
 @dataclass(frozen=True)
@@ -226,6 +287,7 @@ class VisionNodeSetup:
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     idle_timeout_s: float = 0.0
     neighbours: tuple[NeighbourCamera, ...] = ()
+    load: LoadMarker | None = None
 
     def __post_init__(self) -> None:
         if not _NAME_RE.fullmatch(self.name):
@@ -242,9 +304,10 @@ class VisionNodeSetup:
                 self.video.check_source()
             except ValueError as exc:
                 raise ValueError(f"video: {exc}") from None
-            if self.neighbours:
-                raise ValueError("neighbours: need source = 'zenoh' (the poses go out on its session, and a "
-                                 "device's frames are stamped on this computer's clock, not the links')")
+            for key in ("neighbours", "load"):
+                if getattr(self, key):
+                    raise ValueError(f"{key}: need source = 'zenoh' (the measurements go out on its session, and a "
+                                     "device's frames are stamped on this computer's clock, not the vehicles')")
         pairs = [(n.camera, n.marker_id) for n in self.neighbours]
         if len(set(pairs)) != len(pairs):
             raise ValueError(f"neighbours: each (camera, marker_id) once, got {pairs}")

@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.configfile import dump_toml
 from companion.estimation.so3 import quat_to_rotmat
 from companion.fleetnet.config import ZenohConfig
 from companion.vision.config import PipelineConfig
@@ -97,7 +96,8 @@ class CameraStreamer:
     file that holds it (the consumer reads the credentials there; needed when ``fleet`` is secured)."""
 
     def __init__(self, sc, model, data, dt_s: float, runtime_env: str | None = None,
-                 fleet: ZenohConfig | None = None, fleet_file: str = "", neighbour_endpoints: tuple[str, ...] = ()):
+                 fleet: ZenohConfig | None = None, fleet_file: str = "", companion_endpoints: tuple[str, ...] = (),
+                 neighbours: bool = False):
         if runtime_env and "ZENOH_RUNTIME" not in os.environ:  # before this process's first session
             os.environ["ZENOH_RUNTIME"] = runtime_env
         from companion.vision.camera_wire import CameraPublisher
@@ -112,7 +112,8 @@ class CameraStreamer:
             raise ValueError("fleet_file: a secured fleet's camera consumer reads the credentials from its config")
         self.fleet_file = fleet_file
         self.cameras = sc.cameras
-        self.neighbour_endpoints = tuple(neighbour_endpoints)
+        self.companion_endpoints = tuple(companion_endpoints)
+        self.neighbours = neighbours
         layout = sc.companion.group_layout(sc.skeleton.n_links)
         group_of = {v: g for g, links in enumerate(layout) for v in links}  # 0-based vehicle -> its group
         self.endpoints: dict[int, str] = {}  # by 0-based group: where its camera session listens
@@ -147,19 +148,17 @@ class CameraStreamer:
     def consumer_setup(self) -> VisionNodeSetup:
         """The consumer's config: connect to these sessions (in a secured fleet with the
         credentials of the first camera's group), the scenario's markers; with
-        ``neighbour_endpoints`` (the companions that take neighbour poses), the chain cameras'
-        views of their neighbours' markers, published to them."""
+        ``companion_endpoints`` (the companions that take the consumer's measurements) connect to
+        them as well, and with ``neighbours`` publish the chain cameras' views of their neighbours'
+        markers to them."""
         pipe = self.pipeline
         if self.markers:
             pipe = replace(pipe, ids=tuple(m.id for m in self.markers))
         credentials = dict(fleet=self.fleet_file, group=min(self.endpoints) + 1) if self.fleet.secured else {}
-        neighbours = neighbour_cameras(self.cameras, self.markers) if self.neighbour_endpoints else ()
-        source = ZenohCameraSource(prefix=self.prefix, connect=tuple(self.endpoints.values()) + (
-            self.neighbour_endpoints if neighbours else ()), **credentials)
+        neighbours = neighbour_cameras(self.cameras, self.markers) if self.neighbours else ()
+        source = ZenohCameraSource(prefix=self.prefix, connect=tuple(self.endpoints.values()) + self.companion_endpoints,
+                                   **credentials)
         return VisionNodeSetup(name="fleet_cameras", source="zenoh", zenoh=source, pipeline=pipe, neighbours=neighbours)
-
-    def write_consumer_config(self, path: Path) -> None:
-        path.write_text(dump_toml(self.consumer_setup()))
 
     def wait_for_subscriber(self, timeout_s: float, check=lambda: None) -> None:
         """Until every publisher has a matching subscriber (the consumer connected and subscribed),

@@ -37,6 +37,7 @@ from .fault_socket import FaultSocket
 from .faults import FleetFaults, HarnessFault, scripted_faults
 from .harness import FleetHarness
 from .inject import FailureCommander, enable_failure_injection
+from .task import FleetTask
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
                      check_instance_offset, endpoint_table, impaired_links)
 from .logs import (companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs,
@@ -54,15 +55,17 @@ class Fleet:
 
     def __init__(self, sc: Scenario, out_dir: Path, speed: float = 1.0, python: str = sys.executable,
                  companion: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
-                 batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT):
+                 batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None):
         if sim_link not in SIM_LINKS:
             raise ValueError(f"sim_link {sim_link!r}: one of {', '.join(SIM_LINKS)}")
         check_fleet_scenario(sc)
         check_instance_offset(sc, instance_offset, gcs_port)
         self.sc, self.out_dir, self.speed, self.python = sc, out_dir, speed, python
         self.k, self.sim_link, self.gcs_port = instance_offset, sim_link, gcs_port
-        #: the companion(s) run: asked for and enabled by the scenario
-        self.companion = companion and sc.companion.enabled
+        #: what the scenario's kind adds (the chain's: nothing)
+        self.task = task if task is not None else FleetTask()
+        #: the companion(s) run: asked for, and the scenario has them
+        self.companion = companion and self.task.companion_runs(sc)
         self.batch_scheduling = speed <= 0 if batch_scheduling is None else batch_scheduling
         self.n = sc.skeleton.n_links
         #: 0-based links whose onboard wire goes through the impaired wire (``[faults.mavlink]``)
@@ -95,7 +98,7 @@ class Fleet:
             log.info("signing: a new key for this run in %s", key_file)
         sc.signing.key()  # ValueError now, not in every process, for a missing or unreadable key
         (out_dir / "scenario.toml").write_text(dump_toml(sc))
-        self.plant = Plant(sc)
+        self.plant = self.task.plant(sc)
         self.link_config = out_dir / "link.toml"
         self.link_config.write_text(dump_toml(sc.vehicle_setup()))
         anchor = tuple(float(x) for x in self.plant.start_center())
@@ -107,26 +110,29 @@ class Fleet:
             zc = setup.zenoh
             setup = replace(setup, companion=replace(cfg, links=links),
                             zenoh=zc if zc.endpoints else replace(zc, base_port=zc.base_port + k))
-        # Chain cameras that see their neighbours' markers: the vision consumer publishes the poses to
-        # the companions (a centralised one opens a Zenoh session for them).
-        self.neighbour_endpoints: tuple[str, ...] = ()
+        # The vision consumer's measurements for the companions: chain cameras that see their neighbours'
+        # markers, or what the kind's consumer publishes (a centralised companion opens a Zenoh session for them).
+        self.neighbour_cameras = False
         if sc.cameras and sc.companion.neighbour_cameras and self.companion:
             from sitl.cameras.neighbours import neighbour_views  # OpenCV: camera scenarios only
 
-            if neighbour_views(sc.cameras, sc.markers):
-                zc = setup.zenoh
-                if sc.companion.distributed:
-                    self.neighbour_endpoints = tuple(zc.group_endpoint(g)
-                                                     for g in range(len(sc.companion.group_layout(self.n))))
-                else:
-                    setup = replace(setup, zenoh=replace(zc, neighbour_poses=True))
-                    self.neighbour_endpoints = (zc.group_endpoint(0),)
-        if (sc.companion.distributed or self.neighbour_endpoints) and not sc.zenoh.users_file:
+            self.neighbour_cameras = bool(neighbour_views(sc.cameras, sc.markers))
+        #: the companions' Zenoh endpoints the vision consumer publishes to
+        self.consumer_endpoints: tuple[str, ...] = ()
+        if self.companion and sc.cameras and (self.neighbour_cameras or self.task.consumer_publishes):
+            zc = setup.zenoh
+            if sc.companion.distributed:
+                self.consumer_endpoints = tuple(zc.group_endpoint(g) for g in range(len(sc.companion.group_layout(self.n))))
+            else:
+                setup = replace(setup, zenoh=replace(zc, vision_session=True))
+                self.consumer_endpoints = (zc.group_endpoint(0),)
+        if (sc.companion.distributed or self.consumer_endpoints) and not sc.zenoh.users_file:
             # The companions (and the vision consumer) authenticate to each other with throwaway credentials
             # of this run: another process on this host cannot join their Zenoh session (zenoh.users_file).
             users_file = out_dir / "zenoh_users.txt"
             new_users_file(users_file, len(sc.companion.group_layout(self.n)), overwrite=True)
             setup = replace(setup, zenoh=replace(setup.zenoh, users_file=str(users_file.resolve())))
+        setup = self.task.companion_setup(self, setup)
         # The companion bounds how fast a link's clock (simulated time) can run against its own wall
         # clock: the pace, with room for the catch-up after a slow tick (as fast as it goes: 20).
         rate = 20.0 if self.speed <= 0 else max(2.0, 4.0 * self.speed)
@@ -202,10 +208,10 @@ class Fleet:
         sc, plant, out_dir = self.sc, self.plant, self.out_dir
         streamer = CameraStreamer(sc, plant.model.model, plant.model.data, plant.dt, sc.zenoh.runtime_env(),
                                   fleet=self.companion_setup.zenoh, fleet_file=str(self.companion_config.resolve()),
-                                  neighbour_endpoints=self.neighbour_endpoints)
+                                  companion_endpoints=self.consumer_endpoints, neighbours=self.neighbour_cameras)
         try:
             config = out_dir / "vision.toml"
-            streamer.write_consumer_config(config)
+            config.write_text(dump_toml(self.task.consumer_setup(self, streamer.consumer_setup())))
             self.procs.start("vision consumer", [self.python, "-m", "companion.vision", "--config", str(config),
                                                  "--out", str(out_dir / "vision")], out_dir / "vision" / "console.log")
             try:
@@ -258,6 +264,7 @@ class Fleet:
             raise FleetError(str(exc)) from None
         if self.cameras is not None:
             self.harness.tick_hooks.append(self.cameras.on_tick)
+        self.task.start(self)
         if inject.link:
             self.commander = FailureCommander(sc, 18570 + k + inject.link - 1)
         try:
@@ -384,15 +391,16 @@ class Fleet:
                               self.fault_socket.counts if self.fault_socket is not None else None)
         if report:
             metrics["faults"] = report
-        if n == 3:
+        if n == 3 and sc.kind == "chain":
             metrics["paper_reference"] = PAPER_THREE_LINK
         if self.cameras is not None:
             from sitl.cameras.stream import fleet_vision_metrics
 
             metrics["vision"], vision_arrays = fleet_vision_metrics(self.cameras, out_dir / "vision", sc.flight_start_s)
             np.savez_compressed(out_dir / "vision.npz", **vision_arrays)
-        if self.neighbour_endpoints:
+        if self.neighbour_cameras and self.consumer_endpoints:
             metrics["neighbour_cameras"] = neighbour_camera_metrics(out_dir, companion_summaries(out_dir))
+        metrics.update(self.task.metrics(self, plots))
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         np.savez_compressed(out_dir / "log.npz", **merged)
         write_beside_log(out_dir)
@@ -412,7 +420,7 @@ class Fleet:
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
            companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
-           batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT) -> dict:
+           batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None) -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
     too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
     K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
@@ -423,7 +431,8 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     harness and every process of the fleet under SCHED_BATCH
     (:func:`~sitl.fleet.processes.enter_batch_scheduling`); ``None``: when unpaced (``speed`` 0),
     where only throughput counts (the metrics say which: ``scheduling``). ``gcs_port``: the UDP
-    port every vehicle sends its ground-station traffic to."""
+    port every vehicle sends its ground-station traffic to. ``task``: what the scenario's kind adds
+    (:class:`~sitl.fleet.task.FleetTask`; default: the chain's)."""
     fleet = Fleet(sc, out_dir, speed=speed, python=python, companion=companion, instance_offset=instance_offset,
-                  sim_link=sim_link, batch_scheduling=batch_scheduling, gcs_port=gcs_port)
+                  sim_link=sim_link, batch_scheduling=batch_scheduling, gcs_port=gcs_port, task=task)
     return fleet.run(progress, plots)

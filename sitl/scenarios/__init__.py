@@ -12,14 +12,15 @@ kind            what it flies                                        fleet form
                 control (:mod:`.wall_push`)
 ``pspm_jump``   one ODAR under a scripted operator's jumps, with and no
                 without PSPM (:mod:`.pspm_jump`)
-``slung_load``  vehicles carrying a box by cables, its pose from     no
+``slung_load``  vehicles carrying a box by cables, its pose from     yes
                 their cameras (:mod:`.slung_load`)
 =============== ==================================================== ===========
 
 Each kind is a package: its schema (a :class:`~sitl.scenario.Scenario` subclass with its own
 tables; the chain's is the base class itself), its flight as a :class:`~sitl.task.Task` on
-:class:`~sitl.runner.BatchRunner`, and a :class:`~.kind.ScenarioKind` that says how its files load
-and what flies them. Importing this package loads the schemas only (no MuJoCo, no OpenCV): a
+:class:`~sitl.runner.BatchRunner`, its fleet form's part as a :class:`~sitl.fleet.task.FleetTask`
+on :class:`~sitl.fleet.launcher.Fleet` (if it has one), and a :class:`~.kind.ScenarioKind` that
+says how its files load and what flies them. Importing this package loads the schemas only (no MuJoCo, no OpenCV): a
 file is checked before the simulator is imported.
 """
 
@@ -44,7 +45,10 @@ KINDS: dict[str, ScenarioKind] = {k.name: k for k in (CHAIN, WALL_PUSH, PSPM_JUM
 def kind_of(path: str | Path) -> ScenarioKind:
     """The kind a scenario file names (``kind = "..."``; none: ``chain``); a
     :class:`~companion.configfile.ConfigError` for an unreadable file or an unknown kind."""
-    data = load_toml(path)
+    return _kind_in(load_toml(path), path)
+
+
+def _kind_in(data, path) -> ScenarioKind:
     name = data.get("kind", CHAIN.name)
     if not isinstance(name, str) or name not in KINDS:
         raise ConfigError(str(path), "kind", f"expected one of {', '.join(repr(k) for k in KINDS)}, got {name!r}")
@@ -57,12 +61,13 @@ def load(path: str | Path, **overrides):
     (a mapping of dotted keys, :func:`companion.config.load_setup`) sets keys in the file's tables. A
     :class:`~companion.configfile.ConfigError` names the file, the key and the reason; a table of
     another kind's in a file that does not name that kind says which ``kind`` it needs."""
-    kind = kind_of(path)
-    try:
-        return kind, kind.load(path, **overrides)
-    except ConfigError as exc:
-        other = next((k for k in KINDS.values() if k is not kind and exc.key in k.tables), None)
-        if other is None or not exc.reason.startswith("unknown key"):
-            raise
-        raise ConfigError(exc.file, exc.key, f"{exc.reason}; a [{exc.key}] table belongs to a {other.name} scenario: "
-                                             f"add kind = \"{other.name}\" at the top of the file") from None
+    data = load_toml(path)
+    kind = _kind_in(data, path)
+    # (before the file is read: a kind's table may be one the companion's schema holds, [load])
+    given = set(data) | {key.split(".")[0] for key in overrides.get("settings") or ()}
+    for other in KINDS.values():
+        table = next((t for t in other.tables if other is not kind and t in given), None)
+        if table is not None:
+            raise ConfigError(str(path), table, f"a [{table}] table belongs to a {other.name} scenario: add "
+                                                f"kind = \"{other.name}\" at the top of the file")
+    return kind, kind.load(path, **overrides)

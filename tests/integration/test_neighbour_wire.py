@@ -1,6 +1,6 @@
 """Neighbour poses over real Zenoh sessions on loopback: the vision consumer (``run_node`` with
 ``[[neighbours]]``) publishes what a chain camera sees of its neighbour's marker, a companion's
-:class:`~companion.fleetnet.neighbour_inbox.NeighbourInbox` takes it; hostile payloads and poses
+:class:`~companion.fleetnet.inbox.MessageInbox` takes it; hostile payloads and poses
 on another link's key are counted and dropped; in a fleet with a users file, a session without
 its credentials delivers nothing."""
 
@@ -32,22 +32,21 @@ CAMERA = NeighbourCamera("cam1", observer=1, observed=2, marker_id=7, camera_pos
                          camera_q_bc_wxyz=(0.5, -0.5, 0.5, -0.5), marker_pos_b_m=(-0.45, 0.0, 0.06))
 
 
-def test_the_consumer_publishes_neighbour_poses_and_the_inbox_takes_them(tmp_path):
-    """Three frames of link 1's camera and two of a camera named as link 1's but on vehicle 2
-    (a wrong configuration: counted, not published) go through the consumer; the companion's
-    inbox gets the three poses as measured, with the mounts and capture times. Garbage and a
-    valid pose on another link's key are counted as rejected and never delivered."""
-    from companion.fleetnet.neighbour_inbox import NeighbourInbox
+def _through_the_consumer(tmp_path, kind: str, rogue: list[tuple[str, bytes]], **setup_fields):
+    """Three frames of vehicle 1's camera (each waited for until its message reaches the inbox)
+    and two of vehicle 2's go through a consumer configured with ``setup_fields``; then a rogue
+    session puts ``rogue`` (key, payload) on the companion's session. Returns the consumer's
+    summary, the messages the ``kind`` inbox delivered, its summary and the consumer's frame log."""
+    from companion.fleetnet.inbox import MessageInbox
     from companion.vision.camera_wire import CameraPublisher
     from companion.vision.node import FRAMES_FILE, read_frame_log, run_node
 
     cam_ep, comp_ep = (f"tcp/127.0.0.1:{p}" for p in free_ports(2))
     harness = peer_session(listen=(cam_ep,))
     companion = peer_session(listen=(comp_ep,))
-    inbox = NeighbourInbox(companion, PREFIX)
+    inbox = MessageInbox(companion, PREFIX, kind)
     setup = VisionNodeSetup(name="t", source="zenoh", zenoh=ZenohCameraSource(prefix=PREFIX, connect=(cam_ep, comp_ep)),
-                            pipeline=PipelineConfig(marker_length_m=0.2),
-                            neighbours=(CAMERA, replace(CAMERA, camera="cam2")))
+                            pipeline=PipelineConfig(marker_length_m=0.2), **setup_fields)
     frames_log = tmp_path / FRAMES_FILE
     stop = threading.Event()
     result = {}
@@ -63,29 +62,40 @@ def test_the_consumer_publishes_neighbour_poses_and_the_inbox_takes_them(tmp_pat
         assert wait_for(lambda: all(p.matched for p in pubs), 10.0), "the consumer never subscribed"
         for seq in range(3):
             pubs[0].publish(marker_frame(vehicle=0, seq=seq))
-            assert wait_for(lambda: (got.extend(inbox.drain()), len(got) > seq)[1], 10.0), f"pose {seq} lost"
+            assert wait_for(lambda: (got.extend(inbox.drain()), len(got) > seq)[1], 10.0), f"message {seq} lost"
         for seq in range(2):
             pubs[1].publish(marker_frame(vehicle=1, seq=seq))
         worker.join(15)
         assert not worker.is_alive()
-        rogue = peer_session(connect=(comp_ep,))
+        session = peer_session(connect=(comp_ep,))
         try:
-            assert wait_for(lambda: rogue.info.peers_zid(), 5.0)
-            rogue.put(neighbour_key(PREFIX, 0), b"ASKZ" + bytes([codec.VERSION, 7]) + b"\0" * 10)  # truncated
-            rogue.put(neighbour_key(PREFIX, 2), codec.encode(neighbour_pose(np.random.default_rng(1), 0, 1)))  # link 3's key
-            rogue.put(neighbour_key(PREFIX, 0), codec.encode(neighbour_pose(np.random.default_rng(2), 0, 1)))  # delivered
-            assert wait_for(lambda: (got.extend(inbox.drain()), inbox.counts["received"] >= 6)[1], 5.0)
+            assert wait_for(lambda: session.info.peers_zid(), 5.0)
+            for key, payload in rogue:
+                session.put(key, payload)
+            assert wait_for(lambda: (got.extend(inbox.drain()), inbox.counts["received"] >= 3 + len(rogue))[1], 5.0)
         finally:
-            rogue.close()
+            session.close()
     finally:
         stop.set()
         inbox.close()
         companion.close()
         harness.close()
+    return result, got, inbox.summary(), [r for r in read_frame_log(frames_log) if r["camera"] == "cam1"]
+
+
+def test_the_consumer_publishes_neighbour_poses_and_the_inbox_takes_them(tmp_path):
+    """Three frames of link 1's camera and two of a camera named as link 1's but on vehicle 2
+    (a wrong configuration: counted, not published) go through the consumer; the companion's
+    inbox gets the three poses as measured, with the mounts and capture times. Garbage and a
+    valid pose on another link's key are counted as rejected and never delivered."""
+    rogue = [(neighbour_key(PREFIX, 0), b"ASKZ" + bytes([codec.VERSION, 7]) + b"\0" * 10),  # truncated
+             (neighbour_key(PREFIX, 2), codec.encode(neighbour_pose(np.random.default_rng(1), 0, 1))),  # link 3's key
+             (neighbour_key(PREFIX, 0), codec.encode(neighbour_pose(np.random.default_rng(2), 0, 1)))]  # delivered
+    result, got, summary, measured = _through_the_consumer(tmp_path, "neighbour pose", rogue,
+                                                           neighbours=(CAMERA, replace(CAMERA, camera="cam2")))
     assert result["neighbour_poses"] == {"published": 3, "wrong_vehicle": 2}
-    assert inbox.summary() == {"received": 6, "delivered": 4, "rejected": 2, "overflow": 0,
-                               "reasons": {"NeighbourPose.t_capture_s": 1, "NeighbourPose does not belong on this key": 1}}
-    measured = [r for r in read_frame_log(frames_log) if r["camera"] == "cam1"]
+    assert summary == {"received": 6, "delivered": 4, "rejected": 2, "overflow": 0,
+                       "reasons": {"NeighbourPose.t_capture_s": 1, "NeighbourPose does not belong on this key": 1}}
     for pose, rec in zip(got[:3], measured):
         assert (pose.observer, pose.observed, pose.seq, pose.t_capture_s) == (0, 1, rec["seq"], rec["t_capture_s"])
         np.testing.assert_allclose(pose.t_cm_m, rec["poses"][0]["t_cm_m"], atol=1e-12)
@@ -97,20 +107,21 @@ def test_the_consumer_publishes_neighbour_poses_and_the_inbox_takes_them(tmp_pat
 
 
 def test_a_session_without_the_fleets_credentials_delivers_no_neighbour_pose(tmp_path):
-    """A centralised companion's inbox (``[zenoh] neighbour_poses``) with a users file: a session
+    """A centralised companion's inbox (``[zenoh] vision_session``) with a users file: a session
     with no credentials, or a wrong password, opens no transport and delivers nothing; one with
     group 1's user and password delivers its pose."""
     from companion.fleetnet.bus import peer_config
     from companion.fleetnet.credentials import group_credentials
-    from companion.fleetnet.neighbour_inbox import NeighbourInbox
+    from companion.fleetnet.inbox import MessageInbox, open_vision_session
 
     import zenoh
 
     users = tmp_path / "zenoh_users.txt"
     new_users_file(users, 1)
     (port,) = free_ports(1)
-    cfg = ZenohConfig(prefix=PREFIX, endpoints=(f"tcp/127.0.0.1:{port}",), users_file=str(users), neighbour_poses=True)
-    inbox = NeighbourInbox.open(cfg, PREFIX, "companion.toml")
+    cfg = ZenohConfig(prefix=PREFIX, endpoints=(f"tcp/127.0.0.1:{port}",), users_file=str(users), vision_session=True)
+    session = open_vision_session(cfg, "companion.toml")
+    inbox = MessageInbox(session, PREFIX, "neighbour pose")
     endpoint = cfg.group_endpoint(0)
     sessions = []
     try:
@@ -135,3 +146,37 @@ def test_a_session_without_the_fleets_credentials_delivers_no_neighbour_pose(tmp
         for s in sessions:
             s.close()
         inbox.close()
+        session.close()
+
+
+def test_the_consumer_publishes_load_observations_and_the_load_inbox_takes_them(tmp_path):
+    """With ``[load]``, three frames of vehicle 1's camera go out as eq. 4 load observations (the
+    camera's PnP pose through :func:`~companion.load.measurements.observation_from_pnp`) on
+    vehicle 1's key; two of a camera configured on another vehicle are counted, not published; a
+    load observation on another vehicle's key is refused."""
+    from companion.estimation.so3 import quat_to_rotmat
+    from companion.fleetnet.keys import load_key
+    from companion.load.measurements import observation_from_pnp
+    from companion.load.model import Pose3
+    from companion.vision.node_config import LoadCamera, LoadMarker
+
+    from ..fleetnet_cases import load_observation
+
+    load = LoadMarker(7, marker_pos_b_m=(0.0, 0.0, 0.102), cameras=(
+        LoadCamera("cam1", vehicle=1, camera_pos_b_m=(0.15, 0.0, -0.05), camera_q_bc_wxyz=(0.5, -0.5, 0.5, -0.5)),
+        LoadCamera("cam2", vehicle=3)))
+    rogue = [(load_key(PREFIX, 2), codec.encode(load_observation(np.random.default_rng(1), vehicle=0)))]
+    result, got, summary, measured = _through_the_consumer(tmp_path, "load observation", rogue, load=load)
+    assert result["load_observations"] == {"published": 3, "wrong_vehicle": 2}
+    assert summary == {"received": 4, "delivered": 3, "rejected": 1, "overflow": 0,
+                       "reasons": {"LoadObservation does not belong on this key": 1}}
+    cam = load.cameras[0]
+    for obs, rec in zip(got, measured):
+        pose = rec["poses"][0]
+        want = observation_from_pnp(0, rec["t_capture_s"], quat_to_rotmat(np.asarray(pose["q_cm_wxyz"])),
+                                    np.asarray(pose["t_cm_m"]), np.reshape(pose["cov"], (6, 6)),
+                                    Pose3(np.asarray(cam.camera_pos_b_m), np.asarray(cam.camera_q_bc_wxyz)),
+                                    Pose3(np.asarray(load.marker_pos_b_m), np.asarray(load.marker_q_bm_wxyz)))
+        assert (obs.vehicle, obs.stamp_s) == (0, rec["t_capture_s"])
+        np.testing.assert_allclose(obs.vehicle_in_load_m, want.vehicle_in_load_m, atol=1e-9)
+        np.testing.assert_allclose(obs.joint_cov, want.joint_cov, rtol=1e-6, atol=1e-15)

@@ -116,7 +116,7 @@ def test_a_run_folders_scenario_loads_back_as_its_kind(tmp_path):
 
 @pytest.mark.parametrize("command, config, needle", [
     ("launch", "configs/sitl/odar/wall_push.toml", "a wall_push scenario has no fleet form"),
-    ("launch", "configs/sitl/load/slung_load_three.toml", "a slung_load scenario has no fleet form"),
+    ("launch", "configs/sitl/odar/pspm_jump.toml", "a pspm_jump scenario has no fleet form"),
     ("fly", "configs/sitl/odar/pspm_jump.toml --video x.mp4", "--video: a pspm_jump scenario makes no video"),
 ])
 def test_the_command_line_refuses_what_a_kind_does_not_have(command, config, needle, tmp_path):

@@ -13,7 +13,7 @@ from companion.fleetnet import codec
 from companion.messages import Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState, MessageError
 
 from ..chains import random_covariances
-from ..fleetnet_cases import equal, neighbour_pose, targets
+from ..fleetnet_cases import equal, load_observation, neighbour_pose, targets
 
 
 # -- codec --------------------------------------------------------------------------------------------------
@@ -88,6 +88,41 @@ def test_a_neighbour_pose_round_trips_to_the_bit(seed):
 def test_a_neighbour_pose_that_is_not_one_is_refused_with_the_reason(change, reason):
     with pytest.raises(MessageError, match=reason):
         codec.decode(codec.encode(replace(neighbour_pose(np.random.default_rng(0)), **change)))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_load_observation_round_trips(seed):
+    msg = load_observation(np.random.default_rng(seed), vehicle=seed)
+    out = codec.decode(codec.encode(msg))
+    assert (out.vehicle, out.stamp_s) == (msg.vehicle, msg.stamp_s)
+    np.testing.assert_array_equal(out.vehicle_in_load_m, msg.vehicle_in_load_m)
+    np.testing.assert_allclose(out.load_in_body_q_wxyz, msg.load_in_body_q_wxyz, atol=1e-15)  # renormalised
+    np.testing.assert_array_equal(out.joint_cov, 0.5 * (msg.joint_cov + msg.joint_cov.T))
+    np.testing.assert_array_equal(out.cov_m2, out.joint_cov[:3, :3])
+
+
+def test_a_load_observation_without_the_loads_attitude_does_not_travel():
+    obs = load_observation(np.random.default_rng(0))
+    with pytest.raises(ValueError, match="only an observation with the load's attitude"):
+        codec.encode(replace(obs, load_in_body_q_wxyz=None, joint_cov=None))
+
+
+# byte offsets in a LoadObservation payload: header 6, vehicle u16, stamp f64, y (3 f64), q (4 f64), joint (21 f64)
+_STAMP, _Y, _Q, _JOINT = 8, 16, 40, 72
+
+
+@pytest.mark.parametrize("offset, values, reason", [
+    (_STAMP, [-1.0], "stamp_s: -1 s is before the clock's start"),
+    (_STAMP, [float("nan")], "stamp_s: non-finite"),
+    (_Y, [60.0, 0.0, 0.0], "vehicle_in_load_m: magnitude 60"),
+    (_Q, [1.0, 0.2, 0.0, 0.0], "load_in_body_q_wxyz: quaternion norm"),
+    (_JOINT, [-1.0], "joint_cov: not positive definite"),
+])
+def test_a_hostile_load_observation_is_refused_with_the_reason(offset, values, reason):
+    good = bytearray(codec.encode(load_observation(np.random.default_rng(1))))
+    good[offset:offset + 8 * len(values)] = np.asarray(values, dtype="<f8").tobytes()
+    with pytest.raises(MessageError, match=reason):
+        codec.decode(bytes(good))
 
 
 def test_codec_rejects_malformed_payloads_with_the_reason():

@@ -518,8 +518,8 @@ def test_skew_helper_is_the_repos():
 def test_the_camera_free_pose_is_the_rigging_below_the_vehicles_wherever_the_formation_is(t):
     """Vehicles standing in their formation at time t: the camera-free pose is the nominal hang
     below the formation's centre, yawed with it (the baseline the camera filters are measured against)."""
-    from sitl.scenarios.slung_load.config import LoadConfig
-    from sitl.scenarios.slung_load.formation import formation_state
+    from companion.load.config import LoadConfig
+    from companion.load.formation import formation_state
 
     load = LoadConfig()
     f = formation_state(t, load.formation)

@@ -5,9 +5,9 @@ the load's pose estimated from the vehicles' cameras.
 the scenario's vehicles; the task puts in the slung-load model (:mod:`.model`: the vehicles, the
 load, the cables) and starts the firmware again on it: the vehicles start hovering in formation
 with the load hanging at rest below. The companion engine arms them (its chain constraint is off:
-``companion.enabled = false``), and the formation's targets (:func:`.formation.formation_targets`:
-the report's 2 m circle at 1.5 m/s, yawing with it, with the cables' feed-forward force) replace
-the chain's.
+``companion.enabled = false``) and sends them the formation's targets (``trajectory.kind =
+"formation"``: :class:`companion.load.formation.FormationTrajectory`, the report's 2 m circle at
+1.5 m/s, yawing with it, with the cables' feed-forward force), as the companion daemon does.
 
 **Estimation** (:class:`~.estimation.LoadEstimation`, as the companion would run it): a tick hook
 beside the flight, fed every delivered camera frame (:class:`~sitl.cameras.flight.FlightCameras`).
@@ -31,7 +31,6 @@ import numpy as np
 
 from companion.config import project
 from companion.configfile import dump_toml
-from companion.engine import TargetOut
 from sitl.cameras.flight import FlightCameras
 from sitl.cameras.scene import SceneConfig
 from sitl.runner import BatchRunner
@@ -40,7 +39,6 @@ from sitl.task import Task
 
 from .config import SlungLoadScenario
 from .estimation import LoadEstimation
-from .formation import formation_targets
 from .model import SlungLoadModel
 from .plots import write_load_plots
 
@@ -50,14 +48,10 @@ log = logging.getLogger(__name__)
 
 
 class SlungLoadTask(Task):
-    """The slung-load model in place of the chain's, the formation's targets in place of the
-    companion's (module docstring)."""
+    """The slung-load model in place of the chain's (module docstring)."""
 
     def __init__(self, scenario: SlungLoadScenario):
         self.scenario = scenario
-        self._cable_dirs_f = scenario.load.cable_dirs_f()
-        self._targets_t: float | None = None
-        self._targets: list = []
 
     def initialize(self, runner) -> None:
         """The runner flies the slung-load scenario on its model from now on; every vehicle's
@@ -69,30 +63,18 @@ class SlungLoadTask(Task):
         runner.plant.use_model(model)
         runner.start_firmware()
 
-    def formation_targets(self, t: float) -> list:
-        """Every vehicle's target at ``t`` (computed once per time)."""
-        if self._targets_t != t:
-            ld = self.scenario.load
-            self._targets = formation_targets(t, ld.formation, load_mass_kg=ld.mass_kg,
-                                              cable_dirs_f=self._cable_dirs_f)
-            self._targets_t = t
-        return self._targets
 
-    def after_outputs(self, runner, engine, outputs: list, t: float) -> None:
-        """Where the engine sent a target, the formation's target for that vehicle instead."""
-        if any(isinstance(o, TargetOut) for o in outputs):
-            targets = self.formation_targets(t)
-            for o in outputs:
-                if isinstance(o, TargetOut):
-                    i = engine.links[o.row].index
-                    runner.firmware[i].set_target(t, targets[i])
+def vehicles_scenario(scenario: SlungLoadScenario) -> Scenario:
+    """The slung-load scenario's vehicles as a chain scenario, without cameras nor scene (its
+    companion setup, ``[load]`` and ``trajectory.kind = "formation"`` included): what the plant is
+    built from before the slung-load model goes in."""
+    return replace(project(scenario, Scenario), kind="chain", cameras=(), markers=(), scene=SceneConfig())
 
 
 def slung_load_runner(scenario: SlungLoadScenario) -> BatchRunner:
-    """A runner of the slung-load scenario: built as its vehicles' chain scenario (without cameras
-    nor scene), then :class:`SlungLoadTask` puts in the slung-load model."""
-    vehicles = replace(project(scenario, Scenario), kind="chain", cameras=(), markers=(), scene=SceneConfig())
-    return BatchRunner(vehicles, task=SlungLoadTask(scenario))
+    """A runner of the slung-load scenario: built as its vehicles' chain scenario
+    (:func:`vehicles_scenario`), then :class:`SlungLoadTask` puts in the slung-load model."""
+    return BatchRunner(vehicles_scenario(scenario), task=SlungLoadTask(scenario))
 
 
 def fly_slung_load(scenario: SlungLoadScenario, out_dir: Path | None, *, progress=None, plots: bool = True,

@@ -19,10 +19,11 @@ import mujoco
 import numpy as np
 
 from companion.estimation.so3 import quat_from_euler_zyx
+from companion.load.config import LoadConfig
+from companion.load.formation import formation_state
 from sitl.plant.model import SkeletonModel, build_mjcf
 
-from .config import LoadConfig, SlungLoadScenario
-from .formation import formation_state
+from .config import SlungLoadScenario
 
 __all__ = ["slung_load_mjcf", "SlungLoadModel"]
 

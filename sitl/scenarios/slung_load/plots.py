@@ -20,7 +20,7 @@ def write_load_plots(load: dict, vision: dict | None, out_dir: Path, settle_s: f
     if "load_t" in load:
         fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
         t = load["load_t"]
-        for kind in ("ekf", "ukf"):
+        for kind in (k for k in ("ekf", "ukf") if f"load_{k}_p" in load):
             pe, ae = pose_error_series(load[f"load_{kind}_p"], load[f"load_{kind}_q"], load["load_p_true"],
                                        load["load_q_true"])
             axes[0].plot(t, 100 * pe, lw=0.8, label=kind.upper())

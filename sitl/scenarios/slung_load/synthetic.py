@@ -36,6 +36,7 @@ from companion.vision.geometry import POS as PNP_POS
 from companion.vision.geometry import ROT as PNP_ROT
 from companion.load.estimate import LoadEstimate, LoadFilterConfig, initial_estimate
 from companion.load.filter import LoadPoseFilter
+from companion.load.formation import arc_length
 from companion.load.measurements import marker_in_camera, observation_from_pnp
 from companion.load.metrics import load_pose_err, pose_nees
 from companion.load.model import (
@@ -54,8 +55,6 @@ from companion.load.model import (
     load_accelerations,
 )
 from companion.load.unfiltered import UnfilteredLoadPose
-
-from .formation import arc_length
 
 __all__ = ["SlungLoadSim", "LoadTruth", "simulate_truth", "LoadMeasurements", "synthesize", "LoadRun",
            "run_estimators", "summarize"]

@@ -17,7 +17,10 @@ of the load always faces the circle's centre. Here:
 
 Pure functions (no clocks): :func:`formation_state` and :func:`formation_targets`; velocities,
 accelerations and body rates are central differences of the smooth pose function, as in
-:class:`companion.trajectory.ChainTrajectory`.
+:class:`companion.trajectory.ChainTrajectory`. :class:`FormationTrajectory` is the companion's
+target source for ``trajectory.kind = "formation"`` (:func:`companion.trajectory.make_trajectory`):
+the targets of a :class:`~.config.LoadConfig`'s formation carrying its load, on the companion's
+trajectory time (from its first targets: :class:`companion.engine.targets.Targets`).
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from companion.estimation.so3 import quat_from_euler_zyx
 from companion.messages import PoseTarget
 from companion.skeleton.body import GRAVITY_M_S2
 
-__all__ = ["CircleFormationConfig", "FormationState", "formation_state", "cable_feedforward", "formation_targets"]
+__all__ = ["CircleFormationConfig", "FormationState", "formation_state", "cable_feedforward", "formation_targets",
+           "FormationTrajectory"]
 
 
 @dataclass(frozen=True)
@@ -131,3 +135,21 @@ def formation_targets(t: float, cfg: CircleFormationConfig, *, load_mass_kg: flo
     q = quat_from_euler_zyx(yaw[1], np.zeros(n), np.zeros(n))
     return [PoseTarget(p[1][i], q[i], v[i], a[i], np.array([0.0, 0.0, yaw_rate[i]]),
                        np.array([0.0, 0.0, yaw_acc[i]]), force_ff_w_n=ff[i]) for i in range(n)]
+
+
+class FormationTrajectory:
+    """The formation of ``load`` (a :class:`~.config.LoadConfig`) carrying it: every vehicle's
+    target at ``t`` is :func:`formation_targets` of ``load.formation`` with the load's mass and
+    its cables' nominal directions (:meth:`~.config.LoadConfig.cable_dirs_f`), the interface of
+    :meth:`companion.trajectory.ChainTrajectory.targets`."""
+
+    def __init__(self, load):
+        self.load = load
+        self.n = load.formation.n_vehicles
+        self._cable_dirs_f = load.cable_dirs_f()
+
+    def targets(self, t: float, passive=frozenset()) -> list[PoseTarget]:
+        """Every vehicle's target at ``t``; ``passive`` is ignored (a formation's vehicles are not
+        joined: none carries another)."""
+        ld = self.load
+        return formation_targets(t, ld.formation, load_mass_kg=ld.mass_kg, cable_dirs_f=self._cable_dirs_f)
