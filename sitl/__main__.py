@@ -40,7 +40,7 @@ from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_r
 from .campaign.cli import add_campaign_parser
 from .fleet.fault_cli import add_fault_parser
 from .cameras.rendering import RenderingUnavailable, choose_backend, require_rendering
-from .scenario import with_options
+from .scenario import Scenario, with_options
 from .scenarios import load as load_scenario_file
 from .view.cli import add_live_args, add_view_parser, live
 
@@ -113,16 +113,18 @@ def _cmd_fly(args) -> int:
     if args.video is not None and not kind.video:
         print(f"error: {args.config}: --video: a {kind.name} scenario makes no video", file=sys.stderr)
         return EXIT_BAD_CONFIG
-    if scenario.faults.fleet_only:
-        print(f"error: {args.config}: {', '.join(scenario.faults.fleet_only)}: fleet mode only "
+    faults = getattr(scenario, "faults", None)  # (a ground robot's scenario has none)
+    if faults is not None and faults.fleet_only:
+        print(f"error: {args.config}: {', '.join(faults.fleet_only)}: fleet mode only "
               f"(python -m sitl launch --config {args.config})", file=sys.stderr)
         return EXIT_BAD_CONFIG
     problem = _prepare_rendering(scenario, args.video)
     if problem:
         print(f"error: {args.config}: {problem}", file=sys.stderr)
         return EXIT_BAD_CONFIG
-    scenario = with_options(scenario, sckf=False if args.no_sckf else None,
-                            selective_mapping=False if args.no_selective_mapping else None)
+    if isinstance(scenario, Scenario):  # the flying chain's options
+        scenario = with_options(scenario, sckf=False if args.no_sckf else None,
+                                selective_mapping=False if args.no_selective_mapping else None)
     options = {"video": args.video} if kind.video else {}
     out_dir = make_run_dir(f"fly-{scenario.name}", args.out)
     with live(args, scenario.name, out_dir) as replay_after:

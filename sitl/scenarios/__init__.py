@@ -14,6 +14,10 @@ kind            what it flies                                        fleet form
                 without PSPM (:mod:`.pspm_jump`)
 ``slung_load``  vehicles carrying a box by cables, its pose from     yes
                 their cameras (:mod:`.slung_load`)
+``snake``       the thesis's snake-like robot crawling on its CPG    no
+                (:mod:`.snake`)
+``pivotboard``  the thesis's pivotboard rolling on its CPG           no
+                (:mod:`.pivotboard`)
 =============== ==================================================== ===========
 
 Each kind is a package: its schema (a :class:`~sitl.scenario.Scenario` subclass with its own
@@ -33,13 +37,15 @@ from companion.configfile import ConfigError, load_toml
 from .chain import KIND as CHAIN
 from .kind import ScenarioKind
 from .pspm_jump import KIND as PSPM_JUMP
+from .pivotboard import KIND as PIVOTBOARD
 from .slung_load import KIND as SLUNG_LOAD
+from .snake import KIND as SNAKE
 from .wall_push import KIND as WALL_PUSH
 
 __all__ = ["KINDS", "ScenarioKind", "kind_of", "load"]
 
 #: every scenario kind by its ``kind`` key
-KINDS: dict[str, ScenarioKind] = {k.name: k for k in (CHAIN, WALL_PUSH, PSPM_JUMP, SLUNG_LOAD)}
+KINDS: dict[str, ScenarioKind] = {k.name: k for k in (CHAIN, WALL_PUSH, PSPM_JUMP, SLUNG_LOAD, SNAKE, PIVOTBOARD)}
 
 
 def kind_of(path: str | Path) -> ScenarioKind:
@@ -66,7 +72,7 @@ def load(path: str | Path, **overrides):
     # (before the file is read: a kind's table may be one the companion's schema holds, [load])
     given = set(data) | {key.split(".")[0] for key in overrides.get("settings") or ()}
     for other in KINDS.values():
-        table = next((t for t in other.tables if other is not kind and t in given), None)
+        table = next((t for t in other.tables if other is not kind and t in given and t not in kind.tables), None)
         if table is not None:
             raise ConfigError(str(path), table, f"a [{table}] table belongs to a {other.name} scenario: add "
                                                 f"kind = \"{other.name}\" at the top of the file")

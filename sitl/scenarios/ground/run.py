@@ -1,0 +1,161 @@
+"""A ground robot's run: MuJoCo, the CPG and the servos on one clock, the body frame's velocities
+and the metrics.
+
+:class:`GroundRun` steps the robot (``physics_dt_s``; the robot applies what it adds to MuJoCo
+itself, e.g. the snake's ground friction), and at ``cpg_rate_hz`` sets the servos' targets from the
+CPG and integrates the CPG over the next period with the command in force; it logs the body at
+``log_rate_hz``. The robot and its CPG come from the kind: ``robot`` answers ``step()``,
+``centre_of_mass()``, ``heading()``, ``in_plane(p)``, ``outline()`` (its shape's points, for the
+plot), ``servo_angles()``; ``cpg`` answers ``targets()`` (the servos' targets now, actuator order),
+``advance(command, dt_s)`` and ``axes`` (names of actuator groups, for the tracking metrics).
+
+**The body frame {B}** (thesis Fig. 4-1): at the robot's centre of mass, its x axis the robot's
+heading in the ground's plane. The thesis's velocities are averages over one CPG period (sec.
+4.5.3: "during time [t - dt, t]"): :func:`period_velocities` gives, a period after the start, the
+centre of mass's displacement over the last period in {B} (the heading at the period's middle)
+over the period, ``v_x`` (forward) and ``v_y``, and the heading's change over it, ``omega``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from companion.configfile import dump_toml
+
+__all__ = ["GroundRun", "period_velocities", "run_metrics", "write_run"]
+
+
+class GroundRun:
+    """The run's loop and log (module docstring)."""
+
+    def __init__(self, sc, robot, cpg):
+        self.sc, self.robot, self.cpg = sc, robot, cpg
+        self.cpg_every = int(round(1.0 / (sc.cpg_rate_hz * sc.physics_dt_s)))
+        self.log_every = int(round(1.0 / (sc.log_rate_hz * sc.physics_dt_s)))
+        self.rows: dict[str, list] = {k: [] for k in ("t", "com_w", "com_plane", "heading", "target", "angle",
+                                                     "outline_plane")}
+        self.target = np.zeros(robot.model.nu)
+        self.wall_s = 0.0
+
+    def run(self, progress=None) -> None:
+        sc, robot = self.sc, self.robot
+        dt = sc.physics_dt_s
+        n = int(round(sc.duration_s / dt))
+        wall0 = time.perf_counter()
+        for k in range(n + 1):
+            t = k * dt
+            if k % self.cpg_every == 0:
+                self.target = self.cpg.targets()
+                robot.data.ctrl[:] = self.target
+                self.cpg.advance(sc.command_at(t), self.cpg_every * dt)
+            if k % self.log_every == 0:
+                self._log(t)
+            if k == n:
+                break
+            robot.step()
+            if progress is not None and k % 500 == 499:
+                progress(500 * dt)
+        self.wall_s = time.perf_counter() - wall0
+
+    def _log(self, t: float) -> None:
+        robot, r = self.robot, self.rows
+        com = robot.centre_of_mass()
+        r["t"].append(t)
+        r["com_w"].append(com)
+        r["com_plane"].append(robot.in_plane(com))
+        r["heading"].append(robot.heading())
+        r["target"].append(np.array(self.target, dtype=float))
+        r["angle"].append(robot.servo_angles())
+        r["outline_plane"].append(robot.in_plane(robot.outline()))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {k: np.asarray(v) for k, v in self.rows.items()}
+        out["heading"] = np.unwrap(out["heading"])
+        out.update(zip(("period_t", "v_x", "v_y", "omega"), period_velocities(
+            out["t"], out["com_plane"], out["heading"], self.cpg.period_s)))
+        return out
+
+
+def period_velocities(t: np.ndarray, p_plane: np.ndarray, heading: np.ndarray, period_s: float):
+    """``(t, v_x, v_y, omega)`` at every sample a whole period after the first: the centre of mass's
+    displacement over the last ``period_s`` in {B} (rotated by the heading at the period's middle)
+    over the period, and the (unwrapped) heading's change over it."""
+    dt = float(t[1] - t[0])
+    m = int(round(period_s / dt))
+    if len(t) <= m:
+        return (np.zeros(0),) * 4
+    d = p_plane[m:] - p_plane[:-m]
+    lo = m // 2
+    mid = heading[lo: lo + len(d)] if m % 2 == 0 else 0.5 * (heading[lo: lo + len(d)] + heading[lo + 1: lo + 1 + len(d)])
+    c, s = np.cos(mid), np.sin(mid)
+    v_x = (c * d[:, 0] + s * d[:, 1]) / period_s
+    v_y = (-s * d[:, 0] + c * d[:, 1]) / period_s
+    omega = (heading[m:] - heading[:-m]) / period_s
+    return t[m:], v_x, v_y, omega
+
+
+def _summary(x: np.ndarray) -> dict:
+    return {"mean": float(np.mean(x)), "std": float(np.std(x)), "n": int(x.size)}
+
+
+def run_metrics(sc, a: dict, wall_s: float, axes: dict[str, list[int]]) -> dict:
+    """Per command (its window from ``settle_s`` after it starts) the mean and standard deviation of
+    ``v_x``, ``v_y``, ``omega``; the distance, path length and heading change over the run; the
+    servos' RMS tracking error per group of ``axes``."""
+    out: dict = {"scenario": sc.name, "kind": sc.kind, "seed": sc.seed, "duration_s": float(a["t"][-1]),
+                 "realtime_factor": float(a["t"][-1] / wall_s) if wall_s > 0 else None}
+    per = []
+    for k, t0, t1 in sc.windows():
+        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
+        row = {"command": asdict(sc.commands[k]), "window_s": [t0, t1]}
+        if w.any():
+            row.update(v_x_m_s=_summary(a["v_x"][w]), v_y_m_s=_summary(a["v_y"][w]), omega_rad_s=_summary(a["omega"][w]))
+        per.append(row)
+    out["commands"] = per
+    out["distance_m"] = float(np.linalg.norm(a["com_plane"][-1] - a["com_plane"][0]))
+    out["path_length_m"] = float(np.sum(np.linalg.norm(np.diff(a["com_plane"], axis=0), axis=1)))
+    out["heading_change_deg"] = float(np.degrees(a["heading"][-1] - a["heading"][0]))
+    err = a["target"] - a["angle"]
+    out["servo_rms_deg"] = {name: float(np.degrees(np.sqrt(np.mean(err[:, idx] ** 2)))) for name, idx in axes.items()}
+    return out
+
+
+def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots: bool) -> None:
+    """The run folder: ``metrics.json``, ``<stem>.npz`` (the log), ``scenario.toml`` and, with
+    ``plots``, ``<stem>.png`` (the path with the robot's outline every 2 s, and the velocities)."""
+    a = run.arrays()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    np.savez_compressed(out_dir / f"{stem}.npz", **a)
+    (out_dir / "scenario.toml").write_text(dump_toml(sc))
+    if not plots:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5))
+    ax0.plot(a["com_plane"][:, 0], a["com_plane"][:, 1], lw=1.0, label="centre of mass")
+    step = max(1, int(round(2.0 * sc.log_rate_hz)))
+    for shape in a["outline_plane"][::step]:
+        ax0.plot(shape[:, 0], shape[:, 1], "-", color="gray", lw=0.8, alpha=0.6)
+        ax0.plot(shape[0, 0], shape[0, 1], "o", color="tab:red", ms=2)
+    ax0.set(xlabel="uphill x [m]", ylabel="y [m]", title=f"{sc.name}: path (outline every 2 s)")
+    ax0.set_aspect("equal", adjustable="datalim")
+    ax0.grid(alpha=0.3)
+    ax1.plot(a["period_t"], a["v_x"], label="v_x [m/s]")
+    ax1.plot(a["period_t"], a["v_y"], label="v_y [m/s]")
+    ax1.plot(a["period_t"], a["omega"], label="omega [rad/s]")
+    ax1.set(xlabel="t [s]", title="velocities in {B}, averaged over a CPG period")
+    ax1.grid(alpha=0.3)
+    ax1.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_dir / f"{stem}.png", dpi=110)
+    plt.close(fig)

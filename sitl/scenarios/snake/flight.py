@@ -1,0 +1,63 @@
+"""A snake run: the CPG of thesis sec. 4.3.2 drives the joints' servos of the MuJoCo robot
+(:class:`~sitl.scenarios.ground.run.GroundRun`: the loop, {B}'s velocities, the metrics).
+
+:class:`SnakeCpg` holds the CPG's state: its targets are ``theta_h`` on the horizontal joints and
+``theta_v`` on the vertical ones; it advances with the command's ``A``, ``B``.
+
+**Outputs** (:func:`fly_snake`): ``metrics.json`` (per command, the mean and standard deviation of
+``v_x``, ``v_y``, ``omega`` in {B} from ``settle_s`` after it starts; the distance, path length and
+heading change; the servos' RMS tracking error per axis; ``flipped``: whether the body left the
+ground), ``snake.npz`` (the log), ``snake.png`` (the path with the body every 2 s, the velocities).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from companion.motion.ground_cpgs import SnakeCpgState, snake_joint_angles, snake_step
+
+from ..ground.run import GroundRun, run_metrics, write_run
+from .config import CpgCommand, SnakeScenario
+from .model import SnakeModel
+
+__all__ = ["SnakeCpg", "snake_run", "fly_snake"]
+
+
+class SnakeCpg:
+    """The snake's CPG driving ``robot``'s servos (module docstring)."""
+
+    def __init__(self, sc: SnakeScenario, robot: SnakeModel):
+        self.params = sc.cpg
+        self.state = SnakeCpgState.at_rest(sc.cpg)
+        self.robot = robot
+        self.period_s = 1.0 / sc.cpg.frequency_hz
+        self.axes = {"horizontal": [int(j) for j in robot.horizontal], "vertical": [int(j) for j in robot.vertical]}
+
+    def targets(self) -> np.ndarray:
+        out = np.zeros(self.robot.model.nu)
+        out[self.robot.horizontal], out[self.robot.vertical] = snake_joint_angles(self.state, self.params)
+        return out
+
+    def advance(self, command: CpgCommand, dt_s: float) -> None:
+        self.state = snake_step(self.state, self.params, math.radians(command.A_deg), math.radians(command.B_deg), dt_s)
+
+
+def snake_run(sc: SnakeScenario) -> GroundRun:
+    """A run of the scenario, not started."""
+    robot = SnakeModel(sc)
+    return GroundRun(sc, robot, SnakeCpg(sc, robot))
+
+
+def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:
+    """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given)."""
+    run = snake_run(sc)
+    run.run(progress)
+    a = run.arrays()
+    metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
+    metrics["flipped"] = bool(np.any(a["com_w"][:, 2] - a["com_w"][0, 2] > 0.5 * sc.body.modules * sc.body.module_length_m))
+    if out_dir is not None:
+        write_run(sc, run, metrics, out_dir, "snake", plots)
+    return metrics

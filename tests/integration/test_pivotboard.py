@@ -1,0 +1,93 @@
+"""The pivotboard in MuJoCo (sitl.scenarios.pivotboard): its model from the config, and its CPG
+moving it as the thesis describes: forward with the plates out of phase, backward with the
+opposite phase, coasting to a stop at zero phase difference (sec. 4.3.3), curving with a bias."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.motion.oscillators import PhaseMap
+from sitl.scenarios import load
+from sitl.scenarios.pivotboard.config import PivotCommand, PivotGround
+
+from ..paths import ROOT
+
+CONFIG = ROOT / "configs" / "sitl" / "ground" / "pivotboard.toml"
+
+
+def _scenario(**changes):
+    _, sc = load(CONFIG)
+    return replace(sc, **changes)
+
+
+@pytest.mark.parametrize("incline", [0.0, 5.0])
+def test_the_board_starts_on_its_wheels_and_stays_at_rest_without_a_command(incline):
+    from sitl.scenarios.pivotboard.model import PivotModel
+
+    sc = _scenario(ground=replace(PivotGround(), incline_deg=incline))
+    robot = PivotModel(sc)
+    m, d = robot.model, robot.data
+    assert [m.jnt_axis[m.joint(f"j{s}").id].tolist() for s in "rl"] == [[0, 0, 1], [0, 0, 1]]
+    wheels = [m.body(f"wheel_{s}{k}").id for s in "rl" for k in (1, 2)]
+    height = d.xpos[wheels] @ robot.plane.normal
+    np.testing.assert_allclose(height, sc.body.wheel_radius_m, atol=1e-6)  # every wheel's axle one radius up
+    com = robot.centre_of_mass()
+    d.ctrl[:] = 0.0
+    robot.step(500)  # one second: on the flat it stays; on the slope it rolls down (free wheels), straight
+    moved = robot.in_plane(robot.centre_of_mass() - com)
+    if incline == 0.0:
+        assert np.linalg.norm(moved) < 1e-3
+    else:
+        assert moved[0] < -0.05 and abs(moved[1]) < 1e-3
+
+
+def test_the_plates_phase_difference_drives_it_forward_backward_or_not_at_all():
+    from sitl.scenarios.pivotboard.flight import fly_pivotboard
+
+    base = _scenario(duration_s=10.0, settle_s=6.0, commands=(PivotCommand(0.0, 30.0, 0.0, 0.1),))
+    speeds = {}
+    for phase_deg in (90.0, -90.0):
+        sc = replace(base, cpg=replace(base.cpg, phase=PhaseMap.constant(math.radians(phase_deg), 3)))
+        speeds[phase_deg] = fly_pivotboard(sc, None)["commands"][0]["v_x_m_s"]["mean"]
+    assert speeds[90.0] > 0.03 and speeds[-90.0] == pytest.approx(-speeds[90.0], rel=0.05), speeds
+    still = replace(base, commands=(PivotCommand(0.0, 30.0, 0.0, -0.1),))  # slowing down: zero phase difference
+    assert abs(fly_pivotboard(still, None)["commands"][0]["v_x_m_s"]["mean"]) < 0.05 * speeds[90.0]
+
+
+def test_it_speeds_up_then_coasts_to_a_stop_and_a_bias_curves_its_path(tmp_path):
+    """The scenario: the speed rises to a plateau while speeding up (the thesis's decaying
+    acceleration) and falls once the command slows down; deterministic; with a bias it turns."""
+    from sitl.scenarios.pivotboard.flight import fly_pivotboard, pivot_run
+
+    sc = _scenario()
+    m = fly_pivotboard(sc, tmp_path, plots=True)
+    up, down = m["commands"]
+    assert up["v_x_m_s"]["mean"] > 0.03 and down["v_x_m_s"]["mean"] < 0.3 * up["v_x_m_s"]["mean"], m["commands"]
+    assert abs(up["omega_rad_s"]["mean"]) < 0.01 and m["servo_rms_deg"]["plates"] < 6.0
+    run = pivot_run(replace(sc, duration_s=12.0))
+    run.run()
+    a = run.arrays()
+    v = a["v_x"]
+    early, late = v[a["period_t"] < 3.0].mean(), v[(a["period_t"] > 8.0)].mean()
+    assert early < 0.7 * late  # accelerating towards the plateau
+    assert (tmp_path / "pivotboard.png").exists() and fly_pivotboard(sc, None)["commands"] == m["commands"]
+    curved = replace(sc, duration_s=10.0, commands=(PivotCommand(0.0, 30.0, 10.0, 0.1),))
+    assert abs(fly_pivotboard(curved, None)["commands"][0]["omega_rad_s"]["mean"]) > 0.01
+
+
+def test_eq_4_2_fits_its_runs_and_the_bias_sets_the_curvature():
+    """Speeding up from rest, the board's speed follows eq. 4.2 (residual a few percent of v_s);
+    slowing down it decays to zero; the bias, not the amplitude, bends its path (c ~ B)."""
+    from sitl.scenarios.pivotboard.da_fit import fit_runs
+
+    sc = _scenario()
+    fits = {B: fit_runs(sc, 30.0, B, 10.0) for B in (0.0, 10.0)}
+    for B, (up, down) in fits.items():
+        assert up.model.v_s_m_s > 0.04 and up.model.d_per_s > 0.1, up
+        assert up.v_rms_m_s < 0.05 * up.model.v_s_m_s, up
+        assert abs(down.model.v_s_m_s) < 0.1 * up.model.v_s_m_s and down.model.d_per_s > 0.1, down
+    assert abs(fits[0.0][0].model.c_rad_per_m) < 0.02 < fits[10.0][0].model.c_rad_per_m

@@ -1,0 +1,91 @@
+"""The snake-like robot in MuJoCo (sitl.scenarios.snake): its model from the config, the ground's
+anisotropic friction, the CPG driving its servos, and that it crawls (forward with no bias, turning
+with one, not at all with isotropic friction)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from sitl.scenarios import load
+from sitl.scenarios.snake.config import CpgCommand, SnakeGround
+from sitl.scenarios.ground.run import period_velocities
+
+from ..paths import ROOT
+
+CONFIG = ROOT / "configs" / "sitl" / "ground" / "snake.toml"
+
+
+def _scenario(**changes):
+    _, sc = load(CONFIG)
+    return replace(sc, **changes)
+
+
+def test_the_model_alternates_yaw_and_pitch_joints_and_starts_on_the_ground():
+    from sitl.scenarios.snake.model import SnakeModel
+
+    for incline in (0.0, 5.0):  # the thesis's incline: tan(5 deg) below friction_along
+        sc = _scenario(ground=replace(SnakeGround(), incline_deg=incline))
+        robot = SnakeModel(sc)
+        m = robot.model
+        axes = np.array([m.jnt_axis[m.joint(f"j{j + 1}").id] for j in range(sc.body.joints)])
+        assert np.array_equal(axes[0::2], np.tile([0, 0, 1], (7, 1))) and np.array_equal(axes[1::2], np.tile([0, 1, 0], (7, 1)))
+        assert list(robot.horizontal) == list(range(0, 14, 2)) and list(robot.vertical) == list(range(1, 14, 2))
+        p = robot.module_positions()
+        height = p @ robot.ground.normal  # every module's centre one radius above the plane
+        np.testing.assert_allclose(height, sc.body.radius_m, atol=1e-3)
+        np.testing.assert_allclose(np.linalg.norm(np.diff(p, axis=0), axis=1), sc.body.module_length_m, atol=1e-9)
+        robot.step(250)  # half a second at rest: it stays where it lies (creeping at the friction's smoothing speed)
+        assert np.max(np.abs(robot.module_positions() - p)) < 0.01
+
+
+def test_the_ground_resists_sliding_across_more_than_along():
+    import mujoco
+
+    from sitl.scenarios.snake.model import SnakeModel
+
+    sc = _scenario()
+    robot = SnakeModel(sc)
+    robot.step(50)
+    d = robot.data
+    for direction, mu in ((np.array([1.0, 0, 0]), sc.ground.friction_along), (np.array([0, 1.0, 0]), sc.ground.friction_across)):
+        d.qvel[:3] = 0.2 * direction  # the whole body sliding (the root's linear velocity)
+        mujoco.mj_forward(robot.model, d)
+        robot.ground.apply(robot.model, d)
+        F = d.xfrc_applied[robot.ground.bodies, :3].sum(axis=0)
+        weight = sc.body.modules * sc.body.module_mass_kg * 9.81
+        assert F @ direction == pytest.approx(-mu * weight, rel=0.05)
+
+
+def test_period_velocities_in_the_body_frame():
+    t = np.arange(0, 5.0, 0.02)
+    heading = 0.3 * t  # turning at 0.3 rad/s on a circle of radius 1 m: v_x = 0.3 m/s, v_y = 0
+    p = np.stack((np.sin(heading), 1.0 - np.cos(heading)), axis=1)
+    tp, vx, vy, om = period_velocities(t, p, heading, 1.0)
+    assert tp[0] == pytest.approx(1.0)
+    np.testing.assert_allclose(om, 0.3, atol=1e-9)
+    np.testing.assert_allclose(vx, 2 * np.sin(0.15) / 1.0, atol=1e-9)  # the chord of one period
+    np.testing.assert_allclose(vy, 0.0, atol=1e-9)
+
+
+def test_the_cpg_makes_it_crawl_forward_and_the_bias_turns_it(tmp_path):
+    """8 s straight, then 6 s with a 10 deg bias: it moves head-first with little sideways drift, the
+    bias turns it; the servos track their targets. With isotropic friction the same gait barely moves it."""
+    from sitl.scenarios.snake.flight import fly_snake
+
+    sc = _scenario(duration_s=14.0, commands=(CpgCommand(0.0, 30.0, 0.0), CpgCommand(8.0, 30.0, 10.0)))
+    m = fly_snake(sc, tmp_path, plots=True)
+    straight, turning = m["commands"]
+    v = straight["v_x_m_s"]["mean"]
+    assert v > 0.03 and abs(straight["v_y_m_s"]["mean"]) < 0.3 * v, straight
+    assert abs(straight["omega_rad_s"]["mean"]) < 0.05, straight
+    assert abs(turning["omega_rad_s"]["mean"]) > 0.1, turning
+    assert m["servo_rms_deg"]["horizontal"] < 5.0 and not m["flipped"], m
+    assert (tmp_path / "snake.png").exists() and (tmp_path / "snake.npz").exists()
+    iso = replace(sc, duration_s=8.0, commands=sc.commands[:1], ground=replace(sc.ground, friction_along=1.0))
+    m_iso = fly_snake(iso, None)
+    assert abs(m_iso["commands"][0]["v_x_m_s"]["mean"]) < 0.3 * v, m_iso["commands"]
+    # deterministic: the same flight twice gives the same numbers
+    assert fly_snake(iso, None)["commands"] == m_iso["commands"]
