@@ -328,6 +328,8 @@ def load_setup(cls: type, path: str | Path, settings: Mapping[str, Any] | None =
             except (OSError, ValueError) as exc:
                 raise ConfigError(str(path), "motion.model", f"cannot load the inverse CPG model: {exc}") from None
             try:
+                if model.steady is None:
+                    raise ValueError("is not a flying chain's model (it records no expected physics)")
                 model.steady.check_chain(setup.skeleton.n_links, setup.skeleton.link_length_m)
             except ValueError as exc:
                 raise ConfigError(str(path), "motion.model", f"{model_path} {exc}") from None

@@ -239,6 +239,8 @@ class CpgChainTrajectory:
     def __init__(self, cfg: TrajectoryConfig, motion: MotionConfig, model: InverseModel, n_links: int,
                  link_length_m: float, start_center_w_m, dynamics=None):
         try:
+            if model.steady is None:
+                raise ValueError("is not a flying chain's model (it records no expected physics)")
             model.steady.check_chain(n_links, link_length_m)
         except ValueError as exc:
             raise ValueError(f"the inverse model {exc}") from None

@@ -2,7 +2,9 @@
 
 ``xi = [v; omega; theta]`` (R^7, :mod:`.steady`) is first encoded by an autoencoder with a 4-d
 hidden layer ``h``, which projects a desired motion onto the motions the CPG can make; a tanh
-MLP maps ``h`` to the CPG parameters ``eta = [A; B]``. Both are small fully connected networks
+MLP maps ``h`` to the CPG parameters ``eta = [A; B]``. The same model serves the thesis's snake
+(sec. 4.5.2: ``xi = [v_x; v_y; omega]``, ``h`` and ``eta = [A; B]`` in R^2; ``bottleneck`` of
+:func:`train_inverse_model`). Both are small fully connected networks
 (tanh hidden layers, linear outputs; the bottleneck is tanh) on standardised data, trained by
 L-BFGS (scipy) on mean squared error with a little weight decay, from seeded initial weights.
 
@@ -138,7 +140,8 @@ def train_mlp(x: np.ndarray, y: np.ndarray, hidden: int, rng: np.random.Generato
 class InverseModel:
     """Encoder ``xi -> h`` (and decoder ``h -> xi``) and the MLP ``h -> eta``, with the
     standardisation of ``xi`` and ``eta`` they were trained on, and ``steady``: the chain, CPG
-    and expected physics that made the data (a generator must run the same to be inverted)."""
+    and expected physics that made the data (a generator must run the same to be inverted;
+    ``None`` for a robot simulated elsewhere, whose ``info`` says how)."""
 
     encoder: Mlp
     decoder: Mlp
@@ -147,7 +150,7 @@ class InverseModel:
     xi_std: np.ndarray
     eta_mean: np.ndarray
     eta_std: np.ndarray
-    steady: SteadyConfig = field(default_factory=SteadyConfig)
+    steady: SteadyConfig | None = field(default_factory=SteadyConfig)
     #: the range of the training parameters: outside it the model extrapolates
     eta_low: np.ndarray = field(default_factory=lambda: np.full(4, -np.inf))
     eta_high: np.ndarray = field(default_factory=lambda: np.full(4, np.inf))
@@ -168,7 +171,7 @@ class InverseModel:
         return self.eta_of_h(self.encode(xi))
 
     def eta_jacobian(self, h: np.ndarray) -> np.ndarray:
-        """(4, 4) ``d eta / d h`` at one hidden vector (eq. 4.3), analytic."""
+        """(len(eta), len(h)) ``d eta / d h`` at one hidden vector (eq. 4.3), analytic."""
         return self.eta_std[:, None] * self.to_eta.jacobian(np.asarray(h, dtype=float))
 
     def save(self, path: str | Path) -> None:
@@ -180,7 +183,7 @@ class InverseModel:
             arrays[f"{name}_tanh_out"] = np.array(net.tanh_out)
         for name in ("xi_mean", "xi_std", "eta_mean", "eta_std", "eta_low", "eta_high"):
             arrays[name] = getattr(self, name)
-        arrays["steady"] = np.array(json.dumps(to_dict(self.steady)))
+        arrays["steady"] = np.array(json.dumps(None if self.steady is None else to_dict(self.steady)))
         arrays["info"] = np.array(json.dumps(self.info))
         np.savez_compressed(path, **arrays)
 
@@ -192,7 +195,8 @@ class InverseModel:
             raise ValueError(f"{path}: inverse model format version {version}, this code reads {MODEL_VERSION} "
                              "(regenerate it: companion/motion/models/README.md)")
         try:
-            steady = build(SteadyConfig, json.loads(str(data["steady"])), file=str(path), prefix="steady")
+            record = json.loads(str(data["steady"]))
+            steady = None if record is None else build(SteadyConfig, record, file=str(path), prefix="steady")
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{path}: no readable physics record ({exc})") from None
         except ConfigError as exc:
@@ -213,16 +217,18 @@ class InverseModel:
 
 
 def train_inverse_model(eta: np.ndarray, xi: np.ndarray, seed: int = 0, hidden: int = 24, decay: float = 1e-5,
-                        max_iter: int = 3000, steady: SteadyConfig = SteadyConfig()) -> InverseModel:
-    """Train the autoencoder on ``xi`` (4-d tanh bottleneck), then the MLP from its hidden
-    layer to ``eta`` (thesis sec. 4.5.1); ``steady``: how the data was simulated (recorded)."""
+                        max_iter: int = 3000, steady: SteadyConfig | None = SteadyConfig(), bottleneck: int = 4,
+                        info: dict | None = None) -> InverseModel:
+    """Train the autoencoder on ``xi`` (a tanh bottleneck of ``bottleneck``), then the MLP from its
+    hidden layer to ``eta`` (thesis sec. 4.5.1); ``steady``: how the data was simulated (recorded),
+    ``info``: more to record with the model."""
     rng = np.random.default_rng(seed)
     xi_mean, xi_std = xi.mean(axis=0), xi.std(axis=0) + 1e-9
     eta_mean, eta_std = eta.mean(axis=0), eta.std(axis=0) + 1e-9
     x = (xi - xi_mean) / xi_std
     y = (eta - eta_mean) / eta_std
-    enc = Mlp.init((x.shape[1], hidden, 4), rng, tanh_out=True)
-    dec = Mlp.init((4, hidden, x.shape[1]), rng)
+    enc = Mlp.init((x.shape[1], hidden, bottleneck), rng, tanh_out=True)
+    dec = Mlp.init((bottleneck, hidden, x.shape[1]), rng)
 
     def ae_loss(nets):
         e, d = nets
@@ -239,7 +245,8 @@ def train_inverse_model(eta: np.ndarray, xi: np.ndarray, seed: int = 0, hidden: 
     recon = float(np.sqrt(np.mean((dec(h) - x) ** 2)))
     fit = float(np.sqrt(np.mean((to_eta(h) - y) ** 2)))
     return InverseModel(enc, dec, to_eta, xi_mean, xi_std, eta_mean, eta_std, steady, eta.min(axis=0), eta.max(axis=0),
-                        {"seed": seed, "hidden": hidden, "samples": len(xi), "ae_rmse_std": recon, "eta_rmse_std": fit})
+                        {**(info or {}), "seed": seed, "hidden": hidden, "bottleneck": bottleneck, "samples": len(xi),
+                         "ae_rmse_std": recon, "eta_rmse_std": fit})
 
 
 @dataclass
@@ -249,7 +256,11 @@ class Adaptation:
     model: InverseModel
     k_p: float = 0.5
     k_i: float = 0.2
-    integral: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    integral: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.integral is None:
+            self.integral = np.zeros(self.model.encoder.weights[-1].shape[1])
 
     def update(self, xi_desired: np.ndarray, xi_measured: np.ndarray, dt_s: float) -> np.ndarray:
         """The adapted parameters ``eta = eta_raw + Delta eta`` for this step, limited to the

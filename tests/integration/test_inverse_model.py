@@ -120,3 +120,34 @@ def test_the_committed_model_matches_the_current_physics():
     xi = steady_motion(eta, SteadyConfig())
     err = np.abs(model(xi) - eta).mean(axis=0) / np.array([0.6, 0.6, 0.6, 0.6])
     assert np.all(err < 0.05), err
+
+
+def test_a_two_dimensional_model_without_a_physics_record_saves_adapts_and_refuses_to_fly_a_chain(tmp_path):
+    """The snake's shape of the model (sec. 4.5.2: xi in R^3, h and eta in R^2) on a smooth made-up
+    map: it recovers held-out inputs, its Jacobian and the adaptation are 2 x 2, it round-trips
+    through its file with no physics record, and a chain's config refuses it."""
+    from companion.configfile import ConfigError
+    from companion.motion.inverse import Adaptation
+    from sitl.scenario import load_scenario
+
+    from ..paths import ROOT
+
+    rng = np.random.default_rng(3)
+    eta = np.column_stack((rng.uniform(0.3, 0.7, 400), rng.uniform(-0.15, 0.15, 400)))
+    xi = np.column_stack((2.0 * eta[:, 0] - eta[:, 1] ** 2, 0.1 * eta[:, 1], -3.0 * eta[:, 1] * eta[:, 0]))
+    m = train_inverse_model(eta[:300], xi[:300], seed=0, hidden=12, steady=None, bottleneck=2, info={"robot": "test"})
+    err = np.sqrt(np.mean((m(xi[300:]) - eta[300:]) ** 2, axis=0))
+    assert np.all(err < 0.02 * np.ptp(eta, axis=0)), err
+    h = m.encode(xi[0])[0]
+    assert h.shape == (2,) and m.eta_jacobian(h).shape == (2, 2)
+    adapt = Adaptation(m)
+    assert adapt.integral.shape == (2,) and adapt.update(xi[0], xi[1], 1.0).shape == (2,)
+    m.save(tmp_path / "snake.npz")
+    back = InverseModel.load(tmp_path / "snake.npz")
+    assert back.steady is None and back.info["robot"] == "test" and back.info["bottleneck"] == 2
+    np.testing.assert_array_equal(back(xi[300:]), m(xi[300:]))
+    cfg = tmp_path / "cpg.toml"
+    cfg.write_text((ROOT / "configs/sitl/chain/seven_link_cpg.toml").read_text()
+                   .replace("[motion]", f'[motion]\nmodel = "{tmp_path / "snake.npz"}"', 1))
+    with pytest.raises(ConfigError, match="not a flying chain's model"):
+        load_scenario(cfg)

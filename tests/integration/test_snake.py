@@ -89,3 +89,26 @@ def test_the_cpg_makes_it_crawl_forward_and_the_bias_turns_it(tmp_path):
     assert abs(m_iso["commands"][0]["v_x_m_s"]["mean"]) < 0.3 * v, m_iso["commands"]
     # deterministic: the same flight twice gives the same numbers
     assert fly_snake(iso, None)["commands"] == m_iso["commands"]
+
+
+def test_the_inverse_model_command_learns_from_runs_and_records_how(tmp_path):
+    """``python -m sitl.scenarios.snake.inverse`` on a few short runs: the data are the runs' steady
+    velocities and their mirror images, the model has the snake's shape (2-d bottleneck), its file
+    records the seed, the commit and the held-out error, and the same command gives the same data."""
+    from companion.motion.inverse import InverseModel
+    from sitl.scenarios.snake.inverse import dataset, main
+
+    sc = _scenario(duration_s=5.0, settle_s=2.0)
+    eta, xi = dataset(sc, 3, seed=4, A_range_deg=(25.0, 35.0), B_max_deg=6.0)
+    assert eta.shape == (6, 2) and xi.shape == (6, 3)
+    np.testing.assert_allclose(eta[3:], eta[:3] * [1, -1]) and np.testing.assert_allclose(xi[3:], xi[:3] * [1, -1, -1])
+    assert np.all(xi[:3, 0] > 0.3) and np.all(np.sign(xi[:3, 2]) == np.sign(xi[0, 2]))  # forward; the bias turns one way
+    np.testing.assert_array_equal(dataset(sc, 3, seed=4, A_range_deg=(25.0, 35.0), B_max_deg=6.0)[1], xi)
+    out = tmp_path / "inverse.npz"
+    assert main(["--config", str(CONFIG), "--samples", "8", "--held-out", "2", "--duration", "5", "--A", "25,35",
+                 "--seed", "1", "--out", str(out)]) == 0
+    model = InverseModel.load(out)
+    info = model.info
+    assert model.steady is None and info["bottleneck"] == 2 and info["samples"] == 16 and info["held_out_samples"] == 4
+    assert info["data_seed"] == 1 and info["commit"] and len(info["held_out_eta_rms_deg"]) == 2
+    assert model(xi[:1]).shape == (1, 2)

@@ -3,12 +3,14 @@ in one process or several, the commit the data came from, comma-separated values
 
 from __future__ import annotations
 
+import argparse
 import subprocess
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-__all__ = ["run_jobs", "commit", "floats"]
+__all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep"]
 
 
 def run_jobs(fn: Callable, jobs: Sequence, workers: int = 1) -> list:
@@ -33,3 +35,27 @@ def commit() -> str:
 def floats(text: str) -> list[float]:
     """``"1,2.5, 3"`` -> ``[1.0, 2.5, 3.0]``."""
     return [float(x) for x in text.split(",") if x.strip()]
+
+
+def sweep_parser(prog: str, doc: str, kind: str, out_help: str, duration_s: float) -> argparse.ArgumentParser:
+    """A sweep's command line with the options every sweep has: ``--config`` (a ``kind``
+    scenario), ``--duration``, ``--workers``, ``--out``; the sweep adds its own."""
+    p = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
+    p.add_argument("--config", required=True, help=f"a {kind} scenario (its robot, ground, CPG)")
+    p.add_argument("--duration", type=float, default=duration_s, help="simulated seconds per run")
+    p.add_argument("--workers", type=int, default=1, help="processes")
+    p.add_argument("--out", type=Path, required=True, help=out_help)
+    return p
+
+
+def parse_sweep(parser: argparse.ArgumentParser, argv, kind: str):
+    """``(args, scenario)``: the command line parsed, and its ``--config`` read with ``--duration``
+    if it is a ``kind`` scenario (else ``None``, the error printed)."""
+    from sitl.scenarios import load
+
+    args = parser.parse_args(argv)
+    found, sc = load(args.config, duration_s=args.duration)
+    if found.name != kind:
+        print(f"error: {args.config}: a {kind} scenario, not {found.name}", file=sys.stderr)
+        return args, None
+    return args, sc

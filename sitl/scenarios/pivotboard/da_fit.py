@@ -19,11 +19,10 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 from companion.motion.decaying_acceleration import DAFit, fit_decaying_acceleration
 
-from ..ground.sweep import commit, floats, run_jobs
+from ..ground.sweep import commit, floats, parse_sweep, run_jobs, sweep_parser
 from .config import PivotCommand, PivotScenario
 
 __all__ = ["fit_runs", "build_parser", "main"]
@@ -51,13 +50,9 @@ def _job(args):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sitl.scenarios.pivotboard.da_fit", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", required=True, help="a pivotboard scenario (its board, ground, CPG and phase map)")
+    p = sweep_parser("python -m sitl.scenarios.pivotboard.da_fit", __doc__, "pivotboard", "the fits' TOML file", 12.0)
     p.add_argument("--A", default="20,30,40", help="amplitudes [deg], comma-separated")
     p.add_argument("--B", default="0,5,10", help="biases [deg], comma-separated")
-    p.add_argument("--duration", type=float, default=12.0, help="simulated seconds of each half")
-    p.add_argument("--workers", type=int, default=1, help="processes")
-    p.add_argument("--out", type=Path, required=True, help="the fits' TOML file")
     return p
 
 
@@ -69,12 +64,8 @@ def _row(A: float, B: float, f: DAFit) -> list[str]:
 
 
 def main(argv=None) -> int:
-    from sitl.scenarios import load
-
-    args = build_parser().parse_args(argv)
-    kind, sc = load(args.config)
-    if kind.name != "pivotboard":
-        print(f"error: {args.config}: a pivotboard scenario, not {kind.name}", file=sys.stderr)
+    args, sc = parse_sweep(build_parser(), argv, "pivotboard")
+    if sc is None:
         return 2
     jobs = [(sc, a, b, args.duration) for a in floats(args.A) for b in floats(args.B)]
     fits = run_jobs(_job, jobs, args.workers)

@@ -13,6 +13,7 @@ ground), ``snake.npz`` (the log), ``snake.png`` (the path with the body every 2 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from ..ground.run import GroundRun, run_metrics, write_run
 from .config import CpgCommand, SnakeScenario
 from .model import SnakeModel
 
-__all__ = ["SnakeCpg", "snake_run", "fly_snake"]
+__all__ = ["SnakeCpg", "snake_run", "fly_snake", "steady_motion"]
 
 
 class SnakeCpg:
@@ -49,6 +50,21 @@ def snake_run(sc: SnakeScenario) -> GroundRun:
     """A run of the scenario, not started."""
     robot = SnakeModel(sc)
     return GroundRun(sc, robot, SnakeCpg(sc, robot))
+
+
+def steady_motion(sc: SnakeScenario, A_deg: float, B_deg: float, phase_hv=None) -> np.ndarray:
+    """The robot's steady motion ``[v_x, v_y, omega]`` in {B} with ``(A, B)`` held from rest: the
+    period velocities' means over the scenario's duration after ``settle_s`` (``nan`` if that
+    window is empty); ``phase_hv``: a :class:`~companion.motion.oscillators.PhaseMap` in place of
+    the scenario's (eq. 4.1's sweep holds it constant)."""
+    cpg = sc.cpg if phase_hv is None else replace(sc.cpg, phase_hv=phase_hv)
+    run = snake_run(replace(sc, cpg=cpg, commands=(CpgCommand(0.0, A_deg, B_deg),)))
+    run.run()
+    a = run.arrays()
+    w = a["period_t"] >= sc.settle_s
+    if not w.any():
+        return np.full(3, np.nan)
+    return np.array([a["v_x"][w].mean(), a["v_y"][w].mean(), a["omega"][w].mean()])
 
 
 def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:

@@ -24,15 +24,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-from ..ground.sweep import commit, floats, run_jobs
-from .config import CpgCommand, SnakeScenario
+from ..ground.sweep import commit, floats, parse_sweep, run_jobs, sweep_parser
+from .config import SnakeScenario
 
 __all__ = ["forward_speed", "sweep", "best_phases", "phase_map", "build_parser", "main"]
 
@@ -40,15 +38,9 @@ __all__ = ["forward_speed", "sweep", "best_phases", "phase_map", "build_parser",
 def forward_speed(sc: SnakeScenario, A_deg: float, B_deg: float, phi_hv_rad: float) -> float:
     """The mean forward speed ``v_x`` [m/s] of the robot with ``(A, B)`` held and ``phi_hv`` fixed,
     over the scenario's duration after ``settle_s`` (``nan`` if the window is empty)."""
-    from .flight import snake_run
+    from .flight import steady_motion
 
-    sc = replace(sc, cpg=replace(sc.cpg, phase_hv=PhaseMap.constant(phi_hv_rad, 2)),
-                 commands=(CpgCommand(0.0, A_deg, B_deg),))
-    run = snake_run(sc)
-    run.run()
-    a = run.arrays()
-    w = a["period_t"] >= sc.settle_s
-    return float(np.mean(a["v_x"][w])) if w.any() else math.nan
+    return float(steady_motion(sc, A_deg, B_deg, PhaseMap.constant(phi_hv_rad, 2))[0])
 
 
 def _speed(args) -> float:
@@ -83,24 +75,16 @@ def phase_map(A_deg, B_deg, best_rad: np.ndarray) -> PhaseMap:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sitl.scenarios.snake.phase_map", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", required=True, help="a snake scenario (its robot, ground and CPG)")
+    p = sweep_parser("python -m sitl.scenarios.snake.phase_map", __doc__, "snake", "the map's TOML file", 8.0)
     p.add_argument("--A", default="15,30,45", help="amplitudes [deg], comma-separated")
     p.add_argument("--B", default="0,5,10", help="biases [deg], comma-separated")
     p.add_argument("--phases", type=int, default=12, help="phi_hv grid points over 2 pi")
-    p.add_argument("--duration", type=float, default=8.0, help="simulated seconds per point")
-    p.add_argument("--workers", type=int, default=1, help="processes")
-    p.add_argument("--out", type=Path, required=True, help="the map's TOML file")
     return p
 
 
 def main(argv=None) -> int:
-    from sitl.scenarios import load
-
-    args = build_parser().parse_args(argv)
-    kind, sc = load(args.config, duration_s=args.duration)
-    if kind.name != "snake":
-        print(f"error: {args.config}: a snake scenario, not {kind.name}", file=sys.stderr)
+    args, sc = parse_sweep(build_parser(), argv, "snake")
+    if sc is None:
         return 2
     A, B = floats(args.A), floats(args.B)
     phi = np.arange(args.phases) * 2.0 * math.pi / args.phases - math.pi
