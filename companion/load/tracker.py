@@ -25,6 +25,7 @@ from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_normalize
 from .config import LoadConfig
 from .estimate import LoadEstimate, initial_estimate
 from .filter import LoadPoseFilter
+from .kalman import FILTER_KINDS
 from .model import ERR_ATT, ERR_POS, LoadObservation, VehicleStates
 
 __all__ = ["LoadTracker", "vehicle_states", "log_keys"]
@@ -68,8 +69,8 @@ class LoadTracker:
     history, ``load.filter.lag_s``)."""
 
     def __init__(self, load: LoadConfig, kinds=("ekf",), fixed_lag_s: float = 0.0):
-        if not kinds or any(k not in ("ekf", "ukf") for k in kinds):
-            raise ValueError(f"kinds: 'ekf' and/or 'ukf', got {kinds!r}")
+        if not kinds or any(k not in FILTER_KINDS for k in kinds):
+            raise ValueError(f"kinds: some of {FILTER_KINDS}, got {kinds!r}")
         if not 0.0 <= fixed_lag_s < load.filter.lag_s:
             raise ValueError(f"fixed_lag_s must be in [0, load.filter.lag_s = {load.filter.lag_s:g}), got {fixed_lag_s}")
         self.load = load
@@ -77,6 +78,7 @@ class LoadTracker:
         self.kinds = tuple(kinds)
         self.fixed_lag_s = float(fixed_lag_s)
         self.filters: dict[str, LoadPoseFilter] = {}
+        self._t0 = 0.0  # the first vehicle sample's time (the filters' start)
         self.rows: dict[str, list] = {k: [] for k in log_keys(self.kinds)}
         self.early_observations = 0
         self.vehicle_samples = 0
