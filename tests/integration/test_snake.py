@@ -112,3 +112,28 @@ def test_the_inverse_model_command_learns_from_runs_and_records_how(tmp_path):
     assert model.steady is None and info["bottleneck"] == 2 and info["samples"] == 16 and info["held_out_samples"] == 4
     assert info["data_seed"] == 1 and info["commit"] and len(info["held_out_eta_rms_deg"]) == 2
     assert model(xi[:1]).shape == (1, 2)
+
+
+def test_velocity_commands_through_the_inverse_model_hold_the_line_and_turn():
+    """Thesis sec. 4.7.2's two tests, shortened: a forward speed with the lateral position regulated
+    to zero, then a turn rate at constant speed; the inverse model turns each into (A, B) once per
+    period. The errors stay within the thesis's order (0.030 m/s, 0.140 m; 0.017 m/s, 0.063 rad/s)."""
+    from sitl.scenarios.snake.flight import fly_snake
+
+    _, sc = load(ROOT / "configs" / "sitl" / "ground" / "snake_velocity.toml")
+    sc = replace(sc, duration_s=24.0, commands=(CpgCommand(0.0, mode="velocity", v_x_m_s=0.9, hold_line=True),
+                                                CpgCommand(12.0, mode="velocity", v_x_m_s=0.9, omega_rad_s=0.3)))
+    line, turn = fly_snake(sc, None)["commands"]
+    assert line["v_x_rms_err_m_s"] < 0.05 and line["y_rms_m"] < 0.3, line
+    assert turn["v_x_rms_err_m_s"] < 0.05 and turn["omega_rms_err_rad_s"] < 0.1, turn
+    with pytest.raises(ValueError, match="control.model_file"):
+        replace(sc, control=replace(sc.control, model_file=""))
+    from sitl.scenarios.snake.flight import snake_run
+
+    adapting = snake_run(replace(sc, duration_s=6.0, control=replace(sc.control, adapt=True)))
+    adapting.run()
+    log = np.array(adapting.cpg.control.log)  # (t, v_x, v_y, omega, omega_d, A, B): one update per period
+    model = adapting.cpg.control.model
+    np.testing.assert_allclose(log[:, 0], np.arange(7.0), atol=1e-9)  # t = 0, 1, ..., 6 s: each period boundary
+    assert np.all(np.isfinite(log[1:, 1:4])) and np.isnan(log[0, 1])
+    assert np.all((log[:, 5:] >= model.eta_low - 1e-12) & (log[:, 5:] <= model.eta_high + 1e-12))

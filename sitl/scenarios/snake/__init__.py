@@ -3,7 +3,9 @@ alternately horizontal and vertical, driven by its CPG on the ground in MuJoCo; 
 
 * :mod:`.config`: the scenario's schema (no MuJoCo): body, ground, CPG, commands;
 * :mod:`.model`: the robot and its ground in MuJoCo, the ground's anisotropic friction;
-* :mod:`.flight`: the loop (physics, CPG, servos), the body frame's velocities, the metrics.
+* :mod:`.flight`: its CPG on the shared run (:mod:`sitl.scenarios.ground.run`), the metrics;
+* :mod:`.control`: velocity commands through the inverse model (and the adaptation), once per period;
+* :mod:`.phase_map`: eq. 4.1's sweep; :mod:`.inverse`: the inverse model's data and training.
 """
 
 from __future__ import annotations
@@ -22,4 +24,4 @@ def _fly(scenario, out_dir, **options) -> dict:
 
 
 KIND = ScenarioKind("snake", "the thesis's snake-like robot crawling on its CPG", load=load_snake_scenario,
-                    fly=_fly, tables=GROUND_TABLES, summary=GROUND_SUMMARY)
+                    fly=_fly, tables=GROUND_TABLES + ("control",), summary=GROUND_SUMMARY)

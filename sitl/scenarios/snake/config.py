@@ -20,7 +20,7 @@ from companion.motion.oscillators import PhaseMap
 
 from ..ground.config import GroundScenario, load_ground_scenario
 
-__all__ = ["SnakeBody", "SnakeGround", "CpgCommand", "SnakeScenario", "load_snake_scenario"]
+__all__ = ["SnakeBody", "SnakeGround", "CpgCommand", "SnakeControl", "SnakeScenario", "load_snake_scenario"]
 
 
 @dataclass(frozen=True)
@@ -82,17 +82,51 @@ class SnakeGround:
 
 @dataclass(frozen=True)
 class CpgCommand:
-    """From ``t_s`` on, the CPG's inputs: the horizontal undulation's amplitude ``A_deg`` and bias
-    ``B_deg`` (the bias turns the snake)."""
+    """From ``t_s`` on, either (``mode = "cpg"``) the CPG's inputs themselves: the horizontal
+    undulation's amplitude ``A_deg`` and bias ``B_deg`` (the bias turns the snake); or (``mode =
+    "velocity"``, thesis sec. 4.6) a body velocity the inverse model and the adaptation turn into
+    them once per CPG period (``[control]``): forward ``v_x_m_s`` and angular ``omega_rad_s``, or,
+    with ``hold_line``, the angular velocity that brings the snake back onto the line ``y = 0``
+    heading along +x (the thesis's "y (lateral) position is regulated to be zero")."""
 
     t_s: float
-    A_deg: float
+    A_deg: float = 0.0
     B_deg: float = 0.0
+    mode: Literal["cpg", "velocity"] = "cpg"
+    v_x_m_s: float = 0.0
+    omega_rad_s: float = 0.0
+    hold_line: bool = False
 
     def __post_init__(self) -> None:
         require_nonnegative(self, "t_s", "A_deg")
         if not (math.isfinite(self.B_deg) and abs(self.B_deg) <= 60.0 and self.A_deg <= 90.0):
             raise ValueError(f"A_deg in [0, 90] and B_deg in [-60, 60], got {self.A_deg}, {self.B_deg}")
+        if not (math.isfinite(self.v_x_m_s) and math.isfinite(self.omega_rad_s) and abs(self.v_x_m_s) <= 5.0
+                and abs(self.omega_rad_s) <= 5.0):
+            raise ValueError(f"v_x_m_s and omega_rad_s: finite, within 5, got {self.v_x_m_s}, {self.omega_rad_s}")
+        if self.hold_line and self.mode != "velocity":
+            raise ValueError("hold_line: a velocity command's option (mode = \"velocity\")")
+
+
+@dataclass(frozen=True)
+class SnakeControl:
+    """The velocity commands' control (thesis sec. 4.6): the inverse model ``model_file`` (relative
+    to the scenario; :mod:`.inverse` trains it), the adaptation (eq. 4.3) on or off with its gains
+    ``k_p``, ``k_i``, and the line-holding law ``omega_d = -k_y_per_s y - k_heading_per_s psi``
+    (``y`` [m] the offset from the line, ``psi`` the heading off it), limited to ``omega_max_rad_s``.
+    (The thesis gives none of these gains.)"""
+
+    model_file: str = ""
+    adapt: bool = False
+    k_p: float = 0.5
+    k_i: float = 0.2
+    k_y_per_s: float = 0.2
+    k_heading_per_s: float = 0.5
+    omega_max_rad_s: float = 0.6
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "k_p", "k_i", "k_y_per_s", "k_heading_per_s")
+        require_positive(self, "omega_max_rad_s")
 
 
 @dataclass(frozen=True)
@@ -110,10 +144,13 @@ class SnakeScenario(GroundScenario):
     body: SnakeBody = field(default_factory=SnakeBody)
     ground: SnakeGround = field(default_factory=SnakeGround)
     cpg: SnakeCpgParams = field(default_factory=SnakeCpgParams)
+    control: SnakeControl = field(default_factory=SnakeControl)
     commands: tuple[CpgCommand, ...] = (CpgCommand(0.0, 30.0, 0.0),)
 
     def __post_init__(self) -> None:
         GroundScenario.__post_init__(self)
+        if any(c.mode == "velocity" for c in self.commands) and not self.control.model_file:
+            raise ValueError("control.model_file: velocity commands need the inverse model")
         if self.cpg.n != self.body.joints // 2:
             raise ValueError(f"cpg.n ({self.cpg.n}) must be the number of horizontal joints, "
                              f"{self.body.joints // 2} for {self.body.modules} modules")
@@ -124,6 +161,9 @@ def load_snake_scenario(path: str | Path, settings=None, **overrides) -> SnakeSc
     ``settings``: dotted keys set in the file's tables; ``overrides``: top-level fields (e.g.
     ``duration_s``), checked as if the file held them."""
     sc = load_ground_scenario(SnakeScenario, path, settings, **overrides)
+    folder = Path(path).resolve().parent
+    if sc.control.model_file:
+        sc = replace(sc, control=replace(sc.control, model_file=str(folder / sc.control.model_file)))
     if not sc.phase_map_file:
         return sc
     map_path = Path(path).resolve().parent / sc.phase_map_file

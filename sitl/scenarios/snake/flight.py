@@ -28,7 +28,8 @@ __all__ = ["SnakeCpg", "snake_run", "fly_snake", "steady_motion"]
 
 
 class SnakeCpg:
-    """The snake's CPG driving ``robot``'s servos (module docstring)."""
+    """The snake's CPG driving ``robot``'s servos (module docstring); with velocity commands, their
+    control (:class:`~.control.VelocityControl`) sets the inputs at every period boundary."""
 
     def __init__(self, sc: SnakeScenario, robot: SnakeModel):
         self.params = sc.cpg
@@ -36,6 +37,14 @@ class SnakeCpg:
         self.robot = robot
         self.period_s = 1.0 / sc.cpg.frequency_hz
         self.axes = {"horizontal": [int(j) for j in robot.horizontal], "vertical": [int(j) for j in robot.vertical]}
+        self.control = None
+        if any(c.mode == "velocity" for c in sc.commands):
+            from .control import VelocityControl
+
+            self.control = VelocityControl(sc, robot)
+        self.t_s = 0.0
+        self._next_update_s = 0.0
+        self._eta = np.zeros(2)
 
     def targets(self) -> np.ndarray:
         out = np.zeros(self.robot.model.nu)
@@ -43,7 +52,15 @@ class SnakeCpg:
         return out
 
     def advance(self, command: CpgCommand, dt_s: float) -> None:
-        self.state = snake_step(self.state, self.params, math.radians(command.A_deg), math.radians(command.B_deg), dt_s)
+        if command.mode == "velocity":
+            if self.t_s >= self._next_update_s - 1e-9:  # a period boundary: new inputs
+                self._eta = self.control.update(self.t_s, command)
+                self._next_update_s = (math.floor(self.t_s / self.period_s + 1e-9) + 1) * self.period_s
+            A, B = self._eta
+        else:
+            A, B = math.radians(command.A_deg), math.radians(command.B_deg)
+        self.state = snake_step(self.state, self.params, A, B, dt_s)
+        self.t_s += dt_s
 
 
 def snake_run(sc: SnakeScenario) -> GroundRun:
@@ -67,6 +84,23 @@ def steady_motion(sc: SnakeScenario, A_deg: float, B_deg: float, phase_hv=None) 
     return np.array([a["v_x"][w].mean(), a["v_y"][w].mean(), a["omega"][w].mean()])
 
 
+def _tracking(sc: SnakeScenario, a: dict, metrics: dict) -> None:
+    """Each velocity command's tracking over its window, as the thesis reports it (sec. 4.7.2):
+    the RMS of ``v_x - v_x_m_s`` and, holding the line, of the lateral offset ``y``, else of
+    ``omega - omega_rad_s`` (the period velocities; ``y`` at the log rate)."""
+    for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
+        cmd = sc.commands[k]
+        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
+        if cmd.mode != "velocity" or not w.any():
+            continue
+        row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
+        if cmd.hold_line:
+            wy = (a["t"] >= t0) & (a["t"] <= t1)
+            row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
+        else:
+            row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
+
+
 def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:
     """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given)."""
     run = snake_run(sc)
@@ -74,6 +108,7 @@ def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: 
     a = run.arrays()
     metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
     metrics["flipped"] = bool(np.any(a["com_w"][:, 2] - a["com_w"][0, 2] > 0.5 * sc.body.modules * sc.body.module_length_m))
+    _tracking(sc, a, metrics)
     if out_dir is not None:
         write_run(sc, run, metrics, out_dir, "snake", plots)
     return metrics
