@@ -15,7 +15,7 @@ import numpy as np
 
 from .cpg import CpgParams, cpg_initial_state, cpg_output, cpg_step
 from .expected_physics import BodyState, WaterParams, body_step, body_wrench, link_targets
-from .inverse import Adaptation, InverseModel
+from .inverse import Adaptation, InverseModel, SteadyGate
 
 __all__ = ["LinkTargets", "MotionGenerator"]
 
@@ -51,13 +51,8 @@ class MotionGenerator:
         self._acc = np.zeros(6)
         self.measured: np.ndarray | None = None  # xi over the last whole period
         self._xi_d: np.ndarray | None = None
-        #: the adaptation runs on steady motion only (what the inverse model maps): at least
-        #: ``settle_periods`` periods after a new command, and once the period-averaged velocity
-        #: changes by less than ``steady_tol`` (relative) from one period to the next; adapting on
-        #: the acceleration transient would wind the integral up
-        self.settle_periods = settle_periods
-        self.steady_tol = steady_tol
-        self._periods_since_command = 0
+        #: the adaptation runs on steady motion only (:class:`~.inverse.SteadyGate`)
+        self.gate = SteadyGate(settle_periods, steady_tol)
 
     def step(self, xi_desired: np.ndarray, dt_s: float, new_command: bool | None = None) -> LinkTargets:
         """Advance by ``dt_s`` towards ``xi_desired``. ``new_command``: whether the operator's
@@ -66,7 +61,7 @@ class MotionGenerator:
         xi_desired = np.asarray(xi_desired, dtype=float)
         changed = self._xi_d is None or not np.array_equal(xi_desired, self._xi_d)
         if changed if new_command is None else new_command:
-            self._periods_since_command = 0
+            self.gate.restart()
         if changed:
             if self.adaptation is None or self.measured is None:
                 # the raw parameters of a new command, within the model's range
@@ -80,13 +75,10 @@ class MotionGenerator:
         self._acc_t += dt_s
         if self._acc_t >= self.period_s - 1e-9:
             theta = np.arctan2(self.eta[1], self.eta[0])
-            previous = self.measured
             self.measured = np.concatenate([self._acc / self._acc_t, [theta]])
-            self._periods_since_command += 1
+            steady = self.gate.steady(self.measured[:3])
             if self.adaptation is not None:
-                change = (np.inf if previous is None else np.linalg.norm(self.measured[:3] - previous[:3])
-                          / max(np.linalg.norm(self.measured[:3]), 1e-3))
-                if self._periods_since_command > self.settle_periods and change < self.steady_tol:
+                if steady:
                     self.eta = self.adaptation.update(xi_desired, self.measured, self._acc_t)
                 else:  # raw parameters plus the correction learnt so far
                     self.eta = self.adaptation.update(xi_desired, xi_desired, 0.0)

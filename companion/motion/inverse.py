@@ -25,7 +25,7 @@ from companion.configfile import ConfigError, build, to_dict
 
 from .steady import SteadyConfig
 
-__all__ = ["Mlp", "train_mlp", "InverseModel", "train_inverse_model", "Adaptation", "MODEL_VERSION"]
+__all__ = ["Mlp", "train_mlp", "InverseModel", "train_inverse_model", "Adaptation", "SteadyGate", "MODEL_VERSION"]
 
 #: 2: the file records the expected physics and CPG the data came from (``steady``)
 MODEL_VERSION = 2
@@ -279,3 +279,29 @@ class Adaptation:
         else:
             limited = np.clip(raw - J @ (self.k_p * (h - h_d) + self.k_i * self.integral), m.eta_low, m.eta_high)
         return limited
+
+
+@dataclass
+class SteadyGate:
+    """When the adaptation may run: on steady motion only (what the inverse model maps), at least
+    ``settle_periods`` periods after a new command and once the period-averaged velocity changes by
+    less than ``steady_tol`` (relative) from one period to the next. Adapting on the acceleration
+    transient would wind the integral up."""
+
+    settle_periods: int = 2
+    steady_tol: float = 0.02
+    _periods: int = 0
+    _previous: np.ndarray | None = None
+
+    def restart(self) -> None:
+        """A new command: the settling starts again."""
+        self._periods = 0
+
+    def steady(self, velocity: np.ndarray) -> bool:
+        """Whether the period that ended with the mean ``velocity`` is steady (counts the period)."""
+        velocity = np.asarray(velocity, dtype=float)
+        change = (np.inf if self._previous is None else np.linalg.norm(velocity - self._previous)
+                  / max(float(np.linalg.norm(velocity)), 1e-3))
+        self._previous = velocity
+        self._periods += 1
+        return self._periods > self.settle_periods and change < self.steady_tol

@@ -10,7 +10,10 @@ definition), and sets ``eta = [A, B]`` for the next period:
   line-holding law ``-k_y y - k_heading psi`` (limited to ``omega_max_rad_s``);
 * ``eta``: the inverse model's ``Xi^-1(xi_d)``, and with ``[control] adapt`` eq. 4.3's correction
   (:class:`companion.motion.inverse.Adaptation`: PI in the autoencoder's hidden space, limited to
-  the model's training range). A new command restarts the adaptation's integral.
+  the model's training range). As the flying chain's generator does, the adaptation runs on steady
+  motion only (:class:`~companion.motion.inverse.SteadyGate`: ``settle_periods`` after a new
+  command, and the period velocity changing by less than ``steady_tol``); otherwise the inputs are
+  the model's plus the correction learnt so far.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import math
 
 import numpy as np
 
-from companion.motion.inverse import Adaptation, InverseModel
+from companion.motion.inverse import Adaptation, InverseModel, SteadyGate
 
 from .config import CpgCommand, SnakeScenario
 
@@ -36,6 +39,7 @@ class VelocityControl:
         self.period_s = 1.0 / sc.cpg.frequency_hz
         self.model = InverseModel.load(cfg.model_file)
         self.adaptation = Adaptation(self.model, cfg.k_p, cfg.k_i) if cfg.adapt else None
+        self.gate = SteadyGate(cfg.settle_periods, cfg.steady_tol)
         self.eta = np.zeros(2)
         self._command = None
         self._last = None  # (com in plane, heading) at the last period boundary
@@ -59,8 +63,7 @@ class VelocityControl:
         xi_d = self.desired(command)
         if command is not self._command:
             self._command = command
-            if self.adaptation is not None:
-                self.adaptation.integral = np.zeros_like(self.adaptation.integral)
+            self.gate.restart()
         measured = None
         if self._last is not None:
             (p0, h0) = self._last
@@ -71,10 +74,13 @@ class VelocityControl:
             measured = np.array([(c * d[0] + s * d[1]) / self.period_s, (-s * d[0] + c * d[1]) / self.period_s,
                                  dh / self.period_s])
         self._last = (com, heading)
-        if self.adaptation is not None and measured is not None:
-            self.eta = self.adaptation.update(xi_d, measured, self.period_s)
-        else:
+        steady = measured is not None and self.gate.steady(measured)
+        if self.adaptation is None:
             self.eta = np.clip(self.model(xi_d)[0], self.model.eta_low, self.model.eta_high)
+        elif steady:
+            self.eta = self.adaptation.update(xi_d, measured, self.period_s)
+        else:  # the model's inputs plus the correction learnt so far
+            self.eta = self.adaptation.update(xi_d, xi_d, 0.0)
         m = measured if measured is not None else np.full(3, np.nan)
         self.log.append((t_s, *m, xi_d[2], *self.eta))
         return self.eta
