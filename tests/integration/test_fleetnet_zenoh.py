@@ -175,7 +175,10 @@ def test_global_step_over_zenoh_equals_in_process_eq6(groups):
             bus.close()
 
 
-def test_leader_failover_over_zenoh_within_two_cycles():
+def test_leader_failover_over_zenoh_within_two_cycles(compiled_kernels):
+    """Three groups on real deadlines (0.2 s): every cycle gets the leader's step before its
+    computer goes away, at most two after. The compiled kernels are loaded first, as the daemon
+    loads them before its first cycle: a first eq. 6 solve that loads them would miss the deadline."""
     groups = LAYOUTS[0]
     ref, reports = chain_boundaries(5, groups)
     cfg, buses = _buses(3, "test_failover")
