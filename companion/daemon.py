@@ -225,6 +225,23 @@ class CompanionDaemon:
             self._vision_session.close()
             self._vision_session = None
 
+    def _drain_inboxes(self) -> None:
+        """The vision consumer's messages that arrived: neighbour poses to the engine, load
+        observations to the load filter."""
+        inbox = self.inboxes.get("neighbour pose")
+        if inbox is not None:
+            for pose in inbox.drain():
+                self.engine.on_neighbour_pose(pose)
+        inbox = self.inboxes.get("load observation")
+        if inbox is not None:
+            for obs in inbox.drain():
+                try:
+                    self.load_tracker.push_observation(obs)
+                except ValueError as exc:  # a vehicle the load has no cable to
+                    self.load_rejected += 1
+                    if self.load_rejected <= 5:
+                        log.warning("load observation dropped: %s", exc)
+
     def _sample_load(self) -> None:
         """A sample of every carrying vehicle for the load filter, when one is due on the links' time."""
         from .load.tracker import vehicle_states
@@ -341,19 +358,7 @@ class CompanionDaemon:
             if port in ready:
                 for msg in port.read():
                     self._on_message(row, msg, self.clock())
-        inbox = self.inboxes.get("neighbour pose")
-        if inbox is not None:
-            for pose in inbox.drain():
-                self.engine.on_neighbour_pose(pose)
-        inbox = self.inboxes.get("load observation")
-        if inbox is not None:
-            for obs in inbox.drain():
-                try:
-                    self.load_tracker.push_observation(obs)
-                except ValueError as exc:  # a vehicle the load has no cable to
-                    self.load_rejected += 1
-                    if self.load_rejected <= 5:
-                        log.warning("load observation dropped: %s", exc)
+        self._drain_inboxes()
         now = self.clock()
         self._carry_out(self.engine.poll(now), now)
 
@@ -436,6 +441,7 @@ class CompanionDaemon:
             port.close()
 
     def close(self) -> None:
+        self._drain_inboxes()  # what arrived since the last poll is counted (and used) too
         summary = self.summary()
         log.info("companion summary: %s", json.dumps({k: summary[k] for k in (
             "steps", "step_ms", "correction_latency_ms", "global_step", "round_trip_ms_as_leader", "failovers")

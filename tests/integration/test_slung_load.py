@@ -154,10 +154,14 @@ def test_as_a_fleet_the_companion_flies_the_formation_and_estimates_the_load(tmp
     consumer = json.loads((tmp_path / "vision" / "vision_summary.json").read_text())["load_observations"]
     wire = m["load_observations_wire"]
     assert frames >= 140 and consumer["wrong_vehicle"] == 0 and consumer["published"] >= 0.95 * frames, (frames, consumer)
-    assert wire["delivered"] == wire["received"] == consumer["published"] and wire["rejected"] == 0, wire
+    # (the consumer stops first and drains the frames in flight; the observations of its last ones may
+    # still be on their way when the companion stops: at most a frame's worth)
+    assert wire["delivered"] == wire["received"] and wire["rejected"] == 0, wire
+    assert consumer["published"] - 3 <= wire["received"] <= consumer["published"], (wire, consumer)
     stats = m["load_filter_stats"]
     ekf = stats["filters"]["ekf"]
-    assert ekf["images"] == consumer["published"] and ekf["accepted"] >= 0.9 * ekf["images"], stats
+    assert ekf["images"] + stats["observations_before_start"] == wire["delivered"], stats
+    assert ekf["accepted"] >= 0.9 * ekf["images"], stats
     assert stats["vehicle_samples"] >= 240  # 50 Hz of the links' time
     err = m["load_pose_err"]
     for kind in ("ekf", "ekf_fixed_lag"):
