@@ -222,7 +222,9 @@ class CompanionDaemon:
             inbox.close()
         self.inboxes = {}
         if self._vision_session is not None:
-            self._vision_session.close()
+            from .fleetnet.bus import close_session
+
+            close_session(self._vision_session, "the vision consumer's session")
             self._vision_session = None
 
     def _drain_inboxes(self) -> None:

@@ -36,7 +36,7 @@ from .hub import KINDS, BusEvent
 from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, passive_key, passive_pattern,
                    shift_key, target_key)
 
-__all__ = ["BusEvent", "FleetBus", "open_group_session", "peer_config", "zenoh_config"]
+__all__ = ["BusEvent", "FleetBus", "open_group_session", "peer_config", "zenoh_config", "close_session"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,16 @@ log = logging.getLogger(__name__)
 #: (Zenoh's default starts at 1 s and backs off to 4 s, so companions started together could
 #: lead alone for seconds before they meet).
 CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
+def close_session(session, what: str = "Zenoh session") -> None:
+    """Close ``session``; a close that Zenoh gives up on (``zenoh.ZError``: it timed out, a peer
+    stalled) is logged, not raised: the caller is stopping, and what it still has to write (its
+    summary, its logs) must not be lost to it. The process's exit releases what is left."""
+    try:
+        session.close()
+    except zenoh.ZError as exc:
+        log.warning("%s: close failed (%s); left to the process's exit", what, exc)
 
 
 def _insert(zc: zenoh.Config, settings: list[ZenohSetting]) -> zenoh.Config:
@@ -221,7 +231,7 @@ class FleetBus:
             return
         self.closed = True
         try:
-            self.session.close()  # drops the liveliness token: the others see this group leave
+            close_session(self.session, f"group {self.group + 1}'s session")  # drops the liveliness token
         finally:
             self._close_pipe()
 

@@ -193,10 +193,12 @@ class ZenohFrames:
             time.sleep(0.002)
 
     def close(self) -> None:
+        from companion.fleetnet.bus import close_session
+
         try:
             self.subscriber.close()
         finally:
-            self.session.close()
+            close_session(self.session, "the camera source's session")
 
 
 class VideoCaptureFrames:

@@ -206,8 +206,11 @@ class CameraStreamer:
         if self.rig is not None:
             self.rig.close()
             self.rig = None
-        for session in self.sessions.values():
-            session.close()
+        if self.sessions:
+            from companion.fleetnet.bus import close_session  # (Zenoh: camera scenarios only)
+
+            for g, session in self.sessions.items():
+                close_session(session, f"group {g + 1}'s camera session")
 
 
 def fleet_vision_metrics(streamer: CameraStreamer, consumer_dir: Path, flight_start_s: float = 0.0

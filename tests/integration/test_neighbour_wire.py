@@ -180,3 +180,19 @@ def test_the_consumer_publishes_load_observations_and_the_load_inbox_takes_them(
         assert (obs.vehicle, obs.stamp_s) == (0, rec["t_capture_s"])
         np.testing.assert_allclose(obs.vehicle_in_load_m, want.vehicle_in_load_m, atol=1e-9)
         np.testing.assert_allclose(obs.joint_cov, want.joint_cov, rtol=1e-6, atol=1e-15)
+
+
+def test_a_session_that_will_not_close_is_logged_not_raised(caplog):
+    """A Zenoh close that times out (a stalled peer) must not lose what a stopping process still
+    writes: close_session logs it and returns."""
+    import zenoh
+
+    from companion.fleetnet.bus import close_session
+
+    class Stalled:
+        def close(self):
+            raise zenoh.ZError("close operation timed out!")
+
+    with caplog.at_level("WARNING"):
+        close_session(Stalled(), "the test's session")
+    assert "the test's session: close failed (close operation timed out!)" in caplog.text
