@@ -27,7 +27,7 @@ import numpy as np
 
 from companion.configfile import dump_toml
 
-__all__ = ["GroundRun", "period_velocities", "run_metrics", "write_run"]
+__all__ = ["GroundRun", "body_velocity", "period_velocities", "run_metrics", "write_run"]
 
 
 class GroundRun:
@@ -81,6 +81,16 @@ class GroundRun:
         return out
 
 
+def body_velocity(d_plane, mid_heading, d_heading, period_s: float):
+    """``(v_x, v_y, omega)`` in {B} of a displacement ``d_plane`` (..., 2) in the ground's plane and a
+    heading change ``d_heading`` over ``period_s``, {B} at the heading ``mid_heading`` (the period's
+    middle)."""
+    d = np.asarray(d_plane, dtype=float)
+    c, s = np.cos(mid_heading), np.sin(mid_heading)
+    return ((c * d[..., 0] + s * d[..., 1]) / period_s, (-s * d[..., 0] + c * d[..., 1]) / period_s,
+            np.asarray(d_heading) / period_s)
+
+
 def period_velocities(t: np.ndarray, p_plane: np.ndarray, heading: np.ndarray, period_s: float):
     """``(t, v_x, v_y, omega)`` at every sample a whole period after the first: the centre of mass's
     displacement over the last ``period_s`` in {B} (rotated by the heading at the period's middle)
@@ -92,11 +102,7 @@ def period_velocities(t: np.ndarray, p_plane: np.ndarray, heading: np.ndarray, p
     d = p_plane[m:] - p_plane[:-m]
     lo = m // 2
     mid = heading[lo: lo + len(d)] if m % 2 == 0 else 0.5 * (heading[lo: lo + len(d)] + heading[lo + 1: lo + 1 + len(d)])
-    c, s = np.cos(mid), np.sin(mid)
-    v_x = (c * d[:, 0] + s * d[:, 1]) / period_s
-    v_y = (-s * d[:, 0] + c * d[:, 1]) / period_s
-    omega = (heading[m:] - heading[:-m]) / period_s
-    return t[m:], v_x, v_y, omega
+    return (t[m:], *body_velocity(d, mid, heading[m:] - heading[:-m], period_s))
 
 
 def _summary(x: np.ndarray) -> dict:

@@ -58,14 +58,10 @@ class SlungLoadFleetTask(FleetTask):
         from sitl.plant.plant import Plant
 
         from .flight import vehicles_scenario
-        from .model import SlungLoadModel
+        from .model import put_in
 
         plant = Plant(vehicles_scenario(sc))
-        model = SlungLoadModel(sc, plant.dt)
-        model.reset()
-        plant.use_model(model)
-        plant.scenario = sc
-        self._model = model
+        self._model = put_in(plant, sc)
         return plant
 
     def companion_setup(self, fleet, setup):

@@ -39,7 +39,7 @@ from sitl.task import Task
 
 from .config import SlungLoadScenario
 from .estimation import LoadEstimation
-from .model import SlungLoadModel
+from .model import put_in
 from .plots import write_load_plots
 
 __all__ = ["SlungLoadTask", "slung_load_runner", "fly_slung_load"]
@@ -56,11 +56,8 @@ class SlungLoadTask(Task):
     def initialize(self, runner) -> None:
         """The runner flies the slung-load scenario on its model from now on; every vehicle's
         firmware starts again there (hovering, the load hanging below)."""
-        sc = self.scenario
-        runner.scenario = runner.plant.scenario = sc
-        model = SlungLoadModel(sc, runner.dt)
-        model.reset()
-        runner.plant.use_model(model)
+        runner.scenario = self.scenario
+        put_in(runner.plant, self.scenario)
         runner.start_firmware()
 
 

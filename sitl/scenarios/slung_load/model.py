@@ -25,7 +25,7 @@ from sitl.plant.model import SkeletonModel, build_mjcf
 
 from .config import SlungLoadScenario
 
-__all__ = ["slung_load_mjcf", "SlungLoadModel"]
+__all__ = ["slung_load_mjcf", "SlungLoadModel", "put_in"]
 
 
 def _fmt(v) -> str:
@@ -165,3 +165,13 @@ class SlungLoadModel(SkeletonModel):
             if j.size:
                 out[j[0]] = d.efc_force[row]
         return out
+
+
+def put_in(plant, sc: SlungLoadScenario) -> SlungLoadModel:
+    """The slung-load model of ``sc`` at its start (:meth:`SlungLoadModel.reset`), flown by ``plant``
+    from now on (:meth:`~sitl.plant.plant.Plant.use_model`; the plant's scenario becomes ``sc``)."""
+    model = SlungLoadModel(sc, plant.dt)
+    model.reset()
+    plant.use_model(model)
+    plant.scenario = sc
+    return model

@@ -2,9 +2,9 @@
 velocity through the inverse model, corrected by the adaptation, to the CPG's inputs.
 
 At every period boundary :class:`VelocityControl` measures the body's velocity over the period
-that ended (the centre of mass's displacement in {B}, the heading at the period's middle taken as
-the mean of its ends, and the heading's change: :func:`~sitl.scenarios.ground.run.period_velocities`'s
-definition), and sets ``eta = [A, B]`` for the next period:
+that ended (:func:`~sitl.scenarios.ground.run.body_velocity`: the centre of mass's displacement
+in {B}, the heading at the period's middle taken as the mean of its ends, and the heading's
+change), and sets ``eta = [A, B]`` for the next period:
 
 * ``xi_d = [v_x_m_s, 0, omega_d]``: ``omega_d`` is the command's, or with ``hold_line`` the
   line-holding law ``-k_y y - k_heading psi`` (limited to ``omega_max_rad_s``);
@@ -24,6 +24,7 @@ import numpy as np
 
 from companion.motion.inverse import Adaptation, InverseModel, SteadyGate
 
+from ..ground.run import body_velocity
 from .config import CpgCommand, SnakeScenario
 
 __all__ = ["VelocityControl"]
@@ -68,11 +69,7 @@ class VelocityControl:
         if self._last is not None:
             (p0, h0) = self._last
             dh = math.remainder(heading - h0, 2.0 * math.pi)
-            mid = h0 + 0.5 * dh
-            d = com - p0
-            c, s = math.cos(mid), math.sin(mid)
-            measured = np.array([(c * d[0] + s * d[1]) / self.period_s, (-s * d[0] + c * d[1]) / self.period_s,
-                                 dh / self.period_s])
+            measured = np.array([float(x) for x in body_velocity(com - p0, h0 + 0.5 * dh, dh, self.period_s)])
         self._last = (com, heading)
         steady = measured is not None and self.gate.steady(measured)
         if self.adaptation is None:
