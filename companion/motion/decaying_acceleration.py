@@ -14,7 +14,16 @@ frame {B}.
 :func:`fit_decaying_acceleration` fits the three to a run's period-averaged samples by least
 squares, as the thesis does: for each ``d`` the model is linear in ``v(t_0)`` and ``v_s``
 (solved exactly), and ``d`` is the one-dimensional minimiser of the residual (bounded, on a log
-scale); ``c`` is the least-squares ratio of ``omega`` to ``v``. Pure numpy and scipy.
+scale); ``c`` is the least-squares ratio of ``omega`` to ``v``.
+
+**The first step of the inverse model** (sec. 4.5.3, Fig. 4-11): from a motion to the DA
+parameters. A desired acceleration ``v_dot`` and angular velocity ``omega`` at the current speed
+``v`` fix ``c = omega / v`` and, by eq. 4.2, ``v_s = v + v_dot / d``: a curve in ``(v_s, d, c)``
+parametrised by ``d``. The autoencoder trained on the fitted parameters
+(:class:`~.inverse.InverseModel`) knows the set they lie on; :func:`feasible_da` line-searches ``d``
+for the curve's point nearest that set (the reconstruction ``AE(x)`` closest to ``x``). The same
+search on the measured ``v_dot`` and ``omega`` gives the parameters the adaptation (eq. 4.3)
+compares with the desired ones. Pure numpy and scipy.
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-__all__ = ["DAModel", "DAFit", "fit_decaying_acceleration"]
+__all__ = ["DAModel", "DAFit", "fit_decaying_acceleration", "feasible_da"]
 
 
 @dataclass(frozen=True)
@@ -94,3 +103,30 @@ def fit_decaying_acceleration(t_s, v_m_s, omega_rad_s, d_bounds=(0.01, 20.0)) ->
     c = float(w @ v / (v @ v))
     model = DAModel(float(v_s), d, c)
     return DAFit(model, float(v0), math.sqrt(sse / v.size), float(np.sqrt(np.mean((w - c * v) ** 2))))
+
+
+def feasible_da(model, v_m_s: float, v_dot_m_s2: float, omega_rad_s: float, v_min_m_s: float = 0.01,
+                points: int = 401) -> np.ndarray:
+    """``[v_s, d, c]``: the DA parameters of the motion ``(v, v_dot, omega)`` on the feasible set
+    of ``model`` (an :class:`~.inverse.InverseModel` whose ``xi`` is ``[v_s, d, c]``; module
+    docstring). ``c = omega / v``, ``v`` no less than ``v_min_m_s`` (at rest the curvature is
+    undefined); ``d`` is searched over ``points`` values within three standard deviations of the
+    model's training mean (positive), the best refined by a parabola through it and its
+    neighbours. ``ValueError`` for inputs that are not finite."""
+    if not all(math.isfinite(x) for x in (v_m_s, v_dot_m_s2, omega_rad_s)):
+        raise ValueError(f"feasible_da: finite v, v_dot, omega; got {v_m_s}, {v_dot_m_s2}, {omega_rad_s}")
+    c = omega_rad_s / max(v_m_s, v_min_m_s)
+    mean, std = float(model.xi_mean[1]), float(model.xi_std[1])
+    d = np.linspace(max(mean - 3.0 * std, 1e-3), mean + 3.0 * std, points)
+
+    def miss(d_):
+        x = np.column_stack((v_m_s + v_dot_m_s2 / d_, d_, np.full_like(d_, c)))
+        r = (model.decode(model.encode(x)) - x) / model.xi_std
+        return np.sum(r * r, axis=1)
+
+    e = miss(d)
+    k = int(np.clip(np.argmin(e), 1, points - 2))
+    den = e[k - 1] - 2.0 * e[k] + e[k + 1]
+    best = d[k] + (0.5 * (e[k - 1] - e[k + 1]) / den * (d[1] - d[0]) if den > 0 else 0.0)
+    best = float(np.clip(best, d[k - 1], d[k + 1]))
+    return np.array([v_m_s + v_dot_m_s2 / best, best, c])

@@ -91,3 +91,72 @@ def test_eq_4_2_fits_its_runs_and_the_bias_sets_the_curvature():
         assert up.v_rms_m_s < 0.05 * up.model.v_s_m_s, up
         assert abs(down.model.v_s_m_s) < 0.1 * up.model.v_s_m_s and down.model.d_per_s > 0.1, down
     assert abs(fits[0.0][0].model.c_rad_per_m) < 0.02 < fits[10.0][0].model.c_rad_per_m
+
+
+def test_the_inverse_model_command_learns_both_branches_from_runs_and_records_how(tmp_path):
+    """``python -m sitl.scenarios.pivotboard.inverse`` on a few short runs: each run's two halves
+    give a sample of each branch and its mirror image; each model has the 2-d bottleneck, records
+    the seed, the commit, the fits' residuals, the training range and the held-out error."""
+    from companion.motion.inverse import InverseModel
+    from sitl.scenarios.pivotboard.config import BRANCHES, model_path
+    from sitl.scenarios.pivotboard.inverse import dataset, main
+
+    sc = _scenario()
+    eta, xi, residual = dataset(sc, 3, seed=2, A_range_deg=(20.0, 35.0), B_max_deg=20.0, duration_s=6.0)
+    assert eta.shape == (6, 2) and all(xi[b].shape == (6, 3) for b in BRANCHES)
+    np.testing.assert_allclose(eta[3:], eta[:3] * [1, -1])
+    np.testing.assert_allclose(xi["accelerating"][3:], xi["accelerating"][:3] * [1, 1, -1])
+    up, down = xi["accelerating"][:3], xi["decelerating"][:3]
+    assert np.all(up[:, 0] > 0.02) and np.all(np.abs(down[:, 0]) < 0.3 * up[:, 0]), (up, down)  # slowing: v_s ~ 0
+    assert np.all(up[:, 2] > 0.0) and np.all(residual["accelerating"] < 0.1 * up[:, 0])  # a right bias curves it left
+    assert main(["--config", str(CONFIG), "--samples", "6", "--held-out", "2", "--duration", "6", "--A", "15,35",
+                 "--B-max", "20", "--seed", "1", "--out", str(tmp_path)]) == 0
+    for branch in BRANCHES:
+        model = InverseModel.load(model_path(tmp_path, branch))
+        info = model.info
+        assert model.steady is None and info["bottleneck"] == 2 and info["samples"] == 12 and info["branch"] == branch
+        assert info["data_seed"] == 1 and info["commit"] and len(info["xi_low"]) == 3 and len(info["held_out_eta_rms_deg"]) == 2
+
+
+def test_motion_commands_through_the_inverse_model_accelerate_hold_the_line_and_turn():
+    """Thesis sec. 4.7.2's two tests (Fig. 4-16), shortened: accelerations with the lateral position
+    regulated to zero, then a turn rate at a held speed; once per period the line search and the
+    branch's model set the CPG's inputs. Deterministic."""
+    from sitl.scenarios.pivotboard.flight import fly_pivotboard, pivot_run
+
+    _, sc = load(ROOT / "configs" / "sitl" / "ground" / "pivotboard_motion.toml")
+    sc = replace(sc, duration_s=28.0, commands=(
+        PivotCommand(0.0, mode="acceleration", v_dot_d_m_s2=0.006, hold_line=True),
+        PivotCommand(8.0, mode="acceleration", v_dot_d_m_s2=-0.004, hold_line=True),
+        PivotCommand(14.0, mode="velocity", v_x_m_s=0.04, omega_rad_s=0.02)))
+    m = fly_pivotboard(sc, None)
+    up, down, turn = m["commands"]
+    assert up["v_dot_rms_err_m_s2"] < 0.5 * 0.006 and up["y_rms_m"] < 0.01, up
+    assert down["v_dot_rms_err_m_s2"] < 0.5 * 0.004, down
+    assert turn["v_x_rms_err_m_s"] < 0.01 and turn["omega_rms_err_rad_s"] < 0.3 * 0.02, turn
+    assert fly_pivotboard(sc, None)["commands"] == m["commands"]
+    run = pivot_run(replace(sc, duration_s=6.0))
+    run.run()
+    log = np.array(run.cpg.control.log)  # (t, v, v_dot, omega, v_dot_d, omega_d, A, B, branch) per period
+    np.testing.assert_allclose(log[:, 0], np.arange(7.0), atol=1e-9)
+    assert np.all(log[:, 8] == 1) and np.all(np.diff(log[2:, 6]) > 0)  # speeding up: the amplitude grows
+    with pytest.raises(ValueError, match="control.model_folder"):
+        replace(sc, control=replace(sc.control, model_folder=""))
+    with pytest.raises(ValueError, match="hold_line"):
+        PivotCommand(0.0, 30.0, hold_line=True)
+
+
+def test_on_the_slippery_plane_the_adaptation_recovers_the_commanded_speed():
+    """Figs. 4-17/4-18 (bottom): on 0.3 friction the model learnt on 1.0 leaves the board well below
+    the commanded motion; with the adaptation it comes back towards it."""
+    from sitl.scenarios.pivotboard.flight import fly_pivotboard
+
+    _, sc = load(ROOT / "configs" / "sitl" / "ground" / "pivotboard_slippery.toml")
+    v_d = sc.commands[0].v_x_m_s
+    final = {}
+    for adapt in (False, True):
+        run_sc = replace(sc, control=replace(sc.control, adapt=adapt),
+                         commands=(sc.commands[0], replace(sc.commands[0], t_s=sc.duration_s - 10.0 - sc.settle_s)))
+        final[adapt] = fly_pivotboard(run_sc, None)["commands"][1]["v_x_rms_err_m_s"]
+    assert final[False] > 0.3 * v_d, final
+    assert final[True] < 0.3 * final[False], final

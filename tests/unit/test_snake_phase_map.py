@@ -1,5 +1,6 @@
-"""Eq. 4.1's map for the snake (sitl.scenarios.snake.phase_map): the argmax refined on a wrapping
-grid, the map unwrapped over the inputs, and a scenario reading it from its file."""
+"""Eq. 4.1's map for the ground robots (sitl.scenarios.ground.phase_sweep): the argmax refined on a
+wrapping grid, the map unwrapped over the inputs, and the snake's and the pivotboard's scenarios
+reading it from their files."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import numpy as np
 import pytest
 
 from companion.configfile import ConfigError
+from sitl.scenarios.ground.phase_sweep import best_phases, map_lines, phase_map
+from sitl.scenarios.pivotboard.config import load_pivot_scenario
 from sitl.scenarios.snake.config import load_snake_scenario
-from sitl.scenarios.snake.phase_map import best_phases, phase_map
 
 from ..paths import ROOT
 
@@ -27,10 +29,19 @@ def test_the_best_phase_of_a_smooth_periodic_speed_is_found_between_grid_points(
 
 def test_the_map_is_unwrapped_across_the_grid_and_interpolates_without_a_jump():
     best = np.array([[3.1, -3.1], [3.0, -3.05]])  # the same phase either side of pi
-    m = phase_map([10.0, 20.0], [0.0, 5.0], best)
+    m = phase_map((np.radians([10.0, 20.0]), np.radians([0.0, 5.0])), best)
     values = np.reshape(m.values, (2, 2))
     assert np.all(np.abs(np.diff(values, axis=0)) < 1.0) and np.all(np.abs(np.diff(values, axis=1)) < 1.0)
     assert abs(math.remainder(m(math.radians(15.0), math.radians(2.5)) - math.pi, 2 * math.pi)) < 0.1
+
+
+def test_a_map_with_a_one_point_axis_is_constant_along_it_and_writes_as_a_table():
+    """The pivotboard's map of ``(A, B, v_dot_d)``: its sweep holds ``v_dot_d``, one point."""
+    best = np.array([[1.4, 1.5], [1.3, 1.6]])
+    m = phase_map((np.radians([10.0, 40.0]), np.radians([0.0, 30.0]), (0.0,)), best[..., None])
+    assert m(math.radians(40.0), 0.0, 0.0) == pytest.approx(1.3) and m(math.radians(40.0), 0.0, 5.0) == pytest.approx(1.3)
+    lines = map_lines("phase", m)
+    assert lines[0] == "[phase]" and lines[1].startswith("axes = [[") and lines[2].count(",") == 3
 
 
 def test_a_scenario_reads_its_phase_map_file(tmp_path):
@@ -46,3 +57,14 @@ def test_a_scenario_reads_its_phase_map_file(tmp_path):
     (tmp_path / "map.toml").unlink()
     with pytest.raises(ConfigError, match="phase_map_file"):
         load_snake_scenario(config)
+
+
+def test_the_pivotboard_reads_its_map_of_three_inputs_and_refuses_the_snakes(tmp_path):
+    config = tmp_path / "pivotboard.toml"
+    text = (ROOT / "configs/sitl/ground/pivotboard.toml").read_text()
+    config.write_text(re.sub(r'(?m)^phase_map_file = .*$', 'phase_map_file = "map.toml"', text))
+    (tmp_path / "map.toml").write_text("[phase]\naxes = [[0.1, 0.5], [0.0], [0.0]]\nvalues = [1.2, 1.4]\n")
+    assert load_pivot_scenario(config).cpg.phase(0.5, 0.3, 1.0) == pytest.approx(1.4)
+    (tmp_path / "map.toml").write_text("[phase]\naxes = [[0.1, 0.5], [0.0]]\nvalues = [1.2, 1.4]\n")
+    with pytest.raises(ConfigError, match="phase_map_file"):
+        load_pivot_scenario(config)

@@ -4,17 +4,18 @@ start). No MuJoCo here."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from companion.configfile import build, load_toml, require_nonnegative, require_positive, with_settings
+from companion.configfile import ConfigError, build, load_toml, require_nonnegative, require_positive, with_settings
+from companion.motion.oscillators import PhaseMap
 
-__all__ = ["GroundScenario", "load_ground_scenario", "GROUND_SUMMARY", "GROUND_TABLES"]
+__all__ = ["GroundScenario", "load_ground_scenario", "with_phase_map", "GROUND_SUMMARY", "GROUND_TABLES"]
 
 #: the metrics ``python -m sitl fly`` prints of a ground robot's run
 GROUND_SUMMARY = ("commands", "distance_m", "heading_change_deg", "servo_rms_deg", "realtime_factor")
 #: the top-level tables of a ground robot's scenario file
-GROUND_TABLES = ("body", "ground", "cpg", "commands")
+GROUND_TABLES = ("body", "ground", "cpg", "control", "commands")
 
 
 @dataclass(frozen=True)
@@ -79,3 +80,23 @@ def load_ground_scenario(cls: type, path: str | Path, settings=None, **overrides
     if settings:
         data = with_settings(data, settings, file=str(path))
     return build(cls, data, file=str(path))
+
+
+def with_phase_map(sc, path: str | Path, table: str):
+    """``sc`` with the phase map its ``phase_map_file`` names (relative to the scenario ``path``):
+    the file's ``[table]`` replaces the CPG's field ``table`` (eq. 4.1's map from a sweep:
+    :mod:`.phase_sweep`), the file's path made absolute; ``sc`` itself without a file.
+    :class:`~companion.configfile.ConfigError` for a file that cannot be read or a map the CPG
+    refuses (e.g. of the wrong inputs)."""
+    if not sc.phase_map_file:
+        return sc
+    map_path = Path(path).resolve().parent / sc.phase_map_file
+    try:
+        data = load_toml(map_path)
+    except (OSError, ConfigError) as exc:
+        raise ConfigError(str(path), "phase_map_file", f"cannot read {map_path}: {exc}") from None
+    phase = build(PhaseMap, data.get(table, {}), file=str(map_path), prefix=table)
+    try:
+        return replace(sc, phase_map_file=str(map_path), cpg=replace(sc.cpg, **{table: phase}))
+    except ValueError as exc:
+        raise ConfigError(str(path), "phase_map_file", f"{map_path}: {exc}") from None

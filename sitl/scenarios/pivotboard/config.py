@@ -10,16 +10,26 @@ mass, servo gain and friction value below is this project's choice.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 from companion.configfile import require_nonnegative, require_positive
 from companion.motion.ground_cpgs import PivotCpgParams
 
-from ..ground.config import GroundScenario, load_ground_scenario
+from ..ground.config import GroundScenario, load_ground_scenario, with_phase_map
 
-__all__ = ["PivotBody", "PivotGround", "PivotCommand", "PivotScenario", "load_pivot_scenario"]
+__all__ = ["PivotBody", "PivotGround", "PivotCommand", "PivotControl", "PivotScenario", "load_pivot_scenario",
+           "BRANCHES", "model_path"]
+
+#: the CPG's branches (the phase difference of the map while speeding up, zero while slowing
+#: down), each with its inverse model; in the order :func:`~.da_fit.fit_runs` returns their fits
+BRANCHES = ("accelerating", "decelerating")
+
+
+def model_path(folder: str | Path, branch: str) -> Path:
+    """The file of ``branch``'s inverse model in ``folder`` (:mod:`.inverse` writes it)."""
+    return Path(folder) / f"inverse_{branch}.npz"
 
 
 @dataclass(frozen=True)
@@ -70,38 +80,92 @@ class PivotGround:
 
 @dataclass(frozen=True)
 class PivotCommand:
-    """From ``t_s`` on, the CPG's inputs: the plates' amplitude ``A_deg``, the bias ``B_deg`` (on the
-    right plate: it curves the path) and the desired acceleration ``v_dot_d_m_s2``, whose sign
-    picks the plates' phase difference (the speed-maximising map when speeding up, zero when
-    slowing down)."""
+    """From ``t_s`` on, either (``mode = "cpg"``) the CPG's inputs themselves: the plates'
+    amplitude ``A_deg``, the bias ``B_deg`` (on the right plate: it curves the path) and the desired
+    acceleration ``v_dot_d_m_s2``, whose sign picks the plates' phase difference (the
+    speed-maximising map when speeding up, zero when slowing down); or a motion the inverse model
+    (and the adaptation) turn into them once per CPG period (``[control]``, thesis sec. 4.6):
+    ``mode = "acceleration"``, the forward acceleration ``v_dot_d_m_s2``; ``mode = "velocity"``,
+    the forward speed ``v_x_m_s`` (held by ``v_dot_d = k_v (v_x - v)``). Either with the angular
+    velocity ``omega_rad_s`` or, with ``hold_line``, the one that brings the board back onto the
+    line ``y = 0`` heading along +x (the thesis's "y (lateral) position is regulated to be zero")."""
 
     t_s: float
-    A_deg: float
+    A_deg: float = 0.0
     B_deg: float = 0.0
     v_dot_d_m_s2: float = 0.0
+    mode: Literal["cpg", "acceleration", "velocity"] = "cpg"
+    v_x_m_s: float = 0.0
+    omega_rad_s: float = 0.0
+    hold_line: bool = False
 
     def __post_init__(self) -> None:
         require_nonnegative(self, "t_s", "A_deg")
-        if not (math.isfinite(self.B_deg) and abs(self.B_deg) <= 45.0 and self.A_deg <= 60.0
-                and math.isfinite(self.v_dot_d_m_s2)):
-            raise ValueError(f"A_deg in [0, 60], B_deg in [-45, 45], v_dot_d_m_s2 finite; got {self.A_deg}, "
-                             f"{self.B_deg}, {self.v_dot_d_m_s2}")
+        if not (math.isfinite(self.B_deg) and abs(self.B_deg) <= 45.0 and self.A_deg <= 60.0):
+            raise ValueError(f"A_deg in [0, 60], B_deg in [-45, 45]; got {self.A_deg}, {self.B_deg}")
+        if not all(math.isfinite(x) and abs(x) <= 5.0 for x in (self.v_dot_d_m_s2, self.v_x_m_s, self.omega_rad_s)):
+            raise ValueError(f"v_dot_d_m_s2, v_x_m_s, omega_rad_s: finite, within 5; got {self.v_dot_d_m_s2}, "
+                             f"{self.v_x_m_s}, {self.omega_rad_s}")
+        if self.hold_line and self.mode == "cpg":
+            raise ValueError('hold_line: an option of a motion command (mode = "acceleration" or "velocity")')
+
+
+@dataclass(frozen=True)
+class PivotControl:
+    """The motion commands' control (thesis secs. 4.5.3, 4.6): the inverse models in
+    ``model_folder`` (relative to the scenario; :mod:`.inverse` trains them), the adaptation
+    (eq. 4.3) on or off with its gains ``k_p``, ``k_i`` and its gate
+    (:class:`~companion.motion.inverse.SteadyGate`: ``settle_periods``, ``steady_tol``), the speed
+    hold ``v_dot_d = k_v_per_s (v_x - v)``, the line-holding law ``omega_d = -k_y_per_s y -
+    k_heading_per_s psi`` limited to ``omega_max_rad_s``, and ``v_min_m_s``, the speed under which
+    the curvature ``c = omega / v`` is taken at that speed. (The thesis gives none of these.)"""
+
+    model_folder: str = ""
+    adapt: bool = False
+    k_p: float = 0.2
+    k_i: float = 0.1
+    settle_periods: int = 2
+    steady_tol: float = 0.05
+    k_v_per_s: float = 0.5
+    k_y_per_s: float = 0.2
+    k_heading_per_s: float = 0.5
+    omega_max_rad_s: float = 0.1
+    v_min_m_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "k_p", "k_i", "settle_periods", "k_v_per_s", "k_y_per_s", "k_heading_per_s")
+        require_positive(self, "steady_tol", "omega_max_rad_s", "v_min_m_s")
 
 
 @dataclass(frozen=True)
 class PivotScenario(GroundScenario):
     """A pivotboard run (:class:`~sitl.scenarios.ground.config.GroundScenario`: rates, settling,
     commands): its body, ground and CPG (``[cpg]``:
-    :class:`~companion.motion.ground_cpgs.PivotCpgParams`), ``[[commands]]`` (:class:`PivotCommand`)."""
+    :class:`~companion.motion.ground_cpgs.PivotCpgParams`), the motion commands' control
+    (``[control]``: :class:`PivotControl`), ``[[commands]]`` (:class:`PivotCommand`)."""
 
     kind: Literal["pivotboard"] = "pivotboard"
     name: str = "pivotboard"
+    #: eq. 4.1's map ``phi(A, B, v_dot_d)`` from a sweep (:mod:`.phase_map`): a file relative to
+    #: the scenario's, whose ``[phase]`` table replaces ``[cpg] phase`` ("": the ``[cpg]`` one)
+    phase_map_file: str = ""
     body: PivotBody = field(default_factory=PivotBody)
     ground: PivotGround = field(default_factory=PivotGround)
     cpg: PivotCpgParams = field(default_factory=PivotCpgParams)
+    control: PivotControl = field(default_factory=PivotControl)
     commands: tuple[PivotCommand, ...] = (PivotCommand(0.0, 20.0, 0.0, 0.1),)
+
+    def __post_init__(self) -> None:
+        GroundScenario.__post_init__(self)
+        if any(c.mode != "cpg" for c in self.commands) and not self.control.model_folder:
+            raise ValueError("control.model_folder: motion commands need the inverse models")
 
 
 def load_pivot_scenario(path: str | Path, settings=None, **overrides) -> PivotScenario:
-    """Read a pivotboard scenario (:class:`~companion.configfile.ConfigError` naming the key)."""
-    return load_ground_scenario(PivotScenario, path, settings, **overrides)
+    """Read a pivotboard scenario (:class:`~companion.configfile.ConfigError` naming the key);
+    ``settings``, ``overrides``: as for :func:`~sitl.scenarios.ground.config.load_ground_scenario`."""
+    sc = load_ground_scenario(PivotScenario, path, settings, **overrides)
+    if sc.control.model_folder:
+        folder = Path(path).resolve().parent / sc.control.model_folder
+        sc = replace(sc, control=replace(sc.control, model_folder=str(folder)))
+    return with_phase_map(sc, path, "phase")

@@ -3,11 +3,12 @@ board (:class:`~sitl.scenarios.ground.run.GroundRun`: the loop, {B}'s velocities
 
 :class:`PivotCpg` holds the CPG's state: its targets are ``(theta_r, theta_l)``; it advances with
 the command's ``A``, ``B`` and ``v_dot_d`` (the phase difference is the map's while speeding up,
-zero while slowing down).
+zero while slowing down), or with a motion command those of its control (:mod:`.control`).
 
 **Outputs** (:func:`fly_pivotboard`): ``metrics.json`` (per command, the mean and standard
 deviation of ``v_x``, ``v_y``, ``omega`` in {B} from ``settle_s`` after it starts; the distance,
-path length and heading change; the servos' RMS tracking error), ``pivotboard.npz`` (the log),
+path length and heading change; the servos' RMS tracking error; for motion commands their
+tracking errors as the thesis reports them), ``pivotboard.npz`` (the log),
 ``pivotboard.png`` (the path, the velocities).
 """
 
@@ -20,6 +21,7 @@ import numpy as np
 
 from companion.motion.ground_cpgs import PivotCpgState, pivot_joint_angles, pivot_step
 
+from ..ground.control import PeriodClock
 from ..ground.run import GroundRun, run_metrics, write_run
 from .config import PivotCommand, PivotScenario
 from .model import PivotModel
@@ -28,33 +30,76 @@ __all__ = ["PivotCpg", "pivot_run", "fly_pivotboard"]
 
 
 class PivotCpg:
-    """The pivotboard's CPG driving the plates' servos (module docstring)."""
+    """The pivotboard's CPG driving the plates' servos (module docstring); with motion commands,
+    their control (:class:`~.control.MotionControl`) sets the inputs at every period boundary."""
 
     axes = {"plates": [0, 1]}
 
-    def __init__(self, sc: PivotScenario):
+    def __init__(self, sc: PivotScenario, robot: PivotModel):
         self.params = sc.cpg
         self.state = PivotCpgState.at_rest()
         self.period_s = 1.0 / sc.cpg.frequency_hz
+        self.control = None
+        if any(c.mode != "cpg" for c in sc.commands):
+            from .control import MotionControl
+
+            self.control = MotionControl(sc, robot)
+        self.clock = PeriodClock(self.period_s)
+        self._inputs = (0.0, 0.0, 0.0)
 
     def targets(self) -> np.ndarray:
         return pivot_joint_angles(self.state)
 
     def advance(self, command: PivotCommand, dt_s: float) -> None:
-        self.state = pivot_step(self.state, self.params, math.radians(command.A_deg), math.radians(command.B_deg),
-                                command.v_dot_d_m_s2, dt_s)
+        if command.mode != "cpg":
+            if self.clock.due():  # a period boundary: new inputs
+                self._inputs = self.control.update(self.clock.t_s, command)
+            A, B, v_dot_d = self._inputs
+        else:
+            A, B, v_dot_d = math.radians(command.A_deg), math.radians(command.B_deg), command.v_dot_d_m_s2
+        self.state = pivot_step(self.state, self.params, A, B, v_dot_d, dt_s)
+        self.clock.advance(dt_s)
 
 
 def pivot_run(sc: PivotScenario) -> GroundRun:
     """A run of the scenario, not started."""
-    return GroundRun(sc, PivotModel(sc), PivotCpg(sc))
+    robot = PivotModel(sc)
+    return GroundRun(sc, robot, PivotCpg(sc, robot))
+
+
+def _tracking(sc: PivotScenario, a: dict, metrics: dict) -> None:
+    """Each motion command's tracking over its window, as the thesis reports it (sec. 4.7.2): the
+    RMS of the acceleration's error (``mode = "acceleration"``: the change of the period velocity
+    ``v_x`` over a period, against ``v_dot_d_m_s2``) or of the speed's (``mode = "velocity"``:
+    ``v_x - v_x_m_s``); holding the line, the RMS of the lateral offset ``y`` (at the log rate),
+    else of ``omega - omega_rad_s``."""
+    period = 1.0 / sc.cpg.frequency_hz
+    m = int(round(period * sc.log_rate_hz))
+    t_acc, acc = a["period_t"][m:], (a["v_x"][m:] - a["v_x"][:-m]) / period
+    for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
+        cmd = sc.commands[k]
+        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
+        if cmd.mode == "cpg" or not w.any():
+            continue
+        if cmd.mode == "acceleration":
+            wa = (t_acc >= t0) & (t_acc <= t1)
+            row["v_dot_rms_err_m_s2"] = float(np.sqrt(np.mean((acc[wa] - cmd.v_dot_d_m_s2) ** 2)))
+        else:
+            row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
+        if cmd.hold_line:
+            wy = (a["t"] >= t0) & (a["t"] <= t1)
+            row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
+        else:
+            row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
 
 
 def fly_pivotboard(sc: PivotScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:
     """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given)."""
     run = pivot_run(sc)
     run.run(progress)
-    metrics = run_metrics(sc, run.arrays(), run.wall_s, run.cpg.axes)
+    a = run.arrays()
+    metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
+    _tracking(sc, a, metrics)
     if out_dir is not None:
         write_run(sc, run, metrics, out_dir, "pivotboard", plots)
     return metrics

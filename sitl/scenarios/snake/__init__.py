@@ -24,4 +24,4 @@ def _fly(scenario, out_dir, **options) -> dict:
 
 
 KIND = ScenarioKind("snake", "the thesis's snake-like robot crawling on its CPG", load=load_snake_scenario,
-                    fly=_fly, tables=GROUND_TABLES + ("control",), summary=GROUND_SUMMARY)
+                    fly=_fly, tables=GROUND_TABLES, summary=GROUND_SUMMARY)

@@ -14,11 +14,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from companion.configfile import ConfigError, build, load_toml, require_nonnegative, require_positive
+from companion.configfile import require_nonnegative, require_positive
 from companion.motion.ground_cpgs import SnakeCpgParams
-from companion.motion.oscillators import PhaseMap
 
-from ..ground.config import GroundScenario, load_ground_scenario
+from ..ground.config import GroundScenario, load_ground_scenario, with_phase_map
 
 __all__ = ["SnakeBody", "SnakeGround", "CpgCommand", "SnakeControl", "SnakeScenario", "load_snake_scenario"]
 
@@ -168,15 +167,4 @@ def load_snake_scenario(path: str | Path, settings=None, **overrides) -> SnakeSc
     folder = Path(path).resolve().parent
     if sc.control.model_file:
         sc = replace(sc, control=replace(sc.control, model_file=str(folder / sc.control.model_file)))
-    if not sc.phase_map_file:
-        return sc
-    map_path = Path(path).resolve().parent / sc.phase_map_file
-    try:
-        table = load_toml(map_path)
-    except (OSError, ConfigError) as exc:
-        raise ConfigError(str(path), "phase_map_file", f"cannot read {map_path}: {exc}") from None
-    phase = build(PhaseMap, table.get("phase_hv", {}), file=str(map_path), prefix="phase_hv")
-    try:
-        return replace(sc, phase_map_file=str(map_path), cpg=replace(sc.cpg, phase_hv=phase))
-    except ValueError as exc:
-        raise ConfigError(str(path), "phase_map_file", f"{map_path}: {exc}") from None
+    return with_phase_map(sc, path, "phase_hv")

@@ -2,12 +2,11 @@
 velocity through the inverse model, corrected by the adaptation, to the CPG's inputs.
 
 At every period boundary :class:`VelocityControl` measures the body's velocity over the period
-that ended (:func:`~sitl.scenarios.ground.run.body_velocity`: the centre of mass's displacement
-in {B}, the heading at the period's middle taken as the mean of its ends, and the heading's
-change), and sets ``eta = [A, B]`` for the next period:
+that ended (:class:`~sitl.scenarios.ground.control.PeriodMeter`), and sets ``eta = [A, B]`` for
+the next period:
 
 * ``xi_d = [v_x_m_s, 0, omega_d]``: ``omega_d`` is the command's, or with ``hold_line`` the
-  line-holding law ``-k_y y - k_heading psi`` (limited to ``omega_max_rad_s``);
+  line-holding law (:func:`~sitl.scenarios.ground.control.line_holding_rate`);
 * ``eta``: the inverse model's ``Xi^-1(xi_d)``, and with ``[control] adapt`` eq. 4.3's correction
   (:class:`companion.motion.inverse.Adaptation`: PI in the autoencoder's hidden space, limited to
   the model's training range). As the flying chain's generator does, the adaptation runs on steady
@@ -18,13 +17,11 @@ change), and sets ``eta = [A, B]`` for the next period:
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from companion.motion.inverse import Adaptation, InverseModel, SteadyGate
 
-from ..ground.run import body_velocity
+from ..ground.control import PeriodMeter, line_holding_rate
 from .config import CpgCommand, SnakeScenario
 
 __all__ = ["VelocityControl"]
@@ -41,9 +38,9 @@ class VelocityControl:
         self.model = InverseModel.load(cfg.model_file)
         self.adaptation = Adaptation(self.model, cfg.k_p, cfg.k_i) if cfg.adapt else None
         self.gate = SteadyGate(cfg.settle_periods, cfg.steady_tol)
+        self.meter = PeriodMeter(robot, self.period_s)
         self.eta = np.zeros(2)
         self._command = None
-        self._last = None  # (com in plane, heading) at the last period boundary
         #: per update: (t, v_x, v_y, omega measured, omega_d, A, B)
         self.log: list[tuple] = []
 
@@ -51,26 +48,16 @@ class VelocityControl:
         """``xi_d = [v_x, 0, omega_d]`` of ``command`` now."""
         omega = command.omega_rad_s
         if command.hold_line:
-            y = float(self.robot.in_plane(self.robot.centre_of_mass())[1])
-            psi = math.remainder(self.robot.heading(), 2.0 * math.pi)
-            omega = -self.cfg.k_y_per_s * y - self.cfg.k_heading_per_s * psi
-            omega = max(-self.cfg.omega_max_rad_s, min(self.cfg.omega_max_rad_s, omega))
+            omega = line_holding_rate(self.robot, self.cfg.k_y_per_s, self.cfg.k_heading_per_s, self.cfg.omega_max_rad_s)
         return np.array([command.v_x_m_s, 0.0, omega])
 
     def update(self, t_s: float, command: CpgCommand) -> np.ndarray:
         """``(A, B)`` [rad] for the period from ``t_s`` on (called at every period boundary)."""
-        com = self.robot.in_plane(self.robot.centre_of_mass())
-        heading = self.robot.heading()
         xi_d = self.desired(command)
         if command is not self._command:
             self._command = command
             self.gate.restart()
-        measured = None
-        if self._last is not None:
-            (p0, h0) = self._last
-            dh = math.remainder(heading - h0, 2.0 * math.pi)
-            measured = np.array([float(x) for x in body_velocity(com - p0, h0 + 0.5 * dh, dh, self.period_s)])
-        self._last = (com, heading)
+        measured = self.meter.boundary()
         steady = measured is not None and self.gate.steady(measured)
         if self.adaptation is None:
             self.eta = np.clip(self.model(xi_d)[0], self.model.eta_low, self.model.eta_high)

@@ -20,6 +20,7 @@ import numpy as np
 
 from companion.motion.ground_cpgs import SnakeCpgState, snake_joint_angles, snake_step
 
+from ..ground.control import PeriodClock
 from ..ground.run import GroundRun, run_metrics, write_run
 from .config import CpgCommand, SnakeScenario
 from .model import SnakeModel
@@ -42,8 +43,7 @@ class SnakeCpg:
             from .control import VelocityControl
 
             self.control = VelocityControl(sc, robot)
-        self.t_s = 0.0
-        self._next_update_s = 0.0
+        self.clock = PeriodClock(self.period_s)
         self._eta = np.zeros(2)
 
     def targets(self) -> np.ndarray:
@@ -53,14 +53,13 @@ class SnakeCpg:
 
     def advance(self, command: CpgCommand, dt_s: float) -> None:
         if command.mode == "velocity":
-            if self.t_s >= self._next_update_s - 1e-9:  # a period boundary: new inputs
-                self._eta = self.control.update(self.t_s, command)
-                self._next_update_s = (math.floor(self.t_s / self.period_s + 1e-9) + 1) * self.period_s
+            if self.clock.due():  # a period boundary: new inputs
+                self._eta = self.control.update(self.clock.t_s, command)
             A, B = self._eta
         else:
             A, B = math.radians(command.A_deg), math.radians(command.B_deg)
         self.state = snake_step(self.state, self.params, A, B, dt_s)
-        self.t_s += dt_s
+        self.clock.advance(dt_s)
 
 
 def snake_run(sc: SnakeScenario) -> GroundRun:

@@ -1,0 +1,56 @@
+"""Eq. 4.1's search, shared by the ground robots: the phase difference that maximises the forward
+speed, from a sweep that makes it an input.
+
+    phi*(inputs) := argmax_{phi} v_x(inputs, phi)                                            (4.1)
+
+Every point of a grid of the CPG's inputs flies with each phase of an even grid over 2 pi held
+(the kind's own sweep command). Per input point, the argmax over the phase grid is refined by a
+parabola through it and its two neighbours, the grid wrapping at 2 pi (:func:`best_phases`); the
+map (:func:`phase_map`) is a :class:`~companion.motion.oscillators.PhaseMap` on the inputs' grid,
+its values unwrapped along every axis so that its linear interpolation does not cross a 2 pi jump.
+:func:`map_lines` writes it as the TOML table a scenario's ``phase_map_file`` names.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.motion.oscillators import PhaseMap
+
+__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines"]
+
+
+def phase_grid(n: int) -> np.ndarray:
+    """``n`` phases [rad] evenly over ``[-pi, pi)``."""
+    return np.arange(n) * 2.0 * math.pi / n - math.pi
+
+
+def best_phases(v: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:
+    """Per row of ``v`` (..., len(phi)), the maximising phase: the grid's argmax refined by a
+    parabola through it and its neighbours (``phi_rad``: an even grid over 2 pi, wrapping)."""
+    k = np.nanargmax(v, axis=-1)
+    n = v.shape[-1]
+    step = 2.0 * math.pi / n
+    left = np.take_along_axis(v, ((k - 1) % n)[..., None], -1)[..., 0]
+    mid = np.take_along_axis(v, k[..., None], -1)[..., 0]
+    right = np.take_along_axis(v, ((k + 1) % n)[..., None], -1)[..., 0]
+    den = left - 2.0 * mid + right
+    shift = np.where(den < 0, 0.5 * (left - right) / np.where(den < 0, den, 1.0), 0.0)
+    return phi_rad[k] + np.clip(shift, -0.5, 0.5) * step
+
+
+def phase_map(axes, best_rad: np.ndarray) -> PhaseMap:
+    """The map of the best phases ``best_rad`` (the grid's shape) on the input ``axes`` (one
+    sequence per input, in the map's units), unwrapped along every axis."""
+    values = np.asarray(best_rad, dtype=float)
+    for k in range(values.ndim):
+        values = np.unwrap(values, axis=k)
+    return PhaseMap(tuple(tuple(float(x) for x in ax) for ax in axes), tuple(float(x) for x in values.ravel()))
+
+
+def map_lines(table: str, m: PhaseMap) -> list[str]:
+    """The TOML lines of ``m`` as the table ``[table]``."""
+    return [f"[{table}]", f"axes = [{', '.join('[' + ', '.join(f'{x:.9g}' for x in ax) + ']' for ax in m.axes)}]",
+            f"values = [{', '.join(f'{x:.9g}' for x in m.values)}]"]
