@@ -8,7 +8,8 @@ Every point of a grid of the CPG's inputs flies with each phase of an even grid 
 parabola through it and its two neighbours, the grid wrapping at 2 pi (:func:`best_phases`); the
 map (:func:`phase_map`) is a :class:`~companion.motion.oscillators.PhaseMap` on the inputs' grid,
 its values unwrapped along every axis so that its linear interpolation does not cross a 2 pi jump.
-:func:`map_lines` writes it as the TOML table a scenario's ``phase_map_file`` names.
+:func:`map_lines` writes it as the TOML table a scenario's ``phase_map_file`` names;
+:func:`write_sweep` writes that file with the sweep's record in its header.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines"]
+__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines", "write_sweep"]
 
 
 def phase_grid(n: int) -> np.ndarray:
@@ -54,3 +55,21 @@ def map_lines(table: str, m: PhaseMap) -> list[str]:
     """The TOML lines of ``m`` as the table ``[table]``."""
     return [f"[{table}]", f"axes = [{', '.join('[' + ', '.join(f'{x:.9g}' for x in ax) + ']' for ax in m.axes)}]",
             f"values = [{', '.join(f'{x:.9g}' for x in m.values)}]"]
+
+
+def write_sweep(args, title: str, table: str, m: PhaseMap, A_deg, B_deg, phi_rad: np.ndarray, v: np.ndarray,
+                best: np.ndarray, commit: str) -> None:
+    """Write ``args.out``: a header (``title``, the command line of ``args``: ``config``, ``A``,
+    ``B``, ``phases``, ``duration``; the ``commit``; the phase grid; per ``(A, B)`` every swept speed
+    ``v`` and the best phase) and the map ``m`` as ``[table]``; print the header."""
+    header = [f"# {title}",
+              f"# --config {args.config} --A {args.A} --B {args.B} --phases {args.phases} --duration {args.duration}",
+              f"# at commit {commit} (the runs are deterministic: no seed)",
+              f"# phase grid [rad]: {', '.join(f'{x:.4f}' for x in phi_rad)}"]
+    for i, a in enumerate(A_deg):
+        for j, b in enumerate(B_deg):
+            header.append(f"# A = {a:g} deg, B = {b:g} deg: v_x [m/s] = {', '.join(f'{x:.4f}' for x in v[i, j])}; "
+                          f"best {best[i, j]:.4f} rad")
+    args.out.write_text("\n".join(header + map_lines(table, m)) + "\n")
+    print("\n".join(header))
+    print(f"wrote {args.out}")

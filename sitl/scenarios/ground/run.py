@@ -27,7 +27,7 @@ import numpy as np
 
 from companion.configfile import dump_toml
 
-__all__ = ["GroundRun", "body_velocity", "period_velocities", "run_metrics", "write_run"]
+__all__ = ["GroundRun", "body_velocity", "period_velocities", "run_metrics", "command_tracking", "write_run"]
 
 
 class GroundRun:
@@ -129,6 +129,25 @@ def run_metrics(sc, a: dict, wall_s: float, axes: dict[str, list[int]]) -> dict:
     err = a["target"] - a["angle"]
     out["servo_rms_deg"] = {name: float(np.degrees(np.sqrt(np.mean(err[:, idx] ** 2)))) for name, idx in axes.items()}
     return out
+
+
+def command_tracking(sc, a: dict, metrics: dict, forward) -> None:
+    """Each motion command's tracking over its window (``metrics["commands"]``' rows), as the thesis
+    reports it (sec. 4.7.2): ``forward(row, command, period_window, t0, t1)`` adds the forward
+    motion's error; then, holding the line, the RMS of the lateral offset ``y`` (at the log rate),
+    else of ``omega - omega_rad_s`` (the period velocities). Commands of ``mode = "cpg"`` and
+    empty windows are left as they are."""
+    for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
+        cmd = sc.commands[k]
+        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
+        if cmd.mode == "cpg" or not w.any():
+            continue
+        forward(row, cmd, w, t0, t1)
+        if cmd.hold_line:
+            wy = (a["t"] >= t0) & (a["t"] <= t1)
+            row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
+        else:
+            row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
 
 
 def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots: bool) -> None:

@@ -1,5 +1,7 @@
-"""What the ground robots' sweeps share (eq. 4.1's phase map, eq. 4.2's fits): a grid of jobs flown
-in one process or several, the commit the data came from, comma-separated values."""
+"""What the ground robots' sweeps share (eq. 4.1's phase map, eq. 4.2's fits, the inverse models'
+data): a grid of jobs flown in one process or several, the commit the data came from,
+comma-separated values, and the inverse models' command-line options, their runs split into
+training and held-out ones, and the held-out recovery error."""
 
 from __future__ import annotations
 
@@ -10,7 +12,10 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-__all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep"]
+import numpy as np
+
+__all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep", "inverse_options", "amplitude_range",
+           "train_held", "recovery_error_deg"]
 
 
 def run_jobs(fn: Callable, jobs: Sequence, workers: int = 1) -> list:
@@ -59,3 +64,35 @@ def parse_sweep(parser: argparse.ArgumentParser, argv, kind: str):
         print(f"error: {args.config}: a {kind} scenario, not {found.name}", file=sys.stderr)
         return args, None
     return args, sc
+
+
+def inverse_options(p: argparse.ArgumentParser, samples: int, held_out: int, A: str, B_max: float) -> None:
+    """Add an inverse model's data options to ``p``: ``--samples``, ``--held-out`` (runs, each
+    also mirrored), ``--A`` (the amplitude range), ``--B-max``, ``--seed``; the defaults given."""
+    p.add_argument("--samples", type=int, default=samples, help="training runs (each also mirrored)")
+    p.add_argument("--held-out", type=int, default=held_out, help="held-out runs (each also mirrored)")
+    p.add_argument("--A", default=A, help="amplitude range [deg]: low,high")
+    p.add_argument("--B-max", type=float, default=B_max, help="largest bias [deg] (and its mirror)")
+    p.add_argument("--seed", type=int, default=0, help="the data's and the training's seed")
+
+
+def amplitude_range(text: str) -> list[float] | None:
+    """``--A``'s ``low,high`` with ``0 <= low < high`` (``None``, the error printed, otherwise)."""
+    A = floats(text)
+    if len(A) != 2 or not 0 <= A[0] < A[1]:
+        print(f"error: --A: low,high with 0 <= low < high, got {text}", file=sys.stderr)
+        return None
+    return A
+
+
+def train_held(samples: int, held_out: int) -> tuple[np.ndarray, np.ndarray]:
+    """The training and the held-out rows of a data set of ``samples + held_out`` runs followed by
+    their mirror images: each run with its mirror image."""
+    n = samples + held_out
+    return np.r_[0:samples, n:n + samples], np.r_[samples:n, n + samples:2 * n]
+
+
+def recovery_error_deg(model, eta: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Per input (A, B), the RMS [deg] of an inverse ``model``'s inputs for the motions ``xi``
+    against the inputs ``eta`` [rad] that made them."""
+    return np.degrees(np.sqrt(np.mean((model(xi) - eta) ** 2, axis=0)))

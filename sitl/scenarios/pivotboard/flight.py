@@ -22,7 +22,7 @@ import numpy as np
 from companion.motion.ground_cpgs import PivotCpgState, pivot_joint_angles, pivot_step
 
 from ..ground.control import PeriodClock
-from ..ground.run import GroundRun, run_metrics, write_run
+from ..ground.run import GroundRun, command_tracking, run_metrics, write_run
 from .config import PivotCommand, PivotScenario
 from .model import PivotModel
 
@@ -68,29 +68,22 @@ def pivot_run(sc: PivotScenario) -> GroundRun:
 
 
 def _tracking(sc: PivotScenario, a: dict, metrics: dict) -> None:
-    """Each motion command's tracking over its window, as the thesis reports it (sec. 4.7.2): the
-    RMS of the acceleration's error (``mode = "acceleration"``: the change of the period velocity
-    ``v_x`` over a period, against ``v_dot_d_m_s2``) or of the speed's (``mode = "velocity"``:
-    ``v_x - v_x_m_s``); holding the line, the RMS of the lateral offset ``y`` (at the log rate),
-    else of ``omega - omega_rad_s``."""
+    """Each motion command's tracking (:func:`~sitl.scenarios.ground.run.command_tracking`), its
+    forward part the RMS of the acceleration's error (``mode = "acceleration"``: the change of the
+    period velocity ``v_x`` over a period, against ``v_dot_d_m_s2``) or of the speed's (``mode =
+    "velocity"``: ``v_x - v_x_m_s``)."""
     period = 1.0 / sc.cpg.frequency_hz
     m = int(round(period * sc.log_rate_hz))
     t_acc, acc = a["period_t"][m:], (a["v_x"][m:] - a["v_x"][:-m]) / period
-    for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
-        cmd = sc.commands[k]
-        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
-        if cmd.mode == "cpg" or not w.any():
-            continue
+
+    def forward(row, cmd, w, t0, t1):
         if cmd.mode == "acceleration":
             wa = (t_acc >= t0) & (t_acc <= t1)
             row["v_dot_rms_err_m_s2"] = float(np.sqrt(np.mean((acc[wa] - cmd.v_dot_d_m_s2) ** 2)))
         else:
             row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
-        if cmd.hold_line:
-            wy = (a["t"] >= t0) & (a["t"] <= t1)
-            row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
-        else:
-            row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
+
+    command_tracking(sc, a, metrics, forward)
 
 
 def fly_pivotboard(sc: PivotScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:

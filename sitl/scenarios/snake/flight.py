@@ -21,7 +21,7 @@ import numpy as np
 from companion.motion.ground_cpgs import SnakeCpgState, snake_joint_angles, snake_step
 
 from ..ground.control import PeriodClock
-from ..ground.run import GroundRun, run_metrics, write_run
+from ..ground.run import GroundRun, command_tracking, run_metrics, write_run
 from .config import CpgCommand, SnakeScenario
 from .model import SnakeModel
 
@@ -84,20 +84,13 @@ def steady_motion(sc: SnakeScenario, A_deg: float, B_deg: float, phase_hv=None) 
 
 
 def _tracking(sc: SnakeScenario, a: dict, metrics: dict) -> None:
-    """Each velocity command's tracking over its window, as the thesis reports it (sec. 4.7.2):
-    the RMS of ``v_x - v_x_m_s`` and, holding the line, of the lateral offset ``y``, else of
-    ``omega - omega_rad_s`` (the period velocities; ``y`` at the log rate)."""
-    for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
-        cmd = sc.commands[k]
-        w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
-        if cmd.mode != "velocity" or not w.any():
-            continue
+    """Each velocity command's tracking (:func:`~sitl.scenarios.ground.run.command_tracking`), its
+    forward part the RMS of ``v_x - v_x_m_s`` (the period velocities)."""
+
+    def forward(row, cmd, w, t0, t1):
         row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
-        if cmd.hold_line:
-            wy = (a["t"] >= t0) & (a["t"] <= t1)
-            row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
-        else:
-            row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
+
+    command_tracking(sc, a, metrics, forward)
 
 
 def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:

@@ -27,12 +27,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from companion.motion.inverse import InverseModel, train_inverse_model
+from companion.motion.inverse import train_inverse_model
 
-from ..ground.sweep import commit, floats, parse_sweep, run_jobs, sweep_parser
+from ..ground.sweep import (amplitude_range, commit, inverse_options, parse_sweep, recovery_error_deg, run_jobs,
+                           sweep_parser, train_held)
 from .config import SnakeScenario
 
-__all__ = ["dataset", "recovery_error_deg", "build_parser", "main"]
+__all__ = ["dataset", "build_parser", "main"]
 
 
 def _motion(args) -> np.ndarray:
@@ -52,19 +53,9 @@ def dataset(sc: SnakeScenario, n: int, seed: int, A_range_deg, B_max_deg: float,
     return np.vstack((eta, eta * [1.0, -1.0])), np.vstack((xi, xi * [1.0, -1.0, -1.0]))
 
 
-def recovery_error_deg(model: InverseModel, eta: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    """Per input (A, B), the RMS [deg] of the model's inputs for the velocities ``xi`` against the
-    inputs ``eta`` that made them."""
-    return np.degrees(np.sqrt(np.mean((model(xi) - eta) ** 2, axis=0)))
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = sweep_parser("python -m sitl.scenarios.snake.inverse", __doc__, "snake", "the model file (.npz)", 8.0)
-    p.add_argument("--samples", type=int, default=120, help="training runs (each also mirrored)")
-    p.add_argument("--held-out", type=int, default=30, help="held-out runs (each also mirrored)")
-    p.add_argument("--A", default="20,40", help="amplitude range [deg]: low,high")
-    p.add_argument("--B-max", type=float, default=8.0, help="largest bias [deg] (and its mirror)")
-    p.add_argument("--seed", type=int, default=0, help="the data's and the training's seed")
+    inverse_options(p, 120, 30, "20,40", 8.0)
     return p
 
 
@@ -72,14 +63,12 @@ def main(argv=None) -> int:
     args, sc = parse_sweep(build_parser(), argv, "snake")
     if sc is None:
         return 2
-    A_range = floats(args.A)
-    if len(A_range) != 2 or not 0 <= A_range[0] < A_range[1]:
-        print(f"error: --A: low,high with 0 <= low < high, got {args.A}", file=sys.stderr)
+    A_range = amplitude_range(args.A)
+    if A_range is None:
         return 2
     N = args.samples + args.held_out
     eta, xi = dataset(sc, N, args.seed, A_range, args.B_max, args.workers)
-    train = np.r_[0:args.samples, N:N + args.samples]  # each run with its mirror image
-    held = np.r_[args.samples:N, N + args.samples:2 * N]
+    train, held = train_held(args.samples, args.held_out)
     train_eta, train_xi = eta[train], xi[train]
     model = train_inverse_model(train_eta, train_xi, seed=args.seed, hidden=16, steady=None, bottleneck=2, info={
         "robot": "snake", "scenario": str(args.config), "commit": commit(), "A_range_deg": A_range,

@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-from ..ground.phase_sweep import best_phases, map_lines, phase_grid, phase_map
+from ..ground.phase_sweep import best_phases, phase_grid, phase_map, write_sweep
 from ..ground.sweep import commit, floats, parse_sweep, run_jobs, sweep_parser
 from .config import SnakeScenario
 
@@ -67,17 +67,8 @@ def main(argv=None) -> int:
     v = sweep(sc, A, B, phi, args.workers)
     best = best_phases(v, phi)
     m = phase_map((np.radians(A), np.radians(B)), best)
-    header = [f"# eq. 4.1 for {sc.name}: phi_hv(A, B) maximising v_x; python -m sitl.scenarios.snake.phase_map",
-              f"# --config {args.config} --A {args.A} --B {args.B} --phases {args.phases} --duration {args.duration}",
-              f"# at commit {commit()} (the flights are deterministic: no seed)",
-              f"# phi_hv grid [rad]: {', '.join(f'{x:.4f}' for x in phi)}"]
-    for i, a in enumerate(A):
-        for j, b in enumerate(B):
-            header.append(f"# A = {a:g} deg, B = {b:g} deg: v_x [m/s] = {', '.join(f'{x:.4f}' for x in v[i, j])}; "
-                          f"best {best[i, j]:.4f} rad")
-    args.out.write_text("\n".join(header + map_lines("phase_hv", m)) + "\n")
-    print("\n".join(header))
-    print(f"wrote {args.out}")
+    write_sweep(args, f"eq. 4.1 for {sc.name}: phi_hv(A, B) maximising v_x; "
+                "python -m sitl.scenarios.snake.phase_map", "phase_hv", m, A, B, phi, v, best, commit())
     return 0
 
 
