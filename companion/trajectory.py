@@ -196,8 +196,9 @@ class ChainTrajectory:
         """Every link's ``(p, q, R, v, a, w, w_dot)`` at ``t`` ((n, 3), (n, 4), (n, 3, 3), then (n, 3)
         each): the poses at ``t + k h``, ``k = -2..2``, and their central differences (``w``: ``(R^T
         dR/dt)^v``). ``compiled`` (default: :data:`companion.kernels.jit.ENABLED`): by
-        :func:`companion.kernels.trajectory.trajectory_kernel` (the same numbers to 1e-12, ``w_dot`` to 1e-9:
-        ``tests/unit/test_fast_paths.py``), else in numpy, the specification below."""
+        :func:`companion.kernels.trajectory.trajectory_kernel` (the same numbers to 1e-12, ``a`` and
+        ``w_dot`` to 1e-8 and 1e-9, the rounding of the poses over ``h^2``:
+        ``tests/unit/test_companion_kernels.py``), else in numpy, the specification below."""
         h = self.h
         times = [t + k * h for k in (-2, -1, 0, 1, 2)]
         if _COMPILED if compiled is None else compiled:

@@ -178,7 +178,9 @@ def test_global_step_over_zenoh_equals_in_process_eq6(groups):
 def test_leader_failover_over_zenoh_within_two_cycles(compiled_kernels):
     """Three groups on real deadlines (0.2 s): every cycle gets the leader's step before its
     computer goes away, at most two after. The compiled kernels are loaded first, as the daemon
-    loads them before its first cycle: a first eq. 6 solve that loads them would miss the deadline."""
+    loads them before its first cycle: a first eq. 6 solve that loads them would miss the deadline.
+    One cycle is flown first and not scored: under a loaded test run the first exchange on the new
+    sessions (their first samples, the code paths' first calls) can take longer than a deadline."""
     groups = LAYOUTS[0]
     ref, reports = chain_boundaries(5, groups)
     cfg, buses = _buses(3, "test_failover")
@@ -186,6 +188,10 @@ def test_leader_failover_over_zenoh_within_two_cycles(compiled_kernels):
                                       leader_wait_s=0.15), bus) for g, bus in enumerate(buses)]
     try:
         _wait_live(links, 3)
+        warm = {lk.group: lk.local_step(reports[lk.group].left_tip_pv_w, reports[lk.group].right_tip_pv_w,
+                                        reports[lk.group].info_pv, 0, time.monotonic()) for lk in links}
+        _pump(links, lambda r: all(any(x.cycle_us == 0 and x.leader_group is not None for x in r[g] + warm[g])
+                                   for g in r))
         outcome = []  # per cycle: did every live group get the global step?
         for k in range(1, 13):
             if k == 6:
