@@ -137,7 +137,7 @@ def test_motion_commands_through_the_inverse_model_accelerate_hold_the_line_and_
     assert fly_pivotboard(sc, None)["commands"] == m["commands"]
     run = pivot_run(replace(sc, duration_s=6.0))
     run.run()
-    log = np.array(run.cpg.control.log)  # (t, v, v_dot, omega, v_dot_d, omega_d, A, B, branch) per period
+    log = np.array(run.cpg.control.log)  # (t, v, v_dot, omega, v_dot_d, omega_d, A, B, branch, v_x_d) per period
     np.testing.assert_allclose(log[:, 0], np.arange(7.0), atol=1e-9)
     assert np.all(log[:, 8] == 1) and np.all(np.diff(log[2:, 6]) > 0)  # speeding up: the amplitude grows
     with pytest.raises(ValueError, match="control.model_folder"):

@@ -132,11 +132,11 @@ def test_velocity_commands_through_the_inverse_model_hold_the_line_and_turn():
 
     adapting = snake_run(replace(sc, duration_s=6.0, control=replace(sc.control, adapt=True)))
     adapting.run()
-    log = np.array(adapting.cpg.control.log)  # (t, v_x, v_y, omega, omega_d, A, B): one update per period
+    log = np.array(adapting.cpg.control.log)  # (t, v_x, v_y, omega, omega_d, A, B, v_x_d): one update per period
     model = adapting.cpg.control.model
     np.testing.assert_allclose(log[:, 0], np.arange(7.0), atol=1e-9)  # t = 0, 1, ..., 6 s: each period boundary
     assert np.all(np.isfinite(log[1:, 1:4])) and np.isnan(log[0, 1])
-    assert np.all((log[:, 5:] >= model.eta_low - 1e-12) & (log[:, 5:] <= model.eta_high + 1e-12))
+    assert np.all((log[:, 5:7] >= model.eta_low - 1e-12) & (log[:, 5:7] <= model.eta_high + 1e-12))
 
 
 def test_on_the_incline_the_adaptation_recovers_the_commanded_speed():
@@ -149,7 +149,7 @@ def test_on_the_incline_the_adaptation_recovers_the_commanded_speed():
     for adapt in (False, True):
         run = snake_run(replace(sc, duration_s=30.0, control=replace(sc.control, adapt=adapt)))
         run.run()
-        log = np.array(run.cpg.control.log)  # (t, v_x, v_y, omega, omega_d, A, B) per period
+        log = np.array(run.cpg.control.log)  # (t, v_x, v_y, omega, omega_d, A, B, v_x_d) per period
         final[adapt] = (log[-5:, 1].mean(), np.degrees(log[-1, 5]))
     v_d = sc.commands[0].v_x_m_s
     assert v_d - final[False][0] > 0.2, final  # the incline costs the model's inputs a third of the speed

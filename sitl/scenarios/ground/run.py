@@ -7,7 +7,10 @@ CPG and integrates the CPG over the next period with the command in force; it lo
 ``log_rate_hz``. The robot and its CPG come from the kind: ``robot`` answers ``step()``,
 ``centre_of_mass()``, ``heading()``, ``in_plane(p)``, ``outline()`` (its shape's points, for the
 plot), ``servo_angles()``; ``cpg`` answers ``targets()`` (the servos' targets now, actuator order),
-``advance(command, dt_s)`` and ``axes`` (names of actuator groups, for the tracking metrics).
+``advance(command, dt_s)`` and ``axes`` (names of actuator groups, for the tracking metrics), and
+``control``: ``None``, or the motion commands' control, whose ``series()`` (``t``, the desired
+``v_x_d``, ``omega_d`` and, for the pivotboard, ``v_dot_d``, the inputs ``A``, ``B``) joins the log
+as ``control_*``.
 
 **The body frame {B}** (thesis Fig. 4-1): at the robot's centre of mass, its x axis the robot's
 heading in the ground's plane. The thesis's velocities are averages over one CPG period (sec.
@@ -27,7 +30,8 @@ import numpy as np
 
 from companion.configfile import dump_toml
 
-__all__ = ["GroundRun", "body_velocity", "period_velocities", "run_metrics", "command_tracking", "write_run"]
+__all__ = ["GroundRun", "body_velocity", "period_velocities", "period_acceleration", "run_metrics", "command_tracking",
+           "write_run"]
 
 
 class GroundRun:
@@ -78,6 +82,9 @@ class GroundRun:
         out["heading"] = np.unwrap(out["heading"])
         out.update(zip(("period_t", "v_x", "v_y", "omega"), period_velocities(
             out["t"], out["com_plane"], out["heading"], self.cpg.period_s)))
+        control = getattr(self.cpg, "control", None)
+        if control is not None:  # motion commands: what the control asked for, once per period
+            out.update({f"control_{k}": v for k, v in control.series().items()})
         return out
 
 
@@ -103,6 +110,15 @@ def period_velocities(t: np.ndarray, p_plane: np.ndarray, heading: np.ndarray, p
     lo = m // 2
     mid = heading[lo: lo + len(d)] if m % 2 == 0 else 0.5 * (heading[lo: lo + len(d)] + heading[lo + 1: lo + 1 + len(d)])
     return (t[m:], *body_velocity(d, mid, heading[m:] - heading[:-m], period_s))
+
+
+def period_acceleration(a: dict, period_s: float, log_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(t, v_dot)``: the forward acceleration of the period velocities, ``v_x``'s change over a
+    period, over the period (the pivotboard's eq. 4.2 is written in these velocities)."""
+    m = int(round(period_s * log_rate_hz))
+    if len(a["v_x"]) <= m:
+        return np.zeros(0), np.zeros(0)
+    return a["period_t"][m:], (a["v_x"][m:] - a["v_x"][:-m]) / period_s
 
 
 def _summary(x: np.ndarray) -> dict:
@@ -166,7 +182,9 @@ def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5))
+    control = "control_t" in a
+    fig, axes = plt.subplots(2 if control else 1, 2, figsize=(11, 9.0 if control else 4.5), squeeze=False)
+    ax0, ax1 = axes[0]
     ax0.plot(a["com_plane"][:, 0], a["com_plane"][:, 1], lw=1.0, label="centre of mass")
     step = max(1, int(round(2.0 * sc.log_rate_hz)))
     for shape in a["outline_plane"][::step]:
@@ -175,12 +193,35 @@ def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots
     ax0.set(xlabel="uphill x [m]", ylabel="y [m]", title=f"{sc.name}: path (outline every 2 s)")
     ax0.set_aspect("equal", adjustable="datalim")
     ax0.grid(alpha=0.3)
-    ax1.plot(a["period_t"], a["v_x"], label="v_x [m/s]")
-    ax1.plot(a["period_t"], a["v_y"], label="v_y [m/s]")
-    ax1.plot(a["period_t"], a["omega"], label="omega [rad/s]")
+    ax1.plot(a["period_t"], a["v_x"], color="C0", label="v_x [m/s]")
+    ax1.plot(a["period_t"], a["v_y"], color="C1", label="v_y [m/s]")
+    ax1.plot(a["period_t"], a["omega"], color="C2", label="omega [rad/s]")
     ax1.set(xlabel="t [s]", title="velocities in {B}, averaged over a CPG period")
+    if control:
+        _plot_control(a, sc, ax1, *axes[1])
     ax1.grid(alpha=0.3)
     ax1.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / f"{stem}.png", dpi=110)
     plt.close(fig)
+
+
+def _plot_control(a: dict, sc, ax_velocity, ax_acceleration, ax_inputs) -> None:
+    """The motion commands' panels (as the thesis's Figs. 4-15, 4-16, 4-18): the desired velocities
+    beside the measured ones, the desired and the measured acceleration (the period velocity's
+    change over a period), and the CPG's inputs."""
+    t = a["control_t"]
+    ax_velocity.step(t, a["control_v_x_d"], where="post", color="C0", ls="--", lw=1.0, label="v_x desired")
+    ax_velocity.step(t, a["control_omega_d"], where="post", color="C2", ls="--", lw=1.0, label="omega desired")
+    ax_acceleration.plot(*period_acceleration(a, 1.0 / sc.cpg.frequency_hz, sc.log_rate_hz), color="C0",
+                         label="measured")
+    if "control_v_dot_d" in a:
+        ax_acceleration.step(t, a["control_v_dot_d"], where="post", color="C0", ls="--", lw=1.0, label="desired")
+    ax_acceleration.set(xlabel="t [s]", ylabel="[m/s^2]", title="forward acceleration")
+    ax_acceleration.grid(alpha=0.3)
+    ax_acceleration.legend(fontsize=8)
+    ax_inputs.step(t, np.degrees(a["control_A"]), where="post", label="A [deg]")
+    ax_inputs.step(t, np.degrees(a["control_B"]), where="post", label="B [deg]")
+    ax_inputs.set(xlabel="t [s]", title="the CPG's inputs, once per period")
+    ax_inputs.grid(alpha=0.3)
+    ax_inputs.legend(fontsize=8)

@@ -11,9 +11,14 @@ the next period:
   (``mode = "velocity"``); ``omega_d`` the command's or, with ``hold_line``, the line-holding law
   (:func:`~sitl.scenarios.ground.control.line_holding_rate`);
 * the branch: the accelerating model (the map's phase difference) unless ``v_dot_d`` is below what
-  its gentlest input makes at this speed, ``d (v_s,min - v)`` (its training data's slowest
+  its gentlest input makes at that speed, ``d (v_s,min - v)`` (its training data's slowest
   ``v_s`` and mean ``d``); then the decelerating one (zero phase difference). The CPG's own
   ``v_dot_d`` input, whose sign picks its phase difference, is set to select that branch;
+* the speed the inputs will act at: new inputs are held over the period (half of it, on
+  average) and the CPG's amplitude filter (a double pole at ``k_a / 2``) follows a ramp of its
+  input ``4 / k_a`` behind, so the motion is planned at ``v + v_dot_d lead``, ``lead = T / 2 +
+  4 / k_a`` (1.5 s at 1 Hz and ``k_a`` 4; planned at ``v`` the board made about 0.6 of the
+  commanded acceleration);
 * the first step of the inverse model: the DA parameters ``xi_d = [v_s, d, c]`` of the desired
   motion on the branch model's feasible set
   (:func:`~companion.motion.decaying_acceleration.feasible_da`); the second: ``eta = [A, B]``
@@ -46,6 +51,9 @@ class MotionControl:
         self.cfg = cfg
         self.robot = robot
         self.period_s = 1.0 / sc.cpg.frequency_hz
+        #: how long new inputs take to act: held over a period (half of it on average), and the
+        #: CPG's amplitude filter (a double pole at k_a / 2) follows a ramp 4 / k_a behind
+        self.lead_s = 0.5 * self.period_s + 4.0 / sc.cpg.k_a
         self.models = {b: InverseModel.load(model_path(cfg.model_folder, b)) for b in BRANCHES}
         acc = self.models["accelerating"]
         if "xi_low" not in acc.info:
@@ -58,7 +66,8 @@ class MotionControl:
         self.meter = PeriodMeter(robot, self.period_s)
         self._command = None
         self._v = None  # the last period's forward speed
-        #: per update: (t, v, v_dot, omega measured, v_dot_d, omega_d, A, B, branch 1/-1)
+        #: per update: (t, v, v_dot, omega measured, v_dot_d, omega_d, A, B, branch 1/-1, v_x desired
+        #: or nan)
         self.log: list[tuple] = []
 
     def desired(self, command: PivotCommand, v: float) -> tuple[float, float]:
@@ -85,9 +94,10 @@ class MotionControl:
                 v_dot = (v - self._v) / self.period_s
             self._v = v
         v_dot_d, omega_d = self.desired(command, v)
-        accelerating = v_dot_d >= self.d_mean * (self.v_s_min - v)
+        v_ahead = v + v_dot_d * self.lead_s  # the speed when the new inputs have taken effect
+        accelerating = v_dot_d >= self.d_mean * (self.v_s_min - v_ahead)
         model = self.models["accelerating" if accelerating else "decelerating"]
-        xi_d = feasible_da(model, v, v_dot_d, omega_d, self.cfg.v_min_m_s)
+        xi_d = feasible_da(model, v_ahead, v_dot_d, omega_d, self.cfg.v_min_m_s)
         steady = measured is not None and bool(np.isfinite(v_dot)) and self.gate.steady(np.array([v, omega]))
         if self.adaptation is None or not accelerating:
             eta = np.clip(model(xi_d)[0], model.eta_low, model.eta_high)
@@ -97,5 +107,14 @@ class MotionControl:
         else:  # the model's inputs plus the correction learnt so far
             eta = self.adaptation.update(xi_d, xi_d, 0.0)
         v_dot_cpg = max(v_dot_d, 0.0) if accelerating else min(v_dot_d, -1e-9)
-        self.log.append((t_s, v, v_dot, omega, v_dot_d, omega_d, *eta, 1 if accelerating else -1))
+        v_x_d = command.v_x_m_s if command.mode == "velocity" else np.nan
+        self.log.append((t_s, v, v_dot, omega, v_dot_d, omega_d, *eta, 1 if accelerating else -1, v_x_d))
         return float(eta[0]), float(eta[1]), v_dot_cpg
+
+    def series(self) -> dict[str, np.ndarray]:
+        """The updates as arrays: ``t``, the desired ``v_x_d`` (``nan`` for an acceleration command),
+        ``v_dot_d`` and ``omega_d``, the inputs ``A``, ``B`` [rad] and the ``branch`` (1 speeding
+        up, -1 slowing down) (what the run's plot and log show)."""
+        log = np.array(self.log, dtype=float).reshape(-1, 10)
+        return {"t": log[:, 0], "v_x_d": log[:, 9], "v_dot_d": log[:, 4], "omega_d": log[:, 5], "A": log[:, 6],
+                "B": log[:, 7], "branch": log[:, 8]}

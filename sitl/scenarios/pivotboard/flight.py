@@ -22,7 +22,7 @@ import numpy as np
 from companion.motion.ground_cpgs import PivotCpgState, pivot_joint_angles, pivot_step
 
 from ..ground.control import PeriodClock
-from ..ground.run import GroundRun, command_tracking, run_metrics, write_run
+from ..ground.run import GroundRun, command_tracking, period_acceleration, run_metrics, write_run
 from .config import PivotCommand, PivotScenario
 from .model import PivotModel
 
@@ -72,9 +72,7 @@ def _tracking(sc: PivotScenario, a: dict, metrics: dict) -> None:
     forward part the RMS of the acceleration's error (``mode = "acceleration"``: the change of the
     period velocity ``v_x`` over a period, against ``v_dot_d_m_s2``) or of the speed's (``mode =
     "velocity"``: ``v_x - v_x_m_s``)."""
-    period = 1.0 / sc.cpg.frequency_hz
-    m = int(round(period * sc.log_rate_hz))
-    t_acc, acc = a["period_t"][m:], (a["v_x"][m:] - a["v_x"][:-m]) / period
+    t_acc, acc = period_acceleration(a, 1.0 / sc.cpg.frequency_hz, sc.log_rate_hz)
 
     def forward(row, cmd, w, t0, t1):
         if cmd.mode == "acceleration":

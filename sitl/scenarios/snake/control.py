@@ -41,7 +41,7 @@ class VelocityControl:
         self.meter = PeriodMeter(robot, self.period_s)
         self.eta = np.zeros(2)
         self._command = None
-        #: per update: (t, v_x, v_y, omega measured, omega_d, A, B)
+        #: per update: (t, v_x, v_y, omega measured, omega_d, A, B, v_x desired)
         self.log: list[tuple] = []
 
     def desired(self, command: CpgCommand) -> np.ndarray:
@@ -66,5 +66,11 @@ class VelocityControl:
         else:  # the model's inputs plus the correction learnt so far
             self.eta = self.adaptation.update(xi_d, xi_d, 0.0)
         m = measured if measured is not None else np.full(3, np.nan)
-        self.log.append((t_s, *m, xi_d[2], *self.eta))
+        self.log.append((t_s, *m, xi_d[2], *self.eta, xi_d[0]))
         return self.eta
+
+    def series(self) -> dict[str, np.ndarray]:
+        """The updates as arrays: ``t``, the desired ``v_x_d`` and ``omega_d``, the inputs ``A``, ``B``
+        [rad] (what the run's plot and log show)."""
+        log = np.array(self.log, dtype=float).reshape(-1, 8)
+        return {"t": log[:, 0], "v_x_d": log[:, 7], "omega_d": log[:, 4], "A": log[:, 5], "B": log[:, 6]}
