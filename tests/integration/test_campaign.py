@@ -108,39 +108,6 @@ def _interrupted_campaign(out, *where) -> int:
     return len(records)
 
 
-@pytest.fixture
-def dask_cluster(tmp_path):
-    """A scheduler and two workers started as a user starts them (dask scheduler, dask worker) on
-    loopback; yields the scheduler's address."""
-    dask = str(Path(sys.executable).parent / "dask")
-    scheduler_file = tmp_path / "scheduler.json"
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(scheduler_file)], cwd=ROOT, start_new_session=True,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    try:
-        assert wait_for(scheduler_file.exists, 60.0), "the scheduler wrote no address"
-        for _ in range(2):
-            procs.append(subprocess.Popen([dask, "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
-                                           "--no-dashboard", "--host", "127.0.0.1"], cwd=ROOT,
-                                          start_new_session=True, stdout=subprocess.DEVNULL,
-                                          stderr=subprocess.DEVNULL))
-        address = json.loads(scheduler_file.read_text())["address"]
-        from distributed import Client
-
-        with Client(address, timeout=30) as client:
-            client.wait_for_workers(2, timeout=60)
-        yield address
-    finally:
-        for p in procs:
-            os.killpg(p.pid, signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-
-
 def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_table(tmp_path, dask_cluster):
     """Real flights (three_link, 4 s, two settings x two seeds): the local cluster, interrupted
     with Ctrl-C and started again, and a separately started scheduler with two workers give the

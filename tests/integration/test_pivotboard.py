@@ -131,8 +131,8 @@ def test_motion_commands_through_the_inverse_model_accelerate_hold_the_line_and_
         PivotCommand(14.0, mode="velocity", v_x_m_s=0.04, omega_rad_s=0.02)))
     m = fly_pivotboard(sc, None)
     up, down, turn = m["commands"]
-    assert up["v_dot_rms_err_m_s2"] < 0.5 * 0.006 and up["y_rms_m"] < 0.01, up
-    assert down["v_dot_rms_err_m_s2"] < 0.5 * 0.004, down
+    assert up["v_dot_rms_err_m_s2"] < 0.15 * 0.006 and up["y_rms_m"] < 0.01, up  # planned ahead (the lead)
+    assert down["v_dot_rms_err_m_s2"] < 0.3 * 0.004 and down["y_rms_m"] < 0.01, down
     assert turn["v_x_rms_err_m_s"] < 0.01 and turn["omega_rms_err_rad_s"] < 0.3 * 0.02, turn
     assert fly_pivotboard(sc, None)["commands"] == m["commands"]
     run = pivot_run(replace(sc, duration_s=6.0))
@@ -160,3 +160,14 @@ def test_on_the_slippery_plane_the_adaptation_recovers_the_commanded_speed():
         final[adapt] = fly_pivotboard(run_sc, None)["commands"][1]["v_x_rms_err_m_s"]
     assert final[False] > 0.3 * v_d, final
     assert final[True] < 0.3 * final[False], final
+
+
+def test_a_sweep_flies_on_the_campaign_engines_cluster_and_writes_the_same_map(tmp_path, dask_cluster):
+    """``--scheduler``: eq. 4.1's sweep as tasks on a Dask scheduler's workers (started as a user
+    starts them) writes the map the local run writes, to the byte."""
+    from sitl.scenarios.pivotboard.phase_map import main
+
+    args = ["--config", str(CONFIG), "--A", "20,30", "--B", "0", "--phases", "4", "--duration", "4"]
+    assert main([*args, "--out", str(tmp_path / "local.toml")]) == 0
+    assert main([*args, "--scheduler", dask_cluster, "--out", str(tmp_path / "remote.toml")]) == 0
+    assert (tmp_path / "remote.toml").read_text() == (tmp_path / "local.toml").read_text()

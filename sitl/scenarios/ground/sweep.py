@@ -1,5 +1,5 @@
 """What the ground robots' sweeps share (eq. 4.1's phase map, eq. 4.2's fits, the inverse models'
-data): a grid of jobs flown in one process or several, the commit the data came from,
+data): a grid of jobs flown in one process, several, or on a Dask cluster, the commit the data came from,
 comma-separated values, and the inverse models' command-line options, their runs split into
 training and held-out ones, and the held-out recovery error."""
 
@@ -18,9 +18,15 @@ __all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep", "inver
            "train_held", "recovery_error_deg"]
 
 
-def run_jobs(fn: Callable, jobs: Sequence, workers: int = 1) -> list:
-    """``fn(job)`` for every job, in order; ``workers`` > 1: that many processes (``fn`` must be a
-    module-level function)."""
+def run_jobs(fn: Callable, jobs: Sequence, workers: int = 1, scheduler: str | None = None) -> list:
+    """``fn(job)`` for every job, in order; ``scheduler`` (``tcp://HOST:PORT``): as tasks on that Dask
+    cluster (the campaign engine's: :mod:`sitl.campaign.cluster`), else ``workers`` > 1: that many
+    local processes, else here. ``fn`` must be a module-level function."""
+    if scheduler is not None:
+        from sitl.campaign.cluster import connect
+
+        with connect(scheduler) as client:
+            return client.gather(client.map(fn, list(jobs), pure=False))
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             return list(pool.map(fn, jobs, chunksize=max(1, len(jobs) // (4 * workers))))
@@ -44,11 +50,14 @@ def floats(text: str) -> list[float]:
 
 def sweep_parser(prog: str, doc: str, kind: str, out_help: str, duration_s: float) -> argparse.ArgumentParser:
     """A sweep's command line with the options every sweep has: ``--config`` (a ``kind``
-    scenario), ``--duration``, ``--workers``, ``--out``; the sweep adds its own."""
+    scenario), ``--duration``, ``--workers``, ``--scheduler``, ``--out``; the sweep adds its own."""
     p = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     p.add_argument("--config", required=True, help=f"a {kind} scenario (its robot, ground, CPG)")
     p.add_argument("--duration", type=float, default=duration_s, help="simulated seconds per run")
-    p.add_argument("--workers", type=int, default=1, help="processes")
+    p.add_argument("--workers", type=int, default=1, help="local processes")
+    p.add_argument("--scheduler", default=None,
+                   help="fly the runs on this Dask scheduler's workers instead (tcp://HOST:PORT; the campaign engine's "
+                        "cluster, docs/campaigns.md)")
     p.add_argument("--out", type=Path, required=True, help=out_help)
     return p
 

@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     if sc is None:
         return 2
     jobs = [(sc, a, b, args.duration) for a in floats(args.A) for b in floats(args.B)]
-    fits = run_jobs(_job, jobs, args.workers)
+    fits = run_jobs(_job, jobs, args.workers, args.scheduler)
     lines = [f"# eq. 4.2 fitted on {sc.name}: python -m sitl.scenarios.pivotboard.da_fit --config {args.config} "
              f"--A {args.A} --B {args.B} --duration {args.duration}",
              f"# at commit {commit()} (the runs are deterministic: no seed)"]

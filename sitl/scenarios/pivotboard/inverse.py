@@ -45,14 +45,15 @@ def _fits(args):
     return fit_runs(*args)
 
 
-def dataset(sc: PivotScenario, n: int, seed: int, A_range_deg, B_max_deg: float, duration_s: float, workers: int = 1):
+def dataset(sc: PivotScenario, n: int, seed: int, A_range_deg, B_max_deg: float, duration_s: float, workers: int = 1,
+            scheduler: str | None = None):
     """``(eta [rad] (2n, 2), {branch: xi (2n, 3)}, {branch: residual RMS [m/s] (n,)})`` of ``n`` runs
     with ``A`` uniform in ``A_range_deg`` and ``B`` in ``[0, B_max_deg]`` (seeded), each with its
     mirror image (after the ``n`` runs, in the same order)."""
     rng = np.random.default_rng(seed)
     A = rng.uniform(*A_range_deg, n)
     B = rng.uniform(0.0, B_max_deg, n)
-    fits = run_jobs(_fits, [(sc, a, b, duration_s) for a, b in zip(A, B)], workers)
+    fits = run_jobs(_fits, [(sc, a, b, duration_s) for a, b in zip(A, B)], workers, scheduler)
     eta = np.radians(np.column_stack((A, B)))
     xi, residual = {}, {}
     for k, branch in enumerate(BRANCHES):
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
     if A_range is None:
         return 2
     N = args.samples + args.held_out
-    eta, xi, residual = dataset(sc, N, args.seed, A_range, args.B_max, args.duration, args.workers)
+    eta, xi, residual = dataset(sc, N, args.seed, A_range, args.B_max, args.duration, args.workers,
+                                     args.scheduler)
     train, held = train_held(args.samples, args.held_out)
     args.out.mkdir(parents=True, exist_ok=True)
     for branch in BRANCHES:

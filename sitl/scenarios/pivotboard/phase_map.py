@@ -54,10 +54,11 @@ def _speed(args) -> float:
     return final_speed(*args)
 
 
-def sweep(sc: PivotScenario, A_deg, B_deg, phi_rad, workers: int = 1) -> np.ndarray:
-    """``v_x`` on the grid ``(len(A), len(B), len(phi))``; ``workers`` processes fly it."""
+def sweep(sc: PivotScenario, A_deg, B_deg, phi_rad, workers: int = 1, scheduler: str | None = None) -> np.ndarray:
+    """``v_x`` on the grid ``(len(A), len(B), len(phi))``, flown where
+    :func:`~sitl.scenarios.ground.sweep.run_jobs` says."""
     jobs = [(sc, a, b, p) for a in A_deg for b in B_deg for p in phi_rad]
-    return np.asarray(run_jobs(_speed, jobs, workers)).reshape(len(A_deg), len(B_deg), len(phi_rad))
+    return np.asarray(run_jobs(_speed, jobs, workers, scheduler)).reshape(len(A_deg), len(B_deg), len(phi_rad))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,7 +76,7 @@ def main(argv=None) -> int:
         return 2
     A, B = floats(args.A), floats(args.B)
     phi = phase_grid(args.phases)
-    v = sweep(sc, A, B, phi, args.workers)
+    v = sweep(sc, A, B, phi, args.workers, args.scheduler)
     best = best_phases(v, phi)
     m = phase_map((np.radians(A), np.radians(B), (0.0,)), best[..., None])
     write_sweep(args, f"eq. 4.1 for {sc.name}: phi(A, B, v_dot_d >= 0) maximising v_x; "

@@ -42,13 +42,14 @@ def _motion(args) -> np.ndarray:
     return steady_motion(*args)
 
 
-def dataset(sc: SnakeScenario, n: int, seed: int, A_range_deg, B_max_deg: float, workers: int = 1):
+def dataset(sc: SnakeScenario, n: int, seed: int, A_range_deg, B_max_deg: float, workers: int = 1,
+            scheduler: str | None = None):
     """``(eta [rad], xi)`` of ``n`` runs with ``A`` uniform in ``A_range_deg`` and ``B`` in
     ``[0, B_max_deg]`` (seeded), and their mirror images: (2n, 2), (2n, 3)."""
     rng = np.random.default_rng(seed)
     A = rng.uniform(*A_range_deg, n)
     B = rng.uniform(0.0, B_max_deg, n)
-    xi = np.asarray(run_jobs(_motion, [(sc, a, b) for a, b in zip(A, B)], workers))
+    xi = np.asarray(run_jobs(_motion, [(sc, a, b) for a, b in zip(A, B)], workers, scheduler))
     eta = np.radians(np.column_stack((A, B)))
     return np.vstack((eta, eta * [1.0, -1.0])), np.vstack((xi, xi * [1.0, -1.0, -1.0]))
 
@@ -67,7 +68,7 @@ def main(argv=None) -> int:
     if A_range is None:
         return 2
     N = args.samples + args.held_out
-    eta, xi = dataset(sc, N, args.seed, A_range, args.B_max, args.workers)
+    eta, xi = dataset(sc, N, args.seed, A_range, args.B_max, args.workers, args.scheduler)
     train, held = train_held(args.samples, args.held_out)
     train_eta, train_xi = eta[train], xi[train]
     model = train_inverse_model(train_eta, train_xi, seed=args.seed, hidden=16, steady=None, bottleneck=2, info={
