@@ -15,8 +15,8 @@ as ``control_*``.
 **The body frame {B}** (thesis Fig. 4-1): at the robot's centre of mass, its x axis the robot's
 heading in the ground's plane. The thesis's velocities are averages over one CPG period (sec.
 4.5.3: "during time [t - dt, t]"): :func:`period_velocities` gives, a period after the start, the
-centre of mass's displacement over the last period in {B} (the heading at the period's middle)
-over the period, ``v_x`` (forward) and ``v_y``, and the heading's change over it, ``omega``.
+centre of mass's displacement over the last period in {B} (at the period's mean heading) over the
+period, ``v_x`` (forward) and ``v_y``, and the heading's change over it, ``omega``.
 """
 
 from __future__ import annotations
@@ -100,16 +100,17 @@ def body_velocity(d_plane, mid_heading, d_heading, period_s: float):
 
 def period_velocities(t: np.ndarray, p_plane: np.ndarray, heading: np.ndarray, period_s: float):
     """``(t, v_x, v_y, omega)`` at every sample a whole period after the first: the centre of mass's
-    displacement over the last ``period_s`` in {B} (rotated by the heading at the period's middle)
-    over the period, and the (unwrapped) heading's change over it."""
+    displacement over the last ``period_s`` in {B} (rotated by the mean of the (unwrapped) heading
+    over the period's samples: a body that undulates turns its heading to and fro within a
+    period) over the period, and the heading's change over it."""
     dt = float(t[1] - t[0])
     m = int(round(period_s / dt))
     if len(t) <= m:
         return (np.zeros(0),) * 4
     d = p_plane[m:] - p_plane[:-m]
-    lo = m // 2
-    mid = heading[lo: lo + len(d)] if m % 2 == 0 else 0.5 * (heading[lo: lo + len(d)] + heading[lo + 1: lo + 1 + len(d)])
-    return (t[m:], *body_velocity(d, mid, heading[m:] - heading[:-m], period_s))
+    c = np.concatenate(([0.0], np.cumsum(heading)))
+    mean = (c[m + 1:] - c[:-m - 1]) / (m + 1)  # samples k - m .. k
+    return (t[m:], *body_velocity(d, mean, heading[m:] - heading[:-m], period_s))
 
 
 def period_acceleration(a: dict, period_s: float, log_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:

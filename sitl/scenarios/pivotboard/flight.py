@@ -54,6 +54,8 @@ class PivotCpg:
         if command.mode != "cpg":
             if self.clock.due():  # a period boundary: new inputs
                 self._inputs = self.control.update(self.clock.t_s, command)
+            else:
+                self.control.meter.sample()
             A, B, v_dot_d = self._inputs
         else:
             A, B, v_dot_d = math.radians(command.A_deg), math.radians(command.B_deg), command.v_dot_d_m_s2

@@ -55,6 +55,8 @@ class SnakeCpg:
         if command.mode == "velocity":
             if self.clock.due():  # a period boundary: new inputs
                 self._eta = self.control.update(self.clock.t_s, command)
+            else:
+                self.control.meter.sample()
             A, B = self._eta
         else:
             A, B = math.radians(command.A_deg), math.radians(command.B_deg)
