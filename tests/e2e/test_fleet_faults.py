@@ -152,20 +152,22 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert 1.2 < carried[1] and spun_up - 0.15 < reboot["killed_at_s"] + carried[1] < spun_up + 0.6, (carried, reboot)
     assert carried[0] < 0.3 and carried[2] < 0.3, carried
     assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)}}  # in the metrics too
-    # the neighbours at their rotors' limit while they carried it, link 2 never. How long each one
-    # stays there varies from run to run: 1.00-1.40 s and 1.13-1.34 s with link 2 carried 1.40-1.48
-    # s; 1.24 s and 2.27 s with it carried 2.66 s (three ARMs dropped by the wire); 0.43 s for link
-    # 1 once with 1.9 s. Both reach it, one of them for at least half the carrying, neither for
-    # longer than it.
+    # the neighbours at their rotors' limit while they carried it, link 2 never. Holding a dead
+    # inner link takes 96 % of the rotors' thrust (python -m link_firmware_sim.design carry), and
+    # how the two share it varies from run to run: 1.00-1.40 s and 1.13-1.34 s at the limit with
+    # link 2 carried 1.40-1.48 s; 1.24 s and 2.27 s with it carried 2.66 s (three ARMs dropped by
+    # the wire); 0.43 s for link 1 once with 1.9 s, 0.0 s once with 1.5 s (link 3 at it 0.84 s).
+    # One of them is there for at least half the carrying, neither for longer than it.
     limit = m["rotor_limit_s_per_link"]
     neighbours = (limit[0], limit[2])
-    assert min(neighbours) > 0.3 and 0.5 * carried[1] < max(neighbours) < carried[1] + 0.5, (limit, carried)
+    assert 0.5 * carried[1] < max(neighbours) < carried[1] + 0.5, (limit, carried)
     assert limit[1] < 0.1, limit
     # ... and their firmware said so (STATUSTEXT, and its summary): the same time at the limit
     reports = [json.loads((tmp_path / d / f"link{i}_ports.json").read_text())["thrust_limit"]
                for i, d in ((1, "link1"), (2, "link2-restart"), (3, "link3"))]
     for i in (0, 2):
-        assert reports[i]["episodes"] >= 1 and abs(reports[i]["at_limit_s"] - limit[i]) < 0.3, (reports, limit)
+        assert abs(reports[i]["at_limit_s"] - limit[i]) < 0.3, (reports, limit)
+        assert reports[i]["episodes"] >= 1 or limit[i] == 0.0, (reports, limit)
     assert reports[1]["at_limit_s"] < 0.1, reports
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
