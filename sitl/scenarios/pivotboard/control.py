@@ -17,8 +17,8 @@ the next period:
 * the speed the inputs will act at: new inputs are held over the period (half of it, on
   average) and the CPG's amplitude filter (a double pole at ``k_a / 2``) follows a ramp of its
   input ``4 / k_a`` behind, so the motion is planned at ``v + v_dot_d lead``, ``lead = T / 2 +
-  4 / k_a`` (1.5 s at 1 Hz and ``k_a`` 4; planned at ``v`` the board made about 0.6 of the
-  commanded acceleration);
+  4 / k_a`` (planned at ``v``, the board falls short of the commanded acceleration by the
+  speed it gains over that lag);
 * the first step of the inverse model: the DA parameters ``xi_d = [v_s, d, c]`` of the desired
   motion on the branch model's feasible set
   (:func:`~companion.motion.decaying_acceleration.feasible_da`); the second: ``eta = [A, B]``
