@@ -10,7 +10,8 @@ from pathlib import Path
 from companion.configfile import ConfigError, build, load_toml, require_nonnegative, require_positive, with_settings
 from companion.motion.oscillators import PhaseMap
 
-__all__ = ["GroundScenario", "load_ground_scenario", "with_phase_map", "GROUND_SUMMARY", "GROUND_TABLES"]
+__all__ = ["GroundScenario", "GroundControl", "load_ground_scenario", "with_phase_map", "GROUND_SUMMARY",
+           "GROUND_TABLES"]
 
 #: the metrics ``python -m sitl fly`` prints of a ground robot's run
 GROUND_SUMMARY = ("commands", "distance_m", "heading_change_deg", "servo_rms_deg", "realtime_factor")
@@ -70,6 +71,29 @@ class GroundScenario:
         ends = [c.t_s for c in self.commands[1:]] + [self.duration_s]
         return [(k, c.t_s + self.settle_s, e) for k, (c, e) in enumerate(zip(self.commands, ends))
                 if e > c.t_s + self.settle_s]
+
+
+@dataclass(frozen=True)
+class GroundControl:
+    """What every ground robot's motion control (``[control]``, thesis sec. 4.6) has: the
+    adaptation (eq. 4.3) on or off with its gains ``k_p``, ``k_i`` and its gate
+    (:class:`~companion.motion.inverse.SteadyGate`: ``settle_periods``, ``steady_tol``), and the
+    line-holding law ``omega_d = -k_y_per_s y - k_heading_per_s psi`` (``y`` [m] the offset from the
+    line, ``psi`` the heading off it), limited to ``omega_max_rad_s``. (The thesis gives none of
+    these gains.)"""
+
+    adapt: bool = False
+    k_p: float = 0.2
+    k_i: float = 0.1
+    settle_periods: int = 2
+    steady_tol: float = 0.05
+    k_y_per_s: float = 0.2
+    k_heading_per_s: float = 0.5
+    omega_max_rad_s: float = 0.6
+
+    def __post_init__(self) -> None:
+        require_nonnegative(self, "k_p", "k_i", "settle_periods", "k_y_per_s", "k_heading_per_s")
+        require_positive(self, "steady_tol", "omega_max_rad_s")
 
 
 def load_ground_scenario(cls: type, path: str | Path, settings=None, **overrides):

@@ -17,7 +17,7 @@ from typing import Literal
 from companion.configfile import require_nonnegative, require_positive
 from companion.motion.ground_cpgs import PivotCpgParams
 
-from ..ground.config import GroundScenario, load_ground_scenario, with_phase_map
+from ..ground.config import GroundControl, GroundScenario, load_ground_scenario, with_phase_map
 
 __all__ = ["PivotBody", "PivotGround", "PivotCommand", "PivotControl", "PivotScenario", "load_pivot_scenario",
            "BRANCHES", "model_path"]
@@ -111,30 +111,23 @@ class PivotCommand:
 
 
 @dataclass(frozen=True)
-class PivotControl:
+class PivotControl(GroundControl):
     """The motion commands' control (thesis secs. 4.5.3, 4.6): the inverse models in
-    ``model_folder`` (relative to the scenario; :mod:`.inverse` trains them), the adaptation
-    (eq. 4.3) on or off with its gains ``k_p``, ``k_i`` and its gate
-    (:class:`~companion.motion.inverse.SteadyGate`: ``settle_periods``, ``steady_tol``), the speed
-    hold ``v_dot_d = k_v_per_s (v_x - v)``, the line-holding law ``omega_d = -k_y_per_s y -
-    k_heading_per_s psi`` limited to ``omega_max_rad_s``, and ``v_min_m_s``, the speed under which
-    the curvature ``c = omega / v`` is taken at that speed. (The thesis gives none of these.)"""
+    ``model_folder`` (relative to the scenario; :mod:`.inverse` trains them), the speed hold
+    ``v_dot_d = k_v_per_s (v_x - v)``, ``v_min_m_s``, the speed under which the curvature ``c =
+    omega / v`` is taken at that speed, and what every ground robot's control has
+    (:class:`~sitl.scenarios.ground.config.GroundControl`: the adaptation, the line holding; here
+    the turn rate is limited to 0.1 rad/s by default). (The thesis gives none of these.)"""
 
     model_folder: str = ""
-    adapt: bool = False
-    k_p: float = 0.2
-    k_i: float = 0.1
-    settle_periods: int = 2
-    steady_tol: float = 0.05
     k_v_per_s: float = 0.5
-    k_y_per_s: float = 0.2
-    k_heading_per_s: float = 0.5
-    omega_max_rad_s: float = 0.1
     v_min_m_s: float = 0.01
+    omega_max_rad_s: float = 0.1
 
     def __post_init__(self) -> None:
-        require_nonnegative(self, "k_p", "k_i", "settle_periods", "k_v_per_s", "k_y_per_s", "k_heading_per_s")
-        require_positive(self, "steady_tol", "omega_max_rad_s", "v_min_m_s")
+        GroundControl.__post_init__(self)
+        require_nonnegative(self, "k_v_per_s")
+        require_positive(self, "v_min_m_s")
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from typing import Literal
 from companion.configfile import require_nonnegative, require_positive
 from companion.motion.ground_cpgs import SnakeCpgParams
 
-from ..ground.config import GroundScenario, load_ground_scenario, with_phase_map
+from ..ground.config import GroundControl, GroundScenario, load_ground_scenario, with_phase_map
 
 __all__ = ["SnakeBody", "SnakeGround", "CpgCommand", "SnakeControl", "SnakeScenario", "load_snake_scenario"]
 
@@ -108,28 +108,12 @@ class CpgCommand:
 
 
 @dataclass(frozen=True)
-class SnakeControl:
+class SnakeControl(GroundControl):
     """The velocity commands' control (thesis sec. 4.6): the inverse model ``model_file`` (relative
-    to the scenario; :mod:`.inverse` trains it), the adaptation (eq. 4.3) on or off with its gains
-    ``k_p``, ``k_i`` and its gate (:class:`~companion.motion.inverse.SteadyGate`: ``settle_periods``,
-    ``steady_tol``), and the line-holding law ``omega_d = -k_y_per_s y - k_heading_per_s psi``
-    (``y`` [m] the offset from the line, ``psi`` the heading off it), limited to ``omega_max_rad_s``.
-    (The thesis gives none of these gains.)"""
+    to the scenario; :mod:`.inverse` trains it), and what every ground robot's control has
+    (:class:`~sitl.scenarios.ground.config.GroundControl`: the adaptation, the line holding)."""
 
     model_file: str = ""
-    adapt: bool = False
-    k_p: float = 0.2
-    k_i: float = 0.1
-    settle_periods: int = 2
-    steady_tol: float = 0.05
-    k_y_per_s: float = 0.2
-    k_heading_per_s: float = 0.5
-    omega_max_rad_s: float = 0.6
-
-    def __post_init__(self) -> None:
-        require_nonnegative(self, "k_p", "k_i", "settle_periods", "k_y_per_s", "k_heading_per_s")
-        require_positive(self, "steady_tol")
-        require_positive(self, "omega_max_rad_s")
 
 
 @dataclass(frozen=True)
