@@ -446,7 +446,7 @@ class CompanionDaemon:
         self._drain_inboxes()  # what arrived since the last poll is counted (and used) too
         summary = self.summary()
         log.info("companion summary: %s", json.dumps({k: summary[k] for k in (
-            "steps", "step_ms", "correction_latency_ms", "global_step", "round_trip_ms_as_leader", "failovers")
+            "steps", "step_ms", "targets_ms", "correction_latency_ms", "global_step", "round_trip_ms_as_leader", "failovers")
             if k in summary}))
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@ A daemon that reports the median and the 99th percentile of its correction laten
 over a whole flight cannot keep every sample: a link's states arrive at 50 Hz, 180,000 of them an
 hour. :class:`Quantiles` counts the samples in logarithmic bins instead (as HdrHistogram and
 DDSketch do): bin ``k`` holds the values in ``[lo (1 + rel)^k, lo (1 + rel)^(k + 1))``, values
-below ``lo`` share a bin for zero, and the exact minimum and maximum are kept. A percentile
+below ``lo`` share a bin for zero, and the exact minimum, maximum and sum are kept. A percentile
 is the geometric middle of the bin holding that rank (linear interpolation between ranks, as
 :func:`numpy.percentile`), clamped to the minimum and maximum (the first and last ranks are them): within ``rel / 2`` of the value
 :func:`numpy.percentile` gives for values in ``[lo, hi]``, whatever the number of samples.
@@ -35,6 +35,7 @@ class Quantiles:
         self.refused = 0
         self.min = math.inf
         self.max = -math.inf
+        self.total = 0.0  # the binned samples' sum
 
     def add(self, value: float) -> None:
         """One sample (a non-finite or negative one is only counted in :attr:`refused`)."""
@@ -48,6 +49,7 @@ class Quantiles:
             k = min(int(math.log(x / self.lo) / self._log_step), self._bins - 1) + 1
         self.counts[k] += 1
         self.count += 1
+        self.total += x
         self.min = min(self.min, x)
         self.max = max(self.max, x)
 
@@ -59,6 +61,7 @@ class Quantiles:
         out.counts = self.counts + other.counts
         out.count, out.refused = self.count + other.count, self.refused + other.refused
         out.min, out.max = min(self.min, other.min), max(self.max, other.max)
+        out.total = self.total + other.total
         return out
 
     def _value_at_rank(self, rank: int, cumulative: np.ndarray) -> float:

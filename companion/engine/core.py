@@ -51,7 +51,7 @@ class CompanionEngine:
         net: the distributed mode's :class:`~companion.fleetnet.group.GroupLink`.
         trajectory: a target source to use instead of the one built from the config at the first
             targets (batch mode shares one between its group engines: they would compute the same).
-        timer: measures the step's compute time only (never drives a decision).
+        timer: measures the step's and the targets' compute time only (never drives a decision).
     """
 
     def __init__(self, setup: CompanionSetup, *, group: int | None = None, start_center=None, net=None,
@@ -91,7 +91,7 @@ class CompanionEngine:
         self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)
         self.targets = Targets(setup, self.links, d, group, net, trajectory, start_center, self.carrying,
-                               self._out.append)
+                               self._out.append, timer)
         self.arming = Arming(cfg, self._out.append)
         self.period_us = int(round(1e6 / cfg.rate_hz))
         self.next_step_us: int | None = None
@@ -314,6 +314,8 @@ class CompanionEngine:
             "common_mode_kept": self.selection.common_mode_kept,
             "neighbour_measurements": self.step.neighbours.counts(),
             "step_ms": {"p50": steps.percentile(50), "p99": steps.percentile(99)} if steps.count else None,
+            "targets_ms": ({"p50": self.targets.compute_ms.percentile(50), "p99": self.targets.compute_ms.percentile(99)}
+                           if self.targets.compute_ms.count else None),
             "correction_latency_ms": {"p50": lat.percentile(50), "p99": lat.percentile(99),
                                       "samples": lat.count} if lat.count else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,

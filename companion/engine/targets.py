@@ -13,11 +13,13 @@ leader continues the motion, and sends its own targets while no leader's arrive.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
 
 from ..messages import ChainTargets, PoseTarget
+from ..quantiles import Quantiles
 from ..skeleton.kinematics import chain_middle
 from ..trajectory import make_trajectory
 from .carrying import Carrying
@@ -39,10 +41,11 @@ class Targets:
             first targets).
         carrying: who is carried when targets are due.
         emit: takes each :class:`~.outputs.TargetOut`.
+        timer: measures the targets' compute time only (``compute_ms``, never a decision).
     """
 
     def __init__(self, setup, links: list[LinkTrack], d: np.ndarray, group: int | None, net, trajectory,
-                 start_center, carrying: Carrying, emit: Callable[[object], None]):
+                 start_center, carrying: Carrying, emit: Callable[[object], None], timer=time.perf_counter):
         self.setup = setup
         self.links = links
         self.d = d
@@ -52,6 +55,9 @@ class Targets:
         self.trajectory = trajectory
         self.carrying = carrying
         self._emit = emit
+        self._timer = timer
+        #: the compute time [ms] of each :meth:`send` (the trajectory's targets with their feed-forward)
+        self.compute_ms = Quantiles()
         self.period_us = int(round(1e6 / setup.companion.target_rate_hz))
         self._t0_us = 0
         self._started = False
@@ -79,7 +85,9 @@ class Targets:
         # Trajectory time starts when every link has first reported (on hardware the flight
         # controllers have been up for a while; in SITL this is within a tick of t = 0).
         passive = self.carrying.now(now_s, t_us)
+        t0 = self._timer()
         targets = self.trajectory.targets((t_us - self._t0_us) * 1e-6, passive=passive)
+        self.compute_ms.add((self._timer() - t0) * 1e3)
         if self.via_net:
             if self.net.leads(next_step_us, now_s):
                 self.net.publish_targets(ChainTargets.of(self.group, t_us, self.counts["published"] & 0xFFFFFFFF,

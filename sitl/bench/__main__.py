@@ -12,6 +12,7 @@
     python -m sitl.bench controllers [--config TOML] [--controllers A,B] [--duration S] [--seed S] [--out DIR]
     python -m sitl.bench view [--config TOML] [--duration S] [--repeat N] [--modes off,on,browser] [--out DIR]
     python -m sitl.bench soak [--config NAME|PATH] [--duration S] [--sample-s S] [--out DIR]
+    python -m sitl.bench companion [--config TOML] [--duration S] [--out DIR]
     (every bench also takes [--doc [PATH] | --no-doc], below)
 
 Each run writes into one folder (``--out``, default ``runs/<bench>-<UTC time>``): the JSON
@@ -39,6 +40,7 @@ from companion.estimation.sckf import CAParams
 from companion.estimation.semi import parse_groups
 from companion.cli import make_run_dir, run_subcommand
 
+from .companion_step import add_companion_step_parser
 from .ekf_chain import EKF_CONFIGS, ChainRun
 from .report import add_doc_options, doc_path, load_average, write_doc
 from .scaling import LINK_COUNTS, format_scaling, markdown_scaling, run_scaling
@@ -60,6 +62,8 @@ DOCS = {
              ("numpy", "scipy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
     "controllers": ("One link's pose controllers on one scenario: tracking", ("numpy", "mujoco", "numba")),
     "view": ("The live 3D view's cost: a batch flight with and without --view", ("numpy", "mujoco", "numba", "viser")),
+    "companion": ("The companion's 20 Hz cycle: numpy path and compiled path against the budget",
+                  ("numpy", "scipy", "numba", "mujoco")),
     "soak": ("Soak: an unpaced fleet's memory, descriptors and disk over a long flight",
              ("numpy", "mujoco", "numba", "pymavlink", "eclipse-zenoh")),
 }
@@ -289,6 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sitl_parser(sub)
     _add_view_parser(sub)
     _add_soak_parser(sub)
+    add_companion_step_parser(sub, _output_args, _publish)
     lfb = sub.add_parser(
         "load_filter",
         help="slung load pose: EKF vs UKF vs unfiltered on the synthetic scenario, N seeds",

@@ -196,3 +196,25 @@ def test_scaling_reports_all_variants():
     for key in ("full", "semi2", "full_dense_reference"):
         assert set(result[key]) == {"3", "5"}
         assert all(v > 0 for v in result[key].values())
+
+
+def test_the_companion_bench_times_both_paths_in_their_own_processes(tmp_path, compiled_kernels):
+    """``python -m sitl.bench companion`` (short): the numpy path's child runs without numba's
+    kernels and the compiled path's with them; each reports every step and target set it timed,
+    the cycle's figures and the margin to the 50 ms budget, in the JSON and the report."""
+    out = tmp_path / "bench"
+    proc = subprocess.run([sys.executable, "-m", "sitl.bench", "companion", "--config", "configs/sitl/chain/three_link.toml",
+                           "--duration", "8", "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((out / "companion.json").read_text())
+    numpy_path, compiled = result["paths"]["numpy"], result["paths"]["compiled"]
+    assert not numpy_path["compiled"] and compiled["compiled"]
+    for r in (numpy_path, compiled):
+        assert r["n_links"] == 3 and r["budget_ms"] == pytest.approx(50.0) and not r["crashed"]
+        assert r["step_ms"]["count"] >= 40 and r["targets_ms"]["count"] >= r["step_ms"]["count"]  # 20 Hz steps, faster targets
+        assert 0 < r["step_ms"]["p50"] <= r["step_ms"]["max"] and 0 < r["targets_ms"]["p50"] <= r["targets_ms"]["max"]
+        assert r["cycle_worst_ms"] >= r["cycle_mean_ms"] > 0 and r["margin"] == pytest.approx(50.0 / r["cycle_worst_ms"])
+    assert "numpy" in proc.stdout and "margin" in (out / "companion.md").read_text()
+    short = subprocess.run([sys.executable, "-m", "sitl.bench", "companion", "--config", "configs/sitl/chain/three_link.toml",
+                            "--duration", "3", "--out", str(tmp_path / "short")], capture_output=True, text=True, timeout=60)
+    assert short.returncode == 2 and "take-off" in short.stderr and "Traceback" not in short.stderr

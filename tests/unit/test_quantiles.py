@@ -30,7 +30,7 @@ def test_merged_sketches_answer_for_all_their_samples(q):
     for v in b:
         right.add(v)
     both = left.merge(right)
-    assert both.count == 1200
+    assert both.count == 1200 and both.total == pytest.approx(a.sum() + b.sum(), rel=1e-12)  # the exact sum
     assert both.percentile(q) == pytest.approx(np.percentile(np.concatenate((a, b)), q), rel=1e-3)
     with pytest.raises(ValueError, match="different bins"):
         left.merge(Quantiles(rel=1e-2))
@@ -44,6 +44,7 @@ def test_memory_is_fixed_and_bad_samples_are_counted_apart():
     for v in np.random.default_rng(0).exponential(5.0, 20_000):
         sketch.add(v)
     assert sketch.counts.nbytes == size and sketch.refused == 3 and sketch.count == 20_002
+    assert math.isfinite(sketch.total) and sketch.total > 2e6  # the refused samples are not in the sum
     assert sketch.percentile(0.0) == 0.0 and sketch.percentile(100.0) == 2e6  # the extremes stay exact
     assert math.isnan(Quantiles().percentile(50.0))
     with pytest.raises(ValueError):
