@@ -35,13 +35,14 @@ import numpy as np
 from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
 from . import procfs
 
-__all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "mujoco_ceiling", "run_batch", "run_fleet",
-           "run_speed", "format_speed", "markdown_speed", "scenario_file"]
+__all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "fleet_scaling", "mujoco_ceiling",
+           "run_batch", "run_fleet", "run_speed", "format_speed", "markdown_speed", "scenario_file"]
 
 log = logging.getLogger(__name__)
 
 BATCH_SCENARIOS = ("three_link", "seven_link", "seven_link_cpg")
-FLEET_SCENARIOS = ("three_link", "seven_link")
+#: the fleets: three, seven and fifteen links (how the fleet's speed grows with its length)
+FLEET_SCENARIOS = ("three_link", "seven_link", "fifteen_link")
 #: the scenario files, by name, in their kinds' folders (configs/sitl/<folder>/<name>.toml)
 CONFIG_DIR = Path("configs/sitl")
 #: the targets on a 2-core machine: each flight's least real-time factor (a fleet's over
@@ -168,9 +169,15 @@ def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
 
 def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp") -> list[str]:
     """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
-    the lockstep's, not matplotlib's) over ``sim_link``."""
-    return ["launch", "--config", str(scenario_file(name)), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
-            "--no-plots", "--sim-link", sim_link, "--out", str(folder)]
+    the lockstep's, not matplotlib's) over ``sim_link``; a chain of more than 10 links takes PX4
+    instances from 11 on (its companion ports 14540+K+i must pass the GCS port 14550)."""
+    from companion.configfile import load_toml
+
+    path = scenario_file(name)
+    n_links = int(load_toml(path).get("skeleton", {}).get("n_links", 0))
+    return ["launch", "--config", str(path), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
+            "--no-plots", "--sim-link", sim_link, "--instance-offset", "0" if n_links <= 10 else "11",
+            "--out", str(folder)]
 
 
 def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.executable,
@@ -371,13 +378,58 @@ def format_speed(result: dict) -> str:
             f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "MISSED")
         rows.append(f"{label:<28} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {_loop(r):>8} {rss:>12}"
                     f" {target:>14}{_runs_text(r)}")
-        for role, p in sorted(r.get("processes", {}).items()):
+        for role, p in sorted(r.get("processes", {}).items(), key=_role_key):
             rows.append(f"{'  ' + role:<28} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {_loop(p):>8}"
                         f" {p['peak_rss_mb']:>12.0f}")
+    scaling = fleet_scaling(result)
+    if len(scaling) > 1:
+        rows += ["", f"fleet scaling, CPU s per simulated s {scaling[0]['cpu']} by process kind (total; per process):",
+                 f"{'fleet':<28} {'links':>5} {'RTF':>6} {'/ceiling':>9} {'harness':>8} {'vehicles':>16} "
+                 f"{'companions':>16} {'all':>7}"]
+        for f in scaling:
+            rows.append(f"{f['label']:<28} {f['links']:>5} {fmt_x(f['realtime_factor'], '.2f'):>6} "
+                        f"{fmt_x(f['ratio_to_ceiling'], '.3f'):>9} {f['harness']:>8.3f} "
+                        f"{f['vehicles']:>7.3f}; {f['per_vehicle']:>6.3f} {f['companions']:>7.3f}; "
+                        f"{f['per_companion']:>6.3f} {f['all']:>7.3f}")
     verdict = _verdict(result)
     if verdict:
         rows.append(verdict)
     return "\n".join(rows)
+
+
+def fmt_x(x, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _role_key(item) -> tuple:
+    """A fleet's processes in their natural order: the harness, then vehicles and companions by number."""
+    kind, _, number = item[0].partition(" ")
+    return kind, int(number.lstrip("g")) if number.lstrip("g").isdigit() else 0
+
+
+def fleet_scaling(result: dict) -> list[dict]:
+    """Per fleet flight of a :func:`run_speed` result: its links, real-time factor and ratio to
+    MuJoCo alone, and the CPU seconds per simulated second of each kind of process (harness,
+    vehicles, companions: their total and per process) and of all; in the lockstep loop alone
+    (``cpu`` says ``in loop``) when every process has that figure, else over their lives."""
+    out = []
+    for r in result["runs"]:
+        procs = r.get("processes") or {}
+        if r.get("mode") != "fleet" or not procs:
+            continue
+        in_loop = all(p.get("loop_cpu_s_per_sim_s") is not None for p in procs.values())
+        key = "loop_cpu_s_per_sim_s" if in_loop else "cpu_s_per_sim_s"
+        kinds: dict[str, list[float]] = {"harness": [], "vehicle": [], "companion": []}
+        for role, p in procs.items():
+            kinds.setdefault(role.split()[0], []).append(p[key])
+        n_v, n_c = len(kinds["vehicle"]), len(kinds["companion"])
+        out.append({"label": f"{r['scenario']} ({r.get('sim_link')})", "links": n_v,
+                    "realtime_factor": r["realtime_factor"], "ratio_to_ceiling": r["ratio_to_ceiling"],
+                    "cpu": "in loop" if in_loop else "over their lives", "harness": sum(kinds["harness"]),
+                    "vehicles": sum(kinds["vehicle"]), "per_vehicle": sum(kinds["vehicle"]) / max(n_v, 1),
+                    "companions": sum(kinds["companion"]), "per_companion": sum(kinds["companion"]) / max(n_c, 1),
+                    "all": sum(sum(v) for v in kinds.values())})
+    return out
 
 
 def _loop(r: dict) -> str:
@@ -431,7 +483,7 @@ def markdown_speed(result: dict) -> str:
         rows.append((label, fmt(r["realtime_factor"], ".2f"), fmt(r["ratio_to_ceiling"], ".3f"),
                      f"{r['cpu_s_per_sim_s']:.3f}", fmt(r.get("loop_cpu_s_per_sim_s"), ".3f", ""),
                      fmt(r.get("peak_rss_mb"), ".0f", ""), target, runs_cell(r)))
-        for role, p in sorted(r.get("processes", {}).items()):
+        for role, p in sorted(r.get("processes", {}).items(), key=_role_key):
             rows.append((f"- {role}", "", "", fmt(p["cpu_s_per_sim_s"], ".3f"),
                          fmt(p.get("loop_cpu_s_per_sim_s"), ".3f", ""), f"{p['peak_rss_mb']:.0f}", "", ""))
     parts += ["", "## Real-time factors, CPU and memory", "",
@@ -440,6 +492,16 @@ def markdown_speed(result: dict) -> str:
               "the rows under a fleet that start with a dash are its processes.", "",
               md_table(("run", "RTF", "/ceiling", "CPU s/sim s", "in loop", "peak RSS [MB]", "target",
                         "every run's RTF"), rows)]
+    scaling = fleet_scaling(result)
+    if len(scaling) > 1:
+        parts += ["", "## Fleet scaling", "",
+                  f"CPU seconds per simulated second {scaling[0]['cpu']}, by kind of process: the total, and per process "
+                  "in brackets.", "",
+                  md_table(("fleet", "links", "RTF", "/ceiling", "harness", "vehicles", "companions", "all"),
+                           [(f["label"], f["links"], fmt(f["realtime_factor"], ".2f"), fmt(f["ratio_to_ceiling"], ".3f"),
+                             f"{f['harness']:.3f}", f"{f['vehicles']:.3f} ({f['per_vehicle']:.3f})",
+                             f"{f['companions']:.3f} ({f['per_companion']:.3f})", f"{f['all']:.3f}")
+                            for f in scaling])]
     verdict = _verdict(result)
     if verdict:
         parts += ["", verdict + "."]

@@ -63,6 +63,31 @@ def test_fleet_flight_arguments_are_the_launch_clis(tmp_path):
     assert args.command == "launch" and args.speed == 0 and args.no_plots and args.duration == 20.0
     assert args.sim_link == "tcp"
     assert build_parser().parse_args(speed.fleet_args("seven_link", 20.0, tmp_path / "f", "unix")).sim_link == "unix"
+    assert args.instance_offset == 0  # fifteen links: PX4 instances from 11, their ports past the GCS's 14550
+    assert build_parser().parse_args(speed.fleet_args("fifteen_link", 20.0, tmp_path / "f")).instance_offset == 11
+
+
+def _fleet(scenario: str, n_vehicles: int, n_companions: int, rtf: float) -> dict:
+    procs = {"harness": {"cpu_s_per_sim_s": 0.5, "loop_cpu_s_per_sim_s": 0.25, "peak_rss_mb": 300.0}}
+    procs.update({f"vehicle {i + 1}": {"cpu_s_per_sim_s": 0.12, "loop_cpu_s_per_sim_s": 0.06, "peak_rss_mb": 200.0}
+                  for i in range(n_vehicles)})
+    procs.update({f"companion g{g + 1}": {"cpu_s_per_sim_s": 0.2, "loop_cpu_s_per_sim_s": 0.1, "peak_rss_mb": 90.0}
+                  for g in range(n_companions)})
+    return {"mode": "fleet", "scenario": scenario, "sim_link": "unix", "scheduling": "batch", "exit_code": 0,
+            "realtime_factor": rtf, "ratio_to_ceiling": rtf / 50.0, "cpu_s_per_sim_s": 1.0, "processes": procs}
+
+
+def test_the_fleet_scaling_table_sums_the_cpu_by_kind_of_process():
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0),
+              "mujoco_ceiling": {}, "runs": [_fleet("three_link", 3, 1, 4.0), _fleet("fifteen_link", 15, 5, 0.8)]}
+    three, fifteen = speed.fleet_scaling(result)
+    assert (three["links"], fifteen["links"]) == (3, 15) and fifteen["cpu"] == "in loop"
+    assert fifteen["vehicles"] == pytest.approx(0.9) and fifteen["per_vehicle"] == pytest.approx(0.06)
+    assert fifteen["companions"] == pytest.approx(0.5) and fifteen["all"] == pytest.approx(0.25 + 0.9 + 0.5)
+    text, md = speed.format_speed(result), speed.markdown_speed(result)
+    assert "fleet scaling" in text and "## Fleet scaling" in md and "0.900 (0.060)" in md
+    vehicles = [int(x.split()[1]) for x in text.splitlines() if x.strip().startswith("vehicle")]
+    assert vehicles == [*range(1, 4), *range(1, 16)]  # in their natural order: vehicle 2 before vehicle 10
 
 
 def test_proc_sampling_and_roles():
