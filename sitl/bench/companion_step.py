@@ -13,6 +13,7 @@ onboard computer has to spend.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import subprocess
 import sys
 
 __all__ = ["PATHS", "measure", "run_companion_step", "format_companion_step", "markdown_companion_step",
-           "add_companion_step_parser"]
+           "add_companion_step_parser", "build_parser", "main"]
 
 #: the two paths: name -> the ``SKELETON_JIT`` value of its child
 PATHS = {"numpy": "0", "compiled": "1"}
@@ -159,5 +160,21 @@ def _cmd(args, publish) -> int:
     return 0
 
 
-if __name__ == "__main__":  # a path's child: python -m sitl.bench.companion_step CONFIG DURATION
-    print(json.dumps(measure(sys.argv[1], float(sys.argv[2]))))
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of one path's child (:func:`run_companion_step` starts it with
+    ``SKELETON_JIT`` set): ``CONFIG DURATION``; it prints :func:`measure`'s record as JSON."""
+    p = argparse.ArgumentParser(prog="python -m sitl.bench.companion_step",
+                                description="One path's flight of python -m sitl.bench companion: prints its JSON record.")
+    p.add_argument("config", help="chain scenario")
+    p.add_argument("duration", type=float, help="simulated seconds")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    print(json.dumps(measure(args.config, args.duration)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
