@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from .inverse import nearest_feasible
+
 __all__ = ["DAModel", "DAFit", "fit_decaying_acceleration", "feasible_da"]
 
 
@@ -111,22 +113,12 @@ def feasible_da(model, v_m_s: float, v_dot_m_s2: float, omega_rad_s: float, v_mi
     of ``model`` (an :class:`~.inverse.InverseModel` whose ``xi`` is ``[v_s, d, c]``; module
     docstring). ``c = omega / v``, ``v`` no less than ``v_min_m_s`` (at rest the curvature is
     undefined); ``d`` is searched over ``points`` values within three standard deviations of the
-    model's training mean (positive), the best refined by a parabola through it and its
-    neighbours. ``ValueError`` for inputs that are not finite."""
+    model's training mean (positive): :func:`~.inverse.nearest_feasible`. ``ValueError`` for inputs
+    that are not finite."""
     if not all(math.isfinite(x) for x in (v_m_s, v_dot_m_s2, omega_rad_s)):
         raise ValueError(f"feasible_da: finite v, v_dot, omega; got {v_m_s}, {v_dot_m_s2}, {omega_rad_s}")
     c = omega_rad_s / max(v_m_s, v_min_m_s)
     mean, std = float(model.xi_mean[1]), float(model.xi_std[1])
     d = np.linspace(max(mean - 3.0 * std, 1e-3), mean + 3.0 * std, points)
-
-    def miss(d_):
-        x = np.column_stack((v_m_s + v_dot_m_s2 / d_, d_, np.full_like(d_, c)))
-        r = (model.decode(model.encode(x)) - x) / model.xi_std
-        return np.sum(r * r, axis=1)
-
-    e = miss(d)
-    k = int(np.clip(np.argmin(e), 1, points - 2))
-    den = e[k - 1] - 2.0 * e[k] + e[k + 1]
-    best = d[k] + (0.5 * (e[k - 1] - e[k + 1]) / den * (d[1] - d[0]) if den > 0 else 0.0)
-    best = float(np.clip(best, d[k - 1], d[k + 1]))
+    best = nearest_feasible(model, lambda d_: np.column_stack((v_m_s + v_dot_m_s2 / d_, d_, np.full_like(d_, c))), d)
     return np.array([v_m_s + v_dot_m_s2 / best, best, c])

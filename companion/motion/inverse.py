@@ -25,7 +25,8 @@ from companion.configfile import ConfigError, build, to_dict
 
 from .steady import SteadyConfig
 
-__all__ = ["Mlp", "train_mlp", "InverseModel", "train_inverse_model", "Adaptation", "SteadyGate", "MODEL_VERSION"]
+__all__ = ["Mlp", "train_mlp", "InverseModel", "train_inverse_model", "nearest_feasible", "Adaptation", "SteadyGate",
+           "MODEL_VERSION"]
 
 #: 2: the file records the expected physics and CPG the data came from (``steady``)
 MODEL_VERSION = 2
@@ -247,6 +248,21 @@ def train_inverse_model(eta: np.ndarray, xi: np.ndarray, seed: int = 0, hidden: 
     return InverseModel(enc, dec, to_eta, xi_mean, xi_std, eta_mean, eta_std, steady, eta.min(axis=0), eta.max(axis=0),
                         {**(info or {}), "seed": seed, "hidden": hidden, "bottleneck": bottleneck, "samples": len(xi),
                          "ae_rmse_std": recon, "eta_rmse_std": fit})
+
+
+def nearest_feasible(model: InverseModel, points, s: np.ndarray) -> float:
+    """The parameter of the curve ``points(s)`` ((K,) -> (K, len(xi))) nearest the motions the
+    CPG can make: the ``s`` of the grid whose point the autoencoder reconstructs best (standardised
+    distance to ``AE(x)``), refined by a parabola through it and its neighbours (thesis sec. 4.5.3,
+    Fig. 4-11: where the curve of the desired motions crosses the feasible set)."""
+    s = np.asarray(s, dtype=float)
+    x = points(s)
+    r = (model.decode(model.encode(x)) - x) / model.xi_std
+    e = np.sum(r * r, axis=1)
+    k = int(np.clip(np.argmin(e), 1, s.size - 2))
+    den = e[k - 1] - 2.0 * e[k] + e[k + 1]
+    best = s[k] + (0.5 * (e[k - 1] - e[k + 1]) / den * (s[1] - s[0]) if den > 0 else 0.0)
+    return float(np.clip(best, s[k - 1], s[k + 1]))
 
 
 @dataclass

@@ -125,7 +125,9 @@ def test_velocity_commands_through_the_inverse_model_hold_the_line_and_turn():
                                                 CpgCommand(12.0, mode="velocity", v_x_m_s=0.9, omega_rad_s=0.3)))
     line, turn = fly_snake(sc, None)["commands"]
     assert line["v_x_rms_err_m_s"] < 0.05 and line["y_rms_m"] < 0.3, line
-    assert turn["v_x_rms_err_m_s"] < 0.05 and turn["omega_rms_err_rad_s"] < 0.1, turn
+    # the turn: its sideways drift left to the feasible set, the rate is made (0.07 rad/s off when
+    # the command asked for v_y = 0, a motion the robot does not make while it turns)
+    assert turn["v_x_rms_err_m_s"] < 0.05 and turn["omega_rms_err_rad_s"] < 0.03, turn
     with pytest.raises(ValueError, match="control.model_file"):
         replace(sc, control=replace(sc.control, model_file=""))
     from sitl.scenarios.snake.flight import snake_run

@@ -5,8 +5,10 @@ At every period boundary :class:`VelocityControl` measures the body's velocity o
 that ended (:class:`~sitl.scenarios.ground.control.PeriodMeter`), and sets ``eta = [A, B]`` for
 the next period:
 
-* ``xi_d = [v_x_m_s, 0, omega_d]``: ``omega_d`` is the command's, or with ``hold_line`` the
-  line-holding law (:func:`~sitl.scenarios.ground.control.line_holding_rate`);
+* ``xi_d = [v_x_m_s, v_y, omega_d]``: ``omega_d`` is the command's, or with ``hold_line`` the
+  line-holding law (:func:`~sitl.scenarios.ground.control.line_holding_rate`); ``v_y``, which the
+  command leaves free, the one on the inverse model's feasible set at that speed and turn rate
+  (:func:`~companion.motion.inverse.nearest_feasible`);
 * ``eta``: the inverse model's ``Xi^-1(xi_d)``, and with ``[control] adapt`` eq. 4.3's correction
   (:class:`companion.motion.inverse.Adaptation`: PI in the autoencoder's hidden space, limited to
   the model's training range). As the flying chain's generator does, the adaptation runs on steady
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.motion.inverse import Adaptation, InverseModel, SteadyGate
+from companion.motion.inverse import Adaptation, InverseModel, SteadyGate, nearest_feasible
 
 from ..ground.control import PeriodMeter, line_holding_rate
 from .config import CpgCommand, SnakeScenario
@@ -45,11 +47,17 @@ class VelocityControl:
         self.log: list[tuple] = []
 
     def desired(self, command: CpgCommand) -> np.ndarray:
-        """``xi_d = [v_x, 0, omega_d]`` of ``command`` now."""
+        """``xi_d = [v_x, v_y, omega_d]`` of ``command`` now, ``v_y`` the sideways velocity the robot
+        makes at that ``v_x`` and ``omega_d`` (the command leaves it free: a turning body drifts
+        sideways in {B}), found on the inverse model's feasible set."""
         omega = command.omega_rad_s
         if command.hold_line:
             omega = line_holding_rate(self.robot, self.cfg.k_y_per_s, self.cfg.k_heading_per_s, self.cfg.omega_max_rad_s)
-        return np.array([command.v_x_m_s, 0.0, omega])
+        m = self.model
+        v_y = np.linspace(m.xi_mean[1] - 3.0 * m.xi_std[1], m.xi_mean[1] + 3.0 * m.xi_std[1], 201)
+        best = nearest_feasible(m, lambda s: np.column_stack((np.full_like(s, command.v_x_m_s), s,
+                                                              np.full_like(s, omega))), v_y)
+        return np.array([command.v_x_m_s, best, omega])
 
     def update(self, t_s: float, command: CpgCommand) -> np.ndarray:
         """``(A, B)`` [rad] for the period from ``t_s`` on (called at every period boundary)."""
