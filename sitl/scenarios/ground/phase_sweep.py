@@ -9,7 +9,8 @@ parabola through it and its two neighbours, the grid wrapping at 2 pi (:func:`be
 map (:func:`phase_map`) is a :class:`~companion.motion.oscillators.PhaseMap` on the inputs' grid,
 its values unwrapped along every axis so that its linear interpolation does not cross a 2 pi jump.
 :func:`map_lines` writes it as the TOML table a scenario's ``phase_map_file`` names;
-:func:`write_sweep` writes that file with the sweep's record in its header.
+:func:`write_sweep` writes that file with the sweep's record in its header; :func:`run_sweep` is
+what a robot's sweep command does with its parsed command line.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines", "write_sweep"]
+from .sweep import commit, floats
+
+__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines", "write_sweep", "run_sweep"]
 
 
 def phase_grid(n: int) -> np.ndarray:
@@ -73,3 +76,16 @@ def write_sweep(args, title: str, table: str, m: PhaseMap, A_deg, B_deg, phi_rad
     args.out.write_text("\n".join(header + map_lines(table, m)) + "\n")
     print("\n".join(header))
     print(f"wrote {args.out}")
+
+
+def run_sweep(args, sc, sweep, table: str, title: str, extra_axes=()) -> None:
+    """A sweep command's work: the ``(A, B)`` grid of ``args`` [deg] and its ``phases``, the speeds
+    ``sweep(sc, A, B, phi, workers, scheduler)`` flies, their best phases, and the map (on ``A``,
+    ``B`` [rad] and ``extra_axes``, each of one point: constant along it) written as ``[table]``
+    with ``title`` (:func:`write_sweep`)."""
+    A, B = floats(args.A), floats(args.B)
+    phi = phase_grid(args.phases)
+    v = sweep(sc, A, B, phi, args.workers, args.scheduler)
+    best = best_phases(v, phi)
+    m = phase_map((np.radians(A), np.radians(B), *extra_axes), best.reshape(best.shape + (1,) * len(extra_axes)))
+    write_sweep(args, title, table, m, A, B, phi, v, best, commit())

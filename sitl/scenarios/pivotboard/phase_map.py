@@ -27,8 +27,8 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-from ..ground.phase_sweep import best_phases, phase_grid, phase_map, write_sweep
-from ..ground.sweep import commit, floats, parse_sweep, run_jobs, sweep_parser
+from ..ground.phase_sweep import run_sweep
+from ..ground.sweep import parse_sweep, run_jobs, sweep_parser
 from .config import PivotCommand, PivotScenario
 
 __all__ = ["final_speed", "sweep", "build_parser", "main"]
@@ -74,13 +74,9 @@ def main(argv=None) -> int:
     args, sc = parse_sweep(build_parser(), argv, "pivotboard")
     if sc is None:
         return 2
-    A, B = floats(args.A), floats(args.B)
-    phi = phase_grid(args.phases)
-    v = sweep(sc, A, B, phi, args.workers, args.scheduler)
-    best = best_phases(v, phi)
-    m = phase_map((np.radians(A), np.radians(B), (0.0,)), best[..., None])
-    write_sweep(args, f"eq. 4.1 for {sc.name}: phi(A, B, v_dot_d >= 0) maximising v_x; "
-                "python -m sitl.scenarios.pivotboard.phase_map", "phase", m, A, B, phi, v, best, commit())
+    run_sweep(args, sc, sweep, "phase",
+              f"eq. 4.1 for {sc.name}: phi(A, B, v_dot_d >= 0) maximising v_x; "
+              "python -m sitl.scenarios.pivotboard.phase_map", extra_axes=((0.0,),))
     return 0
 
 
