@@ -169,7 +169,8 @@ def command_tracking(sc, a: dict, metrics: dict, forward) -> None:
 
 def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots: bool) -> None:
     """The run folder: ``metrics.json``, ``<stem>.npz`` (the log), ``scenario.toml`` and, with
-    ``plots``, ``<stem>.png`` (the path with the robot's outline every 2 s, and the velocities)."""
+    ``plots``, ``<stem>.png`` (the path with the robot's outline every 2 s, and the velocities;
+    with motion commands also the desired motion, the acceleration and the CPG's inputs)."""
     a = run.arrays()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
