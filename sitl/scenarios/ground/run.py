@@ -30,8 +30,8 @@ import numpy as np
 
 from companion.configfile import dump_toml
 
-__all__ = ["GroundRun", "body_velocity", "period_velocities", "period_acceleration", "run_metrics", "command_tracking",
-           "write_run"]
+__all__ = ["GroundRun", "body_velocity", "period_velocities", "period_acceleration", "run_metrics", "speed_error",
+           "command_tracking", "fly_ground", "write_run"]
 
 
 class GroundRun:
@@ -148,23 +148,45 @@ def run_metrics(sc, a: dict, wall_s: float, axes: dict[str, list[int]]) -> dict:
     return out
 
 
-def command_tracking(sc, a: dict, metrics: dict, forward) -> None:
+def speed_error(a: dict, row: dict, cmd, w: np.ndarray, t0: float, t1: float) -> None:
+    """A velocity command's forward tracking: the RMS of ``v_x - v_x_m_s`` over the period
+    velocities ``w`` selects (``row["v_x_rms_err_m_s"]``)."""
+    row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
+
+
+def command_tracking(sc, a: dict, metrics: dict, forward=speed_error) -> None:
     """Each motion command's tracking over its window (``metrics["commands"]``' rows), as the thesis
-    reports it (sec. 4.7.2): ``forward(row, command, period_window, t0, t1)`` adds the forward
-    motion's error; then, holding the line, the RMS of the lateral offset ``y`` (at the log rate),
-    else of ``omega - omega_rad_s`` (the period velocities). Commands of ``mode = "cpg"`` and
-    empty windows are left as they are."""
+    reports it (sec. 4.7.2): ``forward(a, row, command, period_window, t0, t1)`` adds the forward
+    motion's error (default :func:`speed_error`); then, holding the line, the RMS of the lateral
+    offset ``y`` (at the log rate), else of ``omega - omega_rad_s`` (the period velocities).
+    Commands of ``mode = "cpg"`` and empty windows are left as they are."""
     for (k, t0, t1), row in zip(sc.windows(), metrics["commands"]):
         cmd = sc.commands[k]
         w = (a["period_t"] >= t0) & (a["period_t"] <= t1)
         if cmd.mode == "cpg" or not w.any():
             continue
-        forward(row, cmd, w, t0, t1)
+        forward(a, row, cmd, w, t0, t1)
         if cmd.hold_line:
             wy = (a["t"] >= t0) & (a["t"] <= t1)
             row["y_rms_m"] = float(np.sqrt(np.mean(a["com_plane"][wy, 1] ** 2)))
         else:
             row["omega_rms_err_rad_s"] = float(np.sqrt(np.mean((a["omega"][w] - cmd.omega_rad_s) ** 2)))
+
+
+def fly_ground(sc, run: GroundRun, out_dir: Path | None, stem: str, *, progress=None, plots: bool = True,
+               forward=speed_error, more=None) -> dict:
+    """Fly ``run`` (of the scenario ``sc``); returns the metrics (:func:`run_metrics`, ``more(a,
+    metrics)``'s additions, the motion commands' tracking with ``forward``: :func:`command_tracking`)
+    and writes the run folder when ``out_dir`` is given (:func:`write_run`, files named ``stem``)."""
+    run.run(progress)
+    a = run.arrays()
+    metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
+    if more is not None:
+        more(a, metrics)
+    command_tracking(sc, a, metrics, forward)
+    if out_dir is not None:
+        write_run(sc, run, metrics, out_dir, stem, plots)
+    return metrics
 
 
 def write_run(sc, run: GroundRun, metrics: dict, out_dir: Path, stem: str, plots: bool) -> None:

@@ -22,7 +22,7 @@ import numpy as np
 from companion.motion.ground_cpgs import PivotCpgState, pivot_joint_angles, pivot_step
 
 from ..ground.control import PeriodClock
-from ..ground.run import GroundRun, command_tracking, period_acceleration, run_metrics, write_run
+from ..ground.run import GroundRun, fly_ground, period_acceleration, speed_error
 from .config import PivotCommand, PivotScenario
 from .model import PivotModel
 
@@ -69,30 +69,24 @@ def pivot_run(sc: PivotScenario) -> GroundRun:
     return GroundRun(sc, robot, PivotCpg(sc, robot))
 
 
-def _tracking(sc: PivotScenario, a: dict, metrics: dict) -> None:
-    """Each motion command's tracking (:func:`~sitl.scenarios.ground.run.command_tracking`), its
-    forward part the RMS of the acceleration's error (``mode = "acceleration"``: the change of the
-    period velocity ``v_x`` over a period, against ``v_dot_d_m_s2``) or of the speed's (``mode =
-    "velocity"``: ``v_x - v_x_m_s``)."""
-    t_acc, acc = period_acceleration(a, 1.0 / sc.cpg.frequency_hz, sc.log_rate_hz)
+def _forward_error(sc: PivotScenario):
+    """A motion command's forward tracking: the RMS of the acceleration's error (``mode =
+    "acceleration"``: the change of the period velocity ``v_x`` over a period, against
+    ``v_dot_d_m_s2``) or of the speed's (``mode = "velocity"``:
+    :func:`~sitl.scenarios.ground.run.speed_error`)."""
+    def forward(a: dict, row: dict, cmd: PivotCommand, w, t0: float, t1: float) -> None:
+        if cmd.mode != "acceleration":
+            speed_error(a, row, cmd, w, t0, t1)
+            return
+        t_acc, acc = period_acceleration(a, 1.0 / sc.cpg.frequency_hz, sc.log_rate_hz)
+        wa = (t_acc >= t0) & (t_acc <= t1)
+        row["v_dot_rms_err_m_s2"] = float(np.sqrt(np.mean((acc[wa] - cmd.v_dot_d_m_s2) ** 2)))
 
-    def forward(row, cmd, w, t0, t1):
-        if cmd.mode == "acceleration":
-            wa = (t_acc >= t0) & (t_acc <= t1)
-            row["v_dot_rms_err_m_s2"] = float(np.sqrt(np.mean((acc[wa] - cmd.v_dot_d_m_s2) ** 2)))
-        else:
-            row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
-
-    command_tracking(sc, a, metrics, forward)
+    return forward
 
 
 def fly_pivotboard(sc: PivotScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:
-    """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given)."""
-    run = pivot_run(sc)
-    run.run(progress)
-    a = run.arrays()
-    metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
-    _tracking(sc, a, metrics)
-    if out_dir is not None:
-        write_run(sc, run, metrics, out_dir, "pivotboard", plots)
-    return metrics
+    """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given):
+    :func:`~sitl.scenarios.ground.run.fly_ground`'s, the acceleration commands' error included."""
+    return fly_ground(sc, pivot_run(sc), out_dir, "pivotboard", progress=progress, plots=plots,
+                      forward=_forward_error(sc))

@@ -21,7 +21,7 @@ import numpy as np
 from companion.motion.ground_cpgs import SnakeCpgState, snake_joint_angles, snake_step
 
 from ..ground.control import PeriodClock
-from ..ground.run import GroundRun, command_tracking, run_metrics, write_run
+from ..ground.run import GroundRun, fly_ground
 from .config import CpgCommand, SnakeScenario
 from .model import SnakeModel
 
@@ -85,24 +85,11 @@ def steady_motion(sc: SnakeScenario, A_deg: float, B_deg: float, phase_hv=None) 
     return np.array([a["v_x"][w].mean(), a["v_y"][w].mean(), a["omega"][w].mean()])
 
 
-def _tracking(sc: SnakeScenario, a: dict, metrics: dict) -> None:
-    """Each velocity command's tracking (:func:`~sitl.scenarios.ground.run.command_tracking`), its
-    forward part the RMS of ``v_x - v_x_m_s`` (the period velocities)."""
-
-    def forward(row, cmd, w, t0, t1):
-        row["v_x_rms_err_m_s"] = float(np.sqrt(np.mean((a["v_x"][w] - cmd.v_x_m_s) ** 2)))
-
-    command_tracking(sc, a, metrics, forward)
-
-
 def fly_snake(sc: SnakeScenario, out_dir: Path | None, *, progress=None, plots: bool = True) -> dict:
-    """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given)."""
-    run = snake_run(sc)
-    run.run(progress)
-    a = run.arrays()
-    metrics = run_metrics(sc, a, run.wall_s, run.cpg.axes)
-    metrics["flipped"] = bool(np.any(a["com_w"][:, 2] - a["com_w"][0, 2] > 0.5 * sc.body.modules * sc.body.module_length_m))
-    _tracking(sc, a, metrics)
-    if out_dir is not None:
-        write_run(sc, run, metrics, out_dir, "snake", plots)
-    return metrics
+    """Run the scenario; returns the metrics (and writes the run folder when ``out_dir`` is given):
+    :func:`~sitl.scenarios.ground.run.fly_ground`'s, and ``flipped``."""
+    def flipped(a, metrics):
+        lift = a["com_w"][:, 2] - a["com_w"][0, 2]
+        metrics["flipped"] = bool(np.any(lift > 0.5 * sc.body.modules * sc.body.module_length_m))
+
+    return fly_ground(sc, snake_run(sc), out_dir, "snake", progress=progress, plots=plots, more=flipped)
