@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep", "inverse_options", "amplitude_range",
+__all__ = ["run_jobs", "commit", "floats", "sweep_parser", "parse_sweep", "inverse_options", "parse_inverse",
            "train_held", "recovery_error_deg"]
 
 
@@ -85,13 +85,18 @@ def inverse_options(p: argparse.ArgumentParser, samples: int, held_out: int, A: 
     p.add_argument("--seed", type=int, default=0, help="the data's and the training's seed")
 
 
-def amplitude_range(text: str) -> list[float] | None:
-    """``--A``'s ``low,high`` with ``0 <= low < high`` (``None``, the error printed, otherwise)."""
-    A = floats(text)
-    if len(A) != 2 or not 0 <= A[0] < A[1]:
-        print(f"error: --A: low,high with 0 <= low < high, got {text}", file=sys.stderr)
+def parse_inverse(parser: argparse.ArgumentParser, argv, kind: str):
+    """An inverse model's data command line (:func:`inverse_options`) parsed: ``(args, scenario,
+    [A_low, A_high])``, or ``None`` after printing what is wrong (not a ``kind`` scenario, or
+    ``--A`` not ``low,high`` with ``0 <= low < high``)."""
+    args, sc = parse_sweep(parser, argv, kind)
+    if sc is None:
         return None
-    return A
+    A = floats(args.A)
+    if len(A) != 2 or not 0 <= A[0] < A[1]:
+        print(f"error: --A: low,high with 0 <= low < high, got {args.A}", file=sys.stderr)
+        return None
+    return args, sc, A
 
 
 def train_held(samples: int, held_out: int) -> tuple[np.ndarray, np.ndarray]:

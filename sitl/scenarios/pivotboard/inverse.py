@@ -32,8 +32,8 @@ import numpy as np
 
 from companion.motion.inverse import train_inverse_model
 
-from ..ground.sweep import (amplitude_range, commit, inverse_options, parse_sweep, recovery_error_deg, run_jobs,
-                           sweep_parser, train_held)
+from ..ground.sweep import (commit, inverse_options, parse_inverse, recovery_error_deg, run_jobs, sweep_parser,
+                           train_held)
 from .config import BRANCHES, PivotScenario, model_path
 
 __all__ = ["dataset", "build_parser", "main"]
@@ -71,12 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args, sc = parse_sweep(build_parser(), argv, "pivotboard")
-    if sc is None:
+    parsed = parse_inverse(build_parser(), argv, "pivotboard")
+    if parsed is None:
         return 2
-    A_range = amplitude_range(args.A)
-    if A_range is None:
-        return 2
+    args, sc, A_range = parsed
     N = args.samples + args.held_out
     eta, xi, residual = dataset(sc, N, args.seed, A_range, args.B_max, args.duration, args.workers,
                                      args.scheduler)

@@ -29,8 +29,8 @@ import numpy as np
 
 from companion.motion.inverse import train_inverse_model
 
-from ..ground.sweep import (amplitude_range, commit, inverse_options, parse_sweep, recovery_error_deg, run_jobs,
-                           sweep_parser, train_held)
+from ..ground.sweep import (commit, inverse_options, parse_inverse, recovery_error_deg, run_jobs, sweep_parser,
+                           train_held)
 from .config import SnakeScenario
 
 __all__ = ["dataset", "build_parser", "main"]
@@ -61,12 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args, sc = parse_sweep(build_parser(), argv, "snake")
-    if sc is None:
+    parsed = parse_inverse(build_parser(), argv, "snake")
+    if parsed is None:
         return 2
-    A_range = amplitude_range(args.A)
-    if A_range is None:
-        return 2
+    args, sc, A_range = parsed
     N = args.samples + args.held_out
     eta, xi = dataset(sc, N, args.seed, A_range, args.B_max, args.workers, args.scheduler)
     train, held = train_held(args.samples, args.held_out)
