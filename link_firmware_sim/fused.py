@@ -228,19 +228,11 @@ class FusedTicks:
         returned, ``LOOP_*`` of :mod:`link_firmware_sim.kernels.lockstep`); ``None`` (nothing
         waited for or changed) unless the case holds: armed, eq. 1, a target, no measurement or
         event queued, the GPS and thrust-limit monitors quiet."""
-        if not (self.hil_loop and self.ekf is not None and not self._pending and not self.events
-                and not self.gps_health.fault and self.thrust_limit.quiet and self._fused_applies(self.time_s)):
+        if not (self.hil_loop and self._quiet_case()):
             return None
-        ekf, cfg, io = self.ekf, self.config, hil.io
-        cmd = self._tick_inputs(self.time_s)  # (the kernel weighs the correction itself, tick by tick)
+        ekf, io = self.ekf, hil.io
+        cmd = self._quiet_io(io)  # (the kernel weighs the correction itself, tick by tick)
         io[IO_TIMEOUT_MS], io[IO_MAX_TICKS], io[IO_N_FDS], io[IO_DUE_US] = timeout_ms, max_ticks, n_fds, due_us
-        io[IO_T_PREV], io[IO_DT_DEFAULT] = self.time_s, 1.0 / cfg.rate_hz
-        io[IO_TARGET_TIME], io[IO_TARGET_STALE] = self._target_time_s, cfg.target_stale_s
-        io[IO_CORR_TIME] = math.nan if self.correction is None else self._correction_time_s
-        io[IO_CORR_HOLD], io[IO_CORR_STALE] = cfg.correction_hold_s, cfg.correction_stale_s
-        io[IO_GPS_FIX], io[IO_GPS_TIMEOUT] = self.gps_health.last_fix_s, self.gps_health.config.timeout_s
-        io[IO_ARM_HEIGHT], io[IO_TAKEOFF] = math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M
-        io[_AHRS] = 0.0
         if not frames:
             hil.framing[:] = 0  # (the records: the frame buffers are not touched)
         x, P = hil_loop_kernel(hil.fds, hil.bufs, hil.framing, ekf.x, ekf.P, ekf.par, cmd,
@@ -254,3 +246,34 @@ class FusedTicks:
                 answered(hil.answer)
             self._fused_done(t_us * 1e-6, float(io[IO_DT]), io[_GYRO].copy(), io[_ACCEL].copy(), io[:OUT_SIZE])
         return status, ticks, sent, t_us, packet, taken_bytes
+
+    def _quiet_case(self) -> bool:
+        """Quiet ticks may run in a kernel without this firmware's bookkeeping (:mod:`.kernels.quiet`):
+        armed, eq. 1, a fresh target (:meth:`_fused_applies`), no measurement or event queued, the
+        GPS and thrust-limit monitors quiet."""
+        return (self.ekf is not None and not self._pending and not self.events and not self.gps_health.fault
+                and self.thrust_limit.quiet and self._fused_applies(self.time_s))
+
+    def _quiet_io(self, io: np.ndarray) -> np.ndarray:
+        """The inputs of :mod:`.kernels.quiet` written to ``io`` (``IO_*``: the previous tick's time,
+        the nominal step, the target's, the correction's and the GPS fix's times and limits, the
+        arming and take-off heights); returns the fused tick's inputs (``IN_*``)."""
+        cfg = self.config
+        io[IO_T_PREV], io[IO_DT_DEFAULT] = self.time_s, 1.0 / cfg.rate_hz
+        io[IO_TARGET_TIME], io[IO_TARGET_STALE] = self._target_time_s, cfg.target_stale_s
+        io[IO_CORR_TIME] = math.nan if self.correction is None else self._correction_time_s
+        io[IO_CORR_HOLD], io[IO_CORR_STALE] = cfg.correction_hold_s, cfg.correction_stale_s
+        io[IO_GPS_FIX], io[IO_GPS_TIMEOUT] = self.gps_health.last_fix_s, self.gps_health.config.timeout_s
+        io[IO_ARM_HEIGHT], io[IO_TAKEOFF] = math.inf if self._airborne else self._arm_height_m, TAKEOFF_HEIGHT_M
+        io[_AHRS] = 0.0
+        return self._tick_inputs(self.time_s)
+
+    def _quiet_done(self, io: np.ndarray, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """The bookkeeping after quiet ticks run elsewhere (:class:`~link_firmware_sim.batch.LinkBatch`):
+        the EKF's new ``x``, ``P`` (the caller's to give: not reused) and the newest tick's, from
+        ``io`` (``IO_*``: its time, step, samples and results); returns its thrust commands (a
+        non-finite wrench: the held ones)."""
+        ekf = self.ekf
+        ekf.x, ekf.P = x, P
+        return self._fused_done(float(io[IO_T_PREV]), float(io[IO_DT]), io[_GYRO].copy(), io[_ACCEL].copy(),
+                                io[:OUT_SIZE])

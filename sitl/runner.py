@@ -10,6 +10,11 @@ One physics tick (1 kHz by default) is::
         (50 Hz) and arming, carried out on the firmware at once
     rotor/ESC dynamics -> thrusts, wind -> forces -> dynamics and integration (mj_step2)
 
+On the firmware ticks that feed no measurement and log no row, the links whose tick is quiet
+(:mod:`link_firmware_sim.kernels.quiet`) tick in one kernel call
+(:class:`~link_firmware_sim.batch.LinkBatch`); the runner gives their state back to the firmware
+objects before it next reads or changes them, so the flight is the same, bit for bit.
+
 Everything random comes from ``numpy.random.default_rng(scenario.seed)``; MuJoCo is
 deterministic, so the same scenario and seed give the same numbers.
 
@@ -35,6 +40,8 @@ from companion.fleetnet.hub import LocalHub
 from companion.fleetnet.leader import GlobalStepNode
 from companion.skeleton.kinematics import tension
 from companion.trajectory import CpgChainTrajectory, make_trajectory
+from link_firmware_sim.batch import ENABLED as BATCH_ENABLED
+from link_firmware_sim.batch import LinkBatch
 from link_firmware_sim.events import SEVERITY, statustext_arrays
 from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
@@ -130,6 +137,10 @@ class BatchRunner:
     #: something to do (an input, a bus event, a timer); ``False`` on an instance: every engine on
     #: every firmware tick (the two give the same flight, bit for bit: ``tests/integration/test_faults.py``)
     skip_idle_polls: bool = True
+    #: run the quiet ticks of all links in one kernel call (:class:`~link_firmware_sim.batch.LinkBatch`);
+    #: ``False`` on an instance: every link's tick through its firmware (the two give the same
+    #: flight, bit for bit: ``tests/integration/test_batch_tick.py``)
+    batch_ticks: bool = True
 
     def __init__(self, scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None,
                  task: Task | None = None):
@@ -175,6 +186,7 @@ class BatchRunner:
         #: observers called as hook(k, t) at every physics tick after the kinematics and the log
         #: (cameras, video, an estimator beside the flight)
         self.tick_hooks: list = []
+        self._batch: LinkBatch | None = None  # the quiet ticks' batch of the current run
         self.task.initialize(self)
         announce(self)
 
@@ -236,6 +248,7 @@ class BatchRunner:
         ftype = inj.due(t, self.inject_log)
         if ftype is None:
             return
+        self._sync()
         text = f"Failure injection: {self.failures.inject(inj.unit_id, ftype, inj.instance)}"
         log.warning("link %d at %.2f s: %s", inj.link, t, text)
         self.statustext.append((t, inj.link, SEVERITY["recovered" if ftype == OK else "fault"], text))
@@ -249,12 +262,14 @@ class BatchRunner:
         rb, lf = self.reboot, self.link_fault
         i = rb.kill - 1
         if "killed_at_s" not in lf and t >= rb.kill_at_s:
+            self._sync()
             self._down.add(i)
             commands[i] = 0.0
             lf.update(link=rb.kill, killed_at_s=round(t, 3))
             log.warning("fault: link %d's firmware off at t = %.2f s (rotors stopped)", rb.kill, t)
         if (rb.restart_after_s and "killed_at_s" in lf and "restarted_at_s" not in lf
                 and t >= rb.kill_at_s + rb.restart_after_s):
+            self._sync()
             self.firmware[i] = LinkFirmware(i, self.scenario.firmware, self.plant.inertia, self.plant.geometry)
             self._down.discard(i)
             self._boot_fix[i] = [None, None]
@@ -290,6 +305,8 @@ class BatchRunner:
         self.now_s = t
         second = t_us % 1_000_000 == 0
         states = t_us % self.state_interval_us == 0
+        if second or states:
+            self._sync()
         for engine in self.engines if second or states else ():
             for lk in engine.links:
                 fw = self.firmware[lk.index]
@@ -313,6 +330,7 @@ class BatchRunner:
     def apply(self, engine: CompanionEngine, outputs: list, t: float) -> None:
         """An engine's outputs at ``t`` to the firmware, between the task's
         :meth:`~sitl.task.Task.before_outputs` and :meth:`~sitl.task.Task.after_outputs`."""
+        self._sync()
         task = self.task
         self._apply(engine, task.before_outputs(self, engine, outputs, t), t)
         task.after_outputs(self, engine, outputs, t)
@@ -407,6 +425,29 @@ class BatchRunner:
                                 excluded=lk is not None and bool(lk.status), down=down)
         return out
 
+    def _sync(self) -> None:
+        """The firmware made current before the runner reads or changes it (:class:`~link_firmware_sim.batch.LinkBatch`)."""
+        if self._batch is not None:
+            self._batch.sync()
+
+    def _link_batch(self) -> LinkBatch | None:
+        """The batch of every link's quiet ticks for a run, or ``None``: switched off
+        (:attr:`batch_ticks`), no compiled kernels, or an observer that may read the firmware at any
+        physics tick (a tick hook, a task's :meth:`~sitl.task.Task.after_step`)."""
+        if not (self.batch_ticks and BATCH_ENABLED) or self.tick_hooks or type(self.task).after_step is not Task.after_step:
+            return None
+        if self._batch is None or self._batch.firmware is not self.firmware:
+            self._batch = LinkBatch(self.firmware)
+        return self._batch
+
+    def _batch_skip(self, j: int) -> set[int]:
+        """The links the batch leaves to their firmware's own tick: without power, booting, the
+        injected link while its IMU or motors fail."""
+        failing = self.failures is not None and self.failures.imu_or_motor
+        if not self._boot_fix and not failing:
+            return self._down
+        return self._down | set(self._boot_fix) | ({j} if failing else set())
+
     def run(self, duration_s: float, progress=None) -> RunLog:
         """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""
         plant, sch, task = self.plant, self.schedule, self.task
@@ -414,75 +455,98 @@ class BatchRunner:
         n_ticks = int(round(duration_s / self.dt))
         fw_dt = sch.fw * self.dt
         commands = np.zeros((self.n, 8))
+        self._batch = batch = self._link_batch()
         wall0 = time.perf_counter()
         tick0 = int(round(plant.time_s / self.dt))
-        for k in range(tick0, tick0 + n_ticks):
-            t = k * self.dt
-            truth = plant.begin_tick()
-            if k % sch.fw == 0:
-                if not np.isfinite(truth.p_w_m).all():
-                    plant.check_crash(t, truth, None)
-                    break
-                if self.reboot.kill:
-                    self._link_reboot(t, commands)
-                failures = self.failures
-                if failures is not None:
-                    self._inject_failure(t)
-                j = self.inject.link - 1  # the injected link (-1: none)
-                down, booting = self._down, self._boot_fix  # no power; powered, no EKF yet
-                if k % sch.gps == 0:
-                    pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
-                    pos, has_fix = self.gps_fault.apply(t, pos)
-                    if failures is not None:
-                        fix = failures.gps(pos[j], vel[j])
-                        has_fix[j] = has_fix[j] and fix is not None
-                        if fix is not None:
-                            pos, vel = pos.copy(), vel.copy()
-                            pos[j], vel[j] = fix
-                    for i, fw in enumerate(self.firmware):
-                        if has_fix[i] and i not in down and not self._boot(i, t, fix=(pos[i], vel[i])):
-                            fw.on_gps(t, pos[i], vel[i])
-                if k % sch.att == 0:
-                    att = sensors.attitude(t, truth.q_wxyz)
-                    for i, fw in enumerate(self.firmware):
-                        if i not in down and not self._boot(i, t, att=att[i]):
-                            fw.on_attitude(t, att[i])
-                baro, mag = plant.baro_mag(k, sch, truth)
-                if baro is not None:
-                    for i, fw in enumerate(self.firmware):
-                        if i not in down and i not in booting:
-                            fw.on_baro(t, float(baro[i]))
-                if mag is not None:
-                    for i, fw in enumerate(self.firmware):
-                        if i not in down and i not in booting:
-                            fw.on_mag(t, mag[i])
-                gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
-                if failures is not None and failures.imu_or_motor:
-                    gyro, accel = gyro.copy(), accel.copy()
-                    gyro[j], accel[j] = failures.imu(gyro[j], accel[j])
-                for i, fw in enumerate(self.firmware):
-                    commands[i] = 0.0 if i in self._down else fw.on_imu(t, gyro[i], accel[i])
-                    if k % sch.log == 0 and i not in self._down:  # (a vehicle: on its stream and log rows)
-                        fw.watch_imu(t)
-                    if i == j and failures.imu_or_motor:
-                        commands[i] = failures.thrust(commands[i])
-                    if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
-                        for ev in fw.events:
-                            log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
-                            self.statustext.append((t, i + 1, SEVERITY[ev.kind], ev.text))
-                        fw.events.clear()
-                rotors.set_command(commands.reshape(-1))
-                self._companion_exchange(t, int(round(k * self.dt * 1e6)))
-            if k % sch.log == 0:
-                self._log_tick(t, truth)
-                task.after_log(self, t, truth)
-                plant.check_crash(t, truth, self.log.q_target[-1])
-            for hook in self.tick_hooks:
-                hook(k, t)
-            plant.end_tick()
-            task.after_step(self, k, t)
-            if progress is not None and (k - tick0) % 100 == 99:
-                progress(100 * self.dt)
+        try:
+            for k in range(tick0, tick0 + n_ticks):
+                t = k * self.dt
+                truth = plant.begin_tick()
+                if k % sch.fw == 0:
+                    if not np.isfinite(truth.p_w_m).all():
+                        plant.check_crash(t, truth, None)
+                        break
+                    self._firmware_tick(k, t, truth, commands, fw_dt, batch)
+                    rotors.set_command(commands.reshape(-1))
+                    self._companion_exchange(t, int(round(k * self.dt * 1e6)))
+                if k % sch.log == 0:
+                    self._sync()
+                    self._log_tick(t, truth)
+                    task.after_log(self, t, truth)
+                    plant.check_crash(t, truth, self.log.q_target[-1])
+                for hook in self.tick_hooks:
+                    hook(k, t)
+                plant.end_tick()
+                task.after_step(self, k, t)
+                if progress is not None and (k - tick0) % 100 == 99:
+                    progress(100 * self.dt)
+        finally:
+            self._sync()
         self.wall_s += time.perf_counter() - wall0
         self.sim_s += n_ticks * self.dt
         return self.log
+
+    def _firmware_tick(self, k: int, t: float, truth, commands: np.ndarray, fw_dt: float, batch) -> None:
+        """A firmware tick at physics tick ``k``: the faults due, the measurements due fed, the IMU
+        sample to every link's firmware (the quiet ones' in one call of ``batch``, when given) and
+        their thrust commands written to ``commands``, their events reported."""
+        plant, sch, sensors = self.plant, self.schedule, self.plant.sensors
+        if self.reboot.kill:
+            self._link_reboot(t, commands)
+        failures = self.failures
+        if failures is not None:
+            self._inject_failure(t)
+        j = self.inject.link - 1  # the injected link (-1: none)
+        down, booting = self._down, self._boot_fix  # no power; powered, no EKF yet
+        log_row = k % sch.log == 0
+        fed = (k % sch.gps == 0 or k % sch.att == 0 or (sensors.has_baro and k % sch.baro == 0)
+               or (sensors.has_mag and k % sch.mag == 0))
+        if fed or log_row:
+            self._sync()
+        if k % sch.gps == 0:
+            pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
+            pos, has_fix = self.gps_fault.apply(t, pos)
+            if failures is not None:
+                fix = failures.gps(pos[j], vel[j])
+                has_fix[j] = has_fix[j] and fix is not None
+                if fix is not None:
+                    pos, vel = pos.copy(), vel.copy()
+                    pos[j], vel[j] = fix
+            for i, fw in enumerate(self.firmware):
+                if has_fix[i] and i not in down and not self._boot(i, t, fix=(pos[i], vel[i])):
+                    fw.on_gps(t, pos[i], vel[i])
+        if k % sch.att == 0:
+            att = sensors.attitude(t, truth.q_wxyz)
+            for i, fw in enumerate(self.firmware):
+                if i not in down and not self._boot(i, t, att=att[i]):
+                    fw.on_attitude(t, att[i])
+        baro, mag = plant.baro_mag(k, sch, truth)
+        if baro is not None:
+            for i, fw in enumerate(self.firmware):
+                if i not in down and i not in booting:
+                    fw.on_baro(t, float(baro[i]))
+        if mag is not None:
+            for i, fw in enumerate(self.firmware):
+                if i not in down and i not in booting:
+                    fw.on_mag(t, mag[i])
+        gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, fw_dt)
+        if failures is not None and failures.imu_or_motor:
+            gyro, accel = gyro.copy(), accel.copy()
+            gyro[j], accel[j] = failures.imu(gyro[j], accel[j])
+        if batch is not None and not (fed or log_row):
+            links = batch.tick(t, gyro, accel, commands, self._batch_skip(j))
+        else:
+            links = range(self.n)
+        for i in links:
+            fw = self.firmware[i]
+            commands[i] = 0.0 if i in down else fw.on_imu(t, gyro[i], accel[i])
+            if log_row and i not in down:  # (a vehicle: on its stream and log rows)
+                fw.watch_imu(t)
+            if i == j and failures.imu_or_motor:
+                commands[i] = failures.thrust(commands[i])
+        for i, fw in enumerate(self.firmware):
+            if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
+                for ev in fw.events:
+                    log.warning("link %d at %.2f s: %s", i + 1, t, ev.text)
+                    self.statustext.append((t, i + 1, SEVERITY[ev.kind], ev.text))
+                fw.events.clear()

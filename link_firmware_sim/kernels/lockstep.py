@@ -16,12 +16,11 @@ import numpy as np
 from companion.kernels.jit import jit
 
 from .hil_records import HIL_ACTUATOR_RECORD, record_time_us, sensor_record_at
-from .layouts import (IN_WEIGHT, IO_ARM_HEIGHT, IO_CORR_HOLD, IO_CORR_STALE, IO_CORR_TIME, IO_DT, IO_DT_DEFAULT,
-                      IO_DUE_US, IO_GPS_FIX, IO_GPS_TIMEOUT, IO_MAX_TICKS, IO_N_FDS, IO_PACKET, IO_SENT, IO_STATUS,
-                      IO_T_PREV, IO_T_US, IO_TAKEN_BYTES, IO_TAKEOFF, IO_TARGET_STALE, IO_TARGET_TIME, IO_TICKS,
-                      IO_TIMEOUT_MS, OUT_FINITE, OUT_P_CTRL, OUT_SATURATED)
+from .layouts import (IO_DT, IO_DUE_US, IO_MAX_TICKS, IO_N_FDS, IO_PACKET, IO_SENT, IO_STATUS, IO_T_PREV, IO_T_US,
+                      IO_TAKEN_BYTES, IO_TICKS, IO_TIMEOUT_MS, OUT_FINITE)
 from .libc import MSG_NOSIGNAL, POLLIN, c_poll, c_recv, c_send
 from .mavlink_frames import FRAMING, frames_to_records, record_to_frame
+from .quiet import quiet_result, quiet_step
 from .tick import hil_tick_kernel
 
 __all__ = ["LOOP_IDLE", "LOOP_PACKET", "LOOP_TICKED", "hil_loop_kernel"]
@@ -40,20 +39,6 @@ LOOP_TICKED = 2
 _ACT_SIZE = HIL_ACTUATOR_RECORD["size"]
 _F_ON, _F_SEQ_IN, _F_SENT, _F_LENGTH, _F_SEQ_READ = (FRAMING[k] for k in ("on", "seq_in", "sent", "length",
                                                                          "seq_read"))
-
-
-@jit
-def _correction_weight(t_s, io):
-    """``LinkFirmware.correction_weight`` at ``t_s`` from ``io``'s correction time (NaN: none), hold and staleness."""
-    corr_time_s, corr_hold_s, corr_stale_s = io[IO_CORR_TIME], io[IO_CORR_HOLD], io[IO_CORR_STALE]
-    if math.isnan(corr_time_s):
-        return 0.0
-    age = t_s - corr_time_s
-    if age <= corr_hold_s:
-        return 1.0
-    if age >= corr_stale_s:
-        return 0.0
-    return (corr_stale_s - age) / (corr_stale_s - corr_hold_s)
 
 
 @jit
@@ -84,13 +69,11 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
     is the caller's to finish, ``framing["sent"]``); the sequence numbers both ways are kept in
     ``framing``.
 
-    A tick is quiet when what the firmware and the vehicle do after the kernel changes nothing, so
-    that leaving it out is exact: the wrench is finite, the allocation not saturated, no take-off to
-    detect (the control estimate's height at most ``io[IO_TAKEOFF]`` above ``io[IO_ARM_HEIGHT]``,
-    infinite once airborne), no stream or log row due (``t_us < io[IO_DUE_US]``). What the caller
-    finds before a tick, the kernel checks for each: the target still fresh, no GPS timeout due,
-    and it computes the correction's weight and ``dt`` (since the previous tick; the nominal step
-    if not positive) as the firmware does. It returns at the first tick that is not quiet
+    A tick is quiet (:mod:`.quiet`) when what the firmware and the vehicle do after the kernel
+    changes nothing, so that leaving it out is exact: :func:`.quiet.quiet_step` before it (the target
+    fresh, no GPS timeout due; the correction's weight and ``dt`` as the firmware computes them,
+    ``io[IO_T_PREV]`` advanced tick by tick), :func:`.quiet.quiet_result` after it, and no stream or
+    log row due (``t_us < io[IO_DUE_US]``). It returns at the first tick that is not quiet
     (:data:`LOOP_TICKED`: the caller does that tick's bookkeeping, which also stands for the quiet
     ticks' before it, as those change nothing it would not set again), at a packet it does not take
     (:data:`LOOP_PACKET`), and when there is nothing to do (:data:`LOOP_IDLE`: timeout, a MAVLink
@@ -104,7 +87,6 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
     io[IO_PACKET] = 0.0
     io[IO_TAKEN_BYTES] = 0.0
     n_fds, timeout_ms = np.int64(io[IO_N_FDS]), np.int32(io[IO_TIMEOUT_MS])
-    t_prev_s = io[IO_T_PREV]
     while io[IO_TICKS] < io[IO_MAX_TICKS]:
         for k in range(n_fds):
             fds[2 * k + 1] = POLLIN
@@ -134,13 +116,10 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
             return x, P
         t_us = record_time_us(pkt, s0)
         t_s = t_us * 1e-6  # (hil.seconds)
-        if not (t_s - io[IO_TARGET_TIME] <= io[IO_TARGET_STALE]) or not (t_s - io[IO_GPS_FIX] < io[IO_GPS_TIMEOUT]):
+        dt = quiet_step(t_s, io, cmd)
+        if dt < 0.0:
             _left_over(io, n)
             return x, P
-        cmd[IN_WEIGHT] = _correction_weight(t_s, io)
-        dt = t_s - t_prev_s
-        if dt <= 0.0:
-            dt = io[IO_DT_DEFAULT]
         xn, Pn, taken = hil_tick_kernel(pkt, answer, x, P, dt, ekf_par, cmd, ctl, alloc, io)
         if not taken:
             _left_over(io, n)
@@ -152,7 +131,7 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
         io[IO_TAKEN_BYTES] += n
         io[IO_T_US] = t_us
         io[IO_DT] = dt
-        t_prev_s = t_s
+        io[IO_T_PREV] = t_s
         sent = False
         if io[OUT_FINITE] != 0.0:  # a finite wrench: the answer goes out
             if framing[_F_ON] != 0:
@@ -167,7 +146,7 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
         else:
             io[IO_STATUS] = LOOP_TICKED  # not sent (whole): the caller's send (or its error) takes over
             return x, P
-        if io[OUT_SATURATED] != 0.0 or io[OUT_P_CTRL + 2] - io[IO_ARM_HEIGHT] > io[IO_TAKEOFF] or t_us >= io[IO_DUE_US]:
+        if not quiet_result(io, io) or t_us >= io[IO_DUE_US]:
             io[IO_STATUS] = LOOP_TICKED
             return x, P
     return x, P

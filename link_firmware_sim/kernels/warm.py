@@ -19,6 +19,7 @@ from companion.kernels.jit import ENABLED
 from companion.kernels.warm import load
 
 from .allocation import ALLOC_META, allocate_kernel
+from .batch_tick import BANK_SIZE, links_tick_kernel
 from .ekf import attitude_update_kernel, ekf_predict_kernel, update_block_kernel, update_rows_kernel
 from .hil_records import HIL_ACTUATOR_RECORD, HIL_SENSOR_RECORD, sensor_record_at
 from .impedance import impedance_kernel
@@ -57,4 +58,6 @@ def warm_up() -> float:
     framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
     load(hil_loop_kernel, np.zeros(6, dtype=np.int32), bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io)
     load(frames_to_records, buf, 1, buf, framing)
+    n = 2  # (any number of links: the same types)
+    load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)))
     return time.perf_counter() - t0

@@ -278,12 +278,12 @@ class LinkSensors:
     def imu(self, specific_force_b: np.ndarray, omega_b: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(gyro, accel), each (n, 3) body frame, from the true specific force and body rate."""
         imu = self.suite.imu
-        rng = self.rng
-        self.accel_bias += imu.accel_bias_rw_m_s2_sqrt_s * math.sqrt(dt_s) * rng.normal(size=(self.n, 3))
-        self.gyro_bias += imu.gyro_bias_rw_rad_s_sqrt_s * math.sqrt(dt_s) * rng.normal(size=(self.n, 3))
-        noise = rng.normal(size=(2, self.n, 3))
-        gyro = omega_b + self.gyro_bias + imu.gyro_std_rad_s * noise[0]
-        accel = specific_force_b + self.accel_bias + imu.accel_std_m_s2 * noise[1]
+        # one draw, in the order of the draws it stands for: the biases' steps, the gyro's noise, the accelerometer's
+        accel_step, gyro_step, gyro_noise, accel_noise = self.rng.normal(size=(4, self.n, 3))
+        self.accel_bias += imu.accel_bias_rw_m_s2_sqrt_s * math.sqrt(dt_s) * accel_step
+        self.gyro_bias += imu.gyro_bias_rw_rad_s_sqrt_s * math.sqrt(dt_s) * gyro_step
+        gyro = omega_b + self.gyro_bias + imu.gyro_std_rad_s * gyro_noise
+        accel = specific_force_b + self.accel_bias + imu.accel_std_m_s2 * accel_noise
         return gyro, accel
 
     def gps(self, t_s: float, p_w: np.ndarray, v_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

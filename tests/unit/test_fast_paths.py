@@ -31,6 +31,8 @@ from link_firmware_sim.kernels import hil_records
 from link_firmware_sim.kernels.layouts import IO_AHRS_ACCEPTED, IO_AHRS_Q
 from sitl.plant.rotor import RotorBank
 
+from .firmware_segments import flight_events
+
 pytestmark = pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
 
 TOL = dict(rtol=1e-12, atol=1e-12)
@@ -247,32 +249,6 @@ def _firmware_pair():
     return fused, stepwise
 
 
-def _flight_events(rng, k: int, p0, q0, *, targets_until: int, far_at: int, gps_every: int,
-                   attitude_every: int) -> list:
-    """The firmware calls ``(name, args)`` of tick ``k`` (time ``k * 2 ms``) of a flight segment: a
-    new target every 50 ticks before ``targets_until``, one 30 m off at ``far_at`` (the rotors at
-    their limit), corrections, GPS fixes and attitude references."""
-    from companion.messages import Correction
-
-    t = k * 0.002
-    events = []
-    if k % 50 == 1 and k < targets_until:
-        target = PoseTarget(p0 + rng.normal(size=3) * 0.2, quat_normalize(q0 + rng.normal(size=4) * 0.05),
-                            *(rng.normal(size=(6, 3)) * 0.3))
-        events.append(("set_target", (t, target)))
-    if k == far_at:
-        events.append(("set_target", (t, PoseTarget.hold(p0 + np.array([30.0, -10.0, 20.0]), q0))))
-    if k % 97 == 3:
-        events.append(("on_correction", (t, Correction(0, t - 0.01, rng.normal(size=3) * 0.05,
-                                                         rng.normal(size=3) * 0.02, rng.normal(size=3) * 0.005,
-                                                         seq=k))))
-    if k % gps_every == 0:
-        events.append(("on_gps", (t, p0 + rng.normal(size=3) * 0.3, rng.normal(size=3) * 0.05)))
-    if k % attitude_every == 0:
-        events.append(("on_attitude", (t, quat_normalize(q0 + rng.normal(size=4) * 0.01))))
-    return events
-
-
 def test_fused_tick_matches_step_by_step(monkeypatch):
     """LinkFirmware.on_imu through the one-kernel tick (_tick_fused) against the step-by-step path
     (predict, updates, control estimate, eq. 1, allocation) over a flight segment: corrections
@@ -303,7 +279,7 @@ def test_fused_tick_matches_step_by_step(monkeypatch):
     for k in range(1, 800):
         t = k * 0.002
         # targets at 10 Hz, then a far one: stale after 1 s (from tick 752)
-        events = _flight_events(rng, k, p0, q0, targets_until=200, far_at=251, gps_every=5, attitude_every=2)
+        events = flight_events(rng, k, p0, q0, targets_until=200, far_at=251, gps_every=5, attitude_every=2)
         gyro, accel = rng.normal(size=3) * 0.05, np.array([0.0, 0.0, 9.81]) + rng.normal(size=3) * 0.1
         for fw in (fused, stepwise):
             for name, args in events:
@@ -367,7 +343,7 @@ def test_record_tick_matches_the_decoding_path():
     taken, clipped, references = 0, 0, np.zeros(2, dtype=int)
     for k in range(1, 500):
         t = k * 0.002
-        events = _flight_events(rng, k, p0, q0, targets_until=500, far_at=301, gps_every=25, attitude_every=35)
+        events = flight_events(rng, k, p0, q0, targets_until=500, far_at=301, gps_every=25, attitude_every=35)
         for fw in (record, decoding):
             for name, args in events:
                 getattr(fw, name)(*args)
