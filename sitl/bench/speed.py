@@ -12,7 +12,9 @@ In one run, each figure beside the ceiling (MuJoCo alone stepping the same model
   the harness's "lockstep started" and "lockstep ended" log lines), and peak RSS, sampled from
   ``/proc`` while the fleet runs (Linux);
 * the MuJoCo-only real-time factor of each scenario's model (the rotors held at hover, no
-  firmware, no sensors): what the physics alone allows, the ceiling.
+  firmware, no sensors): what the physics alone allows, the ceiling;
+* where each batch scenario's wall time goes, part by part, in one more flight in this process
+  (:mod:`.batch_parts`).
 
 Every flight runs as its own process (the ``sitl`` CLIs), its output in a subfolder of the run
 folder; the figures go to ``speed.json`` there. Wall-clock figures depend on the machine's load:
@@ -34,6 +36,7 @@ import numpy as np
 
 from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
 from . import procfs
+from .batch_parts import batch_parts, markdown_batch_parts
 
 __all__ = ["BATCH_SCENARIOS", "FLEET_SCENARIOS", "firmware_tick", "fleet_args", "fleet_scaling", "mujoco_ceiling",
            "run_batch", "run_fleet", "run_speed", "format_speed", "markdown_speed", "scenario_file"]
@@ -309,6 +312,11 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
                                                     tag=f"-{k + 1}" if repeat > 1 else ""))
             if progress:
                 progress(f"fleet {name} ({link})")
+    parts = {}
+    for name in batch:
+        parts[name] = batch_parts(scenario_file(name), batch_s)
+        if progress:
+            progress(f"batch {name}, part by part")
     ceilings = {name: median_of(ceiling_runs[name]) for name in models}
     runs = [median_of(batch_runs[name]) for name in batch] + [median_of(r) for r in fleet_runs.values()]
     for r in runs:
@@ -319,7 +327,8 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
         tick["target_us"] = TICK_TARGET_US
         tick["target_met"] = tick["fused_us"] <= TICK_TARGET_US
     return {"compiled": compiled, "warm_up_s": compile_s, "firmware_tick_us": tick, "cpu_count": os.cpu_count(),
-            "load_average_at_end": os.getloadavg(), "repeat": repeat, "mujoco_ceiling": ceilings, "runs": runs}
+            "load_average_at_end": os.getloadavg(), "repeat": repeat, "mujoco_ceiling": ceilings, "runs": runs,
+            "batch_parts": parts}
 
 
 def _judge(r: dict) -> None:
@@ -391,6 +400,11 @@ def format_speed(result: dict) -> str:
                         f"{fmt_x(f['ratio_to_ceiling'], '.3f'):>9} {f['harness']:>8.3f} "
                         f"{f['vehicles']:>7.3f}; {f['per_vehicle']:>6.3f} {f['companions']:>7.3f}; "
                         f"{f['per_companion']:>6.3f} {f['all']:>7.3f}")
+    for name, p in (result.get("batch_parts") or {}).items():
+        c = result["mujoco_ceiling"].get(name)
+        mujoco = "" if c is None else f", MuJoCo alone {1e3 / c['realtime_factor']:.1f}"
+        rows.append(f"batch {name}, wall ms per simulated s: total {p['total_ms_per_sim_s']:.1f}{mujoco}; "
+                    + ", ".join(f"{k} {v:.1f}" for k, v in p["ms_per_sim_s"].items()))
     verdict = _verdict(result)
     if verdict:
         rows.append(verdict)
@@ -502,6 +516,13 @@ def markdown_speed(result: dict) -> str:
                              f"{f['harness']:.3f}", f"{f['vehicles']:.3f} ({f['per_vehicle']:.3f})",
                              f"{f['companions']:.3f} ({f['per_companion']:.3f})", f"{f['all']:.3f}")
                             for f in scaling])]
+    if result.get("batch_parts"):
+        parts += ["", "## Where a batch flight's time goes", "",
+                  "Wall milliseconds per simulated second, part by part (`sitl/bench/batch_parts.py`), in one more "
+                  "flight of each batch scenario in the bench's process, beside MuJoCo alone on the same model. "
+                  "The firmware's column leaves the sensors out; its batch's gathers and syncs (last column) fall in "
+                  "whichever part asked for them.", "",
+                  markdown_batch_parts(result["batch_parts"], result["mujoco_ceiling"])]
     verdict = _verdict(result)
     if verdict:
         parts += ["", verdict + "."]

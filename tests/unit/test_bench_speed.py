@@ -175,3 +175,19 @@ def test_the_targets_are_judged_and_reported():
                          "(unix) >= 3x, fleet three_link (tcp) >= 3x (MuJoCo alone, the machine's phase: three_link "
                          "130x, seven_link 57x)")
     json.dumps(result)
+
+
+def test_batch_parts_account_for_the_whole_flight():
+    """The breakdown of a short batch flight: every part took time, the parts add up to the
+    flight's wall time (the loop is the rest, not negative), the quiet ticks ran in the batch, and
+    the report's row puts MuJoCo alone beside them."""
+    from sitl.bench.batch_parts import PARTS, batch_parts, markdown_batch_parts
+
+    p = batch_parts(speed.scenario_file("three_link"), 0.4, warm_s=0.2)
+    ms = p["ms_per_sim_s"]
+    assert list(ms) == list(PARTS) and all(ms[k] > 0.0 for k in PARTS), ms
+    assert sum(ms.values()) == pytest.approx(p["total_ms_per_sim_s"])
+    assert p["realtime_factor"] == pytest.approx(1e3 / p["total_ms_per_sim_s"])
+    assert p["batch_counts"]["ticks"] > 100 and 0.0 < p["batch_kernel_ms_per_sim_s"] < ms["firmware"]
+    text = markdown_batch_parts({"three_link": p}, {"three_link": {"realtime_factor": 200.0}})
+    assert "| three_link |" in text and "| 5.0 |" in text and "firmware" in text
