@@ -348,8 +348,9 @@ class MavlinkPort(CountedPort):
             size += len(frame)
         self._write(batch)
 
-    def _write(self, frames: list[bytes]) -> None:
-        """One transport write of ``frames``; a failure is counted (UDP semantics: not retried)."""
+    def _write(self, frames: list[bytes], n_messages: int | None = None) -> None:
+        """One transport write of ``frames`` (``n_messages`` messages: one per frame unless given);
+        a failure is counted (UDP semantics: not retried)."""
         try:
             self.transport.send(frames[0] if len(frames) == 1 else b"".join(frames))
         except OSError as exc:
@@ -357,7 +358,7 @@ class MavlinkPort(CountedPort):
             if exc.errno not in (errno.ENOBUFS, errno.EAGAIN):
                 log.debug("%s: send failed: %s", self.url, exc)
             return
-        self.stats.tx_messages += len(frames)
+        self.stats.tx_messages += len(frames) if n_messages is None else n_messages
         if self.tlog is not None:
             for frame in frames:
                 self.tlog.write(frame)

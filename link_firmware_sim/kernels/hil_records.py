@@ -16,18 +16,20 @@ from companion.kernels.so3 import quat_mul
 
 __all__ = ["HIL_SENSOR_RECORD", "HIL_ACTUATOR_RECORD", "HIL_AHRS_RECORD", "AHRS_NORM_TOLERANCE", "HIL_BARO_MAG_BITS",
            "IMU_ACCEL_MAX_M_S2", "IMU_GYRO_MAX_RAD_S",
-           "sensor_record_at", "ahrs_record", "record_time_us"]
+           "sensor_record_at", "ahrs_record", "record_time_us", "sensor_records"]
 
 #: the records as :func:`.tick.hil_tick_kernel` reads and writes them. They are literals in this
 #: file, not derived from the dialect, on purpose: numba freezes a global into the machine code it
 #: caches on disk, and its cache follows this file's changes only.
 #: HIL_SENSOR: kind 0, ``time_usec`` (uint64), ``xacc..zacc`` then ``xgyro..zgyro`` (floats, body
-#: FRD), ..., ``fields_updated`` (uint32)
-HIL_SENSOR_RECORD = {"kind": 0, "size": 66, "time_usec": 1, "acc": 9, "gyro": 21, "fields_updated": 61}
+#: FRD), then its other floats (``floats`` in all, from ``acc``), ``fields_updated`` (uint32), ``id`` (uint8)
+HIL_SENSOR_RECORD = {"kind": 0, "size": 66, "time_usec": 1, "acc": 9, "gyro": 21, "fields_updated": 61, "id": 65,
+                     "floats": 13}
 #: HIL_ACTUATOR_CONTROLS: kind 3, ``time_usec`` and ``flags`` (uint64), ``controls`` (16 floats), ``mode`` (uint8)
 HIL_ACTUATOR_RECORD = {"kind": 3, "size": 82, "time_usec": 1, "flags": 9, "controls": 17, "mode": 81}
 # the same numbers as the kernel's compile-time constants
-_SENSOR_KIND, _SENSOR_SIZE, _SENSOR_T, _SENSOR_ACC, _SENSOR_GYRO, _SENSOR_BITS = HIL_SENSOR_RECORD.values()
+_SENSOR_KIND, _SENSOR_SIZE, _SENSOR_T, _SENSOR_ACC, _SENSOR_GYRO, _SENSOR_BITS, _SENSOR_ID, _SENSOR_FLOATS = (
+    HIL_SENSOR_RECORD.values())
 _ACT_KIND, _ACT_SIZE, _ACT_T, _ACT_FLAGS, _ACT_CONTROLS, _ACT_MODE = HIL_ACTUATOR_RECORD.values()
 #: SKELETON_AHRS_REFERENCE: kind 2, ``time_usec`` (uint64), ``q`` (4 floats, body FRD to local NED)
 HIL_AHRS_RECORD = {"kind": 2, "size": 25, "time_usec": 1, "q": 9}
@@ -87,3 +89,29 @@ def record_time_us(rec, at):
     tb = np.empty(1, np.uint64)
     tb.view(np.uint8)[:] = rec[at + _SENSOR_T:at + _SENSOR_T + 8]
     return tb[0]
+
+
+@jit
+def sensor_records(t_us, values, bits, out):
+    """The HIL_SENSOR records of ``n`` links into ``out`` (uint8, ``(n, size)``): time ``t_us``,
+    ``values[i]`` (``(n, floats)``, the message's floats in wire order: ``hil.hil_sensor_values``)
+    as float32, ``fields_updated`` ``bits``, ``id`` 0; the bytes ``simlink.encode_packet`` packs
+    for the same message. Returns False (``out`` unfinished) when a finite value is too large for a
+    float32, which pymavlink's packing refuses: the caller's path raises its error."""
+    f = np.empty(_SENSOR_FLOATS, np.float32)
+    head = np.empty(1, np.uint64)
+    head[0] = t_us
+    tail = np.empty(1, np.uint32)
+    tail[0] = bits
+    for i in range(values.shape[0]):
+        for k in range(_SENSOR_FLOATS):
+            f[k] = np.float32(values[i, k])
+            if math.isfinite(values[i, k]) and not math.isfinite(f[k]):
+                return False
+        row = out[i]
+        row[0] = _SENSOR_KIND
+        row[_SENSOR_T:_SENSOR_T + 8] = head.view(np.uint8)
+        row[_SENSOR_ACC:_SENSOR_ACC + 4 * _SENSOR_FLOATS] = f.view(np.uint8)
+        row[_SENSOR_BITS:_SENSOR_BITS + 4] = tail.view(np.uint8)
+        row[_SENSOR_ID] = 0
+    return True

@@ -17,7 +17,7 @@ from .hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD
 
 __all__ = ["MAV2_STX", "MAV2_HEADER", "MAV_HIL_SENSOR", "MAV_HIL_AHRS", "MAV_HIL_ACTUATOR", "FRAME_BYTES", "FRAMING",
            "FRAMING_SIZE", "FRAMES_TO_VEHICLE", "FRAMES_TO_SIMULATOR", "crc_mcrf4xx", "frames_to_records",
-           "record_to_frame"]
+           "record_to_frame", "records_to_frames"]
 
 _SENSOR_KIND = HIL_SENSOR_RECORD["kind"]
 _AHRS_KIND = HIL_AHRS_RECORD["kind"]
@@ -125,27 +125,75 @@ def frames_to_records(buf, n, rec, framing):
 
 
 @jit
+def _put_frame(rec, r0, msgid, extra, size, frame, f0, framing):
+    """The record at ``rec[r0]`` (its kind byte, then a payload of ``size`` bytes) as the MAVLink 2
+    frame of message ``msgid`` (CRC extra ``extra``) that pymavlink packs (unsigned, from
+    ``framing``'s system and component, with its next sequence number, which moves on; the
+    payload's trailing zeros cut, one byte kept), written at ``frame[f0]``; returns its length."""
+    plen = size
+    while plen > 1 and rec[r0 + plen] == 0:  # (the payload's byte j is the record's j + 1)
+        plen -= 1
+    frame[f0] = MAV2_STX
+    frame[f0 + 1] = plen
+    frame[f0 + 2] = 0
+    frame[f0 + 3] = 0
+    frame[f0 + 4] = framing[_F_SEQ_OUT] & 0xFF
+    frame[f0 + 5] = framing[_F_SYS]
+    frame[f0 + 6] = framing[_F_COMP]
+    frame[f0 + 7] = msgid & 0xFF
+    frame[f0 + 8] = (msgid >> 8) & 0xFF
+    frame[f0 + 9] = msgid >> 16
+    frame[f0 + MAV2_HEADER:f0 + MAV2_HEADER + plen] = rec[r0 + 1:r0 + 1 + plen]
+    end = f0 + MAV2_HEADER + plen
+    crc = _crc_step(crc_mcrf4xx(frame, f0 + 1, end, 0xFFFF), extra)
+    frame[end] = crc & 0xFF
+    frame[end + 1] = crc >> 8
+    framing[_F_SEQ_OUT] = (framing[_F_SEQ_OUT] + 1) & 0xFF
+    return end + 2 - f0
+
+
+@jit
 def record_to_frame(answer, frame, framing):
     """The HIL_ACTUATOR_CONTROLS record ``answer`` as the MAVLink 2 frame pymavlink packs (unsigned,
     from ``framing``'s system and component, with its next sequence number, which moves on; the
     payload's trailing zeros cut, one byte kept) into ``frame``; returns the frame's length."""
-    plen = _MO_SIZE
-    while plen > 1 and answer[plen] == 0:  # (the payload's byte j is the record's j + 1)
-        plen -= 1
-    frame[0] = MAV2_STX
-    frame[1] = plen
-    frame[2] = 0
-    frame[3] = 0
-    frame[4] = framing[_F_SEQ_OUT] & 0xFF
-    frame[5] = framing[_F_SYS]
-    frame[6] = framing[_F_COMP]
-    frame[7] = _MO_ID & 0xFF
-    frame[8] = (_MO_ID >> 8) & 0xFF
-    frame[9] = _MO_ID >> 16
-    frame[MAV2_HEADER:MAV2_HEADER + plen] = answer[1:1 + plen]
-    end = MAV2_HEADER + plen
-    crc = _crc_step(crc_mcrf4xx(frame, 1, end, 0xFFFF), _MO_EXTRA)
-    frame[end] = crc & 0xFF
-    frame[end + 1] = crc >> 8
-    framing[_F_SEQ_OUT] = (framing[_F_SEQ_OUT] + 1) & 0xFF
-    return end + 2
+    return _put_frame(answer, 0, _MO_ID, _MO_EXTRA, _MO_SIZE, frame, 0, framing)
+
+
+@jit
+def _kind_frame(kind):
+    """The message id, CRC extra and payload size of a record kind's frame; (-1, 0, 0) for a kind
+    without one here."""
+    if kind == _SENSOR_KIND:
+        return _MS_ID, _MS_EXTRA, _MS_SIZE
+    if kind == _AHRS_KIND:
+        return _MA_ID, _MA_EXTRA, _MA_SIZE
+    if kind == _ACT_KIND:
+        return _MO_ID, _MO_EXTRA, _MO_SIZE
+    return -1, 0, 0
+
+
+@jit
+def records_to_frames(rec, m, frames, framing):
+    """The same-host link's packet of ``m`` bytes in ``rec`` (HIL_SENSOR, SKELETON_AHRS_REFERENCE
+    and HIL_ACTUATOR_CONTROLS records) as the MAVLink 2 frames pymavlink packs, one per record in
+    order, numbered on from ``framing``'s next sequence number (:func:`record_to_frame`'s frames),
+    into ``frames``; returns their length, or -1 (nothing written, no number used) for a packet
+    that is not whole records of those kinds or whose frames do not fit."""
+    i = 0
+    f = 0
+    while i < m:
+        msgid, _, size = _kind_frame(rec[i])
+        if msgid < 0 or i + 1 + size > m:
+            return -1
+        f += MAV2_HEADER + size + 2
+        i += 1 + size
+    if f > frames.shape[0]:
+        return -1
+    i = 0
+    f = 0
+    while i < m:
+        msgid, extra, size = _kind_frame(rec[i])
+        f += _put_frame(rec, i, msgid, extra, size, frames, f, framing)
+        i += 1 + size
+    return f

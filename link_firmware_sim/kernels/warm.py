@@ -21,11 +21,11 @@ from companion.kernels.warm import load
 from .allocation import ALLOC_META, allocate_kernel
 from .batch_tick import BANK_SIZE, links_tick_kernel
 from .ekf import attitude_update_kernel, ekf_predict_kernel, update_block_kernel, update_rows_kernel
-from .hil_records import HIL_ACTUATOR_RECORD, HIL_SENSOR_RECORD, sensor_record_at
+from .hil_records import HIL_ACTUATOR_RECORD, HIL_SENSOR_RECORD, sensor_record_at, sensor_records
 from .impedance import impedance_kernel
 from .layouts import ALLOC_SIZE, CTL_SIZE, EKF_SIZE, IN_SIZE, IO_SIZE, OUT_SIZE, TGT_SIZE
 from .lockstep import hil_loop_kernel
-from .mavlink_frames import FRAME_BYTES, FRAMING_SIZE, frames_to_records
+from .mavlink_frames import FRAME_BYTES, FRAMING_SIZE, frames_to_records, records_to_frames
 from .tick import attitude_tick_kernel, hil_tick_kernel, tick_kernel
 
 __all__ = ["ENABLED", "warm_up"]
@@ -58,6 +58,9 @@ def warm_up() -> float:
     framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
     load(hil_loop_kernel, np.zeros(6, dtype=np.int32), bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io)
     load(frames_to_records, buf, 1, buf, framing)
+    records = np.zeros((2, HIL_SENSOR_RECORD["size"]), dtype=np.uint8)  # (the harness's writer)
+    load(sensor_records, 1, np.zeros((2, HIL_SENSOR_RECORD["floats"])), 1, records)
+    load(records_to_frames, records[0], 1, buf, framing)
     n = 2  # (any number of links: the same types)
     load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)))
     return time.perf_counter() - t0

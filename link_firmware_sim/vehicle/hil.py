@@ -39,6 +39,7 @@ __all__ = [
     "ROTORS_PER_LINK",
     "encode_hil_sensor",
     "encode_hil_sensors",
+    "hil_sensor_values",
     "decode_hil_sensor",
     "HilBaroMag",
     "decode_hil_baro_mag",
@@ -114,25 +115,33 @@ def encode_hil_sensor(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gau
                               baro_alt_m=None if baro_alt_m is None else (baro_alt_m,))[0]
 
 
-def encode_hil_sensors(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None, baro_alt_m=None) -> list:
-    """:func:`encode_hil_sensor` for ``n`` links at once (one HIL_SENSOR each): ``(n, 3)`` arrays
-    of specific force and rate, ``mag_flu_gauss`` ``(n, 3)`` and ``baro_alt_m`` ``(n,)`` or
-    ``None``. The frames are converted once for the tick, not once per link."""
-    usec_t = usec(t_s)
-    acc = flu_frd(np.asarray(accel_flu_m_s2, dtype=float)).tolist()
-    gyr = flu_frd(np.asarray(gyro_flu_rad_s, dtype=float)).tolist()
-    n = len(acc)
+def hil_sensor_values(accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None, baro_alt_m=None) -> tuple[np.ndarray, int]:
+    """HIL_SENSOR's floats for ``n`` links, ``(n, 13)`` in the message's wire order (specific force,
+    rate and field, body FRD; absolute and differential pressure [hPa], pressure altitude [m],
+    temperature [C]), and its ``fields_updated`` bits, from ``(n, 3)`` arrays of specific force and
+    rate (FLU), ``mag_flu_gauss`` ``(n, 3)`` and ``baro_alt_m`` ``(n,)`` or ``None``. The frames
+    are converted once for the tick, not once per link."""
+    acc = flu_frd(np.asarray(accel_flu_m_s2, dtype=float))
+    values = np.zeros((len(acc), 13))
+    values[:, 0:3] = acc
+    values[:, 3:6] = flu_frd(np.asarray(gyro_flu_rad_s, dtype=float))
     bits = HIL_SENSOR_IMU
-    mag = [(0.0, 0.0, 0.0)] * n
     if mag_flu_gauss is not None:
-        mag = flu_frd(np.asarray(mag_flu_gauss, dtype=float)).tolist()
+        values[:, 6:9] = flu_frd(np.asarray(mag_flu_gauss, dtype=float))
         bits |= HIL_SENSOR_MAG
-    baro = [(0.0, 0.0, 0.0)] * n  # (pressure [hPa], pressure altitude [m], temperature [C])
-    if baro_alt_m is not None:
-        baro = [(pressure_hpa_at(alt), alt, _BARO_TEMPERATURE_C) for alt in map(float, baro_alt_m)]
+    if baro_alt_m is not None:  # (pressure [hPa], pressure altitude [m], temperature [C])
+        values[:, [9, 11, 12]] = [(pressure_hpa_at(alt), alt, _BARO_TEMPERATURE_C) for alt in map(float, baro_alt_m)]
         bits |= HIL_SENSOR_BARO
+    return values, bits
+
+
+def encode_hil_sensors(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None, baro_alt_m=None) -> list:
+    """:func:`encode_hil_sensor` for ``n`` links at once (one HIL_SENSOR each), from
+    :func:`hil_sensor_values`' arguments."""
+    values, bits = hil_sensor_values(accel_flu_m_s2, gyro_flu_rad_s, mag_flu_gauss=mag_flu_gauss, baro_alt_m=baro_alt_m)
+    usec_t = usec(t_s)
     new = _D.MAVLink_hil_sensor_message
-    return [new(usec_t, *a, *g, *m, p, 0.0, alt, temp, bits, 0) for a, g, m, (p, alt, temp) in zip(acc, gyr, mag, baro)]
+    return [new(usec_t, *row, bits, 0) for row in values.tolist()]
 
 
 def decode_hil_sensor(msg) -> tuple[float, np.ndarray, np.ndarray]:

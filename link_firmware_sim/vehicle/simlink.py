@@ -34,8 +34,10 @@ loop turns a read that is exactly a tick's whole MAVLink 2 frames into its recor
 (:func:`~link_firmware_sim.kernels.mavlink_frames.frames_to_records`; the message ids, CRC extras
 and payload sizes of :data:`~link_firmware_sim.kernels.mavlink_frames.MAV_HIL_SENSOR` /
 ``MAV_HIL_AHRS`` / ``MAV_HIL_ACTUATOR`` are checked against the dialect here too) and its answer
-record into the frame pymavlink packs; the harness reads the answers so (:class:`SimulatorPort`).
-Every other read goes through pymavlink's parser.
+record into the frame pymavlink packs; the harness reads the answers so (:class:`SimulatorPort`),
+and builds every link's sensor records of a tick in one compiled call (:func:`hil_sensor_records`)
+and writes them so (:meth:`SimulatorPort.send_records`, :meth:`SimLinkPort.send_records`). Every
+other read goes through pymavlink's parser.
 
 Trust: the socket file is created mode 0600 (its folder should be private too: the fleet
 launcher makes one with :func:`tempfile.mkdtemp`), and the listener accepts only a peer process
@@ -62,18 +64,20 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from companion.mavlink.codec import usec
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import CountedPort, MavlinkPort, PortStats
 from companion.mavlink.transport import PortError, send_all
 from companion.mavlink.urls import open_transport
 from companion.kernels.jit import ENABLED as _COMPILED
 
-from ..kernels.hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD
-from ..kernels.mavlink_frames import (FRAMES_TO_SIMULATOR, FRAMING, FRAMING_SIZE, MAV_HIL_ACTUATOR, MAV_HIL_AHRS,
-                                     MAV_HIL_SENSOR, frames_to_records)
+from ..kernels.hil_records import HIL_ACTUATOR_RECORD, HIL_AHRS_RECORD, HIL_SENSOR_RECORD, sensor_records
+from ..kernels.mavlink_frames import (FRAMES_TO_SIMULATOR, FRAMING, FRAMING_SIZE, MAV2_HEADER, MAV_HIL_ACTUATOR,
+                                     MAV_HIL_AHRS, MAV_HIL_SENSOR, frames_to_records, records_to_frames)
+from .hil import encode_hil_sensors, hil_sensor_values
 
-__all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "SimLinkPort", "SimulatorPort",
-           "open_sim_port", "is_simlink_url"]
+__all__ = ["SIM_KINDS", "FrameError", "encode_packet", "decode_packet", "hil_sensor_records", "SimLinkPort",
+           "SimulatorPort", "open_sim_port", "is_simlink_url"]
 
 log = logging.getLogger(__name__)
 
@@ -178,6 +182,10 @@ def _check_compiled_layouts() -> None:
         ("HIL_SENSOR acc and gyro", struct.unpack_from("<6f", sensor, s["acc"]), imu),
         ("HIL_SENSOR gyro", struct.unpack_from("<3f", sensor, s["gyro"]), imu[3:]),
         ("HIL_SENSOR.fields_updated", struct.unpack_from("<I", sensor, s["fields_updated"])[0], bits),
+        ("HIL_SENSOR's floats, from acc", struct.unpack_from(f"<{s['floats']}f", sensor, s["acc"]),
+         imu + (0.0,) * (s["floats"] - 6)),
+        ("HIL_SENSOR's floats end at fields_updated", s["acc"] + 4 * s["floats"], s["fields_updated"]),
+        ("HIL_SENSOR.id, the last byte", s["id"], s["size"] - 1),
         ("SKELETON_AHRS_REFERENCE size", len(ahrs), r["size"]),
         ("SKELETON_AHRS_REFERENCE kind", ahrs[0], r["kind"]),
         ("SKELETON_AHRS_REFERENCE.time_usec", struct.unpack_from("<Q", ahrs, r["time_usec"])[0], t_us),
@@ -211,6 +219,24 @@ def encode_packet(msgs) -> bytes:
         return b"".join(_LAYOUTS[m.get_type()].pack(m) for m in msgs)
     except KeyError as exc:
         raise FrameError(f"{exc.args[0]} is not a simulator-link message ({', '.join(SIM_KINDS)})") from None
+
+
+def hil_sensor_records(t_s: float, accel_flu_m_s2, gyro_flu_rad_s, *, mag_flu_gauss=None,
+                       baro_alt_m=None) -> np.ndarray:
+    """The HIL_SENSOR records of ``n`` links (uint8, ``(n, size)``, the arguments of
+    :func:`~.hil.hil_sensor_values`): the bytes :func:`encode_packet` gives for
+    :func:`~.hil.encode_hil_sensors`' messages, link by link, in one compiled call
+    (:func:`~link_firmware_sim.kernels.hil_records.sensor_records`; without the compiled kernels, or
+    for a value pymavlink refuses to pack, through those two)."""
+    values, bits = hil_sensor_values(accel_flu_m_s2, gyro_flu_rad_s, mag_flu_gauss=mag_flu_gauss,
+                                     baro_alt_m=baro_alt_m)
+    t_us = usec(t_s)
+    out = np.empty((len(values), HIL_SENSOR_RECORD["size"]), dtype=np.uint8)
+    if not (_COMPILED and 0 <= t_us < 2 ** 63 and sensor_records(t_us, values, bits, out)):
+        msgs = encode_hil_sensors(t_s, accel_flu_m_s2, gyro_flu_rad_s, mag_flu_gauss=mag_flu_gauss,
+                                  baro_alt_m=baro_alt_m)
+        out[:] = np.frombuffer(encode_packet(msgs), dtype=np.uint8).reshape(out.shape)
+    return out
 
 
 def decode_packet(data: bytes, accept: frozenset[str] | None = None) -> list:
@@ -398,6 +424,13 @@ class SimLinkPort(CountedPort):
         msgs = list(msgs)
         self.send_packet(encode_packet(msgs), len(msgs))
 
+    def send_records(self, msgs, records: np.ndarray, n_records: int = 1) -> bool:
+        """Send ``msgs`` (pymavlink messages) and then ``records`` (uint8: ``n_records`` whole
+        records, e.g. a row of :func:`hil_sensor_records`) as one packet; True (sent, or nothing
+        sent while no peer is connected), as :meth:`SimulatorPort.send_records` when it may."""
+        self.send_packet((encode_packet(msgs) if msgs else b"") + records.tobytes(), len(msgs) + n_records)
+        return True
+
     def send_packet(self, data, n_messages: int = 1) -> None:
         """Send one packet already encoded (bytes, or a uint8 array: the vehicle's record tick
         answers from its buffer) holding ``n_messages`` records."""
@@ -440,6 +473,31 @@ class SimulatorPort(MavlinkPort):
         self._buf = np.zeros(RECV_BYTES, dtype=np.uint8)
         self._records = np.zeros(RECV_BYTES, dtype=np.uint8)
         self._framing = np.zeros(FRAMING_SIZE, dtype=np.int64)
+        self._out_framing = np.zeros(FRAMING_SIZE, dtype=np.int64)  # (this end's numbering, for send_records)
+        self._frames = np.zeros(_SEND_BYTES, dtype=np.uint8)
+
+    def send_records(self, msgs, records: np.ndarray, n_records: int = 1) -> bool:
+        """Send ``msgs`` (pymavlink messages) and then the messages of ``records`` (uint8:
+        ``n_records`` whole records of the same-host link, e.g. a row of
+        :func:`hil_sensor_records`) in one write, the records framed in one compiled call
+        (:func:`~link_firmware_sim.kernels.mavlink_frames.records_to_frames`: the frames pymavlink
+        packs, numbered on from this link's sequence). False (nothing sent) where this link may not
+        frame them so (no compiled kernels, signing on, a tlog, not a stream): the caller sends
+        the messages."""
+        if not _COMPILED or self.mav.signing.sign_outgoing or self.tlog is not None or self.transport.datagram:
+            return False
+        seq = self.mav.seq
+        frames = [self._pack(m) for m in msgs]
+        framing = self._out_framing
+        framing[_OUT_SYS], framing[_OUT_COMP], framing[_OUT_SEQ] = self.mav.srcSystem, self.mav.srcComponent, self.mav.seq
+        n = records_to_frames(records, len(records), self._frames, framing)
+        if n < 0:
+            self.mav.seq = seq  # (nothing sent: the numbers not used)
+            return False
+        self.mav.seq = int(framing[_OUT_SEQ])
+        frames.append(self._frames[:n].tobytes())
+        self._write(frames, len(msgs) + n_records)
+        return True
 
     def read(self) -> list:
         handover = self.handover() if _COMPILED else None
@@ -467,6 +525,9 @@ class SimulatorPort(MavlinkPort):
 
 
 _SEQ_READ = FRAMING["seq_read"]
+_OUT_SYS, _OUT_COMP, _OUT_SEQ = FRAMING["sys"], FRAMING["comp"], FRAMING["seq_out"]
+#: the frames :meth:`SimulatorPort.send_records` writes at once: a tick's records, framed
+_SEND_BYTES = 4 * (MAV2_HEADER + 2) + _MAX_PACKET
 
 
 def open_sim_port(url: str, system_id: int, component_id: int = 1, accept: frozenset[str] | None = None,

@@ -28,7 +28,7 @@ from link_firmware_sim.allocation import Allocator
 from link_firmware_sim.controllers import weight_wrench
 from link_firmware_sim.vehicle.hil import (ROTORS_PER_LINK, encode_ahrs, encode_hil_gps, encode_hil_sensors, nonfinite_rows,
                                    thrusts_from_controls)
-from link_firmware_sim.vehicle.simlink import open_sim_port
+from link_firmware_sim.vehicle.simlink import hil_sensor_records, open_sim_port
 from sitl.plant.plant import Plant
 from sitl.plant.schedule import Schedule
 from sitl.scenario import Scenario
@@ -127,12 +127,15 @@ class FleetHarness:
         if baro is not None:
             baro = baro + self.scenario.origin.alt_m  # pressure altitude above mean sea level
         gyro, accel = sensors.imu(truth.specific_force_b_m_s2, truth.omega_b_rad_s, sch.fw * self.plant.dt)
-        imu = encode_hil_sensors(t, accel, gyro, mag_flu_gauss=mag, baro_alt_m=baro)
+        records = hil_sensor_records(t, accel, gyro, mag_flu_gauss=mag, baro_alt_m=baro)  # (one compiled call)
+        imu = None
         for i, port in enumerate(self.ports):
             if i in self.down:
                 continue
-            outgoing[i].append(imu[i])
-            port.send_many(outgoing[i])  # one write per vehicle and tick
+            if not port.send_records(outgoing[i], records[i]):  # one write per vehicle and tick
+                if imu is None:  # (this link's messages, packed by pymavlink: a signed link, a tlog)
+                    imu = encode_hil_sensors(t, accel, gyro, mag_flu_gauss=mag, baro_alt_m=baro)
+                port.send_many(outgoing[i] + [imu[i]])
         want = usec(t)
         controls = np.zeros((self.n, ROTORS_PER_LINK))  # a link that is down: its rotors stopped
         pending = set(range(self.n)) - self.down

@@ -218,3 +218,85 @@ def test_the_simulators_tcp_port_reads_answers_as_pymavlinks_parser_does():
         "HIL_ACTUATOR_CONTROLS": 15}, st
     if COMPILED:  # taken: answers 2-5, 7, 11 and 12 (one read), 14
         assert [m for m in taken if m > 0] == [82] * 5 + [164, 82], str(taken)
+
+
+# -- the simulator's writer: a tick's records built and framed in compiled code ------------------
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 2**40), st.lists(st.floats(-3e5, 3e5, allow_nan=False), min_size=9, max_size=9),
+       st.booleans(), st.booleans(), st.integers(1, 4))
+def test_the_harness_records_are_the_messages_records(t_us, xs, mag, baro, n):
+    """hil_sensor_records (the sensor records of n links in one compiled call) against the
+    records of encode_hil_sensors' messages: the same bytes, with and without a magnetometer and a
+    barometer sample."""
+    t = t_us * 1e-6
+    v = np.array(xs).reshape(3, 3)
+    accel, gyro, field = (np.tile(v[k], (n, 1)) * np.arange(1, n + 1)[:, None] for k in range(3))
+    kwargs = dict(mag_flu_gauss=field * 1e-5 if mag else None, baro_alt_m=v[2, :1].repeat(n) * 1e-2 if baro else None)
+    want = encode_packet(simlink.encode_hil_sensors(t, accel, gyro, **kwargs))
+    assert simlink.hil_sensor_records(t, accel, gyro, **kwargs).tobytes() == want
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 255), st.integers(1, 255), st.booleans(), st.booleans())
+def test_the_harness_frames_are_pymavlinks(seq, sys_id, with_ahrs, with_answer):
+    """records_to_frames (the harness's writer over TCP) against pymavlink: the frames of a packet
+    of records (an attitude reference, a sensor sample, an answer) are the bytes pymavlink packs,
+    numbered on from the link's next number (255 -> 0); a packet that is not whole records of
+    those kinds, or whose frames do not fit, gives -1 with no number used."""
+    msgs = _tick()[0 if with_ahrs else 1:]
+    if with_answer:
+        msgs.append(encode_actuators(1.25, np.linspace(-8.0, 8.0, 8), 8.0, True))
+    packet = np.frombuffer(encode_packet(msgs), dtype=np.uint8)
+    framing = _framing(sys_id=sys_id, seq_out=seq)
+    out = np.zeros(1024, dtype=np.uint8)
+    n = frames.records_to_frames(packet, len(packet), out, framing)
+    mav = D.MAVLink(None, srcSystem=sys_id, srcComponent=1)
+    mav.seq = seq
+    assert out[:n].tobytes() == b"".join(_pack_seq(m, mav) for m in msgs)
+    assert framing[frames.FRAMING["seq_out"]] == (seq + len(msgs)) % 256
+    gps = np.frombuffer(encode_packet([encode_hil_gps(1.25, np.zeros(3), np.zeros(3), GeoOrigin())]), dtype=np.uint8)
+    for bad, room in ((packet[:-1], 1024), (np.concatenate((packet, gps)), 1024), (packet, n - 1)):
+        framing = _framing(sys_id=sys_id, seq_out=seq)
+        assert frames.records_to_frames(bad, len(bad), np.zeros(room, dtype=np.uint8), framing) == -1
+        assert framing[frames.FRAMING["seq_out"]] == seq
+
+
+def _pack_seq(msg, mav) -> bytes:
+    frame = msg.pack(mav)
+    mav.seq = (mav.seq + 1) % 256
+    return frame
+
+
+def test_the_simulators_tcp_port_sends_records_as_pymavlinks_frames():
+    """SimulatorPort.send_records over TCP loopback: the harness's messages (a GPS fix, packed by
+    pymavlink) then its records (framed in compiled code) reach a pymavlink parser whole, in order,
+    numbered without a gap and counted; on a signed link it sends nothing and says so (the caller
+    sends the messages, signed)."""
+    server = socket.create_server(("127.0.0.1", 0))
+    port = SimulatorPort(f"tcpout://127.0.0.1:{server.getsockname()[1]}", 255, 190, accept=ACTUATORS)
+    conn = server.accept()[0]
+    try:
+        parser = D.MAVLink(None)
+        got = []
+        gps = encode_hil_gps(1.25, np.array([1.0, 2.0, 3.0]), np.zeros(3), GeoOrigin())
+        port.mav.seq = 254
+        for k in range(3):
+            records = simlink.hil_sensor_records(1.25 + 0.002 * k, np.array([[0.1, -0.2, 9.8]]), np.zeros((1, 3)))
+            assert port.send_records([gps] if k == 1 else [], records[0]) is COMPILED
+            if not COMPILED:
+                port.send_many(([gps] if k == 1 else []) + simlink.encode_hil_sensors(
+                    1.25 + 0.002 * k, np.array([[0.1, -0.2, 9.8]]), np.zeros((1, 3))))
+        deadline = time.monotonic() + 2.0
+        while len(got) < 4 and time.monotonic() < deadline:
+            data = conn.recv(4096)
+            got += [m for m in parser.parse_buffer(data) or []]
+        assert [m.get_type() for m in got] == ["HIL_SENSOR", "HIL_GPS", "HIL_SENSOR", "HIL_SENSOR"]
+        assert [m.get_seq() for m in got] == [254, 255, 0, 1] and port.mav.seq == 2
+        assert [m.time_usec for m in got if m.get_type() == "HIL_SENSOR"] == [1250000, 1252000, 1254000]
+        assert port.stats.tx_messages == 4 and parser.total_receive_errors == 0
+        port.mav.signing.secret_key, port.mav.signing.sign_outgoing, port.mav.signing.timestamp = bytes(32), True, 1
+        assert port.send_records([gps], records[0]) is False and port.mav.seq == 2 and port.stats.tx_messages == 4
+    finally:
+        for x in (port, conn, server):
+            x.close()
