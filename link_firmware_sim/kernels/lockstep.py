@@ -9,8 +9,6 @@ parser), flown against the decoding path bit for bit, counters included.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from companion.kernels.jit import jit
