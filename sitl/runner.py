@@ -417,13 +417,15 @@ class BatchRunner:
         """Every link's state word at ``t`` (:mod:`companion.linkstate`): its firmware's flags, the
         companion's carried and left-out links, and the links without power."""
         tracks = {lk.index: lk for engine in self.engines for lk in engine.links}
-        out = np.zeros(self.n, dtype=np.uint8)
+        n = self.n
+        flags, carried, excluded, down = [0] * n, [False] * n, [False] * n, [False] * n
         for i, fw in enumerate(self.firmware):
-            down = i in self._down
+            down[i] = i in self._down
+            flags[i] = 0 if down[i] else fw.flags(t)
             lk = tracks.get(i)
-            out[i] = state_word(0 if down else fw.flags(t), carried=lk is not None and lk.carried.on,
-                                excluded=lk is not None and bool(lk.status), down=down)
-        return out
+            if lk is not None:
+                carried[i], excluded[i] = lk.carried.on, bool(lk.status)
+        return state_word(np.array(flags), carried=np.array(carried), excluded=np.array(excluded), down=np.array(down))
 
     def _sync(self) -> None:
         """The firmware made current before the runner reads or changes it (:class:`~link_firmware_sim.batch.LinkBatch`)."""
