@@ -54,11 +54,6 @@ class LinkBatch:
         #: the links' ticks here that needed their bookkeeping at once or were left to the firmware
         self.counts = {"ticks": 0, "gathers": 0, "ticked": 0, "not_taken": 0}
 
-    @property
-    def gathered(self) -> bool:
-        """Some link's state is held here (its firmware object has an older one)."""
-        return bool(self._held)
-
     def tick(self, t_s: float, gyro: np.ndarray, accel: np.ndarray, commands: np.ndarray,
              skip=frozenset()) -> list[int]:
         """One tick at ``t_s`` of every link, from its body rate ``gyro[i]`` and specific force
