@@ -21,14 +21,22 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-from .sweep import commit, floats
+from .sweep import commit, floats, run_jobs
 
-__all__ = ["phase_grid", "best_phases", "phase_map", "map_lines", "write_sweep", "run_sweep"]
+__all__ = ["phase_grid", "grid_speeds", "best_phases", "phase_map", "map_lines", "write_sweep", "run_sweep"]
 
 
 def phase_grid(n: int) -> np.ndarray:
     """``n`` phases [rad] evenly over ``[-pi, pi)``."""
     return np.arange(n) * 2.0 * math.pi / n - math.pi
+
+
+def grid_speeds(speed, sc, A_deg, B_deg, phi_rad, workers: int = 1, scheduler: str | None = None) -> np.ndarray:
+    """``v_x`` on the grid ``(len(A), len(B), len(phi))``: ``speed((sc, A, B, phi))`` at every point
+    (a module-level function: the points may fly in other processes), flown where
+    :func:`~sitl.scenarios.ground.sweep.run_jobs` says."""
+    jobs = [(sc, a, b, p) for a in A_deg for b in B_deg for p in phi_rad]
+    return np.asarray(run_jobs(speed, jobs, workers, scheduler)).reshape(len(A_deg), len(B_deg), len(phi_rad))
 
 
 def best_phases(v: np.ndarray, phi_rad: np.ndarray) -> np.ndarray:

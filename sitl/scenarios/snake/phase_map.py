@@ -25,8 +25,8 @@ import numpy as np
 
 from companion.motion.oscillators import PhaseMap
 
-from ..ground.phase_sweep import run_sweep
-from ..ground.sweep import parse_sweep, run_jobs, sweep_parser
+from ..ground.phase_sweep import grid_speeds, run_sweep
+from ..ground.sweep import parse_sweep, sweep_parser
 from .config import SnakeScenario
 
 __all__ = ["forward_speed", "sweep", "build_parser", "main"]
@@ -45,10 +45,8 @@ def _speed(args) -> float:
 
 
 def sweep(sc: SnakeScenario, A_deg, B_deg, phi_rad, workers: int = 1, scheduler: str | None = None) -> np.ndarray:
-    """``v_x`` on the grid ``(len(A), len(B), len(phi))``, flown where
-    :func:`~sitl.scenarios.ground.sweep.run_jobs` says."""
-    jobs = [(sc, a, b, p) for a in A_deg for b in B_deg for p in phi_rad]
-    return np.asarray(run_jobs(_speed, jobs, workers, scheduler)).reshape(len(A_deg), len(B_deg), len(phi_rad))
+    """``v_x`` on the grid ``(len(A), len(B), len(phi))`` (:func:`~sitl.scenarios.ground.phase_sweep.grid_speeds`)."""
+    return grid_speeds(_speed, sc, A_deg, B_deg, phi_rad, workers, scheduler)
 
 
 def build_parser() -> argparse.ArgumentParser:
