@@ -68,3 +68,23 @@ def test_the_pivotboard_reads_its_map_of_three_inputs_and_refuses_the_snakes(tmp
     (tmp_path / "map.toml").write_text("[phase]\naxes = [[0.1, 0.5], [0.0]]\nvalues = [1.2, 1.4]\n")
     with pytest.raises(ConfigError, match="phase_map_file"):
         load_pivot_scenario(config)
+
+
+def test_a_sweep_whose_flights_are_too_short_to_average_names_the_points_and_writes_nothing(tmp_path, capsys):
+    from sitl.scenarios.snake.phase_map import main
+
+    out = tmp_path / "map.toml"
+    status = main(["--config", str(ROOT / "configs/sitl/ground/snake.toml"), "--A", "20", "--B", "0",
+                   "--phases", "3", "--duration", "2", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert status == 2 and not out.exists()
+    assert "3 of 3 grid points have no speed" in err and "A=20 B=0 phi=-3.1416" in err and "--duration" in err
+
+
+def test_speedless_points_are_named_by_their_grid_values():
+    from sitl.scenarios.ground.phase_sweep import speedless_points
+
+    v = np.ones((2, 1, 3))
+    v[1, 0, 2] = np.nan
+    assert speedless_points(v, [10.0, 20.0], [5.0], PHI[:3]) == [f"A=20 B=5 phi={PHI[2]:.4f}"]
+    assert speedless_points(np.ones((1, 1, 2)), [1.0], [1.0], PHI[:2]) == []

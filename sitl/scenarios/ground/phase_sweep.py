@@ -10,12 +10,14 @@ map (:func:`phase_map`) is a :class:`~companion.motion.oscillators.PhaseMap` on 
 its values unwrapped along every axis so that its linear interpolation does not cross a 2 pi jump.
 :func:`map_lines` writes it as the TOML table a scenario's ``phase_map_file`` names;
 :func:`write_sweep` writes that file with the sweep's record in its header; :func:`run_sweep` is
-what a robot's sweep command does with its parsed command line.
+what a robot's sweep command does with its parsed command line, refusing a grid with a point that
+has no speed (:func:`speedless_points`).
 """
 
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
@@ -23,7 +25,7 @@ from companion.motion.oscillators import PhaseMap
 
 from .sweep import commit, floats, run_jobs
 
-__all__ = ["phase_grid", "grid_speeds", "best_phases", "phase_map", "map_lines", "write_sweep", "run_sweep"]
+__all__ = ["phase_grid", "grid_speeds", "best_phases", "phase_map", "map_lines", "write_sweep", "speedless_points", "run_sweep"]
 
 
 def phase_grid(n: int) -> np.ndarray:
@@ -86,14 +88,29 @@ def write_sweep(args, title: str, table: str, m: PhaseMap, A_deg, B_deg, phi_rad
     print(f"wrote {args.out}")
 
 
-def run_sweep(args, sc, sweep, table: str, title: str, extra_axes=()) -> None:
+def speedless_points(v: np.ndarray, A_deg, B_deg, phi_rad) -> list[str]:
+    """The grid points of ``v`` (``(len(A), len(B), len(phi))``) with no finite speed, named
+    ``"A=.. B=.. phi=.."`` (a flight too short for its averaging window, or one that diverged)."""
+    return [f"A={A_deg[i]:g} B={B_deg[j]:g} phi={phi_rad[k]:.4f}" for i, j, k in zip(*np.nonzero(~np.isfinite(v)))]
+
+
+def run_sweep(args, sc, sweep, table: str, title: str, extra_axes=()) -> int:
     """A sweep command's work: the ``(A, B)`` grid of ``args`` [deg] and its ``phases``, the speeds
     ``sweep(sc, A, B, phi, workers, scheduler)`` flies, their best phases, and the map (on ``A``,
     ``B`` [rad] and ``extra_axes``, each of one point: constant along it) written as ``[table]``
-    with ``title`` (:func:`write_sweep`)."""
+    with ``title`` (:func:`write_sweep`). Returns the exit status: 2, with nothing written and the
+    points named, when a point has no speed (:func:`speedless_points`)."""
     A, B = floats(args.A), floats(args.B)
     phi = phase_grid(args.phases)
     v = sweep(sc, A, B, phi, args.workers, args.scheduler)
+    missing = speedless_points(v, A, B, phi)
+    if missing:
+        shown = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
+        print(f"error: {len(missing)} of {v.size} grid points have no speed ({shown}); no map written. "
+              f"A flight of --duration {args.duration:g} s may be shorter than the window its speed is "
+              "averaged over: give a longer --duration.", file=sys.stderr)
+        return 2
     best = best_phases(v, phi)
     m = phase_map((np.radians(A), np.radians(B), *extra_axes), best.reshape(best.shape + (1,) * len(extra_axes)))
     write_sweep(args, title, table, m, A, B, phi, v, best, commit())
+    return 0

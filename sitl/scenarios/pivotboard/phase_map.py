@@ -72,10 +72,9 @@ def main(argv=None) -> int:
     args, sc = parse_sweep(build_parser(), argv, "pivotboard")
     if sc is None:
         return 2
-    run_sweep(args, sc, sweep, "phase",
-              f"eq. 4.1 for {sc.name}: phi(A, B, v_dot_d >= 0) maximising v_x; "
-              "python -m sitl.scenarios.pivotboard.phase_map", extra_axes=((0.0,),))
-    return 0
+    return run_sweep(args, sc, sweep, "phase",
+                      f"eq. 4.1 for {sc.name}: phi(A, B, v_dot_d >= 0) maximising v_x; "
+                      "python -m sitl.scenarios.pivotboard.phase_map", extra_axes=((0.0,),))
 
 
 if __name__ == "__main__":

@@ -61,10 +61,9 @@ def main(argv=None) -> int:
     args, sc = parse_sweep(build_parser(), argv, "snake")
     if sc is None:
         return 2
-    run_sweep(args, sc, sweep, "phase_hv",
-              f"eq. 4.1 for {sc.name}: phi_hv(A, B) maximising v_x; "
-              "python -m sitl.scenarios.snake.phase_map")
-    return 0
+    return run_sweep(args, sc, sweep, "phase_hv",
+                      f"eq. 4.1 for {sc.name}: phi_hv(A, B) maximising v_x; "
+                      "python -m sitl.scenarios.snake.phase_map")
 
 
 if __name__ == "__main__":
