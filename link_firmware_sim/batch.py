@@ -1,9 +1,11 @@
 """Every link's quiet ticks in one kernel call, for a simulator that runs all links' firmware in one
 process (the batch mode).
 
-Between two of the simulator's touches of the firmware (a measurement fed, a companion output, a
-log row), most ticks of most links are quiet (:mod:`.kernels.quiet`): their bookkeeping outside the
-kernels changes nothing but the newest values. :class:`LinkBatch` takes those links' kernel state
+Between two of the simulator's touches of the firmware (a GPS fix, a barometer or magnetometer
+sample fed, a companion output, a log row), most ticks of most links are quiet
+(:mod:`.kernels.quiet`): their bookkeeping outside the kernels changes nothing but the newest values
+(a tick may bring an attitude reference: the kernel fuses it as the firmware's fused tick does, and
+counts it). :class:`LinkBatch` takes those links' kernel state
 into stacked arrays at the first such tick (:meth:`LinkBatch.tick` gathers it), runs each tick of
 all of them as one call of :func:`~.kernels.batch_tick.links_tick_kernel`, and gives the state
 back, with the newest tick's bookkeeping, when the simulator is about to touch the firmware again
@@ -21,7 +23,8 @@ from companion.kernels.jit import ENABLED
 from .kernels.batch_tick import (BANK_AST, BANK_BP, BANK_CMD, BANK_CTL, BANK_IO, BANK_NX, BANK_NX_MAX, BANK_P,
                                  BANK_PAR, BANK_RBS, BANK_SIZE, BANK_X, BATCH_OFF, BATCH_QUIET, BATCH_TICKED,
                                  links_tick_kernel)
-from .kernels.layouts import ALLOC_SIZE, CTL_SIZE, EKF_SIZE, IN_SIZE, IO_SIZE, IO_STATUS, IO_TICKS
+from .kernels.layouts import (ALLOC_SIZE, CTL_SIZE, EKF_SIZE, IN_SIZE, IO_AHRS_ACCEPTED, IO_AHRS_REJECTED, IO_SIZE,
+                              IO_STATUS, IO_TICKS)
 
 __all__ = ["ENABLED", "LinkBatch"]
 
@@ -50,23 +53,26 @@ class LinkBatch:
         self._held: dict = {}  # link -> its firmware, of the links in the batch while gathered
         self._own: list[int] = []  # the links the caller ticks itself until the next gather
         self._open = False  # gathered since the last sync
+        self._no_att = np.zeros((0, 4))
         #: kernel calls, gathers (how often the caller's touches interrupt a run of quiet ticks), and
         #: the links' ticks here that needed their bookkeeping at once or were left to the firmware
         self.counts = {"ticks": 0, "gathers": 0, "ticked": 0, "not_taken": 0}
 
     def tick(self, t_s: float, gyro: np.ndarray, accel: np.ndarray, commands: np.ndarray,
-             skip=frozenset()) -> list[int]:
+             skip=frozenset(), att: np.ndarray | None = None) -> list[int]:
         """One tick at ``t_s`` of every link, from its body rate ``gyro[i]`` and specific force
-        ``accel[i]`` (n, 3 each, body frame): the quiet ones here, their thrust commands written to
-        ``commands[i]`` (n, 8). Returns the links the caller ticks itself this time (its firmware's
-        ``on_imu``), in order: those in ``skip`` (links the caller treats apart, e.g. without power),
-        those not in the quiet case, those whose tick here was not quiet. A link whose tick here
-        needed its bookkeeping has had it, events included (``firmware[i].events``)."""
+        ``accel[i]`` (n, 3 each, body frame) and, when given, the attitude reference ``att[i]`` (n,
+        4) fused first: the quiet ones here, their thrust commands written to ``commands[i]`` (n,
+        8). Returns the links the caller ticks itself this time (its firmware's ``on_imu``, after
+        its ``on_attitude`` when ``att`` is given), in order: those in ``skip`` (links the caller
+        treats apart, e.g. without power), those not in the quiet case, those whose tick here was
+        not quiet. A link whose tick here needed its bookkeeping has had it, events included
+        (``firmware[i].events``)."""
         if not self._open:
             self._gather(skip)
         if not self._held:
             return self._own
-        left = links_tick_kernel(self.bank, gyro, accel, t_s, commands)
+        left = links_tick_kernel(self.bank, gyro, accel, t_s, commands, self._no_att if att is None else att)
         counts = self.counts
         counts["ticks"] += 1
         own = self._own
@@ -137,6 +143,13 @@ class LinkBatch:
             return None
         io = self._io[i]
         io[IO_STATUS] = BATCH_OFF
+        accepted, rejected = int(io[IO_AHRS_ACCEPTED]), int(io[IO_AHRS_REJECTED])
+        if accepted or rejected:  # (a rejection ends the link's run here: it comes last)
+            io[IO_AHRS_ACCEPTED] = io[IO_AHRS_REJECTED] = 0.0
+            if accepted:
+                fw.ekf.count_attitude(accepted, 0)
+            if rejected:
+                fw.ekf.count_attitude(0, rejected)
         if io[IO_TICKS] == 0.0:
             return None
         row = self.bank[i]

@@ -490,8 +490,9 @@ class BatchRunner:
 
     def _firmware_tick(self, k: int, t: float, truth, commands: np.ndarray, fw_dt: float, batch) -> None:
         """A firmware tick at physics tick ``k``: the faults due, the measurements due fed, the IMU
-        sample to every link's firmware (the quiet ones' in one call of ``batch``, when given) and
-        their thrust commands written to ``commands``, their events reported."""
+        sample to every link's firmware (the quiet ones' in one call of ``batch``, when given, with
+        the attitude reference when it is the only measurement due) and their thrust commands
+        written to ``commands``, their events reported."""
         plant, sch, sensors = self.plant, self.schedule, self.plant.sensors
         if self.reboot.kill:
             self._link_reboot(t, commands)
@@ -501,9 +502,11 @@ class BatchRunner:
         j = self.inject.link - 1  # the injected link (-1: none)
         down, booting = self._down, self._boot_fix  # no power; powered, no EKF yet
         log_row = k % sch.log == 0
-        fed = (k % sch.gps == 0 or k % sch.att == 0 or (sensors.has_baro and k % sch.baro == 0)
-               or (sensors.has_mag and k % sch.mag == 0))
-        if fed or log_row:
+        att_due = k % sch.att == 0
+        fed = (k % sch.gps == 0 or (sensors.has_baro and k % sch.baro == 0)
+               or (sensors.has_mag and k % sch.mag == 0))  # (measurements the firmware takes itself)
+        batched = batch is not None and not fed
+        if fed or (not batched and (att_due or log_row)):
             self._sync()
         if k % sch.gps == 0:
             pos, vel = sensors.gps(t, truth.p_w_m, truth.v_w_m_s)
@@ -517,11 +520,13 @@ class BatchRunner:
             for i, fw in enumerate(self.firmware):
                 if has_fix[i] and i not in down and not self._boot(i, t, fix=(pos[i], vel[i])):
                     fw.on_gps(t, pos[i], vel[i])
-        if k % sch.att == 0:
+        att, att_links = None, ()
+        if att_due:
             att = sensors.attitude(t, truth.q_wxyz)
-            for i, fw in enumerate(self.firmware):
-                if i not in down and not self._boot(i, t, att=att[i]):
-                    fw.on_attitude(t, att[i])
+            att_links = [i for i in range(self.n) if i not in down and not self._boot(i, t, att=att[i])]
+            if not batched:
+                for i in att_links:
+                    self.firmware[i].on_attitude(t, att[i])
         baro, mag = plant.baro_mag(k, sch, truth)
         if baro is not None:
             for i, fw in enumerate(self.firmware):
@@ -535,17 +540,25 @@ class BatchRunner:
         if failures is not None and failures.imu_or_motor:
             gyro, accel = gyro.copy(), accel.copy()
             gyro[j], accel[j] = failures.imu(gyro[j], accel[j])
-        if batch is not None and not (fed or log_row):
-            links = batch.tick(t, gyro, accel, commands, self._batch_skip(j))
+        if batched:
+            links = batch.tick(t, gyro, accel, commands, self._batch_skip(j), att)
+            if att_due:  # (the links the batch left to their firmware take the reference there)
+                for i in set(links).intersection(att_links):
+                    self.firmware[i].on_attitude(t, att[i])
         else:
             links = range(self.n)
         for i in links:
             fw = self.firmware[i]
             commands[i] = 0.0 if i in down else fw.on_imu(t, gyro[i], accel[i])
-            if log_row and i not in down:  # (a vehicle: on its stream and log rows)
+            if log_row and not batched and i not in down:  # (a vehicle: on its stream and log rows)
                 fw.watch_imu(t)
             if i == j and failures.imu_or_motor:
                 commands[i] = failures.thrust(commands[i])
+        if batched and log_row:
+            self._sync()
+            for i, fw in enumerate(self.firmware):
+                if i not in down:
+                    fw.watch_imu(t)
         for i, fw in enumerate(self.firmware):
             if fw.events:  # GPS health, thrust limit (a vehicle sends them as STATUSTEXT)
                 for ev in fw.events:

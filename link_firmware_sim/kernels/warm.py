@@ -62,5 +62,6 @@ def warm_up() -> float:
     load(sensor_records, 1, np.zeros((2, HIL_SENSOR_RECORD["floats"])), 1, records)
     load(records_to_frames, records[0], 1, buf, framing)
     n = 2  # (any number of links: the same types)
-    load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)))
+    load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)),
+         np.zeros((0, 4)))
     return time.perf_counter() - t0
