@@ -37,21 +37,32 @@ from .estimation.semi import (
     shifted_covariance,
 )
 from .estimation.so3 import attitude_error, quat_from_rotvec, quat_mul
+from .kernels.align import align_kernel, attitude_errors_kernel
+from .kernels.jit import ENABLED as _COMPILED
 from .messages import Correction, LinkState
 
 __all__ = ["align_states", "compute_corrections", "LocalStep", "local_step", "finish_step"]
 
 
-def align_states(states: Sequence[LinkState], t: float | None = None) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Propagate every state to time ``t`` (default: the newest stamp): ``(t, p (n,3), v (n,3), q (n,4))``."""
+def align_states(states: Sequence[LinkState], t: float | None = None,
+                 compiled: bool | None = None) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Propagate every state to time ``t`` (default: the newest stamp): ``(t, p (n,3), v (n,3), q (n,4))``.
+
+    The numpy code below is the specification; ``compiled`` (default: when numba is installed)
+    propagates by :func:`companion.kernels.align.align_kernel` (the same numbers to 1e-15:
+    ``tests/unit/test_fast_paths.py``)."""
     if t is None:
         t = max(s.time_s for s in states)
-    dt = np.array([t - s.time_s for s in states])[:, None]
-    p = np.array([s.p_w_m for s in states]) + np.array([s.v_w_m_s for s in states]) * dt
+    p = np.array([s.p_w_m for s in states])
     v = np.array([s.v_w_m_s for s in states])
     w = np.array([s.omega_b_rad_s for s in states])
-    q = quat_mul(np.array([s.q_wxyz for s in states]), quat_from_rotvec(w * dt))
-    return t, p, v, q
+    q = np.array([s.q_wxyz for s in states])
+    if _COMPILED if compiled is None else compiled:
+        p_out, q_out = np.empty_like(p), np.empty_like(q)
+        align_kernel(float(t), np.array([s.time_s for s in states], dtype=float), p, v, q, w, p_out, q_out)
+        return t, p_out, v, q_out
+    dt = np.array([t - s.time_s for s in states])[:, None]
+    return t, p + v * dt, v, quat_mul(q, quat_from_rotvec(w * dt))
 
 
 def compute_corrections(
@@ -78,12 +89,18 @@ def compute_corrections(
     return result, _deltas(states, p, v, q, result.p, result.v, result.q, seq)
 
 
-def _deltas(states, p, v, q, p_out, v_out, q_out, seq: int) -> list[Correction]:
-    """Corrections against the aligned states: the link adds them to its EKF output."""
-    dtheta = attitude_error(q_out, q)
+def _deltas(states, p, v, q, p_out, v_out, q_out, seq: int, compiled: bool | None = None) -> list[Correction]:
+    """Corrections against the aligned states: the link adds them to its EKF output. ``compiled``
+    (default: when numba is installed): the attitude part by
+    :func:`companion.kernels.align.attitude_errors_kernel` instead of ``so3.attitude_error``."""
+    if _COMPILED if compiled is None else compiled:
+        dtheta = np.empty((len(states), 3))
+        attitude_errors_kernel(np.ascontiguousarray(q_out, dtype=float), np.ascontiguousarray(q, dtype=float), dtheta)
+    else:
+        dtheta = attitude_error(q_out, q)
+    dp, dv = p_out - p, v_out - v
     return [
-        Correction(link=s.link, ekf_time_s=s.time_s, dp_w_m=p_out[i] - p[i], dv_w_m_s=v_out[i] - v[i],
-                   dtheta_w_rad=dtheta[i], seq=seq)
+        Correction(link=s.link, ekf_time_s=s.time_s, dp_w_m=dp[i], dv_w_m_s=dv[i], dtheta_w_rad=dtheta[i], seq=seq)
         for i, s in enumerate(states)
     ]
 

@@ -138,8 +138,10 @@ class CAResult:
 def block_diag_covariance(P_blocks: np.ndarray) -> np.ndarray:
     """Stacked block-diagonal ``(..., 9n, 9n)`` covariance from ``(..., n, 9, 9)`` blocks."""
     n = P_blocks.shape[-3]
-    full = np.einsum("...ikl,ij->...ikjl", P_blocks, np.eye(n))
-    return full.reshape(P_blocks.shape[:-3] + (ERR_DIM * n, ERR_DIM * n))
+    full = np.zeros(P_blocks.shape[:-3] + (ERR_DIM * n, ERR_DIM * n))
+    for i in range(n):
+        full[..., ERR_DIM * i:ERR_DIM * (i + 1), ERR_DIM * i:ERR_DIM * (i + 1)] = P_blocks[..., i, :, :]
+    return full
 
 
 def diagonal_blocks(P_full: np.ndarray) -> np.ndarray:
@@ -236,23 +238,30 @@ def dense_prior(P: np.ndarray, n: int) -> np.ndarray:
 
 
 def _constraint_apply_compiled(p, v, q, w, d, PE, params: CAParams) -> list[CAResult]:
-    """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain)."""
+    """:func:`constraint_apply_dense_batched` by the compiled kernel (one call for every chain, with
+    :func:`_ca_results`' covariance terms)."""
     G, n = p.shape[:2]
     N = ERR_DIM * n
     p, v, q = (np.array(x, dtype=float) for x in (p, v, q))  # the kernel updates them in place
     w, d = (as_kernel_array(x, (G, n, 3)) for x in (w, d))  # (it only reads these and P)
     history = np.empty((G, params.max_iter + 1))
     Pc, j, KD = np.empty((G, N, N)), np.empty(G, dtype=np.int64), np.empty((G, N, 3 * n))
+    blocks, ends, W_ends = np.empty((G, n, ERR_DIM, ERR_DIM)), np.empty((G, 2, n, ERR_DIM, ERR_DIM)), np.empty(
+        (G, 2, n, ERR_DIM, 3))
     rate = params.omega_std_rad_s > 0.0 and n > 1
     PE = as_kernel_array(PE, (G, N, N))
-    constraint_apply_batched_kernel((p, v, q, w, d), PE, (float(params.alpha), float(params.eps), int(params.max_iter),
-                                                         rate), history, (Pc, j, KD))
-    return _ca_results(p, v, q, Pc, j, [history[g, :j[g] + 1] for g in range(G)], KD if rate else None, params)
+    settings = (float(params.alpha), float(params.eps), int(params.max_iter), rate, float(params.omega_std_rad_s**2))
+    constraint_apply_batched_kernel((p, v, q, w, d), PE, settings, history, (Pc, j, KD, blocks, ends, W_ends))
+    eps = params.eps
+    return [CAResult(p=p[g], v=v[g], q=q[g], P=blocks[g], iterations=int(j[g]), residual_history=history[g, :j[g] + 1],
+                     converged=bool(history[g, j[g]] <= eps), P_full=Pc[g], P_ends=ends[g],
+                     W_ends=W_ends[g] if rate else None, omega_std_rad_s=params.omega_std_rad_s) for g in range(G)]
 
 
 def _ca_results(p, v, q, Pc, iterations, histories, KD, params: CAParams) -> list[CAResult]:
-    """The results of ``G`` chains' Alg. 1 (both paths): the rate noise's covariance term and
-    cross-covariances from its gain ``KD`` (``None``: the rates count as exact), the blocks."""
+    """The results of ``G`` chains' Alg. 1: the rate noise's covariance term and cross-covariances
+    from its gain ``KD`` (``None``: the rates count as exact), the blocks (the compiled path
+    computes the same terms in its kernel, :func:`companion.kernels.sckf.covariance_terms`)."""
     n = p.shape[1]
     W_ends = None
     if KD is not None:

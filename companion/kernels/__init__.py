@@ -10,6 +10,7 @@ plain loops over scalars; ``tests/unit/test_fast_paths.py`` compares the two.
 * :mod:`.so3`: the scalar quaternion and rotation kernels the others share;
 * :mod:`.constraints`, :mod:`.sckf`, :mod:`.gate`, :mod:`.semi`: the chain constraint (eq. 3, 4),
   Alg. 1, the joint gate and the semi-decentralised group terms;
+* :mod:`.align`: the step's time alignment of the link states and its corrections' attitudes;
 * :mod:`.dynamics`: the chain's inverse dynamics (the feed-forward);
 * :mod:`.trajectory`: a bending chain's targets;
 * :mod:`.warm`: compiles (or loads from numba's cache) every kernel of this package.

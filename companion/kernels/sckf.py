@@ -12,7 +12,7 @@ from .constraints import CD, CV, ED, EP, ETH, EV, body_tip_rates, jacobian, resi
 from .jit import jit
 from .so3 import quat_mul, rotmat_quadratic_into, small_angle_quat
 
-__all__ = ["constraint_apply_kernel", "constraint_apply_batched_kernel"]
+__all__ = ["constraint_apply_kernel", "covariance_terms", "constraint_apply_batched_kernel"]
 
 
 @jit
@@ -96,13 +96,46 @@ def constraint_apply_kernel(chain, PE, settings, history):
 
 
 @jit
+def covariance_terms(Pc, KD, s2, rate, blocks, ends, W_ends):
+    """``sckf._ca_results``' covariance terms of one chain, in place: with ``rate``, ``Pc``
+    (9n, 9n) takes the body-rate noise ``s2 sym(KD KD^T)`` (``s2`` the noise's variance); then
+    ``blocks`` (n, 9, 9) <- its diagonal blocks, ``ends`` (2, n, 9, 9) <- its columns of the first
+    and the last link, and (with ``rate``) ``W_ends`` (2, n, 9, 3) <- ``-s2`` times ``KD``'s
+    columns of the first and the last link's rate."""
+    N = Pc.shape[0]
+    n = N // ED
+    if rate:
+        Q = KD @ np.ascontiguousarray(KD.T)
+        for r in range(N):
+            for c in range(N):
+                Pc[r, c] = Pc[r, c] + s2 * (0.5 * (Q[r, c] + Q[c, r]))
+    last = ED * (n - 1)
+    for i in range(n):
+        o = ED * i
+        for r in range(ED):
+            for c in range(ED):
+                blocks[i, r, c] = Pc[o + r, o + c]
+                ends[0, i, r, c] = Pc[o + r, c]
+                ends[1, i, r, c] = Pc[o + r, last + c]
+            if rate:
+                for c in range(3):
+                    W_ends[0, i, r, c] = -s2 * KD[o + r, c]
+                    W_ends[1, i, r, c] = -s2 * KD[o + r, 3 * (n - 1) + c]
+
+
+@jit
 def constraint_apply_batched_kernel(chains, PE, settings, history, out):
-    """:func:`constraint_apply_kernel` on ``G`` chains of equal length: ``chains`` its ``chain``
-    with a leading axis ``G`` on every array, as ``PE`` (G, 9n, 9n) and ``history`` (G, max_iter +
-    1); ``out = (Pc, iterations, KD)`` gets each chain's corrected covariance (G, 9n, 9n),
-    iterations (G,) and rate-noise gain (G, 9n, 3n)."""
+    """:func:`constraint_apply_kernel` on ``G`` chains of equal length, then their
+    :func:`covariance_terms`: ``chains`` its ``chain`` with a leading axis ``G`` on every array, as
+    ``PE`` (G, 9n, 9n) and ``history`` (G, max_iter + 1); ``settings = (alpha, eps, max_iter,
+    rate_gain, s2)`` (``s2`` the body-rate noise's variance, used with ``rate_gain``); ``out = (Pc,
+    iterations, KD, blocks, ends, W_ends)`` gets each chain's corrected covariance (G, 9n, 9n)
+    with the rate noise, iterations (G,), rate-noise gain (G, 9n, 3n), diagonal blocks (G, n, 9,
+    9), end columns (G, 2, n, 9, 9) and rate end columns (G, 2, n, 9, 3; with ``rate_gain``)."""
     p, v, q, w, d = chains
-    Pc, iterations, KD = out
+    alpha, eps, max_iter, rate, s2 = settings
+    Pc, iterations, KD, blocks, ends, W_ends = out
     for g in range(p.shape[0]):
-        Pc[g], iterations[g], KD[g] = constraint_apply_kernel((p[g], v[g], q[g], w[g], d[g]), PE[g], settings,
-                                                              history[g])
+        Pc[g], iterations[g], KD[g] = constraint_apply_kernel((p[g], v[g], q[g], w[g], d[g]), PE[g],
+                                                              (alpha, eps, max_iter, rate), history[g])
+        covariance_terms(Pc[g], KD[g], s2, rate, blocks[g], ends[g], W_ends[g])

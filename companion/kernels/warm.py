@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from .align import align_kernel, attitude_errors_kernel
 from .dynamics import feedforward_kernel
 from .gate import joint_nis_kernel
 from .jit import ENABLED
@@ -43,11 +44,14 @@ def warm_up() -> float:
     load(feedforward_kernel, (v3, v3, v3, v3), m3, np.zeros((n - 1, 3)), (np.zeros(3), np.zeros(3), 1.0, 9.8, 2.0),
          np.ones(n), (v3, v3, np.zeros((n - 1, 3)), np.zeros((n, 6))))
     stacked = tuple(a[None].copy() for a in chain)
-    load(constraint_apply_batched_kernel, stacked, np.zeros((G, 9 * n, 9 * n)), (1.0, 1e-9, 20, True), np.zeros((G, 21)),
-         (np.zeros((G, 9 * n, 9 * n)), np.zeros(G, dtype=np.int64), np.zeros((G, 9 * n, 3 * n))))
+    load(constraint_apply_batched_kernel, stacked, np.zeros((G, 9 * n, 9 * n)), (1.0, 1e-9, 20, True, 1e-4),
+         np.zeros((G, 21)), (np.zeros((G, 9 * n, 9 * n)), np.zeros(G, dtype=np.int64), np.zeros((G, 9 * n, 3 * n)),
+                             np.zeros((G, n, 9, 9)), np.zeros((G, 2, n, 9, 9)), np.zeros((G, 2, n, 9, 3))))
     load(joint_nis_kernel, chain, P, 0.01, 0.01, np.zeros(n - 1))
     load(group_terms_kernel, chain, P, (np.zeros((2, n, 9, 9)), np.zeros((2, n, 9, 3))), True, 1e-4,
          (np.zeros((2, 6)), np.zeros((6, 6)), np.zeros((12, 12)), np.zeros((n, 12, 9))))
+    load(align_kernel, 1.0, np.zeros(n), v3, v3, np.zeros((n, 4)), v3, v3, np.zeros((n, 4)))
+    load(attitude_errors_kernel, np.zeros((n, 4)), np.zeros((n, 4)), v3)
     load(trajectory_kernel, np.zeros(5), np.zeros((5, 3)), (np.zeros(n), np.zeros(4), np.zeros(3)), 1e-3,
          (v3, np.zeros((n, 4)), m3, v3, v3, v3, v3))
     return time.perf_counter() - t0

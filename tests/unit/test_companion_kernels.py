@@ -108,7 +108,8 @@ def _ekf_like_covariances(rng, n: int) -> np.ndarray:
 @pytest.mark.parametrize("n_links", [1, 2, 3, 4, 7])
 @pytest.mark.parametrize("omega_std", [0.0, 0.02])
 def test_constraint_apply_kernel_matches_numpy(n_links, omega_std):
-    """companion.kernels.sckf.constraint_apply_kernel (Alg. 1 on one chain, with the body-rate noise gain)
+    """companion.kernels.sckf.constraint_apply_kernel (Alg. 1 on one chain, with the body-rate noise gain) and
+    covariance_terms
     against constraint_apply_dense's numpy specification on random chains: the same iteration
     count and every output to 1e-12 of its largest entry."""
     from companion.estimation.sckf import CAParams, constraint_apply_dense
@@ -207,6 +208,51 @@ def test_local_boundary_kernel_matches_numpy(n_links, omega_std):
     assert (with_rate_columns > 0) == (omega_std > 0 and n_links > 1)
 
 
+@pytest.mark.parametrize("n_links", [1, 2, 3, 7])
+def test_align_kernel_matches_numpy(n_links):
+    """companion.kernels.align.align_kernel against align_states' numpy specification: link states
+    stamped up to 50 ms apart, body rates up to 8 rad/s and the tiny angles of the Taylor branch,
+    aligned to the newest stamp or a given time: to 1e-15; equal stamps move nothing, bit for bit."""
+    from companion.corrections import align_states
+    from companion.messages import LinkState
+
+    rng = np.random.default_rng(91 + n_links)
+    for k in range(N_CASES):
+        rate = rng.choice([1e-10, 0.2, 8.0])
+        states = [LinkState(i, 10.0 + rng.uniform(-0.05, 0.0) * (k % 3 != 0), rng.normal(size=3), rng.normal(size=3),
+                            quat_normalize(rng.normal(size=4)), rng.normal(size=3) * rate, np.eye(9))
+                  for i in range(n_links)]
+        t = None if k % 2 else 10.0 + rng.uniform(0.0, 0.02)
+        spec = align_states(states, t, compiled=False)
+        fast = align_states(states, t, compiled=True)
+        assert spec[0] == fast[0]
+        for a, b in zip(fast[1:], spec[1:]):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-15 * max(1.0, float(np.abs(b).max())))
+        if k % 3 == 0 and t is None:  # (every stamp 10.0: nothing to propagate)
+            for a, b in zip(fast[1:], spec[1:]):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_attitude_errors_kernel_matches_numpy():
+    """companion.kernels.align.attitude_errors_kernel against so3.attitude_error of stacked
+    quaternions, from equal attitudes to half turns and a sign-flipped twin: to 1e-14 rad."""
+    from companion.estimation.so3 import attitude_error, quat_from_rotvec, quat_mul
+    from companion.kernels.align import attitude_errors_kernel
+
+    rng = np.random.default_rng(97)
+    q_from = quat_normalize(rng.normal(size=(200, 4)))
+    turn = rng.normal(size=(200, 3)) * rng.choice([0.0, 1e-9, 1e-3, 0.5, 3.1], size=(200, 1))
+    q_to = quat_mul(quat_from_rotvec(turn), q_from)
+    q_to[::7] *= -1.0  # (the same attitude)
+    out = np.empty((200, 3))
+    attitude_errors_kernel(q_to, q_from, out)
+    np.testing.assert_allclose(out, attitude_error(q_to, q_from), rtol=0, atol=1e-14)
+    inside = np.linalg.norm(turn, axis=1) < 3.0  # (the turn itself, where it is not wrapped past pi)
+    inside[::7] = False
+    np.testing.assert_allclose(out[inside], turn[inside], rtol=0, atol=1e-9)
+
+
 def test_kernel_arrays_pass_through_or_copy_to_one_layout():
     """companion.kernels.jit.as_kernel_array: a C-contiguous writeable float64 array of the shape is
     passed as is; anything else (read-only, transposed, broadcast, integer) becomes one, so every
@@ -233,14 +279,16 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
     from companion.estimation.gate import joint_nis
     from companion.estimation.sckf import CAParams, constraint_apply
     from companion.estimation.semi import local_boundary
-    from companion.kernels import dynamics, gate, sckf, semi, trajectory, warm
+    from companion.corrections import align_states, compute_corrections
+    from companion.kernels import align, dynamics, gate, sckf, semi, trajectory, warm
+    from companion.messages import LinkState
     from companion.skeleton.body import SkeletonConfig
     from companion.skeleton.dynamics import ChainModel
     from companion.trajectory import ChainTrajectory, TrajectoryConfig
 
     warm.warm_up()
     kernels = (dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel, gate.joint_nis_kernel,
-               semi.group_terms_kernel, trajectory.trajectory_kernel)
+               semi.group_terms_kernel, trajectory.trajectory_kernel, align.align_kernel, align.attitude_errors_kernel)
     before = [list(k.signatures) for k in kernels]
     rng = np.random.default_rng(5)
     traj = ChainTrajectory(TrajectoryConfig(kind="bend"), 3, 1.0, np.zeros(3))
@@ -251,6 +299,9 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
         local = constraint_apply(p, v, q, w, d, P, CAParams(omega_std_rad_s=omega_std))
         local_boundary(local.p, local.v, local.q, w, d, local)
         joint_nis(p, v, q, w, d, P)
+        states = [LinkState(i, 1.0, p[i], v[i], q[i], w[i], P[i]) for i in range(3)]
+        align_states(states, 1.01)
+        compute_corrections(states, d, [(0, 1, 2)], CAParams(omega_std_rad_s=omega_std))
     for k, sigs in zip(kernels, before):
         assert list(k.signatures) == sigs, k.__name__
 
