@@ -352,9 +352,10 @@ class CompanionDaemon:
         waitables = list(self.ports)
         if self.net is not None:
             waitables.append(self.net)
-            due = self.engine.next_deadline_s()
+            now = self.clock()
+            due = self.engine.next_deadline_s(now)
             if due is not None:
-                timeout_s = min(timeout_s, max(due - self.clock(), 0.0))
+                timeout_s = min(timeout_s, max(due - now, 0.0))
         ready = wait_readable(waitables, timeout_s)
         for row, port in enumerate(self.ports):
             if port in ready:

@@ -205,9 +205,9 @@ class CompanionEngine:
         return self.admission.on_state(self.links[row], state, flags, now_s, correction_seq, correction_latency_us)
 
     # -- the loop ----------------------------------------------------------------------------------
-    def next_deadline_s(self) -> float | None:
-        """When :meth:`poll` next has something to do without new input (the network's deadlines)."""
-        return self.net.next_deadline_s() if self.net is not None else None
+    def next_deadline_s(self, now_s: float) -> float | None:
+        """When, from ``now_s`` on, :meth:`poll` next has something to do without new input (the network's deadlines)."""
+        return self.net.next_deadline_s(now_s) if self.net is not None else None
 
     def needs_poll(self, now_s: float) -> bool:
         """Whether :meth:`poll` at ``now_s`` has anything to do: an input since the last poll (a

@@ -58,8 +58,9 @@ class GroupLink:
     def fileno(self) -> int:
         return self.bus.fileno()
 
-    def next_deadline_s(self) -> float | None:
-        return self.node.next_deadline_s()
+    def next_deadline_s(self, now_s: float) -> float | None:
+        """When :meth:`pump` next has something to do without new input (:meth:`GlobalStepNode.next_deadline_s`)."""
+        return self.node.next_deadline_s(now_s)
 
     def needs_pump(self, now_s: float) -> bool:
         """Whether :meth:`pump` at ``now_s`` has anything to do: an event waiting on the bus or a

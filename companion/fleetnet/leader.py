@@ -407,19 +407,39 @@ class GlobalStepNode:
                         self.handover = None
         return out
 
-    def next_deadline_s(self) -> float | None:
-        """The earliest time :meth:`tick` has something to do (``None``: nothing pending)."""
-        times = [first + self.leader_wait_s for c, first in self.first_report_s.items() if c not in self.settled]
+    def next_deadline_s(self, now_s: float) -> float | None:
+        """The earliest time after ``now_s`` (or at it) when :meth:`tick` may have something to do
+        (``None``: nothing pending): a cycle reaching ``leader_wait_s``, once more when this group
+        leads it; the shift's deadline. A cycle that has waited and another group leads gives no
+        deadline (its shift, or that group leaving, comes as an input), except the end of a startup
+        window, when the clock alone may make this group its leader: a caller that sleeps until the
+        deadline never wakes in a loop while the leader computes."""
+        times = []
+        led_elsewhere = False
+        for cycle, first in self.first_report_s.items():
+            if cycle in self.settled:
+                continue
+            due = first + self.leader_wait_s
+            if due > now_s or self._leads(cycle, now_s):
+                times.append(due)
+            else:
+                led_elsewhere = True
+        if led_elsewhere:
+            ends = [since + self.startup_s for g, since in self._live_since.items() if g in self.live]
+            if self.started_s is not None:
+                ends.append(self.started_s + self.startup_s)
+            times.extend(t for t in ends if t > now_s)
         if self.pending is not None:
             times.append(self.pending.published_s + self.shift_deadline_s)
         return min(times) if times else None
 
     def due(self, now_s: float) -> bool:
-        """Whether :meth:`tick` at ``now_s`` may have something to do: a cycle has waited
-        ``leader_wait_s`` (whether this group leads it or not), or the shift is overdue (the same
-        tests as :meth:`tick`'s; ``False``: a tick would change nothing)."""
+        """Whether :meth:`tick` at ``now_s`` may have something to do: a cycle this group leads has
+        waited ``leader_wait_s``, or the shift is overdue (the same tests as :meth:`tick`'s;
+        ``False``: a tick would change nothing)."""
         return self._shift_overdue(now_s) or any(
-            self._waited(cycle, first, now_s) for cycle, first in self.first_report_s.items())
+            self._waited(cycle, first, now_s) and self._leads(cycle, now_s)
+            for cycle, first in self.first_report_s.items())
 
     def _waited(self, cycle: int, first_s: float, now_s: float) -> bool:
         """A cycle not settled whose first report came ``leader_wait_s`` ago or more."""

@@ -53,7 +53,7 @@ def _group_main(group: int, endpoints: tuple[str, ...], prefix: str, period_us: 
     next_cycle = int(math.ceil(start_s * 1e6 / period_us)) * period_us
     try:
         while (now := time.monotonic()) < end_s:
-            due = min(next_cycle * 1e-6, link.next_deadline_s() or math.inf, end_s)
+            due = min(next_cycle * 1e-6, link.next_deadline_s(now) or math.inf, end_s)
             select.select([link], [], [], max(due - now, 0.0))
             now = time.monotonic()
             resolved = link.pump(now)

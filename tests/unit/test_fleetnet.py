@@ -259,3 +259,26 @@ def test_the_payload_queue_hands_over_in_order_and_counts_what_overflows():
     assert list(q.take()) == [(b"\x00", "p/link/0/neighbour"), (b"\x01", "p/link/1/neighbour")] and q.overflow == 1
     q.on_sample(sample(5))
     assert list(q.take()) == [(b"\x05", "p/link/5/neighbour")] and list(q.take()) == []
+
+
+def test_a_group_waiting_for_the_leaders_shift_sleeps_until_its_deadline():
+    """A cycle that has waited leader_wait_s and another group leads gives no deadline in the past
+    (a daemon that sleeps until the deadline would wake in a loop while the leader computes): the
+    shift's deadline is next; the leader's own waited cycle is due at once; a group still in its
+    startup window wakes when it ends (the clock alone may make it the leader)."""
+    leader, follower = _two_groups()
+    cycle, now = 20 * PERIOD_US, 1.0
+    boundaries = [node.local_step(np.zeros(6), np.zeros(6), np.eye(6), cycle, now).boundary for node in (leader, follower)]
+    follower.on_boundary(boundaries[0], now + 0.001)  # (the follower's is still on its way to the leader)
+    later = now + follower.leader_wait_s + 0.005  # waited; the shift not here yet
+    assert not follower.due(later) and not follower.tick(later).resolved
+    assert follower.next_deadline_s(later) == now + follower.shift_deadline_s > later
+    assert leader.due(later) and leader.next_deadline_s(later) <= later
+    assert leader.tick(later).shifts  # (the leader solves it with what it has)
+    fresh = GlobalStepNode(1, 2, (0, 1), PERIOD_US, startup_s=0.5)
+    fresh.on_liveliness(0, True, now)
+    fresh.on_liveliness(1, True, now)
+    fresh.local_step(np.zeros(6), np.zeros(6), np.eye(6), cycle, now)
+    fresh.on_boundary(boundaries[0], now + 0.001)
+    waited = now + fresh.leader_wait_s + 0.001
+    assert fresh.next_deadline_s(waited) == min(now + fresh.shift_deadline_s, now + fresh.startup_s)
