@@ -50,13 +50,13 @@ def align_states(states: Sequence[LinkState], t: float | None = None,
 
     The numpy code below is the specification; ``compiled`` (default: when numba is installed)
     propagates by :func:`companion.kernels.align.align_kernel` (the same numbers to 1e-15:
-    ``tests/unit/test_fast_paths.py``)."""
+    ``tests/unit/test_companion_kernels.py``)."""
     if t is None:
         t = max(s.time_s for s in states)
-    p = np.array([s.p_w_m for s in states])
-    v = np.array([s.v_w_m_s for s in states])
-    w = np.array([s.omega_b_rad_s for s in states])
-    q = np.array([s.q_wxyz for s in states])
+    p = np.array([s.p_w_m for s in states], dtype=float)
+    v = np.array([s.v_w_m_s for s in states], dtype=float)
+    w = np.array([s.omega_b_rad_s for s in states], dtype=float)
+    q = np.array([s.q_wxyz for s in states], dtype=float)
     if _COMPILED if compiled is None else compiled:
         p_out, q_out = np.empty_like(p), np.empty_like(q)
         align_kernel(float(t), np.array([s.time_s for s in states], dtype=float), p, v, q, w, p_out, q_out)
