@@ -550,12 +550,11 @@ class BatchRunner:
         for i in links:
             fw = self.firmware[i]
             commands[i] = 0.0 if i in down else fw.on_imu(t, gyro[i], accel[i])
-            if log_row and not batched and i not in down:  # (a vehicle: on its stream and log rows)
-                fw.watch_imu(t)
             if i == j and failures.imu_or_motor:
                 commands[i] = failures.thrust(commands[i])
-        if batched and log_row:
-            self._sync()
+        if log_row:  # the newest samples to the stuck-sensor watch (a vehicle: on its stream and log rows)
+            if batched:
+                self._sync()
             for i, fw in enumerate(self.firmware):
                 if i not in down:
                     fw.watch_imu(t)
