@@ -25,7 +25,8 @@ from companion.motion.oscillators import PhaseMap
 
 from .sweep import commit, floats, run_jobs
 
-__all__ = ["phase_grid", "grid_speeds", "best_phases", "phase_map", "map_lines", "write_sweep", "speedless_points", "run_sweep"]
+__all__ = ["phase_grid", "grid_speeds", "best_phases", "phase_map", "map_lines", "write_sweep", "speedless_points",
+           "run_sweep"]
 
 
 def phase_grid(n: int) -> np.ndarray:
