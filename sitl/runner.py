@@ -50,6 +50,7 @@ from link_firmware_sim.vehicle.hil import sitl_gps_time_us
 
 from .plant.plant import Plant
 from .plant.rotor import warm_up as warm_up_rotors
+from .plant.sensors import warm_up as warm_up_sensors
 from .plant.schedule import Schedule
 from .scenario import Scenario, with_options
 from .steplog import attach_truth, merge_step_logs
@@ -62,12 +63,13 @@ log = logging.getLogger(__name__)
 
 
 def warm_up_kernels() -> float:
-    """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors') compiled,
+    """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors', the IMU's) compiled,
     or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba)."""
     t0 = time.perf_counter()
     _firmware_kernels.warm_up()
     _companion_kernels.warm_up()
     warm_up_rotors()
+    warm_up_sensors()
     return time.perf_counter() - t0
 
 
@@ -86,11 +88,11 @@ class RunLog:
     p_target: list = field(default_factory=list)
     q_target: list = field(default_factory=list)
     thrust: list = field(default_factory=list)
-    # the cable at every joint: the simulator's force (world) and its tension; the model's
-    # predicted tension when the targets carry the whole-chain feed-forward
+    # the cable at every joint: the simulator's force (world), and the model's when the targets
+    # carry the whole-chain feed-forward (NaN while a link is not live); their tensions are worked
+    # out of them and the attitudes (true, target) for all rows at once (:meth:`arrays`)
     joint_force_true: list = field(default_factory=list)
-    tension_true: list = field(default_factory=list)
-    tension_model: list = field(default_factory=list)
+    joint_force_model: list = field(default_factory=list)
     # CPG motion (log ticks): the parameters in use and the desired motion
     eta: list = field(default_factory=list)
     xi_desired: list = field(default_factory=list)
@@ -100,7 +102,14 @@ class RunLog:
     correction_latency_ms: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v) for k, v in self.__dict__.items() if len(v)}
+        """Every series recorded, one row per log tick, and the cables' tensions at each joint
+        (``tension_true``, and ``tension_model`` with the feed-forward), :func:`~companion.skeleton.kinematics.tension`."""
+        out = {k: np.asarray(v) for k, v in self.__dict__.items() if len(v) and k != "joint_force_model"}
+        if len(self.joint_force_true):
+            out["tension_true"] = tension(out["joint_force_true"], quat_to_rotmat(out["q_true"]))
+        if len(self.joint_force_model):
+            out["tension_model"] = tension(np.asarray(self.joint_force_model), quat_to_rotmat(out["q_target"]))
+        return out
 
 
 class _SharedTargets:
@@ -399,12 +408,11 @@ class BatchRunner:
         lg.q_target.append(q_target)
         lg.thrust.append(self.rotors.thrust_n.reshape(self.n, -1).copy())
         lg.joint_force_true.append(truth.joint_force_w_n)
-        lg.tension_true.append(tension(truth.joint_force_w_n, quat_to_rotmat(truth.q_wxyz)))
         dynamics = getattr(self.trajectory, "dynamics", None) if self.trajectory is not None else None
         if dynamics is not None:
             last = dynamics.last
-            lg.tension_model.append(np.full(self.n - 1, np.nan) if last is None or not all_live else tension(
-                last.joint_force_w_n, quat_to_rotmat(q_target)))
+            lg.joint_force_model.append(np.full((self.n - 1, 3), np.nan) if last is None or not all_live
+                                        else last.joint_force_w_n)
         if isinstance(self.trajectory, CpgChainTrajectory):
             lg.eta.append(self.trajectory.eta.copy())
             lg.xi_desired.append(self.trajectory.xi_desired.copy())
@@ -460,26 +468,30 @@ class BatchRunner:
         self._batch = batch = self._link_batch()
         wall0 = time.perf_counter()
         tick0 = int(round(plant.time_s / self.dt))
+        hooks = self.tick_hooks
+        after_step = task.after_step if type(task).after_step is not Task.after_step else None
         try:
             for k in range(tick0, tick0 + n_ticks):
                 t = k * self.dt
-                truth = plant.begin_tick()
-                if k % sch.fw == 0:
+                fw_due, log_due = k % sch.fw == 0, k % sch.log == 0
+                truth = plant.begin_tick(truth=fw_due or log_due)  # (the other ticks: nobody reads it)
+                if fw_due:
                     if not np.isfinite(truth.p_w_m).all():
                         plant.check_crash(t, truth, None)
                         break
                     self._firmware_tick(k, t, truth, commands, fw_dt, batch)
                     rotors.set_command(commands.reshape(-1))
                     self._companion_exchange(t, int(round(k * self.dt * 1e6)))
-                if k % sch.log == 0:
+                if log_due:
                     self._sync()
                     self._log_tick(t, truth)
                     task.after_log(self, t, truth)
                     plant.check_crash(t, truth, self.log.q_target[-1])
-                for hook in self.tick_hooks:
+                for hook in hooks:
                     hook(k, t)
                 plant.end_tick()
-                task.after_step(self, k, t)
+                if after_step is not None:
+                    after_step(self, k, t)
                 if progress is not None and (k - tick0) % 100 == 99:
                     progress(100 * self.dt)
         finally:

@@ -41,7 +41,7 @@ from companion.skeleton.rotors import RotorGeometry, RotorParams
 
 from .start import StartPose
 
-__all__ = ["build_mjcf", "SkeletonModel", "Truth"]
+__all__ = ["build_mjcf", "rotor_controls", "SkeletonModel", "Truth"]
 
 
 def _fmt(v) -> str:
@@ -146,6 +146,15 @@ class Truth:
         return self._joint_forces()
 
 
+def rotor_controls(actuator_ids: np.ndarray) -> slice | np.ndarray:
+    """Where the rotors' thrusts (n, rotors) go in MuJoCo's ``ctrl``: one slice when the actuators
+    lie in link and rotor order (written without a gather), else the ids themselves."""
+    flat = actuator_ids.reshape(-1)
+    if np.array_equal(flat, np.arange(flat[0], flat[0] + flat.size)):
+        return slice(int(flat[0]), int(flat[0]) + flat.size)
+    return actuator_ids
+
+
 class SkeletonModel:
     """A compiled skeleton with every element resolved by name."""
 
@@ -170,6 +179,7 @@ class SkeletonModel:
         self.actuator_ids = np.array(
             [[m.actuator(f"link{i}_rotor{k}").id for k in range(1, n_rot + 1)] for i in range(1, n + 1)]
         )
+        self._ctrl = rotor_controls(self.actuator_ids)
         self.tip_left_ids = np.array([m.site(f"link{i}_tip_left").id for i in range(1, n + 1)])
         self.tip_right_ids = np.array([m.site(f"link{i}_tip_right").id for i in range(1, n + 1)])
 
@@ -254,7 +264,10 @@ class SkeletonModel:
     def end_step(self, thrust_n: np.ndarray, force_w_n: np.ndarray | None = None) -> None:
         """Apply rotor thrusts (n, 8) and forces at the link centres (n, 3); integrate (``mj_step2``)."""
         d = self.data
-        d.ctrl[self.actuator_ids] = thrust_n
+        if type(self._ctrl) is slice:
+            d.ctrl[self._ctrl] = thrust_n.reshape(-1)
+        else:
+            d.ctrl[self._ctrl] = thrust_n
         if force_w_n is not None:
             d.xfrc_applied[self.body_ids, :3] = force_w_n
         mujoco.mj_step2(self.model, d)

@@ -18,6 +18,7 @@ from .rotor import RotorBank
 from .rotor import warm_up as warm_up_rotors
 from .schedule import Schedule
 from .sensors import LinkSensors, downwash_fraction
+from .sensors import warm_up as warm_up_sensors
 from .wind import Wind
 
 __all__ = ["Plant", "CRASH_TILT_DEG", "TAKEOFF_CLEARANCE_M"]
@@ -50,7 +51,8 @@ class Plant:
         self.rng = np.random.default_rng(sc.seed)
         self.sensors = LinkSensors(sc.sensors.suite(), self.n, self.rng)
         self.rotors = RotorBank(8 * self.n, sc.rotors, rotors_per_link=8)
-        warm_up_rotors()  # the compiled rotor kernels loaded now, not in the first tick of the flight
+        warm_up_rotors()  # the compiled rotor and IMU kernels loaded now, not in the first ticks of the flight
+        warm_up_sensors()
         self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
         self.model.begin_step()
         self._fresh = True  # begin_step already done for the current instant
@@ -78,12 +80,13 @@ class Plant:
         truth = self.model.truth()
         return chain_middle(truth.p_w_m, truth.q_wxyz, self.d).copy()
 
-    def begin_tick(self):
-        """Kinematics of the current instant; returns the truth."""
+    def begin_tick(self, truth: bool = True):
+        """Kinematics of the current instant; returns the truth (``truth=False``: ``None``, for a
+        tick nobody reads)."""
         if not self._fresh:
             self.model.begin_step()
         self._fresh = False
-        return self.model.truth()
+        return self.model.truth() if truth else None
 
     def baro_mag(self, k: int, schedule: Schedule, truth) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The barometric heights (n,) and magnetometer fields (n, 3) due at physics tick ``k``

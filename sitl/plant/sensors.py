@@ -31,6 +31,10 @@ drew before, so their flights and figures are unchanged.
 
 Named profiles (:data:`PROFILES`) give consistent defaults; scenario configs pick one and
 may override fields. All noise comes from one ``numpy.random.Generator``.
+
+The numpy code of :meth:`LinkSensors.imu` is the specification; with numba installed its
+arithmetic after the draw runs as :func:`sitl.kernels.sensors.imu_kernel` (the same numbers bit for
+bit, ``tests/unit/test_fast_paths.py``).
 """
 
 from __future__ import annotations
@@ -41,14 +45,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from companion.configfile import require_nonnegative
+from companion.kernels.jit import ENABLED as _COMPILED_DEFAULT
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_to_rotmat
 from companion.mavlink.frames import enu_ned
 from companion.skeleton.body import GRAVITY_M_S2
 from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS
+from sitl.kernels.sensors import imu_kernel
 from sitl.synthetic import SensorModel, draw_drifts
 
 __all__ = ["ImuNoise", "GpsNoise", "AttitudeRefNoise", "BaroNoise", "MagNoise", "SensorSuite", "PROFILES",
-           "LinkSensors", "MAG_FIELD_ENU_GAUSS", "downwash_fraction"]
+           "LinkSensors", "MAG_FIELD_ENU_GAUSS", "downwash_fraction", "warm_up"]
 
 #: The earth's field of the simulated world in the simulator's frame (ENU, gauss).
 MAG_FIELD_ENU_GAUSS = enu_ned(MAG_FIELD_NED_GAUSS)
@@ -234,8 +240,10 @@ PROFILES: dict[str, SensorSuite] = {
 class LinkSensors:
     """The sensors of all ``n`` links of one skeleton, vectorised over links."""
 
-    def __init__(self, suite: SensorSuite, n_links: int, rng: np.random.Generator):
+    def __init__(self, suite: SensorSuite, n_links: int, rng: np.random.Generator, *, compiled: bool | None = None):
         self.suite = suite
+        #: the IMU's arithmetic by :func:`sitl.kernels.sensors.imu_kernel` (default: when numba is installed)
+        self.compiled = _COMPILED_DEFAULT if compiled is None else bool(compiled)
         self.n = n_links
         self.rng = rng
         imu = suite.imu
@@ -279,9 +287,16 @@ class LinkSensors:
         """(gyro, accel), each (n, 3) body frame, from the true specific force and body rate."""
         imu = self.suite.imu
         # one draw, in the order of the draws it stands for: the biases' steps, the gyro's noise, the accelerometer's
-        accel_step, gyro_step, gyro_noise, accel_noise = self.rng.normal(size=(4, self.n, 3))
-        self.accel_bias += imu.accel_bias_rw_m_s2_sqrt_s * math.sqrt(dt_s) * accel_step
-        self.gyro_bias += imu.gyro_bias_rw_rad_s_sqrt_s * math.sqrt(dt_s) * gyro_step
+        draw = self.rng.normal(size=(4, self.n, 3))
+        accel_walk = imu.accel_bias_rw_m_s2_sqrt_s * math.sqrt(dt_s)
+        gyro_walk = imu.gyro_bias_rw_rad_s_sqrt_s * math.sqrt(dt_s)
+        if self.compiled:
+            scales = (accel_walk, gyro_walk, float(imu.gyro_std_rad_s), float(imu.accel_std_m_s2))
+            return imu_kernel(draw, np.asarray(specific_force_b, dtype=float), np.asarray(omega_b, dtype=float),
+                              self.accel_bias, self.gyro_bias, scales)
+        accel_step, gyro_step, gyro_noise, accel_noise = draw
+        self.accel_bias += accel_walk * accel_step
+        self.gyro_bias += gyro_walk * gyro_step
         gyro = omega_b + self.gyro_bias + imu.gyro_std_rad_s * gyro_noise
         accel = specific_force_b + self.accel_bias + imu.accel_std_m_s2 * accel_noise
         return gyro, accel
@@ -349,3 +364,11 @@ def downwash_fraction(thrust_n: np.ndarray, mass_kg: float) -> np.ndarray:
     capped at 1 (``thrust_n``: (n, rotors) [N]); the barometer's ground effect scales with it."""
     total = np.abs(np.asarray(thrust_n, dtype=float)).sum(axis=-1)
     return np.minimum(total / (mass_kg * GRAVITY_M_S2), 1.0)
+
+
+def warm_up() -> None:
+    """Load (or compile) the IMU's kernel through the path :meth:`LinkSensors.imu` calls it by: a
+    run's first firmware tick then costs no more than any other (without numba: nothing)."""
+    if not _COMPILED_DEFAULT:
+        return
+    LinkSensors(PROFILES["outdoor"], 2, np.random.default_rng(0)).imu(np.zeros((2, 3)), np.zeros((2, 3)), 0.002)

@@ -30,6 +30,7 @@ from link_firmware_sim.fused import HilBuffers
 from link_firmware_sim.kernels import hil_records
 from link_firmware_sim.kernels.layouts import IO_AHRS_ACCEPTED, IO_AHRS_Q
 from sitl.plant.rotor import RotorBank
+from sitl.plant.sensors import PROFILES, LinkSensors
 
 from .firmware_segments import flight_events
 
@@ -209,6 +210,24 @@ def test_rotor_bank_matches_numpy(min_thrust_n, dwell_s):
         np.testing.assert_allclose(b, a, **TOL)
     np.testing.assert_array_equal(fast.zero_crossings, ref.zero_crossings)
     assert ref.zero_crossings.sum() > 0
+
+
+@pytest.mark.parametrize("profile,n_links", [("outdoor", 3), ("m8", 7), ("paper", 1)])
+def test_imu_kernel_matches_numpy_bit_for_bit(profile, n_links):
+    """LinkSensors.imu compiled against its numpy code: the same draws, the same bias walks and
+    samples, bit for bit, over many ticks and two tick lengths."""
+    rng = np.random.default_rng(4)
+    ref, fast = (LinkSensors(PROFILES[profile], n_links, np.random.default_rng(11), compiled=c) for c in (False, True))
+    np.testing.assert_array_equal(fast.gyro_bias, ref.gyro_bias)
+    for k in range(400):
+        force, omega = rng.normal(size=(n_links, 3)) * 9.8, rng.normal(size=(n_links, 3))
+        dt = 0.002 if k % 3 else 0.004
+        (g0, a0), (g1, a1) = ref.imu(force, omega, dt), fast.imu(force, omega, dt)
+        np.testing.assert_array_equal(g1, g0)
+        np.testing.assert_array_equal(a1, a0)
+    np.testing.assert_array_equal(fast.accel_bias, ref.accel_bias)
+    np.testing.assert_array_equal(fast.gyro_bias, ref.gyro_bias)
+    assert np.abs(fast.gyro_bias - LinkSensors(PROFILES[profile], n_links, np.random.default_rng(11)).gyro_bias).max() > 0
 
 
 def test_attitude_update_kernel_matches_numpy():

@@ -21,7 +21,7 @@ import numpy as np
 from companion.estimation.so3 import quat_from_euler_zyx
 from companion.load.config import LoadConfig
 from companion.load.formation import formation_state
-from sitl.plant.model import SkeletonModel, build_mjcf
+from sitl.plant.model import SkeletonModel, build_mjcf, rotor_controls
 
 from .config import SlungLoadScenario
 
@@ -114,6 +114,7 @@ class SlungLoadModel(SkeletonModel):
         self.body_ids = np.array([m.body(f"link{i}").id for i in range(1, n + 1)])
         self.actuator_ids = np.array([[m.actuator(f"link{i}_rotor{k}").id for k in range(1, n_rot + 1)]
                                       for i in range(1, n + 1)])
+        self._ctrl = rotor_controls(self.actuator_ids)
         self.tip_left_ids = np.array([m.site(f"link{i}_tip_left").id for i in range(1, n + 1)])
         self.tip_right_ids = np.array([m.site(f"link{i}_tip_right").id for i in range(1, n + 1)])
 
