@@ -325,7 +325,7 @@ class ChainTargets:
     def of(cls, leader_group: int, time_us: int, seq: int, links, targets: list[PoseTarget]) -> ChainTargets:
         """The targets of ``links`` (one :class:`PoseTarget` each, in that order)."""
         def rows(name: str) -> np.ndarray:
-            return np.stack([np.asarray(getattr(t, name), dtype=float) for t in targets])
+            return np.array([getattr(t, name) for t in targets], dtype=float)
 
         return cls(leader_group, time_us, seq, tuple(links), rows("p_w_m"), rows("q_wxyz"), rows("v_w_m_s"),
                    rows("a_w_m_s2"), rows("omega_d_rad_s"), rows("omega_dot_d_rad_s2"), rows("force_ff_w_n"),

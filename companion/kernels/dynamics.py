@@ -1,4 +1,5 @@
-"""The chain's inverse dynamics after the joints' passive torques (the targets' feed-forward), as a kernel.
+"""The chain's inverse dynamics (the targets' feed-forward), as kernels: the joints' passive
+torques, and the rest after them.
 
 The specification is :meth:`companion.skeleton.dynamics.ChainModel.solve` (its numpy code).
 """
@@ -8,8 +9,29 @@ from __future__ import annotations
 import numpy as np
 
 from .jit import jit
+from .so3 import rotmat_log
 
-__all__ = ["feedforward_kernel"]
+__all__ = ["passive_torques_kernel", "feedforward_kernel"]
+
+
+@jit
+def passive_torques_kernel(R, w, stiffness, damping, tau_j):
+    """:meth:`~companion.skeleton.dynamics.ChainModel.solve`'s passive joint torques on the child
+    (the compliant cable's stiffness and damping), world frame: ``tau_j`` (n-1, 3) <- ``R_{j+1}
+    (-stiffness Log(R_j^T R_{j+1}) - damping (w_{j+1} - R_rel^T w_j))`` of the attitudes ``R``
+    (n, 3, 3) and body rates ``w`` (n, 3)."""
+    rel = np.empty((3, 3))
+    for j in range(R.shape[0] - 1):
+        for a in range(3):
+            for b in range(3):
+                rel[a, b] = R[j, 0, a] * R[j + 1, 0, b] + R[j, 1, a] * R[j + 1, 1, b] + R[j, 2, a] * R[j + 1, 2, b]
+        l0, l1, l2 = rotmat_log(rel)
+        c = np.empty(3)
+        for k in range(3):
+            w_rel = w[j + 1, k] - (rel[0, k] * w[j, 0] + rel[1, k] * w[j, 1] + rel[2, k] * w[j, 2])
+            c[k] = -stiffness * (l0 if k == 0 else l1 if k == 1 else l2) - damping * w_rel
+        for k in range(3):
+            tau_j[j, k] = R[j + 1, k, 0] * c[0] + R[j + 1, k, 1] * c[1] + R[j + 1, k, 2] * c[2]
 
 
 @jit

@@ -17,7 +17,8 @@ import math
 
 from .jit import jit
 
-__all__ = ["quat_mul", "rotmat_unit", "rotmat_quadratic", "rotmat_quadratic_into", "retract", "small_angle_quat", "quat_exp", "quat_log"]
+__all__ = ["quat_mul", "rotmat_unit", "rotmat_quadratic", "rotmat_quadratic_into", "retract", "small_angle_quat", "quat_exp", "quat_log",
+           "rotmat_log"]
 
 
 @jit
@@ -87,3 +88,24 @@ def quat_log(w, x, y, z):
     s = math.sqrt(x * x + y * y + z * z)
     k = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / max(w, 1e-300)
     return k * x, k * y, k * z
+
+
+@jit
+def rotmat_log(R):
+    """The rotation vector of the rotation matrix ``R`` (3, 3), angle in [0, pi]: its unit
+    quaternion by Shepperd's method (``so3.rotmat_to_quat``'s pivot), then :func:`quat_log` (what
+    ``pin.log3`` computes, well conditioned at every angle)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr >= R[0, 0] and tr >= R[1, 1] and tr >= R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        w, x, y, z = 0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        w, x, y, z = (R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] >= R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        w, x, y, z = (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        w, x, y, z = (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s
+    return quat_log(w, x, y, z)

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from .align import align_kernel, attitude_errors_kernel
-from .dynamics import feedforward_kernel
+from .dynamics import feedforward_kernel, passive_torques_kernel
 from .gate import joint_nis_kernel
 from .jit import ENABLED
 from .sckf import constraint_apply_batched_kernel
@@ -41,6 +41,7 @@ def warm_up() -> float:
     v3, m3 = np.zeros((n, 3)), np.zeros((n, 3, 3))
     chain = (v3, v3, np.zeros((n, 4)), v3, v3)
     P = np.zeros((n, 9, 9))
+    load(passive_torques_kernel, m3, v3, 1.0, 1.0, np.zeros((n - 1, 3)))
     load(feedforward_kernel, (v3, v3, v3, v3), m3, np.zeros((n - 1, 3)), (np.zeros(3), np.zeros(3), 1.0, 9.8, 2.0),
          np.ones(n), (v3, v3, np.zeros((n - 1, 3)), np.zeros((n, 6))))
     stacked = tuple(a[None].copy() for a in chain)

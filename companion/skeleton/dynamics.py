@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from companion.kernels.dynamics import feedforward_kernel
+from companion.kernels.dynamics import feedforward_kernel, passive_torques_kernel
 from companion.kernels.jit import ENABLED as _COMPILED
 from companion.estimation.so3 import cross, quat_to_rotmat, rotmat_to_quat, skew
 from companion.messages import PoseTarget
@@ -182,20 +182,26 @@ class ChainModel:
         """:meth:`inverse_dynamics` of the links' centres ``p``, attitudes ``R`` (n, 3, 3), centre
         velocities ``v`` and accelerations ``acc`` (world), body rates ``w`` and their derivatives
         ``wd`` (each (n, 3)). The numpy code below is the specification; ``compiled`` (default:
-        when numba is installed) runs the part after the joints' passive torques as
-        :func:`companion.kernels.dynamics.feedforward_kernel` (the same numbers to 1e-12:
+        when numba is installed) runs it as :func:`companion.kernels.dynamics.passive_torques_kernel`
+        and :func:`~companion.kernels.dynamics.feedforward_kernel` (the same numbers to 1e-12:
         ``tests/unit/test_fast_paths.py``)."""
         n = self.n
         m = self.inertia.mass_kg
+        compiled = _COMPILED if compiled is None else compiled
         # passive joint torques on the child (compliant cable: stiffness and damping) at the joint's
         # relative attitude R_j^T R_{j+1} and relative rate in the child frame (the generalised
         # coordinates of :meth:`coordinates`)
         tau_j = np.zeros((max(n - 1, 0), 3))
-        for j in range(n - 1):
-            Rrel = R[j].T @ R[j + 1]
-            w_rel = w[j + 1] - Rrel.T @ w[j]
-            tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
-        if _COMPILED if compiled is None else compiled:
+        if compiled:
+            R = np.ascontiguousarray(R, dtype=float)
+            passive_torques_kernel(R, np.ascontiguousarray(w, dtype=float), float(self.stiffness),
+                                   float(self.damping), tau_j)
+        else:
+            for j in range(n - 1):
+                Rrel = R[j].T @ R[j + 1]
+                w_rel = w[j + 1] - Rrel.T @ w[j]
+                tau_j[j] = R[j + 1] @ (-self.stiffness * pin.log3(Rrel) - self.damping * w_rel)
+        if compiled:
             weights = np.ones(n)
             if len(passive):
                 weights[list(passive)] = PASSIVE_WEIGHT

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.estimation.so3 import quat_normalize, quat_to_rotmat
+from companion.estimation.so3 import quat_from_rotvec, quat_normalize, quat_to_rotmat
 from companion.kernels.jit import ENABLED
 
 pytestmark = pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
@@ -73,8 +73,8 @@ def test_trajectory_kernel_matches_numpy(n_links, kind):
 
 @pytest.mark.parametrize("n_links", [1, 2, 3, 5, 7])
 def test_feedforward_kernel_matches_numpy(n_links):
-    """companion.kernels.dynamics.feedforward_kernel (the chain's inverse dynamics after the passive joint
-    torques) against ChainModel.solve's numpy specification: random motions, every link flying and
+    """companion.kernels.dynamics.passive_torques_kernel and feedforward_kernel (the chain's inverse
+    dynamics) against ChainModel.solve's numpy specification: random motions, every link flying and
     with an end or a middle link passive, to 1e-12 of the largest wrench."""
     pytest.importorskip("pinocchio")
     from companion.skeleton.body import SkeletonConfig
@@ -93,6 +93,25 @@ def test_feedforward_kernel_matches_numpy(n_links):
             for name in ("force_ff_w_n", "torque_ff_w_nm", "joint_force_w_n", "joint_torque_w_nm", "rotor_wrench_w"):
                 np.testing.assert_allclose(getattr(fast, name), getattr(spec, name), rtol=0, atol=1e-12 * scale,
                                            err_msg=f"{name}, passive {passive}")
+
+
+@pytest.mark.parametrize("max_angle", [1e-9, 1e-4, 0.5, 3.1])
+def test_rotmat_log_matches_pinocchio(max_angle):
+    """companion.kernels.so3.rotmat_log against pin.log3 (the passive joint torques' log), at every
+    Shepperd pivot: tiny angles, small, large and near pi, about random axes, to 1e-12 rad."""
+    pin = pytest.importorskip("pinocchio")
+    from companion.kernels.so3 import rotmat_log
+
+    rng = np.random.default_rng(8)
+    pivots = set()
+    for _ in range(N_CASES):
+        axis = rng.normal(size=3)
+        rv = axis / np.linalg.norm(axis) * rng.uniform(0.0, max_angle)
+        R = quat_to_rotmat(quat_from_rotvec(rv))
+        np.testing.assert_allclose(rotmat_log(R), pin.log3(R), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(rotmat_log(R), rv, rtol=0, atol=1e-12)
+        pivots.add(int(np.argmax([np.trace(R), R[0, 0], R[1, 1], R[2, 2]])))
+    assert pivots == ({0} if max_angle < 2.0 else {0, 1, 2, 3})
 
 
 def _ekf_like_covariances(rng, n: int) -> np.ndarray:
@@ -287,7 +306,7 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
     from companion.trajectory import ChainTrajectory, TrajectoryConfig
 
     warm.warm_up()
-    kernels = (dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel, gate.joint_nis_kernel,
+    kernels = (dynamics.passive_torques_kernel, dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel, gate.joint_nis_kernel,
                semi.group_terms_kernel, trajectory.trajectory_kernel, align.align_kernel, align.attitude_errors_kernel)
     before = [list(k.signatures) for k in kernels]
     rng = np.random.default_rng(5)
