@@ -103,7 +103,8 @@ class RunLog:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every series recorded, one row per log tick, and the cables' tensions at each joint
-        (``tension_true``, and ``tension_model`` with the feed-forward), :func:`~companion.skeleton.kinematics.tension`."""
+        (:func:`~companion.skeleton.kinematics.tension`): ``tension_true``, and ``tension_model``
+        with the feed-forward."""
         out = {k: np.asarray(v) for k, v in self.__dict__.items() if len(v) and k != "joint_force_model"}
         if len(self.joint_force_true):
             out["tension_true"] = tension(out["joint_force_true"], quat_to_rotmat(out["q_true"]))

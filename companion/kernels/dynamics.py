@@ -21,12 +21,12 @@ def passive_torques_kernel(R, w, stiffness, damping, tau_j):
     (-stiffness Log(R_j^T R_{j+1}) - damping (w_{j+1} - R_rel^T w_j))`` of the attitudes ``R``
     (n, 3, 3) and body rates ``w`` (n, 3)."""
     rel = np.empty((3, 3))
+    c = np.empty(3)
     for j in range(R.shape[0] - 1):
         for a in range(3):
             for b in range(3):
                 rel[a, b] = R[j, 0, a] * R[j + 1, 0, b] + R[j, 1, a] * R[j + 1, 1, b] + R[j, 2, a] * R[j + 1, 2, b]
         l0, l1, l2 = rotmat_log(rel)
-        c = np.empty(3)
         for k in range(3):
             w_rel = w[j + 1, k] - (rel[0, k] * w[j, 0] + rel[1, k] * w[j, 1] + rel[2, k] * w[j, 2])
             c[k] = -stiffness * (l0 if k == 0 else l1 if k == 1 else l2) - damping * w_rel

@@ -17,8 +17,8 @@ import math
 
 from .jit import jit
 
-__all__ = ["quat_mul", "rotmat_unit", "rotmat_quadratic", "rotmat_quadratic_into", "retract", "small_angle_quat", "quat_exp", "quat_log",
-           "rotmat_log"]
+__all__ = ["quat_mul", "rotmat_unit", "rotmat_quadratic", "rotmat_quadratic_into", "retract", "small_angle_quat",
+           "quat_exp", "quat_log", "rotmat_log"]
 
 
 @jit

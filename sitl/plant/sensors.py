@@ -45,8 +45,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from companion.configfile import require_nonnegative
-from companion.kernels.jit import ENABLED as _COMPILED_DEFAULT
 from companion.estimation.so3 import quat_from_rotvec, quat_mul, quat_to_rotmat
+from companion.kernels.jit import ENABLED as _COMPILED_DEFAULT
 from companion.mavlink.frames import enu_ned
 from companion.skeleton.body import GRAVITY_M_S2
 from link_firmware_sim.geo import MAG_FIELD_NED_GAUSS

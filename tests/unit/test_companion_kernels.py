@@ -306,8 +306,9 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
     from companion.trajectory import ChainTrajectory, TrajectoryConfig
 
     warm.warm_up()
-    kernels = (dynamics.passive_torques_kernel, dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel, gate.joint_nis_kernel,
-               semi.group_terms_kernel, trajectory.trajectory_kernel, align.align_kernel, align.attitude_errors_kernel)
+    kernels = (dynamics.passive_torques_kernel, dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel,
+               gate.joint_nis_kernel, semi.group_terms_kernel, trajectory.trajectory_kernel, align.align_kernel,
+               align.attitude_errors_kernel)
     before = [list(k.signatures) for k in kernels]
     rng = np.random.default_rng(5)
     traj = ChainTrajectory(TrajectoryConfig(kind="bend"), 3, 1.0, np.zeros(3))

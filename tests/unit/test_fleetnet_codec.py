@@ -155,7 +155,8 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         codec.encode(GlobalShift(0, 0, (2, 1), np.zeros((2, 6)), hold_us=(0, 0))): "increasing",
         codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), links=(1, 1))): "ChainTargets.links",
         codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), q_wxyz=np.ones((2, 4)))): r"q_wxyz\[link 1\]",
-        codec.encode(replace(targets(np.random.default_rng(2), (0, 4)), q_wxyz=np.array([[1.0, 0, 0, 0], [1.0, 0, 0, 0.1]]))):
+        codec.encode(replace(targets(np.random.default_rng(2), (0, 4)),
+                             q_wxyz=np.array([[1.0, 0, 0, 0], [1.0, 0, 0, 0.1]]))):
             r"q_wxyz\[link 5\]: quaternion norm 1.00499 is not 1",
         codec.encode(replace(targets(np.random.default_rng(2), (0, 1)), a_w_m_s2=np.full((2, 3), np.inf))):
             "a_w_m_s2: non-finite",
