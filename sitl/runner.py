@@ -445,11 +445,16 @@ class BatchRunner:
         """The batch of every link's quiet ticks for a run, or ``None``: switched off
         (:attr:`batch_ticks`), no compiled kernels, or an observer that may read the firmware at any
         physics tick (a tick hook, a task's :meth:`~sitl.task.Task.after_step`)."""
-        if not (self.batch_ticks and BATCH_ENABLED) or self.tick_hooks or type(self.task).after_step is not Task.after_step:
+        if not (self.batch_ticks and BATCH_ENABLED) or self.tick_hooks or self._task_after_step() is not None:
             return None
         if self._batch is None or self._batch.firmware is not self.firmware:
             self._batch = LinkBatch(self.firmware)
         return self._batch
+
+    def _task_after_step(self):
+        """The task's :meth:`~sitl.task.Task.after_step`, or ``None`` when the task keeps
+        :class:`~sitl.task.Task`'s, which does nothing."""
+        return self.task.after_step if type(self.task).after_step is not Task.after_step else None
 
     def _batch_skip(self, j: int) -> set[int]:
         """The links the batch leaves to their firmware's own tick: without power, booting, the
@@ -470,7 +475,7 @@ class BatchRunner:
         wall0 = time.perf_counter()
         tick0 = int(round(plant.time_s / self.dt))
         hooks = self.tick_hooks
-        after_step = task.after_step if type(task).after_step is not Task.after_step else None
+        after_step = self._task_after_step()
         try:
             for k in range(tick0, tick0 + n_ticks):
                 t = k * self.dt

@@ -147,12 +147,12 @@ class Truth:
 
 
 def rotor_controls(actuator_ids: np.ndarray) -> slice | np.ndarray:
-    """Where the rotors' thrusts (n, rotors) go in MuJoCo's ``ctrl``: one slice when the actuators
-    lie in link and rotor order (written without a gather), else the ids themselves."""
+    """Where the rotors' thrusts, flattened link by link, go in MuJoCo's ``ctrl``: one slice when
+    the actuators lie in link and rotor order (written without a gather), else their ids."""
     flat = actuator_ids.reshape(-1)
     if np.array_equal(flat, np.arange(flat[0], flat[0] + flat.size)):
         return slice(int(flat[0]), int(flat[0]) + flat.size)
-    return actuator_ids
+    return flat
 
 
 class SkeletonModel:
@@ -264,10 +264,7 @@ class SkeletonModel:
     def end_step(self, thrust_n: np.ndarray, force_w_n: np.ndarray | None = None) -> None:
         """Apply rotor thrusts (n, 8) and forces at the link centres (n, 3); integrate (``mj_step2``)."""
         d = self.data
-        if type(self._ctrl) is slice:
-            d.ctrl[self._ctrl] = thrust_n.reshape(-1)
-        else:
-            d.ctrl[self._ctrl] = thrust_n
+        d.ctrl[self._ctrl] = thrust_n.reshape(-1)
         if force_w_n is not None:
             d.xfrc_applied[self.body_ids, :3] = force_w_n
         mujoco.mj_step2(self.model, d)
