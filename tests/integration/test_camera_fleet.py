@@ -161,9 +161,9 @@ def test_video_capture_source_reads_a_file_and_measures_the_marker(tmp_path):
 
 
 def test_consumer_over_zenoh_measures_frames_and_counts_hostile_payloads(tmp_path):
-    """run_node on a loopback Zenoh session: 4 good frames of two vehicles measured; a frame on the
+    """run_node on a loopback Zenoh session: 5 good frames of two vehicles measured; a frame on the
     wrong vehicle's key and garbage are counted as rejected, never measured."""
-    pytest.importorskip("zenoh")
+    zenoh = pytest.importorskip("zenoh")
     from companion.vision.camera_wire import CameraPublisher, camera_key
     from companion.vision.frame_codec import encode_frame
     from companion.vision.node import FRAMES_FILE, run_node
@@ -177,29 +177,39 @@ def test_consumer_over_zenoh_measures_frames_and_counts_hostile_payloads(tmp_pat
     result = {}
     frames_log = tmp_path / FRAMES_FILE
 
-    def measured_all() -> bool:  # then the node drains what is still in flight (the hostile payloads)
-        return stop.is_set() or (frames_log.exists() and frames_log.read_text().count("\n") >= 4)
+    def measured() -> int:
+        return frames_log.read_text().count("\n") if frames_log.exists() else 0
+
+    def measured_all() -> bool:
+        return stop.is_set() or measured() >= 5
 
     worker = threading.Thread(target=lambda: result.update(run_node(setup, tmp_path, stop=measured_all)))
     try:
         pubs = [CameraPublisher(harness, "camtest", v, fmt="png") for v in range(2)]
         worker.start()
         assert wait_for(lambda: all(p.matched for p in pubs), 10.0), "the consumer never subscribed"
-        for seq in range(2):
+        for seq in range(2):  # the publishers drop under congestion by design: each frame awaited
             for v, p in enumerate(pubs):
                 p.publish(marker_frame(vehicle=v, seq=seq))
-        harness.put(camera_key("camtest", 1), encode_frame(marker_frame(vehicle=0), "raw"))  # wrong key
-        harness.put(camera_key("camtest", 0), b"ASKC" + b"\0" * 40)  # garbage
+                assert wait_for(lambda: measured() >= 2 * seq + v + 1, 10.0), "a frame was never measured"
+        # the hostile payloads, then a last good frame, all queued without loss and delivered in order:
+        # when the last frame is measured, both hostile payloads have been taken
+        block = zenoh.CongestionControl.BLOCK
+        harness.put(camera_key("camtest", 1), encode_frame(marker_frame(vehicle=0), "raw"),
+                    congestion_control=block)  # wrong key
+        harness.put(camera_key("camtest", 0), b"ASKC" + b"\0" * 40, congestion_control=block)  # garbage
+        harness.put(camera_key("camtest", 1), encode_frame(marker_frame(vehicle=1, seq=2), "png"),
+                    congestion_control=block)
         worker.join(15)
         assert not worker.is_alive()
     finally:
         stop.set()
         harness.close()
-    assert result["frames_total"] == 4 and result["frames_detected"] == 4 and result["poses"] == 4
+    assert result["frames_total"] == 5 and result["frames_detected"] == 5 and result["poses"] == 5
     assert result["rejected_payloads"] == 2
-    assert result["frames"] == {"cam1": 2, "cam2": 2}
+    assert result["frames"] == {"cam1": 2, "cam2": 3}
     lines = (tmp_path / "vision_frames.jsonl").read_text().splitlines()
-    assert len(lines) == 4 and all(json.loads(x)["poses"][0]["id"] == 7 for x in lines)
+    assert len(lines) == 5 and all(json.loads(x)["poses"][0]["id"] == 7 for x in lines)
 
 
 def test_config_errors_name_the_key(tmp_path):

@@ -28,6 +28,8 @@ from ..ports import free_ports
 from ..waits import wait_for
 from ..zenoh_peers import peer_session
 
+BLOCK = zenoh.CongestionControl.BLOCK  # test payloads queued, never dropped under congestion
+
 
 def _buses(n_groups: int, prefix: str):
     cfg = ZenohConfig(endpoints=tuple(f"tcp/127.0.0.1:{p}" for p in free_ports(n_groups)))
@@ -89,8 +91,10 @@ def test_cpg_targets_cross_zenoh_bit_for_bit_and_misplaced_ones_are_errors():
         sent = [targets(rng, tuple(range(7)), time_us=20_000 * k, seq=k) for k in range(50)]
         for msg in sent:
             links[1].publish_targets(msg)
-        buses[1].session.put(shift_key("test_targets"), codec.encode(sent[0]))  # on the shift key
-        buses[1].session.put(target_key("test_targets"), codec.encode(GlobalShift(1, 0, (0,), np.zeros((1, 6)), hold_us=(0,))))
+        shift = GlobalShift(1, 0, (0,), np.zeros((1, 6)), hold_us=(0,))
+        put = buses[1].session.put
+        put(shift_key("test_targets"), codec.encode(sent[0]), congestion_control=BLOCK)  # on the shift key
+        put(target_key("test_targets"), codec.encode(shift), congestion_control=BLOCK)  # on the target key
         got = []
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline and len(got) < len(sent):
@@ -119,8 +123,9 @@ def test_carried_links_cross_zenoh_and_one_on_another_groups_key_is_an_error():
         sent = [GroupPassiveLinks(1, 20_000 * k, (2,) if k % 2 else ()) for k in range(20)]
         for msg in sent:
             links[1].publish_passive(msg)
-        buses[1].session.put(boundary_key("test_passive", 1), codec.encode(sent[1]))  # on its boundary key
-        buses[1].session.put(passive_key("test_passive", 0), codec.encode(sent[1]))  # on group 1's key
+        put = buses[1].session.put
+        put(boundary_key("test_passive", 1), codec.encode(sent[1]), congestion_control=BLOCK)  # on its boundary key
+        put(passive_key("test_passive", 0), codec.encode(sent[1]), congestion_control=BLOCK)  # on group 1's key
         got = []
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline and (len(got) < len(sent) or sum(links[0].errors.values()) < 2):
@@ -229,9 +234,9 @@ def test_malformed_zenoh_payloads_are_counted_not_applied():
         payloads = [b"", b"garbage", good[:-1], good[:4] + bytes([codec.VERSION + 1]) + good[5:],
                     struct.pack("<4sBB", b"ASKZ", codec.VERSION, 4) + b"\xff" * 10]
         for p in payloads:
-            raw.put(boundary_key("test_garbage", 1), p)
-            raw.put(shift_key("test_garbage"), p)
-        raw.put(boundary_key("test_garbage", 0), good)  # a valid report on the wrong group's key
+            raw.put(boundary_key("test_garbage", 1), p, congestion_control=BLOCK)
+            raw.put(shift_key("test_garbage"), p, congestion_control=BLOCK)
+        raw.put(boundary_key("test_garbage", 0), good, congestion_control=BLOCK)  # valid, on the wrong group's key
         deadline = time.monotonic() + 3.0
         events = []
         while time.monotonic() < deadline and sum(e.kind == "error" for e in events) < 2 * len(payloads) + 1:

@@ -24,7 +24,7 @@ from ..ports import free_ports
 from ..waits import wait_for
 from ..zenoh_peers import peer_session
 
-pytest.importorskip("zenoh")
+zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("cv2")
 
 PREFIX = "nbtest"
@@ -71,7 +71,7 @@ def _through_the_consumer(tmp_path, kind: str, rogue: list[tuple[str, bytes]], *
         try:
             assert wait_for(lambda: session.info.peers_zid(), 5.0)
             for key, payload in rogue:
-                session.put(key, payload)
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
             assert wait_for(lambda: (got.extend(inbox.drain()), inbox.counts["received"] >= 3 + len(rogue))[1], 5.0)
         finally:
             session.close()
