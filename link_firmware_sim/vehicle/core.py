@@ -134,10 +134,12 @@ class Vehicle:
 
     def poll(self, timeout_s: float) -> None:
         """Wait for input at most ``timeout_s`` and handle everything that arrived."""
-        if self.lockstep.run_loop(timeout_s):
-            timeout_s = 0.0  # the loop waited: what it left (a MAVLink port, a packet) is handled below
-        ready = wait_readable([self.sim] + [ep.port for ep in self.endpoints], timeout_s)
-        if self.sim in ready or not self.sim.connected:  # (a listener accepts on readable too)
+        looped = self.lockstep.run_loop(timeout_s)
+        # the loop waited and handled the simulator link: the MAVLink ports are handled below, the
+        # simulator's next packet by the next call's loop (compiled) rather than the decoders
+        ports = [ep.port for ep in self.endpoints]
+        ready = wait_readable(ports if looped else [self.sim] + ports, 0.0 if looped else timeout_s)
+        if not looped and (self.sim in ready or not self.sim.connected):  # (a listener accepts on readable too)
             self.lockstep.on_readable()
         for ep in self.endpoints:
             if ep.port in ready:
