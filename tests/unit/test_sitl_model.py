@@ -1,12 +1,14 @@
 import mujoco
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from companion.estimation.so3 import quat_to_rotmat
 from companion.skeleton.body import SkeletonConfig, link_inertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
 from link_firmware_sim.allocation import Allocator
-from sitl.plant.model import SkeletonModel
+from sitl.plant.model import SkeletonModel, rotor_controls
 from sitl.plant.start import StartPose
 
 
@@ -27,6 +29,37 @@ def test_elements_are_found_by_name():
     assert m.model.joint("link1_root").id >= 0
     assert m.model.joint("joint1_2").id >= 0 and m.model.joint("joint2_3").id >= 0
     assert m.actuator_ids.shape == (3, 8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 4), offset=st.integers(0, 5), order=st.sampled_from(["in order", "links swapped",
+                                                                            "rotors reversed", "shuffled"]),
+       seed=st.integers(0, 2**16))
+def test_rotor_controls_write_each_thrust_to_its_actuator(n, offset, order, seed):
+    """``ctrl[rotor_controls(ids)] = thrust.reshape(-1)`` puts each rotor's thrust where the gather
+    ``ctrl[ids] = thrust`` does, for actuators in link and rotor order (a slice) or in any other."""
+    rng = np.random.default_rng(seed)
+    ids = offset + np.arange(8 * n).reshape(n, 8)
+    if order == "links swapped":
+        ids = ids[::-1].copy()
+    elif order == "rotors reversed":
+        ids = ids[:, ::-1].copy()
+    elif order == "shuffled":
+        ids = rng.permutation(ids.reshape(-1)).reshape(n, 8)
+    thrust = rng.uniform(0.0, 8.0, (n, 8))
+    gathered, written = np.full(offset + 8 * n + 2, -1.0), np.full(offset + 8 * n + 2, -1.0)
+    gathered[ids] = thrust
+    where = rotor_controls(ids)
+    written[where] = thrust.reshape(-1)
+    np.testing.assert_array_equal(written, gathered)
+    in_order = order == "in order" or (n == 1 and order == "links swapped")
+    assert isinstance(where, slice) == in_order
+
+
+def test_the_models_actuators_lie_in_link_and_rotor_order():
+    """The skeleton's rotors are written with one slice (no gather) on every chain length."""
+    for n in (1, 3, 7):
+        assert isinstance(_model(n)._ctrl, slice)
 
 
 def test_three_link_tips_coincide_while_flying_around():
