@@ -394,12 +394,13 @@ def format_speed(result: dict) -> str:
     if len(scaling) > 1:
         rows += ["", f"fleet scaling, CPU s per simulated s {scaling[0]['cpu']} by process kind (total; per process):",
                  f"{'fleet':<28} {'links':>5} {'RTF':>6} {'/ceiling':>9} {'harness':>8} {'vehicles':>16} "
-                 f"{'companions':>16} {'all':>7}"]
+                 f"{'companions':>16} {'all':>7} {'cores busy':>10} {'CPU-bound RTF':>13}"]
         for f in scaling:
             rows.append(f"{f['label']:<28} {f['links']:>5} {fmt_x(f['realtime_factor'], '.2f'):>6} "
                         f"{fmt_x(f['ratio_to_ceiling'], '.3f'):>9} {f['harness']:>8.3f} "
                         f"{f['vehicles']:>7.3f}; {f['per_vehicle']:>6.3f} {f['companions']:>7.3f}; "
-                        f"{f['per_companion']:>6.3f} {f['all']:>7.3f}")
+                        f"{f['per_companion']:>6.3f} {f['all']:>7.3f} {fmt_x(f['cores_busy'], '.2f'):>10} "
+                        f"{fmt_x(f['cpu_bound_rtf'], '.2f'):>13}")
     for name, p in (result.get("batch_parts") or {}).items():
         c = result["mujoco_ceiling"].get(name)
         mujoco = "" if c is None else f", MuJoCo alone {1e3 / c['realtime_factor']:.1f}"
@@ -425,7 +426,12 @@ def fleet_scaling(result: dict) -> list[dict]:
     """Per fleet flight of a :func:`run_speed` result: its links, real-time factor and ratio to
     MuJoCo alone, and the CPU seconds per simulated second of each kind of process (harness,
     vehicles, companions: their total and per process) and of all; in the lockstep loop alone
-    (``cpu`` says ``in loop``) when every process has that figure, else over their lives."""
+    (``cpu`` says ``in loop``) when every process has that figure, else over their lives. With
+    the loop's figures, also ``cores_busy``, the CPU seconds all the fleet's processes took per
+    wall second (all times the real-time factor), and ``cpu_bound_rtf``, the real-time factor at
+    which those CPU costs would keep every core of the machine (``cpu_count``) busy: no lockstep
+    on it runs faster (``None`` where unknown)."""
+    cores = result.get("cpu_count")
     out = []
     for r in result["runs"]:
         procs = r.get("processes") or {}
@@ -437,12 +443,15 @@ def fleet_scaling(result: dict) -> list[dict]:
         for role, p in procs.items():
             kinds.setdefault(role.split()[0], []).append(p[key])
         n_v, n_c = len(kinds["vehicle"]), len(kinds["companion"])
+        total, rtf = sum(sum(v) for v in kinds.values()), r["realtime_factor"]
         out.append({"label": f"{r['scenario']} ({r.get('sim_link')})", "links": n_v,
                     "realtime_factor": r["realtime_factor"], "ratio_to_ceiling": r["ratio_to_ceiling"],
                     "cpu": "in loop" if in_loop else "over their lives", "harness": sum(kinds["harness"]),
                     "vehicles": sum(kinds["vehicle"]), "per_vehicle": sum(kinds["vehicle"]) / max(n_v, 1),
                     "companions": sum(kinds["companion"]), "per_companion": sum(kinds["companion"]) / max(n_c, 1),
-                    "all": sum(sum(v) for v in kinds.values())})
+                    "all": total,
+                    "cores_busy": total * rtf if in_loop and rtf is not None else None,
+                    "cpu_bound_rtf": cores / total if in_loop and cores and total > 0 else None})
     return out
 
 
@@ -510,11 +519,16 @@ def markdown_speed(result: dict) -> str:
     if len(scaling) > 1:
         parts += ["", "## Fleet scaling", "",
                   f"CPU seconds per simulated second {scaling[0]['cpu']}, by kind of process: the total, and per process "
-                  "in brackets.", "",
-                  md_table(("fleet", "links", "RTF", "/ceiling", "harness", "vehicles", "companions", "all"),
+                  "in brackets. *Cores busy*: the CPU seconds all the fleet's processes took per wall second in the "
+                  f"loop (all times the RTF), of the machine's {result.get('cpu_count') or '?'}; *CPU-bound RTF*: the "
+                  "real-time factor at which these CPU costs would keep every core busy, which no lockstep on this "
+                  "machine exceeds without cutting them.", "",
+                  md_table(("fleet", "links", "RTF", "/ceiling", "harness", "vehicles", "companions", "all",
+                            "cores busy", "CPU-bound RTF"),
                            [(f["label"], f["links"], fmt(f["realtime_factor"], ".2f"), fmt(f["ratio_to_ceiling"], ".3f"),
                              f"{f['harness']:.3f}", f"{f['vehicles']:.3f} ({f['per_vehicle']:.3f})",
-                             f"{f['companions']:.3f} ({f['per_companion']:.3f})", f"{f['all']:.3f}")
+                             f"{f['companions']:.3f} ({f['per_companion']:.3f})", f"{f['all']:.3f}",
+                             fmt(f["cores_busy"], ".2f"), fmt(f["cpu_bound_rtf"], ".2f"))
                             for f in scaling])]
     if result.get("batch_parts"):
         parts += ["", "## Where a batch flight's time goes", "",

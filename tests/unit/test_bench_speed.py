@@ -78,14 +78,20 @@ def _fleet(scenario: str, n_vehicles: int, n_companions: int, rtf: float) -> dic
 
 
 def test_the_fleet_scaling_table_sums_the_cpu_by_kind_of_process():
-    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0),
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0), "cpu_count": 2,
               "mujoco_ceiling": {}, "runs": [_fleet("three_link", 3, 1, 4.0), _fleet("fifteen_link", 15, 5, 0.8)]}
     three, fifteen = speed.fleet_scaling(result)
     assert (three["links"], fifteen["links"]) == (3, 15) and fifteen["cpu"] == "in loop"
     assert fifteen["vehicles"] == pytest.approx(0.9) and fifteen["per_vehicle"] == pytest.approx(0.06)
     assert fifteen["companions"] == pytest.approx(0.5) and fifteen["all"] == pytest.approx(0.25 + 0.9 + 0.5)
+    # 1.65 CPU s per simulated s at 0.8x: 1.32 of the 2 cores busy; every core busy at 2 / 1.65 = 1.21x
+    assert fifteen["cores_busy"] == pytest.approx(1.65 * 0.8) and fifteen["cpu_bound_rtf"] == pytest.approx(2 / 1.65)
     text, md = speed.format_speed(result), speed.markdown_speed(result)
     assert "fleet scaling" in text and "## Fleet scaling" in md and "0.900 (0.060)" in md
+    assert "| 1.32 | 1.21 |" in md and "of the machine's 2" in md
+    result["runs"][1]["processes"]["harness"]["loop_cpu_s_per_sim_s"] = None  # (over the processes' lives)
+    lives = speed.fleet_scaling(result)[1]
+    assert lives["cpu"] == "over their lives" and lives["cores_busy"] is None and lives["cpu_bound_rtf"] is None
     vehicles = [int(x.split()[1]) for x in text.splitlines() if x.strip().startswith("vehicle")]
     assert vehicles == [*range(1, 4), *range(1, 16)]  # in their natural order: vehicle 2 before vehicle 10
 
