@@ -146,10 +146,7 @@ class LinkBatch:
         accepted, rejected = int(io[IO_AHRS_ACCEPTED]), int(io[IO_AHRS_REJECTED])
         if accepted or rejected:  # (a rejection ends the link's run here: it comes last)
             io[IO_AHRS_ACCEPTED] = io[IO_AHRS_REJECTED] = 0.0
-            if accepted:
-                fw.ekf.count_attitude(accepted, 0)
-            if rejected:
-                fw.ekf.count_attitude(0, rejected)
+            fw.ekf.count_attitude(accepted, rejected)
         if io[IO_TICKS] == 0.0:
             return None
         row = self.bank[i]

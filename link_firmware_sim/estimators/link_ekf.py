@@ -188,10 +188,11 @@ class LinkEkf:
 
     def count_attitude(self, accepted: int, rejected: int) -> None:
         """Attitude references the fused ticks' kernels fused, counted as :meth:`update_attitude`
-        counts them."""
+        counts them, the rejected ones after the accepted ones (a kernel's run of ticks ends at a
+        rejection)."""
         self.accepted["att"] += accepted
         self.rejected["att"] += rejected
-        self.rejected_run["att"] = 0 if accepted else self.rejected_run["att"] + rejected
+        self.rejected_run["att"] = rejected if accepted else self.rejected_run["att"] + rejected
 
     @property
     def attitude_reset_due(self) -> bool:

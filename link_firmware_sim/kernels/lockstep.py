@@ -14,8 +14,8 @@ import numpy as np
 from companion.kernels.jit import jit
 
 from .hil_records import HIL_ACTUATOR_RECORD, record_time_us, sensor_record_at
-from .layouts import (IO_DT, IO_DUE_US, IO_MAX_TICKS, IO_N_FDS, IO_PACKET, IO_SENT, IO_STATUS, IO_T_PREV, IO_T_US,
-                      IO_TAKEN_BYTES, IO_TICKS, IO_TIMEOUT_MS, OUT_FINITE)
+from .layouts import (IO_AHRS_REJECTED, IO_DT, IO_DUE_US, IO_MAX_TICKS, IO_N_FDS, IO_PACKET, IO_SENT, IO_STATUS,
+                      IO_T_PREV, IO_T_US, IO_TAKEN_BYTES, IO_TICKS, IO_TIMEOUT_MS, OUT_FINITE)
 from .libc import MSG_NOSIGNAL, POLLIN, c_poll, c_recv, c_send
 from .mavlink_frames import FRAMING, frames_to_records, record_to_frame
 from .quiet import quiet_result, quiet_step
@@ -73,9 +73,12 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
     ``io[IO_T_PREV]`` advanced tick by tick), :func:`.quiet.quiet_result` after it, and no stream or
     log row due (``t_us < io[IO_DUE_US]``). It returns at the first tick that is not quiet
     (:data:`LOOP_TICKED`: the caller does that tick's bookkeeping, which also stands for the quiet
-    ticks' before it, as those change nothing it would not set again), at a packet it does not take
-    (:data:`LOOP_PACKET`), and when there is nothing to do (:data:`LOOP_IDLE`: timeout, a MAVLink
-    port readable, the simulator's socket in error, ``io[IO_MAX_TICKS]`` quiet ticks). Returns
+    ticks' before it, as those change nothing it would not set again), after a tick whose attitude
+    reference the gate rejected (:data:`LOOP_TICKED`: the rejections in a row decide whether the
+    next reference resets the attitude, so the caller counts each, the last of the call), at a
+    packet it does not take (:data:`LOOP_PACKET`), and when there is nothing to do
+    (:data:`LOOP_IDLE`: timeout, a MAVLink port readable, the simulator's socket in error,
+    ``io[IO_MAX_TICKS]`` quiet ticks). Returns
     ``(x, P)``; ``ctl``'s integrals and ``alloc``'s modulation state are updated in place, ``io``
     holds the newest tick's results and the loop's report."""
     buf, rec, frame, answer = bufs
@@ -118,6 +121,7 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
         if dt < 0.0:
             _left_over(io, n)
             return x, P
+        rejected = io[IO_AHRS_REJECTED]
         xn, Pn, taken = hil_tick_kernel(pkt, answer, x, P, dt, ekf_par, cmd, ctl, alloc, io)
         if not taken:
             _left_over(io, n)
@@ -144,7 +148,7 @@ def hil_loop_kernel(fds, bufs, framing, x, P, ekf_par, cmd, ctl, alloc, io):
         else:
             io[IO_STATUS] = LOOP_TICKED  # not sent (whole): the caller's send (or its error) takes over
             return x, P
-        if not quiet_result(io, io) or t_us >= io[IO_DUE_US]:
+        if not quiet_result(io, io) or t_us >= io[IO_DUE_US] or io[IO_AHRS_REJECTED] != rejected:
             io[IO_STATUS] = LOOP_TICKED
             return x, P
     return x, P

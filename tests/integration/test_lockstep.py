@@ -14,12 +14,14 @@ import time
 import numpy as np
 import pytest
 
+from companion.estimation.so3 import quat_from_euler_zyx
 from companion.kernels.jit import ENABLED as COMPILED
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.port import MavlinkPort
 from companion.mavlink.sockets import TcpClient
 from companion.mavlink.transport import wait_readable
 from companion.messages import Correction, PoseTarget
+from link_firmware_sim.estimators.ekf_config import EkfConfig
 from link_firmware_sim.geo import GeoOrigin
 from link_firmware_sim.kernels import mavlink_frames as frames
 from link_firmware_sim.kernels.layouts import CTL_POS_INT
@@ -125,7 +127,8 @@ def _poll_in_thread(vehicle):
     return stop_polling
 
 
-def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, rough_every: int = 0) -> dict:
+def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, rough_every: int = 0,
+                     ahrs_every: int = 10, ahrs_q=lambda k: LEVEL) -> dict:
     """``n_ticks`` lockstep ticks into ``rig``'s vehicle (armed, with a target and a correction that
     fades out and lifts the control estimate past the take-off height), the vehicle polling in its
     own thread as its process does, so that records arrive while it waits (the lockstep loop runs
@@ -133,7 +136,7 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
     runs after tick ``k``'s answer, ``after()`` after the last, the vehicle still polling.
     ``rough_every`` (TCP): every so many ticks the tick's frames are written in two pieces, cut
     inside a frame, with a pause between, and noise (bytes no parser takes for a frame) is written
-    before the next tick's."""
+    before the next tick's. An attitude reference ``ahrs_q(k)`` comes every ``ahrs_every`` ticks."""
     v = rig.vehicle
     v.fw.hil_loop = loop
     calls = []
@@ -149,8 +152,8 @@ def _lockstep_flight(rig, n_ticks: int, loop: bool, on_tick=None, after=None, ro
             wave = np.sin(0.37 * k)
             msgs = [encode_hil_gps(rig.t, np.array([0.0, 0.0, rig.height_m]), rig.vel_m_s, GeoOrigin())] \
                 if k % 50 == 0 else []
-            if k % 10 == 0:
-                msgs.append(encode_ahrs(rig.t, LEVEL))
+            if k % ahrs_every == 0:
+                msgs.append(encode_ahrs(rig.t, ahrs_q(k)))
             msgs.append(encode_hil_sensor(rig.t, np.array([0.1 * wave, -0.05, 9.80665]),
                                           np.array([0.02 * wave, 0.01, -0.03 * wave])))
             if rough_every and k % rough_every == rough_every - 1:
@@ -219,6 +222,30 @@ def test_the_lockstep_loop_flies_as_the_record_tick(tmp_path, link):
     statuses = {c[0] for c in calls}
     assert {LOOP_TICKED, LOOP_PACKET} <= statuses, statuses
 
+
+
+@pytest.mark.parametrize("link", ["unix", "tcp"])
+def test_the_lockstep_loop_counts_rejected_attitude_references_as_the_record_tick(tmp_path, link):
+    """Attitude references at 100 Hz (two in each 50 Hz stream period) that the gate rejects, from
+    tick 100 on a heading 150 deg away: the loop hands back at each rejection (the rejections in a
+    row decide when the next reference resets the attitude), so it resets at the same reference as
+    the record tick, and flies on bit for bit."""
+    if not COMPILED:
+        pytest.skip("numba not installed (or SKELETON_JIT=0)")
+    far = quat_from_euler_zyx(np.radians(150.0), 0.0, 0.0)
+
+    def fly(rig, loop):
+        out = _lockstep_flight(rig, 400, loop, ahrs_every=5, ahrs_q=lambda k: far if k >= 100 else LEVEL)
+        ekf = rig.vehicle.fw.ekf
+        return out | {"att": (ekf.resets, ekf.accepted["att"], ekf.rejected["att"], ekf.rejected_run["att"])}
+
+    plain, looped = _plain_and_looped(tmp_path, link, fly)
+    resets, _, rejected, _ = plain["att"]
+    assert resets == 1 and rejected == EkfConfig().att_reset_rejections, plain["att"]
+    for key in plain:
+        if key != "calls":
+            np.testing.assert_equal(looped[key], plain[key], err_msg=key)
+    assert sum(c[1] for c in looped["calls"]) >= 300
 
 
 @pytest.mark.parametrize("link", ["unix", "tcp"])

@@ -60,8 +60,12 @@ def test_a_reset_is_due_after_that_many_rejections_in_a_row(compiled):
     assert ekf.attitude_reset_due
     assert np.degrees(ekf.reset_attitude(far)) == pytest.approx(150.0, abs=0.5)
     assert not ekf.attitude_reset_due and ekf.resets == 1
-    ekf.count_attitude(0, 2)  # the fused ticks' counts
+    ekf.count_attitude(0, 2)  # the fused ticks' counts: the rejected ones after the accepted ones
     ekf.count_attitude(1, 1)
+    assert ekf.rejected_run["att"] == 1
+    ekf.count_attitude(0, 1)
+    assert ekf.rejected_run["att"] == 2
+    ekf.count_attitude(2, 0)
     assert ekf.rejected_run["att"] == 0
     never = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), EkfConfig(att_reset_rejections=0))
     never.count_attitude(0, 1000)
