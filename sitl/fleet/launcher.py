@@ -364,6 +364,7 @@ class Fleet:
                              f"metrics window (from {sc.flight_start_s:g} s): no metrics, the vehicles' logs and tlogs "
                              "are kept")
         merged, latency, missing = merge_logs(sc, harness.truth_log(), out_dir)
+        plant.crash.check_logged(merged["t"], merged["p_true"], merged["q_true"], merged["q_target"])
         metrics = compute_metrics(merged, sc.flight_start_s, plant.rotors.zero_crossings, plant.crashed,
                                   plant.crash_reason, harness.sim_s / max(harness.wall_s, 1e-9),
                                   sc.companion.enabled and "p_corr_sckf" in merged,

@@ -3,16 +3,14 @@ fleet mode (firmware behind the vehicles' simulator links)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from companion.estimation.so3 import attitude_error
 from companion.skeleton.body import link_inertia
 from companion.skeleton.kinematics import chain_middle
 
 from sitl.scenario import Scenario
 
+from .crash import CrashWatch
 from .model import SkeletonModel
 from .rotor import RotorBank
 from .rotor import warm_up as warm_up_rotors
@@ -21,12 +19,7 @@ from .sensors import LinkSensors, downwash_fraction
 from .sensors import warm_up as warm_up_sensors
 from .wind import Wind
 
-__all__ = ["Plant", "CRASH_TILT_DEG", "TAKEOFF_CLEARANCE_M"]
-
-CRASH_TILT_DEG = 60.0
-#: height above the crash floor every link must clear once for the chain to count as taken off [m]
-TAKEOFF_CLEARANCE_M = 0.2
-_COS_HALF_NEAR_CRASH = math.cos(math.radians(CRASH_TILT_DEG - 5.0) / 2.0)  # (check_crash)
+__all__ = ["Plant"]
 
 
 class Plant:
@@ -56,12 +49,8 @@ class Plant:
         self.wind = Wind(sc.wind, self.n, sc.skeleton.drag_area_m2, sc.skeleton.drag_coefficient, self.rng)
         self.model.begin_step()
         self._fresh = True  # begin_step already done for the current instant
-        self.crashed = False
-        self.crash_reason = ""
-        self.crash_time_s: float | None = None
-        # whether the chain ever flew (every link clear of the ground): a chain that never took off
-        # (nobody armed it) rests on the ground without having crashed
-        self.took_off = False
+        #: the crash rule, and whether and when the flight crashed
+        self.crash = CrashWatch(sc)
 
     def use_model(self, model) -> None:
         """Fly ``model`` from now on, in place of the chain's (a scenario's own MuJoCo model: a wall
@@ -107,32 +96,22 @@ class Plant:
         self.model.end_step(thrust.reshape(self.n, -1), wind)
 
     def check_crash(self, t: float, truth, target_q: np.ndarray | None) -> None:
-        """Flag a crash: a diverged simulation, or (after the take-off window, once the chain has
-        flown) a link on the ground or far off its target attitude (``target_q``: (n, 4)). A chain
-        that never left the ground has not crashed (:attr:`took_off` stays false)."""
-        if self.crashed:
-            return
-        if not np.all(np.isfinite(truth.p_w_m)):
-            self.crashed, self.crash_reason, self.crash_time_s = True, f"simulation diverged at t = {t:.3f} s", t
-            return
-        floor = self.scenario.skeleton.bar_radius_m + 0.05
-        lowest = truth.p_w_m[:, 2].min()
-        if not self.took_off and lowest > floor + TAKEOFF_CLEARANCE_M:
-            self.took_off = True
-        if t < self.scenario.flight_start_s or self.scenario.trajectory.kind == "rest" or not self.took_off:
-            return
-        if lowest < floor:
-            self.crashed, self.crash_reason, self.crash_time_s = True, f"link below {floor:.2f} m at t = {t:.2f} s", t
-            return
-        if target_q is None:
-            return
-        ok = np.all(np.isfinite(target_q), axis=1)  # a link without power or EKF has no target
-        # every link's rotation from its target, 2 acos |<q, q_target>|, well inside the limit:
-        # no crash (the rotation vectors below are worked out only near it)
-        if not np.any(np.abs(np.einsum("ij,ij->i", truth.q_wxyz[ok], target_q[ok])) < _COS_HALF_NEAR_CRASH):
-            return
-        tilt = np.zeros(len(ok))
-        tilt[ok] = np.degrees(np.linalg.norm(attitude_error(truth.q_wxyz[ok], target_q[ok]), axis=1))
-        if tilt.max() > CRASH_TILT_DEG:
-            self.crashed, self.crash_time_s = True, t
-            self.crash_reason = f"attitude error {tilt.max():.0f} deg on link {int(tilt.argmax()) + 1} at t = {t:.2f} s"
+        """Judge the instant ``t`` by the crash rule (:class:`~.crash.CrashWatch`): ``truth`` the
+        tick's, ``target_q`` (n, 4) every link's target attitude (``None``: not known here)."""
+        self.crash.check(t, truth.p_w_m, truth.q_wxyz, target_q)
+
+    @property
+    def crashed(self) -> bool:
+        return self.crash.crashed
+
+    @property
+    def crash_reason(self) -> str:
+        return self.crash.crash_reason
+
+    @property
+    def crash_time_s(self) -> float | None:
+        return self.crash.crash_time_s
+
+    @property
+    def took_off(self) -> bool:
+        return self.crash.took_off
