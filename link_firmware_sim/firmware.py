@@ -64,6 +64,7 @@ from .estimators.correction_aid import CorrectionAid
 from .estimators.imu_health import ImuHealth
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
+from .motor_failure import MotorFailureDetector
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
 from .wrench_guard import WrenchGuard
 
@@ -168,6 +169,8 @@ class LinkFirmware(FusedTicks):
         self.imu_health = ImuHealth()
         #: a non-finite wrench from the controller: refused, the last finite commands held
         self.wrench_guard = WrenchGuard()
+        #: rotors whose ESCs report them stopped while commanded (:meth:`on_esc_telemetry`)
+        self.motor_failure = MotorFailureDetector()
         #: GPS health and thrust-limit transitions not yet reported by the shell (STATUSTEXT)
         self.events: list[StatusEvent] = []
         self._init_fused()
@@ -221,7 +224,10 @@ class LinkFirmware(FusedTicks):
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
         if config.allocation != self.config.allocation:
+            removed = self.allocator.removed_rotor
             self.allocator = Allocator(self.allocator.geometry, config.allocation)
+            if removed is not None and config.allocation.remove_failed_rotor:
+                self.allocator.remove_rotor(removed)
         self.gps_health.config = config.gps
         self.thrust_limit.config = config.thrust_limit
         rebuild = (config.controller, config.se3_pid, config.hybrid, config.observer, config.pspm_mode, config.pspm) != (
@@ -496,6 +502,24 @@ class LinkFirmware(FusedTicks):
     def disarm(self) -> None:
         self.armed = False
         self.imu_health.stop(self.time_s)  # (watched in flight only)
+        self.motor_failure.reset()  # (PX4: a failed motor stays handled until disarmed)
+        self.allocator.restore_rotors()
+
+    def on_esc_telemetry(self, t_s: float, command_n, reported_n) -> None:
+        """The ESCs' report of the tick at ``t_s`` (armed only): what each rotor runs at against its
+        command [N] (:mod:`.motor_failure`). A rotor found failed is reported and, with
+        ``allocation.remove_failed_rotor`` (SKL_CA_FAIL), left out of the allocation from the next
+        tick on (one rotor at most; the link flies on the other seven)."""
+        if not self.armed:
+            return
+        for rotor in self.motor_failure.update(t_s, command_n, reported_n):
+            if not self.config.allocation.remove_failed_rotor:
+                text = f"Motor {rotor + 1} failed: SKL_CA_FAIL off, still used"
+            elif self.allocator.remove_rotor(rotor):
+                text = f"Motor {rotor + 1} failed: flying on the other seven"
+            else:
+                text = f"Motor {rotor + 1} failed: not handled, {self.allocator.removed_rotor + 1} out"
+            self.events.append(StatusEvent("reset", text))
 
     def active_target(self, t_s: float, estimate: tuple | None = None) -> PoseTarget:
         """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate);

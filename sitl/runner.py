@@ -569,7 +569,9 @@ class BatchRunner:
             fw = self.firmware[i]
             commands[i] = 0.0 if i in down else fw.on_imu(t, gyro[i], accel[i])
             if i == j and failures.imu_or_motor:
-                commands[i] = failures.thrust(commands[i])
+                thrust = failures.thrust(commands[i])  # (what the motors apply: the ESCs' telemetry)
+                fw.on_esc_telemetry(t, commands[i], thrust)
+                commands[i] = thrust
         if log_row:  # the newest samples to the stuck-sensor watch (a vehicle: on its stream and log rows)
             if batched:
                 self._sync()

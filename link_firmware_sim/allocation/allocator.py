@@ -16,8 +16,8 @@ from companion.kernels.jit import ENABLED
 from companion.skeleton.rotors import N_ROTORS, N_SIDE, NU, SIDES, WRENCH_DIM, RotorGeometry, _frozen
 
 from ..kernels.allocation import ALLOC_META, allocate_kernel
-from ..kernels.layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_SIZE,
-                               ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
+from ..kernels.layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_FAILED, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE,
+                               ALLOC_SIZE, ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
 from .mapping import (MARGIN_TOL_N, AllocationParams, AllocationResult, _fade_within_limit, gradual_selective_mapping,
                       infinity_norm_allocation, pseudo_inverse, reduced_pseudo_inverses, scaled_to_limit,
                       selective_mapping_weights, selective_modulation)
@@ -94,6 +94,7 @@ class Allocator:
         state[[ALLOC_EPS0, ALLOC_EPS1, ALLOC_TMAX, ALLOC_SELECTIVE, ALLOC_SCALE_TO_LIMIT, ALLOC_TOL]] = (
             self._eps0, self._eps1, self._tmax, self._selective, self._scale_to_limit, MARGIN_TOL_N)
         state[ALLOC_NU:ALLOC_NU + N_SIDE] = NU
+        state[ALLOC_FAILED] = -1.0
         self._state = state
         #: what the kernels read and update: ``(B_pinv, reduced_by_side, state)``, ``state`` holding
         #: the thresholds, the null vector and ``xi''_pre`` (``ALLOC_*`` of
@@ -124,8 +125,36 @@ class Allocator:
         return self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2].copy()
 
     def reset(self) -> None:
-        """Clear the modulation state: ``xi''_pre = 0``."""
+        """Clear the modulation state: ``xi''_pre = 0`` (a removed rotor stays removed)."""
         self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = 0.0
+
+    @property
+    def removed_rotor(self) -> int | None:
+        """The rotor (0-based) left out of the allocation as failed (:meth:`remove_rotor`), or ``None``."""
+        f = int(self._state[ALLOC_FAILED])
+        return None if f < 0 else f
+
+    def remove_rotor(self, rotor: int) -> bool:
+        """Leave failed rotor ``rotor`` (0-based) out of the allocation from now on: its side runs
+        the rows of ``B^+_{\\j}`` without it (exact with the other side's by (2.18)-(2.19) and Prop.
+        2; every single-rotor reduction of ``B`` is full rank), the other side as before (PX4's
+        ``CA_FAILURE_MODE = 1``). With no null space left on its side, that side's thrusts follow
+        from the wrench alone (hovering, two of its rotors carry twice their share), so a wrench beyond the seven rotors is clipped rotor by rotor (the
+        thesis's allocation) instead of scaled onto the limit with the weight kept
+        (``scale_to_limit``): scaling left the attitude control no authority and the link sank and
+        tipped, where clipping held it. One rotor at most: False (nothing changed) if another is
+        removed already."""
+        if not 0 <= rotor < N_ROTORS:
+            raise ValueError(f"rotor {rotor} is not one of 0..{N_ROTORS - 1}")
+        if self.removed_rotor not in (None, rotor):
+            return False
+        self._state[ALLOC_FAILED] = float(rotor)
+        self._state[ALLOC_XI_PRE + rotor // N_SIDE] = 0.0
+        return True
+
+    def restore_rotors(self) -> None:
+        """Every rotor in the allocation again."""
+        self._state[ALLOC_FAILED] = -1.0
 
     def allocate(self, U: np.ndarray, keep: np.ndarray | None = None) -> AllocationResult:
         """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
@@ -153,26 +182,39 @@ class Allocator:
         """:meth:`allocate` by the functional core of :mod:`.mapping` (``U`` checked): the
         specification of the kernel."""
         tmax, B_pinv = self._tmax, self._B_pinv
+        f = self.removed_rotor
+        failed = None if f is None else (f // N_SIDE, self._reduced_by_side[f // N_SIDE, f % N_SIDE])
         scale = 1.0
-        if self._scale_to_limit:
+        if self._scale_to_limit and failed is None:  # (with a rotor out: clipped, see remove_rotor)
             U, scale = scaled_to_limit(B_pinv, U, tmax, keep=keep)
         lam_o, xi1, lam_alpha = infinity_norm_allocation(B_pinv, U)  # Prop. 1, (2.12)
         common = {"lambda_o": lam_o, "lambda_alpha": lam_alpha, "wrench": U, "scale": scale}
         if not self._selective:
-            return AllocationResult(command_n=np.clip(lam_alpha, -tmax, tmax), lambda_beta=lam_alpha,
-                                    lambda_gamma=lam_alpha, e=(1.0, 1.0), near_zero=(-1, -1),
-                                    saturated=scale != 1.0 or np.abs(lam_alpha).max() > tmax, **common)
+            lam = lam_alpha.copy()
+            e, near = [1.0, 1.0], [-1, -1]
+            if failed is not None:  # the removed rotor's side without it
+                lam[SIDES[failed[0]]] = failed[1] @ U
+                e[failed[0]], near[failed[0]] = 0.0, f
+            return AllocationResult(command_n=np.clip(lam, -tmax, tmax), lambda_beta=lam, lambda_gamma=lam,
+                                    e=(e[0], e[1]), near_zero=(near[0], near[1]),
+                                    saturated=scale != 1.0 or np.abs(lam).max() > tmax, **common)
         xi2 = selective_modulation(lam_o, xi1, self.xi_pre, NU, self._eps1, self._xi_limit)  # (2.15)
+        if failed is not None:  # (no null space left on the removed rotor's side)
+            xi2[failed[0]] = 0.0
         self._state[ALLOC_XI_PRE:ALLOC_XI_PRE + 2] = xi2
         xi = xi1 + xi2
         lam_beta = lam_o + (NU * xi[:, None]).ravel()
         e, near = selective_mapping_weights(lam_beta, self._eps0, self._eps1)  # (2.17)
+        if failed is not None:  # the removed rotor faded out of its side for good
+            e, near = list(e), list(near)
+            e[failed[0]], near[failed[0]] = 0.0, f
+            e, near = (e[0], e[1]), (near[0], near[1])
         lam_gamma = gradual_selective_mapping(B_pinv, self._B_pinv_reduced, U, NU, xi, e, near)
         faded = False
         if self._scale_to_limit:  # (2.17) within the limit: a side's fade held back as far as that needs
             e = list(e)
             for s, side in enumerate(SIDES):
-                if near[s] >= 0 and np.abs(lam_gamma[side]).max() > tmax:
+                if near[s] >= 0 and (failed is None or s != failed[0]) and np.abs(lam_gamma[side]).max() > tmax:
                     red = self._B_pinv_reduced[near[s]][side] @ U
                     e[s] = _fade_within_limit(red.tolist(), lam_beta[side].tolist(), e[s], tmax)
                     lam_gamma[side] = red + e[s] * (lam_beta[side] - red)

@@ -93,6 +93,10 @@ class AllocationParams:
         and keep (2.15)'s modulation and (2.17)'s fade within the limit (the fade's weight ``e``
         raised as far as that needs). ``False``: the thesis as written, commands clipped rotor
         by rotor.
+    remove_failed_rotor : bool
+        A rotor the firmware finds failed (its ESC reports it stopped while commanded) is left
+        out of the allocation, the link flying on the other seven (PX4's ``CA_FAILURE_MODE = 1``;
+        :meth:`~.allocator.Allocator.remove_rotor`). ``False``: reported only.
 
     Requires ``0 < eps0_n < eps1_n < thrust_max_n`` (all finite).
     """
@@ -102,6 +106,7 @@ class AllocationParams:
     eps1_n: float = 0.8
     selective_mapping: bool = True
     scale_to_limit: bool = True
+    remove_failed_rotor: bool = True
 
     def __post_init__(self) -> None:
         vals = (self.thrust_max_n, self.eps0_n, self.eps1_n)

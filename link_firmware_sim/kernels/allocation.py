@@ -14,8 +14,8 @@ import numpy as np
 
 from companion.kernels.jit import jit
 
-from .layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_TMAX, ALLOC_TOL,
-                      ALLOC_XI_PRE)
+from .layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_FAILED, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_TMAX,
+                      ALLOC_TOL, ALLOC_XI_PRE)
 
 __all__ = ["ALLOC_META", "allocate_kernel"]
 
@@ -130,6 +130,16 @@ def _pinv_times(B_pinv, U, lo):
 
 
 @jit
+def _rows_times(R, V, o, out):
+    """``out[o:o + 4] = R V`` (``R``: (4, 6))."""
+    for i in range(4):
+        s = 0.0
+        for k in range(6):
+            s += R[i, k] * V[k]
+        out[o + i] = s
+
+
+@jit
 def allocate_kernel(U_in, keep, alloc, out, meta):
     """``Allocator.allocate`` of the wrench ``U_in`` (6,) with ``alloc = (B_pinv, reduced_by_side,
     state)``: ``B^+`` (8, 6), each side's rows of the single-rotor reduced pseudo-inverses (2, 4, 4,
@@ -144,6 +154,10 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
     U = np.empty(6)
     for k in range(6):
         U[k] = U_in[k]
+    # a rotor left out as failed (Allocator.remove_rotor): its side fs runs the rows R of B^+_{\j}
+    failed = int(state[ALLOC_FAILED])
+    fs = failed // 4 if failed >= 0 else -1
+    R = reduced_by_side[max(fs, 0), max(failed, 0) % 4]
     lo = out[1]
     _pinv_times(B_pinv, U, lo)
     scale = 1.0
@@ -152,7 +166,7 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
         xi_limit = tmax
         mn_r, mx_r = _side_range(lo, nu, 0)
         mn_l, mx_l = _side_range(lo, nu, 4)
-        if max(mx_r - mn_r, mx_l - mn_l) > 2.0 * tmax:
+        if fs < 0 and max(mx_r - mn_r, mx_l - mn_l) > 2.0 * tmax:  # (with a rotor out: clipped)
             K = np.empty(6)
             for k in range(6):
                 K[k] = keep[k]
@@ -204,9 +218,22 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
         meta[1] = 1.0
         meta[2] = -1.0
         meta[3] = -1.0
+        if fs >= 0:  # the removed rotor's side without it
+            _rows_times(R, U, 4 * fs, out[3])
+            _rows_times(R, U, 4 * fs, out[4])
+            meta[fs] = 0.0
+            meta[2 + fs] = failed
     else:
         for side in range(2):
             o = 4 * side
+            if side == fs:  # the removed rotor faded out of its side for good (no null space left)
+                state[ALLOC_XI_PRE + side] = 0.0
+                for i in range(4):
+                    out[3, o + i] = out[2, o + i]
+                _rows_times(R, U, o, out[4])
+                meta[2 + side] = failed
+                meta[side] = 0.0
+                continue
             xi2 = _modulate_side(b[o:o + 4], state[ALLOC_XI_PRE + side], eps1, xi_limit, tol)  # (2.15)
             state[ALLOC_XI_PRE + side] = xi2
             mags = np.empty(4)

@@ -35,7 +35,7 @@ TGT_P, TGT_V, TGT_A, TGT_W, TGT_WDOT, TGT_R, TGT_FORCE_FF, TGT_TORQUE_FF, TGT_SI
 # the allocator: eps0, eps1, thrust limit, selective mapping and scale-to-limit (1 or 0), the margin's
 # tolerance, the null vector nu (4), the modulation's state xi''_pre (2, updated by the kernels)
 ALLOC_EPS0, ALLOC_EPS1, ALLOC_TMAX, ALLOC_SELECTIVE, ALLOC_SCALE_TO_LIMIT, ALLOC_TOL = 0, 1, 2, 3, 4, 5
-ALLOC_NU, ALLOC_XI_PRE, ALLOC_SIZE = 6, 10, 12
+ALLOC_NU, ALLOC_XI_PRE, ALLOC_FAILED, ALLOC_SIZE = 6, 10, 12, 13
 
 # the fused tick's inputs: the correction's weight, the correction [dp; dv; dtheta] (9), the target
 IN_WEIGHT, IN_CORRECTION, IN_TARGET, IN_SIZE = 0, 1, 10, 10 + TGT_SIZE

@@ -138,7 +138,10 @@ class Lockstep:
         failures = v.failures
         if failures.imu_or_motor:
             gyro, accel = failures.imu(gyro, accel)
-            self._answer(failures.thrust(v.fw.on_imu(t, gyro, accel)))
+            command = v.fw.on_imu(t, gyro, accel)
+            thrust = failures.thrust(command)  # (what the motors apply: the ESCs' telemetry)
+            v.fw.on_esc_telemetry(t, command, thrust)
+            self._answer(thrust)
         else:
             self._answer(v.fw.on_imu(t, gyro, accel))
         v.after_tick()

@@ -63,6 +63,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
     ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 weight kept, the rest scaled onto it; 0 clip each rotor"),
+    ParamSpec("SKL_CA_FAIL", "int", 0, 1, "A motor failed (ESC telemetry): 1 left out, flying on the other 7; 0 report only"),
     ParamSpec("SKL_TLIM_WARN", "float", 0.01, 10.0, "Rotors at their thrust limit this long: STATUSTEXT warning [s]"),
     ParamSpec("SKL_TLIM_CLR", "float", 0.01, 10.0, "Rotors back within their limit this long: episode over [s]"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),
@@ -125,6 +126,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_SM_EPS0": a.eps0_n,
         "SKL_SM_EPS1": a.eps1_n,
         "SKL_SAT_SCALE": int(a.scale_to_limit),
+        "SKL_CA_FAIL": int(a.remove_failed_rotor),
         "SKL_TLIM_WARN": config.thrust_limit.warn_after_s,
         "SKL_TLIM_CLR": config.thrust_limit.clear_after_s,
         "SKL_STATE_HZ": rates.state_hz,
@@ -237,7 +239,8 @@ class ParamTable:
         )
         allocation = replace(
             self._base.allocation, selective_mapping=bool(v["SKL_SM_EN"]), eps0_n=v["SKL_SM_EPS0"],
-            eps1_n=v["SKL_SM_EPS1"], scale_to_limit=bool(v["SKL_SAT_SCALE"])
+            eps1_n=v["SKL_SM_EPS1"], scale_to_limit=bool(v["SKL_SAT_SCALE"]),
+            remove_failed_rotor=bool(v["SKL_CA_FAIL"])
         )
         return replace(
             self._base,

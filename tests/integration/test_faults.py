@@ -382,6 +382,16 @@ def test_batch_link_reboot_without_carrying_tips_its_neighbours_over(tmp_path):
     assert np.nanmax(tilt[:, [0, 2]]) > 55.0
 
 
+@pytest.mark.slow  # the counterfactual of regression_end_motor_off (3 s), out of the default run for the suite's time
+def test_a_stopped_motor_left_in_the_allocation_flips_its_end_link(tmp_path):
+    """regression_end_motor_off with SKL_CA_FAIL = 0: the firmware reports the failed motor but
+    allocates as if it turned, and the end link tips past 60 deg; with it (the seeded test) it flies."""
+    sc = load_scenario(f"{FAULTS}/regression_end_motor_off.toml")
+    sc = replace(sc, firmware=replace(sc.firmware, allocation=replace(sc.firmware.allocation, remove_failed_rotor=False)))
+    m = fly(sc, tmp_path, plots=False)
+    assert m["crashed"] and "on link 3" in m["crash_reason"], m["crash_reason"]
+
+
 @pytest.mark.parametrize("unit, ftype, instance, changed", [
     ("gps", "off", 0, 10),         # 10 Hz fixes for 1 s
     ("gyro", "garbage", 0, 500),   # every 500 Hz IMU sample

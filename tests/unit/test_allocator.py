@@ -7,12 +7,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.skeleton.rotors import L_SIDE, NU
+from companion.skeleton.rotors import L_SIDE, NU, SIDES
 from link_firmware_sim.allocation import AllocationParams, Allocator, infinity_norm_allocation, scaled_to_limit
 
 from ..allocation_cases import (
     B,
     B_PINV,
+    B_RED,
     GEOM,
     G,
     MASS_KG,
@@ -193,3 +194,49 @@ def test_saturation_flag_and_clipping():
     r = alloc.allocate(hover_wrench(np.eye(3)))
     assert not r.saturated
     np.testing.assert_array_equal(r.command_n, r.lambda_gamma)
+
+
+# ------------------------------------------------------------------------------------------
+# A rotor left out as failed (Allocator.remove_rotor)
+# ------------------------------------------------------------------------------------------
+
+
+def _limit_ratio(W, rotor):
+    """How far wrench ``W`` is from the seven rotors' limit (1: on it): the removed rotor's side
+    runs the rows of ``B^+_{\\j}`` (no null space left), the other side Prop. 1's spread."""
+    side = rotor // 4
+    rows = B_RED[rotor][side * 4:side * 4 + 4]
+    other = (B_PINV @ W).reshape(2, 4)[1 - side] * NU
+    return max(np.abs(rows @ W).max() / TMAX, np.ptp(other) / (2 * TMAX))
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(wrench, min_size=1, max_size=8), st.integers(0, 7), st.booleans())
+def test_a_removed_rotor_gets_no_thrust_and_the_rest_produce_the_wrench(Us, rotor, selective):
+    """With a rotor removed, it gets no thrust and the other seven produce the wrench exactly,
+    each within the limit, when they can; beyond that, its side's rows of ``B^+_{\\j} U`` are
+    clipped rotor by rotor (nothing scaled) and the other side's stay within the limit."""
+    alloc = Allocator(GEOM, AllocationParams(selective_mapping=selective))
+    assert alloc.remove_rotor(rotor) and alloc.removed_rotor == rotor
+    side = SIDES[rotor // 4]
+    for U in Us:
+        r = alloc.allocate(U, hover_wrench(np.eye(3)))
+        assert r.command_n[rotor] == 0.0 and r.scale == 1.0 and np.array_equal(r.wrench, U)
+        if _limit_ratio(U, rotor) <= 1.0:
+            assert not r.saturated and np.abs(r.command_n).max() <= TMAX + 1e-9
+            np.testing.assert_allclose(B @ r.command_n, U, atol=1e-9)
+        else:
+            np.testing.assert_allclose(r.command_n[side], np.clip(B_RED[rotor][side] @ U, -TMAX, TMAX), atol=1e-9)
+
+
+def test_one_rotor_at_most_is_removed_and_all_come_back():
+    alloc = Allocator(GEOM)
+    assert alloc.removed_rotor is None
+    assert alloc.remove_rotor(3) and alloc.remove_rotor(3)  # (again: the same, accepted)
+    assert not alloc.remove_rotor(6) and alloc.removed_rotor == 3
+    alloc.reset()  # (the modulation's state only)
+    assert alloc.removed_rotor == 3
+    alloc.restore_rotors()
+    assert alloc.removed_rotor is None and alloc.allocate(hover_wrench(np.eye(3))).command_n[3] != 0.0
+    with pytest.raises(ValueError):
+        alloc.remove_rotor(8)
