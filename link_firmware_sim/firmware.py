@@ -55,7 +55,7 @@ from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 
 from .allocation import AllocationParams, Allocator
-from .controllers import ImpedanceController, ImpedanceGains, make_controller, weight_wrench
+from .controllers import ControlIntegrals, ImpedanceController, ImpedanceGains, make_controller, weight_wrench
 from .controllers.hybrid import ContactTarget, HybridGains, ObserverConfig
 from .controllers.pspm import PspmGains, PspmModulator
 from .controllers.se3_control import Se3PidGains
@@ -570,7 +570,13 @@ class LinkFirmware(FusedTicks):
             imu.gyro_used()
         target = self._active_target(t_s, p)
         ctrl = self._controller
+        held = self.integrals if imu.gyro.stale else None
         U = ctrl(p, v, q, omega, target, dt)  # eq. 1 (default), sec. 2.3.2, 2.3.3 or 2.3.4's slave law
+        if isinstance(held, ControlIntegrals):
+            # eq. 1's attitude integral holds while the gyro is stale: the damping then comes from
+            # the attitude estimate's change, low-passed and late, and the larger errors it leaves
+            # would wind the integral up, to swing the link over once the gyro is back
+            ctrl.integrals = ControlIntegrals(ctrl.integrals.pos, held.att)
         if not math.isfinite(float(np.sum(U))):
             return self._refuse_wrench(t_s)
         self._thrust_total_n = float(np.linalg.norm(U[:3]))  # the commanded force (rotors spin both ways)

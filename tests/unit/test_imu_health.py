@@ -79,6 +79,40 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
 
 
 @pytest.mark.parametrize("stale", [False, True])
+def test_the_attitude_integral_holds_while_the_gyro_is_stale(stale):
+    """A link held 10 deg off its target in yaw (its attitude reference says so): eq. 1's attitude
+    integral winds on the error with a live gyro; with a stale one it holds its value (anti-windup
+    while the damping is the attitude estimate's late rate), the position integral going on."""
+    from companion.estimation.so3 import quat_from_euler_zyx
+
+    fw, q = _hovering_firmware()
+    assert fw.arm(0.0)
+    target = quat_from_euler_zyx(np.radians(10.0), 0.0, 0.0)
+    fw.set_target(0.0, PoseTarget.hold(np.array([0.3, 0.0, 0.0]), target))
+    rng = np.random.default_rng(2)
+    before = None
+    for k in range(1, 751):
+        t = k / 500
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if k % 50 == 0:
+            fw.on_gps(t, rng.normal(0, 0.01, 3), np.zeros(3))
+        gyro = np.zeros(3) if stale else rng.normal(0, 1e-4, 3)
+        fw.on_imu(t, gyro, GRAVITY_UP + rng.normal(0, 1e-4, 3))
+        if k % 10 == 0:
+            fw.watch_imu(t)
+        if k == 250:
+            assert fw.imu_health.gyro.stale == stale
+            before = fw.integrals
+    after = fw.integrals
+    assert np.linalg.norm(after.pos - before.pos) > 1e-3
+    if stale:
+        np.testing.assert_array_equal(after.att, before.att)
+    else:
+        assert np.linalg.norm(after.att - before.att) > 1e-3
+
+
+@pytest.mark.parametrize("stale", [False, True])
 def test_in_flight_a_stuck_accelerometer_is_replaced_by_the_commanded_thrust(stale):
     """An armed, still link without GPS whose accelerometer reads 0.5 m/s^2 off its true specific
     force: stuck on that value (``stale``), it is found stale and the commanded thrust's specific
