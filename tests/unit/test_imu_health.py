@@ -13,6 +13,21 @@ from link_firmware_sim.estimators.imu_health import STALE_S, StaleSensor
 from .test_gps_health import GRAVITY_UP, _hovering_firmware
 
 
+def _fly_still(fw, q, rng, gyro, gps_std_m: float, ticks: int = 750, first: int = 1) -> None:
+    """``ticks`` 500 Hz ticks from tick ``first`` of a still link at attitude ``q``: ``gyro()``
+    each tick, the attitude reference every 10, a GPS fix (``gps_std_m`` of noise) every 50, and
+    the stuck-sensor watch every 10, as a shell does on its log rows."""
+    for k in range(first, first + ticks):
+        t = k / 500
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if k % 50 == 0:
+            fw.on_gps(t, rng.normal(0, gps_std_m, 3), np.zeros(3))
+        fw.on_imu(t, gyro(), GRAVITY_UP + rng.normal(0, 1e-4, 3))
+        if k % 10 == 0:
+            fw.watch_imu(t)
+
+
 @pytest.mark.parametrize("step_s", [0.002, 0.02])  # every tick, or a sample per compiled loop's return
 def test_a_repeated_sample_is_stale_after_stale_s_and_alive_at_the_next_change(step_s):
     s = StaleSensor("Gyro")
@@ -58,15 +73,7 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
     fw.set_target(0.0, PoseTarget.hold(np.zeros(3), q))
     rng = np.random.default_rng(1)
     rate = np.array([0.0, 0.0, 0.5])
-    for k in range(1, 751):
-        t = k / 500
-        if k % 10 == 0:
-            fw.on_attitude(t, q)
-        if k % 50 == 0:
-            fw.on_gps(t, rng.normal(0, 0.05, 3), np.zeros(3))
-        fw.on_imu(t, rate if stale else rate + rng.normal(0, 1e-6, 3), GRAVITY_UP + rng.normal(0, 1e-4, 3))
-        if k % 10 == 0:  # as a shell does on its log rows
-            fw.watch_imu(t)
+    _fly_still(fw, q, rng, lambda: rate if stale else rate + rng.normal(0, 1e-6, 3), gps_std_m=0.05)
     yaw_err = np.degrees(2 * np.arccos(min(1.0, abs(float(fw.ekf.q_wxyz @ q)))))
     assert fw.imu_health.gyro.stale == stale
     if stale:
@@ -90,20 +97,11 @@ def test_the_attitude_integral_holds_while_the_gyro_is_stale(stale):
     target = quat_from_euler_zyx(np.radians(10.0), 0.0, 0.0)
     fw.set_target(0.0, PoseTarget.hold(np.array([0.3, 0.0, 0.0]), target))
     rng = np.random.default_rng(2)
-    before = None
-    for k in range(1, 751):
-        t = k / 500
-        if k % 10 == 0:
-            fw.on_attitude(t, q)
-        if k % 50 == 0:
-            fw.on_gps(t, rng.normal(0, 0.01, 3), np.zeros(3))
-        gyro = np.zeros(3) if stale else rng.normal(0, 1e-4, 3)
-        fw.on_imu(t, gyro, GRAVITY_UP + rng.normal(0, 1e-4, 3))
-        if k % 10 == 0:
-            fw.watch_imu(t)
-        if k == 250:
-            assert fw.imu_health.gyro.stale == stale
-            before = fw.integrals
+    gyro = lambda: np.zeros(3) if stale else rng.normal(0, 1e-4, 3)  # noqa: E731
+    _fly_still(fw, q, rng, gyro, gps_std_m=0.01, ticks=250)
+    assert fw.imu_health.gyro.stale == stale
+    before = fw.integrals
+    _fly_still(fw, q, rng, gyro, gps_std_m=0.01, ticks=500, first=251)
     after = fw.integrals
     assert np.linalg.norm(after.pos - before.pos) > 1e-3
     if stale:
