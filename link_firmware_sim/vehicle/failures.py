@@ -16,8 +16,9 @@ MAV_RESULT_UNSUPPORTED):
   the failure held), ``garbage`` (white noise of :data:`GYRO_GARBAGE_STD_RAD_S` /
   :data:`ACCEL_GARBAGE_STD_M_S2` per axis added). Not ``off``: the IMU sample is the lockstep tick
   itself, the firmware has no clock without it;
-* FAILURE_UNIT_SYSTEM_MOTOR: ``ok``, ``off`` (that rotor's thrust command zero; the firmware does
-  not know);
+* FAILURE_UNIT_SYSTEM_MOTOR: ``ok``, ``off`` (that rotor's thrust zero: the motor stops, and its
+  ESC's telemetry, the thrust :meth:`~FailureInjector.thrust` returns, says so; the firmware finds
+  it failed from that, :mod:`link_firmware_sim.motor_failure`);
 * FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL: ``ok``, ``off`` (the onboard link to the companion goes
   dead both ways: nothing sent on it, whatever arrives on it dropped, each counted; the
   ground-station link stays up, so a ground station can clear it). :class:`SeveredTransport` is
