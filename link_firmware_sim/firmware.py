@@ -64,7 +64,7 @@ from .estimators.correction_aid import CorrectionAid
 from .estimators.imu_health import ImuHealth
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
-from .motor_failure import MotorFailureDetector
+from .motor_failure import TEST_THRUST_N, MotorFailureDetector
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
 from .wrench_guard import WrenchGuard
 
@@ -224,10 +224,10 @@ class LinkFirmware(FusedTicks):
     def reconfigure(self, config: FirmwareConfig) -> None:
         """Apply a new configuration at once (parameter changes); the EKF keeps its state."""
         if config.allocation != self.config.allocation:
-            removed = self.allocator.removed_rotor
-            self.allocator = Allocator(self.allocator.geometry, config.allocation)
-            if removed is not None and config.allocation.remove_failed_rotor:
-                self.allocator.remove_rotor(removed)
+            old = self.allocator
+            self.allocator = Allocator(old.geometry, config.allocation)
+            if old.removed_rotor is not None and config.allocation.remove_failed_rotor:
+                self.allocator.remove_rotor(old.removed_rotor, old.test_thrust_n)
         self.gps_health.config = config.gps
         self.thrust_limit.config = config.thrust_limit
         rebuild = (config.controller, config.se3_pid, config.hybrid, config.observer, config.pspm_mode, config.pspm) != (
@@ -509,17 +509,29 @@ class LinkFirmware(FusedTicks):
         """The ESCs' report of the tick at ``t_s`` (armed only): what each rotor runs at against its
         command [N] (:mod:`.motor_failure`). A rotor found failed is reported and, with
         ``allocation.remove_failed_rotor`` (SKL_CA_FAIL), left out of the allocation from the next
-        tick on (one rotor at most; the link flies on the other seven)."""
+        tick on (one rotor at most; the link flies on the other seven), commanded its test thrust;
+        once it turns again it rejoins. The shell feeds every tick while a rotor is out
+        (:attr:`rotor_out`)."""
         if not self.armed:
             return
-        for rotor in self.motor_failure.update(t_s, command_n, reported_n):
+        failed, back = self.motor_failure.update(t_s, command_n, reported_n)
+        for rotor in failed:
             if not self.config.allocation.remove_failed_rotor:
                 text = f"Motor {rotor + 1} failed: SKL_CA_FAIL off, still used"
-            elif self.allocator.remove_rotor(rotor):
+            elif self.allocator.remove_rotor(rotor, TEST_THRUST_N):
                 text = f"Motor {rotor + 1} failed: flying on the other seven"
             else:
                 text = f"Motor {rotor + 1} failed: not handled, {self.allocator.removed_rotor + 1} out"
             self.events.append(StatusEvent("reset", text))
+        for rotor in back:
+            if self.allocator.removed_rotor == rotor:
+                self.allocator.restore_rotors()
+            self.events.append(StatusEvent("recovered", f"Motor {rotor + 1} turns again: flying on all eight"))
+
+    @property
+    def rotor_out(self) -> bool:
+        """A rotor is left out of the allocation: the shell must feed :meth:`on_esc_telemetry` each tick."""
+        return self.allocator.removed_rotor is not None
 
     def active_target(self, t_s: float, estimate: tuple | None = None) -> PoseTarget:
         """The target the controller tracks at ``t_s`` (disarmed: a hold of the control estimate);

@@ -458,11 +458,13 @@ class BatchRunner:
 
     def _batch_skip(self, j: int) -> set[int]:
         """The links the batch leaves to their firmware's own tick: without power, booting, the
-        injected link while its IMU or motors fail."""
+        injected link while its IMU or motors fail, a link flying with a rotor left out (its ESCs'
+        telemetry is judged each tick)."""
         failing = self.failures is not None and self.failures.imu_or_motor
-        if not self._boot_fix and not failing:
+        out = {i for i, fw in enumerate(self.firmware) if fw.rotor_out} if self.failures is not None else set()
+        if not self._boot_fix and not failing and not out:
             return self._down
-        return self._down | set(self._boot_fix) | ({j} if failing else set())
+        return self._down | set(self._boot_fix) | ({j} if failing else set()) | out
 
     def run(self, duration_s: float, progress=None) -> RunLog:
         """Advance the simulation by ``duration_s``; ``progress(s)`` is called every 100 ms."""
@@ -568,8 +570,9 @@ class BatchRunner:
         for i in links:
             fw = self.firmware[i]
             commands[i] = 0.0 if i in down else fw.on_imu(t, gyro[i], accel[i])
-            if i == j and failures.imu_or_motor:
-                thrust = failures.thrust(commands[i])  # (what the motors apply: the ESCs' telemetry)
+            if i == j and failures.imu_or_motor or fw.rotor_out:
+                # what the motors apply: the ESCs' telemetry
+                thrust = failures.thrust(commands[i]) if i == j else commands[i]
                 fw.on_esc_telemetry(t, commands[i], thrust)
                 commands[i] = thrust
         if log_row:  # the newest samples to the stuck-sensor watch (a vehicle: on its stream and log rows)

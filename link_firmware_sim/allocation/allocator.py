@@ -17,7 +17,7 @@ from companion.skeleton.rotors import N_ROTORS, N_SIDE, NU, SIDES, WRENCH_DIM, R
 
 from ..kernels.allocation import ALLOC_META, allocate_kernel
 from ..kernels.layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_FAILED, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE,
-                               ALLOC_SIZE, ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
+                               ALLOC_SIZE, ALLOC_TEST, ALLOC_TEST_WRENCH, ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
 from .mapping import (MARGIN_TOL_N, AllocationParams, AllocationResult, _fade_within_limit, gradual_selective_mapping,
                       infinity_norm_allocation, pseudo_inverse, reduced_pseudo_inverses, scaled_to_limit,
                       selective_mapping_weights, selective_modulation)
@@ -134,7 +134,12 @@ class Allocator:
         f = int(self._state[ALLOC_FAILED])
         return None if f < 0 else f
 
-    def remove_rotor(self, rotor: int) -> bool:
+    @property
+    def test_thrust_n(self) -> float:
+        """The thrust [N] the removed rotor is commanded (0 without one)."""
+        return float(self._state[ALLOC_TEST])
+
+    def remove_rotor(self, rotor: int, test_thrust_n: float = 0.0) -> bool:
         """Leave failed rotor ``rotor`` (0-based) out of the allocation from now on: its side runs
         the rows of ``B^+_{\\j}`` without it (exact with the other side's by (2.18)-(2.19) and Prop.
         2; every single-rotor reduction of ``B`` is full rank), the other side as before (PX4's
@@ -142,19 +147,28 @@ class Allocator:
         from the wrench alone (hovering, two of its rotors carry twice their share), so a wrench beyond the seven rotors is clipped rotor by rotor (the
         thesis's allocation) instead of scaled onto the limit with the weight kept
         (``scale_to_limit``): scaling left the attitude control no authority and the link sank and
-        tipped, where clipping held it. One rotor at most: False (nothing changed) if another is
-        removed already."""
+        tipped, where clipping held it. ``test_thrust_n``: the removed rotor is still commanded
+        this much (within the limit), its wrench taken off the one the others produce, so that its
+        ESC's telemetry tells whether it turns again (:mod:`link_firmware_sim.motor_failure`);
+        the others' exactness holds while it does. One rotor at most: False (nothing changed) if
+        another is removed already."""
         if not 0 <= rotor < N_ROTORS:
             raise ValueError(f"rotor {rotor} is not one of 0..{N_ROTORS - 1}")
+        if not abs(test_thrust_n) <= self._tmax:
+            raise ValueError(f"test_thrust_n must be within +-{self._tmax} N; got {test_thrust_n!r}")
         if self.removed_rotor not in (None, rotor):
             return False
-        self._state[ALLOC_FAILED] = float(rotor)
-        self._state[ALLOC_XI_PRE + rotor // N_SIDE] = 0.0
+        state = self._state
+        state[ALLOC_FAILED] = float(rotor)
+        state[ALLOC_TEST] = float(test_thrust_n)
+        state[ALLOC_TEST_WRENCH:ALLOC_TEST_WRENCH + WRENCH_DIM] = self._B[:, rotor] * test_thrust_n
+        state[ALLOC_XI_PRE + rotor // N_SIDE] = 0.0
         return True
 
     def restore_rotors(self) -> None:
         """Every rotor in the allocation again."""
         self._state[ALLOC_FAILED] = -1.0
+        self._state[ALLOC_TEST:ALLOC_TEST_WRENCH + WRENCH_DIM] = 0.0
 
     def allocate(self, U: np.ndarray, keep: np.ndarray | None = None) -> AllocationResult:
         """Allocate the body-frame wrench ``U = [R^T f; tau]`` (N, Nm) to the eight rotors.
@@ -184,6 +198,8 @@ class Allocator:
         tmax, B_pinv = self._tmax, self._B_pinv
         f = self.removed_rotor
         failed = None if f is None else (f // N_SIDE, self._reduced_by_side[f // N_SIDE, f % N_SIDE])
+        if failed is not None:  # what the others produce: the wrench less the removed rotor's test thrust's
+            U = U - self._state[ALLOC_TEST_WRENCH:ALLOC_TEST_WRENCH + WRENCH_DIM]
         scale = 1.0
         if self._scale_to_limit and failed is None:  # (with a rotor out: clipped, see remove_rotor)
             U, scale = scaled_to_limit(B_pinv, U, tmax, keep=keep)
@@ -192,8 +208,9 @@ class Allocator:
         if not self._selective:
             lam = lam_alpha.copy()
             e, near = [1.0, 1.0], [-1, -1]
-            if failed is not None:  # the removed rotor's side without it
+            if failed is not None:  # the removed rotor's side without it, the rotor at its test thrust
                 lam[SIDES[failed[0]]] = failed[1] @ U
+                lam[f] = self.test_thrust_n
                 e[failed[0]], near[failed[0]] = 0.0, f
             return AllocationResult(command_n=np.clip(lam, -tmax, tmax), lambda_beta=lam, lambda_gamma=lam,
                                     e=(e[0], e[1]), near_zero=(near[0], near[1]),
@@ -210,6 +227,8 @@ class Allocator:
             e[failed[0]], near[failed[0]] = 0.0, f
             e, near = (e[0], e[1]), (near[0], near[1])
         lam_gamma = gradual_selective_mapping(B_pinv, self._B_pinv_reduced, U, NU, xi, e, near)
+        if failed is not None:
+            lam_gamma[f] = self.test_thrust_n
         faded = False
         if self._scale_to_limit:  # (2.17) within the limit: a side's fade held back as far as that needs
             e = list(e)

@@ -14,8 +14,8 @@ import numpy as np
 
 from companion.kernels.jit import jit
 
-from .layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_FAILED, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_TMAX,
-                      ALLOC_TOL, ALLOC_XI_PRE)
+from .layouts import (ALLOC_EPS0, ALLOC_EPS1, ALLOC_FAILED, ALLOC_NU, ALLOC_SCALE_TO_LIMIT, ALLOC_SELECTIVE, ALLOC_TEST,
+                      ALLOC_TEST_WRENCH, ALLOC_TMAX, ALLOC_TOL, ALLOC_XI_PRE)
 
 __all__ = ["ALLOC_META", "allocate_kernel"]
 
@@ -151,13 +151,14 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
     eps0, eps1, tmax, tol = state[ALLOC_EPS0], state[ALLOC_EPS1], state[ALLOC_TMAX], state[ALLOC_TOL]
     selective, scale_to_limit = state[ALLOC_SELECTIVE] != 0.0, state[ALLOC_SCALE_TO_LIMIT] != 0.0
     nu = state[ALLOC_NU:ALLOC_NU + 4]
-    U = np.empty(6)
-    for k in range(6):
-        U[k] = U_in[k]
-    # a rotor left out as failed (Allocator.remove_rotor): its side fs runs the rows R of B^+_{\j}
+    # a rotor left out as failed (Allocator.remove_rotor): its side fs runs the rows R of B^+_{\j},
+    # the others produce the wrench less its test thrust's
     failed = int(state[ALLOC_FAILED])
     fs = failed // 4 if failed >= 0 else -1
     R = reduced_by_side[max(fs, 0), max(failed, 0) % 4]
+    U = np.empty(6)
+    for k in range(6):
+        U[k] = U_in[k] - (state[ALLOC_TEST_WRENCH + k] if fs >= 0 else 0.0)
     lo = out[1]
     _pinv_times(B_pinv, U, lo)
     scale = 1.0
@@ -218,9 +219,11 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
         meta[1] = 1.0
         meta[2] = -1.0
         meta[3] = -1.0
-        if fs >= 0:  # the removed rotor's side without it
+        if fs >= 0:  # the removed rotor's side without it, the rotor at its test thrust
             _rows_times(R, U, 4 * fs, out[3])
             _rows_times(R, U, 4 * fs, out[4])
+            out[3, failed] = state[ALLOC_TEST]
+            out[4, failed] = state[ALLOC_TEST]
             meta[fs] = 0.0
             meta[2 + fs] = failed
     else:
@@ -231,6 +234,7 @@ def allocate_kernel(U_in, keep, alloc, out, meta):
                 for i in range(4):
                     out[3, o + i] = out[2, o + i]
                 _rows_times(R, U, o, out[4])
+                out[4, failed] = state[ALLOC_TEST]
                 meta[2 + side] = failed
                 meta[side] = 0.0
                 continue

@@ -9,7 +9,7 @@ array uses the same names:
 * ``CTL_*``: eq. 1's controller, its gains, the link's inertia and its integrals (the impedance
   controller's :attr:`~link_firmware_sim.controllers.impedance.ImpedanceController.state`);
 * ``TGT_*``: a pose target as eq. 1 reads it;
-* ``ALLOC_*``: the allocator's thresholds, null vector and modulation state;
+* ``ALLOC_*``: the allocator's thresholds, null vector and modulation state, the rotor left out;
 * ``IN_*``: the fused tick's inputs from the firmware (the correction's weight, the correction, the target);
 * ``OUT_*``: the fused tick's results;
 * ``IO_*``: the vehicle's side of the record tick and of the lockstep loop (what the vehicle sets,
@@ -35,7 +35,9 @@ TGT_P, TGT_V, TGT_A, TGT_W, TGT_WDOT, TGT_R, TGT_FORCE_FF, TGT_TORQUE_FF, TGT_SI
 # the allocator: eps0, eps1, thrust limit, selective mapping and scale-to-limit (1 or 0), the margin's
 # tolerance, the null vector nu (4), the modulation's state xi''_pre (2, updated by the kernels)
 ALLOC_EPS0, ALLOC_EPS1, ALLOC_TMAX, ALLOC_SELECTIVE, ALLOC_SCALE_TO_LIMIT, ALLOC_TOL = 0, 1, 2, 3, 4, 5
-ALLOC_NU, ALLOC_XI_PRE, ALLOC_FAILED, ALLOC_SIZE = 6, 10, 12, 13
+ALLOC_NU, ALLOC_XI_PRE, ALLOC_FAILED = 6, 10, 12
+#: the removed rotor's test thrust [N] and the wrench it makes (6)
+ALLOC_TEST, ALLOC_TEST_WRENCH, ALLOC_SIZE = 13, 14, 20
 
 # the fused tick's inputs: the correction's weight, the correction [dp; dv; dtheta] (9), the target
 IN_WEIGHT, IN_CORRECTION, IN_TARGET, IN_SIZE = 0, 1, 10, 10 + TGT_SIZE

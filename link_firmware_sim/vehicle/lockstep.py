@@ -136,7 +136,7 @@ class Lockstep:
             self._answer(np.zeros(8))
             return
         failures = v.failures
-        if failures.imu_or_motor:
+        if failures.imu_or_motor or v.fw.rotor_out:
             gyro, accel = failures.imu(gyro, accel)
             command = v.fw.on_imu(t, gyro, accel)
             thrust = failures.thrust(command)  # (what the motors apply: the ESCs' telemetry)
@@ -173,8 +173,8 @@ class Lockstep:
         message object on the way. ``False`` (nothing changed) for any other packet: the caller
         decodes it."""
         v = self.vehicle
-        if v.failures.imu_or_motor:
-            return False  # (an injected IMU or motor failure is applied on the decoding path)
+        if v.failures.imu_or_motor or v.fw.rotor_out:
+            return False  # (an injected IMU or motor failure, a rotor out: on the decoding path)
         rec = np.frombuffer(data, dtype=np.uint8)
         at = sensor_record_at(rec, len(rec))
         if at < 0:
@@ -211,8 +211,8 @@ class Lockstep:
         ``False`` (nothing waited for) when the case does not hold; the caller then waits as
         usual."""
         v = self.vehicle
-        if v.failures.imu_or_motor:
-            return False  # (an injected IMU or motor failure is applied on the decoding path)
+        if v.failures.imu_or_motor or v.fw.rotor_out:
+            return False  # (an injected IMU or motor failure, a rotor out: on the decoding path)
         hil = self.buffers
         framing = hil.framing
         if self.records:

@@ -211,22 +211,27 @@ def _limit_ratio(W, rotor):
 
 
 @settings(max_examples=80, deadline=None)
-@given(st.lists(wrench, min_size=1, max_size=8), st.integers(0, 7), st.booleans())
-def test_a_removed_rotor_gets_no_thrust_and_the_rest_produce_the_wrench(Us, rotor, selective):
-    """With a rotor removed, it gets no thrust and the other seven produce the wrench exactly,
-    each within the limit, when they can; beyond that, its side's rows of ``B^+_{\\j} U`` are
-    clipped rotor by rotor (nothing scaled) and the other side's stay within the limit."""
+@given(st.lists(wrench, min_size=1, max_size=8), st.integers(0, 7), st.booleans(), st.sampled_from([0.0, 0.8, -1.5]))
+def test_a_removed_rotor_gets_its_test_thrust_and_the_rest_produce_the_wrench(Us, rotor, selective, test):
+    """With a rotor removed, it gets its test thrust only and the other seven produce the rest of
+    the wrench exactly, each within the limit, when they can; beyond that, its side's rows of
+    ``B^+_{\\j}`` times that rest are clipped rotor by rotor (nothing scaled) and the other side's
+    stay within the limit."""
     alloc = Allocator(GEOM, AllocationParams(selective_mapping=selective))
-    assert alloc.remove_rotor(rotor) and alloc.removed_rotor == rotor
+    assert alloc.remove_rotor(rotor, test) and alloc.removed_rotor == rotor and alloc.test_thrust_n == test
     side = SIDES[rotor // 4]
     for U in Us:
         r = alloc.allocate(U, hover_wrench(np.eye(3)))
-        assert r.command_n[rotor] == 0.0 and r.scale == 1.0 and np.array_equal(r.wrench, U)
-        if _limit_ratio(U, rotor) <= 1.0:
+        rest = U - B[:, rotor] * test
+        assert r.command_n[rotor] == test and r.scale == 1.0
+        np.testing.assert_allclose(r.wrench, rest, atol=1e-12)
+        if _limit_ratio(rest, rotor) <= 1.0:
             assert not r.saturated and np.abs(r.command_n).max() <= TMAX + 1e-9
             np.testing.assert_allclose(B @ r.command_n, U, atol=1e-9)
         else:
-            np.testing.assert_allclose(r.command_n[side], np.clip(B_RED[rotor][side] @ U, -TMAX, TMAX), atol=1e-9)
+            others = [i for i in range(side.start, side.stop) if i != rotor]
+            np.testing.assert_allclose(r.command_n[others], np.clip(B_RED[rotor][others] @ rest, -TMAX, TMAX),
+                                       atol=1e-9)
 
 
 def test_one_rotor_at_most_is_removed_and_all_come_back():
@@ -240,3 +245,5 @@ def test_one_rotor_at_most_is_removed_and_all_come_back():
     assert alloc.removed_rotor is None and alloc.allocate(hover_wrench(np.eye(3))).command_n[3] != 0.0
     with pytest.raises(ValueError):
         alloc.remove_rotor(8)
+    with pytest.raises(ValueError):
+        alloc.remove_rotor(2, test_thrust_n=TMAX + 1.0)

@@ -8,25 +8,29 @@ from companion.skeleton.body import SkeletonConfig, link_inertia
 from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from link_firmware_sim.geo import GeoOrigin
-from link_firmware_sim.motor_failure import MAX_GAP_S, MIN_COMMAND_N, STOPPED_N, TIMEOUT_S, MotorFailureDetector
+from link_firmware_sim.motor_failure import (MAX_GAP_S, MIN_COMMAND_N, RECOVER_S, STOPPED_N, TEST_THRUST_N, TIMEOUT_S,
+                                             MotorFailureDetector)
 from link_firmware_sim.vehicle.params import ParamTable, StreamRates
 
 DT = 0.002  # the firmware's 500 Hz tick
 HOVER = np.array([3.25, -3.25] * 4)
 
 
-def _feed(detector, seconds, reported_rotor=None, command=HOVER, t0=0.0, reported=0.0):
+def _feed(detector, seconds, reported_rotor=None, command=HOVER, t0=0.0, reported=0.0, back=None):
     """Ticks of ``seconds`` from ``t0``: ``command`` each, the ESCs reporting it but rotor
-    ``reported_rotor`` at ``reported``; returns ``[(t, newly failed)]`` and the next tick's time."""
+    ``reported_rotor`` at ``reported``; returns ``[(t, newly failed)]`` (``back``, a list: gets
+    ``(t, working again)``) and the next tick's time."""
     found, k = [], 0
     while k * DT < seconds - 1e-12:
         t = t0 + k * DT
         rep = np.array(command, dtype=float)
         if reported_rotor is not None:
             rep[reported_rotor] = reported
-        new = detector.update(t, command, rep)
+        new, again = detector.update(t, command, rep)
         if new:
             found.append((t, new))
+        if again and back is not None:
+            back.append((t, again))
         k += 1
     return found, t0 + k * DT
 
@@ -57,6 +61,23 @@ def test_what_is_not_a_failure(case):
     assert found == [] and det.failed == []
 
 
+def test_a_failed_rotor_that_turns_again_works_after_recover_s():
+    """A failed rotor commanded its test thrust: found working once it has turned for RECOVER_S
+    (not for less), and failed again if it stops again."""
+    det = MotorFailureDetector()
+    _, t = _feed(det, 0.2, reported_rotor=3)
+    assert det.failed == [3]
+    test = HOVER.copy()
+    test[3] = TEST_THRUST_N
+    back = []
+    _, t = _feed(det, RECOVER_S - 2 * DT, command=test, t0=t, back=back)  # turning, not long enough
+    _, t = _feed(det, 0.05, reported_rotor=3, command=test, t0=t, back=back)
+    assert back == [] and det.failed == [3]
+    _, t = _feed(det, 1.0, command=test, t0=t, back=back)
+    assert back == [(pytest.approx(t - 1.0 + RECOVER_S, abs=1e-9), [3])] and det.failed == []
+    assert _feed(det, 0.2, reported_rotor=3, t0=t)[0] == [(pytest.approx(t + TIMEOUT_S, abs=1e-9), [3])]
+
+
 def test_reset_forgets_the_failures():
     det = MotorFailureDetector()
     _feed(det, 0.2, reported_rotor=0)
@@ -76,12 +97,16 @@ def _armed_firmware(**params):
     return fw, table
 
 
-def _telemetry(fw, seconds, rotor, t0=0.0):
+def _telemetry(fw, seconds, rotor, t0=0.0, turning=False):
+    """``seconds`` of ticks: the link's allocation of its hover wrench commanded, rotor ``rotor``
+    reported stopped (or, ``turning``, following its command)."""
     t = t0
     while t < t0 + seconds:
-        reported = HOVER.copy()
-        reported[rotor] = 0.0
-        fw.on_esc_telemetry(t, HOVER, reported)
+        command = fw.allocator.allocate(fw.allocator.mapping_matrix @ HOVER).command_n
+        reported = command.copy()
+        if not turning:
+            reported[rotor] = 0.0
+        fw.on_esc_telemetry(t, command, reported)
         t += DT
     return t
 
@@ -94,9 +119,12 @@ def test_the_firmware_leaves_a_failed_rotor_out_and_says_so(mode):
     t = _telemetry(fw, 0.3, rotor=6)
     texts = [(e.kind, e.text) for e in fw.events]
     if mode:
-        assert fw.allocator.removed_rotor == 6
+        assert fw.allocator.removed_rotor == 6 and fw.rotor_out
         assert texts == [("reset", "Motor 7 failed: flying on the other seven")]
-        assert fw.allocator.allocate(fw.allocator.mapping_matrix @ HOVER).command_n[6] == 0.0
+        r = fw.allocator.allocate(fw.allocator.mapping_matrix @ HOVER)
+        assert r.command_n[6] == TEST_THRUST_N  # (its telemetry tells whether it turns again)
+        np.testing.assert_allclose(fw.allocator.mapping_matrix @ r.command_n, fw.allocator.mapping_matrix @ HOVER,
+                                   atol=1e-9)
         fw.events.clear()
         _telemetry(fw, 0.3, rotor=1, t0=t)
         assert fw.allocator.removed_rotor == 6
@@ -111,9 +139,21 @@ def test_the_firmware_leaves_a_failed_rotor_out_and_says_so(mode):
     assert fw.events == [] and fw.allocator.removed_rotor is None
 
 
+def test_a_rotor_that_turns_again_rejoins_the_allocation():
+    fw, _ = _armed_firmware()
+    t = _telemetry(fw, 0.3, rotor=2)
+    assert fw.rotor_out
+    fw.events.clear()
+    _telemetry(fw, RECOVER_S + 0.1, rotor=2, t0=t, turning=True)
+    assert not fw.rotor_out and [(e.kind, e.text) for e in fw.events] == [
+        ("recovered", "Motor 3 turns again: flying on all eight")]
+    assert fw.allocator.allocate(fw.allocator.mapping_matrix @ HOVER).command_n[2] == pytest.approx(HOVER[2])
+
+
 def test_a_parameter_change_keeps_the_rotor_out():
     fw, table = _armed_firmware()
     _telemetry(fw, 0.3, rotor=4)
     table.set("SKL_SM_EPS1", 1.0)  # (a new allocator)
     fw.reconfigure(table.firmware_config())
     assert fw.allocator.removed_rotor == 4 and fw.allocator.params.eps1_n == 1.0
+    assert fw.allocator.test_thrust_n == TEST_THRUST_N
