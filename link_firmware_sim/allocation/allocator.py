@@ -144,10 +144,10 @@ class Allocator:
         the rows of ``B^+_{\\j}`` without it (exact with the other side's by (2.18)-(2.19) and Prop.
         2; every single-rotor reduction of ``B`` is full rank), the other side as before (PX4's
         ``CA_FAILURE_MODE = 1``). With no null space left on its side, that side's thrusts follow
-        from the wrench alone (hovering, two of its rotors carry twice their share), so a wrench beyond the seven rotors is clipped rotor by rotor (the
-        thesis's allocation) instead of scaled onto the limit with the weight kept
-        (``scale_to_limit``): scaling left the attitude control no authority and the link sank and
-        tipped, where clipping held it. ``test_thrust_n``: the removed rotor is still commanded
+        from the wrench alone (hovering, two of its rotors carry twice their share), so a wrench
+        beyond the seven rotors is clipped rotor by rotor (the thesis's allocation) instead of
+        scaled onto the limit with the weight kept (``scale_to_limit``): scaling left the attitude
+        control no authority and the link sank and tipped, where clipping held it. ``test_thrust_n``: the removed rotor is still commanded
         this much (within the limit), its wrench taken off the one the others produce, so that its
         ESC's telemetry tells whether it turns again (:mod:`link_firmware_sim.motor_failure`);
         the others' exactness holds while it does. One rotor at most: False (nothing changed) if

@@ -63,7 +63,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_SM_EPS0", "float", 0.0, 5.0, "Selective mapping: rotor off below [N]"),
     ParamSpec("SKL_SM_EPS1", "float", 0.0, 5.0, "Selective mapping: rotor fully used above [N]"),
     ParamSpec("SKL_SAT_SCALE", "int", 0, 1, "Beyond the rotors' limit: 1 weight kept, the rest scaled onto it; 0 clip each rotor"),
-    ParamSpec("SKL_CA_FAIL", "int", 0, 1, "A motor failed (ESC telemetry): 1 left out, flying on the other 7; 0 report only"),
+    ParamSpec("SKL_CA_FAIL", "int", 0, 1, "A failed motor (ESC telemetry): 1 left out, flying on 7; 0 report only"),
     ParamSpec("SKL_TLIM_WARN", "float", 0.01, 10.0, "Rotors at their thrust limit this long: STATUSTEXT warning [s]"),
     ParamSpec("SKL_TLIM_CLR", "float", 0.01, 10.0, "Rotors back within their limit this long: episode over [s]"),
     ParamSpec("SKL_STATE_HZ", "float", 0.0, 500.0, "SKELETON_LINK_STATE rate to the companion [Hz]"),

@@ -387,7 +387,8 @@ def test_a_stopped_motor_left_in_the_allocation_flips_its_end_link(tmp_path):
     """regression_end_motor_off with SKL_CA_FAIL = 0: the firmware reports the failed motor but
     allocates as if it turned, and the end link tips past 60 deg; with it (the seeded test) it flies."""
     sc = load_scenario(f"{FAULTS}/regression_end_motor_off.toml")
-    sc = replace(sc, firmware=replace(sc.firmware, allocation=replace(sc.firmware.allocation, remove_failed_rotor=False)))
+    allocation = replace(sc.firmware.allocation, remove_failed_rotor=False)
+    sc = replace(sc, firmware=replace(sc.firmware, allocation=allocation))
     m = fly(sc, tmp_path, plots=False)
     assert m["crashed"] and "on link 3" in m["crash_reason"], m["crash_reason"]
 
