@@ -64,7 +64,7 @@ from .estimators.correction_aid import CorrectionAid
 from .estimators.imu_health import ImuHealth
 from .events import StatusEvent
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
-from .motor_failure import TEST_THRUST_N, MotorFailureDetector
+from .motor_failure import MotorFailureDetector
 from .thrust_limit import ThrustLimit, ThrustLimitConfig
 from .wrench_guard import WrenchGuard
 
@@ -507,26 +507,12 @@ class LinkFirmware(FusedTicks):
 
     def on_esc_telemetry(self, t_s: float, command_n, reported_n) -> None:
         """The ESCs' report of the tick at ``t_s`` (armed only): what each rotor runs at against its
-        command [N] (:mod:`.motor_failure`). A rotor found failed is reported and, with
-        ``allocation.remove_failed_rotor`` (SKL_CA_FAIL), left out of the allocation from the next
-        tick on (one rotor at most; the link flies on the other seven), commanded its test thrust;
-        once it turns again it rejoins. The shell feeds every tick while a rotor is out
-        (:attr:`rotor_out`)."""
-        if not self.armed:
-            return
-        failed, back = self.motor_failure.update(t_s, command_n, reported_n)
-        for rotor in failed:
-            if not self.config.allocation.remove_failed_rotor:
-                text = f"Motor {rotor + 1} failed: SKL_CA_FAIL off, still used"
-            elif self.allocator.remove_rotor(rotor, TEST_THRUST_N):
-                text = f"Motor {rotor + 1} failed: flying on the other seven"
-            else:
-                text = f"Motor {rotor + 1} failed: not handled, {self.allocator.removed_rotor + 1} out"
-            self.events.append(StatusEvent("reset", text))
-        for rotor in back:
-            if self.allocator.removed_rotor == rotor:
-                self.allocator.restore_rotors()
-            self.events.append(StatusEvent("recovered", f"Motor {rotor + 1} turns again: flying on all eight"))
+        command [N]. A rotor found failed is reported and, with ``allocation.remove_failed_rotor``
+        (SKL_CA_FAIL), flown without until it turns again (:meth:`.motor_failure.MotorFailureDetector.answer`).
+        The shell feeds every tick while a rotor is out (:attr:`rotor_out`)."""
+        if self.armed:
+            self.events.extend(self.motor_failure.answer(t_s, command_n, reported_n, self.allocator,
+                                                         self.config.allocation.remove_failed_rotor))
 
     @property
     def rotor_out(self) -> bool:

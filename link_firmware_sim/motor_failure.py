@@ -8,8 +8,8 @@ commanded at least :data:`MIN_COMMAND_N` whose ESC reports it under :data:`STOPP
 (none for :data:`MAX_GAP_S`) starts every timer again. A failed rotor commanded at least
 :data:`MIN_COMMAND_N` (the firmware keeps it at :data:`TEST_THRUST_N`) whose ESC reports it turning
 (at least half its command) for :data:`RECOVER_S` works again: the detector names it once more.
-What the firmware does with either (the eight-rotor ODAR link flies on seven:
-:meth:`~.allocation.Allocator.remove_rotor`) is :meth:`~.firmware.LinkFirmware.on_esc_telemetry`'s.
+What the firmware does with either is :meth:`MotorFailureDetector.answer`: the eight-rotor ODAR
+link flies on seven (:meth:`~.allocation.Allocator.remove_rotor`) until the rotor turns again.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from .events import StatusEvent
 
 __all__ = ["MIN_COMMAND_N", "STOPPED_N", "TIMEOUT_S", "MAX_GAP_S", "RECOVER_S", "TEST_THRUST_N",
            "MotorFailureDetector"]
@@ -74,3 +76,25 @@ class MotorFailureDetector:
         self._since[:] = math.nan
         self._last_s = -math.inf
         self.failed.clear()
+
+    def answer(self, t_s: float, command_n, reported_n, allocator, remove: bool) -> list[StatusEvent]:
+        """The firmware's answer to the tick's telemetry (:meth:`update`), as STATUSTEXT events: a
+        rotor found failed is left out of ``allocator`` (a
+        :class:`~.allocation.Allocator`) with ``remove`` (SKL_CA_FAIL, as PX4's
+        ``CA_FAILURE_MODE = 1``; one rotor at most), commanded :data:`TEST_THRUST_N`, else only
+        reported; one found working again rejoins."""
+        failed, back = self.update(t_s, command_n, reported_n)
+        events = []
+        for rotor in failed:
+            if not remove:
+                text = f"Motor {rotor + 1} failed: SKL_CA_FAIL off, still used"
+            elif allocator.remove_rotor(rotor, TEST_THRUST_N):
+                text = f"Motor {rotor + 1} failed: flying on the other seven"
+            else:
+                text = f"Motor {rotor + 1} failed: not handled, {allocator.removed_rotor + 1} out"
+            events.append(StatusEvent("reset", text))
+        for rotor in back:
+            if allocator.removed_rotor == rotor:
+                allocator.restore_rotors()
+            events.append(StatusEvent("recovered", f"Motor {rotor + 1} turns again: flying on all eight"))
+        return events
