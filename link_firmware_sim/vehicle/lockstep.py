@@ -136,7 +136,7 @@ class Lockstep:
             self._answer(np.zeros(8))
             return
         failures = v.failures
-        if failures.imu_or_motor or v.fw.rotor_out:
+        if self.step_by_step:
             gyro, accel = failures.imu(gyro, accel)
             command = v.fw.on_imu(t, gyro, accel)
             thrust = failures.thrust(command)  # (what the motors apply: the ESCs' telemetry)
@@ -162,6 +162,13 @@ class Lockstep:
         if sample.mag_flu_gauss is not None:
             v.fw.on_mag(t, sample.mag_flu_gauss)
 
+    @property
+    def step_by_step(self) -> bool:
+        """Whether the ticks must take the decoding path, not the compiled ones: an injected IMU or
+        motor failure is applied there, and a rotor left out has its ESCs' telemetry judged there."""
+        v = self.vehicle
+        return v.failures.imu_or_motor or v.fw.rotor_out
+
     def _answer(self, thrust: np.ndarray) -> None:
         v = self.vehicle
         self.sim.send(encode_actuators(v.fc_time_s, thrust, self.thrust_max_n, v.fw.armed))
@@ -173,8 +180,8 @@ class Lockstep:
         message object on the way. ``False`` (nothing changed) for any other packet: the caller
         decodes it."""
         v = self.vehicle
-        if v.failures.imu_or_motor or v.fw.rotor_out:
-            return False  # (an injected IMU or motor failure, a rotor out: on the decoding path)
+        if self.step_by_step:
+            return False
         rec = np.frombuffer(data, dtype=np.uint8)
         at = sensor_record_at(rec, len(rec))
         if at < 0:
@@ -211,8 +218,8 @@ class Lockstep:
         ``False`` (nothing waited for) when the case does not hold; the caller then waits as
         usual."""
         v = self.vehicle
-        if v.failures.imu_or_motor or v.fw.rotor_out:
-            return False  # (an injected IMU or motor failure, a rotor out: on the decoding path)
+        if self.step_by_step:
+            return False
         hil = self.buffers
         framing = hil.framing
         if self.records:
