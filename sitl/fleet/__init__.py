@@ -36,7 +36,7 @@ The modules: :mod:`.launcher` (:func:`~.launcher.launch`, the run as a :class:`~
 (the lockstep), :mod:`.processes` (process control, scheduling, /proc port probes), :mod:`.logs`
 (the logs merged, counters, fault reports), :mod:`.faults` (the harness faults, scripted or asked
 for at run time through :mod:`.fault_socket` and ``python -m sitl fault``, :mod:`.fault_cli`),
-:mod:`.inject` (failure injection by MAVLink command) and :mod:`.wire` (the impaired wire's proxy,
-``python -m sitl.fleet.wire``). The package imports none of them itself: the wire's process loads
+:mod:`.inject` (failure injection by MAVLink command), :mod:`.wire` (the impaired wire's proxy,
+``python -m sitl.fleet.wire``) and :mod:`.sim_time` (the lockstep's time, shared with the wire). The package imports none of them itself: the wire's process loads
 no simulator.
 """

@@ -36,6 +36,7 @@ from sitl.scenario import Scenario
 from .fault_socket import FaultSocket
 from .faults import FleetFaults, HarnessFault, scripted_faults
 from .harness import FleetHarness
+from .sim_time import SimTimeWriter
 from .inject import FailureCommander, enable_failure_injection
 from .task import FleetTask
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
@@ -73,6 +74,7 @@ class Fleet:
         self.procs = Processes()
         self.plant: Plant | None = None
         self.harness: FleetHarness | None = None
+        self.sim_time: SimTimeWriter | None = None  # the lockstep's time for the impaired wire
         self.cameras = None  # sitl.cameras.stream.CameraStreamer of a camera scenario
         self.sim_dir: Path | None = None  # the same-host link's sockets
         self.policy_before: int | None = None  # the scheduling policy before SCHED_BATCH
@@ -190,11 +192,14 @@ class Fleet:
     def start_wire(self) -> None:
         """The impaired wire (:mod:`sitl.fleet.wire`) between the wired links and the companion."""
         k, m = self.k, self.sc.faults.mavlink
+        # its delays are simulated time: the lockstep's, published at every firmware tick
+        self.sim_time = SimTimeWriter(self.out_dir / "wire" / "sim_time")
         pairs = [f"{WIRE_VEHICLE_SIDE + k + i}:{SITL_STATE_PORT + k + i}:{WIRE_COMPANION_SIDE + k + i}" for i in self.wired]
         self.procs.start("wire", [self.python, "-m", "sitl.fleet.wire", *(a for p in pairs for a in ("--pair", p)),
                                   "--loss", f"{m.loss:g}", "--delay-ms", f"{m.delay_ms:g}", "--jitter-ms",
                                   f"{m.jitter_ms:g}", "--seed", str(self.sc.seed),
-                                  "--stats", str(self.out_dir / "wire" / "wire_stats.json")],
+                                  "--stats", str(self.out_dir / "wire" / "wire_stats.json"),
+                                  "--sim-time", str(self.sim_time.path)],
                          self.out_dir / "wire" / "console.log")
         wait_udp_listening([WIRE_VEHICLE_SIDE + k + i for i in self.wired], self.procs, "the impaired wire")
 
@@ -280,6 +285,8 @@ class Fleet:
         """Every firmware tick of the lockstep: the scripted faults due, then the processes checked
         (:class:`FleetError` if one died, noticed within 20 ms); never asks the lockstep to stop."""
         t = self.plant.time_s
+        if self.sim_time is not None:
+            self.sim_time.publish(t)
         if self.fault_socket is not None:
             self.fault_socket.serve(self._fault_request, t)
         self.faults.tick(t)
@@ -327,6 +334,8 @@ class Fleet:
         finally:
             if self.cameras is not None:
                 self.cameras.close()
+            if self.sim_time is not None:
+                self.sim_time.close()
             if self.sim_dir is not None:
                 shutil.rmtree(self.sim_dir, ignore_errors=True)
             restore_scheduling(self.policy_before)

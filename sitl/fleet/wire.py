@@ -1,14 +1,16 @@
 """An impaired UDP wire between a vehicle and its companion (``[faults.mavlink]``, fleet mode).
 
     python -m sitl.fleet.wire --pair VEHICLE_SIDE:COMPANION_PORT:LOCAL_PORT [--pair ...]
-        --loss P [--delay-ms D] [--jitter-ms J] [--seed S] [--stats FILE]
+        --loss P [--delay-ms D] [--jitter-ms J] [--seed S] [--stats FILE] [--sim-time FILE]
 
 For each pair the proxy listens on UDP ``VEHICLE_SIDE`` (where the vehicle sends its onboard
 traffic), forwards every datagram to the companion's UDP ``COMPANION_PORT`` from its own port
 ``LOCAL_PORT``, and sends what the companion answers there back to the vehicle (at the address
 the vehicle last sent from). Each datagram is dropped with probability ``P`` and otherwise held
-for ``D`` plus a uniform ``[0, J]`` wall-clock milliseconds (so jitter can reorder datagrams, as
-on a real network). Everything stays on loopback. Counters per pair and direction (forwarded,
+for ``D`` plus a uniform ``[0, J]`` milliseconds (so jitter can reorder datagrams, as on a real
+network): simulated milliseconds with ``--sim-time`` (the fleet's lockstep time, :mod:`.sim_time`,
+which the launcher passes, so that the delay the vehicles and the companion see does not grow with
+the pace of an unpaced fleet), else wall-clock ones. Everything stays on loopback. Counters per pair and direction (forwarded,
 dropped) go to ``--stats`` as JSON every second and at exit (SIGTERM / Ctrl-C).
 
 The impairment itself (:class:`Impairment`) is pure: it takes the random generator and the time.
@@ -30,10 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Impairment", "WirePair", "WireProxy", "main"]
+from .sim_time import SimTimeClock
+
+__all__ = ["SIM_POLL_S", "Impairment", "WirePair", "WireProxy", "main"]
 
 log = logging.getLogger(__name__)
 HOST = "127.0.0.1"
+#: On simulated time, the longest wall-clock wait between looks at the held datagrams [s]: an
+#: unpaced fleet at a few times real time releases them within a few simulated ms of their time.
+SIM_POLL_S = 0.0005
 
 
 @dataclass
@@ -69,9 +76,14 @@ class WirePair:
 
 
 class WireProxy:
+    """The wire's pairs and their held datagrams. ``clock`` [s] times the delays; ``poll_s``: the
+    longest wait between looks at a held datagram (``None``: the clock is the wall clock, so the
+    wait until the next release is known)."""
+
     def __init__(self, pairs: list[tuple[int, int, int]], loss: float, delay_ms: float, jitter_ms: float,
-                 seed: int = 0, clock=time.monotonic):
+                 seed: int = 0, clock=time.monotonic, poll_s: float | None = None):
         self.clock = clock
+        self.poll_s = poll_s
         rng = np.random.default_rng(seed)
         self.pairs: list[WirePair] = []
         self.sel = selectors.DefaultSelector()
@@ -134,6 +146,8 @@ class WireProxy:
         while not self._stop:
             now = self.clock()
             timeout = 0.2 if not self._queue else max(self._queue[0][0] - now, 0.0)
+            if self._queue and self.poll_s is not None:
+                timeout = min(timeout, self.poll_s)
             for key, _ in self.sel.select(min(timeout, 0.2)):
                 pair, role = key.data
                 self._on_readable(pair, role, self.clock())
@@ -178,6 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jitter-ms", type=float, default=0.0, metavar="J", help="extra uniform delay up to J [ms]")
     p.add_argument("--seed", type=int, default=0, help="random seed of the losses and delays")
     p.add_argument("--stats", metavar="FILE", help="counters as JSON (every second and at exit)")
+    p.add_argument("--sim-time", metavar="FILE",
+                   help="time the delays on the simulated time in FILE (written by the fleet launcher); "
+                        "default: wall-clock time")
     return p
 
 
@@ -187,15 +204,18 @@ def main(argv=None) -> int:
     if not 0.0 <= args.loss < 1.0 or args.delay_ms < 0 or args.jitter_ms < 0:
         print("error: --loss must be in [0, 1), --delay-ms and --jitter-ms >= 0", file=sys.stderr)
         return 2
+    clock, poll_s = time.monotonic, None
+    if args.sim_time:
+        clock, poll_s = SimTimeClock(Path(args.sim_time)), SIM_POLL_S
     try:
-        proxy = WireProxy(args.pair, args.loss, args.delay_ms, args.jitter_ms, args.seed)
+        proxy = WireProxy(args.pair, args.loss, args.delay_ms, args.jitter_ms, args.seed, clock, poll_s)
     except OSError as exc:
         print(f"error: cannot bind: {exc.strerror}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, proxy.stop)
     signal.signal(signal.SIGINT, proxy.stop)
-    log.info("wire up: %d pair(s), loss %.2f, delay %.1f ms + jitter %.1f ms", len(proxy.pairs), args.loss,
-             args.delay_ms, args.jitter_ms)
+    log.info("wire up: %d pair(s), loss %.2f, delay %.1f ms + jitter %.1f ms (%s)", len(proxy.pairs), args.loss,
+             args.delay_ms, args.jitter_ms, "simulated time" if args.sim_time else "wall-clock time")
     try:
         proxy.run(Path(args.stats) if args.stats else None)
     finally:

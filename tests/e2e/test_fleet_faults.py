@@ -136,6 +136,7 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert m["outages"]["during_outages"]["samples"] > 0 and m["outages"]["outside_outages"]["samples"] > 0
     # the lossy wires: what the proxy dropped, and the companion's count of the gaps it saw
     wires = m["faults"]["mavlink"]["wires"]
+    assert "(simulated time)" in (tmp_path / "wire" / "console.log").read_text()  # the lockstep's clock
     assert len(wires) == 3 and all(w["vehicle_to_companion"]["dropped"] > 20 and w["companion_to_vehicle"]["dropped"] > 20
                                    for w in wires.values())
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())

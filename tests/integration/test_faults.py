@@ -144,6 +144,38 @@ def test_wire_proxy_forwards_both_ways_drops_and_counts():
         vehicle.close()
 
 
+def test_wire_proxy_on_simulated_time_holds_datagrams_until_that_clock_has_moved():
+    """With the lockstep's clock (sim_time.SimTimeClock in a fleet) a datagram is held for its
+    delay in that clock's time: frozen, it stays; moved by the delay, it leaves."""
+    vside, comp_port, local = free_ports(3, udp=True)
+    companion = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    companion.bind(("127.0.0.1", comp_port))
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sim = [5.0]
+    proxy = WireProxy([(vside, comp_port, local)], loss=0.0, delay_ms=20.0, jitter_ms=0.0, seed=1,
+                      clock=lambda: sim[0], poll_s=0.0005)
+    thread = threading.Thread(target=proxy.run, daemon=True)
+    thread.start()
+    try:
+        vehicle.sendto(b"state", ("127.0.0.1", vside))
+        assert wait_for(lambda: proxy.pairs[0].up.forwarded == 1, 5.0)
+        companion.settimeout(0.3)  # 15 wall-clock delays: still held, the simulated time stands still
+        with pytest.raises(TimeoutError):
+            companion.recvfrom(100)
+        sim[0] += 0.019
+        with pytest.raises(TimeoutError):
+            companion.recvfrom(100)
+        sim[0] += 0.002
+        companion.settimeout(2.0)
+        assert companion.recvfrom(100)[0] == b"state"
+    finally:
+        proxy.stop()
+        thread.join(2.0)
+        proxy.close()
+        companion.close()
+        vehicle.close()
+
+
 def test_wire_cli_writes_its_counters_and_stops_on_sigterm(tmp_path):
     vside, comp_port, local = free_ports(3, udp=True)
     stats = tmp_path / "wire.json"
