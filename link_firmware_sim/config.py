@@ -26,7 +26,8 @@ from companion.config import ChainSetup, CompanionConfig
 from companion.skeleton.body import link_inertia
 from companion.skeleton.rotors import RotorGeometry, RotorParams
 
-from .firmware import FirmwareConfig, LinkFirmware
+from .firmware import LinkFirmware
+from .firmware_config import FirmwareConfig
 from .geo import GeoOrigin
 from .vehicle.params import StreamRates
 

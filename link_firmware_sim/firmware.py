@@ -33,12 +33,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
-from typing import Literal
-
 import numpy as np
 
-from companion.configfile import require_positive
 from companion.estimation.so3 import attitude_error, retract
 from companion.messages import (
     STATE_FLAG_ARMED,
@@ -54,18 +50,20 @@ from companion.messages import (
 from companion.skeleton.body import GRAVITY_M_S2, LinkInertia
 from companion.skeleton.rotors import RotorGeometry
 
-from .allocation import AllocationParams, Allocator
-from .controllers import ControlIntegrals, ImpedanceController, ImpedanceGains, make_controller, weight_wrench
-from .controllers.hybrid import ContactTarget, HybridGains, ObserverConfig
-from .controllers.pspm import PspmGains, PspmModulator
-from .controllers.se3_control import Se3PidGains
-from .estimators import X_BG, X_P, EkfConfig, GpsHealth, GpsHealthConfig, LinkEkf, outdoor_ekf_config
+from .allocation import Allocator
+from .controllers import ControlIntegrals, ImpedanceController, make_controller, weight_wrench
+from .controllers.hybrid import ContactTarget
+from .controllers.pspm import PspmModulator
+from .estimators import X_BG, X_P, X_Q, GpsHealth, LinkEkf
 from .estimators.correction_aid import CorrectionAid
+from .estimators.ekf import attitude_variance
 from .estimators.imu_health import ImuHealth
+from .estimators.stale_rate import StaleGyroRate
 from .events import StatusEvent
+from .firmware_config import FirmwareConfig
 from .fused import TAKEOFF_HEIGHT_M, FusedTicks
 from .motor_failure import MotorFailureDetector
-from .thrust_limit import ThrustLimit, ThrustLimitConfig
+from .thrust_limit import ThrustLimit
 from .wrench_guard import WrenchGuard
 
 __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
@@ -73,54 +71,6 @@ __all__ = ["CorrectionRejected", "FirmwareConfig", "LinkFirmware"]
 log = logging.getLogger(__name__)
 
 TAKEOFF_SPEED_M_S = 0.5  # armed faster than this: already in flight
-
-
-@dataclass(frozen=True)
-class FirmwareConfig:
-    """Parameters of one simulated Pixhawk."""
-
-    rate_hz: float = 500.0
-    ekf: EkfConfig = field(default_factory=outdoor_ekf_config)
-    gains: ImpedanceGains = field(default_factory=ImpedanceGains)
-    allocation: AllocationParams = field(default_factory=AllocationParams)
-    correction_hold_s: float = 0.1
-    correction_stale_s: float = 0.5
-    target_stale_s: float = 1.0
-    #: largest correction accepted (SKL_CORR_MAXP / _MAXV / _MAXR); a larger one is rejected,
-    #: never clamped. The SCKF's largest in the SITL scenarios: 0.78 m, 0.20 m/s, 0.006 rad.
-    correction_max_dp_m: float = 2.0
-    correction_max_dv_m_s: float = 1.0
-    correction_max_dtheta_rad: float = 0.5
-    gps: GpsHealthConfig = field(default_factory=GpsHealthConfig)
-    #: when the rotors' thrust limit is reported and when the report ends (SKL_TLIM_WARN / _CLR)
-    thrust_limit: ThrustLimitConfig = field(default_factory=ThrustLimitConfig)
-    #: the pose controller (SKL_CTRL): eq. 1's impedance control, the SE(3) PID of thesis sec. 2.3.2
-    #: (:mod:`.se3_control`) or the hybrid pose/wrench control of sec. 2.3.3 (:mod:`.hybrid`: pose
-    #: control until a contact is commanded, with the momentum observer running)
-    controller: Literal["impedance", "se3_pid", "hybrid"] = "impedance"
-    se3_pid: Se3PidGains = field(default_factory=Se3PidGains)
-    hybrid: HybridGains = field(default_factory=HybridGains)
-    observer: ObserverConfig = field(default_factory=ObserverConfig)
-    #: largest contact force a command may ask of the hybrid controller (SKL_CT_FMAX) [N]
-    contact_max_force_n: float = 30.0
-    #: PSPM teleoperation (SKL_PSPM_EN; thesis sec. 2.3.4, :mod:`.pspm`): ``"off"``; ``"on"``: every
-    #: pose target is an operator set pose, modulated by PSPM (:meth:`LinkFirmware.set_target`), and
-    #: the slave law of sec. 2.3.4 with ``pspm``'s gains (instead of ``controller``) tracks the
-    #: modulated pose; ``"bypass"``: the same slave law on the raw set poses (the unmodulated comparison)
-    pspm_mode: Literal["off", "on", "bypass"] = "off"
-    #: the reservoirs start full: at rest nothing dissipates, so empty ones would never release a
-    #: step (0.4 J pass 0.27 m of the 11 N/m spring at once, 0.3 J 18 deg of the 6 N m/rad one)
-    pspm: PspmGains = field(default_factory=lambda: PspmGains(e_max_t_j=0.4, e_max_r_j=0.3, e0_t_j=0.4, e0_r_j=0.3))
-
-    def __post_init__(self) -> None:
-        require_positive(self, "rate_hz", "correction_max_dp_m", "correction_max_dv_m_s", "correction_max_dtheta_rad")
-        require_positive(self, "contact_max_force_n")
-        if not 0 <= self.correction_hold_s < self.correction_stale_s:
-            raise ValueError(
-                f"correction_hold_s must be in [0, correction_stale_s), got {self.correction_hold_s} "
-                f"(stale {self.correction_stale_s})"
-            )
-        require_positive(self, "target_stale_s")
 
 
 class CorrectionRejected(ValueError):
@@ -166,7 +116,7 @@ class LinkFirmware(FusedTicks):
         #: a gyro or an accelerometer that repeats one sample in flight (stuck): not used while it
         #: does (:mod:`.estimators.imu_health`; armed only: at rest a noise-free simulated IMU
         #: repeats itself)
-        self.imu_health = ImuHealth()
+        self.imu_health = ImuHealth(self._stale_gyro_rate())
         #: a non-finite wrench from the controller: refused, the last finite commands held
         self.wrench_guard = WrenchGuard()
         #: rotors whose ESCs report them stopped while commanded (:meth:`on_esc_telemetry`)
@@ -175,6 +125,11 @@ class LinkFirmware(FusedTicks):
         self.events: list[StatusEvent] = []
         self._init_fused()
         self._make_controller()
+
+    def _stale_gyro_rate(self) -> StaleGyroRate:
+        """The stand-in of a stale gyro: this link's inertia, its ESCs' lag, the references' noise."""
+        return StaleGyroRate(self.inertia.inertia_kgm2, self.config.observer.actuator_time_constant_s,
+                             np.broadcast_to(attitude_variance(self.config.ekf), (3,)))
 
     def _make_controller(self) -> None:
         """The selected controller (:func:`~.controllers.make_controller`; the hybrid one with its
@@ -234,6 +189,8 @@ class LinkFirmware(FusedTicks):
             self.config.controller, self.config.se3_pid, self.config.hybrid, self.config.observer,
             self.config.pspm_mode, self.config.pspm)
         self.config = config
+        if not self.imu_health.rate.running:
+            self.imu_health.rate = self._stale_gyro_rate()
         if rebuild:
             self._make_controller()
         elif isinstance(self._controller, ImpedanceController) and self._controller.gains != config.gains:
@@ -298,6 +255,7 @@ class LinkFirmware(FusedTicks):
             self.events.append(StatusEvent("reset", f"EKF attitude reset: jumped {math.degrees(jump):.0f} deg"))
         else:
             ekf.update_attitude(q_wxyz)
+        self.imu_health.on_attitude_reference(q_wxyz)
 
     def _fuse_gps(self, pos_w_m, vel_w_m_s) -> None:
         """A GPS fix through the health checks (:mod:`.gps_health`): its position is fused
@@ -546,10 +504,12 @@ class LinkFirmware(FusedTicks):
         command = self._tick_fused(t_s, dt, gyro_b_rad_s, accel_b_m_s2)  # the steps below in one kernel
         if command is not None:
             return command
-        if imu.stale:  # a stale gyro: no rotation; a stale accelerometer: the last commanded thrust's force
+        if imu.stale:  # in place of a stale gyro or accelerometer: what the commanded thrusts do
+            wrench = self.allocator.mapping_matrix @ self.wrench_guard.command
             if imu.accel.stale:
-                accel_b_m_s2 = imu.thrust_specific_force(self.allocator.mapping_matrix, self.wrench_guard.command,
-                                                         self.inertia.mass_kg)
+                accel_b_m_s2 = wrench[:3] / self.inertia.mass_kg
+            if imu.gyro.stale:  # (the model's rate, as the EKF takes a gyro's: with its bias)
+                gyro_b_rad_s = imu.stale_rate(self.ekf.x[X_Q], wrench[3:], dt) + self.ekf.x[X_BG]
             self.ekf.predict_stale(gyro_b_rad_s, accel_b_m_s2, dt, imu.gyro.stale, imu.accel.stale)
         else:
             self.ekf.predict(gyro_b_rad_s, accel_b_m_s2, dt)
@@ -562,7 +522,7 @@ class LinkFirmware(FusedTicks):
             return self._zero
         p, v, q = self.control_estimate(t_s)
         if imu.gyro.stale:
-            omega = imu.rate_from_attitude(q, dt)
+            omega = imu.rate.rate_b_rad_s
         else:
             omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
             imu.gyro_used()
@@ -571,9 +531,9 @@ class LinkFirmware(FusedTicks):
         held = self.integrals if imu.gyro.stale else None
         U = ctrl(p, v, q, omega, target, dt)  # eq. 1 (default), sec. 2.3.2, 2.3.3 or 2.3.4's slave law
         if isinstance(held, ControlIntegrals):
-            # eq. 1's attitude integral holds while the gyro is stale: the damping then comes from
-            # the attitude estimate's change, low-passed and late, and the larger errors it leaves
-            # would wind the integral up, to swing the link over once the gyro is back
+            # eq. 1's attitude integral holds while the gyro is stale: the damping then comes from a
+            # model's rate, and the larger errors it may leave would wind the integral up, to swing
+            # the link over once the gyro is back
             ctrl.integrals = ControlIntegrals(ctrl.integrals.pos, held.att)
         if not math.isfinite(float(np.sum(U))):
             return self._refuse_wrench(t_s)

@@ -9,25 +9,22 @@ compiled lockstep loop returns); alive again at the first sample that differs. E
 a :class:`~link_firmware_sim.events.StatusEvent` for the shell to report.
 
 :class:`ImuHealth` watches the gyro and the accelerometer and gives what stands in for a stale
-one: the body rate from the change of the attitude estimate (low-passed), and the specific force
-of the thrust the rotors were commanded (what an accelerometer reads, drag aside).
+one: the body rate of the rigid body under the commanded torque, corrected by the attitude
+references (:class:`~.stale_rate.StaleGyroRate`); for a stale accelerometer the firmware takes the
+specific force of the thrust the rotors were commanded (what an accelerometer reads, drag aside).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from companion.estimation.so3 import quat_conj, quat_mul, quat_to_rotvec
-
 from ..events import StatusEvent
+from .stale_rate import StaleGyroRate
 
-__all__ = ["STALE_S", "STALE_RATE_TAU_S", "StaleSensor", "ImuHealth"]
+__all__ = ["STALE_S", "StaleSensor", "ImuHealth"]
 
 #: a sample unchanged this long [s] is a stuck sensor (PX4: 100 equal samples at its rate)
 STALE_S = 0.2
-#: the low-pass time constant of the body rate taken from the attitude estimate while the gyro is
-#: stale [s]
-STALE_RATE_TAU_S = 0.05
 
 
 class StaleSensor:
@@ -81,15 +78,15 @@ class StaleSensor:
 class ImuHealth:
     """The gyro's and the accelerometer's staleness (:attr:`gyro`, :attr:`accel`) on the newest
     tick's samples (:meth:`sample`), shown to them on the shell's grid (:meth:`watch`), and what
-    stands in for a stale one (:meth:`rate_from_attitude`, :meth:`thrust_specific_force`)."""
+    stands in for a stale gyro: the rate of :attr:`rate` (:meth:`stale_rate`,
+    :meth:`on_attitude_reference`)."""
 
-    def __init__(self, stale_s: float = STALE_S):
+    def __init__(self, rate: StaleGyroRate, stale_s: float = STALE_S):
         self.gyro = StaleSensor("Gyro", stale_s)
         self.accel = StaleSensor("Accel", stale_s)
         self.gyro_sample = np.zeros(3)  # the newest tick's samples, as they came
         self.accel_sample = np.zeros(3)
-        self._q_prev: np.ndarray | None = None
-        self.rate_lp = np.zeros(3)
+        self.rate = rate
 
     @property
     def stale(self) -> bool:
@@ -106,28 +103,24 @@ class ImuHealth:
     def stop(self, t_s: float) -> None:
         self.gyro.stop(t_s)
         self.accel.stop(t_s)
+        self.rate.stop()
 
-    def rate_from_attitude(self, q_wxyz: np.ndarray, dt_s: float) -> np.ndarray:
-        """The body rate from the change of the attitude estimate since the last call, low-passed
-        over :data:`STALE_RATE_TAU_S` (what damps the attitude loop while the gyro is stale)."""
-        prev, self._q_prev = self._q_prev, np.array(q_wxyz, dtype=float)
-        if prev is None:
-            self.rate_lp = np.zeros(3)
-            return self.rate_lp
-        raw = quat_to_rotvec(quat_mul(quat_conj(prev), self._q_prev)) / dt_s  # body frame
-        self.rate_lp = self.rate_lp + dt_s / (STALE_RATE_TAU_S + dt_s) * (raw - self.rate_lp)
-        return self.rate_lp
+    def stale_rate(self, q_wxyz, torque_cmd_b_nm, dt_s: float) -> np.ndarray:
+        """A tick with the gyro stale: the body rate [rad/s] after ``dt_s`` under the commanded
+        torque [N m] (the observer started at the first such tick, from the attitude estimate
+        ``q_wxyz``)."""
+        if not self.rate.running:
+            self.rate.start(q_wxyz, torque_cmd_b_nm)
+        return self.rate.predict(torque_cmd_b_nm, dt_s)
+
+    def on_attitude_reference(self, q_wxyz) -> None:
+        """An attitude reference: it corrects the stale gyro's stand-in, if one runs."""
+        if self.rate.running:
+            self.rate.update(q_wxyz)
 
     def gyro_used(self) -> None:
-        """A tick that used the gyro: the attitude's rate starts afresh at the next stale one."""
-        self._q_prev = None
-
-    @staticmethod
-    def thrust_specific_force(mapping_matrix: np.ndarray, command_n: np.ndarray, mass_kg: float) -> np.ndarray:
-        """The specific force [m/s^2] (body frame) of thrusts ``command_n`` through the rotors'
-        mapping matrix (their force over the link's mass: what an accelerometer reads in flight,
-        drag and the rotors' lag aside)."""
-        return (np.asarray(mapping_matrix) @ np.asarray(command_n, dtype=float))[:3] / mass_kg
+        """A tick that used the gyro: its stand-in stops (it starts afresh at the next stale tick)."""
+        self.rate.running = False
 
     def report(self, t_s: float) -> dict:
         """``gyro`` and ``accel``: each sensor's :meth:`StaleSensor.report`."""

@@ -104,15 +104,15 @@ class LinkEkf:
         self.last_gyro_b_rad_s = np.asarray(gyro_b_rad_s, dtype=float).copy()
 
     def predict_stale(self, gyro_b_rad_s, accel_b_m_s2, dt_s: float, gyro_stale: bool, accel_stale: bool) -> None:
-        """:meth:`predict` with a stale sensor. No rotation measured (``gyro_stale``): the attitude
-        held, its density :data:`NO_GYRO_ATT_RAD2_S` so that the attitude reference carries it.
+        """:meth:`predict` with a stale sensor. No rotation measured (``gyro_stale``):
+        ``gyro_b_rad_s`` is the caller's model of it (a rate as a gyro reads it, bias included), the
+        attitude's density :data:`NO_GYRO_ATT_RAD2_S` so that the attitude reference carries it.
         No specific force measured (``accel_stale``): ``accel_b_m_s2`` is the caller's model of it
         (the commanded thrust's), the velocity's density :data:`NO_ACCEL_VEL_M2_S3` so that the
         GPS and the companion's corrections carry it."""
         noise = self.config.noise
         if gyro_stale:
             noise = replace(noise, att_rad2_s=NO_GYRO_ATT_RAD2_S, att_yaw_rad2_s=None)
-            gyro_b_rad_s = np.zeros(3)
         if accel_stale:
             noise = replace(noise, vel_m2_s3=NO_ACCEL_VEL_M2_S3)
         self.x, self.P = ekf_predict(self.x, self.P, gyro_b_rad_s, accel_b_m_s2, dt_s, noise)

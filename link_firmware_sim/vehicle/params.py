@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..geo import GeoOrigin
 
-from ..firmware import FirmwareConfig
+from ..firmware_config import FirmwareConfig
 
 __all__ = ["ParamSpec", "PARAMS", "ParamTable", "StreamRates"]
 

@@ -332,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_controllers(args) -> int:
     from typing import get_args, get_type_hints
 
-    from link_firmware_sim.firmware import FirmwareConfig
+    from link_firmware_sim.firmware_config import FirmwareConfig
     from sitl.scenario import load_scenario
 
     from .controllers import compare_controllers, format_controllers, markdown_controllers

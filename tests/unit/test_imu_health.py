@@ -67,7 +67,8 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
     whose samples vary by a hair around it (``not stale``: a live gyro, believed): the stale
     gyro's rate is never integrated once it is found stale (watched every 20 ms, as a shell does),
     so the attitude stays on the reference; the believed one turns the estimate. The controller
-    damps with the attitude estimate's rate, near zero here."""
+    damps with the stale gyro's stand-in (its model rate, corrected by the references), near zero
+    here."""
     fw, q = _hovering_firmware()
     assert fw.arm(0.0)
     fw.set_target(0.0, PoseTarget.hold(np.zeros(3), q))
@@ -78,7 +79,7 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
     assert fw.imu_health.gyro.stale == stale
     if stale:
         assert yaw_err < 3.0 and [e.text for e in fw.events if e.kind == "fault"] == ["Gyro stale: no change for 0.2 s"]
-        assert np.linalg.norm(fw.imu_health.rate_lp) < 0.2
+        assert np.linalg.norm(fw.imu_health.rate.rate_b_rad_s) < 0.2 and fw.imu_health.rate.updates > 0
     else:
         assert yaw_err > 5.0
     fw.disarm()
@@ -89,7 +90,7 @@ def test_in_flight_a_stuck_gyro_is_not_integrated(stale):
 def test_the_attitude_integral_holds_while_the_gyro_is_stale(stale):
     """A link held 10 deg off its target in yaw (its attitude reference says so): eq. 1's attitude
     integral winds on the error with a live gyro; with a stale one it holds its value (anti-windup
-    while the damping is the attitude estimate's late rate), the position integral going on."""
+    while the damping is the model's rate), the position integral going on."""
     from companion.estimation.so3 import quat_from_euler_zyx
 
     fw, q = _hovering_firmware()
