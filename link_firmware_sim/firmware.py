@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+
 import numpy as np
 
 from companion.estimation.so3 import attitude_error, retract

@@ -97,8 +97,12 @@ class ImuHealth:
         self.gyro_sample, self.accel_sample = gyro_b_rad_s, accel_b_m_s2
 
     def watch(self, t_s: float) -> list[StatusEvent]:
-        """The newest samples to both watches at ``t_s``: the transitions."""
-        return self.gyro.on_sample(t_s, self.gyro_sample) + self.accel.on_sample(t_s, self.accel_sample)
+        """The newest samples to both watches at ``t_s``: the transitions (a gyro alive again
+        stops its stand-in, whichever path the next ticks take)."""
+        events = self.gyro.on_sample(t_s, self.gyro_sample) + self.accel.on_sample(t_s, self.accel_sample)
+        if not self.gyro.stale:
+            self.rate.stop()
+        return events
 
     def stop(self, t_s: float) -> None:
         self.gyro.stop(t_s)
@@ -120,7 +124,7 @@ class ImuHealth:
 
     def gyro_used(self) -> None:
         """A tick that used the gyro: its stand-in stops (it starts afresh at the next stale tick)."""
-        self.rate.running = False
+        self.rate.stop()
 
     def report(self, t_s: float) -> dict:
         """``gyro`` and ``accel``: each sensor's :meth:`StaleSensor.report`."""

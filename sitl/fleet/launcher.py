@@ -36,8 +36,8 @@ from sitl.scenario import Scenario
 from .fault_socket import FaultSocket
 from .faults import FleetFaults, HarnessFault, scripted_faults
 from .harness import FleetHarness
-from .sim_time import SimTimeWriter
 from .inject import FailureCommander, enable_failure_injection
+from .sim_time import SimTimeWriter
 from .task import FleetTask
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
                      check_instance_offset, endpoint_table, impaired_links)

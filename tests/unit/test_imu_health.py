@@ -138,3 +138,22 @@ def test_in_flight_a_stuck_accelerometer_is_replaced_by_the_commanded_thrust(sta
         assert speed < 0.2 and "Accel stale: no change for 0.2 s" in [e.text for e in fw.events if e.kind == "fault"]
     else:
         assert speed > 0.6
+
+
+def test_each_stale_stretch_starts_the_gyros_stand_in_afresh():
+    """A gyro stuck, alive again (its stand-in stopped at the watch that saw it change, whichever
+    path the next ticks take), stuck again: the second stretch starts from the attitude estimate
+    and the commanded torque of then, not from where the first one left off."""
+    fw, q = _hovering_firmware()
+    assert fw.arm(0.0)
+    fw.set_target(0.0, PoseTarget.hold(np.zeros(3), q))
+    rng = np.random.default_rng(3)
+    stuck = np.array([0.0, 0.0, 0.01])
+    _fly_still(fw, q, rng, lambda: stuck, gps_std_m=0.01, ticks=400)
+    rate = fw.imu_health.rate
+    assert fw.imu_health.gyro.stale and rate.running and rate.updates > 5
+    first_updates = rate.updates
+    _fly_still(fw, q, rng, lambda: rng.normal(0, 1e-3, 3), gps_std_m=0.01, ticks=50, first=401)
+    assert not fw.imu_health.gyro.stale and not rate.running
+    _fly_still(fw, q, rng, lambda: stuck, gps_std_m=0.01, ticks=150, first=451)
+    assert fw.imu_health.gyro.stale and rate.running and 0 < rate.updates < first_updates
