@@ -1,16 +1,18 @@
 """``python -m sitl campaign``: fly a grid of scenarios x settings x seeds on Dask, and compare tables.
 
     python -m sitl campaign run --config FILE [--config FILE ...] [--set KEY=V1,V2 ...] --seeds 0-9
-        [--mode batch|fleet] [--duration S] [--out DIR] [--scheduler tcp://HOST:PORT | --workers N | --serial]
-        [--retries R] [--worker-dir DIR] [--plot METRIC,...] [--quiet]
-    python -m sitl campaign faults --config FILE --flights N [--seed S] [--mode batch|fleet] [--duration S]
-        [--out DIR] [--scheduler tcp://HOST:PORT | --workers N | --serial] [--quiet]
+        [--mode batch|fleet] [--speed F] [--duration S] [--out DIR] [--scheduler tcp://HOST:PORT | --workers N |
+        --serial] [--retries R] [--worker-dir DIR] [--plot METRIC,...] [--quiet]
+    python -m sitl campaign faults --config FILE --flights N [--seed S] [--mode batch|fleet] [--speed F]
+        [--duration S] [--out DIR] [--scheduler tcp://HOST:PORT | --workers N | --serial] [--quiet]
     python -m sitl campaign diff A/results.csv B/results.csv
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import signal
 import sys
 from pathlib import Path
@@ -50,13 +52,21 @@ def _raise_interrupt(_signum, _frame):
     raise KeyboardInterrupt
 
 
+def _speed(args) -> float:
+    """``--speed``, which paces fleet flights only (``ValueError`` otherwise)."""
+    if args.speed and args.mode != "fleet":
+        raise ValueError("--speed paces fleet flights (--mode fleet); batch mode has no pace")
+    return args.speed
+
+
 def _grid(args):
     seeds = parse_seeds(args.seeds)
     sweeps = [parse_sweep(s) for s in args.set]
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be positive, got {args.duration}")
     # absolute: a worker's working folder is its own (a machine of the lab holds the repository at the same path)
-    return make_grid([str(Path(c).resolve()) for c in args.config], sweeps, seeds, args.mode, args.duration)
+    return make_grid([str(Path(c).resolve()) for c in args.config], sweeps, seeds, args.mode, args.duration,
+                     speed=_speed(args))
 
 
 def _cmd_run(args) -> int:
@@ -74,7 +84,7 @@ def _cmd_run(args) -> int:
     root = make_run_dir("campaign", args.out)
     (root / "campaign.json").write_text(json.dumps({
         "configs": [str(c) for c in args.config], "set": args.set, "seeds": args.seeds, "mode": args.mode,
-        "duration_s": args.duration, "runs": len(specs)}, indent=1) + "\n")
+        "speed": args.speed, "duration_s": args.duration, "runs": len(specs)}, indent=1) + "\n")
     result = _fly(args, root, specs, renders)
     if isinstance(result, int):
         return result
@@ -124,7 +134,8 @@ def _cmd_faults(args) -> int:
         print("error: --workers must be >= 1", file=sys.stderr)
         return EXIT_BAD_CONFIG
     try:
-        specs, events = fault_specs(str(Path(args.config).resolve()), args.flights, args.seed, args.mode, args.duration)
+        specs, events = fault_specs(str(Path(args.config).resolve()), args.flights, args.seed, args.mode, args.duration,
+                                    _speed(args))
     except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG
@@ -172,6 +183,23 @@ def _where_args(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _speed_arg(parser) -> None:
+    parser.add_argument("--speed", type=_pace, default=0.0, metavar="F",
+                        help="fleet mode: pace the flights at F times real time (default 0: as fast as the lockstep "
+                             "allows). The lockstep does not wait for the companions: unpaced, their wall-clock "
+                             "latency is several times longer in simulated time than onboard; 1 keeps it as onboard")
+
+
+def _pace(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: the pace must be >= 0 (0: unpaced)")
+    return value
+
+
 def add_campaign_parser(sub) -> None:
     """``campaign run``, ``campaign faults`` and ``campaign diff`` on ``python -m sitl``'s subcommands."""
     cp = sub.add_parser("campaign", help="fly many runs (scenarios x settings x seeds) on Dask; one results table",
@@ -190,8 +218,9 @@ def add_campaign_parser(sub) -> None:
                           "repeat for a grid of several)")
     run.add_argument("--seeds", required=True, metavar="SEEDS", help="seeds, e.g. 0-9 or 0,3,7-9")
     run.add_argument("--mode", choices=MODES, default="batch",
-                     help="batch: python -m sitl fly; fleet: python -m sitl launch --speed 0 on instance offsets "
-                          "leased per host (default batch)")
+                     help="batch: python -m sitl fly; fleet: python -m sitl launch (paced by --speed) on instance "
+                          "offsets leased per host (default batch)")
+    _speed_arg(run)
     run.add_argument("--duration", type=float, metavar="S", help="simulated seconds per run (default: the scenario's)")
     run.add_argument("--out", metavar="DIR", help="campaign folder (default: runs/campaign-<UTC time>); "
                                                   "an existing one goes on where it stopped")
@@ -214,6 +243,7 @@ def add_campaign_parser(sub) -> None:
                                                                           "(default 0)")
     faults.add_argument("--mode", choices=MODES, default="fleet",
                         help="fleet (default: every kind of fault) or batch (no lossy wires, no companion kills)")
+    _speed_arg(faults)
     faults.add_argument("--duration", type=float, metavar="S", help="simulated seconds per flight (default: the "
                                                                      "scenario's)")
     faults.add_argument("--out", metavar="DIR", help="campaign folder (default: runs/faults-<UTC time>); an "

@@ -24,10 +24,11 @@ __all__ = ["fault_specs", "write_fault_report", "replay_command"]
 
 
 def fault_specs(config: str, flights: int, seed: int, mode: str, duration_s: float | None = None,
-                ) -> tuple[list[RunSpec], list[list[FaultEvent]]]:
+                speed: float = 0.0) -> tuple[list[RunSpec], list[list[FaultEvent]]]:
     """``flights`` runs of ``config`` with schedules drawn from ``seed`` (each flight its own
-    simulation seed from the same generator), and their events. ``ValueError`` for a bad count,
-    a scenario that cannot fly in ``mode`` or that leaves no room for faults."""
+    simulation seed from the same generator; fleet flights paced at ``speed``), and their events.
+    ``ValueError`` for a bad count, a scenario that cannot fly in ``mode`` or that leaves no room
+    for faults."""
     from sitl.scenarios import load
 
     if flights < 1:
@@ -44,14 +45,15 @@ def fault_specs(config: str, flights: int, seed: int, mode: str, duration_s: flo
     specs, events = [], []
     for _ in range(flights):
         ev, settings = draw_schedule(rng, n, sc.flight_start_s, sc.duration_s, mode == "fleet", n_groups)
-        specs.append(RunSpec(config, settings, int(rng.integers(0, 2**31 - 1)), mode, duration_s))
+        specs.append(RunSpec(config, settings, int(rng.integers(0, 2**31 - 1)), mode, duration_s, speed=speed))
         events.append(ev)
     return specs, events
 
 
 def replay_command(spec: RunSpec) -> str:
     """The command that flies ``spec`` again on its own."""
-    head = "python -m sitl fly" if spec.mode == "batch" else "python -m sitl launch --speed 0"
+    pace = format_value(float(spec.speed))
+    head = "python -m sitl fly" if spec.mode == "batch" else f"python -m sitl launch --speed {pace}"
     sets = " ".join(f"--set '{k}={format_value(v)}'" for k, v in spec.settings)
     dur = f" --duration {format_value(float(spec.duration_s))}" if spec.duration_s is not None else ""
     return f"{head} --config {spec.config} --seed {spec.seed}{dur} {sets}"
@@ -100,10 +102,11 @@ def write_fault_report(root: Path, specs: list[RunSpec], events: list[list[Fault
     failed = [r for r in rows if r["status"] != "ok"]
     (root / "faults.json").write_text(json.dumps({
         "config": specs[0].config if specs else None, "flights": len(specs), "seed": args.seed, "mode": args.mode,
-        "table": table, "carry": carry, "runs": rows}, indent=1, default=str) + "\n")
+        "speed": args.speed, "table": table, "carry": carry, "runs": rows}, indent=1, default=str) + "\n")
+    pace = f" at {args.speed:g}x real time" if args.mode == "fleet" and args.speed else ""
     lines = [f"# Random faults: {Path(specs[0].config).stem if specs else ''}, {len(specs)} flights, seed {args.seed}, "
-             f"{args.mode} mode", "", "Written by `python -m sitl campaign faults`; each flight's schedule and figures "
-             "are in faults.json.", "", markdown_fault_table(table), f"## Crashes ({len(crashes)})", ""]
+             f"{args.mode} mode{pace}", "", "Written by `python -m sitl campaign faults`; each flight's schedule and "
+             "figures are in faults.json.", "", markdown_fault_table(table), f"## Crashes ({len(crashes)})", ""]
     powerless = [r for r in crashes if power_loss_near(r) is not None]
     if crashes:
         lines += [f"{len(powerless)} with a link without power (a reboot from its start to {AFTER_S:g} s after its "

@@ -111,10 +111,15 @@ class RunSpec:
     mode: Literal["batch", "fleet"] = "batch"
     duration_s: float | None = None
     profile: str | None = None
+    speed: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if not (math.isfinite(self.speed) and self.speed >= 0.0):
+            raise ValueError(f"speed must be >= 0 (0: unpaced), got {self.speed!r}")
+        if self.speed and self.mode != "fleet":
+            raise ValueError("speed paces fleet flights: batch mode has no pace")
 
     @property
     def scenario(self) -> str:
@@ -131,6 +136,7 @@ class RunSpec:
         """The run's key: scenario, mode, settings and seed (what makes two runs the same run)."""
         extra = [f"duration_s={format_value(float(self.duration_s))}"] if self.duration_s is not None else []
         extra += [f"profile={self.profile}"] if self.profile is not None else []
+        extra += [f"speed={format_value(float(self.speed))}"] if self.speed else []
         return "|".join([self.scenario, self.mode, self.settings_label, *extra, f"seed={self.seed}"])
 
     @property
@@ -139,12 +145,13 @@ class RunSpec:
         return self.key.rsplit("|", 1)[0]
 
     def folder(self) -> Path:
-        """The run's folder inside the campaign's: ``<scenario>[-fleet]/<settings>/seed-<S>``
+        """The run's folder inside the campaign's: ``<scenario>[-fleet[-x<speed>]]/<settings>/seed-<S>``
         (settings too long or odd for a folder name: a hash of them)."""
         label = _FOLDER_SAFE.sub("_", self.settings_label)
         if len(label) > _FOLDER_MAX or label.startswith("."):
             label = "settings-" + hashlib.sha256(self.settings_label.encode()).hexdigest()[:12]
         top = self.scenario + ("-fleet" if self.mode == "fleet" else "")
+        top += f"-x{format_value(float(self.speed))}" if self.speed else ""
         return Path(top) / label / f"seed-{self.seed}"
 
     def columns(self) -> dict[str, Any]:
@@ -155,12 +162,14 @@ class RunSpec:
             out["duration_s"] = float(self.duration_s)
         if self.profile is not None:
             out["profile"] = self.profile
+        if self.speed:
+            out["speed"] = float(self.speed)
         out["seed"] = self.seed
         return out
 
 
 def make_grid(configs: list[str], sweeps: list[Sweep], seeds: list[int], mode: str = "batch",
-              duration_s: float | None = None, profile: str | None = None) -> list[RunSpec]:
+              duration_s: float | None = None, profile: str | None = None, speed: float = 0.0) -> list[RunSpec]:
     """Every combination of ``configs``, the sweeps' values and ``seeds`` (in that order of
     nesting). ``ValueError`` for a key swept twice or two files of the same name."""
     keys = [s.key for s in sweeps]
@@ -172,5 +181,5 @@ def make_grid(configs: list[str], sweeps: list[Sweep], seeds: list[int], mode: s
     if not seeds:
         raise ValueError("no seeds")
     combos = list(itertools.product(*[[(s.key, v) for v in s.values] for s in sweeps]))
-    return [RunSpec(str(c), tuple(combo), int(seed), mode, duration_s, profile)
+    return [RunSpec(str(c), tuple(combo), int(seed), mode, duration_s, profile, speed)
             for c in configs for combo in combos for seed in seeds]

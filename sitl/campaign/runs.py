@@ -93,7 +93,7 @@ def fly_spec(out_dir: Path, spec: RunSpec, renders: bool = False) -> dict:
 
         gcs_port = _unused_udp_port()
         with lease_instance_offset(sc, gcs_port) as k:
-            metrics = kind.launch(sc, out_dir, speed=0.0, plots=False, instance_offset=k, gcs_port=gcs_port)
+            metrics = kind.launch(sc, out_dir, speed=spec.speed, plots=False, instance_offset=k, gcs_port=gcs_port)
     if metrics.get("interrupted"):
         # the fleet stopped on Ctrl-C or SIGTERM (and kept what it flew): the campaign stops too,
         # and this run is not a finished one (the same command flies it again)

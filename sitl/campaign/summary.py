@@ -35,7 +35,7 @@ def group_label(columns: dict[str, Any]) -> str:
     """A run's group (its key columns without the seed) as one label:
     ``three_link batch firmware.ekf.gate_sigma=4``."""
     parts = [str(columns[c]) for c in ("scenario", "mode") if c in columns]
-    parts += [f"{c}={cell(columns[c])}" for c in ("duration_s", "profile") if c in columns]
+    parts += [f"{c}={cell(columns[c])}" for c in ("duration_s", "profile", "speed") if c in columns]
     parts += [f"{c[4:]}={columns[c]}" for c in columns if c.startswith("set:")]
     return " ".join(parts)
 

@@ -131,6 +131,19 @@ def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_
     assert len(nees) == 2 and all(len(g["seeds"]) == 2 for g in nees.values())
 
 
+@pytest.mark.parametrize("args, message", [
+    (["faults", "--flights", "2", "--mode", "batch", "--speed", "1"], "--speed paces fleet flights"),
+    (["run", "--seeds", "0", "--speed", "1"], "--speed paces fleet flights"),
+    (["faults", "--flights", "2", "--speed", "-1"], "the pace must be >= 0"),
+    (["faults", "--flights", "2", "--speed", "fast"], "is not a number")])
+def test_a_pace_batch_mode_cannot_have_is_refused_before_anything_flies(tmp_path, args, message):
+    cmd = [sys.executable, "-m", "sitl", "campaign", args[0], "--config", "configs/sitl/chain/three_link.toml",
+           *args[1:], "--quiet", "--out", str(tmp_path / "c")]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and message in res.stderr, res.stderr
+    assert not (tmp_path / "c").exists()
+
+
 def test_a_campaign_with_a_bad_setting_stops_before_anything_flies(tmp_path):
     cmd = [sys.executable, "-m", "sitl", "campaign", "run", "--config", "configs/sitl/chain/three_link.toml",
            "--set", "firmware.ekf.gate_sigm=3,5", "--seeds", "0-1", "--quiet", "--out", str(tmp_path / "c")]

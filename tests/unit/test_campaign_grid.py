@@ -73,6 +73,24 @@ def test_the_grid_is_every_combination_with_its_own_key_and_folder():
     assert str(fleet.folder()) == "one-fleet/base/seed-3" and "duration_s=8.0" in fleet.key
 
 
+def test_a_paced_fleet_run_is_another_run_with_its_own_folder():
+    unpaced = RunSpec("a/one.toml", (), 3, "fleet")
+    paced = RunSpec("a/one.toml", (), 3, "fleet", speed=1.0)
+    assert unpaced.key == "one|fleet|base|seed=3" and paced.key == "one|fleet|base|speed=1.0|seed=3"
+    assert str(paced.folder()) == "one-fleet-x1.0/base/seed-3" and paced.folder() != unpaced.folder()
+    assert paced.columns()["speed"] == 1.0 and "speed" not in unpaced.columns()
+    assert [s.speed for s in make_grid(["a/one.toml"], [], [0, 1], "fleet", speed=2.0)] == [2.0, 2.0]
+
+
+@pytest.mark.parametrize("mode, speed, match", [("batch", 1.0, "batch mode has no pace"),
+                                                ("fleet", -1.0, "speed must be >= 0"),
+                                                ("fleet", float("nan"), "speed must be >= 0"),
+                                                ("fleet", float("inf"), "speed must be >= 0")])
+def test_a_pace_batch_mode_cannot_have_or_no_clock_can_keep_is_refused(mode, speed, match):
+    with pytest.raises(ValueError, match=match):
+        RunSpec("a/one.toml", (), 0, mode, speed=speed)
+
+
 def test_odd_or_long_settings_make_a_safe_folder_name():
     odd = RunSpec("s.toml", (("wind.mean_w_m_s", [1.0, 0.0, 0.0]),), 0)
     assert "/" not in odd.folder().parts[1] and " " not in str(odd.folder())

@@ -58,6 +58,18 @@ def test_every_drawn_schedule_loads_as_a_scenario(name, mode):
         injected = [e for e in ev if e.kind in INJECTED]
         assert sc.faults.inject.link == (injected[0].target if injected else 0)
         assert f"--seed {spec.seed}" in replay_command(spec)
+        assert replay_command(spec).startswith("python -m sitl fly " if mode == "batch" else
+                                               "python -m sitl launch --speed 0.0 ")
+
+
+def test_a_paced_fault_campaign_replays_its_crashes_at_that_pace():
+    config = str(SITL_CONFIGS / "chain" / "three_link.toml")
+    specs, _ = fault_specs(config, 3, seed=3, mode="fleet", speed=1.0)
+    unpaced, _ = fault_specs(config, 3, seed=3, mode="fleet")
+    assert [s.settings for s in specs] == [s.settings for s in unpaced]  # the same schedules
+    assert all(s.speed == 1.0 and replay_command(s).startswith("python -m sitl launch --speed 1.0 ") for s in specs)
+    with pytest.raises(ValueError, match="batch mode has no pace"):
+        fault_specs(config, 3, seed=3, mode="batch", speed=1.0)
 
 
 def test_recovery_is_the_time_until_every_link_tracks_again():
