@@ -6,6 +6,7 @@ import socket
 import subprocess
 import sys
 import threading
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -100,18 +101,34 @@ def test_impairment_is_seeded_and_loses_about_p():
     assert MavlinkWireFault().active is False and MavlinkWireFault(jitter_ms=1.0).active
 
 
-def test_wire_proxy_forwards_both_ways_drops_and_counts():
+@contextmanager
+def _running_wire(**proxy_kwargs):
+    """A :class:`WireProxy` (``proxy_kwargs``) running in a thread between a vehicle's and a
+    companion's socket on loopback; yields the proxy, both sockets and the ports (vehicle side,
+    companion, the proxy's own)."""
     vside, comp_port, local = free_ports(3, udp=True)
     companion = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     companion.bind(("127.0.0.1", comp_port))
-    companion.settimeout(0.5)
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     vehicle.bind(("127.0.0.1", 0))
-    vehicle.settimeout(0.5)
-    proxy = WireProxy([(vside, comp_port, local)], loss=0.3, delay_ms=5.0, jitter_ms=0.0, seed=1)
+    proxy = WireProxy([(vside, comp_port, local)], **proxy_kwargs)
     thread = threading.Thread(target=proxy.run, daemon=True)
     thread.start()
     try:
+        yield proxy, vehicle, companion, (vside, comp_port, local)
+    finally:
+        proxy.stop()
+        thread.join(2.0)
+        proxy.close()
+        companion.close()
+        vehicle.close()
+
+
+def test_wire_proxy_forwards_both_ways_drops_and_counts():
+    with _running_wire(loss=0.3, delay_ms=5.0, jitter_ms=0.0, seed=1) as (proxy, vehicle, companion, ports):
+        vside, comp_port, local = ports
+        companion.settimeout(0.5)
+        vehicle.settimeout(0.5)
         for k in range(200):
             vehicle.sendto(b"up%03d" % k, ("127.0.0.1", vside))
         got = []
@@ -136,27 +153,14 @@ def test_wire_proxy_forwards_both_ways_drops_and_counts():
         assert len(back) == down.forwarded and down.forwarded + down.dropped == 100 and down.dropped > 10
         stats = proxy.stats()
         assert stats[f"{vside}<->{comp_port}"]["vehicle_to_companion"]["dropped"] == up.dropped
-    finally:
-        proxy.stop()
-        thread.join(2.0)
-        proxy.close()
-        companion.close()
-        vehicle.close()
 
 
 def test_wire_proxy_on_simulated_time_holds_datagrams_until_that_clock_has_moved():
     """With the lockstep's clock (sim_time.SimTimeClock in a fleet) a datagram is held for its
     delay in that clock's time: frozen, it stays; moved by the delay, it leaves."""
-    vside, comp_port, local = free_ports(3, udp=True)
-    companion = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    companion.bind(("127.0.0.1", comp_port))
-    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sim = [5.0]
-    proxy = WireProxy([(vside, comp_port, local)], loss=0.0, delay_ms=20.0, jitter_ms=0.0, seed=1,
-                      clock=lambda: sim[0], poll_s=0.0005)
-    thread = threading.Thread(target=proxy.run, daemon=True)
-    thread.start()
-    try:
+    with _running_wire(loss=0.0, delay_ms=20.0, jitter_ms=0.0, seed=1, clock=lambda: sim[0],
+                       poll_s=0.0005) as (proxy, vehicle, companion, (vside, _, _)):
         vehicle.sendto(b"state", ("127.0.0.1", vside))
         assert wait_for(lambda: proxy.pairs[0].up.forwarded == 1, 5.0)
         companion.settimeout(0.3)  # 15 wall-clock delays: still held, the simulated time stands still
@@ -168,12 +172,6 @@ def test_wire_proxy_on_simulated_time_holds_datagrams_until_that_clock_has_moved
         sim[0] += 0.002
         companion.settimeout(2.0)
         assert companion.recvfrom(100)[0] == b"state"
-    finally:
-        proxy.stop()
-        thread.join(2.0)
-        proxy.close()
-        companion.close()
-        vehicle.close()
 
 
 def test_wire_cli_writes_its_counters_and_stops_on_sigterm(tmp_path):
