@@ -52,13 +52,6 @@ def _raise_interrupt(_signum, _frame):
     raise KeyboardInterrupt
 
 
-def _speed(args) -> float:
-    """``--speed``, which paces fleet flights only (``ValueError`` otherwise)."""
-    if args.speed and args.mode != "fleet":
-        raise ValueError("--speed paces fleet flights (--mode fleet); batch mode has no pace")
-    return args.speed
-
-
 def _grid(args):
     seeds = parse_seeds(args.seeds)
     sweeps = [parse_sweep(s) for s in args.set]
@@ -66,7 +59,7 @@ def _grid(args):
         raise ValueError(f"--duration must be positive, got {args.duration}")
     # absolute: a worker's working folder is its own (a machine of the lab holds the repository at the same path)
     return make_grid([str(Path(c).resolve()) for c in args.config], sweeps, seeds, args.mode, args.duration,
-                     speed=_speed(args))
+                     speed=args.speed)
 
 
 def _cmd_run(args) -> int:
@@ -135,7 +128,7 @@ def _cmd_faults(args) -> int:
         return EXIT_BAD_CONFIG
     try:
         specs, events = fault_specs(str(Path(args.config).resolve()), args.flights, args.seed, args.mode, args.duration,
-                                    _speed(args))
+                                    args.speed)
     except (ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_CONFIG

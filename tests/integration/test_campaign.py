@@ -132,8 +132,8 @@ def test_the_same_campaign_on_a_local_cluster_and_on_a_scheduler_gives_the_same_
 
 
 @pytest.mark.parametrize("args, message", [
-    (["faults", "--flights", "2", "--mode", "batch", "--speed", "1"], "--speed paces fleet flights"),
-    (["run", "--seeds", "0", "--speed", "1"], "--speed paces fleet flights"),
+    (["faults", "--flights", "2", "--mode", "batch", "--speed", "1"], "speed paces fleet flights"),
+    (["run", "--seeds", "0", "--speed", "1"], "speed paces fleet flights"),
     (["faults", "--flights", "2", "--speed", "-1"], "the pace must be >= 0"),
     (["faults", "--flights", "2", "--speed", "fast"], "is not a number")])
 def test_a_pace_batch_mode_cannot_have_is_refused_before_anything_flies(tmp_path, args, message):
