@@ -526,7 +526,6 @@ class LinkFirmware(FusedTicks):
             omega = imu.rate.rate_b_rad_s
         else:
             omega = np.asarray(gyro_b_rad_s, dtype=float) - self.ekf.x[X_BG]
-            imu.gyro_used()
         target = self._active_target(t_s, p)
         ctrl = self._controller
         held = self.integrals if imu.gyro.stale else None

@@ -122,10 +122,6 @@ class ImuHealth:
         if self.rate.running:
             self.rate.update(q_wxyz)
 
-    def gyro_used(self) -> None:
-        """A tick that used the gyro: its stand-in stops (it starts afresh at the next stale tick)."""
-        self.rate.stop()
-
     def report(self, t_s: float) -> dict:
         """``gyro`` and ``accel``: each sensor's :meth:`StaleSensor.report`."""
         return {"gyro": self.gyro.report(t_s), "accel": self.accel.report(t_s)}

@@ -68,7 +68,6 @@ class SimTimeClock:
         self._sim_s = 0.0  # the newest simulated time read
         self._moved_wall_s = wall()  # when it last moved
         self._offset_s = 0.0  # wall time added during earlier stalls
-        self._last_s = 0.0
 
     def _read(self) -> float | None:
         if self._map is None:
@@ -97,9 +96,9 @@ class SimTimeClock:
             self._offset_s += self.stalled_s(wall_s)
             self._sim_s = sim
             self._moved_wall_s = wall_s
-        now = self._sim_s + self._offset_s + self.stalled_s(wall_s)
-        self._last_s = max(self._last_s, now)
-        return self._last_s
+        # monotonic: while the simulated time stands still the stall grows with the wall clock, and
+        # when it moves on the stall so far is kept in the offset
+        return self._sim_s + self._offset_s + self.stalled_s(wall_s)
 
     def close(self) -> None:
         if self._map is not None:
