@@ -131,10 +131,13 @@ class CompanionConfig:
     disarmed one or after a silence of ``reboot_silence_s``) is carried by its neighbours: the
     targets' whole-chain feed-forward holds its rotor wrench at zero
     (:meth:`~companion.skeleton.dynamics.ChainModel.inverse_dynamics`, ``passive``). Each 50 ms
-    of delay costs: a dead middle link of ``three_link`` pulled its neighbours 61 deg off when
-    carried from 0.25 s, 16 deg from 0.1 s. A link alive but unheard that long is carried too:
-    its neighbours push up by its weight until it is heard again (three states in a row lost on a
-    10 % lossy wire: about once in 20 s, for a target period).
+    of delay lets a dead link pull its neighbours further off (tens of degrees in ``three_link``).
+    A link alive but unheard that long is carried too: its neighbours push up by its weight until
+    it is heard again. ``carry_silence_max_s`` (unset: ``carry_silence_s``, a fixed silence) lets
+    the silence grow with the loss of the link's state stream (:mod:`companion.engine.silence`:
+    estimated from the gaps between its stamps, one state period more per lost state that a run
+    must reach to happen by chance less than once in ten minutes), up to that value: fewer false
+    carries on a lossy wire, a dead link carried later there.
 
     ``neighbour_cameras``: apply the camera measurements between neighbouring links that reach
     the companion (a camera on one link seeing its neighbour's marker:
@@ -171,6 +174,7 @@ class CompanionConfig:
     reboot_silence_s: float = 1.0
     reboot_frames: int = 10
     carry_silence_s: float = 0.06
+    carry_silence_max_s: float | None = None
     carry_spinup_s: float = 0.35
     gate_threshold: float = CHI2_6_1E6
     gate_pos_m: float = 0.05
@@ -187,6 +191,10 @@ class CompanionConfig:
                          "clock_rate_max", "reboot_silence_s", "reboot_frames", "carry_silence_s")
         require_nonnegative(self, "carry_spinup_s", "tlog_max_mb", "tlog_keep", "neighbour_mount_std_m",
                             "neighbour_mount_std_deg")
+        m = self.carry_silence_max_s
+        if m is not None and not (math.isfinite(m) and m >= self.carry_silence_s):
+            raise ValueError(f"carry_silence_max_s ({m}) must be finite and at least carry_silence_s "
+                             f"({self.carry_silence_s})")
         self.gate
         c = self.gnss_common_pos_var_m2
         if c is not None and (len(c) != 2 or not all(math.isfinite(x) and x >= 0.0 for x in c)):
@@ -195,6 +203,12 @@ class CompanionConfig:
         ids = [link.system_id for link in self.links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")
+
+    @property
+    def carry_silence_cap_s(self) -> float:
+        """The longest silence before a flown link is carried (``carry_silence_max_s``, or
+        ``carry_silence_s`` when that is unset)."""
+        return self.carry_silence_s if self.carry_silence_max_s is None else self.carry_silence_max_s
 
     def endpoints(self, n_links: int, host: str = "127.0.0.1") -> tuple[LinkEndpoint, ...]:
         """The configured links, or the SITL defaults for ``n_links`` links."""

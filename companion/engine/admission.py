@@ -103,6 +103,8 @@ class Admission:
             lk.readmit_cycles = READMIT_CYCLES
             log.warning("link %d: silent, then back on a new clock (%.3f s): rebooted; re-admitted after %d usable "
                         "cycles", lk.index + 1, stamp_us * 1e-6, READMIT_CYCLES)
+            if lk.loss is not None:
+                lk.loss.restart()
         elif lk.last_state_s is not None and now_s - lk.last_state_s >= self.cfg.reboot_silence_s:
             lk.readmit_cycles = READMIT_CYCLES
             log.warning("link %d: back after %.1f s of silence; re-admitted after %d usable cycles", lk.index + 1,
@@ -115,6 +117,8 @@ class Admission:
         lk.disarmed_states = 0 if flags & STATE_FLAG_ARMED else lk.disarmed_states + 1
         lk.state = state
         lk.states += 1
+        if lk.loss is not None:
+            lk.loss.on_stamp(stamp_us)
         lk.last_state_s = now_s
         self._move_cycle_clock(now_s)
         return True

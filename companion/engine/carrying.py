@@ -1,8 +1,8 @@
 """Carrying: which links have their rotors off, so that their neighbours' feed-forward takes
 their weight (the whole-chain feed-forward, ``trajectory.feedforward``).
 
-A link is carried when it has flown and is now silent ``carry_silence_s``, disarmed, or re-armed
-less than ``carry_spinup_s`` ago (:meth:`Carrying.own`). In distributed mode each group publishes
+A link is carried when it has flown and is now silent ``carry_silence_s`` (longer on a lossy wire:
+:mod:`.silence`), disarmed, or re-armed less than ``carry_spinup_s`` ago (:meth:`Carrying.own`). In distributed mode each group publishes
 its carried links (:class:`~companion.messages.GroupPassiveLinks`, :meth:`Carrying.publish`) and
 takes the other groups' (:meth:`Carrying.on_remote`, :meth:`Carrying.remote`): a dead link at a
 group's end hangs on a link of the next group. Every carried stretch is logged and timed
@@ -18,6 +18,7 @@ import numpy as np
 
 from ..messages import STATE_FLAG_ARMED, GroupPassiveLinks
 from .links import CarryClock, LinkTrack
+from .silence import silence_threshold_s
 
 __all__ = ["DISARMED_STATES", "PASSIVE_REPEAT_US", "PASSIVE_STALE_US", "Carrying"]
 
@@ -64,9 +65,10 @@ class Carrying:
 
     def own(self, now_s: float, t_us: int) -> frozenset[int]:
         """The chain indices of this engine's links whose rotors are taken to be off: a link that
-        has flown and is now silent ``carry_silence_s`` (its newest state that far behind the
+        has flown and is now silent ``carry_silence_s`` (lengthened by the loss of its stream,
+        :func:`~.silence.silence_threshold_s`; its newest state that far behind the
         median of the links' newest, the newest with fewer than three links; and nothing from it
-        for ``carry_silence_s / clock_rate_max`` on the companion's own clock ``now_s``, so that a
+        for that silence over ``clock_rate_max`` on the companion's own clock ``now_s``, so that a
         link whose states keep arriving is not taken as silent because another link's stamps were
         forged ahead, as they can be in a group of two), disarmed (its first
         report after a silence, else :data:`DISARMED_STATES` reports in a row; not believed while
@@ -84,7 +86,9 @@ class Carrying:
         t = median(heard) if len(heard) >= 3 else t_us * 1e-6
         for lk in self.links:
             lag = np.inf if lk.state is None else t - lk.state.time_s
-            silent = lag >= cfg.carry_silence_s and lk.quiet(now_s, cfg.carry_silence_s, cfg.clock_rate_max)
+            loss = lk.loss.fraction if lk.loss is not None else 0.0
+            silence_s = silence_threshold_s(loss, cfg.carry_silence_s, cfg.carry_silence_cap_s, cfg.state_rate_hz)
+            silent = lag >= silence_s and lk.quiet(now_s, silence_s, cfg.clock_rate_max)
             # disarmed: the first report after a silence says, otherwise DISARMED_STATES reports in
             # a row (a lone forged one on an unsigned wire does not)
             # (not while its stream carries replayed or future stamps: then some of it is forged)
@@ -110,7 +114,8 @@ class Carrying:
             was = lk.carried.on
             ended = lk.carried.switch(passive, t)
             if passive and not was:
-                why = "silent" if silent else "disarmed in flight" if not armed else "re-armed, rotors starting"
+                why = (f"silent {silence_s:.2f} s ({100 * loss:.0f} % of its states lost)" if silent
+                       else "disarmed in flight" if not armed else "re-armed, rotors starting")
                 log.warning("link %d: %s at %.2f s: its neighbours carry it (whole-chain feed-forward)",
                             lk.index + 1, why, t)
             elif ended is not None:

@@ -32,6 +32,7 @@ from .carrying import Carrying
 from .links import LinkTrack, LinkWarnings, usec
 from .outputs import Command, Heartbeat, HealthDue
 from .selection import LAG_LIMIT_US, LinkSelection
+from .silence import StreamLoss
 from .step import ChainStep
 from .targets import Targets
 
@@ -82,7 +83,8 @@ class CompanionEngine:
         members = self.groups[group] if group is not None else tuple(range(n))
         d = setup.skeleton.d_b_m[list(members)]
         endpoints = cfg.endpoints(n)
-        self.links = [LinkTrack(i, row, endpoints[i].system_id, stamps=StampGate(cfg.stamp_window))
+        self.links = [LinkTrack(i, row, endpoints[i].system_id, stamps=StampGate(cfg.stamp_window),
+                                loss=StreamLoss.of_stream(cfg.state_rate_hz, cfg.carry_silence_cap_s))
                       for row, i in enumerate(members)]
         self._out: list = []
         warnings = LinkWarnings()
@@ -302,7 +304,8 @@ class CompanionEngine:
 
     def summary(self) -> dict:
         """The run's totals: steps, withheld and degraded steps, step compute time, correction
-        latency, per link its counters, carried time and exclusions; in distributed mode the group
+        latency, per link its counters, carried time and stretches, the estimated loss of its state
+        stream and its exclusions; in distributed mode the group
         link's figures, the CPG targets' counts and the other groups' carried links."""
         lat = functools.reduce(Quantiles.merge, [lk.latencies_ms for lk in self.links], Quantiles())
         steps = self.step.step_times_ms
@@ -322,6 +325,8 @@ class CompanionEngine:
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,
                                           "carried_s": round(lk.carried.seconds(t_s), 3),
+                                          "carried_stretches": lk.carried.stretches,
+                                          "state_loss": round(lk.loss.fraction, 4) if lk.loss is not None else None,
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),
             **({"cpg_targets": dict(self.targets.counts)} if self.targets.via_net else {}),

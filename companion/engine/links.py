@@ -12,6 +12,7 @@ import numpy as np
 from ..messages import LinkState
 from ..plausibility import StampGate
 from ..quantiles import Quantiles
+from .silence import StreamLoss
 
 __all__ = ["LAG_LIMIT_US", "OFF_BASE_LIMIT_US", "CarryClock", "LinkTrack", "LinkWarnings", "usec"]
 
@@ -33,10 +34,11 @@ def usec(t_s: float) -> int:
 @dataclass
 class CarryClock:
     """How long a link has been carried (its rotors taken to be off), on the time base: the
-    stretches so far and the one going on."""
+    stretches so far and the one going on, and how many there were."""
 
     total_s: float = 0.0
     since_s: float | None = None
+    stretches: int = 0
 
     @property
     def on(self) -> bool:
@@ -46,6 +48,7 @@ class CarryClock:
         """Start or end a stretch at ``t``; the length of the one that ended (``None``: none)."""
         if on and self.since_s is None:
             self.since_s = t
+            self.stretches += 1
         elif not on and self.since_s is not None:
             ended, self.since_s = t - self.since_s, None
             self.total_s += ended
@@ -104,6 +107,8 @@ class LinkTrack:
     after_silence: bool = False
     stamp_rejected_s: float = -np.inf  # the last replayed or future state, on the time base
     carried: CarryClock = field(default_factory=CarryClock)
+    #: how much of its state stream is lost on the way (its silence threshold grows with it)
+    loss: StreamLoss | None = None
 
     def to_link_clock_us(self, t_us: int) -> int:
         return t_us - (self.offset_us or 0)
