@@ -13,5 +13,6 @@ plain loops over scalars; ``tests/unit/test_fast_paths.py`` compares the two.
 * :mod:`.align`: the step's time alignment of the link states and its corrections' attitudes;
 * :mod:`.dynamics`: the chain's inverse dynamics (the feed-forward);
 * :mod:`.trajectory`: a bending chain's targets;
+* :mod:`.cpg`: the CPG motion generator's step (the CPG, the expected physics, the link targets);
 * :mod:`.warm`: compiles (or loads from numba's cache) every kernel of this package.
 """

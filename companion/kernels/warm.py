@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from .align import align_kernel, attitude_errors_kernel
+from .cpg import body_step_kernel, cpg_output_kernel, cpg_step_kernel, link_targets_kernel
 from .dynamics import feedforward_kernel, passive_torques_kernel
 from .gate import joint_nis_kernel
 from .jit import ENABLED
@@ -55,4 +56,14 @@ def warm_up() -> float:
     load(attitude_errors_kernel, np.zeros((n, 4)), np.zeros((n, 4)), v3)
     load(trajectory_kernel, np.zeros(5), np.zeros((5, 3)), (np.zeros(n), np.zeros(4), np.zeros(3)), 1e-3,
          (v3, np.zeros((n, 4)), m3, v3, v3, v3, v3))
+    # the CPG motion generator's step (companion.motion.generator.MotionGenerator)
+    cpg_state = (np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n))
+    shape = (np.zeros(n), np.zeros(n), 1.0, 1.0, 1.0, 1.0)
+    coupling = (np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64), np.zeros(2))
+    body = (np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3))
+    water = (1.0, 1.0, 1.0, np.ones(3))
+    load(cpg_step_kernel, cpg_state, shape, coupling, np.zeros(2), np.zeros(2), 0.02)
+    load(cpg_output_kernel, cpg_state, shape, coupling, np.zeros(2), np.zeros(2), (m3, v3))
+    load(body_step_kernel, body, m3, v3, 0.5, water, 0.02, 4, body)
+    load(link_targets_kernel, body, m3, v3, 0.5, (v3, v3, m3, v3))
     return time.perf_counter() - t0

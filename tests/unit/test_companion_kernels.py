@@ -15,6 +15,7 @@ from companion.kernels.jit import ENABLED
 pytestmark = pytest.mark.skipif(not ENABLED, reason="numba not installed (or SKELETON_JIT=0)")
 
 N_CASES = 40
+CPG_MODEL = "companion/motion/models/inverse_cpg_7link.npz"
 
 
 def test_cross_is_numpys():
@@ -299,7 +300,9 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
     from companion.estimation.sckf import CAParams, constraint_apply
     from companion.estimation.semi import local_boundary
     from companion.corrections import align_states, compute_corrections
-    from companion.kernels import align, dynamics, gate, sckf, semi, trajectory, warm
+    from companion.kernels import align, cpg, dynamics, gate, sckf, semi, trajectory, warm
+    from companion.motion.generator import MotionGenerator
+    from companion.motion.inverse import InverseModel
     from companion.messages import LinkState
     from companion.skeleton.body import SkeletonConfig
     from companion.skeleton.dynamics import ChainModel
@@ -308,7 +311,8 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
     warm.warm_up()
     kernels = (dynamics.passive_torques_kernel, dynamics.feedforward_kernel, sckf.constraint_apply_batched_kernel,
                gate.joint_nis_kernel, semi.group_terms_kernel, trajectory.trajectory_kernel, align.align_kernel,
-               align.attitude_errors_kernel)
+               align.attitude_errors_kernel, cpg.cpg_step_kernel, cpg.cpg_output_kernel, cpg.body_step_kernel,
+               cpg.link_targets_kernel)
     before = [list(k.signatures) for k in kernels]
     rng = np.random.default_rng(5)
     traj = ChainTrajectory(TrajectoryConfig(kind="bend"), 3, 1.0, np.zeros(3))
@@ -322,6 +326,8 @@ def test_the_warm_up_loads_every_signature_the_callers_use():
         states = [LinkState(i, 1.0, p[i], v[i], q[i], w[i], P[i]) for i in range(3)]
         align_states(states, 1.01)
         compute_corrections(states, d, [(0, 1, 2)], CAParams(omega_std_rad_s=omega_std))
+    gen = MotionGenerator(InverseModel.load(CPG_MODEL), compiled=True)
+    gen.step(np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.1, 0.0]), 0.02)
     for k, sigs in zip(kernels, before):
         assert list(k.signatures) == sigs, k.__name__
 
@@ -365,3 +371,84 @@ def test_constraint_apply_takes_a_whole_covariance(n_links, omega_std):
     np.testing.assert_allclose(constraint_apply(p, v, q, w, d, corr, params).p, spec.p, atol=1e-12)
     with pytest.raises(ValueError, match="P must be"):
         constraint_apply_dense(p, v, q, w, d, corr[:-1, :-1], params, compiled=False)
+
+
+def _cpg_case(rng, n: int, at_rest: bool):
+    """A random CPG (shaping, gains, frequency, lag), its state (at rest: the small-angle branch),
+    parameters ``A, B``, a body and water, as the numpy functions and the kernels take them."""
+    from companion.motion.cpg import CpgParams, CpgState
+    from companion.motion.expected_physics import BodyState, WaterParams
+
+    params = CpgParams(n, frequency_hz=rng.uniform(0.1, 1.0), k_a=rng.uniform(0.5, 4.0), k_b=rng.uniform(0.5, 4.0),
+                       k_phi=rng.uniform(0.5, 4.0), sigma_a=tuple(rng.uniform(0.1, 1.0, n)),
+                       sigma_b=tuple(rng.uniform(-1.0, 1.0, n)), lag_rad=rng.uniform(0.1, 1.0))
+    scale = 0.0 if at_rest else 0.4
+    state = CpgState(*(rng.normal(size=(n, 2)) * scale for _ in range(4)), rng.uniform(-np.pi, np.pi, n))
+    A, B = rng.normal(size=2) * 0.4, rng.normal(size=2) * 0.2
+    body = BodyState(rng.normal(size=3), rng.normal(size=3) * 0.3, quat_to_rotmat(quat_normalize(rng.normal(size=4))),
+                     rng.normal(size=3) * 0.2)
+    water = WaterParams(mass_kg=rng.uniform(2.0, 20.0), inertia_kg_m2=tuple(rng.uniform(0.2, 6.0, 3)))
+    sa, sb, _ = params.shaping
+    shape = (np.array(sa), np.array(sb), params.frequency_hz, params.k_a, params.k_b, params.k_phi)
+    pairs = params.coupled_pairs
+    coupling = (np.array(pairs.i, dtype=np.int64), np.array(pairs.j, dtype=np.int64), np.array(pairs.phi_ij))
+    k = (0.5 * water.density_kg_m3 * water.area_axial_m2 * water.cd_axial,
+         0.5 * water.density_kg_m3 * water.area_normal_m2 * water.cd_normal, water.mass_kg,
+         np.array(water.inertia_kg_m2))
+    return params, state, A, B, body, water, shape, coupling, k
+
+
+@pytest.mark.parametrize("n", [2, 7, 15])
+@pytest.mark.parametrize("at_rest", [False, True])
+def test_cpg_generator_kernels_match_numpy(n, at_rest):
+    """companion.kernels.cpg against companion.motion.cpg and .expected_physics on random CPGs,
+    states and bodies: the Runge-Kutta step, the output (attitudes and rates), the drag and body
+    step, and the link targets, to 1e-12."""
+    from companion.kernels.cpg import body_step_kernel, cpg_output_kernel, cpg_step_kernel, link_targets_kernel
+    from companion.motion.cpg import cpg_output, cpg_step
+    from companion.motion.expected_physics import body_step, body_wrench, link_targets
+
+    rng = np.random.default_rng(300 + n + 7 * at_rest)
+    for _ in range(10):
+        params, state, A, B, body, water, shape, coupling, k = _cpg_case(rng, n, at_rest)
+        dt, half = rng.uniform(0.005, 0.05), rng.uniform(0.2, 0.8)
+        ref = cpg_step(state, params, A, B, dt)
+        got = tuple(np.array(x) for x in (state.a, state.a_dot, state.b, state.b_dot, state.phi))
+        cpg_step_kernel(got, shape, coupling, A, B, dt)
+        for x, y in zip(got, (ref.a, ref.a_dot, ref.b, ref.b_dot, ref.phi)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+        _, R_bl, om = cpg_output(state, params, A, B)
+        out = (np.empty((n, 3, 3)), np.empty((n, 3)))
+        cpg_output_kernel(tuple(np.array(x) for x in (state.a, state.a_dot, state.b, state.b_dot, state.phi)), shape,
+                          coupling, A, B, out)
+        np.testing.assert_allclose(out[0], R_bl, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(out[1], om, rtol=1e-12, atol=1e-12)
+        f, tau = body_wrench(body, R_bl, om, half, water)
+        ref_body = body_step(body, f, tau, water, dt)
+        b = (body.p_w_m, body.v_w_m_s, body.R_wb, body.omega_b_rad_s)
+        got_body = (np.empty(3), np.empty(3), np.empty((3, 3)), np.empty(3))
+        body_step_kernel(b, R_bl, om, half, k, dt, 4, got_body)
+        for x, y in zip(got_body, (ref_body.p_w_m, ref_body.v_w_m_s, ref_body.R_wb, ref_body.omega_b_rad_s)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+        targets = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
+        link_targets_kernel(b, R_bl, om, half, targets)
+        for x, y in zip(targets, link_targets(body, R_bl, om, half)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def test_the_compiled_motion_generator_flies_the_numpy_ones_targets():
+    """The seven-link model's generator, compiled and numpy, over 60 s of two commands (with the
+    adaptation of eq. 4.3 once per period): the same CPG parameters and targets to rounding."""
+    from companion.motion.generator import MotionGenerator
+    from companion.motion.inverse import InverseModel
+
+    model = InverseModel.load(CPG_MODEL)
+    spec, fast = MotionGenerator(model, compiled=False), MotionGenerator(model, compiled=True)
+    commands = (np.array([0.3, 0.05, 0.0, 0.0, 0.0, 0.1, 0.0]), np.array([0.1, 0.0, 0.05, 0.0, 0.0, -0.1, 0.0]))
+    for k in range(3000):
+        xi = commands[k // 1500]
+        a, b = spec.step(xi, 0.02), fast.step(xi, 0.02)
+        for x, y in zip((a.p_w_m, a.v_w_m_s, a.R_wl, a.omega_l_rad_s), (b.p_w_m, b.v_w_m_s, b.R_wl, b.omega_l_rad_s)):
+            np.testing.assert_allclose(y, x, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(fast.eta, spec.eta, rtol=1e-9, atol=1e-12)
+    assert np.linalg.norm(spec.body.p_w_m - np.zeros(3)) > 1.0  # it swam
