@@ -111,7 +111,7 @@ class LinkFirmware(FusedTicks):
         self._pending: list[tuple[str, tuple]] = []
         self.gps_health = GpsHealth(config.gps)
         #: while the GPS is in fault: the companion's corrected position fused into the EKF
-        self.correction_aid = CorrectionAid(config.gps.aid_std_m)
+        self.correction_aid = CorrectionAid(config.gps.aid_std_m, config.gps.aid_reset_s)
         #: the rotors' thrust limit: time at it, episodes (reported as events)
         self.thrust_limit = ThrustLimit(config.thrust_limit)
         #: a gyro or an accelerometer that repeats one sample in flight (stuck): not used while it
@@ -296,16 +296,27 @@ class LinkFirmware(FusedTicks):
             self.correction = None
             return
         cfg = self.config
-        for name, value, bound, unit in (
-            ("dp", correction.dp_w_m, cfg.correction_max_dp_m, "m"),
-            ("dv", correction.dv_w_m_s, cfg.correction_max_dv_m_s, "m/s"),
-            ("dtheta", correction.dtheta_w_rad, cfg.correction_max_dtheta_rad, "rad"),
-        ):
-            norm = float(np.linalg.norm(value))
-            if not norm <= bound:
+        over = [(name, norm, bound, unit) for name, norm, bound, unit in (
+            ("dp", float(np.linalg.norm(correction.dp_w_m)), cfg.correction_max_dp_m, "m"),
+            ("dv", float(np.linalg.norm(correction.dv_w_m_s)), cfg.correction_max_dv_m_s, "m/s"),
+            ("dtheta", float(np.linalg.norm(correction.dtheta_w_rad)), cfg.correction_max_dtheta_rad, "rad"),
+        ) if not norm <= bound]
+        aid = self.correction_aid
+        if over:
+            name, norm, bound, unit = over[0]
+            jump = None
+            if all(np.all(np.isfinite(x)) for x in (correction.dp_w_m, correction.dv_w_m_s)) and \
+                    all(o[0] != "dtheta" for o in over):
+                # dead-reckoned past the bound in a GPS fault: reset to the chain's view once
+                # refused for SKL_GPS_AID_RST (estimators.correction_aid)
+                jump = aid.refused(correction, self.ekf, self.time_s, self.gps_health.fault, cfg.correction_stale_s)
+            if jump is None:
                 raise CorrectionRejected(f"correction {name} {norm:.3g} {unit} exceeds the bound {bound:g} {unit}")
+            self.events.append(StatusEvent("reset", f"EKF reset to the chain: jumped {jump:.1f} m"))
+        else:
+            aid.accepted()
         # against the EKF as it now is and, in a GPS fault, fused into it (estimators.correction_aid)
-        self.correction = self.correction_aid.apply(correction, self.ekf, self.time_s, self.gps_health.fault)
+        self.correction = aid.apply(correction, self.ekf, self.time_s, self.gps_health.fault)
         self._correction_time_s = t_s
         self.correction_seq = correction.seq
         self.correction_latency_us = int(round((t_s - correction.ekf_time_s) * 1e6))

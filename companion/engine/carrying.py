@@ -7,6 +7,13 @@ its carried links (:class:`~companion.messages.GroupPassiveLinks`, :meth:`Carryi
 takes the other groups' (:meth:`Carrying.on_remote`, :meth:`Carrying.remote`): a dead link at a
 group's end hangs on a link of the next group. Every carried stretch is logged and timed
 (``carried_s`` and ``carried_by_other_groups_s`` in the engine's summary).
+
+Silence is the companion's only sign of a power loss, and a link whose MAVLink link failed is
+silent too while it flies on. Carried, it lifts itself and its neighbours push it up as well: the
+chain rises. So a silent link (or another group's carried link) is no longer carried while its
+neighbours this engine flies are on average :data:`RISE_M` above their targets (it is lifting
+itself), and carried again if they sink as far below (:meth:`Carrying.lifting_itself`); each
+release is logged and counted (``carry_released``).
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ from ..messages import STATE_FLAG_ARMED, GroupPassiveLinks
 from .links import CarryClock, LinkTrack
 from .silence import silence_threshold_s
 
-__all__ = ["DISARMED_STATES", "PASSIVE_REPEAT_US", "PASSIVE_STALE_US", "Carrying"]
+__all__ = ["DISARMED_STATES", "PASSIVE_REPEAT_US", "PASSIVE_STALE_US", "RISE_M", "Carrying"]
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +40,9 @@ DISARMED_STATES = 3
 #: holds until it goes stale).
 PASSIVE_REPEAT_US = 1_000_000
 PASSIVE_STALE_US = 2_500_000
+#: A carried link whose neighbours (those this engine flies) are on average this far above their
+#: targets [m] lifts itself: no longer carried until they are as far below.
+RISE_M = 0.15
 
 
 class Carrying:
@@ -53,6 +63,41 @@ class Carrying:
         self._sent: tuple[tuple[int, ...], int] | None = None
         self.counts = {"published": 0, "received": 0, "rejected": 0}
         self.remote_carried: dict[int, CarryClock] = {}  # another group's link -> its carrying here
+        self._by_index = {lk.index: lk for lk in links}
+        #: the newest target of each of this engine's links (:meth:`on_target`): its height [m]
+        self._target_z: dict[int, float] = {}
+        #: links taken to lift themselves (no longer carried while silent), and how often each was
+        self.released: set[int] = set()
+        self.release_count: dict[int, int] = {}
+
+    def on_target(self, index: int, target) -> None:
+        """The target just sent to this engine's link ``index`` (a :class:`~companion.messages.PoseTarget`)."""
+        self._target_z[index] = float(target.p_w_m[2])
+
+    def lifting_itself(self, index: int, t: float) -> bool:
+        """Whether the carried link ``index`` is taken to lift itself: released once its neighbours
+        that this engine flies are on average :data:`RISE_M` above their targets (their newest
+        states against their newest targets: a dead link tilts the chain, one neighbour up and one
+        down, and sinks it; a live one carried pushes both up), carried again once they are as far
+        below; unchanged without such a neighbour."""
+        released = index in self.released
+        above = [float(lk.state.p_w_m[2]) - self._target_z[j] for j in (index - 1, index + 1)
+                 if (lk := self._by_index.get(j)) is not None and lk.state is not None and j in self._target_z]
+        if not above:
+            return released
+        mean = sum(above) / len(above)
+        if mean > RISE_M and not released:
+            self.released.add(index)
+            self.release_count[index] = self.release_count.get(index, 0) + 1
+            log.warning("link %d: carried, but its neighbours are %.2f m above their targets at %.2f s: it lifts "
+                        "itself (alive, unheard); no longer carried", index + 1, mean, t)
+            return True
+        if mean < -RISE_M and released:
+            self.released.discard(index)
+            log.warning("link %d: its neighbours are %.2f m below their targets at %.2f s: carried again",
+                        index + 1, -mean, t)
+            return False
+        return released
 
     def now(self, now_s: float, t_us: int) -> frozenset[int]:
         """The chain indices carried now: this engine's own (:meth:`own`) and, in distributed
@@ -104,13 +149,18 @@ class Carrying:
             elif lk.disarmed_states >= DISARMED_STATES:
                 lk.believed_armed = False
             armed = lk.believed_armed
-            if not armed or lag >= cfg.reboot_silence_s:  # unheard that long: it may have rebooted
+            # unheard that long: it may have rebooted (unless it was seen lifting itself meanwhile)
+            if not armed or (lag >= cfg.reboot_silence_s and lk.index not in self.released):
                 lk.armed_since_s = None
             elif lk.armed_since_s is None and not silent:
                 lk.armed_since_s = t
             spinning = armed and not silent and t - lk.armed_since_s >= cfg.carry_spinup_s
             lk.flown = lk.flown or spinning
             passive = lk.flown and (silent or not spinning)
+            if not silent:
+                self.released.discard(lk.index)  # heard: what it says decides
+            elif passive and self.lifting_itself(lk.index, t):
+                passive = False  # unheard, but flying
             was = lk.carried.on
             ended = lk.carried.switch(passive, t)
             if passive and not was:
@@ -171,10 +221,14 @@ class Carrying:
         whether or not the group's companion is still up); each carried stretch is logged and timed
         (``remote_carried``)."""
         out: set[int] = set()
+        t = t_us * 1e-6
         for g, msg in self._remote.items():
             if self._current(msg, t_us):
                 out.update(msg.links)
-        t = t_us * 1e-6
+        for i in set(self.released) - set(self._by_index):  # another group's link no longer claimed
+            if i not in out:
+                self.released.discard(i)
+        out = {i for i in out if not self.lifting_itself(i, t)}
         for i in out | {i for i, clock in self.remote_carried.items() if clock.on}:
             clock = self.remote_carried.setdefault(i, CarryClock())
             was = clock.on

@@ -326,6 +326,7 @@ class CompanionEngine:
                                           "gps_fault_steps": lk.gps_fault_steps,
                                           "carried_s": round(lk.carried.seconds(t_s), 3),
                                           "carried_stretches": lk.carried.stretches,
+                                          "carry_released": self.carrying.release_count.get(lk.index, 0),
                                           "state_loss": round(lk.loss.fraction, 4) if lk.loss is not None else None,
                                           "excluded_steps": dict(lk.excluded)} for lk in self.links},
             **(self.net.summary() if self.net is not None else {}),

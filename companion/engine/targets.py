@@ -121,4 +121,5 @@ class Targets:
         self.counts["forwarded"] += 1
 
     def _out(self, lk: LinkTrack, time_us: int, target: PoseTarget) -> None:
+        self.carrying.on_target(lk.index, target)
         self._emit(TargetOut(lk.row, lk.system_id, lk.to_link_clock_us(time_us), target))

@@ -13,6 +13,12 @@ an external vision position), through the EKF's gate. What the update moved is t
 correction, so control sees the same estimate at that instant (``EKF' + dp' = EKF + dp``), and
 off every later correction computed against a state from before the move (the corrections still
 on their way): the EKF stays near where the chain puts the link, and the correction stays small.
+
+A link that was alone for a while (its neighbours unheard) got no corrections and dead-reckoned
+past the bound; the corrections that come back are refused. So, as EKF2 resets to a source whose
+fusion keeps failing, corrections refused for their position or velocity bound in a row for
+``reset_s`` while the GPS is in fault (:meth:`CorrectionAid.refused`) reset the EKF's position and
+velocity to the corrected ones; the move is kept like a fused one.
 """
 
 from __future__ import annotations
@@ -38,11 +44,17 @@ class CorrectionAid:
     :data:`SHIFT_MEMORY_S` (the EKF counts the updates, fused and gated, as ``ext_pos``).
     ``std_m``: the corrected position's standard deviation per axis [m]; 0 turns the aid off."""
 
-    def __init__(self, std_m: float):
+    def __init__(self, std_m: float, reset_s: float = 0.5):
         if not (np.isfinite(std_m) and std_m >= 0.0):
             raise ValueError(f"the correction aid's std_m must be >= 0 (0: off), got {std_m!r}")
+        if not (np.isfinite(reset_s) and reset_s > 0.0):
+            raise ValueError(f"the correction aid's reset_s must be > 0, got {reset_s!r}")
         self.var_m2 = float(std_m) ** 2
+        self.reset_s = float(reset_s)
         self._shifts: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        #: the first and the last correction of the current run of refused ones (EKF time) [s]
+        self._refused: tuple[float, float] | None = None
+        self.resets = 0
 
     @property
     def enabled(self) -> bool:
@@ -56,6 +68,34 @@ class CorrectionAid:
         if self.enabled and ekf is not None and gps_fault:
             correction = self.fuse(ekf, t_s, correction)
         return correction
+
+    def refused(self, correction: Correction, ekf, t_s: float, gps_fault: bool, gap_s: float) -> float | None:
+        """A correction refused for its position or velocity bound at the EKF time ``t_s``: once
+        such refusals have run for :attr:`reset_s` (no correction accepted between them, none more
+        than ``gap_s`` after the last) while the GPS is in fault (``gps_fault``) and the aid is on,
+        the EKF's position and velocity are reset to the corrected ones (``correction`` rebased):
+        returns the position's jump [m]; else ``None`` (still refused)."""
+        if not (self.enabled and gps_fault and ekf is not None):
+            self._refused = None
+            return None
+        first, last = self._refused if self._refused is not None else (t_s, t_s)
+        if t_s - last > gap_s:
+            first = t_s
+        self._refused = (first, t_s)
+        if t_s - first < self.reset_s:
+            return None
+        correction = self.rebase(correction)
+        p0, v0 = ekf.x[X_P].copy(), ekf.x[X_V].copy()
+        ekf.reset_position(p0 + correction.dp_w_m, self.var_m2)
+        ekf.reset_velocity(v0 + correction.dv_w_m_s)
+        self._shifts.append((t_s, ekf.x[X_P] - p0, ekf.x[X_V] - v0))
+        self._refused = None
+        self.resets += 1
+        return float(np.linalg.norm(ekf.x[X_P] - p0))
+
+    def accepted(self) -> None:
+        """A correction within its bounds: a run of refused ones ends."""
+        self._refused = None
 
     def rebase(self, correction: Correction) -> Correction:
         """``correction`` against the EKF as it is now: less the moves made since the state it was

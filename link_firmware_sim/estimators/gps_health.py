@@ -44,7 +44,9 @@ class GpsHealthConfig:
     (SKL_GPS_DRIFT; the outdoor profile's slow GPS drift moves at most about 0.3 m/s, the
     window's slope noise is about 0.06 m/s); ``aid_std_m``: while in fault, the companion's
     corrected position is fused with this standard deviation (SKL_GPS_AID; 0: never,
-    :mod:`.correction_aid`)."""
+    :mod:`.correction_aid`); ``aid_reset_s``: while in fault, corrections refused for their
+    bound this long in a row reset the position and velocity to the corrected ones
+    (SKL_GPS_AID_RST)."""
 
     timeout_s: float = 1.0
     recover_s: float = 2.0
@@ -52,9 +54,10 @@ class GpsHealthConfig:
     drift_max_m_s: float = 0.5
     drift_window_s: float = 2.0
     aid_std_m: float = 0.2
+    aid_reset_s: float = 0.5
 
     def __post_init__(self) -> None:
-        require_positive(self, "timeout_s", "reset_s", "drift_max_m_s", "drift_window_s")
+        require_positive(self, "timeout_s", "reset_s", "drift_max_m_s", "drift_window_s", "aid_reset_s")
         require_nonnegative(self, "recover_s", "aid_std_m")
 
 

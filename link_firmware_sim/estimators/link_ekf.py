@@ -142,10 +142,12 @@ class LinkEkf:
         r = np.asarray(pos_w_m, dtype=float) - self.x[X_P]
         return innovation_test(r, np.diag(S), self.config.gate_sigma)
 
-    def reset_position(self, pos_w_m) -> None:
-        """Reset the position to a fix; the barometer is referenced again at its next sample."""
+    def reset_position(self, pos_w_m, var_m2: float | None = None) -> None:
+        """Reset the position to a fix of variance ``var_m2`` per axis (default: the GPS's); the
+        barometer is referenced again at its next sample."""
         self.x, self.P = ekf_remove_baro_offset(self.x, self.P)
-        self.x, self.P = ekf_reset_position(self.x, self.P, pos_w_m, self.config.gps_pos_var_m2)
+        self.x, self.P = ekf_reset_position(self.x, self.P, pos_w_m,
+                                            self.config.gps_pos_var_m2 if var_m2 is None else var_m2)
         self.resets += 1
 
     @property

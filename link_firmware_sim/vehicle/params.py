@@ -78,6 +78,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_GPS_DRIFT", "float", 0.05, 50.0, "GPS fault when positions drift from velocity by [m/s]"),
     ParamSpec("SKL_GPS_RST_T", "float", 0.5, 120.0, "Position reset to GPS after rejected for [s] (no aiding)"),
     ParamSpec("SKL_GPS_AID", "float", 0.0, 10.0, "GPS fault: companion's position fused, std [m] (0 off)"),
+    ParamSpec("SKL_GPS_AID_RST", "float", 0.1, 60.0, "GPS fault: reset to corrections refused for [s]"),
     ParamSpec("SYS_FAILURE_EN", "int", 0, 1, "Failure injection (MAV_CMD_INJECT_FAILURE): 0 off (denied), 1 on"),
 )
 #: SKL_CTRL's values, in order (FirmwareConfig.controller)
@@ -141,6 +142,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_GPS_DRIFT": config.gps.drift_max_m_s,
         "SKL_GPS_RST_T": config.gps.reset_s,
         "SKL_GPS_AID": config.gps.aid_std_m,
+        "SKL_GPS_AID_RST": config.gps.aid_reset_s,
         "SYS_FAILURE_EN": 0,
     }
 
@@ -257,7 +259,8 @@ class ParamTable:
             pspm_mode=PSPM_MODES[int(v["SKL_PSPM_EN"])],
             gps=replace(self._base.gps, timeout_s=v["SKL_GPS_TOUT"], recover_s=v["SKL_GPS_RECOV"],
                         drift_max_m_s=v["SKL_GPS_DRIFT"],
-                        reset_s=v["SKL_GPS_RST_T"], aid_std_m=v["SKL_GPS_AID"]),
+                        reset_s=v["SKL_GPS_RST_T"], aid_std_m=v["SKL_GPS_AID"],
+                        aid_reset_s=v["SKL_GPS_AID_RST"]),
             thrust_limit=replace(self._base.thrust_limit, warn_after_s=v["SKL_TLIM_WARN"],
                                  clear_after_s=v["SKL_TLIM_CLR"]),
         )

@@ -84,3 +84,44 @@ def test_a_dead_reckoning_link_stays_where_its_corrections_put_it(aid_std_m):
         assert fw.ekf.accepted["ext_pos"] > 150
     else:
         assert refused > 0 and fw.ekf.accepted["ext_pos"] == 0 and np.linalg.norm(fw.ekf.x[X_P]) > 2.0
+
+
+@pytest.mark.parametrize("case", ["gps_fault", "gps_healthy", "aid_off"])
+def test_a_link_that_dead_reckoned_alone_is_reset_to_the_chains_view(case):
+    """A still link whose accelerometer reads 0.1 m/s^2 off gets no corrections for 8 s (alone:
+    its neighbours unheard) and dead-reckons past the 2 m bound; then the corrections (where the
+    chain says it is: the origin) come back. In a GPS fault with the aid on, they are refused for
+    SKL_GPS_AID_RST (0.5 s), then the position and velocity are reset to the corrected ones (one
+    "reset" event) and the corrections are accepted and small again. With its GPS healthy, or the
+    aid off, they are refused throughout and the estimate is not moved by them."""
+    aid_std = 0.0 if case == "aid_off" else 0.2
+    fw, q = _hovering_firmware(FirmwareConfig(gps=GpsHealthConfig(aid_std_m=aid_std)))
+    rng = np.random.default_rng(7)
+    accel = GRAVITY_UP + np.array([0.1, 0.0, 0.0])
+    refused, accepted_after, first_refused, resets = 0, [], None, []
+    for k in range(1, 14 * 500):
+        t = k / 500
+        if k % 50 == 0 and (t < 1.0 or case == "gps_healthy"):
+            fw.on_gps(t, fw.ekf.x[X_P] + rng.normal(0, 0.02, 3), fw.ekf.x[3:6].copy())  # a GPS that follows it
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        if k % 25 == 0 and t >= 10.0:
+            dp = -fw.ekf.x[X_P] + rng.normal(0, 0.02, 3)
+            try:
+                fw.on_correction(t, Correction(0, fw.time_s, dp, -fw.ekf.x[3:6].copy(), np.zeros(3)))
+                if first_refused is not None:
+                    accepted_after.append(float(np.linalg.norm(fw.correction.dp_w_m)))
+            except CorrectionRejected:
+                refused += 1
+                first_refused = t if first_refused is None else first_refused
+        fw.on_imu(t, np.zeros(3), accel)
+        resets += [(t, e.text) for e in fw.events if e.kind == "reset" and "the chain" in e.text]
+        fw.events.clear()
+    if case == "gps_fault":
+        assert fw.gps_health.fault
+        assert len(resets) == 1 and resets[0][0] - first_refused == pytest.approx(0.5, abs=0.06), resets
+        assert 9 <= refused <= 11 and len(accepted_after) > 50 and max(accepted_after) < 0.3
+        assert np.linalg.norm(fw.ekf.x[X_P]) < 0.3 and fw.correction_aid.resets == 1
+    else:
+        assert not resets and len(accepted_after) == 0 and refused == 80
+        assert fw.correction_aid.resets == 0

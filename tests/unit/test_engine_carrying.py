@@ -227,3 +227,47 @@ def test_a_carried_links_claim_before_the_cycle_clock_is_held_and_one_far_ahead_
     assert engine.carrying.remote(engine.fc_time_us) == {2}
     engine.carrying.on_remote(GroupPassiveLinks(1, 900_000_000, (3,)), engine.fc_time_us)  # far ahead: dropped, counted
     assert engine.passive_counts["rejected"] == 1 and engine.carrying.remote(engine.fc_time_us) == {2}
+
+
+@pytest.mark.parametrize("offsets, released", [((0.3, 0.3), True), ((0.25, -0.2), False), ((-0.3, -0.3), False)],
+                         ids=["both_up", "tilted", "both_down"])
+def test_a_silent_link_that_lifts_itself_is_no_longer_carried(offsets, released):
+    """The middle link of three has flown and goes silent (its MAVLink link failed, or it lost
+    power); its neighbours report heights ``offsets`` against their targets. Both up (a live link
+    carried pushes them up): no longer carried (counted in carry_released), and carried again once
+    they sink as far below. One up and one down (a dead link tilting the chain) or both down: carried
+    throughout."""
+    pytest.importorskip("pinocchio")
+    setup = setup_for(3)
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True))
+    engine = CompanionEngine(setup)
+    flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
+    target_z = {r: 2.0 for r in range(3)}
+    t = 0.0
+
+    def tick(rows, dz=(0.0, 0.0, 0.0)):
+        nonlocal t
+        t = round(t + 0.02, 6)
+        for r in rows:
+            s = straight_state(r, 3, t)
+            engine.on_state(r, replace(s, p_w_m=np.array([s.p_w_m[0], 0.0, target_z[r] + dz[r]])), flying, t)
+        out = of(TargetOut, engine.poll(t))
+        target_z.update({o.row: float(o.target.p_w_m[2]) for o in out})
+        return {o.row: o.target.force_ff_w_n for o in out}
+
+    while t < 1.0:
+        tick(range(3))
+    mass = engine.trajectory.dynamics.inertia.mass_kg
+    lifts = []
+    for k in range(20):  # at their targets while it is first carried, then moved by ``offsets``
+        ff = tick((0, 2), (offsets[0], 0.0, offsets[1]) if k >= 6 else (0.0, 0.0, 0.0))
+        lifts.append(ff[0][2] + ff[2][2])
+    carried = [lift > 0.5 * mass * 9.80665 for lift in lifts]
+    summary = engine.summary()["links"]["2"]
+    if released:
+        assert all(carried[3:6]) and not any(carried[-10:]) and summary["carry_released"] == 1
+        for _ in range(5):
+            ff = tick((0, 2), (-0.3, 0.0, -0.3))
+        assert ff[0][2] + ff[2][2] > 0.9 * mass * 9.80665  # sinking: carried again (its weight, and the climb)
+    else:
+        assert all(carried[3:]) and summary["carry_released"] == 0
