@@ -1,9 +1,10 @@
 """Carrying: which links have their rotors off, so that their neighbours' feed-forward takes
 their weight (the whole-chain feed-forward, ``trajectory.feedforward``).
 
-A link is carried when it has flown and is now silent ``carry_silence_s`` (longer on a lossy wire:
-:mod:`.silence`), disarmed, or re-armed less than ``carry_spinup_s`` ago (:meth:`Carrying.own`). In distributed mode each group publishes
-its carried links (:class:`~companion.messages.GroupPassiveLinks`, :meth:`Carrying.publish`) and
+A link is carried when it has flown and is now silent ``carry_silence_s`` (longer on a lossy wire
+with ``carry_silence_max_s`` set: :mod:`.silence`), disarmed, or re-armed less than
+``carry_spinup_s`` ago (:meth:`Carrying.own`). In distributed mode each group publishes its carried
+links (:class:`~companion.messages.GroupPassiveLinks`, :meth:`Carrying.publish`) and
 takes the other groups' (:meth:`Carrying.on_remote`, :meth:`Carrying.remote`): a dead link at a
 group's end hangs on a link of the next group. Every carried stretch is logged and timed
 (``carried_s`` and ``carried_by_other_groups_s`` in the engine's summary).

@@ -79,6 +79,8 @@ def silence_threshold_s(loss: float, carry_silence_s: float, carry_silence_max_s
     in the shortest run that a live link's stream of ``state_rate_hz`` states per second starts no
     more than once in :data:`FALSE_CARRY_PERIOD_S`; at most ``carry_silence_max_s`` (and never
     less than ``carry_silence_s``)."""
+    if carry_silence_max_s <= carry_silence_s:  # fixed (the default)
+        return carry_silence_s
     if not 0.0 < loss < 1.0:
         return carry_silence_s if loss <= 0.0 else max(carry_silence_s, carry_silence_max_s)
     # f (1 - p) p^n <= 1 / T  <=>  n >= log(1 / (T f (1 - p))) / log(p)
