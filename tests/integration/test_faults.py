@@ -465,6 +465,12 @@ REGRESSIONS = {
                                    "carry)"),
 }
 SEEDED = sorted(p.stem for p in (ROOT / FAULTS).glob("regression_*.toml"))
+#: what else a seeded scenario must show: the fix that made it fly (metrics.json -> why it failed)
+FIXED_BY = {
+    "regression_seven_inner_link_reboot": lambda m: (
+        None if m.get("carrying", {}).get("carried_s", {}).get("6", 0.0) > 1.0
+        else f"link 6 not carried: {m.get('carrying')}"),
+}
 
 
 @pytest.mark.parametrize("name", SEEDED)
@@ -476,3 +482,5 @@ def test_the_crashes_the_fault_campaign_found_are_kept_as_seeded_scenarios(tmp_p
             pytest.xfail(f"{name}: {m['crash_reason']}: {REGRESSIONS[name]}")
         pytest.fail(f"{name} flies through now: drop its expected crash from REGRESSIONS and keep it as a regression")
     assert not m["crashed"], f"{name}: {m['crash_reason']}"
+    why = FIXED_BY[name](m) if name in FIXED_BY else None
+    assert why is None, f"{name}: {why}"
