@@ -379,18 +379,21 @@ def uncorrected_metrics(t: np.ndarray, corrected: np.ndarray, nis_max: np.ndarra
 def carrying_metrics(summaries: dict[str, dict]) -> dict:
     """``carrying``: how long the companions carried each link (its rotors taken to be off, the
     whole-chain feed-forward giving its weight to its neighbours), from their summaries (``name``
-    -> summary; a restarted companion's time is added to its predecessor's): ``carried_s`` and
-    ``carried_stretches`` per link (system id) by its own group's companion, ``state_loss`` the
+    -> summary; a restarted companion's time is added to its predecessor's): ``carried_s``,
+    ``carried_stretches`` and ``carry_released`` (taken to lift itself while silent) per link
+    (system id) by its own group's companion, ``state_loss`` the
     estimated loss of its state stream (the newest companion's), and ``carried_by_other_groups_s`` per
     companion (distributed mode: the other groups' links it carried on their word)."""
     own: dict[str, float] = {}
     stretches: dict[str, int] = {}
+    released: dict[str, int] = {}
     loss: dict[str, float | None] = {}
     others: dict[str, dict] = {}
     for name, summ in summaries.items():
         for sysid, entry in (summ.get("links") or {}).items():
             own[sysid] = round(own.get(sysid, 0.0) + float(entry.get("carried_s", 0.0)), 3)
             stretches[sysid] = stretches.get(sysid, 0) + int(entry.get("carried_stretches", 0))
+            released[sysid] = released.get(sysid, 0) + int(entry.get("carry_released", 0))
             loss[sysid] = entry.get("state_loss", loss.get(sysid))
         if summ.get("carried_by_other_groups_s"):
             others[name] = summ["carried_by_other_groups_s"]
@@ -398,7 +401,8 @@ def carrying_metrics(summaries: dict[str, dict]) -> dict:
     def by_link(d: dict) -> dict:
         return dict(sorted(d.items(), key=lambda kv: int(kv[0])))
 
-    out: dict = {"carried_s": by_link(own), "carried_stretches": by_link(stretches), "state_loss": by_link(loss)}
+    out: dict = {"carried_s": by_link(own), "carried_stretches": by_link(stretches), "carry_released": by_link(released),
+                 "state_loss": by_link(loss)}
     if others:
         out["carried_by_other_groups_s"] = others
     return out

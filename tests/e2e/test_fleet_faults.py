@@ -158,6 +158,7 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert all(0.03 < x < 0.2 for x in loss), loss  # the wire's 10 %, seen in the gaps of the stamps
     assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)},  # in the metrics too
                              "carried_stretches": {str(i): c for i, c in zip((1, 2, 3), stretches)},
+                             "carry_released": {str(i): comp["links"][str(i)]["carry_released"] for i in (1, 2, 3)},
                              "state_loss": {str(i): x for i, x in zip((1, 2, 3), loss)}}
     # the neighbours at their rotors' limit while they carried it, link 2 never. Holding a dead
     # inner link takes 96 % of the rotors' thrust (python -m link_firmware_sim.design carry), and
