@@ -304,8 +304,9 @@ class CompanionEngine:
 
     def summary(self) -> dict:
         """The run's totals: steps, withheld and degraded steps, step compute time, correction
-        latency, per link its counters, carried time and stretches, the estimated loss of its state
-        stream and its exclusions; in distributed mode the group
+        latency, per link its counters, carried time and stretches, the times it was taken to lift
+        itself while silent, the estimated loss of its state stream and its exclusions; in
+        distributed mode the group
         link's figures, the CPG targets' counts and the other groups' carried links."""
         lat = functools.reduce(Quantiles.merge, [lk.latencies_ms for lk in self.links], Quantiles())
         steps = self.step.step_times_ms

@@ -82,9 +82,8 @@ def silence_threshold_s(loss: float, carry_silence_s: float, carry_silence_max_s
     if carry_silence_max_s <= carry_silence_s:  # fixed (the default)
         return carry_silence_s
     if not 0.0 < loss < 1.0:
-        return carry_silence_s if loss <= 0.0 else max(carry_silence_s, carry_silence_max_s)
+        return carry_silence_s if loss <= 0.0 else carry_silence_max_s
     # f (1 - p) p^n <= 1 / T  <=>  n >= log(1 / (T f (1 - p))) / log(p)
     runs_per_period = FALSE_CARRY_PERIOD_S * state_rate_hz * (1.0 - loss)
     n = 0 if runs_per_period <= 1.0 else math.ceil(-math.log(runs_per_period) / math.log(loss) - 1e-9)
-    extra = max(0, n - BASE_RUN) / state_rate_hz
-    return max(carry_silence_s, min(carry_silence_s + extra, carry_silence_max_s))
+    return min(carry_silence_s + max(0, n - BASE_RUN) / state_rate_hz, carry_silence_max_s)

@@ -38,7 +38,7 @@ class MotionGenerator:
     ``water`` and ``half_length_m`` default to the physics the model was trained on (pass others
     only to simulate a model error). ``compiled`` (default: when numba is installed) runs each
     step's CPG, body and targets as the kernels of :mod:`companion.kernels.cpg` instead of their
-    numpy specification (the same numbers to rounding: ``tests/unit/test_fast_paths.py``)."""
+    numpy specification (the same numbers to rounding: ``tests/unit/test_companion_kernels.py``)."""
 
     def __init__(self, model: InverseModel, cpg: CpgParams | None = None, water: WaterParams | None = None,
                  half_length_m: float | None = None, body: BodyState | None = None, adapt: bool = True,
@@ -85,11 +85,12 @@ class MotionGenerator:
                 # the raw parameters of a new command, within the model's range
                 self.eta = np.clip(self.model(xi_desired)[0], self.model.eta_low, self.model.eta_high)
         self._xi_d = xi_desired
+        eta = self.eta
         if self.compiled:
-            self._step_compiled(dt_s)
+            R_bl, om = self._step_compiled(dt_s)
         else:
-            self.state = cpg_step(self.state, self.cpg, self.eta[:2], self.eta[2:], dt_s)
-            _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
+            self.state = cpg_step(self.state, self.cpg, eta[:2], eta[2:], dt_s)
+            _, R_bl, om = cpg_output(self.state, self.cpg, eta[:2], eta[2:])
             f, tau = body_wrench(self.body, R_bl, om, self.half, self.water)
             self.body = body_step(self.body, f, tau, self.water, dt_s)
         self._acc += dt_s * np.concatenate([self.body.R_wb.T @ self.body.v_w_m_s, self.body.omega_b_rad_s])
@@ -105,15 +106,21 @@ class MotionGenerator:
                     self.eta = self.adaptation.update(xi_desired, xi_desired, 0.0)
             self._acc[:] = 0.0
             self._acc_t = 0.0
-        return self.targets()
+        # the shape just computed, unless the adaptation has changed the parameters since
+        return self._targets(R_bl, om) if self.eta is eta else self.targets()
 
     def targets(self) -> LinkTargets:
         """Every link's target at the current state (without stepping)."""
+        if self.compiled:
+            return self._targets(*self._output())
+        _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
+        return self._targets(R_bl, om)
+
+    def _targets(self, R_bl: np.ndarray, om: np.ndarray) -> LinkTargets:
+        """Every link's target for the CPG's shape ``R_BL``, ``omega_BL_L`` and the current body."""
         if not self.compiled:
-            _, R_bl, om = cpg_output(self.state, self.cpg, self.eta[:2], self.eta[2:])
             return LinkTargets(*link_targets(self.body, R_bl, om, self.half))
         n = self.cpg.n_links
-        R_bl, om = self._output()
         out = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)))
         link_targets_kernel(self._body(), R_bl, om, float(self.half), out)
         return LinkTargets(*out)
@@ -133,8 +140,9 @@ class MotionGenerator:
         cpg_output_kernel(self._state(), self._shape, self._coupling, self.eta[:2].copy(), self.eta[2:].copy(), out)
         return out
 
-    def _step_compiled(self, dt_s: float) -> None:
-        """:meth:`step`'s CPG step, drag and body step, compiled."""
+    def _step_compiled(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`step`'s CPG step, drag and body step, compiled; returns the new shape
+        ``(R_BL, omega_BL_L)``."""
         state = self._state()
         cpg_step_kernel(state, self._shape, self._coupling, self.eta[:2].copy(), self.eta[2:].copy(), float(dt_s))
         self.state = CpgState(*state)
@@ -142,3 +150,4 @@ class MotionGenerator:
         out = (np.empty(3), np.empty(3), np.empty((3, 3)), np.empty(3))
         body_step_kernel(self._body(), R_bl, om, float(self.half), self._water, float(dt_s), 4, out)
         self.body = BodyState(*out)
+        return R_bl, om
