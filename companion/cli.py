@@ -1,4 +1,5 @@
-"""Helpers every command-line tool of the stack uses (never the pure core): BLAS threads, run folders, logging.
+"""Helpers every command-line tool of the stack uses (never the pure core): BLAS threads, run folders, logging,
+argument types.
 
 * BLAS threading: the estimator works on many small matrices (9x9 blocks, banded systems
   of a few hundred rows). On a small machine OpenBLAS's threads make those calls many times
@@ -11,13 +12,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand", "progress_bar"]
+__all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand", "progress_bar",
+           "pace"]
 
 
 class _NoBar:
@@ -60,6 +63,17 @@ def make_run_dir(kind: str, out: str | Path | None = None, root: str | Path = "r
         path = Path(out)
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def pace(text: str) -> float:
+    """argparse type of a pace (``--speed F``: F times real time, 0 unpaced): a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: the pace must be >= 0 (0: unpaced)")
+    return value
 
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"

@@ -34,7 +34,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from companion.configfile import ConfigError, parse_setting
-from companion.cli import make_run_dir, run_subcommand
+from companion.cli import make_run_dir, pace, run_subcommand
 from companion.recording.mcap_log import INSTALL_HINT, write_beside_log, write_run_mcap
 
 from .campaign.cli import add_campaign_parser
@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fleet mode: n MAVLink vehicle processes, the companion daemon and the MuJoCo harness in lockstep.",
     )
     _run_args(la, "launch")
-    la.add_argument("--speed", type=float, default=1.0, metavar="F",
+    la.add_argument("--speed", type=pace, default=1.0, metavar="F",
                     help="pace at F times real time; 0 = as fast as the lockstep allows (default 1)")
     la.add_argument("--no-companion", action="store_true",
                     help="do not start the companion daemon: UDP 14540+i is free for your own (MAVSDK, MAVProxy)")

@@ -10,14 +10,12 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import signal
 import sys
 from pathlib import Path
 
-from companion.cli import make_run_dir, progress_bar
+from companion.cli import make_run_dir, pace, progress_bar
 from companion.configfile import ConfigError
 
 from .grid import MODES, make_grid, parse_seeds, parse_sweep
@@ -177,20 +175,10 @@ def _where_args(parser) -> None:
 
 
 def _speed_arg(parser) -> None:
-    parser.add_argument("--speed", type=_pace, default=0.0, metavar="F",
+    parser.add_argument("--speed", type=pace, default=0.0, metavar="F",
                         help="fleet mode: pace the flights at F times real time (default 0: as fast as the lockstep "
                              "allows). The lockstep does not wait for the companions: unpaced, their wall-clock "
                              "latency is several times longer in simulated time than onboard; 1 keeps it as onboard")
-
-
-def _pace(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value >= 0.0):
-        raise argparse.ArgumentTypeError(f"{text!r}: the pace must be >= 0 (0: unpaced)")
-    return value
 
 
 def add_campaign_parser(sub) -> None:

@@ -139,3 +139,19 @@ def test_fly_and_launch_take_the_same_settings_one_at_a_time():
     bad = build_parser().parse_args(["fly", "--config", THREE_LINK, "--set", "firmware.ekf.gate_sigma"])
     with pytest.raises(ConfigError, match="--set: 'firmware.ekf.gate_sigma': expected KEY=VALUE"):
         _scenario(bad)
+
+
+@pytest.mark.parametrize("speed, ok", [("0", True), ("2.5", True), ("-1", False), ("nan", False), ("inf", False),
+                                       ("fast", False)])
+def test_launch_and_campaigns_take_the_same_pace(speed, ok, capsys):
+    """``sitl launch --speed`` and ``sitl campaign faults --speed`` share one check: a finite pace
+    >= 0 (0: unpaced); anything else is a usage error naming the value."""
+    from sitl.__main__ import build_parser
+
+    for argv in (["launch", "--config", THREE_LINK], ["campaign", "faults", "--config", THREE_LINK, "--flights", "1"]):
+        if ok:
+            assert build_parser().parse_args([*argv, "--speed", speed]).speed == float(speed)
+        else:
+            with pytest.raises(SystemExit) as exc:
+                build_parser().parse_args([*argv, "--speed", speed])
+            assert exc.value.code == 2 and repr(speed) in capsys.readouterr().err
