@@ -334,6 +334,11 @@ class LinkFirmware(FusedTicks):
                                            attitude_error(np.asarray(q_wxyz, dtype=float), st.q_wxyz),
                                            seq=(self.correction_seq + 1) & 0xFFFF))
 
+    def gps_report(self, t_s: float) -> dict:
+        """The GPS health's account at ``t_s`` and, under ``"chain"``, the correction aid's: resets
+        to the chain's view and refused corrections that disagreed with their run."""
+        return {**self.gps_health.report(t_s), "chain": self.correction_aid.report()}
+
     def flags(self, t_s: float) -> int:
         """The state flags reported with every link state."""
         flags = STATE_FLAG_EKF_OK if self.initialized else 0

@@ -18,7 +18,11 @@ A link that was alone for a while (its neighbours unheard) got no corrections an
 past the bound; the corrections that come back are refused. So, as EKF2 resets to a source whose
 fusion keeps failing, corrections refused for their position or velocity bound in a row for
 ``reset_s`` while the GPS is in fault (:meth:`CorrectionAid.refused`) reset the EKF's position and
-velocity to the corrected ones; the move is kept like a fused one.
+velocity to the corrected ones; the move is kept like a fused one. The run's corrections must agree
+with each other: each corrected position within ``std_m`` of the previous one carried forward by the
+two corrected velocities (trapezoid over their states' time). A companion's view of a link moves as
+the link does; a source whose corrected positions jump (a glitch, or an unsigned forger who does not
+keep a coherent track) restarts the run and is counted (``disagreed``), never reset to.
 """
 
 from __future__ import annotations
@@ -52,9 +56,12 @@ class CorrectionAid:
         self.var_m2 = float(std_m) ** 2
         self.reset_s = float(reset_s)
         self._shifts: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
-        #: the first and the last correction of the current run of refused ones (EKF time) [s]
-        self._refused: tuple[float, float] | None = None
+        #: the current run of refused corrections: its first and last EKF time [s], and the last one's
+        #: state time [s], corrected position [m] and corrected velocity [m/s]
+        self._refused: tuple[float, float, float, np.ndarray, np.ndarray] | None = None
         self.resets = 0
+        #: refused corrections whose corrected position disagreed with the run's (the run restarted)
+        self.disagreed = 0
 
     @property
     def enabled(self) -> bool:
@@ -72,26 +79,44 @@ class CorrectionAid:
     def refused(self, correction: Correction, ekf, t_s: float, gps_fault: bool, gap_s: float) -> float | None:
         """A correction refused for its position or velocity bound at the EKF time ``t_s``: once
         such refusals have run for :attr:`reset_s` (no correction accepted between them, none more
-        than ``gap_s`` after the last) while the GPS is in fault (``gps_fault``) and the aid is on,
-        the EKF's position and velocity are reset to the corrected ones (``correction`` rebased):
-        returns the position's jump [m]; else ``None`` (still refused)."""
+        than ``gap_s`` after the last, each one's corrected position agreeing with the last one's:
+        :meth:`agrees`) while the GPS is in fault (``gps_fault``) and the aid is on, the EKF's
+        position and velocity are reset to the corrected ones (``correction`` rebased): returns the
+        position's jump [m]; else ``None`` (still refused)."""
         if not (self.enabled and gps_fault and ekf is not None):
             self._refused = None
             return None
-        first, last = self._refused if self._refused is not None else (t_s, t_s)
-        if t_s - last > gap_s:
-            first = t_s
-        self._refused = (first, t_s)
-        if t_s - first < self.reset_s:
-            return None
         correction = self.rebase(correction)
         p0, v0 = ekf.x[X_P].copy(), ekf.x[X_V].copy()
-        ekf.reset_position(p0 + correction.dp_w_m, self.var_m2)
-        ekf.reset_velocity(v0 + correction.dv_w_m_s)
+        p, v, stamp = p0 + correction.dp_w_m, v0 + correction.dv_w_m_s, correction.ekf_time_s
+        run, first = self._refused, t_s
+        if run is not None and t_s - run[1] <= gap_s:
+            if self.agrees(run[2:], (stamp, p, v)):
+                first = run[0]
+            else:
+                self.disagreed += 1
+        self._refused = (first, t_s, stamp, p, v)
+        if t_s - first < self.reset_s:
+            return None
+        ekf.reset_position(p, self.var_m2)
+        ekf.reset_velocity(v)
         self._shifts.append((t_s, ekf.x[X_P] - p0, ekf.x[X_V] - v0))
         self._refused = None
         self.resets += 1
         return float(np.linalg.norm(ekf.x[X_P] - p0))
+
+    def agrees(self, last: tuple[float, np.ndarray, np.ndarray], new: tuple[float, np.ndarray, np.ndarray]) -> bool:
+        """Whether the corrected position of ``new`` (state time [s], position [m], velocity [m/s])
+        is within ``std_m`` of ``last``'s carried forward to its state time by the mean of the two
+        velocities; a state not later than the last one's never agrees."""
+        (t0, p0, v0), (t1, p1, v1) = last, new
+        dt = t1 - t0
+        if not dt > 0.0:
+            return False
+        return float(np.linalg.norm(p1 - (p0 + 0.5 * (v0 + v1) * dt))) <= np.sqrt(self.var_m2)
+
+    def report(self) -> dict:
+        return {"resets": self.resets, "disagreed": self.disagreed}
 
     def accepted(self) -> None:
         """A correction within its bounds: a run of refused ones ends."""

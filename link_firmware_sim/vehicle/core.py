@@ -283,7 +283,7 @@ class Vehicle:
             stats = {ep.port.url: vars(ep.port.stats) for ep in self.endpoints}
             stats[self.sim.url] = vars(self.sim.stats)
             stats["errors"] = self.errors
-            stats["gps"] = self.fw.gps_health.report(self.fc_time_s)
+            stats["gps"] = self.fw.gps_report(self.fc_time_s)
             stats["thrust_limit"] = self.fw.thrust_limit.report()
             stats.update(self.fw.imu_health.report(self.fc_time_s))  # "gyro", "accel"
             stats["wrench"] = self.fw.wrench_guard.report()

@@ -9,6 +9,8 @@ from collections import deque
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from companion.messages import Correction
 from link_firmware_sim.estimators.correction_aid import CorrectionAid
@@ -86,14 +88,16 @@ def test_a_dead_reckoning_link_stays_where_its_corrections_put_it(aid_std_m):
         assert refused > 0 and fw.ekf.accepted["ext_pos"] == 0 and np.linalg.norm(fw.ekf.x[X_P]) > 2.0
 
 
-@pytest.mark.parametrize("case", ["gps_fault", "gps_healthy", "aid_off"])
+@pytest.mark.parametrize("case", ["gps_fault", "gps_healthy", "aid_off", "jumping"])
 def test_a_link_that_dead_reckoned_alone_is_reset_to_the_chains_view(case):
     """A still link whose accelerometer reads 0.1 m/s^2 off gets no corrections for 8 s (alone:
     its neighbours unheard) and dead-reckons past the 2 m bound; then the corrections (where the
     chain says it is: the origin) come back. In a GPS fault with the aid on, they are refused for
     SKL_GPS_AID_RST (0.5 s), then the position and velocity are reset to the corrected ones (one
     "reset" event) and the corrections are accepted and small again. With its GPS healthy, or the
-    aid off, they are refused throughout and the estimate is not moved by them."""
+    aid off, they are refused throughout and the estimate is not moved by them. Corrections whose
+    corrected positions jump by up to 1 m per axis from one to the next (a glitching source, or a
+    forger on an unsigned wire) never agree with each other: no reset, each one counted."""
     aid_std = 0.0 if case == "aid_off" else 0.2
     fw, q = _hovering_firmware(FirmwareConfig(gps=GpsHealthConfig(aid_std_m=aid_std)))
     rng = np.random.default_rng(7)
@@ -106,7 +110,7 @@ def test_a_link_that_dead_reckoned_alone_is_reset_to_the_chains_view(case):
         if k % 10 == 0:
             fw.on_attitude(t, q)
         if k % 25 == 0 and t >= 10.0:
-            dp = -fw.ekf.x[X_P] + rng.normal(0, 0.02, 3)
+            dp = -fw.ekf.x[X_P] + (rng.uniform(-1.0, 1.0, 3) if case == "jumping" else rng.normal(0, 0.02, 3))
             try:
                 fw.on_correction(t, Correction(0, fw.time_s, dp, -fw.ekf.x[3:6].copy(), np.zeros(3)))
                 if first_refused is not None:
@@ -122,6 +126,22 @@ def test_a_link_that_dead_reckoned_alone_is_reset_to_the_chains_view(case):
         assert len(resets) == 1 and resets[0][0] - first_refused == pytest.approx(0.5, abs=0.06), resets
         assert 9 <= refused <= 11 and len(accepted_after) > 50 and max(accepted_after) < 0.3
         assert np.linalg.norm(fw.ekf.x[X_P]) < 0.3 and fw.correction_aid.resets == 1
+        assert fw.gps_report(t)["chain"] == {"resets": 1, "disagreed": 0}
+    elif case == "jumping":
+        assert fw.gps_health.fault and not resets and fw.correction_aid.resets == 0
+        assert fw.correction_aid.disagreed > 60 and np.linalg.norm(fw.ekf.x[X_P]) > 2.0
     else:
         assert not resets and len(accepted_after) == 0 and refused == 80
         assert fw.correction_aid.resets == 0
+
+
+@given(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(0.01, 1.0), st.floats(-1.0, 1.0))
+def test_refused_corrections_agree_when_their_track_is_coherent(v0, v1, dt, miss):
+    """A corrected position agrees with the last one carried forward by the mean of the two
+    velocities when it is within std_m (0.2 m) of it, whatever the velocities and the time between
+    them; a state time not after the last one's never agrees."""
+    aid = CorrectionAid(0.2)
+    p0, vel0, vel1 = np.array([1.0, -2.0, 2.5]), np.array([v0, 0.0, 0.0]), np.array([v1, 0.0, 0.0])
+    p1 = p0 + 0.5 * (vel0 + vel1) * dt + np.array([0.0, miss, 0.0])
+    assert aid.agrees((5.0, p0, vel0), (5.0 + dt, p1, vel1)) == (abs(miss) <= 0.2)
+    assert not aid.agrees((5.0, p0, vel0), (5.0, p0, vel0))

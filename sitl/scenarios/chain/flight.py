@@ -79,7 +79,7 @@ def fly(
     metrics["thrust_limit"] = [fw.thrust_limit.report() for fw in runner.firmware]
     if sc.faults.gps.link:  # what each link's firmware made of the glitch (GPS health)
         metrics.setdefault("faults", {})["gps"] = {
-            "link": sc.faults.gps.link, "firmware": [fw.gps_health.report(runner.sim_s) for fw in runner.firmware]}
+            "link": sc.faults.gps.link, "firmware": [fw.gps_report(runner.sim_s) for fw in runner.firmware]}
     if runner.link_fault:
         metrics.setdefault("faults", {})["link_reboot"] = reboot_timeline(runner.link_fault, arrays)
     if runner.failures is not None:  # what the vehicle's failure filter did ([faults.inject])
