@@ -260,12 +260,16 @@ class LinkFirmware(FusedTicks):
 
     def _fuse_gps(self, pos_w_m, vel_w_m_s) -> None:
         """A GPS fix through the health checks (:mod:`.gps_health`): its position is fused
-        only while the GPS is healthy and the fix passes the EKF's gate and the consistency
-        test; in a fault it is only tested (the estimate dead-reckons). The velocity is fused (or,
-        after ``vel_reset_rejections`` rejected in a row, the velocity reset to it)."""
+        only while the GPS is healthy and the fix is not stuck and passes the EKF's gate and the
+        consistency test; in a fault it is only tested (the estimate dead-reckons). The velocity is
+        fused (or, after ``vel_reset_rejections`` rejected in a row, the velocity reset to it),
+        except a stuck fix's: nothing of it enters the EKF."""
         ekf, health, t = self.ekf, self.gps_health, self.time_s
+        stuck = health.repeats(t, pos_w_m, vel_w_m_s, self.armed and self.airborne)
         consistent = health.consistent(t, pos_w_m, vel_w_m_s)
-        if not consistent:
+        if stuck:
+            accepted, why = False, "fix stuck, repeats itself"
+        elif not consistent:
             accepted, why = False, f"drifts {health.drift_m_s:.1f} m/s from its velocity"
         elif health.fault:
             accepted, why = ekf.position_test_ratio(pos_w_m) <= 1.0, "position fix rejected"
@@ -274,10 +278,14 @@ class LinkFirmware(FusedTicks):
         was_fault = health.fault
         for ev in health.on_fix(t, accepted, self.correction_weight(t) > 0, why):
             if ev.kind == "reset":
+                if stuck:  # never reset to a stuck fix (nor fuse its velocity, below)
+                    continue
                 jump = float(np.linalg.norm(np.asarray(pos_w_m) - ekf.p_w_m))
                 ekf.reset_position(pos_w_m)
                 ev = StatusEvent("reset", f"GPS reset: position jumped {jump:.1f} m")
             self.events.append(ev)
+        if stuck:
+            return
         if was_fault and not health.fault:  # recovered: this fix is fused again
             ekf.update_position(pos_w_m)
         if ekf.velocity_reset_due:

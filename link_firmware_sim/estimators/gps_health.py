@@ -4,7 +4,11 @@ The EKF's innovation gate rejects a position fix that disagrees with the estimat
 jump, a drifting or spoofed solution); :class:`GpsHealth` turns the stream of accepted and
 rejected fixes into a fault state, as PX4's EKF2 does with its GNSS checks:
 
-* **fault** when a fix was rejected, when the fixes drift against the GPS's own velocity (over
+* **fault** when a fix was rejected, when the fixes repeat bit for bit in flight for ``stuck_s``
+  (a receiver or a bus that repeats its last fix: no real fix is ever exactly the last one, as
+  PX4's ``DataValidator`` counts equal samples; watched in flight only: a still link on the
+  ground of a noiseless simulation repeats its fixes honestly), when the fixes drift against the
+  GPS's own velocity (over
   the last ``drift_window_s`` the horizontal positions move away from the track integrated
   from the reported velocities faster than ``drift_max_m_s``: a slow ramp that the gate would
   let in, as spoofing and multipath drift do), or when no fix arrived for ``timeout_s`` (an
@@ -31,6 +35,7 @@ import numpy as np
 from companion.configfile import require_nonnegative, require_positive
 
 from ..events import StatusEvent
+from .imu_health import StaleSensor
 
 __all__ = ["GpsHealthConfig", "GpsHealth"]
 
@@ -46,7 +51,8 @@ class GpsHealthConfig:
     corrected position is fused with this standard deviation (SKL_GPS_AID; 0: never,
     :mod:`.correction_aid`); ``aid_reset_s``: while in fault, corrections refused for their
     bound this long in a row reset the position and velocity to the corrected ones
-    (SKL_GPS_AID_RST)."""
+    (SKL_GPS_AID_RST); ``stuck_s``: a fix repeated bit for bit this long in flight is stuck and
+    rejected (SKL_GPS_STUCK; 0: never)."""
 
     timeout_s: float = 1.0
     recover_s: float = 2.0
@@ -55,10 +61,11 @@ class GpsHealthConfig:
     drift_window_s: float = 2.0
     aid_std_m: float = 0.2
     aid_reset_s: float = 0.5
+    stuck_s: float = 0.5
 
     def __post_init__(self) -> None:
         require_positive(self, "timeout_s", "reset_s", "drift_max_m_s", "drift_window_s", "aid_reset_s")
-        require_nonnegative(self, "recover_s", "aid_std_m")
+        require_nonnegative(self, "recover_s", "aid_std_m", "stuck_s")
 
 
 class GpsHealth:
@@ -83,6 +90,19 @@ class GpsHealth:
         self._v = np.empty((32, 2))
         self._lo = self._hi = 0
         self.drift_m_s = 0.0  # the last consistency test's figure
+        #: the fixes' staleness (position and velocity, in flight): episodes and time stuck
+        self.stuck = StaleSensor("GPS", max(config.stuck_s, 1e-9))
+
+    def repeats(self, t_s: float, pos_w_m, vel_w_m_s, in_flight: bool) -> bool:
+        """Record a fix; ``True`` once the fixes have repeated bit for bit for ``stuck_s`` in
+        flight (``in_flight``; on the ground the watch starts afresh). ``stuck_s`` 0: never."""
+        watch = self.stuck
+        if not (in_flight and self.config.stuck_s > 0.0):
+            watch.stop(t_s)
+            return False
+        watch.stale_s = self.config.stuck_s  # (the parameter may change in flight)
+        watch.on_sample(t_s, np.concatenate([np.asarray(pos_w_m, dtype=float), np.asarray(vel_w_m_s, dtype=float)]))
+        return watch.stale
 
     def _raise(self, t_s: float, reason: str, text: str) -> StatusEvent | None:
         if self.fault:
@@ -174,5 +194,6 @@ class GpsHealth:
 
     def report(self, t_s: float) -> dict:
         return {"faults": self.faults, "resets": self.resets, "rejected_fixes": self.rejected,
+                "stuck": self.stuck.report(t_s),
                 "fault_s": round(self.fault_seconds(t_s), 3), "fault_now": self.fault,
                 "last_fix_age_s": round(t_s - self.last_fix_s, 3) if math.isfinite(self.last_fix_s) else None}

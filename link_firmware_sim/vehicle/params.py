@@ -79,6 +79,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("SKL_GPS_RST_T", "float", 0.5, 120.0, "Position reset to GPS after rejected for [s] (no aiding)"),
     ParamSpec("SKL_GPS_AID", "float", 0.0, 10.0, "GPS fault: companion's position fused, std [m] (0 off)"),
     ParamSpec("SKL_GPS_AID_RST", "float", 0.1, 60.0, "GPS fault: reset to corrections refused for [s]"),
+    ParamSpec("SKL_GPS_STUCK", "float", 0.0, 60.0, "GPS fault when a fix repeats in flight for [s] (0 off)"),
     ParamSpec("SYS_FAILURE_EN", "int", 0, 1, "Failure injection (MAV_CMD_INJECT_FAILURE): 0 off (denied), 1 on"),
 )
 #: SKL_CTRL's values, in order (FirmwareConfig.controller)
@@ -143,6 +144,7 @@ def _defaults(system_id: int, config: FirmwareConfig, rates: StreamRates) -> dic
         "SKL_GPS_RST_T": config.gps.reset_s,
         "SKL_GPS_AID": config.gps.aid_std_m,
         "SKL_GPS_AID_RST": config.gps.aid_reset_s,
+        "SKL_GPS_STUCK": config.gps.stuck_s,
         "SYS_FAILURE_EN": 0,
     }
 
@@ -260,7 +262,7 @@ class ParamTable:
             gps=replace(self._base.gps, timeout_s=v["SKL_GPS_TOUT"], recover_s=v["SKL_GPS_RECOV"],
                         drift_max_m_s=v["SKL_GPS_DRIFT"],
                         reset_s=v["SKL_GPS_RST_T"], aid_std_m=v["SKL_GPS_AID"],
-                        aid_reset_s=v["SKL_GPS_AID_RST"]),
+                        aid_reset_s=v["SKL_GPS_AID_RST"], stuck_s=v["SKL_GPS_STUCK"]),
             thrust_limit=replace(self._base.thrust_limit, warn_after_s=v["SKL_TLIM_WARN"],
                                  clear_after_s=v["SKL_TLIM_CLR"]),
         )

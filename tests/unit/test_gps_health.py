@@ -223,3 +223,59 @@ def test_firmware_outage_is_a_fault():
     _fly(fw, q, 2.0, 4.0, rng, fix=lambda t: False)
     assert [e.kind for e in fw.events] == ["fault"] and "lost" in fw.events[0].text
     assert fw.flags(4.0) & STATE_FLAG_GPS_FAULT
+
+
+def test_a_fix_that_repeats_bit_for_bit_in_flight_is_stuck():
+    """GpsHealth.repeats: a fix repeated exactly for stuck_s (0.5 s) in flight is stuck until one
+    differs; on the ground the watch starts afresh (a still link of a noiseless simulation repeats
+    its fixes honestly); stuck_s 0 never finds one."""
+    p, v = np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.0, 0.0])
+    h = GpsHealth(GpsHealthConfig(stuck_s=0.5))
+    found = [h.repeats(k / 10, p, v, in_flight=True) for k in range(10)]
+    assert found == [False] * 5 + [True] * 5
+    assert not h.repeats(1.0, p + 1e-9, v, in_flight=True)  # a hair apart: a live receiver
+    assert h.report(1.0)["stuck"]["episodes"] == 1
+    ground = GpsHealth(GpsHealthConfig(stuck_s=0.5))
+    assert not any(ground.repeats(k / 10, p, v, in_flight=False) for k in range(20))
+    off = GpsHealth(GpsHealthConfig(stuck_s=0.0))
+    assert not any(off.repeats(k / 10, p, v, in_flight=True) for k in range(20))
+    with pytest.raises(ValueError):
+        GpsHealthConfig(stuck_s=-1.0)
+
+
+@pytest.mark.parametrize("case", ["stuck", "live", "on_ground", "check_off"])
+def test_firmware_fuses_nothing_of_a_stuck_fix(case):
+    """A still link whose receiver repeats one fix (0.3 m off, as a held noisy fix is) from 1 s to
+    4 s: in flight the firmware takes it as stuck after SKL_GPS_STUCK (one "fix stuck" fault), fuses
+    neither its position nor its velocity, and recovers once live fixes are back. With live fixes,
+    on the ground (not armed), or with the check off, no fault and the fixes fused."""
+    cfg = FirmwareConfig()
+    if case == "check_off":
+        cfg = FirmwareConfig(gps=GpsHealthConfig(stuck_s=0.0))
+    fw = LinkFirmware(1, cfg, LinkInertia(1.8, (0.04, 0.16, 0.16)), RotorGeometry.odar())
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    fw.initialize(0.0, np.zeros(3), np.array([0.0, 0.0, 1.0]), q)  # armed while moving: in flight
+    if case != "on_ground":
+        assert fw.arm(0.0) and fw.airborne
+    rng = np.random.default_rng(3)
+    held = (np.array([0.3, 0.0, 0.0]), np.zeros(3))
+    fused = {}
+    for k in range(1, 8 * 500):
+        t = k / 500
+        if k % 50 == 0:
+            if case != "live" and 1.0 <= t < 4.0:
+                fw.on_gps(t, *held)
+            else:
+                fw.on_gps(t, rng.normal(0, 0.02, 3), rng.normal(0, 0.02, 3))
+            if t in (1.5, 4.0):
+                fused[t] = (fw.ekf.accepted["pos"] + fw.ekf.rejected["pos"], fw.ekf.accepted["vel"])
+        if k % 10 == 0:
+            fw.on_attitude(t, q)
+        fw.on_imu(t, np.zeros(3), GRAVITY_UP)
+    faults = [e.text for e in fw.events if e.kind == "fault"]
+    if case == "stuck":
+        assert faults == ["GPS glitch: fix stuck, repeats itself"] and not fw.gps_health.fault
+        assert fused[4.0] == fused[1.5]  # neither position nor velocity of the stuck fixes
+        assert fw.gps_report(8.0)["stuck"]["episodes"] == 1
+    else:
+        assert faults == [] and fused[4.0][1] - fused[1.5][1] >= 25
