@@ -382,8 +382,10 @@ def carrying_metrics(summaries: dict[str, dict]) -> dict:
     -> summary; a restarted companion's time is added to its predecessor's): ``carried_s``,
     ``carried_stretches`` and ``carry_released`` (taken to lift itself while silent) per link
     (system id) by its own group's companion, ``state_loss`` the
-    estimated loss of its state stream (the newest companion's), and ``carried_by_other_groups_s`` per
-    companion (distributed mode: the other groups' links it carried on their word)."""
+    estimated loss of its state stream (the newest companion's), ``carried_by_other_groups_s`` per
+    companion (distributed mode: the other groups' links it carried on their word) and
+    ``bridged_steps``, the steps in which a link in a GPS fault was corrected through a carried
+    neighbour (:mod:`companion.engine.bridge`), over all companions."""
     own: dict[str, float] = {}
     stretches: dict[str, int] = {}
     released: dict[str, int] = {}
@@ -402,7 +404,8 @@ def carrying_metrics(summaries: dict[str, dict]) -> dict:
         return dict(sorted(d.items(), key=lambda kv: int(kv[0])))
 
     out: dict = {"carried_s": by_link(own), "carried_stretches": by_link(stretches), "carry_released": by_link(released),
-                 "state_loss": by_link(loss)}
+                 "state_loss": by_link(loss),
+                 "bridged_steps": sum(int(summ.get("bridged_steps", 0)) for summ in summaries.values())}
     if others:
         out["carried_by_other_groups_s"] = others
     return out

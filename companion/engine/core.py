@@ -92,6 +92,7 @@ class CompanionEngine:
         self.selection = LinkSelection(cfg, self.links, d, warnings)
         self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)
+        self.step.carried_target = self.carrying.target_of  # a carried link bridges its neighbours
         self.targets = Targets(setup, self.links, d, group, net, trajectory, start_center, self.carrying,
                                self._out.append, timer)
         self.arming = Arming(cfg, self._out.append)
@@ -315,6 +316,7 @@ class CompanionEngine:
             "steps": steps.count,
             "withheld_steps": self.selection.withheld,
             "degraded_steps": self.selection.degraded,
+            "bridged_steps": self.step.bridged_steps,
             "common_mode_kept": self.selection.common_mode_kept,
             "neighbour_measurements": self.step.neighbours.counts(),
             "step_ms": {"p50": steps.percentile(50), "p99": steps.percentile(99)} if steps.count else None,

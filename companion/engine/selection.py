@@ -17,6 +17,10 @@ way: its position variance is raised by :data:`GPS_FAULT_POS_VAR_M2`, so the ste
 its neighbours say it is and leaves them unmoved (while it agrees with them it takes part as
 usual, its dead-reckoned position still informative).
 
+A carried link (its rotors off, silent) between a neighbour that flags a GPS fault and a usable,
+healthy one is a :class:`~.bridge.Bridge` (:attr:`LinkSelection.bridges`): the step corrects the
+faulty neighbour's position through it if nothing else corrects it.
+
 The GNSS error common to every link (``gnss_common_pos_var_m2``) is taken out of the states the
 step uses (no constraint sees it) and put back into the corrected covariances.
 """
@@ -32,6 +36,7 @@ from ..corrections import align_states
 from ..estimation.chain import ERR_P
 from ..estimation.gate import gate_chain, segments
 from ..messages import STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT, LinkState
+from .bridge import Bridge
 from .links import LAG_LIMIT_US, OFF_BASE_LIMIT_US, LinkTrack, LinkWarnings, usec
 
 __all__ = ["LAG_LIMIT_US", "OFF_BASE_LIMIT_US", "EXCLUSION_REASONS", "GPS_FAULT_POS_VAR_M2", "LinkSelection"]
@@ -57,7 +62,9 @@ class LinkSelection:
 
     Counts: ``degraded`` steps (some link left out), ``withheld`` steps (no link corrected),
     ``common_mode_kept`` (link-steps whose position covariance was not larger than the common
-    GNSS error); ``one_way``: the rows taking part one way in the last step (GPS fault)."""
+    GNSS error); ``one_way``: the rows taking part one way in the last step (GPS fault);
+    ``bridges``: the last step's carried links between a neighbour in GPS fault and a healthy one
+    (:class:`~.bridge.Bridge`)."""
 
     def __init__(self, cfg, links: list[LinkTrack], d: np.ndarray, warnings: LinkWarnings):
         self.links = links
@@ -72,6 +79,7 @@ class LinkSelection:
         self.withheld = 0
         self.degraded = 0
         self.one_way: set[int] = set()
+        self.bridges: list[Bridge] = []
 
     def plan(self, t_us: int, now_s: float, singles: bool = False) -> tuple[list[tuple[int, ...]], bool, float]:
         """Which of the links the step at ``t_us`` uses (see the module docstring). Returns the
@@ -125,6 +133,7 @@ class LinkSelection:
         for r in self.one_way:
             self.links[r].gps_fault_steps += 1
         whole = all(usable) and not any(cut)
+        self.bridges = self._bridges(usable)
         segs = segments(usable, cut, 1 if singles else 2)
         in_segment = {r for seg in segs for r in seg}
         for lk in self.links:
@@ -137,6 +146,20 @@ class LinkSelection:
             if not segs:
                 self.withheld += 1
         return segs, whole, nis_max
+
+    def _bridges(self, usable: list[bool]) -> list[Bridge]:
+        """The carried, silent links with a usable neighbour that flags a GPS fault on one side and
+        a usable one that does not on the other (see the module docstring)."""
+        out = []
+        for lk in self.links:
+            r = lk.row
+            if lk.status != "stale" or not lk.carried.on or not 0 < r < len(self.links) - 1:
+                continue
+            for faulty, healthy in ((r - 1, r + 1), (r + 1, r - 1)):
+                if (usable[faulty] and usable[healthy] and self.links[faulty].flags & STATE_FLAG_GPS_FAULT
+                        and not self.links[healthy].flags & STATE_FLAG_GPS_FAULT):
+                    out.append(Bridge(r, faulty, healthy))
+        return out
 
     def _common_removable(self, P: np.ndarray) -> bool:
         """Whether the configured common GNSS error can come out of ``P`` (its position block is larger)."""

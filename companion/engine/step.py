@@ -13,7 +13,9 @@ leader's shift arrives or its deadline passes (:meth:`ChainStep.finish`). A grou
 left out (or a joint cut) is split into parts, a part being as little as one link: each part
 gets its local step and publishes its own boundary, and the global step joins the part that
 touches a neighbouring group to that group, so every live link keeps being corrected. A
-one-link part that no neighbouring group joins gets no correction (nothing constrains it).
+one-link part that no neighbouring group joins gets no correction (nothing constrains it), unless
+it flags a GPS fault next to a carried link: then its position is corrected through the carried
+link from the link beyond (:mod:`.bridge`).
 
 The step log keeps one row per step (per cycle in distributed mode), every array on the time
 base (:data:`STEP_LOG_KEYS`).
@@ -31,6 +33,7 @@ from ..corrections import compute_corrections, finish_step, local_step
 from ..fleetnet.outcomes import PartBoundary, PartShift
 from ..messages import LinkState
 from ..quantiles import Quantiles
+from .bridge import bridge_correction
 from .links import LinkTrack, usec
 from .neighbours import NeighbourQueue
 from .outputs import CorrectionOut
@@ -83,6 +86,10 @@ class ChainStep:
         self.neighbours = NeighbourQueue()
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
+        #: a carried link's newest target by chain index (``None``: none): the bridges' carried attitude
+        self.carried_target: Callable[[int], object] | None = None
+        #: steps in which a link was corrected through a carried link (:mod:`.bridge`)
+        self.bridged_steps = 0
 
     def run(self, now_s: float, t_us: int, cycle_us: int) -> None:
         """The step due at ``now_s``: at ``t_us`` (the cycle clock), or at the cycle ``cycle_us``
@@ -142,12 +149,34 @@ class ChainStep:
             corrected[rows] = True
             iterations = max(iterations, int(result.iterations.max()))
             done.append((seg, corrections, (result.p, result.v, result.q, P_seg)))
+        done += self._bridged(self.selection.bridges, states, corrected, p, q, P_corr)
         self.step_times_ms.add((self._timer() - t0) * 1e3)
         for seg, corrections, result in done:
             self._send_corrections(seg, corrections, result)
         if done:
             self.seq = (self.seq + 1) & 0xFFFF or 1
         return ekf, p, v, q, p_local, iterations, corrected, (P_ekf, P_corr)
+
+    def _bridged(self, bridges, states: list[LinkState], corrected: np.ndarray, p: np.ndarray, q: np.ndarray,
+                 P: np.ndarray) -> list[tuple]:
+        """The faulty neighbours of ``bridges`` (:class:`~.bridge.Bridge`) that nothing corrected,
+        corrected through their carried link (:func:`~.bridge.bridge_correction`) from the healthy
+        neighbour's state (corrected, ``p`` and ``q``, when it was): each as ``(rows, corrections,
+        (p, v, q, P))`` to send; ``corrected``, ``p`` and ``P`` (the step log's) updated."""
+        out = []
+        for b in bridges:
+            target = self.carried_target(self.links[b.carried].index) if self.carried_target is not None else None
+            if corrected[b.faulty] or target is None:
+                continue
+            healthy = states[b.healthy]
+            if corrected[b.healthy]:
+                healthy = replace(healthy, p_w_m=p[b.healthy], q_wxyz=q[b.healthy])
+            corr, state = bridge_correction(states[b.faulty], healthy, target.q_wxyz,
+                                            self.d[[b.healthy, b.carried, b.faulty]], b.faulty > b.carried, self.seq)
+            p[b.faulty], P[b.faulty], corrected[b.faulty] = state.p_w_m, state.P, True
+            out.append(((b.faulty,), [corr], (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])))
+        self.bridged_steps += bool(out)
+        return out
 
     def _logged_states(self, states: list[LinkState]):
         """``(p, v, q, w)`` of the links' states for the log: NaN for a silent link (its newest
@@ -195,7 +224,8 @@ class ChainStep:
             return
         self.step_times_ms.add((self._timer() - t0) * 1e3)
         # (the links' reported covariances, for the log and the common GNSS error to put back)
-        self._local[cycle] = (states, parts, nis_max, np.array([lk.state.P for lk in self.links]))
+        self._local[cycle] = (states, parts, nis_max, np.array([lk.state.P for lk in self.links]),
+                              tuple(self.selection.bridges))
         last = len(self.links) - 1
         bounds = [PartBoundary(s.boundary.left_tip, s.boundary.right_tip, s.boundary.info_pv, s.boundary.tip_cov,
                                joins_left=rows[0] == 0, joins_right=rows[-1] == last) for rows, s in parts]
@@ -211,7 +241,7 @@ class ChainStep:
                 del self._local[old]
             if entry is None:
                 continue
-            states, parts, nis_max, P_reported = entry
+            states, parts, nis_max, P_reported, bridges = entry
             if len(res.parts) != len(parts):
                 log.warning("cycle t = %.3f s: %d part(s) resolved for %d published; local-only", res.cycle_us * 1e-6,
                             len(res.parts), len(parts))
@@ -241,6 +271,7 @@ class ChainStep:
                 corrected[rows] = True
                 iterations = max(iterations, int(step.result.iterations))
                 out.append((tuple(rows), corrections, (pp, vv, qq, PP)))
+            out += self._bridged(bridges, states, corrected, p, q, P)
             for rows, corrections, result in out:
                 self._send_corrections(rows, corrections, result)
             if out:

@@ -472,6 +472,8 @@ FIXED_BY = {
     "regression_seven_inner_link_reboot": lambda m: (
         None if m.get("carrying", {}).get("carried_s", {}).get("6", 0.0) > 1.0
         else f"link 6 not carried: {m.get('carrying')}"),
+    "regression_inner_link_reboot_gps_outage": lambda m: (
+        None if m.get("carrying", {}).get("bridged_steps", 0) > 20 else f"link 2 bridged nothing: {m.get('carrying')}"),
     "regression_gps_stuck_bend": lambda m: (
         None if m["faults"]["gps"]["firmware"][0]["stuck"]["episodes"] == 1
         else f"link 1's stuck GPS not found: {m['faults']['gps']['firmware'][0]}"),

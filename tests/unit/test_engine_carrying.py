@@ -271,3 +271,66 @@ def test_a_silent_link_that_lifts_itself_is_no_longer_carried(offsets, released)
         assert ff[0][2] + ff[2][2] > 0.9 * mass * 9.80665  # sinking: carried again (its weight, and the climb)
     else:
         assert all(carried[3:]) and summary["carry_released"] == 0
+
+
+@pytest.mark.parametrize("groups, faulty", [((), 2), ((), 0), (((1, 2, 3), (4, 5)), 0)],
+                         ids=["centralised_link3", "centralised_link1", "distributed_link1"])
+@pytest.mark.parametrize("gps_fault", [True, False], ids=["gps_fault", "gps_healthy"])
+def test_a_carried_link_bridges_a_neighbour_without_gps(gps_fault, groups, faulty):
+    """The chain hovers; link 2 goes silent (carried) and the EKF of its neighbour ``faulty`` (an
+    end link: alone once link 2 is left out) says it is 1 m further out than it is. Flagging a GPS
+    fault, it is corrected through the carried link from its other neighbour: the metre comes off
+    its position (its velocity and attitude untouched), the summary counts the bridged steps, the
+    step log has it corrected and link 2 silent (NaN), and link 2 gets nothing. With its GPS
+    healthy nothing bridges: it is alone and uncorrected, as before. Centralised, and in
+    distributed mode with link 2 inside the first of two groups (its other neighbour, link 3, is
+    corrected by the global step with the second group)."""
+    pytest.importorskip("pinocchio")
+    from companion.engine import CorrectionOut
+    from companion.messages import STATE_FLAG_GPS_FAULT
+
+    n, down = (max(max(g) for g in groups) if groups else 3), 1
+    out_dx = 1.0 if faulty > down else -1.0
+    setup = setup_for(n, groups, distributed=bool(groups))
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0))
+    clock = [0.0]
+    engines = (group_engines(setup, lambda: clock[0])[1] if groups
+               else [CompanionEngine(setup, start_center=(0.0, 0.0, 2.0))])
+    flying = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
+    corrections: dict[int, list] = {i: [] for i in range(n)}
+
+    def tick(t, alive, dx=0.0, flags=flying):
+        clock[0] = t
+        for e in engines:
+            for lk in e.links:
+                if lk.index in alive:
+                    mine = lk.index == faulty
+                    e.on_state(lk.row, straight_state(lk.index, n, t, dx=dx if mine else 0.0), flags if mine else flying, t)
+        for _ in range(3):
+            for e in engines:
+                for out in of(CorrectionOut, e.poll(t)):
+                    corrections[e.links[out.row].index].append(out.correction)
+
+    t = 0.0
+    while t < 1.0:
+        t = round(t + 0.02, 6)
+        tick(t, range(n))
+    while t < 2.0:
+        if t == 1.2:  # (link 2 taken as silent by now: what follows is the bridge's)
+            for c in corrections.values():
+                c.clear()
+        t = round(t + 0.02, 6)
+        tick(t, [i for i in range(n) if i != down], out_dx, flying | (STATE_FLAG_GPS_FAULT if gps_fault else 0))
+    own = engines[0]
+    summary = own.summary()
+    log = own.log_arrays()
+    assert summary["links"]["2"]["carried_s"] > 0.5 and not corrections[down]
+    assert np.isnan(log["p_corr_sckf"][-1][down]).all()
+    if gps_fault:
+        assert len(corrections[faulty]) > 10 and summary["bridged_steps"] >= len(corrections[faulty])
+        last = corrections[faulty][-1]
+        np.testing.assert_allclose(last.dp_w_m, [-out_dx, 0.0, 0.0], atol=1e-6)
+        assert not last.dv_w_m_s.any() and not last.dtheta_w_rad.any()
+        assert log["corrected_sckf"][-1][faulty]
+    else:
+        assert summary["bridged_steps"] == 0 and not corrections[faulty]
