@@ -6,21 +6,19 @@ other side is left out too) is alone in its part and gets no correction. With it
 costs little; with its GPS in fault it dead-reckons with nothing to correct it, and a carrier
 running near its rotors' limit drifts fast (metres in seconds).
 
-Yet the carried link still joins it to its other neighbour: a rigid body hanging from both their
-tips, which the whole-chain feed-forward holds where its target puts it. So a link that flags a
-GPS fault and is left uncorrected by the step, next to a carried link whose other neighbour is
-usable and healthy (:class:`Bridge`), gets a position correction through it
-(:func:`bridged_position`): the healthy neighbour's tip (its corrected state when it was
-corrected), the carried link's length along its target's axis, then its own tip. Its attitude and
-velocity are not corrected: a carried link swings, and nothing measures how. The position's
-spread is the carried link's attitude off its target, :data:`BRIDGE_ATT_STD_RAD` (about 0.35 m at
-the tip of a 1 m link); the link fuses it as any correction while its GPS is in fault
-(``link_firmware_sim.estimators.correction_aid``), where alone it would drift without bound.
+Yet the carried link still joins it to its other neighbour: a rigid body between their two tips,
+which are therefore exactly its length apart. That much is known, however the carried link hangs;
+which way it points is not (it swings between its carriers, and nothing measures it: its target
+says where it should be, not where the faulty neighbour's drift has turned it). So a link that
+flags a GPS fault and is left uncorrected by the step, next to a carried link whose other neighbour
+is usable and healthy (:class:`Bridge`), gets a position correction along the line between the two
+tips, to the carried link's length (:func:`bridged_position`), and none across it; its attitude
+and velocity are not corrected. The link fuses it as any correction while its GPS is in fault
+(``link_firmware_sim.estimators.correction_aid``).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,11 +27,7 @@ from ..estimation.chain import ERR_P
 from ..estimation.constraints import tip_offsets
 from ..messages import Correction, LinkState
 
-__all__ = ["BRIDGE_ATT_STD_RAD", "Bridge", "bridged_position", "bridge_correction"]
-
-#: How far a carried link's attitude may be from its target's [rad] (per axis): it sags and swings
-#: between its carriers
-BRIDGE_ATT_STD_RAD = math.radians(20.0)
+__all__ = ["Bridge", "bridged_position", "bridge_correction"]
 
 
 @dataclass(frozen=True)
@@ -46,31 +40,36 @@ class Bridge:
     healthy: int
 
 
-def bridged_position(p_healthy, q_healthy, d_healthy, q_carried, d_carried, q_faulty, d_faulty,
-                     faulty_right: bool) -> np.ndarray:
-    """The faulty link's centre [m] through the carried link: from the healthy link's tip on the
-    carried link's side, along the carried link (tip to tip, ``2 R d``) at its attitude
-    ``q_carried``, to the faulty link's centre. ``d_*``: each link's right-tip vector (body);
-    ``faulty_right``: the faulty link is on the carried link's right (higher index)."""
-    a, _ = tip_offsets(np.array([q_healthy, q_carried, q_faulty], dtype=float), np.zeros((3, 3)),
-                       np.array([d_healthy, d_carried, d_faulty], dtype=float))
+def bridged_position(p_healthy, q_healthy, d_healthy, d_carried, p_faulty, q_faulty, d_faulty,
+                     faulty_right: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The faulty link's centre [m] moved along the line from the healthy link's tip to its own
+    (the two tips the carried link joins) until they are the carried link's length, ``2 |d|``,
+    apart; and that line's unit vector (zero, and the centre unmoved, if the tips coincide).
+    ``d_*``: each link's right-tip vector (body); ``faulty_right``: the faulty link is on the
+    carried link's right (higher index)."""
+    a, _ = tip_offsets(np.array([q_healthy, q_faulty], dtype=float), np.zeros((2, 3)),
+                       np.array([d_healthy, d_faulty], dtype=float))
     s = 1.0 if faulty_right else -1.0
-    return np.asarray(p_healthy, dtype=float) + s * (a[0] + 2.0 * a[1] + a[2])
+    p_faulty = np.asarray(p_faulty, dtype=float)
+    r = (p_faulty - s * a[1]) - (np.asarray(p_healthy, dtype=float) + s * a[0])
+    dist = float(np.linalg.norm(r))
+    if dist < 1e-9:
+        return p_faulty.copy(), np.zeros(3)
+    u = r / dist
+    return p_faulty + (2.0 * float(np.linalg.norm(d_carried)) - dist) * u, u
 
 
-def bridge_correction(faulty: LinkState, healthy: LinkState, q_carried, d: np.ndarray, faulty_right: bool,
+def bridge_correction(faulty: LinkState, healthy: LinkState, d: np.ndarray, faulty_right: bool,
                       seq: int) -> tuple[Correction, LinkState]:
-    """The faulty link's correction (position only) and corrected state through the carried link,
-    ``healthy`` aligned to the faulty link's stamp; ``d``: the right-tip vectors of the healthy, the
-    carried and the faulty link. The corrected position's covariance: the healthy link's plus the
-    carried link's attitude spread at its length."""
-    dt = faulty.time_s - healthy.time_s
-    p_healthy = healthy.p_w_m + healthy.v_w_m_s * dt
-    p = bridged_position(p_healthy, healthy.q_wxyz, d[0], q_carried, d[1], faulty.q_wxyz, d[2], faulty_right)
-    dp = p - faulty.p_w_m
+    """The faulty link's correction (position, along the tips' line only) and corrected state
+    through the carried link, ``healthy`` carried to the faulty link's stamp with its velocity;
+    ``d``: the right-tip vectors of the healthy, the carried and the faulty link. The corrected
+    position's covariance: the faulty link's across the line, the healthy link's along it."""
+    p_healthy = healthy.p_w_m + healthy.v_w_m_s * (faulty.time_s - healthy.time_s)
+    p, u = bridged_position(p_healthy, healthy.q_wxyz, d[0], d[1], faulty.p_w_m, faulty.q_wxyz, d[2], faulty_right)
     P = np.array(faulty.P, dtype=float)
-    spread = (2.0 * float(np.linalg.norm(d[1])) * BRIDGE_ATT_STD_RAD) ** 2
-    P[ERR_P, ERR_P] = healthy.P[ERR_P, ERR_P] + spread * np.eye(3)
-    correction = Correction(faulty.link, faulty.time_s, dp, np.zeros(3), np.zeros(3), seq)
+    across = np.eye(3) - np.outer(u, u)
+    P[ERR_P, ERR_P] = across @ P[ERR_P, ERR_P] @ across + float(u @ healthy.P[ERR_P, ERR_P] @ u) * np.outer(u, u)
+    correction = Correction(faulty.link, faulty.time_s, p - faulty.p_w_m, np.zeros(3), np.zeros(3), seq)
     corrected = LinkState(faulty.link, faulty.time_s, p, faulty.v_w_m_s, faulty.q_wxyz, faulty.omega_b_rad_s, P)
     return correction, corrected

@@ -65,23 +65,15 @@ class Carrying:
         self.counts = {"published": 0, "received": 0, "rejected": 0}
         self.remote_carried: dict[int, CarryClock] = {}  # another group's link -> its carrying here
         self._by_index = {lk.index: lk for lk in links}
-        #: the newest target of each of this engine's links (:meth:`on_target`)
-        self._targets: dict[int, object] = {}
+        #: the newest target of each of this engine's links (:meth:`on_target`): its height [m]
+        self._target_z: dict[int, float] = {}
         #: links taken to lift themselves (no longer carried while silent), and how often each was
         self.released: set[int] = set()
         self.release_count: dict[int, int] = {}
 
     def on_target(self, index: int, target) -> None:
         """The target just sent to this engine's link ``index`` (a :class:`~companion.messages.PoseTarget`)."""
-        self._targets[index] = target
-
-    def target_of(self, index: int):
-        """The newest target sent to this engine's carried link ``index`` (``None``: none yet, or
-        the link is not carried now): where its carriers hold it (:mod:`.bridge`)."""
-        lk = self._by_index.get(index)
-        if lk is None or not lk.carried.on:
-            return None
-        return self._targets.get(index)
+        self._target_z[index] = float(target.p_w_m[2])
 
     def lifting_itself(self, index: int, t: float) -> bool:
         """Whether the carried link ``index`` is taken to lift itself: released once its neighbours
@@ -90,8 +82,8 @@ class Carrying:
         down, and sinks it; a live one carried pushes both up), carried again once they are as far
         below; unchanged without such a neighbour."""
         released = index in self.released
-        above = [float(lk.state.p_w_m[2] - self._targets[j].p_w_m[2]) for j in (index - 1, index + 1)
-                 if (lk := self._by_index.get(j)) is not None and lk.state is not None and j in self._targets]
+        above = [float(lk.state.p_w_m[2]) - self._target_z[j] for j in (index - 1, index + 1)
+                 if (lk := self._by_index.get(j)) is not None and lk.state is not None and j in self._target_z]
         if not above:
             return released
         mean = sum(above) / len(above)

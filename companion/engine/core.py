@@ -92,7 +92,6 @@ class CompanionEngine:
         self.selection = LinkSelection(cfg, self.links, d, warnings)
         self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)
-        self.step.carried_target = self.carrying.target_of  # a carried link bridges its neighbours
         self.targets = Targets(setup, self.links, d, group, net, trajectory, start_center, self.carrying,
                                self._out.append, timer)
         self.arming = Arming(cfg, self._out.append)

@@ -14,8 +14,8 @@ left out (or a joint cut) is split into parts, a part being as little as one lin
 gets its local step and publishes its own boundary, and the global step joins the part that
 touches a neighbouring group to that group, so every live link keeps being corrected. A
 one-link part that no neighbouring group joins gets no correction (nothing constrains it), unless
-it flags a GPS fault next to a carried link: then its position is corrected through the carried
-link from the link beyond (:mod:`.bridge`).
+it flags a GPS fault next to a carried link: then its position is corrected along the carried
+link, a link length from the link beyond (:mod:`.bridge`).
 
 The step log keeps one row per step (per cycle in distributed mode), every array on the time
 base (:data:`STEP_LOG_KEYS`).
@@ -86,8 +86,6 @@ class ChainStep:
         self.neighbours = NeighbourQueue()
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
-        #: a carried link's newest target by chain index (``None``: none): the bridges' carried attitude
-        self.carried_target: Callable[[int], object] | None = None
         #: steps in which a link was corrected through a carried link (:mod:`.bridge`)
         self.bridged_steps = 0
 
@@ -165,14 +163,13 @@ class ChainStep:
         (p, v, q, P))`` to send; ``corrected``, ``p`` and ``P`` (the step log's) updated."""
         out = []
         for b in bridges:
-            target = self.carried_target(self.links[b.carried].index) if self.carried_target is not None else None
-            if corrected[b.faulty] or target is None:
+            if corrected[b.faulty]:
                 continue
             healthy = states[b.healthy]
             if corrected[b.healthy]:
                 healthy = replace(healthy, p_w_m=p[b.healthy], q_wxyz=q[b.healthy])
-            corr, state = bridge_correction(states[b.faulty], healthy, target.q_wxyz,
-                                            self.d[[b.healthy, b.carried, b.faulty]], b.faulty > b.carried, self.seq)
+            corr, state = bridge_correction(states[b.faulty], healthy, self.d[[b.healthy, b.carried, b.faulty]],
+                                            b.faulty > b.carried, self.seq)
             p[b.faulty], P[b.faulty], corrected[b.faulty] = state.p_w_m, state.P, True
             out.append(((b.faulty,), [corr], (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])))
         self.bridged_steps += bool(out)
