@@ -266,7 +266,7 @@ class LinkFirmware(FusedTicks):
         except a stuck fix's: nothing of it enters the EKF."""
         ekf, health, t = self.ekf, self.gps_health, self.time_s
         stuck = health.repeats(t, pos_w_m, vel_w_m_s, self.armed and self.airborne)
-        consistent = health.consistent(t, pos_w_m, vel_w_m_s)
+        consistent = stuck or health.consistent(t, pos_w_m, vel_w_m_s)  # (a stuck fix: not in the drift test)
         if stuck:
             accepted, why = False, "fix stuck, repeats itself"
         elif not consistent:

@@ -384,8 +384,8 @@ def carrying_metrics(summaries: dict[str, dict]) -> dict:
     (system id) by its own group's companion, ``state_loss`` the
     estimated loss of its state stream (the newest companion's), ``carried_by_other_groups_s`` per
     companion (distributed mode: the other groups' links it carried on their word) and
-    ``bridged_steps``, the steps in which a link in a GPS fault was corrected along a carried
-    neighbour (:mod:`companion.engine.bridge`), over all companions."""
+    ``bridged_steps``, the steps in which a link in a GPS fault was corrected along a neighbour
+    left out of the step (:mod:`companion.engine.bridge`), over all companions."""
     own: dict[str, float] = {}
     stretches: dict[str, int] = {}
     released: dict[str, int] = {}

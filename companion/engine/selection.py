@@ -17,9 +17,9 @@ way: its position variance is raised by :data:`GPS_FAULT_POS_VAR_M2`, so the ste
 its neighbours say it is and leaves them unmoved (while it agrees with them it takes part as
 usual, its dead-reckoned position still informative).
 
-A carried link (its rotors off, silent) between a neighbour that flags a GPS fault and a usable,
-healthy one is a :class:`~.bridge.Bridge` (:attr:`LinkSelection.bridges`): the step corrects the
-faulty neighbour's position through it if nothing else corrects it.
+A link left out between a usable neighbour that flags a GPS fault and a usable, healthy one is a
+:class:`~.bridge.Bridge` (:attr:`LinkSelection.bridges`): the step corrects the faulty neighbour's
+position along it if nothing else corrects it.
 
 The GNSS error common to every link (``gnss_common_pos_var_m2``) is taken out of the states the
 step uses (no constraint sees it) and put back into the corrected covariances.
@@ -63,7 +63,7 @@ class LinkSelection:
     Counts: ``degraded`` steps (some link left out), ``withheld`` steps (no link corrected),
     ``common_mode_kept`` (link-steps whose position covariance was not larger than the common
     GNSS error); ``one_way``: the rows taking part one way in the last step (GPS fault);
-    ``bridges``: the last step's carried links between a neighbour in GPS fault and a healthy one
+    ``bridges``: the last step's links left out between a neighbour in GPS fault and a healthy one
     (:class:`~.bridge.Bridge`)."""
 
     def __init__(self, cfg, links: list[LinkTrack], d: np.ndarray, warnings: LinkWarnings):
@@ -148,12 +148,11 @@ class LinkSelection:
         return segs, whole, nis_max
 
     def _bridges(self, usable: list[bool]) -> list[Bridge]:
-        """The carried, silent links with a usable neighbour that flags a GPS fault on one side and
-        a usable one that does not on the other (see the module docstring)."""
+        """The links left out with a usable neighbour that flags a GPS fault on one side and a
+        usable one that does not on the other (see the module docstring)."""
         out = []
-        for lk in self.links:
-            r = lk.row
-            if lk.status != "stale" or not lk.carried.on or not 0 < r < len(self.links) - 1:
+        for r in range(1, len(self.links) - 1):
+            if usable[r]:
                 continue
             for faulty, healthy in ((r - 1, r + 1), (r + 1, r - 1)):
                 if (usable[faulty] and usable[healthy] and self.links[faulty].flags & STATE_FLAG_GPS_FAULT

@@ -14,8 +14,8 @@ left out (or a joint cut) is split into parts, a part being as little as one lin
 gets its local step and publishes its own boundary, and the global step joins the part that
 touches a neighbouring group to that group, so every live link keeps being corrected. A
 one-link part that no neighbouring group joins gets no correction (nothing constrains it), unless
-it flags a GPS fault next to a carried link: then its position is corrected along the carried
-link, a link length from the link beyond (:mod:`.bridge`).
+it flags a GPS fault next to a link left out: then its position is corrected along that link, a
+link length from the link beyond (:mod:`.bridge`).
 
 The step log keeps one row per step (per cycle in distributed mode), every array on the time
 base (:data:`STEP_LOG_KEYS`).
@@ -86,7 +86,7 @@ class ChainStep:
         self.neighbours = NeighbourQueue()
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
-        #: steps in which a link was corrected through a carried link (:mod:`.bridge`)
+        #: steps in which a link was corrected along a link left out (:mod:`.bridge`)
         self.bridged_steps = 0
 
     def run(self, now_s: float, t_us: int, cycle_us: int) -> None:
@@ -158,7 +158,7 @@ class ChainStep:
     def _bridged(self, bridges, states: list[LinkState], corrected: np.ndarray, p: np.ndarray, q: np.ndarray,
                  P: np.ndarray) -> list[tuple]:
         """The faulty neighbours of ``bridges`` (:class:`~.bridge.Bridge`) that nothing corrected,
-        corrected through their carried link (:func:`~.bridge.bridge_correction`) from the healthy
+        corrected along the link left out (:func:`~.bridge.bridge_correction`) from the healthy
         neighbour's state (corrected, ``p`` and ``q``, when it was): each as ``(rows, corrections,
         (p, v, q, P))`` to send; ``corrected``, ``p`` and ``P`` (the step log's) updated."""
         out = []
@@ -168,8 +168,8 @@ class ChainStep:
             healthy = states[b.healthy]
             if corrected[b.healthy]:
                 healthy = replace(healthy, p_w_m=p[b.healthy], q_wxyz=q[b.healthy])
-            corr, state = bridge_correction(states[b.faulty], healthy, self.d[[b.healthy, b.carried, b.faulty]],
-                                            b.faulty > b.carried, self.seq)
+            corr, state = bridge_correction(states[b.faulty], healthy, self.d[[b.healthy, b.out, b.faulty]],
+                                            b.faulty > b.out, self.seq)
             p[b.faulty], P[b.faulty], corrected[b.faulty] = state.p_w_m, state.P, True
             out.append(((b.faulty,), [corr], (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])))
         self.bridged_steps += bool(out)

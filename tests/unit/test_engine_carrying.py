@@ -273,18 +273,20 @@ def test_a_silent_link_that_lifts_itself_is_no_longer_carried(offsets, released)
         assert all(carried[3:]) and summary["carry_released"] == 0
 
 
-@pytest.mark.parametrize("groups, faulty", [((), 2), ((), 0), (((1, 2, 3), (4, 5)), 0)],
-                         ids=["centralised_link3", "centralised_link1", "distributed_link1"])
+@pytest.mark.parametrize("groups, faulty, silent", [((), 2, True), ((), 0, True), (((1, 2, 3), (4, 5)), 0, True),
+                                                  ((), 2, False)],
+                         ids=["centralised_link3", "centralised_link1", "distributed_link1", "ekf_not_ok"])
 @pytest.mark.parametrize("gps_fault", [True, False], ids=["gps_fault", "gps_healthy"])
-def test_a_carried_link_bridges_a_neighbour_without_gps(gps_fault, groups, faulty):
-    """The chain hovers; link 2 goes silent (carried) and the EKF of its neighbour ``faulty`` (an
-    end link: alone once link 2 is left out) says it is 1 m further out than it is. Flagging a GPS
-    fault, it is corrected through the carried link from its other neighbour: the metre comes off
-    its position (its velocity and attitude untouched), the summary counts the bridged steps, the
-    step log has it corrected and link 2 silent (NaN), and link 2 gets nothing. With its GPS
-    healthy nothing bridges: it is alone and uncorrected, as before. Centralised, and in
-    distributed mode with link 2 inside the first of two groups (its other neighbour, link 3, is
-    corrected by the global step with the second group)."""
+def test_a_link_left_out_bridges_a_neighbour_without_gps(gps_fault, groups, faulty, silent):
+    """The chain hovers; link 2 goes silent (carried) or reports its EKF unusable (left out, not
+    carried), and the EKF of its
+    neighbour ``faulty`` (an end link: alone once link 2 is left out) says it is 1 m further out
+    than it is, along the chain. Flagging a GPS fault, it is corrected along link 2 from its other
+    neighbour: the metre comes off its position (its velocity and attitude untouched), the summary
+    counts the bridged steps, the step log has it corrected and link 2 not (NaN if silent), and
+    link 2 gets nothing. With its GPS healthy nothing bridges: it is alone and uncorrected, as before.
+    Centralised, and in distributed mode with link 2 inside the first of two groups (its other
+    neighbour, link 3, is corrected by the global step with the second group)."""
     pytest.importorskip("pinocchio")
     from companion.engine import CorrectionOut
     from companion.messages import STATE_FLAG_GPS_FAULT
@@ -320,12 +322,17 @@ def test_a_carried_link_bridges_a_neighbour_without_gps(gps_fault, groups, fault
             for c in corrections.values():
                 c.clear()
         t = round(t + 0.02, 6)
+        if not silent:  # (streaming, armed, its EKF not usable)
+            for e in engines:
+                for lk in e.links:
+                    if lk.index == down:
+                        e.on_state(lk.row, straight_state(down, n, t + 0.02), STATE_FLAG_ARMED, t + 0.02)
         tick(t, [i for i in range(n) if i != down], out_dx, flying | (STATE_FLAG_GPS_FAULT if gps_fault else 0))
     own = engines[0]
     summary = own.summary()
     log = own.log_arrays()
-    assert summary["links"]["2"]["carried_s"] > 0.5 and not corrections[down]
-    assert np.isnan(log["p_corr_sckf"][-1][down]).all()
+    assert (summary["links"]["2"]["carried_s"] > 0.5) == silent and not corrections[down]
+    assert not log["corrected_sckf"][-1][down] and np.isnan(log["p_corr_sckf"][-1][down]).all() == silent
     if gps_fault:
         assert len(corrections[faulty]) > 10 and summary["bridged_steps"] >= len(corrections[faulty])
         last = corrections[faulty][-1]
