@@ -171,7 +171,8 @@ class ChainStep:
             corr, state = bridge_correction(states[b.faulty], healthy, self.d[[b.healthy, b.out, b.faulty]],
                                             b.faulty > b.out, self.seq)
             p[b.faulty], P[b.faulty], corrected[b.faulty] = state.p_w_m, state.P, True
-            out.append(((b.faulty,), [corr], (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])))
+            one = (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])
+            out.append(((b.faulty,), [corr], one))
         self.bridged_steps += bool(out)
         return out
 

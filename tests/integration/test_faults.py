@@ -463,8 +463,9 @@ REGRESSIONS = {
     "regression_end_link_reboot": ("no level chain of these links holds a dead end link: 122 % of the rotors' thrust with the "
                                    "whole chain sharing, 152 % for its neighbour alone (python -m link_firmware_sim.design "
                                    "carry)"),
-    "regression_end_motor_off_bend": ("with motor 1 out of end link 3, tilted about 18 deg in the bend, its side has no null "
-                                      "space: the wrench needs 9.7 N of rotor 3 (8 N at most) and a reversal of rotor 2"),
+    "regression_end_motor_off_bend": ("with motor 1 out of end link 3, tilted about 18 deg in the bend, its side has "
+                                      "no null space: the wrench needs 9.7 N of rotor 3 (8 N at most) and a reversal "
+                                      "of rotor 2"),
 }
 SEEDED = sorted(p.stem for p in (ROOT / FAULTS).glob("regression_*.toml"))
 #: what else a seeded scenario must show: the fix that made it fly (metrics.json -> why it failed)

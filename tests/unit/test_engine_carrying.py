@@ -307,7 +307,8 @@ def test_a_link_left_out_bridges_a_neighbour_without_gps(gps_fault, groups, faul
             for lk in e.links:
                 if lk.index in alive:
                     mine = lk.index == faulty
-                    e.on_state(lk.row, straight_state(lk.index, n, t, dx=dx if mine else 0.0), flags if mine else flying, t)
+                    state = straight_state(lk.index, n, t, dx=dx if mine else 0.0)
+                    e.on_state(lk.row, state, flags if mine else flying, t)
         for _ in range(3):
             for e in engines:
                 for out in of(CorrectionOut, e.poll(t)):
