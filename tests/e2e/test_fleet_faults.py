@@ -159,7 +159,8 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     assert m["carrying"] == {"carried_s": {str(i): c for i, c in zip((1, 2, 3), carried)},  # in the metrics too
                              "carried_stretches": {str(i): c for i, c in zip((1, 2, 3), stretches)},
                              "carry_released": {str(i): comp["links"][str(i)]["carry_released"] for i in (1, 2, 3)},
-                             "state_loss": {str(i): x for i, x in zip((1, 2, 3), loss)}}
+                             "state_loss": {str(i): x for i, x in zip((1, 2, 3), loss)},
+                             "bridged_steps": comp["bridged_steps"]}
     # the neighbours at their rotors' limit while they carried it, link 2 never. Holding a dead
     # inner link takes 96 % of the rotors' thrust (python -m link_firmware_sim.design carry), and
     # how the two share it varies from run to run: 1.00-1.40 s and 1.13-1.34 s at the limit with
