@@ -52,14 +52,32 @@ def _pump(links, until, timeout_s=3.0, clock=time.monotonic):
     return resolved
 
 
+def _probe_key(bus) -> str:
+    return f"{bus.prefix}/probe/{bus.group}"
+
+
 def _subscribed(buses) -> bool:
-    """Whether another session subscribes to every bus's shift and boundary keys by now (Zenoh's
-    matching status of publishers that send to remote sessions only): a group is alive to the
+    """Whether every other session knows every bus's subscriptions by now. A group is alive to the
     others (its liveliness token) a moment before its subscriptions reach them, and a boundary or
-    shift published in that moment is lost."""
+    shift published in that moment is lost; Zenoh's matching status only says that some remote
+    session subscribes to a key, not which. So each bus holds a probe subscriber of its own,
+    declared after its real ones (:func:`_wait_live`), and every other session's publisher to that
+    probe's key must match it: a session's declarations travel in order on its links, so the
+    earlier ones have arrived too. (And each bus's own shift and boundary keys have a remote
+    subscriber.)"""
     for bus in buses:
         for key in (shift_key(bus.prefix), boundary_key(bus.prefix, bus.group)):
             probe = bus.session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
+            try:
+                if not probe.matching_status.matching:
+                    return False
+            finally:
+                probe.undeclare()
+    for sub in buses:
+        for pub in buses:
+            if pub is sub:
+                continue
+            probe = pub.session.declare_publisher(_probe_key(sub), allowed_destination=zenoh.Locality.REMOTE)
             try:
                 if not probe.matching_status.matching:
                     return False
@@ -71,7 +89,13 @@ def _subscribed(buses) -> bool:
 def _wait_live(links, n):
     """Pump until every open link sees ``n`` groups alive and their subscriptions are in place."""
     _pump(links, lambda r: all(len(lk.node.live) == n for lk in links if not lk.bus.closed))
-    assert wait_for(lambda: _subscribed([lk.bus for lk in links if not lk.bus.closed]), 5.0), "subscriptions missing"
+    buses = [lk.bus for lk in links if not lk.bus.closed]
+    probes = [bus.session.declare_subscriber(_probe_key(bus), lambda sample: None) for bus in buses]
+    try:
+        assert wait_for(lambda: _subscribed(buses), 5.0), "subscriptions missing"
+    finally:
+        for probe in probes:
+            probe.undeclare()
 
 
 def _two_live_links(cfg, buses) -> list[GroupLink]:
