@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..corrections import align_states
 from ..estimation.chain import ERR_P
 from ..estimation.constraints import tip_offsets
 from ..messages import Correction, LinkState
@@ -63,11 +64,12 @@ def bridged_position(p_healthy, q_healthy, d_healthy, d_out, p_faulty, q_faulty,
 def bridge_correction(faulty: LinkState, healthy: LinkState, d: np.ndarray, faulty_right: bool,
                       seq: int) -> tuple[Correction, LinkState]:
     """The faulty link's correction (position, along the tips' line only) and corrected state
-    through the link left out, ``healthy`` propagated to the faulty link's stamp with its velocity;
-    ``d``: the right-tip vectors of the healthy link, the link left out and the faulty link. The
-    corrected position's covariance: the faulty link's across the line, the healthy link's along it."""
-    p_healthy = healthy.p_w_m + healthy.v_w_m_s * (faulty.time_s - healthy.time_s)
-    p, u = bridged_position(p_healthy, healthy.q_wxyz, d[0], d[1], faulty.p_w_m, faulty.q_wxyz, d[2], faulty_right)
+    through the link left out, ``healthy`` propagated to the faulty link's stamp
+    (:func:`~companion.corrections.align_states`); ``d``: the right-tip vectors of the healthy
+    link, the link left out and the faulty link. The corrected position's covariance: the faulty
+    link's across the line, the healthy link's along it."""
+    _, p_healthy, _, q_healthy = align_states([healthy], faulty.time_s)
+    p, u = bridged_position(p_healthy[0], q_healthy[0], d[0], d[1], faulty.p_w_m, faulty.q_wxyz, d[2], faulty_right)
     P = np.array(faulty.P, dtype=float)
     across = np.eye(3) - np.outer(u, u)
     P[ERR_P, ERR_P] = across @ P[ERR_P, ERR_P] @ across + float(u @ healthy.P[ERR_P, ERR_P] @ u) * np.outer(u, u)
