@@ -306,6 +306,13 @@ class FaultConfig:
                 raise ValueError(f"{where}: the skeleton has links 1..{n_links}, got {i}")
 
     @property
+    def touches_gps(self) -> bool:
+        """Whether a fault here acts on a link's GPS: a scripted glitch (``[faults.gps]``) or an
+        injected GPS failure (``[faults.inject]`` on the gps unit); then ``metrics.json`` reports
+        every link's firmware GPS health (``faults.gps``)."""
+        return bool(self.gps.link) or (bool(self.inject.link) and self.inject.unit == "gps")
+
+    @property
     def fleet_only(self) -> list[str]:
         """The sections set here that batch mode cannot play (no processes, no wires)."""
         out = []

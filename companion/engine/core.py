@@ -326,6 +326,7 @@ class CompanionEngine:
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,
                                           "future": lk.future, "reboots": lk.reboots,
                                           "gps_fault_steps": lk.gps_fault_steps,
+                                          "bridged_steps": lk.bridged_steps,
                                           "carried_s": round(lk.carried.seconds(t_s), 3),
                                           "carried_stretches": lk.carried.stretches,
                                           "carry_released": self.carrying.release_count.get(lk.index, 0),

@@ -92,6 +92,8 @@ class LinkTrack:
     future: int = 0
     reboots: int = 0
     gps_fault_steps: int = 0  # steps it took part in one way (its GPS flagged faulty)
+    #: steps it was corrected along a neighbour left out (:mod:`.bridge`), though alone in the step
+    bridged_steps: int = 0
     #: cycles this link took no part in, by reason (see :data:`~companion.engine.selection.EXCLUSION_REASONS`)
     excluded: dict = field(default_factory=dict)
     excluded_at_report: int = 0

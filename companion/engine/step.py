@@ -30,6 +30,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..corrections import compute_corrections, finish_step, local_step
+from ..estimation.so3 import quat_from_rotvec, quat_mul
 from ..fleetnet.outcomes import PartBoundary, PartShift
 from ..messages import LinkState
 from ..quantiles import Quantiles
@@ -147,7 +148,7 @@ class ChainStep:
             corrected[rows] = True
             iterations = max(iterations, int(result.iterations.max()))
             done.append((seg, corrections, (result.p, result.v, result.q, P_seg)))
-        done += self._bridged(self.selection.bridges, states, corrected, p, q, P_corr)
+        done += self._bridged(self.selection.bridges, states, corrected, p, P_corr, done)
         self.step_times_ms.add((self._timer() - t0) * 1e3)
         for seg, corrections, result in done:
             self._send_corrections(seg, corrections, result)
@@ -155,22 +156,27 @@ class ChainStep:
             self.seq = (self.seq + 1) & 0xFFFF or 1
         return ekf, p, v, q, p_local, iterations, corrected, (P_ekf, P_corr)
 
-    def _bridged(self, bridges, states: list[LinkState], corrected: np.ndarray, p: np.ndarray, q: np.ndarray,
-                 P: np.ndarray) -> list[tuple]:
+    def _bridged(self, bridges, states: list[LinkState], corrected: np.ndarray, p: np.ndarray, P: np.ndarray,
+                 sent) -> list[tuple]:
         """The faulty neighbours of ``bridges`` (:class:`~.bridge.Bridge`) that nothing corrected,
         corrected along the link left out (:func:`~.bridge.bridge_correction`) from the healthy
-        neighbour's state (corrected, ``p`` and ``q``, when it was): each as ``(rows, corrections,
-        (p, v, q, P))`` to send; ``corrected``, ``p`` and ``P`` (the step log's) updated."""
+        neighbour's state (at its own stamp: with its correction of this step added, when ``sent``,
+        the step's ``(rows, corrections, result)``, has one): each as ``(rows, corrections, (p, v,
+        q, P))`` to send; ``corrected``, ``p`` and ``P`` (the step log's) updated."""
+        fixes = {r: c for rows, corrections, _ in sent for r, c in zip(rows, corrections)}
         out = []
         for b in bridges:
             if corrected[b.faulty]:
                 continue
             healthy = states[b.healthy]
-            if corrected[b.healthy]:
-                healthy = replace(healthy, p_w_m=p[b.healthy], q_wxyz=q[b.healthy])
+            fix = fixes.get(b.healthy)
+            if fix is not None:
+                healthy = replace(healthy, p_w_m=healthy.p_w_m + fix.dp_w_m, v_w_m_s=healthy.v_w_m_s + fix.dv_w_m_s,
+                                  q_wxyz=quat_mul(quat_from_rotvec(fix.dtheta_w_rad), healthy.q_wxyz))
             corr, state = bridge_correction(states[b.faulty], healthy, self.d[[b.healthy, b.out, b.faulty]],
                                             b.faulty > b.out, self.seq)
             p[b.faulty], P[b.faulty], corrected[b.faulty] = state.p_w_m, state.P, True
+            self.links[b.faulty].bridged_steps += 1
             one = (state.p_w_m[None], state.v_w_m_s[None], state.q_wxyz[None], state.P[None])
             out.append(((b.faulty,), [corr], one))
         self.bridged_steps += bool(out)
@@ -269,7 +275,7 @@ class ChainStep:
                 corrected[rows] = True
                 iterations = max(iterations, int(step.result.iterations))
                 out.append((tuple(rows), corrections, (pp, vv, qq, PP)))
-            out += self._bridged(bridges, states, corrected, p, q, P)
+            out += self._bridged(bridges, states, corrected, p, P, out)
             for rows, corrections, result in out:
                 self._send_corrections(rows, corrections, result)
             if out:

@@ -140,6 +140,18 @@ def process_folders(out_dir: Path, base: str) -> list[str]:
     return out
 
 
+def newest_ports(out_dir: Path, i: int) -> dict:
+    """0-based link ``i``'s ``linkN_ports.json`` of its newest process that wrote one (its
+    firmware's account since that boot, as a batch run reports it); ``{}`` if none did."""
+    name = f"link{i + 1}"
+    for folder in reversed(process_folders(out_dir, name)):
+        try:
+            return json.loads((out_dir / folder / f"{name}_ports.json").read_text())
+        except (OSError, ValueError):
+            continue
+    return {}
+
+
 def vehicle_log(out_dir: Path, i: int) -> dict[str, np.ndarray] | None:
     """0-based link ``i``'s flight log: its first process's and, after reboots, its restarted
     processes' (:func:`process_folders`), one after the other."""
@@ -221,8 +233,8 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[
     scripted and asked for at run time, :class:`~sitl.fleet.faults.FleetFaults` ``faults``; a
     vehicle's: killed, restarted, back in the lockstep, rotors on, first corrected by the
     companion; the scripted reboot's also as ``link_reboot``) and the fault socket's ``requests``
-    counts, the impaired wires' counters, the GPS glitch as the firmware reported it, and the
-    injected failure (when the launcher sent its commands, ``inject_sent``, and what the vehicle's
+    counts, the impaired wires' counters, every link's GPS health when a fault touches the GPS, and
+    the injected failure (when the launcher sent its commands, ``inject_sent``, and what the vehicle's
     failure filter reported)."""
     out: dict = {}
     def public(tl: dict) -> dict:  # (the wall-clock stamps are the failover figures' own)
@@ -253,17 +265,9 @@ def fault_report(sc: Scenario, merged: dict, out_dir: Path, faults, wired: list[
         m = sc.faults.mavlink
         out["mavlink"] = {"loss": m.loss, "delay_ms": m.delay_ms, "jitter_ms": m.jitter_ms,
                           "links": [i + 1 for i in wired], "wires": stats}
-    if sc.faults.gps.link:
-        g = sc.faults.gps
-        i = g.link - 1
-        entry = {"link": g.link}
-        for folder in process_folders(out_dir, f"link{i + 1}"):
-            try:
-                ports = json.loads((out_dir / folder / f"link{i + 1}_ports.json").read_text())
-            except (OSError, ValueError):
-                continue
-            entry.setdefault("firmware", []).append(ports.get("gps", {}))
-        out["gps"] = entry
+    if sc.faults.touches_gps:
+        out["gps"] = {"link": sc.faults.gps.link,
+                      "firmware": [newest_ports(out_dir, i).get("gps", {}) for i in range(sc.skeleton.n_links)]}
     return out
 
 

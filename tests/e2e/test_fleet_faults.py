@@ -181,6 +181,10 @@ def test_scripted_faults_a_link_reboots_the_wires_lose_and_a_gps_drops_out(tmp_p
     # link 3's GPS outage: reported by its firmware, and the flight went on
     gps3 = json.loads((tmp_path / "link3" / "link3_ports.json").read_text())["gps"]
     assert gps3["faults"] >= 1 and gps3["resets"] == 0 and 1.0 < gps3["fault_s"] < 6.0
+    # metrics.json's faults.gps: every link's firmware, each its newest process's (link 2's restart)
+    firmware = m["faults"]["gps"]["firmware"]
+    assert len(firmware) == 3 and firmware[2] == gps3
+    assert firmware[1] == json.loads((tmp_path / "link2-restart" / "link2_ports.json").read_text())["gps"]
     # those STATUSTEXTs in the merged log (run.mcap's /statustext): link 3's GPS fault among them
     log = np.load(tmp_path / "log.npz")
     texts = list(zip(log["statustext_link"].tolist(), log["statustext_text"].tolist()))

@@ -334,11 +334,43 @@ def test_a_link_left_out_bridges_a_neighbour_without_gps(gps_fault, groups, faul
     log = own.log_arrays()
     assert (summary["links"]["2"]["carried_s"] > 0.5) == silent and not corrections[down]
     assert not log["corrected_sckf"][-1][down] and np.isnan(log["p_corr_sckf"][-1][down]).all() == silent
+    faulty_link = next(e for e in engines if any(lk.index == faulty for lk in e.links)).summary()["links"]
+    bridged = faulty_link[str(faulty + 1)]["bridged_steps"]  # (the link's own count)
     if gps_fault:
         assert len(corrections[faulty]) > 10 and summary["bridged_steps"] >= len(corrections[faulty])
+        # (one bridged link: each of its engine's bridged steps corrected it)
+        assert len(corrections[faulty]) <= bridged == sum(e.summary()["bridged_steps"] for e in engines)
         last = corrections[faulty][-1]
         np.testing.assert_allclose(last.dp_w_m, [-out_dx, 0.0, 0.0], atol=1e-6)
         assert not last.dv_w_m_s.any() and not last.dtheta_w_rad.any()
         assert log["corrected_sckf"][-1][faulty]
     else:
-        assert summary["bridged_steps"] == 0 and not corrections[faulty]
+        assert summary["bridged_steps"] == 0 == bridged and not corrections[faulty]
+
+
+def test_the_bridge_starts_from_the_healthy_neighbours_corrected_state_at_its_own_stamp():
+    """Four links flying sideways at 1 m/s; link 2's EKF is not usable (left out), link 1 flags a
+    GPS fault and says it is 1 m further out than it is, and link 3's states are 20 ms older than
+    link 4's. Links 3 and 4 are corrected together (aligned to link 4's stamp), and link 1 is
+    bridged from link 3's corrected state at link 3's own stamp, carried to link 1's: the metre
+    comes off exactly, and nothing moves it sideways (from link 3's state at the segment's stamp,
+    taken for one at its own, link 3's tip would be 2 cm ahead)."""
+    from companion.engine import CorrectionOut
+    from companion.messages import STATE_FLAG_GPS_FAULT, LinkState
+
+    n, vy, lag = 4, 1.0, 0.02
+    engine = CompanionEngine(setup_for(n), start_center=(0.0, 0.0, 2.0))
+    ok = STATE_FLAG_EKF_OK | STATE_FLAG_ARMED
+    flags = (ok | STATE_FLAG_GPS_FAULT, STATE_FLAG_ARMED, ok, ok)
+    corrections = []
+    t = 0.0
+    while t < 1.5:
+        t = round(t + 0.02, 6)
+        for row in range(n):
+            stamp = t - (lag if row == 2 else 0.0)
+            s = straight_state(row, n, stamp, dx=-1.0 if row == 0 else 0.0)
+            engine.on_state(row, LinkState(row, stamp, s.p_w_m + [0.0, vy * stamp, 0.0], np.array([0.0, vy, 0.0]),
+                                           s.q_wxyz, s.omega_b_rad_s, s.P), flags[row], t)
+        corrections += [o.correction for o in of(CorrectionOut, engine.poll(t)) if o.row == 0]
+    assert len(corrections) > 10 and engine.summary()["links"]["1"]["bridged_steps"] >= len(corrections)
+    np.testing.assert_allclose(corrections[-1].dp_w_m, [1.0, 0.0, 0.0], atol=1e-6)

@@ -77,7 +77,7 @@ def fly(
     metrics["corrections_rejected"] = runner.corrections_rejected
     # the firmware's own account (a fleet's linkN_ports.json), since each link's last boot
     metrics["thrust_limit"] = [fw.thrust_limit.report() for fw in runner.firmware]
-    if sc.faults.gps.link:  # what each link's firmware made of the glitch (GPS health)
+    if sc.faults.touches_gps:  # what each link's firmware made of it (GPS health)
         metrics.setdefault("faults", {})["gps"] = {
             "link": sc.faults.gps.link, "firmware": [fw.gps_report(runner.sim_s) for fw in runner.firmware]}
     if runner.link_fault:
