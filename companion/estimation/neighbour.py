@@ -25,7 +25,9 @@ attitude measurement the mounts cannot back). Unlike the chain constraint, it me
 it needs no absolute position: common-mode GNSS errors cancel in it.
 
 :func:`neighbour_updates` applies such measurements (:class:`NeighbourMeasurement`) to a chain's
-EKF estimates as Kalman updates on their stacked state, before the constraint application:
+EKF estimates as iterated Kalman updates on their stacked state (with GNSS positions known to
+metres, the camera's lever arm at the prior is that far off, and a single linearisation hides the
+relative attitude in the positions), before the constraint application:
 independent estimates before them, correlated after (the covariance is returned whole, as
 :func:`~.sckf.constraint_apply_dense` takes it). :func:`relative_pose_update` is one measurement
 of one pair. Pure numpy.
@@ -41,13 +43,16 @@ from .chain import ERR_DIM, ERR_P, ERR_TH, ERR_V, ChainInputError
 from .sckf import block_diag_covariance
 from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
 
-__all__ = ["NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual", "relative_pose_jacobian",
-           "mount_covariance",
-           "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates", "RelativePoseUpdate",
-           "relative_pose_update"]
+__all__ = ["ITERATIONS", "NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual",
+           "relative_pose_jacobian", "mount_covariance", "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates",
+           "RelativePoseUpdate", "relative_pose_update"]
 
 #: the gate of a neighbour measurement: chi-square with 6 degrees of freedom at 0.999
 NEIGHBOUR_GATE_CHI2 = 22.46
+#: Gauss-Newton iterations of each update at most, and the change of the error state [m, m/s,
+#: rad] below which they stop
+ITERATIONS = 5
+ITERATION_TOL = 1e-9
 
 #: rows of the residual: the camera-frame rotation error, then the translation error (as
 #: :data:`companion.vision.geometry.ROT` / ``POS``)
@@ -185,15 +190,18 @@ class NeighbourUpdates:
     accepted: np.ndarray
 
 
-def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, w=None) -> NeighbourUpdates:
+def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, w=None,
+                      iterations: int = ITERATIONS) -> NeighbourUpdates:
     """Kalman updates of ``n`` links (``p``, ``v`` (n, 3), ``q`` (n, 4); ``P`` their (n, 9, 9)
     independent EKF covariances or a whole (9n, 9n) one) with each of ``measurements``
     (:class:`NeighbourMeasurement`) in turn, on the stacked state: each moves every link its
     pair is correlated with, and the covariance comes back whole, ready for the constraint
-    application (:func:`~.sckf.constraint_apply_dense`). Joseph form; the error is injected as
+    application (:func:`~.sckf.constraint_apply_dense`). Each update is iterated (Gauss-Newton
+    from the prior, relinearised at the newest estimate, at most ``iterations`` times; 1: the
+    plain update), its covariance in Joseph form with the last gain; the error is injected as
     the chain's estimators do (positions and velocities added, attitudes by
-    :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof) is rejected and
-    changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s`` old is then
+    :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof, at the prior) is
+    rejected and changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s`` old is then
     compared with the model at the pair's states taken back that long (``p - v age``,
     ``q (x) Exp(-w age)``, as the step aligns states forward), its Jacobian at the states
     themselves; without ``w`` the age is not used. ``ChainInputError`` for shapes, non-finite
@@ -216,30 +224,55 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
         i, j = int(m.observer), int(m.observed)
         if max(i, j) >= n:
             raise ChainInputError(f"measurement {k}: links {i} and {j} of {n}", field="measurements", index=max(i, j))
-        if w is not None and m.age_s > 0.0:  # the model at the capture time
-            (pi, qi), (pj, qj) = ((p[k] - v[k] * m.age_s, quat_mul(q[k], quat_from_rotvec(-w[k] * m.age_s)))
-                                  for k in (i, j))
-            r = relative_pose_residual(m.R_cm, m.t_cm_m, pi, qi, pj, qj, m.view)
-        else:
-            r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)
-        H = np.zeros((6, N))
-        H[:, ERR_DIM * i:ERR_DIM * (i + 1)], H[:, ERR_DIM * j:ERR_DIM * (j + 1)] = \
-            relative_pose_jacobian(p[i], q[i], p[j], q[j], m.view)
-        PHt = P @ H.T
-        S = H @ PHt + m.cov
-        S_inv = np.linalg.inv(0.5 * (S + S.T))
-        nis[k] = float(r @ S_inv @ r)
+        r, H = _residual_and_jacobian(m, p, v, q, w, i, j, N)
+        S = H @ P @ H.T + m.cov
+        nis[k] = float(r @ np.linalg.solve(0.5 * (S + S.T), r))
         if gate_chi2 is not None and nis[k] > gate_chi2:
             continue
         accepted[k] = True
-        K = PHt @ S_inv
+        # iterated (Gauss-Newton from the prior x0): the residual and its Jacobian at the newest
+        # estimate x, the innovation taken back to x0 as r(x0) ~ r(x) + H (x - x0); one
+        # iteration is the plain update. (Positions known to metres only put the camera's lever
+        # arm far from where the chain holds it; the first pass corrects them, the next ones the
+        # attitudes they hid.)
+        dx = np.zeros(N)
+        x = (p, v, q)
+        for it in range(iterations):
+            PHt = P @ H.T
+            K = PHt @ np.linalg.inv(0.5 * (H @ PHt + m.cov + (H @ PHt + m.cov).T))
+            new = K @ (r + H @ dx)
+            done = float(np.max(np.abs(new - dx))) < ITERATION_TOL
+            dx = new
+            x = _inject(p, v, q, dx.reshape(n, ERR_DIM))
+            if done or it == iterations - 1:
+                break
+            r, H = _residual_and_jacobian(m, *x, w, i, j, N)
         A = np.eye(N) - K @ H
         P = A @ P @ A.T + K @ m.cov @ K.T
         P = 0.5 * (P + P.T)
-        dx = (K @ r).reshape(n, ERR_DIM)
-        p, v = p + dx[:, ERR_P], v + dx[:, ERR_V]
-        q = np.stack([retract(q[k2], dx[k2, ERR_TH]) for k2 in range(n)])
+        p, v, q = x
     return NeighbourUpdates(p, v, q, P, nis, accepted)
+
+
+def _residual_and_jacobian(m: NeighbourMeasurement, p, v, q, w, i: int, j: int, N: int):
+    """Measurement ``m``'s residual (at the capture time when ``w`` is given) and its (6, N)
+    Jacobian on the stacked error state, at the states ``p``, ``v``, ``q``."""
+    if w is not None and m.age_s > 0.0:  # the model at the capture time
+        (pi, qi), (pj, qj) = ((p[k] - v[k] * m.age_s, quat_mul(q[k], quat_from_rotvec(-w[k] * m.age_s)))
+                              for k in (i, j))
+        r = relative_pose_residual(m.R_cm, m.t_cm_m, pi, qi, pj, qj, m.view)
+    else:
+        r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)
+    H = np.zeros((6, N))
+    H[:, ERR_DIM * i:ERR_DIM * (i + 1)], H[:, ERR_DIM * j:ERR_DIM * (j + 1)] = \
+        relative_pose_jacobian(p[i], q[i], p[j], q[j], m.view)
+    return r, H
+
+
+def _inject(p, v, q, dx):
+    """The states ``p``, ``v``, ``q`` with the error ``dx`` (n, 9) put in (attitudes by :func:`~.so3.retract`)."""
+    return (p + dx[:, ERR_P], v + dx[:, ERR_V],
+            np.stack([retract(q[k], dx[k, ERR_TH]) for k in range(len(q))]))
 
 
 @dataclass(frozen=True)

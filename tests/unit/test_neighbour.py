@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.estimation.chain import ERR_DIM, ERR_P, ERR_TH, ChainInputError
-from companion.estimation.neighbour import (NeighbourMeasurement, NeighbourView, marker_in_camera,
+from companion.estimation.neighbour import (ITERATIONS, NeighbourMeasurement, NeighbourView, marker_in_camera,
                                             mount_covariance, neighbour_updates, relative_pose_jacobian,
                                             relative_pose_residual, relative_pose_update)
 from companion.estimation.sckf import CAParams, constraint_apply_dense, diagonal_blocks
-from companion.estimation.so3 import (attitude_error, quat_from_rotvec, quat_mul, quat_to_rotmat, retract,
-                                     rotmat_to_quat)
+from companion.estimation.so3 import (attitude_error, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotmat,
+                                     quat_to_rotvec, retract, rotmat_to_quat)
 from companion.vision.geometry import frame_from_axes
 
 #: a camera at link 1's right tip looking along +x (its neighbour), a marker on top of link 2's
@@ -137,6 +137,50 @@ def test_the_update_is_consistent_and_cuts_the_relative_error():
     D[:, ERR_DIM:ERR_DIM + 3], D[:, 0:3] = np.eye(3), -np.eye(3)  # p_j - p_i
     assert rms_after < 0.5 * rms_before
     assert rms_after == pytest.approx(np.sqrt(np.trace(D @ up.P @ D.T)), rel=0.15)  # as the posterior says
+
+
+@pytest.mark.parametrize("iterations", [1, ITERATIONS], ids=["plain", "iterated"])
+def test_with_positions_known_to_a_metre_the_iterated_update_gives_the_chain_its_relative_attitude(iterations):
+    """Two joined links whose EKFs know their positions to 1 m (GNSS without RTK, the common
+    error taken out) and attitudes to 2 deg, a PnP pose precise to a millimetre
+    across the line of sight, then the joint constraint. Linearised once at the prior, the
+    camera's lever arm is off by as much as the positions are, and the update hides the relative
+    attitude in the positions: after the constraint it is no better than before. Iterated, the
+    update is consistent (NEES of the 18 dof within its 95 % bounds) and, with the constraint,
+    puts the relative pitch and yaw to a small fraction of a degree."""
+    rng = np.random.default_rng(8)
+    d = np.array([[0.5, 0.0, 0.0]] * 2)
+    q_t = quat_from_rotvec(rng.normal(0.0, 0.1, (2, 3)))
+    R_t = quat_to_rotmat(q_t)
+    p_t = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 2.0] + R_t[0] @ d[0] + R_t[1] @ d[1]])
+    v_t = np.zeros((2, 3))
+    P_blocks = np.stack([np.diag(np.r_[[1.0] * 3, [0.1**2] * 3, [np.radians(2.0) ** 2] * 3])] * 2)
+    cov = np.diag(np.r_[[np.radians(1.0) ** 2] * 3, [0.001**2, 0.001**2, 0.005**2]])
+    L, Lc = np.linalg.cholesky(P_blocks), np.linalg.cholesky(cov)
+    R_true, t_true = marker_in_camera(p_t[0], q_t[0], p_t[1], q_t[1], VIEW)
+    rel_true = quat_mul(quat_conj(q_t[0]), q_t[1])
+    nees, rel = [], []
+    for _ in range(300):
+        e = np.einsum("kij,kj->ki", L, rng.standard_normal((2, ERR_DIM)))
+        p, v = p_t - e[:, ERR_P], v_t - e[:, 3:6]
+        q = np.stack([retract(q_t[k], -e[k, ERR_TH]) for k in range(2)])
+        n = Lc @ rng.standard_normal(6)
+        m = NeighbourMeasurement(0, 1, quat_to_rotmat(quat_from_rotvec(n[:3])) @ R_true, t_true + n[3:], cov, VIEW)
+        up = neighbour_updates(p, v, q, P_blocks, [m], iterations=iterations)
+        err = np.concatenate([np.r_[p_t[k] - up.p[k], v_t[k] - up.v[k], attitude_error(q_t[k], up.q[k])]
+                              for k in range(2)])
+        nees.append(err @ np.linalg.solve(up.P, err))
+        ca = constraint_apply_dense(up.p, up.v, up.q, np.zeros((2, 3)), d, up.P, CAParams(eps=1e-6))
+        # (about the line of sight, along x, only the marker's own orientation tells: leave it out)
+        rel.append(np.degrees(np.linalg.norm(quat_to_rotvec(quat_mul(quat_mul(quat_conj(ca.q[0]), ca.q[1]),
+                                                                           quat_conj(rel_true)))[1:])))
+    rms = float(np.sqrt(np.mean(np.square(rel))))
+    if iterations == 1:
+        assert rms > 0.8 and np.mean(nees) > 18 + 1.96 * np.sqrt(2 * 18 / 300)
+    else:
+        half = 1.96 * np.sqrt(2 * 18 / 300)
+        assert 18 - half < float(np.mean(nees)) < 18 + half
+        assert rms < 0.4, rms
 
 
 def test_the_gate_and_bad_input():
