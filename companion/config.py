@@ -146,6 +146,10 @@ class CompanionConfig:
     how well the cameras' and markers' mounts on their links are known (each position per axis,
     each orientation per axis); their share of a measurement's covariance
     (:func:`~companion.estimation.neighbour.mount_covariance`) is added to the PnP's.
+    ``neighbour_hold_s``: each pair's newest accepted measurement goes into the later steps too
+    while it is at most this old (its age at each step taken into account; 0: each once,
+    :class:`~companion.engine.neighbours.NeighbourQueue`), so a camera slower than the step still
+    corrects every step.
 
     Disk: each link's tlog is rotated when it reaches ``tlog_max_mb`` (0: never), keeping
     ``tlog_keep`` older files (:mod:`companion.mavlink.tlog`), so a daemon left running keeps at
@@ -182,15 +186,16 @@ class CompanionConfig:
     tlog_max_mb: float = TLOG_MAX_MB
     tlog_keep: int = TLOG_KEEP
     neighbour_cameras: bool = True
-    neighbour_mount_std_m: float = 0.006
-    neighbour_mount_std_deg: float = 0.2
+    neighbour_mount_std_m: float = 0.002
+    neighbour_mount_std_deg: float = 0.1
+    neighbour_hold_s: float = 0.25
 
     def __post_init__(self) -> None:
         self.params
         require_positive(self, "rate_hz", "target_rate_hz", "state_rate_hz", "health_period_s", "stamp_margin_s",
                          "clock_rate_max", "reboot_silence_s", "reboot_frames", "carry_silence_s")
         require_nonnegative(self, "carry_spinup_s", "tlog_max_mb", "tlog_keep", "neighbour_mount_std_m",
-                            "neighbour_mount_std_deg")
+                            "neighbour_mount_std_deg", "neighbour_hold_s")
         m = self.carry_silence_max_s
         if m is not None and not (math.isfinite(m) and m >= self.carry_silence_s):
             raise ValueError(f"carry_silence_max_s ({m}) must be finite and at least carry_silence_s "

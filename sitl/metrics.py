@@ -66,7 +66,7 @@ import warnings
 
 import numpy as np
 
-from companion.estimation.so3 import attitude_error, quat_conj, quat_mul
+from companion.estimation.so3 import attitude_error, quat_conj, quat_mul, quat_to_rotmat
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
            "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
@@ -225,21 +225,29 @@ def nees_bounds95(samples: np.ndarray | float, dof: int = 3) -> np.ndarray:
 
 def relative_error_metrics(log: dict, rows: np.ndarray, sckf: bool) -> dict:
     """Per joint, the RMS error at the companion steps ``rows`` of the neighbours' relative
-    position (``pos_m``: of ``p_{i+1} - p_i``) and relative attitude (``att_deg``: the angle of
-    ``R_i^T R_{i+1}``'s error), for the EKF states and, with the SCKF, the corrected ones: what a
-    measurement between neighbours (a camera seeing its neighbour) improves."""
+    position (``pos_m``: of ``p_{i+1} - p_i``, in the world frame; ``pos_body_m``: of ``R_i^T
+    (p_{i+1} - p_i)``, where link ``i`` sees its neighbour, the relative pose's own position,
+    which no error of the two links' common attitude moves) and relative attitude (``att_deg``:
+    the angle of ``R_i^T R_{i+1}``'s error), for the EKF states and, with the SCKF, the corrected
+    ones: what a measurement between neighbours (a camera seeing its neighbour) improves."""
     def rel_q(q):
         return quat_mul(quat_conj(q[:, :-1]), q[:, 1:])
 
+    def in_body(p, q):
+        return np.einsum("knji,knj->kni", quat_to_rotmat(q[:, :-1]), np.diff(p, axis=1))
+
     p_true, q_true = log["p_true_sckf"][rows], log["q_true_sckf"][rows]
-    d_true, r_true = np.diff(p_true, axis=1), rel_q(q_true)
-    out: dict = {"pos_m": {}, "att_deg": {}}
+    d_true, b_true, r_true = np.diff(p_true, axis=1), in_body(p_true, q_true), rel_q(q_true)
+    out: dict = {"pos_m": {}, "pos_body_m": {}, "att_deg": {}}
     for tag, (pk, qk) in (("ekf", ("p_ekf_sckf", "q_ekf_sckf")), ("sckf", ("p_corr_sckf", "q_corr_sckf"))):
         if tag == "sckf" and not sckf:
             continue
-        d_err = np.linalg.norm(np.diff(log[pk][rows], axis=1) - d_true, axis=-1)
-        a_err = np.degrees(np.linalg.norm(attitude_error(rel_q(log[qk][rows]), r_true), axis=-1))
+        p, q = log[pk][rows], log[qk][rows]
+        d_err = np.linalg.norm(np.diff(p, axis=1) - d_true, axis=-1)
+        b_err = np.linalg.norm(in_body(p, q) - b_true, axis=-1)
+        a_err = np.degrees(np.linalg.norm(attitude_error(rel_q(q), r_true), axis=-1))
         out["pos_m"][tag] = rms(d_err).tolist()
+        out["pos_body_m"][tag] = rms(b_err).tolist()
         out["att_deg"][tag] = rms(a_err).tolist()
     return out
 

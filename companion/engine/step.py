@@ -84,7 +84,7 @@ class ChainStep:
         self.seq = 0
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
         #: neighbour camera measurements for the next step (applied before the constraint)
-        self.neighbours = NeighbourQueue()
+        self.neighbours = NeighbourQueue(hold_s=cfg.neighbour_hold_s)
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
         #: steps in which a link was corrected along a link left out (:mod:`.bridge`)

@@ -15,13 +15,25 @@ from companion.configfile import require_nonnegative, require_positive
 from companion.vision.dictionaries import check_marker
 from companion.vision.geometry import CameraIntrinsics, frame_from_axes
 
-__all__ = ["CameraMount", "MarkerMount", "link_of"]
+__all__ = ["CameraMount", "MarkerMount", "link_of", "placement_error"]
 
 
 def link_of(body: str) -> int | None:
     """The 0-based link a body name is (``link<i>``), else ``None`` (the world, a load)."""
     m = re.fullmatch(r"link(\d+)", body)
     return int(m.group(1)) - 1 if m else None
+
+
+def placement_error(rng: np.random.Generator, std_m: float, std_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where a mount really sits against where it is said to: a body-frame offset [m] of
+    ``N(0, std_m)`` per axis and a body-frame rotation ``Exp(N(0, std_deg) per axis)`` that turns
+    the nominal orientation into the true one (``rng`` untouched when both are 0)."""
+    if not (std_m or std_deg):
+        return np.zeros(3), np.eye(3)
+    dp, phi = std_m * rng.standard_normal(3), np.radians(std_deg) * rng.standard_normal(3)
+    angle = float(np.linalg.norm(phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]]) / max(angle, 1e-300)
+    return dp, np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 @dataclass(frozen=True)
@@ -36,6 +48,10 @@ class CameraMount:
     attributed to (0-based; -1: the link the body is, ``link<i>`` -> i - 1, else 0). Fleet mode
     publishes the frames over Zenoh (:mod:`sitl.cameras.stream`) with the image as ``wire_format``
     (``png``: lossless; ``raw``: no encoding; ``jpeg``: lossy, ``wire_quality`` 1-100).
+
+    A mount error: the camera really sits ``mount_std_m`` per axis and ``mount_std_deg`` per
+    axis (a rotation on the body side) off where ``pos_b_m`` and the axes say, drawn once from the
+    scenario's seed (:meth:`true_mount`); everything that estimates takes the nominal mount.
 
     A calibration error: the camera's true intrinsics are drawn once from the scenario's seed
     around the nominal ones the frames carry (what the estimator believes): the focal lengths
@@ -86,6 +102,8 @@ class CameraMount:
     gain_std: float = 0.0
     gain_time_s: float = 3.0
     gamma: float = 1.0
+    mount_std_m: float = 0.0
+    mount_std_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_]+", self.name):
@@ -94,7 +112,8 @@ class CameraMount:
         self.intrinsics()  # size, field of view and distortion checked there
         require_positive(self, "rate_hz", "gain_time_s", "gamma")
         require_nonnegative(self, "latency_s", "noise_std_dn", "exposure_s", "calib_focal_std_frac",
-                            "calib_principal_std_px", "calib_dist_std_frac", "latency_jitter_s", "gain_std")
+                            "calib_principal_std_px", "calib_dist_std_frac", "latency_jitter_s", "gain_std",
+                            "mount_std_m", "mount_std_deg")
         if not 0.0 <= self.vignetting < 1.0:
             raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
         if self.gain_std > 1.0:
@@ -112,6 +131,12 @@ class CameraMount:
             raise ValueError(f"wire_quality must be in 1..100, got {self.wire_quality}")
         if self.exposure_s >= 1.0 / self.rate_hz:
             raise ValueError(f"exposure_s must be shorter than the frame period {1.0 / self.rate_hz:g} s")
+
+    def true_mount(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Where the camera really is on its body, ``(pos_b_m, R_b_c)``, drawn with ``rng``
+        (:func:`placement_error`; the configured mount without a mount error)."""
+        dp, R = placement_error(rng, self.mount_std_m, self.mount_std_deg)
+        return np.asarray(self.pos_b_m, dtype=float) + dp, R @ self.R_b_c()
 
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics.from_fov(self.width_px, self.height_px, self.fovy_deg, self.dist_coeffs)
@@ -156,7 +181,7 @@ class CameraMount:
         return self.latency_s + cap * self.latency_jitter_s
 
     def R_b_c(self) -> np.ndarray:
-        """Camera (OpenCV axes) to body rotation."""
+        """Camera (OpenCV axes) to body rotation, as configured."""
         return frame_from_axes(self.optical_axis_b, self.image_right_b)
 
     def vehicle_index(self) -> int:
@@ -171,7 +196,9 @@ class MarkerMount:
     """An ArUco marker ``id`` of ``dictionary`` on ``body``, its centre at ``pos_b_m``, its face
     normal (marker z) ``normal_b`` and its right (marker x) ``right_b`` (body frame; orthogonal);
     ``size_m`` is the side of the black square (the length PnP takes); a white quiet zone of
-    ``quiet_zone_bits`` bits surrounds it."""
+    ``quiet_zone_bits`` bits surrounds it. A mount error (``mount_std_m``, ``mount_std_deg``) as
+    :class:`CameraMount`'s: the marker really sits that far off its configured mount
+    (:meth:`true_mount`)."""
 
     id: int
     body: str = "world"
@@ -181,13 +208,21 @@ class MarkerMount:
     normal_b: tuple[float, float, float] = (0.0, 0.0, 1.0)
     right_b: tuple[float, float, float] = (1.0, 0.0, 0.0)
     quiet_zone_bits: int = 1
+    mount_std_m: float = 0.0
+    mount_std_deg: float = 0.0
 
     def __post_init__(self) -> None:
         require_positive(self, "size_m")
-        require_nonnegative(self, "quiet_zone_bits")
+        require_nonnegative(self, "quiet_zone_bits", "mount_std_m", "mount_std_deg")
         check_marker(self.dictionary, self.id)
         frame_from_axes(self.normal_b, self.right_b)
 
     def R_b_m(self) -> np.ndarray:
-        """Marker to body rotation."""
+        """Marker to body rotation, as configured."""
         return frame_from_axes(self.normal_b, self.right_b)
+
+    def true_mount(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Where the marker really is on its body, ``(pos_b_m, R_b_m)``, drawn with ``rng``
+        (:func:`placement_error`; the configured mount without a mount error)."""
+        dp, R = placement_error(rng, self.mount_std_m, self.mount_std_deg)
+        return np.asarray(self.pos_b_m, dtype=float) + dp, R @ self.R_b_m()

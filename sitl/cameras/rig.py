@@ -55,8 +55,8 @@ from .photometry import SensorResponse, SunSchedule
 from .rendering import require_rendering
 from .scene import SceneConfig, scene_rng
 
-__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "vision_mjcf", "CameraRig", "Delivery",
-           "pixel_maps", "fast_renderer"]
+__all__ = ["CameraMount", "MarkerMount", "FrameTruth", "CapturedFrame", "mount_rng", "vision_mjcf", "CameraRig",
+           "Delivery", "pixel_maps", "fast_renderer"]
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +93,19 @@ def _ensure_offscreen(xml: str, width: int, height: int) -> str:
     return xml[: m.start()] + f'<global offwidth="{w}" offheight="{h}"/>' + xml[m.end():]
 
 
+def mount_rng(seed: int, kind: str, key: int) -> np.random.Generator:
+    """The stream that places camera ``key`` (its index) or marker ``key`` (its id) of a
+    scenario of ``seed`` (:meth:`~.config.CameraMount.true_mount`)."""
+    return np.random.default_rng([seed, 0x3E77 if kind == "camera" else 0x3A7C, key])
+
+
 def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[MarkerMount, ...],
                 min_offscreen: tuple[int, int] = (640, 480), scene: SceneConfig | None = None,
                 seed: int = 0) -> tuple[str, dict[str, bytes]]:
     """``xml`` with the cameras (``cam_<name>``), the marker boxes (``marker<id>``, textured) and
-    their sites (``marker<id>``), an offscreen buffer large enough for every camera and, unless it
-    is the default one, ``scene`` (its random parts from ``seed``: :func:`~sitl.cameras.backdrop.scene_mjcf`);
+    their sites (``marker<id>``), each where its mount error (from ``seed``: :func:`mount_rng`)
+    really puts it, an offscreen buffer large enough for every camera and, unless it is the
+    default one, ``scene`` (its random parts from ``seed``: :func:`~sitl.cameras.backdrop.scene_mjcf`);
     returns the MJCF and the PNG assets it names (pass both to ``MjModel.from_xml_string``)."""
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
@@ -120,18 +127,19 @@ def vision_mjcf(xml: str, cameras: tuple[CameraMount, ...], markers: tuple[Marke
             f'specular="0" shininess="0" reflectance="0" emission="{emission:.9g}"/>',
         ]
         half = 0.5 * m.size_m / fraction
-        R = m.R_b_m()
+        pos, R = m.true_mount(mount_rng(seed, "marker", m.id))
         q = rotmat_to_quat(R)
-        centre = np.asarray(m.pos_b_m) - R[:, 2] * (0.5 * MARKER_THICKNESS_M)  # the face at pos_b_m
+        centre = pos - R[:, 2] * (0.5 * MARKER_THICKNESS_M)  # the face at pos
         xml = _insert_in_body(xml, m.body, (
             f'<geom name="marker{m.id}" type="box" size="{half:.9g} {half:.9g} {0.5 * MARKER_THICKNESS_M:.9g}" '
             f'pos="{_fmt(centre)}" quat="{_fmt(q)}" material="marker{m.id}_mat" contype="0" conaffinity="0" '
             f'mass="0"/>\n'
-            f'<site name="marker{m.id}" pos="{_fmt(m.pos_b_m)}" quat="{_fmt(q)}" size="0.005" rgba="0 0 0 0"/>'))
-    for c in cameras:
-        R = c.R_b_c() @ CV_TO_MUJOCO_CAM  # MuJoCo camera axes in the body
+            f'<site name="marker{m.id}" pos="{_fmt(pos)}" quat="{_fmt(q)}" size="0.005" rgba="0 0 0 0"/>'))
+    for index, c in enumerate(cameras):
+        pos, R_b_c = c.true_mount(mount_rng(seed, "camera", index))
+        R = R_b_c @ CV_TO_MUJOCO_CAM  # MuJoCo camera axes in the body
         xml = _insert_in_body(xml, c.body, (
-            f'<camera name="cam_{c.name}" pos="{_fmt(c.pos_b_m)}" xyaxes="{_fmt(R[:, 0])} {_fmt(R[:, 1])}" '
+            f'<camera name="cam_{c.name}" pos="{_fmt(pos)}" xyaxes="{_fmt(R[:, 0])} {_fmt(R[:, 1])}" '
             f'fovy="{c.fovy_deg:.9g}"/>'))
     if asset_lines:
         xml = xml.replace("<worldbody>", "<asset>\n" + "\n".join(asset_lines) + "\n  </asset>\n  <worldbody>", 1)

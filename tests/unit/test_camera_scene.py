@@ -218,3 +218,41 @@ def test_a_tiny_frame_of_the_lit_scene_under_a_passing_cloud():
     assert sun == pytest.approx(0.7 * factors[0])
     assert min(factors) < 0.5 < 0.9 < max(factors)  # the sun comes and goes
     assert f.frame.image.std() > 3  # the checker shows
+
+
+@pytest.mark.parametrize("std_m, std_deg", [(0.0, 0.0), (0.002, 0.1)], ids=["exact", "mount_error"])
+def test_cameras_and_markers_sit_where_their_mount_error_puts_them(std_m, std_deg):
+    """A camera and a marker with a mount error are placed in the model off their configured
+    mounts by a seeded draw (the same seed: the same placement; another: another), with the
+    spread asked over many draws; without one, exactly where configured."""
+    import mujoco
+
+    from sitl.cameras.config import MarkerMount, placement_error
+    from sitl.cameras.rig import CV_TO_MUJOCO_CAM, mount_rng, vision_mjcf
+
+    cam = CameraMount(name="c", body="world", pos_b_m=(0.0, 0.0, 3.0), width_px=32, height_px=24,
+                      mount_std_m=std_m, mount_std_deg=std_deg)
+    marker = MarkerMount(id=3, body="world", size_m=0.1, pos_b_m=(1.0, 0.0, 0.5), mount_std_m=std_m,
+                         mount_std_deg=std_deg)
+    xml, assets = vision_mjcf(GROUND_XML, (cam,), (marker,), seed=5)
+    assert xml == vision_mjcf(GROUND_XML, (cam,), (marker,), seed=5)[0]
+    m = mujoco.MjModel.from_xml_string(xml, assets)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    pos_c, R_c = cam.true_mount(mount_rng(5, "camera", 0))
+    pos_m, R_m = marker.true_mount(mount_rng(5, "marker", 3))
+    np.testing.assert_allclose(d.cam_xpos[0], pos_c, atol=1e-8)
+    np.testing.assert_allclose(d.cam_xmat[0].reshape(3, 3), R_c @ CV_TO_MUJOCO_CAM, atol=1e-8)
+    np.testing.assert_allclose(d.site_xpos[m.site("marker3").id], pos_m, atol=1e-8)
+    np.testing.assert_allclose(d.site_xmat[m.site("marker3").id].reshape(3, 3), R_m, atol=1e-8)
+    off = np.linalg.norm(pos_c - np.asarray(cam.pos_b_m)) + np.linalg.norm(pos_m - np.asarray(marker.pos_b_m))
+    assert (off == 0.0) == (std_m == 0.0)
+    assert (xml == vision_mjcf(GROUND_XML, (cam,), (marker,), seed=6)[0]) == (std_m == 0.0)
+    rng = np.random.default_rng(0)
+    draws = [placement_error(rng, std_m, std_deg) for _ in range(4000)]
+    dp = np.array([x[0] for x in draws])
+    ang = np.degrees([np.arccos(np.clip((np.trace(x[1]) - 1.0) / 2.0, -1.0, 1.0)) for x in draws])
+    np.testing.assert_allclose(dp.std(axis=0), std_m, rtol=0.05)
+    # the angle of a rotation of N(0, s) per axis: a chi of 3 dof, RMS sqrt(3) s
+    assert np.sqrt(np.mean(ang**2)) == pytest.approx(np.sqrt(3) * std_deg, rel=0.05, abs=1e-9)
+    assert all(np.allclose(x[1].T @ x[1], np.eye(3), atol=1e-12) for x in draws[:50])

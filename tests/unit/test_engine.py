@@ -104,7 +104,53 @@ def test_neighbour_measurements_reach_the_next_step_and_are_counted():
         np.testing.assert_allclose(g.correction.dp_w_m, c.dp_w_m, atol=1e-12)
     assert not np.allclose(want[1].dp_w_m, plain[1].dp_w_m, atol=1e-4)
     assert engine.summary()["neighbour_measurements"] == {"received": 3, "applied": 1, "not_applied": 0,
-                                                          "too_old": 1, "left_out": 1, "pending": 0}
+                                                          "too_old": 1, "left_out": 1, "reapplied": 0,
+                                                          "pending": 0}
+
+
+@pytest.mark.parametrize("hold_s", [0.0, 0.12])
+def test_a_held_neighbour_measurement_is_applied_again_until_it_is_too_old(hold_s):
+    """With ``neighbour_hold_s``, the newest accepted measurement of a pair goes into the later
+    steps too, each time with its age at that step, until it is older than the hold (a camera at
+    10 Hz, steps at 20 Hz: every step gets one); a newer one replaces it, and one the gate
+    refuses is not held. Counted apart (``reapplied``); without a hold each is used once."""
+    n = 3
+    rng = np.random.default_rng(41)
+    p, v, q, w, d, P = perturbed_chain(rng, n)
+    setup = setup_for(n, neighbour_hold_s=hold_s, neighbour_mount_std_m=0.0, neighbour_mount_std_deg=0.0)
+    setup = replace(setup, skeleton=replace(setup.skeleton, link_length_m=2 * d[0, 0]))
+    view = NeighbourView(np.array([0.45, 0.0, 0.05]), np.eye(3), np.array([0.0, 0.0, 0.08]), np.eye(3))
+    R_cm, t_cm = marker_in_camera(p[0], q[0], p[1], q[1], view)
+    m = NeighbourMeasurement(0, 1, R_cm, t_cm + [0.02, 0.0, 0.01], np.eye(6) * 1e-3, view)
+    far = replace(m, t_cm_m=t_cm + [5.0, 0.0, 0.0])  # the gate refuses it
+    engine = CompanionEngine(setup)
+
+    def step(t):
+        states = [LinkState(i, t, p[i], v[i], q[i], w[i], P[i]) for i in range(n)]
+        for i, st in enumerate(states):
+            engine.on_state(i, st, STATE_FLAG_EKF_OK, t)
+        got = [c.correction.dp_w_m for c in of(CorrectionOut, engine.poll(t))]
+        return got, states
+
+    def want(states, t_capture, t):
+        _, c = compute_corrections(states, setup.skeleton.d_b_m, setup.companion.group_layout(n),
+                                   setup.companion.params,
+                                   neighbours=[replace(m, age_s=t - t_capture)] if t_capture is not None else [])
+        return [x.dp_w_m for x in c]
+
+    engine.on_neighbour(0.95, m)
+    steps = [(1.0, 0.95), (1.05, 0.95 if hold_s else None), (1.1, None)]  # (step, capture it applies)
+    for t, t_capture in steps:
+        got, states = step(t)
+        np.testing.assert_allclose(got, want(states, t_capture, t), atol=1e-12)
+    engine.on_neighbour(1.12, far)
+    got, states = step(1.15)
+    np.testing.assert_allclose(got, want(states, None, 1.15), atol=1e-12)  # refused; nothing held
+    got, states = step(1.2)
+    np.testing.assert_allclose(got, want(states, None, 1.2), atol=1e-12)
+    assert engine.summary()["neighbour_measurements"] == {
+        "received": 2, "applied": 1, "not_applied": 1, "too_old": 0, "left_out": 0, "reapplied": 1 if hold_s else 0,
+        "pending": 0}
 
 
 def test_a_neighbour_pose_off_the_wire_is_the_measurement_between_the_links_it_names():

@@ -110,3 +110,44 @@ def test_effective_bounds_widen_for_correlated_errors_but_not_for_overconfidence
     means = [x for block in ("pos", "vel", "att") for x in m["ekf"][block]]
     lo, hi = m["bounds95"]
     assert any(not lo <= x <= hi for x in means)  # the independent band rejects a consistent filter
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_relative_errors_tell_a_turn_of_the_whole_chain_from_a_bend_between_neighbours(n):
+    """``rms_rel_err`` (sitl.metrics.relative_error_metrics): an estimate of the whole chain
+    turned by 1 deg about its first link's centre moves the neighbours' world-frame position
+    difference (L sin 1 deg) but neither the neighbour as each link sees it (``pos_body_m``) nor
+    the relative attitude; an estimate bent at the joints by 1 deg between neighbours moves all
+    three, the body-frame position by the tip's lever arm."""
+    from companion.estimation.so3 import quat_to_rotmat
+    from sitl.metrics import relative_error_metrics
+
+    rng = np.random.default_rng(n)
+    k, L = 50, 1.0
+    d = np.array([0.5 * L, 0.0, 0.0])
+    yaw = np.zeros((k, n, 3))
+    yaw[..., 2] = rng.normal(0.0, 0.3, (k, n))  # (a chain bent in the horizontal plane)
+    q_true = quat_from_rotvec(yaw)
+    R = quat_to_rotmat(q_true)
+    tips = np.einsum("knij,j->kni", R, d)
+    p_true = np.concatenate([np.zeros((k, 1, 3)), np.cumsum(tips[:, :-1] + tips[:, 1:], axis=1)], axis=1)
+    turn = quat_from_rotvec(np.array([0.0, 0.0, np.radians(1.0)]))
+    turned_R = quat_to_rotmat(turn)
+    log = {"p_true_sckf": p_true, "q_true_sckf": q_true,
+           "p_ekf_sckf": p_true @ turned_R.T, "q_ekf_sckf": quat_mul(turn, q_true)}
+    # bent: each link turned 1 deg more than the one before, about its own centre, joints kept
+    q_bent = np.stack([quat_mul(q_true[:, i], quat_from_rotvec(np.array([0.0, 0.0, np.radians(i)])))
+                       for i in range(n)], axis=1)
+    tips_b = np.einsum("knij,j->kni", quat_to_rotmat(q_bent), d)
+    log["p_corr_sckf"] = np.concatenate([np.zeros((k, 1, 3)), np.cumsum(tips_b[:, :-1] + tips_b[:, 1:], axis=1)],
+                                        axis=1)
+    log["q_corr_sckf"] = q_bent
+    out = relative_error_metrics(log, np.arange(k), sckf=True)
+    world = np.linalg.norm((p_true[:, 1:] - p_true[:, :-1])[..., :2], axis=-1) * 2 * np.sin(np.radians(0.5))  # (about z)
+    np.testing.assert_allclose(out["pos_m"]["ekf"], np.sqrt(np.mean(world**2, axis=0)), rtol=1e-9)
+    np.testing.assert_allclose(out["pos_body_m"]["ekf"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(out["att_deg"]["ekf"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(out["att_deg"]["sckf"], 1.0, rtol=1e-6)
+    # link i+1's centre, seen from link i: its tip turned 1 deg about link i+1's left tip
+    np.testing.assert_allclose(out["pos_body_m"]["sckf"], 0.5 * L * 2 * np.sin(np.radians(0.5)), rtol=1e-6)
+    assert np.all(np.array(out["pos_m"]["sckf"]) > 0.0)
