@@ -201,9 +201,9 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
     plain update), its covariance in Joseph form with the last gain; the error is injected as
     the chain's estimators do (positions and velocities added, attitudes by
     :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof, at the prior) is
-    rejected and changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s`` old is then
-    compared with the model at the pair's states taken back that long (``p - v age``,
-    ``q (x) Exp(-w age)``, as the step aligns states forward), its Jacobian at the states
+    rejected and changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s``
+    old is then compared with the model at the pair's states taken back that long (``p - v
+    age``, ``q (x) Exp(-w age)``, as the step aligns states forward), its Jacobian at the states
     themselves; without ``w`` the age is not used. ``ChainInputError`` for shapes, non-finite
     values or a link out of range."""
     p, v, q = (np.array(a, dtype=float) for a in (p, v, q))
@@ -239,7 +239,8 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
         x = (p, v, q)
         for it in range(iterations):
             PHt = P @ H.T
-            K = PHt @ np.linalg.inv(0.5 * (H @ PHt + m.cov + (H @ PHt + m.cov).T))
+            S = H @ PHt + m.cov
+            K = PHt @ np.linalg.inv(0.5 * (S + S.T))
             new = K @ (r + H @ dx)
             done = float(np.max(np.abs(new - dx))) < ITERATION_TOL
             dx = new
@@ -270,7 +271,8 @@ def _residual_and_jacobian(m: NeighbourMeasurement, p, v, q, w, i: int, j: int, 
 
 
 def _inject(p, v, q, dx):
-    """The states ``p``, ``v``, ``q`` with the error ``dx`` (n, 9) put in (attitudes by :func:`~.so3.retract`)."""
+    """The states ``p``, ``v``, ``q`` with the error ``dx`` (n, 9) put in (attitudes by
+    :func:`~.so3.retract`)."""
     return (p + dx[:, ERR_P], v + dx[:, ERR_V],
             np.stack([retract(q[k], dx[k, ERR_TH]) for k in range(len(q))]))
 
