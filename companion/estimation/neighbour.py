@@ -44,8 +44,8 @@ from .sckf import block_diag_covariance
 from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
 
 __all__ = ["ITERATIONS", "NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual",
-           "relative_pose_jacobian", "mount_covariance", "NeighbourMeasurement", "NeighbourUpdates", "neighbour_updates",
-           "RelativePoseUpdate", "relative_pose_update"]
+           "relative_pose_jacobian", "mount_covariance", "NeighbourMeasurement", "NeighbourUpdates",
+           "neighbour_updates", "RelativePoseUpdate", "relative_pose_update"]
 
 #: the gate of a neighbour measurement: chi-square with 6 degrees of freedom at 0.999
 NEIGHBOUR_GATE_CHI2 = 22.46

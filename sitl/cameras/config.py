@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 
 from companion.configfile import require_nonnegative, require_positive
+from companion.estimation.so3 import quat_from_rotvec, quat_to_rotmat
 from companion.vision.dictionaries import check_marker
 from companion.vision.geometry import CameraIntrinsics, frame_from_axes
 
@@ -31,9 +32,7 @@ def placement_error(rng: np.random.Generator, std_m: float, std_deg: float) -> t
     if not (std_m or std_deg):
         return np.zeros(3), np.eye(3)
     dp, phi = std_m * rng.standard_normal(3), np.radians(std_deg) * rng.standard_normal(3)
-    angle = float(np.linalg.norm(phi))
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]]) / max(angle, 1e-300)
-    return dp, np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+    return dp, quat_to_rotmat(quat_from_rotvec(phi))
 
 
 @dataclass(frozen=True)

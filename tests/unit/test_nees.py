@@ -143,7 +143,8 @@ def test_relative_errors_tell_a_turn_of_the_whole_chain_from_a_bend_between_neig
                                         axis=1)
     log["q_corr_sckf"] = q_bent
     out = relative_error_metrics(log, np.arange(k), sckf=True)
-    world = np.linalg.norm((p_true[:, 1:] - p_true[:, :-1])[..., :2], axis=-1) * 2 * np.sin(np.radians(0.5))  # (about z)
+    horizontal = np.linalg.norm((p_true[:, 1:] - p_true[:, :-1])[..., :2], axis=-1)  # (the turn is about z)
+    world = horizontal * 2 * np.sin(np.radians(0.5))
     np.testing.assert_allclose(out["pos_m"]["ekf"], np.sqrt(np.mean(world**2, axis=0)), rtol=1e-9)
     np.testing.assert_allclose(out["pos_body_m"]["ekf"], 0.0, atol=1e-12)
     np.testing.assert_allclose(out["att_deg"]["ekf"], 0.0, atol=1e-9)
