@@ -39,9 +39,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .chain import ERR_DIM, ERR_P, ERR_TH, ERR_V, ChainInputError
-from .sckf import block_diag_covariance
-from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, retract, rotmat_to_quat, skew
+from .chain import ERR_DIM, ERR_P, ERR_TH, ChainInputError
+from .sckf import block_diag_covariance, inject_errors
+from .so3 import quat_from_rotvec, quat_mul, quat_to_rotmat, quat_to_rotvec, rotmat_to_quat, skew
 
 __all__ = ["ITERATIONS", "NEIGHBOUR_GATE_CHI2", "NeighbourView", "marker_in_camera", "relative_pose_residual",
            "relative_pose_jacobian", "mount_covariance", "NeighbourMeasurement", "NeighbourUpdates",
@@ -244,7 +244,7 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
             new = K @ (r + H @ dx)
             done = float(np.max(np.abs(new - dx))) < ITERATION_TOL
             dx = new
-            x = _inject(p, v, q, dx.reshape(n, ERR_DIM))
+            x = inject_errors(p, v, q, dx.reshape(n, ERR_DIM))
             if done or it == iterations - 1:
                 break
             r, H = _residual_and_jacobian(m, *x, w, i, j, N)
@@ -268,13 +268,6 @@ def _residual_and_jacobian(m: NeighbourMeasurement, p, v, q, w, i: int, j: int, 
     H[:, ERR_DIM * i:ERR_DIM * (i + 1)], H[:, ERR_DIM * j:ERR_DIM * (j + 1)] = \
         relative_pose_jacobian(p[i], q[i], p[j], q[j], m.view)
     return r, H
-
-
-def _inject(p, v, q, dx):
-    """The states ``p``, ``v``, ``q`` with the error ``dx`` (n, 9) put in (attitudes by
-    :func:`~.so3.retract`)."""
-    return (p + dx[:, ERR_P], v + dx[:, ERR_V],
-            np.stack([retract(q[k], dx[k, ERR_TH]) for k in range(len(q))]))
 
 
 @dataclass(frozen=True)

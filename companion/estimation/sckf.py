@@ -62,6 +62,7 @@ __all__ = [
     "block_diag_covariance",
     "rate_noise_covariance",
     "diagonal_blocks",
+    "inject_errors",
     "DENSE_MAX_LINKS",
 ]
 
@@ -151,8 +152,9 @@ def diagonal_blocks(P_full: np.ndarray) -> np.ndarray:
     return np.einsum("...ikil->...ikl", P4).copy()
 
 
-def _inject(p, v, q, dx_links):
-    """Apply per-link error states ``(..., n, 9)`` to the nominal state (Alg. 1 state update)."""
+def inject_errors(p, v, q, dx_links):
+    """Apply per-link error states ``(..., n, 9)`` to the nominal state (Alg. 1 state update;
+    attitudes by :func:`~.so3.retract`)."""
     return p + dx_links[..., ERR_P], v + dx_links[..., ERR_V], retract(q, dx_links[..., ERR_TH])
 
 
@@ -211,7 +213,7 @@ def constraint_apply_dense_batched(p, v, q, w, d, P, params: CAParams = CAParams
         dx = -(K @ c[:, :, None])[:, :, 0]
         sel = active[:, None, None]
         Pc = np.where(sel, Pn, Pc)
-        pn, vn, qn = _inject(p, v, q, dx.reshape(G, n, ERR_DIM))
+        pn, vn, qn = inject_errors(p, v, q, dx.reshape(G, n, ERR_DIM))
         p, v, q = np.where(sel, pn, p), np.where(sel, vn, v), np.where(sel, qn, q)
         a, b = tips_from_body(q, body)
         c = residual_from_tips(p, v, a, b)
@@ -467,7 +469,7 @@ def constraint_apply_structured(p, v, q, w, d, P, params: CAParams = CAParams())
         g[:-1] += np.swapaxes(Lf, 1, 2) @ y
         g[1:] += np.swapaxes(Rf, 1, 2) @ y
         dx = -(P @ g)[:, :, 0]
-        p, v, q = _inject(p, v, q, dx)
+        p, v, q = inject_errors(p, v, q, dx)
         a, b = tips_from_body(q, body)
         c = residual_from_tips(p, v, a, b)
         history.append(math.sqrt(float(c @ c)))
