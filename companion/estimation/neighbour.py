@@ -225,7 +225,8 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
         if max(i, j) >= n:
             raise ChainInputError(f"measurement {k}: links {i} and {j} of {n}", field="measurements", index=max(i, j))
         r, H = _residual_and_jacobian(m, p, v, q, w, i, j, N)
-        S = H @ P @ H.T + m.cov
+        PHt = P @ H.T
+        S = H @ PHt + m.cov
         nis[k] = float(r @ np.linalg.solve(0.5 * (S + S.T), r))
         if gate_chi2 is not None and nis[k] > gate_chi2:
             continue
@@ -238,8 +239,6 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
         dx = np.zeros(N)
         x = (p, v, q)
         for it in range(iterations):
-            PHt = P @ H.T
-            S = H @ PHt + m.cov
             K = PHt @ np.linalg.inv(0.5 * (S + S.T))
             new = K @ (r + H @ dx)
             done = float(np.max(np.abs(new - dx))) < ITERATION_TOL
@@ -248,6 +247,8 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
             if done or it == iterations - 1:
                 break
             r, H = _residual_and_jacobian(m, *x, w, i, j, N)
+            PHt = P @ H.T
+            S = H @ PHt + m.cov
         A = np.eye(N) - K @ H
         P = A @ P @ A.T + K @ m.cov @ K.T
         P = 0.5 * (P + P.T)
