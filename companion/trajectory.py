@@ -35,9 +35,19 @@ targets on, so the vehicles start there, hovering. The chain's settings here do 
 (``feedforward`` must be false), but the end of the take-off (``takeoff_start_s +
 takeoff_duration_s``) still opens the metrics window.
 
-``anchor_w_m``: where the chain's middle point starts (the trajectory's origin). Without it the
-companion anchors the trajectory where the chain is when every link first reports; distributed
-companions need one anchor they all share (``python -m sitl launch`` sets it to the start pose).
+``anchor_w_m``: where the chain's middle point starts (the trajectory's origin, in the links'
+frame). Distributed companions need one anchor they all share (the SITL gives every companion
+where the simulated chain starts).
+
+``home``: where a centralised companion flies the trajectory. ``"estimate"`` (the default): from
+where the chain's own estimate puts its middle after the first step, as a flight controller flies
+from its home: the trajectory is shifted by that point less ``anchor_w_m`` (the anchor names where
+the chain was set down), so a position error that every receiver shares at the start (``m8``'s
+metres) shifts the targets with it instead of flying the chain that far off them, into the ground
+when it is vertical; without an anchor the trajectory starts at that point. ``"anchor"``: at
+``anchor_w_m`` in the links' frame, as it is given (a surveyed point; ``"estimate"`` without an
+anchor). Distributed companions always fly the shared anchor as it is given (each group sees only
+its own links' estimates), and ``kind = "formation"`` its own start pose.
 
 All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
 accelerations and body rates are central differences of the smooth pose function.
@@ -92,6 +102,7 @@ class TrajectoryConfig:
     bend_period_s: float = 10.0
     bend_ramp_s: float = 5.0
     anchor_w_m: tuple[float, float, float] | None = None
+    home: Literal["estimate", "anchor"] = "estimate"
     feedforward: bool = False
     figure8_start_s: float = 10.0
     figure8_amplitude_m: float = 0.5

@@ -104,13 +104,25 @@ class RunLog:
     def arrays(self) -> dict[str, np.ndarray]:
         """Every series recorded, one row per log tick, and the cables' tensions at each joint
         (:func:`~companion.skeleton.kinematics.tension`): ``tension_true``, and ``tension_model``
-        with the feed-forward."""
-        out = {k: np.asarray(v) for k, v in self.__dict__.items() if len(v) and k != "joint_force_model"}
+        with the feed-forward. The trajectory's series (the model's joint forces, the CPG's) begin
+        with its first targets: NaN rows before them."""
+        out = {k: _from_first_tick(v, len(self.t)) for k, v in self.__dict__.items()
+               if len(v) and k != "joint_force_model"}
         if len(self.joint_force_true):
             out["tension_true"] = tension(out["joint_force_true"], quat_to_rotmat(out["q_true"]))
         if len(self.joint_force_model):
-            out["tension_model"] = tension(np.asarray(self.joint_force_model), quat_to_rotmat(out["q_target"]))
+            joint_force = _from_first_tick(self.joint_force_model, len(self.t))
+            out["tension_model"] = tension(joint_force, quat_to_rotmat(out["q_target"]))
         return out
+
+
+def _from_first_tick(rows: list, n_ticks: int) -> np.ndarray:
+    """``rows``, the last ``len(rows)`` of ``n_ticks`` log ticks, as an array of ``n_ticks`` rows
+    (NaN before the first)."""
+    a = np.asarray(rows)
+    if len(a) >= n_ticks:
+        return a
+    return np.concatenate([np.full((n_ticks - len(a),) + a.shape[1:], np.nan), a.astype(float)])
 
 
 class _SharedTargets:

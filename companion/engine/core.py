@@ -48,7 +48,7 @@ class CompanionEngine:
         setup: the companion's configuration (a SITL scenario is one too).
         group: 0-based group this engine serves (distributed mode), else ``None`` (every link).
         start_center: anchor of the trajectory [m] (default ``trajectory.anchor_w_m``, else the
-            chain's estimated middle when every link first reports).
+            chain's middle in the first step's estimate: :mod:`.targets`).
         net: the distributed mode's :class:`~companion.fleetnet.group.GroupLink`.
         trajectory: a target source to use instead of the one built from the config at the first
             targets (batch mode shares one between its group engines: they would compute the same).
@@ -93,7 +93,7 @@ class CompanionEngine:
         self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)
         self.targets = Targets(setup, self.links, d, group, net, trajectory, start_center, self.carrying,
-                               self._out.append, timer)
+                               self._out.append, lambda: self.step.latest, timer)
         self.arming = Arming(cfg, self._out.append)
         self.period_us = int(round(1e6 / cfg.rate_hz))
         self.next_step_us: int | None = None
@@ -244,10 +244,7 @@ class CompanionEngine:
                 # steps on the period grid of flight-controller time: the groups' cycles coincide
                 self.next_step_us = -(-t // self.period_us) * self.period_us
                 self.next_target_us = t
-            period = self.targets.period_us
-            if self.cfg.targets == "trajectory" and t >= self.next_target_us:
-                self.targets.send(now_s, t, self.next_step_us)
-                self.next_target_us += period * max(1, (t - self.next_target_us) // period + 1)
+            waiting = self._send_targets(now_s, t) is False
             if t >= self.next_step_us:
                 newest = [usec(lk.state.time_s) for lk in self.links]
                 # Step once every link has reported for this step time (a coherent snapshot); a link
@@ -257,10 +254,23 @@ class CompanionEngine:
                 if min(newest) >= self.next_step_us or spread > LAG_LIMIT_US:
                     self.step.run(now_s, t, self.next_step_us)
                     self.next_step_us += self.period_us * max(1, (t - self.next_step_us) // self.period_us + 1)
+                    if waiting:  # the first targets wait for the first step's estimate (:mod:`.targets`)
+                        self._send_targets(now_s, t)
             self.arming.run(self.links, now_s)
         out = self._out.copy()
         self._out.clear()
         return out
+
+    def _send_targets(self, now_s: float, t: int) -> bool | None:
+        """The targets if due at the cycle clock ``t`` (``None``: not due; ``False``: due, but
+        waiting for the first step)."""
+        if self.cfg.targets != "trajectory" or t < self.next_target_us:
+            return None
+        if not self.targets.send(now_s, t, self.next_step_us):
+            return False
+        period = self.targets.period_us
+        self.next_target_us += period * max(1, (t - self.next_target_us) // period + 1)
+        return True
 
     def _duties(self, now_s: float) -> None:
         """The heartbeat every :data:`~.arming.RETRY_S` and the health report every ``health_period_s``."""
@@ -304,9 +314,9 @@ class CompanionEngine:
 
     def summary(self) -> dict:
         """The run's totals: steps, withheld and degraded steps, step compute time, correction
-        latency, per link its counters, carried time and stretches, the times it was taken to lift
-        itself while silent, the estimated loss of its state stream and its exclusions; in
-        distributed mode the group
+        latency, the trajectory's shift to the estimated start (:mod:`.targets`), per link its
+        counters, carried time and stretches, the times it was taken to lift itself while silent,
+        the estimated loss of its state stream and its exclusions; in distributed mode the group
         link's figures, the CPG targets' counts and the other groups' carried links."""
         lat = functools.reduce(Quantiles.merge, [lk.latencies_ms for lk in self.links], Quantiles())
         steps = self.step.step_times_ms
@@ -321,6 +331,7 @@ class CompanionEngine:
             "step_ms": {"p50": steps.percentile(50), "p99": steps.percentile(99)} if steps.count else None,
             "targets_ms": ({"p50": self.targets.compute_ms.percentile(50), "p99": self.targets.compute_ms.percentile(99)}
                            if self.targets.compute_ms.count else None),
+            "home_offset_m": [round(float(x), 4) for x in self.targets.home_offset_w_m],
             "correction_latency_ms": {"p50": lat.percentile(50), "p99": lat.percentile(99),
                                       "samples": lat.count} if lat.count else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,

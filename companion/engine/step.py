@@ -87,6 +87,9 @@ class ChainStep:
         self.neighbours = NeighbourQueue(hold_s=cfg.neighbour_hold_s)
         self.log: dict[str, list] = {k: [] for k in STEP_LOG_KEYS}
         self.step_times_ms = Quantiles()
+        #: ``(p, q)``: the newest step's estimate of this engine's links (corrected, or a link's EKF
+        #: state where nothing corrected it); ``None`` before the first step
+        self.latest: tuple[np.ndarray, np.ndarray] | None = None
         #: steps in which a link was corrected along a link left out (:mod:`.bridge`)
         self.bridged_steps = 0
 
@@ -293,6 +296,7 @@ class ChainStep:
         :func:`~companion.estimation.semi.shifted_covariance`), logged as their 3x3 position,
         velocity and attitude blocks."""
         pe, ve, qe, we = ekf
+        self.latest = (p, q)
         row = {"t_sckf": t_us * 1e-6, "cycle_us": cycle_us, "p_ekf_sckf": pe, "v_ekf_sckf": ve, "q_ekf_sckf": qe,
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
                "iterations": iterations, "global_applied": global_applied, "leader": leader,

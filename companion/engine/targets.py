@@ -1,9 +1,11 @@
 """Pose targets: every link's target from the trajectory, every 1/``target_rate_hz``.
 
-The trajectory (``[trajectory]``) is anchored at ``trajectory.anchor_w_m`` or where the chain is
-when every link first reports, and its time starts then (:meth:`Targets.send`); with the
-whole-chain feed-forward, the carried links (:class:`~.carrying.Carrying`) are flown by their
-neighbours. Targets are stamped on each link's own clock.
+The trajectory (``[trajectory]``) is anchored at ``trajectory.anchor_w_m`` and, with ``home =
+"estimate"`` on a centralised companion, flown from where the first step's estimate puts the
+chain's middle, as a flight controller flies from its home (:mod:`companion.trajectory`): the
+targets wait for that step, and its time starts with the first targets (:meth:`Targets.send`);
+with the whole-chain feed-forward, the carried links (:class:`~.carrying.Carrying`) are flown by
+their neighbours. Targets are stamped on each link's own clock.
 
 Distributed mode with ``trajectory.kind = "cpg"``: the leader publishes every link's targets
 (:class:`~companion.messages.ChainTargets`) and the others forward their links' share
@@ -13,8 +15,10 @@ leader continues the motion, and sends its own targets while no leader's arrive.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -28,6 +32,8 @@ from .outputs import TargetOut
 
 __all__ = ["Targets"]
 
+log = logging.getLogger(__name__)
+
 
 class Targets:
     """The target source of one engine's ``links`` (``d``: their tip vectors) for ``setup`` (a
@@ -37,15 +43,18 @@ class Targets:
         group, net: distributed mode's group and group link (else ``None``).
         trajectory: a target source to use instead of the one built from the config at the first
             targets.
-        start_center: the trajectory's anchor [m] (``None``: the chain's estimated middle at the
-            first targets).
+        start_center: the trajectory's anchor [m] (``None``: the chain's estimated middle from
+            ``estimate`` at the first targets).
+        estimate: ``(p, q)`` of ``links``, the newest step's estimate, or ``None`` before the
+            first step: where a centralised companion's home is (``trajectory.home``).
         carrying: who is carried when targets are due.
         emit: takes each :class:`~.outputs.TargetOut`.
         timer: measures the targets' compute time only (``compute_ms``, never a decision).
     """
 
     def __init__(self, setup, links: list[LinkTrack], d: np.ndarray, group: int | None, net, trajectory,
-                 start_center, carrying: Carrying, emit: Callable[[object], None], timer=time.perf_counter):
+                 start_center, carrying: Carrying, emit: Callable[[object], None], estimate: Callable[[], tuple | None],
+                 timer=time.perf_counter):
         self.setup = setup
         self.links = links
         self.d = d
@@ -55,6 +64,7 @@ class Targets:
         self.trajectory = trajectory
         self.carrying = carrying
         self._emit = emit
+        self._estimate = estimate
         self._timer = timer
         #: the compute time [ms] of each :meth:`send` (the trajectory's targets with their feed-forward)
         self.compute_ms = Quantiles()
@@ -62,31 +72,48 @@ class Targets:
         self._t0_us = 0
         self._started = False
         self._start_center = None if start_center is None else np.asarray(start_center, dtype=float)
+        #: the targets wait for the first step's estimate: the anchor or the home is there
+        chain = setup.trajectory.kind != "formation"  # (a formation flies its own start pose: no anchor)
+        self._from_estimate = self._start_center is None or (setup.trajectory.home == "estimate" and net is None
+                                                             and chain)
+        #: the trajectory's shift to where the estimate puts the chain at the start [m, world]
+        self.home_offset_w_m = np.zeros(3)
         #: CPG targets travel over the network from the leader (distributed mode)
         self.via_net = net is not None and setup.trajectory.kind == "cpg"
         self.counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
         self._leader_targets_s = -np.inf
         self._forwarded_time_us = -1
 
-    def send(self, now_s: float, t_us: int, next_step_us: int) -> None:
+    def send(self, now_s: float, t_us: int, next_step_us: int) -> bool:
         """Every link's target for the cycle clock ``t_us`` (or, from a follower in distributed CPG
         mode, nothing while the leader's are being forwarded); ``next_step_us``: the cycle whose
-        leader publishes them."""
+        leader publishes them. ``False``: nothing is due yet (the anchor waits for the first step's
+        estimate)."""
+        if self.trajectory is None:
+            center = self._start_center
+            if self._from_estimate:
+                middle = self._estimated_middle()
+                if middle is None:
+                    return False
+                if center is None:
+                    center = middle
+                self.home_offset_w_m = middle - center
+                if self._start_center is not None:
+                    log.info("home: the trajectory flown from the estimated start (%s m), %.2f m from its anchor",
+                             ", ".join(f"{x:.2f}" for x in middle), float(np.linalg.norm(self.home_offset_w_m)))
+            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center,
+                                              load=self.setup.load)
         if not self._started:
             self._started = True
             self._t0_us = self._start_us(t_us)
-        if self.trajectory is None:
-            center = self._start_center
-            if center is None:
-                center = chain_middle(np.array([lk.state.p_w_m for lk in self.links]),
-                                      np.array([lk.state.q_wxyz for lk in self.links]), self.d)
-            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center,
-                                              load=self.setup.load)
-        # Trajectory time starts when every link has first reported (on hardware the flight
-        # controllers have been up for a while; in SITL this is within a tick of t = 0).
+        # Trajectory time starts with the first targets, once every link has reported (and the
+        # first step has run, for the home): on hardware the flight controllers have been up for a
+        # while; in SITL this is within a step of t = 0.
         passive = self.carrying.now(now_s, t_us)
         t0 = self._timer()
         targets = self.trajectory.targets((t_us - self._t0_us) * 1e-6, passive=passive)
+        if self.home_offset_w_m.any():
+            targets = [replace(tg, p_w_m=tg.p_w_m + self.home_offset_w_m) for tg in targets]
         self.compute_ms.add((self._timer() - t0) * 1e3)
         if self.via_net:
             if self.net.leads(next_step_us, now_s):
@@ -94,10 +121,22 @@ class Targets:
                                                          range(self.n), targets))
                 self.counts["published"] += 1
             elif now_s - self._leader_targets_s < 3e-6 * self.period_us:
-                return  # the leader's targets are being forwarded (:meth:`forward`)
+                return True  # the leader's targets are being forwarded (:meth:`forward`)
             self.counts["own"] += 1
         for lk in self.links:
             self._out(lk, t_us, targets[lk.index])
+        return True
+
+    def _estimated_middle(self) -> np.ndarray | None:
+        """The chain's middle point in the newest step's estimate (``None``: no step yet, or a link
+        without a finite estimate in it)."""
+        estimate = self._estimate()
+        if estimate is None:
+            return None
+        p, q = estimate
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            return None
+        return chain_middle(np.asarray(p, dtype=float), np.asarray(q, dtype=float), self.d)
 
     def _start_us(self, t_us: int) -> int:
         """Where trajectory time starts on the time base: 0 for distributed companions on the links'

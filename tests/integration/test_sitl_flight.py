@@ -325,10 +325,12 @@ def test_nees_of_a_short_flight_lies_within_its_bounds_and_flags_a_white_noise_t
 
 def _far_target_flight(limit_m):
     """single_odar level, holding at 2 m; from 8 s a target 10 m away (as a GCS's
-    SET_POSITION_TARGET would set it: re-set every tick, over the trajectory's)."""
+    SET_POSITION_TARGET would set it: re-set every tick, over the trajectory's), both in the
+    link's frame (the hold at the anchor as given, not from the estimated start)."""
     sc = load_scenario("configs/sitl/odar/single_odar_pitch45.toml", duration_s=16.0)
     gains = replace(FirmwareConfig().gains, pos_error_limit_m=limit_m)
-    sc = replace(sc, start=replace(sc.start, pitch_deg=0.0), trajectory=replace(sc.trajectory, pitch_deg=0.0),
+    sc = replace(sc, start=replace(sc.start, pitch_deg=0.0),
+                 trajectory=replace(sc.trajectory, pitch_deg=0.0, home="anchor"),
                  firmware=replace(sc.firmware, gains=gains))
     runner = BatchRunner(sc)
     fw = runner.firmware[0]
@@ -360,3 +362,27 @@ def test_a_far_target_is_closed_at_a_limited_speed_holding_height():
     runner, fw, p, v, goal = _far_target_flight(100.0)
     assert np.linalg.norm(v, axis=-1).max() > 5.0 and p[:, 2].min() < 1.7
     assert fw.thrust_limit.report()["at_limit_s"] > 0.3
+
+
+@pytest.mark.parametrize("seed, common_up_m", [(0, 2.30), (1, -2.19)])
+@pytest.mark.parametrize("home", ["estimate", "anchor"])
+def test_a_gnss_error_every_link_shares_at_the_start_does_not_move_the_flight(seed, common_up_m, home):
+    """three_link's receivers all read ``common_up_m`` too high (the seed's draw of a 2 m common
+    vertical error, held over the flight), on the ground too. Flown from its estimated start (the
+    default), the chain takes off to its 2.5 m above where it stood; flown at the anchor as given,
+    it flies that much lower (seed 0: 0.2 m above the ground) or higher."""
+    sc = load_scenario("configs/sitl/chain/three_link.toml", duration_s=9.0)
+    sc = replace(sc, seed=seed, trajectory=replace(sc.trajectory, home=home),
+                 sensors=replace(sc.sensors, gps={"drift_amp_m": 0.0, "common_vertical_std_m": 2.0,
+                                                  "common_time_constant_s": 3600.0}))
+    runner = BatchRunner(sc)
+    assert runner.plant.sensors._gm[-1][0][0, 2] == pytest.approx(common_up_m, abs=0.01)
+    runner.run(sc.duration_s)
+    log = runner.arrays()
+    hover = log["t"] >= 8.0
+    height = log["p_true"][hover, 1, 2].mean()
+    expected = 2.5 - (common_up_m if home == "anchor" else 0.0)
+    assert height == pytest.approx(expected, abs=0.2), (height, runner.crash_reason)
+    shift = runner.engines[0].targets.home_offset_w_m
+    assert shift[2] == pytest.approx(common_up_m if home == "estimate" else 0.0, abs=0.3)
+

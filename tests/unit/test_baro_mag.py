@@ -294,8 +294,10 @@ def _hover_with_gps_outage(profile: str, seed: int):
     return Scenario(name="outage", duration_s=22.0, seed=seed, skeleton=SkeletonConfig(n_links=1),
                     start=StartPose(center_w_m=(0.0, 0.0, 2.0), on_ground=False),
                     sensors=SensorConfig(profile=profile), companion=CompanionConfig(enabled=False),
+                    # 1.5 m above where it arms: out of the band where the firmware takes a low
+                    # barometer for the rotors' ground effect (baro_ground_effect_height_m)
                     trajectory=TrajectoryConfig(kind="hover", takeoff_start_s=0.0, takeoff_duration_s=1.0,
-                                                takeoff_altitude_m=2.5),
+                                                takeoff_altitude_m=3.5),
                     faults=FaultConfig(gps=GpsFault(link=1, outage_at_s=6.0, outage_s=16.0)))
 
 

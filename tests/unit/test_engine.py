@@ -34,8 +34,9 @@ def test_step_on_flight_controller_time_sends_corrections_targets_and_arm():
     assert corr[1].corrected.p_w_m[0] == pytest.approx(0.2 + corr[1].correction.dp_w_m[0])
     targets = of(TargetOut, out)
     assert [t.system_id for t in targets] == [1, 2, 3] and targets[0].time_us == 0
-    # anchored at the chain's middle: the middle link's target is at its estimate
-    np.testing.assert_allclose(targets[1].target.p_w_m, [0.2, 0.0, 2.0], atol=1e-9)
+    # anchored at the chain's middle in the first step's estimate: the middle link's target is at
+    # its corrected estimate
+    np.testing.assert_allclose(targets[1].target.p_w_m, corr[1].corrected.p_w_m, atol=1e-9)
     assert [c.row for c in of(CommandOut, out) if c.command is Command.ARM] == [0, 1, 2]
     # 20 Hz on flight-controller time: nothing at 0.02 s and 0.04 s, the step at 0.06 s once
     # every link has reported for it
@@ -48,6 +49,52 @@ def test_step_on_flight_controller_time_sends_corrections_targets_and_arm():
     assert len(nxt) == 3 and nxt[0].correction.ekf_time_s == pytest.approx(0.06)
     assert nxt[0].correction.seq == corr[0].correction.seq + 1
     assert len(engine.log["t_sckf"]) == 2
+
+
+@pytest.mark.parametrize("home, anchor, bias, expected_shift", [
+    ("estimate", (0.0, 0.0, 2.0), (0.3, -0.2, 1.5), (0.3, -0.2, 1.5)),  # flown from the estimated start
+    ("estimate", (0.0, 0.0, 2.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+    ("anchor", (0.0, 0.0, 2.0), (0.3, -0.2, 1.5), (0.0, 0.0, 0.0)),  # flown at the anchor as given
+])
+def test_a_centralised_companion_flies_the_trajectory_from_its_estimated_start(home, anchor, bias, expected_shift):
+    """Links that all report a shared offset from where the chain was set down (``anchor``): with
+    ``home = "estimate"`` every target, from the first on, is the trajectory's shifted by it, so the
+    chain holds where it believes it rests and climbs the take-off's height from there."""
+    setup = setup_for()
+    setup = replace(setup, trajectory=replace(setup.trajectory, home=home))
+    engine = CompanionEngine(setup, start_center=anchor)
+    reference = CompanionEngine(setup_for(), start_center=(0.0, 0.0, 2.0))  # the trajectory as written
+
+    def states(t):
+        return [replace(straight_state(i, 3, t), p_w_m=straight_state(i, 3, t).p_w_m + np.asarray(bias))
+                for i in range(3)]
+
+    for k in range(0, 200):  # 4 s at 50 Hz: holding the start, then the take-off's first seconds
+        t = 0.02 * k
+        for i, state in enumerate(states(t)):
+            engine.on_state(i, state, STATE_FLAG_EKF_OK, t)
+            reference.on_state(i, straight_state(i, 3, t), STATE_FLAG_EKF_OK, t)
+        got, want = of(TargetOut, engine.poll(t)), of(TargetOut, reference.poll(t))
+        assert len(got) == len(want) and (k or len(got) == 3)  # from the first poll on
+        for g, w in zip(got, want):
+            assert g.time_us == w.time_us
+            np.testing.assert_allclose(g.target.p_w_m, w.target.p_w_m + np.asarray(expected_shift), atol=1e-9)
+            np.testing.assert_allclose(g.target.q_wxyz, w.target.q_wxyz, atol=1e-12)
+    np.testing.assert_allclose(engine.targets.home_offset_w_m, expected_shift, atol=1e-9)
+    assert engine.targets.trajectory.targets(3.0)[1].p_w_m[2] > 2.0 + 1e-3  # climbing at 3 s
+
+
+def test_distributed_companions_fly_their_shared_anchor_as_given():
+    """Each group sees only its own links: the groups keep the shared anchor, unshifted."""
+    setup = setup_for(5, groups=((1, 2), (3, 4, 5)), distributed=True)
+    clock = [0.0]
+    _, engines = group_engines(setup, lambda: clock[0])
+    bias = np.array([0.3, -0.2, 1.5])
+    fly_group_engines(engines, clock, lambda t: [replace(s, p_w_m=s.p_w_m + bias)
+                                                 for s in (straight_state(i, 5, t) for i in range(5))], cycles=4)
+    for eng in engines:  # the anchor (0, 0, 2): the middle link's first target
+        assert eng.targets.trajectory is not None and not eng.targets.home_offset_w_m.any()
+        np.testing.assert_allclose(eng.targets.trajectory.targets(0.0)[2].p_w_m, [0.0, 0.0, 2.0], atol=1e-9)
 
 
 def test_disabled_companion_logs_the_ekf_states_and_corrects_nothing():

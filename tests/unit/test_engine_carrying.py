@@ -41,12 +41,13 @@ def test_a_link_without_rotors_is_carried_by_its_neighbours(n, down):
             engine.on_state(r, straight_state(r, n, t), down_flags if r == down else flying, t)
         out = of(TargetOut, engine.poll(t))
         # its weight, and what its target's acceleration (the take-off's) needs
-        weight = mass * (9.80665 + out[down].target.a_w_m_s2[2])
+        weight = mass * (9.80665 + out[down].target.a_w_m_s2[2]) if out else weight
         return {o.row: o.target.force_ff_w_n for o in out}
 
     everyone, others = range(n), [r for r in range(n) if r != down]
     mass, weight = 0.0, 0.0
-    ff = tick(everyone)
+    while engine.trajectory is None:  # the first targets come with the first step
+        ff = tick(everyone)
     mass = engine.trajectory.dynamics.inertia.mass_kg
     while t < 1.0:
         ff = tick(everyone)

@@ -103,6 +103,8 @@ def _lossy_hover(loss: float, seed: int, duration_s: float, dead_at_s: float = m
             engine.on_state(r, straight_state(r, 3, t), flying, t)
             last_heard = t if r == 1 else last_heard
         out = of(TargetOut, engine.poll(t))
+        if not out:  # the first targets come with the first step
+            continue
         weight = engine.trajectory.dynamics.inertia.mass_kg * 9.80665
         lift = out[0].target.force_ff_w_n[2] + out[2].target.force_ff_w_n[2]
         if carried_after is None and t >= dead_at_s and lift > 0.5 * weight:
