@@ -20,6 +20,7 @@ import numpy as np
 from companion.config import CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
+from link_firmware_sim.firmware_config import FirmwareConfig
 from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
 from link_firmware_sim.vehicle.failures import OK, SUPPORTED, TYPE_NAMES, UNIT_NAMES
 
@@ -400,17 +401,37 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
     """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``). A
     ``[companion]`` without ``omega_std_rad_s`` gets the simulated gyro's white noise: the
     firmware reports the raw body rate less its bias estimate."""
-    return with_rate_noise(with_profile_ekf(load_setup(Scenario, path, **overrides)))
+    return with_rate_noise(with_profile_tuning(load_setup(Scenario, path, **overrides)))
 
 
-def with_profile_ekf(scenario: Scenario) -> Scenario:
-    """``scenario`` with the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.estimators.tunings.m8_ekf_config`)
-    if its sensors are the ``m8`` profile and ``[firmware.ekf]`` left the default (``outdoor``)
-    tuning as it is: the default is tuned for ``outdoor``'s decimetre-level drift, and with
-    ``m8``'s metre-level biases it would claim about a hundredth of its position error."""
-    if scenario.sensors.profile != "m8" or scenario.firmware.ekf != outdoor_ekf_config():
-        return scenario
-    return replace(scenario, firmware=replace(scenario.firmware, ekf=m8_ekf_config()))
+#: how many standard deviations of a receiver's own bias the firmware's correction bound covers
+CORRECTION_BOUND_SIGMAS = 3.0
+
+
+def with_profile_tuning(scenario: Scenario) -> Scenario:
+    """``scenario`` with the firmware tuned for its receivers where it left the defaults:
+
+    * the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.estimators.tunings.m8_ekf_config`)
+      if its sensors are the ``m8`` profile and ``[firmware.ekf]`` is the default (``outdoor``)
+      tuning: that is tuned for ``outdoor``'s decimetre-level drift, and with ``m8``'s metre-level
+      biases it would claim about a hundredth of its position error;
+    * the largest correction a link accepts (``correction_max_dp_m``, SKL_CORR_MAXP) at least
+      :data:`CORRECTION_BOUND_SIGMAS` times the RMS of a receiver's own position bias (``m8`` and
+      ``m8_baro_mag``: 5 m), if ``[firmware]`` left it at its default: a link's correction is its
+      offset from where the chain puts it, the receiver's own bias among it, and one the bound
+      refuses leaves the link flying on its own EKF, metres off its neighbours (with ``m8`` the
+      default 2 m would refuse about one correction in ten of a three-link chain's).
+    """
+    firmware = scenario.firmware
+    if scenario.sensors.profile == "m8" and firmware.ekf == outdoor_ekf_config():
+        firmware = replace(firmware, ekf=m8_ekf_config())
+    g = scenario.sensors.suite().gps
+    own_bias_rms_m = math.sqrt(2.0 * g.bias_horizontal_std_m ** 2 + g.bias_vertical_std_m ** 2)
+    bound = math.ceil(CORRECTION_BOUND_SIGMAS * own_bias_rms_m)
+    default = FirmwareConfig().correction_max_dp_m
+    if firmware.correction_max_dp_m == default and bound > default:
+        firmware = replace(firmware, correction_max_dp_m=float(bound))
+    return scenario if firmware is scenario.firmware else replace(scenario, firmware=firmware)
 
 
 def with_rate_noise(scenario: Scenario) -> Scenario:

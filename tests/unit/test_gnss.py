@@ -87,3 +87,27 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     own.write_text(base.replace('profile = "outdoor"', 'profile = "m8"') + "\n[firmware.ekf]\ngps_pos_var_m2 = 0.7\n")
     assert load_scenario(own).firmware.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)
     assert load_scenario(own).companion.gnss_common_pos_var_m2 == (0.0, 0.0)  # its links report no bias
+
+
+@pytest.mark.parametrize("profile, firmware, bound_m", [
+    ("outdoor", "", 2.0), ("rtk", "", 2.0), ("m8", "", 5.0), ("m8_baro_mag", "", 5.0),
+    ("m8", "correction_max_dp_m = 3.5\n", 3.5),  # the scenario's own bound stays
+])
+def test_the_correction_bound_covers_the_receivers_own_bias(tmp_path, profile, firmware, bound_m):
+    """A link's correction is its offset from where the chain puts it, its receiver's own bias
+    among it: on metre-level receivers the firmware accepts three times that bias's RMS, rounded up
+    (m8: 3 sqrt(2 0.8^2 + 1.2^2) = 4.95 m), where the default 2 m would refuse about one correction
+    in ten of a three-link chain's (each link's bias less the chain's mean, drawn here)."""
+    from sitl.scenario import load_scenario
+
+    path = tmp_path / "s.toml"
+    base = open("configs/sitl/chain/three_link.toml").read()
+    text = base.replace('profile = "outdoor"', f'profile = "{profile}"')
+    path.write_text(text.replace("[firmware]\n", "[firmware]\n" + firmware))
+    assert load_scenario(path).firmware.correction_max_dp_m == bound_m
+    if profile == "m8" and not firmware:
+        g = PROFILES["m8"].gps
+        std = np.array([g.bias_horizontal_std_m, g.bias_horizontal_std_m, g.bias_vertical_std_m])
+        bias = np.random.default_rng(0).normal(size=(20000, 3, 3)) * std  # (draw, link, axis)
+        offset = np.linalg.norm(bias - bias.mean(axis=1, keepdims=True), axis=-1)
+        assert 0.05 < np.mean(offset > 2.0) < 0.15 and np.mean(offset > bound_m) < 1e-4
