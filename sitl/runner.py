@@ -198,7 +198,6 @@ class BatchRunner:
         #: the link reboot's timeline (metrics ``faults.link_reboot``), as the fleet reports it
         self.link_fault: dict = {}
         self._down: set[int] = set()  # links whose firmware is off (killed, not yet powered on)
-        self._boot_fix: dict[int, list] = {}  # a restarted firmware's newest [GPS fix, attitude] before its EKF starts
         self.log = RunLog()
         #: the firmware's STATUSTEXTs: (time [s], link from 1, MAV_SEVERITY, text)
         self.statustext: list[tuple] = []
@@ -218,15 +217,14 @@ class BatchRunner:
         return self.plant.model
 
     def start_firmware(self) -> None:
-        """Every link's firmware started at the plant's current truth, as a vehicle starts: its EKF
-        from a GPS fix and an attitude reference at t = 0 (the companion arms it later); an in-air
-        start has the rotors already spinning at the thrusts that carry each link."""
+        """Every link's firmware started as a vehicle starts: its EKF from the first GPS fix and
+        attitude reference the next tick delivers (at t = 0; the companion arms it later), the
+        samples a fleet's vehicles start from with the same seed; an in-air start has the rotors
+        already spinning at the thrusts that carry each link."""
         plant = self.plant
         truth = plant.model.truth()
-        pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
-        att = plant.sensors.attitude(0.0, truth.q_wxyz)
-        for i, fw in enumerate(self.firmware):
-            fw.initialize(0.0, pos[i], vel[i], att[i])
+        # a firmware's newest [GPS fix, attitude] before its EKF starts (:meth:`_boot`)
+        self._boot_fix: dict[int, list] = {i: [None, None] for i in range(self.n)}
         if not self.scenario.start.on_ground:
             self.rotors.prime(np.concatenate([fw.hover_command(truth.q_wxyz[i]) for i, fw in enumerate(self.firmware)]))
 
@@ -301,7 +299,7 @@ class BatchRunner:
             lf.update(rotors_on_at_s=round(t, 3))
 
     def _boot(self, i: int, t: float, fix=None, att=None) -> bool:
-        """A restarted firmware's sensor sample before its EKF runs: the EKF starts once it has a
+        """A starting (or restarted) firmware's sensor sample before its EKF runs: the EKF starts once it has a
         GPS fix and an attitude reference (the newest of each). True if the sample was taken
         here (the firmware was booting), False if the firmware takes it itself."""
         pending = self._boot_fix.get(i)

@@ -301,18 +301,19 @@ def test_single_link_holds_position_in_steady_wind():
 
 
 def test_nees_of_a_short_flight_lies_within_its_bounds_and_flags_a_white_noise_tuning():
-    """Every link's time-averaged NEES (EKF and corrected; position, velocity,
-    attitude) of a 30 s three_link flight within the 95 % bounds of its effective sample count;
-    a 12 s flight with the EKF told the sensors' white noise only (drifts left out of its tuning) is
+    """Every link's time-averaged NEES (EKF and corrected; position, velocity, attitude: 18
+    figures) of a 30 s three_link flight within the 95 % bounds of its effective sample count, but
+    for at most one (each bound leaves a consistent filter out by chance now and then); a 12 s
+    flight with the EKF told the sensors' white noise only (drifts left out of its tuning) is
     over-confident and outside them."""
     from link_firmware_sim.estimators import EkfConfig, EkfNoise
 
     scenario = load_scenario(CONFIG, duration_s=30.0)
     nees = fly(scenario, None, plots=False)["nees"]
-    for which in ("ekf", "corrected"):
-        for block in ("pos", "vel", "att"):
-            assert all(nees["inside95"][which][block]), (which, block, nees[which][block],
-                                                          nees["bounds95_effective"][which][block])
+    outside = [(which, block, link + 1, nees[which][block][link], nees["bounds95_effective"][which][block][link])
+               for which in ("ekf", "corrected") for block in ("pos", "vel", "att")
+               for link, inside in enumerate(nees["inside95"][which][block]) if not inside]
+    assert len(outside) <= 1, outside
     white = EkfConfig(noise=EkfNoise(pos_m2_s=1e-4, vel_m2_s3=6e-5, att_rad2_s=1e-5, accel_bias_m2_s5=1e-6,
                                      gyro_bias_rad2_s3=1e-8),
                       gps_pos_var_m2=0.0225, gps_vel_var_m2_s2=0.0025, att_var_rad2=3e-4, att_yaw_var_rad2=2.7e-3,
@@ -386,3 +387,42 @@ def test_a_gnss_error_every_link_shares_at_the_start_does_not_move_the_flight(se
     shift = runner.engines[0].targets.home_offset_w_m
     assert shift[2] == pytest.approx(common_up_m if home == "estimate" else 0.0, abs=0.3)
 
+
+def _chain_runner():
+    from sitl.plant.plant import Plant
+
+    sc = load_scenario("configs/sitl/chain/three_link.toml", duration_s=8.0)
+    return BatchRunner(sc), Plant(sc)
+
+
+def _slung_load_runner():
+    from sitl.plant.plant import Plant
+    from sitl.scenarios.slung_load.config import load_slung_scenario
+    from sitl.scenarios.slung_load.flight import slung_load_runner, vehicles_scenario
+    from sitl.scenarios.slung_load.model import put_in
+
+    sc = load_slung_scenario("configs/sitl/load/slung_load_three.toml", duration_s=2.0)
+    plant = Plant(vehicles_scenario(sc))
+    put_in(plant, sc)
+    return slung_load_runner(sc), plant
+
+
+@pytest.mark.parametrize("build", [_chain_runner, _slung_load_runner])
+def test_a_batch_flight_starts_from_the_first_samples_of_its_seed(build):
+    """Every firmware's EKF starts from the first tick's GPS fix and attitude reference, the first
+    draws of the seed's sensors (a plant built alike), as the fleet's harness sends its vehicles
+    first: a batch and a fleet flight of one seed see the same sensor noise from then on."""
+    runner, plant = build()
+    started = {}
+    for i, fw in enumerate(runner.firmware):
+        def initialize(t, p, v, q, i=i, start=fw.initialize):
+            started[i] = (t, p.copy(), v.copy(), q.copy())
+            start(t, p, v, q)
+        fw.initialize = initialize
+    runner.run(0.004)
+    truth = plant.model.truth()
+    pos, vel = plant.sensors.gps(0.0, truth.p_w_m, truth.v_w_m_s)
+    att = plant.sensors.attitude(0.0, truth.q_wxyz)
+    assert sorted(started) == list(range(runner.n))
+    for i, (t, p, v, q) in started.items():
+        assert t == 0.0 and np.array_equal(p, pos[i]) and np.array_equal(v, vel[i]) and np.array_equal(q, att[i])
