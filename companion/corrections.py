@@ -134,7 +134,8 @@ def local_step(states: Sequence[LinkState], d_b_m: np.ndarray, params: CAParams 
     t, p, v, q = align_states(states, t)
     w = np.array([s.omega_b_rad_s for s in states])
     P = np.array([s.P for s in states])
-    pn, vn, qn, whole, _, accepted = neighbour_step(p, v, q, w, P, (tuple(range(len(states))),), neighbours)
+    pn, vn, qn, whole, _, accepted = neighbour_step(p, v, q, w, P, (tuple(range(len(states))),), neighbours,
+                                                    d=d_b_m)
     result = constraint_apply(pn, vn, qn, w, d_b_m, whole.get(0, P), params)
     boundary, tip_cross = local_boundary(result.p, result.v, result.q, w, d_b_m, result)
     return LocalStep(t, p, v, q, w, result, boundary, tip_cross, accepted)

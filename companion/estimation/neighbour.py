@@ -191,7 +191,7 @@ class NeighbourUpdates:
 
 
 def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, w=None,
-                      iterations: int = ITERATIONS) -> NeighbourUpdates:
+                      iterations: int = ITERATIONS, d=None) -> NeighbourUpdates:
     """Kalman updates of ``n`` links (``p``, ``v`` (n, 3), ``q`` (n, 4); ``P`` their (n, 9, 9)
     independent EKF covariances or a whole (9n, 9n) one) with each of ``measurements``
     (:class:`NeighbourMeasurement`) in turn, on the stacked state: each moves every link its
@@ -202,10 +202,13 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
     the chain's estimators do (positions and velocities added, attitudes by
     :func:`~.so3.retract`). ``gate_chi2``: a measurement above this NIS (6 dof, at the prior) is
     rejected and changes nothing. ``w`` (n, 3): the links' body rates; a measurement ``age_s``
-    old is then compared with the model at the pair's states taken back that long (``p - v
-    age``, ``q (x) Exp(-w age)``, as the step aligns states forward), its Jacobian at the states
-    themselves; without ``w`` the age is not used. ``ChainInputError`` for shapes, non-finite
-    values or a link out of range."""
+    old is then compared with the model at the pair's states taken back that long (``q (x)
+    Exp(-w age)``, ``p - v age``, as the step aligns states forward), its Jacobian at the states
+    themselves; without ``w`` the age is not used. With ``d`` (n, 3), the links' tip vectors, a
+    pair of joined links is taken back as joined (:func:`_taken_back`): the observed link moves
+    with the observer and the turn of the two about their joint, not by its own velocity (two
+    links' velocity errors over the age are millimetres of relative position, through their
+    rates a fraction of one). ``ChainInputError`` for shapes, non-finite values or a link out of range."""
     p, v, q = (np.array(a, dtype=float) for a in (p, v, q))
     n = p.shape[0] if p.ndim == 2 else -1
     for name, arr, shape in (("p", p, (n, 3)), ("v", v, (n, 3)), ("q", q, (n, 4))):
@@ -219,12 +222,16 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
         raise ChainInputError(f"P must be ({n}, 9, 9) blocks or ({N}, {N}), got {P.shape}", field="P")
     if not np.all(np.isfinite(P)):
         raise ChainInputError("P must be finite", field="P")
+    if d is not None:
+        d = np.asarray(d, dtype=float)
+        if d.shape != (n, 3) or not np.all(np.isfinite(d)):
+            raise ChainInputError(f"d must be finite with shape {(n, 3)}, got {d.shape}", field="d")
     nis, accepted = np.zeros(len(measurements)), np.zeros(len(measurements), dtype=bool)
     for k, m in enumerate(measurements):
         i, j = int(m.observer), int(m.observed)
         if max(i, j) >= n:
             raise ChainInputError(f"measurement {k}: links {i} and {j} of {n}", field="measurements", index=max(i, j))
-        r, H = _residual_and_jacobian(m, p, v, q, w, i, j, N)
+        r, H = _residual_and_jacobian(m, p, v, q, w, d, i, j, N)
         PHt = P @ H.T
         S = H @ PHt + m.cov
         nis[k] = float(r @ np.linalg.solve(0.5 * (S + S.T), r))
@@ -246,7 +253,7 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
             x = inject_errors(p, v, q, dx.reshape(n, ERR_DIM))
             if done or it == iterations - 1:
                 break
-            r, H = _residual_and_jacobian(m, *x, w, i, j, N)
+            r, H = _residual_and_jacobian(m, *x, w, d, i, j, N)
             PHt = P @ H.T
             S = H @ PHt + m.cov
         A = np.eye(N) - K @ H
@@ -256,12 +263,26 @@ def neighbour_updates(p, v, q, P, measurements, gate_chi2: float | None = None, 
     return NeighbourUpdates(p, v, q, P, nis, accepted)
 
 
-def _residual_and_jacobian(m: NeighbourMeasurement, p, v, q, w, i: int, j: int, N: int):
-    """Measurement ``m``'s residual (at the capture time when ``w`` is given) and its (6, N)
-    Jacobian on the stacked error state, at the states ``p``, ``v``, ``q``."""
+def _taken_back(p, v, q, w, d, i: int, j: int, age_s: float):
+    """Links ``i`` and ``j`` taken back ``age_s``: ``((p_i, q_i), (p_j, q_j))``. Each turns back by
+    its body rate (``q (x) Exp(-w age)``) and the observer moves back by its velocity; the observed
+    link by its own velocity, or, with ``d`` and the two joined (``|i - j| = 1``), with the
+    observer and the change of the joint's lever arms: ``p_j - p_i = s (R_i d_i + R_j d_j)`` with
+    ``s`` = 1 when ``j`` follows ``i`` (eq. 3's joint), -1 when it precedes it."""
+    qb = {k: quat_mul(q[k], quat_from_rotvec(-w[k] * age_s)) for k in (i, j)}
+    pi = p[i] - v[i] * age_s
+    if d is None or abs(i - j) != 1:
+        return (pi, qb[i]), (p[j] - v[j] * age_s, qb[j])
+    s = 1.0 if j == i + 1 else -1.0
+    lever = sum((quat_to_rotmat(qb[k]) - quat_to_rotmat(q[k])) @ d[k] for k in (i, j))
+    return (pi, qb[i]), (p[j] - v[i] * age_s + s * lever, qb[j])
+
+
+def _residual_and_jacobian(m: NeighbourMeasurement, p, v, q, w, d, i: int, j: int, N: int):
+    """Measurement ``m``'s residual (at the capture time when ``w`` is given: :func:`_taken_back`)
+    and its (6, N) Jacobian on the stacked error state, at the states ``p``, ``v``, ``q``."""
     if w is not None and m.age_s > 0.0:  # the model at the capture time
-        (pi, qi), (pj, qj) = ((p[k] - v[k] * m.age_s, quat_mul(q[k], quat_from_rotvec(-w[k] * m.age_s)))
-                              for k in (i, j))
+        (pi, qi), (pj, qj) = _taken_back(p, v, q, w, d, i, j, m.age_s)
         r = relative_pose_residual(m.R_cm, m.t_cm_m, pi, qi, pj, qj, m.view)
     else:
         r = relative_pose_residual(m.R_cm, m.t_cm_m, p[i], q[i], p[j], q[j], m.view)

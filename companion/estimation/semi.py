@@ -374,12 +374,12 @@ def local_constraint_apply(
 
 
 def neighbour_step(p, v, q, w, P, groups: Groups, neighbours: Sequence[NeighbourMeasurement],
-                   gate_chi2: float | None = NEIGHBOUR_GATE_CHI2):
-    """The neighbour camera measurements (:mod:`.neighbour`; ``w`` the body rates that take the
-    states back to a measurement's capture) applied inside each group before its constraint
-    application: ``(p, v, q, whole, nis, accepted)``, the states after them, each
-    updated group's whole covariance by group index, and per measurement its NIS and whether it
-    was applied (one between two groups is not: NaN, ``False``)."""
+                   gate_chi2: float | None = NEIGHBOUR_GATE_CHI2, d=None):
+    """The neighbour camera measurements (:mod:`.neighbour`; ``w`` the body rates and ``d`` the
+    tip vectors that take the states back to a measurement's capture) applied inside each group
+    before its constraint application: ``(p, v, q, whole, nis, accepted)``, the states after
+    them, each updated group's whole covariance by group index, and per measurement its NIS and
+    whether it was applied (one between two groups is not: NaN, ``False``)."""
     p, v, q = p.copy(), v.copy(), q.copy()
     nis, accepted = np.full(len(neighbours), np.nan), np.zeros(len(neighbours), dtype=bool)
     whole: dict[int, np.ndarray] = {}
@@ -389,7 +389,8 @@ def neighbour_step(p, v, q, w, P, groups: Groups, neighbours: Sequence[Neighbour
             continue
         sl = slice(g[0], g[-1] + 1)
         local = [m.numbered_from(g[0]) for _, m in mine]
-        up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2, w[sl])
+        up = neighbour_updates(p[sl], v[sl], q[sl], P[sl], local, gate_chi2, w[sl],
+                               d=None if d is None else np.asarray(d, dtype=float)[sl])
         p[sl], v[sl], q[sl], whole[k] = up.p, up.v, up.q, up.P
         for (m_idx, _), x, ok in zip(mine, up.nis, up.accepted):
             nis[m_idx], accepted[m_idx] = x, ok
@@ -406,7 +407,7 @@ def semi_distributed_apply(
     With a single group this is exactly Alg. 1 on the whole chain (no boundaries, a zero shift).
     """
     groups = validate_groups(groups, p.shape[0])
-    p, v, q, whole, nis, accepted = neighbour_step(p, v, q, w, P, groups, neighbours)
+    p, v, q, whole, nis, accepted = neighbour_step(p, v, q, w, P, groups, neighbours, d=d)
     local = local_constraint_apply(p, v, q, w, d, P, groups, params, method, whole)
     p_out = np.concatenate([r.p for r in local])
     v_out = np.concatenate([r.v for r in local])

@@ -207,6 +207,44 @@ def _chain(rng, n):
     return p, v, q, P
 
 
+@pytest.mark.parametrize("observer, observed", [(0, 1), (1, 0)])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_joined_links_taken_back_to_a_capture_stay_joined_whatever_their_velocities(seed, observer, observed):
+    """Two links joined at their tips (eq. 3: p_2 = p_1 + R_1 d + R_2 d), turning, and velocity
+    estimates off by centimetres per second: with the tip vectors the measurement 0.2 s old is
+    compared with the pair taken back still joined, the observed link moved with the observer and
+    the turn of both about the joint, so a noise-free measurement of that capture agrees
+    (NIS near 0, the states stay) whatever the observed link's velocity error; by the two
+    velocities alone it does not (the error times the age is centimetres between the links,
+    which the update then moves)."""
+    rng = np.random.default_rng(seed)
+    d = np.array([[0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    q = quat_from_rotvec(rng.normal(0.0, 0.1, (2, 3)))
+    p = np.zeros((2, 3))
+    p[0] = [0.0, 0.0, 2.0]
+    p[1] = p[0] + quat_to_rotmat(q[0]) @ d[0] + quat_to_rotmat(q[1]) @ d[1]
+    w = rng.normal(0.0, 0.5, (2, 3))
+    v = np.zeros((2, 3))
+    v[observer] = rng.normal(0.0, 0.3, 3)
+    v[observed] = v[observer] + rng.normal(0.0, 0.3, 3)  # not the joint's: an estimate's error
+    age = 0.2
+    q_back = np.array([quat_mul(q[k], quat_from_rotvec(-w[k] * age)) for k in range(2)])
+    p_back = np.zeros((2, 3))
+    p_back[observer] = p[observer] - v[observer] * age
+    sign = 1.0 if observed == observer + 1 else -1.0
+    p_back[observed] = p_back[observer] + sign * sum(quat_to_rotmat(q_back[k]) @ d[k] for k in range(2))
+    # the view's camera on the observer, the marker on the observed (the chain's order reversed for (1, 0))
+    R_cm, t_cm = marker_in_camera(p_back[observer], q_back[observer], p_back[observed], q_back[observed], VIEW)
+    m = NeighbourMeasurement(observer, observed, R_cm, t_cm, np.diag([1e-6] * 3 + [1e-8] * 3), VIEW, age_s=age)
+    P = np.stack([np.diag(np.r_[[0.01**2] * 3, [0.1**2] * 3, [np.radians(0.5) ** 2] * 3])] * 2)
+    joined = neighbour_updates(p, v, q, P, [m], w=w, d=d)
+    by_velocity = neighbour_updates(p, v, q, P, [m], w=w)
+    assert joined.nis[0] < 1e-6 and np.abs(joined.p - p).max() < 1e-6
+    assert by_velocity.nis[0] > 10.0 and np.abs(by_velocity.p - p).max() > 0.01
+    with pytest.raises(ChainInputError, match="d must be"):
+        neighbour_updates(p, v, q, P, [m], w=w, d=d[:1])
+
+
 def test_in_a_chain_one_measurement_moves_its_pair_as_the_pair_update_does():
     """A measurement between links 1 and 2 of four independent links: those two come out as the
     pair's own update gives them, links 0 and 3 (uncorrelated with them) unchanged."""
