@@ -299,9 +299,9 @@ class BatchRunner:
             lf.update(rotors_on_at_s=round(t, 3))
 
     def _boot(self, i: int, t: float, fix=None, att=None) -> bool:
-        """A starting (or restarted) firmware's sensor sample before its EKF runs: the EKF starts once it has a
-        GPS fix and an attitude reference (the newest of each). True if the sample was taken
-        here (the firmware was booting), False if the firmware takes it itself."""
+        """A starting (or restarted) firmware's sensor sample before its EKF runs: the EKF starts
+        once it has a GPS fix and an attitude reference (the newest of each). True if the sample
+        was taken here (the firmware was booting), False if the firmware takes it itself."""
         pending = self._boot_fix.get(i)
         if pending is None:
             return False
