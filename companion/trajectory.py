@@ -69,7 +69,7 @@ import numpy as np
 from .kernels.jit import ENABLED as _COMPILED
 from .kernels.trajectory import trajectory_kernel
 from .configfile import require_nonnegative, require_positive
-from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat
+from .estimation.so3 import quat_from_euler_zyx, quat_mul, quat_to_rotmat, rotmat_to_quat, rotmat_tuple
 from .load.config import LoadConfig
 from .load.formation import FormationTrajectory
 from .messages import PoseTarget
@@ -135,14 +135,25 @@ def with_feedforward(targets: list[PoseTarget], model, passive=frozenset(), arra
     if model is None:
         return targets
     arrays = model.stack(targets) if arrays is None else arrays
+    return feedforward_targets([(t.p_w_m, t.q_wxyz, t.v_w_m_s, t.a_w_m_s2, t.omega_d_rad_s, t.omega_dot_d_rad_s2)
+                                for t in targets], model, passive, arrays)
+
+
+def feedforward_targets(motion, model, passive, arrays) -> list[PoseTarget]:
+    """Each link's :class:`PoseTarget` with the whole-chain feed-forward of ``model`` (see
+    :func:`with_feedforward`), built once from ``motion``: per link ``(p, q, v, a, w, w_dot)``,
+    and ``arrays``: the same ``(p, R, v, w, acc, wd)`` stacked over the links."""
     flying = model.solve(*arrays) if passive else None
     dyn = model.solve(*arrays, passive=passive)
     out = []
-    for i, t in enumerate(targets):
+    for i, (p, q, v, a, w, w_dot) in enumerate(motion):
         d = flying if i in passive else dyn
-        # (built whole: dataclasses.replace costs twice as much, at 50 Hz per link on the companion)
-        out.append(PoseTarget(t.p_w_m, t.q_wxyz, t.v_w_m_s, t.a_w_m_s2, t.omega_d_rad_s, t.omega_dot_d_rad_s2,
-                              force_ff_w_n=d.force_ff_w_n[i], torque_ff_b_nm=t.R_d.T @ d.torque_ff_w_nm[i]))
+        R_tuple = rotmat_tuple(q.tolist())
+        R_d = np.array(R_tuple).reshape(3, 3)
+        target = PoseTarget(p, q, v, a, w, w_dot, force_ff_w_n=d.force_ff_w_n[i],
+                            torque_ff_b_nm=R_d.T @ d.torque_ff_w_nm[i])
+        target.__dict__.update(R_d=R_d, R_tuple=R_tuple)  # (its cached properties, computed here anyway)
+        out.append(target)
     return out
 
 
@@ -232,8 +243,10 @@ class ChainTrajectory:
         """Targets with velocity, acceleration, body rate and its derivative (``passive``: see
         :func:`with_feedforward`)."""
         p, q, R, v, a, w, w_dot = self.target_arrays(t)
-        return with_feedforward([PoseTarget(p[i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)],
-                                self.dynamics, passive, arrays=(p, R, v, w, a, w_dot))
+        motion = [(p[i], q[i], v[i], a[i], w[i], w_dot[i]) for i in range(self.n)]
+        if self.dynamics is None:
+            return [PoseTarget(*m) for m in motion]
+        return feedforward_targets(motion, self.dynamics, passive, (p, R, v, w, a, w_dot))
 
 
 class CpgChainTrajectory:
@@ -308,8 +321,11 @@ class CpgChainTrajectory:
         a = (after.v_w_m_s - before.v_w_m_s) / span
         w_dot = (after.omega_l_rad_s - before.omega_l_rad_s) / span
         q = rotmat_to_quat(now.R_wl)
-        return with_feedforward([PoseTarget(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i])
-                                 for i in range(self.n)], self.dynamics, passive)
+        motion = [(now.p_w_m[i], q[i], now.v_w_m_s[i], a[i], now.omega_l_rad_s[i], w_dot[i]) for i in range(self.n)]
+        if self.dynamics is None:
+            return [PoseTarget(*m) for m in motion]
+        return feedforward_targets(motion, self.dynamics, passive,
+                                   (now.p_w_m, quat_to_rotmat(q), now.v_w_m_s, now.omega_l_rad_s, a, w_dot))
 
 
 def chain_model(skeleton: SkeletonConfig):

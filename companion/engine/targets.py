@@ -113,7 +113,7 @@ class Targets:
         t0 = self._timer()
         targets = self.trajectory.targets((t_us - self._t0_us) * 1e-6, passive=passive)
         if self.home_offset_w_m.any():
-            targets = [replace(tg, p_w_m=tg.p_w_m + self.home_offset_w_m) for tg in targets]
+            targets = [_shifted(tg, self.home_offset_w_m) for tg in targets]
         self.compute_ms.add((self._timer() - t0) * 1e3)
         if self.via_net:
             if self.net.leads(next_step_us, now_s):
@@ -162,3 +162,10 @@ class Targets:
     def _out(self, lk: LinkTrack, time_us: int, target: PoseTarget) -> None:
         self.carrying.on_target(lk.index, target)
         self._emit(TargetOut(lk.row, lk.system_id, lk.to_link_clock_us(time_us), target))
+
+
+def _shifted(target: PoseTarget, offset_w_m: np.ndarray) -> PoseTarget:
+    """``target`` moved by ``offset_w_m``, with the attitude forms it has cached (the same attitude)."""
+    out = replace(target, p_w_m=target.p_w_m + offset_w_m)
+    out.__dict__.update((k, v) for k, v in target.__dict__.items() if k in ("R_d", "R_tuple"))
+    return out

@@ -247,3 +247,22 @@ def test_the_model_is_mujocos_chain(n, through):
     np.testing.assert_allclose(sm.data.qacc[:3], targets[0].a_w_m_s2, atol=1e-8)
     np.testing.assert_allclose(sm.data.qacc[3:6], targets[0].omega_dot_d_rad_s2, atol=1e-8)
     np.testing.assert_allclose(sm.truth().joint_force_w_n, dyn.joint_force_w_n, atol=1e-8)
+
+
+@pytest.mark.parametrize("passive", [frozenset(), frozenset({0}), frozenset({1})])
+def test_a_feedforward_target_is_the_chains_target_with_its_attitude_forms_as_computed_fresh(passive):
+    """The targets of a chain with the feed-forward: the same motion as without it, and the
+    attitude forms they carry (``R_d``, ``R_tuple``, filled as they are built) equal to those a
+    target computes from its quaternion."""
+    cm = model_of(3, joint_stiffness_nm_rad=0.3, joint_damping_nms_rad=0.1)
+    cfg = TrajectoryConfig(kind="bend", takeoff_start_s=0.0, takeoff_duration_s=0.0, bend_start_s=0.0,
+                           bend_ramp_s=0.0, bend_period_s=4.0)
+    bare = ChainTrajectory(cfg, 3, 1.0, [0.0, 0.0, 2.0]).targets(1.3)
+    fed = ChainTrajectory(cfg, 3, 1.0, [0.0, 0.0, 2.0], dynamics=cm).targets(1.3, passive=passive)
+    for a, b in zip(bare, fed):
+        for name in ("p_w_m", "q_wxyz", "v_w_m_s", "a_w_m_s2", "omega_d_rad_s", "omega_dot_d_rad_s2"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        fresh = PoseTarget(b.p_w_m, b.q_wxyz)
+        np.testing.assert_array_equal(b.R_d, fresh.R_d)
+        assert b.R_tuple == fresh.R_tuple
+    assert np.linalg.norm(np.array([t.force_ff_w_n for t in fed])) > 1e-3
