@@ -138,37 +138,37 @@ def decode(payload: bytes):
         raise MessageError(f"payload: format version {version}, this companion speaks version {VERSION}")
     if type_id not in _BY_ID:
         raise MessageError(f"payload: unknown message type {type_id}")
-    cls, fields = _BY_ID[type_id]
+    cls, plan = _PLANS[type_id]
     values: dict[str, Any] = {}
     offset = _HEADER.size
     count = 0
-    for name, kind in fields:
+    for name, kind, arg in plan:
         try:
-            if kind == "ids":
-                (count,) = struct.unpack_from("<B", data, offset)
+            if kind == "scalar":
+                (values[name],) = arg.unpack_from(data, offset)
+                offset += arg.size
+            elif kind == "ids":
+                count = data[offset] if offset < len(data) else _truncated()
                 values[name] = tuple(struct.unpack_from(f"<{count}B", data, offset + 1))
                 offset += 1 + count
             elif kind == "per_id":
                 values[name] = tuple(struct.unpack_from(f"<{count}i", data, offset))
                 offset += 4 * count
-            elif isinstance(kind, str):
-                fmt = "<" + _SCALAR[kind]
-                (values[name],) = struct.unpack_from(fmt, data, offset)
-                offset += struct.calcsize(fmt)
-            elif kind[0] == "optsym" and struct.unpack_from("<B", data, offset)[0] == 0:
-                values[name] = None
-                offset += 1
             else:
-                if kind[0] == "optsym":
-                    (flag,) = struct.unpack_from("<B", data, offset)
+                if kind == "optsym":
+                    flag = data[offset] if offset < len(data) else _truncated()
+                    offset += 1
+                    if flag == 0:
+                        values[name] = None
+                        continue
                     if flag != 1:
                         raise MessageError(f"{cls.__name__}.{name}: presence flag {flag}, expected 0 or 1")
-                    offset += 1
-                size = {"vec": kind[1], "rows": count * kind[1]}.get(kind[0], kind[1] * (kind[1] + 1) // 2)
+                size = count * arg if kind == "rows" else arg if kind == "vec" else arg * (arg + 1) // 2
                 flat = np.frombuffer(data, dtype="<f8", count=size, offset=offset).astype(float)
                 offset += 8 * size
                 check_finite(f"{cls.__name__}.{name}", flat)
-                values[name] = flat if kind[0] == "vec" else flat.reshape(count, kind[1]) if kind[0] == "rows" else _sym(flat, kind[1])
+                values[name] = (flat if kind == "vec" else flat.reshape(count, arg) if kind == "rows"
+                                else _sym(flat, arg))
         except MessageError:
             raise
         except (struct.error, ValueError):
@@ -176,6 +176,27 @@ def decode(payload: bytes):
     if offset != len(data):
         raise MessageError(f"{cls.__name__}: {len(data) - offset} trailing bytes (payload of {len(data)} bytes)")
     return _VALIDATE[cls](values)
+
+
+def _truncated():
+    raise struct.error("truncated")
+
+
+def _plan(fields) -> tuple[tuple[str, str, Any], ...]:
+    """A schema's fields as :func:`decode` reads them: ``(name, kind, arg)``, ``arg`` a scalar's
+    :class:`struct.Struct`, a vector's length, a row's width or a symmetric matrix's size."""
+    out = []
+    for name, kind in fields:
+        if kind in ("ids", "per_id"):
+            out.append((name, kind, None))
+        elif isinstance(kind, str):
+            out.append((name, "scalar", struct.Struct("<" + _SCALAR[kind])))
+        else:
+            out.append((name, kind[0], kind[1]))
+    return tuple(out)
+
+
+_PLANS = {type_id: (cls, _plan(fields)) for type_id, (cls, fields) in _BY_ID.items()}
 
 
 @functools.cache

@@ -373,7 +373,7 @@ class GlobalStepNode:
             return None
         solved, shifts = solve_cycle([reports[key] for key in keys])
         want = shifts[[solved.index(key) for key in keys]]
-        return bool(np.allclose(want, shift.shift_pv_w, rtol=1e-9, atol=1e-9))
+        return bool(np.all(np.abs(want - shift.shift_pv_w) <= 1e-9 + 1e-9 * np.abs(shift.shift_pv_w)))  # (allclose)
 
     def tick(self, now_s: float) -> Actions:
         """Deadlines: the leader solves cycles that waited ``leader_wait_s``; a group that waited

@@ -8,9 +8,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from companion.fleetnet import codec
-from companion.messages import Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState, MessageError
+from companion.messages import (Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState,
+                                MessageError, check_psd)
 
 from ..chains import random_covariances
 from ..fleetnet_cases import equal, load_observation, neighbour_pose, targets
@@ -176,3 +179,49 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
             codec.decode(good[:6] + body)
         except MessageError:
             pass
+
+
+def _psd_by_eigenvalues(m: np.ndarray) -> bool:
+    """check_psd's rule written out: the smallest eigenvalue no lower than -1e-9 times the largest."""
+    eig = np.linalg.eigvalsh(0.5 * (m + m.T))
+    return eig[0] >= -1e-9 * max(float(np.abs(eig).max()), 1e-300)
+
+
+@pytest.mark.parametrize("name, matrix, accepted", [
+    ("positive definite", np.diag([1.0, 2.0, 3.0]), True),
+    ("singular (no Cholesky factor)", np.diag([1.0, 1.0, 0.0]), True),
+    ("negative eigenvalue at rounding", np.diag([1.0, 1.0, -1e-12]), True),
+    ("indefinite", np.diag([1.0, 1.0, -1e-3]), False),
+    ("negative definite", -np.eye(3), False),
+    ("zero", np.zeros((3, 3)), True),
+])
+def test_a_covariance_is_positive_semidefinite_by_its_eigenvalues(name, matrix, accepted):
+    assert _psd_by_eigenvalues(matrix) == accepted
+    if accepted:
+        np.testing.assert_array_equal(check_psd("P", matrix), matrix)
+    else:
+        with pytest.raises(MessageError, match="P: not positive semidefinite"):
+            check_psd("P", matrix)
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.floats(-1e-6, 1e-6))
+@settings(max_examples=200, deadline=None)
+def test_check_psd_decides_as_the_eigenvalue_rule(seed, n, shift):
+    """Random low-rank covariances, shifted a little either way: the Cholesky shortcut accepts
+    exactly what the eigenvalue rule accepts."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, int(rng.integers(1, n + 1))))
+    m = a @ a.T + shift * np.eye(n)
+    if _psd_by_eigenvalues(m):
+        check_psd("P", m)
+    else:
+        with pytest.raises(MessageError):
+            check_psd("P", m)
+
+
+@pytest.mark.parametrize("k", range(len(_messages(np.random.default_rng(4)))))
+def test_every_cut_of_a_payload_is_refused_as_truncated(k):
+    payload = codec.encode(_messages(np.random.default_rng(4))[k])
+    for end in range(len(payload)):
+        with pytest.raises(MessageError, match="shorter than|truncated"):
+            codec.decode(payload[:end])
