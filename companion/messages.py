@@ -38,6 +38,7 @@ __all__ = [
     "GlobalShift",
     "ChainTargets",
     "GroupPassiveLinks",
+    "ChainHome",
     "NeighbourPose",
     "PoseTarget",
     "ContactTarget",
@@ -359,6 +360,24 @@ class GroupPassiveLinks:
     group: int
     time_us: int
     links: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class ChainHome:
+    """Where a distributed chain flies its trajectory from: the chain's middle point in its links'
+    frame at the start (the first step's estimate) less the anchor all groups share. The group
+    that holds the chain's middle link measures it; every group that holds a home repeats it each
+    second, so that a companion that starts later flies from the same home.
+
+    Attributes:
+        group: 0-based group index of the companion that publishes it.
+        time_us: when, on the companions' common time base [us] (the publisher's cycle clock).
+        offset_w_m: (3,) the chain's estimated middle at the start less the anchor [m, world].
+    """
+
+    group: int
+    time_us: int
+    offset_w_m: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -39,15 +39,16 @@ takeoff_duration_s``) still opens the metrics window.
 frame). Distributed companions need one anchor they all share (the SITL gives every companion
 where the simulated chain starts).
 
-``home``: where a centralised companion flies the trajectory. ``"estimate"`` (the default): from
+``home``: where the companions fly the trajectory. ``"estimate"`` (the default): from
 where the chain's own estimate puts its middle after the first step, as a flight controller flies
 from its home: the trajectory is shifted by that point less ``anchor_w_m`` (the anchor names where
 the chain was set down), so a position error that every receiver shares at the start (``m8``'s
 metres) shifts the targets with it instead of flying the chain that far off them, into the ground
 when it is vertical; without an anchor the trajectory starts at that point. ``"anchor"``: at
 ``anchor_w_m`` in the links' frame, as it is given (a surveyed point; ``"estimate"`` without an
-anchor). Distributed companions always fly the shared anchor as it is given (each group sees only
-its own links' estimates), and ``kind = "formation"`` its own start pose.
+anchor). Distributed companions each see only their own links: the group that holds the middle
+link measures the home and the others fly the one it publishes (:mod:`companion.engine.home`).
+``kind = "formation"`` flies its own start pose.
 
 All links share the chain's yaw and base pitch (``yaw_deg``, ``pitch_deg``). Velocities,
 accelerations and body rates are central differences of the smooth pose function.

@@ -237,6 +237,9 @@ class CompanionEngine:
                     self.targets.forward(msg, now_s)
             for msg in self.net.take_passive():
                 self.carrying.on_remote(msg, self.fc_time_us)
+            for msg in self.net.take_home():
+                if self.targets.home is not None:
+                    self.targets.home.on_remote(msg)
         self._duties(now_s)
         if self._all_states():
             t = self.fc_time_us
@@ -332,6 +335,7 @@ class CompanionEngine:
             "targets_ms": ({"p50": self.targets.compute_ms.percentile(50), "p99": self.targets.compute_ms.percentile(99)}
                            if self.targets.compute_ms.count else None),
             "home_offset_m": [round(float(x), 4) for x in self.targets.home_offset_w_m],
+            "home": self.targets.home.summary() if self.targets.home is not None else None,
             "correction_latency_ms": {"p50": lat.percentile(50), "p99": lat.percentile(99),
                                       "samples": lat.count} if lat.count else None,
             "links": {str(lk.system_id): {"states": lk.states, "rejected": lk.rejected, "replayed": lk.replayed,

@@ -1,9 +1,10 @@
 """Pose targets: every link's target from the trajectory, every 1/``target_rate_hz``.
 
 The trajectory (``[trajectory]``) is anchored at ``trajectory.anchor_w_m`` and, with ``home =
-"estimate"`` on a centralised companion, flown from where the first step's estimate puts the
-chain's middle, as a flight controller flies from its home (:mod:`companion.trajectory`): the
-targets wait for that step, and its time starts with the first targets (:meth:`Targets.send`);
+"estimate"``, flown from where the first step's estimate puts the chain's middle, as a flight
+controller flies from its home (:mod:`companion.trajectory`): the targets wait for that step (in
+distributed mode, for the home the groups agree on: :mod:`.home`), and its time starts with the
+first targets (:meth:`Targets.send`);
 with the whole-chain feed-forward, the carried links (:class:`~.carrying.Carrying`) are flown by
 their neighbours. Targets are stamped on each link's own clock.
 
@@ -27,6 +28,7 @@ from ..quantiles import Quantiles
 from ..skeleton.kinematics import chain_middle
 from ..trajectory import make_trajectory
 from .carrying import Carrying
+from .home import NetHome
 from .links import LinkTrack
 from .outputs import TargetOut
 
@@ -78,6 +80,12 @@ class Targets:
                                                              and chain)
         #: the trajectory's shift to where the estimate puts the chain at the start [m, world]
         self.home_offset_w_m = np.zeros(3)
+        #: distributed mode: the home the groups agree on (:mod:`.home`; ``None``: the anchor as given)
+        self.home = (NetHome(group, len(setup.companion.group_layout(self.n)), net, links, d, self.n,
+                             self._start_center)
+                     if net is not None and setup.trajectory.home == "estimate" and chain
+                     and self._start_center is not None else None)
+        self._planned: np.ndarray | None = None  # (n, 3) the trajectory's link centres at its start
         #: CPG targets travel over the network from the leader (distributed mode)
         self.via_net = net is not None and setup.trajectory.kind == "cpg"
         self.counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
@@ -87,8 +95,18 @@ class Targets:
     def send(self, now_s: float, t_us: int, next_step_us: int) -> bool:
         """Every link's target for the cycle clock ``t_us`` (or, from a follower in distributed CPG
         mode, nothing while the leader's are being forwarded); ``next_step_us``: the cycle whose
-        leader publishes them. ``False``: nothing is due yet (the anchor waits for the first step's
-        estimate)."""
+        leader publishes them. ``False``: nothing is due yet (the home waits for the first step's
+        estimate, or for the group that measures it)."""
+        if self.home is not None:
+            if self.trajectory is None:  # (a group's trajectory is the shared anchor's, shifted by the home)
+                self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton,
+                                                  self._start_center, load=self.setup.load)
+            if self._planned is None:
+                self._planned = getattr(self.trajectory, "hover", self.trajectory).pose(0.0)[0]
+            offset = self.home.offset(now_s, self._estimate(), self._planned)
+            if offset is None:
+                return False
+            self.home_offset_w_m = offset
         if self.trajectory is None:
             center = self._start_center
             if self._from_estimate:
@@ -103,6 +121,8 @@ class Targets:
                              ", ".join(f"{x:.2f}" for x in middle), float(np.linalg.norm(self.home_offset_w_m)))
             self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center,
                                               load=self.setup.load)
+        if self.home is not None:
+            self.home.publish(t_us)
         if not self._started:
             self._started = True
             self._t0_us = self._start_us(t_us)

@@ -5,9 +5,10 @@ the group's credentials, :mod:`.credentials`); :func:`peer_config` another sessi
 computer (its camera stream, a vision consumer) with the same credentials.
 
 :class:`FleetBus` opens a session from a :class:`~companion.fleetnet.config.ZenohConfig`,
-declares this group's liveliness token, subscribes to the other groups' boundaries and carried
-links, the leader's shifts and CPG targets and the liveliness of every group, and publishes this
-group's boundary, its carried links and (when it leads) the shifts and targets. Zenoh calls back on its own threads; the callbacks only stamp the
+declares this group's liveliness token, subscribes to the other groups' boundaries, carried
+links and homes, the leader's shifts and CPG targets and the liveliness of every group, and
+publishes this group's boundary, its carried links, the chain's home it holds and (when it leads)
+the shifts and targets. Zenoh calls back on its own threads; the callbacks only stamp the
 arrival time and queue, and wake the daemon's ``select`` through a pipe (:meth:`fileno`);
 :meth:`drain` decodes in the daemon's thread, where all the estimation state lives. A payload
 that fails :func:`~companion.fleetnet.codec.decode` becomes an error event: the daemon counts
@@ -27,14 +28,15 @@ from typing import Any
 import zenoh
 
 from companion.configfile import ConfigError
-from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, MessageError
+from companion.messages import (ChainHome, ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks,
+                                MessageError)
 
 from . import codec
 from .config import ZenohConfig
 from .credentials import ZenohSetting, group_credentials
 from .hub import KINDS, BusEvent
-from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, passive_key, passive_pattern,
-                   shift_key, target_key)
+from .keys import (alive_key, alive_pattern, boundary_key, boundary_pattern, group_of_key, home_key, home_pattern,
+                   passive_key, passive_pattern, shift_key, target_key)
 
 __all__ = ["BusEvent", "FleetBus", "open_group_session", "peer_config", "zenoh_config", "close_session"]
 
@@ -144,6 +146,7 @@ class FleetBus:
             s.declare_subscriber(shift_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
             s.declare_subscriber(target_key(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
             s.declare_subscriber(passive_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
+            s.declare_subscriber(home_pattern(prefix), self._on_data, allowed_origin=zenoh.Locality.REMOTE),
         ]
         opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
                     express=True)
@@ -151,6 +154,7 @@ class FleetBus:
         self._shift_pub = s.declare_publisher(shift_key(prefix), **opts)
         self._target_pub = s.declare_publisher(target_key(prefix), **opts)
         self._passive_pub = s.declare_publisher(passive_key(prefix, group), **opts)
+        self._home_pub = s.declare_publisher(home_key(prefix, group), **opts)
         self.closed = False
         log.info("zenoh %s session %s: group %d, listening %s", cfg.mode, s.zid(), group + 1,
                  cfg.group_endpoint(group) if cfg.mode == "peer" else "-")
@@ -177,6 +181,7 @@ class FleetBus:
         # a group's own messages on its own key (the key carries the group), the leader's on theirs
         expected = {"boundary": boundary_key(self.prefix, getattr(msg, "group", -1)),
                     "passive": passive_key(self.prefix, getattr(msg, "group", -1)),
+                    "home": home_key(self.prefix, getattr(msg, "group", -1)),
                     "shift": shift_key(self.prefix), "targets": target_key(self.prefix)}
         misplaced = kind is None or ev.key != expected[kind]
         if misplaced:
@@ -225,6 +230,9 @@ class FleetBus:
 
     def publish_passive(self, passive: GroupPassiveLinks) -> None:
         self._passive_pub.put(codec.encode(passive))
+
+    def publish_home(self, home: ChainHome) -> None:
+        self._home_pub.put(codec.encode(home))
 
     def close(self) -> None:
         if self.closed:

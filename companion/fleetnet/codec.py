@@ -29,6 +29,7 @@ from companion.messages import (
     GlobalShift,
     GroupBoundaryReport,
     GroupPassiveLinks,
+    ChainHome,
     LinkState,
     MessageError,
     NeighbourPose,
@@ -40,15 +41,15 @@ from companion.messages import (
 )
 
 __all__ = ["MAGIC", "VERSION", "SCHEMAS", "encode", "decode", "MessageError", "MAX_NEIGHBOUR_RANGE_M",
-           "MAX_MOUNT_OFFSET_M", "MAX_LOAD_RANGE_M"]
+           "MAX_MOUNT_OFFSET_M", "MAX_LOAD_RANGE_M", "MAX_HOME_OFFSET_M"]
 
 MAGIC = b"ASKZ"
 # 2: ChainTargets carry the whole-chain feed-forward wrench; 3: boundaries their tip covariance;
 # 4: GroupPassiveLinks (a group's links carried by their neighbours); 5: a group split by a link
 # down reports each part (boundaries: part, parts, joins_left / joins_right; shifts: each entry's part);
 # 6: NeighbourPose (a chain camera's view of its neighbour's marker); 7: LoadObservation (a carrying
-# vehicle's camera measurement of a slung load, eq. 4)
-VERSION = 7
+# vehicle's camera measurement of a slung load, eq. 4); 8: ChainHome (a distributed chain's home)
+VERSION = 8
 _HEADER = struct.Struct("<4sBB")
 
 #: Field kinds: scalars (struct codes), ``("vec", n)`` float64 vectors, ``("sym", n)``
@@ -76,6 +77,7 @@ SCHEMAS: dict[type, tuple[int, tuple[tuple[str, Any], ...]]] = {
                        ("a_w_m_s2", ("rows", 3)), ("omega_b_rad_s", ("rows", 3)), ("omega_dot_b_rad_s2", ("rows", 3)),
                        ("force_ff_w_n", ("rows", 3)), ("torque_ff_b_nm", ("rows", 3)))),
     GroupPassiveLinks: (6, (("group", "u8"), ("time_us", "i64"), ("links", "ids"))),
+    ChainHome: (9, (("group", "u8"), ("time_us", "i64"), ("offset_w_m", ("vec", 3)))),
     NeighbourPose: (7, (("observer", "u16"), ("observed", "u16"), ("t_capture_s", "f64"), ("seq", "u32"),
                         ("q_cm_wxyz", ("vec", 4)), ("t_cm_m", ("vec", 3)), ("cov_c", ("sym", 6)),
                         ("camera_pos_b_m", ("vec", 3)), ("q_bc_wxyz", ("vec", 4)), ("marker_pos_b_m", ("vec", 3)),
@@ -91,6 +93,8 @@ MAX_NEIGHBOUR_RANGE_M = 20.0
 MAX_MOUNT_OFFSET_M = 5.0
 #: Farthest a carrying vehicle may be from the load it sees [m] (cables are metres long).
 MAX_LOAD_RANGE_M = 50.0
+#: Farthest a chain's home may be from its anchor [m] (a receiver's error is metres).
+MAX_HOME_OFFSET_M = 50.0
 _BY_ID = {type_id: (cls, fields) for cls, (type_id, fields) in SCHEMAS.items()}
 
 
@@ -279,6 +283,12 @@ def _targets(v: dict[str, Any]) -> ChainTargets:
     return ChainTargets(**v)
 
 
+def _home(v: dict[str, Any]) -> ChainHome:
+    _finite_all(ChainHome, v)
+    v["offset_w_m"] = check_bounded("ChainHome.offset_w_m", v["offset_w_m"], MAX_HOME_OFFSET_M)
+    return ChainHome(**v)
+
+
 def _passive(v: dict[str, Any]) -> GroupPassiveLinks:
     # empty: none of the group's links is carried; otherwise strictly increasing (whether they are
     # the group's own links is the receiver's check: it knows the layout)
@@ -318,5 +328,5 @@ def _load_observation(v: dict[str, Any]) -> LoadObservation:
 
 
 _VALIDATE = {LinkState: _link_state, Correction: _correction, GroupBoundaryReport: _boundary, GlobalShift: _shift,
-             ChainTargets: _targets, GroupPassiveLinks: _passive, NeighbourPose: _neighbour_pose,
+             ChainTargets: _targets, GroupPassiveLinks: _passive, ChainHome: _home, NeighbourPose: _neighbour_pose,
              LoadObservation: _load_observation}

@@ -16,7 +16,7 @@ import time
 from dataclasses import replace
 
 
-from companion.messages import ChainTargets, GroupPassiveLinks
+from companion.messages import ChainHome, ChainTargets, GroupPassiveLinks
 from companion.quantiles import Quantiles
 
 from .leader import GlobalStepNode
@@ -50,6 +50,7 @@ class GroupLink:
         self.network_round_trips_ms = Quantiles()
         self._targets_in: list[ChainTargets] = []
         self._passive_in: list[GroupPassiveLinks] = []
+        self._home_in: list[ChainHome] = []
 
     @property
     def group(self) -> int:
@@ -87,6 +88,14 @@ class GroupLink:
         out, self._passive_in = self._passive_in, []
         return out
 
+    def publish_home(self, home: ChainHome) -> None:
+        self.bus.publish_home(home)
+
+    def take_home(self) -> list[ChainHome]:
+        """The homes the other groups published since the last call (oldest first)."""
+        out, self._home_in = self._home_in, []
+        return out
+
     def alive(self, group: int) -> bool:
         """Whether 0-based ``group``'s companion is up (its liveliness token is there)."""
         return group in self.node.live
@@ -114,6 +123,8 @@ class GroupLink:
                 self._targets_in.append(ev.value)
             elif ev.kind == "passive":
                 self._passive_in.append(ev.value)
+            elif ev.kind == "home":
+                self._home_in.append(ev.value)
             elif ev.kind in ("alive", "gone"):
                 alive = ev.kind == "alive"
                 if ev.value != self.group:

@@ -16,20 +16,21 @@ from typing import Any
 
 import numpy as np
 
-from companion.messages import ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks
+from companion.messages import ChainHome, ChainTargets, GlobalShift, GroupBoundaryReport, GroupPassiveLinks
 
 from . import codec
 
 __all__ = ["BusEvent", "KINDS", "LocalHub", "LocalBus"]
 
 #: the event kind of each message type (one table for both buses)
-KINDS = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets", GroupPassiveLinks: "passive"}
+KINDS = {GroupBoundaryReport: "boundary", GlobalShift: "shift", ChainTargets: "targets", GroupPassiveLinks: "passive",
+         ChainHome: "home"}
 
 
 @dataclass(frozen=True)
 class BusEvent:
-    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``passive``, ``alive``, ``gone``
-    or ``error``;
+    """One thing that arrived: ``kind`` is ``boundary``, ``shift``, ``targets``, ``passive``, ``home``, ``alive``,
+    ``gone`` or ``error``;
     ``value`` the decoded message, the group (liveliness) or the error text; ``time_s`` the
     arrival time on the receiver's clock; ``key`` the key expression it came on."""
 
@@ -118,6 +119,9 @@ class LocalBus:
 
     def publish_passive(self, passive: GroupPassiveLinks) -> None:
         self.hub._send(self.group, passive, f"{self.hub.prefix}/group/{self.group + 1}/passive")
+
+    def publish_home(self, home: ChainHome) -> None:
+        self.hub._send(self.group, home, f"{self.hub.prefix}/group/{self.group + 1}/home")
 
     def close(self) -> None:
         self.hub._leave(self.group)

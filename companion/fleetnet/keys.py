@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-__all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key",
-           "neighbour_key", "neighbour_pattern", "load_key", "load_pattern"]
+__all__ = ["boundary_key", "boundary_pattern", "passive_key", "passive_pattern", "home_key", "home_pattern",
+           "shift_key", "target_key", "alive_key", "alive_pattern", "group_of_key", "neighbour_key",
+           "neighbour_pattern", "load_key", "load_pattern"]
 
 
 def boundary_key(prefix: str, group: int) -> str:
@@ -23,6 +24,15 @@ def passive_key(prefix: str, group: int) -> str:
 
 def passive_pattern(prefix: str) -> str:
     return f"{prefix}/group/*/passive"
+
+
+def home_key(prefix: str, group: int) -> str:
+    """Where 0-based ``group`` publishes the chain's home it holds (:class:`~companion.messages.ChainHome`)."""
+    return f"{prefix}/group/{group + 1}/home"
+
+
+def home_pattern(prefix: str) -> str:
+    return f"{prefix}/group/*/home"
 
 
 def shift_key(prefix: str) -> str:

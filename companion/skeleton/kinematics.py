@@ -22,7 +22,7 @@ import numpy as np
 
 from companion.estimation.so3 import cross, quat_to_rotmat
 
-__all__ = ["chain_offsets", "chain_middle", "middle_offset", "tension"]
+__all__ = ["chain_offsets", "chain_middle", "middle_offset", "middle_of_link", "tension"]
 
 
 def _tip_vectors(R: np.ndarray, omega_b: np.ndarray | None, d: np.ndarray):
@@ -59,7 +59,16 @@ def middle_offset(r: np.ndarray, R: np.ndarray, d) -> np.ndarray:
     if n % 2:
         return r[..., mid, :]
     d_mid = np.broadcast_to(np.asarray(d, dtype=float), r.shape)[..., mid, :]
-    return r[..., mid, :] - np.einsum("...ij,...j->...i", np.asarray(R, dtype=float)[..., mid, :, :], d_mid)
+    return middle_of_link(r[..., mid, :], np.asarray(R, dtype=float)[..., mid, :, :], d_mid, n)
+
+
+def middle_of_link(r_mid: np.ndarray, R_mid: np.ndarray, d_mid, n_links: int) -> np.ndarray:
+    """The middle point of an ``n_links`` chain (see :func:`middle_offset`) from its link ``n_links //
+    2`` (0-based) alone: its centre ``r_mid`` (..., 3), attitude ``R_mid`` (..., 3, 3) and
+    centre-to-right-tip vector ``d_mid`` (3,)."""
+    if n_links % 2:
+        return r_mid
+    return r_mid - np.einsum("...ij,...j->...i", R_mid, np.asarray(d_mid, dtype=float))
 
 
 def chain_middle(p_w_m: np.ndarray, q_wxyz: np.ndarray, d) -> np.ndarray:

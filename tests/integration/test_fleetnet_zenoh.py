@@ -18,9 +18,9 @@ from companion.fleetnet import codec
 from companion.fleetnet.bus import FleetBus
 from companion.fleetnet.config import ZenohConfig
 from companion.fleetnet.group import GroupLink
-from companion.fleetnet.keys import boundary_key, passive_key, shift_key, target_key
+from companion.fleetnet.keys import boundary_key, home_key, passive_key, shift_key, target_key
 from companion.fleetnet.leader import GlobalStepNode
-from companion.messages import GlobalShift, GroupBoundaryReport, GroupPassiveLinks
+from companion.messages import ChainHome, GlobalShift, GroupBoundaryReport, GroupPassiveLinks
 
 from ..clocks import FakeClock
 from ..fleetnet_cases import LAYOUTS, PERIOD_US, chain_boundaries, equal, targets
@@ -138,27 +138,34 @@ def test_cpg_targets_cross_zenoh_bit_for_bit_and_misplaced_ones_are_errors():
             bus.close()
 
 
-def test_carried_links_cross_zenoh_and_one_on_another_groups_key_is_an_error():
-    """A group's GroupPassiveLinks reach the other group's companion unchanged (empty sets too); one
-    published on another group's key is an error, never taken."""
-    cfg, buses = _buses(2, "test_passive")
+@pytest.mark.parametrize("kind", ["passive", "home"])
+def test_a_groups_carried_links_and_home_cross_zenoh_and_one_on_another_groups_key_is_an_error(kind):
+    """A group's GroupPassiveLinks (empty sets too) and ChainHome reach the other group's companion
+    unchanged; one published on another group's key is an error, never taken."""
+    prefix = f"test_{kind}"
+    cfg, buses = _buses(2, prefix)
     try:
         links = _two_live_links(cfg, buses)
-        sent = [GroupPassiveLinks(1, 20_000 * k, (2,) if k % 2 else ()) for k in range(20)]
+        if kind == "passive":
+            sent = [GroupPassiveLinks(1, 20_000 * k, (2,) if k % 2 else ()) for k in range(20)]
+            key_of, publish, take = passive_key, links[1].publish_passive, links[0].take_passive
+        else:
+            sent = [ChainHome(1, 1_000_000 * k, np.array([0.3, -0.2, 1.5 + k])) for k in range(5)]
+            key_of, publish, take = home_key, links[1].publish_home, links[0].take_home
         for msg in sent:
-            links[1].publish_passive(msg)
+            publish(msg)
         put = buses[1].session.put
-        put(boundary_key("test_passive", 1), codec.encode(sent[1]), congestion_control=BLOCK)  # on its boundary key
-        put(passive_key("test_passive", 0), codec.encode(sent[1]), congestion_control=BLOCK)  # on group 1's key
+        put(boundary_key(prefix, 1), codec.encode(sent[1]), congestion_control=BLOCK)  # on its boundary key
+        put(key_of(prefix, 0), codec.encode(sent[1]), congestion_control=BLOCK)  # on group 1's key
         got = []
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline and (len(got) < len(sent) or sum(links[0].errors.values()) < 2):
             links[0].pump(time.monotonic())
-            got += links[0].take_passive()
+            got += take()
             time.sleep(0.005)
-        assert got == sent
-        assert links[0].errors == {boundary_key("test_passive", 1): 1, passive_key("test_passive", 0): 1}
-        assert links[0].alive(1) and not links[0].take_passive()
+        assert len(got) == len(sent) and all(equal(a, b) for a, b in zip(got, sent))
+        assert links[0].errors == {boundary_key(prefix, 1): 1, key_of(prefix, 0): 1}
+        assert links[0].alive(1) and not take()
     finally:
         for bus in buses:
             bus.close()

@@ -84,17 +84,40 @@ def test_a_centralised_companion_flies_the_trajectory_from_its_estimated_start(h
     assert engine.targets.trajectory.targets(3.0)[1].p_w_m[2] > 2.0 + 1e-3  # climbing at 3 s
 
 
-def test_distributed_companions_fly_their_shared_anchor_as_given():
-    """Each group sees only its own links: the groups keep the shared anchor, unshifted."""
+@pytest.mark.parametrize("home, expected", [("estimate", (0.3, -0.2, 1.5)), ("anchor", (0.0, 0.0, 0.0))])
+def test_distributed_companions_fly_from_the_home_the_middle_group_measures(home, expected):
+    """Links that all report a shared offset from where the chain was set down: the group that
+    holds the middle link measures the home from its first step and publishes it, and every group
+    flies the trajectory shifted by that one offset, from its first targets on (``home =
+    "estimate"``); with ``home = "anchor"`` every group flies the shared anchor as given."""
     setup = setup_for(5, groups=((1, 2), (3, 4, 5)), distributed=True)
+    setup = replace(setup, trajectory=replace(setup.trajectory, home=home))
     clock = [0.0]
     _, engines = group_engines(setup, lambda: clock[0])
     bias = np.array([0.3, -0.2, 1.5])
-    fly_group_engines(engines, clock, lambda t: [replace(s, p_w_m=s.p_w_m + bias)
-                                                 for s in (straight_state(i, 5, t) for i in range(5))], cycles=4)
-    for eng in engines:  # the anchor (0, 0, 2): the middle link's first target
-        assert eng.targets.trajectory is not None and not eng.targets.home_offset_w_m.any()
-        np.testing.assert_allclose(eng.targets.trajectory.targets(0.0)[2].p_w_m, [0.0, 0.0, 2.0], atol=1e-9)
+    first = {}
+    for k in range(6):
+        t = clock[0] = 0.05 * k
+        for e in engines:
+            for lk in e.links:
+                state = straight_state(lk.index, 5, t)
+                e.on_state(lk.row, replace(state, p_w_m=state.p_w_m + bias), STATE_FLAG_EKF_OK, t)
+        for _ in range(6):
+            for e in engines:
+                for out in of(TargetOut, e.poll(t)):
+                    i = e.links[out.row].index
+                    first.setdefault(i, k)
+                    unshifted = e.targets.trajectory.targets(out.time_us * 1e-6)[i].p_w_m
+                    np.testing.assert_allclose(out.target.p_w_m - unshifted, expected, atol=1e-9)
+    assert sorted(first) == [0, 1, 2, 3, 4] and max(first.values()) <= 1  # within the first cycle
+    for e in engines:
+        np.testing.assert_allclose(e.targets.home_offset_w_m, expected, atol=1e-9)
+        np.testing.assert_allclose(e.targets.trajectory.targets(0.0)[2].p_w_m, [0.0, 0.0, 2.0], atol=1e-9)
+    if home == "estimate":
+        assert [e.targets.home.source for e in engines] == ["group 2", "measured"]
+        assert engines[1].summary()["home"]["published"] >= 1 and engines[0].summary()["home"]["received"] >= 1
+    else:
+        assert all(e.targets.home is None for e in engines)
 
 
 def test_disabled_companion_logs_the_ekf_states_and_corrects_nothing():

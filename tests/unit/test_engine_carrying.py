@@ -139,7 +139,9 @@ def test_a_link_at_a_groups_end_is_carried_by_the_next_groups_companion_too(grou
     n = max(max(g) for g in groups)
     setup = setup_for(n, groups, distributed=True)
     # a hover at the start's height: the targets do not depend on when each engine computes them
-    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0))
+    # (the links fly from the first state: companions started in flight, at the anchor as given)
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0,
+                                              home="anchor"))
     clock = [0.0]
     layout = setup.companion.group_layout(n)
     hub, engines = group_engines(setup, lambda: clock[0])
@@ -295,7 +297,9 @@ def test_a_link_left_out_bridges_a_neighbour_without_gps(gps_fault, groups, faul
     n, down = (max(max(g) for g in groups) if groups else 3), 1
     out_dx = 1.0 if faulty > down else -1.0
     setup = setup_for(n, groups, distributed=bool(groups))
-    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0))
+    # (the links fly from the first state: companions started in flight, at the anchor as given)
+    setup = replace(setup, trajectory=replace(setup.trajectory, kind="hover", feedforward=True, takeoff_altitude_m=2.0,
+                                              home="anchor"))
     clock = [0.0]
     engines = (group_engines(setup, lambda: clock[0])[1] if groups
                else [CompanionEngine(setup, start_center=(0.0, 0.0, 2.0))])

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.fleetnet import codec
-from companion.messages import (Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState,
+from companion.messages import (ChainHome, Correction, GlobalShift, GroupBoundaryReport, GroupPassiveLinks, LinkState,
                                 MessageError, check_psd)
 
 from ..chains import random_covariances
@@ -40,6 +40,7 @@ def _messages(rng):
         GroupPassiveLinks(1, 20_060_000, (2,)),
         GroupPassiveLinks(0, 5_000_000, ()),
         GroupPassiveLinks(3, 2**40, (6, 7, 9)),
+        ChainHome(1, 20_000_000, rng.normal(size=3)),
     ]
 
 
@@ -168,6 +169,8 @@ def test_codec_rejects_malformed_payloads_with_the_reason():
         codec.encode(replace(_messages(np.random.default_rng(3))[1], ekf_time_s=float("inf"))):
             "Correction.ekf_time_s: non-finite",
         codec.encode(GroupPassiveLinks(1, 0, (2, 2))): "GroupPassiveLinks.links",
+        codec.encode(ChainHome(1, 0, np.array([0.0, np.nan, 0.0]))): "ChainHome.offset_w_m: non-finite",
+        codec.encode(ChainHome(1, 0, np.array([0.0, 0.0, 60.0]))): "ChainHome.offset_w_m: magnitude 60 exceeds 50",
     }
     for payload, reason in cases.items():
         with pytest.raises(MessageError, match=reason):
