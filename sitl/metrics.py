@@ -4,7 +4,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 
 * ``rms_track_est_m`` per link: RMS of ``|p_target - p_estimate|`` where the estimate is what
   the controller used (EKF plus the held correction): the paper's Fig. 5 figure;
-* ``rms_track_true_m`` per link: the same against the true position;
+* ``rms_track_true_m`` per link: the same against the true position, the targets taken into the
+  simulator's world frame (:func:`planned_positions`: the trajectory from the true start);
 * ``rms_att_track_true_deg`` per link: RMS attitude angle between target and truth;
 * ``rms_est_err_m``: per link, RMS of ``|p_estimate - p_true|`` at the companion ticks, for the
   EKF alone (``ekf``) and for the SCKF-corrected estimate (``sckf``, absent without SCKF);
@@ -24,7 +25,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   with the thesis's figures beside them (``thesis``) and the true position's own (``truth``);
 * ``rms_pose_track_pos_m`` / ``rms_pose_track_att_deg``: per link the RMS position / attitude
   error between target and estimate (what the controller used: the thesis's sec. 5.2 figure),
-  averaged over the links; ``rms_pose_track_true_*`` the same against the true pose. Window: from
+  averaged over the links; ``rms_pose_track_true_*`` the same against the true pose (the targets
+  in the world frame, as for ``rms_track_true_m``). Window: from
   the CPG motion's start (``pose_track_window_s``) if there is one, else the flight window;
 * ``motion`` (CPG runs): per command, the commanded forward speed, the expected physics' speed
   (the targets' centroid) and the achieved speed (the true centroid), horizontal and averaged
@@ -97,6 +99,16 @@ THESIS_CPG_POSE_TRACK = {
 }
 
 
+def planned_positions(log: dict[str, np.ndarray]) -> np.ndarray:
+    """The targets' positions in the simulator's world frame, what the truth is judged against:
+    ``p_target`` is in the links' frame, where the companion flies the trajectory from its home
+    (the trajectory shifted by ``home_offset_w_m``, where the links' estimate put the chain at the
+    start less its anchor, which in SITL is where the chain stands); less that offset, it is the
+    trajectory at the true start. A log without the offset is taken as logged."""
+    home = log.get("home_offset_w_m")
+    return log["p_target"] if home is None else log["p_target"] - np.asarray(home, dtype=float)
+
+
 def motion_segments(log: dict[str, np.ndarray], motion, end_s: float) -> list[dict]:
     """Commanded, expected and achieved forward speed per command of ``motion`` (MotionConfig)."""
     t = log["t"]
@@ -108,8 +120,8 @@ def motion_segments(log: dict[str, np.ndarray], motion, end_s: float) -> list[di
             continue
         entry = {"start_s": a, "end_s": min(b, float(t[-1])), "gait": command.gait,
                  "speed_cmd_m_s": command.speed_m_s, "yaw_deg_cmd": command.yaw_deg}
-        for name, key in (("expected", "p_target"), ("achieved", "p_true")):
-            c = log[key][half].mean(axis=1)
+        for name, positions in (("expected", planned_positions(log)), ("achieved", log["p_true"])):
+            c = positions[half].mean(axis=1)
             v = (c[-1] - c[0]) / (t[half][-1] - t[half][0])
             entry[f"speed_{name}_m_s"] = float(np.linalg.norm(v[:2]))
             entry[f"travel_heading_{name}_deg"] = float(np.degrees(np.arctan2(-v[1], -v[0])))
@@ -341,7 +353,8 @@ def outage_split(log: dict[str, np.ndarray], flight_start_s: float, windows: lis
         w = flight & sel
         part: dict = {"samples": int(np.sum(w))}
         if np.any(w):
-            part["rms_track_true_m"] = rms(np.linalg.norm(log["p_target"][w] - log["p_true"][w], axis=-1)).tolist()
+            planned = planned_positions(log)[w]
+            part["rms_track_true_m"] = rms(np.linalg.norm(planned - log["p_true"][w], axis=-1)).tolist()
             part["rms_track_est_m"] = rms(np.linalg.norm(log["p_target"][w] - log["p_ctrl"][w], axis=-1)).tolist()
         if steps is not None:
             ws = steps & (in_steps if name == "during_outages" else ~in_steps)
@@ -467,7 +480,7 @@ def compute_metrics(
         raise ValueError(f"the run ended before the flight window (t >= {flight_start_s} s)")
     n = log["p_true"].shape[1]
     err_est = np.linalg.norm(log["p_target"][win] - log["p_ctrl"][win], axis=-1)
-    err_true = np.linalg.norm(log["p_target"][win] - log["p_true"][win], axis=-1)
+    err_true = np.linalg.norm(planned_positions(log)[win] - log["p_true"][win], axis=-1)
     att_err = np.degrees(
         np.linalg.norm(attitude_error(log["q_true"][win], log["q_target"][win]), axis=-1)
     )
@@ -482,8 +495,9 @@ def compute_metrics(
     pw = t >= pose_start
     pose = {}
     if np.any(pw):
-        for tag, (pk, qk) in (("", ("p_ctrl", "q_ctrl")), ("true_", ("p_true", "q_true"))):
-            pos = rms(np.linalg.norm(log["p_target"][pw] - log[pk][pw], axis=-1))
+        for tag, (pk, qk, target) in (("", ("p_ctrl", "q_ctrl", log["p_target"])),
+                                      ("true_", ("p_true", "q_true", planned_positions(log)))):
+            pos = rms(np.linalg.norm(target[pw] - log[pk][pw], axis=-1))
             att = rms(np.degrees(np.linalg.norm(attitude_error(log[qk][pw], log["q_target"][pw]), axis=-1)))
             pose[f"rms_pose_track_{tag}pos_m"] = float(pos.mean())
             pose[f"rms_pose_track_{tag}att_deg"] = float(att.mean())

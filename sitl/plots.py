@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 
 from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
 
-from .metrics import NEES_BLOCKS, nees_series  # noqa: E402
+from .metrics import NEES_BLOCKS, nees_series, planned_positions  # noqa: E402
 
 __all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_cable_tension", "plot_body_motion",
            "plot_attitude_tracking", "plot_nees", "write_plots"]
@@ -102,8 +102,9 @@ def plot_body_motion(log: dict[str, np.ndarray], motion, path: Path, period_s: f
         cmd_v.append(c.speed_m_s)
         cmd_yaw.append(np.nan if c.yaw_deg is None else c.yaw_deg)
     cmd_t.append(t[-1])
-    for name, key, style in (("expected (targets)", "p_target", "--"), ("achieved (true)", "p_true", "-")):
-        c = log[key].mean(axis=1)
+    for name, positions, style in (("expected (targets)", planned_positions(log), "--"),
+                                   ("achieved (true)", log["p_true"], "-")):
+        c = positions.mean(axis=1)
         v = _moving_mean(t, np.gradient(c, t, axis=0), period_s)
         axes[0].plot(t, np.linalg.norm(v[:, :2], axis=1), style, lw=1.2, label=name)
         axes[1].plot(t, np.degrees(np.unwrap(np.arctan2(-v[:, 1], -v[:, 0]))), style, lw=1.2, label=name)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.estimation.so3 import attitude_error
+from sitl.metrics import planned_positions
 
 __all__ = ["CONTROLLERS", "tracking_metrics", "compare_controllers", "format_controllers", "markdown_controllers",
            "plot_controllers"]
@@ -32,7 +33,7 @@ def tracking_metrics(arrays: dict[str, np.ndarray], start_s: float) -> dict:
     estimate, attitude [deg] against the truth; max position error [m]."""
     w = arrays["t"] >= start_s
     tgt_p, tgt_q = arrays["p_target"][w, 0], arrays["q_target"][w, 0]
-    pos_true = np.linalg.norm(arrays["p_true"][w, 0] - tgt_p, axis=-1)
+    pos_true = np.linalg.norm(arrays["p_true"][w, 0] - planned_positions(arrays)[w, 0], axis=-1)
     pos_est = np.linalg.norm(arrays["p_ctrl"][w, 0] - tgt_p, axis=-1)
     att = np.degrees(np.linalg.norm(attitude_error(arrays["q_true"][w, 0], tgt_q), axis=-1))
     rms = lambda x: float(np.sqrt(np.mean(x * x)))  # noqa: E731

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ..metrics import p95, rms
+from ..metrics import p95, planned_positions, rms
 
 __all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule",
            "power_loss_near", "recovery_s",
@@ -232,7 +232,7 @@ def event_figures(event: FaultEvent, log: dict, kind_links: Sequence[int] = ()) 
     not in ``kind_links``, 1-based, went uncorrected) and ``recovery_s`` (:func:`recovery_s`; left
     out for a fault lasting to the end of the log)."""
     t = np.asarray(log["t"], dtype=float)
-    err = np.linalg.norm(np.asarray(log["p_target"]) - np.asarray(log["p_true"]), axis=-1)
+    err = np.linalg.norm(planned_positions(log) - np.asarray(log["p_true"]), axis=-1)
     during = (t >= event.start_s) & (t <= event.end_s)
     after = (t > event.end_s) & (t <= event.end_s + AFTER_S)
     out: dict[str, Any] = {"track_during_m": _worst_rms(err[during]), "track_after_m": _worst_rms(err[after])}

@@ -18,6 +18,7 @@ from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from sitl.scenarios.chain.flight import fly
 from sitl.plant.start import StartPose
+from sitl.metrics import planned_positions
 from sitl.runner import BatchRunner
 from companion.config import CompanionConfig
 from sitl.scenario import Scenario, SensorConfig, load_scenario
@@ -365,14 +366,17 @@ def test_a_far_target_is_closed_at_a_limited_speed_holding_height():
     assert fw.thrust_limit.report()["at_limit_s"] > 0.3
 
 
-@pytest.mark.parametrize("seed, common_up_m", [(0, 2.30), (1, -2.19)])
+@pytest.mark.parametrize("name, seed, common_up_m", [("three_link", 0, 2.30), ("three_link", 1, -2.19),
+                                                     ("seven_link", 0, -1.11), ("seven_link", 2, 0.82)])
 @pytest.mark.parametrize("home", ["estimate", "anchor"])
-def test_a_gnss_error_every_link_shares_at_the_start_does_not_move_the_flight(seed, common_up_m, home):
-    """three_link's receivers all read ``common_up_m`` too high (the seed's draw of a 2 m common
-    vertical error, held over the flight), on the ground too. Flown from its estimated start (the
-    default), the chain takes off to its 2.5 m above where it stood; flown at the anchor as given,
-    it flies that much lower (seed 0: 0.2 m above the ground) or higher."""
-    sc = load_scenario("configs/sitl/chain/three_link.toml", duration_s=9.0)
+def test_a_gnss_error_every_link_shares_at_the_start_does_not_move_the_flight(name, seed, common_up_m, home):
+    """The receivers all read ``common_up_m`` too high (the seed's draw of a 2 m common vertical
+    error, held over the flight), on the ground too. Flown from its estimated start (the default),
+    the chain takes off to its 2.5 m above where it stood; flown at the anchor as given, it flies
+    that much lower (three_link seed 0: 0.2 m above the ground) or higher. three_link's companion
+    measures the home itself, seven_link's three group companions fly the one the middle group
+    measures."""
+    sc = load_scenario(f"configs/sitl/chain/{name}.toml", duration_s=9.0)
     sc = replace(sc, seed=seed, trajectory=replace(sc.trajectory, home=home),
                  sensors=replace(sc.sensors, gps={"drift_amp_m": 0.0, "common_vertical_std_m": 2.0,
                                                   "common_time_constant_s": 3600.0}))
@@ -381,11 +385,16 @@ def test_a_gnss_error_every_link_shares_at_the_start_does_not_move_the_flight(se
     runner.run(sc.duration_s)
     log = runner.arrays()
     hover = log["t"] >= 8.0
-    height = log["p_true"][hover, 1, 2].mean()
+    height = log["p_true"][hover, sc.skeleton.n_links // 2, 2].mean()
     expected = 2.5 - (common_up_m if home == "anchor" else 0.0)
     assert height == pytest.approx(expected, abs=0.2), (height, runner.crash_reason)
-    shift = runner.engines[0].targets.home_offset_w_m
-    assert shift[2] == pytest.approx(common_up_m if home == "estimate" else 0.0, abs=0.3)
+    shifts = np.array([e.targets.home_offset_w_m for e in runner.engines])
+    assert shifts[0, 2] == pytest.approx(common_up_m if home == "estimate" else 0.0, abs=0.3)
+    assert np.array_equal(shifts, np.repeat(shifts[:1], len(shifts), axis=0))  # one home for every group
+    # the truth is judged against the targets in its own frame: the trajectory from the true start
+    np.testing.assert_array_equal(log["home_offset_w_m"], shifts[0])
+    off_plan = np.abs(planned_positions(log)[hover, :, 2] - log["p_true"][hover, :, 2]).mean()
+    assert off_plan == pytest.approx(abs(common_up_m) if home == "anchor" else 0.0, abs=0.2)
 
 
 def _chain_runner():

@@ -33,6 +33,7 @@ from companion.config import project
 from companion.configfile import dump_toml
 from sitl.cameras.flight import FlightCameras
 from sitl.cameras.scene import SceneConfig
+from sitl.metrics import planned_positions
 from sitl.runner import BatchRunner
 from sitl.scenario import Scenario
 from sitl.task import Task
@@ -96,7 +97,7 @@ def fly_slung_load(scenario: SlungLoadScenario, out_dir: Path | None, *, progres
         _add_spikes(metrics["vision"], vision.log)
     if "t" in arrays:  # the vehicles' tracking of the formation (truth against target)
         w = arrays["t"] >= sc.load.settle_s
-        err = np.linalg.norm(arrays["p_true"][w] - arrays["p_target"][w], axis=-1)
+        err = np.linalg.norm(arrays["p_true"][w] - planned_positions(arrays)[w], axis=-1)
         metrics["vehicle_track_true_rms_m"] = [float(np.sqrt(np.mean(e**2))) for e in err.T]
         est_err = np.linalg.norm(arrays["p_true"][w] - arrays["p_ekf"][w], axis=-1)
         metrics["vehicle_ekf_err_rms_m"] = [float(np.sqrt(np.mean(e**2))) for e in est_err.T]

@@ -36,6 +36,7 @@ from companion.configfile import dump_toml
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
 from companion.trajectory import smoothstep5
 from link_firmware_sim.controllers.hybrid import ContactTarget
+from sitl.metrics import planned_positions
 from sitl.plant.model import SkeletonModel
 from sitl.runner import BatchRunner
 from sitl.task import Task
@@ -169,7 +170,7 @@ def wall_push(scenario: WallPushScenario, out_dir: Path | None, *, progress=None
     w_err = cl["wrench_hat"][steady] - cl["wrench_true"][steady]
     n = np.asarray(sc.contact.normal_w, dtype=float)
     w = arrays["t"] >= sc.contact.steady_start_s
-    dp = arrays["p_true"][w, 0] - arrays["p_target"][w, 0]
+    dp = arrays["p_true"][w, 0] - planned_positions(arrays)[w, 0]
     dp_free = dp - np.outer(dp @ n, n)
     att = np.degrees(np.linalg.norm(attitude_error(arrays["q_true"][w, 0], arrays["q_target"][w, 0]), axis=-1))
     metrics = {
