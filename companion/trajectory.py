@@ -81,7 +81,8 @@ from .motion.schedule import MotionCommand, MotionConfig, desired_motion
 from .skeleton.body import SkeletonConfig
 from .skeleton.kinematics import chain_offsets, middle_offset
 
-__all__ = ["TrajectoryConfig", "ChainTrajectory", "CpgChainTrajectory", "make_trajectory", "smoothstep5"]
+__all__ = ["TrajectoryConfig", "ChainTrajectory", "CpgChainTrajectory", "make_trajectory", "planned_positions",
+           "smoothstep5"]
 
 
 def smoothstep5(s: float) -> float:
@@ -156,6 +157,17 @@ def feedforward_targets(motion, model, passive, arrays) -> list[PoseTarget]:
         target.__dict__.update(R_d=R_d, R_tuple=R_tuple)  # (its cached properties, computed here anyway)
         out.append(target)
     return out
+
+
+def planned_positions(log: dict[str, np.ndarray]) -> np.ndarray:
+    """The targets of a run's log (``p_target``, (..., n, 3)) in the frame of its truth: the
+    companion flies the trajectory from its home, in the links' frame (the trajectory shifted by
+    ``home_offset_w_m``, where the links' estimate put the chain at the start less its anchor,
+    which in SITL is where the chain stands); less that offset, it is the trajectory from the true
+    start, what the truth is judged against and shown beside. A log without the offset is taken
+    as logged."""
+    home = log.get("home_offset_w_m")
+    return log["p_target"] if home is None else log["p_target"] - np.asarray(home, dtype=float)
 
 
 class ChainTrajectory:

@@ -5,7 +5,8 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
 * ``rms_track_est_m`` per link: RMS of ``|p_target - p_estimate|`` where the estimate is what
   the controller used (EKF plus the held correction): the paper's Fig. 5 figure;
 * ``rms_track_true_m`` per link: the same against the true position, the targets taken into the
-  simulator's world frame (:func:`planned_positions`: the trajectory from the true start);
+  simulator's world frame (:func:`companion.trajectory.planned_positions`: the trajectory from the
+  true start);
 * ``rms_att_track_true_deg`` per link: RMS attitude angle between target and truth;
 * ``rms_est_err_m``: per link, RMS of ``|p_estimate - p_true|`` at the companion ticks, for the
   EKF alone (``ekf``) and for the SCKF-corrected estimate (``sckf``, absent without SCKF);
@@ -69,6 +70,7 @@ import warnings
 import numpy as np
 
 from companion.estimation.so3 import attitude_error, quat_conj, quat_mul, quat_to_rotmat
+from companion.trajectory import planned_positions
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
            "motion_segments", "cable_metrics", "nees_metrics", "nees_series", "nees_whitened", "nees_bounds95",
@@ -97,16 +99,6 @@ THESIS_CPG_POSE_TRACK = {
     "yaw_vertical_fig_5_5": [0.2042, 9.01],
     "gait_transition_fig_5_6": [0.1857, 7.64],
 }
-
-
-def planned_positions(log: dict[str, np.ndarray]) -> np.ndarray:
-    """The targets' positions in the simulator's world frame, what the truth is judged against:
-    ``p_target`` is in the links' frame, where the companion flies the trajectory from its home
-    (the trajectory shifted by ``home_offset_w_m``, where the links' estimate put the chain at the
-    start less its anchor, which in SITL is where the chain stands); less that offset, it is the
-    trajectory at the true start. A log without the offset is taken as logged."""
-    home = log.get("home_offset_w_m")
-    return log["p_target"] if home is None else log["p_target"] - np.asarray(home, dtype=float)
 
 
 def motion_segments(log: dict[str, np.ndarray], motion, end_s: float) -> list[dict]:

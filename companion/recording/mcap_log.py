@@ -5,7 +5,8 @@ publish time) with the simulated time in nanoseconds and written in time order. 
 each written only when the log holds its arrays (links numbered from 1):
 
 - ``/link{i}/truth``, ``/link{i}/ekf``, ``/link{i}/target`` (``foxglove.PoseInFrame``, frame
-  ``world``): ``p_true``/``q_true``, ``p_ekf``/``q_ekf``, ``p_target``/``q_target`` at ``t``;
+  ``world``): ``p_true``/``q_true``, ``p_ekf``/``q_ekf``, ``p_target``/``q_target`` at ``t`` (the
+  targets in the truth's frame: :func:`companion.trajectory.planned_positions`);
 - ``/link{i}/state_in`` (``foxglove.PoseInFrame``): the link's state as the companion's step took
   it in, ``p_ekf_sckf``/``q_ekf_sckf`` at ``t_sckf``;
 - ``/link{i}/corrected`` (``foxglove.PoseInFrame``): the companion's correction,
@@ -53,6 +54,7 @@ import numpy as np
 
 from ..linkstate import CARRIED, DOWN, EXCLUDED
 from ..messages import STATE_FLAG_ARMED, STATE_FLAG_CORRECTION_ACTIVE, STATE_FLAG_EKF_OK, STATE_FLAG_GPS_FAULT
+from ..trajectory import planned_positions
 from .foxglove import (COMPRESSED_IMAGE, FRAME_TRANSFORMS, LOG, LOG_LEVEL_OF_SEVERITY, POSE_IN_FRAME, SCENE_UPDATE, SCHEMAS,
                        SERIES, pose, stamp)
 
@@ -211,8 +213,10 @@ def channels(log: Mapping[str, np.ndarray],
              ("state_in", "t_sckf", "p_ekf_sckf", "q_ekf_sckf"), ("corrected", "t_sckf", "p_corr_sckf", "q_corr_sckf"),
              ("target", "t", "p_target", "q_target")]
     per_link = []
+    # (the targets in the truth's frame: the companion flies them from its home, in the links' frame)
+    shown = {**log, "p_target": planned_positions(log)} if "p_target" in log else log
     for name, stamp_key, p_key, q_key in poses:
-        arrays = _series(log, stamp_key, p_key, q_key, width=n)
+        arrays = _series(shown, stamp_key, p_key, q_key, width=n)
         if arrays:
             ns = _nanoseconds(log[stamp_key])
             per_link += [(i, f"/link{i + 1}/{name}", POSE_IN_FRAME, ns, _pose_messages(ns, *arrays, i))

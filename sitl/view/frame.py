@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..metrics import planned_positions
+
 __all__ = ["Poses", "ViewFrame", "FIGURES", "frame", "figures"]
 
 #: the panel's figures: key -> (title, unit)
@@ -44,10 +46,10 @@ class Poses:
 @dataclass(frozen=True)
 class ViewFrame:
     """The run at ``t_s`` (simulated seconds): the truth, the link EKF estimates, the companion's
-    corrected estimates at its newest step (``step_t_s``), the targets, each correction as the
-    move from the estimate the step used to the corrected one, each link's state word
-    (:mod:`companion.linkstate`), the load's pose and the panel's figures (:data:`FIGURES`). What the
-    log does not hold is ``None``."""
+    corrected estimates at its newest step (``step_t_s``), the targets (in the truth's frame),
+    each correction as the move from the estimate the step used to the corrected one, each link's
+    state word (:mod:`companion.linkstate`), the load's pose and the panel's figures
+    (:data:`FIGURES`). What the log does not hold is ``None``."""
 
     t_s: float
     truth: Poses
@@ -68,6 +70,14 @@ def _poses(row: Mapping, p_key: str, q_key: str) -> Poses | None:
     return Poses(np.asarray(row[p_key], dtype=float), np.asarray(row[q_key], dtype=float))
 
 
+def _targets(row: Mapping) -> Poses | None:
+    """The targets of ``row`` in the truth's frame (:func:`sitl.metrics.planned_positions`: the
+    companion flies them from its home, in the links' frame)."""
+    if "p_target" not in row or "q_target" not in row:
+        return None
+    return Poses(np.asarray(planned_positions(row), dtype=float), np.asarray(row["q_target"], dtype=float))
+
+
 def _nanmax(a: np.ndarray, axis: int = -1) -> np.ndarray:
     """The largest finite value along ``axis`` (NaN where there is none), without numpy's warning."""
     a = np.asarray(a, dtype=float)
@@ -83,8 +93,8 @@ def figures(row: Mapping, step: Mapping | None = None) -> dict[str, np.ndarray]:
     a number, or an array over a leading time axis when the rows have one. A figure whose keys
     the rows lack is left out."""
     out: dict[str, np.ndarray] = {}
-    if "p_true" in row and "p_target" in row:
-        err = np.linalg.norm(np.asarray(row["p_true"], float) - np.asarray(row["p_target"], float), axis=-1)
+    if "p_true" in row and "p_target" in row:  # (the targets in the truth's frame: less the home offset)
+        err = np.linalg.norm(np.asarray(row["p_true"], float) - planned_positions(row), axis=-1)
         out["tracking_cm"] = 100.0 * _nanmax(err)
     if "correction_latency_ms" in row:
         out["latency_ms"] = _nanmax(row["correction_latency_ms"])
@@ -115,6 +125,6 @@ def frame(t_s: float, row: Mapping, step: Mapping | None = None, load: Mapping |
     state = row.get("link_state")
     return ViewFrame(
         t_s=float(t_s), truth=truth, ekf=_poses(row, "p_ekf", "q_ekf"), corrected=corrected,
-        target=_poses(row, "p_target", "q_target"), step_t_s=step_t, correction_from_w_m=src, correction_to_w_m=dst,
+        target=_targets(row), step_t_s=step_t, correction_from_w_m=src, correction_to_w_m=dst,
         link_state=None if state is None else np.asarray(state), load=_poses(load or {}, "load_p_true", "load_q_true"),
         figures={k: float(v) for k, v in figures(row, step).items()})

@@ -65,6 +65,7 @@ def batch_rows(runner) -> Callable[[], tuple[float, dict, dict | None] | None]:
         row = _newest(vars(runner.log))
         if "t" not in row:
             return None
+        row["home_offset_w_m"] = runner.engines[0].targets.home_offset_w_m  # (the targets in the truth's frame)
         engines = [([lk.index for lk in e.links], _newest(e.step.log)) for e in runner.engines]
         return float(row["t"]), row, chain_step_row(engines, runner.n, runner.d)
     return newest

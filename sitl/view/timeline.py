@@ -51,6 +51,10 @@ class Timeline:
                                 f"(samples, links, 4) with {self.t.size} samples")
         self.n = p.shape[1]
         self.rows = _rows(log, "t")
+        if "home_offset_w_m" in log:  # (where the companion flew from: the targets in the truth's frame)
+            self.home = np.asarray(log["home_offset_w_m"], dtype=float)
+        else:
+            self.home = None
         self.steps: dict[str, np.ndarray] = {}
         if "t_sckf" in log and np.size(log["t_sckf"]):
             self.t_step = _check_times("t_sckf", log["t_sckf"])
@@ -84,7 +88,10 @@ class Timeline:
         i = self._at(self.t_load, self.t[k])
         step = {key: a[j] for key, a in self.steps.items()} if j >= 0 else None
         load = {key: a[i] for key, a in self.loads.items()} if i >= 0 else None
-        return frame(self.t[k], {key: a[k] for key, a in self.rows.items()}, step, load)
+        return frame(self.t[k], self._with_home({key: a[k] for key, a in self.rows.items()}), step, load)
+
+    def _with_home(self, rows: dict) -> dict:
+        return rows if self.home is None else {**rows, "home_offset_w_m": self.home}
 
     def images_at(self, t_s: float) -> dict[int, tuple[int, bytes]]:
         """Per camera (its index in the scenario), ``(frame number, JPEG bytes)`` of its newest frame
@@ -102,7 +109,7 @@ class Timeline:
 
     def series(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Every figure of the panel over the whole run: name -> (times [s], values)."""
-        out = {name: (self.t, v) for name, v in figures(self.rows).items()}
+        out = {name: (self.t, v) for name, v in figures(self._with_home(self.rows)).items()}
         if self.steps:
             out.update({name: (self.t_step, v) for name, v in figures({}, self.steps).items()})
         return out

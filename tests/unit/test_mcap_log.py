@@ -231,3 +231,14 @@ def test_a_load_pose_of_the_wrong_width_is_left_out(tmp_path):
                load_ekf_p=np.zeros((10, 3)), load_ekf_q=np.tile([1.0, 0, 0, 0], (10, 1)))
     counts = export_log(log, tmp_path / "run.mcap")
     assert "/load/truth" not in counts and counts["/load/ekf"] == 10 and "/load/ukf" not in counts
+
+
+def test_the_targets_are_written_in_the_truths_frame(tmp_path):
+    """A run flown from home (``home_offset_w_m``): ``/link{i}/target`` holds the targets less it."""
+    log = synthetic_log(2)
+    log["home_offset_w_m"] = np.array([0.3, -0.2, 1.5])
+    export_log(log, tmp_path / "run.mcap")
+    _, messages = read_back(tmp_path / "run.mcap")
+    for i in range(2):
+        got = [[m["pose"]["position"][a] for a in "xyz"] for *_, m in messages[f"/link{i + 1}/target"]]
+        np.testing.assert_allclose(got, log["p_target"][:, i] - log["home_offset_w_m"], atol=1e-12)

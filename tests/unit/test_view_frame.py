@@ -193,3 +193,18 @@ def test_poses_known_is_false_for_a_row_with_a_nan():
     f = frame(0.0, {"p_true": p, "q_true": q, "p_ekf": np.full((4, 3), np.nan), "q_ekf": q})
     assert f.truth.known.tolist() == [True, False, False, False]
     assert not f.ekf.known.any()
+
+
+@pytest.mark.parametrize("home", [None, (0.3, -0.2, 1.5)])
+def test_the_targets_are_shown_and_judged_in_the_truths_frame(home):
+    """The companion flies the trajectory from its home, in the links' frame: a chain that flies it
+    exactly shows its targets on the truth and no tracking error, with or without a home."""
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=(3, 3))
+    row = {"p_true": truth, "q_true": _unit_quats(rng, 3), "q_target": _unit_quats(rng, 3),
+           "p_target": truth + (0.0 if home is None else np.asarray(home))}
+    if home is not None:
+        row["home_offset_w_m"] = np.asarray(home)
+    f = frame(1.0, row)
+    np.testing.assert_allclose(f.target.p_w_m, truth, atol=1e-12)
+    assert f.figures["tracking_cm"] == pytest.approx(0.0, abs=1e-9)

@@ -468,3 +468,21 @@ def test_a_link_left_out_of_the_newest_step_is_excluded(tmp_path):
     w.flush()
     _, row, _ = FleetRows(harness(), tmp_path, clock=Clock()).newest()
     assert [condition(x) for x in row["link_state"]] == ["flying", "excluded", "flying"]
+
+
+def test_a_batch_flights_live_rows_carry_the_home_its_companion_flies_from():
+    from sitl.view.frame import frame
+    from sitl.view.live import batch_rows
+
+    truth = np.zeros((3, 3))
+    home = np.array([0.3, -0.2, 1.5])
+    log = types.SimpleNamespace(t=[2.0], p_true=[truth], q_true=[np.tile([1.0, 0, 0, 0], (3, 1))],
+                                p_target=[truth + home], q_target=[np.tile([1.0, 0, 0, 0], (3, 1))])
+    engine = types.SimpleNamespace(links=[types.SimpleNamespace(index=i) for i in range(3)],
+                                   step=types.SimpleNamespace(log={}),
+                                   targets=types.SimpleNamespace(home_offset_w_m=home))
+    runner = types.SimpleNamespace(log=log, engines=[engine], n=3, d=np.tile([0.5, 0.0, 0.0], (3, 1)))
+    t, row, step = batch_rows(runner)()
+    assert t == 2.0 and step is None
+    np.testing.assert_array_equal(row["home_offset_w_m"], home)
+    np.testing.assert_allclose(frame(t, row).target.p_w_m, truth, atol=1e-12)

@@ -323,3 +323,17 @@ def test_open_run_without_a_scenario(tmp_path, n):
     timeline, spec = open_run(tmp_path)
     assert timeline.n == n
     _assert_plain_chain(spec, n)
+
+
+def test_a_replay_shows_the_targets_in_the_truths_frame():
+    """A run flown from home (``home_offset_w_m`` in its log): every frame's targets and the
+    tracking series are those of the targets less that offset."""
+    log = make_log()
+    home = np.array([0.3, -0.2, 1.5])
+    log["home_offset_w_m"] = home
+    tl = Timeline(log)
+    for k, t in enumerate(log["t"]):
+        np.testing.assert_allclose(tl.frame(t).target.p_w_m, log["p_target"][k] - home, atol=1e-12)
+    times, tracking = tl.series()["tracking_cm"]
+    want = 100.0 * np.linalg.norm(log["p_true"] - (log["p_target"] - home), axis=-1).max(axis=1)
+    np.testing.assert_allclose(tracking, want, atol=1e-9)
