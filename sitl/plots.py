@@ -11,8 +11,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
+from companion.trajectory import planned_positions  # noqa: E402
 
-from .metrics import NEES_BLOCKS, nees_series, planned_positions  # noqa: E402
+from .metrics import NEES_BLOCKS, nees_series  # noqa: E402
 
 __all__ = ["plot_constraint_error", "plot_tracking", "plot_thrust", "plot_cable_tension", "plot_body_motion",
            "plot_attitude_tracking", "plot_nees", "write_plots"]

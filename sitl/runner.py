@@ -384,7 +384,7 @@ class BatchRunner:
     def arrays(self) -> dict[str, np.ndarray]:
         """The run's log: the log-rate series plus the companions' step log with the truth at every step."""
         out = self.log.arrays()
-        out["home_offset_w_m"] = np.array(self.engines[0].targets.home_offset_w_m)  # (metrics.planned_positions)
+        out["home_offset_w_m"] = np.array(self.engines[0].targets.home_offset_w_m)  # (trajectory.planned_positions)
         if self.statustext:
             out.update(statustext_arrays(self.statustext))
         steps = self.step_log()

@@ -105,7 +105,7 @@ class NetHome:
                 middle = middle_of_link(p[self.row], quat_to_rotmat(q[self.row]), self._d[self.row], self.n_links)
                 self._adopt(middle - self.anchor_w_m, "measured")
                 return self.offset_w_m
-        if self._first_s is not None and not (self._fresh and self._own is None):
+        if not (self._fresh and self._own is None):  # (where this group stands is known, or not needed)
             pending, self._pending = self._pending, []
             for msg in pending:
                 self._judge(msg)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.estimation.so3 import attitude_error
-from sitl.metrics import planned_positions
+from companion.trajectory import planned_positions
 
 __all__ = ["CONTROLLERS", "tracking_metrics", "compare_controllers", "format_controllers", "markdown_controllers",
            "plot_controllers"]

@@ -66,8 +66,8 @@ def _load(folder: Path) -> tuple[dict | None, dict | None]:
         metrics = None
     try:
         with np.load(folder / "log.npz") as f:
-            log = {k: f[k] for k in ("t", "p_target", "p_true", "t_sckf", "con_pos_after", "corrected_sckf")
-                   if k in f.files}
+            log = {k: f[k] for k in ("t", "p_target", "p_true", "home_offset_w_m", "t_sckf", "con_pos_after",
+                                     "corrected_sckf") if k in f.files}
     except (OSError, ValueError):
         log = None
     return metrics, log

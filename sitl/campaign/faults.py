@@ -47,7 +47,9 @@ from typing import Any
 
 import numpy as np
 
-from ..metrics import p95, planned_positions, rms
+from companion.trajectory import planned_positions
+
+from ..metrics import p95, rms
 
 __all__ = ["KINDS", "INJECTED", "FLEET_ONLY", "P_KIND", "RECOVERED_M", "AFTER_S", "FaultEvent", "draw_schedule",
            "power_loss_near", "recovery_s",
@@ -225,7 +227,7 @@ def _worst_rms(err: np.ndarray) -> float | None:
 
 def event_figures(event: FaultEvent, log: dict, kind_links: Sequence[int] = ()) -> dict:
     """One fault's figures in its flight's ``log`` (``log.npz``: ``t``, ``p_target``, ``p_true``,
-    and the step log's ``t_sckf``, ``con_pos_after``, ``corrected_sckf`` when it has them):
+    ``home_offset_w_m``, and the step log's ``t_sckf``, ``con_pos_after``, ``corrected_sckf`` when it has them):
     ``track_during_m`` / ``track_after_m`` (the worst link's true tracking RMS during the fault and
     in the :data:`AFTER_S` after it), ``constraint_during_m`` / ``constraint_after_m`` (constraint
     p95 after the SCKF), ``uncorrected_max`` (the largest fraction of steps during it that a link

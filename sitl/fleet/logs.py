@@ -94,7 +94,7 @@ def merge_logs(sc: Scenario, truth: dict[str, np.ndarray],
             comp["t_sckf"] = (np.round(comp["t_sckf"] * 1e6).astype(np.int64) - SITL_GPS_EPOCH_US) * 1e-6
         merged.update(attach_truth(comp, truth["t"], truth["p_true"], truth["v_true"], truth["q_true"]))
     homes = [s["home_offset_m"] for s in companion_summaries(out_dir).values() if s.get("home_offset_m") is not None]
-    if homes:  # where the companions flew the trajectory from (:func:`sitl.metrics.planned_positions`)
+    if homes:  # where the companions flew the trajectory from (:func:`companion.trajectory.planned_positions`)
         merged["home_offset_w_m"] = np.array(homes[0], dtype=float)
     merged.update(_link_states(merged, fw, fw_rows))
     merged.update(statustext_arrays([(t, i + 1, sev, text) for i, f in enumerate(fw) if f is not None

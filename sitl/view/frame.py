@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..metrics import planned_positions
+from companion.trajectory import planned_positions
 
 __all__ = ["Poses", "ViewFrame", "FIGURES", "frame", "figures"]
 
@@ -71,8 +71,8 @@ def _poses(row: Mapping, p_key: str, q_key: str) -> Poses | None:
 
 
 def _targets(row: Mapping) -> Poses | None:
-    """The targets of ``row`` in the truth's frame (:func:`sitl.metrics.planned_positions`: the
-    companion flies them from its home, in the links' frame)."""
+    """The targets of ``row`` in the truth's frame (:func:`companion.trajectory.planned_positions`:
+    the companion flies them from its home, in the links' frame)."""
     if "p_target" not in row or "q_target" not in row:
         return None
     return Poses(np.asarray(planned_positions(row), dtype=float), np.asarray(row["q_target"], dtype=float))

@@ -51,10 +51,8 @@ class Timeline:
                                 f"(samples, links, 4) with {self.t.size} samples")
         self.n = p.shape[1]
         self.rows = _rows(log, "t")
-        if "home_offset_w_m" in log:  # (where the companion flew from: the targets in the truth's frame)
-            self.home = np.asarray(log["home_offset_w_m"], dtype=float)
-        else:
-            self.home = None
+        #: where the companion flew from (``None``: not logged), for the targets in the truth's frame
+        self.home = np.asarray(log["home_offset_w_m"], dtype=float) if "home_offset_w_m" in log else None
         self.steps: dict[str, np.ndarray] = {}
         if "t_sckf" in log and np.size(log["t_sckf"]):
             self.t_step = _check_times("t_sckf", log["t_sckf"])

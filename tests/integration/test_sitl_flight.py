@@ -18,12 +18,11 @@ from companion.skeleton.rotors import RotorGeometry
 from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from sitl.scenarios.chain.flight import fly
 from sitl.plant.start import StartPose
-from sitl.metrics import planned_positions
 from sitl.runner import BatchRunner
 from companion.config import CompanionConfig
 from sitl.scenario import Scenario, SensorConfig, load_scenario
 from sitl.plant.sensors import PROFILES, LinkSensors
-from companion.trajectory import ChainTrajectory, TrajectoryConfig
+from companion.trajectory import ChainTrajectory, TrajectoryConfig, planned_positions
 
 from ..chains import consistent_chain, random_covariances
 from ..flights import seeded_metrics

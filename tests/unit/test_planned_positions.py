@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from companion.trajectory import planned_positions
+from sitl.campaign.fault_campaign import _load
 from sitl.campaign.faults import FaultEvent, event_figures
-from sitl.metrics import outage_split, planned_positions
+from sitl.metrics import outage_split
 
 
 def _log(home):
@@ -38,3 +40,11 @@ def test_a_log_without_a_home_is_judged_as_logged():
     np.testing.assert_array_equal(planned_positions(log), log["p_target"])
     worst = event_figures(FaultEvent("gps", 1, 2.0, 4.0), log)["track_during_m"]
     assert worst == pytest.approx(np.sqrt(0.3**2 + 0.2**2 + 1.5**2))
+
+
+def test_the_fault_campaign_reads_a_flights_home_with_its_log(tmp_path):
+    log = _log((0.3, -0.2, 1.5))
+    np.savez(tmp_path / "log.npz", **log)
+    _, loaded = _load(tmp_path)
+    np.testing.assert_array_equal(loaded["home_offset_w_m"], log["home_offset_w_m"])
+    assert event_figures(FaultEvent("gps", 1, 2.0, 4.0), loaded)["track_during_m"] == pytest.approx(0.0, abs=1e-12)

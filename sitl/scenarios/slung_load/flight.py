@@ -31,9 +31,9 @@ import numpy as np
 
 from companion.config import project
 from companion.configfile import dump_toml
+from companion.trajectory import planned_positions
 from sitl.cameras.flight import FlightCameras
 from sitl.cameras.scene import SceneConfig
-from sitl.metrics import planned_positions
 from sitl.runner import BatchRunner
 from sitl.scenario import Scenario
 from sitl.task import Task

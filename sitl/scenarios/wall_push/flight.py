@@ -34,9 +34,8 @@ import numpy as np
 
 from companion.configfile import dump_toml
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
-from companion.trajectory import smoothstep5
+from companion.trajectory import planned_positions, smoothstep5
 from link_firmware_sim.controllers.hybrid import ContactTarget
-from sitl.metrics import planned_positions
 from sitl.plant.model import SkeletonModel
 from sitl.runner import BatchRunner
 from sitl.task import Task
