@@ -49,14 +49,15 @@ def plot_constraint_error(log: dict[str, np.ndarray], path: Path) -> None:
 
 
 def plot_tracking(log: dict[str, np.ndarray], path: Path) -> None:
-    """Per link and axis: target, estimate used by control, and truth."""
+    """Per link and axis: target (in the truth's frame), estimate used by control, and truth."""
     t = log["t"]
     n = log["p_true"].shape[1]
+    target = planned_positions(log)
     fig, axes = plt.subplots(n, 3, figsize=(12, 2.2 * n + 1), sharex=True, squeeze=False)
     for i in range(n):
         for a, name in enumerate("xyz"):
             ax = axes[i, a]
-            ax.plot(t, log["p_target"][:, i, a], "k--", lw=1.0, label="target")
+            ax.plot(t, target[:, i, a], "k--", lw=1.0, label="target")
             ax.plot(t, log["p_ctrl"][:, i, a], lw=1.0, label="estimate")
             ax.plot(t, log["p_true"][:, i, a], lw=1.0, alpha=0.8, label="true")
             ax.set_ylabel(f"link {i + 1} {name} [m]")

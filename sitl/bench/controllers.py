@@ -81,8 +81,10 @@ def plot_controllers(run_dir: Path, controllers, start_s: float, path: Path) -> 
         a = np.load(run_dir / name / "log.npz")
         w = a["t"] >= start_s
         ax_xy.plot(a["p_true"][w, 0, 0], a["p_true"][w, 0, 1], label=f"{name} (true)", lw=0.8)
-        ax_e.plot(a["t"][w], 100 * np.linalg.norm(a["p_true"][w, 0] - a["p_target"][w, 0], axis=-1), label=name, lw=0.8)
-    ax_xy.plot(a["p_target"][w, 0, 0], a["p_target"][w, 0, 1], "k--", lw=0.8, label="target")
+        ax_e.plot(a["t"][w], 100 * np.linalg.norm(a["p_true"][w, 0] - planned_positions(a)[w, 0], axis=-1), label=name,
+                  lw=0.8)
+    target = planned_positions(a)[w, 0]  # (in the truth's frame)
+    ax_xy.plot(target[:, 0], target[:, 1], "k--", lw=0.8, label="target")
     ax_xy.set(xlabel="x [m]", ylabel="y [m]", aspect="equal", title="link 1's path (horizontal plane)")
     ax_e.set(xlabel="t [s]", ylabel="|p - p_d| [cm] (true)")
     for ax in (ax_xy, ax_e):
