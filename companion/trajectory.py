@@ -39,12 +39,13 @@ takeoff_duration_s``) still opens the metrics window.
 frame). Distributed companions need one anchor they all share (the SITL gives every companion
 where the simulated chain starts).
 
-``home``: where the companions fly the trajectory. ``"estimate"`` (the default): from
-where the chain's own estimate puts its middle after the first step, as a flight controller flies
-from its home: the trajectory is shifted by that point less ``anchor_w_m`` (the anchor names where
-the chain was set down), so a position error that every receiver shares at the start (``m8``'s
+``home``: where the companions fly the trajectory. ``"estimate"`` (the default): from where the
+chain's own estimate puts its middle while it rests before its take-off (measured at every target
+until ``takeoff_start_s`` less 0.2 s, the estimate settling), as a flight controller flies from
+its home: the trajectory is shifted by that point less ``anchor_w_m`` (the anchor names where the
+chain was set down), so a position error that every receiver shares at the start (``m8``'s
 metres) shifts the targets with it instead of flying the chain that far off them, into the ground
-when it is vertical; without an anchor the trajectory starts at that point. ``"anchor"``: at
+when it is vertical; without an anchor the trajectory starts at that point (measured once). ``"anchor"``: at
 ``anchor_w_m`` in the links' frame, as it is given (a surveyed point; ``"estimate"`` without an
 anchor). Distributed companions each see only their own links: the group that holds the middle
 link measures the home and the others fly the one it publishes (:mod:`companion.engine.home`).

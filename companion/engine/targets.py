@@ -1,10 +1,11 @@
 """Pose targets: every link's target from the trajectory, every 1/``target_rate_hz``.
 
 The trajectory (``[trajectory]``) is anchored at ``trajectory.anchor_w_m`` and, with ``home =
-"estimate"``, flown from where the first step's estimate puts the chain's middle, as a flight
-controller flies from its home (:mod:`companion.trajectory`): the targets wait for that step (in
-distributed mode, for the home the groups agree on: :mod:`.home`), and its time starts with the
-first targets (:meth:`Targets.send`);
+"estimate"``, flown from where the chain's estimate puts its middle at the start, as a flight
+controller flies from its home (:mod:`companion.trajectory`): the targets wait for the first step
+(in distributed mode, for the home the groups agree on: :mod:`.home`), its time starts with the
+first targets (:meth:`Targets.send`), and while the chain rests before its take-off the home is
+measured again at every target from the newest step (the estimate settles after its start);
 with the whole-chain feed-forward, the carried links (:class:`~.carrying.Carrying`) are flown by
 their neighbours. Targets are stamped on each link's own clock.
 
@@ -28,7 +29,7 @@ from ..quantiles import Quantiles
 from ..skeleton.kinematics import chain_middle
 from ..trajectory import make_trajectory
 from .carrying import Carrying
-from .home import NetHome
+from .home import HOME_MARGIN_S, NetHome
 from .links import LinkTrack
 from .outputs import TargetOut
 
@@ -81,10 +82,13 @@ class Targets:
         #: the trajectory's shift to where the estimate puts the chain at the start [m, world]
         self.home_offset_w_m = np.zeros(3)
         #: distributed mode: the home the groups agree on (:mod:`.home`; ``None``: the anchor as given)
-        self.home = (NetHome(group, len(setup.companion.group_layout(self.n)), net, links, d, self.n,
-                             self._start_center)
+        self.home = (NetHome(group, setup.companion.group_layout(self.n), net, links, d, self.n, self._start_center)
                      if net is not None and setup.trajectory.home == "estimate" and chain
                      and self._start_center is not None else None)
+        #: trajectory time until which the home is measured again at every target, the chain still at
+        #: rest and its estimate settling (:data:`~.home.HOME_MARGIN_S` before the take-off starts)
+        self.refine_s = (max(setup.trajectory.takeoff_start_s - HOME_MARGIN_S, 0.0)
+                         if setup.trajectory.kind not in ("rest", "formation") else 0.0)
         self._planned: np.ndarray | None = None  # (n, 3) the trajectory's link centres at its start
         #: CPG targets travel over the network from the leader (distributed mode)
         self.via_net = net is not None and setup.trajectory.kind == "cpg"
@@ -97,16 +101,22 @@ class Targets:
         mode, nothing while the leader's are being forwarded); ``next_step_us``: the cycle whose
         leader publishes them. ``False``: nothing is due yet (the home waits for the first step's
         estimate, or for the group that measures it)."""
+        t_traj_s = (t_us - (self._t0_us if self._started else self._start_us(t_us))) * 1e-6
         if self.home is not None:
             if self.trajectory is None:  # (a group's trajectory is the shared anchor's, shifted by the home)
                 self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton,
                                                   self._start_center, load=self.setup.load)
             if self._planned is None:
                 self._planned = getattr(self.trajectory, "hover", self.trajectory).pose(0.0)[0]
-            offset = self.home.offset(now_s, self._estimate(), self._planned)
+            offset = self.home.offset(now_s, self._estimate(), self._planned, t_traj_s, self.refine_s)
             if offset is None:
                 return False
             self.home_offset_w_m = offset
+        elif self.trajectory is not None and self._from_estimate and self._start_center is not None \
+                and t_traj_s < self.refine_s:
+            middle = self._estimated_middle()  # (the chain at rest: the home measured again, its estimate settling)
+            if middle is not None:
+                self.home_offset_w_m = middle - self._start_center
         if self.trajectory is None:
             center = self._start_center
             if self._from_estimate:

@@ -84,6 +84,44 @@ def test_a_centralised_companion_flies_the_trajectory_from_its_estimated_start(h
     assert engine.targets.trajectory.targets(3.0)[1].p_w_m[2] > 2.0 + 1e-3  # climbing at 3 s
 
 
+@pytest.mark.parametrize("distributed", [False, True])
+def test_the_home_follows_the_settling_estimate_while_the_chain_rests_then_is_kept(distributed):
+    """The links' shared error drifts while the chain rests (an estimate settling after its
+    start): the home is measured again until 0.2 s before the take-off starts (1 s), then kept;
+    every target is the trajectory's shifted by the home of its time, in every group alike once
+    kept."""
+    groups = ((1, 2), (3, 4, 5)) if distributed else ()
+    setup = setup_for(5, groups=groups, distributed=distributed)
+    clock = [0.0]
+    engines = (group_engines(setup, lambda: clock[0])[1] if distributed
+               else [CompanionEngine(setup, start_center=(0.0, 0.0, 2.0))])
+
+    def bias(t):
+        return np.array([0.0, 0.0, 0.3 - 0.1 * min(t, 2.0)])
+
+    homes = {}
+    for k in range(100):  # 2 s at 50 Hz
+        t = clock[0] = 0.02 * k
+        for e in engines:
+            for lk in e.links:
+                state = straight_state(lk.index, 5, t)
+                e.on_state(lk.row, replace(state, p_w_m=state.p_w_m + bias(t)), STATE_FLAG_EKF_OK, t)
+        for _ in range(6):
+            for e in engines:
+                for out in of(TargetOut, e.poll(t)):
+                    unshifted = e.targets.trajectory.targets(out.time_us * 1e-6)[e.links[out.row].index].p_w_m
+                    homes.setdefault(round(out.time_us * 1e-6, 3), set()).add(tuple(out.target.p_w_m - unshifted))
+    for t, seen in homes.items():  # one home per target time in every group; while it rests, a group
+        # takes the measuring group's newest at its next poll (within two steps of the estimate's drift)
+        assert len(seen) == 1 or (t < 1.0 and np.ptp([h[2] for h in seen]) <= 0.1 * 0.1 + 1e-9), (t, seen)
+    z = {t: max(h[2] for h in seen) for t, seen in homes.items()}
+    assert z[min(z)] == pytest.approx(0.3, abs=0.011)  # from the first targets (the first step's)
+    final = z[max(z)]
+    assert 0.3 - 0.1 * 0.8 - 1e-9 <= final <= 0.3 - 0.1 * 0.65 + 1e-9  # the last measurement before 0.8 s
+    assert all(v == pytest.approx(final, abs=1e-12) for t, v in z.items() if t >= 1.0)  # kept from the take-off
+    assert len({round(v, 9) for v in z.values()}) > 5  # (it followed the estimate before)
+
+
 @pytest.mark.parametrize("home, expected", [("estimate", (0.3, -0.2, 1.5)), ("anchor", (0.0, 0.0, 0.0))])
 def test_distributed_companions_fly_from_the_home_the_middle_group_measures(home, expected):
     """Links that all report a shared offset from where the chain was set down: the group that
