@@ -108,8 +108,10 @@ class NetHome:
         if self._first_s is None:  # every link heard for the first time: no ARM sent yet
             self._first_s = now_s
             self._fresh = not any(lk.flags & STATE_FLAG_ARMED for lk in self._links)
-        if t_traj_s >= refine_s + (0.0 if self.row is not None else HOME_MARGIN_S):
+        if not self._final and t_traj_s >= refine_s + (0.0 if self.row is not None else HOME_MARGIN_S):
             self._final = True
+            if self.offset_w_m is not None:
+                log.info("home kept: %s m from the anchor (%s)", _fmt(self.offset_w_m), self.source)
         if estimate is not None and self._fresh and (self.offset_w_m is None or not self._final):
             p, q = (np.asarray(x, dtype=float) for x in estimate)
             usable = np.all(np.isfinite(p), axis=1)

@@ -90,6 +90,7 @@ class Targets:
         self.refine_s = (max(setup.trajectory.takeoff_start_s - HOME_MARGIN_S, 0.0)
                          if setup.trajectory.kind not in ("rest", "formation") else 0.0)
         self._planned: np.ndarray | None = None  # (n, 3) the trajectory's link centres at its start
+        self._home_kept = False  # (a centralised companion's home no longer measured)
         #: CPG targets travel over the network from the leader (distributed mode)
         self.via_net = net is not None and setup.trajectory.kind == "cpg"
         self.counts = {"published": 0, "forwarded": 0, "own": 0, "received": 0, "stale": 0}
@@ -113,10 +114,15 @@ class Targets:
                 return False
             self.home_offset_w_m = offset
         elif self.trajectory is not None and self._from_estimate and self._start_center is not None \
-                and t_traj_s < self.refine_s:
-            middle = self._estimated_middle()  # (the chain at rest: the home measured again, its estimate settling)
-            if middle is not None:
-                self.home_offset_w_m = middle - self._start_center
+                and not self._home_kept:
+            if t_traj_s < self.refine_s:
+                middle = self._estimated_middle()  # (the chain at rest: measured again, its estimate settling)
+                if middle is not None:
+                    self.home_offset_w_m = middle - self._start_center
+            else:
+                self._home_kept = True
+                log.info("home kept: the trajectory flown %s m from its anchor",
+                         ", ".join(f"{x:.2f}" for x in self.home_offset_w_m))
         if self.trajectory is None:
             center = self._start_center
             if self._from_estimate:
