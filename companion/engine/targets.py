@@ -105,8 +105,7 @@ class Targets:
         t_traj_s = (t_us - (self._t0_us if self._started else self._start_us(t_us))) * 1e-6
         if self.home is not None:
             if self.trajectory is None:  # (a group's trajectory is the shared anchor's, shifted by the home)
-                self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton,
-                                                  self._start_center, load=self.setup.load)
+                self.trajectory = self._make_trajectory(self._start_center)
             if self._planned is None:
                 self._planned = getattr(self.trajectory, "hover", self.trajectory).pose(0.0)[0]
             offset = self.home.offset(now_s, self._estimate(), self._planned, t_traj_s, self.refine_s)
@@ -135,8 +134,7 @@ class Targets:
                 if self._start_center is not None:
                     log.info("home: the trajectory flown from the estimated start (%s m), %.2f m from its anchor",
                              ", ".join(f"{x:.2f}" for x in middle), float(np.linalg.norm(self.home_offset_w_m)))
-            self.trajectory = make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center,
-                                              load=self.setup.load)
+            self.trajectory = self._make_trajectory(center)
         if self.home is not None:
             self.home.publish(t_us)
         if not self._started:
@@ -162,6 +160,11 @@ class Targets:
         for lk in self.links:
             self._out(lk, t_us, targets[lk.index])
         return True
+
+    def _make_trajectory(self, center_w_m):
+        """The configured trajectory anchored at ``center_w_m``."""
+        return make_trajectory(self.setup.trajectory, self.setup.motion, self.setup.skeleton, center_w_m,
+                               load=self.setup.load)
 
     def _estimated_middle(self) -> np.ndarray | None:
         """The chain's middle point in the newest step's estimate (``None``: no step yet, or a link
