@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 
@@ -146,8 +145,10 @@ class Targets:
         passive = self.carrying.now(now_s, t_us)
         t0 = self._timer()
         targets = self.trajectory.targets((t_us - self._t0_us) * 1e-6, passive=passive)
-        if self.home_offset_w_m.any():
-            targets = [_shifted(tg, self.home_offset_w_m) for tg in targets]
+        if self.home_offset_w_m.any():  # (the targets this group sends or publishes)
+            targets = list(targets)
+            for i in range(len(targets)) if self.via_net else (lk.index for lk in self.links):
+                targets[i] = _shifted(targets[i], self.home_offset_w_m)
         self.compute_ms.add((self._timer() - t0) * 1e3)
         if self.via_net:
             if self.net.leads(next_step_us, now_s):
@@ -204,7 +205,11 @@ class Targets:
 
 
 def _shifted(target: PoseTarget, offset_w_m: np.ndarray) -> PoseTarget:
-    """``target`` moved by ``offset_w_m``, with the attitude forms it has cached (the same attitude)."""
-    out = replace(target, p_w_m=target.p_w_m + offset_w_m)
-    out.__dict__.update((k, v) for k, v in target.__dict__.items() if k in ("R_d", "R_tuple"))
+    """``target`` moved by ``offset_w_m``: its fields and the attitude forms it has cached (``R_d``,
+    ``R_tuple``: the same attitude), the position moved. (Built without the dataclass's ``__init__``,
+    which a frozen target's fields need not pass again.)"""
+    out = object.__new__(PoseTarget)
+    fields = out.__dict__
+    fields.update(target.__dict__)
+    fields["p_w_m"] = target.p_w_m + offset_w_m
     return out
