@@ -4,8 +4,10 @@
 
 Connects to ``URL`` (e.g. ``udpin://127.0.0.1:14541``), waits for the autopilot ``SYSID``, reads
 two parameters (a float and an int), sets the parameters named by ``--set-int``/``--set-float``
-and reads each back, subscribes to position, attitude and odometry telemetry until 5 positions and
-10 attitudes came (at most ``--timeout`` seconds) and prints one JSON object with what it got. Exit code 0 when the system was discovered, 1 otherwise.
+and reads each back, subscribes to position, attitude, odometry and home telemetry until 5
+positions, 10 attitudes and a home came (at most ``--timeout`` seconds), reads the health flags
+and prints one JSON object with what it got. Exit code 0 when the system was discovered, 1
+otherwise.
 """
 
 from __future__ import annotations
@@ -103,17 +105,24 @@ def main() -> int:
         telemetry.subscribe_position(record("position"))
         telemetry.subscribe_attitude_euler(record("attitude_euler"))
         telemetry.subscribe_odometry(record("odometry"))
+        telemetry.subscribe_home(record("home"))
         until = time.monotonic() + args.timeout
         while time.monotonic() < until:
             with lock:
-                if counts["position"] >= 5 and counts["attitude_euler"] >= 10:
+                if counts["position"] >= 5 and counts["attitude_euler"] >= 10 and counts["home"]:
                     break
             time.sleep(0.05)
+        health = telemetry.health()
+        out["health"] = {name: getattr(health, name) for name in dir(health) if name.startswith("is_")}
+        out["health_all_ok"] = telemetry.health_all_ok()
         with lock:
             out["telemetry_counts"] = dict(counts)
             if "position" in last:
                 pos = last["position"]
                 out["position"] = [pos.latitude_deg, pos.longitude_deg, pos.relative_altitude_m]
+            if "home" in last:
+                home = last["home"]
+                out["home"] = [home.latitude_deg, home.longitude_deg, home.absolute_altitude_m]
         return 0
     finally:
         mav.destroy()

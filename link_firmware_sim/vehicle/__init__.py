@@ -9,8 +9,8 @@ link_firmware_sim``), one module per job (PX4's mavlink module is the model):
   (the record tick, the lockstep loop);
 * :mod:`.streams`: the telemetry streams, one module per family of messages, and their schedule;
 * :mod:`.commands`: COMMAND_LONG / COMMAND_INT (arm and disarm, SET_MESSAGE_INTERVAL,
-  REQUEST_MESSAGE, the contact command, INJECT_FAILURE); :mod:`.failures`: the injected
-  failures and the samples they change;
+  REQUEST_MESSAGE, the contact command, INJECT_FAILURE, DO_SET_HOME); :mod:`.failures`: the
+  injected failures and the samples they change; :mod:`.home`: the home position;
 * :mod:`.targets`: the pose target from the companion's target messages;
 * :mod:`.params`: the parameter table (names, ranges, persistence, the firmware config it gives);
   :mod:`.param_protocol`: the PARAM_* protocol over it; :mod:`.origin`: SET_GPS_GLOBAL_ORIGIN;

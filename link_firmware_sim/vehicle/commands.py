@@ -5,7 +5,9 @@
   to 0 or 1 is DENIED;
 * MAV_CMD_SET_MESSAGE_INTERVAL: a stream's interval on the link it came from (0: the default,
   -1: off);
-* MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: one message now;
+* MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, MAV_CMD_GET_HOME_POSITION:
+  one message now;
+* MAV_CMD_DO_SET_HOME: the home position (:mod:`.home`; arming sets it too);
 * the dialect's MAV_CMD_SKELETON_SET_CONTACT: the hybrid controller's contact, or its release;
 * MAV_CMD_INJECT_FAILURE: a failure injected into the vehicle's sensors or motors
   (:mod:`.failures`), acknowledged as PX4 does: DENIED while ``SYS_FAILURE_EN`` is 0 or for a
@@ -27,6 +29,7 @@ from companion.mavlink.codec import MessageError, decode_contact_command
 from companion.mavlink.dialect import load_dialect
 
 from .failures import OK, parse_failure
+from .home import on_set_home
 from .links import Endpoint, statustext
 from .streams.schedule import BUILDERS
 
@@ -60,8 +63,10 @@ def on_command(v, ep: Endpoint, msg) -> None:
     elif cmd == D.MAV_CMD_SET_MESSAGE_INTERVAL:
         accepted = v.streams.set_interval(ep, int(_finite(msg, "param1")), _finite(msg, "param2"))
         ack(ep, msg, D.MAV_RESULT_ACCEPTED if accepted else D.MAV_RESULT_UNSUPPORTED)
-    elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+    elif cmd in (D.MAV_CMD_REQUEST_MESSAGE, D.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, D.MAV_CMD_GET_HOME_POSITION):
         _request_message(v, ep, msg)
+    elif cmd == D.MAV_CMD_DO_SET_HOME:
+        on_set_home(v, ep, msg, ack)
     elif cmd == D.MAV_CMD_SKELETON_SET_CONTACT:
         _set_contact(v, ep, msg)
     elif cmd == D.MAV_CMD_INJECT_FAILURE:
@@ -79,7 +84,10 @@ def _arm_disarm(v, ep: Endpoint, msg) -> None:
         ack(ep, msg, D.MAV_RESULT_DENIED)
         return
     if action >= 0.5:
+        was_armed = fw.armed
         result = D.MAV_RESULT_ACCEPTED if fw.arm(v.fc_time_s) else D.MAV_RESULT_TEMPORARILY_REJECTED
+        if fw.armed and not was_armed:
+            v.home.on_armed(v)
     elif fw.armed and not fw.landed(v.fc_time_s) and int(round(_finite(msg, "param2"))) != FORCE_DISARM:
         # PX4: disarming in flight needs the force value (the link would fall)
         v.errors["disarm_refused"] += 1
@@ -98,6 +106,8 @@ def _request_message(v, ep: Endpoint, msg) -> None:
     there is nothing to send (a report of a controller that is not running)."""
     if msg.command == D.MAV_CMD_REQUEST_MESSAGE:
         mid = int(_finite(msg, "param1"))
+    elif msg.command == D.MAV_CMD_GET_HOME_POSITION:  # (deprecated by REQUEST_MESSAGE; QGroundControl sends it)
+        mid = D.MAVLINK_MSG_ID_HOME_POSITION
     else:
         mid = D.MAVLINK_MSG_ID_AUTOPILOT_VERSION
     builder = BUILDERS.get(mid)

@@ -11,7 +11,7 @@ flight-controller time) and each MAVLink message to the service that owns it:
   correction (standard-messages mode);
 * :mod:`.commands`: COMMAND_LONG / COMMAND_INT; :mod:`.param_protocol`: PARAM_*;
   :mod:`.origin`: SET_GPS_GLOBAL_ORIGIN; :mod:`.signing_setup`: SETUP_SIGNING; :mod:`.ftp`:
-  FILE_TRANSFER_PROTOCOL.
+  FILE_TRANSFER_PROTOCOL; :mod:`.home`: the home position (MAV_CMD_DO_SET_HOME, arming).
 
 After each tick it reports the firmware's events as STATUSTEXT, sends the telemetry streams that
 are due (:mod:`.streams`) and records the flight log (:mod:`.recorder`); HEARTBEAT and
@@ -45,6 +45,7 @@ from ..firmware import CorrectionRejected, LinkFirmware
 from .commands import on_command
 from .failures import FailureInjector, SeveredTransport
 from .ftp import on_ftp
+from .home import Home
 from .links import Endpoint, VehiclePorts, open_endpoints, statustext
 from .lockstep import Lockstep
 from .origin import on_set_origin
@@ -94,6 +95,7 @@ class Vehicle:
             raise
         self.streams = Streams(self)
         self.streams.set_defaults()
+        self.home = Home()
         self.targets = TargetMessages(self)
         self.recorder = FlightRecorder(firmware, self.system_id, out_dir, log_rate_hz)
         self._next_heartbeat_wall = 0.0
@@ -177,6 +179,7 @@ class Vehicle:
         the streams due, the flight log's row."""
         if self.fc_time_us >= min(self.streams.due_us, self.recorder.due_us):
             self.fw.watch_imu(self.fc_time_s)
+            self.home.on_tick(self)
         if self.fw.events:
             self._report_events()
         self.streams.send_due()

@@ -32,6 +32,7 @@ def on_set_origin(v, ep: Endpoint, msg) -> None:
         else:
             v.params.set_origin(origin)
             v.origin = origin
+            v.home.clear()  # (held in the old origin's frame)
             log.info("link %d: origin set to %.7f, %.7f, %.2f m", v.system_id, origin.lat_deg, origin.lon_deg,
                      origin.alt_m)
     ep.port.send(gps_global_origin(v))

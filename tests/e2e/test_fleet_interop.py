@@ -29,7 +29,8 @@ from ..paths import ROOT, THREE_LINK
 def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_path, fleet_ports):
     """MAVSDK in its own process on link 2's onboard port (the companion is not started): reads
     and sets an integer and a float parameter (bytewise, as the vehicle declares), is refused
-    on the read-only MAV_SYS_ID and reads it back unchanged."""
+    on the read-only MAV_SYS_ID and reads it back unchanged; gets the home and finds every
+    health flag set (what MAVSDK's examples wait for before they arm)."""
     sc = load_scenario(THREE_LINK, duration_s=12.0)
     result = {}
 
@@ -59,6 +60,11 @@ def test_mavsdk_client_discovers_reads_sets_parameters_and_gets_telemetry(tmp_pa
     assert counts.get("position", 0) >= 5 and counts.get("attitude_euler", 0) >= 10
     lat, lon, _ = out["position"]
     assert lat == pytest.approx(sc.origin.lat_deg, abs=1e-3) and lon == pytest.approx(sc.origin.lon_deg, abs=1e-3)
+    assert counts.get("home", 0) >= 1, out
+    home_lat, home_lon, home_alt = out["home"]  # link 2 on the ground, where the first estimate put it
+    assert home_lat == pytest.approx(lat, abs=1e-5) and home_lon == pytest.approx(lon, abs=1e-5)
+    assert home_alt == pytest.approx(sc.origin.alt_m, abs=1.0)
+    assert out["health_all_ok"] and all(out["health"].values()), out["health"]
     assert "metrics" in result  # the fleet ran to its end (the links stayed on the ground, unarmed)
     assert result["metrics"]["scheduling"] == "default"
     assert_ports_released(fleet_ports, 3)

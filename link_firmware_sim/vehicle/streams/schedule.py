@@ -34,6 +34,7 @@ BUILDERS = {
     D.MAVLINK_MSG_ID_HEARTBEAT: system.heartbeat,
     D.MAVLINK_MSG_ID_SYSTEM_TIME: system.system_time,
     D.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: position.gps_global_origin,
+    D.MAVLINK_MSG_ID_HOME_POSITION: position.home_position,
     D.MAVLINK_MSG_ID_SKELETON_EXTERNAL_WRENCH: controller.external_wrench,
     D.MAVLINK_MSG_ID_DEBUG_VECT: controller.pspm,
 }
@@ -83,6 +84,7 @@ def default_rates(rates: StreamRates, endpoint: int) -> dict[int, float]:
         D.MAVLINK_MSG_ID_DEBUG_VECT: 5.0,  # PSPM's reservoirs (nothing is sent while PSPM is off)
         # the link's state and covariance, for a ground station with the dialect (SET_MESSAGE_INTERVAL: faster)
         D.MAVLINK_MSG_ID_SKELETON_LINK_STATE: 1.0,
+        D.MAVLINK_MSG_ID_HOME_POSITION: 0.5,  # as PX4 streams it (nothing until the home is set)
     }
 
 

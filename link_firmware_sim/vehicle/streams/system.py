@@ -21,7 +21,8 @@ _CAPABILITIES = (
 _SENSORS = (D.MAV_SYS_STATUS_SENSOR_3D_GYRO | D.MAV_SYS_STATUS_SENSOR_3D_ACCEL | D.MAV_SYS_STATUS_SENSOR_3D_MAG
             | D.MAV_SYS_STATUS_SENSOR_GPS | D.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
             | D.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | D.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-            | D.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | D.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+            | D.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | D.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            | D.MAV_SYS_STATUS_PREARM_CHECK)
 
 
 def heartbeat(v):
@@ -36,10 +37,13 @@ def heartbeat(v):
 
 def sys_status(v):
     """The sensors present, enabled and healthy (GPS unhealthy while the EKF has no fix or the
-    firmware reports a GPS fault; the gyro or the accelerometer while it is stale), and the frames
+    firmware reports a GPS fault; the gyro or the accelerometer while it is stale; the pre-arm
+    check, PX4's "armable", healthy once arming would be accepted: the EKF runs), and the frames
     the links dropped."""
     gps_ok = v.fw.initialized and not v.fw.gps_health.fault
     health = _SENSORS if gps_ok else _SENSORS & ~D.MAV_SYS_STATUS_SENSOR_GPS
+    if not v.fw.initialized:
+        health &= ~D.MAV_SYS_STATUS_PREARM_CHECK
     if v.fw.imu_health.gyro.stale:
         health &= ~D.MAV_SYS_STATUS_SENSOR_3D_GYRO
     if v.fw.imu_health.accel.stale:
