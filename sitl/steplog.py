@@ -29,7 +29,9 @@ def _at_cycles(log: dict[str, np.ndarray], cycles: np.ndarray) -> dict[str, np.n
     rows = np.clip(np.searchsorted(log["cycle_us"], cycles), 0, len(log["cycle_us"]) - 1)
     have = log["cycle_us"][rows] == cycles
     out = {}
-    for key in (*_CHAIN_KEYS, "global_applied", "leader", "iterations", "nis_max_sckf"):
+    for key in (*_CHAIN_KEYS, "global_applied", "leader", "iterations", "nis_max_sckf", "home_offset_sckf"):
+        if key not in log:  # (a log written before the key existed)
+            continue
         v = log[key][rows]
         if v.dtype.kind == "f":
             fill = np.nan
@@ -65,7 +67,7 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
     skipped the cycle on a host too busy to run it): a group that logged no step in a
     cycle has NaN states there, ``corrected_sckf`` and ``global_applied`` false and ``leader``
     -1, so the window stays in the log as the outage it was;
-    ``global_applied`` becomes (steps, groups). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
+    ``global_applied`` and ``home_offset_sckf`` become (steps, groups[, 3]). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
     ``con_vel_after`` (steps, n - 1): the eq. 3 tip position and velocity errors per joint.
     """
     per = []
@@ -89,6 +91,8 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
             merged[key] = np.concatenate([tk[key] for tk in taken], axis=1)
         merged["global_applied"] = np.stack([tk["global_applied"] for tk in taken], axis=1)
         merged["leader"] = np.stack([tk["leader"] for tk in taken], axis=1)
+        if all("home_offset_sckf" in tk for tk in taken):
+            merged["home_offset_sckf"] = np.stack([tk["home_offset_sckf"] for tk in taken], axis=1)
         merged["iterations"] = np.max(np.stack([tk["iterations"] for tk in taken]), axis=0)
         merged["nis_max_sckf"] = np.fmax.reduce(np.stack([tk["nis_max_sckf"] for tk in taken]), axis=0)
     n = merged["p_ekf_sckf"].shape[1] if merged["t_sckf"].size else 0

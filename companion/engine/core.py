@@ -90,7 +90,8 @@ class CompanionEngine:
         warnings = LinkWarnings()
         self.admission = Admission(cfg, warnings, self.links)
         self.selection = LinkSelection(cfg, self.links, d, warnings)
-        self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer)
+        self.step = ChainStep(cfg, self.links, d, self.groups, self.selection, net, self._out.append, timer,
+                              home=lambda: self.targets.home_offset_w_m)
         self.carrying = Carrying(cfg, self.links, group, self.groups, net)
         self.targets = Targets(setup, self.links, d, group, net, trajectory, start_center, self.carrying,
                                self._out.append, lambda: self.step.latest, timer)

@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 #: The step log, one row per step (per cycle in distributed mode), every array on the time base.
 STEP_LOG_KEYS = ("t_sckf", "cycle_us", "p_ekf_sckf", "v_ekf_sckf", "q_ekf_sckf", "w_sckf", "p_local_sckf",
                  "p_corr_sckf", "v_corr_sckf", "q_corr_sckf", "iterations", "global_applied", "leader",
-                 "corrected_sckf", "nis_max_sckf", "P_ekf_sckf", "P_corr_sckf")
+                 "corrected_sckf", "nis_max_sckf", "P_ekf_sckf", "P_corr_sckf", "home_offset_sckf")
 
 
 def _blocks(P: np.ndarray) -> np.ndarray:
@@ -68,10 +68,13 @@ class ChainStep:
 
     ``selection`` decides who takes part; ``net`` is the distributed mode's group link (else
     ``None``); ``emit`` takes each :class:`~.outputs.CorrectionOut`; ``timer`` measures the
-    step's compute time only (``step_times_ms``, never a decision)."""
+    step's compute time only (``step_times_ms``, never a decision); ``home`` gives the home
+    offset the engine's targets are flown from (world, m; logged with each step as
+    ``home_offset_sckf``: where a view puts the targets back in the truth's frame)."""
 
     def __init__(self, cfg, links: list[LinkTrack], d: np.ndarray, groups, selection: LinkSelection, net,
-                 emit: Callable[[object], None], timer: Callable[[], float]):
+                 emit: Callable[[object], None], timer: Callable[[], float],
+                 home: Callable[[], np.ndarray] = lambda: np.zeros(3)):
         self.enabled = cfg.enabled
         self.params = cfg.params
         self.links = links
@@ -81,6 +84,7 @@ class ChainStep:
         self.net = net
         self._emit = emit
         self._timer = timer
+        self._home = home
         self.seq = 0
         self._local: dict[int, tuple] = {}  # cycle -> (states, LocalStep, NIS, reported P) awaiting the shift
         #: neighbour camera measurements for the next step (applied before the constraint)
@@ -301,7 +305,8 @@ class ChainStep:
                "w_sckf": we, "p_local_sckf": p_local, "p_corr_sckf": p, "v_corr_sckf": v, "q_corr_sckf": q,
                "iterations": iterations, "global_applied": global_applied, "leader": leader,
                "corrected_sckf": corrected, "nis_max_sckf": nis_max,
-               "P_ekf_sckf": _blocks(P[0]), "P_corr_sckf": _blocks(P[1])}
+               "P_ekf_sckf": _blocks(P[0]), "P_corr_sckf": _blocks(P[1]),
+               "home_offset_sckf": np.array(self._home(), dtype=float)}
         for key, value in row.items():
             self.log[key].append(value)
 

@@ -1,6 +1,7 @@
 """A flying fleet's newest rows for the live view: the harness's truth (in this process) joined
 with what the vehicles and companions write as they fly (their log streams, flushed once a
-second: :mod:`companion.logstream`).
+second: :mod:`companion.logstream`), the companions' home with them (the targets in the truth's
+frame).
 
 The estimates arrive up to a second after the truth, so the view shows the fleet at the newest
 time every running vehicle has logged: truth, estimates and corrections of one instant, a second
@@ -127,6 +128,10 @@ class FleetRows:
             step = max(steps, key=lambda r: float(r["t_sckf"]), default=None)
             if step is not None:
                 groups.append((indices, step))
+                if "home_offset_sckf" in step and "home_offset_w_m" not in row:
+                    # where the companions fly the targets from (the groups share one home): the
+                    # targets back in the truth's frame
+                    row["home_offset_w_m"] = np.asarray(step["home_offset_sckf"], dtype=float)
                 if "corrected_sckf" in step:  # left out of its companion's newest step
                     out = np.asarray(indices)[~np.asarray(step["corrected_sckf"], dtype=bool)]
                     words[out] |= EXCLUDED

@@ -243,7 +243,8 @@ def _group_log(cycles, links, global_applied=True):
     log.update(q_ekf_sckf=q, q_corr_sckf=q.copy(), t_sckf=np.asarray(cycles) * 1e-6, cycle_us=np.asarray(cycles),
                iterations=np.ones(k, dtype=int), global_applied=np.full(k, global_applied), leader=np.full(k, 2),
                corrected_sckf=np.ones((k, m), dtype=bool), nis_max_sckf=np.ones(k),
-               P_ekf_sckf=np.tile(np.eye(3), (k, m, 3, 1, 1)), P_corr_sckf=np.tile(np.eye(3), (k, m, 3, 1, 1)))
+               P_ekf_sckf=np.tile(np.eye(3), (k, m, 3, 1, 1)), P_corr_sckf=np.tile(np.eye(3), (k, m, 3, 1, 1)),
+               home_offset_sckf=np.tile([0.1, -0.2, 0.3], (k, 1)))
     assert set(STEP_LOG_KEYS) <= set(log)
     return log
 
@@ -259,6 +260,8 @@ def test_merged_step_log_keeps_a_dead_companions_cycles_as_an_outage():
     assert not merged["global_applied"][gone, 1].any() and np.all(merged["leader"][gone, 1] == -1)
     assert np.all(np.isnan(merged["p_corr_sckf"][gone, 2])) and np.all(np.isnan(merged["con_pos_after"][gone, 1]))
     assert merged["P_corr_sckf"].shape == (10, 3, 3, 3, 3) and np.all(np.isnan(merged["P_corr_sckf"][gone, 2]))
+    assert merged["home_offset_sckf"].shape == (10, 2, 3) and np.all(np.isnan(merged["home_offset_sckf"][gone, 1]))
+    np.testing.assert_array_equal(merged["home_offset_sckf"][~gone], np.tile([0.1, -0.2, 0.3], ((~gone).sum(), 2, 1)))
     np.testing.assert_allclose(merged["con_pos_after"][~gone], 0.0, atol=1e-12)
     np.testing.assert_allclose(merged["con_pos_after"][gone, 0], 0.0, atol=1e-12)
     # before every group has stepped once, the merged log does not start

@@ -267,17 +267,18 @@ def vehicle(out_dir, i, times, flags=3, folder=None) -> Writer:
 STEP_T = [0.005 + 0.05 * j for j in range(40)]  # 20 Hz
 
 
-def companion(out_dir, times=STEP_T, links=range(N), folder="companion", offset=0.0) -> Writer:
+def companion(out_dir, times=STEP_T, links=range(N), folder="companion", offset=0.0, home=None) -> Writer:
     """A companion's stream with steps at ``times`` (+ ``offset``) over ``links``: step j corrected
-    to (j, link, 0)."""
+    to (j, link, 0); ``home(j)``: step j's home offset (none logged without it)."""
     w = Writer(out_dir / folder / "companion_log.stream")
     links = list(links)
     m = len(links)
     for j, t in enumerate(times):
+        extra = {} if home is None else {"home_offset_sckf": home(j)}
         w.add(t_sckf=t + offset, p_ekf_sckf=np.zeros((m, 3)), v_ekf_sckf=np.zeros((m, 3)),
               q_ekf_sckf=np.tile(Q_ID, (m, 1)), w_sckf=np.zeros((m, 3)),
               p_corr_sckf=np.array([[j, i, 0.0] for i in links]), v_corr_sckf=np.zeros((m, 3)),
-              q_corr_sckf=np.tile(Q_ID, (m, 1)), global_applied=j % 2 == 0, corrected_sckf=np.ones(m, bool))
+              q_corr_sckf=np.tile(Q_ID, (m, 1)), global_applied=j % 2 == 0, corrected_sckf=np.ones(m, bool), **extra)
     w.flush()
     return w
 
@@ -486,3 +487,34 @@ def test_a_batch_flights_live_rows_carry_the_home_its_companion_flies_from():
     assert t == 2.0 and step is None
     np.testing.assert_array_equal(row["home_offset_w_m"], home)
     np.testing.assert_allclose(frame(t, row).target.p_w_m, truth, atol=1e-12)
+
+
+@pytest.mark.parametrize("distributed", [False, True])
+def test_a_fleets_live_rows_carry_the_home_of_the_companions_newest_step(tmp_path, distributed):
+    """The targets the vehicles log are in the links' frame; the home each companion step logs
+    takes them back to the truth's frame, the home of the step at the time shown (it is measured
+    again while the chain rests)."""
+    from sitl.view.frame import frame
+
+    sc = SCENARIO if not distributed else dataclasses.replace(
+        SCENARIO, companion=dataclasses.replace(SCENARIO.companion, distributed=True, groups=[[1], [2, 3]]))
+    for i in (1, 2, 3):
+        vehicle(tmp_path, i, T_TRUTH[:61])
+    home = lambda j: np.array([0.01 * j, -0.2, 1.0])  # noqa: E731
+    if distributed:
+        companion(tmp_path, links=[0], folder="companion-g1", home=home)
+        companion(tmp_path, links=[1, 2], folder="companion-g2", home=home)
+    else:
+        companion(tmp_path, home=home)
+    t, row, _ = FleetRows(harness(sc), tmp_path, clock=Clock()).newest()
+    np.testing.assert_array_equal(row["home_offset_w_m"], home(newest_step_before(t)))
+    target = frame(t, row).target.p_w_m  # the vehicles' targets (i, t, 1) less the home
+    np.testing.assert_allclose(target, np.array([[i, t, 1.0] for i in (1, 2, 3)]) - home(newest_step_before(t)))
+
+
+def test_a_fleet_whose_companions_log_no_home_shows_the_targets_as_flown(tmp_path):
+    for i in (1, 2, 3):
+        vehicle(tmp_path, i, T_TRUTH[:61])
+    companion(tmp_path)
+    _, row, _ = FleetRows(harness(), tmp_path, clock=Clock()).newest()
+    assert "home_offset_w_m" not in row
