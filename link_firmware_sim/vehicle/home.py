@@ -1,5 +1,5 @@
-"""The home position, kept as PX4 keeps it: set from the position estimate once the EKF runs on
-the ground, set again at arming, or set by MAV_CMD_DO_SET_HOME; reported as HOME_POSITION (on
+"""The home position, kept as PX4 keeps it: set from the position estimate once the EKF runs
+(disarmed), set again at arming on the ground, or set by MAV_CMD_DO_SET_HOME; reported as HOME_POSITION (on
 request, in the ground station's streams, and to every link when it changes).
 
 The home is held in the local frame (ENU, m) with its heading; its WGS84 form is the shared
@@ -84,8 +84,10 @@ class Home:
             self.set_here(v, "first estimate")
 
     def on_armed(self, v) -> None:
-        """Home again at arming, where the flight starts (PX4)."""
-        self.set_here(v, "armed")
+        """Home again at arming, where the flight starts, unless the link armed in flight (re-armed
+        while falling or carried): PX4 sets no home in the air."""
+        if v.fw.landed(v.fc_time_s):
+            self.set_here(v, "armed")
 
     def clear(self) -> None:
         """No home (the origin changed): the next estimate on the ground sets it."""

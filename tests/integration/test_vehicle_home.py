@@ -80,6 +80,17 @@ def test_arming_sets_the_home_again_and_every_link_hears_it(rig):
     assert rig.vehicle.home.position is before
 
 
+def test_arming_in_flight_keeps_the_home(rig):
+    """Re-armed while falling (a forced disarm in the air): PX4 sets no home in the air."""
+    rig.vel_m_s = np.array([0.0, 0.0, -2.0])
+    rig.start(0.5)
+    before = rig.vehicle.home.position
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    msgs = rig.gcs_collect(0.02)
+    assert _acks(msgs, D.MAV_CMD_COMPONENT_ARM_DISARM) == [D.MAV_RESULT_ACCEPTED] and not rig.vehicle.fw.landed(rig.t)
+    assert rig.vehicle.home.position is before and not _homes(msgs)
+
+
 @pytest.mark.parametrize("kind", ["long", "int"])
 def test_do_set_home_at_a_given_place_and_here(rig, kind):
     rig.start()
