@@ -83,7 +83,7 @@ from .skeleton.body import SkeletonConfig
 from .skeleton.kinematics import chain_offsets, middle_offset
 
 __all__ = ["TrajectoryConfig", "ChainTrajectory", "CpgChainTrajectory", "make_trajectory", "planned_positions",
-           "smoothstep5"]
+           "in_truth_frame", "smoothstep5"]
 
 
 def smoothstep5(s: float) -> float:
@@ -167,8 +167,15 @@ def planned_positions(log: dict[str, np.ndarray]) -> np.ndarray:
     which in SITL is where the chain stands); less that offset, it is the trajectory from the true
     start, what the truth is judged against and shown beside. A log without the offset is taken
     as logged."""
+    return in_truth_frame(log, log["p_target"])
+
+
+def in_truth_frame(log: dict[str, np.ndarray], p_w_m: np.ndarray) -> np.ndarray:
+    """Positions ``p_w_m`` (..., 3) of the links' frame (an estimate, a target) in the frame of the
+    truth of the run whose log is ``log``: less its ``home_offset_w_m`` (taken as zero when the
+    log has none)."""
     home = log.get("home_offset_w_m")
-    return log["p_target"] if home is None else log["p_target"] - np.asarray(home, dtype=float)
+    return p_w_m if home is None else p_w_m - np.asarray(home, dtype=float)
 
 
 class ChainTrajectory:

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from companion.estimation.so3 import quat_to_rotmat  # noqa: E402
-from companion.trajectory import planned_positions  # noqa: E402
+from companion.trajectory import in_truth_frame, planned_positions  # noqa: E402
 
 from .metrics import NEES_BLOCKS, nees_series  # noqa: E402
 
@@ -49,23 +49,25 @@ def plot_constraint_error(log: dict[str, np.ndarray], path: Path) -> None:
 
 
 def plot_tracking(log: dict[str, np.ndarray], path: Path) -> None:
-    """Per link and axis: target (in the truth's frame), estimate used by control, and truth."""
+    """Per link and axis: target, estimate used by control, and truth, all in the truth's frame
+    (the target and the estimate less the home offset the companion flew from: the estimate
+    tracks the target in the links' frame, shifted together)."""
     t = log["t"]
     n = log["p_true"].shape[1]
-    target = planned_positions(log)
+    target, estimate = planned_positions(log), in_truth_frame(log, log["p_ctrl"])
     fig, axes = plt.subplots(n, 3, figsize=(12, 2.2 * n + 1), sharex=True, squeeze=False)
     for i in range(n):
         for a, name in enumerate("xyz"):
             ax = axes[i, a]
             ax.plot(t, target[:, i, a], "k--", lw=1.0, label="target")
-            ax.plot(t, log["p_ctrl"][:, i, a], lw=1.0, label="estimate")
+            ax.plot(t, estimate[:, i, a], lw=1.0, label="estimate")
             ax.plot(t, log["p_true"][:, i, a], lw=1.0, alpha=0.8, label="true")
             ax.set_ylabel(f"link {i + 1} {name} [m]")
             ax.grid(True, alpha=0.3)
     axes[0, 0].legend(fontsize=7)
     for a in range(3):
         axes[-1, a].set_xlabel("time [s]")
-    _save(fig, "Position tracking per link", path)
+    _save(fig, "Position tracking per link (truth's frame: target and estimate less the home offset)", path)
 
 
 def plot_thrust(log: dict[str, np.ndarray], path: Path) -> None:

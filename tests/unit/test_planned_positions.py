@@ -48,3 +48,22 @@ def test_the_fault_campaign_reads_a_flights_home_with_its_log(tmp_path):
     _, loaded = _load(tmp_path)
     np.testing.assert_array_equal(loaded["home_offset_w_m"], log["home_offset_w_m"])
     assert event_figures(FaultEvent("gps", 1, 2.0, 4.0), loaded)["track_during_m"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_tracking_plot_draws_target_estimate_and_truth_in_one_frame(monkeypatch, tmp_path):
+    """The estimate is in the links' frame like the targets: the plot takes the home off both, so a
+    chain tracking its targets exactly draws three lines on one another."""
+    import sitl.plots as plots
+
+    drawn = {}
+
+    def keep(fig, title, path):
+        drawn["axes"] = fig.axes
+
+    monkeypatch.setattr(plots, "_save", keep)
+    log = _log((0.3, -0.2, 1.5))
+    plots.plot_tracking(log, tmp_path / "tracking.png")
+    for ax in drawn["axes"]:
+        lines = {line.get_label(): line.get_ydata() for line in ax.get_lines()}
+        np.testing.assert_allclose(lines["estimate"], lines["true"], atol=1e-12)
+        np.testing.assert_allclose(lines["target"], lines["true"], atol=1e-12)
