@@ -419,13 +419,17 @@ def _cmd_sitl(args) -> int:
     if args.repeat < 1:
         print("error: --repeat must be at least 1", file=sys.stderr)
         return 2
+    if not 0 <= args.instance_offset <= 20:
+        print(f"error: --instance-offset {args.instance_offset}: 0 to 20 (PX4 SITL's ports have room for 40 "
+              "instances; the fifteen-link fleet takes 15)", file=sys.stderr)
+        return 2
     run_dir = make_run_dir("sitl-speed", args.out)
     total = args.repeat * (len(set(batch) | set(fleet)) + len(batch) + len(fleet) * len(sim_links))
     with tqdm(total=total, desc="speed", unit="run", disable=args.quiet, file=sys.stderr) as bar:
         try:
             result = run_speed(run_dir, args.duration, args.fleet_duration, batch, fleet, args.ceiling_duration,
                                progress=lambda label: (bar.set_postfix_str(label), bar.update()), repeat=args.repeat,
-                               sim_links=sim_links)
+                               sim_links=sim_links, instance_offset=args.instance_offset)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -458,6 +462,10 @@ def _add_sitl_parser(sub) -> None:
     sp.add_argument("--repeat", type=int, default=1,
                     help="measure every figure (MuJoCo ceilings, batch flights, fleets) N times, interleaved, and "
                          "report the median run with every run's real-time factor (default 1; a VM's speed drifts)")
+    sp.add_argument("--instance-offset", type=int, default=0, metavar="K",
+                    help="the fleets on PX4 instances from K (their ports shifted by K, as sitl launch's "
+                         "--instance-offset), beside another fleet on this machine (default 0; a chain that would "
+                         "reach the GCS port takes 11 + K)")
     _output_args(sp, "sitl", folder="sitl-speed")
     sp.set_defaults(func=_cmd_sitl)
 

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fleet.layout import LOCKSTEP_ENDED, LOCKSTEP_STARTED, SIM_LINKS
+from ..fleet.processes import last_error
 from . import procfs
 from .batch_parts import batch_parts, markdown_batch_parts
 
@@ -167,29 +168,31 @@ def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
     sim = float(metrics.get("duration_s", duration_s))
     return {"scenario": name, "mode": "batch", "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
-            "cpu_s_per_sim_s": cpu / sim, "peak_rss_mb": rss / 1024.0, "crashed": metrics.get("crashed")}
+            "cpu_s_per_sim_s": cpu / sim, "peak_rss_mb": rss / 1024.0, "crashed": metrics.get("crashed"),
+            "error": None if code == 0 else last_error(out_dir / f"batch-{name}{tag}.log")}
 
 
-def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp") -> list[str]:
+def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp", instance_offset: int = 0) -> list[str]:
     """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
-    the lockstep's, not matplotlib's) over ``sim_link``; a chain of more than 10 links takes PX4
-    instances from 11 on (its companion ports 14540+K+i must pass the GCS port 14550)."""
+    the lockstep's, not matplotlib's) over ``sim_link``, on PX4 instances from ``instance_offset``
+    K; a chain whose companion ports 14540+K+i would reach the GCS port 14550 takes instances from
+    11 + K instead."""
     from companion.configfile import load_toml
 
     path = scenario_file(name)
     n_links = int(load_toml(path).get("skeleton", {}).get("n_links", 0))
+    k = instance_offset if n_links + instance_offset <= 10 or instance_offset >= 11 else 11 + instance_offset
     return ["launch", "--config", str(path), "--duration", f"{duration_s:g}", "--speed", "0", "--quiet",
-            "--no-plots", "--sim-link", sim_link, "--instance-offset", "0" if n_links <= 10 else "11",
-            "--out", str(folder)]
+            "--no-plots", "--sim-link", sim_link, "--instance-offset", str(k), "--out", str(folder)]
 
 
 def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.executable,
-              sample_s: float = 0.25, sim_link: str = "tcp", tag: str = "") -> dict:
+              sample_s: float = 0.25, sim_link: str = "tcp", tag: str = "", instance_offset: int = 0) -> dict:
     """One unpaced fleet flight (``python -m sitl launch --speed 0 --sim-link SIM_LINK``): the
     launcher is the harness; its children's CPU and peak RSS are sampled from /proc until they
     exit (the last sample is up to ``sample_s`` before a process's end)."""
     folder = out_dir / f"fleet-{name}-{sim_link}{tag}"
-    argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder, sim_link)]
+    argv = [python, "-m", "sitl", *fleet_args(name, duration_s, folder, sim_link, instance_offset)]
     log_path = folder.with_name(folder.name + ".log")
     seen: dict[int, tuple[str, float, int]] = {}
     # every process's CPU seconds when the harness logged the lockstep's start and its end
@@ -255,7 +258,8 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
             "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
             "cpu_s_per_sim_s": cpu / sim, "loop_cpu_s_per_sim_s": None if loop_total is None else loop_total / sim,
-            "processes": processes, "crashed": metrics.get("crashed")}
+            "processes": processes, "crashed": metrics.get("crashed"),
+            "error": None if code == 0 else last_error(log_path)}
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -275,8 +279,9 @@ def median_of(runs: list[dict]) -> dict:
 
 def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, ...] = BATCH_SCENARIOS,
               fleet: tuple[str, ...] = FLEET_SCENARIOS, ceiling_s: float = 5.0, progress=None, repeat: int = 1,
-              sim_links: tuple[str, ...] = SIM_LINKS) -> dict:
-    """Every figure of the bench; ``progress(label)`` after each flight. ``repeat``: every figure
+              sim_links: tuple[str, ...] = SIM_LINKS, instance_offset: int = 0) -> dict:
+    """Every figure of the bench; ``progress(label)`` after each flight; the fleets on PX4
+    instances from ``instance_offset`` (:func:`fleet_args`). ``repeat``: every figure
     (the MuJoCo ceilings, the batch flights, the fleets over each of ``sim_links``) is measured
     that many times, interleaved (everything once, then again), and each is the median run
     (:func:`median_of`)."""
@@ -309,7 +314,8 @@ def run_speed(out_dir: Path, batch_s: float, fleet_s: float, batch: tuple[str, .
                 progress(f"batch {name}")
         for name, link in fleet_runs:
             fleet_runs[name, link].append(run_fleet(name, fleet_s, out_dir, sim_link=link,
-                                                    tag=f"-{k + 1}" if repeat > 1 else ""))
+                                                    tag=f"-{k + 1}" if repeat > 1 else "",
+                                                    instance_offset=instance_offset))
             if progress:
                 progress(f"fleet {name} ({link})")
     parts = {}
@@ -384,9 +390,11 @@ def format_speed(result: dict) -> str:
         ratio = "-" if r["ratio_to_ceiling"] is None else f"{r['ratio_to_ceiling']:.3f}"
         rss = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
         target = "" if r.get("target_rtf") is None else \
-            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "MISSED")
+            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "MISSED" if r["exit_code"] == 0 else "failed")
         rows.append(f"{label:<28} {rtf_s:>6} {ratio:>9} {r['cpu_s_per_sim_s']:>12.3f} {_loop(r):>8} {rss:>12}"
                     f" {target:>14}{_runs_text(r)}")
+        if r.get("error"):  # (why a run failed: not a speed figure)
+            rows.append(f"  {r['error']}")
         for role, p in sorted(r.get("processes", {}).items(), key=_role_key):
             rows.append(f"{'  ' + role:<28} {'':>6} {'':>9} {p['cpu_s_per_sim_s']:>12.3f} {_loop(p):>8}"
                         f" {p['peak_rss_mb']:>12.0f}")
@@ -502,7 +510,7 @@ def markdown_speed(result: dict) -> str:
         label = (f"{r['mode']} {r['scenario']}" + (f" ({r['sim_link']})" if "sim_link" in r else "")
                  + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})"))
         target = "" if r.get("target_rtf") is None else \
-            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "**missed**")
+            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "**missed**" if r["exit_code"] == 0 else "failed")
         rows.append((label, fmt(r["realtime_factor"], ".2f"), fmt(r["ratio_to_ceiling"], ".3f"),
                      f"{r['cpu_s_per_sim_s']:.3f}", fmt(r.get("loop_cpu_s_per_sim_s"), ".3f", ""),
                      fmt(r.get("peak_rss_mb"), ".0f", ""), target, runs_cell(r)))

@@ -42,6 +42,8 @@ __all__ = ["FleetHarness", "ANSWER_TIMEOUT_S", "TRUTH_KEEP_S", "complete_rows"]
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
+#: while waiting for the vehicles' answers, :attr:`FleetHarness.on_wait` runs at least this often [wall s]
+WAIT_CHECK_S = 0.1
 #: simulated seconds of truth rows kept in memory when they are streamed to a file
 TRUTH_KEEP_S = 20.0
 #: the harness's log lines where the lockstep starts and ends (``bench sitl`` times the loop by them)
@@ -87,6 +89,9 @@ class FleetHarness:
         self.sim_s = 0.0
         # Called as hook(k, t) at every physics tick after the kinematics (the cameras, sitl.cameras.stream).
         self.tick_hooks: list = []
+        #: called while the vehicles' answers are awaited, every WAIT_CHECK_S (the launcher: its
+        #: processes checked, so a vehicle that died is reported as such, not as a silent link)
+        self.on_wait = lambda: None
         announce(self)
 
     def _prime_hover(self) -> None:
@@ -141,9 +146,13 @@ class FleetHarness:
         pending = set(range(self.n)) - self.down
         deadline = time.monotonic() + ANSWER_TIMEOUT_S
         while pending:
-            ready = wait_readable([self.ports[i] for i in pending], deadline - time.monotonic())
-            if not ready and time.monotonic() >= deadline:
-                raise FleetError(f"link(s) {sorted(i + 1 for i in pending)} stopped answering the simulator at t = {t:.3f} s")
+            ready = wait_readable([self.ports[i] for i in pending], min(deadline - time.monotonic(), WAIT_CHECK_S))
+            if not ready:
+                if time.monotonic() >= deadline:
+                    raise FleetError(f"link(s) {sorted(i + 1 for i in pending)} stopped answering the simulator "
+                                     f"at t = {t:.3f} s")
+                self.on_wait()
+                continue
             for i in list(pending):
                 port = self.ports[i]
                 if port not in ready:

@@ -40,11 +40,11 @@ from .inject import FailureCommander, enable_failure_injection
 from .sim_time import SimTimeWriter
 from .task import FleetTask
 from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
-                     check_instance_offset, endpoint_table, impaired_links)
+                     check_instance_offset, endpoint_table, fleet_ports, impaired_links)
 from .logs import (companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs,
                    neighbour_camera_metrics)
-from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, enter_batch_scheduling, listening_unix_paths,
-                        restore_scheduling, wait_udp_listening)
+from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, check_ports_free, enter_batch_scheduling,
+                        listening_unix_paths, restore_scheduling, wait_udp_listening)
 
 __all__ = ["Fleet", "launch"]
 
@@ -232,6 +232,14 @@ class Fleet:
         """Every process of the fleet, each waited for until it listens, then the harness connected
         to the vehicles (:class:`FleetError` if one died or never listened)."""
         sc, k, n = self.sc, self.k, self.n
+        ports = fleet_ports(n, k, self.sim_dir is None, self.companion, self.wired)
+        if self.companion and sc.companion.distributed:  # (the group companions' Zenoh listeners)
+            zc = self.companion_setup.zenoh
+            for g in range(len(sc.companion.group_layout(n))):
+                host, _, port = zc.group_endpoint(g).rpartition(":")
+                if host.startswith("tcp/") and port.isdigit():
+                    ports[("tcp", int(port))] = f"the Zenoh session of group {g + 1}'s companion"
+        check_ports_free(ports)
         if self.wired:
             self.start_wire()
         inject = sc.faults.inject
@@ -267,6 +275,7 @@ class Fleet:
         except PortError as exc:
             self.procs.check()
             raise FleetError(str(exc)) from None
+        self.harness.on_wait = self.procs.check  # (a vehicle that died is reported, not a silent link)
         if self.cameras is not None:
             self.harness.tick_hooks.append(self.cameras.on_tick)
         self.task.start(self)

@@ -17,7 +17,8 @@ from companion.mavlink.signing import key_passphrase
 from sitl.scenario import Scenario
 
 __all__ = ["FleetError", "GCS_PORT", "LOCKSTEP_STARTED", "LOCKSTEP_ENDED", "SIM_LINKS", "WIRE_VEHICLE_SIDE", "WIRE_COMPANION_SIDE", "signing_instructions",
-           "endpoint_table", "check_fleet_scenario", "check_instance_offset", "impaired_links"]
+           "endpoint_table", "check_fleet_scenario", "check_instance_offset", "impaired_links",
+           "fleet_ports"]
 
 #: UDP ports of the impaired wire (``[faults.mavlink]``): vehicle i sends to WIRE_VEHICLE_SIDE + i,
 #: the companion sees it from WIRE_COMPANION_SIDE + i
@@ -96,6 +97,26 @@ def check_instance_offset(sc: Scenario, instance_offset: int, gcs_port: int = GC
         raise ValueError(f"instance offset {k}: the companion ports of {n} links would be {first}-{last}; they must "
                          f"miss the GCS port {gcs_port} and stay below 14580"
                          + (f" (K + n <= 10, or 11 <= K <= {40 - n})" if gcs_port == GCS_PORT else ""))
+
+
+def fleet_ports(n: int, instance_offset: int, tcp_sim: bool, companion: bool, wired=()) -> dict[tuple[str, int], str]:
+    """The local ports an ``n``-link fleet shifted by ``instance_offset`` binds, ``(protocol,
+    port) -> whose``: each vehicle's simulator link (TCP 4560+K+i, when ``tcp_sim``), its
+    ground-station and onboard links' own ports (UDP 18570+K+i, 14580+K+i), the companion's
+    (UDP 14540+K+i) and the impaired wire's (``wired``: 0-based links) when they run. (The
+    ground-station port itself, 14550, is where a ground station listens: not the fleet's.)"""
+    k, out = instance_offset, {}
+    for i in range(n):
+        if tcp_sim:
+            out[("tcp", 4560 + k + i)] = f"link {i + 1}'s simulator link"
+        out[("udp", 18570 + k + i)] = f"link {i + 1}'s ground-station link"
+        out[("udp", 14580 + k + i)] = f"link {i + 1}'s onboard link"
+        if companion:
+            out[("udp", SITL_STATE_PORT + k + i)] = f"the companion's port for link {i + 1}"
+    for i in wired:
+        out[("udp", WIRE_VEHICLE_SIDE + k + i)] = f"the impaired wire of link {i + 1}"
+        out[("udp", WIRE_COMPANION_SIDE + k + i)] = f"the impaired wire of link {i + 1}"
+    return out
 
 
 def impaired_links(sc: Scenario) -> list[int]:

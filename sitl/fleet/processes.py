@@ -16,7 +16,8 @@ from pathlib import Path
 from .layout import FleetError
 
 __all__ = ["Processes", "STOP_GRACE_S", "STOP_GRACE_PER_FLIGHT_S", "STARTUP_TIMEOUT_S", "enter_batch_scheduling", "restore_scheduling",
-           "bound_ports", "listening_unix_paths", "wait_udp_listening"]
+           "bound_ports", "listening_unix_paths", "wait_udp_listening", "last_error",
+           "check_ports_free"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,7 @@ class Processes:
 
     def __init__(self):
         self.procs: list[tuple[str, subprocess.Popen]] = []
+        self.logs: dict[str, Path] = {}  # name -> its console log (the newest process of that name)
         self.killed: set[str] = set()
         self._next_check_s = -float("inf")
 
@@ -85,6 +87,7 @@ class Processes:
                                 env=env)
         fh.close()
         self.procs.append((name, proc))
+        self.logs[name] = log_path
 
     def release(self, name: str) -> None:
         """Start a process waiting in ``--standby`` (one line on its stdin)."""
@@ -111,7 +114,10 @@ class Processes:
             self._next_check_s = now + every_s
         for name, proc in self.procs:
             if name not in self.killed and proc.poll() is not None:
-                raise FleetError(f"{name} exited with code {proc.returncode} (see its console log)")
+                path = self.logs.get(name)
+                words = last_error(path) if path is not None else None
+                raise FleetError(f"{name} exited with code {proc.returncode}" + (f": {words}" if words else "")
+                                 + (f" (console log: {path})" if path is not None else ""))
 
     def stop(self, flown_s: float = 0.0, first: tuple[str, ...] = ()) -> None:
         """SIGTERM to every process, SIGKILL to those still up :data:`STOP_GRACE_S` later, plus
@@ -135,6 +141,19 @@ class Processes:
                 log.warning("%s did not stop in %.0f s: killing it", name, grace)
                 proc.kill()
                 proc.wait()
+
+
+def last_error(path: Path, limit: int = 300) -> str | None:
+    """What a process said last before it exited: the last line of its console log ``path`` that
+    starts with ``error:`` (the CLIs' form), else its last line; ``None`` when it said nothing."""
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return None
+    if not lines:
+        return None
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    return (errors[-1] if errors else lines[-1])[:limit]
 
 
 def bound_ports(kind: str) -> set[int]:
@@ -165,6 +184,18 @@ def listening_unix_paths() -> set[str]:
         if len(cols) >= 8 and int(cols[3], 16) & 0x10000:
             paths.add(cols[7])
     return paths
+
+
+def check_ports_free(ports: dict[tuple[str, int], str]) -> None:
+    """:class:`FleetError` naming the ports of ``ports`` (:func:`~.layout.fleet_ports`) that a
+    process already holds (a TCP listener, a bound UDP socket): a fleet started on them would
+    fail, or its harness would talk to another fleet's vehicle."""
+    held = {kind: bound_ports(kind) for kind in ("tcp", "udp")}
+    taken = [f"{kind.upper()} {port} ({who})" for (kind, port), who in sorted(ports.items()) if port in held[kind]]
+    if taken:
+        raise FleetError(f"ports in use by another process (another fleet, PX4 SITL?): {', '.join(taken[:4])}"
+                         + (f" and {len(taken) - 4} more" if len(taken) > 4 else "")
+                         + "; run this fleet on other ports with --instance-offset K (see --help)")
 
 
 def wait_udp_listening(ports: list[int], procs: Processes, who: str = "the companion") -> None:

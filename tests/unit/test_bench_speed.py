@@ -65,6 +65,29 @@ def test_fleet_flight_arguments_are_the_launch_clis(tmp_path):
     assert build_parser().parse_args(speed.fleet_args("seven_link", 20.0, tmp_path / "f", "unix")).sim_link == "unix"
     assert args.instance_offset == 0  # fifteen links: PX4 instances from 11, their ports past the GCS's 14550
     assert build_parser().parse_args(speed.fleet_args("fifteen_link", 20.0, tmp_path / "f")).instance_offset == 11
+    # beside another fleet (--instance-offset K): every fleet shifted, each still clear of the GCS port
+    offsets = {name: build_parser().parse_args(speed.fleet_args(name, 20.0, tmp_path / "f", "tcp", 4)).instance_offset
+               for name in ("three_link", "seven_link", "fifteen_link")}
+    assert offsets == {"three_link": 4, "seven_link": 15, "fifteen_link": 15}
+
+
+def test_a_failed_flight_says_why_and_is_no_speed_miss(tmp_path):
+    """A child that exits with an error (a port in use, a bad config) is reported with its error
+    line, and its target as failed, not missed."""
+    fake = tmp_path / "fake_python.py"
+    fake.write_text("import sys\nprint('error: ports in use by another process: TCP 4560')\nsys.exit(3)\n")
+    wrapper = tmp_path / "python"
+    wrapper.write_text(f"#!/bin/sh\nshift 2\nexec {sys.executable} {fake} \"$@\"\n")
+    wrapper.chmod(0o755)
+    r = speed.run_batch("three_link", 4.0, tmp_path, python=str(wrapper))
+    assert r["exit_code"] == 3 and r["error"] == "error: ports in use by another process: TCP 4560"
+    r.update(ratio_to_ceiling=None, target_rtf=10.0, target_met=False)
+    result = {"compiled": True, "warm_up_s": 0.5, "load_average_at_end": (1.0, 1.0, 1.0), "mujoco_ceiling": {},
+              "runs": [r]}
+    text = speed.format_speed(result)
+    assert "(exit 3)" in text and "failed" in text and "MISSED" not in text
+    assert "  error: ports in use by another process: TCP 4560" in text.splitlines()
+    assert "failed" in speed.markdown_speed(result) and "**missed**" not in speed.markdown_speed(result)
 
 
 def _fleet(scenario: str, n_vehicles: int, n_companions: int, rtf: float) -> dict:
