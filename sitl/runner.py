@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.kernels import warm as _companion_kernels
 from companion.linkstate import word as state_word
 from companion.engine import Command, CommandOut, CompanionEngine, CorrectionOut, TargetOut
 from companion.estimation.so3 import quat_to_rotmat
@@ -43,34 +42,21 @@ from companion.trajectory import CpgChainTrajectory, make_trajectory
 from link_firmware_sim.batch import ENABLED as BATCH_ENABLED
 from link_firmware_sim.batch import LinkBatch
 from link_firmware_sim.events import SEVERITY, statustext_arrays
-from link_firmware_sim.kernels import warm as _firmware_kernels
 from link_firmware_sim.firmware import CorrectionRejected, LinkFirmware
 from link_firmware_sim.vehicle.failures import OK, FailureInjector
 from link_firmware_sim.vehicle.hil import sitl_gps_time_us
 
 from .plant.plant import Plant
-from .plant.rotor import warm_up as warm_up_rotors
-from .plant.sensors import warm_up as warm_up_sensors
 from .plant.schedule import Schedule
 from .scenario import Scenario, with_options
 from .steplog import attach_truth, merge_step_logs
 from .task import Task
 from .watch import announce
+from .warm import warm_up_kernels
 
 __all__ = ["BatchRunner", "RunLog", "warm_up_kernels"]
 
 log = logging.getLogger(__name__)
-
-
-def warm_up_kernels() -> float:
-    """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors', the IMU's) compiled,
-    or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba)."""
-    t0 = time.perf_counter()
-    _firmware_kernels.warm_up()
-    _companion_kernels.warm_up()
-    warm_up_rotors()
-    warm_up_sensors()
-    return time.perf_counter() - t0
 
 
 @dataclass

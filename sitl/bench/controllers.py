@@ -57,7 +57,7 @@ def compare_controllers(scenario, out_dir: Path | None, controllers=CONTROLLERS,
         arrays = runner.arrays()
         m = tracking_metrics(arrays, start)
         m.update(took_off=runner.plant.took_off, crashed=runner.crashed, crash_reason=runner.crash_reason,
-                 real_time_factor=runner.sim_s / runner.wall_s if runner.wall_s > 0 else None)
+                 realtime_factor=runner.sim_s / runner.wall_s if runner.wall_s > 0 else None)
         out["controllers"][name] = m
         log.info("%s: %s", name, m)
         if out_dir is not None:

@@ -166,7 +166,7 @@ def pspm_jump(scenario: PspmJumpScenario, out_dir: Path | None, *, runs=tuple(MO
         m = jump_metrics(lg["t"], lg["along_true_m"], lg["yaw_true_deg"], lg["energy_t_j"], lg["energy_r_j"],
                          lg["speed_m_s"], tc.jump_m, tc.jump_s, tc.yaw_jump_deg, tc.yaw_jump_s)
         m.update(crashed=runner.crashed, crash_reason=runner.crash_reason,
-                 real_time_factor=runner.sim_s / runner.wall_s if runner.wall_s > 0 else None)
+                 realtime_factor=runner.sim_s / runner.wall_s if runner.wall_s > 0 else None)
         out["runs"][name] = m
         log.info("%s: %s", name, m)
         series[name] = lg

@@ -21,4 +21,4 @@ def _fly(scenario, out_dir, **options) -> dict:
 KIND = ScenarioKind("wall_push", "one ODAR pushing a wall under hybrid pose/wrench control", load=load_wall_scenario,
                     fly=_fly, tables=("contact",),
                     summary=("force_mean_true_n", "force_error_rms_n", "force_error_rms_rel", "observer_force_error_rms_n",
-                             "free_pos_error_rms_m", "att_error_rms_deg", "crashed", "real_time_factor"))
+                             "free_pos_error_rms_m", "att_error_rms_deg", "crashed", "realtime_factor"))

@@ -186,7 +186,7 @@ def wall_push(scenario: WallPushScenario, out_dir: Path | None, *, progress=None
         "free_pos_error_rms_m": _rms(np.linalg.norm(dp_free, axis=1)),
         "att_error_rms_deg": _rms(att),
         "crashed": runner.crashed, "crash_reason": runner.crash_reason,
-        "real_time_factor": runner.sim_s / runner.wall_s if runner.wall_s > 0 else None,
+        "realtime_factor": runner.sim_s / runner.wall_s if runner.wall_s > 0 else None,
     }
     if out_dir is not None:
         out_dir = Path(out_dir)
