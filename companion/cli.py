@@ -79,8 +79,16 @@ def pace(text: str) -> float:
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
+#: libraries whose INFO lines say nothing to a user of these commands (PyOpenGL's note that its
+#: optional accelerator is missing, at every run that renders)
+QUIET_LIBRARIES = ("OpenGL",)
+
+
 def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+    if not verbose:
+        for name in QUIET_LIBRARIES:
+            logging.getLogger(name).setLevel(logging.WARNING)
 
 
 def run_subcommand(parser: argparse.ArgumentParser, argv=None, usage_exit: int = 2, args=None) -> int:

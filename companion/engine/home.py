@@ -111,7 +111,8 @@ class NetHome:
         if not self._final and t_traj_s >= refine_s + (0.0 if self.row is not None else HOME_MARGIN_S):
             self._final = True
             if self.offset_w_m is not None:
-                log.info("home kept: %s m from the anchor (%s)", _fmt(self.offset_w_m), self.source)
+                log.info("group %d: home kept for the flight: %s m from the anchor (%s)", self.group + 1,
+                         _fmt(self.offset_w_m), self.source)
         if estimate is not None and self._fresh and (self.offset_w_m is None or not self._final):
             p, q = (np.asarray(x, dtype=float) for x in estimate)
             usable = np.all(np.isfinite(p), axis=1)
@@ -127,8 +128,8 @@ class NetHome:
             for msg in pending:
                 self._judge(msg)
         if self.offset_w_m is None and now_s - self._first_s >= self.wait_s:
-            log.warning("no home within %.1f s (the measuring group's companion or its middle link not heard): "
-                        "the anchor flown as given", self.wait_s)
+            log.warning("group %d: no home within %.1f s (the measuring group's companion or its middle link not "
+                        "heard): the anchor flown as given", self.group + 1, self.wait_s)
             self._final = True
             self._adopt(np.zeros(3), "anchor")
         return self.offset_w_m
@@ -169,20 +170,21 @@ class NetHome:
             self.counts["conflicts"] += 1
             n = self.counts["conflicts"]
             if n <= 5 or n % 100 == 0:
-                log.warning("home from group %d (%s m) differs from the one flown (%s m, %s): not used (#%d)",
-                            msg.group + 1, _fmt(offset), _fmt(self.offset_w_m), self.source, n)
+                log.warning("group %d: home from group %d (%s m) differs from the one flown (%s m, %s): not used (#%d)",
+                            self.group + 1, msg.group + 1, _fmt(offset), _fmt(self.offset_w_m), self.source, n)
 
     def _reject(self, msg: ChainHome, why: str) -> None:
         self.counts["rejected"] += 1
         n = self.counts["rejected"]
         if n <= 5 or n % 100 == 0:
-            log.warning("home from group %d dropped (#%d): %s", msg.group + 1, n, why)
+            log.warning("group %d: home from group %d dropped (#%d): %s", self.group + 1, msg.group + 1, n, why)
 
     def _adopt(self, offset_w_m: np.ndarray, source: str) -> None:
         first = self.offset_w_m is None
         self.offset_w_m, self.source, self._changed = offset_w_m, source, True
         if first:
-            log.info("home: %s m from the anchor (%s)", _fmt(offset_w_m), source)
+            log.info("group %d: home %s m from the anchor (%s; %s until the take-off)", self.group + 1,
+                     _fmt(offset_w_m), source, "kept" if self._final else "measured again while the chain rests")
 
 
 def _fmt(x) -> str:

@@ -119,7 +119,7 @@ class Targets:
                     self.home_offset_w_m = middle - self._start_center
             else:
                 self._home_kept = True
-                log.info("home kept: the trajectory flown %s m from its anchor",
+                log.info("home kept for the flight: the trajectory flown %s m from its anchor",
                          ", ".join(f"{x:.2f}" for x in self.home_offset_w_m))
         if self.trajectory is None:
             center = self._start_center
@@ -131,7 +131,8 @@ class Targets:
                     center = middle
                 self.home_offset_w_m = middle - center
                 if self._start_center is not None:
-                    log.info("home: the trajectory flown from the estimated start (%s m), %.2f m from its anchor",
+                    log.info("home: the trajectory flown from the estimated start (%s m), %.2f m from its anchor; "
+                             "measured again while the chain rests, until the take-off",
                              ", ".join(f"{x:.2f}" for x in middle), float(np.linalg.norm(self.home_offset_w_m)))
             self.trajectory = self._make_trajectory(center)
         if self.home is not None:

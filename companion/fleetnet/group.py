@@ -128,7 +128,7 @@ class GroupLink:
             elif ev.kind in ("alive", "gone"):
                 alive = ev.kind == "alive"
                 if ev.value != self.group:
-                    log.info("group %d %s", ev.value + 1, "is up" if alive else "left")
+                    log.info("group %d: group %d %s", self.group + 1, ev.value + 1, "is up" if alive else "left")
                 # the leader whose shifts were last applied (the node may already have passed over
                 # a silent leader, clearing ``acting``, before its token disappears)
                 last = self.node.leader_log[-1][1] if self.node.leader_log else None
