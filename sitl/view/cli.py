@@ -11,9 +11,9 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .app import DEFAULT_PORT, INSTALL_HINT
+from .app import DEFAULT_PORT, INSTALL_HINT, SPEEDS
 
-__all__ = ["add_live_args", "add_view_parser", "live", "serve_until_interrupted", "EXIT_BAD_INPUT"]
+__all__ = ["add_live_args", "add_view_parser", "live", "live_speed", "serve_until_interrupted", "EXIT_BAD_INPUT"]
 
 EXIT_BAD_INPUT = 2
 
@@ -27,11 +27,24 @@ def _address(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def add_live_args(p: argparse.ArgumentParser) -> None:
-    """``--view`` and its address, for ``fly`` and ``launch``."""
+    """``--view``, its address and its starting speed, for ``fly`` and ``launch``."""
     p.add_argument("--view", action="store_true",
                    help="show the run in the browser 3D view as it flies (http://127.0.0.1:8080; pause and speed in "
                         "its panel); when the run is done the view replays it until Ctrl-C")
+    p.add_argument("--view-speed", choices=SPEEDS, default=None, metavar="SPEED",
+                   help=f"the live view's pace to start with, one of {', '.join(SPEEDS)} (the panel changes it): 1x "
+                        "to watch a flight in real time (default: max for fly, a fleet's --speed for launch)")
     _address(p, "view")
+
+
+def live_speed(args) -> str:
+    """The live view's starting pace (:data:`~.app.SPEEDS`): ``--view-speed``, else a fleet's
+    ``--speed`` when the panel has it (what the fleet flies at; 0: ``max``), else ``max``."""
+    if getattr(args, "view_speed", None):
+        return args.view_speed
+    pace = getattr(args, "speed", None)
+    choice = "max" if not pace else f"{pace:g}x"
+    return choice if choice in SPEEDS else "max"
 
 
 def serve_until_interrupted(message: str | None = None, stop: threading.Event | None = None) -> None:
@@ -93,7 +106,7 @@ def live(args, title: str, out_dir: Path):
 
             rows = fleet_rows(sim, Path(out_dir))
         if "live" not in state:
-            state["live"] = LiveView(state["view"], rows)
+            state["live"] = LiveView(state["view"], rows, speed=live_speed(args))
         state["live"].rows = rows  # (a kind that flies twice: the second flight's)
         sim.tick_hooks.append(state["live"].on_tick)
 

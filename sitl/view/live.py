@@ -74,17 +74,18 @@ def batch_rows(runner) -> Callable[[], tuple[float, dict, dict | None] | None]:
 class LiveView:
     """Shows ``rows()`` (``(t, log row, step row)`` or ``None``) in ``view`` at ``rate_hz`` frames
     per wall second from :meth:`on_tick`, the simulation's tick hook; pauses the simulation while
-    paused and paces it at the chosen speed (``clock``, ``sleep``: wall time)."""
+    paused and paces it at the chosen speed, ``speed`` to start with (``clock``, ``sleep``: wall
+    time)."""
 
     def __init__(self, view: ViewServer, rows: Callable, rate_hz: float = DEFAULT_RATE_HZ,
-                 clock=time.monotonic, sleep=time.sleep, every_ticks: int = CHECK_EVERY_TICKS):
+                 clock=time.monotonic, sleep=time.sleep, every_ticks: int = CHECK_EVERY_TICKS, speed: str = "max"):
         self.view, self.rows = view, rows
         self.period_s = 1.0 / rate_hz
         self.clock, self.sleep, self.every_ticks = clock, sleep, every_ticks
         gui = view.server.gui
         with gui.add_folder("Live", order=-1) as self.folder:
             self.pause_button = gui.add_button("pause")
-            self.speed = gui.add_dropdown("speed", options=SPEEDS, initial_value="max")
+            self.speed = gui.add_dropdown("speed", options=SPEEDS, initial_value=speed)
         self.paused = threading.Event()
         #: set while the simulation waits in a pause (after the paused frame was shown)
         self.held = threading.Event()

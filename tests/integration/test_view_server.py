@@ -104,3 +104,27 @@ def test_a_chosen_speed_paces_the_simulation(view):
     for k in range(0, 1001, live.every_ticks):
         live.on_tick(k, k * 0.001)
     assert clock.now == pytest.approx(0.5, abs=0.01)  # 1 s simulated at twice real time
+
+
+def test_the_speed_to_start_with_is_the_panels_and_paces_from_the_first_tick(view):
+    """``--view-speed 1x``: a flight to watch in real time from its first tick, the panel saying so."""
+    row = {"t": 0.0, "p_true": np.zeros((N, 3)), "q_true": np.tile([1.0, 0, 0, 0], (N, 1))}
+    clock = Clock()
+    live = LiveView(view, lambda: (0.0, row, None), clock=clock, sleep=clock.sleep, speed="1x")
+    assert live.speed.value == "1x"
+    for k in range(0, 1001, live.every_ticks):
+        live.on_tick(k, k * 0.001)
+    assert clock.now == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize("options, speed", [
+    ({}, "max"), ({"view_speed": "1x"}, "1x"),  # fly
+    ({"speed": 1.0}, "1x"), ({"speed": 0.0}, "max"), ({"speed": 3.0}, "max"),  # launch: the fleet's pace
+    ({"speed": 1.0, "view_speed": "0.5x"}, "0.5x"),
+])
+def test_the_live_views_starting_speed(options, speed):
+    import argparse
+
+    from sitl.view.cli import live_speed
+
+    assert live_speed(argparse.Namespace(**{"view_speed": None, **options})) == speed
