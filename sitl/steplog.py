@@ -67,7 +67,8 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
     skipped the cycle on a host too busy to run it): a group that logged no step in a
     cycle has NaN states there, ``corrected_sckf`` and ``global_applied`` false and ``leader``
     -1, so the window stays in the log as the outage it was;
-    ``global_applied`` and ``home_offset_sckf`` become (steps, groups[, 3]). Adds ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
+    ``global_applied`` and ``home_offset_sckf`` become (steps, groups[, 3]) in either mode. Adds
+    ``con_pos_before`` / ``con_vel_before`` / ``con_pos_after`` /
     ``con_vel_after`` (steps, n - 1): the eq. 3 tip position and velocity errors per joint.
     """
     per = []
@@ -80,6 +81,8 @@ def merge_step_logs(logs: list[list[dict[str, np.ndarray]]], d: np.ndarray, dist
     if not distributed:
         merged = dict(per[0])
         merged["global_applied"] = merged["global_applied"][:, None]
+        if "home_offset_sckf" in merged:  # (steps, groups, 3), as in distributed mode
+            merged["home_offset_sckf"] = merged["home_offset_sckf"][:, None]
     else:
         # from the first cycle every group logged (the start-up), every cycle any group logged
         first = max(lg["cycle_us"][0] for lg in per)

@@ -24,11 +24,12 @@ COMPILING_NOTE_S = 3.0
 def warm_up_kernels() -> float:
     """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors', the IMU's) compiled,
     or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba).
-    A warm-up that outlasts :data:`COMPILING_NOTE_S` logs that it is compiling (a machine's first run)."""
+    A warm-up that outlasts :data:`COMPILING_NOTE_S` says why it may be long (a machine's first run
+    compiles)."""
     t0 = time.perf_counter()
-    note = threading.Timer(COMPILING_NOTE_S, log.warning, ("compiling the simulator's kernels: once per machine and "
-                                                           "install, about a minute; later runs load them from "
-                                                           "numba's cache",))
+    note = threading.Timer(COMPILING_NOTE_S, log.warning, ("loading the simulator's compiled kernels; a first run on "
+                                                           "this machine compiles them (about a minute, once), later "
+                                                           "runs load them from numba's cache",))
     note.daemon = True
     note.start()
     try:
@@ -40,5 +41,5 @@ def warm_up_kernels() -> float:
         note.cancel()
     seconds = time.perf_counter() - t0
     if seconds > COMPILING_NOTE_S:
-        log.warning("kernels compiled in %.0f s", seconds)
+        log.warning("kernels ready in %.0f s", seconds)
     return seconds

@@ -183,8 +183,9 @@ class NetHome:
         first = self.offset_w_m is None
         self.offset_w_m, self.source, self._changed = offset_w_m, source, True
         if first:
-            log.info("group %d: home %s m from the anchor (%s; %s until the take-off)", self.group + 1,
-                     _fmt(offset_w_m), source, "kept" if self._final else "measured again while the chain rests")
+            log.info("group %d: home %s m from the anchor (%s; %s)", self.group + 1, _fmt(offset_w_m), source,
+                     "kept for the flight" if self._final
+                     else "measured again while the chain rests, until the take-off")
 
 
 def _fmt(x) -> str:

@@ -1,19 +1,21 @@
 """The home position, kept as PX4 keeps it: set from the position estimate once the EKF runs
-(disarmed), set again at arming on the ground, or set by MAV_CMD_DO_SET_HOME; reported as HOME_POSITION (on
+(disarmed), set again at arming on the ground (not in the air, and not over a home set at a given
+place by MAV_CMD_DO_SET_HOME), or set by MAV_CMD_DO_SET_HOME; reported as HOME_POSITION (on
 request, in the ground station's streams, and to every link when it changes).
 
 The home is held in the local frame (ENU, m) with its heading; its WGS84 form is the shared
 origin's (:class:`~link_firmware_sim.geo.GeoOrigin`), so a new origin (only while disarmed)
 clears it and the next estimate sets it again.
 
-MAV_CMD_DO_SET_HOME (param1 1: the current position; 0: the given one, param5-7 latitude [deg],
-longitude [deg], altitude [m, AMSL], or COMMAND_INT's x, y [degE7] and z in MAV_FRAME_GLOBAL or
-MAV_FRAME_GLOBAL_INT; param4: the heading [deg], NaN for the vehicle's) is acknowledged:
-ACCEPTED; TEMPORARILY_REJECTED for the current position before the EKF runs; DENIED, with a
-STATUSTEXT saying why, for a latitude or longitude out of range or a home more than
-:data:`MAX_HOME_DISTANCE_M` from the origin (the local plane's error grows with the square of the
-distance); UNSUPPORTED for another frame. A number that is not finite where one is needed makes
-the command a bad message (counted, not acted on), as for every command.
+MAV_CMD_DO_SET_HOME (param1 1: the current position and heading; 0: the given place, param5-7
+latitude [deg], longitude [deg], altitude [m, AMSL], or COMMAND_INT's x, y [degE7] and z in
+MAV_FRAME_GLOBAL or MAV_FRAME_GLOBAL_INT, with param4 the heading [deg], NaN for the vehicle's) is
+acknowledged: ACCEPTED; TEMPORARILY_REJECTED for the current position before the EKF runs;
+DENIED, with a STATUSTEXT saying why, for a latitude or longitude out of range or a home more than
+:data:`MAX_HOME_DISTANCE_M` from the origin, horizontally or vertically (the local plane's error
+grows with the square of the distance); UNSUPPORTED for another frame. A number that is not
+finite where one is needed makes the command a bad message (counted, not acted on), as for every
+command.
 """
 
 from __future__ import annotations
@@ -39,17 +41,21 @@ D = load_dialect()
 
 #: the farthest a home may be from the shared origin, horizontally and vertically [m]
 MAX_HOME_DISTANCE_M = 1000.0
+#: a link armed this far above its home [m] is in the air (re-armed in flight): the home stays
+IN_AIR_ABOVE_HOME_M = 1.0
 _GLOBAL_FRAMES = (D.MAV_FRAME_GLOBAL, D.MAV_FRAME_GLOBAL_INT)
 
 
 @dataclass(frozen=True)
 class HomePosition:
-    """A home: where (local ENU [m]), the heading (NED yaw [rad], clockwise from north) and when it
-    was set (flight-controller time [us])."""
+    """A home: where (local ENU [m]), the heading (NED yaw [rad], clockwise from north), when it
+    was set (flight-controller time [us]) and whether it was given (a place sent with
+    MAV_CMD_DO_SET_HOME: arming keeps it)."""
 
     p_w_m: np.ndarray
     heading_ned_rad: float
     time_us: int
+    given: bool = False
 
 
 class Home:
@@ -58,24 +64,23 @@ class Home:
     def __init__(self):
         self.position: HomePosition | None = None
 
-    def set(self, v, p_w_m, heading_ned_rad: float, why: str) -> None:
-        """Home at ``p_w_m`` (local ENU) with ``heading_ned_rad``, sent to every link of vehicle ``v``."""
-        self.position = HomePosition(np.array(p_w_m, dtype=float), float(heading_ned_rad), v.fc_time_us)
+    def set(self, v, p_w_m, heading_ned_rad: float, why: str, given: bool = False) -> None:
+        """Home at ``p_w_m`` (local ENU) with ``heading_ned_rad`` (``given``: a place sent to it),
+        sent to every link of vehicle ``v``."""
+        self.position = HomePosition(np.array(p_w_m, dtype=float), float(heading_ned_rad), v.fc_time_us, given)
         lat, lon, alt = v.origin.to_geodetic(self.position.p_w_m)
         log.info("link %d at %.2f s: home set (%s): %.7f, %.7f, %.2f m", v.system_id, v.fc_time_s, why, lat, lon, alt)
         msg = home_position(v)
         for ep in v.endpoints:
             ep.port.send(msg)
 
-    def set_here(self, v, why: str, heading_ned_rad: float | None = None) -> bool:
-        """Home where vehicle ``v``'s estimate puts it now (and its heading unless one is given);
-        ``False`` before the EKF runs."""
+    def set_here(self, v, why: str) -> bool:
+        """Home where vehicle ``v``'s estimate puts it now, with its heading; ``False`` before the
+        EKF runs."""
         if not v.fw.initialized:
             return False
         p, _, q = v.streams.estimate()
-        if heading_ned_rad is None:
-            heading_ned_rad = euler_zyx(quat_enu_flu_to_ned_frd(q))[2]
-        self.set(v, p, heading_ned_rad, why)
+        self.set(v, p, euler_zyx(quat_enu_flu_to_ned_frd(q))[2], why)
         return True
 
     def on_tick(self, v) -> None:
@@ -84,10 +89,14 @@ class Home:
             self.set_here(v, "first estimate")
 
     def on_armed(self, v) -> None:
-        """Home again at arming, where the flight starts, unless the link armed in flight (re-armed
-        while falling or carried): PX4 sets no home in the air."""
-        if v.fw.landed(v.fc_time_s):
-            self.set_here(v, "armed")
+        """Home again at arming, where the flight starts; kept when it was given (DO_SET_HOME at a
+        place) or when the link armed in the air (re-armed while falling, or carried by its
+        neighbours :data:`IN_AIR_ABOVE_HOME_M` above its home): PX4 sets no home in the air."""
+        home = self.position
+        if home is not None and (home.given or not v.fw.landed(v.fc_time_s)
+                                 or v.streams.estimate()[0][2] - home.p_w_m[2] > IN_AIR_ABOVE_HOME_M):
+            return
+        self.set_here(v, "armed")
 
     def clear(self) -> None:
         """No home (the origin changed): the next estimate on the ground sets it."""
@@ -103,15 +112,14 @@ def _finite(value: float, what: str) -> float:
 def on_set_home(v, ep: Endpoint, msg, ack) -> None:
     """MAV_CMD_DO_SET_HOME ``msg`` (COMMAND_LONG or COMMAND_INT) to vehicle ``v`` from link
     ``ep``, acknowledged with ``ack(ep, msg, result)`` (module docstring)."""
-    current = _finite(msg.param1, "param1") >= 0.5
+    if _finite(msg.param1, "param1") >= 0.5:  # here, with the vehicle's heading (param4 unused, as PX4)
+        ok = v.home.set_here(v, "DO_SET_HOME")
+        ack(ep, msg, D.MAV_RESULT_ACCEPTED if ok else D.MAV_RESULT_TEMPORARILY_REJECTED)
+        return
     yaw_deg = msg.param4
     if math.isinf(yaw_deg):
         raise MessageError(f"DO_SET_HOME param4: not finite ({yaw_deg!r})")
     heading = None if math.isnan(yaw_deg) else math.radians(yaw_deg)
-    if current:
-        ok = v.home.set_here(v, "DO_SET_HOME", heading)
-        ack(ep, msg, D.MAV_RESULT_ACCEPTED if ok else D.MAV_RESULT_TEMPORARILY_REJECTED)
-        return
     if msg.get_type() == "COMMAND_INT":
         if msg.frame not in _GLOBAL_FRAMES:
             statustext(ep, D.MAV_SEVERITY_WARNING, f"Home refused: frame {msg.frame} (use GLOBAL)")
@@ -125,8 +133,9 @@ def on_set_home(v, ep: Endpoint, msg, ack) -> None:
         reason = f"Home refused: lat/lon {lat:.3f}, {lon:.3f}"
     else:
         p = v.origin.to_enu(lat, lon, alt)
-        if not np.all(np.abs(p) <= MAX_HOME_DISTANCE_M):
-            reason = f"Home refused: {np.max(np.abs(p)):.0f} m from origin"
+        far = max(math.hypot(p[0], p[1]), abs(p[2]))
+        if not far <= MAX_HOME_DISTANCE_M:
+            reason = f"Home refused: {far:.0f} m from origin"
     if reason is not None:
         log.warning("link %d: %s", v.system_id, reason)
         statustext(ep, D.MAV_SEVERITY_WARNING, reason)
@@ -134,5 +143,5 @@ def on_set_home(v, ep: Endpoint, msg, ack) -> None:
         return
     if heading is None:  # (the vehicle's, or north before the EKF runs)
         heading = euler_zyx(quat_enu_flu_to_ned_frd(v.streams.estimate()[2]))[2] if v.fw.initialized else 0.0
-    v.home.set(v, p, heading, "DO_SET_HOME")
+    v.home.set(v, p, heading, "DO_SET_HOME", given=True)
     ack(ep, msg, D.MAV_RESULT_ACCEPTED)

@@ -172,7 +172,8 @@ def run_batch(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
             "error": None if code == 0 else last_error(out_dir / f"batch-{name}{tag}.log")}
 
 
-def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp", instance_offset: int = 0) -> list[str]:
+def fleet_args(name: str, duration_s: float, folder: Path, sim_link: str = "tcp",
+               instance_offset: int = 0) -> list[str]:
     """``python -m sitl`` arguments of an unpaced fleet flight without plots (the harness's CPU is
     the lockstep's, not matplotlib's) over ``sim_link``, on PX4 instances from ``instance_offset``
     K; a chain whose companion ports 14540+K+i would reach the GCS port 14550 takes instances from
@@ -510,7 +511,8 @@ def markdown_speed(result: dict) -> str:
         label = (f"{r['mode']} {r['scenario']}" + (f" ({r['sim_link']})" if "sim_link" in r else "")
                  + ("" if r["exit_code"] == 0 else f" (exit {r['exit_code']})"))
         target = "" if r.get("target_rtf") is None else \
-            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"] else "**missed**" if r["exit_code"] == 0 else "failed")
+            f">= {r['target_rtf']:g}x " + ("met" if r["target_met"]
+                                           else "**missed**" if r["exit_code"] == 0 else "failed")
         rows.append((label, fmt(r["realtime_factor"], ".2f"), fmt(r["ratio_to_ceiling"], ".3f"),
                      f"{r['cpu_s_per_sim_s']:.3f}", fmt(r.get("loop_cpu_s_per_sim_s"), ".3f", ""),
                      fmt(r.get("peak_rss_mb"), ".0f", ""), target, runs_cell(r)))

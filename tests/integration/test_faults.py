@@ -249,6 +249,13 @@ def _group_log(cycles, links, global_applied=True):
     return log
 
 
+def test_a_single_companions_step_log_keeps_its_home_per_group_like_a_distributed_one():
+    d = np.array([[0.5, 0, 0]] * 3)
+    merged = merge_step_logs([[_group_log([k * 50_000 for k in range(4)], [0, 1, 2])]], d, distributed=False)
+    assert merged["home_offset_sckf"].shape == (4, 1, 3) and merged["global_applied"].shape == (4, 1)
+    np.testing.assert_array_equal(merged["home_offset_sckf"][:, 0], np.tile([0.1, -0.2, 0.3], (4, 1)))
+
+
 def test_merged_step_log_keeps_a_dead_companions_cycles_as_an_outage():
     d = np.array([[0.5, 0, 0]] * 3)
     all_cycles = [k * 50_000 for k in range(10)]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.mavlink.dialect import load_dialect
-from link_firmware_sim.vehicle.home import MAX_HOME_DISTANCE_M
+from link_firmware_sim.vehicle.home import MAX_HOME_DISTANCE_M, HomePosition
 from link_firmware_sim.vehicle.streams.system import sys_status
 
 from ..vehicle_rig import ORIGIN
@@ -80,14 +80,22 @@ def test_arming_sets_the_home_again_and_every_link_hears_it(rig):
     assert rig.vehicle.home.position is before
 
 
-def test_arming_in_flight_keeps_the_home(rig):
-    """Re-armed while falling (a forced disarm in the air): PX4 sets no home in the air."""
-    rig.vel_m_s = np.array([0.0, 0.0, -2.0])
+@pytest.mark.parametrize("motion", ["falling", "hanging still", "carried sideways"])
+def test_arming_in_flight_keeps_the_home(rig, motion):
+    """Re-armed in the air (after a forced disarm, or a reboot while its neighbours carry it): PX4
+    sets no home in the air. Falling, the land detector says so; still or moving sideways, its
+    height above the home does."""
+    rig.vel_m_s = {"falling": np.array([0.0, 0.0, -2.0]), "hanging still": np.zeros(3),
+                   "carried sideways": np.array([2.0, 0.0, 0.0])}[motion]
+    rig.height_m = 6.6
     rig.start(0.5)
+    if motion != "falling":  # its home where it rested before its neighbours lifted it, 4.6 m lower
+        here = rig.vehicle.home.position
+        rig.vehicle.home.position = HomePosition(here.p_w_m - [0.0, 0.0, 4.6], here.heading_ned_rad, here.time_us)
     before = rig.vehicle.home.position
     rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
     msgs = rig.gcs_collect(0.02)
-    assert _acks(msgs, D.MAV_CMD_COMPONENT_ARM_DISARM) == [D.MAV_RESULT_ACCEPTED] and not rig.vehicle.fw.landed(rig.t)
+    assert _acks(msgs, D.MAV_CMD_COMPONENT_ARM_DISARM) == [D.MAV_RESULT_ACCEPTED]
     assert rig.vehicle.home.position is before and not _homes(msgs)
 
 
@@ -121,6 +129,30 @@ def test_do_set_home_at_a_given_place_and_here(rig, kind):
     assert _heading_deg(home) == pytest.approx(90.0, abs=0.5)
 
 
+def test_a_home_given_at_a_place_outlasts_arming_and_here_gives_it_back_to_arming(rig):
+    """As PX4: a home sent as a place (QGroundControl's "set home here" on the map) is the user's,
+    and arming keeps it; DO_SET_HOME here (param1 1) makes it the vehicle's again, which arming
+    then sets where it arms. param4 is not read with param1 1: the vehicle's heading."""
+    rig.start()
+    lat, lon, alt = ORIGIN.lat_deg + 1e-4, ORIGIN.lon_deg, ORIGIN.alt_m
+    rig.gcs_send(D.MAVLink_command_int_message(2, 1, D.MAV_FRAME_GLOBAL, D.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, 0,
+                                               math.nan, int(round(lat * 1e7)), int(round(lon * 1e7)), alt))
+    rig.gcs_collect(0.02)
+    given = rig.vehicle.home.position
+    assert given.given
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 0, 0, 0, 0, 0, 0))
+    rig.gcs_collect(0.02)
+    assert rig.vehicle.home.position is given and not rig.vehicle.fw.armed
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_DO_SET_HOME, 0, 1, 0, 0, 45.0, 0, 0, 0))
+    home = _homes(rig.gcs_collect(0.02))[-1]
+    assert _heading_deg(home) == pytest.approx(90.0, abs=0.5) and not rig.vehicle.home.position.given
+    here = rig.vehicle.home.position
+    rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    rig.gcs_collect(0.02)
+    assert rig.vehicle.fw.armed and rig.vehicle.home.position is not here
+
+
 def test_do_set_home_here_before_the_ekf_is_temporarily_rejected(rig):
     rig.gcs_send(D.MAVLink_command_long_message(2, 1, D.MAV_CMD_DO_SET_HOME, 0, 1, 0, 0, 0, 0, 0, 0))
     msgs = rig.gcs_collect(0.02)
@@ -135,6 +167,10 @@ far = MAX_HOME_DISTANCE_M + 100.0
     (ORIGIN.lat_deg, 181.0, ORIGIN.alt_m, "lat/lon"),
     (ORIGIN.lat_deg + math.degrees(far / 6371000.0), ORIGIN.lon_deg, ORIGIN.alt_m, "from origin"),
     (ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m - far, "from origin"),
+    # 800 m north and 800 m east: each axis within the limit, the distance beyond it
+    (ORIGIN.lat_deg + math.degrees(800.0 / 6371000.0),
+     ORIGIN.lon_deg + math.degrees(800.0 / (6371000.0 * math.cos(math.radians(ORIGIN.lat_deg)))), ORIGIN.alt_m,
+     "from origin"),
 ])
 def test_a_home_out_of_range_is_denied_with_a_reason_and_the_home_kept(rig, lat, lon, alt, text):
     rig.start()
@@ -150,7 +186,7 @@ def test_a_home_out_of_range_is_denied_with_a_reason_and_the_home_kept(rig, lat,
     (math.nan, 0, 0, 0, 0, 0, 0),
     (0, 0, 0, 0, math.nan, ORIGIN.lon_deg, ORIGIN.alt_m),
     (0, 0, 0, 0, ORIGIN.lat_deg, ORIGIN.lon_deg, math.inf),
-    (1, 0, 0, math.inf, 0, 0, 0),
+    (0, 0, 0, math.inf, ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m),
 ])
 def test_a_non_finite_set_home_is_a_bad_message(rig, params):
     rig.start()
