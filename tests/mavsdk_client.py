@@ -5,9 +5,9 @@
 Connects to ``URL`` (e.g. ``udpin://127.0.0.1:14541``), waits for the autopilot ``SYSID``, reads
 two parameters (a float and an int), sets the parameters named by ``--set-int``/``--set-float``
 and reads each back, subscribes to position, attitude, odometry and home telemetry until 5
-positions, 10 attitudes and a home came (at most ``--timeout`` seconds), reads the health flags
-and prints one JSON object with what it got. Exit code 0 when the system was discovered, 1
-otherwise.
+positions, 10 attitudes, a home and every health flag set came (at most ``--timeout`` seconds),
+reads the health flags and prints one JSON object with what it got. Exit code 0 when the system
+was discovered, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -106,10 +106,12 @@ def main() -> int:
         telemetry.subscribe_attitude_euler(record("attitude_euler"))
         telemetry.subscribe_odometry(record("odometry"))
         telemetry.subscribe_home(record("home"))
+        telemetry.subscribe_health_all_ok(record("health_all_ok"))  # (from SYS_STATUS, once a second)
         until = time.monotonic() + args.timeout
         while time.monotonic() < until:
             with lock:
-                if counts["position"] >= 5 and counts["attitude_euler"] >= 10 and counts["home"]:
+                if (counts["position"] >= 5 and counts["attitude_euler"] >= 10 and counts["home"]
+                        and last.get("health_all_ok")):
                     break
             time.sleep(0.05)
         health = telemetry.health()
