@@ -94,7 +94,8 @@ class CompanionConfig:
     ``mode``: ``dialect`` (SKELETON_LINK_STATE in, SKELETON_CORRECTION out) or ``standard``
     (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_NED).
     ``targets``: ``trajectory`` forwards the ``[trajectory]`` as pose targets, ``none`` sends
-    none. ``arm``: arm every link once all report a usable EKF.
+    none. ``arm``: arm every link once all report a usable EKF (SITL: refused with a link on a
+    serial port, a real flight controller, whose arming is the pilot's).
     ``time_base``: ``flight_controller`` (the links' EKF stamps share one clock: SITL) or ``gps``
     (real Pixhawks: each link's boot clock is mapped to GPS time through its SYSTEM_TIME).
     ``omega_std_rad_s``: the noise (std per axis) of the body rates the links report, the
@@ -208,6 +209,11 @@ class CompanionConfig:
         ids = [link.system_id for link in self.links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"links: system ids must be distinct, got {ids}")
+        serial = [link.url for link in self.links if link.url.startswith("serial://")]
+        if self.arm and serial:
+            raise ValueError(f"arm = true with flight controllers on serial links ({serial[0]}, ...): the companion would "
+                             "arm real vehicles, and arm them again after the pilot disarms; set arm = false (the "
+                             "pilot arms; arming from the companion is for SITL)")
 
     @property
     def carry_silence_cap_s(self) -> float:

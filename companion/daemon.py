@@ -73,7 +73,7 @@ from .mavlink.port import MavlinkPort
 from .mavlink.standard import decode_odometry, encode_attitude_target, encode_odometry, encode_position_target
 from .mavlink.tlog import TlogWriter
 from .mavlink.transport import wait_readable
-from .messages import STATE_FLAG_EKF_OK, MessageError
+from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, MessageError
 
 __all__ = ["CompanionDaemon", "COMPANION_SYSTEM_ID", "COMPANION_COMPONENT_ID", "format_health_table"]
 
@@ -172,6 +172,8 @@ class CompanionDaemon:
         #: (time base [s], link, severity, text), the newest MAX_RECORDED of each
         self.health_log: deque = deque(maxlen=MAX_RECORDED)
         self.statustext_log: deque = deque(maxlen=MAX_RECORDED)
+        #: each link's armed state as its autopilot's HEARTBEAT says (standard mode: ODOMETRY has none)
+        self._armed = [False] * len(self.engine.links)
 
     def _group_link(self, setup: CompanionSetup, group: int, bus, config_file: str):
         from .fleetnet.group import GroupLink
@@ -263,6 +265,8 @@ class CompanionDaemon:
             port.stats.ignored += 1
             return
         if kind == "HEARTBEAT":
+            if msg.autopilot != D.MAV_AUTOPILOT_INVALID:  # (the autopilot's, not a camera's or a gimbal's)
+                self._armed[row] = bool(msg.base_mode & D.MAV_MODE_FLAG_SAFETY_ARMED)
             engine.on_heartbeat(row, now_s)
         elif kind == "COMMAND_ACK":
             command = _ACK_COMMANDS.get(msg.command)
@@ -287,7 +291,10 @@ class CompanionDaemon:
                 state = decode_link_state(msg, index)
                 reported = (msg.flags, now_s, msg.correction_seq, msg.correction_latency_us)
             else:
-                state, reported = decode_odometry(msg, index), (STATE_FLAG_EKF_OK, now_s)
+                # a stock autopilot's EKF output, armed or not as its heartbeat says (a companion
+                # that arms links stops at an armed one, as with the dialect's flags)
+                flags = STATE_FLAG_EKF_OK | (STATE_FLAG_ARMED if self._armed[row] else 0)
+                state, reported = decode_odometry(msg, index), (flags, now_s)
         except MessageError as exc:
             engine.on_rejected(row, msg.get_type(), str(exc))
             return
@@ -314,10 +321,13 @@ class CompanionDaemon:
                                                    estimator_type=D.MAV_ESTIMATOR_TYPE_VISION, rates_known=False))
             elif isinstance(out, TargetOut):
                 boot_ms = out.time_us // 1000
-                if self.cfg.mode == "dialect":  # stock PX4 knows no SKELETON_TARGET_FEEDFORWARD
-                    queue(out.row, encode_target_feedforward(out.target, boot_ms, out.system_id))
-                queue(out.row, encode_position_target(out.target, boot_ms, out.system_id),
-                      encode_attitude_target(out.target, boot_ms, out.system_id))
+                if self.cfg.mode == "dialect":
+                    queue(out.row, encode_target_feedforward(out.target, boot_ms, out.system_id),
+                          encode_position_target(out.target, boot_ms, out.system_id),
+                          encode_attitude_target(out.target, boot_ms, out.system_id))
+                else:  # stock PX4: the position target and its heading (its SET_ATTITUDE_TARGET would
+                    # be an attitude setpoint with its own thrust, and it knows no feed-forward)
+                    queue(out.row, encode_position_target(out.target, boot_ms, out.system_id, yaw=True))
             elif isinstance(out, CommandOut):
                 queue(out.row, self._command(out))
             elif isinstance(out, Heartbeat):

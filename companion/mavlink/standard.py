@@ -40,6 +40,7 @@ __all__ = [
     "encode_vision_position_estimate",
     "euler_zyx",
     "encode_position_target",
+    "decode_position_target_yaw",
     "decode_position_target",
     "encode_attitude_target",
     "decode_attitude_target",
@@ -56,6 +57,10 @@ RATE_VARIANCE = 1e-4
 #: SET_POSITION_TARGET_LOCAL_NED type_mask: position, velocity and acceleration used; yaw and
 #: yaw rate ignored (the attitude comes with SET_ATTITUDE_TARGET).
 POSITION_TARGET_MASK = 0b0000_1100_0000_0000
+#: ... and with yaw and yaw rate used: the whole target a stock PX4 takes (standard mode)
+POSITION_YAW_TARGET_MASK = 0
+_MASK_YAW = 0b0100_0000_0000
+_MASK_YAW_RATE = 0b1000_0000_0000
 _MASK_VEL = 0b0000_0011_1000
 _MASK_ACC = 0b0001_1100_0000
 _MASK_RATES = 0b0000_0111
@@ -72,32 +77,53 @@ def _upper6(M: np.ndarray) -> list[float]:
     return np.asarray(M, dtype=float)[UPPER_6].tolist()
 
 
-def _full6(values, name: str) -> np.ndarray:
-    M = np.zeros((6, 6))
-    M[UPPER_6] = np.asarray(values, dtype=float)
-    M = M + np.triu(M, 1).T
-    if not np.isfinite(M).all():
+#: ODOMETRY's covariance triangles: where each diagonal element is (row-major upper triangle)
+DIAG_6 = np.flatnonzero(UPPER_6[0] == UPPER_6[1])
+
+
+def _full6(values, name: str, needed: int = 6) -> np.ndarray:
+    """The 6x6 covariance of an ODOMETRY triangle. Unknown (MessageError): a NaN first element
+    (MAVLink's rule), or one of the first ``needed`` variances not finite. A NaN elsewhere is a
+    term the sender does not estimate, taken as zero: PX4 fills the diagonal only, NaN off it and
+    for the body rates' variances."""
+    a = np.asarray(values, dtype=float)
+    if not (np.isfinite(a[DIAG_6[:needed]]).all() and not np.isinf(a).any()):
         raise MessageError(f"{name}: covariance unknown (NaN)")
-    return M
+    M = np.zeros((6, 6))
+    M[UPPER_6] = np.where(np.isnan(a), 0.0, a)
+    return M + np.triu(M, 1).T
 
 
-def encode_odometry(state: LinkState, time_usec: int, *, estimator_type: int, rates_known: bool = True):
+def encode_odometry(state: LinkState, time_usec: int, *, estimator_type: int, rates_known: bool = True,
+                    px4: bool = False):
     """ODOMETRY of a :class:`LinkState` (world ENU / body FLU inside, LOCAL_NED / BODY_FRD out).
 
     The attitude block of the 9x9 covariance is the world-frame small-angle error covariance,
     sent as the roll/pitch/yaw covariance (exact for small errors near level). ``rates_known =
-    False`` sends NaN body rates (external vision has none)."""
+    False`` sends NaN body rates (external vision has none). ``px4``: as PX4's EKF2 publishes it
+    (its ODOMETRY stream): the velocity in LOCAL_NED (``child_frame_id``), the variances only, NaN
+    off the diagonal and for the body rates."""
     P = error_cov_enu_ned(state.P)
     q = quat_enu_flu_to_ned_frd(state.q_wxyz)
     R = quat_to_rotmat(q)
-    v_body = R.T @ enu_ned(state.v_w_m_s)
-    vel_cov = np.zeros((6, 6))
-    vel_cov[:3, :3] = R.T @ P[ERR_V, ERR_V] @ R
-    vel_cov[3:, 3:] = np.eye(3) * RATE_VARIANCE
     rates = flu_frd(state.omega_b_rad_s).tolist() if rates_known else [math.nan] * 3
+    pose_cov = _upper6(P[np.ix_(POSE_ROWS, POSE_ROWS)])
+    if px4:
+        velocity, child = enu_ned(state.v_w_m_s), _D.MAV_FRAME_LOCAL_NED
+        diag = np.full(21, math.nan)
+        pose_cov, vel_cov = diag.copy(), diag.copy()
+        pose_cov[DIAG_6] = np.diag(P[np.ix_(POSE_ROWS, POSE_ROWS)])
+        vel_cov[DIAG_6[:3]] = np.diag(P[ERR_V, ERR_V])
+        pose_cov, vel_cov = pose_cov.tolist(), vel_cov.tolist()
+    else:
+        velocity, child = R.T @ enu_ned(state.v_w_m_s), _D.MAV_FRAME_BODY_FRD
+        vel = np.zeros((6, 6))
+        vel[:3, :3] = R.T @ P[ERR_V, ERR_V] @ R
+        vel[3:, 3:] = np.eye(3) * RATE_VARIANCE
+        vel_cov = _upper6(vel)
     return _D.MAVLink_odometry_message(
-        time_usec, _D.MAV_FRAME_LOCAL_NED, _D.MAV_FRAME_BODY_FRD, *enu_ned(state.p_w_m).tolist(), q.tolist(),
-        *v_body.tolist(), *rates, _upper6(P[np.ix_(POSE_ROWS, POSE_ROWS)]), _upper6(vel_cov), 0, estimator_type, 100,
+        time_usec, _D.MAV_FRAME_LOCAL_NED, child, *enu_ned(state.p_w_m).tolist(), q.tolist(),
+        *velocity.tolist(), *rates, pose_cov, vel_cov, 0, estimator_type, 100,
     )
 
 
@@ -113,35 +139,42 @@ class ExternalPose:
 
 
 def _odometry_kinematics(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(p, v, q, omega)`` in ENU / FLU, validated (frame ids, finite values, unit quaternion)."""
+    """``(p, v, q, omega)`` in ENU / FLU, validated (frame ids, finite values, unit quaternion).
+    The velocity comes in the body frame (``child_frame_id`` MAV_FRAME_BODY_FRD) or in the local
+    one (MAV_FRAME_LOCAL_NED: PX4's EKF2 output)."""
     if msg.frame_id != _D.MAV_FRAME_LOCAL_NED:
         raise MessageError(f"ODOMETRY.frame_id: {msg.frame_id} (expected MAV_FRAME_LOCAL_NED, {_D.MAV_FRAME_LOCAL_NED})")
-    if msg.child_frame_id != _D.MAV_FRAME_BODY_FRD:
+    if msg.child_frame_id not in (_D.MAV_FRAME_BODY_FRD, _D.MAV_FRAME_LOCAL_NED):
         raise MessageError(f"ODOMETRY.child_frame_id: {msg.child_frame_id} (expected MAV_FRAME_BODY_FRD, "
-                           f"{_D.MAV_FRAME_BODY_FRD})")
+                           f"{_D.MAV_FRAME_BODY_FRD}, or MAV_FRAME_LOCAL_NED, {_D.MAV_FRAME_LOCAL_NED})")
     p = check_finite("ODOMETRY.x/y/z", (msg.x, msg.y, msg.z))
-    v_body = check_finite("ODOMETRY.vx/vy/vz", (msg.vx, msg.vy, msg.vz))
+    v = check_finite("ODOMETRY.vx/vy/vz", (msg.vx, msg.vy, msg.vz))
     q = check_unit_quat("ODOMETRY.q", msg.q)
     rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
-    R = quat_to_rotmat(q)
-    return enu_ned(p), enu_ned(R @ v_body), quat_ned_frd_to_enu_flu(q), flu_frd(rates)
+    if msg.child_frame_id == _D.MAV_FRAME_BODY_FRD:
+        v = quat_to_rotmat(q) @ v
+    return enu_ned(p), enu_ned(v), quat_ned_frd_to_enu_flu(q), flu_frd(rates)
 
 
 def decode_odometry(msg, link: int) -> LinkState:
     """A stock autopilot's ODOMETRY as a :class:`LinkState` of 0-based ``link``.
 
     The 9x9 covariance is assembled from the pose covariance (position and attitude) and the
-    body-frame velocity covariance rotated to the local frame; ODOMETRY does not carry the
-    position-velocity cross terms, so they are zero."""
+    velocity covariance (rotated to the local frame when it is the body frame's); ODOMETRY does
+    not carry the position-velocity cross terms, so they are zero, and a term the sender leaves
+    NaN (PX4: everything off the diagonal, the rates' variances) is zero too."""
     p, v, q, w = _odometry_kinematics(msg)
     if not np.isfinite(w).all():
         raise MessageError("ODOMETRY.rollspeed/pitchspeed/yawspeed: non-finite value")
     pose = _full6(msg.pose_covariance, "ODOMETRY.pose_covariance")
-    vel = _full6(msg.velocity_covariance, "ODOMETRY.velocity_covariance")
-    R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
+    vel = _full6(msg.velocity_covariance, "ODOMETRY.velocity_covariance", needed=3)
     P = np.zeros((9, 9))
     P[np.ix_(POSE_ROWS, POSE_ROWS)] = pose
-    P[ERR_V, ERR_V] = R @ vel[:3, :3] @ R.T
+    if msg.child_frame_id == _D.MAV_FRAME_BODY_FRD:
+        R = quat_to_rotmat(quat_enu_flu_to_ned_frd(q))
+        P[ERR_V, ERR_V] = R @ vel[:3, :3] @ R.T
+    else:
+        P[ERR_V, ERR_V] = vel[:3, :3]
     P = check_pd("ODOMETRY covariance", error_cov_enu_ned(P))
     return LinkState(link, msg.time_usec * 1e-6, p, v, q, w, P)
 
@@ -178,17 +211,27 @@ def encode_vision_position_estimate(state: LinkState, time_usec: int):
                                                        _upper6(P[np.ix_(POSE_ROWS, POSE_ROWS)]), 0)
 
 
-def encode_position_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):
-    """SET_POSITION_TARGET_LOCAL_NED: position, velocity and acceleration of ``target``."""
+def encode_position_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1,
+                           yaw: bool = False):
+    """SET_POSITION_TARGET_LOCAL_NED: position, velocity and acceleration of ``target``; with
+    ``yaw``, its heading and heading rate too (NED yaw of the target attitude, and the rate about
+    the down axis of its angular velocity): all a stock PX4 takes beside a position, since a
+    SET_ATTITUDE_TARGET in offboard mode is an attitude setpoint with its own thrust."""
+    yaw_ned = yaw_rate = 0.0
+    if yaw:
+        yaw_ned = euler_zyx(quat_enu_flu_to_ned_frd(target.q_wxyz))[2]
+        yaw_rate = -float((target.R_d @ np.asarray(target.omega_d_rad_s, dtype=float))[2])  # (ENU up -> NED down)
     return _D.MAVLink_set_position_target_local_ned_message(
-        time_boot_ms & 0xFFFFFFFF, target_system, target_component, _D.MAV_FRAME_LOCAL_NED, POSITION_TARGET_MASK,
+        time_boot_ms & 0xFFFFFFFF, target_system, target_component, _D.MAV_FRAME_LOCAL_NED,
+        POSITION_YAW_TARGET_MASK if yaw else POSITION_TARGET_MASK,
         *enu_ned(target.p_w_m).tolist(), *enu_ned(target.v_w_m_s).tolist(), *enu_ned(target.a_w_m_s2).tolist(),
-        0.0, 0.0)
+        yaw_ned, yaw_rate)
 
 
 def decode_position_target(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(p, v, a)`` ENU of a SET_POSITION_TARGET_LOCAL_NED (masked-out velocity or acceleration: 0);
-    :class:`MessageError` on a non-finite value or one beyond its ``TARGET_*_LIMIT``, masked or not."""
+    :class:`MessageError` on a non-finite value or one beyond its ``TARGET_*_LIMIT``, masked or not.
+    Its heading: :func:`decode_position_target_yaw`."""
     if msg.coordinate_frame != _D.MAV_FRAME_LOCAL_NED:
         raise MessageError(f"SET_POSITION_TARGET_LOCAL_NED.coordinate_frame: {msg.coordinate_frame} (LOCAL_NED only)")
     name = "SET_POSITION_TARGET_LOCAL_NED"
@@ -198,6 +241,17 @@ def decode_position_target(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mask = msg.type_mask
     return (enu_ned(p), enu_ned(v) if not mask & _MASK_VEL else np.zeros(3),
             enu_ned(a) if not mask & _MASK_ACC else np.zeros(3))
+
+
+def decode_position_target_yaw(msg) -> tuple[float, float] | None:
+    """``(yaw, yaw rate)`` NED of a SET_POSITION_TARGET_LOCAL_NED whose yaw is not masked out (a
+    masked yaw rate: 0), else ``None``; :class:`MessageError` on a non-finite one, or a rate beyond
+    ``TARGET_RATE_LIMIT_RAD_S``."""
+    if msg.type_mask & _MASK_YAW:
+        return None
+    yaw = float(check_finite("SET_POSITION_TARGET_LOCAL_NED.yaw", (msg.yaw,))[0])
+    rate = float(check_bounded("SET_POSITION_TARGET_LOCAL_NED.yaw_rate", (msg.yaw_rate,), TARGET_RATE_LIMIT_RAD_S)[0])
+    return yaw, 0.0 if msg.type_mask & _MASK_YAW_RATE else rate
 
 
 def encode_attitude_target(target: PoseTarget, time_boot_ms: int, target_system: int, target_component: int = 1):

@@ -1,6 +1,8 @@
 """The firmware's pose target from the companion's (or an operator's) messages:
 SET_POSITION_TARGET_LOCAL_NED, SET_ATTITUDE_TARGET and SKELETON_TARGET_FEEDFORWARD, the last
-applied to the position target of the same ``time_boot_ms``.
+applied to the position target of the same ``time_boot_ms``. A position target that carries a
+heading (its yaw not masked out, as a stock PX4's offboard setpoints do) and no attitude target
+with it: level at that heading, turning at its yaw rate.
 
 The messages of one read of a link make one target (:meth:`TargetMessages.apply`, after the read),
 so the companion's three in one datagram reach the firmware as one target (under PSPM, one set
@@ -14,7 +16,9 @@ import logging
 import numpy as np
 
 from companion.mavlink.codec import MessageError, decode_target_feedforward
-from companion.mavlink.standard import decode_attitude_target, decode_position_target
+from companion.estimation.so3 import quat_from_euler_zyx
+from companion.mavlink.frames import flu_frd, quat_ned_frd_to_enu_flu
+from companion.mavlink.standard import decode_attitude_target, decode_position_target, decode_position_target_yaw
 from companion.messages import PoseTarget
 
 __all__ = ["FEEDFORWARD_HOLD_MS", "TargetMessages"]
@@ -37,16 +41,19 @@ class TargetMessages:
         self.feedforward: tuple | None = None  # (time_boot_ms, omega_dot FLU, force ENU, torque FLU)
         self._ff_applied: tuple | None = None  # the newest one that met its position target
         self.attitude: tuple | None = None  # (q ENU/FLU, omega FLU)
+        self.heading: tuple | None = None  # (yaw, yaw rate) NED of the newest position target, when it had one
         #: a target message came: :meth:`apply` after the link's read
         self.due = False
 
     def on_position_target(self, msg) -> None:
-        self.position = decode_position_target(msg)
+        position, heading = decode_position_target(msg), decode_position_target_yaw(msg)
+        self.position, self.heading = position, heading
         self.position_ms = msg.time_boot_ms
         self.due = True
 
     def on_attitude_target(self, msg) -> None:
         self.attitude = decode_attitude_target(msg)
+        self.heading = None  # (an attitude target is the whole attitude)
         self.due = True
 
     def on_feedforward(self, msg) -> None:
@@ -76,7 +83,11 @@ class TargetMessages:
         else:
             p_now, q_now = np.zeros(3), np.array([1.0, 0, 0, 0])
         p, vel, a = self.position if self.position is not None else (p_now, np.zeros(3), np.zeros(3))
-        q, w = self.attitude if self.attitude is not None else (q_now, np.zeros(3))
+        if self.heading is not None:  # level at the position target's heading
+            yaw, rate = self.heading
+            q, w = quat_ned_frd_to_enu_flu(quat_from_euler_zyx(yaw, 0.0, 0.0)), flu_frd(np.array([0.0, 0.0, rate]))
+        else:
+            q, w = self.attitude if self.attitude is not None else (q_now, np.zeros(3))
         # The rest of the target (angular acceleration, whole-chain feed-forward) comes in its own
         # message stamped with its position target's time_boot_ms: it applies to that position
         # target and, while the next one's is still to come or was lost on the wire, to the

@@ -23,7 +23,7 @@ from companion.fleetnet.certs import new_fleet_certs
 from companion.fleetnet.config import new_users_file
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.standard import encode_odometry
-from companion.messages import STATE_FLAG_EKF_OK, LinkState
+from companion.messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, LinkState
 from companion.skeleton.body import SkeletonConfig
 from companion.trajectory import TrajectoryConfig
 
@@ -187,6 +187,45 @@ def test_standard_mode_reads_odometry_and_answers_with_vision_odometry(tmp_path)
         assert not fleet.take(1, "SKELETON_CORRECTION")
     finally:
         fleet.close()
+
+
+def test_standard_mode_with_a_stock_px4s_odometry_heartbeat_and_setpoints(tmp_path):
+    """A stock PX4 as it speaks: ODOMETRY in its own form (velocity in LOCAL_NED, variances only,
+    NaN elsewhere) is read; its HEARTBEAT says whether it is armed, so a companion that arms links
+    (SITL) stops at an armed one; its targets are SET_POSITION_TARGET_LOCAL_NED with the heading
+    and no SET_ATTITUDE_TARGET (an attitude setpoint with a thrust of its own on PX4)."""
+    fleet = Fleet(tmp_path, n=2, mode="standard")
+    try:
+        armed = D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | D.MAV_MODE_FLAG_SAFETY_ARMED
+        for fc in fleet.fcs:  # link 2 armed (by its pilot), link 1 not
+            base = armed if fc.mav.srcSystem == 2 else D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            fc.send(D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_PX4, base, 0, 3, 3))
+        for k in range(3):
+            for i, fc in enumerate(fleet.fcs):
+                st = fleet.state(i, 0.02 * k, dx=0.1 if i else 0.0)
+                fc.send(encode_odometry(st, int(round(st.time_s * 1e6)), estimator_type=D.MAV_ESTIMATOR_TYPE_AUTOPILOT,
+                                        px4=True))
+            fleet.pump()
+        links = fleet.daemon.engine.links
+        assert [lk.rejected for lk in links] == [0, 0] and all(lk.state is not None for lk in links)
+        assert [bool(lk.flags & STATE_FLAG_ARMED) for lk in links] == [False, True]
+        assert fleet.take(1, "ODOMETRY")  # its corrections, as external vision
+        arms = [[m for m in fleet.take(i, "COMMAND_LONG") if m.command == D.MAV_CMD_COMPONENT_ARM_DISARM]
+                for i in range(2)]
+        assert arms[0] and not arms[1]  # (the default arm = true of a SITL config)
+        targets = fleet.take(1, "SET_POSITION_TARGET_LOCAL_NED")
+        assert targets and targets[-1].type_mask == 0  # position, velocity, acceleration, yaw and its rate
+        assert targets[-1].yaw == pytest.approx(math.pi / 2, abs=1e-6)  # ENU yaw 0: facing east
+        assert not fleet.take(1, "SET_ATTITUDE_TARGET") and not fleet.take(1, "SKELETON_TARGET_FEEDFORWARD")
+    finally:
+        fleet.close()
+
+
+def test_arming_real_flight_controllers_is_refused():
+    serial = (LinkEndpoint(1, "serial:///dev/ttyACM0:921600"), LinkEndpoint(2, "udpin://127.0.0.1:14541"))
+    with pytest.raises(ValueError, match="arm = true with flight controllers on serial links"):
+        CompanionConfig(links=serial, arm=True)
+    assert not CompanionConfig(links=serial, arm=False).arm
 
 
 @pytest.mark.parametrize("name, n", [("three_link_rpi", 3), ("seven_link_rpi", 7)])

@@ -212,6 +212,29 @@ def test_targets_from_mavlink_and_stale_target_hold(rig):
     assert hold is not target and np.linalg.norm(hold.p_w_m - [2.0, 1.0, 3.0]) > 0.5
 
 
+@pytest.mark.parametrize("yaw_ned_deg", [0.0, 90.0, -135.0])
+def test_a_position_target_with_a_heading_is_flown_level_at_that_heading(rig, yaw_ned_deg):
+    """As a stock PX4's offboard setpoint (what a standard-mode companion sends): the yaw and yaw
+    rate of SET_POSITION_TARGET_LOCAL_NED make the attitude target, level; a later attitude target
+    is the whole attitude again."""
+    rig.start()
+    rig.vehicle.fw.arm(rig.t)
+    yaw = math.radians(yaw_ned_deg)
+    rig.gcs_send(D.MAVLink_set_position_target_local_ned_message(0, 2, 1, D.MAV_FRAME_LOCAL_NED, 0, 1.0, 2.0, -3.0,
+                                                                  0, 0, 0, 0, 0, 0, yaw, 0.2))
+    rig.gcs_collect(0.02)
+    target = rig.vehicle.fw.target
+    R = quat_to_rotmat(target.q_wxyz)
+    np.testing.assert_allclose(R[:, 2], [0.0, 0.0, 1.0], atol=1e-9)  # level
+    off = math.atan2(R[1, 0], R[0, 0]) - (math.pi / 2 - yaw)  # from the ENU yaw of that heading (float32 on the wire)
+    assert math.remainder(off, 2.0 * math.pi) == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(target.omega_d_rad_s, [0.0, 0.0, -0.2], atol=1e-9)  # NED yaw rate: about up, negated
+    q = quat_from_euler_zyx(0.3, 0.0, 0.0)
+    rig.gcs_send(encode_attitude_target(PoseTarget.hold(np.zeros(3), q), 0, 2))
+    rig.gcs_collect(0.02)
+    np.testing.assert_allclose(rig.vehicle.fw.target.q_wxyz, q, atol=1e-6)
+
+
 def test_the_feedforward_holds_over_a_lost_message_for_a_while(rig):
     """SKELETON_TARGET_FEEDFORWARD applies to the position target of its time_boot_ms, whichever
     comes first (the companion sends it first: until its position target comes the last one

@@ -12,7 +12,7 @@ from companion.estimation.chain import ERR_P, ERR_TH, ERR_V
 from companion.estimation.so3 import attitude_error, quat_normalize, quat_to_rotmat
 from companion.mavlink.codec import decode_target_feedforward, encode_target_feedforward
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.frames import enu_ned
+from companion.mavlink.frames import enu_ned, error_cov_enu_ned
 from companion.mavlink.standard import (
     decode_attitude_target,
     decode_external_pose,
@@ -60,6 +60,43 @@ def test_odometry_round_trip(seed):
     np.testing.assert_allclose(attitude_error(got.q_wxyz, st.q_wxyz), 0.0, atol=1e-6)
     np.testing.assert_allclose(got.omega_b_rad_s, st.omega_b_rad_s, atol=1e-5)
     np.testing.assert_allclose(got.P, st.P, atol=1e-5 * np.abs(st.P).max())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_odometry_as_px4_publishes_it_is_read(seed):
+    """PX4's EKF2 ODOMETRY (its mavlink ODOMETRY stream): velocity in LOCAL_NED, the variances on
+    the diagonals and NaN everywhere else, the rates' variances included. Read with the
+    off-diagonal terms zero, nothing refused."""
+    rng = np.random.default_rng(seed)
+    st = random_state(rng)
+    msg = wire(encode_odometry(st, 12_500_000, estimator_type=D.MAV_ESTIMATOR_TYPE_AUTOPILOT, px4=True))
+    assert msg.child_frame_id == D.MAV_FRAME_LOCAL_NED
+    assert np.isnan(msg.pose_covariance[1]) and np.isnan(msg.velocity_covariance[15])
+    assert msg.pose_covariance[0] == pytest.approx(error_cov_enu_ned(st.P)[0, 0], rel=1e-6)
+    np.testing.assert_allclose((msg.vx, msg.vy, msg.vz), enu_ned(st.v_w_m_s), atol=1e-5)  # NED, not body
+    got = decode_odometry(msg, 2)
+    np.testing.assert_allclose(got.v_w_m_s, st.v_w_m_s, atol=1e-5)
+    # the variances of the state (in NED on the wire), nothing else: the frame change of a
+    # diagonal covariance is diagonal (a signed permutation, its own inverse)
+    expected = error_cov_enu_ned(np.diag(np.diag(error_cov_enu_ned(st.P))))
+    np.testing.assert_allclose(got.P, expected, rtol=1e-5, atol=1e-12)
+    assert np.count_nonzero(got.P - np.diag(np.diag(got.P))) == 0
+
+
+@pytest.mark.parametrize("where, value, match", [
+    ("pose", (0, math.nan), "covariance unknown"),  # MAVLink: a NaN first element is unknown
+    ("pose", (15, math.nan), "covariance unknown"),  # a variance the state needs (roll)
+    ("velocity", (6, math.nan), "covariance unknown"),
+    ("pose", (1, math.inf), "covariance unknown"),  # an infinity is never a term left out
+])
+def test_an_odometry_covariance_without_a_needed_variance_is_refused(where, value, match):
+    rng = np.random.default_rng(4)
+    msg = encode_odometry(random_state(rng), 0, estimator_type=D.MAV_ESTIMATOR_TYPE_AUTOPILOT, px4=True)
+    cov = list(getattr(msg, f"{where}_covariance"))
+    cov[value[0]] = value[1]
+    setattr(msg, f"{where}_covariance", cov)
+    with pytest.raises(MessageError, match=match):
+        decode_odometry(msg, 0)
 
 
 def test_external_vision_odometry_and_vision_position_estimate_give_the_same_pose():

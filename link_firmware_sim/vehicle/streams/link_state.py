@@ -20,6 +20,7 @@ def link_state(v):
 
 
 def odometry(v):
-    """Raw EKF output with covariance (standard messages: what a stock PX4 publishes)."""
+    """Raw EKF output with its variances, as a stock PX4 publishes it (standard messages: velocity
+    in the local frame, the covariances' diagonals only)."""
     st = v.streams.report()
-    return encode_odometry(st, usec(st.time_s), estimator_type=D.MAV_ESTIMATOR_TYPE_NAIVE)
+    return encode_odometry(st, usec(st.time_s), estimator_type=D.MAV_ESTIMATOR_TYPE_AUTOPILOT, px4=True)
