@@ -111,7 +111,11 @@ class SigningConfig:
             return None
         if not self.key_file:
             raise ValueError("signing.key_file is needed when a link signs (create one: python -m companion keys new FILE)")
-        return load_key(self.key_file)
+        try:
+            return load_key(self.key_file)
+        except ValueError as exc:
+            raise ValueError(f"signing.key_file: {exc} (create one: python -m companion keys new "
+                             f"{self.key_file}; every computer of the fleet and every Pixhawk share it)") from None
 
 
 class Verdict(Enum):
