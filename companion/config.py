@@ -94,8 +94,9 @@ class CompanionConfig:
     ``mode``: ``dialect`` (SKELETON_LINK_STATE in, SKELETON_CORRECTION out) or ``standard``
     (stock PX4: ODOMETRY in, corrections as external-vision ODOMETRY in MAV_FRAME_LOCAL_NED).
     ``targets``: ``trajectory`` forwards the ``[trajectory]`` as pose targets, ``none`` sends
-    none. ``arm``: arm every link once all report a usable EKF (SITL: refused with a link on a
-    serial port, a real flight controller, whose arming is the pilot's).
+    none. ``arm``: arm every link once all report a usable EKF; off unless asked for (a SITL
+    scenario asks: :class:`sitl.scenario.Scenario`), and refused with a link on a serial port, a
+    real flight controller, whose arming is the pilot's.
     ``time_base``: ``flight_controller`` (the links' EKF stamps share one clock: SITL) or ``gps``
     (real Pixhawks: each link's boot clock is mapped to GPS time through its SYSTEM_TIME).
     ``omega_std_rad_s``: the noise (std per axis) of the body rates the links report, the
@@ -170,7 +171,7 @@ class CompanionConfig:
     targets: Literal["trajectory", "none"] = "trajectory"
     target_rate_hz: float = 50.0
     state_rate_hz: float = 50.0
-    arm: bool = True
+    arm: bool = False
     health_period_s: float = 5.0
     distributed: bool = False
     time_base: Literal["flight_controller", "gps"] = "flight_controller"

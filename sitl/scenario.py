@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.config import CompanionSetup, load_setup, project
+from companion.config import CompanionConfig, CompanionSetup, load_setup, project
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.firmware_config import FirmwareConfig
@@ -32,6 +32,7 @@ from .plant.start import StartPose
 
 __all__ = [
     "SensorConfig",
+    "SitlCompanionConfig",
     "WindConfig",
     "SimConfig",
     "LinkRebootFault",
@@ -325,6 +326,15 @@ class FaultConfig:
 
 
 @dataclass(frozen=True)
+class SitlCompanionConfig(CompanionConfig):
+    """A scenario's companion: as the daemon's (:class:`~companion.config.CompanionConfig`), but
+    arming the simulated links unless the scenario says ``arm = false``: a simulated chain takes
+    off by itself, a real one when its pilot arms it (the daemon's default)."""
+
+    arm: bool = True
+
+
+@dataclass(frozen=True)
 class Scenario(CompanionSetup, VehicleSetup):
     """A SITL scenario: the companion's sections (:class:`~companion.config.CompanionSetup`), the
     vehicles' (:class:`~link_firmware_sim.config.VehicleSetup`) and the simulator's own: the run
@@ -333,6 +343,7 @@ class Scenario(CompanionSetup, VehicleSetup):
     otherwise."""
 
     kind: Literal["chain"] = "chain"
+    companion: SitlCompanionConfig = field(default_factory=SitlCompanionConfig)
     duration_s: float = 30.0
     seed: int = 0
     start: StartPose = field(default_factory=StartPose)
@@ -377,11 +388,19 @@ class Scenario(CompanionSetup, VehicleSetup):
 
     def companion_setup(self) -> CompanionSetup:
         """The companion's part (what ``companion.toml`` of a fleet run holds)."""
-        return project(self, CompanionSetup)
+        return self._part(CompanionSetup)
 
     def vehicle_setup(self) -> VehicleSetup:
         """The vehicles' part (what ``link.toml`` of a fleet run holds)."""
-        return project(self, VehicleSetup)
+        return self._part(VehicleSetup)
+
+    def _part(self, cls: type):
+        """The ``cls`` part, its ``[companion]`` the daemon's config (``arm`` written out as the
+        scenario has it, whatever the daemon's default)."""
+        part = project(self, cls)
+        if any(f.name == "companion" for f in fields(cls)):
+            part = replace(part, companion=project(self.companion, CompanionConfig))
+        return part
 
 
 def with_options(scenario: Scenario, sckf: bool | None = None, selective_mapping: bool | None = None) -> Scenario:

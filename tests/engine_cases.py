@@ -21,7 +21,7 @@ def setup_for(n=3, groups=(), **companion) -> CompanionSetup:
     """A companion config: ``n`` links of 1 m, the paper's bending flight as targets."""
     links = tuple(LinkEndpoint(i + 1, f"udpin://127.0.0.1:{15000 + i}") for i in range(n))
     return CompanionSetup(name="engine_test", skeleton=SkeletonConfig(n_links=n),
-                          companion=CompanionConfig(links=links, groups=groups, **companion),
+                          companion=CompanionConfig(links=links, groups=groups, **{"arm": True, **companion}),
                           trajectory=TrajectoryConfig(kind="bend", takeoff_altitude_m=2.5, bend_start_s=20.0))
 
 

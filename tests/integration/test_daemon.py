@@ -39,7 +39,7 @@ class Fleet:
     def __init__(self, tmp_path, n=3, **companion):
         links = tuple(LinkEndpoint(i + 1, "udpin://127.0.0.1:0") for i in range(n))
         self.setup = CompanionSetup(name="daemon_test", skeleton=SkeletonConfig(n_links=n),
-                                    companion=CompanionConfig(links=links, **companion),
+                                    companion=CompanionConfig(links=links, **{"arm": True, **companion}),
                                     trajectory=TrajectoryConfig(kind="bend"))
         self.clock = FakeClock()
         self.daemon = CompanionDaemon(self.setup, tmp_path / "companion", clock=self.clock)
@@ -221,11 +221,18 @@ def test_standard_mode_with_a_stock_px4s_odometry_heartbeat_and_setpoints(tmp_pa
         fleet.close()
 
 
-def test_arming_real_flight_controllers_is_refused():
+def test_arming_real_flight_controllers_is_refused_and_off_unless_asked_for():
     serial = (LinkEndpoint(1, "serial:///dev/ttyACM0:921600"), LinkEndpoint(2, "udpin://127.0.0.1:14541"))
     with pytest.raises(ValueError, match="arm = true with flight controllers on serial links"):
         CompanionConfig(links=serial, arm=True)
     assert not CompanionConfig(links=serial, arm=False).arm
+    # a companion's config arms nothing unless it says so (a Pixhawk on Ethernet is a UDP link);
+    # a SITL scenario's companion arms its simulated links unless it says not to
+    assert not CompanionConfig().arm and not CompanionConfig(links=serial[1:]).arm
+    from sitl.scenario import load_scenario
+
+    assert load_scenario(ROOT / "configs" / "sitl" / "chain" / "three_link.toml").companion.arm
+    assert not load_scenario(ROOT / "configs" / "sitl" / "chain" / "seven_link_static.toml").companion.arm
 
 
 @pytest.mark.parametrize("name, n", [("three_link_rpi", 3), ("seven_link_rpi", 7)])

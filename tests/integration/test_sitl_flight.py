@@ -19,8 +19,7 @@ from link_firmware_sim.firmware import FirmwareConfig, LinkFirmware
 from sitl.scenarios.chain.flight import fly
 from sitl.plant.start import StartPose
 from sitl.runner import BatchRunner
-from companion.config import CompanionConfig
-from sitl.scenario import Scenario, SensorConfig, load_scenario
+from sitl.scenario import Scenario, SensorConfig, SitlCompanionConfig, load_scenario
 from sitl.plant.sensors import PROFILES, LinkSensors
 from companion.trajectory import ChainTrajectory, TrajectoryConfig, planned_positions
 
@@ -169,7 +168,7 @@ def _single_link_scenario(**kw) -> Scenario:
         skeleton=SkeletonConfig(n_links=1),
         start=StartPose(center_w_m=(0.0, 0.0, 2.0), on_ground=False),
         sensors=SensorConfig(profile="ideal"),
-        companion=CompanionConfig(enabled=False),
+        companion=SitlCompanionConfig(enabled=False),
         trajectory=TrajectoryConfig(kind="hover", takeoff_start_s=0.0, takeoff_duration_s=3.0, takeoff_altitude_m=2.5,
                                     yaw_deg=30.0),
         **kw,

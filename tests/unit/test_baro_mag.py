@@ -285,15 +285,14 @@ def test_link_ekf_methods_agree_with_the_functions():
 
 
 def _hover_with_gps_outage(profile: str, seed: int):
-    from companion.config import CompanionConfig
     from companion.skeleton.body import SkeletonConfig
     from companion.trajectory import TrajectoryConfig
-    from sitl.scenario import FaultConfig, GpsFault, Scenario
+    from sitl.scenario import FaultConfig, GpsFault, Scenario, SitlCompanionConfig
     from sitl.plant.start import StartPose
 
     return Scenario(name="outage", duration_s=22.0, seed=seed, skeleton=SkeletonConfig(n_links=1),
                     start=StartPose(center_w_m=(0.0, 0.0, 2.0), on_ground=False),
-                    sensors=SensorConfig(profile=profile), companion=CompanionConfig(enabled=False),
+                    sensors=SensorConfig(profile=profile), companion=SitlCompanionConfig(enabled=False),
                     # 1.5 m above where it arms: out of the band where the firmware takes a low
                     # barometer for the rotors' ground effect (baro_ground_effect_height_m)
                     trajectory=TrajectoryConfig(kind="hover", takeoff_start_s=0.0, takeoff_duration_s=1.0,
