@@ -100,6 +100,7 @@ class Admission:
             return False
         if verdict is StampVerdict.REBASED:
             lk.reboots += 1
+            lk.was_armed = False  # (a new power-on: its rotors off until armed again)
             lk.readmit_cycles = READMIT_CYCLES
             log.warning("link %d: silent, then back on a new clock (%.3f s): rebooted; re-admitted after %d usable "
                         "cycles", lk.index + 1, stamp_us * 1e-6, READMIT_CYCLES)
@@ -113,8 +114,12 @@ class Admission:
             lk.correction_seq = correction_seq
             lk.latencies_ms.add(correction_latency_us * 1e-3)
             lk.latency_window_ms.append(correction_latency_us * 1e-3)
+        if lk.last_state_s is not None and now_s - lk.last_state_s >= self.cfg.carry_silence_s:
+            lk.was_armed = False  # (silent as long as a link the chain carries: it may have powered off and on)
         lk.flags = flags
         lk.disarmed_states = 0 if flags & STATE_FLAG_ARMED else lk.disarmed_states + 1
+        if flags & STATE_FLAG_ARMED:
+            lk.was_armed, lk.disarm_logged = True, False
         lk.state = state
         lk.states += 1
         if lk.loss is not None:

@@ -3,7 +3,10 @@
 * arming (``arm = true``) once a link reports a usable EKF, until it reports armed: retried every
   :data:`ARM_RETRY_S` for the first :data:`ARM_FAST_TRIES` commands, then each :data:`RETRY_S`
   (a link rebooted in flight has its rotors off until armed: one lost command must not cost a
-  second; a link that keeps refusing is not flooded);
+  second; a link that keeps refusing is not flooded). A link that reported armed and then
+  disarmed while it kept streaming was disarmed by someone (its pilot, a failsafe): it is not
+  armed again until its stream breaks off (``carry_silence_s`` of silence, or a new clock: it may
+  have powered off and on);
 * the state stream (SET_MESSAGE_INTERVAL) on a link's heartbeat, retried each :data:`RETRY_S`
   until acknowledged.
 """
@@ -63,6 +66,9 @@ class Arming:
             if lk.flags & STATE_FLAG_ARMED:
                 lk.arm_tries = 0
                 continue
+            if lk.was_armed and lk.flags & STATE_FLAG_EKF_OK and not lk.disarm_logged:
+                lk.disarm_logged = True
+                log.warning("link %d was disarmed (its pilot, a failsafe): not arming it again", lk.index + 1)
             if not self.due(lk, now_s):
                 continue
             self._emit(CommandOut(lk.row, lk.system_id, Command.ARM))
@@ -75,7 +81,8 @@ class Arming:
 
     @staticmethod
     def due(lk: LinkTrack, now_s: float) -> bool:
-        """A disarmed link with a healthy EKF whose last ARM was sent its retry interval ago."""
-        if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK:
+        """A disarmed link with a healthy EKF whose last ARM was sent its retry interval ago, and
+        that nobody disarmed since it powered on."""
+        if lk.flags & STATE_FLAG_ARMED or not lk.flags & STATE_FLAG_EKF_OK or lk.was_armed:
             return False
         return now_s - lk.arm_sent_s >= (ARM_RETRY_S if lk.arm_tries < ARM_FAST_TRIES else RETRY_S)

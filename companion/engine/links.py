@@ -76,6 +76,11 @@ class LinkTrack:
     arm_sent_s: float = -np.inf
     arm_tries: int = 0  # ARM commands since the link last reported armed
     armed_ack: bool = False
+    #: it reported armed since its stream last broke off (a silence of ``carry_silence_s``, or a new
+    #: clock: it may have powered off and on): disarmed after that, someone disarmed it (its pilot,
+    #: a failsafe) while it kept streaming
+    was_armed: bool = False
+    disarm_logged: bool = False
     stream_sent_s: float = -np.inf
     stream_acked: bool = False
     correction_seq: int = -1

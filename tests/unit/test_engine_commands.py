@@ -36,6 +36,29 @@ def test_heartbeat_each_second_and_health_each_period():
     assert beats == 13 and health == 2
 
 
+def test_a_link_disarmed_while_it_streams_is_not_armed_again_until_it_powers_on_again(caplog):
+    """Its pilot or a failsafe disarmed it (its stream never broke off): the companion leaves it
+    disarmed and says so once; silent as long as a carried link, then back disarmed, it may have
+    powered off and on (a reboot in flight): armed again."""
+    engine = CompanionEngine(setup_for())
+    dt = 0.02  # the state stream's period
+
+    def arms(t, flags=STATE_FLAG_EKF_OK):
+        return [a.row for a in of(CommandOut, feed(engine, t, t, flags=flags)) if a.command is Command.ARM]
+
+    assert arms(0.0) == [0, 1, 2]
+    t = 0.0
+    for _ in range(5):
+        t += dt
+        arms(t, flags=STATE_FLAG_EKF_OK | STATE_FLAG_ARMED)
+    for _ in range(int(3 * RETRY_S / dt)):  # disarmed, streaming on: three seconds of no ARM
+        t += dt
+        assert arms(t) == []
+    assert caplog.text.count("was disarmed (its pilot, a failsafe): not arming it again") == 3  # once a link
+    t += 2 * engine.cfg.carry_silence_s  # a silence, then back disarmed
+    assert arms(t) == [0, 1, 2]
+
+
 def test_arm_retries_until_the_link_reports_armed():
     """A disarmed link with a usable EKF (e.g. rebooted in flight, rotors off) is asked again every
     ARM_RETRY_S for the first ARM_FAST_TRIES commands (a lost command costs 0.2 s, not 1 s), then
