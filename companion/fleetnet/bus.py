@@ -105,19 +105,38 @@ def peer_config(listen: Sequence[str], connect: Sequence[str], credentials: Sequ
     return _insert(zenoh.Config(), settings + list(credentials))
 
 
-def open_group_session(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>"):
+#: how often a session whose listen address is not up yet is tried again [s]
+ADDRESS_RETRY_S = 1.0
+#: the error of a listen address no interface holds (yet): EADDRNOTAVAIL
+_NOT_UP = "Cannot assign requested address"
+
+
+def open_group_session(cfg: ZenohConfig, group: int, n_groups: int, file: str = "<config>",
+                       wait_s: float | None = None, clock=time.monotonic, sleep=time.sleep):
     """0-based ``group``'s companion session (:func:`zenoh_config`), the process's Zenoh runtime
     sized by ``cfg.runtime_threads`` first; :class:`~companion.configfile.ConfigError` if Zenoh
-    refuses to open it."""
+    refuses to open it. A listen address no interface holds yet (a computer whose network is
+    still coming up) is tried again every :data:`ADDRESS_RETRY_S`, saying so, for ``wait_s``
+    (``None``: until it is up, as a serial link waits for its device; Ctrl-C stops it)."""
     zc = zenoh_config(cfg, group, n_groups, file)
     runtime = cfg.runtime_env()
     if runtime is not None:
         # read when Zenoh starts its runtime, at the first session of the process
         os.environ.setdefault("ZENOH_RUNTIME", runtime)
-    try:
-        return zenoh.open(zc)
-    except Exception as exc:
-        raise ConfigError(file, "zenoh", f"cannot open the Zenoh session: {exc}") from None
+    start, said = clock(), -float("inf")
+    while True:
+        try:
+            return zenoh.open(zc)
+        except Exception as exc:
+            waited = clock() - start
+            if _NOT_UP not in str(exc) or (wait_s is not None and waited >= wait_s):
+                raise ConfigError(file, "zenoh.listen" if _NOT_UP in str(exc) else "zenoh",
+                                  f"cannot open the Zenoh session: {exc}") from None
+            if waited - said >= 10.0:
+                said = waited
+                log.warning("a zenoh.listen address is not up on this computer yet (%.0f s): trying again every "
+                            "%.0f s", waited, ADDRESS_RETRY_S)
+            sleep(ADDRESS_RETRY_S)
 
 
 class FleetBus:

@@ -322,3 +322,38 @@ def test_a_session_without_the_fleet_credentials_cannot_join(tmp_path):
             r.close()
         for bus in buses:
             bus.close()
+
+
+def test_a_listen_address_not_up_yet_is_tried_again_then_named(caplog):
+    """A group companion started before its computer's network is up (a Pi at boot): its listen
+    address is tried again every second, saying so, instead of the companion exiting; with a
+    limit, the error names zenoh.listen. Another error ends it at once."""
+    from companion.configfile import ConfigError
+    from companion.fleetnet.bus import ADDRESS_RETRY_S, open_group_session
+
+    clock = FakeClock()
+    sleeps = []
+
+    def sleep(s):
+        sleeps.append(s)
+        clock.t += s
+
+    port = free_ports(1)[0]
+    cfg = ZenohConfig(endpoints=(f"tcp/10.255.255.1:{port}",))  # an address no interface holds
+    with pytest.raises(ConfigError) as info:
+        open_group_session(cfg, 0, 1, "fleet.toml", wait_s=12.0, clock=clock, sleep=sleep)
+    assert info.value.key == "zenoh.listen" and "Cannot assign requested address" in info.value.reason
+    assert sleeps == [ADDRESS_RETRY_S] * 12 and "not up on this computer yet" in caplog.text
+    sleeps.clear()
+    import socket
+
+    taken = socket.socket()
+    try:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        busy = ZenohConfig(endpoints=(f"tcp/127.0.0.1:{taken.getsockname()[1]}",))
+        with pytest.raises(ConfigError) as info:  # another process's port: no retry
+            open_group_session(busy, 0, 1, "fleet.toml", wait_s=12.0, clock=clock, sleep=sleep)
+    finally:
+        taken.close()
+    assert info.value.key == "zenoh" and sleeps == []
