@@ -32,6 +32,8 @@ from .cli import LOG_FORMAT, make_run_dir, progress_bar, run_subcommand
 
 
 EXIT_BAD_INPUT = 2
+#: stopped with Ctrl-C before it ran (waiting for a Zenoh listen address to come up)
+EXIT_INTERRUPTED = 130
 
 
 def _cmd_replay(args) -> int:
@@ -87,6 +89,9 @@ def _cmd_daemon(args) -> int:
     except (PortError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted before the companion started", file=sys.stderr)
+        return EXIT_INTERRUPTED
     handler = logging.FileHandler(out_dir / "companion.log")
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     logging.getLogger().addHandler(handler)
