@@ -39,6 +39,7 @@ __all__ = [
     "decode_external_pose",
     "encode_vision_position_estimate",
     "euler_zyx",
+    "heading_ned",
     "encode_position_target",
     "decode_position_target_yaw",
     "decode_position_target",
@@ -203,6 +204,12 @@ def euler_zyx(q_wxyz) -> tuple[float, float, float]:
     return (math.atan2(R[2, 1], R[2, 2]), -math.asin(max(-1.0, min(1.0, R[2, 0]))), math.atan2(R[1, 0], R[0, 0]))
 
 
+def heading_ned(q_wxyz) -> float:
+    """The NED heading [rad, clockwise from north] of an ENU-world / FLU-body attitude: the yaw of
+    its body-FRD-to-NED quaternion."""
+    return euler_zyx(quat_enu_flu_to_ned_frd(q_wxyz))[2]
+
+
 def encode_vision_position_estimate(state: LinkState, time_usec: int):
     """VISION_POSITION_ESTIMATE of a corrected pose (its 9x9 covariance's pose block)."""
     q = quat_enu_flu_to_ned_frd(state.q_wxyz)
@@ -219,7 +226,7 @@ def encode_position_target(target: PoseTarget, time_boot_ms: int, target_system:
     SET_ATTITUDE_TARGET in offboard mode is an attitude setpoint with its own thrust."""
     yaw_ned = yaw_rate = 0.0
     if yaw:
-        yaw_ned = euler_zyx(quat_enu_flu_to_ned_frd(target.q_wxyz))[2]
+        yaw_ned = heading_ned(target.q_wxyz)
         yaw_rate = -float((target.R_d @ np.asarray(target.omega_d_rad_s, dtype=float))[2])  # (ENU up -> NED down)
     return _D.MAVLink_set_position_target_local_ned_message(
         time_boot_ms & 0xFFFFFFFF, target_system, target_component, _D.MAV_FRAME_LOCAL_NED,

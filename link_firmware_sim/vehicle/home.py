@@ -28,8 +28,7 @@ import numpy as np
 
 from companion.mavlink.codec import MessageError
 from companion.mavlink.dialect import load_dialect
-from companion.mavlink.frames import quat_enu_flu_to_ned_frd
-from companion.mavlink.standard import euler_zyx
+from companion.mavlink.standard import heading_ned
 
 from .links import Endpoint, statustext
 from .streams.position import home_position
@@ -80,7 +79,7 @@ class Home:
         if not v.fw.initialized:
             return False
         p, _, q = v.streams.estimate()
-        self.set(v, p, euler_zyx(quat_enu_flu_to_ned_frd(q))[2], why)
+        self.set(v, p, heading_ned(q), why)
         return True
 
     def on_tick(self, v) -> None:
@@ -142,6 +141,6 @@ def on_set_home(v, ep: Endpoint, msg, ack) -> None:
         ack(ep, msg, D.MAV_RESULT_DENIED)
         return
     if heading is None:  # (the vehicle's, or north before the EKF runs)
-        heading = euler_zyx(quat_enu_flu_to_ned_frd(v.streams.estimate()[2]))[2] if v.fw.initialized else 0.0
+        heading = heading_ned(v.streams.estimate()[2]) if v.fw.initialized else 0.0
     v.home.set(v, p, heading, "DO_SET_HOME", given=True)
     ack(ep, msg, D.MAV_RESULT_ACCEPTED)

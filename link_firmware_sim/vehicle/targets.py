@@ -46,8 +46,7 @@ class TargetMessages:
         self.due = False
 
     def on_position_target(self, msg) -> None:
-        position, heading = decode_position_target(msg), decode_position_target_yaw(msg)
-        self.position, self.heading = position, heading
+        self.position, self.heading = decode_position_target(msg), decode_position_target_yaw(msg)
         self.position_ms = msg.time_boot_ms
         self.due = True
 

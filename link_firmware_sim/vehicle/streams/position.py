@@ -9,7 +9,7 @@ import math
 
 from companion.mavlink.dialect import load_dialect
 from companion.mavlink.frames import enu_ned, flu_frd, quat_enu_flu_to_ned_frd
-from companion.mavlink.standard import euler_zyx
+from companion.mavlink.standard import euler_zyx, heading_ned
 
 __all__ = ["attitude", "local_position_ned", "global_position_int", "gps_global_origin", "home_position"]
 
@@ -32,7 +32,7 @@ def global_position_int(v):
     p, vel, q = v.streams.estimate()
     lat, lon, alt = v.origin.to_geodetic(p)
     vn, ve, vd = enu_ned(vel).tolist()
-    hdg = int(round((math.degrees(euler_zyx(quat_enu_flu_to_ned_frd(q))[2]) % 360.0) * 100))
+    hdg = int(round((math.degrees(heading_ned(q)) % 360.0) * 100))
     return D.MAVLink_global_position_int_message(
         v.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
         int(round(p[2] * 1000)), int(round(vn * 100)), int(round(ve * 100)), int(round(vd * 100)), hdg,
