@@ -1,7 +1,7 @@
 """The home position, kept as PX4 keeps it: set from the position estimate once the EKF runs
 (disarmed), set again at arming on the ground (not in the air, and not over a home set at a given
 place by MAV_CMD_DO_SET_HOME), or set by MAV_CMD_DO_SET_HOME; reported as HOME_POSITION (on
-request, in the ground station's streams, and to every link when it changes).
+request, in both links' streams, and to every link when it changes).
 
 The home is held in the local frame (ENU, m) with its heading; its WGS84 form is the shared
 origin's (:class:`~link_firmware_sim.geo.GeoOrigin`), so a new origin (only while disarmed)

@@ -76,6 +76,7 @@ def default_rates(rates: StreamRates, endpoint: int) -> dict[int, float]:
             D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
             D.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
             D.MAVLINK_MSG_ID_SKELETON_EXTERNAL_WRENCH: rates.wrench_hz,
+            D.MAVLINK_MSG_ID_HOME_POSITION: 0.5,  # as PX4's onboard mode (a client that asked too early gets it)
         }
     return {
         D.MAVLINK_MSG_ID_ATTITUDE: 10.0,
