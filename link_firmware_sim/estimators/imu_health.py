@@ -35,7 +35,7 @@ class StaleSensor:
             raise ValueError(f"stale_s must be positive, got {stale_s!r}")
         self.name = name
         self.stale_s = stale_s
-        self._last: np.ndarray | None = None
+        self._last: tuple | None = None
         self._since_s = 0.0
         self.stale = False
         #: times it went stale, and for how long in all [s]
@@ -45,10 +45,10 @@ class StaleSensor:
 
     def on_sample(self, t_s: float, sample) -> list[StatusEvent]:
         """A sample at ``t_s``; the transition it causes, if any."""
-        s = np.asarray(sample, dtype=float)
-        same = self._last is not None and np.array_equal(s, self._last)
+        s = tuple(np.asarray(sample, dtype=float).ravel().tolist())  # (NaN equals nothing, as in numpy)
+        same = s == self._last
         if not same:
-            self._last = s.copy()
+            self._last = s
             self._since_s = t_s
             if self.stale:
                 self.stale = False
