@@ -85,9 +85,17 @@ def _prepare_rendering(scenario, video) -> str | None:
 
 class _Progress(tqdm):
     """The flight's progress in simulated seconds; the last update stops at the total (a flight's
-    ticks can sum to a hair over its duration)."""
+    ticks can sum to a hair over its duration). Its clock starts at the first update: the time
+    left is the flight's, not a first run's compilation of the kernels before it."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._flying = False
 
     def update(self, n=1):
+        if not self._flying:
+            self._flying = True
+            self.reset()
         return super().update(max(0.0, min(n, self.total - self.n)))
 
 

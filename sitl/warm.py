@@ -21,20 +21,21 @@ log = logging.getLogger(__name__)
 COMPILING_NOTE_S = 3.0
 
 
-def warm_up_kernels() -> float:
-    """Every compiled kernel of a simulation (the firmware's, the companion's, the rotors', the IMU's) compiled,
-    or loaded from numba's on-disk cache, now; returns the seconds it took (next to none without numba).
-    A warm-up that outlasts :data:`COMPILING_NOTE_S` says why it may be long (a machine's first run
-    compiles)."""
+def warm_up_kernels(*, batch_only: bool = False, cpg: bool = True) -> float:
+    """The compiled kernels of a simulation (the firmware's, the companion's, the rotors', the IMU's)
+    compiled, or loaded from numba's on-disk cache, now; returns the seconds it took (next to none
+    without numba). ``batch_only``: those a batch flight runs (not the fleet's lockstep); ``cpg``: the
+    CPG motion generator's too. A warm-up that outlasts :data:`COMPILING_NOTE_S` says why it may be
+    long (a machine's first run compiles)."""
     t0 = time.perf_counter()
     note = threading.Timer(COMPILING_NOTE_S, log.warning, ("loading the simulator's compiled kernels; a first run on "
-                                                           "this machine compiles them (about a minute, once), later "
+                                                           "this machine compiles them (a minute or two, once), later "
                                                            "runs load them from numba's cache",))
     note.daemon = True
     note.start()
     try:
-        _firmware_kernels.warm_up()
-        _companion_kernels.warm_up()
+        _firmware_kernels.warm_up(lockstep=not batch_only)
+        _companion_kernels.warm_up(cpg=cpg)
         warm_up_rotors()
         warm_up_sensors()
     finally:

@@ -32,9 +32,10 @@ def load(kernel, *args) -> None:
     kernel.compile(tuple(numba.typeof(a) for a in args))
 
 
-def warm_up() -> float:
-    """Every kernel of this package compiled or loaded; returns the seconds it took (0 without the
-    compiled kernels)."""
+def warm_up(*, cpg: bool = True) -> float:
+    """The kernels of this package compiled or loaded; returns the seconds it took (0 without the
+    compiled kernels). ``cpg``: the CPG motion generator's too (only a CPG trajectory or a ground
+    robot runs them)."""
     if not ENABLED:
         return 0.0
     t0 = time.perf_counter()
@@ -56,7 +57,13 @@ def warm_up() -> float:
     load(attitude_errors_kernel, np.zeros((n, 4)), np.zeros((n, 4)), v3)
     load(trajectory_kernel, np.zeros(5), np.zeros((5, 3)), (np.zeros(n), np.zeros(4), np.zeros(3)), 1e-3,
          (v3, np.zeros((n, 4)), m3, v3, v3, v3, v3))
-    # the CPG motion generator's step (companion.motion.generator.MotionGenerator)
+    if cpg:
+        _warm_cpg(n, v3, m3)
+    return time.perf_counter() - t0
+
+
+def _warm_cpg(n: int, v3: np.ndarray, m3: np.ndarray) -> None:
+    """The CPG motion generator's step (:class:`companion.motion.generator.MotionGenerator`)."""
     cpg_state = (np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n))
     shape = (np.zeros(n), np.zeros(n), 1.0, 1.0, 1.0, 1.0)
     coupling = (np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64), np.zeros(2))
@@ -66,4 +73,3 @@ def warm_up() -> float:
     load(cpg_output_kernel, cpg_state, shape, coupling, np.zeros(2), np.zeros(2), (m3, v3))
     load(body_step_kernel, body, m3, v3, 0.5, water, 0.02, 4, body)
     load(link_targets_kernel, body, m3, v3, 0.5, (v3, v3, m3, v3))
-    return time.perf_counter() - t0

@@ -31,9 +31,11 @@ from .tick import attitude_tick_kernel, hil_tick_kernel, tick_kernel
 __all__ = ["ENABLED", "warm_up"]
 
 
-def warm_up() -> float:
-    """Every firmware kernel compiled or loaded; returns the seconds it took (0 without the
-    compiled kernels)."""
+def warm_up(*, lockstep: bool = True, batch: bool = True) -> float:
+    """The firmware's kernels compiled or loaded; returns the seconds it took (0 without the
+    compiled kernels). The tick's kernels always; ``lockstep``: the fleet's (the vehicle's lockstep
+    loop and the simulator link's records, on both sides), ``batch``: the batch mode's every-link
+    tick. A process warms only what it runs: compiling a kernel takes seconds, on a first run."""
     if not ENABLED:
         return 0.0
     t0 = time.perf_counter()
@@ -49,6 +51,16 @@ def warm_up() -> float:
     load(allocate_kernel, v6, v6, alloc, np.zeros((5, 8)), np.zeros(ALLOC_META))
     load(tick_kernel, x, P, True, (v3, v3), 0.002, ekf_par, cmd, ctl, alloc, np.zeros(OUT_SIZE))
     load(attitude_tick_kernel, x, P, np.zeros(4), (v3, v3), 0.002, ekf_par, cmd, ctl, alloc, np.zeros(OUT_SIZE))
+    if lockstep:
+        _warm_lockstep(x, P, ekf_par, cmd, ctl, alloc, io)
+    if batch:
+        n = 2  # (any number of links: the same types)
+        load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)),
+             np.zeros((0, 4)))
+    return time.perf_counter() - t0
+
+
+def _warm_lockstep(x, P, ekf_par, cmd, ctl, alloc, io) -> None:
     received = np.frombuffer(bytes(HIL_SENSOR_RECORD["size"]), dtype=np.uint8)  # (read-only, as received)
     answer = np.zeros(HIL_ACTUATOR_RECORD["size"], dtype=np.uint8)
     load(hil_tick_kernel, received, answer, x, P, 0.002, ekf_par, cmd, ctl, alloc, io)
@@ -61,7 +73,3 @@ def warm_up() -> float:
     records = np.zeros((2, HIL_SENSOR_RECORD["size"]), dtype=np.uint8)  # (the harness's writer)
     load(sensor_records, 1, np.zeros((2, HIL_SENSOR_RECORD["floats"])), 1, records)
     load(records_to_frames, records[0], 1, buf, framing)
-    n = 2  # (any number of links: the same types)
-    load(links_tick_kernel, np.zeros((n, BANK_SIZE)), np.zeros((n, 3)), np.zeros((n, 3)), 0.002, np.zeros((n, 8)),
-         np.zeros((0, 4)))
-    return time.perf_counter() - t0
