@@ -71,6 +71,7 @@ from .mavlink.codec import decode_link_state, encode_correction, encode_target_f
 from .mavlink.dialect import load_dialect
 from .mavlink.port import MavlinkPort
 from .mavlink.standard import decode_odometry, encode_attitude_target, encode_odometry, encode_position_target
+from .mavlink.timesync import LinkTimesync
 from .mavlink.tlog import TlogWriter
 from .mavlink.transport import wait_readable
 from .messages import STATE_FLAG_ARMED, STATE_FLAG_EKF_OK, MessageError
@@ -85,7 +86,8 @@ COMPANION_COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 #: health reports and STATUSTEXTs kept for companion.mcap (the newest; a report a minute at the
 #: default period keeps a day of flight)
 MAX_RECORDED = 100_000
-_ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME"})
+_ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME",
+                     "TIMESYNC"})
 _ACK_COMMANDS = {D.MAV_CMD_COMPONENT_ARM_DISARM: Command.ARM, D.MAV_CMD_SET_MESSAGE_INTERVAL: Command.STREAM}
 
 
@@ -148,6 +150,8 @@ class CompanionDaemon:
                 net.close()
             raise
         self.net = net
+        #: standard mode: each link's clock over TIMESYNC, so that PX4 reads the corrections' stamps
+        self.timesync = [LinkTimesync() for _ in self.ports] if cfg.mode == "standard" else None
         self._vision_session = None  # a centralised companion's own session for the vision consumer
         self.inboxes: dict = {}
         try:
@@ -278,10 +282,34 @@ class CompanionDaemon:
             self.statustext_log.append((engine.fc_time_us * 1e-6, link, int(msg.severity), str(msg.text)))
         elif kind == "SYSTEM_TIME":
             engine.on_system_time(row, msg.time_unix_usec, msg.time_boot_ms)
+        elif kind == "TIMESYNC" and self.timesync is not None:
+            self._on_timesync(row, msg, now_s)
         elif (kind, self.cfg.mode) in (("SKELETON_LINK_STATE", "dialect"), ("ODOMETRY", "standard")):
             self._on_state(row, msg, now_s)
         else:
             port.stats.ignored += 1
+
+    def _on_timesync(self, row: int, msg, now_s: float) -> None:
+        """The autopilot's TIMESYNC: its request answered on its own clock (once learnt), its
+        answer to one of ours taken into that clock's estimate (:mod:`.mavlink.timesync`)."""
+        sync, now_ns = self.timesync[row], int(now_s * 1e9)
+        if msg.tc1 == 0:
+            answer = sync.answer(msg.ts1, now_ns)
+            if answer is not None:
+                self.ports[row].send(D.MAVLink_timesync_message(*answer))
+            return
+        was = sync.synchronised
+        sync.on_answer(msg.tc1, msg.ts1, now_ns)
+        if sync.synchronised and not was:
+            log.info("link %d: clock synchronised over TIMESYNC (offset %.3f s, round trip %.1f ms): PX4 takes "
+                     "the corrections' stamps once it has converged too", self.engine.links[row].index + 1,
+                     sync.offset_ns * 1e-9, sync.rtt_ns * 1e-6)
+
+    def _request_timesync(self, now_s: float) -> None:
+        for port, sync in zip(self.ports, self.timesync):
+            ts1 = sync.request(int(now_s * 1e9))
+            if ts1 is not None:
+                port.send(D.MAVLink_timesync_message(0, ts1))
 
     def _on_state(self, row: int, msg, now_s: float) -> None:
         """The link's state message (SKELETON_LINK_STATE, or a stock autopilot's ODOMETRY), validated."""
@@ -373,6 +401,8 @@ class CompanionDaemon:
                     self._on_message(row, msg, self.clock())
         self._drain_inboxes()
         now = self.clock()
+        if self.timesync is not None:
+            self._request_timesync(now)
         self._carry_out(self.engine.poll(now), now)
 
     def stop(self, *_args) -> None:
@@ -399,8 +429,10 @@ class CompanionDaemon:
 
     def summary(self) -> dict:
         out = self.engine.summary()
-        for lk, port in zip(self.engine.links, self.ports):
+        for row, (lk, port) in enumerate(zip(self.engine.links, self.ports)):
             out["links"][str(lk.system_id)].update(vars(port.stats))
+            if self.timesync is not None:
+                out["links"][str(lk.system_id)]["timesync"] = self.timesync[row].report()
         for kind, key in (("neighbour pose", "neighbour_poses_wire"), ("load observation", "load_observations_wire")):
             if kind in self.inboxes:
                 out[key] = self.inboxes[kind].summary()

@@ -221,6 +221,55 @@ def test_standard_mode_with_a_stock_px4s_odometry_heartbeat_and_setpoints(tmp_pa
         fleet.close()
 
 
+@pytest.mark.parametrize("mode", ["standard", "dialect"])
+def test_standard_mode_answers_px4s_timesync_on_px4s_clock(tmp_path, mode):
+    """PX4 asks for TIMESYNC (10 Hz on an onboard link) and, once converged, adds the offset it
+    measured to the stamps of the external vision it receives. The companion learns the
+    autopilot's clock from its own requests and answers on that clock, so the offset PX4 measures
+    is zero and the corrections keep their stamps: the time of the autopilot's state they correct.
+    Before it has learnt the clock it does not answer (PX4 stamps on arrival, as without it). The
+    dialect's firmware takes the corrections on its own clock: no TIMESYNC there."""
+    fleet = Fleet(tmp_path, n=1, mode=mode)
+    fc, clock = fleet.fcs[0], fleet.clock
+    boot_s = clock.t - 42.0  # the autopilot's clock counts from its boot, 42 s before
+
+    def fc_ns():
+        return int(round((clock.t - boot_s) * 1e9))
+
+    def px4_answers():  # PX4's Timesync: a request (tc1 = 0) answered with its clock
+        for m in fleet.take(0, "TIMESYNC"):
+            assert m.tc1 == 0
+            fc.send(D.MAVLink_timesync_message(fc_ns(), m.ts1))
+
+    try:
+        fc.send(D.MAVLink_timesync_message(0, fc_ns()))
+        fleet.pump(rounds=1, dt=0.001)
+        got = fleet.take(0, "TIMESYNC")
+        if mode == "dialect":
+            fleet.pump(rounds=5, dt=0.1)
+            assert not got and not fleet.take(0, "TIMESYNC")
+            assert "timesync" not in fleet.daemon.summary()["links"]["1"]
+            return
+        assert got and all(m.tc1 == 0 for m in got)  # its own request; no answer to PX4's yet
+        for _ in range(8):  # the companion's requests at 10 Hz, each answered within a millisecond
+            clock.t += 0.1
+            fleet.pump(rounds=1, dt=0.001)
+            px4_answers()
+            fleet.pump(rounds=1, dt=0.001)
+        report = fleet.daemon.summary()["links"]["1"]["timesync"]
+        assert report["synchronised"] and report["taken"] >= 5 and report["unknown"] == report["slow"] == 0
+        assert report["offset_ms"] == pytest.approx(-boot_s * 1e3, abs=1.0)
+        ts1 = fc_ns()
+        fc.send(D.MAVLink_timesync_message(0, ts1))  # PX4's request
+        fleet.pump(rounds=1, dt=0.001)
+        answers = [m for m in fleet.take(0, "TIMESYNC") if m.tc1 != 0]
+        assert len(answers) == 1 and answers[0].ts1 == ts1
+        px4_offset_ns = (ts1 + fc_ns() - 2 * answers[0].tc1) // 2  # what PX4's filter is fed
+        assert abs(px4_offset_ns) <= 1_000_000
+    finally:
+        fleet.close()
+
+
 def test_arming_real_flight_controllers_is_refused_and_off_unless_asked_for():
     serial = (LinkEndpoint(1, "serial:///dev/ttyACM0:921600"), LinkEndpoint(2, "udpin://127.0.0.1:14541"))
     with pytest.raises(ValueError, match="arm = true with flight controllers on serial links"):
@@ -297,7 +346,7 @@ def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, 
     fleet.daemon.setup = replace(fleet.setup, trajectory=replace(fleet.setup.trajectory, feedforward=feedforward))
     calls = []
     monkeypatch.setattr(warm, "ENABLED", compiled)
-    monkeypatch.setattr(warm, "warm_up", lambda: calls.append(fleet.clock()) or 0.0)
+    monkeypatch.setattr(warm, "warm_up", lambda **_: calls.append(fleet.clock()) or 0.0)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         fleet.daemon.run(duration_s=0.0)  # (no cycle: the loop ends at once; run closes the daemon)
