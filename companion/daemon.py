@@ -416,7 +416,9 @@ class CompanionDaemon:
         if _kernels.ENABLED:
             # every kernel it runs loaded (or compiled) now, not in the first SCKF cycle or target in
             # flight, where the load (or a compile) would hold up the chain's corrections
-            log.info("compiled kernels ready in %.1f s", _kernels.warm_up(cpg=self.setup.trajectory.kind == "cpg"))
+            with _kernels.compile_notice("the companion's compiled kernels", log):
+                seconds = _kernels.warm_up(cpg=self.setup.trajectory.kind == "cpg")
+            log.info("compiled kernels ready in %.1f s", seconds)
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,
                  f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "",

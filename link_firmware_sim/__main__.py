@@ -24,6 +24,7 @@ from pathlib import Path
 from companion.cli import single_thread_blas
 from companion.config import load_setup
 from companion.configfile import ConfigError
+from companion.kernels.warm import compile_notice
 from companion.mavlink.transport import PortError
 
 from .config import VehicleSetup
@@ -65,7 +66,8 @@ def main(argv=None) -> int:
         return 2
     # The compiled kernels loaded (or compiled) before the ports open, as firmware boots before the
     # simulator connects: not in the first ticks of the lockstep, where every link would wait for it.
-    seconds = warm.warm_up(batch=False)
+    with compile_notice("the firmware's compiled kernels", log):
+        seconds = warm.warm_up(batch=False)
     if warm.ENABLED:
         log.info("compiled kernels ready in %.1f s", seconds)
     if args.standby:

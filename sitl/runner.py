@@ -166,7 +166,7 @@ class BatchRunner:
         self.rotors = plant.rotors
         # The compiled kernels loaded (from numba's cache) now, before the flight: a real-time factor is
         # the flight's, not the process's start-up.
-        warm_up_kernels(batch_only=True, cpg=sc.trajectory.kind == "cpg")
+        warm_up_kernels("batch", cpg=sc.trajectory.kind == "cpg")
         self.firmware = [LinkFirmware(i, sc.firmware, plant.inertia, plant.geometry) for i in range(self.n)]
         self.corrections_rejected = [0] * self.n  # out of the firmware's bounds (SKL_CORR_MAX*)
         self.groups = sc.companion.group_layout(self.n)

@@ -1,11 +1,11 @@
-"""Every compiled kernel a simulation runs (the firmware's, the companion's, the rotors', the
-IMU's) compiled, or loaded from numba's on-disk cache, before a flight needs it."""
+"""The compiled kernels a simulation runs (the firmware's, the companion's, the rotors', the
+IMU's) compiled, or loaded from numba's on-disk cache, before a flight needs them."""
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
+from typing import Literal
 
 from companion.kernels import warm as _companion_kernels
 from link_firmware_sim.kernels import warm as _firmware_kernels
@@ -13,34 +13,23 @@ from link_firmware_sim.kernels import warm as _firmware_kernels
 from .plant.rotor import warm_up as warm_up_rotors
 from .plant.sensors import warm_up as warm_up_sensors
 
-__all__ = ["COMPILING_NOTE_S", "warm_up_kernels"]
+__all__ = ["warm_up_kernels"]
 
 log = logging.getLogger(__name__)
 
-#: a warm-up still running after this long [s] is compiling, and says so (a load takes well under it)
-COMPILING_NOTE_S = 3.0
 
-
-def warm_up_kernels(*, batch_only: bool = False, cpg: bool = True) -> float:
-    """The compiled kernels of a simulation (the firmware's, the companion's, the rotors', the IMU's)
-    compiled, or loaded from numba's on-disk cache, now; returns the seconds it took (next to none
-    without numba). ``batch_only``: those a batch flight runs (not the fleet's lockstep); ``cpg``: the
-    CPG motion generator's too. A warm-up that outlasts :data:`COMPILING_NOTE_S` says why it may be
-    long (a machine's first run compiles)."""
+def warm_up_kernels(mode: Literal["all", "batch", "fleet"] = "all", *, cpg: bool = True) -> float:
+    """The compiled kernels of a simulation compiled, or loaded from numba's on-disk cache, now;
+    returns the seconds it took (next to none without numba). ``mode``: those a batch flight runs
+    (the firmware's tick and batch tick, the companion's, the rotors', the IMU's), those a fleet's
+    harness warms for its vehicles and itself (the firmware's tick and lockstep, the rotors', the
+    IMU's: its companions run the numpy path), or all of them; ``cpg``: with the companion's, the
+    CPG motion generator's. A long warm-up says why (:func:`~companion.kernels.warm.compile_notice`)."""
     t0 = time.perf_counter()
-    note = threading.Timer(COMPILING_NOTE_S, log.warning, ("loading the simulator's compiled kernels; a first run on "
-                                                           "this machine compiles them (a minute or two, once), later "
-                                                           "runs load them from numba's cache",))
-    note.daemon = True
-    note.start()
-    try:
-        _firmware_kernels.warm_up(lockstep=not batch_only)
-        _companion_kernels.warm_up(cpg=cpg)
+    with _companion_kernels.compile_notice("the simulator's compiled kernels", log):
+        _firmware_kernels.warm_up(lockstep=mode != "batch", batch=mode != "fleet")
+        if mode != "fleet":
+            _companion_kernels.warm_up(cpg=cpg)
         warm_up_rotors()
         warm_up_sensors()
-    finally:
-        note.cancel()
-    seconds = time.perf_counter() - t0
-    if seconds > COMPILING_NOTE_S:
-        log.warning("kernels ready in %.0f s", seconds)
-    return seconds
+    return time.perf_counter() - t0

@@ -9,7 +9,10 @@ callers then find every signature they use.
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -22,7 +25,31 @@ from .sckf import constraint_apply_batched_kernel
 from .semi import group_terms_kernel
 from .trajectory import trajectory_kernel
 
-__all__ = ["ENABLED", "warm_up", "load"]
+__all__ = ["COMPILING_NOTE_S", "ENABLED", "compile_notice", "warm_up", "load"]
+
+#: a warm-up still running after this long [s] is compiling, and says so (a load takes well under it)
+COMPILING_NOTE_S = 3.0
+
+
+@contextmanager
+def compile_notice(what: str, logger: logging.Logger):
+    """Around a warm-up of ``what`` (e.g. "the firmware's compiled kernels"): a warning on
+    ``logger`` once it has run :data:`COMPILING_NOTE_S` (a machine's first run compiles, for a
+    minute or two; later runs load numba's cache), and then one with the seconds it took. A
+    quick warm-up says nothing."""
+    t0 = time.perf_counter()
+    note = threading.Timer(COMPILING_NOTE_S, logger.warning, (f"loading {what}; a first run on this machine compiles "
+                                                              "them (a minute or two, once), later runs load them "
+                                                              "from numba's cache",))
+    note.daemon = True
+    note.start()
+    try:
+        yield
+    finally:
+        note.cancel()
+        seconds = time.perf_counter() - t0
+        if seconds > COMPILING_NOTE_S:
+            logger.warning("%s ready in %.0f s", what[0].upper() + what[1:], seconds)
 
 
 def load(kernel, *args) -> None:

@@ -27,11 +27,11 @@ from companion.fleetnet.config import new_users_file
 from companion.mavlink.signing import new_key_file
 from companion.mavlink.transport import PortError
 from companion.motion.inverse import InverseModel
-from link_firmware_sim.kernels import warm as _firmware_kernels
 from sitl.metrics import PAPER_THREE_LINK, carrying_metrics, compute_metrics
 from sitl.plant.plant import Plant
 from companion.recording.mcap_log import write_beside_log
 from sitl.scenario import Scenario
+from sitl.warm import warm_up_kernels
 
 from .fault_socket import FaultSocket
 from .faults import FleetFaults, HarnessFault, scripted_faults
@@ -354,7 +354,7 @@ class Fleet:
         self.prepare()
         # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
         # load numba's on-disk cache instead of each compiling them (link_firmware_sim.kernels).
-        log.info("firmware kernels ready in %.1f s", _firmware_kernels.warm_up(batch=False))
+        log.info("compiled kernels ready in %.1f s", warm_up_kernels("fleet"))
         # the same-host link's sockets: a private (0700) folder of its own, short enough for a socket path
         # (made after the last step that can fail before the ``try`` that removes it)
         self.sim_dir = Path(tempfile.mkdtemp(prefix="skeleton-sim-")) if self.sim_link == "unix" else None

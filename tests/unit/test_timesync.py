@@ -9,8 +9,6 @@ from hypothesis import strategies as st
 
 from companion.mavlink.timesync import LinkTimesync, TimesyncConfig
 
-pytestmark = pytest.mark.unit
-
 MS = 1_000_000  # nanoseconds
 
 

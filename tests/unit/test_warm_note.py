@@ -1,6 +1,7 @@
 """A warm-up that takes long says why (a machine's first run compiles the kernels); a quick
-one (a load from numba's cache) says nothing; a batch flight warms the kernels it runs and not
-the fleet's or the CPG's (sitl.warm)."""
+one (a load from numba's cache) says nothing; a process warms the kernels it runs: a batch
+flight not the fleet's lockstep nor, unless it flies one, the CPG's; a fleet not the batch tick
+nor the companion's (companion.kernels.warm.compile_notice, sitl.warm)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import sitl.warm as warm
 
 @pytest.mark.parametrize("slow", [True, False])
 def test_a_long_warm_up_says_it_is_compiling(monkeypatch, caplog, slow):
-    monkeypatch.setattr(warm, "COMPILING_NOTE_S", 0.05)
+    monkeypatch.setattr(companion_warm, "COMPILING_NOTE_S", 0.05)
     monkeypatch.setattr(warm, "warm_up_rotors", (lambda: time.sleep(0.1)) if slow else (lambda: None))
     monkeypatch.setattr(warm, "warm_up_sensors", lambda: None)
     for module in (warm._firmware_kernels, warm._companion_kernels):
@@ -30,32 +31,38 @@ def test_a_long_warm_up_says_it_is_compiling(monkeypatch, caplog, slow):
         assert not text
 
 
+@pytest.mark.parametrize("process", ["firmware", "companion"])
+def test_every_process_that_compiles_says_so(monkeypatch, caplog, process):
+    """The notice is one helper: a vehicle or a companion daemon started on a fresh machine says
+    why it is silent too (the helper as those processes call it)."""
+    monkeypatch.setattr(companion_warm, "COMPILING_NOTE_S", 0.05)
+    logger = logging.getLogger(f"test.{process}")
+    with caplog.at_level(logging.WARNING, logger=logger.name):
+        with companion_warm.compile_notice(f"the {process}'s compiled kernels", logger):
+            time.sleep(0.1)
+    assert f"loading the {process}'s compiled kernels; a first run" in caplog.text
+    assert f"The {process}'s compiled kernels ready in" in caplog.text
+
+
 FLEET_ONLY = {"hil_tick_kernel", "hil_loop_kernel", "sensor_record_at", "frames_to_records", "sensor_records",
               "records_to_frames"}
 CPG = {"cpg_step_kernel", "cpg_output_kernel", "body_step_kernel", "link_targets_kernel"}
+COMPANION = {"constraint_apply_batched_kernel", "feedforward_kernel", "joint_nis_kernel"}
 
 
-@pytest.mark.parametrize("batch_only, cpg", [(True, False), (True, True), (False, True)])
-def test_a_batch_flight_warms_what_it_runs(monkeypatch, batch_only, cpg):
-    if not warm._firmware_kernels.ENABLED:
+@pytest.mark.parametrize("mode, cpg", [("batch", False), ("batch", True), ("fleet", False), ("all", True)])
+def test_a_process_warms_what_it_runs(monkeypatch, mode, cpg):
+    if not firmware_warm.ENABLED:
         pytest.skip("numba not installed: nothing is compiled")
     loaded = []
     for module in (companion_warm, firmware_warm):
         monkeypatch.setattr(module, "load", lambda kernel, *args: loaded.append(kernel.__name__))
     monkeypatch.setattr(warm, "warm_up_rotors", lambda: None)
     monkeypatch.setattr(warm, "warm_up_sensors", lambda: None)
-    warm.warm_up_kernels(batch_only=batch_only, cpg=cpg)
+    warm.warm_up_kernels(mode, cpg=cpg)
     names = set(loaded)
-    assert {"tick_kernel", "ekf_predict_kernel", "constraint_apply_batched_kernel", "feedforward_kernel"} <= names
-    assert "links_tick_kernel" in names  # (every mode of this process may fly a batch)
-    assert FLEET_ONLY.isdisjoint(names) if batch_only else FLEET_ONLY <= names
-    assert CPG <= names if cpg else CPG.isdisjoint(names)
-
-
-def test_the_fleet_warms_no_batch_tick(monkeypatch):
-    if not firmware_warm.ENABLED:
-        pytest.skip("numba not installed: nothing is compiled")
-    loaded = []
-    monkeypatch.setattr(firmware_warm, "load", lambda kernel, *args: loaded.append(kernel.__name__))
-    firmware_warm.warm_up(batch=False)
-    assert FLEET_ONLY <= set(loaded) and "links_tick_kernel" not in loaded and "tick_kernel" in loaded
+    assert {"tick_kernel", "ekf_predict_kernel", "attitude_tick_kernel"} <= names
+    assert ("links_tick_kernel" in names) == (mode != "fleet")
+    assert FLEET_ONLY.isdisjoint(names) if mode == "batch" else FLEET_ONLY <= names
+    assert COMPANION.isdisjoint(names) if mode == "fleet" else COMPANION <= names  # (its companions: numpy)
+    assert CPG <= names if cpg and mode != "fleet" else CPG.isdisjoint(names)
