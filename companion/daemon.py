@@ -416,7 +416,7 @@ class CompanionDaemon:
         if _kernels.ENABLED:
             # every kernel it runs loaded (or compiled) now, not in the first SCKF cycle or target in
             # flight, where the load (or a compile) would hold up the chain's corrections
-            with _kernels.compile_notice("the companion's compiled kernels", log):
+            with _kernels.compile_notice("the companion's compiled kernels", log, report_done=False):
                 seconds = _kernels.warm_up(cpg=self.setup.trajectory.kind == "cpg")
             log.info("compiled kernels ready in %.1f s", seconds)
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),

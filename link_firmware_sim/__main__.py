@@ -66,7 +66,7 @@ def main(argv=None) -> int:
         return 2
     # The compiled kernels loaded (or compiled) before the ports open, as firmware boots before the
     # simulator connects: not in the first ticks of the lockstep, where every link would wait for it.
-    with compile_notice("the firmware's compiled kernels", log):
+    with compile_notice("the firmware's compiled kernels", log, report_done=False):
         seconds = warm.warm_up(batch=False)
     if warm.ENABLED:
         log.info("compiled kernels ready in %.1f s", seconds)

@@ -32,11 +32,11 @@ COMPILING_NOTE_S = 3.0
 
 
 @contextmanager
-def compile_notice(what: str, logger: logging.Logger):
+def compile_notice(what: str, logger: logging.Logger, report_done: bool = True):
     """Around a warm-up of ``what`` (e.g. "the firmware's compiled kernels"): a warning on
     ``logger`` once it has run :data:`COMPILING_NOTE_S` (a machine's first run compiles, for a
-    minute or two; later runs load numba's cache), and then one with the seconds it took. A
-    quick warm-up says nothing."""
+    minute or two; later runs load numba's cache) and then, with ``report_done`` (a caller that
+    logs the time itself passes false), one with the seconds it took. A quick warm-up says nothing."""
     t0 = time.perf_counter()
     note = threading.Timer(COMPILING_NOTE_S, logger.warning, (f"loading {what}; a first run on this machine compiles "
                                                               "them (a minute or two, once), later runs load them "
@@ -48,7 +48,7 @@ def compile_notice(what: str, logger: logging.Logger):
     finally:
         note.cancel()
         seconds = time.perf_counter() - t0
-        if seconds > COMPILING_NOTE_S:
+        if report_done and seconds > COMPILING_NOTE_S:
             logger.warning("%s ready in %.0f s", what[0].upper() + what[1:], seconds)
 
 

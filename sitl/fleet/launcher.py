@@ -354,7 +354,7 @@ class Fleet:
         self.prepare()
         # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
         # load numba's on-disk cache instead of each compiling them (link_firmware_sim.kernels).
-        log.info("compiled kernels ready in %.1f s", warm_up_kernels("fleet"))
+        warm_up_kernels("fleet")
         # the same-host link's sockets: a private (0700) folder of its own, short enough for a socket path
         # (made after the last step that can fail before the ``try`` that removes it)
         self.sim_dir = Path(tempfile.mkdtemp(prefix="skeleton-sim-")) if self.sim_link == "unix" else None
