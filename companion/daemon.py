@@ -89,6 +89,8 @@ MAX_RECORDED = 100_000
 _ACCEPT = frozenset({"HEARTBEAT", "SKELETON_LINK_STATE", "ODOMETRY", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME",
                      "TIMESYNC"})
 _ACK_COMMANDS = {D.MAV_CMD_COMPONENT_ARM_DISARM: Command.ARM, D.MAV_CMD_SET_MESSAGE_INTERVAL: Command.STREAM}
+#: standard mode: a link not synchronised over TIMESYNC after this long [s] is warned of, once
+TIMESYNC_WARN_S = 20.0
 
 
 def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
@@ -152,6 +154,7 @@ class CompanionDaemon:
         self.net = net
         #: standard mode: each link's clock over TIMESYNC, so that PX4 reads the corrections' stamps
         self.timesync = [LinkTimesync() for _ in self.ports] if cfg.mode == "standard" else None
+        self._timesync_warned: set[int] = set()  # links warned of no synchronisation
         self._vision_session = None  # a centralised companion's own session for the vision consumer
         self.inboxes: dict = {}
         try:
@@ -292,24 +295,35 @@ class CompanionDaemon:
     def _on_timesync(self, row: int, msg, now_s: float) -> None:
         """The autopilot's TIMESYNC: its request answered on its own clock (once learnt), its
         answer to one of ours taken into that clock's estimate (:mod:`.mavlink.timesync`)."""
-        sync, now_ns = self.timesync[row], int(now_s * 1e9)
+        sync, now_ns, link = self.timesync[row], int(now_s * 1e9), self.engine.links[row].index + 1
+        was, restarts = sync.synchronised, sync.counts["restarts"]
         if msg.tc1 == 0:
             answer = sync.answer(msg.ts1, now_ns)
             if answer is not None:
                 self.ports[row].send(D.MAVLink_timesync_message(*answer))
-            return
-        was = sync.synchronised
-        sync.on_answer(msg.tc1, msg.ts1, now_ns)
-        if sync.synchronised and not was:
+        else:
+            sync.on_answer(msg.tc1, msg.ts1, now_ns)
+        if sync.counts["restarts"] > restarts:
+            log.warning("link %d: its clock restarted (a reboot): TIMESYNC learnt afresh; PX4 stamps the "
+                        "corrections on arrival until it has converged again (about a minute)", link)
+        elif sync.synchronised and not was:
             log.info("link %d: clock synchronised over TIMESYNC (offset %.3f s, round trip %.1f ms): PX4 takes "
-                     "the corrections' stamps once it has converged too", self.engine.links[row].index + 1,
-                     sync.offset_ns * 1e-9, sync.rtt_ns * 1e-6)
+                     "the corrections' stamps once it has converged too", link, sync.offset_ns * 1e-9,
+                     sync.rtt_ns * 1e-6)
+            self._timesync_warned.discard(row)
 
     def _request_timesync(self, now_s: float) -> None:
-        for port, sync in zip(self.ports, self.timesync):
-            ts1 = sync.request(int(now_s * 1e9))
+        now_ns = int(now_s * 1e9)
+        for row, (port, sync) in enumerate(zip(self.ports, self.timesync)):
+            ts1 = sync.request(now_ns)
             if ts1 is not None:
                 port.send(D.MAVLink_timesync_message(0, ts1))
+            if sync.waiting_s(now_ns) >= TIMESYNC_WARN_S and row not in self._timesync_warned:
+                self._timesync_warned.add(row)
+                log.warning("link %d: no TIMESYNC answer with a round trip under %.0f ms in %.0f s: PX4 stamps the "
+                            "corrections on arrival (set EKF2_EV_DELAY to the correction latency, "
+                            "docs/companion.md)", self.engine.links[row].index + 1,
+                            sync.config.max_rtt_ns * 1e-6, TIMESYNC_WARN_S)
 
     def _on_state(self, row: int, msg, now_s: float) -> None:
         """The link's state message (SKELETON_LINK_STATE, or a stock autopilot's ODOMETRY), validated."""
@@ -387,6 +401,8 @@ class CompanionDaemon:
 
     # -- main loop ---------------------------------------------------------------------------------------
     def poll(self, timeout_s: float) -> None:
+        if self.timesync is not None:  # (sent before the wait: its answer is read as it arrives)
+            self._request_timesync(self.clock())
         waitables = list(self.ports)
         if self.net is not None:
             waitables.append(self.net)
@@ -401,8 +417,6 @@ class CompanionDaemon:
                     self._on_message(row, msg, self.clock())
         self._drain_inboxes()
         now = self.clock()
-        if self.timesync is not None:
-            self._request_timesync(now)
         self._carry_out(self.engine.poll(now), now)
 
     def stop(self, *_args) -> None:

@@ -25,6 +25,8 @@ def warm_up_kernels(mode: Literal["all", "batch", "fleet"] = "all", *, cpg: bool
     harness warms for its vehicles and itself (the firmware's tick and lockstep, the rotors', the
     IMU's: its companions run the numpy path), or all of them; ``cpg``: with the companion's, the
     CPG motion generator's. A long warm-up says why (:func:`~companion.kernels.warm.compile_notice`)."""
+    if mode not in ("all", "batch", "fleet"):
+        raise ValueError(f"warm-up mode {mode!r}: one of 'all', 'batch', 'fleet'")
     t0 = time.perf_counter()
     with _companion_kernels.compile_notice("the simulator's compiled kernels", log):
         _firmware_kernels.warm_up(lockstep=mode != "batch", batch=mode != "fleet")

@@ -61,8 +61,8 @@ def load(kernel, *args) -> None:
 
 def warm_up(*, cpg: bool = True) -> float:
     """The kernels of this package compiled or loaded; returns the seconds it took (0 without the
-    compiled kernels). ``cpg``: the CPG motion generator's too (only a CPG trajectory or a ground
-    robot runs them)."""
+    compiled kernels). ``cpg``: the CPG motion generator's too (only a ``trajectory.kind = "cpg"``
+    flight runs them)."""
     if not ENABLED:
         return 0.0
     t0 = time.perf_counter()

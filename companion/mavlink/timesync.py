@@ -16,9 +16,9 @@ answers with a short round trip. Until it has enough of them it does not answer,
 stamping on arrival.
 
 Every stamp is an input to validate: an answer to no request of ours, or one whose round trip is
-negative or too long, is counted and dropped; a run of answers far from the estimate (the
-autopilot rebooted, its clock restarted) starts the estimate afresh; requests are answered at a
-bounded rate.
+negative or too long, is counted and dropped; a request stamped far from the estimate, or a run
+of answers far from it (the autopilot rebooted, its clock restarted), starts the estimate afresh
+without answering on the old clock; requests are answered at a bounded rate.
 """
 
 from __future__ import annotations
@@ -61,8 +61,8 @@ class LinkTimesync:
 
     config: TimesyncConfig = field(default_factory=TimesyncConfig)
     #: counters: answers taken, refused (to no request of ours, a round trip out of bounds, an
-    #: outlier), estimates restarted, the link's requests answered and not answered (not synchronised
-    #: yet, or too soon after the last answer)
+    #: outlier), estimates restarted (a run of outliers, or a request stamped far from the estimate),
+    #: the link's requests answered and not answered (not synchronised yet, or too soon after the last)
     counts: dict = field(default_factory=lambda: dict.fromkeys(
         ("taken", "unknown", "slow", "outlier", "restarts", "answered", "unsynced", "too_soon"), 0))
 
@@ -72,6 +72,7 @@ class LinkTimesync:
         self._rtts: deque[int] = deque(maxlen=self.config.window)
         self._outliers = 0
         self._unanswered = 0  # our requests since the last answer taken
+        self._since_ns: int | None = None  # our first request since the last (re)start
         self._next_request_ns: int | None = None
         self._last_answer_ns: int | None = None
 
@@ -102,6 +103,8 @@ class LinkTimesync:
         self._next_request_ns = now_ns + int(period * 1e9)
         self._sent.append(now_ns)
         self._unanswered += 1
+        if self._since_ns is None:
+            self._since_ns = now_ns
         return now_ns
 
     def on_answer(self, tc1_ns: int, ts1_ns: int, now_ns: int) -> bool:
@@ -122,9 +125,7 @@ class LinkTimesync:
             counts["outlier"] += 1
             if self._outliers < cfg.restart_after:
                 return False
-            self._offsets.clear()  # the link's clock restarted (a reboot): learn it again
-            self._rtts.clear()
-            counts["restarts"] += 1
+            self.restart(now_ns)  # the link's clock restarted (a reboot): learn it again
         self._outliers = self._unanswered = 0
         self._offsets.append(offset)
         self._rtts.append(rtt)
@@ -135,21 +136,39 @@ class LinkTimesync:
 
     def answer(self, ts1_ns: int, now_ns: int) -> tuple[int, int] | None:
         """``(tc1, ts1)`` answering the link's request ``ts1_ns``: the link's own clock now, as
-        estimated; ``None`` (counted) before the estimate is ready or too soon after the last answer."""
+        estimated; ``None`` (counted) before the estimate is ready, too soon after the last answer,
+        or when the request's own stamp (the link's clock when it asked) is far from the estimate:
+        the link rebooted and its clock restarted, so the estimate starts afresh (answering on the
+        old clock would feed its new timesync a wrong offset)."""
         if not self.synchronised:
             self.counts["unsynced"] += 1
+            return None
+        tc1 = now_ns + self.offset_ns
+        if abs(tc1 - ts1_ns) > self.config.max_deviation_ns:
+            self.restart(now_ns)
             return None
         interval = int(self.config.min_answer_interval_s * 1e9)
         if self._last_answer_ns is not None and 0 <= now_ns - self._last_answer_ns < interval:
             self.counts["too_soon"] += 1
             return None
-        tc1 = now_ns + self.offset_ns
-        if not 0 < tc1 <= _INT64_MAX:
-            self.counts["unsynced"] += 1
-            return None
         self._last_answer_ns = now_ns
         self.counts["answered"] += 1
         return tc1, ts1_ns
+
+    def restart(self, now_ns: int) -> None:
+        """Forget the estimate (the link's clock restarted) and ask again at once."""
+        self._offsets.clear()
+        self._rtts.clear()
+        self._outliers = 0
+        self._next_request_ns = now_ns
+        self._since_ns = None
+        self.counts["restarts"] += 1
+
+    def waiting_s(self, now_ns: int) -> float:
+        """Seconds since this companion began asking without being synchronised (0 when it is)."""
+        if self.synchronised or self._since_ns is None:
+            return 0.0
+        return (now_ns - self._since_ns) * 1e-9
 
     def report(self) -> dict:
         """The counters, whether synchronised, and the estimate's offset and round trip [ms]."""

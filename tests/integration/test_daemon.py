@@ -5,6 +5,7 @@ The daemon's clock is a fake the test moves; the engine's decisions are tested i
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 from dataclasses import replace
@@ -222,13 +223,14 @@ def test_standard_mode_with_a_stock_px4s_odometry_heartbeat_and_setpoints(tmp_pa
 
 
 @pytest.mark.parametrize("mode", ["standard", "dialect"])
-def test_standard_mode_answers_px4s_timesync_on_px4s_clock(tmp_path, mode):
+def test_standard_mode_answers_px4s_timesync_on_px4s_clock(tmp_path, caplog, mode):
     """PX4 asks for TIMESYNC (10 Hz on an onboard link) and, once converged, adds the offset it
     measured to the stamps of the external vision it receives. The companion learns the
     autopilot's clock from its own requests and answers on that clock, so the offset PX4 measures
     is zero and the corrections keep their stamps: the time of the autopilot's state they correct.
-    Before it has learnt the clock it does not answer (PX4 stamps on arrival, as without it). The
-    dialect's firmware takes the corrections on its own clock: no TIMESYNC there."""
+    Before it has learnt the clock it does not answer (PX4 stamps on arrival, as without it); nor
+    once PX4 rebooted, until it has learnt the new clock. The dialect's firmware takes the
+    corrections on its own clock: no TIMESYNC there."""
     fleet = Fleet(tmp_path, n=1, mode=mode)
     fc, clock = fleet.fcs[0], fleet.clock
     boot_s = clock.t - 42.0  # the autopilot's clock counts from its boot, 42 s before
@@ -250,7 +252,7 @@ def test_standard_mode_answers_px4s_timesync_on_px4s_clock(tmp_path, mode):
             assert not got and not fleet.take(0, "TIMESYNC")
             assert "timesync" not in fleet.daemon.summary()["links"]["1"]
             return
-        assert got and all(m.tc1 == 0 for m in got)  # its own request; no answer to PX4's yet
+        assert all(m.tc1 == 0 for m in got)  # no answer to PX4's request yet (its own requests only)
         for _ in range(8):  # the companion's requests at 10 Hz, each answered within a millisecond
             clock.t += 0.1
             fleet.pump(rounds=1, dt=0.001)
@@ -266,6 +268,29 @@ def test_standard_mode_answers_px4s_timesync_on_px4s_clock(tmp_path, mode):
         assert len(answers) == 1 and answers[0].ts1 == ts1
         px4_offset_ns = (ts1 + fc_ns() - 2 * answers[0].tc1) // 2  # what PX4's filter is fed
         assert abs(px4_offset_ns) <= 1_000_000
+        boot_s = clock.t - 3.0  # PX4 rebooted: its next request, on its new clock, is not answered
+        with caplog.at_level(logging.WARNING, logger="companion.daemon"):
+            fc.send(D.MAVLink_timesync_message(0, fc_ns()))
+            fleet.pump(rounds=1, dt=0.001)
+        assert not [m for m in fleet.take(0, "TIMESYNC") if m.tc1 != 0]
+        report = fleet.daemon.summary()["links"]["1"]["timesync"]
+        assert report["restarts"] == 1 and not report["synchronised"] and "clock restarted" in caplog.text
+    finally:
+        fleet.close()
+
+
+def test_standard_mode_warns_once_when_no_link_answers_timesync(tmp_path, caplog):
+    """A link that never answers (a PX4 port not in onboard mode, a wire too slow for a 10 ms round
+    trip): the user is told once that PX4 stamps the corrections on arrival."""
+    fleet = Fleet(tmp_path, n=1, mode="standard")
+    try:
+        fleet.fcs[0].send(D.MAVLink_heartbeat_message(D.MAV_TYPE_OCTOROTOR, D.MAV_AUTOPILOT_PX4, 0, 0, 3, 3))
+        with caplog.at_level(logging.WARNING, logger="companion.daemon"):
+            for _ in range(30):
+                fleet.pump(rounds=1, dt=1.0)
+        assert caplog.text.count("no TIMESYNC answer") == 1 and "EKF2_EV_DELAY" in caplog.text
+        requests = fleet.take(0, "TIMESYNC")
+        assert requests and all(m.tc1 == 0 for m in requests)
     finally:
         fleet.close()
 

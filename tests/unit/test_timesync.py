@@ -37,8 +37,9 @@ def test_the_link_clock_is_learnt_and_its_requests_answered_on_it():
     taken = [exchange(sync, t + k * 100 * MS, offset, MS, MS) for k in range(sync.config.min_samples)]
     assert all(taken) and sync.synchronised and sync.offset_ns == offset and sync.rtt_ns == 2 * MS
     t += 10**9
-    tc1, ts1 = sync.answer(777, t)
-    assert (tc1, ts1) == (t + offset, 777)
+    asked = t + offset - MS  # PX4's clock when it asked, a millisecond before
+    tc1, ts1 = sync.answer(asked, t)
+    assert (tc1, ts1) == (t + offset, asked)
     # what PX4 makes of the answer: its clock less ours at the middle of its round trip, zero here,
     # so a stamp on its own clock stays as it is (sync_stamp adds that offset)
     px4_sent, px4_back = t + offset - MS, t + offset + MS
@@ -115,9 +116,10 @@ def test_outliers_are_dropped_and_a_run_of_them_is_a_new_clock():
 
 def test_requests_are_answered_at_a_bounded_rate():
     sync, t = synced()
-    assert sync.answer(1, t) is not None
-    assert sync.answer(2, t + 5 * MS) is None and sync.counts["too_soon"] == 1
-    assert sync.answer(3, t + 10 * MS) is not None and sync.counts["answered"] == 2
+    link = t + sync.offset_ns  # (the link's clock now)
+    assert sync.answer(link, t) is not None
+    assert sync.answer(link + 5 * MS, t + 5 * MS) is None and sync.counts["too_soon"] == 1
+    assert sync.answer(link + 10 * MS, t + 10 * MS) is not None and sync.counts["answered"] == 2
 
 
 def test_the_estimate_follows_the_median():
@@ -126,3 +128,26 @@ def test_the_estimate_follows_the_median():
     for k, off in enumerate(offsets):
         exchange(sync, t + k * 10**9, off * MS, MS, MS)
     assert sync.offset_ns == 30 * MS
+
+
+def test_a_request_stamped_on_a_restarted_clock_is_not_answered_and_the_clock_learnt_again():
+    """PX4 rebooted: its requests' stamps count from its new boot. Answering on the old clock would
+    feed its fresh filter a wrong offset for seconds (it checks no deviation before converging);
+    the first such request restarts the estimate instead, and the next request goes out at once."""
+    sync, t = synced(offset_ns=300 * 10**9)
+    assert sync.answer(t + 300 * 10**9 - MS, t) is not None  # (a request a millisecond on its way)
+    t += 10**9
+    assert sync.answer(2 * 10**9, t) is None  # 2 s into its new boot
+    assert sync.counts["restarts"] == 1 and not sync.synchronised and sync.offset_ns is None
+    assert sync.request(t) is not None
+    assert sync.waiting_s(t + 3 * 10**9) == pytest.approx(3.0)
+
+
+def test_waiting_counts_from_the_first_unanswered_request():
+    sync, t = LinkTimesync(), 10**12
+    assert sync.waiting_s(t) == 0.0
+    for k in range(30):
+        sync.request(t + k * 100 * MS)
+    assert sync.waiting_s(t + 20 * 10**9) == pytest.approx(20.0)
+    sync, t = synced()
+    assert sync.waiting_s(t + 60 * 10**9) == 0.0
