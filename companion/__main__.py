@@ -184,7 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--config", metavar="FILE", help="run the daemon with this config (SITL or hardware)")
     parser.add_argument("--out", metavar="DIR",
-                        help="daemon: run folder for its tlog, log and summary (default: runs/companion-<name>-<UTC time>)")
+                        help="daemon: run folder for its tlog, log and summary "
+                             "(default: runs/companion-<name>[-group<G>]-<UTC time>)")
     parser.add_argument("--group", type=int, metavar="G",
                         help="daemon, distributed configs: the group (1-based) this companion serves")
     parser.add_argument("--start-center", metavar="X,Y,Z", help="daemon: anchor of the target trajectory [m, ENU]")

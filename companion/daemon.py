@@ -99,7 +99,7 @@ def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
     ``lost``: gaps in the link's MAVLink sequence numbers (frames lost on the wire, totals);
     ``dropped``: unparseable frames; ``rejected``: states refused (malformed, replayed, stamped
     too far ahead); ``sig rej``: frames refused by MAVLink signing; ``out``: steps of the period
-    the link was left out of, and why it is out now (stale, ekf, rebooted, gate, alone)."""
+    the link was left out of, and why it is out now (:data:`~companion.engine.selection.EXCLUSION_REASONS`)."""
     lines = [f"{'link':>4} {'sysid':>5} {'port':>4} {'states/s':>8} {'age ms':>7} {'lost':>6} {'dropped':>7} "
              f"{'rejected':>8} {'sig rej':>7} {'out':>12} {'lat p50 ms':>10} {'lat p99 ms':>10}"]
     for row, port in zip(rows, ports):

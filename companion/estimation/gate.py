@@ -12,7 +12,7 @@ links (a +3 m state with a tiny covariance pulls its neighbours by metres). Befo
    with ``G = diag(gate_pos^2 I3, gate_vel^2 I3)``, the joint's slack (cable stretch, link
    bending, the flight controllers' covariances being tighter than their errors). Without
    fault ``NIS_i`` follows a chi-square law with 6 degrees of freedom; a joint above
-   ``threshold`` (default the 1e-6 tail, 35.9) is *cut*;
+   ``threshold`` (default the 1e-6 tail, 38.26) is *cut*;
 2. a link whose every joint is cut (an inner link with both joints cut, an end link whose
    one joint is cut while its neighbour's other joint holds) is the outlier: it is
    *excluded*. Where a cut cannot be pinned on one link (a chain of two, two adjacent faulty
@@ -39,8 +39,8 @@ from .constraints import jacobian_blocks_from_tips, residual_from_tips, tip_offs
 
 __all__ = ["CHI2_6_1E6", "GateParams", "GateResult", "joint_nis", "gate_chain", "segments"]
 
-#: Chi-square quantile with 6 degrees of freedom, tail probability 1e-6.
-CHI2_6_1E6 = 35.89
+#: Chi-square quantile with 6 degrees of freedom, tail probability 1e-6 (``scipy.stats.chi2.isf(1e-6, 6)``).
+CHI2_6_1E6 = 38.26
 
 
 @dataclass(frozen=True)

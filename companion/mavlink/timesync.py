@@ -6,7 +6,7 @@ TIMESYNC carries two nanosecond stamps. A request has ``tc1 = 0`` and the sender
 its round trip (now less ``ts1``) and, taking the two legs as equal, the answerer's clock less its
 own at the middle of the trip: ``tc1 - (ts1 + now) / 2``.
 
-PX4 sends a request ten times a second on an onboard link and, once 500 answers with a round trip
+PX4 sends a request ten times a second on USB and on an onboard link and, once 500 answers with a round trip
 under 10 ms have converged its estimate, stamps an external-vision ODOMETRY with the sender's
 ``time_usec`` plus that offset (until then: its arrival). This companion stamps the corrected pose
 with the time of the autopilot's own state it corrected, on the autopilot's clock: to keep that

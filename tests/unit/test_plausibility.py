@@ -8,12 +8,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.estimation.gate import CHI2_6_1E6, GateParams, gate_chain, joint_nis, segments
+from companion.estimation.neighbour import NEIGHBOUR_GATE_CHI2
 from companion.estimation.constraints import constraint_jacobian_blocks, constraint_residual
 from companion.plausibility import StampGate, StampVerdict, StampWindow
 
 from ..chains import consistent_chain, perturbed_chain, random_covariances
 
 V = StampVerdict
+
+
+@pytest.mark.parametrize("value, tail, dof", [(CHI2_6_1E6, 1e-6, 6), (NEIGHBOUR_GATE_CHI2, 1e-3, 6)])
+def test_gate_thresholds_are_the_chi_square_quantiles_they_name(value, tail, dof):
+    from scipy.stats import chi2
+
+    assert value == pytest.approx(chi2.isf(tail, dof), abs=0.005)
 
 
 def test_stamps_must_increase_within_the_clock_window():
