@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from pathlib import Path
 
 from .estimation.sckf import CAParams
@@ -78,7 +79,9 @@ def _cmd_daemon(args) -> int:
                 raise ValueError("--start-center: expected X,Y,Z")
         group = None if args.group is None else args.group - 1
         out_dir = make_run_dir(f"companion-{scenario.name}" + (f"-group{args.group}" if args.group else ""), args.out)
-        daemon = CompanionDaemon(scenario, out_dir, center, group=group, config_file=str(args.config))
+        started = time.monotonic()  # (--duration counts the wait for a Zenoh address that is not up yet)
+        daemon = CompanionDaemon(scenario, out_dir, center, group=group, config_file=str(args.config),
+                                 bus_wait_s=args.duration)
     except ConfigError as exc:
         hint = ""
         if exc.key and "." not in exc.key and exc.reason.startswith("unknown key"):
@@ -96,7 +99,7 @@ def _cmd_daemon(args) -> int:
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     logging.getLogger().addHandler(handler)
     logging.getLogger(__name__).info("run folder %s (tlog, log, companion_summary.json)", out_dir)
-    daemon.run(args.duration)
+    daemon.run(None if args.duration is None else max(args.duration - (time.monotonic() - started), 0.0))
     return 0
 
 

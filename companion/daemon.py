@@ -114,13 +114,14 @@ def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
 
 class CompanionDaemon:
     """See the module docstring. ``group`` (0-based) selects distributed mode's group; ``bus``
-    replaces the Zenoh session it would open (tests). ``clock`` (monotonic seconds) is the one
+    replaces the Zenoh session it would open (tests); ``bus_wait_s``: how long that session waits
+    for a listen address no interface holds yet (``None``: until it is up). ``clock`` (monotonic seconds) is the one
     time of the daemon: the engine's inputs and polls, the ports' and the group link's timing;
     ``wall_clock`` (UNIX seconds) stamps the tlogs and the MAVLink signatures."""
 
     def __init__(self, setup: CompanionSetup, out_dir: Path | None = None, start_center=None,
                  group: int | None = None, bus=None, config_file: str = "<config>", clock=time.monotonic,
-                 wall_clock=time.time):
+                 wall_clock=time.time, bus_wait_s: float | None = None):
         cfg = setup.companion
         self.setup = setup
         self.cfg = cfg
@@ -144,7 +145,7 @@ class CompanionDaemon:
                                               tlog, peer_system_id=endpoints[i].system_id, signing=mode, key=key,
                                               link_id=i, clock=clock, wall_clock=wall_clock))
             if group is not None and cfg.distributed and 0 <= group < len(groups):
-                net = self._group_link(setup, group, bus, config_file)
+                net = self._group_link(setup, group, bus, config_file, bus_wait_s)
             self.engine = CompanionEngine(setup, group=group, start_center=start_center, net=net)
         except Exception:
             self._close_ports()
@@ -182,7 +183,7 @@ class CompanionDaemon:
         #: each link's armed state as its autopilot's HEARTBEAT says (standard mode: ODOMETRY has none)
         self._armed = [False] * len(self.engine.links)
 
-    def _group_link(self, setup: CompanionSetup, group: int, bus, config_file: str):
+    def _group_link(self, setup: CompanionSetup, group: int, bus, config_file: str, wait_s: float | None):
         from .fleetnet.group import GroupLink
         from .fleetnet.leader import GlobalStepNode
 
@@ -197,7 +198,7 @@ class CompanionDaemon:
             except ImportError as exc:
                 raise ValueError(f"companion.distributed needs Eclipse Zenoh ({exc}): pip install "
                                  "'aerial-skeleton-stack[distributed]'") from None
-            bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file, clock=self.clock)
+            bus = FleetBus(zc, setup.zenoh_prefix, group, n_groups, config_file, clock=self.clock, wait_s=wait_s)
         return GroupLink(node, bus, self.clock)
 
     def _open_inboxes(self, setup: CompanionSetup, net, config_file: str) -> None:

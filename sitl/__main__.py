@@ -29,9 +29,11 @@ import argparse
 import json
 import signal
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from companion.configfile import ConfigError, parse_setting
 from companion.cli import make_run_dir, pace, run_subcommand
@@ -99,9 +101,17 @@ class _Progress(tqdm):
         return super().update(max(0.0, min(n, self.total - self.n)))
 
 
-def _progress(scenario, args, desc: str, runs: int = 1) -> tqdm:
-    return _Progress(total=runs * scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
-                     bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
+@contextmanager
+def _progress(scenario, args, desc: str, runs: int = 1):
+    """The flight's progress bar on stderr; the console's log lines meanwhile (a warm-up's
+    notice, a fault's warning) are written above it instead of into it."""
+    with _Progress(total=runs * scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
+                   bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
+        if args.quiet:
+            yield bar
+            return
+        with logging_redirect_tqdm(tqdm_class=_Progress):
+            yield bar
 
 
 def _report(metrics: dict, out_dir, summary) -> int:

@@ -123,6 +123,7 @@ def open_group_session(cfg: ZenohConfig, group: int, n_groups: int, file: str = 
     if runtime is not None:
         # read when Zenoh starts its runtime, at the first session of the process
         os.environ.setdefault("ZENOH_RUNTIME", runtime)
+    listen = cfg.group_endpoint(group) if cfg.mode == "peer" else "(zenoh.endpoints)"
     start, said = clock(), -float("inf")
     while True:
         try:
@@ -134,8 +135,8 @@ def open_group_session(cfg: ZenohConfig, group: int, n_groups: int, file: str = 
                                   f"cannot open the Zenoh session: {exc}") from None
             if waited - said >= 10.0:
                 said = waited
-                log.warning("a zenoh.listen address is not up on this computer yet (%.0f s): trying again every "
-                            "%.0f s", waited, ADDRESS_RETRY_S)
+                log.warning("the Zenoh listen address %s is not up on this computer yet (%.0f s): trying again "
+                            "every %.0f s", listen, waited, ADDRESS_RETRY_S)
             sleep(ADDRESS_RETRY_S)
 
 
@@ -143,7 +144,7 @@ class FleetBus:
     """Zenoh wires of one group companion; see the module docstring."""
 
     def __init__(self, cfg: ZenohConfig, prefix: str, group: int, n_groups: int, file: str = "<config>",
-                 clock=time.monotonic):
+                 clock=time.monotonic, wait_s: float | None = None):
         self.prefix = prefix
         self._clock = clock  # stamps each event on arrival (monotonic seconds, the daemon's clock)
         self.group = group
@@ -152,7 +153,7 @@ class FleetBus:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         try:
-            self.session = open_group_session(cfg, group, n_groups, file)
+            self.session = open_group_session(cfg, group, n_groups, file, wait_s)
         except Exception:
             self._close_pipe()
             raise

@@ -44,7 +44,7 @@ from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE
 from .logs import (companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs,
                    neighbour_camera_metrics)
 from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, check_ports_free, enter_batch_scheduling,
-                        listening_unix_paths, restore_scheduling, wait_udp_listening)
+                        interrupted_once, listening_unix_paths, restore_scheduling, wait_udp_listening)
 
 __all__ = ["Fleet", "launch"]
 
@@ -361,12 +361,14 @@ class Fleet:
         self.policy_before = enter_batch_scheduling() if self.batch_scheduling else None
         if self.policy_before is not None:
             log.info("the harness and the fleet's processes run under SCHED_BATCH (no wake-up preemption)")
-        try:
-            self.start()
-            self.fly(progress)
-        finally:
-            self.close()
-        return self.results(plots)
+        with interrupted_once() as flown:
+            try:
+                self.start()
+                self.fly(progress)
+            finally:
+                flown()
+                self.close()
+            return self.results(plots)
 
     # -- the metrics -----------------------------------------------------------------------------
     def results(self, plots: bool = True) -> dict:

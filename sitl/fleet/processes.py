@@ -10,14 +10,16 @@ import logging
 import os
 import signal
 import subprocess
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from .layout import FleetError
 
 __all__ = ["Processes", "STOP_GRACE_S", "STOP_GRACE_PER_FLIGHT_S", "STARTUP_TIMEOUT_S", "enter_batch_scheduling", "restore_scheduling",
            "bound_ports", "listening_unix_paths", "wait_udp_listening", "last_error",
-           "check_ports_free"]
+           "check_ports_free", "interrupted_once"]
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +36,34 @@ def die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+@contextmanager
+def interrupted_once():
+    """Within the block, the first Ctrl-C (SIGINT) or SIGTERM raises :class:`KeyboardInterrupt`;
+    a later one, or any once the block has called the function it yields (the flight is over), is
+    logged and ignored. So the fleet's orderly stop and its metrics are not cut short: a key
+    pressed twice, or ``timeout``, which signals the process and then its group, would otherwise
+    end the run without them (the stop's own grace times bound how long it takes). Outside the
+    main thread (where signals are not delivered) it changes nothing."""
+    stopping: list[bool] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+
+    def on_signal(signum, _frame):
+        if not stopping:
+            stopping.append(True)
+            raise KeyboardInterrupt
+        log.warning("%s ignored: the fleet is stopping and its metrics are being written",
+                    signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield lambda: stopping.append(True)
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def enter_batch_scheduling() -> int | None:

@@ -240,6 +240,21 @@ class HeadlessBrowser:
         params = {"format": image_format} | ({"quality": int(quality)} if image_format == "jpeg" else {})
         return base64.b64decode(self._call("Page.captureScreenshot", params)["data"])
 
+    def settled_screenshot(self, image_format: str = "png", quality: int = 85, interval_s: float = 0.5,
+                           timeout_s: float = 20.0) -> bytes:
+        """:meth:`screenshot` once the page has stopped changing: two captures ``interval_s`` apart
+        alike, pixel for pixel (a scene fading in, software WebGL on a slow machine still drawing),
+        or the last one after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        last = self.screenshot()
+        while time.monotonic() < deadline:
+            time.sleep(interval_s)
+            now = self.screenshot()
+            if now == last:
+                break
+            last = now
+        return last if image_format == "png" else self.screenshot(image_format, quality)
+
     def console(self) -> list[str]:
         """The console messages, uncaught exceptions and log entries (failed loads) seen so far."""
         return list(self._console)

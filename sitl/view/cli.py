@@ -7,7 +7,6 @@ import argparse
 import signal
 import sys
 import threading
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -194,8 +193,7 @@ def _screenshot(view, path: Path, size: tuple[int, int], p_w_m) -> int:
             browser.open(view.url)
             browser.wait_for(f"{links_shown_js(shown)} >= {len(shown)}", timeout_s=60.0)
             browser.evaluate(DISMISS_NOTICES)
-            time.sleep(1.0)  # the last messages drawn
-            image = browser.screenshot("jpeg" if path.suffix.lower() in (".jpg", ".jpeg") else "png")
+            image = browser.settled_screenshot("jpeg" if path.suffix.lower() in (".jpg", ".jpeg") else "png")
     except (BrowserUnavailable, TimeoutError, RuntimeError) as exc:
         print(f"error: screenshot: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

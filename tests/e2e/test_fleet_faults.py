@@ -46,11 +46,15 @@ def _launch_cli(out: Path, until_sim_s: float, ports: FleetPorts):
 
 
 def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path, fleet_ports):
-    """``python -m sitl launch`` interrupted mid-flight: children stopped, ports free, metrics written."""
+    """``python -m sitl launch`` interrupted mid-flight, and again while it stops (a key pressed
+    twice; ``timeout`` signals the process and then its group): children stopped, ports free,
+    metrics written, no fault socket left."""
     out = tmp_path / "run"
     proc, progress = _launch_cli(out, 8.0, fleet_ports)  # past the take-off (7 s)
     children = children_of(proc.pid)
     assert len(children) == 4  # three vehicles and the companion
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.3)
     proc.send_signal(signal.SIGINT)
     _, rest = proc.communicate(timeout=60)
     assert proc.returncode == 130, (progress + rest).decode(errors="replace")[-3000:]
@@ -59,6 +63,7 @@ def test_ctrl_c_stops_the_fleet_cleanly_and_keeps_the_metrics(tmp_path, fleet_po
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] and 8.0 <= m["duration_s"] < 60.0 and not m["crashed"]
     assert (out / "link1" / "link1.tlog").stat().st_size > 0
+    assert not (out / "faults.sock").exists()
 
 
 @pytest.mark.unit

@@ -91,6 +91,26 @@ def test_opens_waits_evaluates_and_screenshots_a_webgl_page(browser_binary, serv
     browser.close()  # twice is fine
 
 
+def test_a_settled_screenshot_waits_until_the_page_stops_changing(browser_binary, served):
+    """A page that fades in (as the 3D view does, slowly in software WebGL): a screenshot taken at
+    once shows it half drawn; the settled one shows it drawn."""
+    fade = """document.body.style.background = 'rgb(255,255,255)';
+        window.fadeStep = 0;
+        window.fadeTimer = setInterval(() => {
+          const v = Math.max(0, 255 - 40 * ++window.fadeStep);
+          document.body.style.background = `rgb(${v},${v},${v})`;
+          if (v === 0) clearInterval(window.fadeTimer);
+        }, 250);"""
+    with HeadlessBrowser(browser_binary, width=WIDTH, height=HEIGHT, timeout_s=20) as browser:
+        browser.open(served)
+        browser.evaluate(fade)
+        early = cv2.imdecode(np.frombuffer(browser.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+        settled = cv2.imdecode(np.frombuffer(browser.settled_screenshot(interval_s=0.5), np.uint8),
+                               cv2.IMREAD_COLOR)
+    assert early[300, 600].min() > 0  # (not black yet: the fade takes 7 steps of 0.25 s)
+    assert tuple(settled[300, 600]) == (0, 0, 0)
+
+
 def test_a_binary_that_is_missing_or_will_not_start_is_unavailable(tmp_path, monkeypatch):
     temp = tmp_path / "temp"
     temp.mkdir()

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from companion.config import CompanionConfig, CompanionSetup, LinkEndpoint, load_setup
+from companion.configfile import ConfigError
 from companion.daemon import CompanionDaemon
 from companion.estimation.so3 import quat_from_euler_zyx
 from companion.fleetnet.bus import zenoh_config
@@ -330,12 +331,19 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
         assert all(ep.startswith("tls/") for ep in sc.zenoh.endpoints)
         users = tmp_path / "zenoh_users.txt"
         new_users_file(users, 3)
-        certs = tmp_path / "certs"  # as the config's comment says, plus loopback for this test
-        new_fleet_certs(certs, 3, [f"{ep.split('/')[1].split(':')[0]},127.0.0.1" for ep in sc.zenoh.endpoints])
+        certs = tmp_path / "certs"  # as the config's comment says, plus loopback and an address not up for this test
+        new_fleet_certs(certs, 3, [f"{ep.split('/')[1].split(':')[0]},127.0.0.1,10.255.255.1" for ep in sc.zenoh.endpoints])
         sc = replace(sc, zenoh=replace(sc.zenoh, users_file=str(users), tls=replace(sc.zenoh.tls, certs_dir=str(certs))))
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")
         group = 1
         ports = [_free_tcp_port() for _ in range(3)]
+        # a Pi whose network is not up: its address is waited for as long as asked (--duration), then named
+        down = replace(sc, zenoh=replace(sc.zenoh, endpoints=tuple(f"tls/10.255.255.1:{p}" for p in ports)))
+        (tmp_path / "down").mkdir()
+        with pytest.raises(ConfigError) as info:
+            CompanionDaemon(down, tmp_path / "down", group=group, bus_wait_s=1.0)
+        assert info.value.key == "zenoh.listen" and "Cannot assign requested address" in info.value.reason
+        caplog.clear()
         sc = replace(sc, zenoh=replace(sc.zenoh, endpoints=tuple(f"tls/127.0.0.1:{p}" for p in ports)))
     daemon = CompanionDaemon(sc, tmp_path, group=group)  # the Pixhawks are not plugged in here
     served = n if group is None else len(sc.companion.group_layout(n)[group])

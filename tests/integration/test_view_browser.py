@@ -4,6 +4,7 @@ Chromium, a live view of a batch flight paused and looked at, and the run's MCAP
 from __future__ import annotations
 
 import math
+import os
 import re
 import signal
 import subprocess
@@ -94,6 +95,17 @@ def test_replay_in_chromium(flown, browser_binary):
             _assert_not_blank(browser.screenshot(), 1024, 640)
     finally:
         assert _stop(proc) == 0
+
+
+def test_the_screenshot_command_waits_for_the_scene_to_be_drawn(flown, browser_binary, tmp_path):
+    """``sitl view RUN --screenshot``: the picture once the page has stopped changing (software
+    WebGL on a slow machine drew the scene faded in, near white, a second after it arrived)."""
+    shot = tmp_path / "shot.png"
+    proc = subprocess.run([sys.executable, "-m", "sitl", "view", str(flown), "--at", "6", "--view-port", "0",
+                           "--screenshot", str(shot), "--size", "1024x640"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "SKELETON_CHROMIUM": browser_binary})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_not_blank(shot.read_bytes(), 1024, 640)
 
 
 def test_run_mcap_matches_the_log(flown):

@@ -66,3 +66,24 @@ def test_a_process_that_exits_is_reported_with_what_it_said(tmp_path):
             procs.check()
     finally:
         procs.stop()
+
+
+def test_only_the_first_interruption_cuts_a_fleet_run_short(caplog):
+    """Ctrl-C pressed twice, or ``timeout`` (which signals the process and then its group): the
+    first interrupts the flight, the rest must not cut short the stop and the metrics; once the
+    flight is over, none interrupts (sitl.fleet.processes.interrupted_once)."""
+    import signal
+
+    from sitl.fleet.processes import interrupted_once
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with interrupted_once() as flown:
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)  # (the second: logged, ignored)
+        signal.raise_signal(signal.SIGTERM)
+    assert sum("ignored" in r.getMessage() for r in caplog.records) == 2
+    with interrupted_once() as flown:
+        flown()  # the flight is over: the stop and the metrics follow
+        signal.raise_signal(signal.SIGTERM)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
