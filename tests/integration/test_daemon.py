@@ -332,7 +332,8 @@ def test_hardware_configs_load_and_the_daemon_waits_for_missing_devices(tmp_path
         users = tmp_path / "zenoh_users.txt"
         new_users_file(users, 3)
         certs = tmp_path / "certs"  # as the config's comment says, plus loopback and an address not up for this test
-        new_fleet_certs(certs, 3, [f"{ep.split('/')[1].split(':')[0]},127.0.0.1,10.255.255.1" for ep in sc.zenoh.endpoints])
+        hosts = [f"{ep.split('/')[1].split(':')[0]},127.0.0.1,10.255.255.1" for ep in sc.zenoh.endpoints]
+        new_fleet_certs(certs, 3, hosts)
         sc = replace(sc, zenoh=replace(sc.zenoh, users_file=str(users), tls=replace(sc.zenoh.tls, certs_dir=str(certs))))
         zenoh_config(sc.zenoh, 1, 3, "seven_link_rpi.toml")
         group = 1
