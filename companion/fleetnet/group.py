@@ -190,7 +190,8 @@ class GroupLink:
         e2e = percentiles(self.round_trips_ms)
         return {
             "group": self.group + 1,
-            "global_step": {**node.counts, "leaders": [[c * 1e-6, g + 1] for c, g in node.leader_log],
+            "global_step": {**node.counts, "rejected_shift_by_reason": dict(node.rejections),
+                            "leaders": [[c * 1e-6, g + 1] for c, g in node.leader_log],
                             "duplicates": [{"cycle_s": c * 1e-6, "applied_from": a + 1, "second_from": b + 1,
                                             "second_live": live} for c, a, b, live in node.duplicates]},
             "round_trip_ms_as_leader": ({"network": percentiles(self.network_round_trips_ms), "end_to_end": e2e}

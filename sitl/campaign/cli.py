@@ -105,7 +105,8 @@ def _fly(args, root: Path, specs, renders: bool):
                            renders=renders, progress=bar,
                            worker_root=str(Path(args.worker_dir).resolve()) if args.worker_dir else None)
     except KeyboardInterrupt:
-        print(f"interrupted: the finished runs are in {root / 'results.csv'}; the same command goes on where "
+        again = "the same command" if args.out else f"the same command with --out {root}"
+        print(f"interrupted: the finished runs are in {root / 'results.csv'}; {again} goes on where "
               "this one stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
     except ImportError as exc:
@@ -188,9 +189,9 @@ def add_campaign_parser(sub) -> None:
                                     "(local by default), resumable, with one results table and its summaries.")
     csub = cp.add_subparsers(dest="action", metavar="ACTION", required=True)
     run = csub.add_parser(
-        "run", help="fly a campaign (the same command again goes on where it stopped)",
+        "run", help="fly a campaign (the same command with the same --out goes on where it stopped)",
         description="Fly every combination of --config, --set values and --seeds; each run writes its folder, the "
-                    "campaign keeps results.csv (a row per run), summary.csv/.md (mean, std, 95 %% interval per "
+                    "campaign keeps results.csv (a row per run), summary.csv/.md (mean, std, 95 % interval per "
                     "setting), box plots and the pooled NEES. Finished runs are never flown again.")
     run.add_argument("--config", action="append", required=True, metavar="FILE",
                      help="scenario file (repeat for several)")

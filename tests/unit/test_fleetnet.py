@@ -139,6 +139,13 @@ def test_a_flood_of_uncheckable_shifts_is_bounded():
     # the leader's boundary arrives: the held fakes are checked and rejected
     follower.on_boundary(GroupBoundaryReport(0, 2 * PERIOD_US, np.zeros(6), np.zeros(6), np.eye(6)), 2.002)
     assert not follower._held and follower.rejections["inconsistent"] == 4
+    # the companion's summary reports them, by reason
+    from companion.fleetnet.group import GroupLink
+    from companion.fleetnet.hub import LocalHub
+
+    report = GroupLink(follower, LocalHub(2, lambda: 2.0).join(1), lambda: 2.0).summary()["global_step"]
+    assert report["rejected_shift"] == 1000 and report["rejected_shift_by_reason"] == {"unverifiable": 996,
+                                                                                       "inconsistent": 4}
 
 
 def test_a_leader_still_in_its_start_up_listening_is_not_passed_over():
