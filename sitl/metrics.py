@@ -42,7 +42,7 @@ All figures are taken over the flight window (after the take-off, ``t >= flight_
   commanded at the thrust limit: the link asked for more than it can do (its firmware then
   scales the wrench onto the limit above the link's weight, ``SKL_SAT_SCALE``, and reports it:
   ``thrust_limit`` in ``linkN_ports.json`` in a fleet, in ``metrics.json`` in batch mode);
-* ``thrust_limit`` (batch mode, :func:`sitl.fly.fly`): per link its firmware's report since its
+* ``thrust_limit`` (batch mode): per link its firmware's report since its
   last boot: ``at_limit_s``, ``episodes`` (each announced by STATUSTEXT after ``SKL_TLIM_WARN``),
   ``min_scale``, ``at_limit_now``;
 * ``min_altitude_m``: lowest true link-centre altitude; ``took_off`` (whether every link ever

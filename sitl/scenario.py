@@ -150,7 +150,7 @@ class LinkRebootFault:
 class MavlinkWireFault:
     """``[faults.mavlink]``: the wires between the vehicles and the companion(s) lose each
     datagram with probability ``loss`` and delay it by ``delay_ms`` plus a uniform jitter of up to
-    ``jitter_ms`` (wall-clock ms, as a network would; both ways; datagrams may then arrive out of
+    ``jitter_ms`` (ms of simulated time, as a network would in flight; both ways; datagrams may then arrive out of
     order). ``links``: the affected links (1-based; empty: all). Fleet mode only: a proxy process
     (:mod:`sitl.fleet.wire`) sits on every affected wire and counts what it dropped."""
 
