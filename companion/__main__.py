@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -29,7 +30,7 @@ from pathlib import Path
 from .estimation.sckf import CAParams
 from .estimation.semi import parse_groups, validate_groups
 from .replay import ReplayInputError, load_replay_input, replay, save_replay_output
-from .cli import LOG_FORMAT, make_run_dir, progress_bar, run_subcommand
+from .cli import LOG_FORMAT, make_run_dir, progress_bar, run_subcommand, seconds
 
 
 EXIT_BAD_INPUT = 2
@@ -74,9 +75,12 @@ def _cmd_daemon(args) -> int:
         scenario = load_setup(CompanionSetup, args.config)
         center = None
         if args.start_center:
-            center = [float(x) for x in args.start_center.split(",")]
-            if len(center) != 3:
-                raise ValueError("--start-center: expected X,Y,Z")
+            try:
+                center = [float(x) for x in args.start_center.split(",")]
+            except ValueError:
+                center = []
+            if len(center) != 3 or not all(math.isfinite(x) for x in center):
+                raise ValueError(f"--start-center {args.start_center}: expected X,Y,Z, three finite numbers [m]")
         group = None if args.group is None else args.group - 1
         out_dir = make_run_dir(f"companion-{scenario.name}" + (f"-group{args.group}" if args.group else ""), args.out)
         started = time.monotonic()  # (--duration counts the wait for a Zenoh address that is not up yet)
@@ -185,14 +189,15 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m companion",
         description="Companion computer of an aerial skeleton: SCKF constraint application and tools.",
     )
-    parser.add_argument("--config", metavar="FILE", help="run the daemon with this config (SITL or hardware)")
+    parser.add_argument("--config", metavar="FILE", help="run the daemon with this config: a hardware file, or the "
+                                                          "companion.toml a SITL fleet run writes")
     parser.add_argument("--out", metavar="DIR",
                         help="daemon: run folder for its tlog, log and summary "
                              "(default: runs/companion-<name>[-group<G>]-<UTC time>)")
     parser.add_argument("--group", type=int, metavar="G",
                         help="daemon, distributed configs: the group (1-based) this companion serves")
     parser.add_argument("--start-center", metavar="X,Y,Z", help="daemon: anchor of the target trajectory [m, ENU]")
-    parser.add_argument("--duration", type=float, metavar="S", help="daemon: stop after S seconds of wall time")
+    parser.add_argument("--duration", type=seconds, metavar="S", help="daemon: stop after S seconds of wall time")
     parser.set_defaults(func=_cmd_daemon)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     rp = sub.add_parser(

@@ -20,7 +20,7 @@ from pathlib import Path
 from threadpoolctl import threadpool_limits
 
 __all__ = ["LOG_FORMAT", "single_thread_blas", "make_run_dir", "setup_logging", "run_subcommand", "progress_bar",
-           "pace"]
+           "finite_number", "seconds", "nonnegative_seconds", "pace"]
 
 
 class _NoBar:
@@ -65,15 +65,32 @@ def make_run_dir(kind: str, out: str | Path | None = None, root: str | Path = "r
     return path
 
 
-def pace(text: str) -> float:
-    """argparse type of a pace (``--speed F``: F times real time, 0 unpaced): a finite number >= 0."""
+def finite_number(text: str, check, rule: str) -> float:
+    """``text`` as a finite number for which ``check(value)`` holds; else argparse's type error,
+    saying ``rule``."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value >= 0.0):
-        raise argparse.ArgumentTypeError(f"{text!r}: the pace must be >= 0 (0: unpaced)")
+    if not (math.isfinite(value) and check(value)):
+        raise argparse.ArgumentTypeError(f"{text!r}: {rule}")
     return value
+
+
+def pace(text: str) -> float:
+    """argparse type of a pace (``--speed F``: F times real time, 0 unpaced): a finite number >= 0."""
+    return finite_number(text, lambda v: v >= 0.0, "the pace must be >= 0 (0: unpaced)")
+
+
+def seconds(text: str) -> float:
+    """argparse type of a length of time (``--duration S``): a finite number > 0."""
+    return finite_number(text, lambda v: v > 0.0, "a duration is a finite number of seconds > 0")
+
+
+def nonnegative_seconds(text: str) -> float:
+    """argparse type of a time or a delay that may be zero (``--at S``, ``--latency S``): a finite
+    number >= 0."""
+    return finite_number(text, lambda v: v >= 0.0, "a finite number of seconds >= 0")
 
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"

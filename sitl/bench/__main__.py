@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from companion.estimation.sckf import CAParams
 from companion.estimation.semi import parse_groups
-from companion.cli import make_run_dir, run_subcommand
+from companion.cli import make_run_dir, nonnegative_seconds, run_subcommand, seconds
 
 from .companion_step import add_companion_step_parser
 from .ekf_chain import EKF_CONFIGS, ChainRun
@@ -202,7 +202,7 @@ def _output_args(p: argparse.ArgumentParser, name: str, folder: str | None = Non
 def _flight_bench_args(p: argparse.ArgumentParser, name: str, config: str, what: str) -> None:
     """The options of a bench that flies one scenario: its file, length, seed, outputs."""
     p.add_argument("--config", default=config, help=f"{what} (default {config})")
-    p.add_argument("--duration", type=float, help="simulated seconds per flight (default: the scenario's)")
+    p.add_argument("--duration", type=seconds, help="simulated seconds per flight (default: the scenario's)")
     p.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
     _output_args(p, name)
 
@@ -223,7 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="paper Table II: 12 links, 20 s, group sizes 2/3/4/6/12",
         description="The paper's sec. IV protocol: compute time and accuracy per group size.",
     )
-    t2.add_argument("--duration", type=float, default=ChainRun.duration_s, help="simulated seconds (default 20)")
+    t2.add_argument("--duration", type=seconds, default=ChainRun.duration_s, help="simulated seconds (default 20)")
     t2.add_argument(
         "--seeds",
         type=int,
@@ -261,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "boundary, the leader solves eq. 6 and publishes the shifts. Prints the round trip "
                      "(boundary published -> shift received) the groups report to the leader."),
     )
-    zb.add_argument("--duration", type=float, default=20.0, help="seconds of cycles (default 20)")
+    zb.add_argument("--duration", type=seconds, default=20.0, help="seconds of cycles (default 20)")
     zb.add_argument("--groups", default="1,2/3,4,5/6,7", metavar="LAYOUT",
                     help="group layout, 1-based links (default 1,2/3,4,5/6,7: the thesis's seven links)")
     zb.add_argument("--base-port", type=int, default=17447, help="group g listens on TCP base+g-1 (default 17447)")
@@ -280,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--config", default=config, help=f"scenario file (default {config})")
         sp.add_argument("--seeds", type=int, default=10, metavar="N", help="seeds S..S+N-1 (default 10)")
         sp.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-        sp.add_argument("--duration", type=float, help="simulated seconds per seed (default: the scenario's)")
+        sp.add_argument("--duration", type=seconds, help="simulated seconds per seed (default: the scenario's)")
         sp.add_argument("--profile", default="m8" if name == "static" else None,
                         help="sensor profile instead of the scenario's" + (" (default m8)" if name == "static" else ""))
         sp.add_argument("--jobs", type=int, default=2,
@@ -303,8 +303,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     lfb.add_argument("--seeds", type=int, default=3, metavar="N", help="seeds S..S+N-1 (default 3)")
     lfb.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-    lfb.add_argument("--duration", type=float, default=12.0, help="simulated seconds per seed (default 12)")
-    lfb.add_argument("--latency", type=float, default=0.08, help="image latency before jitter [s] (default 0.08)")
+    lfb.add_argument("--duration", type=seconds, default=12.0, help="simulated seconds per seed (default 12)")
+    lfb.add_argument("--latency", type=nonnegative_seconds, default=0.08,
+                     help="image latency before jitter [s] (default 0.08)")
     _output_args(lfb, "load_filter")
     lfb.set_defaults(func=_cmd_load_filter)
     co = sub.add_parser(
@@ -447,10 +448,10 @@ def _add_sitl_parser(sub) -> None:
         description=("Fly each batch scenario (python -m sitl fly) and each fleet scenario unpaced (python -m sitl "
                      "launch --speed 0) as child processes; report the real-time factor, CPU seconds per simulated "
                      "second and peak RSS of every process, and MuJoCo alone on the same model as the ceiling."))
-    sp.add_argument("--duration", type=float, default=20.0, help="simulated seconds per batch flight (default 20)")
-    sp.add_argument("--fleet-duration", type=float, default=20.0,
+    sp.add_argument("--duration", type=seconds, default=20.0, help="simulated seconds per batch flight (default 20)")
+    sp.add_argument("--fleet-duration", type=seconds, default=20.0,
                     help="simulated seconds per fleet flight (default 20)")
-    sp.add_argument("--ceiling-duration", type=float, default=5.0,
+    sp.add_argument("--ceiling-duration", type=seconds, default=5.0,
                     help="simulated seconds of MuJoCo alone per model (default 5)")
     sp.add_argument("--batch", default=",".join(BATCH_SCENARIOS),
                     help=f"batch scenarios, comma-separated (default {','.join(BATCH_SCENARIOS)}; empty: none)")
@@ -490,7 +491,7 @@ def _add_view_parser(sub) -> None:
                         description="Fly one batch scenario N times in each view mode (off, on, on with headless "
                                     "Chromium connected), interleaved, and compare the flights' wall times.")
     vp.add_argument("--config", default="configs/sitl/chain/three_link.toml", help="scenario (default three_link)")
-    vp.add_argument("--duration", type=float, default=30.0, help="simulated seconds per flight (default 30)")
+    vp.add_argument("--duration", type=seconds, default=30.0, help="simulated seconds per flight (default 30)")
     vp.add_argument("--repeat", type=int, default=3, help="rounds (default 3)")
     vp.add_argument("--modes", default="off,on,browser", help="view modes, comma-separated (default off,on,browser)")
     _output_args(vp, "view", folder="view-cost")
@@ -521,8 +522,8 @@ def _add_soak_parser(sub) -> None:
                         description=("Fly one fleet unpaced and sample /proc (current RSS, open fds per process by "
                                      "role) and the run folder's size; report each one's growth per simulated hour."))
     sp.add_argument("--config", default="three_link", help="scenario name or file (default three_link)")
-    sp.add_argument("--duration", type=float, default=3600.0, help="simulated seconds (default 3600)")
-    sp.add_argument("--sample-s", type=float, default=5.0, help="wall seconds between samples (default 5)")
+    sp.add_argument("--duration", type=seconds, default=3600.0, help="simulated seconds (default 3600)")
+    sp.add_argument("--sample-s", type=seconds, default=5.0, help="wall seconds between samples (default 5)")
     _output_args(sp, "soak")
     sp.set_defaults(func=_cmd_soak)
 

@@ -20,6 +20,8 @@ import os
 import subprocess
 import sys
 
+from companion.cli import seconds
+
 __all__ = ["PATHS", "measure", "run_companion_step", "format_companion_step", "markdown_companion_step",
            "add_companion_step_parser", "build_parser", "main"]
 
@@ -130,7 +132,7 @@ def add_companion_step_parser(sub, output_args, publish) -> None:
                      "each path's step and target compute times per call and the worst cycle against the 50 ms "
                      "budget of a 20 Hz step."))
     p.add_argument("--config", default=DEFAULT_CONFIG, help=f"chain scenario (default {DEFAULT_CONFIG})")
-    p.add_argument("--duration", type=float, default=20.0, help="simulated seconds per path (default 20)")
+    p.add_argument("--duration", type=seconds, default=20.0, help="simulated seconds per path (default 20)")
     output_args(p, "companion")
     p.set_defaults(func=lambda args: _cmd(args, publish))
 
@@ -166,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl.bench.companion_step",
                                 description="One path's flight of python -m sitl.bench companion: prints its JSON record.")
     p.add_argument("config", help="chain scenario")
-    p.add_argument("duration", type=float, help="simulated seconds")
+    p.add_argument("duration", type=seconds, help="simulated seconds")
     return p
 
 

@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from companion.cli import nonnegative_seconds, seconds
+
 from .fault_socket import send_request
 
 __all__ = ["add_fault_parser"]
@@ -51,8 +53,8 @@ def add_fault_parser(sub) -> None:
         k = kinds.add_parser(kind, help=f"switch a {what}'s {'Pixhawk' if what == 'link' else 'companion'} off")
         k.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="the running fleet's run folder (launch --out)")
         k.add_argument(target, type=int, required=True, metavar="N", help=f"the {what} (from 1)")
-        k.add_argument("--restart-after", type=float, default=0.0, metavar="S",
+        k.add_argument("--restart-after", type=nonnegative_seconds, default=0.0, metavar="S",
                        help="power on again S simulated seconds later (default 0: stays off)")
-        k.add_argument("--at", type=float, metavar="S", help="at simulated time S (default: at once)")
-        k.add_argument("--timeout", type=float, default=10.0, metavar="S", help="wait this long for the reply")
+        k.add_argument("--at", type=nonnegative_seconds, metavar="S", help="at simulated time S (default: at once)")
+        k.add_argument("--timeout", type=seconds, default=10.0, metavar="S", help="wait this long for the reply")
     fa.set_defaults(func=_cmd_fault)

@@ -10,18 +10,38 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
+from companion.cli import finite_number
+
 from .app import DEFAULT_PORT, INSTALL_HINT, SPEEDS
 
 __all__ = ["add_live_args", "add_view_parser", "live", "live_speed", "serve_until_interrupted", "EXIT_BAD_INPUT"]
 
 EXIT_BAD_INPUT = 2
+#: the largest screenshot side [px] (headless Chromium allocates the whole window)
+MAX_SCREENSHOT_PX = 8192
+
+
+def _port(text: str) -> int:
+    """argparse type of a TCP port: 0 (any free one) to 65535."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{value}: a port is 0 (any free one) to 65535")
+    return value
+
+
+def _time(text: str) -> float:
+    """argparse type of a time in the run [s]: a finite number."""
+    return finite_number(text, lambda v: True, "a time in the run is a finite number of seconds")
 
 
 def _address(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
                    help=f"address the {what} listens on (default 127.0.0.1; 0.0.0.0 for other machines; an SSH "
                         "tunnel needs neither: ssh -L 8080:localhost:8080 HOST)")
-    p.add_argument("--view-port", type=int, default=DEFAULT_PORT, metavar="PORT",
+    p.add_argument("--view-port", type=_port, default=DEFAULT_PORT, metavar="PORT",
                    help=f"its port (default {DEFAULT_PORT}; the next free one if taken; 0: any free port)")
 
 
@@ -141,7 +161,7 @@ def add_view_parser(sub) -> None:
                                    "play/pause and a speed; open the printed address in a browser.")
     p.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run folder of python -m sitl fly or launch")
     _address(p, "view")
-    p.add_argument("--at", type=float, metavar="S", help="start at S simulated seconds (default: the start)")
+    p.add_argument("--at", type=_time, metavar="S", help="start at S simulated seconds (default: the start)")
     p.add_argument("--play", action="store_true", help="start playing at once")
     p.add_argument("--screenshot", metavar="PNG", type=Path,
                    help="instead of serving: open the view in headless Chromium, save a screenshot (PNG, or JPEG for "
@@ -157,10 +177,13 @@ def cmd_view(args) -> int:
     from .timeline import RunUnreadable, open_run
 
     try:
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            size = ()
+        if len(size) != 2 or min(size) < 64 or max(size) > MAX_SCREENSHOT_PX:
+            raise ValueError(f"--size {args.size}: expected WIDTHxHEIGHT, each from 64 to {MAX_SCREENSHOT_PX}")
         timeline, spec = open_run(args.run_dir)
-        size = tuple(int(v) for v in args.size.lower().split("x"))
-        if len(size) != 2 or min(size) < 64:
-            raise ValueError(f"--size {args.size}: expected WIDTHxHEIGHT, each at least 64")
     except (RunUnreadable, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -61,7 +61,7 @@ def test_hardware_configs_are_companion_setups_and_nothing_else(path, tmp_path):
 
 def test_a_scenario_given_to_the_companion_names_the_first_simulator_key():
     proc = subprocess.run([sys.executable, "-m", "companion", "--config", str(ROOT / "configs/sitl/chain/three_link.toml"),
-                           "--duration", "0"], capture_output=True, text=True, cwd=ROOT)
+                           "--duration", "0.1"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2
     assert "three_link.toml: duration_s: unknown key" in proc.stderr and "companion.toml" in proc.stderr
 
@@ -128,4 +128,37 @@ def test_the_command_line_refuses_what_a_kind_does_not_have(command, config, nee
     args = [sys.executable, "-m", "sitl", command, "--config", *config.split(), "--out", str(tmp_path / "run")]
     proc = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+_OUT = "--out RUN/run"
+
+
+@pytest.mark.parametrize("args, needle", [
+    (f"sitl fly --config configs/sitl/chain/three_link.toml --duration inf {_OUT}", "duration_s must be a finite"),
+    (f"sitl launch --config configs/sitl/chain/three_link.toml --duration nan {_OUT}", "duration_s must be a finite"),
+    (f"sitl fly --config configs/sitl/chain/three_link.toml --seed -1 {_OUT}", "seed must be >= 0"),
+    (f"sitl fly --config configs/sitl/ground/snake.toml --duration inf {_OUT}", "duration_s: must be a finite number"),
+    (f"sitl fly --config configs/sitl/ground/snake.toml --seed -3 {_OUT}", "seed must be >= 0"),
+    (f"companion --config configs/hardware/three_link_rpi.toml --duration nan {_OUT}", "a duration is a finite number"),
+    (f"companion --config configs/hardware/three_link_rpi.toml --duration -1 {_OUT}", "a duration is a finite number"),
+    (f"sitl fly --config configs/sitl/chain/three_link.toml --view --view-port 99999 {_OUT}", "a port is 0"),
+    (f"companion --config configs/hardware/three_link_rpi.toml --start-center nan,0,0 {_OUT}", "three finite numbers"),
+    (f"companion --config configs/hardware/three_link_rpi.toml --start-center a,b,c {_OUT}", "three finite numbers"),
+    (f"sitl.bench soak --duration nan {_OUT}", "a duration is a finite number"),
+    ("sitl fault vehicle-off RUN --link 1 --restart-after nan", "a finite number of seconds >= 0"),
+    # sitl view's options, checked before a server or a browser starts (--at nan raised in viser; a
+    # 99999-pixel screenshot never came back)
+    ("sitl view RUN --at nan --screenshot RUN/x.png", "a time in the run is a finite number"),
+    ("sitl view RUN --size 99999x99999 --screenshot RUN/x.png", "each from 64 to 8192"),
+    ("sitl view RUN --size 1x --screenshot RUN/x.png", "expected WIDTHxHEIGHT"),
+    ("sitl view RUN --view-port 70000", "a port is 0"),
+])
+def test_a_number_out_of_range_on_the_command_line_is_refused_naming_it(args, needle, tmp_path):
+    """Not a traceback (``--duration inf`` raised OverflowError, ``--seed -1`` numpy's ValueError, a
+    view port over 65535 an OverflowError that left the process hanging), nor a companion that stops
+    at once: exit code 2 and what is wrong, and no run folder."""
+    command = [sys.executable, "-m", *args.replace("RUN", str(tmp_path)).split()]
+    proc = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert not (tmp_path / "run").exists()

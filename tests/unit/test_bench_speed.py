@@ -148,7 +148,9 @@ def test_format_and_cli_errors(tmp_path, capsys):
     assert bench_main(["sitl", "--batch", "no_such_scenario", "--fleet", "", "--out", str(tmp_path / "x"),
                        "--quiet", "--ceiling-duration", "0.01"]) == 2
     assert "no_such_scenario" in capsys.readouterr().err
-    assert bench_main(["sitl", "--duration", "0", "--out", str(tmp_path / "y")]) == 2
+    with pytest.raises(SystemExit) as refused:  # (argparse: a duration is a finite number > 0)
+        bench_main(["sitl", "--duration", "0", "--out", str(tmp_path / "y")])
+    assert refused.value.code == 2 and "a duration is a finite number" in capsys.readouterr().err
     json.dumps(result)
 
 

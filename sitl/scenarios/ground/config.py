@@ -7,7 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from companion.configfile import ConfigError, build, load_toml, require_nonnegative, require_positive, with_settings
+from companion.configfile import (ConfigError, build, load_toml, require_finite_positive, require_nonnegative,
+                                  require_positive, with_settings)
 from companion.motion.oscillators import PhaseMap
 
 __all__ = ["GroundScenario", "GroundControl", "load_ground_scenario", "with_phase_map", "GROUND_SUMMARY",
@@ -39,7 +40,10 @@ class GroundScenario:
     commands: tuple = ()
 
     def __post_init__(self) -> None:
-        require_positive(self, "duration_s", "physics_dt_s", "cpg_rate_hz", "log_rate_hz")
+        require_finite_positive(self, "duration_s")
+        require_positive(self, "physics_dt_s", "cpg_rate_hz", "log_rate_hz")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
         require_nonnegative(self, "settle_s")
         for name, rate in (("cpg_rate_hz", self.cpg_rate_hz), ("log_rate_hz", self.log_rate_hz)):
             ratio = 1.0 / (rate * self.physics_dt_s)
