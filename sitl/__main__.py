@@ -106,12 +106,9 @@ def _progress(scenario, args, desc: str, runs: int = 1):
     """The flight's progress bar on stderr; the console's log lines meanwhile (a warm-up's
     notice, a fault's warning) are written above it instead of into it."""
     with _Progress(total=runs * scenario.duration_s, desc=desc, unit="sim s", disable=args.quiet, file=sys.stderr,
-                   bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:
-        if args.quiet:
-            yield bar
-            return
-        with logging_redirect_tqdm(tqdm_class=_Progress):
-            yield bar
+                   bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar, \
+            logging_redirect_tqdm(tqdm_class=_Progress):
+        yield bar
 
 
 def _report(metrics: dict, out_dir, summary) -> int:

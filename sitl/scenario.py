@@ -360,8 +360,7 @@ class Scenario(CompanionSetup, VehicleSetup):
     def __post_init__(self) -> None:
         if not math.isfinite(self.duration_s):
             raise ValueError(f"duration_s must be a finite number of seconds, got {self.duration_s!r}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        require_nonnegative(self, "seed")
         if not self.duration_s > self.flight_start_s:
             raise ValueError(f"duration_s must be longer than the take-off, which ends at {self.flight_start_s:g} s "
                              f"(trajectory.takeoff_start_s + takeoff_duration_s: the metrics window starts there), got "

@@ -42,9 +42,7 @@ class GroundScenario:
     def __post_init__(self) -> None:
         require_finite_positive(self, "duration_s")
         require_positive(self, "physics_dt_s", "cpg_rate_hz", "log_rate_hz")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
-        require_nonnegative(self, "settle_s")
+        require_nonnegative(self, "settle_s", "seed")
         for name, rate in (("cpg_rate_hz", self.cpg_rate_hz), ("log_rate_hz", self.log_rate_hz)):
             ratio = 1.0 / (rate * self.physics_dt_s)
             if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
