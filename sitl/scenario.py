@@ -434,9 +434,10 @@ def with_profile_tuning(scenario: Scenario) -> Scenario:
     """``scenario`` with the firmware tuned for its receivers where it left the defaults:
 
     * the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.estimators.tunings.m8_ekf_config`)
-      if its sensors are the ``m8`` profile and ``[firmware.ekf]`` is the default (``outdoor``)
-      tuning: that is tuned for ``outdoor``'s decimetre-level drift, and with ``m8``'s metre-level
-      biases it would claim about a hundredth of its position error;
+      if its sensor profile has that receiver (``m8``, ``m8_baro_mag``) and ``[firmware.ekf]`` is
+      the default (``outdoor``) tuning: that is tuned for ``outdoor``'s decimetre-level drift, and
+      with the receiver's metre-level biases it would claim about a hundredth of its position error
+      (a barometer does not help: it is referenced to the EKF's height, bias and all);
     * the largest correction a link accepts (``correction_max_dp_m``, SKL_CORR_MAXP) at least
       :data:`CORRECTION_BOUND_SIGMAS` times the RMS of a receiver's own position bias (``m8`` and
       ``m8_baro_mag``: 5 m), if ``[firmware]`` left it at its default: a link's correction is its
@@ -445,7 +446,7 @@ def with_profile_tuning(scenario: Scenario) -> Scenario:
       default 2 m would refuse about one correction in ten of a three-link chain's).
     """
     firmware = scenario.firmware
-    if scenario.sensors.profile == "m8" and firmware.ekf == outdoor_ekf_config():
+    if PROFILES[scenario.sensors.profile].gps == PROFILES["m8"].gps and firmware.ekf == outdoor_ekf_config():
         firmware = replace(firmware, ekf=m8_ekf_config())
     g = scenario.sensors.suite().gps
     own_bias_rms_m = math.sqrt(2.0 * g.bias_horizontal_std_m ** 2 + g.bias_vertical_std_m ** 2)

@@ -52,8 +52,8 @@ def test_seeded_and_the_older_profiles_draw_as_before():
 
 def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     """m8_ekf_config: outdoor's gains, and the bias's variance (per-link plus common mode) added
-    to the reported position block only; a scenario on the m8 profile gets it unless its
-    [firmware.ekf] says otherwise."""
+    to the reported position block only; a scenario on that receiver (m8, m8_baro_mag: a barometer
+    is referenced to the EKF's height, bias and all) gets it unless its [firmware.ekf] says otherwise."""
     from dataclasses import replace
 
     from link_firmware_sim.estimators import E_P, EkfConfig, LinkEkf, m8_ekf_config, outdoor_ekf_config
@@ -78,6 +78,10 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     m8 = tmp_path / "m8.toml"
     m8.write_text(base.replace('profile = "outdoor"', 'profile = "m8"'))
     assert load_scenario(m8).firmware.ekf == cfg
+    baro_mag = tmp_path / "baro_mag.toml"
+    baro_mag.write_text(base.replace('profile = "outdoor"', 'profile = "m8_baro_mag"'))
+    assert load_scenario(baro_mag).firmware.ekf == cfg
+    assert load_scenario(baro_mag).companion.gnss_common_pos_var_m2 == load_scenario(m8).companion.gnss_common_pos_var_m2
     # the companion takes the receivers' common mode out of the step (tests/unit/test_engine.py)
     assert load_scenario(m8).companion.gnss_common_pos_var_m2 == pytest.approx(
         (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2))
