@@ -21,7 +21,7 @@ from companion.config import CompanionConfig, CompanionSetup, load_setup, projec
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.firmware_config import FirmwareConfig
-from link_firmware_sim.estimators import m8_ekf_config, outdoor_ekf_config
+from link_firmware_sim.estimators import GpsHealthConfig, m8_ekf_config, outdoor_ekf_config, paper_ekf_config
 from link_firmware_sim.vehicle.failures import OK, SUPPORTED, TYPE_NAMES, UNIT_NAMES
 
 from .cameras.config import CameraMount, MarkerMount
@@ -426,6 +426,19 @@ def load_scenario(path: str | Path, **overrides) -> Scenario:
     return with_rate_noise(with_profile_tuning(load_setup(Scenario, path, **overrides)))
 
 
+#: the EKF tuning a sensor profile flies when the scenario leaves ``[firmware.ekf]`` at its default
+#: (:func:`~link_firmware_sim.estimators.tunings.outdoor_ekf_config`, which the other profiles fly)
+PROFILE_EKF_TUNINGS = {"m8": m8_ekf_config, "m8_baro_mag": m8_ekf_config, "paper": paper_ekf_config}
+
+#: the GPS consistency test's threshold (SKL_GPS_DRIFT, ``[firmware.gps] drift_max_m_s``) a sensor profile
+#: flies when the scenario leaves it at its default (0.5 m/s, which the others fly): above what the
+#: profile's healthy receiver reaches. Measured on a hovering receiver's fixes (7 links, 5 seeds of
+#: 600 s, 210000 tests of the default 2 s window): the m8 receiver's wandering biases exceed 0.5 m/s
+#: in 0.9 % of tests (a false glitch every few seconds of a seven-link flight) and reach 0.85 m/s
+#: at most; the paper profile's white 0.32 m/s velocity noise exceeds 1.0 m/s twice. A 1 m/s
+#: drift is found in 1.5-1.7 s (m8) instead of about 1 s; on paper in 1-3.5 s, and 1.5 m/s in about 1 s.
+PROFILE_GPS_DRIFT_MAX_M_S = {"m8": 0.9, "m8_baro_mag": 0.9, "paper": 1.0}
+
 #: how many standard deviations of a receiver's own bias the firmware's correction bound covers
 CORRECTION_BOUND_SIGMAS = 3.0
 
@@ -433,11 +446,15 @@ CORRECTION_BOUND_SIGMAS = 3.0
 def with_profile_tuning(scenario: Scenario) -> Scenario:
     """``scenario`` with the firmware tuned for its receivers where it left the defaults:
 
-    * the ``m8`` receiver's EKF tuning (:func:`~link_firmware_sim.estimators.tunings.m8_ekf_config`)
-      if its sensor profile has that receiver (``m8``, ``m8_baro_mag``) and ``[firmware.ekf]`` is
-      the default (``outdoor``) tuning: that is tuned for ``outdoor``'s decimetre-level drift, and
-      with the receiver's metre-level biases it would claim about a hundredth of its position error
-      (a barometer does not help: it is referenced to the EKF's height, bias and all);
+    * the EKF tuning of its sensor profile (:data:`PROFILE_EKF_TUNINGS`) if ``[firmware.ekf]`` is
+      the default (``outdoor``) tuning: that is tuned for ``outdoor``'s decimetre-level drift and
+      degree-level attitude reference; with the ``m8`` receiver's metre-level biases it would claim
+      about a hundredth of its position error (a barometer does not help: it is referenced to the
+      EKF's height, bias and all), and with the ``paper`` profile's white noise it rejects most
+      attitude references and the chain falls over;
+    * the GPS consistency test's threshold of its sensor profile (:data:`PROFILE_GPS_DRIFT_MAX_M_S`)
+      if ``[firmware.gps] drift_max_m_s`` is the default: that suits ``outdoor``'s receiver, and
+      noisier ones trip it in health (a false GPS glitch: their fixes left out for seconds);
     * the largest correction a link accepts (``correction_max_dp_m``, SKL_CORR_MAXP) at least
       :data:`CORRECTION_BOUND_SIGMAS` times the RMS of a receiver's own position bias (``m8`` and
       ``m8_baro_mag``: 5 m), if ``[firmware]`` left it at its default: a link's correction is its
@@ -446,8 +463,12 @@ def with_profile_tuning(scenario: Scenario) -> Scenario:
       default 2 m would refuse about one correction in ten of a three-link chain's).
     """
     firmware = scenario.firmware
-    if PROFILES[scenario.sensors.profile].gps == PROFILES["m8"].gps and firmware.ekf == outdoor_ekf_config():
-        firmware = replace(firmware, ekf=m8_ekf_config())
+    tuning = PROFILE_EKF_TUNINGS.get(scenario.sensors.profile)
+    if tuning is not None and firmware.ekf == outdoor_ekf_config():
+        firmware = replace(firmware, ekf=tuning())
+    drift_max_m_s = PROFILE_GPS_DRIFT_MAX_M_S.get(scenario.sensors.profile)
+    if drift_max_m_s is not None and firmware.gps.drift_max_m_s == GpsHealthConfig().drift_max_m_s:
+        firmware = replace(firmware, gps=replace(firmware.gps, drift_max_m_s=drift_max_m_s))
     g = scenario.sensors.suite().gps
     own_bias_rms_m = math.sqrt(2.0 * g.bias_horizontal_std_m ** 2 + g.bias_vertical_std_m ** 2)
     bound = math.ceil(CORRECTION_BOUND_SIGMAS * own_bias_rms_m)

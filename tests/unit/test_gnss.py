@@ -115,3 +115,40 @@ def test_the_correction_bound_covers_the_receivers_own_bias(tmp_path, profile, f
         bias = np.random.default_rng(0).normal(size=(20000, 3, 3)) * std  # (draw, link, axis)
         offset = np.linalg.norm(bias - bias.mean(axis=1, keepdims=True), axis=-1)
         assert 0.05 < np.mean(offset > 2.0) < 0.15 and np.mean(offset > bound_m) < 1e-4
+
+
+@pytest.mark.parametrize("profile, drift_m_s", [("outdoor", 1.0), ("m8", 1.0), ("m8_baro_mag", 1.0), ("paper", 1.5)])
+def test_the_gps_consistency_threshold_a_profile_flies_passes_its_healthy_receiver_and_finds_a_drift(
+        tmp_path, profile, drift_m_s):
+    """The consistency test's threshold a scenario gets for its profile
+    (sitl.scenario.PROFILE_GPS_DRIFT_MAX_M_S) passes every fix of a hovering healthy receiver and
+    fails a drift of ``drift_m_s`` within 2.5 s; at the default 0.5 m/s the m8 and paper receivers
+    fail in health (a false GPS glitch)."""
+    from sitl.scenario import load_scenario
+    from link_firmware_sim.estimators import GpsHealth, GpsHealthConfig
+
+    path = tmp_path / "s.toml"
+    path.write_text(open("configs/sitl/chain/three_link.toml").read().replace('profile = "outdoor"',
+                                                                            f'profile = "{profile}"'))
+    config = load_scenario(path).firmware.gps
+    n, rate_hz = 3, 10.0
+    pos, vel = _run(profile, n, 300.0, rate_hz)
+
+    def drifts(cfg, pos):
+        health = [GpsHealth(cfg, 0.0) for _ in range(n)]
+        out = np.zeros(pos.shape[:2])
+        for k in range(pos.shape[0]):
+            for i in range(n):
+                health[i].consistent(k / rate_hz, pos[k, i], vel[k, i])
+                out[k, i] = health[i].drift_m_s
+        return out
+
+    healthy = drifts(config, pos)
+    assert healthy.max() <= config.drift_max_m_s
+    if profile != "outdoor":
+        assert config.drift_max_m_s > GpsHealthConfig().drift_max_m_s
+        assert (healthy > GpsHealthConfig().drift_max_m_s).any()
+    ramp = pos[:400].copy()
+    ramp[300:, :, 1] += drift_m_s * np.arange(1, 101)[:, None] / rate_hz  # north from 30 s
+    found = drifts(config, ramp)[300:] > config.drift_max_m_s
+    assert found.any(axis=0).all() and found.argmax(axis=0).max() / rate_hz < 2.5
