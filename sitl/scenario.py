@@ -21,7 +21,8 @@ from companion.config import CompanionConfig, CompanionSetup, load_setup, projec
 from companion.configfile import require_nonnegative, require_positive
 from link_firmware_sim.config import VehicleSetup
 from link_firmware_sim.firmware_config import FirmwareConfig
-from link_firmware_sim.estimators import GpsHealthConfig, m8_ekf_config, outdoor_ekf_config, paper_ekf_config
+from link_firmware_sim.estimators import (GpsHealthConfig, m8_ekf_config, outdoor_ekf_config, paper_ekf_config,
+                                          rtk_ekf_config)
 from link_firmware_sim.vehicle.failures import OK, SUPPORTED, TYPE_NAMES, UNIT_NAMES
 
 from .cameras.config import CameraMount, MarkerMount
@@ -419,16 +420,17 @@ def with_options(scenario: Scenario, sckf: bool | None = None, selective_mapping
     return sc
 
 
-def load_scenario(path: str | Path, **overrides) -> Scenario:
-    """Read a scenario file; ``overrides`` replace top-level fields (e.g. ``duration_s``). A
-    ``[companion]`` without ``omega_std_rad_s`` gets the simulated gyro's white noise: the
-    firmware reports the raw body rate less its bias estimate."""
-    return with_rate_noise(with_profile_tuning(load_setup(Scenario, path, **overrides)))
+def load_scenario(path: str | Path, schema: type[Scenario] = Scenario, **overrides) -> Scenario:
+    """Read a scenario file as ``schema`` (a kind's subclass of :class:`Scenario`); ``overrides``
+    replace top-level fields (e.g. ``duration_s``). The firmware gets its sensor profile's tuning
+    where the file leaves the defaults (:func:`with_profile_tuning`), and the companion its sensor
+    terms (:func:`with_rate_noise`)."""
+    return with_rate_noise(with_profile_tuning(load_setup(schema, path, **overrides)))
 
 
 #: the EKF tuning a sensor profile flies when the scenario leaves ``[firmware.ekf]`` at its default
 #: (:func:`~link_firmware_sim.estimators.tunings.outdoor_ekf_config`, which the other profiles fly)
-PROFILE_EKF_TUNINGS = {"m8": m8_ekf_config, "m8_baro_mag": m8_ekf_config, "paper": paper_ekf_config}
+PROFILE_EKF_TUNINGS = {"m8": m8_ekf_config, "m8_baro_mag": m8_ekf_config, "rtk": rtk_ekf_config, "paper": paper_ekf_config}
 
 #: the GPS consistency test's threshold (SKL_GPS_DRIFT, ``[firmware.gps] drift_max_m_s``) a sensor profile
 #: flies when the scenario leaves it at its default (0.5 m/s, which the others fly): above what the
@@ -450,8 +452,9 @@ def with_profile_tuning(scenario: Scenario) -> Scenario:
       the default (``outdoor``) tuning: that is tuned for ``outdoor``'s decimetre-level drift and
       degree-level attitude reference; with the ``m8`` receiver's metre-level biases it would claim
       about a hundredth of its position error (a barometer does not help: it is referenced to the
-      EKF's height, bias and all), and with the ``paper`` profile's white noise it rejects most
-      attitude references and the chain falls over;
+      EKF's height, bias and all), with the ``rtk`` receiver's centimetres ten times more, and
+      with the ``paper`` profile's white noise it rejects most attitude references and the chain
+      falls over;
     * the GPS consistency test's threshold of its sensor profile (:data:`PROFILE_GPS_DRIFT_MAX_M_S`)
       if ``[firmware.gps] drift_max_m_s`` is the default: that suits ``outdoor``'s receiver, and
       noisier ones trip it in health (a false GPS glitch: their fixes left out for seconds);

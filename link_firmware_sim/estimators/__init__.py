@@ -14,9 +14,9 @@ from .ekf_config import (E_BA, E_BARO, E_BG, E_P, E_PZ, E_SCKF, E_TH, E_V, NE, N
                          X_BG, X_P, X_Q, X_V, EkfConfig, EkfNoise, UpdateInfo)
 from .gps_health import GpsHealth, GpsHealthConfig
 from .link_ekf import LinkEkf
-from .tunings import EKF_TUNINGS, m8_ekf_config, outdoor_ekf_config, paper_ekf_config
+from .tunings import EKF_TUNINGS, m8_ekf_config, outdoor_ekf_config, paper_ekf_config, rtk_ekf_config
 
 __all__ = ["X_P", "X_V", "X_Q", "X_BA", "X_BG", "NX", "E_P", "E_V", "E_TH", "E_BA", "E_BG", "E_SCKF", "NE", "E_PZ",
            "X_BARO", "E_BARO", "NX_BARO", "NE_BARO", "EkfNoise", "EkfConfig", "UpdateInfo", "LinkEkf", "GpsHealth",
            "GpsHealthConfig", "EKF_TUNINGS", "outdoor_ekf_config", "m8_ekf_config",
-           "paper_ekf_config"]
+           "paper_ekf_config", "rtk_ekf_config"]

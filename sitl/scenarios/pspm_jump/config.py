@@ -14,9 +14,8 @@ from typing import Literal
 
 import numpy as np
 
-from companion.config import load_setup
 from link_firmware_sim.controllers.pspm import HapticGains
-from sitl.scenario import Scenario
+from sitl.scenario import Scenario, load_scenario
 
 __all__ = ["TeleopConfig", "PspmJumpScenario", "load_teleop_scenario"]
 
@@ -64,5 +63,6 @@ class PspmJumpScenario(Scenario):
 
 
 def load_teleop_scenario(path, **overrides) -> PspmJumpScenario:
-    """Read a PSPM-jump scenario (:class:`~companion.configfile.ConfigError` if invalid)."""
-    return load_setup(PspmJumpScenario, path, **overrides)
+    """Read a PSPM-jump scenario (:class:`~companion.configfile.ConfigError` if invalid), tuned for its
+    sensors as every scenario is (:func:`~sitl.scenario.load_scenario`)."""
+    return load_scenario(path, PspmJumpScenario, **overrides)

@@ -14,11 +14,10 @@ from typing import Literal
 
 import numpy as np
 
-from companion.config import load_setup
 from companion.estimation.so3 import rotmat_to_quat
 from companion.load.config import LoadConfig
 from companion.load.model import Pose3
-from sitl.scenario import Scenario, with_rate_noise
+from sitl.scenario import Scenario, load_scenario
 
 __all__ = ["SlungLoadScenario", "load_slung_scenario"]
 
@@ -75,7 +74,6 @@ class SlungLoadScenario(Scenario):
 
 
 def load_slung_scenario(path: str | Path, **overrides) -> SlungLoadScenario:
-    """Read a slung-load scenario (:class:`~companion.configfile.ConfigError` if invalid); a
-    ``[companion]`` without ``omega_std_rad_s`` gets the gyro's white noise (as
-    :func:`~sitl.scenario.load_scenario`)."""
-    return with_rate_noise(load_setup(SlungLoadScenario, path, **overrides))
+    """Read a slung-load scenario (:class:`~companion.configfile.ConfigError` if invalid), tuned for
+    its sensors as every scenario is (:func:`~sitl.scenario.load_scenario`)."""
+    return load_scenario(path, SlungLoadScenario, **overrides)

@@ -16,8 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.config import load_setup
-from sitl.scenario import Scenario
+from sitl.scenario import Scenario, load_scenario
 
 __all__ = ["ContactConfig", "WallPushScenario", "load_wall_scenario"]
 
@@ -79,5 +78,6 @@ class WallPushScenario(Scenario):
 
 
 def load_wall_scenario(path, **overrides) -> WallPushScenario:
-    """Read a wall-push scenario (:class:`~companion.configfile.ConfigError` if invalid)."""
-    return load_setup(WallPushScenario, path, **overrides)
+    """Read a wall-push scenario (:class:`~companion.configfile.ConfigError` if invalid), tuned for its
+    sensors as every scenario is (:func:`~sitl.scenario.load_scenario`)."""
+    return load_scenario(path, WallPushScenario, **overrides)
