@@ -99,14 +99,20 @@ _COLUMNS = (("rms_pos_true_m", "RMS position, truth [cm]", 100.0), ("rms_pos_est
             ("rms_att_true_deg", "RMS attitude [deg]", 1.0), ("max_pos_true_m", "max position [cm]", 100.0))
 
 
+#: the last columns: whether the flight crashed, and its real-time factor (what a controller costs per tick,
+#: compared within one run)
+_TAIL = ("crashed", "real-time factor")
+
+
 def _rows(result: dict) -> list[tuple]:
-    return [(name, *(f"{scale * m[key]:.2f}" for key, _, scale in _COLUMNS), "yes" if m["crashed"] else "no")
+    return [(name, *(f"{scale * m[key]:.2f}" for key, _, scale in _COLUMNS), "yes" if m["crashed"] else "no",
+             "-" if m.get("realtime_factor") is None else f"{m['realtime_factor']:.1f}")
             for name, m in result["controllers"].items()]
 
 
 def format_controllers(result: dict) -> str:
     """The comparison as console text."""
-    head = ("controller", *(label for _, label, _ in _COLUMNS), "crashed")
+    head = ("controller", *(label for _, label, _ in _COLUMNS), *_TAIL)
     rows = [head, *_rows(result)]
     widths = [max(len(str(r[i])) for r in rows) for i in range(len(head))]
     window = next(iter(result["controllers"].values()))["window_s"]
@@ -122,5 +128,5 @@ def markdown_controllers(result: dict) -> str:
     window = next(iter(result["controllers"].values()))["window_s"]
     intro = (f"Scenario `{result['scenario']}` (seed {result['seed']}, {result['duration_s']:g} s), flown once per "
              f"controller; tracking of link 1 from {window[0]:g} s to {window[1]:g} s.")
-    return "\n".join([intro, "", md_table(("controller", *(label for _, label, _ in _COLUMNS), "crashed"),
+    return "\n".join([intro, "", md_table(("controller", *(label for _, label, _ in _COLUMNS), *_TAIL),
                                           _rows(result))])

@@ -144,3 +144,20 @@ def test_a_short_bench_run_writes_its_report_from_its_json(tmp_path):
     assert f"| EKF only | - | {ekf['pos_err_m']:.4f} | {ekf['quat_err']:.4f} |" in text
     assert main([*argv[:-3], "--out", str(tmp_path / "run2"), "--no-doc", "--quiet"]) == 0
     assert not (tmp_path / "run2" / "table2.md").exists() and (tmp_path / "run2" / "table2.json").exists()
+
+
+def test_the_controllers_table_gives_each_controllers_tracking_and_real_time_factor():
+    """What a controller costs per tick has its figure in the report: the flight's real-time factor
+    beside its tracking (``-`` when unmeasured)."""
+    from sitl.bench.controllers import format_controllers, markdown_controllers
+
+    flight = {"rms_pos_true_m": 0.0445, "rms_pos_est_m": 0.0326, "rms_att_true_deg": 0.42, "max_pos_true_m": 0.0753,
+              "window_s": [14.0, 39.98], "crashed": False}
+    result = {"scenario": "single_odar_figure8", "seed": 3, "duration_s": 40.0,
+              "controllers": {"impedance": {**flight, "realtime_factor": 5.73},
+                              "se3_pid": {**flight, "crashed": True, "realtime_factor": None}}}
+    table = markdown_controllers(result)
+    assert "| real-time factor |" in table.splitlines()[2]
+    assert "| impedance | 4.45 | 3.26 | 0.42 | 7.53 | no | 5.7 |" in table
+    assert "| se3_pid | 4.45 | 3.26 | 0.42 | 7.53 | yes | - |" in table
+    assert format_controllers(result).splitlines()[1].split()[-3:] == ["crashed", "real-time", "factor"]
