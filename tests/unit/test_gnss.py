@@ -51,8 +51,9 @@ def test_seeded_and_the_older_profiles_draw_as_before():
 
 
 def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
-    """m8_ekf_config: outdoor's gains, and the bias's variance (per-link plus common mode) added
-    to the reported position block only; a scenario on that receiver (m8, m8_baro_mag: a barometer
+    """m8_ekf_config: outdoor's gains with the receiver's correlated velocity error in the GPS
+    velocity variance, and the bias's variance (per-link plus common mode) added to the reported
+    position block only; a scenario on that receiver (m8, m8_baro_mag: a barometer
     is referenced to the EKF's height, bias and all) gets it unless its [firmware.ekf] says otherwise."""
     from dataclasses import replace
 
@@ -64,7 +65,9 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     h = g.bias_horizontal_std_m ** 2 + g.common_horizontal_std_m ** 2
     v = g.bias_vertical_std_m ** 2 + g.common_vertical_std_m ** 2
     assert cfg.gps_bias_var_m2 == pytest.approx((h, v), rel=0.01)
-    assert replace(cfg, gps_bias_var_m2=(0.0, 0.0)) == outdoor_ekf_config()  # the gains are outdoor's
+    # outdoor's gains, with the receiver's correlated velocity error in its velocity variance
+    assert replace(cfg, gps_bias_var_m2=(0.0, 0.0), gps_vel_var_m2_s2=0.0025) == outdoor_ekf_config()
+    assert cfg.gps_vel_var_m2_s2 > g.vel_std_m_s ** 2 / 2 + 10 * g.vel_bias_std_m_s ** 2
     plain = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), outdoor_ekf_config())
     biased = LinkEkf(np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), cfg)
     P0, P1 = plain.sckf_view()[4], biased.sckf_view()[4]
