@@ -430,7 +430,8 @@ def load_scenario(path: str | Path, schema: type[Scenario] = Scenario, **overrid
 
 #: the EKF tuning a sensor profile flies when the scenario leaves ``[firmware.ekf]`` at its default
 #: (:func:`~link_firmware_sim.estimators.tunings.outdoor_ekf_config`, which the other profiles fly)
-PROFILE_EKF_TUNINGS = {"m8": m8_ekf_config, "m8_baro_mag": m8_ekf_config, "rtk": rtk_ekf_config, "paper": paper_ekf_config}
+PROFILE_EKF_TUNINGS = {"m8": m8_ekf_config, "m8_baro_mag": m8_ekf_config, "rtk": rtk_ekf_config,
+                       "paper": paper_ekf_config}
 
 #: the GPS consistency test's threshold (SKL_GPS_DRIFT, ``[firmware.gps] drift_max_m_s``) a sensor profile
 #: flies when the scenario leaves it at its default (0.5 m/s, which the others fly): above what the

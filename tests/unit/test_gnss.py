@@ -84,7 +84,8 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     baro_mag = tmp_path / "baro_mag.toml"
     baro_mag.write_text(base.replace('profile = "outdoor"', 'profile = "m8_baro_mag"'))
     assert load_scenario(baro_mag).firmware.ekf == cfg
-    assert load_scenario(baro_mag).companion.gnss_common_pos_var_m2 == load_scenario(m8).companion.gnss_common_pos_var_m2
+    common = load_scenario(m8).companion.gnss_common_pos_var_m2
+    assert load_scenario(baro_mag).companion.gnss_common_pos_var_m2 == common
     # the companion takes the receivers' common mode out of the step (tests/unit/test_engine.py)
     assert load_scenario(m8).companion.gnss_common_pos_var_m2 == pytest.approx(
         (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2))
