@@ -17,7 +17,10 @@ EKF and UKF steps: :mod:`.kalman`. What differs from the report:
   image's capture time and replays the later events (re-propagation), so a late image gives the
   same estimate as one that arrived in order;
 * chi-square gating of each image (a PnP spike, e.g. P3P's when the marker is small in the
-  image, is rejected instead of pulling the estimate).
+  image, is rejected instead of pulling the estimate);
+* an estimate that is no longer finite (the model driven by vehicle positions that contradict the
+  cables, with every image rejected, until its numbers overflow) restarts the filter from
+  ``restart`` at that event (as EKF2 resets a diverged state), counted in ``stats.restarts``.
 """
 
 from __future__ import annotations
@@ -25,11 +28,12 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from .estimate import LoadEstimate, LoadFilterConfig, with_vehicle_bias
+from .estimate import LoadEstimate, LoadFilterConfig, initial_estimate, with_vehicle_bias
 from .kalman import FILTER_KINDS, FilterKind, correct, predict
 from .measurements import cable_measurement, image_measurement
 from .model import LoadObservation, LoadParams, VehicleStates
@@ -50,6 +54,7 @@ class _Event:
     nis: float = math.nan
     dof: int = 0
     accepted: bool = False
+    restarted: bool = False
 
     @property
     def key(self) -> tuple[float, int]:
@@ -66,14 +71,18 @@ class FilterStats:
     late: int = 0
     dropped_too_late: int = 0
     replayed_events: int = 0
+    #: events after which the estimate was not finite and the filter restarted
+    restarts: int = 0
+    #: images applied without a finite NIS (a singular innovation covariance, refused; a diverged estimate)
+    singular: int = 0
     nis_sum: float = 0.0
     dof_sum: int = 0
 
     @property
     def mean_nis(self) -> float:
-        """Mean normalised innovation squared of the images applied (their mean degrees of
-        freedom, :attr:`mean_dof`, for a consistent filter)."""
-        n = self.accepted + self.rejected
+        """Mean normalised innovation squared of the images applied with a finite one (their mean
+        degrees of freedom, :attr:`mean_dof`, for a consistent filter)."""
+        n = self.accepted + self.rejected - self.singular
         return self.nis_sum / n if n else math.nan
 
     @property
@@ -92,9 +101,13 @@ class LoadPoseFilter:
     to the last kept estimate before its capture time and replays the later events with it:
     buffering and re-propagation, exact up to rounding. Events older than ``cfg.lag_s`` before
     the latest time are forgotten; images older than that are dropped (``stats.dropped_too_late``).
+    ``restart(t_s, vehicles)``: the estimate the filter starts again from when its own is no longer
+    finite after an event (default: at rest at the last finite estimate's pose, with
+    :func:`~.estimate.initial_estimate`'s spreads).
     """
 
-    def __init__(self, kind: FilterKind, params: LoadParams, cfg: LoadFilterConfig, initial: LoadEstimate) -> None:
+    def __init__(self, kind: FilterKind, params: LoadParams, cfg: LoadFilterConfig, initial: LoadEstimate,
+                 restart: Callable[[float, VehicleStates], LoadEstimate] | None = None) -> None:
         if kind not in FILTER_KINDS:
             raise ValueError(f"kind must be 'ekf' or 'ukf', got {kind!r}")
         if initial.n_cables != params.n_cables:
@@ -106,6 +119,7 @@ class LoadPoseFilter:
         self._events: list[_Event] = []  # processed, in key order
         self._pending: list[_Event] = []  # images captured after the latest processed event
         self._vehicles: list[VehicleStates] = []
+        self._restart = restart
         self.stats = FilterStats()
 
     @property
@@ -153,7 +167,10 @@ class LoadPoseFilter:
             nis, ok = math.inf, False
             log.warning("image of vehicle %d at %.3f s refused: %s", obs.vehicle, obs.stamp_s, exc)
         ev.nis, ev.dof, ev.accepted = nis, m.dof, ok
-        self.stats.nis_sum += nis
+        if math.isfinite(nis):
+            self.stats.nis_sum += nis
+        else:
+            self.stats.singular += 1
         self.stats.dof_sum += m.dof
         if ok:
             self.stats.accepted += 1
@@ -183,9 +200,21 @@ class LoadPoseFilter:
     def _process(self, events: list[_Event]) -> None:
         est = self._latest
         for ev in events:
-            est = self._apply(est, ev)
-            ev.after = est
+            after = self._apply(est, ev)
+            ev.restarted = not (np.all(np.isfinite(after.x)) and np.all(np.isfinite(after.P)))
+            if ev.restarted:
+                after = self._restarted(est, ev.stamp_s)
+            est = ev.after = after
             self._events.append(ev)
+
+    def _restarted(self, last: LoadEstimate, t_s: float) -> LoadEstimate:
+        """The estimate the filter starts again from at ``t_s``, its last finite one being ``last``."""
+        self.stats.restarts += 1
+        vehicles = self._vehicles_at(t_s)
+        log.warning("%s load filter diverged at %.3f s (its estimate not finite): restarted", self.kind, t_s)
+        if self._restart is not None:
+            return self._restart(t_s, vehicles)
+        return initial_estimate(t_s, last.pos_w_m, last.q_wxyz, vehicles, self.params)
 
     def push_vehicles(self, vehicles: VehicleStates) -> LoadEstimate:
         """A sample of every vehicle (stamps increasing); returns the estimate at its time."""
@@ -223,8 +252,12 @@ class LoadPoseFilter:
         self._events = self._events[:i]
         for e in replay:
             e.after = None
+            self.stats.restarts -= e.restarted
             if e.rank == _OBS:  # its update is undone and redone
-                self.stats.nis_sum -= e.nis
+                if math.isfinite(e.nis):
+                    self.stats.nis_sum -= e.nis
+                else:
+                    self.stats.singular -= 1
                 self.stats.dof_sum -= e.dof
                 if e.accepted:
                     self.stats.accepted -= 1

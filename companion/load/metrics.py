@@ -139,11 +139,17 @@ def pose_error_whitened(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> n
     """The pose error (6 dof) per sample, ``[p_gt - p; log(q_gt q^-1)]`` (world-frame attitude
     error, the filters' convention), whitened by ``P_pose`` (k, 6, 6), the covariance of
     ``[dp; dtheta]``: ``L^-1 e`` with ``P = L L^T`` (k, 6). Its squared norm is the NEES; for a
-    consistent filter its components are independent unit normals."""
+    consistent filter its components are independent unit normals. NaN for a sample whose error is
+    not finite or whose covariance is not finite and positive definite (a diverged estimate)."""
     e = np.concatenate((np.asarray(pos_gt_m, float) - np.asarray(pos_est_m, float),
                         attitude_error(np.asarray(q_gt_wxyz, float), np.asarray(q_est_wxyz, float))), axis=-1)
-    L = np.linalg.cholesky(np.asarray(P_pose, float))
-    return np.linalg.solve(L, e[..., None])[..., 0]
+    P = np.asarray(P_pose, float)
+    out = np.full(e.shape, np.nan)
+    ok = np.all(np.isfinite(e), axis=-1) & np.all(np.isfinite(P), axis=(-2, -1))
+    ok[ok] = np.all(np.linalg.eigvalsh(P[ok]) > 0.0, axis=-1)
+    if np.any(ok):
+        out[ok] = np.linalg.solve(np.linalg.cholesky(P[ok]), e[ok][..., None])[..., 0]
+    return out
 
 
 def pose_nees(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> np.ndarray:

@@ -91,10 +91,9 @@ class LoadTracker:
         """A vehicle sample (stamps increasing): every filter advanced to it and logged; returns the
         real-time estimates by kind."""
         if not self.filters:
-            prior = self.load.camera_free_pose(veh.pos_w_m)
-            init = initial_estimate(veh.stamp_s, prior.pos_m, prior.q_wxyz, veh, self.params, pos_sigma_m=0.1,
-                                    att_sigma_rad=0.1)
-            self.filters = {k: LoadPoseFilter(k, self.params, self.load.filter, init) for k in self.kinds}
+            init = self._initial(veh.stamp_s, veh)
+            self.filters = {k: LoadPoseFilter(k, self.params, self.load.filter, init, restart=self._initial)
+                            for k in self.kinds}
             self._t0 = veh.stamp_s
         self.vehicle_samples += 1
         r = self.rows
@@ -113,6 +112,12 @@ class LoadTracker:
         r["camera_free_p"].append(free.pos_m)
         r["camera_free_q"].append(free.q_wxyz)
         return out
+
+    def _initial(self, t_s: float, veh: VehicleStates) -> LoadEstimate:
+        """The filters' start at ``t_s`` (and their restart after a divergence): the camera-free
+        pose of the vehicles ``veh``, at rest."""
+        prior = self.load.camera_free_pose(veh.positions_at(t_s))
+        return initial_estimate(t_s, prior.pos_m, prior.q_wxyz, veh, self.params, pos_sigma_m=0.1, att_sigma_rad=0.1)
 
     def _log(self, name: str, est: LoadEstimate) -> None:
         self.rows[f"{name}_p"].append(est.pos_w_m.copy())
@@ -139,7 +144,9 @@ class LoadTracker:
         degrees of freedom); the vehicle samples and the observations before the first one."""
         out = {k: {"images": f.stats.images, "accepted": f.stats.accepted, "rejected": f.stats.rejected,
                    "late": f.stats.late, "dropped_too_late": f.stats.dropped_too_late,
-                   "replayed_events": f.stats.replayed_events, "mean_nis": f.stats.mean_nis,
+                   "replayed_events": f.stats.replayed_events, "restarts": f.stats.restarts,
+                   "singular": f.stats.singular,
+                   "mean_nis": f.stats.mean_nis,
                    "mean_dof": f.stats.mean_dof} for k, f in self.filters.items()}
         return {"filters": out, "vehicle_samples": self.vehicle_samples,
                 "observations_before_start": self.early_observations}

@@ -541,3 +541,80 @@ def test_the_whitened_pose_error_squared_is_the_nees(seed):
     e = np.concatenate((p_gt - p_est, attitude_error(q_gt, q_est)), axis=-1)
     assert np.allclose(np.sum(w * w, axis=-1), [ei @ np.linalg.solve(Pi, ei) for ei, Pi in zip(e, P)])
     assert np.allclose(lm.pose_nees(p_est, q_est, P, p_gt, q_gt), np.sum(w * w, axis=-1))
+
+
+@pytest.mark.parametrize("restart", [None, "tracker"])
+def test_an_estimate_that_is_no_longer_finite_restarts_the_filter_once_even_when_replayed(truth, monkeypatch, restart):
+    """A prediction whose numbers overflowed (vehicle positions that contradict the cables, every
+    image rejected) restarts the filter at that event from ``restart`` (default: at rest at the
+    last finite pose), counted once: a late image's replay over it does not count it again."""
+    cfg = le.LoadFilterConfig()
+    meas = synthesize(truth, dataclasses.replace(SIM, latency_s=0.0, latency_jitter_s=0.0), seed=5)
+    est, _ = _start(truth, sigma_pos=0.05, sigma_att=0.05)
+    vehicles = meas.vehicles[:30]
+    fresh = []
+
+    def start_again(t_s, v):
+        fresh.append(t_s)
+        return le.initial_estimate(t_s, truth.x[0, m.NOM_POS], truth.x[0, m.NOM_QUAT], v, PARAMS)
+
+    f = lf.LoadPoseFilter("ekf", PARAMS, cfg, dataclasses.replace(est, stamp_s=vehicles[0].stamp_s),
+                          restart=start_again if restart else None)
+    t_bad = vehicles[10].stamp_s
+    predict = lf.predict
+
+    def overflowing(kind, e, v, t_to, params, c):  # the prediction to t_bad overflows
+        out = predict(kind, e, v, t_to, params, c)
+        return dataclasses.replace(out, x=np.full_like(out.x, np.nan)) if t_to == t_bad else out
+
+    monkeypatch.setattr(lf, "predict", overflowing)
+    for v in vehicles[:20]:
+        got = f.push_vehicles(v)
+    assert f.stats.restarts == 1 and np.all(np.isfinite(got.x)) and np.all(np.isfinite(got.P))
+    if restart:
+        assert fresh == [t_bad]
+    late = next(o for _, o in meas.images if vehicles[5].stamp_s < o.stamp_s < t_bad)
+    f.push_observation(late)  # rolls back before t_bad and replays over it
+    assert f.stats.late == 1 and f.stats.restarts == 1
+
+
+def test_the_whitened_pose_error_is_nan_where_the_covariance_or_the_estimate_is_not_usable():
+    """A diverged filter's samples (a covariance not finite or not positive definite, an estimate
+    not finite) whiten to NaN; the others as before."""
+    P = np.broadcast_to(np.diag([1e-4, 4e-4, 1e-4, 1e-3, 1e-3, 4e-3]), (4, 6, 6)).copy()
+    P[1, 0, 0] = -1.0
+    P[2, 3, 3] = np.inf
+    pos, q = np.zeros((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1))
+    pos[3, 0] = np.nan
+    gt = np.full((4, 3), 0.01)
+    w = lm.pose_error_whitened(pos, q, P, gt, q)
+    assert np.isnan(w[1:]).all() and np.allclose(w[0], [1.0, 0.5, 1.0, 0.0, 0.0, 0.0])
+
+
+def test_an_image_refused_for_a_singular_innovation_is_counted_apart_from_the_mean_nis(truth, monkeypatch):
+    """Its NIS is infinite: counted in ``singular`` and left out of the mean NIS, which stays
+    finite through a late image's replay over it (an infinite sum less itself read NaN)."""
+    cfg = le.LoadFilterConfig()
+    meas = synthesize(truth, dataclasses.replace(SIM, latency_s=0.0, latency_jitter_s=0.0), seed=5)
+    est, _ = _start(truth, sigma_pos=0.05, sigma_att=0.05)
+    vehicles = meas.vehicles[:30]
+    images = [o for _, o in meas.images if o.stamp_s < vehicles[19].stamp_s]
+    bad = images[len(images) // 2]
+    correct = lf.correct
+
+    def singular_once(kind, e, mm, c, gate):
+        if e.stamp_s == bad.stamp_s and mm.dof == 6:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return correct(kind, e, mm, c, gate)
+
+    monkeypatch.setattr(lf, "correct", singular_once)
+    f = lf.LoadPoseFilter("ekf", PARAMS, cfg, dataclasses.replace(est, stamp_s=vehicles[0].stamp_s))
+    pending = [o for o in images if o is not images[1]]
+    for v in vehicles[:20]:
+        for o in [o for o in pending if o.stamp_s <= v.stamp_s]:
+            pending.remove(o)
+            f.push_observation(o)
+        f.push_vehicles(v)
+    assert f.stats.singular == 1 and np.isfinite(f.stats.mean_nis)
+    f.push_observation(images[1])  # late: the replay passes the singular image again
+    assert f.stats.late == 1 and f.stats.singular == 1 and np.isfinite(f.stats.mean_nis)
