@@ -451,11 +451,11 @@ def with_profile_tuning(scenario: Scenario) -> Scenario:
 
     * the EKF tuning of its sensor profile (:data:`PROFILE_EKF_TUNINGS`) if ``[firmware.ekf]`` is
       the default (``outdoor``) tuning: that is tuned for ``outdoor``'s decimetre-level drift and
-      degree-level attitude reference; with the ``m8`` receiver's metre-level biases it would claim
+      degree-level attitude reference: with the ``m8`` receiver's metre-level biases it would claim
       about a hundredth of its position error (a barometer does not help: it is referenced to the
-      EKF's height, bias and all), with the ``rtk`` receiver's centimetres ten times more, and
-      with the ``paper`` profile's white noise it rejects most attitude references and the chain
-      falls over;
+      EKF's height, bias and all), with the ``rtk`` receiver's centimetres ten to thirty times
+      its error, and with the ``paper`` profile's white noise it rejects most attitude references
+      and the chain falls over;
     * the GPS consistency test's threshold of its sensor profile (:data:`PROFILE_GPS_DRIFT_MAX_M_S`)
       if ``[firmware.gps] drift_max_m_s`` is the default: that suits ``outdoor``'s receiver, and
       noisier ones trip it in health (a false GPS glitch: their fixes left out for seconds);

@@ -96,11 +96,11 @@ def paper_ekf_config() -> EkfConfig:
     """EKF tuning for the paper's Table I sensors (the SITL ``paper`` profile): Table I's
     measurement and process noise (:class:`EkfConfig`'s defaults: GPS position and velocity
     variance 0.1, attitude 0.04 rad^2), with :func:`outdoor_ekf_config`'s IMU bias states, as the
-    profile flies ``outdoor``'s IMU. Table I's white noise per sample is about ten times
-    ``outdoor``'s attitude reference and ``m8``'s velocity: a filter tuned for those rejects most
-    of these samples at its gate, claims a hundredth of its error, and its link falls over. Like
-    the paper's filter it leaves the profile's slow drifts unmodelled: its position covariance is
-    about half its error (NEES 5-6 per 3-dof block on three_link)."""
+    profile flies ``outdoor``'s IMU. Table I's white noise per sample is about ten times the
+    ``outdoor`` attitude reference's and six times the GPS velocity's: :func:`outdoor_ekf_config`
+    rejects most of these samples at its gate, its position NEES reads 60-300, and the chain falls
+    over. Like the paper's filter this one leaves the profile's slow drifts unmodelled: its
+    position covariance is about half its error (NEES 5-6 per 3-dof block on three_link)."""
     o = outdoor_ekf_config()
     noise = replace(EkfNoise(), accel_bias_m2_s5=o.noise.accel_bias_m2_s5, gyro_bias_rad2_s3=o.noise.gyro_bias_rad2_s3)
     return EkfConfig(noise=noise, init_accel_bias_var=o.init_accel_bias_var, init_gyro_bias_var=o.init_gyro_bias_var)
