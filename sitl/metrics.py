@@ -70,6 +70,7 @@ import warnings
 import numpy as np
 
 from companion.estimation.so3 import attitude_error, quat_conj, quat_mul, quat_to_rotmat
+from companion.estimation.whiten import whitened
 from companion.trajectory import planned_positions
 
 __all__ = ["PAPER_THREE_LINK", "THESIS_STATIC_LINK4_STD_M", "THESIS_CPG_POSE_TRACK", "compute_metrics",
@@ -155,14 +156,9 @@ def nees_whitened(p_true, v_true, q_true, p, v, q, P_blocks) -> np.ndarray:
     velocity, attitude), shape ``(..., 3 blocks, 3)``: ``e`` the truth minus the estimate (the
     attitude error world-frame, as the EKF's error state), ``P_blocks`` (..., 3, 3, 3) the
     diagonal blocks of its covariance. For a consistent filter three independent unit normals,
-    whose squared norm is the NEES; NaN where the estimate is unknown."""
-    err = np.stack([p_true - p, v_true - v, attitude_error(q_true, q)], axis=-2)  # (..., 3, 3)
-    out = np.full(err.shape, np.nan)
-    ok = np.all(np.isfinite(err), axis=-1) & np.all(np.isfinite(P_blocks), axis=(-2, -1))
-    if np.any(ok):
-        L = np.linalg.cholesky(P_blocks[ok])
-        out[ok] = np.linalg.solve(L, err[ok][..., None])[..., 0]
-    return out
+    whose squared norm is the NEES; NaN where the estimate is unknown or its block cannot whiten it
+    (:func:`~companion.estimation.whiten.whitened`)."""
+    return whitened(np.stack([p_true - p, v_true - v, attitude_error(q_true, q)], axis=-2), P_blocks)
 
 
 def _log_whitened(log: dict[str, np.ndarray], which: str) -> np.ndarray | None:

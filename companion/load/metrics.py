@@ -21,6 +21,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from companion.estimation.so3 import attitude_error, quat_to_rotmat
+from companion.estimation.whiten import whitened
 
 from companion.vision.geometry import geodesic_angle_rad, translation_error_m
 
@@ -140,16 +141,11 @@ def pose_error_whitened(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> n
     error, the filters' convention), whitened by ``P_pose`` (k, 6, 6), the covariance of
     ``[dp; dtheta]``: ``L^-1 e`` with ``P = L L^T`` (k, 6). Its squared norm is the NEES; for a
     consistent filter its components are independent unit normals. NaN for a sample whose error is
-    not finite or whose covariance is not finite and positive definite (a diverged estimate)."""
+    not finite or whose covariance is not finite and positive definite (a diverged estimate):
+    :func:`~companion.estimation.whiten.whitened`."""
     e = np.concatenate((np.asarray(pos_gt_m, float) - np.asarray(pos_est_m, float),
                         attitude_error(np.asarray(q_gt_wxyz, float), np.asarray(q_est_wxyz, float))), axis=-1)
-    P = np.asarray(P_pose, float)
-    out = np.full(e.shape, np.nan)
-    ok = np.all(np.isfinite(e), axis=-1) & np.all(np.isfinite(P), axis=(-2, -1))
-    ok[ok] = np.all(np.linalg.eigvalsh(P[ok]) > 0.0, axis=-1)
-    if np.any(ok):
-        out[ok] = np.linalg.solve(np.linalg.cholesky(P[ok]), e[ok][..., None])[..., 0]
-    return out
+    return whitened(e, P_pose)
 
 
 def pose_nees(pos_est_m, q_est_wxyz, P_pose, pos_gt_m, q_gt_wxyz) -> np.ndarray:
