@@ -162,16 +162,14 @@ def test_sensor_profiles_are_seeded_and_ideal_is_exact():
 
 
 @pytest.mark.parametrize("profile", sorted(PROFILES))
-def test_every_sensor_profile_flies_the_chain_on_the_tuning_it_gets(tmp_path, profile):
+def test_every_sensor_profile_flies_the_chain_on_the_tuning_it_gets(profile):
     """Every sensor profile flies three_link on the EKF tuning a scenario gets for it
     (sitl.scenario.PROFILE_EKF_TUNINGS): it takes off without a crash, the companion's joint gate
     passes its steps, and the links' reported position covariance is about their error (on
     outdoor's tuning the m8 receivers read a NEES in the thousands and link 1 went uncorrected in
     half the steps, the rtk receiver's about 0.1, and the paper profile's chain fell over after
     the take-off)."""
-    path = tmp_path / "s.toml"
-    path.write_text(open(CONFIG).read().replace('profile = "outdoor"', f'profile = "{profile}"'))
-    m = fly(load_scenario(path, duration_s=12.0), None, plots=False)
+    m = fly(load_scenario(CONFIG, duration_s=12.0, settings={"sensors.profile": profile}), None, plots=False)
     assert m["took_off"] and not m["crashed"], m.get("crash_reason")
     assert max(m["uncorrected"]["fraction_per_link"]) < 0.05, m["uncorrected"]
     assert max(m["nees"]["ekf"]["pos"]) < 20.0, m["nees"]["ekf"]["pos"]

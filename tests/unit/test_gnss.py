@@ -8,6 +8,9 @@ import pytest
 
 from sitl.plant.sensors import PROFILES, LinkSensors
 
+#: the chain scenario the tests load with another sensor profile (``settings``, as ``--set`` does)
+THREE_LINK = "configs/sitl/chain/three_link.toml"
+
 
 def _run(profile, n, seconds, rate_hz=10.0, seed=0):
     sensors = LinkSensors(PROFILES[profile], n, np.random.default_rng(seed))
@@ -50,7 +53,7 @@ def test_seeded_and_the_older_profiles_draw_as_before():
     assert np.std(rtk[..., 0]) < 0.02
 
 
-def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
+def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see():
     """m8_ekf_config: outdoor's gains with the receiver's correlated velocity error in the GPS
     velocity variance, and the bias's variance (per-link plus common mode) added to the reported
     position block only; a scenario on that receiver (m8, m8_baro_mag: a barometer
@@ -77,42 +80,34 @@ def test_the_m8_tuning_reports_the_receivers_bias_it_cannot_see(tmp_path):
     assert not extra.any() and np.array_equal(biased.P, plain.P)  # the filter itself is untouched
     with pytest.raises(ValueError, match="gps_bias_var_m2"):
         EkfConfig(gps_bias_var_m2=(-1.0, 0.0))
-    base = open("configs/sitl/chain/three_link.toml").read()
-    m8 = tmp_path / "m8.toml"
-    m8.write_text(base.replace('profile = "outdoor"', 'profile = "m8"'))
-    assert load_scenario(m8).firmware.ekf == cfg
-    baro_mag = tmp_path / "baro_mag.toml"
-    baro_mag.write_text(base.replace('profile = "outdoor"', 'profile = "m8_baro_mag"'))
-    assert load_scenario(baro_mag).firmware.ekf == cfg
-    common = load_scenario(m8).companion.gnss_common_pos_var_m2
-    assert load_scenario(baro_mag).companion.gnss_common_pos_var_m2 == common
+    m8 = load_scenario(THREE_LINK, settings={"sensors.profile": "m8"})
+    assert m8.firmware.ekf == cfg
+    baro_mag = load_scenario(THREE_LINK, settings={"sensors.profile": "m8_baro_mag"})
+    assert baro_mag.firmware.ekf == cfg
+    assert baro_mag.companion.gnss_common_pos_var_m2 == m8.companion.gnss_common_pos_var_m2
     # the companion takes the receivers' common mode out of the step (tests/unit/test_engine.py)
-    assert load_scenario(m8).companion.gnss_common_pos_var_m2 == pytest.approx(
+    assert m8.companion.gnss_common_pos_var_m2 == pytest.approx(
         (g.common_horizontal_std_m ** 2, g.common_vertical_std_m ** 2))
-    assert load_scenario("configs/sitl/chain/three_link.toml").firmware.ekf == outdoor_ekf_config()
-    assert load_scenario("configs/sitl/chain/three_link.toml").companion.gnss_common_pos_var_m2 == (0.0, 0.0)
-    own = tmp_path / "own.toml"
-    own.write_text(base.replace('profile = "outdoor"', 'profile = "m8"') + "\n[firmware.ekf]\ngps_pos_var_m2 = 0.7\n")
-    assert load_scenario(own).firmware.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)
-    assert load_scenario(own).companion.gnss_common_pos_var_m2 == (0.0, 0.0)  # its links report no bias
+    assert load_scenario(THREE_LINK).firmware.ekf == outdoor_ekf_config()
+    assert load_scenario(THREE_LINK).companion.gnss_common_pos_var_m2 == (0.0, 0.0)
+    own = load_scenario(THREE_LINK, settings={"sensors.profile": "m8", "firmware.ekf.gps_pos_var_m2": 0.7})
+    assert own.firmware.ekf == replace(outdoor_ekf_config(), gps_pos_var_m2=0.7)
+    assert own.companion.gnss_common_pos_var_m2 == (0.0, 0.0)  # its links report no bias
 
 
 @pytest.mark.parametrize("profile, firmware, bound_m", [
-    ("outdoor", "", 2.0), ("rtk", "", 2.0), ("m8", "", 5.0), ("m8_baro_mag", "", 5.0),
-    ("m8", "correction_max_dp_m = 3.5\n", 3.5),  # the scenario's own bound stays
+    ("outdoor", {}, 2.0), ("rtk", {}, 2.0), ("m8", {}, 5.0), ("m8_baro_mag", {}, 5.0),
+    ("m8", {"firmware.correction_max_dp_m": 3.5}, 3.5),  # the scenario's own bound stays
 ])
-def test_the_correction_bound_covers_the_receivers_own_bias(tmp_path, profile, firmware, bound_m):
+def test_the_correction_bound_covers_the_receivers_own_bias(profile, firmware, bound_m):
     """A link's correction is its offset from where the chain puts it, its receiver's own bias
     among it: on metre-level receivers the firmware accepts three times that bias's RMS, rounded up
     (m8: 3 sqrt(2 0.8^2 + 1.2^2) = 4.95 m), where the default 2 m would refuse about one correction
     in ten of a three-link chain's (each link's bias less the chain's mean, drawn here)."""
     from sitl.scenario import load_scenario
 
-    path = tmp_path / "s.toml"
-    base = open("configs/sitl/chain/three_link.toml").read()
-    text = base.replace('profile = "outdoor"', f'profile = "{profile}"')
-    path.write_text(text.replace("[firmware]\n", "[firmware]\n" + firmware))
-    assert load_scenario(path).firmware.correction_max_dp_m == bound_m
+    scenario = load_scenario(THREE_LINK, settings={"sensors.profile": profile, **firmware})
+    assert scenario.firmware.correction_max_dp_m == bound_m
     if profile == "m8" and not firmware:
         g = PROFILES["m8"].gps
         std = np.array([g.bias_horizontal_std_m, g.bias_horizontal_std_m, g.bias_vertical_std_m])
@@ -123,7 +118,7 @@ def test_the_correction_bound_covers_the_receivers_own_bias(tmp_path, profile, f
 
 @pytest.mark.parametrize("profile, drift_m_s", [("outdoor", 1.0), ("m8", 1.0), ("m8_baro_mag", 1.0), ("paper", 1.5)])
 def test_the_gps_consistency_threshold_a_profile_flies_passes_its_healthy_receiver_and_finds_a_drift(
-        tmp_path, profile, drift_m_s):
+        profile, drift_m_s):
     """The consistency test's threshold a scenario gets for its profile
     (sitl.scenario.PROFILE_GPS_DRIFT_MAX_M_S) passes every fix of a hovering healthy receiver and
     fails a drift of ``drift_m_s`` within 2.5 s; at the default 0.5 m/s the m8 and paper receivers
@@ -131,10 +126,7 @@ def test_the_gps_consistency_threshold_a_profile_flies_passes_its_healthy_receiv
     from sitl.scenario import load_scenario
     from link_firmware_sim.estimators import GpsHealth, GpsHealthConfig
 
-    path = tmp_path / "s.toml"
-    path.write_text(open("configs/sitl/chain/three_link.toml").read().replace('profile = "outdoor"',
-                                                                            f'profile = "{profile}"'))
-    config = load_scenario(path).firmware.gps
+    config = load_scenario(THREE_LINK, settings={"sensors.profile": profile}).firmware.gps
     n, rate_hz = 3, 10.0
     pos, vel = _run(profile, n, 300.0, rate_hz)
 
