@@ -68,6 +68,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.special import chdtri
 
 from companion.estimation.so3 import attitude_error, quat_conj, quat_mul, quat_to_rotmat
 from companion.estimation.whiten import whitened
@@ -216,11 +217,11 @@ def correlation_time(w: np.ndarray, c: float = 5.0) -> np.ndarray:
 
 def nees_bounds95(samples: np.ndarray | float, dof: int = 3) -> np.ndarray:
     """Two-sided 95 % bounds (last axis: lo, hi) of the average of ``samples`` independent
-    ``dof``-dof NEES values of a consistent filter (``K * mean ~ chi2(dof K)``)."""
-    from scipy.stats import chi2
-
+    ``dof``-dof NEES values of a consistent filter (``K * mean ~ chi2(dof K)``): the chi-square
+    quantiles by ``scipy.special.chdtri``, the upper tail's inverse (scipy.stats is slow to import,
+    and a run needs nothing else from it)."""
     k = np.asarray(samples, dtype=float)
-    return np.stack([chi2.ppf(0.025, dof * k) / k, chi2.ppf(0.975, dof * k) / k], axis=-1)
+    return np.stack([chdtri(dof * k, 0.975) / k, chdtri(dof * k, 0.025) / k], axis=-1)
 
 
 def relative_error_metrics(log: dict, rows: np.ndarray, sckf: bool) -> dict:

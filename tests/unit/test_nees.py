@@ -152,3 +152,28 @@ def test_relative_errors_tell_a_turn_of_the_whole_chain_from_a_bend_between_neig
     # link i+1's centre, seen from link i: its tip turned 1 deg about link i+1's left tip
     np.testing.assert_allclose(out["pos_body_m"]["sckf"], 0.5 * L * 2 * np.sin(np.radians(0.5)), rtol=1e-6)
     assert np.all(np.array(out["pos_m"]["sckf"]) > 0.0)
+
+
+@pytest.mark.parametrize("dof", [1, 3, 6])
+def test_nees_bounds_are_the_chi_square_quantiles_of_the_mean(dof):
+    """scipy.special's chi-square inverse gives scipy.stats' quantiles (the oracle), for whole and
+    effective (fractional) sample counts."""
+    from scipy.stats import chi2
+
+    from sitl.metrics import nees_bounds95
+
+    k = np.array([1.0, 2.5, 10.0, 400.7, 1e4])
+    np.testing.assert_allclose(nees_bounds95(k, dof), np.stack([chi2.ppf(0.025, dof * k) / k,
+                                                                chi2.ppf(0.975, dof * k) / k], axis=-1), rtol=1e-12)
+
+
+def test_a_flights_metrics_and_a_campaigns_summary_do_not_import_scipy_stats():
+    """Their chi-square and t quantiles come from scipy.special: scipy.stats, slow to import, would
+    lengthen the end of every run."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; import sitl.__main__; from sitl.metrics import nees_bounds95; "
+            "from sitl.campaign.summary import metric_stats; nees_bounds95(np.array([5.0])); "
+            "metric_stats([1.0, 2.0]); assert 'scipy.stats' not in sys.modules, 'scipy.stats imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
