@@ -112,6 +112,15 @@ def format_health_table(rows: list[dict], ports: list[MavlinkPort]) -> str:
     return "\n".join(lines)
 
 
+def _warm_kernels(setup: CompanionSetup) -> float | None:
+    """The seconds it took to load (or compile) the companion's compiled kernels for ``setup``;
+    ``None`` without them (the numpy path)."""
+    if not _kernels.ENABLED:
+        return None
+    with _kernels.compile_notice("the companion's compiled kernels", log, report_done=False):
+        return _kernels.warm_up(cpg=setup.trajectory.kind == "cpg")
+
+
 class CompanionDaemon:
     """See the module docstring. ``group`` (0-based) selects distributed mode's group; ``bus``
     replaces the Zenoh session it would open (tests); ``bus_wait_s``: how long that session waits
@@ -127,6 +136,10 @@ class CompanionDaemon:
         self.cfg = cfg
         self.clock = clock
         self.out_dir = out_dir
+        # every compiled kernel it runs loaded (or compiled) before its ports open, so that a launcher
+        # that waits for them finds it ready to fly, and no load (or compile) in the first SCKF cycle or
+        # target set holds up the chain's corrections (None: the numpy path)
+        self.kernels_s = _warm_kernels(setup)
         n = setup.skeleton.n_links
         groups = cfg.group_layout(n)
         members = groups[group] if group is not None and 0 <= group < len(groups) else tuple(range(n))
@@ -428,12 +441,8 @@ class CompanionDaemon:
         signal.signal(signal.SIGINT, self.stop)
         end = None if duration_s is None else self.clock() + duration_s
         engine = self.engine
-        if _kernels.ENABLED:
-            # every kernel it runs loaded (or compiled) now, not in the first SCKF cycle or target in
-            # flight, where the load (or a compile) would hold up the chain's corrections
-            with _kernels.compile_notice("the companion's compiled kernels", log, report_done=False):
-                seconds = _kernels.warm_up(cpg=self.setup.trajectory.kind == "cpg")
-            log.info("compiled kernels ready in %.1f s", seconds)
+        if self.kernels_s is not None:
+            log.info("compiled kernels ready in %.1f s", self.kernels_s)
         log.info("companion up: %d link(s) %s, mode %s, SCKF %.0f Hz, groups %s%s; %s", len(self.ports),
                  ", ".join(port.url for port in self.ports), self.cfg.mode, self.cfg.rate_hz, engine.groups,
                  f", serving group {engine.group + 1} (Zenoh prefix {self.setup.zenoh_prefix!r})" if self.net else "",

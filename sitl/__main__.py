@@ -54,6 +54,8 @@ EXIT_FLEET = 3
 EXIT_INTERRUPTED = 130
 #: the vehicles' simulator links (``sitl.fleet.layout.SIM_LINKS``; here without importing the simulator)
 SIM_LINKS = ("tcp", "unix")
+#: the fleet companions' paths (``sitl.fleet.layout.COMPANION_KERNELS``; here without importing the simulator)
+COMPANION_KERNELS = ("compiled", "numpy")
 
 
 def _scenario(args):
@@ -190,7 +192,8 @@ def _cmd_launch(args) -> int:
                 metrics = kind.launch(scenario, out_dir, speed=args.speed, progress=bar.update,
                                       companion=not args.no_companion, plots=not args.no_plots,
                                       instance_offset=args.instance_offset, sim_link=args.sim_link,
-                                      batch_scheduling=False if args.default_scheduling else None, gcs_port=args.gcs_port)
+                                      batch_scheduling=False if args.default_scheduling else None,
+                                      gcs_port=args.gcs_port, companion_kernels=args.companion_kernels)
         except FleetError as exc:
             print(f"error: {exc} (logs in {out_dir})", file=sys.stderr)
             return EXIT_FLEET
@@ -273,6 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--default-scheduling", action="store_true",
                     help="unpaced (--speed 0) too, keep Linux's default scheduling policy; without it an unpaced "
                          "fleet runs under SCHED_BATCH: no process preempts the one that woke it (faster lockstep)")
+    la.add_argument("--companion-kernels", choices=COMPANION_KERNELS, default="compiled",
+                    help="the companions run their compiled kernels (default, where numba is installed) or numpy, "
+                         "the path an onboard computer without numba runs (SKELETON_JIT=0 for them alone)")
     add_live_args(la)
     la.set_defaults(func=_cmd_launch)
     mc = sub.add_parser(

@@ -256,7 +256,7 @@ def run_fleet(name: str, duration_s: float, out_dir: Path, python: str = sys.exe
                 processes[role]["loop_cpu_s_per_sim_s"] = c / sim
                 loop_total += c
     return {"scenario": name, "mode": "fleet", "sim_link": sim_link, "scheduling": metrics.get("scheduling"),
-            "exit_code": code, "sim_s": sim,
+            "companion_kernels": metrics.get("companion_kernels"), "exit_code": code, "sim_s": sim,
             "realtime_factor": metrics.get("realtime_factor"), "process_wall_s": wall,
             "cpu_s_per_sim_s": cpu / sim, "loop_cpu_s_per_sim_s": None if loop_total is None else loop_total / sim,
             "processes": processes, "crashed": metrics.get("crashed"),
@@ -363,6 +363,18 @@ def _verdict(result: dict) -> str:
             + ", ".join(f"{name} {c['realtime_factor']:.0f}x" for name, c in result["mujoco_ceiling"].items()) + ")")
 
 
+def _fleet_facts(result: dict) -> list[str]:
+    """How the fleets ran: their scheduling policy (``sitl launch``: SCHED_BATCH unpaced, unless
+    --default-scheduling or not Linux) and their companions' path (compiled kernels or numpy)."""
+    fleets = [r for r in result["runs"] if r.get("mode") == "fleet"]
+    facts = []
+    for key, what in (("scheduling", "fleets' scheduling policy"), ("companion_kernels", "fleets' companions")):
+        values = sorted({str(r.get(key)) for r in fleets})
+        if values:
+            facts.append(f"{what}: {', '.join(values)}")
+    return facts
+
+
 def format_speed(result: dict) -> str:
     rows = [f"kernels compiled: {result['compiled']} (warm-up {result['warm_up_s']:.1f} s); "
             f"load average at the end {', '.join(f'{x:.1f}' for x in result['load_average_at_end'])}",
@@ -377,9 +389,8 @@ def format_speed(result: dict) -> str:
     if result.get("repeat", 1) > 1:
         rows.insert(1, f"every figure: the median of {result['repeat']} interleaved runs (all runs' "
                        f"real-time factors in brackets)")
-    policies = sorted({str(r.get("scheduling")) for r in result["runs"] if r.get("mode") == "fleet"})
-    if policies:  # (sitl launch: SCHED_BATCH unpaced, unless --default-scheduling or not Linux)
-        rows.insert(1, f"fleets' scheduling policy: {', '.join(policies)}")
+    for fact in reversed(_fleet_facts(result)):
+        rows.insert(1, fact)
     for name, c in result["mujoco_ceiling"].items():
         rows.append(f"{'MuJoCo only ' + name:<28} {c['realtime_factor']:>6.1f} {1.0:>9.3f} {c['cpu_s_per_sim_s']:>12.3f}"
                      f" {'':>8} {'':>12} {'':>14}{_runs_text(c)}")
@@ -488,9 +499,7 @@ def markdown_speed(result: dict) -> str:
     if result.get("repeat", 1) > 1:
         facts.append(f"every figure: the median of {result['repeat']} interleaved runs (every run's real-time "
                      "factor in the last column)")
-    policies = sorted({str(r.get("scheduling")) for r in result["runs"] if r.get("mode") == "fleet"})
-    if policies:
-        facts.append(f"fleets' scheduling policy: {', '.join(policies)}")
+    facts += _fleet_facts(result)
     parts += [f"- {f}" for f in facts]
     tick = result.get("firmware_tick_us")
     if tick:

@@ -39,8 +39,8 @@ from .harness import FleetHarness
 from .inject import FailureCommander, enable_failure_injection
 from .sim_time import SimTimeWriter
 from .task import FleetTask
-from .layout import (GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError, check_fleet_scenario,
-                     check_instance_offset, endpoint_table, fleet_ports, impaired_links)
+from .layout import (COMPANION_KERNELS, GCS_PORT, SIM_LINKS, WIRE_COMPANION_SIDE, WIRE_VEHICLE_SIDE, FleetError,
+                     check_fleet_scenario, check_instance_offset, endpoint_table, fleet_ports, impaired_links)
 from .logs import (companion_summaries, distributed_metrics, fault_report, mavlink_counters, merge_logs,
                    neighbour_camera_metrics)
 from .processes import (STARTUP_TIMEOUT_S, Processes, bound_ports, check_ports_free, enter_batch_scheduling,
@@ -56,9 +56,12 @@ class Fleet:
 
     def __init__(self, sc: Scenario, out_dir: Path, speed: float = 1.0, python: str = sys.executable,
                  companion: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
-                 batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None):
+                 batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None,
+                 companion_kernels: str = "compiled"):
         if sim_link not in SIM_LINKS:
             raise ValueError(f"sim_link {sim_link!r}: one of {', '.join(SIM_LINKS)}")
+        if companion_kernels not in COMPANION_KERNELS:
+            raise ValueError(f"companion_kernels {companion_kernels!r}: one of {', '.join(COMPANION_KERNELS)}")
         check_fleet_scenario(sc)
         check_instance_offset(sc, instance_offset, gcs_port)
         self.sc, self.out_dir, self.speed, self.python = sc, out_dir, speed, python
@@ -68,6 +71,8 @@ class Fleet:
         #: the companion(s) run: asked for, and the scenario has them
         self.companion = companion and self.task.companion_runs(sc)
         self.batch_scheduling = speed <= 0 if batch_scheduling is None else batch_scheduling
+        #: the companions' path: their compiled kernels (where numba is installed) or the numpy path
+        self.companion_kernels = companion_kernels
         self.n = sc.skeleton.n_links
         #: 0-based links whose onboard wire goes through the impaired wire (``[faults.mavlink]``)
         self.wired = impaired_links(sc) if self.companion else []
@@ -184,10 +189,10 @@ class Fleet:
     def start_companion(self, group: int | None, folder: str, name: str | None = None) -> None:
         argv = [self.python, "-m", "companion", "--config", str(self.companion_config), "--out",
                 str(self.out_dir / folder)]
-        # The companions stand in for the onboard computers, which have no numba: the numpy path
-        # (the compiled kernels off), their start-up and their memory as there.
+        # The numpy path stands in for an onboard computer without numba: the compiled kernels off.
+        env = dict(os.environ, SKELETON_JIT="0") if self.companion_kernels == "numpy" else None
         self.procs.start(name or self.companion_name(group), argv + ([] if group is None else ["--group", str(group + 1)]),
-                         self.out_dir / folder / "console.log", env=dict(os.environ, SKELETON_JIT="0"))
+                         self.out_dir / folder / "console.log", env=env)
 
     def start_wire(self) -> None:
         """The impaired wire (:mod:`sitl.fleet.wire`) between the wired links and the companion."""
@@ -352,9 +357,10 @@ class Fleet:
     def run(self, progress=None, plots: bool = True) -> dict:
         """The whole run (module docstring); returns the metrics."""
         self.prepare()
-        # The firmware's compiled kernels: compiled (or loaded) here once, so that the n vehicle processes
-        # load numba's on-disk cache instead of each compiling them (link_firmware_sim.kernels).
-        warm_up_kernels("fleet")
+        # The firmware's and the companion's compiled kernels: compiled (or loaded) here once, so that the
+        # vehicles and the companions load numba's on-disk cache instead of each compiling them.
+        warm_up_kernels("fleet", cpg=self.sc.trajectory.kind == "cpg",
+                        companion=self.companion and self.companion_kernels == "compiled")
         # the same-host link's sockets: a private (0700) folder of its own, short enough for a socket path
         # (made after the last step that can fail before the ``try`` that removes it)
         self.sim_dir = Path(tempfile.mkdtemp(prefix="skeleton-sim-")) if self.sim_link == "unix" else None
@@ -400,6 +406,7 @@ class Fleet:
         )
         metrics.update(scenario=sc.name, seed=sc.seed, duration_s=harness.sim_s, mode="fleet", speed=self.speed,
                        sim_link=self.sim_link, scheduling="batch" if self.policy_before is not None else "default",
+                       companion_kernels=self.companion_kernels if self.companion else None,
                        interrupted=self.interrupted, aborted=aborted or None, missing_flight_logs=missing)
         if sc.companion.distributed and self.companion:
             metrics["distributed"] = distributed_metrics(sc, merged, companion_summaries(out_dir),
@@ -441,7 +448,8 @@ class Fleet:
 
 def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, python: str = sys.executable,
            companion: bool = True, plots: bool = True, instance_offset: int = 0, sim_link: str = "tcp",
-           batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None) -> dict:
+           batch_scheduling: bool | None = None, gcs_port: int = GCS_PORT, task: FleetTask | None = None,
+           companion_kernels: str = "compiled") -> dict:
     """Run the scenario in fleet mode; returns the metrics (also written to ``out_dir``; the PNG plots
     too unless ``plots`` is false). ``instance_offset`` K: link ``i`` takes PX4 SITL instance
     K + i's ports (simulator TCP 4560+K+i, onboard UDP 14540+K+i from 14580+K+i, GCS from
@@ -453,7 +461,10 @@ def launch(sc: Scenario, out_dir: Path, speed: float = 1.0, progress=None, pytho
     (:func:`~sitl.fleet.processes.enter_batch_scheduling`); ``None``: when unpaced (``speed`` 0),
     where only throughput counts (the metrics say which: ``scheduling``). ``gcs_port``: the UDP
     port every vehicle sends its ground-station traffic to. ``task``: what the scenario's kind adds
-    (:class:`~sitl.fleet.task.FleetTask`; default: the chain's)."""
+    (:class:`~sitl.fleet.task.FleetTask`; default: the chain's). ``companion_kernels``: the
+    companions run their ``"compiled"`` kernels (where numba is installed; the daemon's default) or
+    the ``"numpy"`` path, as an onboard computer without numba does (``SKELETON_JIT=0``)."""
     fleet = Fleet(sc, out_dir, speed=speed, python=python, companion=companion, instance_offset=instance_offset,
-                  sim_link=sim_link, batch_scheduling=batch_scheduling, gcs_port=gcs_port, task=task)
+                  sim_link=sim_link, batch_scheduling=batch_scheduling, gcs_port=gcs_port, task=task,
+                  companion_kernels=companion_kernels)
     return fleet.run(progress, plots)

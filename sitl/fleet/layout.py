@@ -17,7 +17,7 @@ from companion.mavlink.signing import key_passphrase
 from sitl.scenario import Scenario
 
 __all__ = ["FleetError", "GCS_PORT", "LOCKSTEP_STARTED", "LOCKSTEP_ENDED", "SIM_LINKS", "WIRE_VEHICLE_SIDE", "WIRE_COMPANION_SIDE", "signing_instructions",
-           "endpoint_table", "check_fleet_scenario", "check_instance_offset", "impaired_links",
+           "COMPANION_KERNELS", "endpoint_table", "check_fleet_scenario", "check_instance_offset", "impaired_links",
            "fleet_ports"]
 
 #: UDP ports of the impaired wire (``[faults.mavlink]``): vehicle i sends to WIRE_VEHICLE_SIDE + i,
@@ -26,6 +26,9 @@ WIRE_VEHICLE_SIDE = 15540
 WIRE_COMPANION_SIDE = 15580
 #: the vehicles' simulator links: PX4's simulator API on TCP (the default), or the same-host link
 SIM_LINKS = ("tcp", "unix")
+#: the companions' path: their compiled kernels (the default where numba is installed), or the numpy
+#: path an onboard computer without numba runs
+COMPANION_KERNELS = ("compiled", "numpy")
 #: where every vehicle sends its ground-station traffic (PX4 SITL's: QGroundControl listens there)
 GCS_PORT = 14550
 #: the harness's log lines at the lockstep's start and end (what ``sitl.bench sitl`` times a fleet by)

@@ -86,14 +86,16 @@ def _garbage(port: int, rng: np.random.Generator) -> int:
     return sent
 
 
-def _launch_under(sc, tmp_path, ports: FleetPorts, attack, speed: float = 1.0, join_s: float = 30.0) -> dict:
-    """Fly ``sc`` in fleet mode on ``ports`` while ``attack(stop)`` runs in a thread of this process;
-    ``stop`` (a threading.Event) is set when the flight ends. Returns the metrics."""
+def _launch_under(sc, tmp_path, ports: FleetPorts, attack, speed: float = 1.0, join_s: float = 30.0,
+                  **options) -> dict:
+    """Fly ``sc`` in fleet mode on ``ports`` (and :func:`launch`'s ``options``) while ``attack(stop)``
+    runs in a thread of this process; ``stop`` (a threading.Event) is set when the flight ends.
+    Returns the metrics."""
     stop = threading.Event()
     worker = threading.Thread(target=attack, args=(stop,), daemon=True)
     worker.start()
     try:
-        return launch(sc, tmp_path, speed=speed, **ports.launch_kwargs)
+        return launch(sc, tmp_path, speed=speed, **ports.launch_kwargs, **options)
     finally:
         stop.set()
         worker.join(join_s)
@@ -121,7 +123,8 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference, fl
         flooded["companion"] = _garbage(fleet_ports.companion(1), rng)  # the companion's port for link 2
 
     try:
-        m = _launch_under(sc, tmp_path, fleet_ports, lambda stop: flood(), speed=0.0)
+        # (the companion as an onboard computer without numba runs it: the numpy path)
+        m = _launch_under(sc, tmp_path, fleet_ports, lambda stop: flood(), speed=0.0, companion_kernels="numpy")
     finally:
         listener.close()
     assert not children_of(os.getpid()), "vehicle or companion processes left behind"
@@ -135,8 +138,9 @@ def test_fleet_flies_under_garbage_like_batch_mode(tmp_path, batch_reference, fl
     link2 = json.loads((tmp_path / "link2" / "link2_ports.json").read_text())
     onboard = next(v for k, v in link2.items() if k.startswith(f"udpout://127.0.0.1:{fleet_ports.companion(1)}"))
     assert onboard["dropped_bytes"] > 900_000 and onboard["dropped_frames"] >= 1024
-    # the companion stands in for an onboard computer (no numba there): the numpy path, as on the Pi
+    # the companion stood in for an onboard computer without numba: the numpy path
     assert "numpy path (no compiled kernels)" in (tmp_path / "companion" / "console.log").read_text()
+    assert m["companion_kernels"] == "numpy"
     comp = json.loads((tmp_path / "companion" / "companion_summary.json").read_text())
     assert comp["links"]["2"]["dropped_bytes"] > 900_000 and comp["links"]["2"]["dropped_frames"] >= 1024
     assert comp["links"]["1"]["dropped_bytes"] == 0
@@ -216,6 +220,10 @@ def test_fleet_over_the_same_host_link_flies_like_batch_mode(tmp_path, batch_ref
     assert any(x.startswith(LOCKSTEP_ENDED + " at t = 16.000 s") for x in lines), lines
     assert_ports_released(fleet_ports, 3)
     assert m["sim_link"] == "unix" and not m["crashed"] and not m["aborted"]
+    # the companion's compiled kernels (the default where numba is installed), loaded before the lockstep
+    assert m["companion_kernels"] == "compiled"
+    console = (tmp_path / "companion" / "console.log").read_text()
+    assert "compiled kernels ready in" in console and "; compiled kernels" in console
     for key in ("rms_track_est_m", "rms_track_true_m"):
         np.testing.assert_allclose(m[key], batch_reference[key], rtol=0.2, err_msg=key)
     for key in ("constraint_pos_p95_m", "constraint_vel_p95_m_s"):

@@ -9,6 +9,7 @@ import logging
 import math
 import socket
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -365,31 +366,43 @@ def _free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("feedforward", [False, True], ids=["no-feedforward", "feedforward"])
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
-def test_the_daemon_loads_its_compiled_kernels_before_its_first_cycle(tmp_path, monkeypatch, feedforward, compiled):
-    """With the compiled kernels on, ``run`` loads (or compiles) every one of them before its loop,
-    with or without the feed-forward: the SCKF's kernels run in every cycle, and a first cycle
-    that loads them would stall the chain's corrections. Without them (the onboard install)
-    nothing is loaded."""
+def test_the_daemon_loads_its_compiled_kernels_before_its_ports_open(tmp_path, monkeypatch, caplog, compiled):
+    """With the compiled kernels on, the daemon loads (or compiles) every one of them (the CPG's
+    for a CPG flight) before it opens its ports: a launcher that waits for its ports finds it ready
+    to fly, and a first cycle that loaded them would stall the chain's corrections. Without them
+    (the onboard install) nothing is loaded."""
     import signal
 
-    from companion.kernels import warm  # (what the daemon loads at its start)
+    import companion.daemon as daemon_module
+    from companion.kernels import warm  # (what the daemon loads)
 
-    fleet = Fleet(tmp_path)
-    fleet.daemon.setup = replace(fleet.setup, trajectory=replace(fleet.setup.trajectory, feedforward=feedforward))
     calls = []
     monkeypatch.setattr(warm, "ENABLED", compiled)
-    monkeypatch.setattr(warm, "warm_up", lambda **_: calls.append(fleet.clock()) or 0.0)
+    monkeypatch.setattr(warm, "warm_up", lambda **kw: calls.append(("warm", kw)) or 0.5)
+
+    def port(*args, **kwargs):
+        calls.append(("port", {}))
+        return MavlinkPort(*args, **kwargs)
+
+    monkeypatch.setattr(daemon_module, "MavlinkPort", port)
+    fleet = Fleet(tmp_path)
+    daemon = fleet.daemon
+    assert calls == ([("warm", {"cpg": False})] if compiled else []) + [("port", {})] * 3
+    cpg = SimpleNamespace(trajectory=SimpleNamespace(kind="cpg"))  # (a CPG flight's: the CPG's kernels too)
+    assert daemon_module._warm_kernels(cpg) == (0.5 if compiled else None)
+    assert calls[-1:] == ([("warm", {"cpg": True})] if compiled else [("port", {})])
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
-        fleet.daemon.run(duration_s=0.0)  # (no cycle: the loop ends at once; run closes the daemon)
+        with caplog.at_level(logging.INFO, logger="companion.daemon"):
+            daemon.run(duration_s=0.0)  # (no cycle: the loop ends at once; run closes the daemon)
     finally:
         for s, h in handlers.items():
             signal.signal(s, h)
         for fc in fleet.fcs:
             fc.close()
-    assert calls == ([fleet.clock()] if compiled else [])
+    assert ("compiled kernels ready in 0.5 s" in caplog.text) == compiled
+    assert ("numpy path (no compiled kernels)" in caplog.text) != compiled
 
 
 def test_the_daemon_leaves_its_flight_as_mcap(fleet):

@@ -1,7 +1,8 @@
 """A warm-up that takes long says why (a machine's first run compiles the kernels); a quick
 one (a load from numba's cache) says nothing; a process warms the kernels it runs: a batch
-flight not the fleet's lockstep nor, unless it flies one, the CPG's; a fleet not the batch tick
-nor the companion's (companion.kernels.warm.compile_notice, sitl.warm)."""
+flight not the fleet's lockstep nor, unless it flies one, the CPG's; a fleet not the batch tick,
+nor the companion's when its companions run the numpy path (companion.kernels.warm.compile_notice,
+sitl.warm)."""
 
 from __future__ import annotations
 
@@ -50,8 +51,9 @@ CPG = {"cpg_step_kernel", "cpg_output_kernel", "body_step_kernel", "link_targets
 COMPANION = {"constraint_apply_batched_kernel", "feedforward_kernel", "joint_nis_kernel"}
 
 
-@pytest.mark.parametrize("mode, cpg", [("batch", False), ("batch", True), ("fleet", False), ("all", True)])
-def test_a_process_warms_what_it_runs(monkeypatch, mode, cpg):
+@pytest.mark.parametrize("mode, cpg, companion", [("batch", False, True), ("batch", True, True), ("fleet", False, True),
+                                              ("fleet", False, False), ("fleet", True, True), ("all", True, True)])
+def test_a_process_warms_what_it_runs(monkeypatch, mode, cpg, companion):
     if not firmware_warm.ENABLED:
         pytest.skip("numba not installed: nothing is compiled")
     loaded = []
@@ -59,10 +61,10 @@ def test_a_process_warms_what_it_runs(monkeypatch, mode, cpg):
         monkeypatch.setattr(module, "load", lambda kernel, *args: loaded.append(kernel.__name__))
     monkeypatch.setattr(warm, "warm_up_rotors", lambda: None)
     monkeypatch.setattr(warm, "warm_up_sensors", lambda: None)
-    warm.warm_up_kernels(mode, cpg=cpg)
+    warm.warm_up_kernels(mode, cpg=cpg, companion=companion)
     names = set(loaded)
     assert {"tick_kernel", "ekf_predict_kernel", "attitude_tick_kernel"} <= names
     assert ("links_tick_kernel" in names) == (mode != "fleet")
     assert FLEET_ONLY.isdisjoint(names) if mode == "batch" else FLEET_ONLY <= names
-    assert COMPANION.isdisjoint(names) if mode == "fleet" else COMPANION <= names  # (its companions: numpy)
-    assert CPG <= names if cpg and mode != "fleet" else CPG.isdisjoint(names)
+    assert COMPANION <= names if companion else COMPANION.isdisjoint(names)  # (a fleet's numpy companions: none)
+    assert CPG <= names if cpg and companion else CPG.isdisjoint(names)
